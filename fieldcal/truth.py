@@ -1,0 +1,65 @@
+"""A simulated lens seen through the lens-profile API: the ground truth that tests, oracles and validation use.
+
+:class:`TruthProfile` answers every question a :class:`fieldcal.profile.LensProfile` answers, from the
+:class:`fieldcal.lens.LensSpec` itself (zero-width credible bands), in the pixel geometry of a given image size.
+Planning and compositing code is written against this shared interface (see docs/architecture.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .lens import LensSpec
+
+
+class TruthProfile:
+    """The exact answers of a simulated lens, in the pixel grid of a ``width_px`` x ``height_px`` image."""
+
+    is_truth = True
+    has_measured_tolerance = False
+
+    def __init__(self, spec: LensSpec, width_px: int | None = None, height_px: int | None = None):
+        if width_px is not None or height_px is not None:
+            spec = spec.with_sensor_size(width_px or spec.sensor.width_px, height_px or spec.sensor.height_px)
+        self.spec = spec
+        self.image_size_px = (spec.sensor.width_px, spec.sensor.height_px)
+        self.pixel_pitch_um = spec.sensor.pixel_pitch_um
+        self.channels = spec.channel_names
+        self.z_ref_um = spec.z_ref_um
+        self.f_number = spec.f_number
+        self.focal_length_mm = spec.focal_length_mm
+        self.object_distance_mm = spec.object_distance_mm
+        self.image_height_max_mm = spec.image_height_max_mm
+
+    # -- the DESIGN.md API -------------------------------------------------------------------------
+    def best_focus_um(self, x, y, channel: str):
+        xm, ym = self.spec.pixel_to_mm(x, y)
+        return self.spec.best_focus_um(xm, ym, channel)
+
+    def best_focus_interval_um(self, x, y, channel: str, level: float = 0.9):
+        z = self.best_focus_um(x, y, channel)
+        return z, z.copy()
+
+    def magnification(self, z_um, channel: str | None = None):
+        return self.spec.magnification(z_um, channel)
+
+    def shift_px(self, z_um, channel: str | None = None):
+        return self.spec.shift_px(z_um)
+
+    # -- what planning and compositing also need ---------------------------------------------------
+    def optical_centre_px(self) -> tuple[float, float]:
+        return self.spec.optical_centre_px()
+
+    def lateral_colour_scale(self, channel: str) -> float:
+        return self.spec.lateral_colour_scale(channel)
+
+    def wavelength_nm(self, channel: str) -> float:
+        return self.spec.channel(channel).wavelength_nm
+
+    def focus_tolerance_um(self, x, y, channel: str, fs_cyc_per_mm: float, q: float):
+        """Half-width of the in-tolerance defocus range (MTF at fs within q of its peak) at each point."""
+        tol = self.spec.focus_tolerance_um(fs_cyc_per_mm, q, channel)
+        return np.full(np.broadcast(np.asarray(x), np.asarray(y)).shape, tol)
+
+    def defocus_mtf(self, f_cyc_per_mm, defocus_um, channel: str):
+        return self.spec.mtf(f_cyc_per_mm, defocus_um, channel)
