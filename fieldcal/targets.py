@@ -1,0 +1,429 @@
+"""Calibration charts: random texture (focus), ChArUco (geometry) and slanted edges (MTF).
+
+Every chart is a pure function of its size in pixels (and a seed), returning a float32 ``H x W`` image in
+[0, 1]. The simulator renders these as scenes; :func:`write_targets` writes the same images as printable
+files at a stated physical size. Pixel coordinates follow DESIGN.md: origin at the centre of the top-left
+pixel, x right, y down.
+
+* ``texture`` — dead leaves (Lee, Mumford & Huang 2001; Cao, Guichard & Hornung 2010, the basis of
+  ISO 19567-2): occluding discs with radii drawn from ``p(r) ~ r**-3``. The model is scale invariant, so its
+  power spectrum falls as ``1/f**2`` from ``1/r_max`` up to the chart's Nyquist frequency, and it has sharp
+  edges in every direction: a focus measure finds energy at whichever frequency it looks.
+* ``charuco`` — an OpenCV ChArUco board; :class:`CharucoSpec` maps each corner id to its pixel and physical
+  position, :func:`detect_charuco` finds corners in a frame.
+* ``slanted-edge`` — a grid of dark squares rotated by ~5 degrees (ISO 12233 e-SFR style, ~4:1 contrast,
+  never clipped); :class:`SlantedEdgeSpec` lists every edge with its angle and a region of interest.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ._io import atomic_write_bytes, atomic_write_text
+from .errors import ParameterError
+from .progress import progress
+
+KINDS = ("texture", "charuco", "slanted-edge")
+TARGETS_FORMAT = "fieldcal-targets/1"
+MM_PER_INCH = 25.4
+
+# Sub-pixel precision of OpenCV's drawing functions: coordinates are fixed point with 4 fractional bits.
+_SHIFT_BITS = 4
+_SHIFT = 1 << _SHIFT_BITS
+
+# Limits for printable charts: below 50 dpi nothing useful prints; above 1200 dpi no printer resolves it.
+DPI_MIN, DPI_MAX = 50.0, 1200.0
+MAX_CHART_PIXELS = 120_000_000  # ~ A2 at 600 dpi: keeps one uint8 chart (plus float32 copy) in memory
+
+
+def _check_size(width_px: int, height_px: int, min_px: int = 8) -> tuple[int, int]:
+    try:
+        w, h = int(width_px), int(height_px)
+    except (TypeError, ValueError):
+        raise ParameterError(f"chart size must be integers, got {width_px!r} x {height_px!r}",
+                             field="width_px/height_px", fix="pass whole numbers of pixels") from None
+    if w != width_px or h != height_px or w < min_px or h < min_px:
+        raise ParameterError(f"chart size {width_px} x {height_px} px is not usable",
+                             field="width_px/height_px", fix=f"use whole numbers >= {min_px}")
+    if w * h > MAX_CHART_PIXELS:
+        raise ParameterError(f"chart of {w} x {h} px is too large ({w * h / 1e6:.0f} MP)",
+                             field="width_px/height_px",
+                             fix=f"stay below {MAX_CHART_PIXELS / 1e6:.0f} MP (lower the dpi or the size)")
+    return w, h
+
+
+# ----------------------------------------------------------------------------------------- texture
+@dataclass(frozen=True)
+class TextureParams:
+    """Dead-leaves parameters (all lengths in chart pixels)."""
+
+    r_min_px: float = 0.5
+    r_max_px: float | None = None  # default: 10 % of the short side
+    grey_min: float = 0.1
+    grey_max: float = 0.9
+    coverage: float = 5.0  # mean number of discs over a pixel: uncovered fraction exp(-coverage)
+
+
+def random_texture(width_px: int, height_px: int, seed: int = 0, *, r_min_px: float = 0.5,
+                   r_max_px: float | None = None, grey_min: float = 0.1, grey_max: float = 0.9,
+                   coverage: float = 5.0, quiet: bool = True) -> np.ndarray:
+    """Dead-leaves texture: scale-invariant, ``1/f**2`` power up to Nyquist, sharp edges, mean ~0.5.
+
+    Parameters
+    ----------
+    width_px, height_px : int
+        Image size.
+    seed : int
+        The image is a deterministic function of the seed and the other arguments.
+    r_min_px, r_max_px : float
+        Disc radius range in pixels; ``r_max_px`` defaults to 10 % of the short side. Radii follow
+        ``p(r) ~ r**-3``, the scale-invariant law. ``r_min_px`` below one pixel keeps the ``1/f**2``
+        spectrum up to the Nyquist frequency (sub-pixel discs are drawn antialiased).
+    grey_min, grey_max : float
+        Disc grey levels are uniform in this range (defaults give mean 0.5 and no clipping).
+    coverage : float
+        Mean number of discs drawn over each pixel; more removes the last uncovered pixels.
+    quiet : bool
+        Hide the progress bar (big printable charts draw millions of discs).
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 ``H x W`` in [grey_min, grey_max] (within 1/255 from 8-bit antialiased drawing).
+    """
+    w, h = _check_size(width_px, height_px)
+    if not (0.0 <= grey_min < grey_max <= 1.0):
+        raise ParameterError(f"grey range [{grey_min}, {grey_max}] is not inside [0, 1]",
+                             field="grey_min/grey_max", fix="use 0 <= grey_min < grey_max <= 1")
+    r_max = 0.1 * min(w, h) if r_max_px is None else float(r_max_px)
+    if not (0.1 <= r_min_px < r_max) or not math.isfinite(r_max):
+        raise ParameterError(f"disc radius range [{r_min_px}, {r_max}] px is not usable",
+                             field="r_min_px/r_max_px", fix="use 0.1 <= r_min_px < r_max_px")
+    if not (0.5 <= coverage <= 20.0):
+        raise ParameterError(f"coverage {coverage} out of range", field="coverage", fix="use 1..20 (default 5)")
+    rng = np.random.default_rng(seed)
+    margin = r_max  # centres beyond the border so the edges are covered like the middle
+    area = (w + 2 * margin) * (h + 2 * margin)
+    a, b = r_min_px ** -2, r_max ** -2
+    mean_r2 = math.log(r_max / r_min_px) / ((a - b) / 2.0)  # E[r^2] for p(r) ~ r^-3 on [r_min, r_max]
+    n = int(math.ceil(coverage * area / (math.pi * mean_r2)))
+    # Inverse CDF of p(r) ~ r^-3: r^-2 is uniform between r_max^-2 and r_min^-2.
+    r = (a - rng.random(n) * (a - b)) ** -0.5
+    x = rng.uniform(-margin, w - 1 + margin, n)
+    y = rng.uniform(-margin, h - 1 + margin, n)
+    g = rng.uniform(grey_min, grey_max, n)
+    # Drawn back to front (painter's algorithm): the visible discs are the last ones, as in the model.
+    xs = np.round(x * _SHIFT).astype(np.int64).tolist()
+    ys = np.round(y * _SHIFT).astype(np.int64).tolist()
+    rs = np.maximum(np.round(r * _SHIFT), 1).astype(np.int64).tolist()
+    gs = np.round(g * 255.0).astype(np.int64).tolist()
+    img = np.full((h, w), int(round(127.5 * (grey_min + grey_max))), np.uint8)
+    circle, aa = cv2.circle, cv2.LINE_AA
+    batch = 200_000
+    for start in progress(range(0, n, batch), total=(n + batch - 1) // batch, desc="dead leaves",
+                          quiet=quiet, unit="batch"):
+        for k in range(start, min(n, start + batch)):
+            circle(img, (xs[k], ys[k]), rs[k], gs[k], -1, aa, _SHIFT_BITS)
+    return img.astype(np.float32) / np.float32(255.0)
+
+
+# ----------------------------------------------------------------------------------------- ChArUco
+_ARUCO_DICTS = ("DICT_5X5_250", "DICT_5X5_1000")
+
+
+@dataclass(frozen=True)
+class CharucoSpec:
+    """A ChArUco board placed in a chart image.
+
+    ``squares_x`` x ``squares_y`` chessboard squares of ``square_px`` pixels; ArUco markers of
+    ``marker_px`` pixels in the white squares; the board's top-left outer corner sits at pixel edge
+    ``(origin_x_px, origin_y_px)`` (i.e. at ``origin - 0.5`` in pixel-centre coordinates).
+    ``square_mm`` is the printed square size (None for a chart that only exists in pixels).
+    """
+
+    squares_x: int
+    squares_y: int
+    square_px: int
+    marker_px: int
+    dictionary: str
+    origin_x_px: int
+    origin_y_px: int
+    width_px: int
+    height_px: int
+    square_mm: float | None = None
+
+    @property
+    def marker_mm(self) -> float | None:
+        return None if self.square_mm is None else self.square_mm * self.marker_px / self.square_px
+
+    @property
+    def n_corners(self) -> int:
+        return (self.squares_x - 1) * (self.squares_y - 1)
+
+    def board(self):
+        """The OpenCV board (lengths in pixels of the chart image)."""
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+        return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), float(self.square_px),
+                                      float(self.marker_px), d)
+
+    def _corner_board(self, ids) -> np.ndarray:
+        """Corner positions on the board (x right, y down) in units of squares, from the board's definition."""
+        obj = np.asarray(self.board().getChessboardCorners(), dtype=np.float64)[:, :2] / self.square_px
+        ids = np.asarray(ids, dtype=np.int64).ravel()
+        if ids.size and (ids.min() < 0 or ids.max() >= len(obj)):
+            raise ParameterError(f"corner id out of range 0..{len(obj) - 1}", field="ids",
+                                 fix="pass ids returned by detect_charuco for this board")
+        return obj[ids]
+
+    def corner_px(self, ids) -> np.ndarray:
+        """N x 2 pixel coordinates (pixel-centre origin) of corners in the chart image."""
+        sq = self._corner_board(ids)
+        return np.column_stack([self.origin_x_px - 0.5 + sq[:, 0] * self.square_px,
+                                self.origin_y_px - 0.5 + sq[:, 1] * self.square_px])
+
+    def corner_mm(self, ids) -> np.ndarray:
+        """N x 2 physical positions (mm from the board's top-left corner, x right, y down) of corners."""
+        if self.square_mm is None:
+            raise ParameterError("this board has no physical size", field="square_mm",
+                                 fix="make the board with write_targets/charuco_spec(..., dpi=) to know its mm")
+        return self._corner_board(ids) * self.square_mm
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["marker_mm"] = self.marker_mm
+        d["corner_id_order"] = "row-major over interior corners, id = row * (squares_x - 1) + column"
+        return d
+
+
+def charuco_spec(width_px: int, height_px: int, *, squares_short: int | None = None,
+                 marker_ratio: float = 0.7, dpi: float | None = None) -> CharucoSpec:
+    """Lay out a ChArUco board centred in a ``width_px x height_px`` chart.
+
+    Parameters
+    ----------
+    squares_short : int, optional
+        Squares along the short side (default: one per 32 px, 3 to 10). At least half a square of white
+        margin is kept all round.
+    marker_ratio : float
+        Marker size as a fraction of the square.
+    dpi : float, optional
+        Print resolution; sets ``square_mm``.
+    """
+    w, h = _check_size(width_px, height_px, min_px=64)
+    short = min(w, h)
+    n_short = int(np.clip(short // 32, 3, 10)) if squares_short is None else int(squares_short)
+    if n_short < 3:
+        raise ParameterError(f"{n_short} squares is too few", field="squares_short", fix="use at least 3")
+    if not (0.3 <= marker_ratio <= 0.9):
+        raise ParameterError(f"marker ratio {marker_ratio} out of range", field="marker_ratio", fix="use 0.3..0.9")
+    square = int(short // (n_short + 1))  # +1: half a square of quiet margin on each side
+    if square < 12:
+        raise ParameterError(f"squares of {square} px are too small to detect", field="squares_short",
+                             fix="use fewer squares or a larger chart (squares need >= 12 px)")
+    sx = int((w - square) // square) if w >= h else n_short
+    sy = n_short if w >= h else int((h - square) // square)
+    # The dictionary must hold one marker per white square.
+    n_markers = (sx * sy) // 2
+    dictionary = _ARUCO_DICTS[0] if n_markers <= 250 else _ARUCO_DICTS[1]
+    if n_markers > 1000:
+        raise ParameterError(f"a board of {sx} x {sy} squares needs {n_markers} markers (max 1000)",
+                             field="squares_short", fix="use fewer squares")
+    marker = int(round(marker_ratio * square))
+    return CharucoSpec(squares_x=sx, squares_y=sy, square_px=square, marker_px=marker, dictionary=dictionary,
+                       origin_x_px=(w - sx * square) // 2, origin_y_px=(h - sy * square) // 2,
+                       width_px=w, height_px=h,
+                       square_mm=None if dpi is None else square * MM_PER_INCH / float(dpi))
+
+
+def charuco_image(spec: CharucoSpec) -> np.ndarray:
+    """Render the board of ``spec`` (white surround) as float32 in [0, 1]."""
+    bw, bh = spec.squares_x * spec.square_px, spec.squares_y * spec.square_px
+    board_img = spec.board().generateImage((bw, bh), marginSize=0, borderBits=1)
+    img = np.full((spec.height_px, spec.width_px), 255, np.uint8)
+    img[spec.origin_y_px:spec.origin_y_px + bh, spec.origin_x_px:spec.origin_x_px + bw] = board_img
+    return img.astype(np.float32) / np.float32(255.0)
+
+
+def _to_uint8(image: np.ndarray) -> np.ndarray:
+    """Any grey or colour frame (uint8/uint16/float) to an 8-bit grey image stretched to its own range."""
+    a = np.asarray(image)
+    if a.ndim == 3:
+        a = a.astype(np.float32).mean(axis=2) if a.shape[2] > 1 else a[:, :, 0]
+    if a.ndim != 2:
+        raise ParameterError(f"expected an H x W or H x W x C image, got shape {a.shape}", field="image",
+                             fix="pass one frame")
+    a = a.astype(np.float32)
+    if not np.all(np.isfinite(a)):
+        raise ParameterError("image contains NaN or Inf", field="image", fix="pass finite pixel values")
+    lo, hi = np.percentile(a, [0.5, 99.5])
+    span = hi - lo
+    if span <= 0:
+        return np.zeros(a.shape, np.uint8)
+    return np.clip((a - lo) * (255.0 / span), 0, 255).astype(np.uint8)
+
+
+def detect_charuco(image: np.ndarray, spec: CharucoSpec | None = None, *,
+                   min_corners: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Find ChArUco corners in a frame with OpenCV's ``CharucoDetector``.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        ``H x W`` or ``H x W x C`` frame, any dtype (scaled to 8 bit by its own 0.5–99.5 % range).
+    spec : CharucoSpec, optional
+        The board; default :func:`charuco_spec` for the frame's size (the chart the simulator renders).
+    min_corners : int
+        Raise :class:`ParameterError` when fewer corners are found.
+
+    Returns
+    -------
+    corners_px : numpy.ndarray
+        N x 2 float64 sub-pixel corner positions (pixel-centre origin), sorted by id.
+    ids : numpy.ndarray
+        N int64 corner ids: map to the board with ``spec.corner_px(ids)`` / ``spec.corner_mm(ids)``.
+    """
+    grey = _to_uint8(image)
+    if spec is None:
+        spec = charuco_spec(grey.shape[1], grey.shape[0])
+    detector = cv2.aruco.CharucoDetector(spec.board())
+    corners, ids, _, _ = detector.detectBoard(grey)
+    if ids is None or len(ids) == 0:
+        corners_px, out_ids = np.zeros((0, 2)), np.zeros(0, np.int64)
+    else:
+        out_ids = np.asarray(ids, dtype=np.int64).ravel()
+        corners_px = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+        order = np.argsort(out_ids)
+        out_ids, corners_px = out_ids[order], corners_px[order]
+    if len(out_ids) < min_corners:
+        raise ParameterError(f"found {len(out_ids)} ChArUco corners, need {min_corners}", field="image",
+                             fix="check the chart fills the frame, is lit evenly and is near focus")
+    return corners_px, out_ids
+
+
+# ------------------------------------------------------------------------------------ slanted edge
+@dataclass(frozen=True)
+class SlantedEdgeSpec:
+    """A grid of dark squares rotated by ``angle_deg`` on a light background.
+
+    Each square gives four edges, two near-vertical (for horizontal MTF) and two near-horizontal
+    (for vertical MTF), all ``angle_deg`` off the pixel axes.
+    """
+
+    width_px: int
+    height_px: int
+    nx: int
+    ny: int
+    cell_px: float
+    side_px: float
+    angle_deg: float
+    dark: float
+    light: float
+    centres_px: tuple[tuple[float, float], ...] = field(repr=False)
+
+    def edges(self) -> list[dict[str, Any]]:
+        """Every edge: midpoint (px), direction angle from the x axis (deg), orientation and a square ROI.
+
+        The ROI ``(x0, y0, x1, y1)`` (inclusive-exclusive pixel indices) is centred on the edge midpoint,
+        spans 60 % of the edge length and stays inside the chart.
+        """
+        th = math.radians(self.angle_deg)
+        c, s = math.cos(th), math.sin(th)
+        half = self.side_px / 2.0
+        roi_half = int(max(4, 0.3 * self.side_px))
+        out = []
+        for (cx, cy) in self.centres_px:
+            # Outward normals of the four sides in the rotated frame: +u, -u, +v, -v.
+            for nu, nv, orient in ((1, 0, "near-vertical"), (-1, 0, "near-vertical"),
+                                   (0, 1, "near-horizontal"), (0, -1, "near-horizontal")):
+                mx = cx + half * (nu * c - nv * s)
+                my = cy + half * (nu * s + nv * c)
+                direction = math.degrees(math.atan2(nu * s + nv * c, nu * c - nv * s)) + 90.0
+                x0 = int(np.clip(round(mx) - roi_half, 0, self.width_px))
+                y0 = int(np.clip(round(my) - roi_half, 0, self.height_px))
+                x1 = int(np.clip(round(mx) + roi_half + 1, 0, self.width_px))
+                y1 = int(np.clip(round(my) + roi_half + 1, 0, self.height_px))
+                out.append({"mid_px": (mx, my), "direction_deg": direction % 180.0, "orientation": orient,
+                            "roi": (x0, y0, x1, y1)})
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["centres_px"] = [list(p) for p in self.centres_px]
+        return d
+
+
+def slanted_edge_spec(width_px: int, height_px: int, *, angle_deg: float = 5.0, cells_short: int | None = None,
+                      dark: float = 0.2, light: float = 0.8) -> SlantedEdgeSpec:
+    """Lay out a grid of slanted squares covering the field (one square per cell, half the cell wide)."""
+    w, h = _check_size(width_px, height_px, min_px=32)
+    if not (1.0 <= abs(angle_deg) <= 20.0):
+        raise ParameterError(f"edge angle {angle_deg} deg out of range", field="angle_deg",
+                             fix="use 1..20 degrees (ISO 12233 suggests ~5)")
+    if not (0.0 <= dark < light <= 1.0):
+        raise ParameterError(f"dark {dark} / light {light} not ordered in [0, 1]", field="dark/light",
+                             fix="use 0 <= dark < light <= 1 (e.g. 0.2 and 0.8, 4:1 contrast)")
+    short = min(w, h)
+    n_short = int(np.clip(short // 64, 2, 8)) if cells_short is None else int(cells_short)
+    cell = short / n_short
+    if n_short < 1 or cell < 24:
+        raise ParameterError(f"cells of {cell:.0f} px are too small", field="cells_short",
+                             fix="use fewer cells (each needs >= 24 px)")
+    nx = max(1, int(w // cell)) if w >= h else n_short
+    ny = n_short if w >= h else max(1, int(h // cell))
+    cell_x, cell_y = w / nx, h / ny
+    centres = tuple(((i + 0.5) * cell_x - 0.5, (j + 0.5) * cell_y - 0.5) for j in range(ny) for i in range(nx))
+    return SlantedEdgeSpec(width_px=w, height_px=h, nx=nx, ny=ny, cell_px=float(min(cell_x, cell_y)),
+                           side_px=float(0.5 * min(cell_x, cell_y)), angle_deg=float(angle_deg),
+                           dark=float(dark), light=float(light), centres_px=centres)
+
+
+def slanted_edge_image(spec: SlantedEdgeSpec) -> np.ndarray:
+    """Render ``spec`` with box-filtered (area-coverage) edges: sharp, antialiased, never clipped."""
+    h, w = spec.height_px, spec.width_px
+    th = math.radians(spec.angle_deg)
+    c, s = math.cos(th), math.sin(th)
+    half = spec.side_px / 2.0
+    img = np.full((h, w), spec.light, np.float32)
+    reach = int(math.ceil(half * math.sqrt(2.0))) + 2
+    for (cx, cy) in spec.centres_px:
+        x0, x1 = max(0, int(cx) - reach), min(w, int(cx) + reach + 1)
+        y0, y1 = max(0, int(cy) - reach), min(h, int(cy) + reach + 1)
+        yy, xx = np.mgrid[y0:y1, x0:x1].astype(np.float64)
+        dx, dy = xx - cx, yy - cy
+        u = c * dx + s * dy   # coordinates in the square's rotated frame
+        v = -s * dx + c * dy
+        # Fraction of a pixel inside each pair of sides (a unit box filter across a straight edge).
+        cov = np.clip(half - np.abs(u) + 0.5, 0.0, 1.0) * np.clip(half - np.abs(v) + 0.5, 0.0, 1.0)
+        patch = img[y0:y1, x0:x1]
+        np.minimum(patch, (spec.light - (spec.light - spec.dark) * cov).astype(np.float32), out=patch)
+    return img
+
+
+# ------------------------------------------------------------------------------------------ public
+def chart_image(kind: str = "texture", width_px: int = 256, height_px: int = 256, seed: int = 0) -> np.ndarray:
+    """A calibration chart as a float32 ``H x W`` image in [0, 1].
+
+    Parameters
+    ----------
+    kind : {"texture", "charuco", "slanted-edge"}
+        Dead-leaves texture (focus), ChArUco board (geometry) or slanted-edge grid (MTF).
+    width_px, height_px : int
+        Size in pixels (the simulator passes the sensor size).
+    seed : int
+        Seed of the random texture (the other charts are deterministic and ignore it).
+    """
+    if kind == "texture":
+        return random_texture(width_px, height_px, seed=seed)
+    if kind == "charuco":
+        return charuco_image(charuco_spec(width_px, height_px))
+    if kind == "slanted-edge":
+        return slanted_edge_image(slanted_edge_spec(width_px, height_px))
+    raise ParameterError(f"unknown chart kind {kind!r}", field="kind", fix=f"use one of {', '.join(KINDS)}")
