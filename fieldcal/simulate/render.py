@@ -1,0 +1,294 @@
+"""The frame renderer: what the simulated camera records at a stage position.
+
+Spatially varying defocus without a kernel per pixel: the (reflect-padded) scene is Fourier transformed once
+per channel; for each of a few *blur levels* the spectrum is multiplied by the analytic OTF of
+:func:`fieldcal.lens.otf` and transformed back, and every pixel linearly interpolates between the two levels
+that bracket its own defocus. Levels are spaced geometrically in blur-disc diameter (ratio ``level_ratio``)
+above a floor of ``level_floor_px`` pixels, with an in-focus level at zero, so the interpolation error is a
+bounded fraction of the local blur change (docs/simulator.md gives the bound the tests check).
+
+Then geometry (focus breathing, stage-axis shift, lateral colour: one affine warp per channel), relative
+illumination and the sensor: photon and read noise, gain, black level, clipping and quantisation
+(:mod:`fieldcal.simulate.noise`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from scipy import fft
+
+from ..errors import ParameterError
+from ..lens import LensSpec
+from . import noise as _noise
+
+RENDERER_VERSION = "fieldcal-render/1"
+# Rec. 709 luma weights: an RGB scene seen by a monochrome sensor.
+_LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+
+def level_diameters_px(max_diameter_px: float, ratio: float, floor_px: float) -> np.ndarray:
+    """Blur-level diameters (px): 0, then ``floor * ratio**k`` until ``max_diameter_px`` is covered."""
+    n = 1 if max_diameter_px <= floor_px else 1 + math.ceil(math.log(max_diameter_px / floor_px) / math.log(ratio))
+    return np.concatenate([[0.0], floor_px * ratio ** np.arange(n + 1)])
+
+
+def fractional_level(diameter_px: np.ndarray, ratio: float, floor_px: float) -> np.ndarray:
+    """Continuous level index of each blur diameter: integer at a level, linear in diameter between levels."""
+    b = np.asarray(diameter_px, dtype=np.float32)
+    safe = np.maximum(b, floor_px)  # the log below is only used above the floor
+    k = np.floor(np.log(safe / floor_px) / np.float32(math.log(ratio))).astype(np.float32)
+    lo = floor_px * np.power(np.float32(ratio), k)
+    frac = (safe - lo) / (lo * np.float32(ratio - 1.0))
+    above = 1.0 + k + np.clip(frac, 0.0, 1.0)
+    return np.where(b < floor_px, b / np.float32(floor_px), above).astype(np.float32)
+
+
+def scene_to_channels(scene, channels: tuple[str, ...], width_px: int, height_px: int) -> np.ndarray:
+    """Validate a scene array and return it as float32 H x W x C matching the lens's channels.
+
+    H x W (or H x W x 1) is replicated to every channel; H x W x 3 is taken as R, G, B and reduced to luma
+    for a one-channel (mono) lens.
+    """
+    a = np.asarray(scene)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    if a.ndim != 3:
+        raise ParameterError(f"a scene must be H x W or H x W x C, got shape {a.shape}", field="scene",
+                             fix="pass a 2-D or 3-D image array")
+    if a.shape[:2] != (height_px, width_px):
+        raise ParameterError(f"scene is {a.shape[1]}x{a.shape[0]} px but the sensor is {width_px}x{height_px}",
+                             field="scene", fix="resize the scene (simulate_stack does this for you) or use "
+                             "spec.with_sensor_size(W, H)")
+    a = a.astype(np.float32, copy=False)
+    if not np.all(np.isfinite(a)) or a.min() < -1e-6 or a.max() > 1.0 + 1e-6:
+        raise ParameterError("scene values must be finite and in [0, 1]", field="scene",
+                             fix="normalise the scene to [0, 1] (e.g. divide uint8 data by 255)")
+    a = np.clip(a, 0.0, 1.0)
+    n = len(channels)
+    c = a.shape[2]
+    if c == n:
+        return np.ascontiguousarray(a)
+    if c == 1:
+        return np.ascontiguousarray(np.repeat(a, n, axis=2))
+    if c == 3 and n == 1:
+        return np.ascontiguousarray((a @ _LUMA)[:, :, None])
+    raise ParameterError(f"scene has {c} channels but the lens has {n} ({', '.join(channels)})", field="scene",
+                         fix="pass a mono scene, an RGB scene or one plane per lens channel")
+
+
+class Renderer:
+    """Render frames of a scene through a simulated lens (``fieldcal-lens/1``) at stage positions.
+
+    Parameters
+    ----------
+    spec : LensSpec
+        The lens and sensor; the scene must have the sensor's size (``spec.with_sensor_size`` to change it).
+    scene : array_like
+        Linear scene radiance in [0, 1], H x W or H x W x C (see :func:`scene_to_channels`), in the geometry
+        of the frame at ``spec.z_ref_um`` without lateral colour.
+    seed : int
+        Noise seed; a frame depends only on (seed, z), not on render order.
+    level_ratio : float
+        Ratio of successive blur-level diameters (> 1). Smaller is more accurate and slower.
+    level_floor_px : float
+        Diameter of the first non-zero level (px); below it the blur interpolates linearly to focus.
+    """
+
+    def __init__(self, spec: LensSpec, scene, seed: int = 0, level_ratio: float = 1.25,
+                 level_floor_px: float = 0.5):
+        if not (level_ratio > 1.0 and math.isfinite(level_ratio)):
+            raise ParameterError(f"level_ratio must be > 1, got {level_ratio}", field="level_ratio",
+                                 fix="e.g. 1.25")
+        if not (level_floor_px > 0.0 and math.isfinite(level_floor_px)):
+            raise ParameterError(f"level_floor_px must be > 0, got {level_floor_px}", field="level_floor_px",
+                                 fix="e.g. 0.5")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ParameterError(f"seed must be a non-negative integer, got {seed!r}", field="seed", fix="e.g. 0")
+        self.spec = spec
+        self.seed = int(seed)
+        self.level_ratio = float(level_ratio)
+        self.level_floor_px = float(level_floor_px)
+        s = spec.sensor
+        self.width_px, self.height_px = s.width_px, s.height_px
+        self.pitch_um = s.pixel_pitch_um
+        self.channels = spec.channel_names
+        _noise.check_levels(s)
+        self.scene = scene_to_channels(scene, self.channels, s.width_px, s.height_px)
+        self.exposure = _noise.exposure_scale(self.scene, s.signal_fraction)
+        # Pixel grid (broadcastable rows/columns) and the optical centre.
+        self._xs = np.arange(self.width_px, dtype=np.float64)[None, :]
+        self._ys = np.arange(self.height_px, dtype=np.float64)[:, None]
+        self.centre_px = spec.optical_centre_px()
+        xm, ym = spec.pixel_to_mm(self._xs, self._ys)
+        self._illum = spec.relative_illumination(xm, ym).astype(np.float32)
+        self._spectra: dict[int, tuple[int, np.ndarray]] = {}  # channel -> (pad px, rfft2 of padded scene)
+        self._freq: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}  # pad -> radial index/weight/step
+
+    # ---------------------------------------------------------------------------------------- levels
+    def diameter_px(self, defocus_um) -> np.ndarray:
+        """Geometric blur-disc diameter in pixels, ``|dz| / N / pitch``."""
+        return np.abs(np.asarray(defocus_um, dtype=np.float64)) / self.spec.f_number / self.pitch_um
+
+    def levels_um(self, max_defocus_um: float) -> np.ndarray:
+        """Defocus (µm) of the blur levels needed up to ``max_defocus_um``."""
+        d = level_diameters_px(float(self.diameter_px(max_defocus_um)), self.level_ratio, self.level_floor_px)
+        return d * self.spec.f_number * self.pitch_um
+
+    # ------------------------------------------------------------------------------------- spectra
+    def _pad_for(self, max_diameter_px: float, channel: str) -> int:
+        """Reflect padding (px) that keeps the circular FFT convolution's wrap-around off the frame."""
+        lam_px = self.spec.channel(channel).wavelength_nm * 1e-3 * self.spec.f_number / self.pitch_um
+        sigma_px = self.spec.residual_blur_um / self.pitch_um
+        return int(math.ceil(0.5 * max_diameter_px + 4.0 * sigma_px + 3.0 * lam_px)) + 8
+
+    def _spectrum(self, ci: int, pad: int) -> tuple[int, np.ndarray]:
+        have = self._spectra.get(ci)
+        if have is not None and have[0] >= pad:
+            return have
+        if have is not None:
+            pad = max(pad, int(have[0] * 1.5))  # grow geometrically: few re-FFTs over a stack
+        h, w = self.height_px, self.width_px
+        hp = fft.next_fast_len(h + 2 * pad, real=True)
+        wp = fft.next_fast_len(w + 2 * pad, real=True)
+        padded = np.pad(self.scene[:, :, ci], ((pad, hp - h - pad), (pad, wp - w - pad)), mode="symmetric")
+        spec = fft.rfft2(padded.astype(np.float32, copy=False), workers=-1)
+        self._spectra[ci] = (pad, spec)
+        return self._spectra[ci]
+
+    def _radial(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, float]:
+        """Radial-frequency table lookup for an rfft2 grid: index and weight into a 1-D table, table step."""
+        key = shape
+        if key not in self._freq:
+            hp, wp = shape
+            fy = fft.fftfreq(hp).astype(np.float32)[:, None]
+            fx = fft.rfftfreq(wp).astype(np.float32)[None, :]
+            r = np.sqrt(fy * fy + fx * fx)  # cycles/px, at most 1/sqrt(2)
+            step = 1.0 / 8192.0
+            pos = r / np.float32(step)
+            idx = np.floor(pos).astype(np.int32)
+            self._freq[key] = (idx, (pos - idx).astype(np.float32), step)
+        return self._freq[key]
+
+    def _otf_grid(self, shape, defocus_um: float, channel: str) -> np.ndarray:
+        """The lens OTF (real, radial) on an rfft2 grid, by linear lookup in a fine 1-D table."""
+        idx, wgt, step = self._radial(shape)
+        f_px = np.arange(int(0.75 / step) + 2, dtype=np.float64) * step
+        table = self.spec.otf(f_px / (self.pitch_um * 1e-3), defocus_um, channel).astype(np.float32)
+        lo = table[idx]
+        return lo + wgt * (table[idx + 1] - lo)
+
+    def blur_uniform(self, channel: str, defocus_um: float) -> np.ndarray:
+        """The scene channel blurred by one defocus everywhere (exact OTF, no level interpolation)."""
+        ci = self.channels.index(channel)
+        pad, spec = self._spectrum(ci, self._pad_for(float(self.diameter_px(defocus_um)), channel))
+        return self._inverse(spec, pad, self._otf_grid(self._shape(spec, pad), defocus_um, channel))
+
+    def _shape(self, spectrum: np.ndarray, pad: int) -> tuple[int, int]:
+        hp = spectrum.shape[0]
+        wp = fft.next_fast_len(self.width_px + 2 * pad, real=True)
+        return hp, wp
+
+    def _inverse(self, spectrum, pad, otf_grid) -> np.ndarray:
+        hp, wp = self._shape(spectrum, pad)
+        img = fft.irfft2(spectrum * otf_grid, s=(hp, wp), workers=-1)
+        return img[pad:pad + self.height_px, pad:pad + self.width_px]
+
+    def blur_map(self, channel: str, defocus_um: np.ndarray) -> np.ndarray:
+        """The scene channel with a spatially varying defocus (µm, H x W), by level interpolation."""
+        ci = self.channels.index(channel)
+        b_px = (np.abs(np.asarray(defocus_um, dtype=np.float32))
+                / np.float32(self.spec.f_number * self.pitch_um))
+        kf = fractional_level(b_px, self.level_ratio, self.level_floor_px)
+        diam = level_diameters_px(float(b_px.max()), self.level_ratio, self.level_floor_px)
+        pad, spectrum = self._spectrum(ci, self._pad_for(float(diam[-1]), channel))
+        shape = self._shape(spectrum, pad)
+        out = np.zeros((self.height_px, self.width_px), dtype=np.float32)
+        for k in range(int(math.floor(kf.min())), int(math.ceil(kf.max())) + 1):
+            w = np.maximum(np.float32(0.0), np.float32(1.0) - np.abs(kf - np.float32(k)))
+            if not w.any():
+                continue
+            d_um = float(diam[k]) * self.spec.f_number * self.pitch_um
+            out += w * self._inverse(spectrum, pad, self._otf_grid(shape, d_um, channel))
+        return out
+
+    # ------------------------------------------------------------------------------------ geometry
+    def _affine(self, z_um: float, channel: str, breathing: bool = True) -> np.ndarray:
+        """2x3 matrix mapping a z_ref pixel p to ``c + m(z) * lc * (p - c) + s(z)``."""
+        m = float(self.spec.magnification(z_um, channel)) if breathing else 1.0
+        a = m * self.spec.lateral_colour_scale(channel)
+        sx, sy = (float(v) for v in self.spec.shift_px(z_um)) if breathing else (0.0, 0.0)
+        cx, cy = self.centre_px
+        return np.array([[a, 0.0, cx - a * cx + sx], [0.0, a, cy - a * cy + sy]], dtype=np.float64)
+
+    def _defocus_at(self, z_um: float | None, channel: str, affine: np.ndarray) -> np.ndarray:
+        """Effective defocus (µm) for each scene pixel, evaluated where it lands on the sensor.
+
+        ``z_um=None`` means each pixel's own best focus (the residual is then astigmatism only).
+        """
+        xd = affine[0, 0] * self._xs + affine[0, 2]
+        yd = affine[1, 1] * self._ys + affine[1, 2]
+        xm, ym = self.spec.pixel_to_mm(xd, yd)
+        if z_um is None:
+            astig = self.spec.channel(channel).astigmatism_um
+            d = 0.5 * abs(astig) * self.spec.rho(xm, ym) ** 2 * np.ones((self.height_px, self.width_px))
+        else:
+            d = self.spec.effective_defocus_um(z_um, xm, ym, channel)
+        return np.asarray(d, dtype=np.float32)
+
+    def _warp(self, img: np.ndarray, affine: np.ndarray) -> np.ndarray:
+        if np.allclose(affine, [[1, 0, 0], [0, 1, 0]], rtol=0, atol=1e-9):
+            return img
+        return cv2.warpAffine(img, affine, (self.width_px, self.height_px), flags=cv2.INTER_CUBIC,
+                              borderMode=cv2.BORDER_REFLECT_101)
+
+    def _linear(self, z_um: float | None) -> np.ndarray:
+        out = np.empty((self.height_px, self.width_px, len(self.channels)), dtype=np.float32)
+        breathing = z_um is not None
+        for ci, ch in enumerate(self.channels):
+            aff = self._affine(self.spec.z_ref_um if z_um is None else z_um, ch, breathing)
+            img = self._warp(self.blur_map(ch, self._defocus_at(z_um, ch, aff)), aff)
+            np.multiply(img, self._illum * np.float32(self.exposure), out=out[:, :, ci])
+        np.maximum(out, 0.0, out=out)  # bicubic/OTF ringing can dip below zero
+        return out
+
+    # ---------------------------------------------------------------------------------- public API
+    def render_float(self, z_um: float) -> np.ndarray:
+        """Linear signal at stage position z before noise and quantisation, float32 H x W x C, 1 = white."""
+        return self._linear(_check_z(z_um))
+
+    def render(self, z_um: float, noise: bool = True) -> np.ndarray:
+        """The frame the camera records at stage position z (dtype from the sensor bit depth).
+
+        H x W x C, or an H x W Bayer mosaic when ``spec.sensor.cfa`` is set.
+        """
+        z = _check_z(z_um)
+        signal = self._linear(z)
+        if self.spec.sensor.cfa:
+            signal = _noise.mosaic(signal, self.channels, self.spec.sensor.cfa)
+        rng = _noise.frame_rng(self.seed, z) if noise else None
+        return _noise.to_dn(signal, self.spec.sensor, rng)
+
+    def truth(self) -> np.ndarray:
+        """All-in-focus image in the geometry of z_ref (lateral colour included): each pixel blurred only by
+        its in-focus PSF (diffraction, residual, astigmatic residual), with vignetting and levels, no noise.
+        Always H x W x C (demosaiced even for a Bayer sensor), dtype from the bit depth."""
+        return _noise.to_dn(self._linear(None), self.spec.sensor, None)
+
+    def settings(self) -> dict:
+        """What truth.json records about the renderer."""
+        return {"version": RENDERER_VERSION, "level_ratio": self.level_ratio,
+                "level_floor_px": self.level_floor_px, "exposure_scale": float(self.exposure),
+                "warp": "cv2.warpAffine INTER_CUBIC, BORDER_REFLECT_101", "padding": "symmetric"}
+
+
+def _check_z(z_um) -> float:
+    try:
+        z = float(z_um)
+    except (TypeError, ValueError):
+        raise ParameterError(f"z must be a number (µm), got {z_um!r}", field="z_um", fix="e.g. -25.0") from None
+    if not math.isfinite(z):
+        raise ParameterError(f"z must be finite, got {z}", field="z_um", fix="use a finite stage position in µm")
+    return z

@@ -1,0 +1,105 @@
+"""Scenes for the simulator: the calibration charts by name, an image file, or an array, at the sensor size."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import ParameterError
+
+#: scene names understood by :func:`load_scene` -> the chart kind of :func:`fieldcal.targets.chart_image`.
+CHARTS = {"chart": "texture", "texture": "texture", "charuco": "charuco", "slanted-edge": "slanted-edge"}
+
+
+def load_scene(scene, width_px: int, height_px: int, seed: int = 0) -> tuple[np.ndarray, str]:
+    """Return ``(image, name)``: a float32 H x W or H x W x 3 (RGB) image in [0, 1] at the given size.
+
+    Parameters
+    ----------
+    scene : str, path or array
+        ``"chart"`` (the dead-leaves texture), ``"charuco"``, ``"slanted-edge"``, an image file (any size and
+        format OpenCV or tifffile reads), or an array (uint8/uint16 scaled to [0, 1], floats taken as they
+        are). Files and arrays of another size are centre-cropped to the sensor's aspect ratio, then resized
+        with ``cv2.INTER_AREA`` (averaging, no aliasing when shrinking).
+    width_px, height_px : int
+        Sensor size in pixels.
+    seed : int
+        Seed of the random texture chart.
+    """
+    if isinstance(scene, str) and scene in CHARTS:
+        from ..targets import chart_image
+        return chart_image(CHARTS[scene], width_px, height_px, seed).astype(np.float32), scene
+    if isinstance(scene, (str, Path)):
+        path = Path(scene)
+        return fit_to_sensor(_read_file(path), width_px, height_px), path.name
+    return fit_to_sensor(np.asarray(scene), width_px, height_px), "array"
+
+
+def _read_file(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise ParameterError("scene image not found", path=path, field="scene",
+                             fix="give chart, charuco, slanted-edge or the path of an image file")
+    img = None
+    if path.suffix.lower() in (".tif", ".tiff"):
+        try:
+            import tifffile
+            img = tifffile.imread(path)
+        except Exception:  # not a TIFF tifffile understands: let OpenCV try
+            img = None
+    if img is None:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+        if img is not None and img.ndim == 3:
+            code = cv2.COLOR_BGRA2RGBA if img.shape[2] == 4 else cv2.COLOR_BGR2RGB
+            img = cv2.cvtColor(img, code)
+    if img is None:
+        raise ParameterError("scene image cannot be read (not an image format OpenCV or tifffile decodes)",
+                             path=path, field="scene", fix="convert it to PNG, JPEG or TIFF")
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[:, :, :3]  # drop alpha
+    if img.ndim == 3 and img.shape[2] not in (1, 3):
+        raise ParameterError(f"scene image has {img.shape[2]} channels", path=path, field="scene",
+                             fix="use a grey or RGB image")
+    return img
+
+
+def _to_unit(img: np.ndarray) -> np.ndarray:
+    if img.dtype == np.uint8:
+        return img.astype(np.float32) / 255.0
+    if img.dtype == np.uint16:
+        return img.astype(np.float32) / 65535.0
+    if np.issubdtype(img.dtype, np.floating):
+        a = img.astype(np.float32)
+        if not np.all(np.isfinite(a)):
+            raise ParameterError("scene has NaN or infinite values", field="scene", fix="repair the image")
+        return np.clip(a, 0.0, 1.0)
+    if img.dtype == bool:
+        return img.astype(np.float32)
+    raise ParameterError(f"scene of dtype {img.dtype} is not supported", field="scene",
+                         fix="use uint8, uint16 or float data in [0, 1]")
+
+
+def fit_to_sensor(img: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
+    """Centre-crop to the sensor aspect ratio and resize with INTER_AREA; float32 in [0, 1]."""
+    if img.ndim not in (2, 3) or img.shape[0] < 1 or img.shape[1] < 1:
+        raise ParameterError(f"scene must be an H x W or H x W x C image, got shape {img.shape}", field="scene",
+                             fix="pass a 2-D (grey) or 3-D (RGB) image")
+    a = _to_unit(img)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    h, w = a.shape[:2]
+    if (w, h) == (width_px, height_px):
+        return a
+    target = width_px / height_px
+    if w / h > target:  # too wide: crop columns
+        cw = max(1, round(h * target))
+        x0 = (w - cw) // 2
+        a = a[:, x0:x0 + cw]
+    else:
+        ch = max(1, round(w / target))
+        y0 = (h - ch) // 2
+        a = a[y0:y0 + ch]
+    interp = cv2.INTER_AREA if a.shape[1] >= width_px else cv2.INTER_CUBIC  # AREA shrinks, cubic enlarges
+    out = cv2.resize(np.ascontiguousarray(a), (width_px, height_px), interpolation=interp)
+    return np.clip(out, 0.0, 1.0).astype(np.float32)
