@@ -1,0 +1,297 @@
+"""Frame files of a stack: probe a header without decoding pixels, decode one frame, encode one frame.
+
+TIFF goes through tifffile (uncompressed contiguous pages are memory-mapped, so an ROI read touches only the
+ROI's bytes; compressed pages are decoded one page at a time); PNG through OpenCV, whose BGR(A) channel order
+is turned into RGB(A) here so that the rest of fieldcal never sees BGR.
+
+Everything here is about one file. Problems raise :class:`ImageFileError` (what + fix); the stack reader turns
+it into a :class:`fieldcal.errors.StackError` that also names the stack.json field.
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+#: dtypes a frame may have (DESIGN.md): the reader normalises byte order to native.
+SUPPORTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # classic and BigTIFF, both byte orders
+# PNG colour type -> channels OpenCV returns with IMREAD_UNCHANGED (gray+alpha and palette are refused).
+_PNG_CHANNELS = {0: 1, 2: 3, 6: 4}
+
+
+class ImageFileError(ValueError):
+    """A frame file that cannot be used; ``what`` says why, ``fix`` says what to do."""
+
+    def __init__(self, what: str, fix: str):
+        self.what = what
+        self.fix = fix
+        super().__init__(what)
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What a frame file holds, read from its header only.
+
+    Attributes
+    ----------
+    kind : {"tiff", "png"}
+    height, width : int
+        Image size in px.
+    n_channels : int
+        Samples per pixel (1 for an H x W image).
+    ndim : int
+        2 for an H x W file, 3 for H x W x C (an H x W x 1 file counts as 3).
+    dtype : numpy.dtype
+        Native-byte-order sample type.
+    planar : bool
+        TIFF stored channel-first (C x H x W); transposed on read.
+    """
+
+    kind: str
+    height: int
+    width: int
+    n_channels: int
+    ndim: int
+    dtype: np.dtype
+    planar: bool = False
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """Shape of the array :func:`read_image` returns."""
+        if self.ndim == 2:
+            return (self.height, self.width)
+        return (self.height, self.width, self.n_channels)
+
+
+def _native(dtype: np.dtype) -> np.dtype:
+    return np.dtype(dtype).newbyteorder("=")
+
+
+def sniff_kind(path: Path) -> str:
+    """Return ``"tiff"`` or ``"png"`` from the file's magic bytes (the extension is not trusted)."""
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if head.startswith(_PNG_SIGNATURE):
+        return "png"
+    if head[:4] in _TIFF_MAGICS:
+        return "tiff"
+    raise ImageFileError("is not a TIFF or PNG file (unknown magic bytes)",
+                         "write frames as TIFF (.tiff) or PNG (.png)")
+
+
+def probe(path: str | Path) -> ImageHeader:
+    """Read a frame file's header (shape, dtype, channels) without decoding its pixels.
+
+    Raises
+    ------
+    FileNotFoundError
+        The file does not exist.
+    ImageFileError
+        Not a TIFF/PNG, unreadable header, unsupported layout or dtype.
+    """
+    path = Path(path)
+    kind = sniff_kind(path)
+    header = _probe_png(path) if kind == "png" else _probe_tiff(path)
+    if header.dtype not in SUPPORTED_DTYPES:
+        raise ImageFileError(f"has unsupported sample type {header.dtype}",
+                             "store frames as uint8, uint16 or float32")
+    if header.height < 1 or header.width < 1 or header.n_channels < 1:
+        raise ImageFileError(f"has an empty image (shape {header.shape})", "re-export the frame")
+    return header
+
+
+def _probe_png(path: Path) -> ImageHeader:
+    with open(path, "rb") as f:
+        data = f.read(33)
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise ImageFileError("has a truncated or invalid PNG header (no IHDR chunk)",
+                             "re-export the frame; the file is damaged")
+    width, height, bit_depth, colour_type, _comp, _filt, _interlace = struct.unpack(">IIBBBBB", data[16:29])
+    if colour_type not in _PNG_CHANNELS:
+        names = {3: "palette", 4: "gray+alpha"}
+        raise ImageFileError(f"is a {names.get(colour_type, f'colour type {colour_type}')} PNG",
+                             "save the frame as grayscale, RGB or RGBA PNG (or as TIFF)")
+    if bit_depth not in (8, 16):
+        raise ImageFileError(f"has PNG bit depth {bit_depth}",
+                             "save the frame with 8 or 16 bits per sample (uint8 or uint16)")
+    n = _PNG_CHANNELS[colour_type]
+    dtype = np.dtype(np.uint8 if bit_depth == 8 else np.uint16)
+    return ImageHeader("png", height, width, n, 2 if n == 1 else 3, dtype)
+
+
+def _probe_tiff(path: Path) -> ImageHeader:
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tf:
+            if len(tf.series) != 1:
+                raise ImageFileError(f"holds {len(tf.series)} image series",
+                                     "write one 2-D image (H x W or H x W x C) per frame file")
+            series = tf.series[0]
+            shape, axes, dtype = tuple(series.shape), series.axes, series.dtype
+            n_pages = len(series.pages)
+    except ImageFileError:
+        raise
+    except Exception as exc:  # tifffile raises many types for damaged files
+        raise ImageFileError(f"has an unreadable TIFF header ({exc})", "re-export the frame; the file is damaged")
+    if n_pages != 1 or axes not in ("YX", "YXS", "SYX"):
+        raise ImageFileError(f"holds an image of shape {shape} (axes {axes!r}), not one 2-D image",
+                             "write one 2-D image (H x W or H x W x C) per frame file")
+    if axes == "YX":
+        return ImageHeader("tiff", shape[0], shape[1], 1, 2, _native(dtype))
+    if axes == "YXS":
+        return ImageHeader("tiff", shape[0], shape[1], shape[2], 3, _native(dtype))
+    return ImageHeader("tiff", shape[1], shape[2], shape[0], 3, _native(dtype), planar=True)
+
+
+def read_image(path: str | Path, roi: tuple[int, int, int, int] | None = None,
+               header: ImageHeader | None = None) -> np.ndarray:
+    """Decode one frame file (or an ROI of it) into a native-order array, RGB(A) channel order.
+
+    Parameters
+    ----------
+    path : path-like
+        The frame file.
+    roi : (y0, y1, x0, x1) or None
+        Half-open pixel bounds, already checked against the image size.
+    header : ImageHeader, optional
+        The result of :func:`probe` if known (saves re-reading the header); the decoded array is checked
+        against it.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``header.shape`` (cropped to the ROI), native byte order; a fresh array, no file stays open.
+
+    Raises
+    ------
+    ImageFileError
+        The pixel data cannot be decoded or disagree with the header.
+    """
+    path = Path(path)
+    if header is None:
+        header = probe(path)
+    try:
+        if header.kind == "png":
+            image, cropped = _read_png(path), False
+        else:
+            image, cropped = _read_tiff(path, header, roi)
+    except (ImageFileError, FileNotFoundError):
+        raise
+    except Exception as exc:  # decoder errors on damaged data (zlib, mmap beyond EOF, ...)
+        raise ImageFileError(f"cannot be decoded ({type(exc).__name__}: {exc})",
+                             "re-export or re-capture the frame; the file is damaged or truncated")
+    expected = header.shape
+    if cropped:
+        y0, y1, x0, x1 = roi
+        expected = (y1 - y0, x1 - x0) + header.shape[2:]
+    if image.shape != expected or _native(image.dtype) != header.dtype:
+        raise ImageFileError(f"decodes to {image.dtype} {image.shape}, but its header says "
+                             f"{header.dtype} {header.shape}", "re-export the frame; the file is damaged")
+    if roi is not None and not cropped:
+        y0, y1, x0, x1 = roi
+        image = image[y0:y1, x0:x1]
+    if image.dtype.byteorder not in ("=", "|"):
+        image = image.astype(header.dtype)
+    return np.ascontiguousarray(image)
+
+
+def _read_tiff(path: Path, header: ImageHeader, roi) -> tuple[np.ndarray, bool]:
+    """Memory-map uncompressed pages (an ROI read copies only the ROI), else decode the one page.
+
+    Returns the array and whether it is already cropped to ``roi``.
+    """
+    import tifffile
+
+    with tifffile.TiffFile(path) as tf:
+        mappable = tf.series[0].pages[0].is_memmappable and not header.planar
+    if mappable:
+        mm = tifffile.memmap(path, mode="r")
+        try:
+            mm = mm.reshape(header.shape)  # (H, W, 1) may be stored as (H, W)
+            if roi is not None:
+                y0, y1, x0, x1 = roi
+                return np.array(mm[y0:y1, x0:x1]), True
+            return np.array(mm), False
+        finally:
+            del mm  # release the mapping now, not at garbage collection
+    image = tifffile.imread(path)
+    if header.planar:
+        image = np.moveaxis(image, 0, -1)
+    if image.size == int(np.prod(header.shape)):
+        image = image.reshape(header.shape)
+    return image, False
+
+
+def _read_png(path: Path) -> np.ndarray:
+    import cv2
+
+    data = np.fromfile(path, dtype=np.uint8)  # imdecode: non-ASCII paths work, and we control the errors
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # our error replaces OpenCV's warning
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+    if image is None:
+        raise ImageFileError("cannot be decoded as PNG (damaged or truncated)",
+                             "re-export or re-capture the frame")
+    if image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    elif image.ndim == 3 and image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA)
+    return image
+
+
+def encode(image: np.ndarray, kind: str) -> bytes:
+    """Encode one frame as ``"tiff"`` (uncompressed, memory-mappable) or ``"png"`` bytes.
+
+    ``image`` is H x W or H x W x C in RGB(A) order; PNG takes only uint8/uint16 with 1, 3 or 4 channels.
+    """
+    image = np.ascontiguousarray(image)
+    if kind == "tiff":
+        import tifffile
+
+        buf = io.BytesIO()
+        if image.ndim == 2:
+            tifffile.imwrite(buf, image, photometric="minisblack")
+        elif image.shape[2] == 3:
+            tifffile.imwrite(buf, image, photometric="rgb", planarconfig="contig")
+        else:
+            tifffile.imwrite(buf, image, photometric="minisblack", planarconfig="contig")
+        return buf.getvalue()
+    if kind == "png":
+        import cv2
+
+        if image.dtype not in (np.uint8, np.uint16):
+            raise ImageFileError(f"PNG cannot hold {image.dtype} samples", "write float32 frames as TIFF")
+        channels = 1 if image.ndim == 2 else image.shape[2]
+        if channels not in (1, 3, 4):
+            raise ImageFileError(f"PNG cannot hold {channels} channels", "write the frames as TIFF")
+        if channels == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+        elif channels == 4:
+            image = cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA)
+        ok, buf = cv2.imencode(".png", image)
+        if not ok:  # pragma: no cover - OpenCV only fails on layouts refused above
+            raise ImageFileError("OpenCV could not encode the frame as PNG", "write the frames as TIFF")
+        return buf.tobytes()
+    raise ImageFileError(f"unknown frame file type {kind!r}", "use a .tiff, .tif or .png file name")
+
+
+def kind_for_name(name: str) -> str:
+    """File type from a frame file name's extension (for writing)."""
+    suffix = Path(name).suffix.lower()
+    if suffix in (".tif", ".tiff"):
+        return "tiff"
+    if suffix == ".png":
+        return "png"
+    raise ImageFileError(f"frame file name {name!r} has extension {suffix or '(none)'!r}",
+                         "name frame files *.tiff, *.tif or *.png")

@@ -1,0 +1,744 @@
+"""Read and write through-focus stacks in the ``fieldcal-stack/1`` folder format (DESIGN.md, docs/stack-format.md).
+
+:class:`Stack` validates ``stack.json`` and every frame file's *header* at open (no pixels decoded), then
+streams frames one at a time. :class:`StackWriter` adds frames crash-safely: frame file first (temporary name,
+rename), then ``stack.json`` (atomically), so ``stack.json`` never lists a frame that is not complete on disk.
+
+Every malformed stack raises :class:`fieldcal.errors.StackError` naming the file, the field and the fix.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import numbers
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+from typing import Any, Iterator
+
+import numpy as np
+
+from fieldcal._io import atomic_write_bytes, atomic_write_text
+from fieldcal.errors import ParameterError, StackError
+from fieldcal.imageio import ImageFileError, ImageHeader, SUPPORTED_DTYPES, encode, kind_for_name, probe, read_image
+from fieldcal.progress import progress
+
+FORMAT = "fieldcal-stack/1"
+STACK_JSON = "stack.json"
+CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+REQUIRED_KEYS = ("format", "pixel_pitch_um", "channels", "frames")
+
+_FIX_FORMAT = f'set "format": "{FORMAT}" (fieldcal reads only this version)'
+
+
+# ----------------------------------------------------------------------------------------------- validation
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
+
+
+def _finite_number(v: Any, where: str, json_path: Path, *, positive: bool = False,
+                   nonnegative: bool = False, fix: str) -> float:
+    """A JSON value that must be a finite (positive / non-negative) number, else StackError."""
+    if not _is_number(v) or not math.isfinite(v):
+        raise StackError(f"must be a finite number, got {v!r}", path=json_path, field=where, fix=fix)
+    if positive and not v > 0:
+        raise StackError(f"must be positive, got {v!r}", path=json_path, field=where, fix=fix)
+    if nonnegative and v < 0:
+        raise StackError(f"must not be negative, got {v!r}", path=json_path, field=where, fix=fix)
+    return float(v)
+
+
+def _check_channels(channels: Any, json_path: Path) -> tuple[str, ...]:
+    fix = 'list the channel names in image order, e.g. ["R", "G", "B"] or ["Y"]'
+    if not isinstance(channels, (list, tuple)) or not channels:
+        raise StackError(f"must be a non-empty list of channel names, got {channels!r}",
+                         path=json_path, field="channels", fix=fix)
+    if not all(isinstance(c, str) and c for c in channels):
+        raise StackError(f"must hold non-empty strings only, got {list(channels)!r}",
+                         path=json_path, field="channels", fix=fix)
+    dup = sorted({c for c in channels if list(channels).count(c) > 1})
+    if dup:
+        raise StackError(f"names {dup} more than once; channel names must be distinct",
+                         path=json_path, field="channels", fix=fix)
+    return tuple(channels)
+
+
+def _check_optional(meta: dict, json_path: Path) -> None:
+    """Types and ranges of the optional top-level keys fieldcal uses (unknown keys are not checked)."""
+    if "bit_depth" in meta:
+        b = meta["bit_depth"]
+        if not isinstance(b, int) or isinstance(b, bool) or not 1 <= b <= 32:
+            raise StackError(f"must be an integer from 1 to 32, got {b!r}", path=json_path, field="bit_depth",
+                             fix="set the number of significant bits per sample, e.g. 12, or remove the key")
+    for key in ("black_level", "white_level"):
+        if key in meta:
+            _finite_number(meta[key], key, json_path, nonnegative=True,
+                           fix=f"set {key} to the raw value of {'black' if key == 'black_level' else 'saturation'}"
+                               " or remove the key")
+    if "black_level" in meta and "white_level" in meta and not meta["white_level"] > meta["black_level"]:
+        raise StackError(f"({meta['white_level']!r}) must be above black_level ({meta['black_level']!r})",
+                         path=json_path, field="white_level", fix="check the camera's black and white levels")
+    for key in ("f_number", "exposure_ms"):
+        if key in meta:
+            _finite_number(meta[key], key, json_path, positive=True, fix=f"set {key} to a positive number or "
+                                                                        "remove the key")
+    if meta.get("object_distance_mm") is not None:  # null = unknown / infinity
+        _finite_number(meta["object_distance_mm"], "object_distance_mm", json_path, positive=True,
+                       fix="set the chart distance in mm, or null if unknown")
+    if meta.get("cfa") is not None:
+        cfa = meta["cfa"]
+        if cfa not in CFA_PATTERNS:
+            raise StackError(f"must be one of {list(CFA_PATTERNS)}, got {cfa!r}", path=json_path, field="cfa",
+                             fix="give the Bayer pattern of the top-left 2x2 pixels, or remove the key for "
+                                 "demosaicked frames")
+        if list(meta.get("channels", [])) != ["R", "G", "B"]:
+            raise StackError(f"is set ({cfa}) but channels is {meta.get('channels')!r}", path=json_path,
+                             field="channels", fix='a Bayer stack has channels ["R", "G", "B"]')
+
+
+def _check_frame_entry(entry: Any, i: int, json_path: Path) -> tuple[str, float]:
+    where = f"frames[{i}]"
+    if not isinstance(entry, dict):
+        raise StackError(f"must be an object with 'file' and 'z_um', got {entry!r}", path=json_path, field=where,
+                         fix='write each frame as {"file": "frames/0000.tiff", "z_um": -140.0}')
+    for key in ("file", "z_um"):
+        if key not in entry:
+            raise StackError("is missing", path=json_path, field=f"{where}.{key}",
+                             fix=f'give every frame a "{key}" (e.g. {{"file": "frames/0000.tiff", "z_um": -140.0}})')
+    file = entry["file"]
+    if not isinstance(file, str) or not file.strip():
+        raise StackError(f"must be a relative file path, got {file!r}", path=json_path, field=f"{where}.file",
+                         fix="give the frame file's path relative to the stack folder")
+    z = entry["z_um"]
+    if not _is_number(z) or not math.isfinite(z):
+        raise StackError(f"must be a finite number (stage position in µm), got {z!r}", path=json_path,
+                         field=f"{where}.z_um", fix="record the stage position of this frame in µm")
+    if entry.get("z_measured_um") is not None:
+        _finite_number(entry["z_measured_um"], f"{where}.z_measured_um", json_path,
+                       fix="record the measured position in µm, or remove the key")
+    if "exposure_ms" in entry:
+        _finite_number(entry["exposure_ms"], f"{where}.exposure_ms", json_path, positive=True,
+                       fix="record the exposure time in ms, or remove the key")
+    if "sha256" in entry:
+        h = entry["sha256"]
+        if not (isinstance(h, str) and len(h) == 64 and all(c in "0123456789abcdefABCDEF" for c in h)):
+            raise StackError(f"must be 64 hex digits, got {h!r}", path=json_path, field=f"{where}.sha256",
+                             fix="store the SHA-256 of the frame file in hex, or remove the key")
+    return file, float(z)
+
+
+def _resolve_frame_path(root: Path, file: str, where: str, json_path: Path) -> Path:
+    """The frame file inside the stack folder; refuses absolute paths and paths that escape it."""
+    fix = "frame paths are relative to the stack folder and stay inside it, e.g. frames/0000.tiff"
+    p = PurePosixPath(file.replace("\\", "/"))
+    if p.is_absolute() or Path(file).is_absolute() or ".." in p.parts:
+        raise StackError(f"{file!r} points outside the stack folder", path=json_path, field=where, fix=fix)
+    full = root.joinpath(*p.parts)
+    try:  # symlinks out of the folder count as escaping too
+        full.resolve().relative_to(root.resolve())
+    except ValueError:
+        raise StackError(f"{file!r} resolves outside the stack folder", path=json_path, field=where,
+                         fix=fix) from None
+    return full
+
+
+def _read_json(json_path: Path) -> dict:
+    if not json_path.is_file():
+        raise StackError("not found: a stack folder holds a stack.json", path=json_path,
+                         fix="give the stack folder (the one that contains stack.json)")
+    try:
+        meta = json.loads(json_path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise StackError(f"is not UTF-8 text ({exc})", path=json_path, fix="write stack.json as UTF-8 JSON") from None
+    except json.JSONDecodeError as exc:
+        raise StackError(f"is not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", path=json_path,
+                         fix="repair the JSON syntax (see docs/stack-format.md for an example)") from None
+    if not isinstance(meta, dict):
+        raise StackError(f"must hold a JSON object, got {type(meta).__name__}", path=json_path,
+                         fix="write stack.json as an object with format, pixel_pitch_um, channels and frames")
+    return meta
+
+
+def _check_header_keys(meta: dict, json_path: Path) -> tuple[float, tuple[str, ...]]:
+    if "format" not in meta:
+        raise StackError("is missing", path=json_path, field="format", fix=_FIX_FORMAT)
+    if meta["format"] != FORMAT:
+        raise StackError(f"is {meta['format']!r}; this fieldcal reads only {FORMAT!r}", path=json_path,
+                         field="format", fix=_FIX_FORMAT + ", or convert the stack / upgrade fieldcal")
+    for key in REQUIRED_KEYS[1:]:
+        if key not in meta:
+            raise StackError("is missing (required)", path=json_path, field=key,
+                             fix=f"add {key!r} (required keys: {', '.join(REQUIRED_KEYS)})")
+    pitch = _finite_number(meta["pixel_pitch_um"], "pixel_pitch_um", json_path, positive=True,
+                           fix="set the sensor pixel pitch in µm, e.g. 3.45")
+    channels = _check_channels(meta["channels"], json_path)
+    _check_optional(meta, json_path)
+    if not isinstance(meta["frames"], list):
+        raise StackError(f"must be a list of frames, got {type(meta['frames']).__name__}", path=json_path,
+                         field="frames", fix='write frames as [{"file": "frames/0000.tiff", "z_um": -140.0}, ...]')
+    return pitch, channels
+
+
+def _levels(meta: dict, dtype: np.dtype) -> tuple[float, float]:
+    """(black, white): white_level, else 2**bit_depth - 1, else dtype max (float 1.0); black_level else 0."""
+    if "white_level" in meta:
+        white = float(meta["white_level"])
+    elif "bit_depth" in meta:
+        white = float(2 ** int(meta["bit_depth"]) - 1)
+    elif dtype.kind == "f":
+        white = 1.0
+    else:
+        white = float(np.iinfo(dtype).max)
+    return float(meta.get("black_level", 0.0)), white
+
+
+def _check_levels(meta: dict, dtype: np.dtype, json_path: Path) -> tuple[float, float]:
+    black, white = _levels(meta, dtype)
+    if dtype.kind == "u":
+        top = np.iinfo(dtype).max
+        if "bit_depth" in meta and meta["bit_depth"] > dtype.itemsize * 8:
+            raise StackError(f"is {meta['bit_depth']} but the frames are {dtype} ({dtype.itemsize * 8} bits)",
+                             path=json_path, field="bit_depth", fix="set bit_depth to the camera's ADC bit depth")
+        if white > top:
+            raise StackError(f"({white:g}) exceeds the largest {dtype} value {top}", path=json_path,
+                             field="white_level", fix="set white_level to the raw saturation value")
+    if not white > black:
+        raise StackError(f"black level {black:g} is not below white level {white:g}", path=json_path,
+                         field="black_level", fix="check black_level / white_level / bit_depth")
+    return black, white
+
+
+# ----------------------------------------------------------------------------------------------- reader
+
+
+@dataclass(frozen=True)
+class FrameInfo:
+    """One frame of a stack.
+
+    Attributes
+    ----------
+    index : int
+        Position in ``stack.json``'s frames list (file order).
+    file : str
+        Path relative to the stack folder, as written in ``stack.json``.
+    path : pathlib.Path
+        Absolute-or-as-given path of the frame file.
+    z_um : float
+        Commanded stage position (µm).
+    meta : dict
+        The whole frame entry (``file``, ``z_um`` and optional/unknown keys).
+    """
+
+    index: int
+    file: str
+    path: Path
+    z_um: float
+    meta: dict = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def z_measured_um(self) -> float | None:
+        v = self.meta.get("z_measured_um")
+        return None if v is None else float(v)
+
+    @property
+    def exposure_ms(self) -> float | None:
+        v = self.meta.get("exposure_ms")
+        return None if v is None else float(v)
+
+    @property
+    def sha256(self) -> str | None:
+        return self.meta.get("sha256")
+
+
+def _norm_roi(roi, height: int, width: int, cfa: str | None) -> tuple[int, int, int, int] | None:
+    """ROI ``(x, y, w, h)`` in px or ``(slice_y, slice_x)`` -> checked half-open ``(y0, y1, x0, x1)``."""
+    if roi is None:
+        return None
+    if len(roi) == 2 and all(isinstance(s, slice) for s in roi):
+        sy, sx = roi
+        if (sy.step or 1) != 1 or (sx.step or 1) != 1:
+            raise ParameterError(f"ROI slices must have step 1, got {roi!r}", field="roi",
+                                 fix="read the ROI and subsample the result")
+        y0, y1, _ = sy.indices(height)
+        x0, x1, _ = sx.indices(width)
+    elif len(roi) == 4 and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in roi):
+        x0, y0, w, h = (int(v) for v in roi)
+        x1, y1 = x0 + w, y0 + h
+        if x0 < 0 or y0 < 0 or w < 1 or h < 1 or x1 > width or y1 > height:
+            raise ParameterError(f"ROI (x={x0}, y={y0}, w={w}, h={h}) is empty or outside the "
+                                 f"{width} x {height} px frame", field="roi",
+                                 fix="give an ROI inside the frame: 0 <= x, x + w <= width (same for y)")
+    else:
+        raise ParameterError(f"ROI must be (x, y, w, h) integers or (slice_y, slice_x), got {roi!r}", field="roi",
+                             fix="e.g. roi=(0, 0, 64, 64)")
+    if y1 <= y0 or x1 <= x0:
+        raise ParameterError(f"ROI {roi!r} is empty", field="roi", fix="give a non-empty ROI inside the frame")
+    if cfa is not None and (x0 % 2 or y0 % 2):
+        raise ParameterError(f"ROI origin ({x0}, {y0}) is odd on a {cfa} Bayer mosaic", field="roi",
+                             fix="start CFA ROIs at even x and y so the Bayer pattern stays the same")
+    return y0, y1, x0, x1
+
+
+class Stack:
+    """A validated ``fieldcal-stack/1`` folder whose frames are decoded lazily, one at a time.
+
+    Use :meth:`Stack.open`. Attributes: ``path`` (folder), ``meta`` (all of stack.json, unknown keys kept),
+    ``pixel_pitch_um``, ``channels``, ``cfa`` (Bayer pattern or None), ``frames`` (FrameInfo, file order),
+    ``shape`` (H, W), ``dtype``, ``black_level``, ``white_level``.
+
+    Examples
+    --------
+    >>> stack = Stack.open("STACK")                              # doctest: +SKIP
+    >>> for info, frame in stack.iter_frames(order="z"):         # doctest: +SKIP
+    ...     print(info.z_um, frame.shape)
+    """
+
+    def __init__(self, path: Path, meta: dict, frames: tuple[FrameInfo, ...], headers: tuple[ImageHeader, ...],
+                 pixel_pitch_um: float, channels: tuple[str, ...]):
+        self.path = path
+        self.meta = meta
+        self.frames = frames
+        self._headers = headers
+        self.pixel_pitch_um = pixel_pitch_um
+        self.channels = channels
+        self.cfa: str | None = meta.get("cfa")
+        self.shape: tuple[int, int] = (headers[0].height, headers[0].width)
+        self.dtype: np.dtype = headers[0].dtype
+        self.black_level, self.white_level = _levels(meta, self.dtype)
+
+    # -- opening -------------------------------------------------------------------------------------------
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> "Stack":
+        """Open and validate a stack folder (or its stack.json) without decoding any pixels.
+
+        Raises
+        ------
+        StackError
+            Anything that does not follow ``fieldcal-stack/1``, naming the file, the field and the fix.
+        """
+        path = Path(path)
+        if path.name == STACK_JSON and path.is_file():
+            path = path.parent
+        if not path.is_dir():
+            raise StackError("is not a folder" if path.exists() else "does not exist", path=path,
+                             fix="give the stack folder (the one that contains stack.json)")
+        json_path = path / STACK_JSON
+        meta = _read_json(json_path)
+        pitch, channels = _check_header_keys(meta, json_path)
+        if not meta["frames"]:
+            raise StackError("is empty: the stack has no frames", path=json_path, field="frames",
+                             fix="capture at least one frame (an interrupted capture can be resumed with "
+                                 "StackWriter.open_existing)")
+        infos, headers = _load_frames(path, meta, json_path, len(channels), meta.get("cfa"))
+        stack = cls(path, meta, infos, headers, pitch, channels)
+        _check_levels(meta, stack.dtype, json_path)
+        return stack
+
+    # -- geometry and metadata -----------------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __repr__(self) -> str:
+        return (f"Stack({str(self.path)!r}, {len(self)} frames, {self.shape[1]}x{self.shape[0]} px, "
+                f"{self.dtype}, channels={list(self.channels)}{', cfa=' + self.cfa if self.cfa else ''})")
+
+    @property
+    def json_path(self) -> Path:
+        return self.path / STACK_JSON
+
+    @property
+    def z_um(self) -> np.ndarray:
+        """Stage positions (µm) in file order."""
+        return np.array([f.z_um for f in self.frames], dtype=np.float64)
+
+    @property
+    def order_by_z(self) -> np.ndarray:
+        """Frame indices sorted by increasing z."""
+        return np.argsort(self.z_um, kind="stable")
+
+    @property
+    def n_channels(self) -> int:
+        return len(self.channels)
+
+    @property
+    def bit_depth(self) -> int | None:
+        return self.meta.get("bit_depth")
+
+    def require_frames(self, n: int, operation: str) -> None:
+        """Raise StackError if the stack has fewer than ``n`` frames for ``operation``."""
+        if len(self) < n:
+            raise StackError(f"too few frames for {operation}: it needs at least {n}, the stack has {len(self)}",
+                             path=self.json_path, field="frames",
+                             fix=f"capture at least {n} sensor positions for {operation}")
+
+    # -- pixels --------------------------------------------------------------------------------------------
+
+    def _index(self, i: int) -> int:
+        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not -len(self) <= i < len(self):
+            raise ParameterError(f"frame index {i!r} is outside 0..{len(self) - 1}", path=self.json_path,
+                                 field="index", fix=f"use an index from 0 to {len(self) - 1}")
+        return int(i) % len(self)
+
+    def read(self, i: int, roi=None) -> np.ndarray:
+        """Decode frame ``i`` (file order), or an ROI of it, touching no other frame.
+
+        Parameters
+        ----------
+        i : int
+            Index into :attr:`frames`.
+        roi : (x, y, w, h) or (slice_y, slice_x), optional
+            Pixel region; for a CFA stack its origin must be even.
+
+        Returns
+        -------
+        numpy.ndarray
+            H x W x C in the file's dtype (H x W for a CFA mosaic), RGB channel order.
+
+        Raises
+        ------
+        StackError
+            The frame file is missing, damaged, or (float) holds NaN/Inf.
+        """
+        i = self._index(i)
+        info, header = self.frames[i], self._headers[i]
+        box = _norm_roi(roi, *self.shape, self.cfa)
+        where = f"frames[{i}].file"
+        try:
+            image = read_image(info.path, box, header)
+        except FileNotFoundError:
+            raise StackError(f"frame file {info.file!r} has disappeared since the stack was opened",
+                             path=info.path, field=where, fix="restore the frame file or re-capture it") from None
+        except ImageFileError as exc:
+            raise StackError(f"frame {info.file!r} {exc.what}", path=info.path, field=where, fix=exc.fix) from None
+        if image.dtype.kind == "f" and not np.isfinite(image).all():
+            bad = int(np.count_nonzero(~np.isfinite(image)))
+            raise StackError(f"frame {info.file!r} (z_um={info.z_um:g}) holds {bad} NaN/Inf pixel(s)",
+                             path=info.path, field=where,
+                             fix="replace non-finite pixels (e.g. with 0 or the saturation value) before calibrating")
+        if self.cfa is None and image.ndim == 2:
+            image = image[:, :, None]  # always H x W x C inside fieldcal
+        elif self.cfa is not None and image.ndim == 3:
+            image = image[:, :, 0]  # an H x W x 1 mosaic file
+        return image
+
+    def read_normalized(self, i: int, roi=None) -> np.ndarray:
+        """Frame ``i`` as float32 ``(raw - black_level) / (white_level - black_level)`` (not clipped)."""
+        image = self.read(i, roi).astype(np.float32)
+        image -= np.float32(self.black_level)
+        image *= np.float32(1.0 / (self.white_level - self.black_level))  # white > black checked at open
+        return image
+
+    def iter_frames(self, order: str = "z", *, roi=None, normalized: bool = False,
+                    desc: str | None = None) -> Iterator[tuple[FrameInfo, np.ndarray]]:
+        """Yield ``(FrameInfo, array)`` one frame at a time, by increasing z (``order="z"``) or file order.
+
+        ``desc`` shows a progress bar with that label.
+        """
+        if order == "z":
+            indices = [int(k) for k in self.order_by_z]
+        elif order == "file":
+            indices = list(range(len(self)))
+        else:
+            raise ParameterError(f"order must be 'z' or 'file', got {order!r}", field="order",
+                                 fix="use order='z' or order='file'")
+        reader = self.read_normalized if normalized else self.read
+        it = indices if desc is None else progress(indices, total=len(indices), desc=desc, unit="frame")
+        for k in it:
+            yield self.frames[k], reader(k, roi)
+
+    def verify_checksums(self) -> list[FrameInfo]:
+        """Frames whose file no longer matches its ``sha256`` (missing files included; no sha256 = skipped)."""
+        bad = []
+        for info in self.frames:
+            if info.sha256 is None:
+                continue
+            try:
+                digest = _sha256_file(info.path)
+            except OSError:
+                bad.append(info)
+                continue
+            if digest != info.sha256.lower():
+                bad.append(info)
+        return bad
+
+
+def _sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _load_frames(root: Path, meta: dict, json_path: Path, n_channels: int,
+                 cfa: str | None) -> tuple[tuple[FrameInfo, ...], tuple[ImageHeader, ...]]:
+    """Validate every frame entry and frame header; the first frame fixes size, dtype and layout."""
+    infos, headers = [], []
+    seen_z: dict[float, int] = {}
+    seen_file: dict[Path, int] = {}
+    for i, entry in enumerate(meta["frames"]):
+        file, z = _check_frame_entry(entry, i, json_path)
+        where = f"frames[{i}].file"
+        path = _resolve_frame_path(root, file, where, json_path)
+        if z in seen_z:
+            j = seen_z[z]
+            raise StackError(f"frames[{j}] ({meta['frames'][j]['file']}) and frames[{i}] ({file}) both have "
+                             f"z_um={z:g}; z values must be distinct", path=json_path, field=f"frames[{i}].z_um",
+                             fix="remove the repeated frame or correct its z_um")
+        seen_z[z] = i
+        key = path.resolve()
+        if key in seen_file:
+            raise StackError(f"frames[{seen_file[key]}] and frames[{i}] both use file {file!r}", path=json_path,
+                             field=where, fix="give every frame its own file")
+        seen_file[key] = i
+        if not path.is_file():
+            raise StackError(f"frame file {file!r} does not exist", path=json_path, field=where,
+                             fix="restore the frame file, or remove its entry from stack.json")
+        try:
+            header = probe(path)
+        except ImageFileError as exc:
+            raise StackError(f"frame {file!r} {exc.what}", path=path, field=where, fix=exc.fix) from None
+        except OSError as exc:
+            raise StackError(f"frame {file!r} cannot be read ({exc.strerror or exc})", path=path, field=where,
+                             fix="check the file's permissions") from None
+        _check_frame_layout(header, i, file, path, where, n_channels, cfa, headers[0] if headers else None,
+                            meta["frames"][0]["file"] if headers else None)
+        infos.append(FrameInfo(i, file, path, z, copy.deepcopy(entry)))
+        headers.append(header)
+    return tuple(infos), tuple(headers)
+
+
+def _check_frame_layout(h: ImageHeader, i: int, file: str, path: Path, where: str, n_channels: int,
+                        cfa: str | None, first: ImageHeader | None, first_file: str | None) -> None:
+    if cfa is not None:
+        if h.n_channels != 1:
+            raise StackError(f"frame {file!r} has {h.n_channels} channels, but cfa={cfa} means a raw Bayer "
+                             "mosaic (H x W, one sample per pixel)", path=path, field=where,
+                             fix="store the undemosaicked H x W mosaic, or remove 'cfa' from stack.json for "
+                                 "demosaicked frames")
+    elif h.n_channels != n_channels:
+        raise StackError(f"frame {file!r} has {h.n_channels} channel(s), but 'channels' lists {n_channels}",
+                         path=path, field=where,
+                         fix="make 'channels' in stack.json match the images (e.g. [\"Y\"] for mono, "
+                             "[\"R\", \"G\", \"B\"] for colour)")
+    if first is not None:
+        if (h.height, h.width) != (first.height, first.width):
+            raise StackError(f"frame {file!r} is {h.width}x{h.height} px but frames[0] ({first_file}) is "
+                             f"{first.width}x{first.height} px", path=path, field=where,
+                             fix="all frames of a stack must have the same size (same ROI and binning)")
+        if h.dtype != first.dtype:
+            raise StackError(f"frame {file!r} is {h.dtype} but frames[0] ({first_file}) is {first.dtype}",
+                             path=path, field=where, fix="all frames of a stack must have the same sample type")
+
+
+# ----------------------------------------------------------------------------------------------- writer
+
+
+class StackWriter:
+    """Build a stack frame by frame, crash-safely.
+
+    Each :meth:`add_frame` writes the frame file under a temporary name and renames it, then rewrites
+    ``stack.json`` atomically; ``stack.json`` therefore always parses and never lists an incomplete frame.
+    Until the first frame is added the folder holds a ``stack.json`` with an empty frames list, which
+    :meth:`open_existing` resumes and :meth:`Stack.open` refuses ("no frames"). One writer per folder.
+
+    Examples
+    --------
+    >>> w = StackWriter.create("STACK", pixel_pitch_um=3.45, channels=["R", "G", "B"], bit_depth=12)  # doctest: +SKIP
+    >>> w.add_frame(image, z_um=-140.0, exposure_ms=20.0)                                            # doctest: +SKIP
+    >>> stack = w.stack()                                                                             # doctest: +SKIP
+    """
+
+    def __init__(self, path: Path, meta: dict, headers: list[ImageHeader]):
+        self.path = path
+        self.meta = meta
+        self._shape: tuple[int, ...] | None = headers[0].shape if headers else None
+        self._dtype: np.dtype | None = headers[0].dtype if headers else None
+        self._z = {float(e["z_um"]): k for k, e in enumerate(meta["frames"])}
+        self._files = {PurePosixPath(e["file"].replace("\\", "/")) for e in meta["frames"]}
+
+    @property
+    def json_path(self) -> Path:
+        return self.path / STACK_JSON
+
+    def __len__(self) -> int:
+        return len(self.meta["frames"])
+
+    @classmethod
+    def create(cls, path: str | os.PathLike, *, pixel_pitch_um: float, channels, overwrite: bool = False,
+               **optional) -> "StackWriter":
+        """Start a new stack folder and write its ``stack.json`` (no frames yet).
+
+        Parameters
+        ----------
+        path : path-like
+            The folder; created if missing. An existing non-empty folder is refused unless ``overwrite``
+            (then only a folder that holds a stack.json is cleared).
+        pixel_pitch_um : float
+            Sensor pixel pitch (µm).
+        channels : sequence of str
+            Channel names in image order, e.g. ``["R", "G", "B"]`` or ``["Y"]``.
+        **optional
+            Optional and unknown top-level keys (``bit_depth``, ``black_level``, ``white_level``, ``f_number``,
+            ``exposure_ms``, ``object_distance_mm``, ``lens``, ``chart``, ``cfa``, ...), stored as given.
+        """
+        path = Path(path)
+        json_path = path / STACK_JSON
+        reserved = set(optional) & set(REQUIRED_KEYS)
+        if reserved:
+            raise ParameterError(f"{sorted(reserved)} are set by the writer, not as optional keys",
+                                 path=json_path, field=sorted(reserved)[0], fix="remove them from the call")
+        meta = {"format": FORMAT, "pixel_pitch_um": pixel_pitch_um, "channels": list(channels), **optional,
+                "frames": []}
+        _check_header_keys(meta, json_path)
+        meta["pixel_pitch_um"] = float(pixel_pitch_um)
+        text = _dump(meta, json_path)
+        if path.exists() and not path.is_dir():
+            raise StackError("exists and is not a folder", path=path, fix="choose another output path")
+        if path.is_dir() and any(path.iterdir()):
+            if not overwrite:
+                raise StackError("already exists and is not empty; refusing to overwrite it", path=path,
+                                 fix="choose a new folder, or pass overwrite=True (CLI: --overwrite) to replace it")
+            if not json_path.is_file():
+                raise StackError("is not empty and holds no stack.json; refusing to delete a folder that is not "
+                                 "a stack", path=path, fix="choose a new or empty folder")
+            shutil.rmtree(path)
+        (path / "frames").mkdir(parents=True, exist_ok=True)
+        atomic_write_text(json_path, text)
+        return cls(path, meta, [])
+
+    @classmethod
+    def open_existing(cls, path: str | os.PathLike) -> "StackWriter":
+        """Reopen a stack to append frames (e.g. a resumed capture); existing frames are validated."""
+        path = Path(path)
+        if path.name == STACK_JSON and path.is_file():
+            path = path.parent
+        json_path = path / STACK_JSON
+        meta = _read_json(json_path)
+        _check_header_keys(meta, json_path)
+        headers: list[ImageHeader] = []
+        if meta["frames"]:
+            stack = Stack.open(path)
+            headers = list(stack._headers)
+        return cls(path, meta, headers)
+
+    def stack(self) -> Stack:
+        """Open what has been written so far as a :class:`Stack`."""
+        return Stack.open(self.path)
+
+    def _next_file(self, kind: str) -> str:
+        n = len(self.meta["frames"])
+        ext = ".tiff" if kind == "tiff" else ".png"
+        while PurePosixPath(f"frames/{n:04d}{ext}") in self._files:
+            n += 1
+        return f"frames/{n:04d}{ext}"
+
+    def add_frame(self, image: np.ndarray, z_um: float, *, file: str | None = None, kind: str = "tiff",
+                  **frame_meta) -> FrameInfo:
+        """Write one frame (file, then stack.json, both atomically) and return its :class:`FrameInfo`.
+
+        Parameters
+        ----------
+        image : numpy.ndarray
+            H x W or H x W x C (RGB order), uint8/uint16/float32, finite; H x W for a CFA stack. Same shape and
+            dtype as the frames already written.
+        z_um : float
+            Stage position (µm), distinct from the other frames'.
+        file : str, optional
+            Relative path to use (``.tiff``, ``.tif`` or ``.png``); default ``frames/NNNN.tiff``.
+        kind : {"tiff", "png"}
+            File type when ``file`` is not given.
+        **frame_meta
+            Optional and unknown per-frame keys (``z_measured_um``, ``exposure_ms``, ``time``, ...).
+        """
+        json_path = self.json_path
+        i = len(self.meta["frames"])
+        where = f"frames[{i}]"
+        image = np.asarray(image)
+        if image.dtype.newbyteorder("=") not in SUPPORTED_DTYPES:
+            raise StackError(f"image has unsupported dtype {image.dtype}", path=json_path, field=where,
+                             fix="convert frames to uint8, uint16 or float32")
+        image = image.astype(image.dtype.newbyteorder("="), copy=False)
+        cfa = self.meta.get("cfa")
+        n_ch = len(self.meta["channels"])
+        if image.ndim == 3 and image.shape[2] == 1 and cfa is None:
+            image = image[:, :, 0]  # store mono as a plain H x W file
+        if image.ndim not in (2, 3) or min(image.shape) < 1:
+            raise StackError(f"image has shape {image.shape}; a frame is H x W or H x W x C", path=json_path,
+                             field=where, fix="pass one 2-D image per frame")
+        c = 1 if image.ndim == 2 else image.shape[2]
+        if cfa is not None and image.ndim != 2:
+            raise StackError(f"image has shape {image.shape}, but cfa={cfa} stacks hold H x W Bayer mosaics",
+                             path=json_path, field=where, fix="pass the raw mosaic, not a demosaicked image")
+        if cfa is None and c != n_ch:
+            raise StackError(f"image has {c} channel(s), channels is {self.meta['channels']}", path=json_path,
+                             field=where, fix="pass H x W x C images with C = number of channels")
+        if self._shape is not None and (image.shape[:2] != self._shape[:2] or image.dtype != self._dtype):
+            raise StackError(f"image is {image.dtype} {image.shape[:2]}, earlier frames are {self._dtype} "
+                             f"{self._shape[:2]}", path=json_path, field=where,
+                             fix="all frames of a stack must have the same size and dtype")
+        if image.dtype.kind == "f" and not np.isfinite(image).all():
+            raise StackError("image holds NaN/Inf pixels", path=json_path, field=where,
+                             fix="replace non-finite pixels before writing")
+        if not _is_number(z_um) or not math.isfinite(z_um):
+            raise StackError(f"must be a finite number, got {z_um!r}", path=json_path, field=f"{where}.z_um",
+                             fix="pass the stage position in µm")
+        z = float(z_um)
+        if z in self._z:
+            raise StackError(f"z_um={z:g} is already used by frames[{self._z[z]}] "
+                             f"({self.meta['frames'][self._z[z]]['file']})", path=json_path, field=f"{where}.z_um",
+                             fix="z values must be distinct; skip or re-number the repeated position")
+        reserved = set(frame_meta) & {"file", "z_um", "sha256"}
+        if reserved:
+            raise ParameterError(f"{sorted(reserved)} are set by the writer", path=json_path, field=where,
+                                 fix="pass file= as the keyword argument, and no sha256")
+        try:
+            if file is None:
+                file = self._next_file(kind)
+            kind = kind_for_name(file)
+            data = encode(image, kind)
+        except ImageFileError as exc:
+            raise StackError(exc.what, path=json_path, field=f"{where}.file", fix=exc.fix) from None
+        entry = {"file": file, "z_um": z, **frame_meta}
+        _check_frame_entry(entry, i, json_path)
+        frame_path = _resolve_frame_path(self.path, file, f"{where}.file", json_path)
+        if PurePosixPath(file.replace("\\", "/")) in self._files:
+            raise StackError(f"file {file!r} is already used by another frame", path=json_path,
+                             field=f"{where}.file", fix="give every frame its own file")
+        entry["sha256"] = hashlib.sha256(data).hexdigest()
+        new_meta = dict(self.meta)
+        new_meta["frames"] = [*self.meta["frames"], entry]
+        text = _dump(new_meta, json_path)  # refuse non-JSON metadata before anything is written
+        atomic_write_bytes(frame_path, data)
+        atomic_write_text(json_path, text)
+        self.meta = new_meta
+        self._z[z] = i
+        self._files.add(PurePosixPath(file.replace("\\", "/")))
+        if self._shape is None:
+            self._shape, self._dtype = image.shape, image.dtype
+        return FrameInfo(i, file, frame_path, z, copy.deepcopy(entry))
+
+
+def _json_default(v: Any) -> Any:
+    """numpy scalars and arrays in metadata become plain JSON values."""
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise TypeError(f"{type(v).__name__} {v!r} is not JSON serialisable")
+
+
+def _dump(meta: dict, json_path: Path) -> str:
+    try:
+        return json.dumps(meta, indent=2, allow_nan=False, default=_json_default) + "\n"
+    except (TypeError, ValueError) as exc:
+        raise StackError(f"metadata cannot be stored as JSON ({exc})", path=json_path,
+                         fix="pass only str, finite numbers, bools, None, lists and dicts as metadata") from None
