@@ -196,6 +196,23 @@ class CharucoSpec:
                                  fix="make the board with write_targets/charuco_spec(..., dpi=) to know its mm")
         return self._corner_board(ids) * self.square_mm
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], path: str | Path | None = None) -> "CharucoSpec":
+        """Rebuild a board from :meth:`to_dict` (e.g. the ``params`` of a ``targets.json`` entry)."""
+        names = [f for f in cls.__dataclass_fields__]
+        try:
+            kw = {k: d[k] for k in names if k != "square_mm"}
+            kw = {k: (str(v) if k == "dictionary" else int(v)) for k, v in kw.items()}
+            sq_mm = d.get("square_mm")
+            kw["square_mm"] = None if sq_mm is None else float(sq_mm)
+        except (KeyError, TypeError, ValueError) as e:
+            raise ParameterError(f"not a ChArUco board description ({e!r})", path=path, field="params",
+                                 fix="use the params of a charuco entry in targets.json") from None
+        if kw["dictionary"] not in _ARUCO_DICTS:
+            raise ParameterError(f"unsupported dictionary {kw['dictionary']!r}", path=path, field="dictionary",
+                                 fix=f"use one of {', '.join(_ARUCO_DICTS)}")
+        return cls(**kw)
+
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["marker_mm"] = self.marker_mm
@@ -427,3 +444,168 @@ def chart_image(kind: str = "texture", width_px: int = 256, height_px: int = 256
     if kind == "slanted-edge":
         return slanted_edge_image(slanted_edge_spec(width_px, height_px))
     raise ParameterError(f"unknown chart kind {kind!r}", field="kind", fix=f"use one of {', '.join(KINDS)}")
+
+
+# ------------------------------------------------------------------------------------ printable files
+PAPER_SIZES_MM = {"A5": (210.0, 148.0), "A4": (297.0, 210.0), "A3": (420.0, 297.0), "A2": (594.0, 420.0),
+                  "letter": (279.4, 215.9), "legal": (355.6, 215.9)}
+
+
+def parse_size_mm(text: str) -> tuple[float, float]:
+    """``"297x210"`` (width x height in mm) or a paper name (A5..A2, letter, legal; landscape) to mm."""
+    t = str(text).strip()
+    for name, size in PAPER_SIZES_MM.items():
+        if t.lower() == name.lower():
+            return size
+    parts = t.lower().replace("×", "x").split("x")
+    fix = "write WIDTHxHEIGHT in mm, e.g. 297x210, or a paper name (" + ", ".join(PAPER_SIZES_MM) + ")"
+    if len(parts) != 2:
+        raise ParameterError(f"cannot read the size {text!r}", field="size_mm", fix=fix)
+    try:
+        w, h = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise ParameterError(f"cannot read the size {text!r}", field="size_mm", fix=fix) from None
+    _check_physical(w, h)
+    return w, h
+
+
+def _check_physical(width_mm: float, height_mm: float, dpi: float | None = None) -> None:
+    for name, v in (("width_mm", width_mm), ("height_mm", height_mm)):
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not (10.0 <= v <= 2000.0):
+            raise ParameterError(f"chart {name} = {v!r} is not a usable size", field=name,
+                                 fix="use a size between 10 and 2000 mm, e.g. --size-mm 297x210 (A4)")
+    if dpi is not None and (not isinstance(dpi, (int, float)) or isinstance(dpi, bool) or not math.isfinite(dpi)
+                            or not (DPI_MIN <= dpi <= DPI_MAX)):
+        raise ParameterError(f"dpi = {dpi!r} is out of range", field="dpi",
+                             fix=f"use {DPI_MIN:.0f}..{DPI_MAX:.0f} dots per inch (300 suits most printers)")
+
+
+def _png_bytes(img01: np.ndarray, dpi: float, text: dict[str, str]) -> bytes:
+    from PIL import Image, PngImagePlugin
+    info = PngImagePlugin.PngInfo()
+    for k, v in text.items():
+        info.add_text(k, v)
+    u8 = np.clip(np.round(img01 * 255.0), 0, 255).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(u8, mode="L").save(buf, format="PNG", dpi=(dpi, dpi), pnginfo=info, optimize=True)
+    return buf.getvalue()
+
+
+def _pdf_bytes(img01: np.ndarray, width_mm: float, height_mm: float, dpi: float, title: str, subject: str) -> bytes:
+    """One page of exactly width_mm x height_mm with the chart filling it, pixels embedded unresampled."""
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(width_mm / MM_PER_INCH, height_mm / MM_PER_INCH))
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    ax.imshow(np.clip(np.round(img01 * 255.0), 0, 255).astype(np.uint8), cmap="gray", vmin=0, vmax=255,
+              interpolation="none", aspect="auto")
+    ax.set_axis_off()
+    buf = io.BytesIO()
+    # CreationDate None: the same chart gives the same bytes (committed files do not churn).
+    fig.savefig(buf, format="pdf", dpi=dpi,
+                metadata={"Title": title, "Subject": subject, "Creator": "fieldcal targets", "CreationDate": None})
+    return buf.getvalue()
+
+
+def write_targets(out_dir: str | Path, width_mm: float = 297.0, height_mm: float = 210.0, dpi: float = 300.0, *,
+                  kinds: tuple[str, ...] | list[str] = KINDS, seed: int = 0, formats: tuple[str, ...] = ("png", "pdf"),
+                  quiet: bool = True) -> dict[str, Any]:
+    """Write printable charts at a physical size, plus ``targets.json`` describing them.
+
+    Parameters
+    ----------
+    out_dir : path
+        Folder (created if needed). Existing entries of ``targets.json`` for other files are kept.
+    width_mm, height_mm : float
+        Printed size of each chart (the PDF page size; the PNG carries ``dpi``).
+    dpi : float
+        Print resolution: the chart has ``round(size_mm / 25.4 * dpi)`` pixels per side.
+    kinds : sequence of str
+        Any of ``"texture"``, ``"charuco"``, ``"slanted-edge"``.
+    seed : int
+        Texture seed.
+    formats : sequence of str
+        ``"png"`` and/or ``"pdf"``.
+
+    Returns
+    -------
+    dict
+        The manifest written to ``targets.json`` (``format`` ``fieldcal-targets/1``, ``charts`` list).
+    """
+    _check_physical(width_mm, height_mm, dpi)
+    kinds = list(kinds)
+    bad = [k for k in kinds if k not in KINDS]
+    if bad or not kinds:
+        raise ParameterError(f"unknown chart kind(s) {bad or kinds}", field="kind",
+                             fix=f"use any of {', '.join(KINDS)} (or 'all' on the command line)")
+    bad_f = [f for f in formats if f not in ("png", "pdf")]
+    if bad_f or not formats:
+        raise ParameterError(f"unknown format(s) {bad_f or list(formats)}", field="format", fix="use png and/or pdf")
+    w_px = int(round(width_mm / MM_PER_INCH * dpi))
+    h_px = int(round(height_mm / MM_PER_INCH * dpi))
+    if w_px * h_px > MAX_CHART_PIXELS:
+        raise ParameterError(f"{width_mm:g} x {height_mm:g} mm at {dpi:g} dpi is {w_px * h_px / 1e6:.0f} MP, too large",
+                             field="dpi", fix=f"lower the dpi or the size (limit {MAX_CHART_PIXELS / 1e6:.0f} MP)")
+    _check_size(w_px, h_px, min_px=64)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    mm_per_px = MM_PER_INCH / dpi
+    entries = []
+    tag = f"{_fmt_num(width_mm)}x{_fmt_num(height_mm)}mm_{_fmt_num(dpi)}dpi"
+    for kind in kinds:
+        params: dict[str, Any]
+        if kind == "texture":
+            tp = TextureParams()
+            img = random_texture(w_px, h_px, seed=seed, quiet=quiet)
+            r_max = tp.r_max_px if tp.r_max_px is not None else 0.1 * min(w_px, h_px)
+            params = {**asdict(tp), "r_max_px": r_max, "model": "dead leaves, p(r) ~ r^-3",
+                      "r_min_mm": tp.r_min_px * mm_per_px, "r_max_mm": r_max * mm_per_px,
+                      "nyquist_cyc_per_mm": 0.5 / mm_per_px}
+            name = f"texture_seed{seed}_{tag}"
+        elif kind == "charuco":
+            spec = charuco_spec(w_px, h_px, dpi=dpi)
+            img = charuco_image(spec)
+            params = spec.to_dict()
+            name = f"charuco_{tag}"
+        else:
+            se = slanted_edge_spec(w_px, h_px)
+            img = slanted_edge_image(se)
+            params = {k: v for k, v in se.to_dict().items()}
+            params.update(side_mm=se.side_px * mm_per_px, cell_mm=se.cell_px * mm_per_px)
+            name = f"slanted-edge_{tag}"
+        subject = (f"fieldcal {kind} chart; print at 100 % (no fit-to-page): {width_mm:g} x {height_mm:g} mm, "
+                   f"{dpi:g} dpi")
+        files = []
+        for fmt in formats:
+            fname = f"{name}.{fmt}"
+            if fmt == "png":
+                data = _png_bytes(img, dpi, {"Title": f"fieldcal {kind}", "Description": subject})
+            else:
+                data = _pdf_bytes(img, width_mm, height_mm, dpi, f"fieldcal {kind}", subject)
+            atomic_write_bytes(out / fname, data)
+            files.append(fname)
+        entries.append({"kind": kind, "files": files, "width_mm": float(width_mm), "height_mm": float(height_mm),
+                        "dpi": float(dpi), "width_px": w_px, "height_px": h_px,
+                        "seed": seed if kind == "texture" else None, "params": params})
+    manifest = _merge_manifest(out / "targets.json", entries)
+    atomic_write_text(out / "targets.json", json.dumps(manifest, indent=2) + "\n")
+    return manifest
+
+
+def _fmt_num(v: float) -> str:
+    return f"{v:g}".replace(".", "p")
+
+
+def _merge_manifest(path: Path, entries: list[dict[str, Any]]) -> dict[str, Any]:
+    """Keep earlier entries whose files still exist and are not rewritten now; a corrupt manifest is replaced."""
+    old: list[dict[str, Any]] = []
+    try:
+        d = json.loads(path.read_text())
+        if isinstance(d, dict) and d.get("format") == TARGETS_FORMAT and isinstance(d.get("charts"), list):
+            old = [e for e in d["charts"] if isinstance(e, dict) and isinstance(e.get("files"), list)]
+    except (OSError, ValueError):
+        pass
+    new_files = {f for e in entries for f in e["files"]}
+    kept = [e for e in old if not (set(e["files"]) & new_files) and all((path.parent / f).exists() for f in e["files"])]
+    return {"format": TARGETS_FORMAT,
+            "note": "print at 100 % scale (disable fit-to-page); measure a printed square to confirm the scale",
+            "charts": kept + entries}

@@ -1,15 +1,52 @@
-"""`fieldcal targets`: write printable calibration charts. Not implemented yet (issue 2)."""
+"""`fieldcal targets`: write printable calibration charts (PNG with dpi, PDF at exact size, targets.json)."""
 
-from ..errors import NotYetImplemented
+from __future__ import annotations
+
+from ..errors import ParameterError
 from . import add_parser
 
 
 def register(sub):
-    p = add_parser(sub, "targets", "write printable calibration charts [not implemented yet]", "fieldcal targets --out calibration_targets")
-    p.add_argument("rest", nargs="*", help="(arguments of the future command)")
+    p = add_parser(sub, "targets", "write printable calibration charts (texture, ChArUco, slanted edge)",
+                   "fieldcal targets --out calibration_targets --kind all --size-mm 297x210 --dpi 300 --seed 0",
+                   description="Write printable calibration charts: a dead-leaves random texture (focus), a ChArUco "
+                               "board (geometry) and a slanted-edge grid (MTF), each as a PNG carrying its dpi and a "
+                               "PDF page of the exact physical size, plus targets.json describing every file. "
+                               "Print at 100 % scale (no fit-to-page).")
+    p.add_argument("--out", default="calibration_targets", help="output folder (default: calibration_targets)")
+    p.add_argument("--kind", default="all", choices=["texture", "charuco", "slanted-edge", "all"],
+                   help="which chart (default: all)")
+    p.add_argument("--size-mm", default="297x210",
+                   help="printed size WIDTHxHEIGHT in mm, or A5/A4/A3/A2/letter/legal (landscape); default 297x210")
+    p.add_argument("--dpi", default="300", help="print resolution in dots per inch, 50..1200 (default: 300)")
+    p.add_argument("--seed", default="0", help="random-texture seed (default: 0)")
+    p.add_argument("--format", default="png,pdf", help="comma-separated: png, pdf (default: png,pdf)")
     p.set_defaults(func=run)
 
 
-def run(args):
-    raise NotYetImplemented("`fieldcal targets` is not implemented yet (tracked in issue 2)",
-                            fix="use the stages that exist; see README.md")
+def _number(text: str, field: str, kind=float):
+    try:
+        return kind(text)
+    except (TypeError, ValueError):
+        raise ParameterError(f"cannot read {text!r} as a number", field=field,
+                             fix=f"give --{field} a {'whole ' if kind is int else ''}number") from None
+
+
+def run(args) -> int:
+    from ..progress import status
+    from ..targets import KINDS, parse_size_mm, write_targets
+
+    width_mm, height_mm = parse_size_mm(args.size_mm)
+    dpi = _number(args.dpi, "dpi")
+    seed = _number(args.seed, "seed", int)
+    if seed < 0:
+        raise ParameterError(f"seed {seed} is negative", field="seed", fix="use a seed >= 0")
+    formats = tuple(f.strip().lower() for f in str(args.format).split(",") if f.strip())
+    kinds = KINDS if args.kind == "all" else (args.kind,)
+    manifest = write_targets(args.out, width_mm, height_mm, dpi, kinds=kinds, seed=seed, formats=formats,
+                             quiet=False)
+    names = {f for e in manifest["charts"][-len(kinds):] for f in e["files"]}
+    for f in sorted(names):
+        status(f"wrote {args.out}/{f}")
+    status(f"wrote {args.out}/targets.json ({width_mm:g} x {height_mm:g} mm at {dpi:g} dpi; print at 100 %)")
+    return 0
