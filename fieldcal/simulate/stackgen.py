@@ -1,0 +1,188 @@
+"""Write a simulated through-focus stack (``fieldcal-stack/1``) with its ground truth.
+
+The stack is built in a hidden sibling folder and renamed into place only when every frame, ``truth.tiff``
+and ``truth.json`` are written, so an interrupted run never leaves a half-written stack behind.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import shutil
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .._io import atomic_write_bytes, atomic_write_text
+from ..errors import ParameterError, StackError
+from ..lens import LensSpec
+from ..progress import progress as _progress
+from .render import Renderer
+from .scene import load_scene
+
+TRUTH_FORMAT = "fieldcal-truth/1"
+
+
+def z_grid(start_um: float, stop_um: float, step_um: float) -> np.ndarray:
+    """Stage positions ``start, start + step, ...`` up to ``stop``, inclusive when stop lands on the grid.
+
+    ``z_grid(-200, 200, 25)`` gives 17 positions. Values are rounded to 1e-6 µm so that decimal steps
+    (e.g. 0.1) give clean numbers.
+    """
+    for name, v in (("start", start_um), ("stop", stop_um), ("step", step_um)):
+        if not math.isfinite(v):
+            raise ParameterError(f"z {name} must be finite, got {v}", field=f"--z {name.upper()}",
+                                 fix="give START STOP STEP in µm, e.g. --z -200 200 25")
+    if step_um <= 0:
+        raise ParameterError(f"z step must be > 0, got {step_um}", field="--z STEP",
+                             fix="give a positive STEP in µm, e.g. --z -200 200 25")
+    if stop_um < start_um:
+        raise ParameterError(f"z stop {stop_um} is below start {start_um}", field="--z STOP",
+                             fix="give START <= STOP, e.g. --z -200 200 25")
+    n = int(math.floor((stop_um - start_um) / step_um + 1e-9)) + 1
+    if n > 100000:
+        raise ParameterError(f"{n} frames is too many", field="--z STEP", fix="use a larger STEP")
+    return np.round(start_um + step_um * np.arange(n), 6)
+
+
+def _check_z(z_um: Sequence[float]) -> np.ndarray:
+    z = np.atleast_1d(np.asarray(z_um, dtype=np.float64))
+    if z.ndim != 1 or z.size == 0:
+        raise ParameterError("need at least one stage position", field="z_um", fix="e.g. z_grid(-200, 200, 25)")
+    if not np.all(np.isfinite(z)):
+        raise ParameterError("stage positions must be finite", field="z_um", fix="remove NaN/inf positions")
+    if np.unique(z).size != z.size:
+        raise ParameterError("stage positions must be distinct (fieldcal-stack/1)", field="z_um",
+                             fix="remove the repeated positions")
+    return z
+
+
+def _check_size(size) -> tuple[int, int] | None:
+    if size is None:
+        return None
+    try:
+        w, h = (int(v) for v in size)
+        ok = all(float(v) == int(v) for v in size)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or w < 8 or h < 8 or w * h > 100_000_000:
+        raise ParameterError(f"image size {size!r} is not a pair of integers from 8 to 100 Mpx", field="size",
+                             fix="give WIDTHxHEIGHT in pixels, e.g. --size 320x180")
+    return w, h
+
+
+def _prepare_out(out: Path, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise StackError("output exists and is not a folder", path=out, fix="choose another STACK folder name")
+    if out.is_dir() and any(out.iterdir()):
+        if not overwrite:
+            raise StackError("output folder exists and is not empty", path=out,
+                             fix="choose a new folder, or pass --overwrite (overwrite=True) to replace the stack")
+        if not (out / "stack.json").is_file():
+            raise StackError("output folder is not empty and holds no stack.json: fieldcal will not delete it",
+                             path=out, fix="choose a new or empty folder")
+
+
+def _tiff_bytes(image: np.ndarray) -> bytes:
+    import tifffile
+    buf = io.BytesIO()
+    photometric = "rgb" if image.ndim == 3 and image.shape[2] == 3 else "minisblack"
+    tifffile.imwrite(buf, image if image.ndim == 2 or image.shape[2] != 1 else image[:, :, 0],
+                     photometric=photometric)
+    return buf.getvalue()
+
+
+def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart", seed: int = 0,
+                   size: tuple[int, int] | None = None, progress: bool = True, noise: bool = True,
+                   overwrite: bool = False, level_ratio: float = 1.25, level_floor_px: float = 0.5):
+    """Render a through-focus stack of a scene through a simulated lens and write it with its truth.
+
+    Parameters
+    ----------
+    spec : LensSpec
+        The simulated lens and camera.
+    out_dir : path-like
+        The stack folder to create (``stack.json``, ``frames/``, ``truth.json``, ``truth.tiff``).
+    z_um : sequence of float
+        Stage positions (µm), distinct; frames are written in this order.
+    scene : str, path or array
+        ``"chart"`` (dead-leaves texture), ``"charuco"``, ``"slanted-edge"``, an image file or an array
+        (see :func:`fieldcal.simulate.scene.load_scene`).
+    seed : int
+        Seed of the noise and of the texture chart.
+    size : (W, H) or None
+        Render at this size instead of the spec's sensor: same sensor area, pixel pitch rescaled
+        (``spec.with_sensor_size``), so the field curvature in µm is unchanged.
+    progress : bool
+        Show a progress bar on stderr.
+    noise : bool
+        Photon and read noise (False: the noise-free mean, still quantised).
+    overwrite : bool
+        Replace an existing stack folder (only one that holds a ``stack.json``).
+
+    Returns
+    -------
+    fieldcal.stack.Stack
+        The written stack, opened for reading.
+    """
+    from ..stack import Stack, StackWriter
+
+    z = _check_z(z_um)
+    wh = _check_size(size)
+    if wh is not None:
+        spec = spec.with_sensor_size(*wh)
+    s = spec.sensor
+    out = Path(out_dir)
+    _prepare_out(out, overwrite)
+    image, scene_name = load_scene(scene, s.width_px, s.height_px, seed)
+    renderer = Renderer(spec, image, seed=seed, level_ratio=level_ratio, level_floor_px=level_floor_px)
+    del image
+
+    meta = dict(bit_depth=s.bit_depth, black_level=s.black_level_dn, white_level=s.white_level_dn,
+                f_number=spec.f_number, exposure_ms=s.exposure_ms, object_distance_mm=spec.object_distance_mm,
+                lens=spec.name, chart=scene_name)
+    if s.cfa:
+        meta["cfa"] = s.cfa
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    try:
+        writer = StackWriter.create(tmp, pixel_pitch_um=s.pixel_pitch_um, channels=list(spec.channel_names),
+                                    **meta)
+        for zi in _progress(z, total=len(z), desc="simulate", quiet=not progress, unit="frame"):
+            writer.add_frame(renderer.render(float(zi), noise=noise), float(zi))
+        atomic_write_bytes(tmp / "truth.tiff", _tiff_bytes(renderer.truth()))
+        truth = {
+            "format": TRUTH_FORMAT,
+            "lens": spec.to_dict(),
+            "size_px": [s.width_px, s.height_px],
+            "pixel_pitch_um": s.pixel_pitch_um,
+            "seed": int(seed),
+            "scene": scene_name,
+            "noise": bool(noise),
+            "z_um": [float(v) for v in z],
+            "truth_file": "truth.tiff",
+            "truth_geometry": "z_ref_um, lateral colour included, in-focus PSF only, no noise",
+            "renderer": renderer.settings(),
+        }
+        atomic_write_text(tmp / "truth.json", json.dumps(truth, indent=2) + "\n")
+        _replace_dir(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return Stack.open(out)
+
+
+def _replace_dir(tmp: Path, out: Path) -> None:
+    """Move the finished stack into place; an old stack (checked by _prepare_out) is removed after."""
+    old = None
+    if out.exists():
+        old = out.parent / f".{out.name}.old-{os.getpid()}"
+        os.replace(out, old)
+    os.replace(tmp, out)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
