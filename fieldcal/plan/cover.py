@@ -1,0 +1,122 @@
+"""Fewest stage positions that put every pixel within its tolerance: a minimum piercing set of intervals.
+
+Each pixel (or bin of best-focus values) gives an interval ``[lo, hi]`` of stage positions that keep it within
+its focus tolerance; a frame at ``z`` serves every interval that contains ``z``. The fewest frames serving all
+intervals is the classic interval-piercing problem, solved exactly by the greedy rule "sort by right end, put a
+frame at the first unserved right end" (its chosen intervals are pairwise disjoint, which is a certificate
+that no smaller set exists). The paper's placement (first frame at a given anchor, e.g. the on-axis best
+focus) is the same greedy run outward from the anchor on each side.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Cover:
+    """A piercing set: ``points_um`` (ascending) and the indices of the disjoint intervals that certify it."""
+
+    points_um: np.ndarray
+    witnesses: np.ndarray  # indices into the input intervals, pairwise disjoint (a lower bound on any cover)
+
+    @property
+    def n(self) -> int:
+        return int(self.points_um.size)
+
+    @property
+    def lower_bound(self) -> int:
+        """Any cover needs at least this many points (number of pairwise disjoint input intervals found)."""
+        return int(self.witnesses.size)
+
+
+def _check(lo, hi):
+    lo = np.asarray(lo, dtype=np.float64).ravel()
+    hi = np.asarray(hi, dtype=np.float64).ravel()
+    if lo.shape != hi.shape:
+        raise ValueError("lo and hi must have the same length")
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise ValueError("interval ends must be finite")
+    if np.any(hi < lo):
+        raise ValueError("empty interval (hi < lo): a tolerance is negative")
+    return lo, hi
+
+
+def _greedy_sorted(lo: np.ndarray, hi: np.ndarray, start_after: float = -np.inf):
+    """Greedy on intervals already sorted by ``hi``; skips intervals containing ``start_after``."""
+    points, wit = [], []
+    last = start_after
+    i, n = 0, lo.size
+    while i < n:
+        rest = lo[i:] > last
+        if not rest.any():
+            break
+        i += int(np.argmax(rest))
+        last = hi[i]
+        points.append(last)
+        wit.append(i)
+        i += 1
+    return points, wit
+
+
+def min_cover(lo, hi) -> Cover:
+    """Minimum set of points such that every interval ``[lo_i, hi_i]`` contains one (exact, O(n log n + N n))."""
+    lo, hi = _check(lo, hi)
+    if lo.size == 0:
+        return Cover(np.zeros(0), np.zeros(0, dtype=np.int64))
+    order = np.argsort(hi, kind="stable")
+    pts, wit = _greedy_sorted(lo[order], hi[order])
+    return Cover(np.asarray(pts, dtype=np.float64), order[np.asarray(wit, dtype=np.int64)])
+
+
+def anchored_cover(lo, hi, anchor_um: float) -> Cover:
+    """The paper's placement: a point at ``anchor_um``, then the fewest points outward on each side.
+
+    Optimal among covers that contain the anchor; can need one point more than :func:`min_cover`.
+    The witnesses are those of each side (a lower bound for covers containing the anchor, minus one).
+    """
+    lo, hi = _check(lo, hi)
+    a = float(anchor_um)
+    above = lo > a
+    below = hi < a
+    pts = [a]
+    wit = []
+    if above.any():
+        idx = np.flatnonzero(above)
+        c = min_cover(lo[idx], hi[idx])
+        pts += list(c.points_um)
+        wit += list(idx[c.witnesses])
+    if below.any():
+        idx = np.flatnonzero(below)
+        c = min_cover(-hi[idx], -lo[idx])  # mirror: greedy from the anchor downward
+        pts += list(-c.points_um)
+        wit += list(idx[c.witnesses])
+    return Cover(np.sort(np.asarray(pts, dtype=np.float64)), np.asarray(wit, dtype=np.int64))
+
+
+def is_cover(points, lo, hi, atol: float = 1e-9) -> bool:
+    """True if every interval contains at least one of ``points``."""
+    lo, hi = _check(lo, hi)
+    p = np.sort(np.asarray(points, dtype=np.float64))
+    if p.size == 0:
+        return lo.size == 0
+    # the first point >= lo must also be <= hi
+    j = np.searchsorted(p, lo - atol, side="left")
+    ok = j < p.size
+    jj = np.minimum(j, p.size - 1)
+    return bool(np.all(ok & (p[jj] <= hi + atol)))
+
+
+def nearest_index(points_sorted, z):
+    """Index of the nearest point for each value of ``z`` (ties go to the higher point): the compositing rule.
+
+    Point k serves ``mid[k-1] <= z < mid[k]`` with ``mid`` the midpoints between consecutive points.
+    """
+    p = np.asarray(points_sorted, dtype=np.float64)
+    z = np.asarray(z, dtype=np.float64)
+    if p.size == 1:
+        return np.zeros(z.shape, dtype=np.int64)
+    mids = 0.5 * (p[1:] + p[:-1])
+    return np.searchsorted(mids, z, side="right").astype(np.int64)

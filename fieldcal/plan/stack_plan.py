@@ -1,0 +1,306 @@
+"""Focal-stack plans (paper IV.B, generalised): fewest frames keeping every pixel of every requested channel
+within its focus tolerance, in one direction of travel, with per-channel bands of best focus per frame.
+
+How the cover is built (exact up to a bin width):
+1. For each channel, sample the MAP surface on a lattice (scene.py) and refine its extremes at full resolution.
+2. Cut the channel's whole range of best focus ``[z_min, z_max]`` into bins of width ``w`` (≤ δ_min/200). The
+   surface is continuous over a connected ROI, so every value in the range occurs at some pixel — sampled or
+   not — and every bin must be served. A bin ``[b0, b1]`` with tolerance ``δ_b`` (the smallest tolerance of
+   samples in it and its two neighbours each side, shrunk by the credible half-width under ``--confidence``)
+   needs a frame in ``[b1 - δ_b, b0 + δ_b]``.
+3. The fewest frames piercing all bins of all channels is the greedy interval cover (cover.py), which is
+   minimal for the binned problem; binning costs at most ``w`` of tolerance, so N exceeds the optimum for the
+   true surface by at most ``N * w / δ`` < 1 frame for N < 200.
+4. Compositing assigns each pixel to the *nearest* frame along z (bands are the Voronoi cells between
+   consecutive frames): if any frame is within a pixel's tolerance, the nearest one is too.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from ..errors import ParameterError
+from . import cover as cv
+from .scene import Scene
+from .surfaces import SampledField, sample_field
+from .tolerance import (check_confidence, check_fs_q, coverage_probability, expected_mtf_loss, mtf_loss,
+                        sigma_from_halfwidth, tolerance_um)
+
+PLAN_FORMAT = "fieldcal-plan/1"
+MAX_BINS = 200_000
+
+
+@dataclass(frozen=True)
+class StackRequest:
+    fs_cyc_per_mm: float = 80.0
+    q: float = 0.05
+    confidence: float | None = None
+    scene: Scene = field(default_factory=Scene)
+    max_frames: int | None = None
+    max_time_ms: float | None = None
+    exposure_ms: float = 20.0
+    frame_overhead_ms: float = 0.0
+    placement: str = "optimal"        # or "paper": first frame at the on-axis best focus
+    direction: str = "+z"              # capture order: increasing z ("+z") or decreasing ("-z")
+    grid_step_px: int = 8
+
+
+@dataclass
+class StackPlan:
+    """A computed stack plan; :meth:`to_dict` gives the ``fieldcal-plan/1`` document."""
+
+    request: StackRequest
+    field: SampledField
+    frames_um: np.ndarray            # ascending
+    bands: dict[str, list]           # channel -> per ascending frame [lo, hi] or None
+    q_used: float
+    tolerance: dict[str, dict]
+    lower_bound: int
+    stats: dict[str, Any]
+    warnings: list[str]
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.frames_um.size)
+
+    def capture_order(self) -> np.ndarray:
+        """Indices into the ascending frames, in capture order."""
+        idx = np.arange(self.n_frames)
+        return idx if self.request.direction == "+z" else idx[::-1]
+
+    def to_dict(self, profile_info: dict | None = None) -> dict:
+        r = self.request
+        per_frame_ms = r.exposure_ms + r.frame_overhead_ms
+        frames = []
+        for k, i in enumerate(self.capture_order()):
+            frames.append({
+                "index": k,
+                "z_um": round(float(self.frames_um[i]), 4),
+                "exposure_ms": r.exposure_ms,
+                "bands": {c: (None if self.bands[c][i] is None else [round(v, 4) for v in self.bands[c][i]])
+                          for c in self.field.channels},
+            })
+        x, y, w, h = self.field.roi
+        return {
+            "format": PLAN_FORMAT,
+            "kind": "stack",
+            "profile": profile_info or {},
+            "parameters": {
+                "fs_cyc_per_mm": r.fs_cyc_per_mm, "q": r.q, "confidence": r.confidence,
+                "roi": [x, y, w, h], "channels": list(self.field.channels),
+                "object_distance_mm": r.scene.object_distance_mm,
+                "max_frames": r.max_frames, "max_time_ms": r.max_time_ms,
+                "exposure_ms": r.exposure_ms, "frame_overhead_ms": r.frame_overhead_ms,
+                "placement": r.placement, "direction": r.direction, "grid_step_px": r.grid_step_px,
+            },
+            "direction": r.direction,
+            "band_rule": "nearest frame: channel c of a pixel takes the frame whose band [lo, hi) holds "
+                         "best_focus_um(x, y, c) + refocus_um (the last band is closed)",
+            "refocus_um": round(self.field.refocus_um, 4),
+            "n_frames": self.n_frames,
+            "frames": frames,
+            "total_exposure_ms": round(self.n_frames * r.exposure_ms, 4),
+            "total_time_ms": round(self.n_frames * per_frame_ms, 4),
+            "q_used": round(self.q_used, 6),
+            "q_achieved": round(self.stats["worst_mtf_loss"], 6),
+            "range_um": {c: [round(s.z_min_um, 4), round(s.z_max_um, 4)] for c, s in self.field.samples.items()},
+            "D_um": round(self.field.range_um, 4),
+            "tolerance": self.tolerance,
+            "lower_bound_frames": self.lower_bound,
+            "coverage": {k: (round(v, 6) if isinstance(v, float) else v) for k, v in self.stats.items()},
+            "warnings": self.warnings,
+        }
+
+
+# ----------------------------------------------------------------------------------------- the cover
+def _bin_intervals(z, dtol, zmin, zmax, width):
+    """Intervals of stage positions serving each bin of best-focus values (see module docstring)."""
+    span = zmax - zmin
+    nb = max(1, int(math.ceil(span / width))) if span > 0 else 1
+    edges = zmin + (span / nb) * np.arange(nb + 1)
+    b = np.clip(((z - zmin) / (span / nb)).astype(np.int64) if span > 0 else np.zeros(z.size, np.int64), 0, nb - 1)
+    dmin = np.full(nb, np.inf)
+    np.minimum.at(dmin, b, dtol)
+    filled = np.isfinite(dmin)
+    if not filled.all():  # empty bins (values between samples): take the smaller tolerance of the neighbours
+        idx = np.arange(nb)
+        fi = np.flatnonzero(filled)
+        left = fi[np.clip(np.searchsorted(fi, idx, side="right") - 1, 0, fi.size - 1)]
+        right = fi[np.clip(np.searchsorted(fi, idx, side="left"), 0, fi.size - 1)]
+        dmin = np.where(filled, dmin, np.minimum(dmin[left], dmin[right]))
+    dmin = ndimage.minimum_filter1d(dmin, size=5, mode="nearest")
+    return edges[1:] - dmin, edges[:-1] + dmin
+
+
+def _cover(fieldd: SampledField, tols: dict, placement: str, anchor: float | None):
+    lo_all, hi_all, dmins = [], [], []
+    for c, s in fieldd.samples.items():
+        d = tols[c] - s.u_um
+        dmins.append(float(d.min()))
+    dmin_all = min(dmins)
+    width = max(dmin_all / 200.0, fieldd.range_um / MAX_BINS, 1e-9)
+    for c, s in fieldd.samples.items():
+        lo, hi = _bin_intervals(s.z_um, tols[c] - s.u_um, s.z_min_um, s.z_max_um, width)
+        lo_all.append(lo)
+        hi_all.append(hi)
+    lo = np.concatenate(lo_all)
+    hi = np.concatenate(hi_all)
+    if placement == "paper":
+        return cv.anchored_cover(lo, hi, anchor), width
+    return cv.min_cover(lo, hi), width
+
+
+def _tolerances(profile, fieldd, fs, q):
+    tols, src = {}, {}
+    for c, s in fieldd.samples.items():
+        tols[c], src[c] = tolerance_um(profile, s.x, s.y, c, fs, q)
+    return tols, src
+
+
+def _check_request(r: StackRequest):
+    fs, q = check_fs_q(r.fs_cyc_per_mm, r.q)
+    check_confidence(r.confidence)
+    if r.placement not in ("optimal", "paper"):
+        raise ParameterError(f"placement {r.placement!r} unknown", field="placement", fix="use optimal or paper")
+    if r.direction not in ("+z", "-z"):
+        raise ParameterError(f"direction {r.direction!r} unknown", field="direction",
+                             fix="use +z (increasing stage position) or -z")
+    if not (math.isfinite(r.exposure_ms) and r.exposure_ms > 0):
+        raise ParameterError(f"exposure {r.exposure_ms} ms must be > 0", field="exposure_ms", fix="e.g. --exposure-ms 20")
+    if not (math.isfinite(r.frame_overhead_ms) and r.frame_overhead_ms >= 0):
+        raise ParameterError(f"frame overhead {r.frame_overhead_ms} ms must be >= 0", field="frame_overhead_ms",
+                             fix="e.g. --frame-overhead-ms 50 (stage move and settle)")
+    max_frames = r.max_frames
+    if max_frames is not None and int(max_frames) < 1:
+        raise ParameterError(f"max frames {max_frames} must be >= 1", field="max_frames", fix="e.g. --max-frames 20")
+    if r.max_time_ms is not None:
+        per = r.exposure_ms + r.frame_overhead_ms
+        if not (math.isfinite(r.max_time_ms) and r.max_time_ms >= per):
+            raise ParameterError(f"max time {r.max_time_ms} ms is shorter than one frame ({per} ms)",
+                                 field="max_time_ms", fix=f"allow at least {per} ms or shorten --exposure-ms")
+        by_time = int(math.floor(r.max_time_ms / per + 1e-9))
+        max_frames = by_time if max_frames is None else min(int(max_frames), by_time)
+    return fs, q, max_frames
+
+
+def _anchor(profile, fieldd: SampledField) -> float:
+    """The paper's first frame: on-axis best focus of G (else the first channel), kept inside the range."""
+    ch = "G" if "G" in fieldd.channels else fieldd.channels[0]
+    cx, cy = profile.optical_centre_px()
+    z = float(np.asarray(profile.best_focus_um(np.array([cx]), np.array([cy]), ch)).ravel()[0]) + fieldd.refocus_um
+    s = fieldd.samples[ch]
+    return float(np.clip(z, s.z_min_um, s.z_max_um))
+
+
+def plan_stack(profile, request: StackRequest) -> StackPlan:
+    """Compute a stack plan for ``profile`` (any object with the lens-profile interface)."""
+    r = request
+    fs, q, max_frames = _check_request(r)
+    fieldd = sample_field(profile, r.scene, r.grid_step_px, r.confidence)
+    anchor = _anchor(profile, fieldd) if r.placement == "paper" else None
+    warnings: list[str] = []
+
+    def solve(qq):
+        tols, src = _tolerances(profile, fieldd, fs, qq)
+        short = {c: float(np.max(s.u_um - tols[c])) for c, s in fieldd.samples.items()}
+        if any(v >= 0 for v in short.values()):
+            return None, tols, src, short, None
+        cov, width = _cover(fieldd, tols, r.placement, anchor)
+        return cov, tols, src, short, width
+
+    cov, tols, src, short, width = solve(q)
+    q_used = q
+    if cov is None:
+        if max_frames is None:
+            worst = max(short, key=short.get)
+            raise ParameterError(
+                f"the credible band of channel {worst} is wider than the tolerance (by up to {short[worst]:.2f} µm): "
+                f"no frame placement covers every pixel with probability {r.confidence}", field="confidence",
+                fix="lower --confidence, allow a larger --q, or recalibrate with a finer stack")
+    if max_frames is not None and (cov is None or cov.n > max_frames):
+        q_hi = 0.99
+        c_hi = solve(q_hi)[0]
+        if c_hi is None or c_hi.n > max_frames:
+            raise ParameterError(f"even a {q_hi:.0%} MTF loss needs more than {max_frames} frames",
+                                 field="max_frames", fix="allow more frames or time, narrow --roi or --channels")
+        lo_q, hi_q = q, q_hi
+        for _ in range(40):  # smallest q whose cover fits: N(q) is non-increasing in q
+            mid = 0.5 * (lo_q + hi_q)
+            cm = solve(mid)[0]
+            if cm is not None and cm.n <= max_frames:
+                hi_q = mid
+            else:
+                lo_q = mid
+            if hi_q - lo_q < 1e-5:
+                break
+        q_used = hi_q
+        cov, tols, src, short, width = solve(q_used)
+        warnings.append(f"{max_frames} frames allow an MTF loss of {q_used:.4f} at {fs} cycles/mm, not {q}")
+
+    frames = cov.points_um
+    # per-channel bands: Voronoi cells along z clipped to the channel's range
+    mids = 0.5 * (frames[1:] + frames[:-1])
+    edges = np.concatenate([[-np.inf], mids, [np.inf]])
+    bands = {}
+    for c, s in fieldd.samples.items():
+        bl = []
+        for i in range(frames.size):
+            lo_b, hi_b = max(edges[i], s.z_min_um), min(edges[i + 1], s.z_max_um)
+            flat = s.z_max_um == s.z_min_um and edges[i] <= s.z_min_um < edges[i + 1]
+            bl.append([float(lo_b), float(hi_b)] if (lo_b < hi_b or flat) else None)
+        bands[c] = bl
+    stats = _stats(profile, fieldd, frames, tols, fs, q_used, r.confidence)
+    stats["grid_error_bound_um"] = max(s.grid_error_bound_um for s in fieldd.samples.values())
+    stats["bin_width_um"] = width
+    tol_info = {c: {"source": src[c], "min_um": float(tols[c].min()), "max_um": float(tols[c].max())}
+                for c in fieldd.channels}
+    return StackPlan(r, fieldd, frames, bands, q_used, tol_info, cov.lower_bound, stats, warnings)
+
+
+def _stats(profile, fieldd, frames, tols, fs, q, confidence):
+    """Coverage probability and MTF losses on the sample grid (worst pixel)."""
+    fno = float(profile.f_number)
+    p_min, e_loss, loss_map, margin = 1.0, 0.0, 0.0, np.inf
+    for c, s in fieldd.samples.items():
+        zf = frames[cv.nearest_index(frames, s.z_um)]
+        sigma = sigma_from_halfwidth(s.u_um, confidence) if confidence is not None else np.zeros_like(s.u_um)
+        p_min = min(p_min, float(coverage_probability(zf, s.z_um, tols[c], sigma).min()))
+        loss_map = max(loss_map, float(mtf_loss(zf - s.z_um, tols[c], fs, q, fno).max()))
+        e_loss = max(e_loss, float(expected_mtf_loss(zf, s.z_um, tols[c], sigma, fs, q, fno).max()))
+        margin = min(margin, float(np.min(tols[c] - np.abs(zf - s.z_um))))
+    return {
+        "probability": p_min,
+        "probability_definition": "smallest per-pixel probability that the assigned frame is within tolerance "
+                                  "(Gaussian posterior matched to the profile's credible band; 1 without --confidence)",
+        "expected_worst_mtf_loss": e_loss,
+        "worst_mtf_loss": loss_map,
+        "min_margin_um": margin,
+    }
+
+
+# ------------------------------------------------------------------------------------------ checking
+def check_coverage(profile, plan: StackPlan, x, y, channels=None) -> dict[str, float]:
+    """Smallest margin δ - |z_frame - z| (µm) per channel at the given pixels, using the *profile's* surfaces and
+    tolerance at the plan's fs and q_used, with the nearest-frame rule (≥ 0 means every pixel is covered)."""
+    out = {}
+    for c in channels or plan.field.channels:
+        z = np.asarray(profile.best_focus_um(x, y, c), dtype=np.float64) + plan.field.refocus_um
+        zf = plan.frames_um[cv.nearest_index(plan.frames_um, z)]
+        tol, _ = tolerance_um(profile, x, y, c, plan.request.fs_cyc_per_mm, plan.q_used)
+        out[c] = float(np.min(tol - np.abs(zf - z)))
+    return out
+
+
+def paper_stack_count(D_um: float, d_um: float) -> int:
+    """The paper's N = 1 + floor(D / 2d) (IV.B, with d the tolerance half-width)."""
+    return 1 + int(math.floor(D_um / (2.0 * d_um) + 1e-12))
+
+
+def optimal_uniform_count(D_um: float, d_um: float) -> int:
+    """Fewest frames for a uniform half-width d over a range D: ceil(D / 2d), at least 1."""
+    return max(1, int(math.ceil(D_um / (2.0 * d_um) - 1e-12)))
