@@ -1,0 +1,375 @@
+"""A small client for PI's GCS2 command language (C-863 Mercury and kin) over pyserial, and a Stage on it.
+
+The client is deliberately plain: one command at a time, blocking reads with a timeout, ``ERR?`` after every
+command that sets something, and after any link error a resync (drain whatever is still arriving, then
+``*IDN?`` until the controller's identity comes back, then ``ERR?``) before anything else is sent.
+
+GCS2 framing (PI's GCS2 manuals): a command is ASCII ending in LF; a reply line ends in LF, and every line of a
+multi-line reply except the last ends in a space before the LF (``"1=0.5 \\n"``, ``"2=1.0\\n"``). Single-
+character commands (``#5`` motion status, ``#7`` ready, ``#24`` stop) are one control byte with no LF.
+
+Units: the controller speaks mm; :class:`GCS2Stage` speaks fieldcal µm with
+``z_um = sign * (pos_mm - zero_mm) * 1000`` (``zero_mm`` is the controller position that fieldcal calls z = 0,
+``sign`` = +1 when the controller's + direction moves the sensor away from the lens).
+
+Ports: a device path (``/dev/ttyUSB0``, ``COM3``; opened exclusively) or any pyserial URL
+(``socket://127.0.0.1:50000`` for a TCP controller or the bundled emulator).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from typing import Any
+
+import serial
+
+from ..errors import LinkError, ParameterError
+from .protocols import DeviceFault
+
+# GCS2 error codes fieldcal names (PI's list; the controller's ERR? reply is the number).
+GCS2_ERRORS = {
+    0: "no error",
+    1: "parameter syntax error",
+    2: "unknown command",
+    3: "command length out of limits or command buffer overrun",
+    5: "unallowable move attempted on unreferenced axis, or move attempted with servo off",
+    7: "position out of limits",
+    8: "velocity out of limits",
+    10: "controller was stopped by command",
+    15: "invalid axis identifier",
+    17: "parameter out of range",
+    -1024: "motion error: position error too large, servo is switched off automatically",
+}
+GCS2_FIXES = {
+    5: "reference the axis (FRF) with the servo on (SVO) before moving",
+    7: "keep the plan inside the stage's travel (TMN?/TMX?)",
+    10: "the stage was stopped (STP/#24); re-run to resume",
+    -1024: "check the stage for obstruction or overload, switch the servo on again, then re-run",
+}
+SINGLE_CHAR = {"#5": b"\x05", "#7": b"\x07", "#24": b"\x18"}
+_AXIS_VALUE = re.compile(r"^\s*([A-Za-z0-9_]+)\s*=\s*(\S+)\s*$")
+
+
+class GCS2Client:
+    """GCS2 over one serial port or pyserial URL.
+
+    Parameters
+    ----------
+    port : str
+        ``/dev/ttyUSB0``, ``COM3`` or a pyserial URL such as ``socket://127.0.0.1:50000``.
+    baudrate : int
+        115200 is the C-863's default.
+    timeout_ms : float
+        How long to wait for each reply line.
+    """
+
+    def __init__(self, port: str, *, baudrate: int = 115200, timeout_ms: float = 500.0):
+        self.port = port
+        self.baudrate = int(baudrate)
+        self.timeout_ms = float(timeout_ms)
+        self.identity: str | None = None
+        self._ser = None
+        self.log: list[tuple[str, str]] = []  # (direction, text) of the last exchanges, for error messages
+
+    # ------------------------------------------------------------------ link
+    @property
+    def device(self) -> str:
+        return f"stage gcs:{self.port}"
+
+    def open(self) -> None:
+        """Open the port (exclusively for a local device) and identify the controller."""
+        try:
+            if "://" in self.port:
+                self._ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=self.timeout_ms / 1000)
+            else:
+                self._ser = serial.Serial(self.port, baudrate=self.baudrate, timeout=self.timeout_ms / 1000,
+                                          exclusive=True)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise LinkError(f"cannot open the port ({exc})", path=self.device,
+                            fix="check the port name and that no other program (PIMikroMove, a second fieldcal) "
+                                "holds it") from None
+        self.resync()
+
+    def close(self) -> None:
+        if self._ser is not None:
+            try:
+                self._ser.close()
+            except Exception:  # closing a dead link must not hide the error that killed it
+                pass
+            self._ser = None
+
+    def _link_error(self, what: str, cmd: str) -> LinkError:
+        return LinkError(f"{what} (command {cmd!r})", path=self.device,
+                         fix="check cable, port and baud rate; the client resyncs before the next command")
+
+    def _write(self, cmd: str) -> None:
+        if self._ser is None:
+            raise LinkError("the port is not open", path=self.device, fix="call open() first")
+        data = SINGLE_CHAR.get(cmd) or (cmd + "\n").encode("ascii")
+        try:
+            self._ser.write(data)
+            self._ser.flush()
+        except (serial.SerialException, OSError) as exc:
+            raise self._link_error(f"write failed ({exc})", cmd) from None
+        self.log = (self.log + [(">", cmd)])[-20:]
+
+    def _read_line(self, cmd: str, timeout_ms: float | None = None) -> str:
+        if timeout_ms is not None:
+            self._ser.timeout = timeout_ms / 1000
+        try:
+            raw = self._ser.read_until(b"\n")
+        except (serial.SerialException, OSError) as exc:
+            raise self._link_error(f"link lost ({exc})", cmd) from None
+        finally:
+            if timeout_ms is not None and self._ser is not None:
+                self._ser.timeout = self.timeout_ms / 1000
+        if not raw.endswith(b"\n"):
+            raise self._link_error(f"no reply within {timeout_ms or self.timeout_ms:.0f} ms", cmd)
+        text = raw.decode("latin-1")  # '#7' answers with byte 0xB1; everything else must be printable ASCII
+        if cmd != "#7" and any(not (32 <= ord(ch) < 127) for ch in text[:-1]):
+            raise self._link_error(f"garbled reply {raw!r}", cmd)
+        self.log = (self.log + [("<", text)])[-20:]
+        return text[:-1]
+
+    def read_reply(self, cmd: str) -> list[str]:
+        """All lines of one reply (a line ending in a space announces another line)."""
+        lines = []
+        while True:
+            line = self._read_line(cmd)
+            if line.endswith(" "):
+                lines.append(line[:-1])
+                continue
+            lines.append(line)
+            return lines
+
+    def query(self, cmd: str) -> list[str]:
+        """Send a query (``POS? 1``, ``#5``, ...) and return its reply lines."""
+        self._write(cmd)
+        return self.read_reply(cmd)
+
+    def query_axes(self, cmd: str, axis: str) -> str:
+        """``CMD? axis`` -> the value string of ``axis=value``; a reply of another shape is a link error."""
+        full = f"{cmd} {axis}"
+        lines = self.query(full)
+        for line in lines:
+            m = _AXIS_VALUE.match(line)
+            if m and m.group(1) == axis:
+                return m.group(2)
+        raise self._link_error(f"garbled reply {lines!r} (expected '{axis}=value')", full)
+
+    def query_float(self, cmd: str, axis: str) -> float:
+        v = self.query_axes(cmd, axis)
+        try:
+            x = float(v)
+        except ValueError:
+            raise self._link_error(f"garbled reply value {v!r}", f"{cmd} {axis}") from None
+        if not math.isfinite(x):
+            raise self._link_error(f"non-finite reply value {v!r}", f"{cmd} {axis}")
+        return x
+
+    def error_code(self) -> int:
+        """``ERR?``: the last error (0 = none); reading it clears it on the controller."""
+        lines = self.query("ERR?")
+        try:
+            return int(lines[-1].strip())
+        except ValueError:
+            raise self._link_error(f"garbled reply {lines!r} to ERR?", "ERR?") from None
+
+    def check_error(self, after: str) -> None:
+        code = self.error_code()
+        if code != 0:
+            raise DeviceFault(f"{GCS2_ERRORS.get(code, 'see the controller manual')} (after {after!r})", code=code,
+                              device=self.device, fix=GCS2_FIXES.get(code))
+
+    def command(self, cmd: str) -> None:
+        """Send a command that has no reply, then ``ERR?``: a non-zero code raises :class:`DeviceFault`."""
+        self._write(cmd)
+        self.check_error(cmd)
+
+    def resync(self, drain_ms: float | None = None) -> str:
+        """Drain the link, re-identify with ``*IDN?`` (skipping stale replies) and clear the error."""
+        if self._ser is None or not getattr(self._ser, "is_open", True):
+            self.close()
+            try:
+                if "://" in self.port:
+                    self._ser = serial.serial_for_url(self.port, baudrate=self.baudrate,
+                                                      timeout=self.timeout_ms / 1000)
+                else:
+                    self._ser = serial.Serial(self.port, baudrate=self.baudrate, timeout=self.timeout_ms / 1000,
+                                              exclusive=True)
+            except (serial.SerialException, OSError, ValueError) as exc:
+                raise LinkError(f"cannot reopen the port ({exc})", path=self.device,
+                                fix="check cable and power, then re-run") from None
+        drain_s = (self.timeout_ms if drain_ms is None else drain_ms) / 1000
+        try:
+            # a late reply may still be on its way: read until the line has been quiet for drain_s
+            self._ser.timeout = drain_s
+            while self._ser.read(4096):
+                pass
+            self._ser.reset_input_buffer()
+        except (serial.SerialException, OSError) as exc:
+            raise self._link_error(f"link lost while draining ({exc})", "*IDN?") from None
+        finally:
+            if self._ser is not None:
+                self._ser.timeout = self.timeout_ms / 1000
+        self._write("*IDN?")
+        deadline = time.monotonic() + 4 * self.timeout_ms / 1000
+        while True:
+            line = self._read_line("*IDN?")
+            if line.strip() and not _AXIS_VALUE.match(line) and not line.strip().lstrip("-").isdigit():
+                ident = line.strip()
+                break
+            if time.monotonic() > deadline:
+                raise self._link_error("no identity reply", "*IDN?")
+        if self.identity is not None and ident != self.identity:
+            raise LinkError(f"a different controller answers now ({ident!r}, was {self.identity!r})",
+                            path=self.device, fix="check which controller is on this port")
+        self.identity = ident
+        self.error_code()  # clear whatever error the lost exchange left behind
+        return ident
+
+
+class GCS2Stage:
+    """One axis of a GCS2 controller as a fieldcal :class:`~fieldcal.hardware.protocols.Stage` (µm).
+
+    Device string: ``gcs:PORT[,axis=1][,baud=115200][,zero_mm=7.5][,sign=1][,timeout_ms=500][,poll_ms=10]``.
+    ``zero_mm`` defaults to mid-travel of the M-111.1DG (15 mm travel).
+    """
+
+    OPTIONS = {"axis", "baud", "zero_mm", "sign", "timeout_ms", "poll_ms", "velocity_mm_s"}
+
+    def __init__(self, port: str, *, axis: str = "1", baudrate: int = 115200, zero_mm: float = 7.5,
+                 sign: int = 1, timeout_ms: float = 500.0, poll_ms: float = 10.0,
+                 velocity_mm_s: float | None = None):
+        if sign not in (1, -1):
+            raise ParameterError(f"sign must be 1 or -1, got {sign}", path=f"stage gcs:{port}", field="sign",
+                                 fix="sign=1 when the controller's + moves the sensor away from the lens, else -1")
+        self.client = GCS2Client(port, baudrate=baudrate, timeout_ms=timeout_ms)
+        self.axis = str(axis)
+        self.zero_mm = float(zero_mm)
+        self.sign = int(sign)
+        self.poll_ms = float(poll_ms)
+        self._velocity_mm_s = velocity_mm_s
+        self.name = f"gcs:{port}"
+
+    @classmethod
+    def from_spec(cls, arg: str | None, options: dict[str, str]) -> "GCS2Stage":
+        device = f"stage gcs:{arg or ''}"
+        if not arg:
+            raise ParameterError("the GCS2 stage needs a port", path=device,
+                                 fix="write e.g. --stage gcs:/dev/ttyUSB0 or gcs:socket://127.0.0.1:50000")
+        bad = sorted(set(options) - cls.OPTIONS)
+        if bad:
+            raise ParameterError(f"unknown option(s) {', '.join(bad)}", path=device, field=bad[0],
+                                 fix=f"known options: {', '.join(sorted(cls.OPTIONS))}")
+        try:
+            kw: dict[str, Any] = {}
+            if "axis" in options:
+                kw["axis"] = options["axis"]
+            if "baud" in options:
+                kw["baudrate"] = int(options["baud"])
+            for key in ("zero_mm", "timeout_ms", "poll_ms", "velocity_mm_s"):
+                if key in options:
+                    kw[key] = float(options[key])
+            if "sign" in options:
+                kw["sign"] = int(options["sign"])
+        except ValueError as exc:
+            raise ParameterError(f"bad option value ({exc})", path=device, fix="options are key=number") from None
+        return cls(arg, **kw)
+
+    # ------------------------------------------------------------------ unit conversion at the edge
+    def _to_mm(self, z_um: float) -> float:
+        return self.zero_mm + self.sign * z_um / 1000.0
+
+    def _to_um(self, pos_mm: float) -> float:
+        return self.sign * (pos_mm - self.zero_mm) * 1000.0
+
+    # ------------------------------------------------------------------ Stage protocol
+    def connect(self) -> None:
+        self.client.open()
+        if self.client.query_axes("SVO?", self.axis) != "1":
+            self.client.command(f"SVO {self.axis} 1")
+        if self._velocity_mm_s is not None:
+            self.client.command(f"VEL {self.axis} {self._velocity_mm_s:.6f}")
+
+    def close(self) -> None:
+        self.client.close()
+
+    def identify(self) -> str:
+        return self.client.identity or self.client.resync()
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": "gcs", "name": self.name, "identity": self.client.identity, "axis": self.axis,
+                "units": "controller mm; z_um = sign * (pos_mm - zero_mm) * 1000",
+                "zero_mm": self.zero_mm, "sign": self.sign, "port": self.client.port}
+
+    def resync(self) -> None:
+        self.client.resync()
+
+    def is_referenced(self) -> bool:
+        return self.client.query_axes("FRF?", self.axis) == "1"
+
+    def reference(self, timeout_ms: float = 60000.0) -> None:
+        if self.client.query_axes("SVO?", self.axis) != "1":
+            self.client.command(f"SVO {self.axis} 1")
+        self.client.command(f"FRF {self.axis}")
+        deadline = time.monotonic() + timeout_ms / 1000
+        while not self.is_referenced():
+            if time.monotonic() > deadline:
+                self.stop()
+                raise DeviceFault(f"reference move not done within {timeout_ms:.0f} ms", code=0,
+                                  device=self.client.device, fix="check the stage and its reference switch")
+            time.sleep(self.poll_ms / 1000)
+        self.client.check_error("FRF")
+
+    def limits_um(self) -> tuple[float, float]:
+        a = self._to_um(self.client.query_float("TMN?", self.axis))
+        b = self._to_um(self.client.query_float("TMX?", self.axis))
+        return (min(a, b), max(a, b))
+
+    def velocity_um_per_s(self) -> float:
+        return self.client.query_float("VEL?", self.axis) * 1000.0
+
+    def set_velocity_um_per_s(self, v: float) -> None:
+        self.client.command(f"VEL {self.axis} {v / 1000.0:.6f}")
+
+    def move_to_um(self, z_um: float) -> None:
+        self.client.command(f"MOV {self.axis} {self._to_mm(z_um):.6f}")
+
+    def on_target(self) -> bool:
+        return self.client.query_axes("ONT?", self.axis) == "1"
+
+    def _moving(self) -> bool:
+        lines = self.client.query("#5")
+        try:
+            return int(lines[-1].strip(), 16) != 0
+        except ValueError:
+            raise self.client._link_error(f"garbled reply {lines!r}", "#5") from None
+
+    def wait_on_target(self, timeout_ms: float) -> None:
+        deadline = time.monotonic() + timeout_ms / 1000
+        while self._moving():
+            if time.monotonic() > deadline:
+                self.stop()
+                raise DeviceFault(f"still moving after {timeout_ms:.0f} ms; stopped", code=0,
+                                  device=self.client.device, fix="raise the on-target timeout or the velocity")
+            time.sleep(self.poll_ms / 1000)
+        self.client.check_error("motion")  # a motion error (-1024) ends the motion early
+        while not self.on_target():
+            if time.monotonic() > deadline:
+                raise DeviceFault("motion ended off target", code=0, device=self.client.device,
+                                  fix="check servo tuning and load; then re-run")
+            time.sleep(self.poll_ms / 1000)
+
+    def position_um(self) -> float:
+        return self._to_um(self.client.query_float("POS?", self.axis))
+
+    def stop(self) -> None:
+        """``#24`` (stop all axes, accepted even mid-command), then clear error 10 it sets. Never raises."""
+        try:
+            self.client._write("#24")
+            self.client.error_code()
+        except Exception:  # stop is called while handling another error: never mask that one
+            pass
