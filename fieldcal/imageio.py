@@ -52,6 +52,10 @@ class ImageHeader:
         Native-byte-order sample type.
     planar : bool
         TIFF stored channel-first (C x H x W); transposed on read.
+    mmap_offset : int or None
+        Byte offset of an uncompressed, contiguous TIFF image (read by memory mapping), else None.
+    file_dtype : str
+        Sample type with the file's byte order (for memory mapping).
     """
 
     kind: str
@@ -61,6 +65,8 @@ class ImageHeader:
     ndim: int
     dtype: np.dtype
     planar: bool = False
+    mmap_offset: int | None = None
+    file_dtype: str = ""
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -131,12 +137,18 @@ def _probe_tiff(path: Path) -> ImageHeader:
 
     try:
         with tifffile.TiffFile(path) as tf:
+            if not tf.series:
+                raise ImageFileError("has an unreadable TIFF header (no image found)",
+                                     "re-export the frame; the file is damaged")
             if len(tf.series) != 1:
                 raise ImageFileError(f"holds {len(tf.series)} image series",
                                      "write one 2-D image (H x W or H x W x C) per frame file")
             series = tf.series[0]
             shape, axes, dtype = tuple(series.shape), series.axes, series.dtype
             n_pages = len(series.pages)
+            page = series.pages[0]
+            offset = int(page.dataoffsets[0]) if n_pages == 1 and page.is_memmappable else None
+            file_dtype = np.dtype(dtype).newbyteorder(tf.byteorder).str
     except ImageFileError:
         raise
     except Exception as exc:  # tifffile raises many types for damaged files
@@ -145,10 +157,10 @@ def _probe_tiff(path: Path) -> ImageHeader:
         raise ImageFileError(f"holds an image of shape {shape} (axes {axes!r}), not one 2-D image",
                              "write one 2-D image (H x W or H x W x C) per frame file")
     if axes == "YX":
-        return ImageHeader("tiff", shape[0], shape[1], 1, 2, _native(dtype))
+        return ImageHeader("tiff", shape[0], shape[1], 1, 2, _native(dtype), False, offset, file_dtype)
     if axes == "YXS":
-        return ImageHeader("tiff", shape[0], shape[1], shape[2], 3, _native(dtype))
-    return ImageHeader("tiff", shape[1], shape[2], shape[0], 3, _native(dtype), planar=True)
+        return ImageHeader("tiff", shape[0], shape[1], shape[2], 3, _native(dtype), False, offset, file_dtype)
+    return ImageHeader("tiff", shape[1], shape[2], shape[0], 3, _native(dtype), True, None, file_dtype)
 
 
 def read_image(path: str | Path, roi: tuple[int, int, int, int] | None = None,
@@ -210,12 +222,10 @@ def _read_tiff(path: Path, header: ImageHeader, roi) -> tuple[np.ndarray, bool]:
     """
     import tifffile
 
-    with tifffile.TiffFile(path) as tf:
-        mappable = tf.series[0].pages[0].is_memmappable and not header.planar
-    if mappable:
-        mm = tifffile.memmap(path, mode="r")
+    if header.mmap_offset is not None:
+        mm = np.memmap(path, dtype=np.dtype(header.file_dtype), mode="r", offset=header.mmap_offset,
+                       shape=header.shape)  # raises ValueError if the file is shorter than the image
         try:
-            mm = mm.reshape(header.shape)  # (H, W, 1) may be stored as (H, W)
             if roi is not None:
                 y0, y1, x0, x1 = roi
                 return np.array(mm[y0:y1, x0:x1]), True
