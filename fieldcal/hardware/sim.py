@@ -321,7 +321,8 @@ class SimCamera:
     ----------
     lens_path : path to a ``fieldcal-lens/1`` spec.
     size : (W, H) rendered size; the sensor area is kept (``LensSpec.with_sensor_size``).
-    scene : ``"chart"`` (the calibration texture) or a path to an image file.
+    scene : ``"chart"`` (the calibration texture), ``"charuco"``, ``"slanted-edge"`` or an image file
+        (:func:`fieldcal.simulate.scene.load_scene`).
     """
 
     OPTIONS = {"size", "seed", "scene", "noise"}
@@ -371,13 +372,9 @@ class SimCamera:
         self._connected = True
 
     def _scene(self):
-        if self.scene_kind == "chart":
-            from ..simulate.stackgen import chart_scene
-            return chart_scene(self.spec, seed=self.seed)
-        from ..imageio import read_image
-        img = read_image(self.scene_kind)
-        img = img.astype(np.float32)
-        return img / max(float(img.max()), 1e-12)
+        from ..simulate.scene import load_scene
+        image, _ = load_scene(self.scene_kind, self.size[0], self.size[1], seed=self.seed)
+        return image
 
     def close(self) -> None:
         self._connected = False
