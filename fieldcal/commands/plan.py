@@ -1,15 +1,129 @@
-"""`fieldcal plan`: make a focal-stack or focal-sweep plan from a lens profile. Not implemented yet (issue 4)."""
+"""`fieldcal plan stack|sweep PROFILE`: make a focal-stack or focal-sweep plan (``fieldcal-plan/1``)."""
 
-from ..errors import NotYetImplemented
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from ..errors import ParameterError
+from ..progress import status
 from . import add_parser
 
 
+def _size(text):
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w >= 8 and h >= 8:
+            return (w, h)
+    except ValueError:
+        pass
+    raise ParameterError(f"size {text!r} is not WxH", field="size", fix="e.g. --size 640x360")
+
+
+def _channels(text):
+    return None if not text else tuple(c for c in text.replace(" ", "").split(",") if c)
+
+
+def _common(p):
+    p.add_argument("profile", metavar="PROFILE", help="lens profile (fieldcal-profile/1) or lens spec (fieldcal-lens/1)")
+    p.add_argument("--out", required=True, help="plan file to write (JSON)")
+    p.add_argument("--roi", help="region of interest X,Y,W,H in pixels (default: whole image)")
+    p.add_argument("--channels", help="comma-separated subset of channels, e.g. G or R,G,B (default: all)")
+    p.add_argument("--object-distance-mm", type=float, help="refocus for this object distance (profile must know its own)")
+    p.add_argument("--direction", choices=("+z", "-z"), default="+z", help="stage direction of travel (default +z)")
+    p.add_argument("--grid-step-px", type=int, default=8, help="surface sampling step in pixels (default 8)")
+    p.add_argument("--size", help="plan a lens spec at another image size WxH (same sensor area)")
+    p.add_argument("--plots", metavar="DIR", help="also write PNG pictures of the plan into DIR")
+
+
 def register(sub):
-    p = add_parser(sub, "plan", "make a focal-stack or focal-sweep plan from a lens profile [not implemented yet]", "fieldcal plan stack lens.json --fs 80 --q 0.05 --out plan.json")
-    p.add_argument("rest", nargs="*", help="(arguments of the future command)")
-    p.set_defaults(func=run)
+    p = add_parser(sub, "plan", "make a focal-stack or focal-sweep plan from a lens profile",
+                   "fieldcal plan stack lens.json --fs 80 --q 0.05 --out plan.json")
+    ps = p.add_subparsers(dest="plan_kind", metavar="KIND")
+    s = add_parser(ps, "stack", "fewest frames keeping every pixel within its focus tolerance (paper IV.B)",
+                   "fieldcal plan stack models/triplet-uncorrected.json --fs 80 --q 0.05 --confidence 0.95 "
+                   "--channels G --out stack-plan.json --plots plan-plots")
+    _common(s)
+    s.add_argument("--fs", type=float, required=True, help="spatial frequency to preserve (cycles/mm at the sensor)")
+    s.add_argument("--q", type=float, required=True, help="allowed MTF loss at fs, in (0, 1)")
+    s.add_argument("--confidence", type=float, help="cover every pixel with this probability (shrinks tolerances)")
+    s.add_argument("--max-frames", type=int, help="at most this many frames (then reports the q achieved)")
+    s.add_argument("--max-time-ms", type=float, help="at most this much time (frames x (exposure + overhead))")
+    s.add_argument("--exposure-ms", type=float, default=20.0, help="exposure per frame (default 20 ms)")
+    s.add_argument("--frame-overhead-ms", type=float, default=0.0, help="stage move + settle per frame (default 0)")
+    s.add_argument("--placement", choices=("optimal", "paper"), default="optimal",
+                   help="optimal cover (default) or the paper's: first frame at the on-axis best focus")
+    s.set_defaults(func=run_stack)
+    w = add_parser(ps, "sweep", "focal sweep with per-pixel exposure windows and device masks (paper IV.C)",
+                   "fieldcal plan sweep models/singlet-colour.json --alpha-um 20 --pixel-exposure-ms 16 "
+                   "--device lcos --cfa RGGB --out sweep-plan.json --plots plan-plots")
+    _common(w)
+    w.add_argument("--alpha-um", type=float, required=True, help="half sweep range per pixel α (µm)")
+    w.add_argument("--pixel-exposure-ms", type=float, required=True, help="exposure of each pixel t_s (ms)")
+    w.add_argument("--device", choices=("pixel", "lcos"), default="pixel",
+                   help="per-pixel start/stop sensor (default) or LCoS with a hold limit and complement")
+    w.add_argument("--slot-ms", type=float, help="LCoS: time each mask is shown (default: t_s split to fit the hold limit)")
+    w.add_argument("--max-hold-ms", type=float, default=20.0, help="LCoS: longest time one image may be shown (20)")
+    w.add_argument("--clock-us", type=float, default=10.0, help="pixel device: register clock period (µs)")
+    w.add_argument("--cfa", choices=("RGGB", "BGGR", "GRBG", "GBRG"), help="Bayer pattern of the sensor (CFA-aware masks)")
+    w.add_argument("--fs", type=float, default=80.0, help="frequency for the IPSF MTF column (cycles/mm, default 80)")
+    w.add_argument("--wiener-nsr", type=float, default=0.01, help="Wiener noise-to-signal ratio for the noise gain")
+    w.set_defaults(func=run_sweep)
+    p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
 
 
-def run(args):
-    raise NotYetImplemented("`fieldcal plan` is not implemented yet (tracked in issue 4)",
-                            fix="use the stages that exist; see README.md")
+def _scene(args):
+    from ..plan.scene import Scene, parse_roi
+    if args.object_distance_mm is not None and not math.isfinite(args.object_distance_mm):
+        raise ParameterError("object distance must be finite", field="object_distance_mm", fix="e.g. 500")
+    return Scene(roi=parse_roi(args.roi) if args.roi else None, channels=_channels(args.channels),
+                 object_distance_mm=args.object_distance_mm)
+
+
+def run_stack(args) -> int:
+    from ..plan.load import load_profile
+    from ..plan.planfile import write_plan
+    from ..plan.stack_plan import StackRequest, plan_stack
+    profile, info = load_profile(args.profile, _size(args.size) if args.size else None)
+    req = StackRequest(fs_cyc_per_mm=args.fs, q=args.q, confidence=args.confidence, scene=_scene(args),
+                       max_frames=args.max_frames, max_time_ms=args.max_time_ms, exposure_ms=args.exposure_ms,
+                       frame_overhead_ms=args.frame_overhead_ms, placement=args.placement,
+                       direction=args.direction, grid_step_px=args.grid_step_px)
+    status(f"planning a focal stack from {args.profile} ...")
+    plan = plan_stack(profile, req)
+    doc = plan.to_dict(info)
+    if args.plots:
+        from ..plan.plots import plot_stack_plan
+        plot_stack_plan(profile, plan, Path(args.plots) / "stack-plan.png")
+    write_plan(args.out, doc)
+    print(f"{args.out}: {doc['n_frames']} frames over D = {doc['D_um']:.1f} µm ({doc['direction']}), "
+          f"q achieved {doc['q_achieved']:.4f}, total exposure {doc['total_exposure_ms']:.0f} ms, "
+          f"coverage probability {doc['coverage']['probability']:.4f}")
+    for wmsg in doc["warnings"]:
+        print(f"note: {wmsg}")
+    return 0
+
+
+def run_sweep(args) -> int:
+    from ..plan.load import load_profile
+    from ..plan.sweep_plan import SweepRequest, plan_sweep, write_sweep_plan
+    profile, info = load_profile(args.profile, _size(args.size) if args.size else None)
+    req = SweepRequest(alpha_um=args.alpha_um, pixel_exposure_ms=args.pixel_exposure_ms, device=args.device,
+                       slot_ms=args.slot_ms, max_hold_ms=args.max_hold_ms, clock_us=args.clock_us, cfa=args.cfa,
+                       scene=_scene(args), direction=args.direction, grid_step_px=args.grid_step_px,
+                       fs_cyc_per_mm=args.fs, wiener_nsr=args.wiener_nsr)
+    status(f"planning a focal sweep from {args.profile} ...")
+    plan = plan_sweep(profile, req)
+    if args.plots:
+        from ..plan.plots import plot_alpha_trade, plot_masks, plot_windows
+        d = Path(args.plots)
+        plot_masks(plan, d / "sweep-masks.png")
+        plot_windows(plan, d / "sweep-windows.png")
+        plot_alpha_trade(profile, plan, d / "alpha-trade.png")
+    doc = write_sweep_plan(plan, args.out, info)
+    print(f"{args.out}: sweep {doc['start_um']:.1f} -> {doc['stop_um']:.1f} µm at {doc['velocity_um_per_ms']:.3f} µm/ms, "
+          f"T = {doc['total_time_ms']:.1f} ms (D = {doc['range_um']:.1f} µm), masks in {doc['masks']['file']}")
+    print("  alpha_um  T_ms    MTF@fs  noise_gain")
+    for r in doc["alpha_trade"]:
+        print(f"  {r['alpha_um']:7.1f} {r['total_time_ms']:7.1f} {r['mtf_at_fs']:7.3f} {r['noise_gain']:8.3f}")
+    return 0
