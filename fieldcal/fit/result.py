@@ -1,0 +1,198 @@
+"""``SurfaceFit``: the chosen best-focus surface model with its posterior samples, in pixel/µm units."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import ParameterError, SpecError
+from .data import ImageGeometry
+from .surface import SurfaceModel
+
+SURFACE_FIT_FORMAT = "fieldcal-surface-fit/1"
+_POINT_CHUNK = 4096  # points per block when evaluating samples x points (bounded memory)
+
+
+@dataclass
+class SurfaceFit:
+    """Per-channel best-focus surfaces (µm, stage coordinates) with credible bands.
+
+    Attributes
+    ----------
+    model : SurfaceModel
+        The chosen candidate (``model.name``, ``model.terms``).
+    geometry : ImageGeometry
+        Frame of the pixel coordinates.
+    z_centre_um, z_scale_um : float
+        z normalisation: parameters live in ``(z - z_centre_um) / z_scale_um``.
+    theta_map : ndarray
+        MAP parameter vector (normalised units), named by ``param_names``.
+    samples : ndarray
+        Posterior samples (S x P, S <= a few thousand) of the same vector.
+    candidates : list of dict
+        Every candidate model tried, with its score (see ``diagnostics["selection"]``).
+    diagnostics : dict
+        Condition number, optimiser result, posterior method, tau/acceptance/ESS or Laplace status, ...
+    """
+
+    model: SurfaceModel
+    geometry: ImageGeometry
+    z_centre_um: float
+    z_scale_um: float
+    theta_map: np.ndarray
+    samples: np.ndarray
+    candidates: list = field(default_factory=list)
+    diagnostics: dict = field(default_factory=dict)
+    effort: str = "standard"
+
+    # ------------------------------------------------------------------ access
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return self.model.channels
+
+    @property
+    def param_names(self) -> list[str]:
+        return self.model.names
+
+    def _ch(self, channel: str) -> int:
+        try:
+            return self.model.channels.index(channel)
+        except ValueError:
+            raise ParameterError(f"no channel '{channel}' in this fit (it has {', '.join(self.channels)})",
+                                 field="channel", fix=f"use one of {', '.join(self.channels)}") from None
+
+    def _eval(self, theta, x_px, y_px, channel, fn="surface"):
+        x, y = np.broadcast_arrays(np.asarray(x_px, dtype=np.float64), np.asarray(y_px, dtype=np.float64))
+        xh, yh = self.geometry.normalise(x.ravel(), y.ravel())
+        ci = self._ch(channel)
+        return getattr(self.model, fn)(theta, xh, yh, ci), x.shape
+
+    def predict(self, x_px, y_px, channel: str) -> np.ndarray:
+        """MAP best-focus position (µm) at pixel coordinates; arrays broadcast."""
+        z, shape = self._eval(self.theta_map, x_px, y_px, channel)
+        return (self.z_centre_um + self.z_scale_um * z).reshape(shape)
+
+    def _sample_surfaces(self, x_px, y_px, channel):
+        """Yield (slice, S x m block of surfaces in µm) over point chunks."""
+        x, y = np.broadcast_arrays(np.asarray(x_px, dtype=np.float64), np.asarray(y_px, dtype=np.float64))
+        xf, yf = x.ravel(), y.ravel()
+        for a in range(0, max(xf.size, 1), _POINT_CHUNK):
+            sl = slice(a, a + _POINT_CHUNK)
+            z, _ = self._eval(self.samples, xf[sl], yf[sl], channel)
+            yield sl, self.z_centre_um + self.z_scale_um * z
+
+    def interval(self, x_px, y_px, channel: str, level: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+        """Central credible band (lo, hi) of the surface (µm) at ``level`` (e.g. 0.9)."""
+        if not (0.0 < level < 1.0) or not math.isfinite(level):
+            raise ParameterError(f"credible level must be in (0, 1), got {level}", field="level",
+                                 fix="e.g. level=0.9 for a 90% band")
+        shape = np.broadcast(np.asarray(x_px), np.asarray(y_px)).shape
+        lo = np.empty(int(np.prod(shape)))
+        hi = np.empty_like(lo)
+        q = [0.5 - level / 2.0, 0.5 + level / 2.0]
+        for sl, zs in self._sample_surfaces(x_px, y_px, channel):
+            lo[sl], hi[sl] = np.quantile(zs, q, axis=0)
+        return lo.reshape(shape), hi.reshape(shape)
+
+    def sd(self, x_px, y_px, channel: str) -> np.ndarray:
+        """Posterior standard deviation of the surface (µm)."""
+        shape = np.broadcast(np.asarray(x_px), np.asarray(y_px)).shape
+        out = np.empty(int(np.prod(shape)))
+        for sl, zs in self._sample_surfaces(x_px, y_px, channel):
+            out[sl] = zs.std(axis=0)
+        return out.reshape(shape)
+
+    def astigmatism_um(self, x_px, y_px, channel: str) -> np.ndarray:
+        """MAP z_tan - z_sag (µm); zeros when the chosen model has no astigmatism term."""
+        d, shape = self._eval(self.theta_map, x_px, y_px, channel, fn="astigmatism")
+        return (self.z_scale_um * d).reshape(shape)
+
+    def optical_centre_px(self) -> tuple[float, float]:
+        """MAP optical centre (the sensor centre when the model has no decentre term)."""
+        _, centre, *_ = self.model.split(self.theta_map)
+        cx, cy = self.geometry.centre_px
+        r = self.geometry.half_diagonal_px
+        return (float(cx + centre[0] * r), float(cy + centre[1] * r))
+
+    def error_scale(self) -> float:
+        """MAP multiplier s of the per-tile sigmas (> 1: the tile sigmas were underestimated)."""
+        return float(math.exp(self.model.split(self.theta_map)[2]))
+
+    def coefficients_um(self, channel: str) -> dict[str, float]:
+        """Physical MAP coefficients: offset and rho^2k terms in µm (rho = radius / half-diagonal), tilt in
+        µm/mm (about the sensor centre), astigmatism in µm at rho = 1."""
+        ci = self._ch(channel)
+        beta = self.model.split(self.theta_map)[0]
+        K = self.model.order
+        out = {"offset_um": float(self.z_centre_um + self.z_scale_um * beta[ci * (K + 1)])}
+        for k in range(1, K + 1):
+            out[f"rho{2 * k}_um"] = float(self.z_scale_um * beta[ci * (K + 1) + k])
+        j = len(self.channels) * (K + 1)
+        r_mm = self.geometry.half_diagonal_px * self.geometry.pixel_pitch_um / 1000.0
+        if self.model.tilt:
+            out["tilt_x_um_per_mm"] = float(self.z_scale_um * beta[j] / r_mm)
+            out["tilt_y_um_per_mm"] = float(self.z_scale_um * beta[j + 1] / r_mm)
+            j += 2
+        if self.model.astig:
+            out["astigmatism_um"] = float(self.z_scale_um * beta[j + ci])
+        return out
+
+    # ------------------------------------------------------------------ I/O
+    def to_dict(self, include_samples: bool = True) -> dict[str, Any]:
+        """JSON-safe dict. With ``include_samples=False`` the samples are left out (write ``self.samples``
+        to a sidecar .npz and pass them back to :meth:`from_dict`)."""
+        d = {"format": SURFACE_FIT_FORMAT, "effort": self.effort,
+             "model": {"name": self.model.name, "terms": self.model.terms, **self.model.to_dict()},
+             "geometry": self.geometry.to_dict(),
+             "z_centre_um": float(self.z_centre_um), "z_scale_um": float(self.z_scale_um),
+             "param_names": self.param_names,
+             "theta_map": [float(v) for v in self.theta_map],
+             "candidates": _json_safe(self.candidates), "diagnostics": _json_safe(self.diagnostics),
+             "n_samples": int(self.samples.shape[0])}
+        if include_samples:
+            d["samples"] = self.samples.tolist()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], samples: np.ndarray | None = None, path=None) -> "SurfaceFit":
+        if not isinstance(d, dict) or d.get("format") != SURFACE_FIT_FORMAT:
+            raise SpecError(f"not a {SURFACE_FIT_FORMAT} block", path=path, field="format",
+                            fix="write it with SurfaceFit.to_dict()")
+        try:
+            model = SurfaceModel.from_dict(d["model"])
+            theta = np.asarray(d["theta_map"], dtype=np.float64)
+            if samples is None:
+                if "samples" not in d:
+                    raise SpecError("posterior samples are missing", path=path, field="samples",
+                                    fix="keep the samples sidecar .npz next to the profile")
+                samples = d["samples"]
+            samples = np.asarray(samples, dtype=np.float64)
+            if theta.shape != (model.n_params,) or samples.ndim != 2 or samples.shape[1] != model.n_params:
+                raise SpecError(f"parameter count does not match model {model.name} ({model.n_params})",
+                                path=path, field="theta_map", fix="regenerate the profile")
+            return cls(model, ImageGeometry.from_dict(d["geometry"]), float(d["z_centre_um"]),
+                       float(d["z_scale_um"]), theta, samples, list(d.get("candidates", [])),
+                       dict(d.get("diagnostics", {})), str(d.get("effort", "standard")))
+        except (KeyError, TypeError, ValueError) as e:
+            raise SpecError(f"malformed surface fit ({e})", path=path, field="surface",
+                            fix="regenerate the profile with fieldcal calibrate") from None
+
+
+def _json_safe(v):
+    if isinstance(v, dict):
+        return {str(k): _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    if isinstance(v, (np.floating, float)):
+        f = float(v)
+        return f if math.isfinite(f) else None
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, np.bool_):
+        return bool(v)
+    if isinstance(v, np.ndarray):
+        return _json_safe(v.tolist())
+    return v

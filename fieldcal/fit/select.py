@@ -1,0 +1,182 @@
+"""Model selection and the top-level surface fit: ``fit_surfaces(tiles, geometry, effort=...)``.
+
+Every candidate (polynomial order in rho^2, tilt on/off, decentre on/off, astigmatism on/off when the data
+have tangential/sagittal foci) is fitted to its MAP and scored by BIC = -2 ln L_max + k ln n. The lowest BIC
+wins: BIC approximates the log evidence, so it prefers the simplest model the data support and is
+consistent (picks the true model as tiles grow); it needs only the MAP of each candidate, which keeps the
+search cheap enough to be exhaustive. docs/fitting.md gives the reasons against held-out tiles and
+full evidence.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ..progress import progress, status
+from .data import MIN_TILES_PER_CHANNEL, FitError, ImageGeometry, TileData
+from .map import MAX_CONDITION, fit_map
+from .posterior import EFFORTS, laplace, run_emcee
+from .result import SurfaceFit
+from .surface import Rows, SurfaceModel
+
+# Tiles must span at least this much of the normalised radius, or curvature is not identifiable.
+MIN_RADIAL_SPAN = 0.15
+MIN_ASTIG_ROWS = 6
+
+
+def build_rows(tiles: TileData, geometry: ImageGeometry, channels: tuple[str, ...]):
+    """Stack focus rows and astigmatism rows in normalised units; returns (rows, z_centre_um, z_scale_um)."""
+    xh, yh = geometry.normalise(tiles.x_px, tiles.y_px)
+    ci = np.array([channels.index(c) for c in tiles.channel], dtype=np.int64)
+    z = tiles.z_best_um
+    zc = float(np.median(z))
+    # Scale by the spread of the data, never below the typical measurement error (guards a flat, noiseless set).
+    zs = float(max(np.std(z), np.median(tiles.z_sigma_um), 1e-9 * max(1.0, abs(zc))))
+    ast = np.isfinite(tiles.z_tan_um) & np.isfinite(tiles.z_sag_um)
+    d = tiles.z_tan_um[ast] - tiles.z_sag_um[ast]
+    # A difference of two directional estimates, each assumed about as good as the combined one; the
+    # separate error scale s_astig corrects this assumption from the data.
+    sd = math.sqrt(2.0) * tiles.z_sigma_um[ast]
+    rows = Rows(x_hat=np.concatenate([xh, xh[ast]]), y_hat=np.concatenate([yh, yh[ast]]),
+                ch_index=np.concatenate([ci, ci[ast]]),
+                kind=np.concatenate([np.zeros(z.size, np.int64), np.ones(int(ast.sum()), np.int64)]),
+                target=np.concatenate([(z - zc) / zs, d / zs]),
+                sigma=np.concatenate([tiles.z_sigma_um / zs, sd / zs]))
+    return rows, zc, zs
+
+
+def _validate(tiles: TileData, geometry: ImageGeometry, channels, source):
+    if len(tiles) == 0:
+        raise FitError("no accepted tiles to fit", path=source, field="tiles",
+                       fix="check the stack covers best focus (measure reported every tile as rejected)")
+    for c in channels:
+        n = int((tiles.channel == c).sum())
+        if n < MIN_TILES_PER_CHANNEL:
+            raise FitError(f"channel {c} has only {n} accepted tiles; a surface needs at least "
+                           f"{MIN_TILES_PER_CHANNEL}", path=source, field="tiles",
+                           fix="use a finer tile grid, a chart that fills the frame, or a stack whose z range "
+                               "covers best focus everywhere")
+    w, h = geometry.width_px, geometry.height_px
+    out = (tiles.x_px < -0.5) | (tiles.x_px > w - 0.5) | (tiles.y_px < -0.5) | (tiles.y_px > h - 0.5)
+    if out.any():
+        raise FitError(f"{int(out.sum())} tiles lie outside the {w}x{h} px image", path=source, field="x_px",
+                       fix="tile coordinates are pixels with origin at the top-left pixel's centre")
+    xh, yh = geometry.normalise(tiles.x_px, tiles.y_px)
+    r = np.hypot(xh, yh)
+    span = float(r.max() - r.min())
+    if span < MIN_RADIAL_SPAN:
+        raise FitError(f"all tiles lie at nearly one radius (rho from {r.min():.3f} to {r.max():.3f}); "
+                       "field curvature cannot be separated from focus offset", path=source, field="x_px",
+                       fix="measure tiles from the image centre out to the corners")
+
+
+def candidate_models(channels, max_order: int, astig_rows: bool, n_rows: int) -> list[SurfaceModel]:
+    """The search space; decentre needs curvature (and, with tilt, rho^4: at order 1 it equals a tilt)."""
+    out = []
+    for order in range(max_order + 1):
+        for tilt in (False, True):
+            for dec in (False, True):
+                if dec and (order == 0 or (tilt and order < 2)):
+                    continue
+                for ast in ((False, True) if astig_rows else (False,)):
+                    m = SurfaceModel(tuple(channels), order, tilt, dec, ast, astig_rows)
+                    out.append(m)
+    return out
+
+
+def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standard", seed: int = 0,
+                 channels: tuple[str, ...] | None = None, quiet: bool = False,
+                 source: str | None = None) -> SurfaceFit:
+    """Fit per-channel best-focus surfaces with model selection and a posterior.
+
+    Parameters
+    ----------
+    tiles : TileData
+        Accepted per-tile measurements (µm, px).
+    geometry : ImageGeometry
+        Image size and pixel pitch of the tile coordinates.
+    effort : {"quick", "standard", "thorough"}
+        "quick": MAP + Laplace; "standard": emcee, modest chains; "thorough": longer chains and rho^8.
+    seed : int
+        Seeds the samplers (results are reproducible).
+    channels : tuple of str, optional
+        Channel order (default: order of first appearance in ``tiles``).
+    source : str, optional
+        File name for error messages.
+
+    Returns
+    -------
+    SurfaceFit
+    """
+    if effort not in EFFORTS:
+        raise FitError(f"unknown effort {effort!r}", field="effort", fix="use quick, standard or thorough")
+    eff = EFFORTS[effort]
+    channels = tuple(channels) if channels is not None else tiles.channels
+    unknown = sorted(set(tiles.channel) - set(channels))
+    if unknown:
+        raise FitError(f"tiles of channels {unknown} not in {list(channels)}", path=source, field="channel",
+                       fix="pass every measured channel")
+    _validate(tiles, geometry, channels, source)
+    rows, zc, zs = build_rows(tiles, geometry, channels)
+    astig_rows = rows.n_astig >= MIN_ASTIG_ROWS
+    if not astig_rows and rows.n_astig:
+        keep = rows.kind == 0
+        rows = Rows(*(getattr(rows, f)[keep] for f in ("x_hat", "y_hat", "ch_index", "kind", "target", "sigma")))
+    t0 = time.perf_counter()
+    cands = candidate_models(channels, eff.max_order, astig_rows, rows.n)
+    table = []
+    best = None
+    for m in progress(cands, total=len(cands), desc="fit: model search", quiet=quiet, unit="model"):
+        entry = {"name": m.name, "terms": m.terms, "n_params": m.n_params}
+        if rows.n < m.n_params + 2:
+            entry.update(status="skipped: fewer rows than parameters + 2", bic=None)
+            table.append(entry)
+            continue
+        res = fit_map(m, rows)
+        entry["condition_number"] = res.condition_number
+        if not math.isfinite(res.condition_number) or res.condition_number > MAX_CONDITION:
+            entry.update(status=f"refused: degenerate design (condition number {res.condition_number:.3g} > "
+                                f"{MAX_CONDITION:.0e})", bic=None)
+            table.append(entry)
+            continue
+        bic = -2.0 * res.log_likelihood + m.n_params * math.log(rows.n)
+        entry.update(status="ok", log_likelihood=res.log_likelihood, bic=bic, nlopt_result=res.nlopt_result,
+                     n_evals=res.n_evals)
+        table.append(entry)
+        if best is None or bic < best[0]:
+            best = (bic, res)
+    if best is None:
+        raise FitError("no surface model could be fitted: every candidate's design is degenerate", path=source,
+                       field="tiles", fix="measure tiles spread over the whole field in every channel")
+    res = best[1]
+    for e in table:
+        e["chosen"] = e["name"] == res.model.name
+        e["delta_bic"] = None if e.get("bic") is None else e["bic"] - best[0]
+    t_map = time.perf_counter() - t0
+
+    lap = laplace(res.model, rows, res.theta, seed=seed)
+    if eff.method == "laplace":
+        post = lap
+    else:
+        lap_cov = np.cov(lap.samples.T)
+        post = run_emcee(res.model, rows, res.theta, eff, seed=seed, ball_cov=lap_cov, quiet=quiet)
+    t_total = time.perf_counter() - t0
+    m = res.model
+    diagnostics = {
+        "selection": "lowest BIC = -2 ln L + k ln n over all candidates",
+        "n_rows": rows.n, "n_astig_rows": rows.n_astig, "n_tiles": len(tiles),
+        "condition_number": res.condition_number, "nlopt_algorithm": "LN_BOBYQA (variable projection)",
+        "nlopt_result": res.nlopt_result, "log_likelihood": res.log_likelihood,
+        "log_posterior": res.log_posterior,
+        "error_scale": math.exp(float(m.split(res.theta)[2])),
+        "student_t_nu": math.exp(float(m.split(res.theta)[4])),
+        "posterior": post.diagnostics, "time_map_s": t_map, "time_total_s": t_total,
+    }
+    if m.astig_rows:
+        diagnostics["error_scale_astig"] = math.exp(float(m.split(res.theta)[3]))
+    if post.diagnostics.get("converged") is False:
+        status("warning: the surface posterior did not converge; use --effort thorough", quiet=quiet)
+    return SurfaceFit(m, geometry, zc, zs, res.theta, post.samples, table, diagnostics, effort)

@@ -1,0 +1,294 @@
+"""Best-focus surface models: terms, parameter layout, design matrices and the (robust) log-posterior.
+
+A model is one choice of terms for all channels (docs/fitting.md gives the formulas)::
+
+    z_c(x, y) = a_c0 + sum_{k=1..K} a_ck rho^{2k} + t_x x_hat + t_y y_hat           (mean surface)
+    z_tan,c - z_sag,c = A_c rho^2                                                   (astigmatism rows)
+    rho^2 = (x_hat - c_x)^2 + (y_hat - c_y)^2
+
+in normalised coordinates (``data.ImageGeometry.normalise``) and normalised z (``(z - z_centre) / z_scale``).
+Focus offset a_c0, curvature a_ck and astigmatism A_c are per channel; tilt (t_x, t_y) and the optical
+centre (c_x, c_y) are shared (one lens, one sensor).
+
+The parameter vector is ``[linear coefficients..., nonlinear...]``; nonlinear are the centre (if decentre),
+``log_s`` (error scale of the focus rows), ``log_s_astig`` (error scale of the astigmatism rows, if any) and
+``log_nu`` (Student-t degrees of freedom: the robust loss). Every function here is vectorised over a leading
+batch axis of parameter vectors, so the same code serves the MAP, the Laplace Hessian and emcee's walkers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import gammaln
+
+# Priors and bounds (normalised units; docs/fitting.md "Priors").
+COEF_PRIOR_SD = 1.0e3      # N(0, 1000^2) on every linear coefficient: proper but negligible (z is O(1))
+CENTRE_BOUND = 0.25        # optical centre within a quarter of the half-diagonal of the sensor centre
+LOG_S_BOUNDS = (math.log(0.5), math.log(1.0e4))  # error scale s: floor 0.5 (bands at most 2x tighter)
+LOG_NU_BOUNDS = (math.log(2.0), math.log(200.0))  # Student-t dof: 2 = very heavy tails, 200 ~ Gaussian
+
+
+@dataclass(frozen=True)
+class Rows:
+    """Stacked observations in normalised units.
+
+    kind 0 rows are best-focus measurements (target z_hat), kind 1 rows are astigmatism differences
+    (target (z_tan - z_sag) / z_scale).
+    """
+
+    x_hat: np.ndarray
+    y_hat: np.ndarray
+    ch_index: np.ndarray
+    kind: np.ndarray
+    target: np.ndarray
+    sigma: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return int(self.target.size)
+
+    @property
+    def n_astig(self) -> int:
+        return int((self.kind == 1).sum())
+
+
+@dataclass(frozen=True)
+class SurfaceModel:
+    """One candidate: polynomial order K in rho^2, and switches for tilt, decentre and astigmatism."""
+
+    channels: tuple[str, ...]
+    order: int
+    tilt: bool
+    decentre: bool
+    astig: bool
+    astig_rows: bool  # the data have tangential/sagittal rows (adds the log_s_astig nuisance)
+
+    @property
+    def name(self) -> str:
+        parts = [f"poly{self.order}"]
+        if self.tilt:
+            parts.append("tilt")
+        if self.decentre:
+            parts.append("decentre")
+        if self.astig:
+            parts.append("astig")
+        return "+".join(parts)
+
+    @property
+    def terms(self) -> list[str]:
+        t = ["offset"] + [f"rho^{2 * k}" for k in range(1, self.order + 1)]
+        if self.tilt:
+            t.append("tilt")
+        if self.decentre:
+            t.append("decentre")
+        if self.astig:
+            t.append("astigmatism")
+        return t
+
+    # ------------------------------------------------------------------ layout
+    @property
+    def linear_names(self) -> list[str]:
+        names = []
+        for c in self.channels:
+            names += [f"a{k}[{c}]" for k in range(self.order + 1)]
+        if self.tilt:
+            names += ["tilt_x", "tilt_y"]
+        if self.astig:
+            names += [f"astig[{c}]" for c in self.channels]
+        return names
+
+    @property
+    def nonlinear_names(self) -> list[str]:
+        names = ["centre_x", "centre_y"] if self.decentre else []
+        names.append("log_s")
+        if self.astig_rows:
+            names.append("log_s_astig")
+        names.append("log_nu")
+        return names
+
+    @property
+    def names(self) -> list[str]:
+        return self.linear_names + self.nonlinear_names
+
+    @property
+    def n_linear(self) -> int:
+        return len(self.linear_names)
+
+    @property
+    def n_params(self) -> int:
+        return len(self.names)
+
+    def nonlinear_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = [], []
+        if self.decentre:
+            lo += [-CENTRE_BOUND] * 2
+            hi += [CENTRE_BOUND] * 2
+        lo.append(LOG_S_BOUNDS[0]); hi.append(LOG_S_BOUNDS[1])
+        if self.astig_rows:
+            lo.append(LOG_S_BOUNDS[0]); hi.append(LOG_S_BOUNDS[1])
+        lo.append(LOG_NU_BOUNDS[0]); hi.append(LOG_NU_BOUNDS[1])
+        return np.array(lo), np.array(hi)
+
+    def split(self, theta: np.ndarray):
+        """(beta, centre (..., 2), log_s, log_s_astig or None, log_nu) from a (batch of) parameter vector(s)."""
+        p = self.n_linear
+        beta = theta[..., :p]
+        i = p
+        if self.decentre:
+            centre = theta[..., i:i + 2]
+            i += 2
+        else:
+            centre = np.zeros(theta.shape[:-1] + (2,))
+        log_s = theta[..., i]
+        i += 1
+        log_sa = None
+        if self.astig_rows:
+            log_sa = theta[..., i]
+            i += 1
+        log_nu = theta[..., i]
+        return beta, centre, log_s, log_sa, log_nu
+
+    # ------------------------------------------------------------------ design
+    def design(self, x_hat, y_hat, ch_index, kind, centre) -> np.ndarray:
+        """Design matrix. ``centre`` (2,) gives (n, p); a batch (B, 2) gives (B, n, p)."""
+        centre = np.asarray(centre, dtype=np.float64)
+        batch = centre.ndim == 2
+        cx = centre[..., 0:1] if batch else centre[0]
+        cy = centre[..., 1:2] if batch else centre[1]
+        r2 = (x_hat - cx) ** 2 + (y_hat - cy) ** 2          # (B, n) or (n,)
+        shape = r2.shape + (self.n_linear,)
+        X = np.zeros(shape)
+        mean_row = kind == 0
+        nc = len(self.channels)
+        K = self.order
+        for ci in range(nc):
+            sel = (ch_index == ci) & mean_row
+            base = ci * (K + 1)
+            X[..., base] = np.where(sel, 1.0, 0.0)
+            pw = np.ones_like(r2)
+            for k in range(1, K + 1):
+                pw = pw * r2
+                X[..., base + k] = np.where(sel, pw, 0.0)
+        j = nc * (K + 1)
+        if self.tilt:
+            X[..., j] = np.where(mean_row, x_hat, 0.0)
+            X[..., j + 1] = np.where(mean_row, y_hat, 0.0)
+            j += 2
+        if self.astig:
+            for ci in range(nc):
+                X[..., j + ci] = np.where((ch_index == ci) & ~mean_row, r2, 0.0)
+        return X
+
+    # ------------------------------------------------------------------ likelihood
+    def sigma_eff(self, rows: Rows, log_s, log_sa):
+        """Effective per-row scale s * sigma (batch-aware)."""
+        log_s = np.asarray(log_s, dtype=np.float64)[..., None]
+        if self.astig_rows and log_sa is not None:
+            log_sa = np.asarray(log_sa, dtype=np.float64)[..., None]
+            scale = np.where(rows.kind == 0, np.exp(log_s), np.exp(log_sa))
+        else:
+            scale = np.exp(log_s) * np.ones(rows.n)
+        return scale * rows.sigma
+
+    def log_likelihood(self, theta: np.ndarray, rows: Rows) -> np.ndarray:
+        """Student-t log-likelihood of a (batch of) parameter vector(s)."""
+        theta = np.asarray(theta, dtype=np.float64)
+        beta, centre, log_s, log_sa, log_nu = self.split(theta)
+        if theta.ndim == 1:
+            X = self.design(rows.x_hat, rows.y_hat, rows.ch_index, rows.kind, centre)
+            pred = X @ beta
+        elif self.decentre:
+            X = self.design(rows.x_hat, rows.y_hat, rows.ch_index, rows.kind, centre)
+            pred = np.einsum("bnp,bp->bn", X, beta)
+        else:
+            X = self.design(rows.x_hat, rows.y_hat, rows.ch_index, rows.kind, np.zeros(2))
+            pred = beta @ X.T
+        sig = self.sigma_eff(rows, log_s, log_sa)
+        return student_t_loglik(rows.target - pred, sig, np.exp(log_nu))
+
+    def in_support(self, theta: np.ndarray) -> np.ndarray:
+        theta = np.atleast_2d(theta)
+        lo, hi = self.nonlinear_bounds()
+        nl = theta[:, self.n_linear:]
+        return np.all((nl >= lo) & (nl <= hi), axis=1) & np.all(np.isfinite(theta), axis=1)
+
+    def log_prior(self, theta: np.ndarray) -> np.ndarray:
+        """Gaussian on linear coefficients, uniform (in the stored parametrisation) inside the bounds."""
+        theta = np.asarray(theta, dtype=np.float64)
+        beta = theta[..., :self.n_linear]
+        lp = -0.5 * np.sum((beta / COEF_PRIOR_SD) ** 2, axis=-1)
+        ok = self.in_support(theta)
+        if theta.ndim == 1:
+            return float(lp) if ok[0] else -np.inf
+        return np.where(ok, lp, -np.inf)
+
+    def log_posterior(self, theta: np.ndarray, rows: Rows) -> np.ndarray:
+        """Unnormalised log-posterior; -inf outside the prior support (never evaluated there)."""
+        theta = np.asarray(theta, dtype=np.float64)
+        if theta.ndim == 1:
+            lp = self.log_prior(theta)
+            if not np.isfinite(lp):
+                return -np.inf
+            return lp + float(np.sum(self.log_likelihood(theta, rows)))
+        out = np.full(theta.shape[0], -np.inf)
+        ok = self.in_support(theta)
+        if ok.any():
+            t = theta[ok]
+            out[ok] = self.log_prior(t) + np.sum(self.log_likelihood(t, rows), axis=-1)
+        return out
+
+    # ------------------------------------------------------------------ prediction
+    def surface(self, theta: np.ndarray, x_hat, y_hat, channel_index: int) -> np.ndarray:
+        """Normalised mean surface at points for parameter vector(s): (m,) or (B, m)."""
+        theta = np.asarray(theta, dtype=np.float64)
+        x_hat = np.asarray(x_hat, dtype=np.float64).ravel()
+        y_hat = np.asarray(y_hat, dtype=np.float64).ravel()
+        beta, centre, *_ = self.split(theta)
+        r2 = (x_hat - centre[..., 0:1]) ** 2 + (y_hat - centre[..., 1:2]) ** 2 if theta.ndim == 2 else \
+            (x_hat - centre[0]) ** 2 + (y_hat - centre[1]) ** 2
+        K = self.order
+        base = channel_index * (K + 1)
+        z = beta[..., base:base + 1] * np.ones_like(r2)
+        pw = np.ones_like(r2)
+        for k in range(1, K + 1):
+            pw = pw * r2
+            z = z + beta[..., base + k:base + k + 1] * pw
+        if self.tilt:
+            j = len(self.channels) * (K + 1)
+            z = z + beta[..., j:j + 1] * x_hat + beta[..., j + 1:j + 2] * y_hat
+        return z
+
+    def astigmatism(self, theta: np.ndarray, x_hat, y_hat, channel_index: int) -> np.ndarray:
+        """Normalised z_tan - z_sag at points (0 when the model has no astigmatism term)."""
+        theta = np.asarray(theta, dtype=np.float64)
+        x_hat = np.asarray(x_hat, dtype=np.float64).ravel()
+        y_hat = np.asarray(y_hat, dtype=np.float64).ravel()
+        beta, centre, *_ = self.split(theta)
+        if not self.astig:
+            return np.zeros(theta.shape[:-1] + x_hat.shape)
+        r2 = (x_hat - centre[..., 0:1]) ** 2 + (y_hat - centre[..., 1:2]) ** 2 if theta.ndim == 2 else \
+            (x_hat - centre[0]) ** 2 + (y_hat - centre[1]) ** 2
+        j = len(self.channels) * (self.order + 1) + (2 if self.tilt else 0) + channel_index
+        return beta[..., j:j + 1] * r2 if theta.ndim == 2 else beta[j] * r2
+
+    def to_dict(self) -> dict:
+        return {"channels": list(self.channels), "order": self.order, "tilt": self.tilt,
+                "decentre": self.decentre, "astig": self.astig, "astig_rows": self.astig_rows}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SurfaceModel":
+        return cls(tuple(d["channels"]), int(d["order"]), bool(d["tilt"]), bool(d["decentre"]),
+                   bool(d["astig"]), bool(d["astig_rows"]))
+
+
+def student_t_loglik(resid, sigma, nu):
+    """Elementwise log-density of a Student-t with scale sigma and nu dof (nu broadcast over the batch)."""
+    nu = np.asarray(nu, dtype=np.float64)
+    if nu.ndim:
+        nu = nu[..., None]
+    z2 = (resid / sigma) ** 2
+    return (gammaln(0.5 * (nu + 1.0)) - gammaln(0.5 * nu) - 0.5 * np.log(nu * np.pi) - np.log(sigma)
+            - 0.5 * (nu + 1.0) * np.log1p(z2 / nu))
