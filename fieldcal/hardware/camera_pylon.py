@@ -1,0 +1,165 @@
+"""Basler cameras through pypylon (``pip install fieldcal[basler]``): ``--camera pylon[:SERIAL][,options]``.
+
+Options: ``pixel_pitch_um=3.45`` (required: a camera does not report its pitch), ``pixel_format=Mono12``
+(``Mono8``, ``Mono12``, ``Mono16``, ``RGB8Packed``), ``timeout_ms=5000``, ``images=DIR`` (pylon's camera
+emulator only: replay the image files in DIR, which makes an end-to-end test without a camera possible; run
+with the environment variable ``PYLON_CAMEMU=1`` to get an emulated camera).
+
+Frames are software-triggered (``TriggerMode=On``, ``TriggerSource=Software``) so that each frame starts only
+after the stage is on target; the frame id is pylon's ``BlockID``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from ..errors import LinkError, ParameterError
+from .protocols import DeviceFault, Frame
+
+_FORMATS = {"Mono8": (["Y"], 8), "Mono10": (["Y"], 10), "Mono12": (["Y"], 12), "Mono16": (["Y"], 16),
+            "RGB8Packed": (["R", "G", "B"], 8), "RGB8": (["R", "G", "B"], 8)}
+
+
+class PylonCamera:
+    OPTIONS = {"pixel_pitch_um", "pixel_format", "timeout_ms", "images"}
+
+    def __init__(self, serial: str | None = None, *, pixel_pitch_um: float, pixel_format: str = "Mono12",
+                 timeout_ms: float = 5000.0, images: str | None = None):
+        if pixel_format not in _FORMATS:
+            raise ParameterError(f"pixel format {pixel_format!r} is not supported", field="pixel_format",
+                                 path="camera pylon", fix=f"use one of {', '.join(_FORMATS)}")
+        self.serial = serial
+        self.pixel_pitch_um = float(pixel_pitch_um)
+        self.pixel_format = pixel_format
+        self.timeout_ms = float(timeout_ms)
+        self.images = images
+        self.name = "pylon" + (f":{serial}" if serial else "")
+        self.cam = None
+        self._exposure_ms: float | None = None
+        self._roi = None
+
+    @classmethod
+    def from_spec(cls, arg, options):
+        device = "camera pylon" + (f":{arg}" if arg else "")
+        bad = sorted(set(options) - cls.OPTIONS)
+        if bad:
+            raise ParameterError(f"unknown option(s) {', '.join(bad)}", path=device, field=bad[0],
+                                 fix=f"known options: {', '.join(sorted(cls.OPTIONS))}")
+        if "pixel_pitch_um" not in options:
+            raise ParameterError("the pixel pitch is not known", path=device, field="pixel_pitch_um",
+                                 fix="add pixel_pitch_um=... (from the camera's data sheet), e.g. pylon,pixel_pitch_um=3.45")
+        try:
+            pitch = float(options["pixel_pitch_um"])
+            timeout = float(options.get("timeout_ms", 5000))
+        except ValueError as exc:
+            raise ParameterError(f"bad option value ({exc})", path=device, fix="options are key=number") from None
+        return cls(arg, pixel_pitch_um=pitch, pixel_format=options.get("pixel_format", "Mono12"),
+                   timeout_ms=timeout, images=options.get("images"))
+
+    @property
+    def _device(self) -> str:
+        return f"camera {self.name}"
+
+    def connect(self) -> None:
+        try:
+            from pypylon import genicam, pylon
+        except ImportError:
+            raise ParameterError("the pylon camera backend needs pypylon", path=self._device,
+                                 fix="pip install 'fieldcal[basler]'") from None
+        self._pylon, self._genicam = pylon, genicam
+        try:
+            tl = pylon.TlFactory.GetInstance()
+            devices = tl.EnumerateDevices()
+            if self.serial:
+                devices = [d for d in devices if d.GetSerialNumber() == self.serial]
+            if not devices:
+                raise LinkError("no Basler camera found" + (f" with serial {self.serial}" if self.serial else ""),
+                                path=self._device, fix="check the cable and the serial number (pylon Viewer lists it)")
+            self.cam = pylon.InstantCamera(tl.CreateDevice(devices[0]))
+            self.cam.Open()
+            self.cam.PixelFormat.Value = self.pixel_format
+            if self.images:
+                self.cam.ImageFilename.Value = str(self.images)
+                self.cam.ImageFileMode.Value = "On"
+                self.cam.TestImageSelector.Value = "Off"
+            self.cam.TriggerSelector.Value = "FrameStart"
+            self.cam.TriggerMode.Value = "On"
+            self.cam.TriggerSource.Value = "Software"
+            self.cam.StartGrabbing(pylon.GrabStrategy_OneByOne)
+        except genicam.GenericException as exc:
+            raise LinkError(f"pylon: {exc}", path=self._device, fix="check the camera and its settings") from None
+
+    def close(self) -> None:
+        try:
+            if self.cam is not None:
+                self.cam.StopGrabbing()
+                self.cam.Close()
+        except Exception:  # closing must not hide the error being reported
+            pass
+        self.cam = None
+
+    def identify(self) -> str:
+        info = self.cam.GetDeviceInfo()
+        return f"{info.GetModelName()} {info.GetSerialNumber()}"
+
+    def describe(self) -> dict[str, Any]:
+        channels, bits = _FORMATS[self.pixel_format]
+        d = {"kind": "pylon", "name": self.name, "pixel_pitch_um": self.pixel_pitch_um, "channels": channels,
+             "bit_depth": bits, "black_level": 0, "white_level": (1 << bits) - 1, "roi": self._roi,
+             "pixel_format": self.pixel_format, "lens": None}
+        if self.cam is not None:
+            d["identity"] = self.identify()
+            d["size_px"] = [int(self.cam.Width.Value), int(self.cam.Height.Value)]
+        return d
+
+    def configure(self, *, exposure_ms=None, roi=None, trigger=None) -> None:
+        g = self._genicam
+        try:
+            if exposure_ms is not None:
+                node = self.cam.ExposureTime if hasattr(self.cam, "ExposureTime") else self.cam.ExposureTimeAbs
+                node.Value = float(exposure_ms) * 1000.0  # GenICam exposure is in µs
+                self._exposure_ms = float(node.Value) / 1000.0
+            if roi is not None:
+                self.cam.StopGrabbing()
+                x, y, w, h = (int(v) for v in roi)
+                self.cam.OffsetX.Value, self.cam.OffsetY.Value = 0, 0
+                self.cam.Width.Value, self.cam.Height.Value = w, h
+                self.cam.OffsetX.Value, self.cam.OffsetY.Value = x, y
+                self._roi = [x, y, w, h]
+                self.cam.StartGrabbing(self._pylon.GrabStrategy_OneByOne)
+            if trigger not in (None, "software"):
+                raise DeviceFault(f"trigger {trigger!r} is not supported by this backend", code=0,
+                                  device=self._device, fix="use software triggering")
+        except g.GenericException as exc:
+            raise DeviceFault(f"pylon refused the setting: {exc}", code=0, device=self._device,
+                              fix="check the value against the camera's limits") from None
+
+    def snap(self) -> Frame:
+        g = self._genicam
+        try:
+            if not self.cam.WaitForFrameTriggerReady(int(self.timeout_ms), self._pylon.TimeoutHandling_Return):
+                raise LinkError("camera not ready for a trigger", path=self._device, fix="check the camera")
+            self.cam.ExecuteSoftwareTrigger()
+            res = self.cam.RetrieveResult(int(self.timeout_ms), self._pylon.TimeoutHandling_Return)
+        except g.GenericException as exc:
+            raise LinkError(f"pylon: {exc}", path=self._device, fix="check the camera link") from None
+        if res is None or not res.IsValid():
+            raise LinkError(f"no frame within {self.timeout_ms:.0f} ms", path=self._device, fix="check the camera link")
+        try:
+            if not res.GrabSucceeded():
+                raise LinkError(f"grab failed: {res.GetErrorDescription()}", path=self._device,
+                                fix="check the camera link")
+            img = np.array(res.Array, copy=True)
+            frame_id, ts = int(res.BlockID), float(res.TimeStamp) / 1e6
+        finally:
+            res.Release()
+        if img.ndim == 2:
+            img = img[:, :, None]
+        if self._exposure_ms is None:
+            node = self.cam.ExposureTime if hasattr(self.cam, "ExposureTime") else self.cam.ExposureTimeAbs
+            self._exposure_ms = float(node.Value) / 1000.0
+        return Frame(image=img, frame_id=frame_id, exposure_ms=self._exposure_ms,
+                     timestamp_ms=ts or time.time() * 1000.0, meta={})
