@@ -1,0 +1,97 @@
+"""Composite output: a TIFF in the input's dtype and scale, with what made it in the ImageDescription (JSON)."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .._io import fsync_dir
+from ..errors import FieldcalError, ParameterError
+
+COMPOSITE_FORMAT = "fieldcal-composite/1"
+
+
+def check_output_path(path: str | Path) -> Path:
+    """A composite goes to ``.tif``/``.tiff``; fail before any work, not after."""
+    path = Path(path)
+    if path.suffix.lower() not in (".tif", ".tiff"):
+        raise ParameterError(f"output {path.name!r} is not a TIFF", path=path, field="--out",
+                             fix="name the output IMAGE.tiff (TIFF keeps the bit depth and the metadata)")
+    if path.exists() and path.is_dir():
+        raise ParameterError("output is a directory", path=path, field="--out", fix="give a file name")
+    return path
+
+
+def _jsonable(v):
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, Path):
+        return str(v)
+    raise TypeError(f"not JSON serialisable: {type(v).__name__}")
+
+
+def write_composite_tiff(path: str | Path, image: np.ndarray, channels, metadata: dict) -> Path:
+    """Write ``image`` (H x W x C) atomically, with ``metadata`` (+ format and channels) as JSON description.
+
+    Returns the path. Nothing is left at ``path`` if writing fails.
+    """
+    import tifffile
+
+    path = check_output_path(path)
+    image = np.asarray(image)
+    if image.ndim == 2:
+        image = image[..., None]
+    meta = {"format": COMPOSITE_FORMAT, "channels": list(channels), **metadata}
+    desc = json.dumps(meta, default=_jsonable)
+    photometric = "rgb" if list(channels) == ["R", "G", "B"] else "minisblack"
+    data = image if image.shape[2] > 1 else image[..., 0]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        tifffile.imwrite(tmp, data, photometric=photometric, description=desc, metadata=None)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    fsync_dir(path.parent)
+    return path
+
+
+def read_composite_metadata(path: str | Path) -> dict:
+    """The metadata a composite TIFF was written with."""
+    import tifffile
+
+    with tifffile.TiffFile(path) as tf:
+        desc = tf.pages[0].description
+    try:
+        meta = json.loads(desc)
+    except (json.JSONDecodeError, TypeError):
+        raise FieldcalError("no fieldcal metadata in this TIFF", path=path,
+                            fix="read a file written by `fieldcal composite`") from None
+    return meta
+
+
+def read_single_image(path: str | Path) -> np.ndarray:
+    """A captured image (TIFF or PNG) as H x W x C in its dtype (for captured sweep images)."""
+    from ..imageio import ImageFileError, read_image
+
+    path = Path(path)
+    if not path.is_file():
+        raise ParameterError("image not found", path=path, fix="give an existing TIFF or PNG file")
+    try:
+        img = read_image(path)
+    except ImageFileError as e:
+        raise FieldcalError(f"cannot read the image: {e.what}", path=path, fix=e.fix) from None
+    return img if img.ndim == 3 else img[..., None]

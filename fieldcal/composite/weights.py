@@ -1,0 +1,150 @@
+"""Per-pixel frame weights from a best-focus position: stack blending and sweep emulation.
+
+Both kernels are functions of the pixel's best-focus position ``z_b`` only, so a frame's weight over a region
+is computed from the region's best-focus map, and the weights of all frames add up to exactly 1 everywhere.
+
+* :class:`BlendKernel` (stacks): each pixel takes the frame nearest its best focus. Between two frames the
+  weight crosses over smoothly (a smoothstep) inside the band where *both* frames are within the focus
+  tolerance, so seams have no steps and cost no sharpness; the band never shrinks below ``min_band`` of the
+  frame spacing (an under-sampled stack still gets soft seams).
+* :class:`SweepKernel` (sweep emulation, paper Fig. 8d): each frame stands for the sensor travel half-way to
+  its neighbours; its weight is the overlap of that travel with ``[z_b - alpha, z_b + alpha]``, i.e. the
+  exposure a per-pixel-exposure sweep would have given it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ParameterError
+
+
+def _sorted_positions(z_sorted_um) -> np.ndarray:
+    z = np.asarray(z_sorted_um, dtype=np.float64)
+    if z.ndim != 1 or len(z) == 0:
+        raise ParameterError("no frame positions", field="z_um", fix="give at least one frame")
+    if np.any(np.diff(z) <= 0):
+        raise ParameterError("frame positions must be strictly increasing", field="z_um",
+                             fix="sort frames by z and drop duplicates")
+    return z
+
+
+def smoothstep(u):
+    """``3u^2 - 2u^3`` on [0, 1], 0 below, 1 above: continuous with a continuous slope."""
+    u = np.clip(u, 0.0, 1.0)
+    return u * u * (3.0 - 2.0 * u)
+
+
+class BlendKernel:
+    """Nearest-frame selection with tolerance-wide smooth seams.
+
+    Parameters
+    ----------
+    z_sorted_um : array
+        Frame positions (µm), strictly increasing.
+    tolerance_um : float
+        Half-width of the in-focus range (MTF within q of its peak) at the reference frequency.
+    min_band : float
+        Smallest cross-over width as a fraction of the frame spacing (0 gives hard seams).
+    """
+
+    def __init__(self, z_sorted_um, tolerance_um: float, min_band: float = 0.25):
+        self.z = _sorted_positions(z_sorted_um)
+        if not (np.isfinite(tolerance_um) and tolerance_um >= 0):
+            raise ParameterError(f"focus tolerance must be >= 0, got {tolerance_um}", field="tolerance_um",
+                                 fix="use a positive tolerance (µm)")
+        if not 0.0 <= min_band <= 1.0:
+            raise ParameterError(f"min_band must be in [0, 1], got {min_band}", field="min_band",
+                                 fix="use e.g. 0.25")
+        dz = np.diff(self.z)
+        # Both neighbours are in focus for t in [1 - tol/dz, tol/dz]: a band of half-width tol/dz - 1/2.
+        self.half_band = np.clip(tolerance_um / np.where(dz > 0, dz, 1.0) - 0.5, 0.5 * min_band, 0.5)
+
+    def __len__(self) -> int:
+        return len(self.z)
+
+    def support(self, zmin: float, zmax: float) -> tuple[int, int]:
+        """Inclusive range of sorted frame indices that can weigh anything for ``z_b`` in [zmin, zmax]."""
+        n = len(self.z)
+        i0 = max(0, int(np.searchsorted(self.z, zmin, side="right")) - 1)
+        i1 = min(n - 1, int(np.searchsorted(self.z, zmax, side="left")))
+        return i0, i1
+
+    def _rise(self, j: int, zb):
+        """Weight of frame j+1 for z_b between frames j and j+1."""
+        t = (zb - self.z[j]) / (self.z[j + 1] - self.z[j])
+        h = self.half_band[j]
+        return smoothstep((t - (0.5 - h)) / (2.0 * h)) if h > 0 else (t >= 0.5).astype(np.float64)
+
+    def weight(self, k: int, zb) -> np.ndarray:
+        """Weight of sorted frame ``k`` at best-focus positions ``zb`` (float32, same shape)."""
+        zb = np.asarray(zb, dtype=np.float64)
+        n = len(self.z)
+        w = np.zeros(zb.shape, dtype=np.float64)
+        if n == 1:
+            w[...] = 1.0
+            return w.astype(np.float32)
+        if k == 0:
+            w[zb <= self.z[0]] = 1.0
+        else:
+            m = (zb > self.z[k - 1]) & (zb <= self.z[k])
+            w[m] = self._rise(k - 1, zb[m])
+        if k == n - 1:
+            w[zb > self.z[-1]] = 1.0
+        else:
+            m = (zb > self.z[k]) & (zb < self.z[k + 1])
+            w[m] = 1.0 - self._rise(k, zb[m])
+        return w.astype(np.float32)
+
+
+class SweepKernel:
+    """Frame weights of an emulated focal sweep of half-range ``alpha_um`` centred on each pixel's best focus.
+
+    Frame ``k`` covers the travel ``[e_k, e_{k+1}]`` between the midpoints to its neighbours (the end frames
+    extend half a spacing outwards). Weights are normalised by the covered part of the window, so pixels near
+    the ends of the stack still get a mean, and a window outside the stack takes the end frame.
+    """
+
+    def __init__(self, z_sorted_um, alpha_um: float):
+        self.z = _sorted_positions(z_sorted_um)
+        if not (np.isfinite(alpha_um) and alpha_um > 0):
+            raise ParameterError(f"sweep half-range alpha must be > 0 µm, got {alpha_um}", field="alpha_um",
+                                 fix="e.g. --sweep-alpha-um 20 (the paper's value)")
+        self.alpha = float(alpha_um)
+        z = self.z
+        if len(z) == 1:
+            e = np.array([z[0] - self.alpha, z[0] + self.alpha])
+        else:
+            mid = 0.5 * (z[1:] + z[:-1])
+            e = np.concatenate([[z[0] - 0.5 * (z[1] - z[0])], mid, [z[-1] + 0.5 * (z[-1] - z[-2])]])
+        self.edges = e
+
+    def __len__(self) -> int:
+        return len(self.z)
+
+    def support(self, zmin: float, zmax: float) -> tuple[int, int]:
+        n = len(self.z)
+        lo, hi = zmin - self.alpha, zmax + self.alpha
+        i0 = int(np.clip(np.searchsorted(self.edges, lo, side="right") - 1, 0, n - 1))
+        i1 = int(np.clip(np.searchsorted(self.edges, hi, side="left") - 1, 0, n - 1))
+        return i0, i1
+
+    def weight(self, k: int, zb) -> np.ndarray:
+        zb = np.asarray(zb, dtype=np.float64)
+        e = self.edges
+        lo = np.maximum(zb - self.alpha, e[0])
+        hi = np.minimum(zb + self.alpha, e[-1])
+        covered = hi - lo
+        ov = np.clip(np.minimum(hi, e[k + 1]) - np.maximum(lo, e[k]), 0.0, None)
+        inside = covered > 1e-9
+        w = np.where(inside, ov / np.where(inside, covered, 1.0), 0.0)
+        # Window entirely beyond an end of the stack: the end frame.
+        if k == 0:
+            w = np.where(~inside & (zb < e[0] + self.alpha), 1.0, w)
+        if k == len(self.z) - 1:
+            w = np.where(~inside & (zb >= e[0] + self.alpha), 1.0, w)
+        return w.astype(np.float32)
+
+    def frames_in_window(self, zb: float) -> int:
+        """How many frames a pixel with best focus ``zb`` averages (for noise bookkeeping)."""
+        return int(sum(self.weight(k, np.array(zb)) > 0 for k in range(len(self.z))))
