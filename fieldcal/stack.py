@@ -449,10 +449,10 @@ class Stack:
         else:
             raise ParameterError(f"order must be 'z' or 'file', got {order!r}", field="order",
                                  fix="use order='z' or order='file'")
+        _norm_roi(roi, *self.shape, self.cfa)  # a bad ROI fails here, not at the first frame
         reader = self.read_normalized if normalized else self.read
         it = indices if desc is None else progress(indices, total=len(indices), desc=desc, unit="frame")
-        for k in it:
-            yield self.frames[k], reader(k, roi)
+        return ((self.frames[k], reader(k, roi)) for k in it)
 
     def verify_checksums(self) -> list[FrameInfo]:
         """Frames whose file no longer matches its ``sha256`` (missing files included; no sha256 = skipped)."""

@@ -459,7 +459,9 @@ def test_iter_frames_streams_in_z_order(tmp_path, monkeypatch):
     assert [i.z_um for i, _ in it] == [0.5, 2.0, 3.0]
     assert [i.index for i, _ in s.iter_frames(order="file")] == [0, 1, 2, 3]
     with pytest.raises(ParameterError):
-        next(s.iter_frames(order="random"))
+        s.iter_frames(order="random")  # checked when called, not at the first frame
+    with pytest.raises(ParameterError):
+        s.iter_frames(roi=(0, 0, 999, 4))
 
 
 # --------------------------------------------------------------------------------------------- writer
