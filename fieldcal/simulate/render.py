@@ -16,23 +16,25 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 from scipy import fft
 
 from ..errors import ParameterError
 from ..lens import LensSpec
 from . import noise as _noise
+from .warp import scale_shift
 
 RENDERER_VERSION = "fieldcal-render/1"
 # Rec. 709 luma weights: an RGB scene seen by a monochrome sensor.
+_TABLE_STEP = 1.0 / 65536.0  # cycles/px: radial OTF table resolution
 _LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 
 
 def level_diameters_px(max_diameter_px: float, ratio: float, floor_px: float) -> np.ndarray:
-    """Blur-level diameters (px): 0, then ``floor * ratio**k`` until ``max_diameter_px`` is covered."""
-    n = 1 if max_diameter_px <= floor_px else 1 + math.ceil(math.log(max_diameter_px / floor_px) / math.log(ratio))
-    return np.concatenate([[0.0], floor_px * ratio ** np.arange(n + 1)])
+    """Blur-level diameters (px): 0, then ``floor * ratio**k`` until ``max_diameter_px`` is covered (plus one
+    spare level, so that a diameter exactly on the last level still has an upper neighbour)."""
+    n = 0 if max_diameter_px <= floor_px else math.ceil(math.log(max_diameter_px / floor_px) / math.log(ratio))
+    return np.concatenate([[0.0], floor_px * ratio ** np.arange(n + 2)])
 
 
 def fractional_level(diameter_px: np.ndarray, ratio: float, floor_px: float) -> np.ndarray:
@@ -124,8 +126,8 @@ class Renderer:
         self.centre_px = spec.optical_centre_px()
         xm, ym = spec.pixel_to_mm(self._xs, self._ys)
         self._illum = spec.relative_illumination(xm, ym).astype(np.float32)
-        self._spectra: dict[int, tuple[int, np.ndarray]] = {}  # channel -> (pad px, rfft2 of padded scene)
-        self._freq: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}  # pad -> radial index/weight/step
+        self._spectra: dict[tuple[int, int], tuple[int, np.ndarray]] = {}  # (channel, pad) -> (pad, rfft2)
+        self._freq: dict[tuple[int, int], np.ndarray] = {}  # grid shape -> radial table index
 
     # ---------------------------------------------------------------------------------------- levels
     def diameter_px(self, defocus_um) -> np.ndarray:
@@ -145,40 +147,42 @@ class Renderer:
         return int(math.ceil(0.5 * max_diameter_px + 4.0 * sigma_px + 3.0 * lam_px)) + 8
 
     def _spectrum(self, ci: int, pad: int) -> tuple[int, np.ndarray]:
-        have = self._spectra.get(ci)
-        if have is not None and have[0] >= pad:
-            return have
-        if have is not None:
-            pad = max(pad, int(have[0] * 1.5))  # grow geometrically: few re-FFTs over a stack
-        h, w = self.height_px, self.width_px
-        hp = fft.next_fast_len(h + 2 * pad, real=True)
-        wp = fft.next_fast_len(w + 2 * pad, real=True)
-        padded = np.pad(self.scene[:, :, ci], ((pad, hp - h - pad), (pad, wp - w - pad)), mode="symmetric")
-        spec = fft.rfft2(padded.astype(np.float32, copy=False), workers=-1)
-        self._spectra[ci] = (pad, spec)
-        return self._spectra[ci]
+        """rfft2 of the channel padded by at least ``pad`` px (mirror), from a small cache.
 
-    def _radial(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, float]:
-        """Radial-frequency table lookup for an rfft2 grid: index and weight into a 1-D table, table step."""
-        key = shape
-        if key not in self._freq:
+        The pad is rounded up to a fixed ladder (16 * 1.5**k px), so a frame's result depends only on the
+        frame, never on what was rendered before (bit-identical frames, hence identical noise draws).
+        """
+        pad = int(16 * 1.5 ** max(0, math.ceil(math.log(max(pad, 1) / 16) / math.log(1.5))))
+        key = (ci, pad)
+        if key not in self._spectra:
+            h, w = self.height_px, self.width_px
+            hp = fft.next_fast_len(h + 2 * pad, real=True)
+            wp = fft.next_fast_len(w + 2 * pad, real=True)
+            padded = np.pad(self.scene[:, :, ci], ((pad, hp - h - pad), (pad, wp - w - pad)), mode="symmetric")
+            if len(self._spectra) >= 2 * len(self.channels):  # bound memory: drop the oldest
+                self._spectra.pop(next(iter(self._spectra)))
+            self._spectra[key] = (pad, fft.rfft2(padded.astype(np.float32, copy=False), workers=-1))
+        return self._spectra[key]
+
+    def _radial(self, shape: tuple[int, int]) -> np.ndarray:
+        """Index of each rfft2 grid point's radial frequency in a fine 1-D table (step ``_TABLE_STEP``)."""
+        if shape not in self._freq:
             hp, wp = shape
             fy = fft.fftfreq(hp).astype(np.float32)[:, None]
             fx = fft.rfftfreq(wp).astype(np.float32)[None, :]
             r = np.sqrt(fy * fy + fx * fx)  # cycles/px, at most 1/sqrt(2)
-            step = 1.0 / 8192.0
-            pos = r / np.float32(step)
-            idx = np.floor(pos).astype(np.int32)
-            self._freq[key] = (idx, (pos - idx).astype(np.float32), step)
-        return self._freq[key]
+            self._freq[shape] = np.rint(r / np.float32(_TABLE_STEP)).astype(np.int32)
+        return self._freq[shape]
 
     def _otf_grid(self, shape, defocus_um: float, channel: str) -> np.ndarray:
-        """The lens OTF (real, radial) on an rfft2 grid, by linear lookup in a fine 1-D table."""
-        idx, wgt, step = self._radial(shape)
-        f_px = np.arange(int(0.75 / step) + 2, dtype=np.float64) * step
+        """The lens OTF (real, radial) on an rfft2 grid, by nearest lookup in a fine 1-D table.
+
+        The table step is 1/65536 cycles/px: the lookup error is below 2e-3 even for a 100 px blur disc.
+        """
+        idx = self._radial(shape)
+        f_px = np.arange(int(0.75 / _TABLE_STEP) + 2, dtype=np.float64) * _TABLE_STEP
         table = self.spec.otf(f_px / (self.pitch_um * 1e-3), defocus_um, channel).astype(np.float32)
-        lo = table[idx]
-        return lo + wgt * (table[idx + 1] - lo)
+        return table[idx]
 
     def blur_uniform(self, channel: str, defocus_um: float) -> np.ndarray:
         """The scene channel blurred by one defocus everywhere (exact OTF, no level interpolation)."""
@@ -205,14 +209,24 @@ class Renderer:
         diam = level_diameters_px(float(b_px.max()), self.level_ratio, self.level_floor_px)
         pad, spectrum = self._spectrum(ci, self._pad_for(float(diam[-1]), channel))
         shape = self._shape(spectrum, pad)
-        out = np.zeros((self.height_px, self.width_px), dtype=np.float32)
-        for k in range(int(math.floor(kf.min())), int(math.ceil(kf.max())) + 1):
-            w = np.maximum(np.float32(0.0), np.float32(1.0) - np.abs(kf - np.float32(k)))
-            if not w.any():
+        # Group pixels by their lower level once (stable radix sort of small ints), so each level touches only
+        # the pixels it brackets: O(pixels) gathers in all instead of O(levels x pixels).
+        lower = np.floor(kf).astype(np.int16).ravel()
+        t = kf.ravel() - lower
+        order = np.argsort(lower, kind="stable")
+        k0, k1 = int(lower[order[0]]), int(lower[order[-1]])
+        bounds = np.searchsorted(lower[order], np.arange(k0, k1 + 2))
+        out = np.zeros(self.height_px * self.width_px, dtype=np.float32)
+        for k in range(k0, k1 + 2):
+            below = order[bounds[k - k0 - 1]:bounds[k - k0]] if k > k0 else order[:0]  # lower == k - 1
+            here = order[bounds[k - k0]:bounds[k - k0 + 1]] if k <= k1 else order[:0]  # lower == k
+            if below.size == 0 and here.size == 0:
                 continue
             d_um = float(diam[k]) * self.spec.f_number * self.pitch_um
-            out += w * self._inverse(spectrum, pad, self._otf_grid(shape, d_um, channel))
-        return out
+            img = self._inverse(spectrum, pad, self._otf_grid(shape, d_um, channel)).ravel()
+            out[here] += (1.0 - t[here]) * img[here]
+            out[below] += t[below] * img[below]
+        return out.reshape(self.height_px, self.width_px)
 
     # ------------------------------------------------------------------------------------ geometry
     def _affine(self, z_um: float, channel: str, breathing: bool = True) -> np.ndarray:
@@ -239,10 +253,9 @@ class Renderer:
         return np.asarray(d, dtype=np.float32)
 
     def _warp(self, img: np.ndarray, affine: np.ndarray) -> np.ndarray:
-        if np.allclose(affine, [[1, 0, 0], [0, 1, 0]], rtol=0, atol=1e-9):
+        if np.allclose(affine, [[1, 0, 0], [0, 1, 0]], rtol=0, atol=1e-12):
             return img
-        return cv2.warpAffine(img, affine, (self.width_px, self.height_px), flags=cv2.INTER_CUBIC,
-                              borderMode=cv2.BORDER_REFLECT_101)
+        return scale_shift(img, affine[0, 0], affine[0, 2], affine[1, 2])
 
     def _linear(self, z_um: float | None) -> np.ndarray:
         out = np.empty((self.height_px, self.width_px, len(self.channels)), dtype=np.float32)
@@ -281,7 +294,7 @@ class Renderer:
         """What truth.json records about the renderer."""
         return {"version": RENDERER_VERSION, "level_ratio": self.level_ratio,
                 "level_floor_px": self.level_floor_px, "exposure_scale": float(self.exposure),
-                "warp": "cv2.warpAffine INTER_CUBIC, BORDER_REFLECT_101", "padding": "symmetric"}
+                "warp": "separable Keys cubic (a=-0.5), mirrored edges", "padding": "symmetric"}
 
 
 def _check_z(z_um) -> float:
