@@ -115,16 +115,28 @@ class GCS2Client:
             raise self._link_error(f"write failed ({exc})", cmd) from None
         self.log = (self.log + [(">", cmd)])[-20:]
 
-    def _read_line(self, cmd: str, timeout_ms: float | None = None) -> str:
-        if timeout_ms is not None:
-            self._ser.timeout = timeout_ms / 1000
+    def _set_timeout(self, timeout_ms: float, cmd: str) -> None:
         try:
-            raw = self._ser.read_until(b"\n")
-        except (serial.SerialException, OSError) as exc:
+            self._ser.timeout = timeout_ms / 1000
+        except (serial.SerialException, OSError) as exc:  # a vanished port fails even to be reconfigured
             raise self._link_error(f"link lost ({exc})", cmd) from None
+
+    def _read_line(self, cmd: str, timeout_ms: float | None = None) -> str:
+        if self._ser is None:
+            raise LinkError("the port is not open", path=self.device, fix="call open() first")
+        try:
+            if timeout_ms is not None:
+                self._set_timeout(timeout_ms, cmd)
+            try:
+                raw = self._ser.read_until(b"\n")
+            except (serial.SerialException, OSError) as exc:
+                raise self._link_error(f"link lost ({exc})", cmd) from None
         finally:
             if timeout_ms is not None and self._ser is not None:
-                self._ser.timeout = self.timeout_ms / 1000
+                try:
+                    self._ser.timeout = self.timeout_ms / 1000
+                except (serial.SerialException, OSError):
+                    pass  # already reported as a link error
         if not raw.endswith(b"\n"):
             raise self._link_error(f"no reply within {timeout_ms or self.timeout_ms:.0f} ms", cmd)
         text = raw.decode("latin-1")  # '#7' answers with byte 0xB1; everything else must be printable ASCII
@@ -209,15 +221,13 @@ class GCS2Client:
             while self._ser.read(4096):
                 pass
             self._ser.reset_input_buffer()
+            self._ser.timeout = self.timeout_ms / 1000
         except (serial.SerialException, OSError) as exc:
             raise self._link_error(f"link lost while draining ({exc})", "*IDN?") from None
-        finally:
-            if self._ser is not None:
-                self._ser.timeout = self.timeout_ms / 1000
         self._write("*IDN?")
         deadline = time.monotonic() + 4 * self.timeout_ms / 1000
         while True:
-            line = self._read_line("*IDN?")
+            line = self._read_line("*IDN?", timeout_ms=4 * self.timeout_ms)
             if line.strip() and not _AXIS_VALUE.match(line) and not line.strip().lstrip("-").isdigit():
                 ident = line.strip()
                 break

@@ -88,6 +88,12 @@ class GCS2Emulator:
         """The next MOV stops half-way with error -1024 and the servo switched off."""
         self._motion_error_armed = True
 
+    def set_referenced_at(self, pos_mm: float) -> None:
+        """Test shortcut: the axis is referenced, servo on, at rest at pos_mm (no FRF move needed)."""
+        with self._lock:
+            self.referenced = self.servo = True
+            self._seg = (self._now(), float(pos_mm), float(pos_mm), 0.0)
+
     # ------------------------------------------------------------------ motion model
     def _now(self) -> float:
         return time.monotonic() * self.time_scale
@@ -336,7 +342,7 @@ class TcpServer:
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self._sock.bind((host, port))
         self._sock.listen(1)
-        self._sock.settimeout(0.05)
+        self._sock.settimeout(0.01)
         self.host, self.port = self._sock.getsockname()
         self.url = f"socket://{self.host}:{self.port}"
         self._conn: socket.socket | None = None
@@ -351,7 +357,8 @@ class TcpServer:
             except (socket.timeout, OSError):
                 continue
             self._conn = conn
-            conn.settimeout(0.05)
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # replies go out at once, like a UART
+            conn.settimeout(0.01)
             session = _Session(self.emulator, lambda d: self._safe_send(conn, d))
             while not self._stop.is_set():
                 try:
