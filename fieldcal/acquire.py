@@ -315,12 +315,12 @@ def _prepare(out: Path, plan: CapturePlan, cam: dict, stage: dict):
     for e in entries:
         if isinstance(e, dict) and isinstance(e.get("i"), int) and isinstance(e.get("entry"), dict):
             latest[e["i"]] = e["entry"]
-    committed, torn = {}, 0
+    committed, torn_files = {}, set()
     for i, entry in latest.items():
         if 0 <= i < len(plan.frames) and _sha256_file(out / entry["file"]) == entry.get("sha256"):
             committed[i] = entry
         else:
-            torn += 1
+            torn_files.add(entry.get("file"))
     # stack.json := the committed, intact frames (drops frames written but never committed)
     try:
         meta = json.loads(json_path.read_text(encoding="utf-8"))
@@ -330,7 +330,7 @@ def _prepare(out: Path, plan: CapturePlan, cam: dict, stage: dict):
         raise StackError("stack.json is unreadable", path=json_path, fix="move the folder away and capture again")
     keep = [committed[i] for i in sorted(committed, key=lambda k: committed[k].get("time", ""))]
     listed = {e.get("file") for e in meta.get("frames", []) if isinstance(e, dict)}
-    torn += len(listed - {e["file"] for e in keep})
+    torn = len(torn_files | (listed - {e["file"] for e in keep}))
     if meta.get("frames") != keep:
         meta["frames"] = keep
         atomic_write_text(json_path, json.dumps(meta, indent=2, allow_nan=False) + "\n")
