@@ -45,12 +45,16 @@ def _check(lo, hi):
 
 
 def _greedy_sorted(lo: np.ndarray, hi: np.ndarray, start_after: float = -np.inf):
-    """Greedy on intervals already sorted by ``hi``; skips intervals containing ``start_after``."""
+    """Greedy on intervals already sorted by ``hi``; skips intervals containing ``start_after``.
+
+    Ends closer than ``1e-9 * scale`` count as touching, so float noise in bin edges never costs a frame.
+    """
     points, wit = [], []
+    atol = 1e-9 * max(1.0, float(np.max(np.abs(hi))) if hi.size else 1.0)
     last = start_after
     i, n = 0, lo.size
     while i < n:
-        rest = lo[i:] > last
+        rest = lo[i:] > last + atol
         if not rest.any():
             break
         i += int(np.argmax(rest))

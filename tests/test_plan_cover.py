@@ -1,0 +1,72 @@
+"""The interval cover behind stack plans: valid, minimal (against brute force), certified, anchored variant."""
+
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from fieldcal.plan.cover import anchored_cover, is_cover, min_cover, nearest_index
+
+
+def brute_force_min(lo, hi):
+    """Smallest k such that some k right endpoints pierce all intervals (an optimal cover uses right ends)."""
+    cand = np.unique(hi)
+    for k in range(1, len(lo) + 1):
+        for pts in itertools.combinations(cand, k):
+            if is_cover(pts, lo, hi):
+                return k
+    return 0
+
+
+intervals = st.lists(st.tuples(st.floats(-50, 50, allow_nan=False), st.floats(0, 10, allow_nan=False)),
+                     min_size=1, max_size=7)
+
+
+@settings(max_examples=60, deadline=None)
+@given(intervals)
+def test_greedy_is_minimal_and_certified(iv):
+    lo = np.array([a for a, _ in iv])
+    hi = lo + np.array([w for _, w in iv])
+    c = min_cover(lo, hi)
+    assert is_cover(c.points_um, lo, hi)
+    assert c.n == brute_force_min(lo, hi)
+    # the witnesses are pairwise disjoint: no cover can be smaller
+    w = c.witnesses
+    assert len(set(w.tolist())) == c.n == c.lower_bound
+    order = np.argsort(lo[w])
+    assert np.all(lo[w][order][1:] > hi[w][order][:-1])
+
+
+@settings(max_examples=60, deadline=None)
+@given(intervals, st.floats(-50, 60))
+def test_anchored_cover_contains_anchor_and_costs_at_most_one_more(iv, anchor):
+    lo = np.array([a for a, _ in iv])
+    hi = lo + np.array([w for _, w in iv])
+    c = anchored_cover(lo, hi, anchor)
+    assert is_cover(c.points_um, lo, hi)
+    assert np.any(np.isclose(c.points_um, anchor))
+    assert c.n <= min_cover(lo, hi).n + 1
+
+
+def test_uniform_bands_need_ceil_D_over_2d():
+    # every best-focus value in [0, D] with half-width d: the greedy places frames d, 3d, 5d, ...
+    z = np.linspace(0, 100.0, 5001)
+    c = min_cover(z - 4.0, z + 4.0)
+    assert c.n == 13  # ceil(100 / 8)
+    np.testing.assert_allclose(np.diff(c.points_um), 8.0, atol=0.05)
+    assert abs(c.points_um[0] - 4.0) < 1e-9
+
+
+def test_nearest_index_is_the_voronoi_rule():
+    p = np.array([0.0, 10.0, 30.0])
+    z = np.array([-5, 4.9, 5.0, 19.9, 20.0, 100])
+    assert nearest_index(p, z).tolist() == [0, 0, 1, 1, 2, 2]
+
+
+def test_bad_intervals_are_rejected():
+    with pytest.raises(ValueError):
+        min_cover([0.0, 1.0], [1.0, 0.5])
+    with pytest.raises(ValueError):
+        min_cover([np.nan], [1.0])
+    assert min_cover([], []).n == 0
