@@ -81,7 +81,7 @@ def composite_with_map(stack, zb: np.ndarray, kernel, profile, frames, *, latera
 
 def composite_profile(stack, profile, *, frames=None, fs_cyc_per_mm=None, q: float = 0.05,
                       min_band: float = 0.25, lateral_colour: bool = False, tile: int = DEFAULT_TILE_PX,
-                      quiet: bool = False) -> CompositeResult:
+                      focus_offset_um: float = 0.0, quiet: bool = False) -> CompositeResult:
     """Composite a stack with the profile's best-focus surfaces and geometry.
 
     Parameters
@@ -97,11 +97,14 @@ def composite_profile(stack, profile, *, frames=None, fs_cyc_per_mm=None, q: flo
         Narrowest seam as a fraction of the frame spacing.
     lateral_colour : bool
         Also undo the per-channel scale (lateral colour).
+    focus_offset_um : float
+        Added to every best focus (a plan's ``refocus_um`` for another object distance).
     """
     check_profile_matches(stack, profile)
     frames = select_frames(stack, frames)
     w, h = image_size(stack)
     zb = profile_focus_map(profile, w, h, stack.channels, lateral_colour)
+    zb += np.float32(focus_offset_um)
     kernel = blend_kernel(stack, profile, frames, fs_cyc_per_mm, q, min_band)
     img = composite_with_map(stack, zb, kernel, profile, frames, lateral_colour=lateral_colour, tile=tile,
                              quiet=quiet)

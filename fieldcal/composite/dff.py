@@ -1,0 +1,208 @@
+"""Depth from focus (paper Fig. 12): where is each pixel in focus, measured from the stack itself.
+
+1. Focus volume: each frame (warped to the geometry of ``z_ref`` when a profile is known) is filtered with the
+   modified Laplacian ``|2I - I(x-1) - I(x+1)| + |2I - I(y-1) - I(y+1)|`` per channel and averaged over
+   blocks (sum-modified-Laplacian). Only the small block volume (frames x blocks x channels) is kept.
+2. Per block: the frame of peak focus, refined to sub-frame precision by a parabola through the peak and its
+   neighbours; a confidence ``(peak - median) / median`` that is ~0 where there is no texture.
+3. A smooth surface (polynomial of total degree <= 4 in normalised coordinates) is fitted to the block
+   estimates by confidence-weighted, Tukey-reweighted least squares, so textureless regions and outliers
+   follow the surface instead of noise. Composites then blend frames with this surface exactly as with a
+   profile's (:mod:`.weights`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..errors import ParameterError
+from ..progress import progress
+from .source import image_size, z_positions
+from .surface import dense_map, output_best_focus_um
+from .warp import frame_maps, warp_region
+
+_ML_X = np.array([[0, 0, 0], [-1, 2, -1], [0, 0, 0]], dtype=np.float32)
+_ML_Y = _ML_X.T.copy()
+
+
+def default_block_px(width: int, height: int) -> int:
+    """Blocks of 8-32 px, at least ~16 across the short side."""
+    return int(np.clip(min(width, height) // 16, 8, 32))
+
+
+def modified_laplacian(channel: np.ndarray) -> np.ndarray:
+    """Modified Laplacian (Nayar & Nakagawa 1994) of one float32 channel, lightly pre-smoothed against noise."""
+    g = cv2.GaussianBlur(channel, (3, 3), 0.7, borderType=cv2.BORDER_REFLECT)
+    return (np.abs(cv2.filter2D(g, -1, _ML_X, borderType=cv2.BORDER_REFLECT))
+            + np.abs(cv2.filter2D(g, -1, _ML_Y, borderType=cv2.BORDER_REFLECT)))
+
+
+@dataclass
+class FocusVolume:
+    """Block focus measure per frame: ``values[k, by, bx, c]`` for frames sorted by z (``z_um``)."""
+
+    z_um: np.ndarray
+    values: np.ndarray
+    block_px: int
+    x_px: np.ndarray  # block centres (px), shape (bx,)
+    y_px: np.ndarray  # shape (by,)
+
+
+def focus_volume(stack, profile=None, *, frames=None, block_px: int | None = None,
+                 lateral_colour: bool = False, quiet: bool = False) -> FocusVolume:
+    """Stream the frames once and measure focus per block and channel (one frame in memory at a time)."""
+    w, h = image_size(stack)
+    b = int(block_px or default_block_px(w, h))
+    if b < 2 or b > min(w, h):
+        raise ParameterError(f"block size {b} px does not fit a {w}x{h} image", field="block_px",
+                             fix="use a block size between 2 px and the image's short side")
+    nbx, nby = w // b, h // b
+    z_all = z_positions(stack)
+    idx = np.arange(len(z_all)) if frames is None else np.asarray(frames, dtype=int)
+    order = idx[np.argsort(z_all[idx], kind="stable")]
+    channels = tuple(stack.channels)
+    vol = np.empty((len(order), nby, nbx, len(channels)), dtype=np.float32)
+    for k, i in enumerate(progress(order, total=len(order), desc="focus volume", quiet=quiet, unit="frame")):
+        for fmap in frame_maps(profile, float(z_all[i]), channels, lateral_colour):
+            img = warp_region(stack, int(i), fmap, 0, 0, w, h)
+            for j, ci in enumerate(fmap.channels):
+                ml = modified_laplacian(img[..., j])[:nby * b, :nbx * b]
+                vol[k, :, :, ci] = cv2.resize(ml, (nbx, nby), interpolation=cv2.INTER_AREA)
+    xs = (np.arange(nbx) + 0.5) * b - 0.5
+    ys = (np.arange(nby) + 0.5) * b - 0.5
+    return FocusVolume(z_all[order], vol, b, xs, ys)
+
+
+def peak_depth(vol: FocusVolume) -> tuple[np.ndarray, np.ndarray]:
+    """Per block and channel: sub-frame best-focus z (µm) and confidence (>= 0).
+
+    Returns arrays of shape (by, bx, C).
+    """
+    v = vol.values.astype(np.float64)
+    z = vol.z_um
+    n = len(z)
+    k = np.argmax(v, axis=0)
+    peak = np.take_along_axis(v, k[None], axis=0)[0]
+    med = np.median(v, axis=0)
+    conf = np.clip((peak - med) / np.maximum(med, 1e-12 * max(float(v.max()), 1e-30)), 0.0, None)
+    if n < 3:
+        return z[k], conf
+    km = np.clip(k - 1, 0, n - 1)
+    kp = np.clip(k + 1, 0, n - 1)
+    fm = np.take_along_axis(v, km[None], axis=0)[0]
+    fp = np.take_along_axis(v, kp[None], axis=0)[0]
+    z0, zm, zp = z[k], z[km], z[kp]
+    # Vertex of the parabola through (zm, fm), (z0, peak), (zp, fp); undefined at the ends of the stack.
+    a1, a2 = (z0 - zm) * (peak - fp), (z0 - zp) * (peak - fm)
+    den = a1 - a2
+    inner = (k > 0) & (k < n - 1) & (np.abs(den) > 1e-30)
+    num = (z0 - zm) * a1 - (z0 - zp) * a2
+    zv = z0 - 0.5 * num / np.where(inner, den, 1.0)
+    zbest = np.where(inner, np.clip(zv, zm, zp), z0)
+    # A peak on the last/first frame may lie beyond the stack: trust it less.
+    conf = np.where(inner, conf, 0.25 * conf)
+    return zbest, conf
+
+
+@dataclass
+class SurfaceFit:
+    """A fitted best-focus surface ``z(x, y)`` (µm) in normalised coordinates about ``centre_px``."""
+
+    coef: np.ndarray
+    degree: int
+    centre_px: tuple[float, float]
+    scale_px: float
+    rms_um: float
+    n_used: int
+
+    def __call__(self, x, y):
+        u = (np.asarray(x, dtype=np.float64) - self.centre_px[0]) / self.scale_px
+        v = (np.asarray(y, dtype=np.float64) - self.centre_px[1]) / self.scale_px
+        return _design(u, v, self.degree) @ self.coef
+
+
+def _design(u, v, degree: int) -> np.ndarray:
+    cols = [u ** (d - j) * v ** j for d in range(degree + 1) for j in range(d + 1)]
+    return np.stack([np.broadcast_to(c, np.broadcast(u, v).shape) for c in cols], axis=-1)
+
+
+def fit_surface(x_px, y_px, z_um, weight, centre_px, scale_px: float, degree: int = 4,
+                iterations: int = 10) -> SurfaceFit:
+    """Robust weighted polynomial surface: Tukey biweight IRLS (c = 4.685 MAD) on top of ``weight``.
+
+    The degree drops when there are fewer than 3 confident samples per coefficient.
+    """
+    x, y, z, w0 = (np.asarray(a, dtype=np.float64).ravel() for a in (x_px, y_px, z_um, weight))
+    good = np.isfinite(z) & (w0 > 0)
+    x, y, z, w0 = x[good], y[good], z[good], w0[good]
+    if len(z) == 0:
+        raise ParameterError("no block has any focus signal (a blank or saturated scene?)", field="stack",
+                             fix="composite with a profile (--profile) or capture a textured scene")
+    while degree > 0 and len(z) < 3 * (degree + 1) * (degree + 2) // 2:
+        degree -= 1
+    u = (x - centre_px[0]) / scale_px
+    v = (y - centre_px[1]) / scale_px
+    a = _design(u, v, degree)
+    w = w0.copy()
+    coef = np.zeros(a.shape[1])
+    for _ in range(iterations):
+        sw = np.sqrt(w)
+        coef = np.linalg.lstsq(a * sw[:, None], z * sw, rcond=None)[0]
+        r = z - a @ coef
+        s = 1.4826 * np.median(np.abs(r[w > 0])) if np.any(w > 0) else 0.0
+        s = max(s, 1e-3)
+        t = np.clip(r / (4.685 * s), -1.0, 1.0)
+        w = w0 * (1.0 - t * t) ** 2
+        if not np.any(w > 0):
+            w = w0.copy()
+            break
+    r = z - a @ coef
+    rms = float(np.sqrt(np.sum(w * r * r) / max(np.sum(w), 1e-30)))
+    return SurfaceFit(coef, degree, (float(centre_px[0]), float(centre_px[1])), float(scale_px), rms,
+                      int(np.count_nonzero(w > 0)))
+
+
+def _block_weights(conf: np.ndarray) -> np.ndarray:
+    """Fit weights from confidences: blocks below a tenth of the typical confident block carry nothing."""
+    c = conf.ravel()
+    ref = np.percentile(c, 75) if c.size else 0.0
+    return np.where(conf >= 0.1 * ref, np.minimum(conf, 4.0 * max(ref, 1e-12)), 0.0)
+
+
+def dff_surfaces(vol: FocusVolume, width: int, height: int, channels, centre_px=None,
+                 degree: int = 4) -> list[SurfaceFit]:
+    """One fitted surface per channel from a focus volume."""
+    zbest, conf = peak_depth(vol)
+    xx, yy = np.meshgrid(vol.x_px, vol.y_px)
+    c = centre_px or ((width - 1) / 2.0, (height - 1) / 2.0)
+    scale = 0.5 * float(np.hypot(width, height))
+    return [fit_surface(xx, yy, zbest[..., ci], _block_weights(conf[..., ci]), c, scale, degree)
+            for ci in range(len(channels))]
+
+
+def hybrid_corrections(vol: FocusVolume, profile, width: int, height: int, channels, *,
+                       lateral_colour: bool = False, degree: int = 2,
+                       focus_offset_um: float = 0.0) -> list[tuple[SurfaceFit, float]]:
+    """Per channel, a low-order correction to the profile's surface fitted to the DFF residuals, and the
+    largest correction allowed (the profile's 90 % band half-width plus half a frame spacing)."""
+    zbest, conf = peak_depth(vol)
+    xx, yy = np.meshgrid(vol.x_px, vol.y_px)
+    cx, cy = (float(v) for v in profile.optical_centre_px())
+    scale = 0.5 * float(np.hypot(width, height))
+    spacing = float(np.median(np.diff(vol.z_um))) if len(vol.z_um) > 1 else 0.0
+    out = []
+    for ci, ch in enumerate(channels):
+        zp = output_best_focus_um(profile, xx, yy, ch, lateral_colour) + focus_offset_um
+        lo, hi = profile.best_focus_interval_um(xx, yy, ch, level=0.9)
+        band = 0.5 * float(np.median(np.asarray(hi) - np.asarray(lo)))
+        fit = fit_surface(xx, yy, zbest[..., ci] - zp, _block_weights(conf[..., ci]), (cx, cy), scale, degree)
+        out.append((fit, band + 0.5 * spacing))
+    return out
+
+
+def dff_focus_map(surfaces: list[SurfaceFit], width: int, height: int) -> np.ndarray:
+    """The fitted surfaces at every pixel, ``H x W x C`` float32."""
+    return np.stack([dense_map(s, width, height) for s in surfaces], axis=-1).astype(np.float32)
