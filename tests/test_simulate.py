@@ -317,3 +317,19 @@ def test_rgb_scene_on_mono_lens_uses_luma():
     scene[..., 1] = 1.0
     r = Renderer(spec, scene)
     np.testing.assert_allclose(r.scene[..., 0], 0.7152, atol=1e-6)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.sampled_from([8, 10, 12, 14, 16, 32]), st.floats(0.0, 3.0), st.floats(0.0, 50.0),
+       st.integers(0, 2**31 - 1))
+def test_sensor_output_always_in_range(bits, level, read_e, seed):
+    from fieldcal.simulate.noise import frame_rng, to_dn
+    spec = make_spec(w=16, h=16, sensor={"bit_depth": bits, "read_noise_e": read_e, "full_well_e": 500,
+                                         "black_level_dn": 0 if bits == 32 else 10})
+    sig = np.full((16, 16, 1), level, dtype=np.float32)
+    out = to_dn(sig, spec.sensor, frame_rng(seed, -3.5))
+    white = spec.sensor.white_level_dn
+    assert out.dtype == {8: np.uint8, 32: np.float32}.get(bits, np.uint16)
+    assert np.all(np.isfinite(out)) and out.min() >= 0 and out.max() <= white
+    if level >= 1.5 and read_e < 10:  # far above full well: saturated
+        assert np.all(out == white)
