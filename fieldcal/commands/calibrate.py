@@ -1,15 +1,50 @@
-"""`fieldcal calibrate`: fit a lens profile from a chart stack. Not implemented yet (issue 3)."""
+"""`fieldcal calibrate STACK --out PROFILE`: fit a lens profile from a chart stack."""
 
-from ..errors import NotYetImplemented
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import ParameterError
 from . import add_parser
 
 
 def register(sub):
-    p = add_parser(sub, "calibrate", "fit a lens profile from a chart stack [not implemented yet]", "fieldcal calibrate STACK --out lens.json")
-    p.add_argument("rest", nargs="*", help="(arguments of the future command)")
+    p = add_parser(sub, "calibrate", "fit a lens profile (best-focus surfaces with uncertainty, geometry vs z, "
+                   "tolerance) from a chart stack",
+                   "fieldcal calibrate chart-stack --out lens.json --fs 80 --q 0.05 --effort standard")
+    p.add_argument("stack", help="fieldcal-stack/1 folder of a textured chart across sensor positions")
+    p.add_argument("--out", required=True, help="profile to write (.json; the samples go to <stem>.samples.npz)")
+    p.add_argument("--fs", type=float, default=80.0, help="target frequency, cycles/mm at the sensor (default 80)")
+    p.add_argument("--q", type=float, default=0.05, help="allowed MTF loss at fs defining the tolerance (default 0.05)")
+    p.add_argument("--effort", choices=["quick", "standard", "thorough"], default="standard",
+                   help="quick: MAP + Laplace; standard: emcee posterior; thorough: denser tiles, astigmatism, "
+                        "longer chains, wider model search")
+    p.add_argument("--z-ref", type=float, default=None, dest="z_ref_um",
+                   help="reference sensor position (µm) of the geometry model (default: the middle frame)")
+    p.add_argument("--tile", type=int, default=None, dest="tile_px", help="tile size in px (default from size/effort)")
+    p.add_argument("--measure", choices=["sml", "bandpass"], default="sml",
+                   help="focus measure for best focus (default: sum-modified-Laplacian)")
+    p.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
+    p.add_argument("--report", default=None, metavar="DIR", help="also write the HTML report into DIR")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing profile")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
 
-def run(args):
-    raise NotYetImplemented("`fieldcal calibrate` is not implemented yet (tracked in issue 3)",
-                            fix="use the stages that exist; see README.md")
+def run(args) -> int:
+    from ..calibrate import calibrate
+    out = Path(args.out)
+    if out.suffix.lower() != ".json":
+        raise ParameterError(f"the profile must be a .json file, got {out.name!r}", field="--out",
+                             fix="e.g. --out lens.json")
+    if out.exists() and not args.overwrite:
+        raise ParameterError(f"{out} exists", path=out, field="--out", fix="choose another name or add --overwrite")
+    profile = calibrate(args.stack, fs_cyc_per_mm=args.fs, q=args.q, effort=args.effort, z_ref_um=args.z_ref_um,
+                        tile_px=args.tile_px, measure=args.measure, seed=args.seed, quiet=args.quiet)
+    profile.save(out)
+    print(f"wrote {out} (model {profile.surfaces.model.name}; "
+          f"{profile.diagnostics.get('n_tiles_ok')} tiles; z_ref {profile.z_ref_um:g} µm)")
+    if args.report:
+        from ..report import write_report
+        print(f"wrote {write_report(profile, args.report)}")
+    return 0

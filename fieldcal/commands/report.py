@@ -1,15 +1,43 @@
-"""`fieldcal report`: plots and an HTML page for a lens profile. Not implemented yet (issue 3)."""
+"""`fieldcal report PROFILE --out DIR`: PNG plots and an HTML page for a lens profile."""
 
-from ..errors import NotYetImplemented
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from ..errors import SpecError
 from . import add_parser
 
 
 def register(sub):
-    p = add_parser(sub, "report", "plots and an HTML page for a lens profile [not implemented yet]", "fieldcal report lens.json --out report")
-    p.add_argument("rest", nargs="*", help="(arguments of the future command)")
+    p = add_parser(sub, "report", "plots and an HTML page for a lens profile (or a simulated lens's truth)",
+                   "fieldcal report lens.json --out report/")
+    p.add_argument("profile", help="lens profile (.json from `fieldcal calibrate`) or a fieldcal-lens/1 spec")
+    p.add_argument("--out", required=True, help="folder for index.html and the PNGs")
+    p.add_argument("--fs", type=float, default=None, help="frequency of the tolerance map (default: calibration's)")
+    p.add_argument("--q", type=float, default=None, help="MTF loss of the tolerance map (default: calibration's)")
     p.set_defaults(func=run)
 
 
-def run(args):
-    raise NotYetImplemented("`fieldcal report` is not implemented yet (tracked in issue 3)",
-                            fix="use the stages that exist; see README.md")
+def load_profile_or_truth(path: str):
+    """A LensProfile, or the TruthProfile of a fieldcal-lens/1 spec (for design studies and simulations)."""
+    p = Path(path)
+    try:
+        fmt = json.loads(p.read_text()).get("format") if p.is_file() else None
+    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        fmt = None
+    if isinstance(fmt, str) and fmt.startswith("fieldcal-lens/"):
+        from ..lens import LensSpec
+        from ..truth import TruthProfile
+        return TruthProfile(LensSpec.load(p))
+    from ..profile import LensProfile
+    if not p.is_file():
+        raise SpecError("profile not found", path=p, fix="give a profile .json from `fieldcal calibrate`")
+    return LensProfile.load(p)
+
+
+def run(args) -> int:
+    from ..report import write_report
+    profile = load_profile_or_truth(args.profile)
+    print(f"wrote {write_report(profile, args.out, fs=args.fs, q=args.q)}")
+    return 0

@@ -1,0 +1,170 @@
+"""``fieldcal.calibrate``: chart stack → lens profile (measure → fit → profile).
+
+One streaming pass over the frames measures per-tile through-focus curves and per-frame geometry
+(:mod:`fieldcal.measure`); the accepted tiles are fitted with per-channel best-focus surfaces, model selection
+and a posterior (:mod:`fieldcal.fit`); magnification/shift vs z and the tolerance (width) model are fitted; the
+result is a :class:`fieldcal.profile.LensProfile` with diagnostics and provenance (a sha256 of the inputs,
+computed in a background thread while the frames are measured).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import threading
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .errors import ParameterError, StackError
+from .profile import LensProfile
+from .progress import status
+
+EFFORTS = ("quick", "standard", "thorough")
+MIN_FRAMES = 5
+
+
+def _check(fs_cyc_per_mm, q, effort, pitch_um):
+    if effort not in EFFORTS:
+        raise ParameterError(f"unknown effort {effort!r}", field="--effort", fix="use quick, standard or thorough")
+    if not (isinstance(q, (int, float)) and math.isfinite(q) and 0.0 < q < 1.0):
+        raise ParameterError(f"q must be in (0, 1), got {q}", field="--q", fix="e.g. --q 0.05 (5% MTF loss)")
+    if not (isinstance(fs_cyc_per_mm, (int, float)) and math.isfinite(fs_cyc_per_mm) and fs_cyc_per_mm > 0):
+        raise ParameterError(f"fs must be a positive frequency in cycles/mm, got {fs_cyc_per_mm}", field="--fs",
+                             fix="e.g. --fs 80")
+    nyquist = 1000.0 / (2.0 * pitch_um)
+    if fs_cyc_per_mm >= 0.9 * nyquist:
+        raise ParameterError(f"fs = {fs_cyc_per_mm:g} cycles/mm is at or above 90% of the sensor's Nyquist "
+                             f"frequency ({nyquist:.1f} cycles/mm at {pitch_um:g} µm pixels)", field="--fs",
+                             fix=f"use --fs below {0.9 * nyquist:.0f} (e.g. {min(80.0, 0.5 * nyquist):.0f})")
+
+
+def _hash_inputs(stack, out: dict):
+    """sha256 over stack.json and every frame file, in file order (hashlib releases the GIL)."""
+    h = hashlib.sha256()
+    try:
+        h.update(Path(stack.json_path).read_bytes())
+        for fr in stack.frames:
+            with open(fr.path, "rb") as f:
+                for chunk in iter(lambda: f.read(1 << 22), b""):
+                    h.update(chunk)
+        out["sha256"] = h.hexdigest()
+    except OSError as e:  # reported in provenance, not fatal: the measurement itself will fail loudly
+        out["error"] = str(e)
+
+
+def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: str = "standard",
+              z_ref_um: float | None = None, tile_px: int | None = None, measure: str = "sml", seed: int = 0,
+              quiet: bool = False) -> LensProfile:
+    """Fit a lens profile from a chart stack.
+
+    Parameters
+    ----------
+    stack : Stack or path
+        A ``fieldcal-stack/1`` folder of a textured chart across sensor positions spanning the field curvature.
+    fs_cyc_per_mm, q : float
+        Target frequency and allowed MTF loss that define the measured through-focus width (tolerance).
+    effort : {"quick", "standard", "thorough"}
+        quick: coarser tiles, MAP + Laplace; standard: emcee posterior; thorough: denser tiles, directional
+        (astigmatism) measures, longer chains and a wider model search.
+    z_ref_um : float, optional
+        Reference position of the geometry model (default: the middle frame).
+    tile_px : int, optional
+        Tile size (default from the image size and effort).
+    measure : {"sml", "bandpass"}
+        Focus measure of the best-focus estimate.
+    seed : int
+        Seeds the samplers (reproducible profiles).
+
+    Returns
+    -------
+    LensProfile
+
+    Examples
+    --------
+    >>> import fieldcal
+    >>> profile = fieldcal.calibrate(fieldcal.Stack.open("STACK"), effort="quick")   # doctest: +SKIP
+    >>> profile.save("lens.json")                                                     # doctest: +SKIP
+    """
+    from .stack import Stack
+    from .measure import measure_stack
+    from .fit import ImageGeometry, TileData, fit_surfaces
+    from .fit.geometry import fit_geometry
+    from .fit.tolerance import fit_tolerance
+
+    if not isinstance(stack, Stack):
+        stack = Stack.open(stack)
+    _check(fs_cyc_per_mm, q, effort, stack.pixel_pitch_um)
+    stack.require_frames(MIN_FRAMES, "calibration (a through-focus curve needs points on both sides of its peak)")
+    t0 = time.perf_counter()
+    digest: dict = {}
+    hasher = threading.Thread(target=_hash_inputs, args=(stack, digest), daemon=True)
+    hasher.start()
+
+    table, geo_meas = measure_stack(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), tile_px=tile_px,
+                                    effort=effort, measure=measure, z_ref_um=z_ref_um, quiet=quiet)
+    t_measure = time.perf_counter() - t0
+    counts = table.counts()
+    n_ok = int(table.ok.sum())
+    if n_ok == 0:
+        raise StackError(f"every tile was rejected ({', '.join(f'{k}: {v}' for k, v in counts.items())})",
+                         path=stack.path, fix="check that the chart is textured, in the field of view, not "
+                         "saturated, and that the z range spans the best focus of the whole field with margin")
+    w, h = int(stack.shape[1]), int(stack.shape[0])
+    geometry = ImageGeometry(w, h, float(stack.pixel_pitch_um))
+    tiles = TileData.from_table(table, source=str(stack.path))
+    surf = fit_surfaces(tiles, geometry, effort=effort, seed=seed, channels=tuple(stack.channels), quiet=quiet,
+                        source=str(stack.path))
+    t_fit = time.perf_counter() - t0 - t_measure
+    centre = surf.optical_centre_px()
+    geo_c = geo_meas.recentred(tuple(float(v) for v in centre))
+    geom = fit_geometry(geo_c)
+    tol = fit_tolerance(table, geometry) if np.isfinite(table.width_um[table.ok]).sum() >= 3 else None
+    hasher.join()
+    t_total = time.perf_counter() - t0
+
+    z = np.sort(np.asarray(stack.z_um, dtype=float))
+    steps = np.diff(z)
+    meta = stack.meta
+    wl = None
+    if isinstance(meta.get("wavelength_nm"), dict):
+        wl = meta["wavelength_nm"]
+    profile = LensProfile(
+        surfaces=surf, geometry_fit=geom, tolerance_fit=tol,
+        image={"width_px": w, "height_px": h, "pixel_pitch_um": float(stack.pixel_pitch_um),
+               "channels": list(stack.channels), "cfa": stack.cfa},
+        optics={"f_number": meta.get("f_number"), "focal_length_mm": meta.get("focal_length_mm"),
+                "object_distance_mm": meta.get("object_distance_mm"), "wavelength_nm": wl},
+        calibration={"fs_cyc_per_mm": float(fs_cyc_per_mm), "q": float(q), "effort": effort, "measure": measure,
+                     "tile_px": int(table.tile_px), "seed": int(seed), "n_frames": int(len(stack)),
+                     "z_range_um": [float(z[0]), float(z[-1])],
+                     "z_step_um": float(np.median(steps)) if steps.size else None},
+        z_ref_um=float(geo_c.z_ref_um),
+        diagnostics={"tiles": counts, "n_tiles_ok": n_ok, "surface": surf.diagnostics,
+                     "geometry": getattr(geom, "diagnostics", {}),
+                     "tolerance": None if tol is None else getattr(tol, "diagnostics", {}),
+                     "max_image_displacement_px": geo_c.max_displacement_px(),
+                     "timing_s": {"measure": round(t_measure, 3), "fit": round(t_fit, 3),
+                                  "total": round(t_total, 3)}},
+        provenance={"created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                    "tool": {"name": "fieldcal", "version": __version__},
+                    "stack": str(Path(stack.path).resolve()), "inputs_sha256": digest.get("sha256"),
+                    "inputs_hash_error": digest.get("error"),
+                    "stack_meta": {k: v for k, v in meta.items() if k != "frames"}},
+        tiles=table.to_dict(), geometry_measurements=_geometry_columns(geo_c),
+    )
+    status(f"calibrated {len(stack)} frames in {t_total:.1f} s: model {surf.model.name}, {n_ok} tiles used",
+           quiet=quiet)
+    return profile
+
+
+def _geometry_columns(geo) -> dict:
+    """Per-frame measurements flattened to columns (one row per frame and channel) for reports."""
+    n, c = geo.magnification.shape
+    return {"z_um": np.repeat(geo.z_um, c), "channel": np.tile(np.asarray(geo.channels, dtype=str), n),
+            "magnification": geo.magnification.ravel(), "mag_sigma": geo.mag_sigma.ravel(),
+            "shift_x_px": geo.shift_x_px.ravel(), "shift_y_px": geo.shift_y_px.ravel(),
+            "shift_sigma_px": geo.shift_sigma_px.ravel()}
