@@ -9,7 +9,7 @@ import sys
 from . import add_parser
 
 EXAMPLE = ("fieldcal capture --z -100 100 10 --stage sim --camera sim:models/triplet-uncorrected.json,size=320x180 "
-           "--out S\n  fieldcal capture --plan plan.json --stage gcs:/dev/ttyUSB0,zero_mm=7.5 --camera pylon --out S\n"
+           "--out S\n  fieldcal capture --plan plan.json --stage gcs:/dev/ttyUSB0,zero_mm=7.5 --camera pylon,pixel_pitch_um=3.45 --out S\n"
            "  fieldcal capture --z -100 100 10 --stage sim:fail_after=7 --camera sim:models/triplet-uncorrected.json "
            "--out S   (injected fault; re-run without it to resume)")
 
