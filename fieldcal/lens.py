@@ -240,7 +240,8 @@ class LensSpec:
 
     # --------------------------------------------------------------------- I/O
     def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
+        """JSON-ready dict (lists, not tuples), inverse of :meth:`from_dict`."""
+        d = json.loads(json.dumps(asdict(self), default=list, allow_nan=True))
         d = {"format": LENS_FORMAT, **d}
         d["exit_pupil_mm"] = None if not math.isfinite(self.exit_pupil_mm) else self.exit_pupil_mm
         extra = d.pop("extra")
@@ -391,7 +392,7 @@ def _lens_from_dict(d: Any, path) -> LensSpec:
             raise err(f"channels[{i}]", "each channel needs a name", "add \"name\": \"R\" (R, G, B or Y)")
         cname = str(c["name"])
         curv = c.get("curvature_um", [])
-        if not isinstance(curv, list) or not all(isinstance(a, (int, float)) and math.isfinite(a) for a in curv):
+        if not isinstance(curv, (list, tuple)) or not all(isinstance(a, (int, float)) and math.isfinite(a) for a in curv):
             raise err(pre + "curvature_um", "must be a list of finite numbers (µm at rho^2, rho^4, ...)", "e.g. [-294.3, -19.5]")
         channels.append(ChannelSpec(
             name=cname,

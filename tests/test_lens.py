@@ -65,3 +65,12 @@ def test_geometry_and_truth_profile(triplet_path):
     assert dx == pytest.approx(100 * math.tan(0.5e-3) / tp.pixel_pitch_um)
     cx, cy = tp.optical_centre_px()
     assert tp.best_focus_um(cx, cy, "R") == pytest.approx(10.8)
+
+
+def test_spec_round_trips_without_json(models_dir):
+    for path in models_dir.glob("*.json"):
+        if ".prescription" in path.name:
+            continue
+        lens = LensSpec.load(path)
+        again = LensSpec.from_dict(lens.to_dict())
+        assert again == lens
