@@ -1,0 +1,132 @@
+"""Focus measures of one plane of one frame, summed into small cells so tiles can be placed anywhere later.
+
+Measures (all float32, computed once per frame and plane with OpenCV / scipy.fft):
+
+* **SML** — the sum-modified-Laplacian of Nayar & Nakagawa (1994): ``|I(x-1) - 2I + I(x+1)| +
+  |I(y-1) - 2I + I(y+1)|`` per pixel (OpenCV's second-order Sobel with ksize=1 is exactly that kernel).
+  Broad-band, dominated by the highest frequencies: a sharp, robust peak.
+* **band-pass energy at fs** — the plane filtered in the Fourier domain by a log-Gabor ring centred on the
+  target frequency (cycles/px = fs [cycles/mm] x pitch [mm]), squared. For a texture chart its tile sum is
+  ``|OTF(fs, z - z0)|^2 x (texture power at fs) + noise power``: exactly the contrast the planner needs.
+* **directional band-pass energy** (optional) — the band-passed image's gradient split into its component
+  along the radius from the optical centre and across it. Frequencies along the radius are what the
+  tangential MTF sees, across it the sagittal: their peaks give z_tan and z_sag (astigmatism).
+* **cell means of I and I^2** (texture and exposure) and the **fraction of saturated pixels**.
+
+Cells are ``cell x cell`` blocks of the plane; a tile at any (fractional) position is summed from the cells'
+integral image with bilinear weights at its borders (:func:`box_sums`), which is exact for a density that is
+constant inside each cell.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import cv2
+import numpy as np
+from scipy import fft
+
+# Log-Gabor bandwidth: sigma/f0 = 0.8 in log-frequency, about +-0.8 octave to the e^-1/2 points. Narrow enough
+# that the energy follows |OTF(fs)|, wide enough that a 32-64 px tile holds a few hundred frequency samples.
+LOG_GABOR_SIGMA_RATIO = 0.8
+SATURATION_LEVEL = 0.995  # of white, in normalised units
+
+
+def sml(plane: np.ndarray) -> np.ndarray:
+    """Per-pixel modified Laplacian |d2I/dx2| + |d2I/dy2| (step 1 px), float32."""
+    dxx = cv2.Sobel(plane, cv2.CV_32F, 2, 0, ksize=1, borderType=cv2.BORDER_REFLECT_101)
+    dyy = cv2.Sobel(plane, cv2.CV_32F, 0, 2, ksize=1, borderType=cv2.BORDER_REFLECT_101)
+    return cv2.add(cv2.absdiff(dxx, 0.0), cv2.absdiff(dyy, 0.0))
+
+
+@functools.lru_cache(maxsize=8)
+def log_gabor_ring(shape: tuple[int, int], f0_cyc_per_px: float,
+                   sigma_ratio: float = LOG_GABOR_SIGMA_RATIO) -> np.ndarray:
+    """Radial log-Gabor transfer function on an ``rfft2`` grid of ``shape`` (H, W); zero at DC."""
+    h, w = shape
+    fy = fft.fftfreq(h)[:, None]
+    fx = fft.rfftfreq(w)[None, :]
+    f = np.sqrt(fy * fy + fx * fx)
+    f[0, 0] = 1.0  # log(0) guard; DC is zeroed below
+    g = np.exp(-(np.log(f / f0_cyc_per_px) ** 2) / (2.0 * np.log(sigma_ratio) ** 2))
+    g[0, 0] = 0.0
+    g.setflags(write=False)
+    return g.astype(np.float32)
+
+
+def bandpass(plane: np.ndarray, f0_cyc_per_px: float) -> np.ndarray:
+    """The plane band-passed around ``f0`` (cycles/px) by a log-Gabor ring, float32 (zero mean)."""
+    h, w = plane.shape
+    hp, wp = fft.next_fast_len(h, real=True), fft.next_fast_len(w, real=True)
+    spec = fft.rfft2(plane, s=(hp, wp), workers=-1)
+    spec *= log_gabor_ring((hp, wp), float(f0_cyc_per_px))
+    out = fft.irfft2(spec, s=(hp, wp), workers=-1)[:h, :w]
+    return out.astype(np.float32, copy=False)
+
+
+def directional_energy(band: np.ndarray, unit_x: np.ndarray, unit_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Band-passed gradient energy along (radial) and across (azimuthal) the unit vectors, float32 each."""
+    gx = cv2.Scharr(band, cv2.CV_32F, 1, 0)
+    gy = cv2.Scharr(band, cv2.CV_32F, 0, 1)
+    along = cv2.add(cv2.multiply(gx, unit_x), cv2.multiply(gy, unit_y))
+    across = cv2.subtract(cv2.multiply(gy, unit_x), cv2.multiply(gx, unit_y))
+    return cv2.multiply(along, along), cv2.multiply(across, across)
+
+
+def radial_unit_vectors(shape: tuple[int, int], centre_xy: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors from the optical centre (plane pixel coordinates) at every plane pixel, float32."""
+    h, w = shape
+    x = np.arange(w, dtype=np.float32)[None, :] - np.float32(centre_xy[0])
+    y = np.arange(h, dtype=np.float32)[:, None] - np.float32(centre_xy[1])
+    r = np.sqrt(x * x + y * y)
+    r = np.maximum(r, np.float32(1e-3))  # the centre pixel: any direction, no 0/0
+    return np.broadcast_to(x / r, (h, w)).astype(np.float32), np.broadcast_to(y / r, (h, w)).astype(np.float32)
+
+
+def cell_grid(shape: tuple[int, int], cell: int) -> tuple[int, int]:
+    """(rows, cols) of whole cells in a plane of ``shape``; a partial last row/column is dropped."""
+    return shape[0] // cell, shape[1] // cell
+
+
+def cell_sums(img: np.ndarray, cell: int) -> np.ndarray:
+    """Sum of ``img`` over each ``cell x cell`` block (float32, partial border blocks dropped)."""
+    hc, wc = cell_grid(img.shape, cell)
+    a = img[:hc * cell, :wc * cell]
+    if cell == 1:
+        return np.ascontiguousarray(a, dtype=np.float32)
+    # INTER_AREA with an integer factor is the exact block mean.
+    m = cv2.resize(a, (wc, hc), interpolation=cv2.INTER_AREA)
+    return m * np.float32(cell * cell)
+
+
+def saturated_fraction_cells(plane: np.ndarray, cell: int, level: float = SATURATION_LEVEL) -> np.ndarray:
+    """Fraction of pixels at or above ``level`` (of white) in each cell, float32."""
+    _, sat = cv2.threshold(plane, level, 1.0, cv2.THRESH_BINARY)
+    # THRESH_BINARY is strict (>), good enough at 0.995 of white.
+    return cell_sums(sat, cell) * np.float32(1.0 / (cell * cell))
+
+
+def integral(cells: np.ndarray) -> np.ndarray:
+    """Integral image of a cell map (float64, one extra leading row and column)."""
+    return cv2.integral(np.ascontiguousarray(cells, dtype=np.float32), sdepth=cv2.CV_64F)
+
+
+def _bilinear(ii: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    h, w = ii.shape
+    x = np.clip(x, 0.0, w - 1.0)
+    y = np.clip(y, 0.0, h - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.intp), w - 2)
+    y0 = np.minimum(np.floor(y).astype(np.intp), h - 2)
+    fx = x - x0
+    fy = y - y0
+    return ((ii[y0, x0] * (1 - fx) + ii[y0, x0 + 1] * fx) * (1 - fy)
+            + (ii[y0 + 1, x0] * (1 - fx) + ii[y0 + 1, x0 + 1] * fx) * fy)
+
+
+def box_sums(ii: np.ndarray, x0, y0, x1, y1) -> np.ndarray:
+    """Sums of the cell density over boxes [x0, x1) x [y0, y1) given in (fractional) cell units.
+
+    Exact for a density that is constant within each cell; boxes are clipped to the map.
+    """
+    x0, y0, x1, y1 = (np.asarray(v, dtype=np.float64) for v in (x0, y0, x1, y1))
+    return _bilinear(ii, x1, y1) - _bilinear(ii, x0, y1) - _bilinear(ii, x1, y0) + _bilinear(ii, x0, y0)

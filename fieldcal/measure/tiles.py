@@ -1,0 +1,459 @@
+"""Per-tile through-focus measurement over a chart stack: the :class:`TileTable`.
+
+One streaming pass over the frames in z order (one frame in memory at a time, float32 only) computes, per
+frame and colour plane, small *cell maps* of each focus measure (:mod:`.focus`) and, when no geometry is
+given, registers the frame to its neighbour (:mod:`.geometry`). After the pass the tile grid is laid out in
+the geometry of the reference frame, each tile is placed in every frame where the measured geometry says
+the image has moved (focus breathing moves a corner by tens of pixels over a scan), its measures are
+summed from the cell maps, and each through-focus curve is fitted (:mod:`.throughfocus`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ParameterError
+from ..progress import progress, status
+from . import focus
+from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
+from .geometry import GeometryMeasurements, StepFit, compose_steps, downsample, register_step
+from .throughfocus import CurveFit, CurveRules, analyse_curve
+
+EFFORTS = {
+    # tile_div: default tile = min(W, H) / tile_div; geo_ds: downsampling for registration;
+    # geo_all: register every channel (else one, copied); directional: z_tan/z_sag; cell: cell size (px).
+    "quick": {"tile_div": 8, "geo_ds": 4, "geo_all": False, "directional": False, "cell": 8},
+    "standard": {"tile_div": 12, "geo_ds": 2, "geo_all": True, "directional": False, "cell": 4},
+    "thorough": {"tile_div": 16, "geo_ds": 2, "geo_all": True, "directional": True, "cell": 4},
+}
+MEASURES = ("sml", "bandpass")
+
+
+@dataclass(frozen=True)
+class TileRules:
+    """Per-tile rejection thresholds applied before the curve tests (:class:`CurveRules`).
+
+    saturated_max : fraction of a tile's pixels at >= 0.995 of white (in any frame) above which it is rejected.
+    dark_min : mean level (fraction of white) below which a tile is too dark to measure.
+    texture_min : RMS contrast (std / mean of the tile at its most contrasted frame) below which the tile
+        has too little texture (a uniform tile shows only sensor noise, ~1-2 % at typical exposures).
+    """
+
+    saturated_max: float = 0.002
+    dark_min: float = 0.01
+    texture_min: float = 0.03
+    curve: CurveRules = field(default_factory=CurveRules)
+
+
+@dataclass
+class TileTable:
+    """One row per tile and channel (docs/architecture.md). Columns are 1-D arrays of equal length.
+
+    ``x_px, y_px``: tile centre in the geometry of the reference frame. ``z_best_um, z_sigma_um``: best
+    focus and its 1-sigma (NaN when rejected). ``width_um``: half-width where the contrast at ``fs`` falls by
+    ``q`` (from the band-pass curve; NaN if that curve was rejected). ``peak``: fitted height of the focus
+    measure above its floor, per pixel. ``status``: "ok" or the rejection reason. ``z_tan_um, z_sag_um``:
+    best foci of the directional measures (NaN unless effort="thorough"). ``curves``: the per-frame curves
+    (``"sml"``, ``"bandpass"``; rows as the table, columns as ``z_um``) for plots and diagnostics.
+    """
+
+    channel: np.ndarray
+    x_px: np.ndarray
+    y_px: np.ndarray
+    z_best_um: np.ndarray
+    z_sigma_um: np.ndarray
+    width_um: np.ndarray
+    peak: np.ndarray
+    status: np.ndarray
+    z_tan_um: np.ndarray
+    z_sag_um: np.ndarray
+    z_um: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tile_px: int = 0
+    fs_cyc_per_mm: float = math.nan
+    q: float = math.nan
+    measure: str = "sml"
+    image_size_px: tuple[int, int] = (0, 0)
+    pixel_pitch_um: float = math.nan
+    curves: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.channel.size)
+
+    @property
+    def ok(self) -> np.ndarray:
+        return self.status == "ok"
+
+    def counts(self) -> dict[str, int]:
+        """Number of rows per status."""
+        names, n = np.unique(self.status, return_counts=True)
+        return {str(a): int(b) for a, b in zip(names, n)}
+
+    def rows(self, channel: str) -> np.ndarray:
+        return np.flatnonzero(self.channel == channel)
+
+    def to_dict(self) -> dict:
+        """JSON-ready columns (NaN -> None)."""
+        def col(a):
+            a = np.asarray(a)
+            if a.dtype.kind == "f":
+                return [None if not math.isfinite(v) else float(v) for v in a]
+            return a.tolist()
+        return {"tile_px": self.tile_px, "fs_cyc_per_mm": self.fs_cyc_per_mm, "q": self.q,
+                "measure": self.measure, "image_size_px": list(self.image_size_px),
+                "pixel_pitch_um": self.pixel_pitch_um,
+                **{k: col(getattr(self, k)) for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um",
+                                                        "width_um", "peak", "status", "z_tan_um", "z_sag_um")}}
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+def _effort(effort: str) -> dict:
+    if effort not in EFFORTS:
+        raise ParameterError(f"unknown effort {effort!r}", field="effort", fix=f"use one of {', '.join(EFFORTS)}")
+    return EFFORTS[effort]
+
+
+def default_tile_px(shape: tuple[int, int], effort: str = "standard") -> int:
+    """Tile size (px) for an image of ``shape`` (H, W): about 1/8 (quick) to 1/16 (thorough) of its short side."""
+    n = min(shape) / _effort(effort)["tile_div"]
+    return int(max(32, 8 * round(n / 8)))
+
+
+def _check_params(stack, fs_cyc_per_mm, q, tile_px, measure):
+    if not (isinstance(fs_cyc_per_mm, (int, float)) and math.isfinite(fs_cyc_per_mm) and fs_cyc_per_mm > 0):
+        raise ParameterError(f"fs must be a positive number of cycles/mm, got {fs_cyc_per_mm!r}",
+                             field="fs_cyc_per_mm", fix="e.g. fs_cyc_per_mm=80")
+    if not (isinstance(q, (int, float)) and 0.0 < q < 1.0):
+        raise ParameterError(f"q must be in (0, 1), got {q!r}", field="q", fix="e.g. q=0.05 (5 % contrast loss)")
+    if measure not in MEASURES:
+        raise ParameterError(f"unknown focus measure {measure!r}", field="measure",
+                             fix=f"use one of {', '.join(MEASURES)}")
+    h, w = stack.shape
+    if tile_px is not None and not (isinstance(tile_px, (int, np.integer)) and 16 <= tile_px <= min(h, w) // 2):
+        raise ParameterError(f"tile_px must be an integer from 16 to half the short image side "
+                             f"({min(h, w) // 2} px), got {tile_px!r}", field="tile_px",
+                             fix="use a tile of 32-128 px, or leave it unset for the default")
+    stack.require_frames(CurveRules().min_frames, "through-focus measurement")
+
+
+def _reference_index(z_sorted: np.ndarray, z_ref_um: float | None) -> int:
+    if z_ref_um is None:
+        return int(z_sorted.size // 2)
+    return int(np.argmin(np.abs(z_sorted - z_ref_um)))
+
+
+def _geometry_channels(stack, layouts: list[PlaneLayout], all_channels: bool) -> list[int]:
+    """Indices into ``layouts`` of the plane registered for each measured channel (first site of a colour)."""
+    first: dict[str, int] = {}
+    for i, lay in enumerate(layouts):
+        first.setdefault(lay.name, i)
+    if all_channels:
+        return [first[c] for c in stack.channels]
+    pick = "G" if "G" in first else stack.channels[0]
+    return [first[pick]]
+
+
+@dataclass
+class _Maps:
+    """Cell maps of one plane over all frames (frames in z order)."""
+
+    layout: PlaneLayout
+    cell: int
+    f0_cyc_per_px: float
+    maps: dict[str, np.ndarray]
+
+
+# ------------------------------------------------------------------------------------------------ the pass
+def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float, effort: str,
+          centre_px: tuple[float, float] | None, z_ref_um: float | None, quiet: bool):
+    cfg = _effort(effort)
+    layouts = plane_layouts(stack.channels, stack.cfa)
+    h, w = stack.shape
+    order = np.asarray(stack.order_by_z)
+    z = np.asarray(stack.z_um, dtype=np.float64)[order]
+    n = z.size
+    centre = centre_px if centre_px is not None else ((w - 1) / 2.0, (h - 1) / 2.0)
+    pitch_mm = stack.pixel_pitch_um * 1e-3
+
+    maps: list[_Maps] = []
+    if want_focus:
+        for lay in layouts:
+            f0 = fs_cyc_per_mm * pitch_mm * lay.stride
+            if f0 > 0.4:
+                raise ParameterError(
+                    f"fs = {fs_cyc_per_mm:g} cycles/mm is {f0:.2f} cycles per pixel of the {lay.name} "
+                    f"{'sub-lattice' if lay.stride > 1 else 'plane'}: above what the pixels resolve (0.4)",
+                    field="fs_cyc_per_mm",
+                    fix=f"use fs <= {0.4 / (pitch_mm * lay.stride):.0f} cycles/mm for this stack")
+            cell = max(2, cfg["cell"] // lay.stride)
+            hc, wc = focus.cell_grid(plane_shape((h, w), lay), cell)
+            names = ["sml", "bandpass", "sum", "sum2", "sat"] + (["along", "across"] if cfg["directional"] else [])
+            maps.append(_Maps(lay, cell, f0, {k: np.empty((n, hc, wc), np.float32) for k in names}))
+    units = {}
+    if want_focus and cfg["directional"]:
+        for m in maps:
+            cxp, cyp = m.layout.to_plane(*centre)
+            units[id(m)] = focus.radial_unit_vectors(plane_shape((h, w), m.layout), (float(cxp), float(cyp)))
+
+    geo_idx = _geometry_channels(stack, layouts, cfg["geo_all"]) if want_geometry else []
+    ds = cfg["geo_ds"]
+    prev: dict[int, np.ndarray] = {}
+    steps: dict[int, list] = {i: [] for i in geo_idx}
+    for k in progress(range(n), total=n, desc="measuring frames", quiet=quiet, unit="frame"):
+        frame = stack.read_normalized(int(order[k]))
+        for li, lay in enumerate(layouts):
+            plane = None
+            if li in steps:
+                plane = extract_plane(frame, lay)
+                small = downsample(plane, ds)
+                # Centre in the small grid: x_full = S x_small + O.
+                S, O = lay.stride * ds, lay.stride * (ds - 1) / 2.0
+                cs = ((centre[0] - lay.offset_x - O) / S, (centre[1] - lay.offset_y - O) / S)
+                if k > 0:
+                    st = register_step(prev[li], small, cs)
+                    if st is not None:  # back to full-frame pixels: r unchanged, t scaled by S
+                        d = np.diag([1.0, S, S])
+                        st = StepFit(st.r, st.tx * S, st.ty * S, d @ st.cov @ d, st.n_patches)
+                    steps[li].append(st)
+                prev[li] = small
+            if want_focus:
+                m = maps[li]
+                if plane is None:
+                    plane = extract_plane(frame, lay)
+                c = m.cell
+                m.maps["sml"][k] = focus.cell_sums(focus.sml(plane), c)
+                band = focus.bandpass(plane, m.f0_cyc_per_px)
+                m.maps["bandpass"][k] = focus.cell_sums(band * band, c)
+                m.maps["sum"][k] = focus.cell_sums(plane, c)
+                m.maps["sum2"][k] = focus.cell_sums(plane * plane, c)
+                m.maps["sat"][k] = focus.saturated_fraction_cells(plane, c)
+                if "along" in m.maps:
+                    ux, uy = units[id(m)]
+                    along, across = focus.directional_energy(band, ux, uy)
+                    m.maps["along"][k] = focus.cell_sums(along, c)
+                    m.maps["across"][k] = focus.cell_sums(across, c)
+        del frame
+
+    geometry = None
+    if want_geometry:
+        ref = _reference_index(z, z_ref_um)
+        C = len(stack.channels)
+        cols = [compose_steps(steps[li], ref) for li in geo_idx]
+        if len(cols) == 1 and C > 1:
+            cols = cols * C
+        m_, ms, sx, sy, ss = (np.stack([c[j] for c in cols], axis=1) for j in range(5))
+        geometry = GeometryMeasurements(z, tuple(stack.channels), m_, ms, sx, sy, ss, ref,
+                                        (float(centre[0]), float(centre[1])), (int(w), int(h)), order.copy())
+    return z, order, maps, geometry
+
+
+# ------------------------------------------------------------------------------------------ tile layout
+def tile_centres(geometry: GeometryMeasurements, tile_px: int, margin_px: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
+    """Tile centres (reference-frame px) on a grid of pitch ``tile_px`` whose tiles stay inside every frame.
+
+    A tile moves and scales with the image (``c + m (p - c) + s``); the grid covers the part of the
+    reference frame that every frame still sees, minus ``margin_px``.
+    """
+    w, h = geometry.image_size_px
+    cx, cy = geometry.centre_px
+    lo_x, lo_y, hi_x, hi_y = -math.inf, -math.inf, math.inf, math.inf
+    half = tile_px / 2.0
+    for k in range(geometry.z_um.size):
+        for c in range(len(geometry.channels)):
+            m = geometry.magnification[k, c]
+            sx, sy = geometry.shift_x_px[k, c], geometry.shift_y_px[k, c]
+            lo_x = max(lo_x, cx + (-0.5 + margin_px + m * half - sx - cx) / m)
+            hi_x = min(hi_x, cx + (w - 0.5 - margin_px - m * half - sx - cx) / m)
+            lo_y = max(lo_y, cy + (-0.5 + margin_px + m * half - sy - cy) / m)
+            hi_y = min(hi_y, cy + (h - 0.5 - margin_px - m * half - sy - cy) / m)
+
+    def axis(lo, hi):
+        if hi < lo:
+            return np.zeros(0)
+        nt = int(math.floor((hi - lo) / tile_px)) + 1
+        start = 0.5 * (lo + hi) - 0.5 * (nt - 1) * tile_px
+        return start + tile_px * np.arange(nt)
+
+    xs, ys = np.meshgrid(axis(lo_x, hi_x), axis(lo_y, hi_y))
+    return xs.ravel(), ys.ravel()
+
+
+def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: np.ndarray, tile_px: int):
+    """Per-pixel mean of every map over each tile in each frame: dict name -> (n_tiles, n_frames)."""
+    lay = m.layout
+    n = geometry.z_um.size
+    out = {k: np.empty((xs.size, n)) for k in m.maps}
+    out["area"] = np.empty((xs.size, n))
+    for k in range(n):
+        xk, yk = geometry.map_points(k, lay.name, xs, ys)
+        half = 0.5 * tile_px * geometry.magnification[k, geometry.channel_index(lay.name)]
+        # full-frame continuous coords -> plane coords -> cell units (cell j spans plane [j c - 0.5, (j+1) c - 0.5])
+        x0, y0 = lay.to_plane(xk - half, yk - half)
+        x1, y1 = lay.to_plane(xk + half, yk + half)
+        c = m.cell
+        bx0, by0, bx1, by1 = (x0 + 0.5) / c, (y0 + 0.5) / c, (x1 + 0.5) / c, (y1 + 0.5) / c
+        area = (bx1 - bx0) * (by1 - by0) * c * c  # plane pixels
+        out["area"][:, k] = area
+        for name, stackmap in m.maps.items():
+            ii = focus.integral(stackmap[k])
+            s = focus.box_sums(ii, bx0, by0, bx1, by1)
+            out[name][:, k] = s if name == "sat" else s / area
+        out["sat"][:, k] = out["sat"][:, k] * c * c / area  # sat cells hold fractions: back to a fraction
+    return out
+
+
+def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per_mm: float, q: float,
+             measure: str, rules: TileRules, quiet: bool, desc: str) -> dict[str, np.ndarray]:
+    nt = channel_curves["sml"].shape[0]
+    res = {k: np.full(nt, np.nan) for k in ("z_best_um", "z_sigma_um", "width_um", "peak", "z_tan_um", "z_sag_um")}
+    stat = np.empty(nt, dtype=object)
+    mean = channel_curves["sum"]
+    var = np.maximum(channel_curves["sum2"] - mean * mean, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        contrast = np.where(mean > 0, np.sqrt(var) / np.where(mean > 0, mean, 1.0), 0.0)
+    for t in progress(range(nt), total=nt, desc=desc, quiet=quiet, unit="tile"):
+        if np.max(channel_curves["sat"][t]) > rules.saturated_max:
+            stat[t] = "saturated"
+            continue
+        if np.max(mean[t]) < rules.dark_min or np.max(contrast[t]) < rules.texture_min:
+            stat[t] = "low_texture"
+            continue
+        bp = analyse_curve(z, channel_curves["bandpass"][t], "otf", fs_cyc_per_mm, q, rules.curve)
+        main = bp if measure == "bandpass" else analyse_curve(z, channel_curves["sml"][t], "peak", None, q,
+                                                               rules.curve)
+        stat[t] = main.status
+        if main.status == "ok":
+            res["z_best_um"][t] = main.z_best_um
+            res["z_sigma_um"][t] = main.z_sigma_um
+            res["peak"][t] = main.peak
+        if bp.status == "ok":
+            res["width_um"][t] = bp.width_um
+        if "along" in channel_curves:
+            for key, col in (("along", "z_tan_um"), ("across", "z_sag_um")):
+                d = analyse_curve(z, channel_curves[key][t], "otf", fs_cyc_per_mm, q, rules.curve)
+                if d.status == "ok":
+                    res[col][t] = d.z_best_um
+    res["status"] = stat.astype(str)
+    return res
+
+
+# ----------------------------------------------------------------------------------------- entry points
+def measure_geometry(stack, *, effort: str = "standard", centre_px: tuple[float, float] | None = None,
+                     z_ref_um: float | None = None, quiet: bool = False) -> GeometryMeasurements:
+    """Per-frame magnification and shift of each channel relative to the reference frame.
+
+    Parameters
+    ----------
+    stack : fieldcal.stack.Stack or ArrayStack
+        A chart stack (read one frame at a time).
+    effort : {"quick", "standard", "thorough"}
+        "quick" registers one channel on 4x-downsampled frames and copies it to all channels.
+    centre_px : (cx, cy), optional
+        Centre of the magnification (default the image centre; use :meth:`GeometryMeasurements.recentred`
+        once the optical centre is known).
+    z_ref_um : float, optional
+        The reference frame is the one nearest this position (default: the middle frame in z).
+
+    Examples
+    --------
+    >>> geo = measure_geometry(Stack.open("STACK"))                 # doctest: +SKIP
+    >>> geo.magnification[:, 0], geo.shift_x_px[:, 0]               # doctest: +SKIP
+    """
+    stack.require_frames(2, "geometry measurement")
+    _, _, _, geo = _scan(stack, want_focus=False, want_geometry=True, fs_cyc_per_mm=1.0, effort=effort,
+                         centre_px=centre_px, z_ref_um=z_ref_um, quiet=quiet)
+    return geo
+
+
+def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_px: int | None = None,
+                  effort: str = "standard", measure: str = "sml", rules: TileRules | None = None,
+                  geometry: GeometryMeasurements | None = None, centre_px: tuple[float, float] | None = None,
+                  z_ref_um: float | None = None, quiet: bool = False) -> tuple[TileTable, GeometryMeasurements]:
+    """Measure per-tile through-focus curves and (unless given) the per-frame geometry, in one pass.
+
+    Parameters
+    ----------
+    stack : fieldcal.stack.Stack or ArrayStack
+        A chart stack; frames are read once, in z order.
+    fs_cyc_per_mm : float
+        Target spatial frequency (cycles/mm at the sensor) of the band-pass measure and of ``width_um``.
+    q : float
+        Contrast loss that defines ``width_um`` (the half-width where contrast at fs falls by q).
+    tile_px : int, optional
+        Tile size in frame pixels (default :func:`default_tile_px`).
+    effort : {"quick", "standard", "thorough"}
+        Speed/detail trade-off (module constant ``EFFORTS``); "thorough" adds z_tan/z_sag.
+    measure : {"sml", "bandpass"}
+        Focus measure whose curve gives ``z_best_um`` (the width always comes from the band-pass curve).
+    rules : TileRules, optional
+        Rejection thresholds.
+    geometry : GeometryMeasurements, optional
+        Use this geometry to place tiles instead of measuring it.
+
+    Returns
+    -------
+    (TileTable, GeometryMeasurements)
+    """
+    _check_params(stack, fs_cyc_per_mm, q, tile_px, measure)
+    rules = rules or TileRules()
+    z_sorted = np.sort(np.asarray(stack.z_um, dtype=np.float64))
+    if geometry is not None:
+        if (geometry.z_um.size != z_sorted.size or not np.allclose(geometry.z_um, z_sorted)
+                or tuple(geometry.channels) != tuple(stack.channels)):
+            raise ParameterError("the geometry was measured on another stack (its z positions or channels differ)",
+                                 field="geometry", fix="measure the geometry on this stack (measure_geometry(stack))")
+    z, order, maps, geo = _scan(stack, want_focus=True, want_geometry=geometry is None,
+                                fs_cyc_per_mm=float(fs_cyc_per_mm), effort=effort, centre_px=centre_px,
+                                z_ref_um=z_ref_um, quiet=quiet)
+    geometry = geometry or geo
+    h, w = stack.shape
+    tile = int(tile_px) if tile_px is not None else default_tile_px((h, w), effort)
+    xs, ys = tile_centres(geometry, tile)
+    if xs.size == 0:
+        raise ParameterError(f"no {tile} px tile fits inside every frame (the image moves too much or the tile "
+                             "is too large)", field="tile_px", fix="use a smaller tile_px")
+    per_channel: dict[str, dict[str, np.ndarray]] = {}
+    for m in maps:
+        curves = _tile_curves(m, geometry, xs, ys, tile)
+        have = per_channel.get(m.layout.name)
+        if have is None:
+            per_channel[m.layout.name] = curves
+        else:  # a second G site of a mosaic: pool by pixel count
+            a0, a1 = have["area"], curves["area"]
+            for key in curves:
+                if key == "area":
+                    continue
+                have[key] = (have[key] * a0 + curves[key] * a1) / (a0 + a1)
+            have["area"] = a0 + a1
+    cols: dict[str, list] = {k: [] for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um", "width_um",
+                                             "peak", "status", "z_tan_um", "z_sag_um")}
+    curves_out: dict[str, list] = {"sml": [], "bandpass": []}
+    for ch in stack.channels:
+        cc = per_channel[ch]
+        res = _analyse(cc, z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure, rules=rules,
+                       quiet=quiet, desc=f"fitting {ch} tiles")
+        cols["channel"].append(np.full(xs.size, ch))
+        cols["x_px"].append(xs)
+        cols["y_px"].append(ys)
+        for key in ("z_best_um", "z_sigma_um", "width_um", "peak", "status", "z_tan_um", "z_sag_um"):
+            cols[key].append(res[key])
+        curves_out["sml"].append(cc["sml"])
+        curves_out["bandpass"].append(cc["bandpass"])
+    cat = {k: np.concatenate(v) for k, v in cols.items()}
+    table = TileTable(channel=cat["channel"].astype(str), x_px=cat["x_px"], y_px=cat["y_px"],
+                      z_best_um=cat["z_best_um"], z_sigma_um=cat["z_sigma_um"], width_um=cat["width_um"],
+                      peak=cat["peak"], status=cat["status"].astype(str), z_tan_um=cat["z_tan_um"],
+                      z_sag_um=cat["z_sag_um"], z_um=z, tile_px=tile, fs_cyc_per_mm=float(fs_cyc_per_mm),
+                      q=float(q), measure=measure, image_size_px=(int(w), int(h)),
+                      pixel_pitch_um=float(stack.pixel_pitch_um),
+                      curves={k: np.concatenate(v, axis=0) for k, v in curves_out.items()})
+    ok = int(table.ok.sum())
+    status(f"measured {len(table)} tile curves ({ok} ok): {table.counts()}", quiet=quiet)
+    return table, geometry
+
+
+def measure_tiles(stack, geometry: GeometryMeasurements | None = None, **kwargs) -> TileTable:
+    """The :class:`TileTable` of :func:`measure_stack` (same parameters); measures geometry if not given."""
+    return measure_stack(stack, geometry=geometry, **kwargs)[0]
