@@ -70,3 +70,30 @@ def test_bad_intervals_are_rejected():
     with pytest.raises(ValueError):
         min_cover([np.nan], [1.0])
     assert min_cover([], []).n == 0
+
+
+from fieldcal.plan.cover import anchored_cover_values, min_cover_values  # noqa: E402
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.floats(-30, 30), st.floats(0, 15), st.floats(0.2, 5)), min_size=1, max_size=6))
+def test_cover_of_a_continuum_serves_every_value_and_is_minimal(bins):
+    b0 = np.array([b[0] for b in bins])
+    b1 = b0 + np.array([b[1] for b in bins])
+    d = np.array([b[2] for b in bins])
+    c = min_cover_values(b0, b1, d)
+    # dense samples of each bin, each with its bin's tolerance
+    z = np.concatenate([np.linspace(a, b, 400) for a, b in zip(b0, b1)])
+    dz = np.concatenate([np.full(400, t) for t in d])
+    assert is_cover(c.points_um, z - dz, z + dz, atol=1e-7)
+    dense = min_cover(z - dz, z + dz).n
+    assert dense <= c.n <= dense + 1
+    a = anchored_cover_values(b0, b1, d, float(b0[0]))
+    assert is_cover(a.points_um, z - dz, z + dz, atol=1e-7) and a.n <= c.n + 1
+
+
+def test_continuum_closed_form():
+    assert min_cover_values([0.0], [332.0], [4.0]).n == 42       # ceil(332 / 8)
+    assert min_cover_values([0.0], [336.0], [4.0]).n == 42       # exact multiple: no extra frame
+    assert anchored_cover_values([0.0], [336.0], [4.0], 336.0).n == 43  # the paper's on-axis start
+    np.testing.assert_allclose(min_cover_values([0.0], [16.0], [4.0]).points_um, [4.0, 12.0])

@@ -3,14 +3,13 @@ within its focus tolerance, in one direction of travel, with per-channel bands o
 
 How the cover is built (exact up to a bin width):
 1. For each channel, sample the MAP surface on a lattice (scene.py) and refine its extremes at full resolution.
-2. Cut the channel's whole range of best focus ``[z_min, z_max]`` into bins of width ``w`` (≤ δ_min/200). The
+2. Cut the channel's whole range of best focus ``[z_min, z_max]`` into bins of width ``w`` (≤ δ_min/50). The
    surface is continuous over a connected ROI, so every value in the range occurs at some pixel — sampled or
-   not — and every bin must be served. A bin ``[b0, b1]`` with tolerance ``δ_b`` (the smallest tolerance of
-   samples in it and its two neighbours each side, shrunk by the credible half-width under ``--confidence``)
-   needs a frame in ``[b1 - δ_b, b0 + δ_b]``.
-3. The fewest frames piercing all bins of all channels is the greedy interval cover (cover.py), which is
-   minimal for the binned problem; binning costs at most ``w`` of tolerance, so N exceeds the optimum for the
-   true surface by at most ``N * w / δ`` < 1 frame for N < 200.
+   not — and every value must be served. Each bin carries a tolerance ``δ_b``: the smallest tolerance of the
+   samples in it and its two neighbours each side, shrunk by the credible half-width under ``--confidence``.
+3. The fewest frames serving every value of every bin of every channel is the greedy cover over the continuum
+   (cover.min_cover_values): exact for piecewise-constant δ, so with a uniform tolerance N = ceil(D / 2δ);
+   a tolerance that varies over the field loses at most its variation across a bin.
 4. Compositing assigns each pixel to the *nearest* frame along z (bands are the Voronoi cells between
    consecutive frames): if any frame is within a pixel's tolerance, the nearest one is too.
 """
@@ -118,11 +117,12 @@ class StackPlan:
 
 
 # ----------------------------------------------------------------------------------------- the cover
-def _bin_intervals(z, dtol, zmin, zmax, width):
-    """Intervals of stage positions serving each bin of best-focus values (see module docstring)."""
+def _bins(z, dtol, zmin, zmax, width):
+    """Bins of best-focus values over the channel's whole range, each with the smallest tolerance near it."""
     span = zmax - zmin
     nb = max(1, int(math.ceil(span / width))) if span > 0 else 1
     edges = zmin + (span / nb) * np.arange(nb + 1)
+    edges[-1] = zmax
     b = np.clip(((z - zmin) / (span / nb)).astype(np.int64) if span > 0 else np.zeros(z.size, np.int64), 0, nb - 1)
     dmin = np.full(nb, np.inf)
     np.minimum.at(dmin, b, dtol)
@@ -134,25 +134,17 @@ def _bin_intervals(z, dtol, zmin, zmax, width):
         right = fi[np.clip(np.searchsorted(fi, idx, side="left"), 0, fi.size - 1)]
         dmin = np.where(filled, dmin, np.minimum(dmin[left], dmin[right]))
     dmin = ndimage.minimum_filter1d(dmin, size=5, mode="nearest")
-    return edges[1:] - dmin, edges[:-1] + dmin
+    return edges[:-1], edges[1:], dmin
 
 
 def _cover(fieldd: SampledField, tols: dict, placement: str, anchor: float | None):
-    lo_all, hi_all, dmins = [], [], []
-    for c, s in fieldd.samples.items():
-        d = tols[c] - s.u_um
-        dmins.append(float(d.min()))
-    dmin_all = min(dmins)
-    width = max(dmin_all / 200.0, fieldd.range_um / MAX_BINS, 1e-9)
-    for c, s in fieldd.samples.items():
-        lo, hi = _bin_intervals(s.z_um, tols[c] - s.u_um, s.z_min_um, s.z_max_um, width)
-        lo_all.append(lo)
-        hi_all.append(hi)
-    lo = np.concatenate(lo_all)
-    hi = np.concatenate(hi_all)
+    dmin_all = min(float((tols[c] - s.u_um).min()) for c, s in fieldd.samples.items())
+    width = max(dmin_all / 50.0, fieldd.range_um / MAX_BINS, 1e-9)
+    parts = [_bins(s.z_um, tols[c] - s.u_um, s.z_min_um, s.z_max_um, width) for c, s in fieldd.samples.items()]
+    b0, b1, d = (np.concatenate([p[i] for p in parts]) for i in range(3))
     if placement == "paper":
-        return cv.anchored_cover(lo, hi, anchor), width
-    return cv.min_cover(lo, hi), width
+        return cv.anchored_cover_values(b0, b1, d, anchor), width
+    return cv.min_cover_values(b0, b1, d), width
 
 
 def _tolerances(profile, fieldd, fs, q):
