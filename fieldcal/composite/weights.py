@@ -74,7 +74,8 @@ class BlendKernel:
         """Weight of frame j+1 for z_b between frames j and j+1."""
         t = (zb - self.z[j]) / (self.z[j + 1] - self.z[j])
         h = self.half_band[j]
-        return smoothstep((t - (0.5 - h)) / (2.0 * h)) if h > 0 else (t >= 0.5).astype(np.float64)
+        # below ~1e-6 of a spacing a seam is hard anyway (and 1/h would overflow)
+        return smoothstep((t - (0.5 - h)) / (2.0 * h)) if h > 1e-6 else (t > 0.5).astype(np.float64)
 
     def weight(self, k: int, zb) -> np.ndarray:
         """Weight of sorted frame ``k`` at best-focus positions ``zb`` (float32, same shape)."""
