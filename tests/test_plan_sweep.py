@@ -1,0 +1,178 @@
+"""Sweep plans: eq. 3 and the paper's sweep numbers, per-pixel windows against the surfaces, device masks and
+their limits, CFA, the sidecar file, and the integrated PSF / Wiener trade against closed forms."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import integrate, special
+
+from fieldcal.errors import ParameterError, SpecError
+from fieldcal.lens import LensSpec, defocus_otf
+from fieldcal.plan import Scene
+from fieldcal.plan import ipsf as ip
+from fieldcal.plan import masks as mk
+from fieldcal.plan.planfile import read_plan, validate_plan
+from fieldcal.plan.scene import full_grid
+from fieldcal.plan.sweep_plan import SweepRequest, plan_sweep, write_sweep_plan
+from fieldcal.plan.synthetic import SyntheticProfile
+from fieldcal.truth import TruthProfile
+
+
+def test_paper_sweep_numbers():
+    # V.B: sections of 2α = 24 µm, 16 ms each, 13 sections, 208 ms, stage at 1.5 mm/s -> D = (13 - 1) * 24 = 288 µm
+    assert ip.sweep_total_time_ms(288.0, 12.0, 16.0) == pytest.approx(208.0)
+    prof = SyntheticProfile(65, 49, a_um=-288.0)
+    plan = plan_sweep(prof, SweepRequest(alpha_um=12.0, pixel_exposure_ms=16.0, device="lcos"))
+    assert plan.range_um == pytest.approx(288.0)
+    assert plan.total_time_ms == pytest.approx(208.0)
+    assert plan.velocity_um_per_ms == pytest.approx(1.5)  # 1.5 µm/ms = 1.5 mm/s
+    assert plan.n_slots == 13 and plan.device.slot_ms == 16.0  # one sweep per circular section, as in the paper
+    assert plan.to_dict()["device"]["wall_time_ms"] == pytest.approx(2 * 208.0)  # complement after each slot
+
+
+@pytest.mark.parametrize("direction", ["+z", "-z"])
+def test_windows_open_and_close_alpha_either_side_of_best_focus(models_dir, direction):
+    prof = TruthProfile(LensSpec.load(models_dir / "doublet-mono.json"), 80, 60)
+    plan = plan_sweep(prof, SweepRequest(alpha_um=20.0, pixel_exposure_ms=10.0, direction=direction))
+    x, y = full_grid(plan.field.roi)
+    z = prof.best_focus_um(x, y, "Y")
+    sgn = 1.0 if direction == "+z" else -1.0
+    stage = lambda t: plan.start_um + sgn * plan.velocity_um_per_ms * t  # noqa: E731
+    t0 = plan.window_start_ms[0].astype(np.float64)
+    t1 = plan.window_stop_ms[0].astype(np.float64)
+    np.testing.assert_allclose(stage(t0), z - sgn * 20.0, atol=1e-3)
+    np.testing.assert_allclose(stage(t1), z + sgn * 20.0, atol=1e-3)
+    assert t0.min() == pytest.approx(0.0, abs=1e-4) and t1.max() == pytest.approx(plan.total_time_ms, abs=1e-3)
+    assert plan.total_time_ms == pytest.approx((plan.range_um / 40.0 + 1) * 10.0)
+
+
+def test_lcos_masks_honour_hold_limit_and_give_each_pixel_its_exposure(tmp_path):
+    prof = SyntheticProfile(41, 33, a_um=-150.0)
+    plan = plan_sweep(prof, SweepRequest(alpha_um=10.0, pixel_exposure_ms=32.0, device="lcos", max_hold_ms=20.0))
+    assert plan.device.slot_ms == 16.0 and plan.device.slot_ms <= 20.0  # 32 ms split into two 16 ms slots
+    doc = write_sweep_plan(plan, tmp_path / "sw.json")
+    arr = mk.load_npz(tmp_path / doc["masks"]["file"])
+    n, p, h, w = arr["mask_shape"]
+    masks = mk.unpack(arr["mask_bits"], int(w))
+    assert masks.shape == (n, p, h, w) == (plan.n_slots, 1, 33, 41)
+    assert np.all(masks.sum(axis=0) == 2)  # exactly t_s / slot_ms slots per pixel
+    # each open slot's stage range lies within α + half a slot of the pixel's best focus
+    edges = np.asarray(plan.slot_z_edges_um())
+    x, y = full_grid(plan.field.roi)
+    z = prof.best_focus_um(x, y, "G")
+    slack = plan.velocity_um_per_ms * plan.device.slot_ms / 2 + 1e-6
+    for k in range(n):
+        on = masks[k, 0]
+        if on.any():
+            assert np.all(edges[k] >= z[on] - 10.0 - slack) and np.all(edges[k + 1] <= z[on] + 10.0 + slack)
+    import hashlib
+    assert hashlib.sha256((tmp_path / "sw.masks.npz").read_bytes()).hexdigest() == doc["masks"]["sha256"]
+    assert read_plan(tmp_path / "sw.json")["kind"] == "sweep"
+    with pytest.raises(ParameterError) as e:
+        plan_sweep(prof, SweepRequest(alpha_um=10.0, pixel_exposure_ms=16.0, device="lcos", slot_ms=25.0))
+    assert e.value.field == "slot_ms"
+
+
+def test_cfa_aware_windows_follow_each_sites_colour(models_dir):
+    prof = TruthProfile(LensSpec.load(models_dir / "singlet-colour.json"), 64, 48)
+    plan = plan_sweep(prof, SweepRequest(alpha_um=20.0, pixel_exposure_ms=16.0, device="lcos", cfa="RGGB"))
+    assert plan.planes == ["CFA:RGGB"]
+    t0 = plan.window_start_ms[0]
+    x, y = full_grid(plan.field.roi)
+    zmin = plan.field.z_min_um
+    for (r, c), ch in {(0, 0): "R", (0, 1): "G", (1, 0): "G", (1, 1): "B"}.items():
+        z = prof.best_focus_um(x[r::2, c::2], y[r::2, c::2], ch)
+        np.testing.assert_allclose(t0[r::2, c::2], (z - zmin) / plan.velocity_um_per_ms, atol=1e-3)
+    # R focuses ~260 µm behind B: on axis, R opens much later than its B neighbour
+    assert t0[24, 32] - t0[25, 33] > 200.0 / plan.velocity_um_per_ms
+    with pytest.raises(ParameterError) as e:  # an LCoS cannot follow three surfaces without a mosaic
+        plan_sweep(prof, SweepRequest(device="lcos", cfa=None))
+    assert e.value.field == "channels"
+    one = plan_sweep(prof, SweepRequest(device="lcos", scene=Scene(channels=("G",))))
+    assert one.planes == ["G"]
+
+
+def test_pixel_device_registers(tmp_path):
+    prof = SyntheticProfile(33, 25, a_um=-80.0, channels=("R", "G"), offsets_um={"R": 15.0})
+    plan = plan_sweep(prof, SweepRequest(alpha_um=5.0, pixel_exposure_ms=4.0, device="pixel", clock_us=10.0))
+    arr = plan.mask_arrays()
+    assert set(arr) >= {"start_tick", "stop_tick", "window_start_ms", "window_stop_ms"}
+    assert np.all(arr["stop_tick"].astype(np.int64) - arr["start_tick"] == 400)  # 4 ms at 10 µs
+    np.testing.assert_allclose(arr["start_tick"] * 0.01, plan.window_start_ms, atol=0.0051)
+    assert plan.planes == ["R", "G"] and plan.range_um == pytest.approx(95.0)
+    with pytest.raises(ParameterError):
+        plan_sweep(prof, SweepRequest(alpha_um=5.0, pixel_exposure_ms=4.0, clock_us=1e-6))  # 32-bit overflow
+
+
+@pytest.mark.parametrize("kw,field", [({"alpha_um": 0.0}, "alpha_um"), ({"alpha_um": float("nan")}, "alpha_um"),
+                                      ({"pixel_exposure_ms": -1.0}, "pixel_exposure_ms"),
+                                      ({"device": "dmd"}, "device"), ({"cfa": "RGBW"}, "cfa"),
+                                      ({"scene": Scene(roi=(0, 0, 0, 0))}, "roi")])
+def test_invalid_sweep_parameters(kw, field):
+    with pytest.raises(ParameterError) as e:
+        plan_sweep(SyntheticProfile(17, 17), SweepRequest(**kw))
+    assert e.value.field == field
+
+
+def test_plan_file_rejects_inconsistent_or_orphaned_sweeps(tmp_path):
+    prof = SyntheticProfile(17, 17, a_um=-40.0)
+    doc = write_sweep_plan(plan_sweep(prof, SweepRequest()), tmp_path / "a.json")
+    bad = dict(doc, total_time_ms=doc["total_time_ms"] * 2)
+    with pytest.raises(SpecError) as e:
+        validate_plan(bad)
+    assert e.value.field == "total_time_ms"
+    with pytest.raises(SpecError) as e:
+        validate_plan(dict(doc, masks=dict(doc["masks"], file="/etc/x.npz")))
+    assert e.value.field == "masks.file"
+    (tmp_path / "a.masks.npz").unlink()
+    with pytest.raises(SpecError) as e:
+        read_plan(tmp_path / "a.json")
+    assert "missing" in str(e.value)
+
+
+# ----------------------------------------------------------------------------- integrated PSF and Wiener
+def test_integrated_otf_against_closed_forms():
+    prof = SyntheticProfile(17, 17, f_number=2.0)
+    f = np.array([0.0, 20.0, 80.0])
+    np.testing.assert_allclose(ip.integrated_otf(prof, f, 30.0, "G")[0], 1.0, atol=1e-12)
+    in_focus = ip.integrated_otf(prof, f, 0.0, "G")
+    # small α: mean of 2J1(x)/x ≈ 1 - x²/8 over dz uniform in ±α -> 1 - (π f / N)² α² / 24 (× in-focus factors)
+    a = 1.0
+    expect = 1.0 - (np.pi * 80.0 / 2.0 / 1000.0) ** 2 * a ** 2 / 24.0
+    ratio = ip.integrated_otf(prof, np.array([80.0]), a, "G")[0] / in_focus[2]
+    assert ratio == pytest.approx(expect, abs=1e-6)
+    # large α: against adaptive quadrature of the defocus factor (signed: contrast reversals cancel)
+    a = 40.0
+    q, _ = integrate.quad(lambda dz: float(defocus_otf(80.0, dz, 2.0)) / (2 * a), -a, a, limit=200)
+    assert ip.integrated_otf(prof, np.array([80.0]), a, "G")[0] / in_focus[2] == pytest.approx(q, abs=1e-6)
+
+
+def test_ipsf_is_normalised_and_widens_with_alpha():
+    prof = SyntheticProfile(17, 17, f_number=4.0)
+    r = np.linspace(0.0, 60.0, 1201)
+    e = []
+    for a in (0.0, 20.0, 40.0):
+        psf = ip.ipsf_profile(prof, r, a, "G", n_f=1024)
+        e.append(np.trapezoid(2 * np.pi * r * psf, r))
+        if a == 0.0:
+            peak0 = psf[0]
+        else:
+            assert psf[0] < peak0
+    assert all(abs(v - 1.0) < 0.03 for v in e[1:])  # integrates to 1 (in-focus Airy tail converges slowly)
+
+
+def test_wiener_noise_gain_closed_form_and_trade():
+    assert ip.wiener_noise_gain(np.ones(100), 0.25) == pytest.approx(1 / 1.25)
+    h = np.array([1.0, 0.5])
+    assert ip.wiener_noise_gain(h, 0.01) == pytest.approx(math.sqrt(((1 / 1.01) ** 2 + (0.5 / 0.26) ** 2) / 2))
+    prof = SyntheticProfile(17, 17, f_number=2.0, pixel_pitch_um=2.0)
+    rows = ip.alpha_trade(prof, 332.0, 16.0, [5, 10, 20, 40, 80], "G", 80.0, nsr=0.01)
+    T = [r["total_time_ms"] for r in rows]
+    g = [r["noise_gain"] for r in rows]
+    assert all(a > b for a, b in zip(T, T[1:]))          # longer α: shorter sweep ...
+    assert all(a < b for a, b in zip(g[:4], g[1:4]))     # ... but more noise after deconvolution,
+    assert max(g) <= 1 / (2 * math.sqrt(0.01)) + 1e-9     # bounded by 1/(2 sqrt K): where H < sqrt K Wiener
+    m = [r["restored_mtf_at_fs"] for r in rows]           # stops restoring and the result stays blurred
+    assert all(a > b for a, b in zip(m, m[1:]))
+    assert rows[2]["total_time_ms"] == pytest.approx((332 / 40 + 1) * 16)
