@@ -30,7 +30,7 @@ def _common(p):
     p.add_argument("--roi", help="region of interest X,Y,W,H in pixels (default: whole image)")
     p.add_argument("--channels", help="comma-separated subset of channels, e.g. G or R,G,B (default: all)")
     p.add_argument("--object-distance-mm", type=float, help="refocus for this object distance (profile must know its own)")
-    p.add_argument("--direction", choices=("+z", "-z"), default="+z", help="stage direction of travel (default +z)")
+    p.add_argument("--direction", choices=("+z", "-z"), default="+z", help="stage direction of travel: +z (default) or -z (write --direction=-z)")
     p.add_argument("--grid-step-px", type=int, default=8, help="surface sampling step in pixels (default 8)")
     p.add_argument("--size", help="plan a lens spec at another image size WxH (same sensor area)")
     p.add_argument("--plots", metavar="DIR", help="also write PNG pictures of the plan into DIR")
