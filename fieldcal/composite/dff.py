@@ -5,7 +5,7 @@
    blocks (sum-modified-Laplacian). Only the small block volume (frames x blocks x channels) is kept.
 2. Per block: the frame of peak focus, refined to sub-frame precision by a parabola through the peak and its
    neighbours; a confidence ``(peak - median) / median`` that is ~0 where there is no texture.
-3. A smooth surface (polynomial of total degree <= 4 in normalised coordinates) is fitted to the block
+3. A smooth surface (a general quadratic plus radial r^4, r^6 terms, in normalised coordinates) is fitted to the block
    estimates by confidence-weighted, Tukey-reweighted least squares, so textureless regions and outliers
    follow the surface instead of noise. Composites then blend frames with this surface exactly as with a
    profile's (:mod:`.weights`).
@@ -109,7 +109,10 @@ def peak_depth(vol: FocusVolume) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class SurfaceFit:
-    """A fitted best-focus surface ``z(x, y)`` (µm) in normalised coordinates about ``centre_px``."""
+    """A fitted best-focus surface ``z(x, y)`` (µm) in normalised coordinates about ``centre_px``.
+
+    ``degree`` indexes the model: 0 constant, 1 plane, 2 quadratic, 3 + r^4, 4 + r^6.
+    """
 
     coef: np.ndarray
     degree: int
@@ -124,9 +127,17 @@ class SurfaceFit:
         return _design(u, v, self.degree) @ self.coef
 
 
+# Surface models by number of terms: a constant, a plane (tilt), a general quadratic (field curvature about a
+# decentred axis, tilt, astigmatism-like cylinder), and that plus the radial r^4 and r^6 of field curvature.
+# Radial high orders extrapolate sanely into textureless corners; a full 2-D quartic does not.
+_MODELS = {0: 1, 1: 3, 2: 6, 3: 7, 4: 8}
+
+
 def _design(u, v, degree: int) -> np.ndarray:
-    cols = [u ** (d - j) * v ** j for d in range(degree + 1) for j in range(d + 1)]
-    return np.stack([np.broadcast_to(c, np.broadcast(u, v).shape) for c in cols], axis=-1)
+    u, v = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64))
+    r2 = u * u + v * v
+    cols = [np.ones_like(u), u, v, u * u, u * v, v * v, r2 * r2, r2 * r2 * r2][:_MODELS[degree]]
+    return np.stack(cols, axis=-1)
 
 
 def fit_surface(x_px, y_px, z_um, weight, centre_px, scale_px: float, degree: int = 4,
@@ -141,7 +152,8 @@ def fit_surface(x_px, y_px, z_um, weight, centre_px, scale_px: float, degree: in
     if len(z) == 0:
         raise ParameterError("no block has any focus signal (a blank or saturated scene?)", field="stack",
                              fix="composite with a profile (--profile) or capture a textured scene")
-    while degree > 0 and len(z) < 3 * (degree + 1) * (degree + 2) // 2:
+    degree = int(np.clip(degree, 0, max(_MODELS)))
+    while degree > 0 and len(z) < 3 * _MODELS[degree]:
         degree -= 1
     u = (x - centre_px[0]) / scale_px
     v = (y - centre_px[1]) / scale_px

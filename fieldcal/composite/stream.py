@@ -13,9 +13,9 @@ import numpy as np
 
 from ..progress import progress
 from .source import image_size, z_positions
-from .warp import frame_maps, warp_region
+from .warp import FrameMap, frame_maps, warp_region
 
-DEFAULT_TILE_PX = 128
+DEFAULT_TILE_PX = 64
 
 
 def _tile_edges(n: int, tile: int) -> np.ndarray:
@@ -86,9 +86,11 @@ def accumulate(stack, zb: np.ndarray, kernel, profile=None, *, lateral_colour: b
                 y0, y1 = int(ye[ty]), int(ye[ty + 1])
                 for t0, t1 in _runs(act[ty]):
                     x0, x1 = int(xe[t0]), int(xe[t1])
-                    wts = np.stack([kernel.weight(k, zb[y0:y1, x0:x1, c]) for c in ch], axis=-1)
+                    # only the channels this frame serves in this run are warped
+                    run_ch = [c for c in ch if active[ty, t0:t1, c].any()]
+                    wts = np.stack([kernel.weight(k, zb[y0:y1, x0:x1, c]) for c in run_ch], axis=-1)
                     if not wts.any():
                         continue
-                    src = warp_region(stack, int(i), fmap, x0, y0, x1, y1)
-                    acc[y0:y1, x0:x1, ch] += wts * src
+                    src = warp_region(stack, int(i), FrameMap(fmap.matrix, tuple(run_ch)), x0, y0, x1, y1)
+                    acc[y0:y1, x0:x1, run_ch] += wts * src
     return acc
