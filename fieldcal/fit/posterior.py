@@ -144,8 +144,8 @@ def run_emcee(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, effort: Ef
         return model.log_posterior(batch, rows)
 
     moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
-    sampler = emcee.EnsembleSampler(n_walkers, p, log_prob, vectorize=True, moves=moves,
-                                    seed=int(rng.integers(2**31)))
+    sampler = emcee.EnsembleSampler(n_walkers, p, log_prob, vectorize=True, moves=moves)
+    sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()  # reproducible
     state = sampler.run_mcmc(start, effort.initial_steps, progress=False)
     n = effort.initial_steps
     tau = _tau(sampler)

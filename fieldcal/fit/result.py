@@ -47,6 +47,11 @@ class SurfaceFit:
     candidates: list = field(default_factory=list)
     diagnostics: dict = field(default_factory=dict)
     effort: str = "standard"
+    sample_model: SurfaceModel | None = None  # layout of ``samples`` (the union of the averaged models)
+
+    def __post_init__(self):
+        if self.sample_model is None:
+            self.sample_model = self.model
 
     # ------------------------------------------------------------------ access
     @property
@@ -64,11 +69,11 @@ class SurfaceFit:
             raise ParameterError(f"no channel '{channel}' in this fit (it has {', '.join(self.channels)})",
                                  field="channel", fix=f"use one of {', '.join(self.channels)}") from None
 
-    def _eval(self, theta, x_px, y_px, channel, fn="surface"):
+    def _eval(self, theta, x_px, y_px, channel, fn="surface", model=None):
         x, y = np.broadcast_arrays(np.asarray(x_px, dtype=np.float64), np.asarray(y_px, dtype=np.float64))
         xh, yh = self.geometry.normalise(x.ravel(), y.ravel())
         ci = self._ch(channel)
-        return getattr(self.model, fn)(theta, xh, yh, ci), x.shape
+        return getattr(model or self.model, fn)(theta, xh, yh, ci), x.shape
 
     def predict(self, x_px, y_px, channel: str) -> np.ndarray:
         """MAP best-focus position (µm) at pixel coordinates; arrays broadcast."""
@@ -81,7 +86,7 @@ class SurfaceFit:
         xf, yf = x.ravel(), y.ravel()
         for a in range(0, max(xf.size, 1), _POINT_CHUNK):
             sl = slice(a, a + _POINT_CHUNK)
-            z, _ = self._eval(self.samples, xf[sl], yf[sl], channel)
+            z, _ = self._eval(self.samples, xf[sl], yf[sl], channel, model=self.sample_model)
             yield sl, self.z_centre_um + self.z_scale_um * z
 
     def interval(self, x_px, y_px, channel: str, level: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
@@ -126,18 +131,17 @@ class SurfaceFit:
         µm/mm (about the sensor centre), astigmatism in µm at rho = 1."""
         ci = self._ch(channel)
         beta = self.model.split(self.theta_map)[0]
-        K = self.model.order
-        out = {"offset_um": float(self.z_centre_um + self.z_scale_um * beta[ci * (K + 1)])}
-        for k in range(1, K + 1):
-            out[f"rho{2 * k}_um"] = float(self.z_scale_um * beta[ci * (K + 1) + k])
-        j = len(self.channels) * (K + 1)
+        m = self.model
+        out = {"offset_um": float(self.z_centre_um + self.z_scale_um * beta[m._col_channel(ci, 0)])}
+        for k in range(1, m.order + 1):
+            out[f"rho{2 * k}_um"] = float(self.z_scale_um * beta[m._col_power(ci, k)])
         r_mm = self.geometry.half_diagonal_px * self.geometry.pixel_pitch_um / 1000.0
-        if self.model.tilt:
+        if m.tilt:
+            j = m._col_tilt
             out["tilt_x_um_per_mm"] = float(self.z_scale_um * beta[j] / r_mm)
             out["tilt_y_um_per_mm"] = float(self.z_scale_um * beta[j + 1] / r_mm)
-            j += 2
-        if self.model.astig:
-            out["astigmatism_um"] = float(self.z_scale_um * beta[j + ci])
+        if m.astig:
+            out["astigmatism_um"] = float(self.z_scale_um * beta[m._col_astig + ci])
         return out
 
     # ------------------------------------------------------------------ I/O
@@ -149,6 +153,7 @@ class SurfaceFit:
              "geometry": self.geometry.to_dict(),
              "z_centre_um": float(self.z_centre_um), "z_scale_um": float(self.z_scale_um),
              "param_names": self.param_names,
+             "sample_model": self.sample_model.to_dict(), "sample_param_names": self.sample_model.names,
              "theta_map": [float(v) for v in self.theta_map],
              "candidates": _json_safe(self.candidates), "diagnostics": _json_safe(self.diagnostics),
              "n_samples": int(self.samples.shape[0])}
@@ -170,12 +175,13 @@ class SurfaceFit:
                                     fix="keep the samples sidecar .npz next to the profile")
                 samples = d["samples"]
             samples = np.asarray(samples, dtype=np.float64)
-            if theta.shape != (model.n_params,) or samples.ndim != 2 or samples.shape[1] != model.n_params:
+            smodel = SurfaceModel.from_dict(d.get("sample_model", d["model"]))
+            if theta.shape != (model.n_params,) or samples.ndim != 2 or samples.shape[1] != smodel.n_params:
                 raise SpecError(f"parameter count does not match model {model.name} ({model.n_params})",
                                 path=path, field="theta_map", fix="regenerate the profile")
             return cls(model, ImageGeometry.from_dict(d["geometry"]), float(d["z_centre_um"]),
                        float(d["z_scale_um"]), theta, samples, list(d.get("candidates", [])),
-                       dict(d.get("diagnostics", {})), str(d.get("effort", "standard")))
+                       dict(d.get("diagnostics", {})), str(d.get("effort", "standard")), smodel)
         except (KeyError, TypeError, ValueError) as e:
             raise SpecError(f"malformed surface fit ({e})", path=path, field="surface",
                             fix="regenerate the profile with fieldcal calibrate") from None

@@ -12,19 +12,21 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from ..progress import progress, status
 from .data import MIN_TILES_PER_CHANNEL, FitError, ImageGeometry, TileData
 from .map import MAX_CONDITION, fit_map
-from .posterior import EFFORTS, laplace, run_emcee
+from .posterior import EFFORTS, MAX_SAMPLES, laplace, run_emcee
 from .result import SurfaceFit
 from .surface import Rows, SurfaceModel
 
 # Tiles must span at least this much of the normalised radius, or curvature is not identifiable.
 MIN_RADIAL_SPAN = 0.15
 MIN_ASTIG_ROWS = 6
+BMA_MIN_WEIGHT = 0.01
 
 
 def build_rows(tiles: TileData, geometry: ImageGeometry, channels: tuple[str, ...]):
@@ -73,17 +75,20 @@ def _validate(tiles: TileData, geometry: ImageGeometry, channels, source):
                        fix="measure tiles from the image centre out to the corners")
 
 
-def candidate_models(channels, max_order: int, astig_rows: bool, n_rows: int) -> list[SurfaceModel]:
-    """The search space; decentre needs curvature (and, with tilt, rho^4: at order 1 it equals a tilt)."""
+def candidate_models(channels, max_order: int, astig: bool) -> list[SurfaceModel]:
+    """Mean-surface structures: order K in rho^2 with per-channel terms up to rho^(2 kc) and shared terms
+    above (colour changes mostly the low orders), tilt on/off, decentre on/off. Decentre needs curvature
+    and, with tilt, rho^4: at order 1 a decentre is exactly a tilt."""
     out = []
+    mono = len(channels) == 1
     for order in range(max_order + 1):
-        for tilt in (False, True):
-            for dec in (False, True):
-                if dec and (order == 0 or (tilt and order < 2)):
-                    continue
-                for ast in ((False, True) if astig_rows else (False,)):
-                    m = SurfaceModel(tuple(channels), order, tilt, dec, ast, astig_rows)
-                    out.append(m)
+        kcs = [order] if (mono or order == 0) else sorted({0, 1, order})
+        for kc in kcs:
+            for tilt in (False, True):
+                for dec in (False, True):
+                    if dec and (order == 0 or (tilt and order < 2)):
+                        continue
+                    out.append(SurfaceModel(tuple(channels), order, tilt, dec, astig, astig, kc))
     return out
 
 
@@ -126,43 +131,73 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         keep = rows.kind == 0
         rows = Rows(*(getattr(rows, f)[keep] for f in ("x_hat", "y_hat", "ch_index", "kind", "target", "sigma")))
     t0 = time.perf_counter()
-    cands = candidate_models(channels, eff.max_order, astig_rows, rows.n)
+    # Stage 1: mean-surface structures (astigmatism term on whenever the data have directional foci: it
+    # only touches the astigmatism rows). Stage 2: the winner with the astigmatism term toggled.
+    cands = candidate_models(channels, eff.max_order, astig_rows)
     table = []
     best = None
-    for m in progress(cands, total=len(cands), desc="fit: model search", quiet=quiet, unit="model"):
+    fits = {}
+
+    def consider(m):
+        nonlocal best
         entry = {"name": m.name, "terms": m.terms, "n_params": m.n_params}
+        table.append(entry)
         if rows.n < m.n_params + 2:
             entry.update(status="skipped: fewer rows than parameters + 2", bic=None)
-            table.append(entry)
-            continue
+            return
         res = fit_map(m, rows)
         entry["condition_number"] = res.condition_number
         if not math.isfinite(res.condition_number) or res.condition_number > MAX_CONDITION:
             entry.update(status=f"refused: degenerate design (condition number {res.condition_number:.3g} > "
                                 f"{MAX_CONDITION:.0e})", bic=None)
-            table.append(entry)
-            continue
+            return
         bic = -2.0 * res.log_likelihood + m.n_params * math.log(rows.n)
         entry.update(status="ok", log_likelihood=res.log_likelihood, bic=bic, nlopt_result=res.nlopt_result,
                      n_evals=res.n_evals)
-        table.append(entry)
+        fits[m.name] = res
         if best is None or bic < best[0]:
             best = (bic, res)
+
+    for m in progress(cands, total=len(cands), desc="fit: model search", quiet=quiet, unit="model"):
+        consider(m)
+    if best is not None and astig_rows:
+        consider(replace(best[1].model, astig=False))
     if best is None:
         raise FitError("no surface model could be fitted: every candidate's design is degenerate", path=source,
                        field="tiles", fix="measure tiles spread over the whole field in every channel")
     res = best[1]
+    weights = _bic_weights(table)
     for e in table:
         e["chosen"] = e["name"] == res.model.name
         e["delta_bic"] = None if e.get("bic") is None else e["bic"] - best[0]
+        e["weight"] = weights.get(e["name"], 0.0)
     t_map = time.perf_counter() - t0
 
+    # Posterior: the chosen model by Laplace or emcee; models within a few BIC units (weight >= 1%) join as a
+    # Bayesian model average with Laplace samples, so a term the selection narrowly dropped still widens
+    # the band (docs/fitting.md "Model averaging").
     lap = laplace(res.model, rows, res.theta, seed=seed)
     if eff.method == "laplace":
         post = lap
     else:
         lap_cov = np.cov(lap.samples.T)
         post = run_emcee(res.model, rows, res.theta, eff, seed=seed, ball_cov=lap_cov, quiet=quiet)
+    members = [(res.model, res.theta, weights.get(res.model.name, 1.0))]
+    members += [(r.model, r.theta, weights[n]) for n, r in fits.items()
+                if n != res.model.name and weights.get(n, 0.0) >= BMA_MIN_WEIGHT]
+    wsum = sum(w for *_, w in members)
+    union = SurfaceModel.union([m for m, *_ in members])
+    rng = np.random.default_rng(seed + 1)
+    parts = []
+    for i, (m, theta, w) in enumerate(members):
+        n_m = max(1, int(round(MAX_SAMPLES * w / wsum)))
+        smp = post.samples if i == 0 else laplace(m, rows, theta, n_samples=n_m, seed=seed + 7 + i).samples
+        if smp.shape[0] > n_m:
+            smp = smp[rng.choice(smp.shape[0], n_m, replace=False)]
+        parts.append(m.embed(smp, union))
+    samples = np.concatenate(parts)
+    bma = {"members": [{"name": m.name, "weight": w / wsum} for m, _, w in members],
+           "sample_model": union.name}
     t_total = time.perf_counter() - t0
     m = res.model
     diagnostics = {
@@ -173,10 +208,21 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         "log_posterior": res.log_posterior,
         "error_scale": math.exp(float(m.split(res.theta)[2])),
         "student_t_nu": math.exp(float(m.split(res.theta)[4])),
-        "posterior": post.diagnostics, "time_map_s": t_map, "time_total_s": t_total,
+        "posterior": post.diagnostics, "model_average": bma, "time_map_s": t_map, "time_total_s": t_total,
     }
     if m.astig_rows:
         diagnostics["error_scale_astig"] = math.exp(float(m.split(res.theta)[3]))
     if post.diagnostics.get("converged") is False:
         status("warning: the surface posterior did not converge; use --effort thorough", quiet=quiet)
-    return SurfaceFit(m, geometry, zc, zs, res.theta, post.samples, table, diagnostics, effort)
+    return SurfaceFit(m, geometry, zc, zs, res.theta, samples, table, diagnostics, effort, sample_model=union)
+
+
+def _bic_weights(table) -> dict[str, float]:
+    """Approximate posterior model probabilities exp(-BIC/2), normalised over the fitted candidates."""
+    ok = [(e["name"], e["bic"]) for e in table if e.get("bic") is not None]
+    if not ok:
+        return {}
+    b0 = min(b for _, b in ok)
+    w = {n: math.exp(-0.5 * (b - b0)) for n, b in ok}
+    tot = sum(w.values())
+    return {n: v / tot for n, v in w.items()}

@@ -65,10 +65,35 @@ class SurfaceModel:
     decentre: bool
     astig: bool
     astig_rows: bool  # the data have tangential/sagittal rows (adds the log_s_astig nuisance)
+    channel_order: int | None = None  # rho^2k terms per channel up to this k; higher k shared (None: all)
+
+    @property
+    def kc(self) -> int:
+        """Highest per-channel power index (terms above it are shared by all channels)."""
+        return self.order if self.channel_order is None else min(self.channel_order, self.order)
+
+    # Column layout: [per channel: a0, a1..a_kc] [shared: a_{kc+1}..a_K] [tilt_x, tilt_y] [astig per channel]
+    def _col_channel(self, ci: int, k: int) -> int:
+        return ci * (self.kc + 1) + k
+
+    def _col_shared(self, k: int) -> int:
+        return len(self.channels) * (self.kc + 1) + (k - self.kc - 1)
+
+    def _col_power(self, ci: int, k: int) -> int:
+        return self._col_channel(ci, k) if k <= self.kc else self._col_shared(k)
+
+    @property
+    def _col_tilt(self) -> int:
+        return len(self.channels) * (self.kc + 1) + (self.order - self.kc)
+
+    @property
+    def _col_astig(self) -> int:
+        return self._col_tilt + (2 if self.tilt else 0)
 
     @property
     def name(self) -> str:
-        parts = [f"poly{self.order}"]
+        parts = [f"poly{self.order}" if self.kc == self.order or len(self.channels) == 1
+                 else f"poly{self.order}(per-channel<=rho^{2 * self.kc})"]
         if self.tilt:
             parts.append("tilt")
         if self.decentre:
@@ -79,7 +104,8 @@ class SurfaceModel:
 
     @property
     def terms(self) -> list[str]:
-        t = ["offset"] + [f"rho^{2 * k}" for k in range(1, self.order + 1)]
+        t = ["offset"] + [f"rho^{2 * k}" + (" (shared)" if k > self.kc and len(self.channels) > 1 else "")
+                          for k in range(1, self.order + 1)]
         if self.tilt:
             t.append("tilt")
         if self.decentre:
@@ -93,7 +119,8 @@ class SurfaceModel:
     def linear_names(self) -> list[str]:
         names = []
         for c in self.channels:
-            names += [f"a{k}[{c}]" for k in range(self.order + 1)]
+            names += [f"a{k}[{c}]" for k in range(self.kc + 1)]
+        names += [f"a{k}" for k in range(self.kc + 1, self.order + 1)]
         if self.tilt:
             names += ["tilt_x", "tilt_y"]
         if self.astig:
@@ -163,21 +190,21 @@ class SurfaceModel:
         X = np.zeros(shape)
         mean_row = kind == 0
         nc = len(self.channels)
-        K = self.order
+        pw = [np.ones_like(r2)]
+        for k in range(1, self.order + 1):
+            pw.append(pw[-1] * r2)
         for ci in range(nc):
             sel = (ch_index == ci) & mean_row
-            base = ci * (K + 1)
-            X[..., base] = np.where(sel, 1.0, 0.0)
-            pw = np.ones_like(r2)
-            for k in range(1, K + 1):
-                pw = pw * r2
-                X[..., base + k] = np.where(sel, pw, 0.0)
-        j = nc * (K + 1)
+            for k in range(self.kc + 1):
+                X[..., self._col_channel(ci, k)] = np.where(sel, pw[k], 0.0)
+        for k in range(self.kc + 1, self.order + 1):
+            X[..., self._col_shared(k)] = np.where(mean_row, pw[k], 0.0)
         if self.tilt:
+            j = self._col_tilt
             X[..., j] = np.where(mean_row, x_hat, 0.0)
             X[..., j + 1] = np.where(mean_row, y_hat, 0.0)
-            j += 2
         if self.astig:
+            j = self._col_astig
             for ci in range(nc):
                 X[..., j + ci] = np.where((ch_index == ci) & ~mean_row, r2, 0.0)
         return X
@@ -249,15 +276,15 @@ class SurfaceModel:
         beta, centre, *_ = self.split(theta)
         r2 = (x_hat - centre[..., 0:1]) ** 2 + (y_hat - centre[..., 1:2]) ** 2 if theta.ndim == 2 else \
             (x_hat - centre[0]) ** 2 + (y_hat - centre[1]) ** 2
-        K = self.order
-        base = channel_index * (K + 1)
-        z = beta[..., base:base + 1] * np.ones_like(r2)
+        j0 = self._col_channel(channel_index, 0)
+        z = beta[..., j0:j0 + 1] * np.ones_like(r2)
         pw = np.ones_like(r2)
-        for k in range(1, K + 1):
+        for k in range(1, self.order + 1):
             pw = pw * r2
-            z = z + beta[..., base + k:base + k + 1] * pw
+            j = self._col_power(channel_index, k)
+            z = z + beta[..., j:j + 1] * pw
         if self.tilt:
-            j = len(self.channels) * (K + 1)
+            j = self._col_tilt
             z = z + beta[..., j:j + 1] * x_hat + beta[..., j + 1:j + 2] * y_hat
         return z
 
@@ -271,17 +298,56 @@ class SurfaceModel:
             return np.zeros(theta.shape[:-1] + x_hat.shape)
         r2 = (x_hat - centre[..., 0:1]) ** 2 + (y_hat - centre[..., 1:2]) ** 2 if theta.ndim == 2 else \
             (x_hat - centre[0]) ** 2 + (y_hat - centre[1]) ** 2
-        j = len(self.channels) * (self.order + 1) + (2 if self.tilt else 0) + channel_index
+        j = self._col_astig + channel_index
         return beta[..., j:j + 1] * r2 if theta.ndim == 2 else beta[j] * r2
+
+    def embed(self, theta: np.ndarray, target: "SurfaceModel") -> np.ndarray:
+        """Express parameter vector(s) of this model in the layout of a larger ``target`` model.
+
+        Every candidate is nested in the union model: a shared coefficient becomes equal per-channel
+        coefficients, an absent term a zero, an absent decentre a zero centre.
+        """
+        theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
+        if (target.order < self.order or (self.tilt and not target.tilt) or (self.decentre and not target.decentre)
+                or (self.astig and not target.astig) or target.astig_rows != self.astig_rows
+                or target.channels != self.channels):
+            raise ValueError(f"{self.name} is not nested in {target.name}")
+        out = np.zeros((theta.shape[0], target.n_params))
+        for ci in range(len(self.channels)):
+            for k in range(self.order + 1):
+                out[:, target._col_power(ci, k)] = theta[:, self._col_power(ci, k)]
+        if self.tilt:
+            out[:, target._col_tilt:target._col_tilt + 2] = theta[:, self._col_tilt:self._col_tilt + 2]
+        if self.astig:
+            nc = len(self.channels)
+            out[:, target._col_astig:target._col_astig + nc] = theta[:, self._col_astig:self._col_astig + nc]
+        # nonlinear block: [centre?] log_s [log_s_astig] log_nu
+        src = theta[:, self.n_linear:]
+        dst_start = target.n_linear
+        if target.decentre:
+            if self.decentre:
+                out[:, dst_start:dst_start + 2] = src[:, :2]
+            dst_start += 2
+        out[:, dst_start:] = src[:, 2:] if self.decentre else src
+        return out
+
+    @classmethod
+    def union(cls, models: list["SurfaceModel"]) -> "SurfaceModel":
+        """The smallest model in which every one of ``models`` is nested (all terms per channel)."""
+        order = max(m.order for m in models)
+        m0 = models[0]
+        return cls(m0.channels, order, any(m.tilt for m in models), any(m.decentre for m in models),
+                   any(m.astig for m in models), m0.astig_rows, order)
 
     def to_dict(self) -> dict:
         return {"channels": list(self.channels), "order": self.order, "tilt": self.tilt,
-                "decentre": self.decentre, "astig": self.astig, "astig_rows": self.astig_rows}
+                "decentre": self.decentre, "astig": self.astig, "astig_rows": self.astig_rows,
+                "channel_order": self.kc}
 
     @classmethod
     def from_dict(cls, d: dict) -> "SurfaceModel":
         return cls(tuple(d["channels"]), int(d["order"]), bool(d["tilt"]), bool(d["decentre"]),
-                   bool(d["astig"]), bool(d["astig_rows"]))
+                   bool(d["astig"]), bool(d["astig_rows"]), int(d.get("channel_order", d["order"])))
 
 
 def student_t_loglik(resid, sigma, nu):
