@@ -175,4 +175,8 @@ def test_wiener_noise_gain_closed_form_and_trade():
     assert max(g) <= 1 / (2 * math.sqrt(0.01)) + 1e-9     # bounded by 1/(2 sqrt K): where H < sqrt K Wiener
     m = [r["restored_mtf_at_fs"] for r in rows]           # stops restoring and the result stays blurred
     assert all(a > b for a, b in zip(m, m[1:]))
+    # restoring the in-focus MTF up to fs always costs more noise as α grows; at α -> 0 it costs nothing
+    gf = [r["noise_gain_to_in_focus"] for r in rows]
+    assert all(a < b for a, b in zip(gf, gf[1:]))
+    assert ip.alpha_trade(prof, 332.0, 16.0, [1e-6], "G", 80.0)[0]["noise_gain_to_in_focus"] == pytest.approx(1.0)
     assert rows[2]["total_time_ms"] == pytest.approx((332 / 40 + 1) * 16)

@@ -123,7 +123,8 @@ def run_sweep(args) -> int:
     doc = write_sweep_plan(plan, args.out, info)
     print(f"{args.out}: sweep {doc['start_um']:.1f} -> {doc['stop_um']:.1f} µm at {doc['velocity_um_per_ms']:.3f} µm/ms, "
           f"T = {doc['total_time_ms']:.1f} ms (D = {doc['range_um']:.1f} µm), masks in {doc['masks']['file']}")
-    print("  alpha_um  T_ms    MTF@fs  noise_gain")
+    print("  alpha_um    T_ms  MTF@fs  Wiener_gain  restored@fs  gain_to_in_focus")
     for r in doc["alpha_trade"]:
-        print(f"  {r['alpha_um']:7.1f} {r['total_time_ms']:7.1f} {r['mtf_at_fs']:7.3f} {r['noise_gain']:8.3f}")
+        print(f"  {r['alpha_um']:8.1f} {r['total_time_ms']:7.1f} {r['mtf_at_fs']:7.3f} {r['noise_gain']:12.3f} "
+              f"{r['restored_mtf_at_fs']:12.3f} {r['noise_gain_to_in_focus']:17.3f}")
     return 0

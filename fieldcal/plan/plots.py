@@ -118,7 +118,9 @@ def plot_alpha_trade(profile, plan, path: str | Path) -> Path:
     ax1.set_xlabel("α (µm)")
     ax1.set_ylabel("total time T (ms)", color="C0")
     ax2 = ax1.twinx()
-    ax2.plot(a, [r["noise_gain"] for r in rows], "s-", color="C3", label="Wiener noise gain")
+    ax2.plot(a, [r["noise_gain"] for r in rows], "s-", color="C3", label="Wiener noise gain (NSR fixed)")
+    ax2.plot(a, [r["noise_gain_to_in_focus"] for r in rows], "d-", color="C1",
+             label="noise gain to restore in-focus MTF (|f| ≤ fs)")
     ax2.plot(a, [r["mtf_at_fs"] for r in rows], "^--", color="C2", label="IPSF MTF at fs")
     ax2.set_ylabel("noise gain / MTF")
     ax2.legend(loc="center right", fontsize=8)
