@@ -10,7 +10,10 @@ Typical use (by ``fieldcal.calibrate``)::
 """
 
 from .data import FitError, ImageGeometry, TileData
+from .geometry import GeometryData, GeometryFit, fit_geometry
 from .result import SurfaceFit
 from .select import fit_surfaces
+from .tolerance import ToleranceFit, fit_tolerance
 
-__all__ = ["FitError", "ImageGeometry", "TileData", "SurfaceFit", "fit_surfaces"]
+__all__ = ["FitError", "ImageGeometry", "TileData", "SurfaceFit", "fit_surfaces", "GeometryData", "GeometryFit",
+           "fit_geometry", "ToleranceFit", "fit_tolerance"]
