@@ -92,6 +92,7 @@ def run_stack(args) -> int:
     status(f"planning a focal stack from {args.profile} ...")
     plan = plan_stack(profile, req)
     doc = plan.to_dict(info)
+    doc["parameters"]["profile_source"] = info["source"]
     if args.plots:
         from ..plan.plots import plot_stack_plan
         plot_stack_plan(profile, plan, Path(args.plots) / "stack-plan.png")
@@ -120,7 +121,7 @@ def run_sweep(args) -> int:
         plot_masks(plan, d / "sweep-masks.png")
         plot_windows(plan, d / "sweep-windows.png")
         plot_alpha_trade(profile, plan, d / "alpha-trade.png")
-    doc = write_sweep_plan(plan, args.out, info)
+    doc = write_sweep_plan(plan, args.out, info, extra_parameters={"profile_source": info["source"]})
     print(f"{args.out}: sweep {doc['start_um']:.1f} -> {doc['stop_um']:.1f} µm at {doc['velocity_um_per_ms']:.3f} µm/ms, "
           f"T = {doc['total_time_ms']:.1f} ms (D = {doc['range_um']:.1f} µm), masks in {doc['masks']['file']}")
     print("  alpha_um    T_ms  MTF@fs  Wiener_gain  restored@fs  gain_to_in_focus")

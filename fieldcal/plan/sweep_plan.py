@@ -216,12 +216,14 @@ def plan_sweep(profile, request: SweepRequest) -> SweepPlan:
                      summary, warnings)
 
 
-def write_sweep_plan(plan: SweepPlan, out: str | Path, profile_info: dict | None = None) -> dict:
+def write_sweep_plan(plan: SweepPlan, out: str | Path, profile_info: dict | None = None,
+                     extra_parameters: dict | None = None) -> dict:
     """Write the mask sidecar (atomically) and then the plan (atomically); returns the plan document."""
     from .planfile import write_plan
     out = Path(out)
     npz = out.with_name(out.stem + ".masks.npz")
     sha = mk.write_npz(npz, plan.mask_arrays())
     doc = plan.to_dict(masks_file=npz.name, masks_sha256=sha, profile_info=profile_info)
+    doc["parameters"].update(extra_parameters or {})
     write_plan(out, doc)
     return doc
