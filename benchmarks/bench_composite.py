@@ -1,0 +1,411 @@
+"""Compositing benchmark: quality against the all-in-focus truth, and speed/memory, vs align_image_stack + enfuse.
+
+Quality: for each simulated lens (models/) and scene (dead-leaves texture, a photograph from scikit-image's
+sample data) a stack is rendered at the frame positions a stack plan gives (fs = 80 cycles/mm, q = 0.05), and
+composited by
+
+* **oracle**: per pixel and channel the frame nearest the *true* surface (hard seams), true geometry;
+* **profile**: fieldcal with the lens profile (the simulated lens's true surfaces and geometry);
+* **profile (calibrated)**: with a profile fitted by ``fieldcal.calibrate`` to a chart stack (unless --no-calibrate);
+* **dff / hybrid**: depth from focus with the profile's geometry / the profile refined by DFF;
+* **dff, no profile**: depth from focus on unregistered frames;
+* **enfuse**: ``align_image_stack -m`` then ``enfuse --exposure-weight=0 --saturation-weight=0
+  --contrast-weight=1 --hard-mask --gray-projector=l-star`` on the same frames (its output is mapped to the
+  geometry of z_ref with the true lens geometry, which only helps it);
+
+PSNR is over the image less a 2 % border. Side-by-side top-left corner crops go to docs/img/.
+Sweep: the paper triplet's emulated sweep (alpha = 20 µm), Wiener and Richardson-Lucy, with noise gains.
+Speed: ``fieldcal composite`` on N frames of W x H RGB 16-bit (synthetic content, timing does not depend on it),
+wall time and peak RSS of the process, and align_image_stack + enfuse on the same stack.
+
+    python benchmarks/bench_composite.py --quick                 # small images, a few minutes on 2 cores
+    python benchmarks/bench_composite.py                          # 960x540 quality, 3840x2160x42 speed (the lead)
+
+Results go between ``<!-- bench_composite:start -->`` and ``<!-- bench_composite:end -->`` in
+docs/benchmarks.md (the rest of the file is left alone) and to --work/results.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+START, END = "<!-- bench_composite:start -->", "<!-- bench_composite:end -->"
+ENFUSE_ARGS = ["--exposure-weight=0", "--saturation-weight=0", "--contrast-weight=1", "--hard-mask",
+               "--gray-projector=l-star"]
+INSTALL_HINT = "apt-get install hugin-tools enfuse   (Debian/Ubuntu: align_image_stack is in hugin-tools)"
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+def have_enfuse() -> bool:
+    return shutil.which("enfuse") is not None and shutil.which("align_image_stack") is not None
+
+
+def psnr(img, truth, white, border=0.02) -> float:
+    h, w = truth.shape[:2]
+    by, bx = max(1, int(border * h)), max(1, int(border * w))
+    d = img.astype(np.float64)[by:-by, bx:-bx] - truth.astype(np.float64)[by:-by, bx:-bx]
+    return float(10 * np.log10(white ** 2 / max(np.mean(d * d), 1e-12)))
+
+
+def photo_scene():
+    from skimage import data
+    return data.astronaut().astype(np.float32) / 255.0
+
+
+def plan_positions(prof) -> np.ndarray:
+    """Frame positions of a stack plan at fs = 80 cycles/mm, q = 0.05 (the planning module's optimum)."""
+    from fieldcal.plan import StackRequest, plan_stack
+    plan = plan_stack(prof, StackRequest(fs_cyc_per_mm=80.0, q=0.05))
+    return np.array(sorted(f["z_um"] for f in plan.to_dict()["frames"]))
+
+
+def timed(cmd, cwd=None) -> tuple[float, float, subprocess.CompletedProcess]:
+    """Wall time (s) and peak RSS (MB) of a command, via /usr/bin/time when present."""
+    gnu_time = Path("/usr/bin/time")
+    full = ([str(gnu_time), "-f", "__RSS_KB__ %M"] if gnu_time.exists() else []) + [str(c) for c in cmd]
+    t0 = time.perf_counter()
+    r = subprocess.run(full, capture_output=True, text=True, cwd=cwd)
+    dt = time.perf_counter() - t0
+    rss = float("nan")
+    for line in r.stderr.splitlines():
+        if line.startswith("__RSS_KB__"):
+            rss = float(line.split()[1]) / 1024.0
+    return dt, rss, r
+
+
+def run_enfuse(stack, frames_sorted, work: Path) -> tuple[np.ndarray | None, float, float, str]:
+    """align_image_stack + enfuse on the frames; returns (image or None, wall s, peak MB, note)."""
+    import tifffile
+    work.mkdir(parents=True, exist_ok=True)
+    files = [stack.frames[int(i)].path for i in frames_sorted]
+    # align to the frame nearest z_ref (first in the list), then outwards in z order
+    t1, m1, r = timed(["align_image_stack", "-m", "-a", work / "al_", "--use-given-order", *files])
+    aligned = sorted(work.glob("al_*.tif"))
+    note = ""
+    if r.returncode != 0 or len(aligned) != len(files):
+        note = "align_image_stack failed; enfuse on unaligned frames"
+        aligned = files
+    t2, m2, r2 = timed(["enfuse", *ENFUSE_ARGS, "-o", work / "enfuse.tif", *aligned])
+    if r2.returncode != 0:
+        return None, t1 + t2, max(m1, m2), "enfuse failed: " + r2.stderr.strip()[-200:]
+    img = tifffile.imread(work / "enfuse.tif")
+    if img.ndim == 3 and img.shape[2] > len(stack.channels):
+        img = img[..., :len(stack.channels)]  # drop enfuse's alpha
+    if img.ndim == 2:
+        img = img[..., None]
+    return img, t1 + t2, max(m1, m2), note
+
+
+def to_zref(img, prof, z_um, channels, dtype, white):
+    """Map an image in the geometry of the frame at z into the geometry of z_ref (true lens geometry)."""
+    from fieldcal.composite import ArrayStack
+    from fieldcal.composite.stack_profile import to_input_dtype
+    from fieldcal.composite.warp import frame_maps, warp_region
+    s = ArrayStack([img.astype(np.float32)], [float(z_um)], channels)
+    h, w = img.shape[:2]
+    out = np.empty((h, w, len(channels)), np.float32)
+    for fm in frame_maps(prof, float(z_um), channels):
+        out[..., list(fm.channels)] = warp_region(s, 0, fm, 0, 0, w, h)
+    return to_input_dtype(out, dtype, white)
+
+
+def save_crops(path: Path, panels: list[tuple[str, np.ndarray]], white: float, crop: int) -> None:
+    """Top-left corner crops side by side, labelled, 8-bit PNG (display gamma 1/2.2)."""
+    import cv2
+    tiles = []
+    for label, img in panels:
+        c = img[:crop, :crop].astype(np.float32) / white
+        c = np.clip(c, 0, 1) ** (1 / 2.2)
+        c = (c * 255).astype(np.uint8)
+        if c.shape[2] == 1:
+            c = np.repeat(c, 3, axis=2)
+        c = cv2.resize(c[..., ::-1], (2 * crop, 2 * crop), interpolation=cv2.INTER_NEAREST)
+        c = np.ascontiguousarray(c)
+        cv2.putText(c, label, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(c)
+        tiles.append(np.zeros((2 * crop, 4, 3), np.uint8))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.concatenate(tiles[:-1], axis=1))
+
+
+# ------------------------------------------------------------------------------------------------ quality
+def quality(lens: str, scene_name: str, width: int, work: Path, enfuse: bool, calibrate: bool,
+            img_dir: Path | None) -> dict:
+    import tifffile
+    from fieldcal.composite import composite_stack
+    from fieldcal.composite.stack_profile import to_input_dtype
+    from fieldcal.composite.stream import accumulate
+    from fieldcal.composite.surface import profile_focus_map
+    from fieldcal.composite.weights import BlendKernel
+    from fieldcal.lens import LensSpec
+    from fieldcal.simulate import simulate_stack
+    from fieldcal.truth import TruthProfile
+
+    spec0 = LensSpec.load(REPO / "models" / f"{lens}.json")
+    height = round(width * spec0.sensor.height_px / spec0.sensor.width_px)
+    spec = spec0.with_sensor_size(width, height)
+    prof = TruthProfile(spec)
+    z = plan_positions(TruthProfile(spec0, width, height))
+    scene = "chart" if scene_name == "texture" else photo_scene()
+    sdir = work / f"{lens}-{scene_name}-{width}"
+    st = simulate_stack(spec, sdir, z, scene=scene, seed=3, progress=False, overwrite=True)
+    truth = tifffile.imread(sdir / "truth.tiff")
+    white = st.white_level
+    row = {"lens": lens, "scene": scene_name, "size": [width, height], "frames": len(st)}
+    panels = [("truth", truth)]
+    zb = profile_focus_map(prof, width, height, st.channels)
+    oracle = to_input_dtype(accumulate(st, zb, BlendKernel(np.sort(st.z_um), 0.0, min_band=0.0), prof,
+                                       quiet=True), st.dtype, white)
+    row["oracle"] = psnr(oracle, truth, white)
+    panels.append(("oracle", oracle))
+    best = max(range(len(st)), key=lambda i: psnr(st.read(i), truth, white))
+    row["best single frame"] = psnr(st.read(best), truth, white)
+    for label, method, p in (("profile", "profile", prof), ("dff", "dff", prof), ("hybrid", "hybrid", prof),
+                             ("dff, no profile", "dff", None)):
+        t0 = time.perf_counter()
+        res = composite_stack(st, p, method, quiet=True)
+        row[label] = psnr(res.image, truth, white)
+        row[label + " s"] = time.perf_counter() - t0
+        if label in ("profile", "dff"):
+            panels.append((label, res.image))
+    if calibrate:
+        try:
+            row["profile (calibrated)"] = calibrated_psnr(spec, z, work, st, truth, white)
+        except Exception as e:  # report, do not hide: the row says why
+            row["profile (calibrated)"] = f"failed: {type(e).__name__}: {e}"[:160]
+    if enfuse:
+        order = np.argsort(np.abs(st.z_um - spec.z_ref_um))[:1].tolist()
+        rest = [int(i) for i in np.argsort(st.z_um)[::-1] if int(i) not in order]
+        img, t, _, note = run_enfuse(st, order + rest, work / f"enfuse-{lens}-{scene_name}")
+        if img is not None:
+            img = to_zref(img, prof, float(st.z_um[order[0]]), st.channels, st.dtype, white)
+            row["enfuse"] = psnr(img, truth, white)
+            panels.append(("enfuse", img))
+        row["enfuse note"] = note
+    panels.append((f"single z={st.z_um[best]:.0f}", st.read(best)))
+    if img_dir is not None:
+        name = f"composite-{lens}-{scene_name}.png"
+        save_crops(img_dir / name, panels, white, crop=min(96, width // 5))
+        row["crops"] = f"img/{name}"
+    return row
+
+
+def calibrated_psnr(spec, z, work: Path, scene_stack, truth, white) -> float:
+    """Calibrate from a chart stack of the same lens, then composite the scene stack with that profile."""
+    from fieldcal.calibrate import calibrate
+    from fieldcal.composite import composite_stack
+    from fieldcal.simulate import simulate_stack
+    lo, hi = spec.focus_range_um()
+    zc = np.unique(np.round(np.concatenate([np.arange(lo - 20, hi + 20, 8.0), [spec.z_ref_um]]), 3))
+    chart = simulate_stack(spec, work / f"chart-{spec.name}", zc, scene="chart", seed=11, progress=False,
+                           overwrite=True)
+    prof = calibrate(chart, effort="quick", z_ref_um=spec.z_ref_um, quiet=True)
+    return psnr(composite_stack(scene_stack, prof, "profile", quiet=True).image, truth, white)
+
+
+# ------------------------------------------------------------------------------------------------- sweep
+def sweep(width: int, work: Path) -> dict:
+    import tifffile
+    from fieldcal.composite import deconvolve_sweep, emulate_sweep
+    from fieldcal.composite.stack_profile import to_input_dtype
+    from fieldcal.lens import LensSpec
+    from fieldcal.simulate import simulate_stack
+    from fieldcal.truth import TruthProfile
+
+    spec0 = LensSpec.load(REPO / "models" / "triplet-uncorrected.json")
+    height = round(width * spec0.sensor.height_px / spec0.sensor.width_px)
+    spec = spec0.with_sensor_size(width, height)
+    prof = TruthProfile(spec)
+    lo, hi = spec.focus_range_um()
+    z = np.arange(np.floor(lo) - 24, hi + 24, 4.0)  # dense: the paper emulates with ~4 um steps
+    st = simulate_stack(spec, work / f"sweep-{width}", z, scene="chart", seed=5, progress=False, overwrite=True)
+    truth = tifffile.imread(work / f"sweep-{width}" / "truth.tiff")
+    out = {"size": [width, height], "frames": len(st), "rows": []}
+    for alpha in (10.0, 20.0, 40.0):
+        sw = emulate_sweep(st, prof, alpha, quiet=True)
+        raw = psnr(to_input_dtype(sw.image, st.dtype, st.white_level), truth, st.white_level)
+        t0 = time.perf_counter()
+        wi = deconvolve_sweep(sw.image, prof, alpha, st.channels, black=st.black_level, white=st.white_level)
+        tw = time.perf_counter() - t0
+        rl = deconvolve_sweep(sw.image, prof, alpha, st.channels, black=st.black_level, white=st.white_level,
+                              method="rl", rl_iterations=30)
+        out["rows"].append({
+            "alpha_um": alpha, "sweep": raw,
+            "wiener": psnr(to_input_dtype(wi.image, st.dtype, st.white_level), truth, st.white_level),
+            "rl30": psnr(to_input_dtype(rl.image, st.dtype, st.white_level), truth, st.white_level),
+            "noise_gain": float(np.mean([c["noise_gain"] for c in wi.info["channels"].values()])),
+            "wiener_s": tw})
+    return out
+
+
+# ------------------------------------------------------------------------------------------------- speed
+def make_speed_stack(path: Path, width: int, height: int, n: int) -> None:
+    """N frames of smooth random texture, RGB uint16 with 12-bit values, z over the triplet's focus range."""
+    import cv2
+    from fieldcal.lens import LensSpec
+    from fieldcal.stack import Stack, StackWriter
+    if (path / "stack.json").exists():
+        try:
+            s = Stack.open(path)
+            if len(s) == n and s.shape == (height, width):
+                return
+        except Exception:
+            pass
+    spec = LensSpec.load(REPO / "models" / "triplet-uncorrected.json")
+    lo, hi = spec.focus_range_um()
+    rng = np.random.default_rng(0)
+    base = cv2.GaussianBlur(rng.random((height, width, 3), dtype=np.float32), (0, 0), 2.0)
+    base = (base - base.min()) / (base.max() - base.min())
+    w = StackWriter.create(path, pixel_pitch_um=spec.sensor.pixel_pitch_um * spec.sensor.width_px / width,
+                           channels=["R", "G", "B"], overwrite=True, bit_depth=12)
+    for k, z in enumerate(np.linspace(lo - 5, hi + 5, n)):
+        noise = rng.normal(0, 0.01, (height, width, 1)).astype(np.float32)
+        w.add_frame(np.clip((base + noise) * 4095, 0, 4095).astype(np.uint16), float(round(z, 3)))
+
+
+def speed(width: int, height: int, n: int, work: Path, enfuse: bool) -> dict:
+    from fieldcal.lens import LensSpec
+    from fieldcal.stack import Stack
+    spath = work / f"speed-{width}x{height}x{n}"
+    make_speed_stack(spath, width, height, n)
+    spec = LensSpec.load(REPO / "models" / "triplet-uncorrected.json").with_sensor_size(width, height)
+    lens = work / "speed-lens.json"
+    spec.save(lens)
+    out = {"size": [width, height], "frames": n}
+    env_cmd = [sys.executable, "-m", "fieldcal", "composite", spath, "--profile", lens, "--quiet"]
+    t, rss, r = timed([*env_cmd, "--out", work / "speed-profile.tiff"])
+    out["fieldcal profile s"], out["fieldcal profile MB"] = t, rss
+    if r.returncode != 0:
+        out["fieldcal error"] = r.stderr[-300:]
+    if enfuse:
+        st = Stack.open(spath)
+        order = [int(i) for i in np.argsort(st.z_um)[::-1]]
+        shutil.rmtree(work / "enfuse-speed", ignore_errors=True)
+        _, te, me, note = run_enfuse(st, order, work / "enfuse-speed")
+        out["enfuse s"], out["enfuse MB"], out["enfuse note"] = te, me, note
+        out["speed-up"] = te / t if t > 0 else float("nan")
+    return out
+
+
+# -------------------------------------------------------------------------------------------------- docs
+def fmt(v):
+    return f"{v:.2f}" if isinstance(v, float) else str(v)
+
+
+def markdown(res: dict) -> str:
+    q = res["quality"]
+    cols = ["oracle", "profile", "profile (calibrated)", "dff", "hybrid", "dff, no profile", "enfuse",
+            "best single frame"]
+    cols = [c for c in cols if any(c in r for r in q)]
+    lines = [START, "", f"### Compositing (`benchmarks/bench_composite.py{' --quick' if res['quick'] else ''}`)", "",
+             "PSNR (dB) against the simulator's all-in-focus truth; frames at a stack plan's positions "
+             "(fs = 80 cy/mm, q = 0.05). *oracle*: the frame nearest the true surface per pixel and channel. "
+             "*profile*: fieldcal with the lens's true profile; *calibrated*: with `fieldcal.calibrate` on a chart "
+             "stack. *enfuse*: `align_image_stack -m` + `enfuse " + " ".join(ENFUSE_ARGS) + "`.", "",
+             "| lens | scene | size | frames | " + " | ".join(cols) + " |",
+             "| --- | --- | --- | --- | " + " | ".join("---" for _ in cols) + " |"]
+    for r in q:
+        lines.append(f"| {r['lens']} | {r['scene']} | {r['size'][0]}x{r['size'][1]} | {r['frames']} | "
+                     + " | ".join(fmt(r.get(c, "–")) for c in cols) + " |")
+    notes = [f"{r['lens']}/{r['scene']}: {r['enfuse note']}" for r in q if r.get("enfuse note")]
+    if not res["enfuse"]:
+        notes.append(f"enfuse/align_image_stack not installed: {INSTALL_HINT}")
+    if notes:
+        lines += ["", "Notes: " + "; ".join(notes)]
+    lines += ["", "Corner crops (top-left, 2x nearest-neighbour): truth | oracle | profile | dff | enfuse | "
+              "best single frame.", ""]
+    lines += [f"![{r['lens']} {r['scene']}]({r['crops']})" for r in q if "crops" in r]
+    sw = res.get("sweep")
+    if sw:
+        lines += ["", f"Focal sweep emulated from a {sw['frames']}-frame, 4 µm stack of the triplet "
+                      f"({sw['size'][0]}x{sw['size'][1]}), deconvolved with the integrated PSF:", "",
+                  "| α (µm) | sweep | Wiener | Richardson–Lucy (30 it.) | Wiener noise gain |",
+                  "| --- | --- | --- | --- | --- |"]
+        for r in sw["rows"]:
+            lines.append(f"| {r['alpha_um']:g} | {r['sweep']:.2f} | {r['wiener']:.2f} | {r['rl30']:.2f} | "
+                         f"{r['noise_gain']:.2f} |")
+    sp = res.get("speed")
+    if sp:
+        lines += ["", f"Speed, {sp['frames']} frames of {sp['size'][0]}x{sp['size'][1]} RGB 16-bit, "
+                      f"{res['cores']} cores (wall time and peak RSS of the whole process):", "",
+                  "| tool | wall (s) | peak memory (MB) |", "| --- | --- | --- |",
+                  f"| fieldcal composite (profile) | {fmt(sp['fieldcal profile s'])} | "
+                  f"{fmt(sp['fieldcal profile MB'])} |"]
+        if "enfuse s" in sp:
+            lines.append(f"| align_image_stack + enfuse | {fmt(sp['enfuse s'])} | {fmt(sp['enfuse MB'])} |")
+            lines += ["", f"fieldcal is {sp['speed-up']:.1f}x faster on the same stack."]
+    lines += ["", END]
+    return "\n".join(lines)
+
+
+def write_docs(doc: Path, section: str) -> None:
+    from fieldcal._io import atomic_write_text
+    text = doc.read_text() if doc.exists() else "# Benchmarks\n"
+    if START in text and END in text:
+        a, b = text.index(START), text.index(END) + len(END)
+        text = text[:a] + section + text[b:]
+    else:
+        text = text.rstrip("\n") + "\n\n" + section + "\n"
+    atomic_write_text(doc, text)
+
+
+def main(argv=None) -> int:
+    import os
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="small images and a small speed stack (minutes)")
+    ap.add_argument("--work", default=None, help="scratch folder for stacks (default: a temporary folder)")
+    ap.add_argument("--width", type=int, default=None, help="quality image width (default 960, quick 384)")
+    ap.add_argument("--speed-size", default=None, help="WxHxN of the speed stack (default 3840x2160x42, "
+                                                       "quick 960x540x42)")
+    ap.add_argument("--no-enfuse", action="store_true", help="skip align_image_stack + enfuse")
+    ap.add_argument("--no-calibrate", action="store_true", help="skip the calibrated-profile row")
+    ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--docs", default=str(REPO / "docs" / "benchmarks.md"))
+    ap.add_argument("--no-docs", action="store_true", help="print only, do not touch docs/")
+    args = ap.parse_args(argv)
+    os.environ.setdefault("FIELDCAL_PROGRESS", "0")
+
+    enfuse = not args.no_enfuse and have_enfuse()
+    if not args.no_enfuse and not enfuse:
+        print(f"align_image_stack/enfuse not found; install with: {INSTALL_HINT}", file=sys.stderr)
+    width = args.width or (384 if args.quick else 960)
+    ss = args.speed_size or ("960x540x42" if args.quick else "3840x2160x42")
+    sw_, sh_, sn_ = (int(v) for v in ss.lower().split("x"))
+    work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench-composite-"))
+    work.mkdir(parents=True, exist_ok=True)
+    img_dir = None if args.no_docs else Path(args.docs).parent / "img"
+    res = {"quick": args.quick, "enfuse": enfuse, "cores": os.cpu_count(), "quality": []}
+    cases = [("triplet-uncorrected", "texture"), ("triplet-uncorrected", "photo"), ("singlet-colour", "texture"),
+             ("doublet-mono", "photo")]
+    for lens, scene in cases:
+        t0 = time.perf_counter()
+        row = quality(lens, scene, width, work, enfuse, not args.no_calibrate and scene == "texture", img_dir)
+        res["quality"].append(row)
+        print(f"{lens}/{scene}: " + ", ".join(f"{k}={fmt(v)}" for k, v in row.items()
+                                               if isinstance(v, float) and not k.endswith(" s"))
+              + f"  ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    res["sweep"] = sweep(width, work)
+    print("sweep:", json.dumps(res["sweep"]["rows"]), file=sys.stderr)
+    if not args.no_speed:
+        res["speed"] = speed(sw_, sh_, sn_, work, enfuse)
+        print("speed:", json.dumps(res["speed"]), file=sys.stderr)
+    (work / "results.json").write_text(json.dumps(res, indent=2, default=str))
+    section = markdown(res)
+    print(section)
+    if not args.no_docs:
+        write_docs(Path(args.docs), section)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
