@@ -177,3 +177,17 @@ def test_mono_lens_from_rgb_image_stack(tmp_path):
     assert list(st.channels) == ["Y"] and st.meta["chart"] == "g.png"
     f = st.read(0)
     assert f.shape == (30, 40, 1)
+
+
+def test_colour_leaves_scene_is_colour_and_textured():
+    from fieldcal.simulate.scene import load_scene
+    img, name = load_scene("colour-leaves", 160, 90, seed=2)
+    assert name == "colour-leaves" and img.shape == (90, 160, 3) and img.dtype == np.float32
+    assert 0.0 <= img.min() and img.max() <= 1.0
+    # channels correlated (one luminance) but not identical (per-channel focus matters)
+    r = np.corrcoef(img[..., 0].ravel(), img[..., 2].ravel())[0, 1]
+    assert 0.5 < r < 0.99
+    # edges at fine scale: strong pixel-to-pixel differences
+    assert np.abs(np.diff(img[..., 1], axis=1)).mean() > 0.02
+    again, _ = load_scene("colour-leaves", 160, 90, seed=2)
+    np.testing.assert_array_equal(img, again)

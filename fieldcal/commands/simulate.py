@@ -27,7 +27,8 @@ def register(sub):
     p.add_argument("--z", nargs=3, type=float, required=True, metavar=("START", "STOP", "STEP"),
                    help="stage positions in µm: START STOP STEP (STOP included when on the grid)")
     p.add_argument("--scene", default="chart",
-                   help="chart (random texture, default), charuco, slanted-edge, or an image file")
+                   help="chart (random texture, default), charuco, slanted-edge, colour-leaves (a colour test "
+                        "scene), or an image file")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise and the texture chart (default 0)")
     p.add_argument("--size", metavar="WxH", help="render at W x H px over the same sensor area (default: the "
                    "lens's sensor size)")

@@ -12,6 +12,28 @@ from ..errors import ParameterError
 #: scene names understood by :func:`load_scene` -> the chart kind of :func:`fieldcal.targets.chart_image`.
 CHARTS = {"chart": "texture", "texture": "texture", "charuco": "charuco", "slanted-edge": "slanted-edge"}
 
+#: synthetic colour scenes (test scenes for compositing, not charts).
+COLOUR_SCENES = ("colour-leaves",)
+
+
+def colour_leaves(width_px: int, height_px: int, seed: int = 0) -> np.ndarray:
+    """A natural-looking colour test scene: dead-leaves luminance (edges at every scale, 1/f² spectrum up to
+    Nyquist) tinted by smooth random colour fields, so the channels are correlated like a photograph's but not
+    identical (per-channel focus matters). float32 H x W x 3 in [0.04, 0.96]."""
+    import cv2
+
+    from ..targets import random_texture
+    lum = random_texture(width_px, height_px, seed).astype(np.float32)
+    sigma = max(width_px, height_px) / 60.0
+    tints = []
+    for c in range(3):
+        t = random_texture(width_px, height_px, seed + 7919 * (c + 1), r_min_px=2.0).astype(np.float32)
+        t = cv2.GaussianBlur(t, (0, 0), sigma)
+        t = (t - t.min()) / max(float(t.max() - t.min()), 1e-6)
+        tints.append(t)
+    img = lum[..., None] * (0.45 + 0.55 * np.stack(tints, axis=-1))
+    return np.clip(0.04 + 0.92 * img / max(float(img.max()), 1e-6), 0.0, 1.0).astype(np.float32)
+
 
 def load_scene(scene, width_px: int, height_px: int, seed: int = 0) -> tuple[np.ndarray, str]:
     """Return ``(image, name)``: a float32 H x W or H x W x 3 (RGB) image in [0, 1] at the given size.
@@ -19,7 +41,8 @@ def load_scene(scene, width_px: int, height_px: int, seed: int = 0) -> tuple[np.
     Parameters
     ----------
     scene : str, path or array
-        ``"chart"`` (the dead-leaves texture), ``"charuco"``, ``"slanted-edge"``, an image file (any size and
+        ``"chart"`` (the dead-leaves texture), ``"charuco"``, ``"slanted-edge"``, ``"colour-leaves"`` (a colour
+        test scene, :func:`colour_leaves`), an image file (any size and
         format OpenCV or tifffile reads), or an array (uint8/uint16 scaled to [0, 1], floats taken as they
         are). Files and arrays of another size are centre-cropped to the sensor's aspect ratio, then resized
         with ``cv2.INTER_AREA`` (averaging, no aliasing when shrinking).
@@ -31,6 +54,8 @@ def load_scene(scene, width_px: int, height_px: int, seed: int = 0) -> tuple[np.
     if isinstance(scene, str) and scene in CHARTS:
         from ..targets import chart_image
         return chart_image(CHARTS[scene], width_px, height_px, seed).astype(np.float32), scene
+    if isinstance(scene, str) and scene in COLOUR_SCENES:
+        return colour_leaves(width_px, height_px, seed), scene
     if isinstance(scene, (str, Path)):
         path = Path(scene)
         return fit_to_sensor(_read_file(path), width_px, height_px), path.name
