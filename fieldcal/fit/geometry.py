@@ -6,7 +6,7 @@ Model (t = (z - z_ref) / z_scale, z_scale = half the measured z range)::
 
 No constant term: by definition (DESIGN.md) the frame at z_ref has m = 1 and no shift. K = 1 (linear:
 focus breathing of a non-telecentric lens, a stage axis tilted against the optical axis) unless the
-quadratic lowers BIC. Covariances are scaled by the Birge ratio max(1, chi2/dof), so underestimated
+quadratic lowers BIC (error scale profiled out). Covariances are scaled by the Birge ratio max(1, chi2/dof), so underestimated
 per-frame sigmas widen the uncertainty instead of hiding it.
 """
 
@@ -102,7 +102,9 @@ def _wls(t, y, sigma, order) -> tuple[PolyFit, float]:
     chi2 = float(r @ r)
     birge = max(1.0, chi2 / dof)
     cov = np.linalg.pinv(P.T @ P) * birge
-    bic = chi2 + order * math.log(t.size)
+    # Gaussian likelihood with the error scale profiled out: the choice does not depend on how well the
+    # per-frame sigmas were estimated (they may be too small by a common factor).
+    bic = t.size * math.log(max(chi2, 1e-300) / t.size) + order * math.log(t.size)
     return PolyFit(coef, cov, chi2 / dof), bic
 
 
