@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from ..errors import ParameterError
@@ -20,14 +21,15 @@ from ..progress import progress, status
 from . import focus
 from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
 from .geometry import GeometryMeasurements, StepFit, compose_steps, downsample, register_step
-from .throughfocus import CurveFit, CurveRules, analyse_curve
+from .throughfocus import CurveFit, CurveRules, analyse_curves
 
 EFFORTS = {
     # tile_div: default tile = min(W, H) / tile_div; geo_ds: downsampling for registration;
-    # geo_all: register every channel (else one, copied); directional: z_tan/z_sag; cell: cell size (px).
-    "quick": {"tile_div": 8, "geo_ds": 4, "geo_all": False, "directional": False, "cell": 8},
-    "standard": {"tile_div": 12, "geo_ds": 2, "geo_all": True, "directional": False, "cell": 4},
-    "thorough": {"tile_div": 16, "geo_ds": 2, "geo_all": True, "directional": True, "cell": 4},
+    # geo_all: register every channel (else one, copied); bp_all: band-pass (and width) for every channel
+    # (else only the registered one, unless it gives z_best); directional: z_tan/z_sag; cell: cell size (px).
+    "quick": {"tile_div": 8, "geo_ds": 4, "geo_all": False, "bp_all": False, "directional": False, "cell": 8},
+    "standard": {"tile_div": 12, "geo_ds": 4, "geo_all": True, "bp_all": True, "directional": False, "cell": 4},
+    "thorough": {"tile_div": 16, "geo_ds": 2, "geo_all": True, "bp_all": True, "directional": True, "cell": 4},
 }
 MEASURES = ("sml", "bandpass")
 
@@ -38,8 +40,9 @@ class TileRules:
 
     saturated_max : fraction of a tile's pixels at >= 0.995 of white (in any frame) above which it is rejected.
     dark_min : mean level (fraction of white) below which a tile is too dark to measure.
-    texture_min : RMS contrast (std / mean of the tile at its most contrasted frame) below which the tile
-        has too little texture (a uniform tile shows only sensor noise, ~1-2 % at typical exposures).
+    texture_min : RMS contrast of the tile's cell means (std / mean, at its most contrasted frame) below
+        which the tile has too little texture; averaging over cells keeps sensor noise (1-2 % per pixel at
+        typical exposures) well below this.
     """
 
     saturated_max: float = 0.002
@@ -167,7 +170,7 @@ class _Maps:
 
 # ------------------------------------------------------------------------------------------------ the pass
 def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float, effort: str,
-          centre_px: tuple[float, float] | None, z_ref_um: float | None, quiet: bool):
+          centre_px: tuple[float, float] | None, z_ref_um: float | None, quiet: bool, bp_all: bool = False):
     cfg = _effort(effort)
     layouts = plane_layouts(stack.channels, stack.cfa)
     h, w = stack.shape
@@ -178,8 +181,10 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
     pitch_mm = stack.pixel_pitch_um * 1e-3
 
     maps: list[_Maps] = []
+    bp_planes = set(range(len(layouts))) if (bp_all or cfg["bp_all"]) else set(
+        i for i, lay in enumerate(layouts) if lay.name == layouts[_geometry_channels(stack, layouts, False)[0]].name)
     if want_focus:
-        for lay in layouts:
+        for li, lay in enumerate(layouts):
             f0 = fs_cyc_per_mm * pitch_mm * lay.stride
             if f0 > 0.4:
                 raise ParameterError(
@@ -189,7 +194,9 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
                     fix=f"use fs <= {0.4 / (pitch_mm * lay.stride):.0f} cycles/mm for this stack")
             cell = max(2, cfg["cell"] // lay.stride)
             hc, wc = focus.cell_grid(plane_shape((h, w), lay), cell)
-            names = ["sml", "bandpass", "sum", "sum2", "sat"] + (["along", "across"] if cfg["directional"] else [])
+            names = ["sml", "sum", "sat"]
+            if li in bp_planes:
+                names += ["bandpass"] + (["along", "across"] if cfg["directional"] else [])
             maps.append(_Maps(lay, cell, f0, {k: np.empty((n, hc, wc), np.float32) for k in names}))
     units = {}
     if want_focus and cfg["directional"]:
@@ -198,15 +205,17 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
             units[id(m)] = focus.radial_unit_vectors(plane_shape((h, w), m.layout), (float(cxp), float(cyp)))
 
     geo_idx = _geometry_channels(stack, layouts, cfg["geo_all"]) if want_geometry else []
-    ds = cfg["geo_ds"]
+    # Downsample for speed, but keep at least ~256 px on the short side: ECC needs texture to lock onto.
+    ds = int(max(1, min(cfg["geo_ds"], min(h, w) // 256)))
     prev: dict[int, np.ndarray] = {}
     steps: dict[int, list] = {i: [] for i in geo_idx}
     for k in progress(range(n), total=n, desc="measuring frames", quiet=quiet, unit="frame"):
         frame = stack.read_normalized(int(order[k]))
+        split = cv2.split(frame) if (stack.cfa is None and frame.ndim == 3 and frame.shape[2] > 1) else None
         for li, lay in enumerate(layouts):
-            plane = None
+            plane = split[lay.channel_index] if split is not None else None
             if li in steps:
-                plane = extract_plane(frame, lay)
+                plane = extract_plane(frame, lay) if plane is None else plane
                 small = downsample(plane, ds)
                 # Centre in the small grid: x_full = S x_small + O.
                 S, O = lay.stride * ds, lay.stride * (ds - 1) / 2.0
@@ -224,11 +233,14 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
                     plane = extract_plane(frame, lay)
                 c = m.cell
                 m.maps["sml"][k] = focus.cell_sums(focus.sml(plane), c)
-                band = focus.bandpass(plane, m.f0_cyc_per_px)
-                m.maps["bandpass"][k] = focus.cell_sums(band * band, c)
                 m.maps["sum"][k] = focus.cell_sums(plane, c)
-                m.maps["sum2"][k] = focus.cell_sums(plane * plane, c)
-                m.maps["sat"][k] = focus.saturated_fraction_cells(plane, c)
+                if "bandpass" in m.maps:
+                    band = focus.bandpass(plane, m.f0_cyc_per_px)
+                    m.maps["bandpass"][k] = focus.cell_sums(cv2.multiply(band, band), c)
+                if cv2.minMaxLoc(plane)[1] >= focus.SATURATION_LEVEL:
+                    m.maps["sat"][k] = focus.saturated_fraction_cells(plane, c)
+                else:
+                    m.maps["sat"][k] = 0.0
                 if "along" in m.maps:
                     ux, uy = units[id(m)]
                     along, across = focus.directional_energy(band, ux, uy)
@@ -280,61 +292,108 @@ def tile_centres(geometry: GeometryMeasurements, tile_px: int, margin_px: float 
     return xs.ravel(), ys.ravel()
 
 
-def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: np.ndarray, tile_px: int):
-    """Per-pixel mean of every map over each tile in each frame: dict name -> (n_tiles, n_frames)."""
+def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: np.ndarray, tile_px: int,
+                 moments_of: str = "sml"):
+    """Per-pixel mean of every map over each tile in each frame: dict name -> (n_tiles, n_frames).
+
+    Also ``"mx", "my"``: first moments (full-frame px, frame k's geometry) of the ``moments_of`` map, and
+    ``"cx", "cy"``: the box centres, so the measure-weighted position of each tile can be found later.
+    """
     lay = m.layout
     n = geometry.z_um.size
-    out = {k: np.empty((xs.size, n)) for k in m.maps}
-    out["area"] = np.empty((xs.size, n))
+    out = {k: np.empty((xs.size, n)) for k in list(m.maps) + ["sum2", "area", "mx", "my", "cx", "cy"]}
+    c = m.cell
+    hc, wc = m.maps[moments_of].shape[1:]
+    # cell centres in full-frame px
+    xcell, ycell = lay.to_full(np.arange(wc) * c + (c - 1) / 2.0, np.arange(hc) * c + (c - 1) / 2.0)
     for k in range(n):
         xk, yk = geometry.map_points(k, lay.name, xs, ys)
         half = 0.5 * tile_px * geometry.magnification[k, geometry.channel_index(lay.name)]
         # full-frame continuous coords -> plane coords -> cell units (cell j spans plane [j c - 0.5, (j+1) c - 0.5])
         x0, y0 = lay.to_plane(xk - half, yk - half)
         x1, y1 = lay.to_plane(xk + half, yk + half)
-        c = m.cell
         bx0, by0, bx1, by1 = (x0 + 0.5) / c, (y0 + 0.5) / c, (x1 + 0.5) / c, (y1 + 0.5) / c
         area = (bx1 - bx0) * (by1 - by0) * c * c  # plane pixels
         out["area"][:, k] = area
+        out["cx"][:, k], out["cy"][:, k] = xk, yk
         for name, stackmap in m.maps.items():
-            ii = focus.integral(stackmap[k])
-            s = focus.box_sums(ii, bx0, by0, bx1, by1)
-            out[name][:, k] = s if name == "sat" else s / area
-        out["sat"][:, k] = out["sat"][:, k] * c * c / area  # sat cells hold fractions: back to a fraction
+            s = focus.box_sums(focus.integral(stackmap[k]), bx0, by0, bx1, by1)
+            out[name][:, k] = s / area
+            if name == moments_of:
+                e = stackmap[k]
+                out["mx"][:, k] = focus.box_sums(focus.integral(e * xcell[None, :].astype(np.float32)),
+                                                 bx0, by0, bx1, by1) / area
+                out["my"][:, k] = focus.box_sums(focus.integral(e * ycell[:, None].astype(np.float32)),
+                                                 bx0, by0, bx1, by1) / area
+        out["sat"][:, k] *= c * c  # sat cells hold fractions, not sums: back to a fraction of the tile
+        # mean of the squared cell means: with "sum" it gives the texture contrast between cells (cell
+        # averaging keeps sensor noise out of it)
+        cm = m.maps["sum"][k] * np.float32(1.0 / (c * c))
+        out["sum2"][:, k] = focus.box_sums(focus.integral(cm * cm), bx0, by0, bx1, by1) * (c * c) / area
     return out
 
 
+def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurements, channel: str,
+                        measure_key: str) -> tuple[np.ndarray, np.ndarray]:
+    """Each tile's focus-measure-weighted centre (reference-frame px) at its sharpest frame.
+
+    A tile's best focus is an average of the local best foci inside it, weighted by where the texture's
+    focus energy is; across a steep field-curvature gradient that is not the geometric centre. The energy
+    above the curve's floor at the sharpest frame gives the weights.
+    """
+    v = cc[measure_key]
+    nt = v.shape[0]
+    kbest = np.argmax(v, axis=1)
+    rows = np.arange(nt)
+    floor = np.min(v, axis=1)
+    e = v[rows, kbest] - floor
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xk = (cc["mx"][rows, kbest] - floor * cc["cx"][rows, kbest]) / e
+        yk = (cc["my"][rows, kbest] - floor * cc["cy"][rows, kbest]) / e
+    bad = ~(e > 0) | ~np.isfinite(xk) | ~np.isfinite(yk)
+    xk = np.where(bad, cc["cx"][rows, kbest], xk)
+    yk = np.where(bad, cc["cy"][rows, kbest], yk)
+    ci = geometry.channel_index(channel)
+    cx, cy = geometry.centre_px
+    m = geometry.magnification[kbest, ci]
+    return (cx + (xk - cx - geometry.shift_x_px[kbest, ci]) / m,
+            cy + (yk - cy - geometry.shift_y_px[kbest, ci]) / m)
+
+
 def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per_mm: float, q: float,
-             measure: str, rules: TileRules, quiet: bool, desc: str) -> dict[str, np.ndarray]:
+             measure: str, rules: TileRules) -> dict[str, np.ndarray]:
+    """Tile tests (saturation, texture) then the batched curve fits of one channel's tiles."""
     nt = channel_curves["sml"].shape[0]
     res = {k: np.full(nt, np.nan) for k in ("z_best_um", "z_sigma_um", "width_um", "peak", "z_tan_um", "z_sag_um")}
-    stat = np.empty(nt, dtype=object)
+    stat = np.full(nt, "ok", dtype=object)
     mean = channel_curves["sum"]
     var = np.maximum(channel_curves["sum2"] - mean * mean, 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        contrast = np.where(mean > 0, np.sqrt(var) / np.where(mean > 0, mean, 1.0), 0.0)
-    for t in progress(range(nt), total=nt, desc=desc, quiet=quiet, unit="tile"):
-        if np.max(channel_curves["sat"][t]) > rules.saturated_max:
-            stat[t] = "saturated"
-            continue
-        if np.max(mean[t]) < rules.dark_min or np.max(contrast[t]) < rules.texture_min:
-            stat[t] = "low_texture"
-            continue
-        bp = analyse_curve(z, channel_curves["bandpass"][t], "otf", fs_cyc_per_mm, q, rules.curve)
-        main = bp if measure == "bandpass" else analyse_curve(z, channel_curves["sml"][t], "peak", None, q,
-                                                               rules.curve)
-        stat[t] = main.status
-        if main.status == "ok":
-            res["z_best_um"][t] = main.z_best_um
-            res["z_sigma_um"][t] = main.z_sigma_um
-            res["peak"][t] = main.peak
-        if bp.status == "ok":
-            res["width_um"][t] = bp.width_um
+    safe_mean = np.where(mean > 0, mean, 1.0)
+    contrast = np.where(mean > 0, np.sqrt(var) / safe_mean, 0.0)
+    low = (np.max(mean, axis=1) < rules.dark_min) | (np.max(contrast, axis=1) < rules.texture_min)
+    sat = np.max(channel_curves["sat"], axis=1) > rules.saturated_max
+    stat[low] = "low_texture"
+    stat[sat] = "saturated"
+    todo = np.flatnonzero(~(low | sat))
+    if todo.size:
+        if "bandpass" in channel_curves:
+            bp = analyse_curves(z, channel_curves["bandpass"][todo], "otf", fs_cyc_per_mm, q, rules.curve)
+        else:  # quick effort: no band-pass on this channel, so no width
+            bp = [CurveFit.rejected("not_measured")] * todo.size
+        main = bp if measure == "bandpass" else analyse_curves(z, channel_curves["sml"][todo], "peak", None, q,
+                                                                rules.curve)
+        for t, fb, fm in zip(todo, bp, main):
+            stat[t] = fm.status
+            if fm.status == "ok":
+                res["z_best_um"][t], res["z_sigma_um"][t], res["peak"][t] = fm.z_best_um, fm.z_sigma_um, fm.peak
+            if fb.status == "ok":
+                res["width_um"][t] = fb.width_um
         if "along" in channel_curves:
             for key, col in (("along", "z_tan_um"), ("across", "z_sag_um")):
-                d = analyse_curve(z, channel_curves[key][t], "otf", fs_cyc_per_mm, q, rules.curve)
-                if d.status == "ok":
-                    res[col][t] = d.z_best_um
+                for t, d in zip(todo, analyse_curves(z, channel_curves[key][todo], "otf", fs_cyc_per_mm, q,
+                                                     rules.curve)):
+                    if d.status == "ok":
+                        res[col][t] = d.z_best_um
     res["status"] = stat.astype(str)
     return res
 
@@ -406,7 +465,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                                  field="geometry", fix="measure the geometry on this stack (measure_geometry(stack))")
     z, order, maps, geo = _scan(stack, want_focus=True, want_geometry=geometry is None,
                                 fs_cyc_per_mm=float(fs_cyc_per_mm), effort=effort, centre_px=centre_px,
-                                z_ref_um=z_ref_um, quiet=quiet)
+                                z_ref_um=z_ref_um, quiet=quiet, bp_all=measure == "bandpass")
     geometry = geometry or geo
     h, w = stack.shape
     tile = int(tile_px) if tile_px is not None else default_tile_px((h, w), effort)
@@ -416,7 +475,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                              "is too large)", field="tile_px", fix="use a smaller tile_px")
     per_channel: dict[str, dict[str, np.ndarray]] = {}
     for m in maps:
-        curves = _tile_curves(m, geometry, xs, ys, tile)
+        curves = _tile_curves(m, geometry, xs, ys, tile, moments_of=measure)
         have = per_channel.get(m.layout.name)
         if have is None:
             per_channel[m.layout.name] = curves
@@ -432,15 +491,15 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
     for ch in stack.channels:
         cc = per_channel[ch]
-        res = _analyse(cc, z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure, rules=rules,
-                       quiet=quiet, desc=f"fitting {ch} tiles")
+        res = _analyse(cc, z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure, rules=rules)
         cols["channel"].append(np.full(xs.size, ch))
-        cols["x_px"].append(xs)
-        cols["y_px"].append(ys)
+        xw, yw = _weighted_positions(cc, geometry, ch, measure)
+        cols["x_px"].append(xw)
+        cols["y_px"].append(yw)
         for key in ("z_best_um", "z_sigma_um", "width_um", "peak", "status", "z_tan_um", "z_sag_um"):
             cols[key].append(res[key])
         curves_out["sml"].append(cc["sml"])
-        curves_out["bandpass"].append(cc["bandpass"])
+        curves_out["bandpass"].append(cc["bandpass"] if "bandpass" in cc else np.full_like(cc["sml"], np.nan))
     cat = {k: np.concatenate(v) for k, v in cols.items()}
     table = TileTable(channel=cat["channel"].astype(str), x_px=cat["x_px"], y_px=cat["y_px"],
                       z_best_um=cat["z_best_um"], z_sigma_um=cat["z_sigma_um"], width_um=cat["width_um"],
