@@ -8,7 +8,7 @@ composited by
 * **profile**: fieldcal with the lens profile (the simulated lens's true surfaces and geometry);
 * **profile (calibrated)**: with a profile fitted by ``fieldcal.calibrate`` to a chart stack (unless --no-calibrate);
 * **dff / hybrid**: depth from focus with the profile's geometry / the profile refined by DFF;
-* **dff, no profile**: depth from focus on unregistered frames;
+* **dff, no profile**: depth from focus with breathing/shift measured from the stack (output at z_ref);
 * **enfuse**: ``align_image_stack -m`` then ``enfuse --exposure-weight=0 --saturation-weight=0
   --contrast-weight=1 --hard-mask --gray-projector=l-star`` on the same frames (its output is mapped to the
   geometry of z_ref with the true lens geometry, which only helps it);
@@ -173,7 +173,7 @@ def quality(lens: str, scene_name: str, width: int, work: Path, enfuse: bool, ca
     for label, method, p in (("profile", "profile", prof), ("dff", "dff", prof), ("hybrid", "hybrid", prof),
                              ("dff, no profile", "dff", None)):
         t0 = time.perf_counter()
-        res = composite_stack(st, p, method, quiet=True)
+        res = composite_stack(st, p, method, quiet=True, z_ref_um=spec.z_ref_um)
         row[label] = psnr(res.image, truth, white)
         row[label + " s"] = time.perf_counter() - t0
         if label in ("profile", "dff"):

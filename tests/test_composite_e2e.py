@@ -99,13 +99,20 @@ def test_dff_and_hybrid_track_the_true_surface(sim):
         assert psnr(res.image, truth, w) >= p_or - 0.5, method
 
 
-def test_dff_without_profile_still_finds_focus(sim):
-    st = sim["stack"]
-    res = composite_stack(st, None, quiet=True)
+def test_dff_without_profile_measures_geometry_and_focus(sim):
+    st, truth, w = sim["stack"], sim["truth"], sim["white"]
+    spec = sim["prof"].spec
+    res = composite_stack(st, None, quiet=True, z_ref_um=spec.z_ref_um)
     assert res.method == "dff"
+    reg = res.info["registration"]
+    # breathing m(z) = 1 + (z - z_ref)/exit_pupil: the measured rate within 15 %
+    assert reg["scale_rate_per_um"] == pytest.approx(1.0 / (spec.exit_pupil_mm * 1000.0), rel=0.15)
     err = res.focus_map_um - sim["zb"]
-    # no geometry correction, so judge the focus map (which is measured on unregistered frames)
-    assert np.sqrt(np.mean(err ** 2)) < 3.0
+    assert np.sqrt(np.mean(err ** 2)) < 2.0
+    p_or = psnr(sim["oracle"], truth, w)
+    assert psnr(res.image, truth, w) >= p_or - 1.5
+    unregistered = composite_stack(st, None, quiet=True, register=False)
+    assert psnr(unregistered.image, truth, w) < p_or - 2.0
 
 
 def test_streaming_reads_only_contributing_regions(sim):

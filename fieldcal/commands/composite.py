@@ -43,6 +43,11 @@ def register(sub):
     p.add_argument("--fs", type=float, dest="fs_cyc_per_mm", metavar="CYC_PER_MM",
                    help="frequency of the focus tolerance that sets seam width (default: plan's, or Nyquist/4)")
     p.add_argument("--q", type=float, default=None, help="allowed MTF drop of the focus tolerance (default 0.05)")
+    p.add_argument("--z-ref-um", type=float, metavar="Z",
+                   help="without a profile: output in the geometry of stage position Z (default: the middle "
+                        "frame); breathing and shift are measured from the stack")
+    p.add_argument("--no-register", action="store_true",
+                   help="without a profile: take the frames as registered (no breathing/shift measurement)")
     p.add_argument("--lateral-colour", action="store_true",
                    help="also undo lateral colour (register every channel to the reference channel)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -181,8 +186,10 @@ def run(args) -> int:
 
     offset = float(meta.get("plan", {}).get("refocus_um") or 0.0) if args.plan else 0.0
     res = composite_stack(stack, profile, args.method, frames=frames, fs_cyc_per_mm=fs, q=q,
-                          lateral_colour=args.lateral_colour, focus_offset_um=offset, quiet=args.quiet)
-    meta.update({"method": res.method, "z_ref_um": None if profile is None else float(profile.z_ref_um),
+                          lateral_colour=args.lateral_colour, focus_offset_um=offset,
+                          register=not args.no_register, z_ref_um=args.z_ref_um, quiet=args.quiet)
+    z_ref = float(profile.z_ref_um) if profile is not None else res.info.get("registration", {}).get("z_ref_um")
+    meta.update({"method": res.method, "z_ref_um": z_ref,
                  "lateral_colour_corrected": bool(args.lateral_colour), **res.info})
     write_composite_tiff(out, res.image, stack.channels, meta)
     status(f"wrote {out} ({res.method}, {res.info.get('frames_used')} frames)", args.quiet)

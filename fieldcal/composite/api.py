@@ -18,7 +18,7 @@ METHODS = ("profile", "dff", "hybrid")
 def composite_stack(stack, profile=None, method: str | None = None, *, frames=None, fs_cyc_per_mm=None,
                     q: float = 0.05, min_band: float = 0.25, lateral_colour: bool = False,
                     block_px: int | None = None, tile: int = DEFAULT_TILE_PX, focus_offset_um: float = 0.0,
-                    quiet: bool = False) -> CompositeResult:
+                    register: bool = True, z_ref_um: float | None = None, quiet: bool = False) -> CompositeResult:
     """All-in-focus composite of a stack.
 
     Parameters
@@ -40,6 +40,10 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         DFF block size (px).
     focus_offset_um : float
         Added to the profile's best focus (a plan's ``refocus_um``); not used by ``dff``.
+    register, z_ref_um
+        ``dff`` without a profile: measure focus breathing and shift from the stack (:mod:`.register`) and
+        write the output in the geometry of the frame at ``z_ref_um`` (default: the middle frame);
+        ``register=False`` takes the frames as registered.
     """
     method = method or ("profile" if profile is not None else "dff")
     if method not in METHODS:
@@ -56,9 +60,15 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     frames = select_frames(stack, frames)
     w, h = image_size(stack)
     channels = tuple(stack.channels)
-    vol = focus_volume(stack, profile, frames=frames, block_px=block_px, lateral_colour=lateral_colour,
+    geometry = profile
+    info: dict = {"frames_used": int(len(frames))}
+    if profile is None and register and len(frames) > 1:
+        from .register import estimate_geometry
+        geometry = estimate_geometry(stack, frames, z_ref_um=z_ref_um, quiet=quiet)
+        info["registration"] = geometry.info()
+    vol = focus_volume(stack, geometry, frames=frames, block_px=block_px, lateral_colour=lateral_colour,
                        quiet=quiet)
-    info: dict = {"frames_used": int(len(frames)), "block_px": vol.block_px}
+    info["block_px"] = vol.block_px
     if method == "dff":
         centre = tuple(profile.optical_centre_px()) if profile is not None else None
         surfaces = dff_surfaces(vol, w, h, channels, centre)
@@ -73,6 +83,6 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
             zb[..., ci] += np.clip(dense_map(fit, w, h), -limit, limit)
         info["correction_limit_um"] = {c: round(lim, 3) for c, (_, lim) in zip(channels, corr)}
     kernel = blend_kernel(stack, profile, frames, fs_cyc_per_mm, q, min_band)
-    img = composite_with_map(stack, zb, kernel, profile, frames, lateral_colour=lateral_colour, tile=tile,
+    img = composite_with_map(stack, zb, kernel, geometry, frames, lateral_colour=lateral_colour, tile=tile,
                              quiet=quiet)
     return CompositeResult(img, method, zb, info)
