@@ -13,7 +13,9 @@ A prescription is a table of surfaces in order from the object side, one row per
   ``glass`` name from :data:`GLASS_CATALOGUE`; both empty for air. Glasses are modelled from (nd, vd) with a
   model-glass dispersion formula (see :func:`model_glass_index`).
 
-CSV files may hold ``#`` comment lines. A JSON file is ``{"surfaces": [{...row...}, ...]}`` (or a bare list).
+CSV files may hold ``#`` comment lines; a comment ``# key: value`` with a key of :data:`META_KEYS` states a
+design value (e.g. ``# efl_mm: 17.6``). A JSON file is ``{"surfaces": [{...row...}, ...], "efl_mm": 17.6, ...}``
+(or a bare list of rows).
 Every mistake raises :class:`~fieldcal.errors.SpecError` naming the file, the row and the column.
 """
 
@@ -23,6 +25,7 @@ import csv
 import io
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,6 +33,8 @@ from ..errors import SpecError
 
 COLUMNS = ("surface", "type", "radius", "thickness", "nd", "vd", "glass", "k", "a4", "a6", "a8")
 REQUIRED_COLUMNS = ("surface", "type", "radius", "thickness")
+# Design values a table may state (CSV "# key: value" comments or JSON keys); the CLI's options override them.
+META_KEYS = ("name", "description", "f_number", "image_height_mm", "efl_mm", "bfl_mm")
 SURFACE_TYPES = {"standard": "standard", "sphere": "standard", "plane": "standard",
                  "even asphere": "even_asphere", "evenasph": "even_asphere", "even_asphere": "even_asphere",
                  "asphere": "even_asphere"}
@@ -154,10 +159,26 @@ def load_prescription(path: str | Path) -> Prescription:
     if suffix == ".json":
         rows, meta = _rows_from_json(text, path)
     elif suffix in (".csv", ".txt"):
-        rows, meta = _rows_from_csv(text, path), {}
+        rows, meta = _rows_from_csv(text, path), _meta_from_csv(text)
     else:
         raise SpecError(f"unknown table type {path.suffix!r}", path=path, fix="use a .csv or .json file")
     return parse_rows(rows, path=path, name=str(meta.get("name", path.name.split(".")[0])), meta=meta)
+
+
+def meta_number(rx: "Prescription", key: str) -> float | None:
+    """A design value stated in the table (None when absent); SpecError naming the key when not a number."""
+    v = rx.meta.get(key)
+    if v is None or v == "":
+        return None
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise SpecError(f"design value {key} = {v!r} is not a number", path=rx.source or None, field=key,
+                        fix=f"write e.g. '# {key}: 17.6' (CSV) or \"{key}\": 17.6 (JSON)") from None
+    if not math.isfinite(x) or x <= 0:
+        raise SpecError(f"design value {key} = {v!r} must be a positive number", path=rx.source or None,
+                        field=key, fix="correct the value")
+    return x
 
 
 def _rows_from_csv(text: str, path) -> list[dict]:
@@ -183,6 +204,15 @@ def _rows_from_csv(text: str, path) -> list[dict]:
     return rows
 
 
+def _meta_from_csv(text: str) -> dict:
+    meta = {}
+    for ln in text.splitlines():
+        m = re.match(r"^\s*#\s*([a-z_]+)\s*:\s*(.+?)\s*$", ln)
+        if m and m.group(1) in META_KEYS:
+            meta[m.group(1)] = m.group(2)
+    return meta
+
+
 def _rows_from_json(text: str, path) -> tuple[list[dict], dict]:
     try:
         data = json.loads(text)
@@ -190,7 +220,11 @@ def _rows_from_json(text: str, path) -> tuple[list[dict], dict]:
         raise SpecError(f"not valid JSON ({e})", path=path, fix="repair the JSON syntax") from None
     meta = {}
     if isinstance(data, dict):
-        meta = {k: v for k, v in data.items() if k != "surfaces"}
+        meta = {k: v for k, v in data.items() if k in META_KEYS}
+        unknown = [k for k in data if k not in META_KEYS and k != "surfaces"]
+        if unknown:
+            raise SpecError(f"unknown key(s) {unknown}", path=path, field=unknown[0],
+                            fix=f"use 'surfaces' and the design values {', '.join(META_KEYS)}")
         data = data.get("surfaces")
     if not isinstance(data, list) or not all(isinstance(r, dict) for r in data):
         raise SpecError("expected a list of surface objects", path=path, field="surfaces",
