@@ -18,7 +18,7 @@ import emcee
 import numpy as np
 
 from ..progress import status
-from .surface import Rows, SurfaceModel
+from .surface import COEF_PRIOR_SD, Rows, SurfaceModel
 
 MAX_SAMPLES = 2000
 AUTOCORR_FACTOR = 50
@@ -90,9 +90,12 @@ def laplace(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, n_samples: i
     free = ~pin
 
     def neg_lp(sub):
+        # the smooth log-posterior without the box indicator: a Hessian step may cross a bound
         full = np.tile(theta_map, (sub.shape[0], 1))
         full[:, free] = sub
-        return -model.log_posterior(full, rows)
+        beta = full[:, :model.n_linear]
+        return -(np.sum(model.log_likelihood(full, rows), axis=-1)
+                 - 0.5 * np.sum((beta / COEF_PRIOR_SD) ** 2, axis=-1))
 
     x0 = theta_map[free]
     h = np.full(x0.size, 1e-4)  # normalised units: coefficients and log-scales are O(1)
@@ -133,9 +136,10 @@ def run_emcee(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, effort: Ef
         sd = np.sqrt(np.clip(np.diag(ball_cov), 0, None))
     else:
         sd = np.full(p, 1e-3)
-    sd = np.where(sd > 0, sd, 1e-4)
+    # a small ball: a tenth of the Laplace sd, never degenerate (pinned parameters get 1e-3)
+    ball = np.maximum(0.1 * sd, 1e-3)
     lo, hi = model.nonlinear_bounds()
-    start = theta_map + 0.1 * sd * rng.standard_normal((n_walkers, p))
+    start = theta_map + ball * rng.standard_normal((n_walkers, p))
     nl = start[:, model.n_linear:]
     span = hi - lo
     start[:, model.n_linear:] = np.clip(nl, lo + 1e-4 * span, hi - 1e-4 * span)
