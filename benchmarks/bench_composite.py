@@ -51,6 +51,8 @@ def have_enfuse() -> bool:
 
 
 def psnr(img, truth, white, border=0.02) -> float:
+    img = img if img.ndim == 3 else img[..., None]
+    truth = truth if truth.ndim == 3 else truth[..., None]
     h, w = truth.shape[:2]
     by, bx = max(1, int(border * h)), max(1, int(border * w))
     d = img.astype(np.float64)[by:-by, bx:-bx] - truth.astype(np.float64)[by:-by, bx:-bx]
@@ -160,6 +162,7 @@ def quality(lens: str, scene_name: str, width: int, work: Path, enfuse: bool, ca
     sdir = work / f"{lens}-{scene_name}-{width}"
     st = simulate_stack(spec, sdir, z, scene=scene, seed=3, progress=False, overwrite=True)
     truth = tifffile.imread(sdir / "truth.tiff")
+    truth = truth if truth.ndim == 3 else truth[..., None]
     white = st.white_level
     row = {"lens": lens, "scene": scene_name, "size": [width, height], "frames": len(st)}
     panels = [("truth", truth)]
@@ -209,7 +212,9 @@ def calibrated_psnr(spec, z, work: Path, scene_stack, truth, white) -> float:
     zc = np.unique(np.round(np.concatenate([np.arange(lo - 20, hi + 20, 8.0), [spec.z_ref_um]]), 3))
     chart = simulate_stack(spec, work / f"chart-{spec.name}", zc, scene="chart", seed=11, progress=False,
                            overwrite=True)
-    prof = calibrate(chart, effort="quick", z_ref_um=spec.z_ref_um, quiet=True)
+    nyquist = 1000.0 / (2.0 * spec.sensor.pixel_pitch_um)
+    prof = calibrate(chart, fs_cyc_per_mm=min(80.0, 0.5 * nyquist), effort="quick", z_ref_um=spec.z_ref_um,
+                     quiet=True)
     return psnr(composite_stack(scene_stack, prof, "profile", quiet=True).image, truth, white)
 
 

@@ -42,6 +42,16 @@ def test_blend_weights_partition_unity_and_prefer_nearest(z, tol, band, zb):
     assert np.all(w[outside] == 0)  # support() never misses a contributing frame
 
 
+def test_fast_blend_weights_match_the_piecewise_reference():
+    rng = np.random.default_rng(4)
+    z = np.sort(rng.uniform(-300, 20, 25))
+    zb = rng.uniform(-350, 60, 50000)
+    for tol, band in ((5.0, 0.25), (0.0, 0.25), (30.0, 0.0)):
+        k = BlendKernel(z, tol, min_band=band)
+        for i in range(len(z)):
+            np.testing.assert_allclose(k.weight(i, zb), k.weight_exact(i, zb), atol=2e-4)
+
+
 def test_blend_weights_hard_and_continuous():
     z = np.array([0.0, 10.0, 20.0])
     hard = BlendKernel(z, 0.0, min_band=0.0)

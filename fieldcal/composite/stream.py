@@ -13,7 +13,8 @@ import numpy as np
 
 from ..progress import progress
 from .source import image_size, z_positions
-from .warp import FrameMap, frame_maps, warp_region
+from .source import read_roi
+from .warp import frame_maps, source_box, warp_from
 
 DEFAULT_TILE_PX = 64
 
@@ -81,16 +82,48 @@ def accumulate(stack, zb: np.ndarray, kernel, profile=None, *, lateral_colour: b
             continue
         for fmap in frame_maps(profile, float(z_all[i]), channels, lateral_colour):
             ch = list(fmap.channels)
+            identity = fmap.is_identity
             act = active[..., ch].any(axis=-1)
             for ty in range(act.shape[0]):
+                runs = _runs(act[ty])
+                if not runs:
+                    continue
                 y0, y1 = int(ye[ty]), int(ye[ty + 1])
-                for t0, t1 in _runs(act[ty]):
+                todo = []
+                for t0, t1 in runs:
                     x0, x1 = int(xe[t0]), int(xe[t1])
                     # only the channels this frame serves in this run are warped
                     run_ch = [c for c in ch if active[ty, t0:t1, c].any()]
-                    wts = np.stack([kernel.weight(k, zb[y0:y1, x0:x1, c]) for c in run_ch], axis=-1)
-                    if not wts.any():
-                        continue
-                    src = warp_region(stack, int(i), FrameMap(fmap.matrix, tuple(run_ch)), x0, y0, x1, y1)
-                    acc[y0:y1, x0:x1, run_ch] += wts * src
+                    if run_ch == list(range(run_ch[0], run_ch[-1] + 1)):
+                        run_ch = slice(run_ch[0], run_ch[-1] + 1)  # basic slicing: views, no fancy copies
+                        chans = range(run_ch.start, run_ch.stop)
+                    else:
+                        chans = run_ch
+                    wts = np.stack([kernel.weight(k, zb[y0:y1, x0:x1, c]) for c in chans], axis=-1)
+                    if wts.any():
+                        todo.append((x0, x1, run_ch, wts))
+                if not todo:
+                    continue
+                # Runs whose source boxes are close share one read (fewer calls); distant ones (the two sides
+                # of a ring) are read apart (no pixels read for nothing).
+                boxes = [source_box(fmap.matrix, x0, y0, x1, y1, w, h) for x0, x1, _, _ in todo]
+                groups: list[list[int]] = [[0]]
+                for j in range(1, len(todo)):
+                    if boxes[j][0] - boxes[groups[-1][-1]][2] <= tile:
+                        groups[-1].append(j)
+                    else:
+                        groups.append([j])
+                for g in groups:
+                    sx0, sy0 = min(boxes[j][0] for j in g), min(boxes[j][1] for j in g)
+                    sx1, sy1 = max(boxes[j][2] for j in g), max(boxes[j][3] for j in g)
+                    src = read_roi(stack, int(i), sx0, sy0, sx1, sy1)
+                    for j in g:
+                        x0, x1, run_ch, wts = todo[j]
+                        bx0, by0, bx1, by1 = boxes[j]
+                        part = src[by0 - sy0:by1 - sy0, bx0 - sx0:bx1 - sx0, run_ch].astype(np.float32)
+                        if identity:
+                            warped = part
+                        else:
+                            warped = warp_from(part, bx0, by0, fmap.matrix, x0, y0, x1, y1)
+                        acc[y0:y1, x0:x1, run_ch] += wts * warped
     return acc

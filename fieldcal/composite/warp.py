@@ -78,7 +78,11 @@ def frame_maps(profile, z_um: float, channels, lateral_colour: bool = False) -> 
 
 def source_box(matrix: np.ndarray, x0: int, y0: int, x1: int, y1: int, width: int, height: int,
                margin: int = _MARGIN_PX) -> tuple[int, int, int, int]:
-    """Bounding box (half-open, clipped to the frame) of the source pixels an output box needs."""
+    """Bounding box (half-open, clipped to the frame) of the source pixels an output box needs.
+
+    The identity map needs exactly the box itself."""
+    if np.array_equal(matrix, [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]):
+        return int(x0), int(y0), int(x1), int(y1)
     xs = np.array([x0, x1 - 1, x0, x1 - 1], dtype=np.float64)
     ys = np.array([y0, y0, y1 - 1, y1 - 1], dtype=np.float64)
     qx = matrix[0, 0] * xs + matrix[0, 1] * ys + matrix[0, 2]
@@ -124,18 +128,29 @@ def warp_region(stack, i: int, fmap: FrameMap, x0: int, y0: int, x1: int, y1: in
     better inverse in a round trip, ~1.5x slower).
     """
     h, w = stack.shape[:2]
-    ch = list(fmap.channels)
     if fmap.is_identity:
-        return read_roi(stack, i, x0, y0, x1, y1)[..., ch].astype(np.float32)
+        return read_roi(stack, i, x0, y0, x1, y1)[..., list(fmap.channels)].astype(np.float32)
     sx0, sy0, sx1, sy1 = source_box(fmap.matrix, x0, y0, x1, y1, w, h)
-    src = read_roi(stack, i, sx0, sy0, sx1, sy1)[..., ch].astype(np.float32)
-    m = fmap.matrix
+    src = read_roi(stack, i, sx0, sy0, sx1, sy1)[..., list(fmap.channels)].astype(np.float32)
+    return warp_from(src, sx0, sy0, fmap.matrix, x0, y0, x1, y1, interpolation)
+
+
+def warp_from(src: np.ndarray, sx0: int, sy0: int, matrix: np.ndarray, x0: int, y0: int, x1: int, y1: int,
+              interpolation: str = "cv2") -> np.ndarray:
+    """Warp output box ``[y0:y1, x0:x1]`` from ``src``, a region of the frame whose top-left pixel is
+    ``(sx0, sy0)`` and which covers :func:`source_box` of the box, ``h x w x C``: float32, or the input's
+    dtype for uint8/uint16 with cv2 (rounded to whole DN, clipped to the dtype's range)."""
+    m = matrix
+    nch = src.shape[2]
     ow, oh = x1 - x0, y1 - y0
-    out = np.empty((oh, ow, len(ch)), dtype=np.float32)
-    if interpolation == "keys" and m[0, 1] == 0.0 and m[1, 0] == 0.0:
-        mx = axis_matrix(ow, m[0, 0] * np.arange(x0, x1) + m[0, 2] - sx0, sx1 - sx0)
-        my = axis_matrix(oh, m[1, 1] * np.arange(y0, y1) + m[1, 2] - sy0, sy1 - sy0)
-        for j in range(len(ch)):
+    keys = interpolation == "keys" and m[0, 1] == 0.0 and m[1, 0] == 0.0
+    if keys or src.dtype not in (np.uint8, np.uint16, np.float32):
+        src = src.astype(np.float32)
+    out = np.empty((oh, ow, nch), dtype=src.dtype)
+    if keys:
+        mx = axis_matrix(ow, m[0, 0] * np.arange(x0, x1) + m[0, 2] - sx0, src.shape[1])
+        my = axis_matrix(oh, m[1, 1] * np.arange(y0, y1) + m[1, 2] - sy0, src.shape[0])
+        for j in range(nch):
             tmp = my @ src[..., j]                  # oh x sw
             out[..., j] = (mx @ tmp.T).T            # oh x ow
         return out
@@ -143,7 +158,7 @@ def warp_region(stack, i: int, fmap: FrameMap, x0: int, y0: int, x1: int, y1: in
     # Output-local p' = p - (x0, y0), source-local q' = q - (sx0, sy0).
     mm[:, 2] = m[:, 2] + m[:, :2] @ np.array([x0, y0], dtype=np.float64) - np.array([sx0, sy0], dtype=np.float64)
     # cv2 handles at most 4 channels per call and drops a single channel's axis.
-    for k in range(0, len(ch), 4):
+    for k in range(0, nch, 4):
         part = np.ascontiguousarray(src[..., k:k + 4])
         res = cv2.warpAffine(part, mm, (ow, oh), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
                              borderMode=cv2.BORDER_REPLICATE)
