@@ -149,7 +149,7 @@ def run_from_prescription(args) -> int:
     import numpy as np
 
     from ..raytrace.bestfocus import SearchSettings, trace_focus_table
-    from ..raytrace.build import build_lens_spec, parse_sensor
+    from ..raytrace.build import build_lens_spec, parse_sensor, sensor_geometry
     from ..raytrace.optiland_backend import require_optiland
     from ..raytrace.prescription import meta_number
 
@@ -175,6 +175,7 @@ def run_from_prescription(args) -> int:
         raise ParameterError(f"--terms {args.terms} needs 1..4 and fewer than --heights ({args.heights})",
                              field="--terms", fix="e.g. --terms 2 with --heights 9")
     _positive("--fs", args.fs, "e.g. --fs 80")
+    sensor_geometry(sensor, h_max)  # a sensor beyond the traced field: say so before tracing for minutes
     channels = _parse_channels(args.channels)
     settings = SearchSettings(fs_cyc_per_mm=args.fs, num_rays=args.num_rays)
     require_optiland()

@@ -96,6 +96,19 @@ def parse_sensor(text: str, image_height_mm: float | None) -> tuple[int, int, fl
     return w, h, pitch
 
 
+def sensor_geometry(sensor: tuple[int, int, float | None], image_height_mm: float):
+    """(w, h, pitch_um, corner_mm); the pitch defaults to putting the corner at the image height."""
+    w, h, pitch = sensor
+    if pitch is None:
+        pitch = image_height_mm * 1000.0 / math.hypot(w / 2.0, h / 2.0)
+    corner_mm = math.hypot(w / 2.0, h / 2.0) * pitch / 1000.0
+    if corner_mm > image_height_mm * 1.0005:
+        raise ParameterError(f"the sensor corner is at {corner_mm:.3f} mm, beyond the image height "
+                             f"{image_height_mm:g} mm the lens is traced to", field="--sensor",
+                             fix="use a smaller sensor or pitch, or a larger --image-height")
+    return w, h, pitch, corner_mm
+
+
 def build_lens_spec(table: FocusTable, parax: ParaxialData, *, name: str, image_height_mm: float,
                     sensor: tuple[int, int, float | None] = (3840, 2160, None), n_terms: int = 2,
                     reference_channel: str | None = None, object_distance_mm: float = 1000.0,
@@ -106,14 +119,7 @@ def build_lens_spec(table: FocusTable, parax: ParaxialData, *, name: str, image_
         raise ParameterError(f"the table is traced to {heights.max():g} mm but the spec's image height is "
                              f"{image_height_mm:g} mm: the fit would extrapolate", field="image_height_mm",
                              fix="trace out to the image height")
-    w, h, pitch = sensor
-    if pitch is None:
-        pitch = image_height_mm * 1000.0 / math.hypot(w / 2.0, h / 2.0)  # corner at the image height
-    corner_mm = math.hypot(w / 2.0, h / 2.0) * pitch / 1000.0
-    if corner_mm > image_height_mm * 1.0005:
-        raise ParameterError(f"the sensor corner is at {corner_mm:.3f} mm, beyond the image height "
-                             f"{image_height_mm:g} mm the lens is traced to", field="--sensor",
-                             fix="use a smaller sensor or pitch, or a larger --image-height")
+    w, h, pitch, corner_mm = sensor_geometry(sensor, image_height_mm)
     chans = table.channels
     ref = reference_channel or ("G" if "G" in chans else chans[len(chans) // 2])
     fs = table.settings.fs_cyc_per_mm
