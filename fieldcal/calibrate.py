@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .errors import ParameterError, StackError
+from .errors import FieldcalError, ParameterError, StackError
 from .profile import LensProfile
 from .progress import status
 
@@ -92,7 +92,7 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     from .stack import Stack
     from .measure import measure_stack
     from .fit import ImageGeometry, TileData, fit_surfaces
-    from .fit.geometry import fit_geometry
+    from .fit.geometry import GeometryData, fit_geometry
     from .fit.tolerance import fit_tolerance
 
     if not isinstance(stack, Stack):
@@ -121,8 +121,15 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     t_fit = time.perf_counter() - t0 - t_measure
     centre = surf.optical_centre_px()
     geo_c = geo_meas.recentred(tuple(float(v) for v in centre))
-    geom = fit_geometry(geo_c)
-    tol = fit_tolerance(table, geometry) if np.isfinite(table.width_um[table.ok]).sum() >= 3 else None
+    cols = _geometry_columns(geo_c)
+    gdata = GeometryData.from_arrays(**cols, colour_scale=_colour_rows(geo_c, cols), source=str(stack.path))
+    geom = fit_geometry(gdata, z_ref_um=geo_c.z_ref_um, source=str(stack.path))
+    tol, tol_note = None, None
+    try:
+        tol = fit_tolerance(tiles, geometry, float(fs_cyc_per_mm), float(q), centre_px=centre,
+                            source=str(stack.path))
+    except FieldcalError as e:  # planning falls back to the defocus model and says so
+        tol_note = f"no measured tolerance model: {e.what}"
     hasher.join()
     t_total = time.perf_counter() - t0
 
@@ -145,7 +152,7 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
         z_ref_um=float(geo_c.z_ref_um),
         diagnostics={"tiles": counts, "n_tiles_ok": n_ok, "surface": surf.diagnostics,
                      "geometry": getattr(geom, "diagnostics", {}),
-                     "tolerance": None if tol is None else getattr(tol, "diagnostics", {}),
+                     "tolerance": tol_note if tol is None else getattr(tol, "diagnostics", {}),
                      "max_image_displacement_px": geo_c.max_displacement_px(),
                      "timing_s": {"measure": round(t_measure, 3), "fit": round(t_fit, 3),
                                   "total": round(t_total, 3)}},
@@ -154,17 +161,32 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
                     "stack": str(Path(stack.path).resolve()), "inputs_sha256": digest.get("sha256"),
                     "inputs_hash_error": digest.get("error"),
                     "stack_meta": {k: v for k, v in meta.items() if k != "frames"}},
-        tiles=table.to_dict(), geometry_measurements=_geometry_columns(geo_c),
+        tiles=table.to_dict(), geometry_measurements=cols,
     )
     status(f"calibrated {len(stack)} frames in {t_total:.1f} s: model {surf.model.name}, {n_ok} tiles used",
            quiet=quiet)
     return profile
 
 
+def _colour_rows(geo, cols) -> np.ndarray | None:
+    """Lateral colour per row: the channel's scale relative to G (or the first channel) at the reference frame."""
+    lcs = geo.lateral_colour_scale
+    if not lcs:
+        return None
+    ref = "G" if "G" in geo.channels else geo.channels[0]
+    base = float(lcs.get(ref, 1.0))
+    at_ref = np.isclose(cols["z_um"], geo.z_ref_um)
+    return np.array([float(lcs[c]) / base if (a and c in lcs) else np.nan
+                     for c, a in zip(cols["channel"], at_ref)])
+
+
 def _geometry_columns(geo) -> dict:
     """Per-frame measurements flattened to columns (one row per frame and channel) for reports."""
     n, c = geo.magnification.shape
+    # The reference frame's values are 1 and 0 by definition (sigma 0); fit_geometry ignores those rows for
+    # slopes, but wants positive sigmas.
+    tiny = 1e-12
     return {"z_um": np.repeat(geo.z_um, c), "channel": np.tile(np.asarray(geo.channels, dtype=str), n),
-            "magnification": geo.magnification.ravel(), "mag_sigma": geo.mag_sigma.ravel(),
+            "magnification": geo.magnification.ravel(), "mag_sigma": np.maximum(geo.mag_sigma.ravel(), tiny),
             "shift_x_px": geo.shift_x_px.ravel(), "shift_y_px": geo.shift_y_px.ravel(),
-            "shift_sigma_px": geo.shift_sigma_px.ravel()}
+            "shift_sigma_px": np.maximum(geo.shift_sigma_px.ravel(), tiny)}
