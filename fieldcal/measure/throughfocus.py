@@ -357,7 +357,9 @@ def _fit_batch(z, V, pres, step, model, n_iter: int = 100):
         if not ok:
             out.append(None)
             continue
-        out.append((pj, float(cov[j][1, 1] * cost[j] / dof[j]), float(scale[j])))
+        # an exact (noise-free) fit has zero residual: floor the variance at float precision, not zero
+        s2 = max(cost[j] / dof[j], 1e-24)
+        out.append((pj, float(cov[j][1, 1] * s2), float(scale[j])))
     return out
 
 

@@ -32,6 +32,7 @@ EFFORTS = {
     "thorough": {"tile_div": 16, "geo_ds": 2, "geo_all": True, "bp_all": True, "directional": True, "cell": 4},
 }
 MEASURES = ("sml", "bandpass")
+GEOMETRY_BLUR_PX = 1.0
 
 
 @dataclass(frozen=True)
@@ -216,7 +217,9 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
             plane = split[lay.channel_index] if split is not None else None
             if li in steps:
                 plane = extract_plane(frame, lay) if plane is None else plane
-                small = downsample(plane, ds)
+                # A mild extra low-pass (sigma 1 px of the registration grid): the highest frequencies carry
+                # the most noise and the most blur change between neighbours.
+                small = cv2.GaussianBlur(downsample(plane, ds), (0, 0), GEOMETRY_BLUR_PX)
                 # Centre in the small grid: x_full = S x_small + O.
                 S, O = lay.stride * ds, lay.stride * (ds - 1) / 2.0
                 cs = ((centre[0] - lay.offset_x - O) / S, (centre[1] - lay.offset_y - O) / S)
@@ -334,7 +337,7 @@ def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: n
 
 
 def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurements, channel: str,
-                        measure_key: str) -> tuple[np.ndarray, np.ndarray]:
+                        measure_key: str, tile_px: int) -> tuple[np.ndarray, np.ndarray]:
     """Each tile's focus-measure-weighted centre (reference-frame px) at its sharpest frame.
 
     A tile's best focus is an average of the local best foci inside it, weighted by where the texture's
@@ -351,8 +354,11 @@ def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurement
         xk = (cc["mx"][rows, kbest] - floor * cc["cx"][rows, kbest]) / e
         yk = (cc["my"][rows, kbest] - floor * cc["cy"][rows, kbest]) / e
     bad = ~(e > 0) | ~np.isfinite(xk) | ~np.isfinite(yk)
-    xk = np.where(bad, cc["cx"][rows, kbest], xk)
-    yk = np.where(bad, cc["cy"][rows, kbest], yk)
+    bx, by = cc["cx"][rows, kbest], cc["cy"][rows, kbest]
+    # a weighted centre stays inside its tile (noise-only weights could push it anywhere)
+    half = 0.5 * tile_px
+    xk = np.where(bad, bx, np.clip(xk, bx - half, bx + half))
+    yk = np.where(bad, by, np.clip(yk, by - half, by + half))
     ci = geometry.channel_index(channel)
     cx, cy = geometry.centre_px
     m = geometry.magnification[kbest, ci]
@@ -493,9 +499,10 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         cc = per_channel[ch]
         res = _analyse(cc, z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure, rules=rules)
         cols["channel"].append(np.full(xs.size, ch))
-        xw, yw = _weighted_positions(cc, geometry, ch, measure)
-        cols["x_px"].append(xw)
-        cols["y_px"].append(yw)
+        xw, yw = _weighted_positions(cc, geometry, ch, measure, tile)
+        ok = res["status"] == "ok"  # rejected tiles keep their geometric centre
+        cols["x_px"].append(np.where(ok, xw, xs))
+        cols["y_px"].append(np.where(ok, yw, ys))
         for key in ("z_best_um", "z_sigma_um", "width_um", "peak", "status", "z_tan_um", "z_sag_um"):
             cols[key].append(res[key])
         curves_out["sml"].append(cc["sml"])

@@ -1,0 +1,155 @@
+"""Through-focus curve fits (fieldcal.measure.throughfocus) against closed forms and constructed curves."""
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from fieldcal.lens import focus_tolerance_um
+from fieldcal.measure.throughfocus import (CurveRules, analyse_curve, analyse_curves, defocus_d, defocus_d_prime,
+                                           otf_model, peak_model)
+
+Z = np.arange(-60.0, 60.0 + 1e-9, 4.0)  # 31 frames, 4 µm steps
+FS = 80.0
+
+
+def test_defocus_d_matches_lens_model_and_derivative():
+    from fieldcal.lens import defocus_otf
+    f = 80.0
+    dz = np.linspace(-40, 40, 81)
+    x = math.pi * f * 1e-3 * dz / 2.0  # F/2: blur diameter dz/2
+    np.testing.assert_allclose(defocus_d(x), defocus_otf(f, dz, 2.0), atol=1e-12)
+    h = 1e-6
+    xs = np.linspace(-8, 8, 33)
+    np.testing.assert_allclose(defocus_d_prime(xs), (defocus_d(xs + h) - defocus_d(xs - h)) / (2 * h), atol=1e-7)
+
+
+@pytest.mark.parametrize("f_number", [2.0, 2.8, 4.0])
+def test_otf_fit_recovers_peak_and_width_of_the_lens_model(f_number):
+    # Noise-free curve from the model itself: z0 to 1e-3 µm, width = the lens model's focus tolerance.
+    z0 = 3.3
+    e = otf_model(Z, 2.0, z0, 1.0 / f_number, 0.05, FS)
+    r = analyse_curve(Z, e, "otf", FS, 0.05)
+    assert r.status == "ok"
+    assert abs(r.z_best_um - z0) < 1e-3
+    assert r.width_um == pytest.approx(focus_tolerance_um(FS, 0.05, f_number), rel=1e-3)
+    # q changes the width as the closed form says
+    r2 = analyse_curve(Z, e, "otf", FS, 0.2)
+    assert r2.width_um == pytest.approx(focus_tolerance_um(FS, 0.2, f_number), rel=1e-3)
+
+
+def test_peak_fit_recovers_lorentzian_and_pearson_peaks():
+    for p in (1.0, 1.7):
+        v = peak_model(Z, 1.0, -7.9, 6.0, p, 0.2)
+        r = analyse_curve(Z, v, "peak")
+        assert r.status == "ok"
+        assert abs(r.z_best_um + 7.9) < 0.02
+
+
+def test_noisy_curves_meet_accuracy_target_and_sigma_is_calibrated():
+    # 2 % multiplicative noise, F/2 at 4 µm steps: RMS error well under 0.1 step and the reported sigma
+    # agrees with the actual scatter (chi close to 1).
+    rng = np.random.default_rng(3)
+    z0 = rng.uniform(-40, 40, 400)
+    E = np.array([otf_model(Z, 1.0, a, 0.5, 0.05, FS) * (1 + 0.02 * rng.standard_normal(Z.size)) for a in z0])
+    fits = analyse_curves(Z, E, "otf", FS, 0.05)
+    assert all(f.status == "ok" for f in fits)
+    err = np.array([f.z_best_um for f in fits]) - z0
+    sig = np.array([f.z_sigma_um for f in fits])
+    assert np.sqrt(np.mean(err ** 2)) < 0.1 * 4.0
+    chi = np.sqrt(np.mean((err / sig) ** 2))
+    assert 0.7 < chi < 1.4
+    widths = np.array([f.width_um for f in fits])
+    assert np.median(widths) == pytest.approx(focus_tolerance_um(FS, 0.05, 2.0), rel=0.05)
+
+
+def test_batch_equals_single():
+    rng = np.random.default_rng(5)
+    E = np.array([peak_model(Z, 1.0, a, 5.0, 1.0, 0.1) * (1 + 0.01 * rng.standard_normal(Z.size))
+                  for a in (-20.0, 0.5, 17.0)])
+    batch = analyse_curves(Z, E, "peak")
+    for row, b in zip(E, batch):
+        s = analyse_curve(Z, row, "peak")
+        assert s.status == b.status == "ok"
+        assert s.z_best_um == pytest.approx(b.z_best_um, abs=1e-9)
+
+
+# ----------------------------------------------------------------------------------------- rejections
+def test_flat_curve_is_rejected():
+    rng = np.random.default_rng(0)
+    v = 1.0 + 0.01 * rng.standard_normal(Z.size)
+    assert analyse_curve(Z, v, "peak").status == "flat"
+    assert analyse_curve(Z, np.ones(Z.size), "otf", FS).status == "flat"
+
+
+def test_double_peak_is_rejected():
+    v = peak_model(Z, 1.0, -30.0, 4.0, 1.0, 0.1) + peak_model(Z, 0.8, 25.0, 4.0, 1.0, 0.0)
+    assert analyse_curve(Z, v, "peak").status == "multi_peak"
+
+
+def test_small_side_lobes_are_not_a_second_peak():
+    # |2 J1(x)/x|^2 has side lobes of ~1.7 %: a single physical peak.
+    e = otf_model(Z, 1.0, 0.0, 1.0, 0.01, FS)
+    assert analyse_curve(Z, e, "otf", FS).status == "ok"
+
+
+def test_peak_beyond_the_scan_is_rejected_not_extrapolated():
+    for z0 in (75.0, -90.0):
+        v = peak_model(Z, 1.0, z0, 10.0, 1.0, 0.1)
+        assert analyse_curve(Z, v, "peak").status == "peak_outside_range"
+
+
+def test_peak_at_the_edge_is_rejected():
+    # maximum on the second frame, the outer flank never falls below half height inside the scan
+    v = peak_model(Z, 1.0, Z[0] + 3.0, 12.0, 1.0, 0.1)
+    r = analyse_curve(Z, v, "peak")
+    assert r.status == "peak_at_edge"
+    assert math.isnan(r.z_best_um)
+
+
+def test_too_few_frames():
+    assert analyse_curve(Z[:4], np.array([1.0, 2.0, 1.5, 1.0]), "peak").status == "too_few_frames"
+
+
+def test_non_finite_values_fail_cleanly():
+    v = peak_model(Z, 1.0, 0.0, 6.0, 1.0, 0.1)
+    v[3] = np.nan
+    assert analyse_curve(Z, v, "peak").status == "fit_failed"
+
+
+def test_bad_arguments_raise():
+    with pytest.raises(ValueError):
+        analyse_curve(Z, np.ones(Z.size), "gauss")
+    with pytest.raises(ValueError):
+        analyse_curve(Z, np.ones(Z.size), "otf", None)
+    with pytest.raises(ValueError):
+        analyse_curves(Z[::-1], np.ones((1, Z.size)), "peak")
+
+
+# ------------------------------------------------------------------------------------------ property
+@settings(max_examples=60, deadline=None)
+@given(z0=st.floats(-70.0, 70.0), f_number=st.floats(1.4, 8.0), noise=st.floats(0.0, 0.08),
+       floor=st.floats(0.0, 0.5), seed=st.integers(0, 2 ** 16), model=st.sampled_from(["otf", "peak"]))
+def test_random_curves_are_accurate_or_rejected_never_a_warning(z0, f_number, noise, floor, seed, model):
+    rng = np.random.default_rng(seed)
+    if model == "otf":
+        v = otf_model(Z, 1.0, z0, 1.0 / f_number, floor, FS)
+    else:
+        v = peak_model(Z, 1.0, z0, 2.0 * f_number, 1.0, floor)
+    v = v * (1.0 + noise * rng.standard_normal(Z.size))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = analyse_curve(Z, v, model, FS, 0.05)
+    if r.status == "ok":
+        assert Z[1] <= r.z_best_um <= Z[-2]  # never extrapolated
+        assert r.z_sigma_um > 0
+        # within a generous multiple of the reported uncertainty, or a tenth of a step when noise-free
+        assert abs(r.z_best_um - z0) <= max(6.0 * r.z_sigma_um, 0.1 * 4.0) + 40.0 * noise
+        if noise == 0.0:
+            assert abs(r.z_best_um - z0) < 0.05
+    else:
+        assert r.status in ("flat", "multi_peak", "peak_outside_range", "peak_at_edge", "fit_failed")
+        if abs(z0) <= 50.0 and noise < 0.01 and floor < 0.3:
+            assert r.status != "flat"  # a clear peak inside the scan is never called flat

@@ -1,0 +1,162 @@
+"""Focus maps, Bayer planes and frame registration (fieldcal.measure.focus/bayer/geometry) on closed forms."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from fieldcal.errors import ParameterError
+from fieldcal.measure import focus
+from fieldcal.measure.bayer import extract_plane, plane_layouts
+from fieldcal.measure.geometry import GeometryMeasurements, StepFit, compose_steps, register_step
+
+
+def test_sml_is_zero_on_a_ramp_and_exact_on_a_checkerboard():
+    y, x = np.mgrid[0:32, 0:32].astype(np.float32)
+    ramp = 0.01 * x + 0.02 * y
+    assert np.abs(focus.sml(ramp)[2:-2, 2:-2]).max() < 1e-5
+    cb = ((x + y) % 2).astype(np.float32)  # |1 - 2 + 1| pattern: each second difference is +-2 -> 4 per pixel
+    np.testing.assert_allclose(focus.sml(cb)[2:-2, 2:-2], 4.0)
+
+
+def test_log_gabor_passes_f0_and_rejects_other_frequencies():
+    n = 256
+    x = np.arange(n, dtype=np.float32)
+    f0 = 0.25
+    for f, expect in ((f0, 1.0), (f0 / 4, 0.0), (0.0, 0.0)):
+        img = np.tile(np.cos(2 * np.pi * f * x) + 0.5, (n, 1)).astype(np.float32)
+        b = focus.bandpass(img, f0)
+        energy = float(np.mean(b[:, 16:-16] ** 2))
+        assert energy == pytest.approx(0.5 * expect, abs=0.01)
+
+
+def test_cell_sums_and_integral_box_sums_are_exact():
+    rng = np.random.default_rng(0)
+    img = rng.random((40, 56)).astype(np.float32)
+    cells = focus.cell_sums(img, 4)
+    assert cells.shape == (10, 14)
+    assert cells[2, 3] == pytest.approx(img[8:12, 12:16].sum(), rel=1e-5)
+    ii = focus.integral(cells)
+    # whole cells
+    assert focus.box_sums(ii, 1, 2, 5, 7) == pytest.approx(cells[2:7, 1:5].sum(dtype=np.float64), rel=1e-6)
+
+
+@settings(max_examples=40, deadline=None)
+@given(x0=st.floats(0, 6), y0=st.floats(0, 6), wx=st.floats(0.1, 6), wy=st.floats(0.1, 5))
+def test_fractional_box_sums_integrate_a_piecewise_constant_density(x0, y0, wx, wy):
+    rng = np.random.default_rng(1)
+    cells = rng.random((12, 14)).astype(np.float32)
+    ii = focus.integral(cells)
+    # brute force: supersample each cell 200x200
+    s = 200
+    fine = np.kron(cells.astype(np.float64), np.ones((s, s))) / (s * s)
+    xs0, xs1, ys0, ys1 = (int(round(v * s)) for v in (x0, x0 + wx, y0, y0 + wy))
+    brute = fine[ys0:ys1, xs0:xs1].sum()
+    got = float(focus.box_sums(ii, x0, y0, x0 + wx, y0 + wy))
+    assert got == pytest.approx(brute, rel=0.02, abs=0.02)
+
+
+def test_saturated_fraction():
+    p = np.zeros((8, 8), np.float32)
+    p[:2, :4] = 1.0
+    f = focus.saturated_fraction_cells(p, 4)
+    np.testing.assert_allclose(f, [[0.5, 0.0], [0.0, 0.0]])
+
+
+def test_radial_directional_energy_separates_orientations():
+    # vertical stripes left of the centre: frequency along x = along the radius there -> "along" energy
+    n = 128
+    x = np.arange(n, dtype=np.float32)
+    img = np.tile(np.cos(2 * np.pi * 0.2 * x), (n, 1)).astype(np.float32)
+    ux, uy = focus.radial_unit_vectors((n, n), (n - 1 + 200.0, (n - 1) / 2.0))  # centre far to the right
+    along, across = focus.directional_energy(focus.bandpass(img, 0.2), ux, uy)
+    assert along[32:-32, 32:-32].mean() > 50 * across[32:-32, 32:-32].mean()
+
+
+@pytest.mark.parametrize("cfa", ["RGGB", "BGGR", "GRBG", "GBRG"])
+def test_bayer_planes_take_each_colour_from_its_own_sites(cfa):
+    h, w = 8, 10
+    raw = np.zeros((h, w), np.float32)
+    value = {"R": 1.0, "G": 2.0, "B": 3.0}
+    for k, colour in enumerate(cfa):
+        r, c = divmod(k, 2)
+        raw[r::2, c::2] = value[colour]
+    lays = plane_layouts(("R", "G", "B"), cfa)
+    assert sorted(l.name for l in lays) == ["B", "G", "G", "R"]
+    for lay in lays:
+        plane = extract_plane(raw, lay)
+        assert plane.shape == (4, 5)
+        assert np.all(plane == value[lay.name])
+        xf, yf = lay.to_full(np.array([0.0, 2.0]), np.array([0.0, 1.0]))
+        assert raw[int(yf[1]), int(xf[1])] == value[lay.name]
+        np.testing.assert_allclose(lay.to_plane(xf, yf), ([0.0, 2.0], [0.0, 1.0]))
+
+
+def test_bad_cfa_is_a_parameter_error():
+    with pytest.raises(ParameterError, match="CFA"):
+        plane_layouts(("R", "G", "B"), "RGBW")
+
+
+# ------------------------------------------------------------------------------------------- geometry
+def _sinusoid_texture(x, y, seed=0, n=150):
+    """A band-limited random texture evaluated exactly at any (warped) coordinates: no resampling bias
+    (cv2.warpAffine quantises sub-pixel positions to 1/32 px)."""
+    rng = np.random.default_rng(seed)
+    f = rng.uniform(0.01, 0.2, n)
+    ang = rng.uniform(0, np.pi, n)
+    ph = rng.uniform(0, 2 * np.pi, n)
+    out = np.zeros(x.shape)
+    for k in range(n):
+        out += np.cos(2 * np.pi * f[k] * (np.cos(ang[k]) * x + np.sin(ang[k]) * y) + ph[k]) / f[k] ** 0.5
+    return (0.5 + 0.02 * out).astype(np.float32)
+
+
+@pytest.mark.parametrize("r,tx,ty", [(1.0, 0.3, -0.2), (1.001, 0.0, 0.0), (1.0002, 0.05, 0.02), (0.999, -0.4, 0.1)])
+def test_register_step_recovers_scale_and_shift(r, tx, ty):
+    h, w = 160, 224
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    a = _sinusoid_texture(x, y)
+    c = ((w - 1) / 2.0 + 7.0, (h - 1) / 2.0 - 5.0)  # off-centre magnification centre
+    # frame b shows the point p of frame a at c + r (p - c) + t, i.e. b(q) = a(c + (q - c - t) / r)
+    b = _sinusoid_texture(c[0] + (x - c[0] - tx) / r, c[1] + (y - c[1] - ty) / r)
+    s = register_step(a, b, c)
+    assert s is not None
+    assert s.r == pytest.approx(r, abs=2e-5)
+    assert s.tx == pytest.approx(tx, abs=0.02)
+    assert s.ty == pytest.approx(ty, abs=0.02)
+    assert np.all(np.sqrt(np.diag(s.cov)) > 0)
+
+
+def test_compose_steps_about_the_reference_frame():
+    # constant steps: m_k = r^(k - ref), shifts accumulate; uncertainty grows away from the reference
+    r, t = 1.001, (0.2, -0.1)
+    cov = np.diag([1e-10, 1e-4, 1e-4])
+    steps = [StepFit(r, t[0], t[1], cov, 100) for _ in range(6)]
+    m, ms, sx, sy, ss = compose_steps(steps, ref_index=3)
+    np.testing.assert_allclose(m, r ** (np.arange(7) - 3.0), rtol=1e-12)
+    assert m[3] == 1.0 and sx[3] == 0.0 and sy[3] == 0.0
+    # forward: s_{k+1} = r s_k + t
+    assert sx[4] == pytest.approx(t[0]) and sx[5] == pytest.approx(r * t[0] + t[0])
+    assert sx[2] == pytest.approx(-t[0] / r)
+    assert ms[3] == 0.0 and ms[0] > ms[2] > 0.0 and ss[6] > ss[4] > 0.0
+
+
+def test_compose_bridges_a_missing_step_with_larger_uncertainty():
+    cov = np.diag([1e-10, 1e-4, 1e-4])
+    steps = [StepFit(1.001, 0.1, 0.0, cov, 100)] * 2 + [None] + [StepFit(1.001, 0.1, 0.0, cov, 100)] * 2
+    m, ms, *_ = compose_steps(steps, ref_index=0)
+    assert m[-1] == pytest.approx(1.001 ** 5)
+    assert ms[3] - ms[2] > ms[2] - ms[1]
+
+
+def test_geometry_recentre_keeps_the_mapping():
+    g = GeometryMeasurements.identity([0.0, 4.0, 8.0], ("G",), (100, 80))
+    g.magnification[2, 0] = 1.01
+    g.shift_x_px[2, 0] = 0.5
+    g2 = g.recentred((30.0, 20.0))
+    x, y = np.array([5.0, 90.0]), np.array([7.0, 70.0])
+    np.testing.assert_allclose(g.map_points(2, "G", x, y), g2.map_points(2, "G", x, y), atol=1e-12)
+    with pytest.raises(ParameterError):
+        g.map_points(0, "R", x, y)
