@@ -47,14 +47,13 @@ def psnr(img, truth, white):
 
 
 @pytest.fixture(scope="module")
-def sim(tmp_path_factory, triplet_path=None):
+def sim(tmp_path_factory):
     from fieldcal.simulate import simulate_stack
     from tests.conftest import MODELS
 
     spec = small_lens(MODELS / "triplet-uncorrected.json")
     root = tmp_path_factory.mktemp("comp")
     # Half textured, a quarter flat grey: depth from focus must follow the fitted surface there.
-    from fieldcal.targets import chart_image  # noqa: F401  (scene via the simulator's chart)
     from fieldcal.simulate.scene import load_scene
     scene, _ = load_scene("chart", SIZE, SIZE, seed=2)
     scene = np.array(scene, dtype=np.float32)
@@ -228,3 +227,24 @@ def test_cli_captured_sweep_needs_alpha(sim, tmp_path, cli):
 def test_help_has_an_example():
     r = subprocess.run([sys.executable, "-m", "fieldcal", "composite", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "example:" in r.stdout and "--sweep-alpha-um" in r.stdout
+
+
+def test_cli_plan_selects_frames(sim, tmp_path, cli):
+    z = np.sort(sim["stack"].z_um)[::2]
+    plan = {"format": "fieldcal-plan/1", "kind": "stack", "direction": "+z",
+            "parameters": {"fs_cyc_per_mm": 80.0, "q": 0.05}, "refocus_um": 0.0,
+            "frames": [{"z_um": float(v)} for v in z]}
+    pp = tmp_path / "plan.json"
+    pp.write_text(json.dumps(plan))
+    out = tmp_path / "p.tiff"
+    r = cli(sim["root"] / "stack", "--profile", sim["spec_path"], "--plan", pp, "--out", out)
+    assert r.returncode == 0, r.stderr
+    meta = read_composite_metadata(out)
+    assert meta["frames_used"] == len(z) and meta["plan"]["n_frames"] == len(z)
+    # half the frames (8 µm apart) is still far better than one frame, a little below all of them
+    img = tifffile.imread(out)
+    assert psnr(img, sim["truth"], sim["white"]) > psnr(sim["oracle"], sim["truth"], sim["white"]) - 3.0
+    plan["frames"].append({"z_um": 500.0})
+    pp.write_text(json.dumps(plan))
+    r = cli(sim["root"] / "stack", "--profile", sim["spec_path"], "--plan", pp, "--out", tmp_path / "q.tiff")
+    assert r.returncode == 2 and "not in the stack" in r.stderr and not (tmp_path / "q.tiff").exists()

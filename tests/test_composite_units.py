@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -287,3 +285,60 @@ def test_array_stack_validates():
         ArrayStack([np.zeros((4, 4, 3)), np.zeros((4, 4, 3))], [1.0, 1.0], "RGB")
     s = ArrayStack([np.zeros((4, 5), np.uint16)], [0.0], ["Y"])
     assert s.shape == (4, 5) and s.read(0, (1, 1, 2, 3)).shape == (3, 2, 1) and s.white_level == 65535
+
+
+# ------------------------------------------------------------------------------ whole-stack closed forms
+def _static_lens(path, **changes):
+    import dataclasses as dc
+    spec = LensSpec.load(path)
+    return dc.replace(spec, exit_pupil_mm=float("inf"), stage_axis_tilt_mrad=(0.0, 0.0), **changes)
+
+
+def test_identical_frames_composite_to_themselves(models_dir):
+    """Weights sum to one and, without breathing, nothing is resampled: a static scene comes back exactly."""
+    from fieldcal.composite import composite_stack
+    spec = _static_lens(models_dir / "doublet-mono.json").with_sensor_size(96, 72)
+    prof = TruthProfile(spec)
+    rng = np.random.default_rng(0)
+    frame = rng.integers(0, 4096, (72, 96, 1)).astype(np.uint16)
+    lo, hi = spec.focus_range_um()
+    z = np.linspace(lo - 10, hi + 10, 9)
+    stack = ArrayStack([frame] * len(z), z, ["Y"], white_level=4095)
+    res = composite_stack(stack, prof, "profile", quiet=True)
+    np.testing.assert_array_equal(res.image, frame)
+    assert res.image.dtype == np.uint16
+
+
+def test_lateral_colour_correction_registers_channels(models_dir):
+    """Frames whose R and B channels are scaled about the centre (lateral colour) come back registered to G."""
+    import dataclasses as dc
+    import cv2
+    from fieldcal.composite import composite_stack
+    from fieldcal.simulate.warp import scale_shift
+
+    spec = _static_lens(models_dir / "singlet-colour.json").with_sensor_size(128, 96)
+    # exaggerate the lateral colour (x1.02 on top of +-0.25 %) so the effect is pixels wide at the edge
+    spec = dc.replace(spec, channels=tuple(dc.replace(c, lateral_colour=1.02 * (1 + c.lateral_colour) - 1)
+                                           for c in spec.channels))
+    prof2 = TruthProfile(spec)
+    rng = np.random.default_rng(2)
+    scene = cv2.GaussianBlur(rng.random((96, 128), dtype=np.float32), (0, 0), 2.0) * 3000 + 500
+    cx, cy = prof2.optical_centre_px()
+    chans = []
+    for ch in ("R", "G", "B"):
+        s = prof2.lateral_colour_scale(ch)
+        chans.append(scale_shift(scene, s, cx * (1 - s), cy * (1 - s)))
+    frame = np.stack(chans, axis=-1)
+    lo, hi = spec.focus_range_um()
+    z = np.linspace(lo - 10, hi + 10, 6)
+    stack = ArrayStack([frame] * len(z), z, ["R", "G", "B"], white_level=4095.0)
+    keep = composite_stack(stack, prof2, "profile", quiet=True).image
+    fixed = composite_stack(stack, prof2, "profile", lateral_colour=True, quiet=True).image
+    m = (slice(12, -12), slice(12, -12))
+
+    def err(img, c):
+        return np.sqrt(np.mean((img[..., c][m] - scene[m]) ** 2))
+
+    for c in (0, 1, 2):
+        assert err(fixed, c) < 0.1 * scene.std()
+    assert err(keep, 0) > 3 * err(fixed, 0)  # by default the z_ref geometry (with lateral colour) is kept
