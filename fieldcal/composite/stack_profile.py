@@ -49,6 +49,9 @@ def check_profile_matches(stack, profile, where=None) -> None:
 
 def select_frames(stack, frames=None) -> np.ndarray:
     """File indices to use (all by default), validated."""
+    if getattr(stack, "cfa", None):
+        raise StackError(f"a raw {stack.cfa} mosaic stack cannot be composited per channel",
+                         path=getattr(stack, "path", None), field="cfa", fix="demosaic the frames first (H x W x 3)")
     n = len(stack)
     idx = np.arange(n) if frames is None else np.asarray(frames, dtype=int)
     if len(idx) == 0:
