@@ -123,7 +123,7 @@ def plot_plan(result, out: Path) -> str:
         im = axes[1, j].imshow(mg, cmap="RdYlGn", vmin=-lim, vmax=lim)
         axes[1, j].set_title(f"{c}: margin δ − |z_frame − z_true| (µm), min {mg.min():.2f}", fontsize=9)
         fig.colorbar(im, ax=axes[1, j], shrink=0.8)
-    fig.suptitle(f"plan from the {'calibrated' if result.config['profile'] == 'calibrate' else 'true'} profile: "
+    fig.suptitle(f"plan from the {result.config['profile']} profile: "
                  f"{result.plan['n_frames']} frames (optimum for the true surfaces: {result.plan['n_optimal_true']})")
     return _save(fig, out / "plan.png")
 
@@ -135,7 +135,7 @@ def plot_composite(result, out: Path) -> str:
     cm = result.composite
     black, white = cm["black_level"], cm["white_level"]
     names = [("truth", "truth (all in focus)"), ("one_shot", "one shot at on-axis focus"),
-             ("composite", "composite (calibrated)" if result.config["profile"] == "calibrate" else "composite"),
+             ("composite", "composite (true profile)" if result.config["profile"] == "truth" else "composite"),
              ("oracle", "oracle (true surfaces)")]
     h, w = im["truth"].shape[:2]
     cy, cx = slice(0, max(16, h // 3)), slice(0, max(16, w // 3))

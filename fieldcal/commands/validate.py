@@ -57,8 +57,9 @@ def register(sub):
                    help="scene to composite: chart (dead leaves), texture (colour dead leaves) or an image file")
     p.add_argument("--confidence", type=str, default="0.9",
                    help="coverage probability the plan asks of the profile's band, or 'none' (default 0.9)")
-    p.add_argument("--profile", choices=("calibrate", "truth"), default="calibrate",
-                   help="calibrate (the full pipeline) or truth (skip calibration; checks planning and compositing)")
+    p.add_argument("--profile", default="calibrate",
+                   help="calibrate (the full pipeline, default), truth (skip calibration; checks planning and "
+                        "compositing) or PROFILE.json (judge a saved fieldcal-profile/1 calibrated at --size)")
     p.add_argument("--keep-stacks", action="store_true", help="keep the chart and scene stacks in OUT/stacks/")
     p.add_argument("--no-plots", action="store_true", help="write only summary.json, report.md and index.html")
     p.set_defaults(func=run)
@@ -75,14 +76,23 @@ def run(args) -> int:
                              field="--scene", fix="use chart, texture or the path of an existing image")
     if not math.isfinite(args.q):
         raise ParameterError(f"q must be a finite number, got {args.q}", field="--q", fix="e.g. --q 0.05")
+    given = None
+    source = args.profile
+    if source not in ("calibrate", "truth"):
+        if not Path(source).is_file():
+            raise ParameterError(f"profile {source!r} is neither calibrate, truth nor a profile file", path=source,
+                                 field="--profile", fix="use calibrate, truth or the path of a fieldcal-profile/1 JSON")
+        from ..profile import LensProfile
+        given = LensProfile.load(source)
+        source = "calibrate"
     cfg = ValidateConfig(size_px=_size(args.size) if args.size else None, fs_cyc_per_mm=args.fs, q=args.q,
                          effort=args.effort, seed=args.seed, scene=scene, confidence=_confidence(args.confidence),
-                         profile=args.profile)
+                         profile=source)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ParameterError("the report folder is a file", path=out, field="--out", fix="give a folder name")
     workdir = out / "stacks" if args.keep_stacks else None
-    result = validate(args.lens, cfg, workdir=workdir)
+    result = validate(args.lens, cfg, workdir=workdir, profile=given)
     write_report(result, out, plots=not args.no_plots)
     for c in result.checks:
         status(f"  {'pass' if c.passed else 'FAIL'}  {c.name}: {c.value:.4g} {c.op} {c.limit:.4g}")
