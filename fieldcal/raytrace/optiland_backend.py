@@ -131,6 +131,11 @@ class TracedLens:
         op.wavelengths.add(value=self.wavelength_nm / 1000.0, is_primary=True)
         return op
 
+    def _ensure_angle(self, angle_deg: float) -> None:
+        """optiland takes normalised field coordinates: widen the field when an angle lies beyond it."""
+        if abs(angle_deg) > self._max_angle_deg:
+            self.set_max_angle_deg(1.3 * abs(angle_deg))
+
     @property
     def _last_surface(self) -> int:
         return len(self.rx.surfaces)  # optiland index of the last lens surface (object surface is 0)
@@ -150,6 +155,7 @@ class TracedLens:
     def _chief_rays(self, angles_deg) -> tuple[np.ndarray, np.ndarray]:
         """Chief-ray height on the *stated* image plane and its slope dy/dz, for object angles (deg)."""
         a = np.atleast_1d(np.asarray(angles_deg, dtype=np.float64))
+        self._ensure_angle(float(np.max(np.abs(a))))
         with _quiet():
             rays = self.optic.trace_generic(np.zeros_like(a), a / self._max_angle_deg, np.zeros_like(a),
                                             np.zeros_like(a), self.wavelength_nm / 1000.0)
@@ -199,6 +205,7 @@ class TracedLens:
         current image plane and propagated along their directions to the plane of least spread. Used to
         label the MTF's tangential/sagittal axes and as a cheap starting point for the MTF search.
         """
+        self._ensure_angle(angle_deg)
         p = np.linspace(-pupil, pupil, n)
         z = np.zeros_like(p)
         hy = angle_deg / self._max_angle_deg
@@ -224,6 +231,7 @@ class TracedLens:
         """Tangential and sagittal MTF of the field at ``angle_deg`` on the current image plane."""
         from optiland.mtf import FFTMTF
 
+        self._ensure_angle(angle_deg)
         hy = angle_deg / self._max_angle_deg
         with _quiet():
             m = FFTMTF(self.optic, fields=[(0.0, hy)], wavelength=self.wavelength_nm / 1000.0,
