@@ -234,7 +234,7 @@ def charuco_spec(width_px: int, height_px: int, *, squares_short: int | None = N
     dpi : float, optional
         Print resolution; sets ``square_mm``.
     """
-    w, h = _check_size(width_px, height_px, min_px=64)
+    w, h = _check_size(width_px, height_px, min_px=80)
     short = min(w, h)
     n_short = int(np.clip(short // 32, 3, 10)) if squares_short is None else int(squares_short)
     if n_short < 3:
@@ -242,18 +242,28 @@ def charuco_spec(width_px: int, height_px: int, *, squares_short: int | None = N
     if not (0.3 <= marker_ratio <= 0.9):
         raise ParameterError(f"marker ratio {marker_ratio} out of range", field="marker_ratio", fix="use 0.3..0.9")
     square = int(short // (n_short + 1))  # +1: half a square of quiet margin on each side
-    if square < 12:
+    if square < 20:
         raise ParameterError(f"squares of {square} px are too small to detect", field="squares_short",
-                             fix="use fewer squares or a larger chart (squares need >= 12 px)")
-    sx = int((w - square) // square) if w >= h else n_short
-    sy = n_short if w >= h else int((h - square) // square)
+                             fix="use fewer squares or a larger chart (squares need >= 20 px: >= 80 px charts)")
+    n_long = int((max(w, h) - square) // square)
+    sx, sy = (n_long, n_short) if w >= h else (n_short, n_long)
     # The dictionary must hold one marker per white square.
     n_markers = (sx * sy) // 2
     dictionary = _ARUCO_DICTS[0] if n_markers <= 250 else _ARUCO_DICTS[1]
     if n_markers > 1000:
         raise ParameterError(f"a board of {sx} x {sy} squares needs {n_markers} markers (max 1000)",
                              field="squares_short", fix="use fewer squares")
+    # Small markers need whole pixels per bit (5x5 data + 1-bit border = 7 cells) to decode reliably.
     marker = int(round(marker_ratio * square))
+    if square < 70:
+        marker = 7 * max(2, int(marker_ratio * square) // 7)
+    # An odd square-minus-marker gap puts the marker half a pixel off-centre, which biases the sub-pixel
+    # corners by ~0.2 px: make the gap even (shrink the square for small boards, the marker for big ones).
+    if (square - marker) % 2:
+        if square < 70:
+            square -= 1
+        else:
+            marker -= 1
     return CharucoSpec(squares_x=sx, squares_y=sy, square_px=square, marker_px=marker, dictionary=dictionary,
                        origin_x_px=(w - sx * square) // 2, origin_y_px=(h - sy * square) // 2,
                        width_px=w, height_px=h,
@@ -310,7 +320,11 @@ def detect_charuco(image: np.ndarray, spec: CharucoSpec | None = None, *,
     grey = _to_uint8(image)
     if spec is None:
         spec = charuco_spec(grey.shape[1], grey.shape[0])
-    detector = cv2.aruco.CharucoDetector(spec.board())
+    # OpenCV's default minimum marker perimeter is 3 % of the image's long side, which drops the small markers
+    # of a many-square board in a big frame; any marker >= 10 px across (~1.5 px per bit) is worth decoding.
+    params = cv2.aruco.DetectorParameters()
+    params.minMarkerPerimeterRate = min(params.minMarkerPerimeterRate, 40.0 / max(grey.shape))
+    detector = cv2.aruco.CharucoDetector(spec.board(), cv2.aruco.CharucoParameters(), params)
     corners, ids, _, _ = detector.detectBoard(grey)
     if ids is None or len(ids) == 0:
         corners_px, out_ids = np.zeros((0, 2)), np.zeros(0, np.int64)
