@@ -103,11 +103,11 @@ def main(argv=None) -> int:
             ("worst max error (µm)", "max_um", ".1f"), ("worst 90 % band coverage", "coverage", ".3f"),
             ("widest mean band half-width (µm)", "halfwidth_um", ".1f"), ("", "mark", "")]
     table = md_table(rows, cols)
-    fig_path = REPO / "docs" / "img" / "bench_calibration_trade.png" if not args.quick else out / "calibration_trade.png"
+    fig_path = REPO / "docs" / "img" / "bench_calibration_trade.png" if (args.docs or not args.quick) else out / "calibration_trade.png"
     _plot(rows, fig_path, tol)
     text = "\n".join([
         "## Calibration trade: scan step, frames, tiles, effort → surface error, band coverage, time", "",
-        f"`{CMD}` (full grid; `--quick` for a smoke run). Paper triplet at {size[0]}x{size[1]} px over its real sensor "
+        f"`{CMD}` (full grid; `--quick` for a smoke run){' — the numbers below are from a **--quick** run; the full run replaces them' if args.quick else ''}. Paper triplet at {size[0]}x{size[1]} px over its real sensor "
         f"({spec.sensor.pixel_pitch_um:.2f} µm pixels), fs = {fs:g} cycles/mm, q = {args.q:g}, true tolerance "
         f"δ = {tol:.1f} µm; chart stacks on a grid through z_ref over the focus range ± margin. Errors are the worst "
         "channel's, against the true surfaces over the whole field; time is `calibrate` alone (single process, "

@@ -124,7 +124,7 @@ def main(argv=None) -> int:
             ("capture time (ms)", "time_ms", ".0f"), ("PSNR (dB)", "psnr_db", ".2f"),
             ("corner PSNR (dB)", "psnr_corners_db", ".2f"), ("corner MTF at fs, worst (rel.)", "mtf_corner_min", ".3f"),
             ("corner MTF at fs, mean", "mtf_corner_mean", ".3f"), ("true coverage", "coverage", ".3f"), ("", "mark", "")]
-    fig_path = REPO / "docs" / "img" / "bench_stack_trade.png" if not args.quick else out / "stack_trade.png"
+    fig_path = REPO / "docs" / "img" / "bench_stack_trade.png" if (args.docs or not args.quick) else out / "stack_trade.png"
     _plot(ok, one, fig_path)
     d = [r for r in ok if r["default"]]
     just = ("Default: q = 0.05, confidence 0.9 (`fieldcal plan stack` uses q = 0.05). q bounds the MTF loss at fs of "
@@ -138,7 +138,7 @@ def main(argv=None) -> int:
                     "dominated here (a cheaper row matched it on this small image)."))
     text = "\n".join([
         "## Stack-plan trade: q and confidence → frames, capture time, composite quality", "",
-        f"`{CMD}` (full grid; `--quick` for a smoke run). Paper triplet at {size[0]}x{size[1]} px, fs = {fs:g} cycles/mm, "
+        f"`{CMD}` (full grid; `--quick` for a smoke run){' — the numbers below are from a **--quick** run; the full run replaces them' if args.quick else ''}. Paper triplet at {size[0]}x{size[1]} px, fs = {fs:g} cycles/mm, "
         f"profile: {source}{' (effort ' + args.effort + ')' if source == 'calibrate' else ''}; capture time = frames x "
         f"({exposure_ms:g} ms exposure + {args.overhead_ms:g} ms stage move). Quality against the simulator's "
         "all-in-focus truth; corner MTF is relative to the truth (1 = in focus). 'true coverage' is the fraction of "

@@ -97,7 +97,7 @@ def main(argv=None) -> int:
             ("predicted gain to in-focus", "pred_gain_focus", ".2f"), ("measured noise gain", "gain", ".2f"),
             ("PSNR raw sweep (dB)", "psnr_raw_db", ".2f"), ("PSNR deconvolved (dB)", "psnr_db", ".2f"),
             ("worst corner MTF (rel.)", "mtf_corner_min", ".3f"), ("", "mark", "")]
-    fig_path = REPO / "docs" / "img" / "bench_sweep_trade.png" if not args.quick else out / "sweep_trade.png"
+    fig_path = REPO / "docs" / "img" / "bench_sweep_trade.png" if (args.docs or not args.quick) else out / "sweep_trade.png"
     _plot(rows, fig_path)
     d = [r for r in rows if r["default"]]
     just = (f"Default α = {DEFAULT_ALPHA_UM:g} µm (the paper's experiment used 2α = 24 µm): T = (D/2α + 1) t_s "
@@ -109,7 +109,7 @@ def main(argv=None) -> int:
                  + ("on the front." if "front" in d[0]["mark"] else "dominated on this small image."))
     text = "\n".join([
         "## Sweep trade: α → total time T vs noise gain after deconvolution vs quality", "",
-        f"`{CMD}` (full grid; `--quick` for a smoke run). Paper triplet at {size[0]}x{size[1]} px "
+        f"`{CMD}` (full grid; `--quick` for a smoke run){' — the numbers below are from a **--quick** run; the full run replaces them' if args.quick else ''}. Paper triplet at {size[0]}x{size[1]} px "
         f"({spec.sensor.pixel_pitch_um:.2f} µm pixels), D = {D:.1f} µm, t_s = {args.pixel_exposure_ms:g} ms, fs = {fs:g} "
         f"cycles/mm, channel {ch} for the predictions (Wiener NSR {args.nsr:g}); measured columns from a sweep "
         f"emulated from a {step:g} µm stack and Wiener-deconvolved to the in-focus image. The emulation averages "
