@@ -590,6 +590,10 @@ def _run(spec: LensSpec, fs: float, cfg: ValidateConfig, work: Path, quiet: bool
         checks.append(Check("registration_px", geom["registration_error_px"], th.registration_px_max, "<=",
                             "worst displacement error (px) of the geometry model at the image corners and edges "
                             "over the focus range"))
+    if cfg.confidence is not None:
+        checks.append(Check("plan_confidence_feasible", float(confidence_ok), 1.0, ">=",
+                            f"a plan at confidence {cfg.confidence} exists (the profile's band is narrower than the "
+                            "tolerance everywhere); 0 means it was planned on the MAP surfaces"))
     checks.append(Check("plan_coverage", plan_info["coverage_min"], th.plan_coverage_min, ">=",
                         "fraction of pixels (every channel) whose nearest planned frame is within the true tolerance"))
     checks.append(Check("plan_frames", plan.n_frames, math.ceil(th.plan_frames_factor * n_opt) + 1, "<=",
