@@ -20,6 +20,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ._io import atomic_write_bytes, atomic_write_text
+from ._io import atomic_write_bytes
 from .errors import ParameterError
 from .progress import progress
 
@@ -465,6 +466,32 @@ PAPER_SIZES_MM = {"A5": (210.0, 148.0), "A4": (297.0, 210.0), "A3": (420.0, 297.
                   "letter": (279.4, 215.9), "legal": (355.6, 215.9)}
 
 
+def print_requirements(pixel_pitch_um: float, sensor_size_mm: tuple[float, float], focal_length_mm: float,
+                       object_distance_mm: float) -> dict[str, float]:
+    """What a printed chart needs for a camera: minimum dpi and the field it must cover.
+
+    Thin-lens magnification ``m = f / (d - f)`` (d from the lens to the chart). One printed pixel must image
+    to at most one sensor pixel, so the texture keeps energy up to the *sensor's* Nyquist frequency:
+    ``dpi >= 25.4 * m / pitch_mm``. The chart must cover the field of view ``sensor_size / m``.
+
+    Returns
+    -------
+    dict
+        ``magnification``, ``min_dpi``, ``field_width_mm``, ``field_height_mm``.
+    """
+    for name, v in (("pixel_pitch_um", pixel_pitch_um), ("focal_length_mm", focal_length_mm),
+                    ("object_distance_mm", object_distance_mm), ("sensor width", sensor_size_mm[0]),
+                    ("sensor height", sensor_size_mm[1])):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ParameterError(f"{name} = {v!r} must be a positive number", field=name, fix="pass a positive value")
+    if object_distance_mm <= focal_length_mm:
+        raise ParameterError(f"object distance {object_distance_mm} mm is inside the focal length {focal_length_mm} mm",
+                             field="object_distance_mm", fix="the chart must be farther than one focal length")
+    m = focal_length_mm / (object_distance_mm - focal_length_mm)
+    return {"magnification": m, "min_dpi": MM_PER_INCH * m / (pixel_pitch_um / 1000.0),
+            "field_width_mm": sensor_size_mm[0] / m, "field_height_mm": sensor_size_mm[1] / m}
+
+
 def parse_size_mm(text: str) -> tuple[float, float]:
     """``"297x210"`` (width x height in mm) or a paper name (A5..A2, letter, legal; landscape) to mm."""
     t = str(text).strip()
@@ -595,14 +622,22 @@ def write_targets(out_dir: str | Path, width_mm: float = 297.0, height_mm: float
                 data = _png_bytes(img, dpi, {"Title": f"fieldcal {kind}", "Description": subject})
             else:
                 data = _pdf_bytes(img, width_mm, height_mm, dpi, f"fieldcal {kind}", subject)
-            atomic_write_bytes(out / fname, data)
+            _write_shareable(out / fname, data)
             files.append(fname)
         entries.append({"kind": kind, "files": files, "width_mm": float(width_mm), "height_mm": float(height_mm),
                         "dpi": float(dpi), "width_px": w_px, "height_px": h_px,
                         "seed": seed if kind == "texture" else None, "params": params})
     manifest = _merge_manifest(out / "targets.json", entries)
-    atomic_write_text(out / "targets.json", json.dumps(manifest, indent=2) + "\n")
+    _write_shareable(out / "targets.json", (json.dumps(manifest, indent=2) + "\n").encode("utf-8"))
     return manifest
+
+
+def _write_shareable(path: Path, data: bytes) -> None:
+    """Atomic write, then the permissions of an ordinary new file (temp files are created owner-only)."""
+    atomic_write_bytes(path, data)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
 
 
 def _fmt_num(v: float) -> str:

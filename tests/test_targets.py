@@ -15,7 +15,8 @@ from fieldcal import lens as lensmod
 from fieldcal.cli import main
 from fieldcal.errors import FieldcalError, ParameterError
 from fieldcal.targets import (KINDS, CharucoSpec, chart_image, charuco_image, charuco_spec, detect_charuco,
-                              parse_size_mm, random_texture, slanted_edge_image, slanted_edge_spec, write_targets)
+                              parse_size_mm, print_requirements, random_texture, slanted_edge_image,
+                              slanted_edge_spec, write_targets)
 
 
 # ------------------------------------------------------------------------------------------------ texture
@@ -282,6 +283,7 @@ def test_write_targets_files_sizes_and_manifest(tmp_path):
         assert pdf.startswith(b"%PDF")
         pw, ph = _pdf_page_pt(pdf)
         assert abs(pw - 80 / 25.4 * 72) < 0.01 and abs(ph - 60 / 25.4 * 72) < 0.01  # exact physical size
+        assert f"/Width {w_px}".encode() in pdf and f"/Height {h_px}".encode() in pdf  # pixels not resampled
         if c["kind"] == "texture":
             assert c["seed"] == 3
             assert np.abs(pixels - random_texture(w_px, h_px, seed=3)).max() <= 0.5 / 255 + 1e-6
@@ -326,6 +328,24 @@ def test_parse_size_rejects_garbage(text):
 
 def test_parse_size_paper_names():
     assert parse_size_mm("A4") == (297.0, 210.0) and parse_size_mm("a3") == (420.0, 297.0)
+
+
+def test_print_requirements_for_the_paper_triplet(triplet_path):
+    """Closed form for models/triplet-uncorrected.json: f = 17.6 mm at 1 m gives m = 17.6 / 982.4."""
+    from fieldcal.lens import LensSpec
+
+    spec = LensSpec.load(triplet_path)
+    assert (spec.focal_length_mm, spec.object_distance_mm, spec.sensor.pixel_pitch_um) == (17.6, 1000.0, 1.6342)
+    req = print_requirements(spec.sensor.pixel_pitch_um, spec.sensor.size_mm, spec.focal_length_mm,
+                             spec.object_distance_mm)
+    m = 17.6 / (1000.0 - 17.6)
+    assert math.isclose(req["magnification"], m, rel_tol=1e-12)
+    # at min_dpi one printed pixel (25.4/dpi mm) images onto exactly one 1.6342 µm sensor pixel
+    assert math.isclose(25.4 / req["min_dpi"] * m * 1000.0, 1.6342, rel_tol=1e-12)
+    assert 275 < req["min_dpi"] < 282  # so 300 dpi prints suit this camera at 1 m
+    assert math.isclose(req["field_width_mm"], 3840 * 1.6342e-3 / m, rel_tol=1e-12)
+    with pytest.raises(ParameterError, match="focal length"):
+        print_requirements(1.6, (6.0, 4.0), 20.0, 15.0)
 
 
 def test_cli_writes_targets(tmp_path, capsys):
