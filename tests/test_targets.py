@@ -357,6 +357,25 @@ def test_cli_writes_targets(tmp_path, capsys):
     assert all((out / f).exists() for f in man["charts"][0]["files"])
 
 
+def test_cli_lens_check_warns_when_dpi_too_low(tmp_path, capsys, monkeypatch, triplet_path):
+    from fieldcal.lens import LensSpec
+
+    monkeypatch.setenv("FIELDCAL_PROGRESS", "1")  # the status lines are the output under test
+    rc = main(["targets", "--out", str(tmp_path), "--kind", "slanted-edge", "--size-mm", "100x70",
+               "--dpi", "100", "--format", "png", "--lens", str(triplet_path)])
+    err = capsys.readouterr().err
+    assert rc == 0 and "needs >= 278 dpi" in err and "below 278 dpi" in err and "does not fill" in err
+    # the same lens sampled by 320 x 180 pixels needs 278 * 180 / 2160 = 23 dpi over the same 350 x 197 mm field
+    small = tmp_path / "small.json"
+    LensSpec.load(triplet_path).with_sensor_size(320, 180).save(small)
+    rc = main(["targets", "--out", str(tmp_path), "--kind", "slanted-edge", "--size-mm", "360x200",
+               "--dpi", "50", "--format", "png", "--lens", str(small)])
+    err = capsys.readouterr().err
+    assert rc == 0 and "needs >= 23 dpi" in err and "warning" not in err
+    rc = main(["targets", "--out", str(tmp_path / "x"), "--lens", str(tmp_path / "missing.json")])
+    assert rc != 0 and "lens spec not found" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("args,field", [(["--size-mm", "297by210"], "size_mm"), (["--dpi", "5"], "dpi"),
                                         (["--dpi", "many"], "dpi"), (["--seed", "-2"], "seed"),
                                         (["--size-mm", "3x3"], "width_mm")])

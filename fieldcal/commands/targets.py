@@ -21,6 +21,9 @@ def register(sub):
     p.add_argument("--dpi", default="300", help="print resolution in dots per inch, 50..1200 (default: 300)")
     p.add_argument("--seed", default="0", help="random-texture seed (default: 0)")
     p.add_argument("--format", default="png,pdf", help="comma-separated: png, pdf (default: png,pdf)")
+    p.add_argument("--lens", default=None, metavar="LENS.json",
+                   help="a fieldcal-lens/1 spec: report the dpi and chart size this camera needs at its object "
+                        "distance, and warn when --dpi/--size-mm fall short")
     p.set_defaults(func=run)
 
 
@@ -42,6 +45,8 @@ def run(args) -> int:
     if seed < 0:
         raise ParameterError(f"seed {seed} is negative", field="seed", fix="use a seed >= 0")
     formats = tuple(f.strip().lower() for f in str(args.format).split(",") if f.strip())
+    if args.lens:
+        _check_for_lens(args.lens, width_mm, height_mm, dpi)
     kinds = KINDS if args.kind == "all" else (args.kind,)
     manifest = write_targets(args.out, width_mm, height_mm, dpi, kinds=kinds, seed=seed, formats=formats,
                              quiet=False)
@@ -50,3 +55,22 @@ def run(args) -> int:
         status(f"wrote {args.out}/{f}")
     status(f"wrote {args.out}/targets.json ({width_mm:g} x {height_mm:g} mm at {dpi:g} dpi; print at 100 %)")
     return 0
+
+
+def _check_for_lens(lens_path: str, width_mm: float, height_mm: float, dpi: float) -> None:
+    from ..lens import LensSpec
+    from ..progress import status
+    from ..targets import print_requirements
+
+    spec = LensSpec.load(lens_path)
+    req = print_requirements(spec.sensor.pixel_pitch_um, spec.sensor.size_mm, spec.focal_length_mm,
+                             spec.object_distance_mm)
+    status(f"{spec.name} at {spec.object_distance_mm:g} mm: magnification {req['magnification']:.4f}, "
+           f"needs >= {req['min_dpi']:.0f} dpi and a chart of >= {req['field_width_mm']:.0f} x "
+           f"{req['field_height_mm']:.0f} mm to fill the field")
+    if dpi < req["min_dpi"]:
+        status(f"warning: {dpi:g} dpi is below {req['min_dpi']:.0f} dpi: the texture will not reach the sensor's "
+               f"Nyquist frequency (raise --dpi or move the chart farther away)")
+    if width_mm < req["field_width_mm"] or height_mm < req["field_height_mm"]:
+        status("warning: the chart does not fill the field of view (use a larger --size-mm, tile several prints, "
+               "or move the chart farther away)")
