@@ -253,15 +253,14 @@ def test_on_disk_stack_quick_effort(tmp_path, models_dir):
     from fieldcal.simulate import simulate_stack
     from fieldcal.stack import Stack
     spec = small_lens(models_dir, W=192, H=128, channels=("R", "G", "B"))
-    z = np.arange(-72.0, 24.0 + 1e-9, STEP_UM)
+    z = np.arange(-84.0, 44.0 + 1e-9, STEP_UM)
     simulate_stack(spec, tmp_path / "s", z, seed=2, progress=False)
     stack = Stack.open(tmp_path / "s")
     table, geo = measure_stack(stack, fs_cyc_per_mm=fs_for(spec), effort="quick", quiet=True)
     assert table.tile_px == 32
-    assert table.ok.mean() > 0.8
-    # quick: band-pass (and width) only on the registered channel (G), geometry copied to every channel
-    assert np.isfinite(table.width_um[table.channel == "G"]).any()
-    assert np.all(np.isnan(table.width_um[table.channel == "R"]))
+    assert table.ok.mean() > 0.8, table.counts()
+    # quick: SML on 2x2-binned planes, no band-pass (no widths), geometry of G copied to every channel
+    assert np.all(np.isnan(table.width_um))
     np.testing.assert_array_equal(geo.magnification[:, 0], geo.magnification[:, 1])
     rows = np.flatnonzero(table.ok)
     err = table.z_best_um[rows] - tile_truth(spec, table, rows)

@@ -24,12 +24,16 @@ from .geometry import GeometryMeasurements, StepFit, compose_steps, downsample, 
 from .throughfocus import CurveFit, CurveRules, analyse_curves
 
 EFFORTS = {
-    # tile_div: default tile = min(W, H) / tile_div; geo_ds: downsampling for registration;
-    # geo_all: register every channel (else one, copied); bp_all: band-pass (and width) for every channel
-    # (else only the registered one, unless it gives z_best); directional: z_tan/z_sag; cell: cell size (px).
-    "quick": {"tile_div": 8, "geo_ds": 4, "geo_all": False, "bp_all": False, "directional": False, "cell": 8},
-    "standard": {"tile_div": 12, "geo_ds": 4, "geo_all": True, "bp_all": True, "directional": False, "cell": 4},
-    "thorough": {"tile_div": 16, "geo_ds": 2, "geo_all": True, "bp_all": True, "directional": True, "cell": 4},
+    # tile_div: default tile = min(W, H) / tile_div; geo_ds: downsampling for registration, keeping at least
+    # geo_min_px on the short side; geo_all: register every channel (else one, copied to all); bp_all:
+    # band-pass measure (hence widths) on every channel, else none unless it gives z_best; focus_bin: 2x2
+    # binning before the SML when there is no band-pass (quick); directional: z_tan/z_sag; cell: cell size.
+    "quick": {"tile_div": 8, "geo_ds": 8, "geo_min_px": 128, "geo_all": False, "bp_all": False, "focus_bin": 2,
+              "directional": False, "cell": 4},
+    "standard": {"tile_div": 12, "geo_ds": 4, "geo_min_px": 256, "geo_all": True, "bp_all": True, "focus_bin": 1,
+                 "directional": False, "cell": 4},
+    "thorough": {"tile_div": 16, "geo_ds": 2, "geo_min_px": 256, "geo_all": True, "bp_all": True, "focus_bin": 1,
+                 "directional": True, "cell": 4},
 }
 MEASURES = ("sml", "bandpass")
 GEOMETRY_BLUR_PX = 1.0
@@ -182,32 +186,38 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
     pitch_mm = stack.pixel_pitch_um * 1e-3
 
     maps: list[_Maps] = []
-    bp_planes = set(range(len(layouts))) if (bp_all or cfg["bp_all"]) else set(
-        i for i, lay in enumerate(layouts) if lay.name == layouts[_geometry_channels(stack, layouts, False)[0]].name)
+    with_bp = bool(bp_all or cfg["bp_all"])
+    fbin = 1 if with_bp else int(cfg["focus_bin"])
     if want_focus:
-        for li, lay in enumerate(layouts):
+        for li, lay0 in enumerate(layouts):
+            # 2x2 binning (quick): a plane pixel then covers fbin x fbin plane pixels of the frame
+            lay = lay0 if fbin == 1 else PlaneLayout(lay0.name, lay0.channel_index, lay0.stride * fbin,
+                                                     lay0.offset_x + lay0.stride * (fbin - 1) / 2.0,
+                                                     lay0.offset_y + lay0.stride * (fbin - 1) / 2.0)
             f0 = fs_cyc_per_mm * pitch_mm * lay.stride
-            if f0 > 0.4:
+            if with_bp and f0 > 0.4:
                 raise ParameterError(
                     f"fs = {fs_cyc_per_mm:g} cycles/mm is {f0:.2f} cycles per pixel of the {lay.name} "
                     f"{'sub-lattice' if lay.stride > 1 else 'plane'}: above what the pixels resolve (0.4)",
                     field="fs_cyc_per_mm",
                     fix=f"use fs <= {0.4 / (pitch_mm * lay.stride):.0f} cycles/mm for this stack")
-            cell = max(2, cfg["cell"] // lay.stride)
-            hc, wc = focus.cell_grid(plane_shape((h, w), lay), cell)
+            cell = max(2, cfg["cell"] // lay0.stride)
+            ph, pw = plane_shape((h, w), lay0)
+            hc, wc = focus.cell_grid((ph // fbin, pw // fbin), cell)
             names = ["sml", "sum", "sat"]
-            if li in bp_planes:
+            if with_bp:
                 names += ["bandpass"] + (["along", "across"] if cfg["directional"] else [])
             maps.append(_Maps(lay, cell, f0, {k: np.empty((n, hc, wc), np.float32) for k in names}))
     units = {}
     if want_focus and cfg["directional"]:
         for m in maps:
             cxp, cyp = m.layout.to_plane(*centre)
-            units[id(m)] = focus.radial_unit_vectors(plane_shape((h, w), m.layout), (float(cxp), float(cyp)))
+            units[id(m)] = focus.radial_unit_vectors(plane_shape((h, w), layouts[maps.index(m)]),
+                                                     (float(cxp), float(cyp)))
 
     geo_idx = _geometry_channels(stack, layouts, cfg["geo_all"]) if want_geometry else []
-    # Downsample for speed, but keep at least ~256 px on the short side: ECC needs texture to lock onto.
-    ds = int(max(1, min(cfg["geo_ds"], min(h, w) // 256)))
+    # Downsample for speed, but keep enough pixels on the short side for the registration to lock onto.
+    ds = int(max(1, min(cfg["geo_ds"], min(h, w) // cfg["geo_min_px"])))
     prev: dict[int, np.ndarray] = {}
     steps: dict[int, list] = {i: [] for i in geo_idx}
     for k in progress(range(n), total=n, desc="measuring frames", quiet=quiet, unit="frame"):
@@ -234,6 +244,8 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
                 m = maps[li]
                 if plane is None:
                     plane = extract_plane(frame, lay)
+                if fbin > 1:
+                    plane = downsample(plane, fbin)
                 c = m.cell
                 m.maps["sml"][k] = focus.cell_sums(focus.sml(plane), c)
                 m.maps["sum"][k] = focus.cell_sums(plane, c)
