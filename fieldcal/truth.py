@@ -18,33 +18,61 @@ class TruthProfile:
     is_truth = True
     has_measured_tolerance = False
 
-    def __init__(self, spec: LensSpec, width_px: int | None = None, height_px: int | None = None):
+    def __init__(self, spec: LensSpec, width_px: int | None = None, height_px: int | None = None,
+                 z_ref_um: float | None = None):
         if width_px is not None or height_px is not None:
             spec = spec.with_sensor_size(width_px or spec.sensor.width_px, height_px or spec.sensor.height_px)
         self.spec = spec
         self.image_size_px = (spec.sensor.width_px, spec.sensor.height_px)
         self.pixel_pitch_um = spec.sensor.pixel_pitch_um
         self.channels = spec.channel_names
-        self.z_ref_um = spec.z_ref_um
+        # The reference geometry. A calibrated profile's z_ref is a frame of its stack: compare it with
+        # TruthProfile(spec, w, h, z_ref_um=profile.z_ref_um), or pixel coordinates mean different points.
+        self.z_ref_um = spec.z_ref_um if z_ref_um is None else float(z_ref_um)
         self.f_number = spec.f_number
         self.focal_length_mm = spec.focal_length_mm
         self.object_distance_mm = spec.object_distance_mm
         self.image_height_max_mm = spec.image_height_max_mm
 
     # -- the DESIGN.md API -------------------------------------------------------------------------
+    def landing_px(self, x, y, z_um):
+        """Where the scene point seen at pixel (x, y) of the z_ref frame appears in the frame at z."""
+        cx, cy = self.spec.optical_centre_px()
+        m = self.magnification(z_um)
+        sx, sy = self.shift_px(z_um)
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        return cx + m * (x - cx) + sx, cy + m * (y - cy) + sy
+
     def best_focus_um(self, x, y, channel: str):
-        xm, ym = self.spec.pixel_to_mm(x, y)
-        return self.spec.best_focus_um(xm, ym, channel)
+        """Stage position at which the scene point seen at pixel (x, y) of the z_ref frame is in focus.
+
+        The lens's surface z_c is a function of where the point lands on the sensor, and with focus breathing
+        that depends on z itself: solve z = z_c(landing(x, y, z)) by fixed-point iteration (the map contracts
+        by |dz_c/dh| * h / exit pupil, ~0.03 for the triplet). Without breathing or shift this is z_c(x, y).
+        """
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        z = self.spec.best_focus_um(*self.spec.pixel_to_mm(x, y), channel)
+        for _ in range(100):
+            z_new = self.spec.best_focus_um(*self.spec.pixel_to_mm(*self.landing_px(x, y, z)), channel)
+            done = np.max(np.abs(z_new - z), initial=0.0) < 1e-7
+            z = z_new
+            if done:
+                break
+        return z
 
     def best_focus_interval_um(self, x, y, channel: str, level: float = 0.9):
         z = self.best_focus_um(x, y, channel)
         return z, z.copy()
 
     def magnification(self, z_um, channel: str | None = None):
-        return self.spec.magnification(z_um, channel)
+        return self.spec.magnification(z_um, channel) / self.spec.magnification(self.z_ref_um, channel)
 
     def shift_px(self, z_um, channel: str | None = None):
-        return self.spec.shift_px(z_um)
+        dx, dy = self.spec.shift_px(z_um)
+        rx, ry = self.spec.shift_px(self.z_ref_um)
+        return dx - rx, dy - ry
 
     # -- what planning and compositing also need ---------------------------------------------------
     def optical_centre_px(self) -> tuple[float, float]:
