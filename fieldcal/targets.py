@@ -403,7 +403,7 @@ def slanted_edge_spec(width_px: int, height_px: int, *, angle_deg: float = 5.0, 
         raise ParameterError(f"dark {dark} / light {light} not ordered in [0, 1]", field="dark/light",
                              fix="use 0 <= dark < light <= 1 (e.g. 0.2 and 0.8, 4:1 contrast)")
     short = min(w, h)
-    n_short = int(np.clip(short // 64, 2, 8)) if cells_short is None else int(cells_short)
+    n_short = int(np.clip(short // 48, 1, 8)) if cells_short is None else int(cells_short)
     cell = short / n_short
     if n_short < 1 or cell < 24:
         raise ParameterError(f"cells of {cell:.0f} px are too small", field="cells_short",

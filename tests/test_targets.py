@@ -107,6 +107,14 @@ def test_chart_image_kinds_and_unknown_kind():
         chart_image("checkerboard", 64, 64)
 
 
+@settings(max_examples=15, deadline=None)
+@given(kind=st.sampled_from(KINDS), w=st.integers(80, 300), h=st.integers(80, 300))
+def test_every_chart_at_any_usable_size(kind, w, h):
+    img = chart_image(kind, w, h)
+    assert img.shape == (h, w) and img.dtype == np.float32 and np.all(np.isfinite(img))
+    assert 0.0 <= img.min() and img.max() <= 1.0 and img.max() - img.min() > 0.5
+
+
 # ------------------------------------------------------------------------------------------------ ChArUco
 def test_charuco_detected_exactly_on_ideal_board():
     spec = charuco_spec(256, 192)
@@ -248,6 +256,18 @@ def test_slanted_edges_have_the_stated_angle_and_levels():
     # edges cover the field: centre and all four quadrants
     mids = np.array([e["mid_px"] for e in edges])
     assert mids[:, 0].min() < 64 and mids[:, 0].max() > 192 and mids[:, 1].min() < 48 and mids[:, 1].max() > 144
+
+
+@pytest.mark.parametrize("w,h", [(32, 32), (47, 200), (96, 96), (400, 90)])
+def test_slanted_edge_small_charts_keep_usable_edges(w, h):
+    spec = slanted_edge_spec(w, h)
+    img = slanted_edge_image(spec)
+    assert spec.side_px >= 12 and len(spec.edges()) >= 4
+    for e in spec.edges():
+        x0, y0, x1, y1 = e["roi"]
+        assert 0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h
+        roi = img[y0:y1, x0:x1]
+        assert roi.max() - roi.min() > 0.5 * (spec.light - spec.dark)
 
 
 def test_slanted_edge_bad_arguments():
