@@ -176,7 +176,7 @@ def run(args) -> int:
         if args.deconvolve != "none":
             res = deconvolve_sweep(img, profile, args.sweep_alpha_um, stack.channels, black=stack.black_level,
                                    white=stack.white_level, method=args.deconvolve,
-                                   rl_iterations=args.rl_iterations)
+                                   rl_iterations=args.rl_iterations, noise_sigma=sw.info["noise_sigma"])
             img = res.image
             info.update(res.info)
         meta.update({"method": "sweep-emulated", "sweep": info, "z_ref_um": float(profile.z_ref_um)})

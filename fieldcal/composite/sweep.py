@@ -188,7 +188,11 @@ def rl_deconvolve(channel_image: np.ndarray, profile, alpha_um: float, channel: 
 
 def deconvolve_sweep(image: np.ndarray, profile, alpha_um: float, channels, *, black: float, white: float,
                      method: str = "wiener", rl_iterations: int = 30, noise_sigma=None) -> SweepResult:
-    """Deconvolve a sweep image (H x W x C, raw units) channel by channel."""
+    """Deconvolve a sweep image (H x W x C, raw units) channel by channel.
+
+    ``noise_sigma``: pixel noise (raw units), one value or one per channel (e.g. ``emulate_sweep``'s
+    ``info["noise_sigma"]``); estimated from the image when None.
+    """
     if method not in ("wiener", "rl"):
         raise ParameterError(f"unknown deconvolution {method!r}", field="--deconvolve", fix="use wiener, rl or none")
     if not (np.isfinite(alpha_um) and alpha_um > 0):
@@ -199,7 +203,8 @@ def deconvolve_sweep(image: np.ndarray, profile, alpha_um: float, channels, *, b
     info: dict = {"deconvolution": method, "alpha_um": float(alpha_um), "channels": {}}
     for ci, ch in enumerate(channels):
         if method == "wiener":
-            out[..., ci], inf = wiener_deconvolve(image[..., ci], profile, alpha_um, ch, pitch, noise_sigma)
+            sig = noise_sigma[ci] if isinstance(noise_sigma, (list, tuple, np.ndarray)) else noise_sigma
+            out[..., ci], inf = wiener_deconvolve(image[..., ci], profile, alpha_um, ch, pitch, sig)
         else:
             out[..., ci], inf = rl_deconvolve(image[..., ci], profile, alpha_um, ch, pitch, black, white,
                                               rl_iterations)
@@ -227,5 +232,24 @@ def emulate_sweep(stack, profile, alpha_um: float, *, frames=None, lateral_colou
     acc = accumulate(stack, zb, kernel, profile, lateral_colour=lateral_colour, tile=tile, frames=frames,
                      desc="emulating sweep", quiet=quiet)
     spacing = float(np.median(np.diff(z))) if len(z) > 1 else 2.0 * alpha_um
+    sigma = sweep_noise_sigma(stack, frames, kernel)
     return SweepResult(acc, {"alpha_um": float(alpha_um), "frames_used": int(len(frames)),
-                             "frames_per_pixel": round(2.0 * alpha_um / spacing, 2)})
+                             "frames_per_pixel": round(2.0 * alpha_um / spacing, 2),
+                             "noise_sigma": [round(float(v), 4) for v in sigma]})
+
+
+def sweep_noise_sigma(stack, frames, kernel: SweepKernel, n_probe: int = 6) -> list[float]:
+    """Pixel noise (raw units) per channel of an emulated sweep: frame noise times ``sqrt(sum w_k^2)``.
+
+    Frame noise is measured on the frames at both ends of the stack and a few between, and the smallest
+    estimate is kept: texture only ever inflates the estimate, and far from focus a frame is smooth.
+    """
+    z_all = z_positions(stack)
+    order = np.asarray(frames)[np.argsort(z_all[frames], kind="stable")]
+    probe = np.unique(np.linspace(0, len(order) - 1, min(n_probe, len(order))).round().astype(int))
+    w, h = image_size(stack)
+    per = np.array([[estimate_noise_sigma(f[..., c]) for c in range(f.shape[2])]
+                    for f in (stack.read(int(order[k])).astype(np.float32) for k in probe)])
+    zmid = 0.5 * (kernel.z[0] + kernel.z[-1])
+    sum_w2 = float(sum(float(kernel.weight(k, np.array([zmid]))[0]) ** 2 for k in range(len(kernel))))
+    return [float(v * np.sqrt(sum_w2)) for v in per.min(axis=0)]
