@@ -321,7 +321,10 @@ def speed(width: int, height: int, n: int, work: Path, enfuse: bool) -> dict:
 
 # -------------------------------------------------------------------------------------------------- docs
 def fmt(v):
-    return f"{v:.2f}" if isinstance(v, float) else str(v)
+    if isinstance(v, float):
+        return f"{v:.2f}"
+    v = str(v)
+    return "failed (see notes)" if v.startswith("failed") else v.replace("|", "/").replace("\n", " ")
 
 
 def markdown(res: dict) -> str:
@@ -340,6 +343,8 @@ def markdown(res: dict) -> str:
         lines.append(f"| {r['lens']} | {r['scene']} | {r['size'][0]}x{r['size'][1]} | {r['frames']} | "
                      + " | ".join(fmt(r.get(c, "–")) for c in cols) + " |")
     notes = [f"{r['lens']}/{r['scene']}: {r['enfuse note']}" for r in q if r.get("enfuse note")]
+    notes += [f"{r['lens']}/{r['scene']} calibrated profile: " + str(r["profile (calibrated)"]).split("\n")[0][8:]
+              for r in q if str(r.get("profile (calibrated)", "")).startswith("failed")]
     if not res["enfuse"]:
         notes.append(f"enfuse/align_image_stack not installed: {INSTALL_HINT}")
     if notes:
