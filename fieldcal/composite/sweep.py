@@ -198,6 +198,9 @@ def deconvolve_sweep(image: np.ndarray, profile, alpha_um: float, channels, *, b
     if not (np.isfinite(alpha_um) and alpha_um > 0):
         raise ParameterError(f"sweep half-range must be > 0 µm, got {alpha_um}", field="--sweep-alpha-um",
                              fix="e.g. --sweep-alpha-um 20")
+    if getattr(profile, "f_number", None) is None:
+        raise ParameterError("the profile has no f-number, which the integrated PSF needs", field="f_number",
+                             fix="calibrate with the lens's f-number recorded in the stack (f_number in stack.json)")
     pitch = float(profile.pixel_pitch_um)
     out = np.empty(image.shape, dtype=np.float32)
     info: dict = {"deconvolution": method, "alpha_um": float(alpha_um), "channels": {}}
