@@ -51,14 +51,14 @@ class ArrayStack:
     def order_by_z(self) -> np.ndarray:
         return np.argsort(self.z_um, kind="stable")
 
-    def read(self, i: int) -> np.ndarray:
+    def read(self, i: int, roi=None) -> np.ndarray:
         a = self._frames(i) if callable(self._frames) else self._frames[i]
         a = np.asarray(a)
         if self.cfa is None and a.ndim == 2:
             a = a[:, :, None]
         return a
 
-    def read_normalized(self, i: int) -> np.ndarray:
+    def read_normalized(self, i: int, roi=None) -> np.ndarray:
         a = self.read(i).astype(np.float32)
         a -= np.float32(self.black_level)
         a *= np.float32(1.0 / (self.white_level - self.black_level))

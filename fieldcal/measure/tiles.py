@@ -184,6 +184,8 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
     n = z.size
     centre = centre_px if centre_px is not None else ((w - 1) / 2.0, (h - 1) / 2.0)
     pitch_mm = stack.pixel_pitch_um * 1e-3
+    black = float(stack.black_level)
+    gain = 1.0 / (float(stack.white_level) - black)  # white > black: checked when the stack was opened
 
     maps: list[_Maps] = []
     with_bp = bool(bp_all or cfg["bp_all"])
@@ -221,12 +223,17 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
     prev: dict[int, np.ndarray] = {}
     steps: dict[int, list] = {i: [] for i in geo_idx}
     for k in progress(range(n), total=n, desc="measuring frames", quiet=quiet, unit="frame"):
-        frame = stack.read_normalized(int(order[k]))
+        # Raw frame, split/sub-sampled into planes first, normalised per plane: fewer passes over the data.
+        frame = stack.read(int(order[k]))
         split = cv2.split(frame) if (stack.cfa is None and frame.ndim == 3 and frame.shape[2] > 1) else None
         for li, lay in enumerate(layouts):
-            plane = split[lay.channel_index] if split is not None else None
+            plane = None
+            if li in steps or want_focus:
+                raw = split[lay.channel_index] if split is not None else extract_plane(frame, lay)
+                plane = raw.astype(np.float32)
+                plane -= np.float32(black)
+                plane *= np.float32(gain)
             if li in steps:
-                plane = extract_plane(frame, lay) if plane is None else plane
                 # A mild extra low-pass (sigma 1 px of the registration grid): the highest frequencies carry
                 # the most noise and the most blur change between neighbours.
                 small = cv2.GaussianBlur(downsample(plane, ds), (0, 0), GEOMETRY_BLUR_PX)
@@ -234,7 +241,9 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
                 S, O = lay.stride * ds, lay.stride * (ds - 1) / 2.0
                 cs = ((centre[0] - lay.offset_x - O) / S, (centre[1] - lay.offset_y - O) / S)
                 if k > 0:
-                    st = register_step(prev[li], small, cs)
+                    last = next((q for q in reversed(steps[li]) if q is not None), None)
+                    init = None if last is None else (last.r, last.tx / S, last.ty / S)  # steps vary slowly
+                    st = register_step(prev[li], small, cs, init=init)
                     if st is not None:  # back to full-frame pixels: r unchanged, t scaled by S
                         d = np.diag([1.0, S, S])
                         st = StepFit(st.r, st.tx * S, st.ty * S, d @ st.cov @ d, st.n_patches)
@@ -242,8 +251,6 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
                 prev[li] = small
             if want_focus:
                 m = maps[li]
-                if plane is None:
-                    plane = extract_plane(frame, lay)
                 if fbin > 1:
                     plane = downsample(plane, fbin)
                 c = m.cell
