@@ -62,7 +62,8 @@ def _tile_truth(tp, x, y, ch, tile):
 
 def _accuracy(res: dict, spec, fs: float, q: float, step_um: float) -> dict:
     from fieldcal.truth import TruthProfile
-    tp = TruthProfile(spec)
+    # tile positions are in the geometry of the reference frame of the measurement
+    tp = TruthProfile(spec, z_ref_um=float(res["geo"]["z_um"][res["geo"]["ref_index"]]))
     t = {k: np.asarray(v) for k, v in res["table"].items()}
     ok = t["status"] == "ok"
     err, chi, wrel = [], [], []

@@ -42,9 +42,12 @@ def fs_for(spec, cycles_per_px=0.2):
     return cycles_per_px / (spec.sensor.pixel_pitch_um * 1e-3)
 
 
-def tile_truth(spec, table, rows):
-    """Truth best focus averaged over each tile (the tile measures an average over its pixels)."""
-    tp = TruthProfile(spec)
+def tile_truth(spec, table, rows, z_ref_um=None):
+    """Truth best focus averaged over each tile (the tile measures an average over its pixels), in the
+    geometry of the measurement's reference frame (default: the middle frame, as measure_stack chooses)."""
+    if z_ref_um is None:
+        z_ref_um = float(table.z_um[table.z_um.size // 2])
+    tp = TruthProfile(spec, z_ref_um=z_ref_um)
     o = np.arange(table.tile_px) - (table.tile_px - 1) / 2.0
     ox, oy = np.meshgrid(o, o)
     return np.array([tp.best_focus_um(table.x_px[i] + ox, table.y_px[i] + oy, str(table.channel[i])).mean()
