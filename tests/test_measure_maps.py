@@ -160,3 +160,17 @@ def test_geometry_recentre_keeps_the_mapping():
     np.testing.assert_allclose(g.map_points(2, "G", x, y), g2.map_points(2, "G", x, y), atol=1e-12)
     with pytest.raises(ParameterError):
         g.map_points(0, "R", x, y)
+
+
+def test_lateral_colour_scales_between_channels():
+    from fieldcal.measure.geometry import lateral_colour_scales
+    h, w = 160, 224
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    c = ((w - 1) / 2.0, (h - 1) / 2.0)
+    planes = {"G": _sinusoid_texture(x, y)}
+    for name, s in (("R", 1.0025), ("B", 0.9975)):
+        planes[name] = _sinusoid_texture(c[0] + (x - c[0]) / s, c[1] + (y - c[1]) / s)
+    out = lateral_colour_scales(planes, c, "G")
+    assert out["G"] == 1.0
+    assert out["R"] == pytest.approx(1.0025, abs=2e-5)
+    assert out["B"] == pytest.approx(0.9975, abs=2e-5)

@@ -254,7 +254,11 @@ def compose_steps(steps: list[StepFit | None], ref_index: int) -> tuple[np.ndarr
 
 def lateral_colour_scales(planes: dict[str, np.ndarray], centre_xy: tuple[float, float],
                           reference: str) -> dict[str, float]:
-    """Scale of each channel relative to ``reference`` in one frame (same plane grid for all channels)."""
+    """Scale of each channel about ``centre_xy`` relative to ``reference`` in one frame (same plane grid).
+
+    Approximate: channels focus at different z (longitudinal colour), so their blur differs in one frame;
+    the registration is unbiased for symmetric blur but noisier. NaN where the registration fails.
+    """
     out = {reference: 1.0}
     ref = planes[reference]
     for name, p in planes.items():

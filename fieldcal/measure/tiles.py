@@ -20,7 +20,8 @@ from ..errors import ParameterError
 from ..progress import progress, status
 from . import focus
 from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
-from .geometry import GeometryMeasurements, StepFit, compose_steps, downsample, register_step
+from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample, lateral_colour_scales,
+                       register_step)
 from .throughfocus import CurveFit, CurveRules, analyse_curves
 
 EFFORTS = {
@@ -222,6 +223,8 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
     ds = int(max(1, min(cfg["geo_ds"], min(h, w) // cfg["geo_min_px"])))
     prev: dict[int, np.ndarray] = {}
     steps: dict[int, list] = {i: [] for i in geo_idx}
+    ref_k = _reference_index(z, z_ref_um)
+    ref_small: dict[str, np.ndarray] = {}  # registered planes of the reference frame, for lateral colour
     for k in progress(range(n), total=n, desc="measuring frames", quiet=quiet, unit="frame"):
         # Raw frame, split/sub-sampled into planes first, normalised per plane: fewer passes over the data.
         frame = stack.read(int(order[k]))
@@ -234,6 +237,8 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
                 plane -= np.float32(black)
                 plane *= np.float32(gain)
             if li in steps:
+                if k == ref_k and len(steps) > 1:
+                    ref_small[lay.name] = cv2.GaussianBlur(downsample(plane, ds), (0, 0), GEOMETRY_BLUR_PX)
                 # A mild extra low-pass (sigma 1 px of the registration grid): the highest frequencies carry
                 # the most noise and the most blur change between neighbours.
                 small = cv2.GaussianBlur(downsample(plane, ds), (0, 0), GEOMETRY_BLUR_PX)
@@ -278,8 +283,16 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
         if len(cols) == 1 and C > 1:
             cols = cols * C
         m_, ms, sx, sy, ss = (np.stack([c[j] for c in cols], axis=1) for j in range(5))
+        lateral = None
+        if len(ref_small) > 1 and len({p.shape for p in ref_small.values()}) == 1:
+            lay_ref = layouts[geo_idx[0]]
+            S, O = lay_ref.stride * ds, lay_ref.stride * (ds - 1) / 2.0
+            cs = ((centre[0] - lay_ref.offset_x - O) / S, (centre[1] - lay_ref.offset_y - O) / S)
+            reference = "G" if "G" in ref_small else stack.channels[0]
+            lateral = lateral_colour_scales(ref_small, cs, reference)
         geometry = GeometryMeasurements(z, tuple(stack.channels), m_, ms, sx, sy, ss, ref,
-                                        (float(centre[0]), float(centre[1])), (int(w), int(h)), order.copy())
+                                        (float(centre[0]), float(centre[1])), (int(w), int(h)), order.copy(),
+                                        lateral)
     return z, order, maps, geometry
 
 
