@@ -26,12 +26,13 @@ from .throughfocus import CurveFit, CurveRules, analyse_curves
 
 EFFORTS = {
     # tile_div: default tile = min(W, H) / tile_div; geo_ds: downsampling for registration, keeping at least
-    # geo_min_px on the short side; geo_all: register every channel (else one, copied to all); bp_all:
+    # geo_min_px on the short side; geo_all: register every channel through focus (else G, copied to all:
+    # m(z) and s(z) are the same for every channel, lateral colour is measured at the reference frame); bp_all:
     # band-pass measure (hence widths) on every channel, else none unless it gives z_best; focus_bin: 2x2
     # binning before the SML when there is no band-pass (quick); directional: z_tan/z_sag; cell: cell size.
     "quick": {"tile_div": 8, "geo_ds": 8, "geo_min_px": 128, "geo_all": False, "bp_all": False, "focus_bin": 2,
               "directional": False, "cell": 4},
-    "standard": {"tile_div": 12, "geo_ds": 4, "geo_min_px": 256, "geo_all": True, "bp_all": True, "focus_bin": 1,
+    "standard": {"tile_div": 12, "geo_ds": 4, "geo_min_px": 256, "geo_all": False, "bp_all": True, "focus_bin": 1,
                  "directional": False, "cell": 4},
     "thorough": {"tile_div": 16, "geo_ds": 2, "geo_min_px": 256, "geo_all": True, "bp_all": True, "focus_bin": 1,
                  "directional": True, "cell": 4},
@@ -224,21 +225,25 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
     prev: dict[int, np.ndarray] = {}
     steps: dict[int, list] = {i: [] for i in geo_idx}
     ref_k = _reference_index(z, z_ref_um)
-    ref_small: dict[str, np.ndarray] = {}  # registered planes of the reference frame, for lateral colour
+    ref_small: dict[str, np.ndarray] = {}  # each colour's plane in the reference frame, for lateral colour
+    first_of: dict[str, int] = {}
+    for i, lay in enumerate(layouts):
+        first_of.setdefault(lay.name, i)
     for k in progress(range(n), total=n, desc="measuring frames", quiet=quiet, unit="frame"):
         # Raw frame, split/sub-sampled into planes first, normalised per plane: fewer passes over the data.
         frame = stack.read(int(order[k]))
         split = cv2.split(frame) if (stack.cfa is None and frame.ndim == 3 and frame.shape[2] > 1) else None
         for li, lay in enumerate(layouts):
             plane = None
-            if li in steps or want_focus:
+            lateral_here = want_geometry and k == ref_k and len(first_of) > 1 and first_of.get(lay.name) == li
+            if li in steps or want_focus or lateral_here:
                 raw = split[lay.channel_index] if split is not None else extract_plane(frame, lay)
                 plane = raw.astype(np.float32)
                 plane -= np.float32(black)
                 plane *= np.float32(gain)
+            if lateral_here:
+                ref_small[lay.name] = cv2.GaussianBlur(downsample(plane, ds), (0, 0), GEOMETRY_BLUR_PX)
             if li in steps:
-                if k == ref_k and len(steps) > 1:
-                    ref_small[lay.name] = cv2.GaussianBlur(downsample(plane, ds), (0, 0), GEOMETRY_BLUR_PX)
                 # A mild extra low-pass (sigma 1 px of the registration grid): the highest frequencies carry
                 # the most noise and the most blur change between neighbours.
                 small = cv2.GaussianBlur(downsample(plane, ds), (0, 0), GEOMETRY_BLUR_PX)
@@ -446,7 +451,9 @@ def measure_geometry(stack, *, effort: str = "standard", centre_px: tuple[float,
     stack : fieldcal.stack.Stack or ArrayStack
         A chart stack (read one frame at a time).
     effort : {"quick", "standard", "thorough"}
-        "quick" registers one channel on 4x-downsampled frames and copies it to all channels.
+        "quick" and "standard" register G through focus (8x / 4x downsampled) and copy it to every channel
+        (m(z), s(z) do not depend on colour; lateral colour is measured at the reference frame);
+        "thorough" registers every channel.
     centre_px : (cx, cy), optional
         Centre of the magnification (default the image centre; use :meth:`GeometryMeasurements.recentred`
         once the optical centre is known).
