@@ -6,8 +6,8 @@ Entry points: :func:`measure_stack` (both, one pass over the frames), :func:`mea
 
 from .geometry import GeometryMeasurements
 from .source import ArrayStack
-from .throughfocus import CurveFit, CurveRules, analyse_curve
+from .throughfocus import CurveFit, CurveRules, analyse_curve, analyse_curves
 from .tiles import TileRules, TileTable, measure_geometry, measure_stack, measure_tiles
 
 __all__ = ["ArrayStack", "CurveFit", "CurveRules", "GeometryMeasurements", "TileRules", "TileTable",
-           "analyse_curve", "measure_geometry", "measure_stack", "measure_tiles"]
+           "analyse_curve", "analyse_curves", "measure_geometry", "measure_stack", "measure_tiles"]
