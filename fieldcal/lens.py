@@ -312,9 +312,16 @@ def focus_tolerance_um(fs_cyc_per_mm: float, q: float, f_number: float, waveleng
     if not (fs_cyc_per_mm > 0.0) or not math.isfinite(fs_cyc_per_mm):
         raise ValueError("fs must be > 0")
     from scipy.optimize import brentq
-    # 2 J1(x)/x decreases monotonically from 1 to 0 on [0, 3.8317] (the first zero of J1).
+    # 2 J1(x)/x decreases monotonically from 1 to 0 on [0, j1] (j1 = 3.8317..., the first zero of J1).
+    # As q -> 1 the target 1 - q drops below the rounding floor of 2 J1(x)/x near j1, where brentq would find
+    # no sign change: the tolerance is then the first zero itself (the contrast is lost entirely there).
+    j1 = float(special.jn_zeros(1, 1)[0])
     target = 1.0 - q
-    x = brentq(lambda t: (2.0 * special.j1(t) / t if t > 1e-12 else 1.0) - target, 1e-12, 3.8317)
+
+    def d(t):
+        return (2.0 * special.j1(t) / t if t > 1e-12 else 1.0) - target
+
+    x = j1 if d(j1) >= 0.0 else brentq(d, 1e-12, j1)
     b_mm = x / (math.pi * fs_cyc_per_mm)
     return float(b_mm * f_number * 1000.0)
 
