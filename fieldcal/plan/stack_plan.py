@@ -32,6 +32,9 @@ from .tolerance import (check_confidence, check_fs_q, coverage_probability, expe
 
 PLAN_FORMAT = "fieldcal-plan/1"
 MAX_BINS = 200_000
+# No stage takes more frames than this; it also bounds the O(frames x bins) greedy cover (q -> 0 or fs beyond
+# the lens's cut-off would otherwise ask for millions of frames and never return).
+MAX_FRAMES = 2_000
 
 
 @dataclass(frozen=True)
@@ -147,6 +150,21 @@ def _cover(fieldd: SampledField, tols: dict, placement: str, anchor: float | Non
     return cv.min_cover_values(b0, b1, d), width
 
 
+def _needs_too_many(fieldd: SampledField, tols: dict) -> float | None:
+    """A lower bound on the frames of any cover when it exceeds MAX_FRAMES, else None.
+
+    One frame serves at most ``2 max(δ)`` of a channel's range of best focus, so every cover needs at least
+    ``range / (2 max δ)`` frames (compared in floats: a tolerance near 0 must not overflow an int).
+    """
+    worst = 0.0
+    for c, s in fieldd.samples.items():
+        dmax = float(np.max(tols[c] - s.u_um))  # > 0: solve() checked that every tolerance exceeds its band
+        span = s.z_max_um - s.z_min_um
+        if span > 2.0 * dmax * MAX_FRAMES:
+            worst = max(worst, span / (2.0 * dmax))
+    return worst or None
+
+
 def _tolerances(profile, fieldd, fs, q):
     tols, src = {}, {}
     for c, s in fieldd.samples.items():
@@ -202,11 +220,21 @@ def plan_stack(profile, request: StackRequest) -> StackPlan:
         short = {c: float(np.max(s.u_um - tols[c])) for c, s in fieldd.samples.items()}
         if any(v >= 0 for v in short.values()):
             return None, tols, src, short, None
+        if _needs_too_many(fieldd, tols) is not None:
+            return None, tols, src, short, None
         cov, width = _cover(fieldd, tols, r.placement, anchor)
         return cov, tols, src, short, width
 
     cov, tols, src, short, width = solve(q)
     q_used = q
+    if cov is None and max_frames is None and all(v < 0 for v in short.values()):
+        need = _needs_too_many(fieldd, tols)
+        tmax = min(float(np.max(t)) for t in tols.values())
+        raise ParameterError(
+            f"an MTF loss of at most q = {q:g} at fs = {fs:g} cycles/mm leaves a focus tolerance of only "
+            f"{tmax:.3g} µm, so covering the {fieldd.range_um:.1f} µm range of best focus needs at least "
+            f"{need:.3g} frames (more than {MAX_FRAMES})", field="q",
+            fix="allow a larger --q or a lower --fs (below the lens's cut-off), or cap the plan with --max-frames")
     if cov is None:
         if max_frames is None:
             worst = max(short, key=short.get)
