@@ -21,6 +21,9 @@ from .scene import Scene
 from .surfaces import SampledField, sample_field
 
 DEFAULT_ALPHAS_UM = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0)
+# Every LCoS slot is a full-frame mask in the sidecar; beyond this (α -> 0 makes T = (D/2α + 1) t_s explode)
+# the mask file and the capture would never finish.
+MAX_SLOTS = 10_000
 
 
 @dataclass(frozen=True)
@@ -196,7 +199,14 @@ def plan_sweep(profile, request: SweepRequest) -> SweepPlan:
     n_slots = None
     warnings: list[str] = []
     if device.name == "lcos":
-        n_slots = max(1, int(math.ceil(T / device.slot_ms - 1e-9)))
+        slots = T / device.slot_ms
+        alpha_min = D / (2.0 * max(MAX_SLOTS * device.slot_ms / ts - 1.0, 1e-12))
+        if not slots <= MAX_SLOTS:
+            raise ParameterError(f"a sweep with α = {alpha:g} µm over D = {D:.1f} µm lasts {T:.4g} ms, i.e. "
+                                 f"{slots:.3g} LCoS slots of {device.slot_ms:g} ms (at most {MAX_SLOTS})",
+                                 field="alpha_um", fix=f"use --alpha-um {1.01 * alpha_min:.3g} or more "
+                                                       "(T = (D/2α + 1) t_s)")
+        n_slots = max(1, int(math.ceil(slots - 1e-9)))
     else:
         ticks = T / device.clock_ms
         if ticks >= 2 ** device.register_bits:
