@@ -261,8 +261,13 @@ def test_bit_depths_keep_scale(bits, dtype):
 
 def test_clipping_at_white():
     spec = make_spec(w=32, h=32, sensor={"bit_depth": 8, "signal_fraction": 3.0})
-    # the metered exposure puts the flat scene exactly at full well: noise pushes about half past white
-    frame = Renderer(spec, np.full((32, 32), 0.5, dtype=np.float32)).render(0.0)
+    # the metered exposure leaves 10% headroom: a flat scene does not clip
+    r = Renderer(spec, np.full((32, 32), 0.5, dtype=np.float32))
+    assert r.exposure == pytest.approx(0.9 / 0.5)
+    assert np.mean(r.render(0.0) == 255) < 0.01
+    # over-exposed so the scene sits exactly at full well: noise pushes about half past white
+    r.exposure = 1.0 / 0.5
+    frame = r.render(0.0)
     assert frame.dtype == np.uint8 and frame.max() == 255
     assert 0.3 < np.mean(frame == 255) < 0.7
 

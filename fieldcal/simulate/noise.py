@@ -16,18 +16,23 @@ from ..lens import SensorSpec
 CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 
 
+HEADROOM = 0.9
+
+
 def exposure_scale(scene: np.ndarray, signal_fraction: float) -> float:
     """Scene value -> fraction of full well: a metered exposure.
 
     The mean scene value reaches ``signal_fraction`` of the full well, unless that would push the brightest
-    scene value past the full well, in which case the brightest value is put at the full well (no clipping
-    of the scene itself; noise can still clip a little).
+    scene value past 90% of the full well, in which case the brightest value is put there (headroom for photon
+    noise and blur overshoot, as a lab exposes a chart).
     """
     mean = float(np.mean(scene, dtype=np.float64))
     peak = float(np.max(scene))
     if peak <= 0.0:  # a black scene: nothing to meter on
         return float(signal_fraction)
-    return min(float(signal_fraction) / max(mean, 1e-12), 1.0 / peak)
+    # Headroom: the brightest scene value at 90% of full well, so that photon noise and the blur's overshoot
+    # do not clip it (a lab exposes a chart the same way; clipped tiles are rejected as saturated).
+    return min(float(signal_fraction) / max(mean, 1e-12), HEADROOM / peak)
 
 
 def frame_rng(seed: int, z_um: float) -> np.random.Generator:
