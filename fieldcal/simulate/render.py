@@ -28,6 +28,11 @@ RENDERER_VERSION = "fieldcal-render/1"
 # Rec. 709 luma weights: an RGB scene seen by a monochrome sensor.
 _TABLE_STEP = 1.0 / 65536.0  # cycles/px: radial OTF table resolution
 _LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+# Largest blur disc rendered, in frame sizes (and at least _MIN_MAX_BLUR_PX): beyond it the frame is a flat
+# grey to well under 1 % contrast, while the padded FFT would grow with the disc (a 1 m defocus asked for a
+# 40 GiB array).
+_MAX_BLUR_FRAMES = 2.0
+_MIN_MAX_BLUR_PX = 256.0
 
 
 def level_diameters_px(max_diameter_px: float, ratio: float, floor_px: float) -> np.ndarray:
@@ -134,6 +139,18 @@ class Renderer:
         """Geometric blur-disc diameter in pixels, ``|dz| / N / pitch``."""
         return np.abs(np.asarray(defocus_um, dtype=np.float64)) / self.spec.f_number / self.pitch_um
 
+    def _check_blur(self, max_diameter_px: float) -> None:
+        """Refuse a blur disc far larger than the frame (ParameterError naming the defocus limit)."""
+        limit = max(_MAX_BLUR_FRAMES * max(self.width_px, self.height_px), _MIN_MAX_BLUR_PX)
+        if not max_diameter_px <= limit:
+            dz = limit * self.spec.f_number * self.pitch_um
+            raise ParameterError(f"a defocus of up to {max_diameter_px * self.spec.f_number * self.pitch_um:.4g} µm "
+                                 f"blurs a point over {max_diameter_px:.4g} px, more than {limit:.0f} px "
+                                 f"(the larger of {_MAX_BLUR_FRAMES:g} frame sizes and {_MIN_MAX_BLUR_PX:g} px): the frame would "
+                                 "be a flat grey and the blur too large to compute",
+                                 field="z_um", fix=f"keep stage positions within ±{dz:.4g} µm of the lens's best "
+                                                   "focus (scan only the range that matters)")
+
     def levels_um(self, max_defocus_um: float) -> np.ndarray:
         """Defocus (µm) of the blur levels needed up to ``max_defocus_um``."""
         d = level_diameters_px(float(self.diameter_px(max_defocus_um)), self.level_ratio, self.level_floor_px)
@@ -195,6 +212,7 @@ class Renderer:
     def blur_uniform(self, channel: str, defocus_um: float) -> np.ndarray:
         """The scene channel blurred by one defocus everywhere (exact OTF, no level interpolation)."""
         ci = self.channels.index(channel)
+        self._check_blur(float(self.diameter_px(defocus_um)))
         pad, spec = self._spectrum(ci, self._pad_for(float(self.diameter_px(defocus_um)), channel))
         return self._inverse(spec, pad, self._otf_grid(self._shape(spec, pad), defocus_um, channel))
 
@@ -213,6 +231,7 @@ class Renderer:
         ci = self.channels.index(channel)
         b_px = (np.abs(np.asarray(defocus_um, dtype=np.float32))
                 / np.float32(self.spec.f_number * self.pitch_um))
+        self._check_blur(float(b_px.max()))
         kf = fractional_level(b_px, self.level_ratio, self.level_floor_px)
         diam = level_diameters_px(float(b_px.max()), self.level_ratio, self.level_floor_px)
         pad, spectrum = self._spectrum(ci, self._pad_for(float(diam[-1]), channel))
@@ -240,6 +259,11 @@ class Renderer:
     def _affine(self, z_um: float, channel: str, breathing: bool = True) -> np.ndarray:
         """2x3 matrix mapping a z_ref pixel p to ``c + m(z) * lc * (p - c) + s(z)``."""
         m = float(self.spec.magnification(z_um, channel)) if breathing else 1.0
+        if not m > 0.0:  # m = 1 + dz / exit pupil: at m <= 0 the sensor has reached the exit pupil (division by 0)
+            raise ParameterError(f"at z = {z_um:g} µm the image scale m(z) = {m:.4g} is not positive: the sensor "
+                                 f"would be at or beyond the exit pupil ({self.spec.exit_pupil_mm:g} mm from it)",
+                                 field="z_um", fix="keep |z - z_ref| well below the exit-pupil distance, or check "
+                                                   "exit_pupil_mm in the lens spec (mm, null = telecentric)")
         a = m * self.spec.lateral_colour_scale(channel)
         sx, sy = (float(v) for v in self.spec.shift_px(z_um)) if breathing else (0.0, 0.0)
         cx, cy = self.centre_px
