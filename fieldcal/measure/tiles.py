@@ -365,6 +365,12 @@ def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: n
                                                  bx0, by0, bx1, by1) / area
                 out["my"][:, k] = focus.box_sums(focus.integral(e * ycell[:, None].astype(np.float32)),
                                                  bx0, by0, bx1, by1) / area
+        # The window grows with the image (area ~ m^2) so it keeps the same scene content; the SML's second
+        # derivatives of an image magnified by m fall as 1/m^2, so its per-pixel mean trends as m^-2 through the
+        # scan and pulls every peak towards smaller m (-0.47 µm on the triplet's breathing, measured on a flat
+        # lens). The window *sum* (mean x m^2 in reference pixels) is invariant: use that.
+        mk = float(geometry.magnification[k, geometry.channel_index(lay.name)])
+        out["sml"][:, k] *= mk * mk
         out["sat"][:, k] *= c * c  # sat cells hold fractions, not sums: back to a fraction of the tile
         # mean of the squared cell means: with "sum" it gives the texture contrast between cells (cell
         # averaging keeps sensor noise out of it)
