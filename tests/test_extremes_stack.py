@@ -86,8 +86,8 @@ def test_every_dtype_round_trips_bit_exact_and_normalises_in_0_1(tmp_path_factor
     rng = np.random.default_rng(seed)
     top = TOP[dtype]
     img = (rng.random((h, w, c)) * top).astype(dtype) if dtype != np.float32 else rng.random((h, w, c)).astype(dtype)
-    img.flat[0] = top  # the extremes are always present
-    img.flat[-1] = 0
+    img.flat[-1] = 0  # the extremes are always present (white wins on a 1-pixel frame)
+    img.flat[0] = top
     root = tmp_path_factory.mktemp("rt")
     wr = StackWriter.create(root / "s", pixel_pitch_um=1.0, channels=["Y"] if c == 1 else ["R", "G", "B"])
     wr.add_frame(img if c == 3 else img[:, :, 0], 1.5, kind=kind)
