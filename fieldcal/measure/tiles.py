@@ -371,6 +371,9 @@ def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: n
         # lens). The window *sum* (mean x m^2 in reference pixels) is invariant: use that.
         mk = float(geometry.magnification[k, geometry.channel_index(lay.name)])
         out["sml"][:, k] *= mk * mk
+        if moments_of == "sml":  # its first moments share the normalisation (they are divided by it later)
+            out["mx"][:, k] *= mk * mk
+            out["my"][:, k] *= mk * mk
         out["sat"][:, k] *= c * c  # sat cells hold fractions, not sums: back to a fraction of the tile
         # mean of the squared cell means: with "sum" it gives the texture contrast between cells (cell
         # averaging keeps sensor noise out of it)
