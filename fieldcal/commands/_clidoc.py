@@ -1,0 +1,65 @@
+"""Print docs/cli.md's reference section from the real parsers: ``python -m fieldcal.commands._clidoc``."""
+
+from __future__ import annotations
+
+import argparse
+import io
+import os
+
+INTRO = """# The command line
+
+One entry point, `fieldcal`, with a subcommand per pipeline stage. Every subcommand has `--help` with an
+example; long work shows progress on stderr (silence it with `FIELDCAL_PROGRESS=0`); user mistakes end in a
+one-paragraph message that names the file, the field and the fix, and a non-zero exit status:
+
+| exit | meaning |
+| --- | --- |
+| 0 | done |
+| 1 | `validate`: a check failed (the report says which) |
+| 2 | a user mistake: bad argument, malformed stack/profile/plan/lens file (the message says how to fix it) |
+| 3 | a device error or a lost link during `capture` (the folder is left resumable) |
+| 4 | a stage or optional extra not available (e.g. `lens from-prescription` without optiland) |
+| 130 | interrupted (Ctrl-C); `capture` stops the stage and leaves a resumable folder |
+
+## The pipeline, as commands
+
+```
+fieldcal targets --out calibration_targets                      # printable charts (PNG + PDF at a stated size)
+fieldcal simulate models/triplet-uncorrected.json chart --z -370 60 10 --size 640x360   # or capture a real one:
+fieldcal capture --z -370 60 10 --stage gcs:/dev/ttyUSB0 --camera pylon --out chart
+fieldcal calibrate chart --out lens.json --fs 80 --q 0.05 --effort standard --report report/
+fieldcal report lens.json --out report/
+fieldcal plan stack lens.json --fs 80 --q 0.05 --confidence 0.95 --out plan.json --plots plan-plots/
+fieldcal plan sweep lens.json --alpha-um 20 --pixel-exposure-ms 16 --device lcos --out sweep.json
+fieldcal capture --plan plan.json --stage sim --camera sim:models/triplet-uncorrected.json --out scene
+fieldcal composite scene --profile lens.json --out image.tiff
+fieldcal validate models/triplet-uncorrected.json --out validation/
+fieldcal demo --out demo-out                                      # all of the above on a simulated lens
+```
+
+`fieldcal demo` prints each command before it runs it, so its log is a worked example.
+
+## Reference (generated)
+
+Regenerate with `python -m fieldcal.commands._clidoc > docs/cli.md`.
+"""
+
+
+def main() -> None:
+    os.environ.setdefault("COLUMNS", "110")
+    from ..cli import build_parser
+    parser = build_parser()
+    out = io.StringIO()
+    out.write(INTRO)
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, sub in subs.choices.items():
+        out.write(f"\n### `fieldcal {name}`\n\n```\n{sub.format_help().rstrip()}\n```\n")
+        nested = [a for a in sub._actions if isinstance(a, argparse._SubParsersAction)]
+        for n in nested:
+            for name2, sub2 in n.choices.items():
+                out.write(f"\n#### `fieldcal {name} {name2}`\n\n```\n{sub2.format_help().rstrip()}\n```\n")
+    print(out.getvalue(), end="")
+
+
+if __name__ == "__main__":
+    main()
