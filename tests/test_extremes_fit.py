@@ -102,21 +102,21 @@ def _write(tmp_path, frames, z):
 
 
 def test_calibrating_a_textureless_stack_says_every_tile_was_rejected(tmp_path):
-    import fieldcal
+    from fieldcal.calibrate import calibrate
     z = np.arange(-40.0, 40.1, 8.0)
     stack = _write(tmp_path, [np.full((96, 128), 2000, np.uint16) for _ in z], z)
     with pytest.raises(FieldcalError) as e:
-        fieldcal.calibrate(stack, fs_cyc_per_mm=40.0, effort="quick", quiet=True)
+        calibrate(stack, fs_cyc_per_mm=40.0, effort="quick", quiet=True)
     assert "every tile was rejected" in str(e.value) and "low_texture" in str(e.value)
 
 
 @pytest.mark.parametrize("n", [1, 2])
 def test_calibrating_one_or_two_frames_is_a_clear_error(tmp_path, n):
-    import fieldcal
+    from fieldcal.calibrate import calibrate
     z = [0.0, 8.0][:n]
     stack = _write(tmp_path, [np.full((96, 128), 2000, np.uint16) for _ in z], z)
     with pytest.raises(FieldcalError) as e:
-        fieldcal.calibrate(stack, fs_cyc_per_mm=40.0, effort="quick", quiet=True)
+        calibrate(stack, fs_cyc_per_mm=40.0, effort="quick", quiet=True)
     assert "too few frames" in str(e.value)
 
 
@@ -124,13 +124,24 @@ def test_calibrating_one_or_two_frames_is_a_clear_error(tmp_path, n):
                                        "fit_geometry(data, z_ref_um): TypeError (owner: calibrate/fit)")
 def test_calibrate_a_tiny_simulated_stack_recovers_the_surface(tmp_path):
     """A working end-to-end reference for the cases above: the quick calibration of a 128x96 stack."""
-    import fieldcal
+    from fieldcal.calibrate import calibrate
     from fieldcal.simulate import simulate_stack
     from fieldcal.truth import TruthProfile
     spec = _tiny_colour_lens()
     stack = simulate_stack(spec, tmp_path / "s", np.arange(-72.0, 33.0, 6.0), seed=1, progress=False)
-    prof = fieldcal.calibrate(stack, fs_cyc_per_mm=40.0, effort="quick", quiet=True)
+    prof = calibrate(stack, fs_cyc_per_mm=40.0, effort="quick", quiet=True)
     truth = TruthProfile(spec)
     x, y = np.meshgrid(np.linspace(10, 117, 6), np.linspace(10, 85, 5))
     err = prof.best_focus_um(x, y, "Y") - truth.best_focus_um(x, y, "Y")
     assert np.sqrt(np.mean(err ** 2)) < 3.0
+
+
+@pytest.mark.xfail(strict=True, reason="fieldcal/__init__.py: once the submodule fieldcal.calibrate is imported (the "
+                                       "CLI does), the attribute fieldcal.calibrate is that module, not the "
+                                       "function: fieldcal.calibrate(stack) -> TypeError 'module' object is not "
+                                       "callable (DESIGN.md public API)")
+def test_public_calibrate_stays_callable_after_the_submodule_is_imported():
+    import importlib
+    import fieldcal
+    importlib.import_module("fieldcal.calibrate")
+    assert callable(fieldcal.calibrate)
