@@ -36,7 +36,7 @@ from .lens import LensSpec
 from .progress import status
 from .truth import TruthProfile
 
-DEFAULT_WIDTH_PX = 256
+DEFAULT_WIDTH_PX = 640  # at 256 px the tiles stop far from the corners and the fit extrapolates
 PROFILE_SOURCES = ("calibrate", "truth")
 EFFORTS = ("quick", "standard", "thorough")
 # Scene names of the CLI -> the simulator's scene names ("texture" is the colour dead-leaves scene).
@@ -93,7 +93,7 @@ class ValidateConfig:
     size_px: tuple[int, int] | None = None
     fs_cyc_per_mm: float | None = None
     q: float = 0.05
-    effort: str = "quick"
+    effort: str = "standard"
     seed: int = 0
     scene: str | Path = "chart"
     confidence: float | None = 0.9

@@ -214,7 +214,9 @@ def test_report_files(truth_run, tmp_path):
 
 @pytest.fixture(scope="module")
 def calibrated_run():
-    return validate(MODELS / "triplet-uncorrected.json", ValidateConfig(size_px=SIZE, seed=0), quiet=True)
+    # 384 px: at 256 px the outermost tiles stop far from the corners and a quick fit extrapolates there
+    return validate(MODELS / "triplet-uncorrected.json", ValidateConfig(size_px=(384, 216), seed=0, effort="quick"),
+                    quiet=True)
 
 
 @pytest.mark.slow
@@ -230,7 +232,7 @@ def test_calibrated_pipeline_downstream_checks(calibrated_run):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="quick-effort calibration at 256x144: the 90 % credible bands hold the true "
+@pytest.mark.xfail(strict=False, reason="quick-effort calibration at 384x216: the 90 % credible bands hold the true "
                    "surface at only ~17-19 % of field points (overconfident; surfaces themselves are within δ/4); "
                    "reported to the fit owner")
 def test_calibrated_surfaces_and_bands_meet_the_thresholds(calibrated_run):

@@ -50,8 +50,8 @@ def register(sub):
     p.add_argument("--fs", type=float, default=None,
                    help="target frequency, cycles/mm (default 0.4 x Nyquist of the render size)")
     p.add_argument("--q", type=float, default=0.05, help="allowed MTF loss at fs (default 0.05)")
-    p.add_argument("--effort", choices=("quick", "standard", "thorough"), default="quick",
-                   help="calibration effort (default quick)")
+    p.add_argument("--effort", choices=("quick", "standard", "thorough"), default="standard",
+                   help="calibration effort (default standard)")
     p.add_argument("--seed", type=int, default=0, help="seed of charts, noise and samplers (default 0)")
     p.add_argument("--scene", default="chart",
                    help="scene to composite: chart (dead leaves), texture (colour dead leaves) or an image file")
