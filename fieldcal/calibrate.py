@@ -25,6 +25,12 @@ from .profile import LensProfile
 from .progress import status
 
 EFFORTS = ("quick", "standard", "thorough")
+# Effective window of a measured tile relative to a uniform square of side tile_px: the measured best focus is
+# z(centre) + kappa L s^2 / 24. Checked on 6 simulated random lenses (320x240, 32 px tiles): mean raw tile minus
+# true centre value = the correction to within 5 % (kappa = 1); that 5 % is a systematic of the whole field and
+# joins the band (docs/fitting.md "Tile window").
+TILE_WINDOW_KAPPA = 1.0
+TILE_WINDOW_KAPPA_SD = 0.05
 MIN_FRAMES = 5
 
 
@@ -92,7 +98,7 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     """
     from .stack import Stack
     from .measure import measure_stack
-    from .fit import ImageGeometry, TileData, fit_surfaces
+    from .fit import ImageGeometry
     from .fit.geometry import GeometryData, fit_geometry
     from .fit.tolerance import fit_tolerance
 
@@ -116,17 +122,8 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
                          "saturated, and that the z range spans the best focus of the whole field with margin")
     w, h = int(stack.shape[1]), int(stack.shape[0])
     geometry = ImageGeometry(w, h, float(stack.pixel_pitch_um))
-    tiles = TileData.from_table(table, source=str(stack.path))
-    # A tile measures the surface averaged over its square, not at its centre: for a surface with Laplacian
-    # L the difference is L s^2 / 24 (s = tile side), -0.33 µm for the triplet at 30 px tiles — most of the
-    # error budget. A quick first fit gives L at every tile; the final fit sees the centre values.
-    first = fit_surfaces(tiles, geometry, effort="quick", seed=seed, channels=tuple(stack.channels), quiet=True,
-                         source=str(stack.path))
-    correction = tile_average_correction_um(first, tiles, float(table.tile_px))
-    tiles = replace(tiles, z_best_um=tiles.z_best_um - correction,
-                    z_tan_um=tiles.z_tan_um - correction, z_sag_um=tiles.z_sag_um - correction)
-    surf = fit_surfaces(tiles, geometry, effort=effort, seed=seed, channels=tuple(stack.channels), quiet=quiet,
-                        source=str(stack.path))
+    surf, tiles = fit_tile_surfaces(table, geometry, channels=tuple(stack.channels), effort=effort, seed=seed,
+                                    quiet=quiet, source=str(stack.path))
     t_fit = time.perf_counter() - t0 - t_measure
     centre = surf.optical_centre_px()
     geo_c = geo_meas.recentred(tuple(float(v) for v in centre))
@@ -175,6 +172,78 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     status(f"calibrated {len(stack)} frames in {t_total:.1f} s: model {surf.model.name}, {n_ok} tiles used",
            quiet=quiet)
     return profile
+
+
+
+def fit_tile_surfaces(table, geometry, *, channels: tuple[str, ...], effort: str = "standard", seed: int = 0,
+                      quiet: bool = False, source: str | None = None):
+    """Best-focus surfaces from a measured tile table: the fitting half of :func:`calibrate`.
+
+    Parameters
+    ----------
+    table : TileTable
+        From :func:`fieldcal.measure.measure_stack` (``tile_px`` is used for the tile-average correction).
+    geometry : fieldcal.fit.ImageGeometry
+        Size and pixel pitch of the frames.
+    channels, effort, seed, quiet, source
+        As in :func:`fieldcal.fit.fit_surfaces`.
+
+    Returns
+    -------
+    (SurfaceFit, TileData)
+        The fit and the accepted tiles corrected to tile-centre values.
+    """
+    from .fit import TileData, fit_surfaces
+
+    tiles = TileData.from_table(table, source=source)
+    # A tile measures the surface averaged over its window, not at its centre: for a surface with Laplacian
+    # L the difference is kappa L s^2 / 24 (s = tile side; kappa = 1 for a uniform square window), -0.33 µm
+    # for the triplet at 30 px tiles — most of the error budget. One MAP of a rich model gives L at every
+    # tile (no model search: only the Laplacian is needed); the final fit sees the centre values. kappa's
+    # uncertainty is a systematic shared by the whole field: it joins the band (SurfaceFit.tile_px).
+    first = _first_surface(tiles, geometry, channels, source)
+    correction = TILE_WINDOW_KAPPA * tile_average_correction_um(first, tiles, float(table.tile_px))
+    tiles = replace(tiles, z_best_um=tiles.z_best_um - correction,
+                    z_tan_um=tiles.z_tan_um - correction, z_sag_um=tiles.z_sag_um - correction)
+    surf = fit_surfaces(tiles, geometry, effort=effort, seed=seed, channels=channels, quiet=quiet,
+                        source=source)
+    surf.tile_px = float(table.tile_px)
+    surf.tile_correction_sd = TILE_WINDOW_KAPPA_SD * TILE_WINDOW_KAPPA
+    return surf, tiles
+
+
+class _FirstSurface:
+    """The MAP surface of one model, with the ``predict`` of a SurfaceFit (for the Laplacian only)."""
+
+    def __init__(self, model, theta, geometry, zc, zs):
+        self.model, self.theta, self.geometry, self.zc, self.zs = model, theta, geometry, zc, zs
+
+    def predict(self, x_px, y_px, channel):
+        xh, yh = self.geometry.normalise(x_px, y_px)
+        z = self.model.surface(self.theta, xh, yh, self.model.channels.index(channel))
+        return self.zc + self.zs * z.reshape(np.shape(xh))
+
+
+def _first_surface(tiles, geometry, channels, source):
+    """One MAP fit of poly3 (per-channel up to rho^2) + tilt [+ decentre]: enough to give the Laplacian."""
+    from .fit.data import FitError
+    from .fit.map import fit_map
+    from .fit.select import _validate, build_rows
+    from .fit.surface import Rows, SurfaceModel
+
+    _validate(tiles, geometry, channels, source)
+    rows, zc, zs = build_rows(tiles, geometry, channels)
+    keep = rows.kind == 0
+    rows = Rows(*(getattr(rows, f)[keep] for f in ("x_hat", "y_hat", "ch_index", "kind", "target", "sigma")))
+    n_ch = len(channels)
+    for order, dec in ((3, True), (3, False), (2, False), (1, False), (0, False)):
+        model = SurfaceModel(tuple(channels), order, True, dec, False, False, min(order, 1))
+        if rows.n >= model.n_params + 2 * n_ch:
+            res = fit_map(model, rows)
+            if np.isfinite(res.condition_number) and res.condition_number < 1e8:
+                return _FirstSurface(model, res.theta, geometry, zc, zs)
+    raise FitError("too few tiles for a first surface fit", path=source, field="tiles",
+                   fix="use a finer tile grid or a chart that fills the frame")
 
 
 def tile_average_correction_um(surface, tiles, tile_px: float) -> np.ndarray:

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..errors import ParameterError, SpecError
 from .data import ImageGeometry
+from .discrepancy import Discrepancy
 from .surface import SurfaceModel
 
 SURFACE_FIT_FORMAT = "fieldcal-surface-fit/1"
@@ -48,6 +49,9 @@ class SurfaceFit:
     diagnostics: dict = field(default_factory=dict)
     effort: str = "standard"
     sample_model: SurfaceModel | None = None  # layout of ``samples`` (the union of the averaged models)
+    discrepancy: Discrepancy | None = None     # correlated residual term (docs/fitting.md "Discrepancy")
+    tile_px: float | None = None               # tile side of the measurement (px), for the window systematic
+    tile_correction_sd: float = 0.0            # sd of kappa in the tile-window correction kappa L s^2 / 24
 
     def __post_init__(self):
         if self.sample_model is None:
@@ -75,18 +79,55 @@ class SurfaceFit:
         ci = self._ch(channel)
         return getattr(model or self.model, fn)(theta, xh, yh, ci), x.shape
 
+    def _kriged(self, xh, yh, ci):
+        """(mean, extra variance) of the discrepancy-aware posterior, normalised units."""
+        return self.discrepancy.predict(xh, yh, ci)
+
+    def _window_var(self, x_px, y_px, channel):
+        """Variance (normalised z) of the tile-window correction's systematic: (sd_kappa L s^2 / 24)^2."""
+        if not self.tile_px or self.tile_correction_sd <= 0:
+            return 0.0
+        h = 0.5 * self.tile_px
+        f = lambda dx, dy: self._eval(self.theta_map, x_px + dx, y_px + dy, channel)[0]
+        lap = (f(h, 0) + f(-h, 0) + f(0, h) + f(0, -h) - 4.0 * f(0, 0)) / (h * h)
+        return (self.tile_correction_sd * lap * self.tile_px ** 2 / 24.0) ** 2
+
     def predict(self, x_px, y_px, channel: str) -> np.ndarray:
-        """MAP best-focus position (µm) at pixel coordinates; arrays broadcast."""
-        z, shape = self._eval(self.theta_map, x_px, y_px, channel)
-        return (self.z_centre_um + self.z_scale_um * z).reshape(shape)
+        """Best-focus position (µm) at pixel coordinates; arrays broadcast.
+
+        The chosen model's generalised-least-squares surface plus the kriged discrepancy between tiles
+        (without a discrepancy term: the MAP surface).
+        """
+        if self.discrepancy is None:
+            z, shape = self._eval(self.theta_map, x_px, y_px, channel)
+            return (self.z_centre_um + self.z_scale_um * z).reshape(shape)
+        x, y = np.broadcast_arrays(np.asarray(x_px, dtype=np.float64), np.asarray(y_px, dtype=np.float64))
+        xh, yh = self.geometry.normalise(x.ravel(), y.ravel())
+        out = np.empty(xh.size)
+        ci = self._ch(channel)
+        for a in range(0, max(xh.size, 1), _POINT_CHUNK):
+            sl = slice(a, a + _POINT_CHUNK)
+            out[sl] = self._kriged(xh[sl], yh[sl], ci)[0]
+        return (self.z_centre_um + self.z_scale_um * out).reshape(x.shape)
 
     def _sample_surfaces(self, x_px, y_px, channel):
         """Yield (slice, S x m block of surfaces in µm) over point chunks."""
         x, y = np.broadcast_arrays(np.asarray(x_px, dtype=np.float64), np.asarray(y_px, dtype=np.float64))
         xf, yf = x.ravel(), y.ravel()
+        if self.discrepancy is not None:
+            # one standard normal per sample: exact Gaussian marginals at every point, deterministic bands
+            xi = np.random.default_rng(12345).standard_normal(self.samples.shape[0])[:, None]
         for a in range(0, max(xf.size, 1), _POINT_CHUNK):
             sl = slice(a, a + _POINT_CHUNK)
             z, _ = self._eval(self.samples, xf[sl], yf[sl], channel, model=self.sample_model)
+            if self.discrepancy is not None:
+                # samples spread about the MAP (coefficients, centre, model average); re-centred on the kriged
+                # surface, plus the variance the correlated discrepancy adds beyond independent tiles
+                z0, _ = self._eval(self.theta_map, xf[sl], yf[sl], channel)
+                xh, yh = self.geometry.normalise(xf[sl], yf[sl])
+                mean, extra = self._kriged(xh, yh, self._ch(channel))
+                extra = extra + self._window_var(xf[sl], yf[sl], channel)
+                z = z - z0 + mean + np.sqrt(extra) * xi
             yield sl, self.z_centre_um + self.z_scale_um * z
 
     def interval(self, x_px, y_px, channel: str, level: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
@@ -157,6 +198,10 @@ class SurfaceFit:
              "theta_map": [float(v) for v in self.theta_map],
              "candidates": _json_safe(self.candidates), "diagnostics": _json_safe(self.diagnostics),
              "n_samples": int(self.samples.shape[0])}
+        if self.discrepancy is not None:
+            d["discrepancy"] = _json_safe(self.discrepancy.to_dict())
+        if self.tile_px:
+            d["tile_window"] = {"tile_px": float(self.tile_px), "kappa_sd": float(self.tile_correction_sd)}
         if include_samples:
             d["samples"] = self.samples.tolist()
         return d
@@ -179,9 +224,12 @@ class SurfaceFit:
             if theta.shape != (model.n_params,) or samples.ndim != 2 or samples.shape[1] != smodel.n_params:
                 raise SpecError(f"parameter count does not match model {model.name} ({model.n_params})",
                                 path=path, field="theta_map", fix="regenerate the profile")
+            disc = Discrepancy.from_dict(d["discrepancy"], model) if d.get("discrepancy") else None
             return cls(model, ImageGeometry.from_dict(d["geometry"]), float(d["z_centre_um"]),
                        float(d["z_scale_um"]), theta, samples, list(d.get("candidates", [])),
-                       dict(d.get("diagnostics", {})), str(d.get("effort", "standard")), smodel)
+                       dict(d.get("diagnostics", {})), str(d.get("effort", "standard")), smodel, disc,
+                       (d.get("tile_window") or {}).get("tile_px"),
+                       float((d.get("tile_window") or {}).get("kappa_sd", 0.0)))
         except (KeyError, TypeError, ValueError) as e:
             raise SpecError(f"malformed surface fit ({e})", path=path, field="surface",
                             fix="regenerate the profile with fieldcal calibrate") from None

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..progress import progress, status
 from .data import MIN_TILES_PER_CHANNEL, FitError, ImageGeometry, TileData
+from .discrepancy import fit_discrepancy
 from .map import MAX_CONDITION, fit_map
 from .posterior import EFFORTS, MAX_SAMPLES, laplace, run_emcee
 from .result import SurfaceFit
@@ -182,22 +183,30 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     else:
         lap_cov = np.cov(lap.samples.T)
         post = run_emcee(res.model, rows, res.theta, eff, seed=seed, ball_cov=lap_cov, quiet=quiet)
-    members = [(res.model, res.theta, weights.get(res.model.name, 1.0))]
-    members += [(r.model, r.theta, weights[n]) for n, r in fits.items()
-                if n != res.model.name and weights.get(n, 0.0) >= BMA_MIN_WEIGHT]
-    wsum = sum(w for *_, w in members)
+    members = [(res.model, res.theta, weights.get(res.model.name, 1.0), post.samples)]
+    dropped = []
+    for n, r in fits.items():
+        if n == res.model.name or weights.get(n, 0.0) < BMA_MIN_WEIGHT:
+            continue
+        n_m = max(1, int(round(MAX_SAMPLES * weights[n])))
+        lap_m = laplace(r.model, rows, r.theta, n_samples=n_m, seed=seed + 7 + len(members))
+        if not _usable_member(r.model, lap_m):
+            dropped.append(n)
+            continue
+        members.append((r.model, r.theta, weights[n], lap_m.samples))
+    wsum = sum(w for _, _, w, _ in members)
     union = SurfaceModel.union([m for m, *_ in members])
     rng = np.random.default_rng(seed + 1)
     parts = []
-    for i, (m, theta, w) in enumerate(members):
+    for m, theta, w, smp in members:
         n_m = max(1, int(round(MAX_SAMPLES * w / wsum)))
-        smp = post.samples if i == 0 else laplace(m, rows, theta, n_samples=n_m, seed=seed + 7 + i).samples
         if smp.shape[0] > n_m:
             smp = smp[rng.choice(smp.shape[0], n_m, replace=False)]
         parts.append(m.embed(smp, union))
     samples = np.concatenate(parts)
-    bma = {"members": [{"name": m.name, "weight": w / wsum} for m, _, w in members],
-           "sample_model": union.name}
+    bma = {"members": [{"name": m.name, "weight": w / wsum} for m, _, w, _ in members],
+           "sample_model": union.name, "dropped_unidentified": dropped}
+    disc = fit_discrepancy(res.model, rows, res.theta, student_t_weights(res.model, rows, res.theta))
     t_total = time.perf_counter() - t0
     m = res.model
     diagnostics = {
@@ -208,13 +217,40 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         "log_posterior": res.log_posterior,
         "error_scale": math.exp(float(m.split(res.theta)[2])),
         "student_t_nu": math.exp(float(m.split(res.theta)[4])),
-        "posterior": post.diagnostics, "model_average": bma, "time_map_s": t_map, "time_total_s": t_total,
+        "posterior": post.diagnostics, "model_average": bma, "discrepancy": disc.diagnostics, "time_map_s": t_map, "time_total_s": t_total,
     }
     if m.astig_rows:
         diagnostics["error_scale_astig"] = math.exp(float(m.split(res.theta)[3]))
     if post.diagnostics.get("converged") is False:
         status("warning: the surface posterior did not converge; use --effort thorough", quiet=quiet)
-    return SurfaceFit(m, geometry, zc, zs, res.theta, samples, table, diagnostics, effort, sample_model=union)
+    return SurfaceFit(m, geometry, zc, zs, res.theta, samples, table, diagnostics, effort, sample_model=union,
+                      discrepancy=disc)
+
+
+def student_t_weights(model: SurfaceModel, rows: Rows, theta: np.ndarray) -> np.ndarray:
+    """E-step weights u_i = (nu + 1) / (nu + r_i^2 / sigma_i^2) of the rows at ``theta`` (outliers << 1)."""
+    beta, centre, log_s, log_sa, log_nu = model.split(theta)
+    X = model.design(rows.x_hat, rows.y_hat, rows.ch_index, rows.kind, centre)
+    sig = model.sigma_eff(rows, log_s, log_sa)
+    nu = math.exp(float(log_nu))
+    return (nu + 1.0) / (nu + ((rows.target - X @ beta) / sig) ** 2)
+
+
+# A decentre whose Laplace sd exceeds this (normalised units; the bound is 0.25) is not located by the data:
+# such a member is the same surface as its no-decentre sibling, and its Gaussian samples would run to the
+# bounds with coefficients that compensate each other (bands of mm were seen).
+MAX_MEMBER_CENTRE_SD = 0.05
+
+
+def _usable_member(model: SurfaceModel, lap) -> bool:
+    """A model-average member joins only if its Laplace posterior is proper and its centre is located."""
+    if not lap.diagnostics.get("hessian_positive_definite", False):
+        return False
+    if model.decentre:
+        sd = lap.samples[:, model.n_linear:model.n_linear + 2].std(axis=0)
+        if not np.all(sd < MAX_MEMBER_CENTRE_SD):
+            return False
+    return bool(np.all(np.isfinite(lap.samples)))
 
 
 def _bic_weights(table) -> dict[str, float]:

@@ -1,0 +1,354 @@
+"""Model discrepancy: a spatially correlated residual term so the surface band stays honest end to end.
+
+Why: per-tile ``z_sigma_um`` from the measurement is too small (chi ~ 4 on the triplet) *and* the residuals
+of neighbouring tiles are not independent (measurement systematics shared by neighbours, a surface that is
+not exactly a low-order polynomial, the tile-average correction). A posterior that treats tiles as
+independent shrinks like 1/sqrt(n_tiles) and is overconfident: measured 90 % bands held the truth at only
+36-73 % of field points at standard effort.
+
+Model (per channel c, normalised units, focus rows only)::
+
+    y_i = X_i beta + delta_c(x_i) + eps_i
+    delta_c ~ GP(0, tau_c^2 k(d / ell)),   k = Matern 3/2,  d = distance in the normalised image plane
+    eps_i   ~ N(0, s^2 sigma_i^2 / u_i)    (u_i: the Student-t weight of row i at the MAP, so outliers stay out)
+
+with the length scale ``ell`` and the white-noise scale ``s`` shared by the channels and one amplitude
+``tau_c`` per channel. The hyperparameters maximise the *restricted* (REML) likelihood, which integrates
+beta out and so does not shrink the variance by the number of coefficients. Given them, the surface
+posterior is universal kriging (closed form): the coefficients have covariance ``(X^T K^-1 X)^-1`` (honest
+under correlated errors: it does not fall like 1/n once the tiles are closer than ``ell``), the discrepancy
+is interpolated between tiles and returns to its prior ``tau_c^2`` away from them (corners outside the
+tile grid get wider bands).
+
+:class:`Discrepancy` keeps only its inputs (row positions, targets, noise variances, hyperparameters) so it
+serialises in a few kB; the Cholesky factors are rebuilt on first use.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import nlopt
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve, solve_triangular
+
+from .surface import COEF_PRIOR_SD, Rows, SurfaceModel
+
+MAX_ROWS_HYPER = 400          # rows per channel used to fit the hyperparameters (evenly thinned beyond)
+LOG_S_BOUNDS = (math.log(0.5), math.log(1.0e4))
+JITTER = 1.0e-10
+
+
+def matern32(d_over_ell: np.ndarray) -> np.ndarray:
+    """Matern nu = 3/2 correlation: continuous, once differentiable (tile systematics are not smooth)."""
+    a = math.sqrt(3.0) * d_over_ell
+    return (1.0 + a) * np.exp(-a)
+
+
+def _dist(xa, ya, xb, yb) -> np.ndarray:
+    return np.hypot(xa[:, None] - xb[None, :], ya[:, None] - yb[None, :])
+
+
+def _nn_spacing(x, y) -> float:
+    """Median nearest-neighbour distance between rows of one channel (normalised units)."""
+    if x.size < 2:
+        return 0.1
+    d = _dist(x, y, x, y)
+    np.fill_diagonal(d, np.inf)
+    nn = d.min(axis=1)
+    nn = nn[np.isfinite(nn) & (nn > 0)]
+    return float(np.median(nn)) if nn.size else 0.1
+
+
+@dataclass
+class Discrepancy:
+    """Universal-kriging posterior of the mean surfaces with a correlated discrepancy (normalised units).
+
+    Attributes
+    ----------
+    model : SurfaceModel
+        The mean-surface structure (the chosen model), evaluated at ``centre``.
+    centre : (2,) ndarray
+        Optical centre (normalised) of the design.
+    x_hat, y_hat, ch_index, target, noise_var : ndarray
+        Focus rows: position, channel index, normalised best focus and white-noise variance
+        ``s^2 sigma_i^2 / u_i``.
+    tau : ndarray
+        Discrepancy amplitude per channel (normalised z units).
+    length_scale : float
+        Correlation length (normalised image-plane units: 1 = half the diagonal).
+    noise_scale : float
+        The fitted multiplier s of the reported per-tile sigmas.
+    iid_cov : ndarray
+        Covariance of the coefficients the *independent-tile* posterior has (the MAP's own weights); the band
+        adds only the variance beyond it, so samples that already carry it are not counted twice.
+    """
+
+    model: SurfaceModel
+    centre: np.ndarray
+    x_hat: np.ndarray
+    y_hat: np.ndarray
+    ch_index: np.ndarray
+    target: np.ndarray
+    noise_var: np.ndarray
+    tau: np.ndarray
+    length_scale: float
+    noise_scale: float
+    iid_cov: np.ndarray
+    jk_cov: np.ndarray | None = None
+    diagnostics: dict = field(default_factory=dict)
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    # ------------------------------------------------------------------ linear algebra (cached)
+    def _design(self, x_hat, y_hat, ci: int) -> np.ndarray:
+        n = np.asarray(x_hat).size
+        return self.model.design(np.asarray(x_hat, float), np.asarray(y_hat, float), np.full(n, ci),
+                                 np.zeros(n, np.int64), self.centre)
+
+    def _state(self):
+        if "chol" in self._cache:
+            return self._cache
+        X = self.model.design(self.x_hat, self.y_hat, self.ch_index, np.zeros(self.x_hat.size, np.int64),
+                              self.centre)
+        chol, kinv_x, kinv_y = {}, np.zeros_like(X), np.zeros(self.target.size)
+        for ci in range(len(self.model.channels)):
+            m = self.ch_index == ci
+            if not m.any():
+                continue
+            K = _cov(self.x_hat[m], self.y_hat[m], self.tau[ci], self.length_scale, self.noise_var[m])
+            cf = cho_factor(K, lower=True)
+            chol[ci] = cf
+            kinv_x[m] = cho_solve(cf, X[m])
+            kinv_y[m] = cho_solve(cf, self.target[m])
+        A = X.T @ kinv_x + np.eye(X.shape[1]) / COEF_PRIOR_SD ** 2
+        A_inv = np.linalg.inv(0.5 * (A + A.T))
+        beta = A_inv @ (X.T @ kinv_y)
+        resid = self.target - X @ beta
+        alpha = np.zeros_like(resid)
+        for ci, cf in chol.items():
+            m = self.ch_index == ci
+            alpha[m] = cho_solve(cf, resid[m])
+        self._cache.update(chol=chol, X=X, kinv_x=kinv_x, beta=beta, beta_cov=A_inv, alpha=alpha)
+        return self._cache
+
+    @property
+    def beta(self) -> np.ndarray:
+        """Generalised-least-squares coefficients under the correlated covariance."""
+        return self._state()["beta"]
+
+    @property
+    def beta_cov(self) -> np.ndarray:
+        return self._state()["beta_cov"]
+
+    def predict(self, x_hat, y_hat, ci: int) -> tuple[np.ndarray, np.ndarray]:
+        """Kriging mean and the variance *beyond* the independent-tile posterior at points (normalised z).
+
+        Returns ``(mean, extra_var)``: ``mean = h beta + k^T K^-1 (y - X beta)``; ``extra_var`` = kriging
+        variance minus ``h iid_cov h^T`` (clipped at 0).
+        """
+        st = self._state()
+        x_hat = np.asarray(x_hat, float).ravel()
+        y_hat = np.asarray(y_hat, float).ravel()
+        H = self._design(x_hat, y_hat, ci)
+        mean = H @ st["beta"]
+        var = np.einsum("mp,pq,mq->m", H, st["beta_cov"], H)
+        if ci in st["chol"] and self.tau[ci] > 0:
+            m = self.ch_index == ci
+            ks = self.tau[ci] ** 2 * matern32(_dist(x_hat, y_hat, self.x_hat[m], self.y_hat[m]) / self.length_scale)
+            mean = mean + ks @ st["alpha"][m]
+            L = st["chol"][ci][0]
+            V = solve_triangular(L, ks.T, lower=True)                     # n_c x m
+            R = H - ks @ st["kinv_x"][m]                                  # h - k^T K^-1 X
+            local = np.clip(self.tau[ci] ** 2 - np.sum(V * V, axis=0), 0.0, None)
+            var = local + np.einsum("mp,pq,mq->m", R, st["beta_cov"], R)
+        else:
+            local = 0.0
+        if self.jk_cov is not None:
+            # errors shared by whole blocks of tiles look like coefficients to the GP: the block jackknife
+            # sees them (docs/fitting.md "Discrepancy")
+            var = np.maximum(var, local + np.einsum("mp,pq,mq->m", H, self.jk_cov, H))
+        iid = np.einsum("mp,pq,mq->m", H, self.iid_cov, H)
+        return mean, np.clip(var - iid, 0.0, None)
+
+    # ------------------------------------------------------------------ I/O
+    def to_dict(self) -> dict[str, Any]:
+        return {"centre": [float(v) for v in self.centre], "x_hat": self.x_hat.tolist(),
+                "y_hat": self.y_hat.tolist(), "ch_index": self.ch_index.astype(int).tolist(),
+                "target": self.target.tolist(), "noise_var": self.noise_var.tolist(),
+                "tau": [float(v) for v in self.tau], "length_scale": float(self.length_scale),
+                "noise_scale": float(self.noise_scale), "iid_cov": self.iid_cov.tolist(),
+                "jk_cov": None if self.jk_cov is None else self.jk_cov.tolist(),
+                "diagnostics": self.diagnostics}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], model: SurfaceModel) -> "Discrepancy":
+        a = lambda k: np.asarray(d[k], dtype=np.float64)
+        return cls(model, a("centre"), a("x_hat"), a("y_hat"), np.asarray(d["ch_index"], dtype=np.int64),
+                   a("target"), a("noise_var"), a("tau"), float(d["length_scale"]), float(d["noise_scale"]),
+                   a("iid_cov"), a("jk_cov") if d.get("jk_cov") is not None else None,
+                   dict(d.get("diagnostics", {})))
+
+
+def _cov(x, y, tau, ell, noise_var) -> np.ndarray:
+    K = tau ** 2 * matern32(_dist(x, y, x, y) / ell)
+    K[np.diag_indices_from(K)] += noise_var + JITTER * (tau ** 2 + float(np.mean(noise_var)))
+    return K
+
+
+def fit_discrepancy(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, weights: np.ndarray,
+                    max_eval: int = 300) -> Discrepancy:
+    """Fit the discrepancy hyperparameters (REML, nlopt LN_BOBYQA) for the chosen model at its MAP.
+
+    Parameters
+    ----------
+    model : SurfaceModel
+        The chosen mean-surface model.
+    rows : Rows
+        All rows (astigmatism rows are ignored: they do not touch the mean surface).
+    theta_map : ndarray
+        The model's MAP (gives the centre, the error scale and the Student-t dof).
+    weights : ndarray
+        Student-t weights ``u_i`` of the rows at the MAP (1 for a Gaussian row, << 1 for an outlier).
+    """
+    beta_map, centre, log_s, _, _ = model.split(np.asarray(theta_map, float))
+    centre = np.asarray(centre, float)
+    focus = rows.kind == 0
+    xh, yh, ci = rows.x_hat[focus], rows.y_hat[focus], rows.ch_index[focus]
+    y = rows.target[focus]
+    u = np.clip(np.asarray(weights, float)[focus], 1e-6, None)
+    base_var = rows.sigma[focus] ** 2 / u                         # noise variance at s = 1
+    nc = len(model.channels)
+    X = model.design(xh, yh, ci, np.zeros(xh.size, np.int64), centre)
+    s_map = math.exp(float(log_s))
+    W = u / (s_map * rows.sigma[focus]) ** 2
+    A_iid = (X.T * W) @ X + np.eye(X.shape[1]) / COEF_PRIOR_SD ** 2
+    iid_cov = np.linalg.inv(0.5 * (A_iid + A_iid.T))
+
+    # Hyperparameter fit on at most MAX_ROWS_HYPER rows per channel (evenly thinned: spacing preserved).
+    sel = np.zeros(xh.size, dtype=bool)
+    for c in range(nc):
+        idx = np.flatnonzero(ci == c)
+        if idx.size > MAX_ROWS_HYPER:
+            idx = idx[np.linspace(0, idx.size - 1, MAX_ROWS_HYPER).round().astype(int)]
+        sel[idx] = True
+    Xs, ys, bvs = X[sel], y[sel], base_var[sel]
+    xs_, ys_, cis = xh[sel], yh[sel], ci[sel]
+    blocks = [(c, np.flatnonzero(cis == c)) for c in range(nc) if (cis == c).any()]
+    D = {c: _dist(xs_[m], ys_[m], xs_[m], ys_[m]) for c, m in blocks}
+    spacing = float(np.median([_nn_spacing(xs_[m], ys_[m]) for _, m in blocks]))
+    ell_lo, ell_hi = 0.5 * spacing, 3.0
+    r0 = y - X @ beta_map
+    res_sd = max(float(np.std(r0)), 1e-6)
+    tau_lo, tau_hi = 1e-4 * res_sd, 10.0 * res_sd
+    p = X.shape[1]
+    prior = np.eye(p) / COEF_PRIOR_SD ** 2
+
+    def neg_reml(v):
+        log_s_, log_ell = v[0], v[1]
+        tau = np.exp(v[2:])
+        ell = math.exp(log_ell)
+        nv = math.exp(2.0 * log_s_) * bvs
+        logdet = 0.0
+        kx = np.zeros_like(Xs)
+        ky = np.zeros_like(ys)
+        for c, m in blocks:
+            K = tau[c] ** 2 * matern32(D[c] / ell)
+            K[np.diag_indices_from(K)] += nv[m] + JITTER * (tau[c] ** 2 + float(np.mean(nv[m])))
+            try:
+                cf = cho_factor(K, lower=True, check_finite=False)
+            except np.linalg.LinAlgError:
+                return 1e300
+            logdet += 2.0 * float(np.sum(np.log(np.diag(cf[0]))))
+            kx[m] = cho_solve(cf, Xs[m], check_finite=False)
+            ky[m] = cho_solve(cf, ys[m], check_finite=False)
+        A = Xs.T @ kx + prior
+        try:
+            cA = cho_factor(A, lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            return 1e300
+        b = Xs.T @ ky
+        quad = float(ys @ ky - b @ cho_solve(cA, b, check_finite=False))
+        val = 0.5 * (logdet + 2.0 * float(np.sum(np.log(np.diag(cA[0])))) + quad)
+        return val if math.isfinite(val) else 1e300
+
+    lo = np.array([LOG_S_BOUNDS[0], math.log(ell_lo)] + [math.log(tau_lo)] * nc)
+    hi = np.array([LOG_S_BOUNDS[1], math.log(ell_hi)] + [math.log(tau_hi)] * nc)
+    best = None
+    # Starts: the MAP's error scale; a discrepancy of half the residual spread at 2 and 6 tile spacings.
+    for ell0 in (2.0 * spacing, 6.0 * spacing):
+        x0 = np.clip(np.array([log_s - 0.3, math.log(ell0)] + [math.log(0.5 * res_sd)] * nc), lo, hi)
+        f0 = neg_reml(x0)
+        if best is None or f0 < best[0]:
+            best = (f0, x0)
+    opt = nlopt.opt(nlopt.LN_BOBYQA, lo.size)
+    opt.set_lower_bounds(lo.tolist())
+    opt.set_upper_bounds(hi.tolist())
+    opt.set_min_objective(lambda v, g: neg_reml(np.asarray(v)))
+    opt.set_xtol_abs(1e-4)
+    opt.set_ftol_abs(1e-5)
+    opt.set_maxeval(max_eval)
+    opt.set_initial_step(np.minimum(0.25 * (hi - lo), 0.7).tolist())
+    try:
+        v = np.asarray(opt.optimize(best[1].tolist()))
+        res = int(opt.last_optimize_result())
+    except nlopt.RoundoffLimited:
+        v, res = best[1], int(nlopt.ROUNDOFF_LIMITED)
+    if neg_reml(v) > best[0]:
+        v = best[1]
+    s = math.exp(float(v[0]))
+    ell = math.exp(float(v[1]))
+    tau = np.exp(v[2:])
+    diag = {"kernel": "matern32", "length_scale": ell, "tau": [float(t) for t in tau], "noise_scale": s,
+            "tile_spacing": spacing, "n_rows_hyper": int(sel.sum()), "nlopt_result": res,
+            "neg_reml": float(neg_reml(v))}
+    jk_cov, n_blocks = block_jackknife_cov(X, y, W * s_map ** 2 / s ** 2, xh, yh)
+    diag["jackknife_blocks"] = n_blocks
+    return Discrepancy(model, centre, xh, yh, ci.astype(np.int64), y, s * s * base_var, tau, ell, s, iid_cov,
+                       jk_cov, diag)
+
+
+JK_BLOCKS = (4, 3)  # blocks across x and y of the tile layout
+MIN_JK_BLOCKS = 6
+
+
+def block_jackknife_cov(X, y, w, x_hat, y_hat, blocks=JK_BLOCKS):
+    """Delete-one-block jackknife covariance of the weighted least-squares coefficients.
+
+    Tiles are grouped into ``blocks`` rectangles of the tile layout; errors may be correlated in any way
+    within a block. Inflated by (t_{0.95, B-1} / z_{0.95})^2 for the few blocks. Returns ``(cov or None, B)``.
+    """
+    from scipy.stats import norm, t as student_t
+
+    def span(v, n):
+        lo, hi = float(v.min()), float(v.max())
+        return np.clip(((v - lo) / max(hi - lo, 1e-12) * n).astype(int), 0, n - 1)
+
+    lab = span(x_hat, blocks[0]) * blocks[1] + span(y_hat, blocks[1])
+    ids = np.unique(lab)
+    if ids.size < MIN_JK_BLOCKS:
+        return None, int(ids.size)
+    p = X.shape[1]
+    prior = np.eye(p) / COEF_PRIOR_SD ** 2
+    Xw = X.T * w
+    A = Xw @ X + prior
+    b = Xw @ y
+    est = []
+    for k in ids:
+        m = lab == k
+        Xm = X[m]
+        Ak = A - (Xm.T * w[m]) @ Xm
+        bk = b - (Xm.T * w[m]) @ y[m]
+        try:
+            est.append(np.linalg.solve(Ak, bk))
+        except np.linalg.LinAlgError:
+            continue
+    B = len(est)
+    if B < MIN_JK_BLOCKS:
+        return None, B
+    E = np.array(est)
+    d = E - E.mean(axis=0)
+    cov = (B - 1) / B * (d.T @ d)
+    infl = (student_t.ppf(0.95, B - 1) / norm.ppf(0.95)) ** 2
+    return infl * cov, B
