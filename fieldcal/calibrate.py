@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import hashlib
 import math
+import sys
+import types
 from dataclasses import replace
 import threading
 import time
@@ -286,3 +288,17 @@ def _geometry_columns(geo) -> dict:
             "magnification": geo.magnification.ravel(), "mag_sigma": np.maximum(geo.mag_sigma.ravel(), tiny),
             "shift_x_px": geo.shift_x_px.ravel(), "shift_y_px": geo.shift_y_px.ravel(),
             "shift_sigma_px": np.maximum(geo.shift_sigma_px.ravel(), tiny)}
+
+
+class _CallableModule(types.ModuleType):
+    """``fieldcal.calibrate`` is both this module and DESIGN.md's function ``fieldcal.calibrate(stack)``.
+
+    Importing the submodule binds the package attribute ``fieldcal.calibrate`` to the module object, which
+    would shadow the function depending on import order; calling the module calls the function instead.
+    """
+
+    def __call__(self, *args, **kwargs):
+        return calibrate(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule
