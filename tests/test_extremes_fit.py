@@ -134,10 +134,6 @@ def test_calibrate_a_tiny_simulated_stack_recovers_the_surface(tmp_path):
     assert np.sqrt(np.mean(err ** 2)) < 3.0
 
 
-@pytest.mark.xfail(strict=True, reason="fieldcal/__init__.py: once the submodule fieldcal.calibrate is imported (the "
-                                       "CLI does), the attribute fieldcal.calibrate is that module, not the "
-                                       "function: fieldcal.calibrate(stack) -> TypeError 'module' object is not "
-                                       "callable (DESIGN.md public API)")
 def test_public_calibrate_stays_callable_after_the_submodule_is_imported():
     import importlib
     import fieldcal
