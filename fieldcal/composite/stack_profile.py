@@ -29,7 +29,9 @@ def to_input_dtype(acc: np.ndarray, dtype, white_level: float) -> np.ndarray:
     dtype = np.dtype(dtype)
     if np.issubdtype(dtype, np.integer):
         top = min(float(np.iinfo(dtype).max), float(white_level))
-        return np.clip(np.rint(acc), 0, top).astype(dtype)
+        tmp = np.rint(acc)  # one temporary, then in place: the caller's array is left alone
+        np.clip(tmp, 0, top, out=tmp)
+        return tmp.astype(dtype)
     return acc.astype(dtype)
 
 
@@ -77,9 +79,10 @@ def blend_kernel(stack, profile, frames, fs_cyc_per_mm=None, q: float = 0.05,
 def composite_with_map(stack, zb: np.ndarray, kernel, profile, frames, *, lateral_colour=False,
                        tile=DEFAULT_TILE_PX, quiet=False, desc="compositing") -> np.ndarray:
     """Stream the frames through ``kernel`` at best-focus map ``zb``; result in the input's dtype."""
-    acc = accumulate(stack, zb, kernel, profile, lateral_colour=lateral_colour, tile=tile, frames=frames,
-                     desc=desc, quiet=quiet)
-    return to_input_dtype(acc, stack.dtype, stack.white_level)
+    dtype, white = stack.dtype, stack.white_level
+    # each finished band goes straight to the input's dtype: no full-size float32 image
+    return accumulate(stack, zb, kernel, profile, lateral_colour=lateral_colour, tile=tile, frames=frames,
+                      desc=desc, quiet=quiet, finish=lambda band: to_input_dtype(band, dtype, white))
 
 
 def composite_profile(stack, profile, *, frames=None, fs_cyc_per_mm=None, q: float = 0.05,

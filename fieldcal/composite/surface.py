@@ -30,6 +30,27 @@ def dense_map(fn: Callable[[np.ndarray, np.ndarray], np.ndarray], width: int, he
                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
 
 
+def dense_maps(fns, width: int, height: int, step: int = GRID_STEP_PX) -> np.ndarray:
+    """:func:`dense_map` of several functions at once, float32 ``H x W x len(fns)``.
+
+    One bilinear upsampling for up to 4 maps (OpenCV's channel limit), written straight into the result.
+    """
+    step = max(1, min(step, width, height))
+    gx = np.arange(0, width - 1 + step, step, dtype=np.float64)
+    gy = np.arange(0, height - 1 + step, step, dtype=np.float64)
+    xx, yy = np.meshgrid(gx, gy)
+    coarse = np.stack([np.asarray(fn(xx, yy), dtype=np.float64) for fn in fns], axis=-1).astype(np.float32)
+    if step == 1:
+        return np.ascontiguousarray(coarse[:height, :width])
+    m = np.array([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, 0.0]])
+    parts = []
+    for k in range(0, coarse.shape[2], 4):
+        part = cv2.warpAffine(np.ascontiguousarray(coarse[..., k:k + 4]), m, (width, height),
+                              flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+        parts.append(part.reshape(height, width, -1))
+    return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=-1)
+
+
 def output_best_focus_um(profile, x, y, channel: str, lateral_colour: bool = False, iterations: int = 4):
     """Stage position at which the point seen at output pixel (x, y) (z_ref geometry) is in focus.
 
@@ -50,13 +71,19 @@ def output_best_focus_um(profile, x, y, channel: str, lateral_colour: bool = Fal
     return z
 
 
+def grid_step_px(width: int, height: int) -> int:
+    """Coarse-grid step for best-focus maps: 8 px, or ~256 nodes along the long side of larger images.
+
+    The bilinear error grows as step^2: at 3840 px (step 15) it stays below 0.02 µm on the models' lenses
+    (0.008 µm at step 16, measured against the exact fixed point), and the map costs a quarter of step 8's.
+    """
+    return max(GRID_STEP_PX, -(-max(width, height) // 256))
+
+
 def profile_focus_map(profile, width: int, height: int, channels, lateral_colour: bool = False) -> np.ndarray:
     """Best-focus positions (µm) of every output pixel and channel, ``H x W x C`` float32."""
-    out = np.empty((height, width, len(channels)), dtype=np.float32)
-    for ci, ch in enumerate(channels):
-        out[..., ci] = dense_map(lambda x, y, ch=ch: output_best_focus_um(profile, x, y, ch, lateral_colour),
-                                 width, height)
-    return out
+    fns = [lambda x, y, ch=ch: output_best_focus_um(profile, x, y, ch, lateral_colour) for ch in channels]
+    return dense_maps(fns, width, height, grid_step_px(width, height))
 
 
 def profile_tolerance_um(profile, width: int, height: int, channel: str, fs_cyc_per_mm: float,

@@ -59,16 +59,46 @@ class BlendKernel:
         dz = np.diff(self.z)
         # Both neighbours are in focus for t in [1 - tol/dz, tol/dz]: a band of half-width tol/dz - 1/2.
         self.half_band = np.clip(tolerance_um / np.where(dz > 0, dz, 1.0) - 0.5, 0.5 * min_band, 0.5)
+        # Where each frame's weight can be non-zero: (seam below starts, seam above ends), see supports().
+        h = np.maximum(self.half_band, 1e-6)
+        pad = 1e-4 * dz + 1e-6 * (np.abs(self.z[:-1]) + np.abs(self.z[1:]))  # >> float32 rounding of the ramp
+        seam_lo = self.z[:-1] + (0.5 - h) * dz - pad
+        seam_hi = self.z[:-1] + (0.5 + h) * dz + pad
+        self._edges = (np.concatenate([[-np.inf], seam_lo]), np.concatenate([seam_hi, [np.inf]]))
 
     def __len__(self) -> int:
         return len(self.z)
 
     def support(self, zmin: float, zmax: float) -> tuple[int, int]:
         """Inclusive range of sorted frame indices that can weigh anything for ``z_b`` in [zmin, zmax]."""
+        lo, hi = self.supports(np.array([zmin]), np.array([zmax]))
+        return int(lo[0]), int(hi[0])
+
+    def supports(self, zmin: np.ndarray, zmax: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`support` for arrays of ranges (e.g. every tile at once): ``(lo, hi)`` int32 arrays.
+
+        Frame ``k`` weighs only for ``z_b`` in ``(a_k, b_k)``, from the start of the seam below it to the end of
+        the seam above it; these open intervals are widened (1e-4 of a spacing plus 1e-6 of ``|z|``) so float32
+        rounding of the ramps can never give weight outside them. So only the frames a pixel really blends are
+        read: with the usual narrow seams one frame per pixel, not two.
+        """
+        lo_edge, hi_edge = self._edges
         n = len(self.z)
-        i0 = max(0, int(np.searchsorted(self.z, zmin, side="right")) - 1)
-        i1 = min(n - 1, int(np.searchsorted(self.z, zmax, side="left")))
-        return i0, i1
+        zmin = np.asarray(zmin, dtype=np.float64)
+        zmax = np.asarray(zmax, dtype=np.float64)
+        lo = np.clip(np.searchsorted(hi_edge, zmin, side="right"), 0, n - 1)
+        hi = np.clip(np.searchsorted(lo_edge, zmax, side="left") - 1, 0, n - 1)
+        return lo.astype(np.int32), np.maximum(hi, lo).astype(np.int32)
+
+    def unit_range(self, k: int) -> tuple[float, float]:
+        """The ``z_b`` range where frame ``k`` weighs exactly 1 (between the seams around it, inclusive).
+
+        Regions inside it need no weights at all: the frame is copied (warped) as it is.
+        """
+        lo_edge, hi_edge = self._edges
+        below = hi_edge[k - 1] if k > 0 else -np.inf  # end of the seam below (padded outwards: ramp is 1 there)
+        above = lo_edge[k + 1] if k + 1 < len(self.z) else np.inf  # start of the seam above (ramp is 0)
+        return float(below), float(above)
 
     def _rise(self, j: int, zb):
         """Weight of frame j+1 for z_b between frames j and j+1."""
@@ -78,13 +108,19 @@ class BlendKernel:
         return smoothstep((t - (0.5 - h)) / (2.0 * h)) if h > 1e-6 else (t > 0.5).astype(np.float64)
 
     def _ramp(self, j: int, zb: np.ndarray) -> np.ndarray:
-        """Smoothstep from 0 to 1 across the seam band between frames j and j+1 (float32)."""
+        """Smoothstep from 0 to 1 across the seam band between frames j and j+1 (float32, a new array)."""
         d = self.z[j + 1] - self.z[j]
         h = max(float(self.half_band[j]), 1e-6)  # 1e-6 of a spacing: a hard seam
         a = 1.0 / (2.0 * h * d)
         b = -(self.z[j] + (0.5 - h) * d) * a
-        u = np.clip(zb * np.float32(a) + np.float32(b), 0.0, 1.0)
-        return u * u * (np.float32(3.0) - np.float32(2.0) * u)
+        u = zb * np.float32(a)
+        u += np.float32(b)
+        np.clip(u, 0.0, 1.0, out=u)
+        s = u * np.float32(-2.0)
+        s += np.float32(3.0)
+        u *= u
+        u *= s
+        return u
 
     def weight(self, k: int, zb) -> np.ndarray:
         """Weight of sorted frame ``k`` at best-focus positions ``zb`` (float32, same shape).
@@ -94,11 +130,15 @@ class BlendKernel:
         """
         zb = np.asarray(zb, dtype=np.float32)
         n = len(self.z)
-        w = np.ones(zb.shape, dtype=np.float32)
         if k > 0:
-            w *= self._ramp(k - 1, zb)
-        if k < n - 1:
-            w *= np.float32(1.0) - self._ramp(k, zb)
+            w = self._ramp(k - 1, zb)
+            if k < n - 1:
+                w *= np.float32(1.0) - self._ramp(k, zb)
+        elif n > 1:
+            w = self._ramp(0, zb)
+            np.subtract(np.float32(1.0), w, out=w)
+        else:
+            w = np.ones(zb.shape, dtype=np.float32)
         return w
 
     def weight_exact(self, k: int, zb) -> np.ndarray:
@@ -148,11 +188,17 @@ class SweepKernel:
         return len(self.z)
 
     def support(self, zmin: float, zmax: float) -> tuple[int, int]:
+        lo, hi = self.supports(np.array([zmin]), np.array([zmax]))
+        return int(lo[0]), int(hi[0])
+
+    def supports(self, zmin: np.ndarray, zmax: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Inclusive ranges of sorted frame indices whose travel meets the windows of ``z_b`` in [zmin, zmax]."""
         n = len(self.z)
-        lo, hi = zmin - self.alpha, zmax + self.alpha
-        i0 = int(np.clip(np.searchsorted(self.edges, lo, side="right") - 1, 0, n - 1))
-        i1 = int(np.clip(np.searchsorted(self.edges, hi, side="left") - 1, 0, n - 1))
-        return i0, i1
+        lo = np.asarray(zmin, dtype=np.float64) - self.alpha
+        hi = np.asarray(zmax, dtype=np.float64) + self.alpha
+        i0 = np.clip(np.searchsorted(self.edges, lo, side="right") - 1, 0, n - 1)
+        i1 = np.clip(np.searchsorted(self.edges, hi, side="left") - 1, 0, n - 1)
+        return i0.astype(np.int32), np.maximum(i1, i0).astype(np.int32)
 
     def weight(self, k: int, zb) -> np.ndarray:
         """Weight of sorted frame ``k`` at best-focus positions ``zb`` (float32, same shape)."""
