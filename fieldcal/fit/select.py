@@ -178,6 +178,20 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     # Bayesian model average with Laplace samples, so a term the selection narrowly dropped still widens
     # the band (docs/fitting.md "Model averaging").
     lap = laplace(res.model, rows, res.theta, seed=seed)
+    unlocated = None
+    if not _usable_member(res.model, lap):
+        # The winner's centre is not located by the data (few tiles, weak curvature): its Gaussian posterior
+        # runs to the bounds (bands of mm were seen at quick effort on 256 px images). Take the best model
+        # without a decentre instead — the same surface, an identified posterior.
+        alt = [(e["bic"], fits[e["name"]]) for e in table
+               if e.get("bic") is not None and e["name"] in fits and not fits[e["name"]].model.decentre]
+        if alt:
+            b_alt, res = min(alt, key=lambda t: t[0])
+            for e in table:
+                e["chosen"] = e["name"] == res.model.name
+                e["delta_bic"] = None if e.get("bic") is None else e["bic"] - b_alt
+            unlocated = best[1].model.name
+            lap = laplace(res.model, rows, res.theta, seed=seed)
     if eff.method == "laplace":
         post = lap
     else:
@@ -217,7 +231,8 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         "log_posterior": res.log_posterior,
         "error_scale": math.exp(float(m.split(res.theta)[2])),
         "student_t_nu": math.exp(float(m.split(res.theta)[4])),
-        "posterior": post.diagnostics, "model_average": bma, "discrepancy": disc.diagnostics, "time_map_s": t_map, "time_total_s": t_total,
+        "posterior": post.diagnostics, "model_average": bma, "discrepancy": disc.diagnostics,
+        "dropped_unlocated_decentre": unlocated, "time_map_s": t_map, "time_total_s": t_total,
     }
     if m.astig_rows:
         diagnostics["error_scale_astig"] = math.exp(float(m.split(res.theta)[3]))
