@@ -112,30 +112,34 @@ class _Job:
             active = (lo <= k) & (hi >= k)  # (tx, C)
             if not active.any():
                 continue
-            unit = None
-            if hasattr(self.kernel, "unit_range"):
-                a, b = self.kernel.unit_range(k)
-                unit = (self.zmin[ty] >= a) & (self.zmax[ty] <= b)  # (tx, C): weight exactly 1 on the tile
             for fmap in self.maps[k]:
-                self._add_frame(acc, k, fmap, active, unit, y0, y1)
+                self._add_frame(acc, k, fmap, active, ty, y0, y1)
         return acc
 
-    def _weights(self, k: int, unit, t0: int, t1: int, chans, run_ch, y0: int, y1: int):
-        """Weights of frame ``k`` on tiles ``t0:t1`` (float32 ``h x w x len(chans)``), or None where they are all
-        exactly 1; computed only on the tiles that hold a seam."""
-        if unit is None:
-            return self.kernel.weight(k, self.zb[y0:y1, self.xe[t0]:self.xe[t1], run_ch])
-        flat = unit[t0:t1][:, chans].all(axis=1)  # (tiles,)
-        if flat.all():
+    def _weights(self, k: int, ty: int, t0: int, t1: int, chans, run_ch, y0: int, y1: int):
+        """Weights of frame ``k`` on tiles ``t0:t1`` of band ``ty`` (float32 ``h x w x len(chans)``), or None where
+        they are all exactly 1. With a :class:`BlendKernel` they are computed only on the tiles that hold a seam,
+        and only for the seam(s) there."""
+        kernel = self.kernel
+        if not hasattr(kernel, "unit_range"):
+            return kernel.weight(k, self.zb[y0:y1, self.xe[t0]:self.xe[t1], run_ch])
+        a, b = kernel.unit_range(k)
+        below = (self.zmin[ty, t0:t1][:, chans] < a).any(axis=1)  # (tiles,): seam k-1 reaches into the tile
+        above = (self.zmax[ty, t0:t1][:, chans] > b).any(axis=1)  # seam k reaches into the tile
+        need = below.astype(np.int8) + 2 * above.astype(np.int8)
+        if not need.any():
             return None
         x0 = int(self.xe[t0])
         wts = np.ones((y1 - y0, int(self.xe[t1]) - x0, len(chans)), dtype=np.float32)
-        for s0, s1 in _runs(~flat):
-            a, b = int(self.xe[t0 + s0]), int(self.xe[t0 + s1])
-            wts[:, a - x0:b - x0] = self.kernel.weight(k, self.zb[y0:y1, a:b, run_ch])
+        edges = np.flatnonzero(np.diff(need)) + 1
+        for s0, s1 in zip([0, *edges.tolist()], [*edges.tolist(), len(need)]):
+            if need[s0]:
+                xa, xb = int(self.xe[t0 + s0]), int(self.xe[t0 + s1])
+                wts[:, xa - x0:xb - x0] = kernel.weight(k, self.zb[y0:y1, xa:xb, run_ch],
+                                                        below=bool(need[s0] & 1), above=bool(need[s0] & 2))
         return wts
 
-    def _add_frame(self, acc, k, fmap, active, unit, y0, y1) -> None:
+    def _add_frame(self, acc, k, fmap, active, ty, y0, y1) -> None:
         # Runs of active tiles per channel; channels with the same run (G and B usually) are warped together.
         by_run: dict[tuple[int, int], list[int]] = {}
         for c in fmap.channels:
@@ -146,7 +150,7 @@ class _Job:
             x0, x1 = int(self.xe[t0]), int(self.xe[t1])
             run_ch = slice(chans[0], chans[-1] + 1) if chans == list(range(chans[0], chans[-1] + 1)) else chans
             # weights depend on z_b only (not the channel): one call for all channels of the run
-            wts = self._weights(k, unit, t0, t1, chans, run_ch, y0, y1)
+            wts = self._weights(k, ty, t0, t1, chans, run_ch, y0, y1)
             if wts is not None and not wts.any():
                 continue
             todo.append((x0, x1, run_ch, wts))

