@@ -16,10 +16,14 @@ composited by
 PSNR is over the image less a 2 % border. Side-by-side top-left corner crops go to docs/img/.
 Sweep: the paper triplet's emulated sweep (alpha = 20 µm), Wiener and Richardson-Lucy, with noise gains.
 Speed: ``fieldcal composite`` on N frames of W x H RGB 16-bit (synthetic content, timing does not depend on it),
-wall time and peak RSS of the process, and align_image_stack + enfuse on the same stack.
+wall time (best and median of --repeat runs), CPU time and peak RSS of the process and the load average (the
+machine may be shared), optionally another source tree (--baseline-src: before/after in one run), and
+align_image_stack + enfuse on the same stack (or on a smaller one, --ratio-size) in the same run.
 
     python benchmarks/bench_composite.py --quick                 # small images, a few minutes on 2 cores
     python benchmarks/bench_composite.py                          # 960x540 quality, 3840x2160x42 speed (the lead)
+    python benchmarks/bench_composite.py --no-quality --ratio-size 1920x1080x42 \
+        --baseline-src /tmp/before               # speed only: 4K, the ratio vs enfuse at 1080p, before/after
 
 Results go between ``<!-- bench_composite:start -->`` and ``<!-- bench_composite:end -->`` in
 docs/benchmarks.md (the rest of the file is left alone) and to --work/results.json.
@@ -40,6 +44,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_composite:start -->", "<!-- bench_composite:end -->"
+SPEED_START, SPEED_END = "<!-- bench_composite_speed:start -->", "<!-- bench_composite_speed:end -->"
 ENFUSE_ARGS = ["--exposure-weight=0", "--saturation-weight=0", "--contrast-weight=1", "--hard-mask",
                "--gray-projector=l-star"]
 INSTALL_HINT = "apt-get install hugin-tools enfuse   (Debian/Ubuntu: align_image_stack is in hugin-tools)"
@@ -82,41 +87,43 @@ def plan_positions(prof) -> np.ndarray:
     return np.array(sorted(f["z_um"] for f in plan.to_dict()["frames"]))
 
 
-def timed(cmd, cwd=None) -> tuple[float, float, subprocess.CompletedProcess]:
-    """Wall time (s) and peak RSS (MB) of a command, via /usr/bin/time when present."""
+def timed(cmd, cwd=None, env=None) -> tuple[float, float, subprocess.CompletedProcess, float]:
+    """Wall time (s), peak RSS (MB), the completed process and CPU time (user + system, s) of a command,
+    via /usr/bin/time when present (else RSS and CPU are NaN)."""
     gnu_time = Path("/usr/bin/time")
-    full = ([str(gnu_time), "-f", "__RSS_KB__ %M"] if gnu_time.exists() else []) + [str(c) for c in cmd]
+    full = ([str(gnu_time), "-f", "__RSS_KB__ %M %U %S"] if gnu_time.exists() else []) + [str(c) for c in cmd]
     t0 = time.perf_counter()
-    r = subprocess.run(full, capture_output=True, text=True, cwd=cwd)
+    r = subprocess.run(full, capture_output=True, text=True, cwd=cwd, env=env)
     dt = time.perf_counter() - t0
-    rss = float("nan")
+    rss = cpu = float("nan")
     for line in r.stderr.splitlines():
         if line.startswith("__RSS_KB__"):
-            rss = float(line.split()[1]) / 1024.0
-    return dt, rss, r
+            _, kb, user, system = line.split()
+            rss, cpu = float(kb) / 1024.0, float(user) + float(system)
+    return dt, rss, r, cpu
 
 
-def run_enfuse(stack, frames_sorted, work: Path) -> tuple[np.ndarray | None, float, float, str]:
-    """align_image_stack + enfuse on the frames; returns (image or None, wall s, peak MB, note)."""
+def run_enfuse(stack, frames_sorted, work: Path) -> tuple[np.ndarray | None, float, float, str, float]:
+    """align_image_stack + enfuse on the frames; returns (image or None, wall s, peak MB, note, CPU s)."""
     import tifffile
     work.mkdir(parents=True, exist_ok=True)
     files = [stack.frames[int(i)].path for i in frames_sorted]
     # align to the frame nearest z_ref (first in the list), then outwards in z order
-    t1, m1, r = timed(["align_image_stack", "-m", "-a", work / "al_", "--use-given-order", *files])
+    t1, m1, r, c1 = timed(["align_image_stack", "-m", "-a", work / "al_", "--use-given-order", *files])
     aligned = sorted(work.glob("al_*.tif"))
     note = ""
     if r.returncode != 0 or len(aligned) != len(files):
         note = "align_image_stack failed; enfuse on unaligned frames"
         aligned = files
-    t2, m2, r2 = timed(["enfuse", *ENFUSE_ARGS, "-o", work / "enfuse.tif", *aligned])
+    t2, m2, r2, c2 = timed(["enfuse", *ENFUSE_ARGS, "-o", work / "enfuse.tif", *aligned])
     if r2.returncode != 0:
-        return None, t1 + t2, max(m1, m2), "enfuse failed: " + r2.stderr.strip()[-200:]
+        return None, t1 + t2, max(m1, m2), "enfuse failed: " + r2.stderr.strip()[-200:], c1 + c2
     img = tifffile.imread(work / "enfuse.tif")
     if img.ndim == 3 and img.shape[2] > len(stack.channels):
         img = img[..., :len(stack.channels)]  # drop enfuse's alpha
     if img.ndim == 2:
         img = img[..., None]
-    return img, t1 + t2, max(m1, m2), note
+    return img, t1 + t2, max(m1, m2), note, c1 + c2
 
 
 def to_zref(img, prof, z_um, channels, dtype, white):
@@ -211,7 +218,7 @@ def quality(lens: str, scene_name: str, width: int, work: Path, enfuse: bool, ca
         for rep in range(2):
             edir = work / f"enfuse-{lens}-{scene_name}{'-corner' if corner else ''}-{rep}"
             shutil.rmtree(edir, ignore_errors=True)
-            img, t, _, note = run_enfuse(st, order + rest, edir)
+            img, t, _, note, _ = run_enfuse(st, order + rest, edir)
             if img is not None:
                 img = to_zref(img, prof, float(st.z_um[order[0]]), st.channels, st.dtype, white)
                 tries.append((psnr(img, truth, white), img, note))
@@ -309,27 +316,62 @@ def make_speed_stack(path: Path, width: int, height: int, n: int) -> None:
         w.add_frame(np.clip((base + noise) * 4095, 0, 4095).astype(np.uint16), float(round(z, 3)))
 
 
-def speed(width: int, height: int, n: int, work: Path, enfuse: bool) -> dict:
+def _fieldcal_runs(spath: Path, lens: Path, out: Path, repeat: int, src: Path | None = None) -> dict:
+    """``fieldcal composite`` (profile method) ``repeat`` times: best and median wall, CPU, peak RSS, load."""
+    import os
+    env = dict(os.environ, FIELDCAL_PROGRESS="0")
+    if src is not None:  # another fieldcal source tree (e.g. before a change), ahead of the installed one
+        env["PYTHONPATH"] = os.pathsep.join([str(src), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    cmd = [sys.executable, "-m", "fieldcal", "composite", spath, "--profile", lens, "--quiet", "--out", out]
+    runs = []
+    for _ in range(max(1, repeat)):
+        load = os.getloadavg()[0]
+        t, rss, r, cpu = timed(cmd, env=env)
+        if r.returncode != 0:
+            return {"error": r.stderr.strip()[-300:]}
+        runs.append({"wall_s": t, "cpu_s": cpu, "rss_mb": rss, "load_1min": load})
+    walls = sorted(x["wall_s"] for x in runs)
+    return {"runs": runs, "wall_best_s": walls[0], "wall_median_s": float(np.median(walls)),
+            "cpu_best_s": min(x["cpu_s"] for x in runs), "rss_max_mb": max(x["rss_mb"] for x in runs),
+            "load_1min": float(np.mean([x["load_1min"] for x in runs]))}
+
+
+def _speed_inputs(width: int, height: int, n: int, work: Path) -> tuple[Path, Path]:
     from fieldcal.lens import LensSpec
-    from fieldcal.stack import Stack
     spath = work / f"speed-{width}x{height}x{n}"
     make_speed_stack(spath, width, height, n)
     spec = LensSpec.load(REPO / "models" / "triplet-uncorrected.json").with_sensor_size(width, height)
-    lens = work / "speed-lens.json"
+    lens = work / f"speed-lens-{width}x{height}.json"
     spec.save(lens)
-    out = {"size": [width, height], "frames": n}
-    env_cmd = [sys.executable, "-m", "fieldcal", "composite", spath, "--profile", lens, "--quiet"]
-    t, rss, r = timed([*env_cmd, "--out", work / "speed-profile.tiff"])
-    out["fieldcal profile s"], out["fieldcal profile MB"] = t, rss
-    if r.returncode != 0:
-        out["fieldcal error"] = r.stderr[-300:]
+    return spath, lens
+
+
+def speed(size: tuple[int, int, int], work: Path, enfuse: bool, ratio_size: tuple[int, int, int] | None = None,
+          repeat: int = 3, baseline: Path | None = None) -> dict:
+    """fieldcal's time on the speed stack (and a baseline source tree's, if given), and the ratio against
+    align_image_stack + enfuse measured in the same run on ``ratio_size`` (default: the speed stack)."""
+    import os
+    from fieldcal.stack import Stack
+    spath, lens = _speed_inputs(*size, work)
+    out = {"size": list(size[:2]), "frames": size[2], "cores": len(os.sched_getaffinity(0))}
+    out["fieldcal"] = _fieldcal_runs(spath, lens, work / "speed-profile.tiff", repeat)
+    if baseline is not None:
+        out["baseline"] = _fieldcal_runs(spath, lens, work / "speed-baseline.tiff", repeat, src=baseline)
+        out["baseline_src"] = str(baseline)
     if enfuse:
-        st = Stack.open(spath)
+        rsize = ratio_size or size
+        rpath, rlens = (spath, lens) if tuple(rsize) == tuple(size) else _speed_inputs(*rsize, work)
+        fc = out["fieldcal"] if rpath == spath else _fieldcal_runs(rpath, rlens, work / "ratio-profile.tiff", repeat)
+        st = Stack.open(rpath)
         order = [int(i) for i in np.argsort(st.z_um)[::-1]]
         shutil.rmtree(work / "enfuse-speed", ignore_errors=True)
-        _, te, me, note = run_enfuse(st, order, work / "enfuse-speed")
-        out["enfuse s"], out["enfuse MB"], out["enfuse note"] = te, me, note
-        out["speed-up"] = te / t if t > 0 else float("nan")
+        load = os.getloadavg()[0]
+        _, te, me, note, ce = run_enfuse(st, order, work / "enfuse-speed")
+        out["ratio"] = {"size": list(rsize[:2]), "frames": rsize[2], "fieldcal": fc,
+                        "enfuse": {"wall_s": te, "cpu_s": ce, "rss_mb": me, "load_1min": load, "note": note}}
+        if "wall_best_s" in fc:
+            out["ratio"]["speed-up wall"] = te / fc["wall_median_s"]
+            out["ratio"]["speed-up cpu"] = ce / fc["cpu_best_s"] if fc["cpu_best_s"] > 0 else float("nan")
     return out
 
 
@@ -376,29 +418,86 @@ def markdown(res: dict) -> str:
         for r in sw["rows"]:
             lines.append(f"| {r['alpha_um']:g} | {r['sweep']:.2f} | {r['wiener']:.2f} | {r['rl30']:.2f} | "
                          f"{r['noise_gain']:.2f} |")
-    sp = res.get("speed")
-    if sp:
-        lines += ["", f"Speed, {sp['frames']} frames of {sp['size'][0]}x{sp['size'][1]} RGB 16-bit, "
-                      f"{res['cores']} cores (wall time and peak RSS of the whole process):", "",
-                  "| tool | wall (s) | peak memory (MB) |", "| --- | --- | --- |",
-                  f"| fieldcal composite (profile) | {fmt(sp['fieldcal profile s'])} | "
-                  f"{fmt(sp['fieldcal profile MB'])} |"]
-        if "enfuse s" in sp:
-            lines.append(f"| align_image_stack + enfuse | {fmt(sp['enfuse s'])} | {fmt(sp['enfuse MB'])} |")
-            lines += ["", f"fieldcal is {sp['speed-up']:.1f}x faster on the same stack."]
-    lines += ["", END]
+    lines += ["", speed_markdown(res), "", END]
     return "\n".join(lines)
 
 
-def write_docs(doc: Path, section: str) -> None:
+def speed_markdown(res: dict) -> str:
+    """The speed table between its own markers (a --no-quality run replaces only this part)."""
+    sp = res.get("speed")
+    if not sp:
+        return ""
+    w, h, n = sp["size"][0], sp["size"][1], sp["frames"]
+    argv = res.get("argv", "")
+    lines = [SPEED_START, "", f"#### Speed (`python benchmarks/bench_composite.py{' ' + argv if argv else ''}`)", "",
+             f"`fieldcal composite STACK --profile lens.json` (profile method) on {n} frames of {w}x{h} RGB 16-bit "
+             f"(uncompressed TIFF, 12-bit values), {sp['cores']} cores, {res.get('repeat', 1)} run(s) each: wall "
+             "time of the whole process (imports, reading, compositing, writing the TIFF) best and median, CPU "
+             "time (user + system) of the best run, peak RSS (`/usr/bin/time`), and the 1-minute load average "
+             "when it started — the machine is shared, so wall time depends on the load; CPU time much less.", "",
+             "| what | stack | wall best (s) | wall median (s) | CPU (s) | peak RSS (MB) | load at start |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+
+    def row(label, size, r):
+        if "error" in r:
+            return f"| {label} | {size} | failed: {fmt(r['error'])[:80]} | | | | |"
+        return (f"| {label} | {size} | {fmt(r['wall_best_s'])} | {fmt(r['wall_median_s'])} | "
+                f"{fmt(r['cpu_best_s'])} | {fmt(r['rss_max_mb'])} | {r['load_1min']:.1f} |")
+
+    size = f"{w}x{h}x{n}"
+    if "baseline" in sp:
+        lines.append(row(f"fieldcal before (`{sp['baseline_src']}`)", size, sp["baseline"]))
+    lines.append(row("fieldcal", size, sp["fieldcal"]))
+    ra = sp.get("ratio")
+    if ra:
+        rs = f"{ra['size'][0]}x{ra['size'][1]}x{ra['frames']}"
+        if rs != size:
+            lines.append(row("fieldcal", rs, ra["fieldcal"]))
+        e = ra["enfuse"]
+        lines.append(f"| align_image_stack + enfuse | {rs} | {fmt(e['wall_s'])} | – | {fmt(e['cpu_s'])} | "
+                     f"{fmt(e['rss_mb'])} | {e['load_1min']:.1f} |")
+        if "speed-up wall" in ra:
+            lines += ["", f"On the same {rs} stack in the same run fieldcal is {ra['speed-up wall']:.1f}x faster "
+                          f"than align_image_stack + enfuse in wall time (median) and {ra['speed-up cpu']:.1f}x in "
+                          "CPU time." + (f" enfuse: {e['note']}." if e.get("note") else "")]
+    lines += ["", SPEED_END]
+    return "\n".join(lines)
+
+
+def write_docs(doc: Path, section: str, speed_only: bool = False) -> None:
+    """Replace our section of docs/benchmarks.md (or, for a speed-only run, only its speed table)."""
     from fieldcal._io import atomic_write_text
     text = doc.read_text() if doc.exists() else "# Benchmarks\n"
-    if START in text and END in text:
+    if speed_only and START in text and END in text:
+        if SPEED_START in text and SPEED_END in text:
+            a, b = text.index(SPEED_START), text.index(SPEED_END) + len(SPEED_END)
+            text = text[:a] + section + text[b:]
+        else:
+            b = text.index(END)
+            text = text[:b] + section + "\n\n" + text[b:]
+    elif START in text and END in text:
         a, b = text.index(START), text.index(END) + len(END)
         text = text[:a] + section + text[b:]
     else:
         text = text.rstrip("\n") + "\n\n" + section + "\n"
     atomic_write_text(doc, text)
+
+
+def _shown_argv(argv: list[str]) -> str:
+    """The command line for the docs, with local folders replaced by DIR."""
+    out, hide = [], False
+    for a in argv:
+        if hide:
+            out.append("DIR")
+            hide = False
+        elif a in ("--work", "--baseline-src", "--docs"):
+            out.append(a)
+            hide = True
+        elif a.split("=")[0] in ("--work", "--baseline-src", "--docs"):
+            out.append(a.split("=")[0] + "=DIR")
+        else:
+            out.append(a)
+    return " ".join(out)
 
 
 def main(argv=None) -> int:
@@ -409,9 +508,18 @@ def main(argv=None) -> int:
     ap.add_argument("--width", type=int, default=None, help="quality image width (default 960, quick 384)")
     ap.add_argument("--speed-size", default=None, help="WxHxN of the speed stack (default 3840x2160x42, "
                                                        "quick 960x540x42)")
+    ap.add_argument("--ratio-size", default=None, help="WxHxN of the stack for the ratio against enfuse, "
+                                                       "measured in the same run (default: the speed stack; "
+                                                       "enfuse takes ~20x longer than fieldcal)")
+    ap.add_argument("--repeat", type=int, default=3, help="fieldcal runs per stack (best and median reported)")
+    ap.add_argument("--baseline-src", default=None, metavar="DIR",
+                    help="also time another fieldcal source tree on the speed stack, e.g. the code before a "
+                         "change: git archive COMMIT fieldcal | tar -x -C DIR")
     ap.add_argument("--no-enfuse", action="store_true", help="skip align_image_stack + enfuse")
     ap.add_argument("--no-calibrate", action="store_true", help="skip the calibrated-profile row")
     ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--no-quality", action="store_true",
+                    help="speed only (replaces only the speed table in docs/benchmarks.md)")
     ap.add_argument("--docs", default=str(REPO / "docs" / "benchmarks.md"))
     ap.add_argument("--no-docs", action="store_true", help="print only, do not touch docs/")
     args = ap.parse_args(argv)
@@ -422,15 +530,17 @@ def main(argv=None) -> int:
         print(f"align_image_stack/enfuse not found; install with: {INSTALL_HINT}", file=sys.stderr)
     width = args.width or (384 if args.quick else 960)
     ss = args.speed_size or ("960x540x42" if args.quick else "3840x2160x42")
-    sw_, sh_, sn_ = (int(v) for v in ss.lower().split("x"))
+    size = tuple(int(v) for v in ss.lower().split("x"))
+    ratio = tuple(int(v) for v in args.ratio_size.lower().split("x")) if args.ratio_size else None
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench-composite-"))
     work.mkdir(parents=True, exist_ok=True)
     img_dir = None if args.no_docs else Path(args.docs).parent / "img"
-    res = {"quick": args.quick, "enfuse": enfuse, "cores": os.cpu_count(), "quality": []}
+    res = {"quick": args.quick, "enfuse": enfuse, "cores": os.cpu_count(), "quality": [], "repeat": args.repeat,
+           "argv": _shown_argv(argv if argv is not None else sys.argv[1:])}
     cases = [("triplet-uncorrected", "texture", False), ("triplet-uncorrected", "photo", False),
              ("triplet-uncorrected", "texture", True), ("singlet-colour", "texture", False),
              ("doublet-mono", "photo", False)]
-    for lens, scene, corner in cases:
+    for lens, scene, corner in ([] if args.no_quality else cases):
         t0 = time.perf_counter()
         row = quality(lens, scene, width, work, enfuse,
                       not args.no_calibrate and scene == "texture" and not corner, img_dir, corner)
@@ -438,16 +548,18 @@ def main(argv=None) -> int:
         print(f"{lens}/{scene}: " + ", ".join(f"{k}={fmt(v)}" for k, v in row.items()
                                                if isinstance(v, float) and not k.endswith(" s"))
               + f"  ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
-    res["sweep"] = sweep(width, work)
-    print("sweep:", json.dumps(res["sweep"]["rows"]), file=sys.stderr)
+    if not args.no_quality:
+        res["sweep"] = sweep(width, work)
+        print("sweep:", json.dumps(res["sweep"]["rows"]), file=sys.stderr)
     if not args.no_speed:
-        res["speed"] = speed(sw_, sh_, sn_, work, enfuse)
+        res["speed"] = speed(size, work, enfuse, ratio, args.repeat,
+                             Path(args.baseline_src) if args.baseline_src else None)
         print("speed:", json.dumps(res["speed"]), file=sys.stderr)
     (work / "results.json").write_text(json.dumps(res, indent=2, default=str))
-    section = markdown(res)
+    section = speed_markdown(res) if args.no_quality else markdown(res)
     print(section)
-    if not args.no_docs:
-        write_docs(Path(args.docs), section)
+    if not args.no_docs and section:
+        write_docs(Path(args.docs), section, speed_only=args.no_quality)
     return 0
 
 
