@@ -1,11 +1,11 @@
 """Focus measures of one plane of one frame, summed into small cells so tiles can be placed anywhere later.
 
-Measures (all float32, computed once per frame and plane with OpenCV / scipy.fft):
+Measures (all float32, computed once per frame and plane with OpenCV):
 
 * **SML** — the sum-modified-Laplacian of Nayar & Nakagawa (1994): ``|I(x-1) - 2I + I(x+1)| +
   |I(y-1) - 2I + I(y+1)|`` per pixel (OpenCV's second-order Sobel with ksize=1 is exactly that kernel).
   Broad-band, dominated by the highest frequencies: a sharp, robust peak.
-* **band-pass energy at fs** — the plane filtered in the Fourier domain by a log-Gabor ring centred on the
+* **band-pass energy at fs** — the plane filtered in the Fourier domain (OpenCV's real DFT) by a log-Gabor ring centred on the
   target frequency (cycles/px = fs [cycles/mm] x pitch [mm]), squared. For a texture chart its tile sum is
   ``|OTF(fs, z - z0)|^2 x (texture power at fs) + noise power``: exactly the contrast the planner needs.
 * **directional band-pass energy** (optional) — the band-passed image's gradient split into its component
@@ -44,15 +44,36 @@ def sml(plane: np.ndarray) -> np.ndarray:
     return dxx
 
 
+def _even_fast_len(n: int) -> int:
+    """Smallest even size >= n that OpenCV's DFT handles fast (2, 3 and 5 as the only factors)."""
+    m = cv2.getOptimalDFTSize(int(n))
+    while m % 2:
+        m = cv2.getOptimalDFTSize(m + 1)
+    return m
+
+
 @functools.lru_cache(maxsize=4)
-def _log_radius(shape: tuple[int, int]) -> np.ndarray:
-    """ln |f| (f in cycles/px) on an ``rfft2`` grid of ``shape`` (H, W), float32; DC set to 0 (masked later)."""
+def _ccs_log_radius(shape: tuple[int, int]) -> np.ndarray:
+    """ln |f| (f in cycles/px) at every slot of OpenCV's packed real spectrum (CCS) of an even ``shape``.
+
+    In CCS a real image's DFT is stored as H x W reals: interior columns hold (Re, Im) pairs of frequencies
+    fx = j / W, j = 1 .. W/2 - 1; columns 0 and W - 1 hold the fx = 0 and fx = 1/2 columns packed the same way
+    down the rows (Re at row 0, (Re, Im) pairs for fy = i / H, Re of fy = 1/2 in the last row). Multiplying
+    every slot by a real, even filter's value at the slot's frequency multiplies the spectrum by the filter.
+    DC holds 0 (masked by the ring).
+    """
     h, w = shape
-    fy = fft.fftfreq(h).astype(np.float32)[:, None]
-    fx = fft.rfftfreq(w).astype(np.float32)[None, :]
-    f2 = fy * fy + fx * fx
-    f2[0, 0] = 1.0  # log(0) guard; the ring is zeroed at DC
-    lf = 0.5 * np.log(f2)
+    fy_all = fft.fftfreq(h)
+    j = (np.arange(1, w - 1) + 1) // 2  # interior columns -> fx index
+    fx_int = j / w
+    f2 = np.empty((h, w))
+    f2[:, 1:w - 1] = fy_all[:, None] ** 2 + fx_int[None, :] ** 2
+    i = (np.arange(h) + 1) // 2  # packed column rows -> fy index (0, 1, 1, 2, 2, ..., h/2)
+    fy_packed = i / h
+    f2[:, 0] = fy_packed ** 2
+    f2[:, w - 1] = fy_packed ** 2 + 0.25
+    f2[0, 0] = 1.0  # log(0) guard
+    lf = (0.5 * np.log(f2)).astype(np.float32)
     lf.setflags(write=False)
     return lf
 
@@ -60,29 +81,34 @@ def _log_radius(shape: tuple[int, int]) -> np.ndarray:
 @functools.lru_cache(maxsize=8)
 def log_gabor_ring(shape: tuple[int, int], f0_cyc_per_px: float,
                    sigma_ratio: float = LOG_GABOR_SIGMA_RATIO) -> np.ndarray:
-    """Radial log-Gabor transfer function on an ``rfft2`` grid of ``shape`` (H, W); zero at DC, float32.
+    """Radial log-Gabor transfer function, laid out for OpenCV's packed spectrum (CCS) of ``shape`` (even H, W);
+    zero at DC, float32.
 
     A function of ``f / f0`` only, so the ring at ``f0 / m`` is the ring at ``f0`` for an image magnified by m
     (what lets the band-pass measure follow the scene through focus breathing).
     """
-    d = _log_radius(shape) - np.float32(math.log(f0_cyc_per_px))
+    d = _ccs_log_radius(shape) - np.float32(math.log(f0_cyc_per_px))
     g = np.exp(d * d * np.float32(-1.0 / (2.0 * math.log(sigma_ratio) ** 2)))
     g[0, 0] = 0.0
     g.setflags(write=False)
     return g
 
 
-def bandpass(plane: np.ndarray, f0_cyc_per_px: float, workers: int = -1) -> np.ndarray:
+def bandpass(plane: np.ndarray, f0_cyc_per_px: float) -> np.ndarray:
     """The plane band-passed around ``f0`` (cycles/px) by a log-Gabor ring, float32 (zero mean).
 
-    ``workers``: threads of scipy.fft (1 when planes are already measured in parallel).
+    OpenCV's real DFT in packed (CCS) form, zero-padded to an even fast size: about 1.5x faster than
+    scipy.fft's rfft2/irfft2 pair on float32 1080p planes, and it releases the GIL (planes run in threads).
     """
     h, w = plane.shape
-    hp, wp = fft.next_fast_len(h, real=True), fft.next_fast_len(w, real=True)
-    spec = fft.rfft2(plane, s=(hp, wp), workers=workers)
-    spec *= log_gabor_ring((hp, wp), float(f0_cyc_per_px))
-    out = fft.irfft2(spec, s=(hp, wp), workers=workers)[:h, :w]
-    return out.astype(np.float32, copy=False)
+    hp, wp = _even_fast_len(h), _even_fast_len(w)
+    src = np.ascontiguousarray(plane, dtype=np.float32)
+    if (hp, wp) != (h, w):
+        src = cv2.copyMakeBorder(src, 0, hp - h, 0, wp - w, cv2.BORDER_CONSTANT, value=0.0)
+    spec = cv2.dft(src)
+    cv2.multiply(spec, log_gabor_ring((hp, wp), float(f0_cyc_per_px)), dst=spec)
+    out = cv2.idft(spec, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+    return out[:h, :w] if (hp, wp) != (h, w) else out
 
 
 def directional_energy(band: np.ndarray, unit_x: np.ndarray, unit_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

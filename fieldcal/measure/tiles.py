@@ -208,16 +208,21 @@ def _normalised(raw: np.ndarray, black: float, gain: float) -> np.ndarray:
     return plane
 
 
-def _focus_maps(m: _Maps, k: int, plane: np.ndarray, fbin: int, scale: float, units) -> None:
-    """Fill frame ``k`` of every cell map of one plane (runs in a worker thread; OpenCV and scipy.fft release
-    the GIL). ``scale``: the image's magnification in this frame, so the band-pass follows the scene."""
+def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None:
+    """Fill frame ``k`` of every cell map of one plane (runs in a worker thread: OpenCV releases the GIL).
+
+    ``plane``: the normalised float32 plane, or ``(raw, black, gain)`` to normalise here. ``scale``: the
+    image's magnification in this frame, so the band-pass follows the scene.
+    """
+    if isinstance(plane, tuple):
+        plane = _normalised(*plane)
     if fbin > 1:
         plane = downsample(plane, fbin)
     c = m.cell
     m.maps["sml"][k] = focus.cell_sums(focus.sml(plane), c)
     m.maps["sum"][k] = focus.cell_sums(plane, c)
     if "bandpass" in m.maps:
-        band = focus.bandpass(plane, m.f0_cyc_per_px / scale, workers=1)
+        band = focus.bandpass(plane, m.f0_cyc_per_px / scale)
         m.maps["bandpass"][k] = focus.cell_sums(cv2.multiply(band, band), c)
         if "along" in m.maps:
             along, across = focus.directional_energy(band, *units)
@@ -303,12 +308,14 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
         for k in progress(range(n), total=n, desc="measuring frames", quiet=quiet, unit="frame"):
             frame = next(frames)
             mosaic = not (stack.cfa is None and frame.ndim == 3)
-            planes: dict[int, np.ndarray] = {}
+            planes: dict = {}  # li -> normalised plane, or (raw, black, gain) left to the worker
             for li, lay in enumerate(layouts):
                 lateral_here = want_geometry and k == ref_k and len(first_of) > 1 and first_of.get(lay.name) == li
-                if li in steps or want_focus or lateral_here:
-                    raw = extract_plane(frame, lay) if mosaic else frame[:, :, lay.channel_index]
+                raw = extract_plane(frame, lay) if mosaic else frame[:, :, lay.channel_index]
+                if li in steps or lateral_here:
                     planes[li] = _normalised(raw, black, gain)
+                elif want_focus:
+                    planes[li] = (raw, black, gain)
                 if lateral_here:
                     ref_small[lay.name] = cv2.GaussianBlur(downsample(planes[li], ds), (0, 0), GEOMETRY_BLUR_PX)
                 if li in steps:
