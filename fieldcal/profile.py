@@ -88,7 +88,17 @@ class LensProfile:
         if not (0.0 < float(level) < 1.0):
             raise ParameterError(f"level must be in (0, 1), got {level}", field="level", fix="e.g. level=0.9")
         x, y = _check_points(x, y)
-        return self.surfaces.interval(x, y, self._channel(channel), level=float(level))
+        lo, hi = self.surfaces.interval(x, y, self._channel(channel), level=float(level))
+        sys_sd = float(self.calibration.get("systematic_sd_um") or 0.0)
+        if sys_sd <= 0.0:
+            return lo, hi
+        # The measurement's own systematic error (validated on simulated lenses, see docs/fitting.md) is common
+        # to all tiles, so no fit can see it: combine it in quadrature with the fitted band.
+        from scipy.stats import norm
+        zq = float(norm.ppf(0.5 + 0.5 * float(level)))
+        mid = 0.5 * (np.asarray(lo) + np.asarray(hi))
+        half = np.sqrt((0.5 * (np.asarray(hi) - np.asarray(lo))) ** 2 + (zq * sys_sd) ** 2)
+        return mid - half, mid + half
 
     def magnification(self, z_um, channel: str | None = None):
         """Image scale at z relative to the same channel at z_ref (1.0 at z_ref)."""
