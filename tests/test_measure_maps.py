@@ -32,6 +32,42 @@ def test_log_gabor_passes_f0_and_rejects_other_frequencies():
         assert energy == pytest.approx(0.5 * expect, abs=0.01)
 
 
+@settings(max_examples=25, deadline=None)
+@given(h=st.integers(2, 40), w=st.integers(2, 40), f0=st.floats(0.02, 0.45), seed=st.integers(0, 99))
+def test_packed_dft_band_pass_equals_the_log_gabor_ring_applied_to_the_full_spectrum(h, w, f0, seed):
+    """The ring laid out in OpenCV's packed (CCS) spectrum, odd and even sizes: the same result as the ring
+    multiplied into numpy's full complex spectrum of the same zero-padded plane."""
+    h, w = 2 * h + (seed % 2), 2 * w + (seed // 2 % 2)
+    img = np.random.default_rng(seed).random((h, w)).astype(np.float32)
+    b = focus.bandpass(img, f0)
+    hp, wp = focus._even_fast_len(h), focus._even_fast_len(w)
+    assert hp % 2 == 0 and wp % 2 == 0 and hp >= h and wp >= w
+    pad = np.zeros((hp, wp))
+    pad[:h, :w] = img
+    f = np.hypot(np.fft.fftfreq(hp)[:, None], np.fft.fftfreq(wp)[None, :])
+    with np.errstate(divide="ignore"):
+        ring = np.exp(-np.log(f / f0) ** 2 / (2 * math.log(focus.LOG_GABOR_SIGMA_RATIO) ** 2))
+    ring[0, 0] = 0.0
+    expect = np.fft.ifft2(np.fft.fft2(pad) * ring).real[:h, :w]
+    assert b.dtype == np.float32 and b.shape == (h, w)
+    np.testing.assert_allclose(b, expect, atol=2e-5 * max(1.0, float(np.abs(expect).max())))
+
+
+def test_ring_at_f0_over_m_is_the_ring_at_f0_for_an_image_magnified_by_m():
+    """What lets the band-pass follow focus breathing: a sinusoid at f x m seen through the ring at f0 gives
+    the energy of a sinusoid at f through the ring at f0 / m, for any f."""
+    n = 240
+    x = np.arange(n, dtype=np.float32)
+    f0, m = 0.2, 1.08
+    for f in (0.12, 0.18, 0.2, 0.25):
+        e = []
+        for freq, centre in ((f, f0 / m), (f * m, f0)):
+            img = np.tile(np.cos(2 * np.pi * freq * x), (n, 1)).astype(np.float32)
+            b = focus.bandpass(img, centre)
+            e.append(float(np.mean(b[:, 24:-24] ** 2)))
+        assert e[0] == pytest.approx(e[1], rel=0.03), f
+
+
 def test_cell_sums_and_integral_box_sums_are_exact():
     rng = np.random.default_rng(0)
     img = rng.random((40, 56)).astype(np.float32)
