@@ -322,11 +322,14 @@ def _fieldcal_runs(spath: Path, lens: Path, out: Path, repeat: int, src: Path | 
     env = dict(os.environ, FIELDCAL_PROGRESS="0")
     if src is not None:  # another fieldcal source tree (e.g. before a change), ahead of the installed one
         env["PYTHONPATH"] = os.pathsep.join([str(src), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    cmd = [sys.executable, "-m", "fieldcal", "composite", spath, "--profile", lens, "--quiet", "--out", out]
+    cmd = [sys.executable, "-m", "fieldcal", "composite", Path(spath).resolve(), "--profile", Path(lens).resolve(),
+           "--quiet", "--out", Path(out).resolve()]
     runs = []
     for _ in range(max(1, repeat)):
         load = os.getloadavg()[0]
-        t, rss, r, cpu = timed(cmd, env=env)
+        # run from the output folder: `python -m` puts the working directory first on sys.path, and from the
+        # repository that would shadow --baseline-src with the checkout's own fieldcal
+        t, rss, r, cpu = timed(cmd, env=env, cwd=Path(out).resolve().parent)
         if r.returncode != 0:
             return {"error": r.stderr.strip()[-300:]}
         runs.append({"wall_s": t, "cpu_s": cpu, "rss_mb": rss, "load_1min": load})
