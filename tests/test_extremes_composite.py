@@ -74,8 +74,6 @@ def test_tiny_16x16_stack_composites():
     assert res.image.min() >= min(a.min() for a in f) and res.image.max() <= max(a.max() for a in f)
 
 
-@pytest.mark.xfail(strict=True, reason="composite: NaN pixels of an in-memory ArrayStack leak into the composite "
-                                       "(no FieldcalError; Stack.read refuses NaN, ArrayStack does not check)")
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
 def test_nan_inf_frames_never_leak_into_the_composite(bad):
     f = frames_of(np.float32, 3)
@@ -136,9 +134,6 @@ sys.exit(0 if np.all(np.isfinite(res.image)) else 1)
 """
 
 
-@pytest.mark.xfail(strict=True, reason="composite/sweep.py wiener_deconvolve pads by 2 * alpha / (N * pitch) px: "
-                                       "alpha = 1e5 µm on a 48x32 image asks for a 25600x25600 float64 array "
-                                       "(MemoryError; without a limit the OOM killer ends the process)")
 def test_sweep_deconvolution_alpha_much_larger_than_d_in_bounded_memory():
     import subprocess
     import sys

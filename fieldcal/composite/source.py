@@ -52,6 +52,11 @@ class ArrayStack:
         if len(np.unique(z)) != len(z) or not np.all(np.isfinite(z)):
             raise ParameterError("z positions must be finite and distinct", field="z_um",
                                  fix="remove duplicate frames")
+        if frames[0].dtype.kind == "f":
+            bad = [k for k, f in enumerate(frames) if not np.isfinite(f).all()]
+            if bad:
+                raise ParameterError(f"frame(s) {bad} have NaN or Inf pixels", field="frames",
+                                     fix="repair or drop those frames (a file stack refuses them the same way)")
         self._frames = frames
         self.z_um = z
         self.channels = tuple(channels)

@@ -118,6 +118,10 @@ def _signal_spectrum_model(power: np.ndarray, f: np.ndarray, hs2: np.ndarray, no
     ok = (f > fmin) & (hs2 > 0.05) & (power > 3.0 * noise_power)
     if np.count_nonzero(ok) < 20:
         ok = (f > fmin) & (hs2 > 0.01)
+    if np.count_nonzero(ok) < 2:
+        raise ParameterError("the sweep's integrated PSF passes almost nothing (MTF below 0.1 at every frequency): "
+                             "alpha is too large to deconvolve", field="--sweep-alpha-um",
+                             fix="use a smaller alpha (see the sweep trade table in docs/benchmarks.md)")
     px = np.maximum(power[ok] - noise_power, 1e-30) / hs2[ok]
     lf = np.log(f[ok])
     beta, loga = np.polyfit(lf, np.log(px), 1)
@@ -140,7 +144,10 @@ def wiener_deconvolve(channel_image: np.ndarray, profile, alpha_um: float, chann
     sigma = estimate_noise_sigma(img) if noise_sigma is None else float(noise_sigma)
     sigma = max(sigma, 1e-6 * max(abs(mean), 1e-12), 1e-12)
     blur_px = alpha_um / float(profile.f_number) / pitch_um
-    padded, shape = _pad(img - mean, int(np.ceil(2 * blur_px)) + 16)  # mirror: no wrap-around edges
+    # mirror padding against wrap-around edges; beyond the image size a wider pad adds nothing (the mirror
+    # repeats), and alpha >> D would otherwise ask for gigabytes
+    pad = min(int(np.ceil(2 * blur_px)) + 16, max(img.shape[0], img.shape[1]))
+    padded, shape = _pad(img - mean, pad)
     y = fft.rfft2(padded, workers=-1)
     f = _radial_grid(shape, pitch_um)
     hs = _on_grid(lambda t: integrated_otf(profile, t, alpha_um, channel), f)
