@@ -23,6 +23,7 @@ import multiprocessing as mp
 import os
 import platform
 import resource
+import shlex
 import sys
 import tempfile
 import time
@@ -168,7 +169,7 @@ def main(argv=None) -> int:
     text = "\n".join([
         "## Measurement: tiles and geometry from a chart stack",
         "",
-        f"`python benchmarks/bench_measure.py {' '.join(sys.argv[1:] if argv is None else argv)}`".replace(" `", "`")
+        f"`python benchmarks/bench_measure.py {shlex.join(sys.argv[1:] if argv is None else argv)}`".replace(" `", "`")
         + " — " + ("a **--quick** smoke run; the full run (41 frames of 1920x1080 RGB) replaces it. " if args.quick else "")
         + f"Paper triplet at {size[0]}x{size[1]} px ({spec.sensor.pixel_pitch_um:.2f} µm pixels), {n_frames} frames "
         f"every {step:.2f} µm from {z[0]:.1f} to {z[-1]:.1f} µm, fs = {fs:.0f} cycles/mm, q = {q}. Time and peak RSS "
