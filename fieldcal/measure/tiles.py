@@ -1,8 +1,11 @@
 """Per-tile through-focus measurement over a chart stack: the :class:`TileTable`.
 
-One streaming pass over the frames in z order (one frame in memory at a time, float32 only) computes, per
+One streaming pass over the frames in z order (a few frames in memory at a time, float32 only) computes, per
 frame and colour plane, small *cell maps* of each focus measure (:mod:`.focus`) and, when no geometry is
-given, registers the frame to its neighbour (:mod:`.geometry`). After the pass the tile grid is laid out in
+given, registers the frame to its neighbour (:mod:`.geometry`). The next frame is read in a background
+thread, and the colour planes are measured in a 2-thread pool while the main thread reads and registers the
+next frame (OpenCV releases the GIL); registration comes first so the band-pass can follow the image's
+magnification (focus breathing). After the pass the tile grid is laid out in
 the geometry of the reference frame, each tile is placed in every frame where the measured geometry says
 the image has moved (focus breathing moves a corner by tens of pixels over a scan), its measures are
 summed from the cell maps, and each through-focus curve is fitted (:mod:`.throughfocus`).
