@@ -74,8 +74,6 @@ def test_any_peak_is_found_inside_or_rejected_at_the_edge(z0, w, noise, seed):
         assert abs(z0) > 24.0 or noise > 0.005 or w > 15.0 or r.status in ("flat", "multi_peak")
 
 
-@pytest.mark.xfail(strict=True, reason="measure/throughfocus.py _x_at_fraction: brentq raises 'ValueError: f(a) and "
-                                      "f(b) must have different signs' for q > 1 - 1e-5 (owner: measure)")
 def test_q_close_to_one_gives_the_first_otf_zero_width():
     """q -> 1: the width where contrast is fully lost is the first zero of 2 J1(x)/x (no root-finder error)."""
     from fieldcal.measure.throughfocus import otf_model

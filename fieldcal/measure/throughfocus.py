@@ -100,8 +100,15 @@ def defocus_d_prime(x):
 
 
 def _x_at_fraction(level: float) -> float:
-    """x in (0, 3.83) where D(x) = level (monotonic branch)."""
-    return float(optimize.brentq(lambda t: float(defocus_d(t)) - level, 1e-9, 3.8317))
+    """x in (0, 3.83) where D(x) = level (monotonic branch).
+
+    At level -> 0 (q -> 1) the root is the first zero of J1 itself; the bracket's end, rounded, can then
+    fail to change sign, so levels at or below the end value return the zero (contrast entirely lost there).
+    """
+    x_end = float(special.jn_zeros(1, 1)[0])
+    if level <= float(defocus_d(x_end - 1e-9)):
+        return x_end
+    return float(optimize.brentq(lambda t: float(defocus_d(t)) - level, 1e-9, x_end - 1e-9))
 
 
 @functools.lru_cache(maxsize=64)
