@@ -19,7 +19,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import math
 import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -29,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from . import __version__
-from ._io import atomic_write_bytes, atomic_write_text
+from ._io import atomic_write_bytes, atomic_write_text, jsonable
 from .errors import ParameterError, SpecError
 
 PROFILE_FORMAT = "fieldcal-profile/1"
@@ -201,9 +200,9 @@ class LensProfile:
             "surfaces": self.surfaces.to_dict(include_samples=False),
             "geometry": self.geometry_fit.to_dict(),
             "tolerance": None if self.tolerance_fit is None else self.tolerance_fit.to_dict(),
-            "model_selection": _json_safe(self.model_selection),
-            "diagnostics": _json_safe(self.diagnostics),
-            "provenance": _json_safe(self.provenance),
+            "model_selection": jsonable(self.model_selection),
+            "diagnostics": jsonable(self.diagnostics),
+            "provenance": jsonable(self.provenance),
             "sidecar": None if sidecar_name is None else {"file": sidecar_name, "sha256": sidecar_sha256},
         }
 
@@ -296,18 +295,30 @@ def _check_format(fmt, path):
                     fix="give a lens profile written by `fieldcal calibrate`")
 
 
-def _json_safe(v):
-    if isinstance(v, dict):
-        return {str(k): _json_safe(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_json_safe(x) for x in v]
-    if isinstance(v, (np.floating, float)):
-        f = float(v)
-        return f if math.isfinite(f) else None
-    if isinstance(v, np.integer):
-        return int(v)
-    if isinstance(v, np.bool_):
-        return bool(v)
-    if isinstance(v, np.ndarray):
-        return _json_safe(v.tolist())
-    return v
+def load_profile_or_truth(path: str | Path, size_px: tuple[int, int] | None = None):
+    """A lens profile, or the exact answers of a simulated lens — whichever the file holds.
+
+    Returns ``(profile, info)``. A ``fieldcal-lens/1`` spec gives its :class:`fieldcal.truth.TruthProfile` at
+    ``size_px`` (design studies and simulated data); a ``fieldcal-profile/1`` file gives a :class:`LensProfile`
+    (``size_px`` does not apply to it). ``info`` says which, for plans, composites and reports.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SpecError("profile not found", path=path,
+                        fix="give a profile from `fieldcal calibrate` or a lens spec such as models/triplet-uncorrected.json")
+    try:
+        head = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise SpecError(f"not valid JSON ({e})", path=path, fix="repair the JSON syntax") from None
+    fmt = head.get("format") if isinstance(head, dict) else None
+    if isinstance(fmt, str) and fmt.startswith("fieldcal-lens/"):
+        from .lens import LensSpec
+        from .truth import TruthProfile
+        spec = LensSpec.from_dict(head, path=path)
+        prof = TruthProfile(spec, *(size_px or (None, None)))
+        return prof, {"path": str(path), "format": fmt, "name": spec.name,
+                      "source": "lens spec: the simulated lens's true surfaces",
+                      "image_size_px": list(prof.image_size_px)}
+    prof = LensProfile.load(path)
+    return prof, {"path": str(path), "format": fmt, "name": path.stem, "source": "lens profile (calibrated)",
+                  "image_size_px": list(prof.image_size_px)}

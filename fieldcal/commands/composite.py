@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -56,27 +55,8 @@ def register(sub):
 
 def load_profile_for(path: str | Path, size_px: tuple[int, int]):
     """A lens profile (fieldcal-profile/1) or a lens spec's truth (fieldcal-lens/1) at the stack's size."""
-    path = Path(path)
-    if not path.is_file():
-        raise SpecError("profile not found", path=path, field="--profile",
-                        fix="give a profile from `fieldcal calibrate` or a lens spec (models/*.json)")
-    try:
-        head = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise SpecError(f"not valid JSON ({e})", path=path, fix="repair the JSON syntax") from None
-    fmt = head.get("format") if isinstance(head, dict) else None
-    if fmt == "fieldcal-lens/1":
-        from ..lens import LensSpec
-        from ..truth import TruthProfile
-        return TruthProfile(LensSpec.from_dict(head, path=path), *size_px), {
-            "path": str(path), "format": fmt, "source": "lens spec (simulated truth)"}
-    try:
-        from ..profile import LensProfile
-    except ImportError:
-        raise SpecError(f"cannot read a {fmt!r} file: this fieldcal has no lens-profile reader yet", path=path,
-                        field="format", fix="use a lens spec (fieldcal-lens/1) for simulated data") from None
-    return LensProfile.load(path), {"path": str(path), "format": fmt, "source": "lens profile"}
-
+    from ..profile import load_profile_or_truth
+    return load_profile_or_truth(path, size_px)
 
 def plan_frames(stack, plan_path: str | Path) -> tuple[np.ndarray, dict, dict]:
     """Stack frames matching a stack plan's positions, the plan's parameters and its metadata block."""

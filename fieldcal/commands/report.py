@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
 
-from ..errors import SpecError
 from . import add_parser
 
 
@@ -21,20 +18,8 @@ def register(sub):
 
 def load_profile_or_truth(path: str):
     """A LensProfile, or the TruthProfile of a fieldcal-lens/1 spec (for design studies and simulations)."""
-    p = Path(path)
-    try:
-        fmt = json.loads(p.read_text()).get("format") if p.is_file() else None
-    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
-        fmt = None
-    if isinstance(fmt, str) and fmt.startswith("fieldcal-lens/"):
-        from ..lens import LensSpec
-        from ..truth import TruthProfile
-        return TruthProfile(LensSpec.load(p))
-    from ..profile import LensProfile
-    if not p.is_file():
-        raise SpecError("profile not found", path=p, fix="give a profile .json from `fieldcal calibrate`")
-    return LensProfile.load(p)
-
+    from ..profile import load_profile_or_truth as load
+    return load(path)[0]
 
 def run(args) -> int:
     from ..report import write_report

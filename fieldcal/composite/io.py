@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from .._io import fsync_dir
+from .._io import atomic_write_bytes
 from ..errors import FieldcalError, ParameterError
 
 COMPOSITE_FORMAT = "fieldcal-composite/1"
@@ -51,21 +49,10 @@ def write_composite_tiff(path: str | Path, image: np.ndarray, channels, metadata
     desc = json.dumps(meta, default=_jsonable)
     photometric = "rgb" if list(channels) == ["R", "G", "B"] else "minisblack"
     data = image if image.shape[2] > 1 else image[..., 0]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        tifffile.imwrite(tmp, data, photometric=photometric, description=desc, metadata=None)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    fsync_dir(path.parent)
+    import io
+    buf = io.BytesIO()  # encode in memory, then the shared atomic write (temporary name, fsync, rename)
+    tifffile.imwrite(buf, data, photometric=photometric, description=desc, metadata=None)
+    atomic_write_bytes(path, buf.getvalue())
     return path
 
 

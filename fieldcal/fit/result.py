@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from .._io import jsonable
 from ..errors import ParameterError, SpecError
 from .data import ImageGeometry
 from .discrepancy import Discrepancy
@@ -196,10 +197,10 @@ class SurfaceFit:
              "param_names": self.param_names,
              "sample_model": self.sample_model.to_dict(), "sample_param_names": self.sample_model.names,
              "theta_map": [float(v) for v in self.theta_map],
-             "candidates": _json_safe(self.candidates), "diagnostics": _json_safe(self.diagnostics),
+             "candidates": jsonable(self.candidates), "diagnostics": jsonable(self.diagnostics),
              "n_samples": int(self.samples.shape[0])}
         if self.discrepancy is not None:
-            d["discrepancy"] = _json_safe(self.discrepancy.to_dict())
+            d["discrepancy"] = jsonable(self.discrepancy.to_dict())
         if self.tile_px:
             d["tile_window"] = {"tile_px": float(self.tile_px), "kappa_sd": float(self.tile_correction_sd)}
         if include_samples:
@@ -233,20 +234,3 @@ class SurfaceFit:
         except (KeyError, TypeError, ValueError) as e:
             raise SpecError(f"malformed surface fit ({e})", path=path, field="surface",
                             fix="regenerate the profile with fieldcal calibrate") from None
-
-
-def _json_safe(v):
-    if isinstance(v, dict):
-        return {str(k): _json_safe(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_json_safe(x) for x in v]
-    if isinstance(v, (np.floating, float)):
-        f = float(v)
-        return f if math.isfinite(f) else None
-    if isinstance(v, (np.integer,)):
-        return int(v)
-    if isinstance(v, np.bool_):
-        return bool(v)
-    if isinstance(v, np.ndarray):
-        return _json_safe(v.tolist())
-    return v
