@@ -53,14 +53,23 @@ def _check(fs_cyc_per_mm, q, effort, pitch_um):
 
 
 def _hash_inputs(stack, out: dict):
-    """sha256 over stack.json and every frame file, in file order (hashlib releases the GIL)."""
+    """sha256 identifying the inputs (hashlib releases the GIL, so this runs beside the measurement).
+
+    When every frame entry of stack.json carries its own sha256 (fieldcal's writer and capture record them),
+    the hash of stack.json commits to every frame's content and costs nothing; otherwise every frame file is
+    hashed too (1.6 s of CPU for 42 frames of 1920x1080 RGB). ``Stack.verify_checksums()`` checks the files.
+    """
     h = hashlib.sha256()
     try:
         h.update(Path(stack.json_path).read_bytes())
-        for fr in stack.frames:
-            with open(fr.path, "rb") as f:
-                for chunk in iter(lambda: f.read(1 << 22), b""):
-                    h.update(chunk)
+        if all(fr.meta.get("sha256") for fr in stack.frames):
+            out["method"] = "sha256 of stack.json, which records every frame's sha256"
+        else:
+            for fr in stack.frames:
+                with open(fr.path, "rb") as f:
+                    for chunk in iter(lambda: f.read(1 << 22), b""):
+                        h.update(chunk)
+            out["method"] = "sha256 of stack.json and every frame file"
         out["sha256"] = h.hexdigest()
     except OSError as e:  # reported in provenance, not fatal: the measurement itself will fail loudly
         out["error"] = str(e)
@@ -171,6 +180,7 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
         provenance={"created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                     "tool": {"name": "fieldcal", "version": __version__},
                     "stack": str(Path(stack.path).resolve()), "inputs_sha256": digest.get("sha256"),
+                    "inputs_hash_method": digest.get("method"),
                     "inputs_hash_error": digest.get("error"),
                     "stack_meta": {k: v for k, v in meta.items() if k != "frames"}},
         tiles=table.to_dict(), geometry_measurements=cols,
