@@ -68,8 +68,6 @@ def test_standard_effort_accuracy_band_and_extrapolation_on_the_triplet(small_ch
     assert (hi - lo)[0] > 1.5 * (hi - lo)[1]
 
 
-@pytest.mark.xfail(reason="known defect: at 192x144 quick effort the mean coverage is 0.68 (per channel "
-                   "0.49-0.91): the corner extrapolation is still overconfident at this few tiles", strict=False)
 def test_coverage_over_random_lenses_end_to_end_and_mono(tmp_path):
     """Three random lenses (one mono) through images at quick effort: mean coverage of the 90 % band in
     [0.75, 1] and no useless band (mean half-width below a quarter step). Independent-tile bands measured
