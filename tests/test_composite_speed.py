@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from fieldcal.composite import ArrayStack
@@ -32,6 +32,7 @@ positions = st.lists(st.floats(-500, 500, allow_nan=False), min_size=1, max_size
 # ------------------------------------------------------------------------------------- frame support
 @settings(max_examples=60, deadline=None)
 @given(positions, st.floats(0, 50), st.floats(0, 1), st.lists(st.floats(-700, 700), min_size=1, max_size=30))
+@example(np.array([-1.0, 0.0, 1.0]), 0.0, 1.0, [0.0])  # full-width band, point on a frame (found by hypothesis)
 def test_tight_support_holds_every_weighted_frame_and_at_most_two_per_point(z, tol, band, zb):
     k = BlendKernel(z, tol, min_band=band)
     zb = np.array(zb, dtype=np.float32)

@@ -35,7 +35,19 @@ def smoothstep(u):
     return u * u * (3.0 - 2.0 * u)
 
 
-class BlendKernel:
+class _FrameKernel:
+    """What both kernels share: frames sorted by z (``self.z``) and a vectorised ``supports``."""
+
+    def __len__(self) -> int:
+        return len(self.z)
+
+    def support(self, zmin: float, zmax: float) -> tuple[int, int]:
+        """Inclusive range of sorted frame indices that can weigh anything for ``z_b`` in [zmin, zmax]."""
+        lo, hi = self.supports(np.array([zmin]), np.array([zmax]))
+        return int(lo[0]), int(hi[0])
+
+
+class BlendKernel(_FrameKernel):
     """Nearest-frame selection with tolerance-wide smooth seams.
 
     Parameters
@@ -59,20 +71,15 @@ class BlendKernel:
         dz = np.diff(self.z)
         # Both neighbours are in focus for t in [1 - tol/dz, tol/dz]: a band of half-width tol/dz - 1/2.
         self.half_band = np.clip(tolerance_um / np.where(dz > 0, dz, 1.0) - 0.5, 0.5 * min_band, 0.5)
+        pad = 1e-4 * dz + 1e-6 * (np.abs(self.z[:-1]) + np.abs(self.z[1:]))  # >> float32 rounding of the ramp
+        # A seam stops a few pads short of the frames it joins, so that on a frame only that frame weighs even
+        # with a full-width band (padded supports of both neighbours reached it: 3 frames at one point).
+        self.half_band = np.clip(self.half_band, 0.0, np.maximum(0.5 - 3.0 * pad / np.where(dz > 0, dz, 1.0), 0.0))
         # Where each frame's weight can be non-zero: (seam below starts, seam above ends), see supports().
         h = np.maximum(self.half_band, 1e-6)
-        pad = 1e-4 * dz + 1e-6 * (np.abs(self.z[:-1]) + np.abs(self.z[1:]))  # >> float32 rounding of the ramp
         seam_lo = self.z[:-1] + (0.5 - h) * dz - pad
         seam_hi = self.z[:-1] + (0.5 + h) * dz + pad
         self._edges = (np.concatenate([[-np.inf], seam_lo]), np.concatenate([seam_hi, [np.inf]]))
-
-    def __len__(self) -> int:
-        return len(self.z)
-
-    def support(self, zmin: float, zmax: float) -> tuple[int, int]:
-        """Inclusive range of sorted frame indices that can weigh anything for ``z_b`` in [zmin, zmax]."""
-        lo, hi = self.supports(np.array([zmin]), np.array([zmax]))
-        return int(lo[0]), int(hi[0])
 
     def supports(self, zmin: np.ndarray, zmax: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`support` for arrays of ranges (e.g. every tile at once): ``(lo, hi)`` int32 arrays.
@@ -165,7 +172,7 @@ class BlendKernel:
         return w.astype(np.float32)
 
 
-class SweepKernel:
+class SweepKernel(_FrameKernel):
     """Frame weights of an emulated focal sweep of half-range ``alpha_um`` centred on each pixel's best focus.
 
     Frame ``k`` covers the travel ``[e_k, e_{k+1}]`` between the midpoints to its neighbours (the end frames
@@ -186,13 +193,6 @@ class SweepKernel:
             mid = 0.5 * (z[1:] + z[:-1])
             e = np.concatenate([[z[0] - 0.5 * (z[1] - z[0])], mid, [z[-1] + 0.5 * (z[-1] - z[-2])]])
         self.edges = e
-
-    def __len__(self) -> int:
-        return len(self.z)
-
-    def support(self, zmin: float, zmax: float) -> tuple[int, int]:
-        lo, hi = self.supports(np.array([zmin]), np.array([zmax]))
-        return int(lo[0]), int(hi[0])
 
     def supports(self, zmin: np.ndarray, zmax: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Inclusive ranges of sorted frame indices whose travel meets the windows of ``z_b`` in [zmin, zmax]."""
