@@ -88,8 +88,12 @@ def _weighted_solve(X, y, w, ridge):
     return x
 
 
-def fit_map(model: SurfaceModel, rows: Rows, max_eval: int = 600) -> MapResult:
-    """MAP of ``model`` on ``rows`` (normalised units)."""
+def fit_map(model: SurfaceModel, rows: Rows, max_eval: int = 600, start_from: MapResult | None = None) -> MapResult:
+    """MAP of ``model`` on ``rows`` (normalised units).
+
+    ``start_from``: the MAP of the same structure without a decentre; a decentred fit then starts at its
+    error scales and dof (the centre still starts at the best of a 3 x 3 grid).
+    """
     lo, hi = model.nonlinear_bounds()
     k = lo.size
     cond = design_condition(model, rows)
@@ -116,6 +120,8 @@ def fit_map(model: SurfaceModel, rows: Rows, max_eval: int = 600) -> MapResult:
 
     # Start: Gaussian-ish dof, error scale from a first weighted fit, centre from a coarse grid.
     start = _initial(model, rows, lo, hi)
+    if model.decentre and start_from is not None and not start_from.model.decentre:
+        start = np.clip(np.concatenate([[0.0, 0.0], start_from.theta[start_from.model.n_linear:]]), lo, hi)
     if model.decentre:
         best = None
         for cx in (-0.1, 0.0, 0.1):

@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import emcee
 import numpy as np
 
 from ..progress import status
@@ -33,11 +32,14 @@ class Effort:
     max_order: int         # highest rho^2 order among the candidates
     initial_steps: int = 0
     max_steps: int = 0
+    # Decentred candidates are fitted only as siblings of the best `decentre_top` centred structures (a
+    # decentre refines a structure; its fits cost 5x a centred one); None: every decentred candidate.
+    decentre_top: int | None = None
 
 
 EFFORTS = {
-    "quick": Effort("quick", "laplace", 3),
-    "standard": Effort("standard", "emcee", 3, initial_steps=1500, max_steps=8000),
+    "quick": Effort("quick", "laplace", 3, decentre_top=3),
+    "standard": Effort("standard", "emcee", 3, initial_steps=1500, max_steps=8000, decentre_top=4),
     "thorough": Effort("thorough", "emcee", 4, initial_steps=4000, max_steps=40000),
 }
 
@@ -126,10 +128,12 @@ def laplace(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, n_samples: i
 
 
 def run_emcee(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, effort: Effort, seed: int = 0,
-              ball_cov: np.ndarray | None = None, quiet: bool = False) -> PosteriorResult:
+              ball_cov: np.ndarray | None = None, quiet: bool = False, n_walkers: int | None = None,
+              moves=None) -> PosteriorResult:
     """Affine-invariant ensemble MCMC from a small ball around the MAP, extended until 50 tau or the cap."""
+    import emcee  # here: its import pulls in scipy.stats (~0.8 s), which quick effort never needs
     p = theta_map.size
-    n_walkers = max(32, 2 * p + 2)
+    n_walkers = max(32, 2 * p + 2) if n_walkers is None else max(int(n_walkers), 2 * p + 2)
     n_walkers += n_walkers % 2
     rng = np.random.default_rng(seed)
     if ball_cov is not None:
@@ -144,10 +148,10 @@ def run_emcee(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, effort: Ef
     span = hi - lo
     start[:, model.n_linear:] = np.clip(nl, lo + 1e-4 * span, hi - 1e-4 * span)
 
-    def log_prob(batch):
-        return model.log_posterior(batch, rows)
+    log_prob = model.log_posterior_fn(rows)
 
-    moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    if moves is None:
+        moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
     sampler = emcee.EnsembleSampler(n_walkers, p, log_prob, vectorize=True, moves=moves)
     sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()  # reproducible
     state = sampler.run_mcmc(start, effort.initial_steps, progress=False)
@@ -182,6 +186,8 @@ def run_emcee(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, effort: Ef
 
 
 def _tau(sampler) -> np.ndarray:
+    import emcee
+
     chain = sampler.get_chain()
     # tol=0: always return the estimate; convergence is judged by the caller's rule.
     return emcee.autocorr.integrated_time(chain, c=5, tol=0, quiet=True)

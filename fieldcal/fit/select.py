@@ -93,6 +93,18 @@ def candidate_models(channels, max_order: int, astig: bool) -> list[SurfaceModel
     return out
 
 
+def _decentred_siblings(cands: list[SurfaceModel], table: list[dict], top: int) -> list[SurfaceModel]:
+    """Decentred candidates whose centred structure (with or without tilt, which a decentre can replace)
+    is among the ``top`` centred fits by BIC, best first."""
+    ranked = sorted((e["bic"], e["name"]) for e in table if e.get("bic") is not None)
+    keep = {n for _, n in ranked[:top]}
+    out = []
+    for m in cands:
+        if m.decentre and any(replace(m, decentre=False, tilt=t).name in keep for t in (False, True)):
+            out.append(m)
+    return out
+
+
 def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standard", seed: int = 0,
                  channels: tuple[str, ...] | None = None, quiet: bool = False,
                  source: str | None = None) -> SurfaceFit:
@@ -146,7 +158,8 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         if rows.n < m.n_params + 2:
             entry.update(status="skipped: fewer rows than parameters + 2", bic=None)
             return
-        res = fit_map(m, rows)
+        sibling = fits.get(replace(m, decentre=False).name) if m.decentre else None
+        res = fit_map(m, rows, start_from=sibling)
         entry["condition_number"] = res.condition_number
         if not math.isfinite(res.condition_number) or res.condition_number > MAX_CONDITION:
             entry.update(status=f"refused: degenerate design (condition number {res.condition_number:.3g} > "
@@ -159,8 +172,21 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         if best is None or bic < best[0]:
             best = (bic, res)
 
-    for m in progress(cands, total=len(cands), desc="fit: model search", quiet=quiet, unit="model"):
-        consider(m)
+    if eff.decentre_top is None:
+        for m in progress(cands, total=len(cands), desc="fit: model search", quiet=quiet, unit="model"):
+            consider(m)
+    else:
+        centred = [m for m in cands if not m.decentre]
+        for m in progress(centred, total=len(centred), desc="fit: model search", quiet=quiet, unit="model"):
+            consider(m)
+        for m in _decentred_siblings(cands, table, eff.decentre_top):
+            consider(m)
+        tried = {e["name"] for e in table}
+        for m in cands:
+            if m.name not in tried:
+                table.append({"name": m.name, "terms": m.terms, "n_params": m.n_params, "bic": None,
+                              "status": f"not fitted: its centred structure is not among the best "
+                                        f"{eff.decentre_top} (effort {effort}; thorough fits every candidate)"})
     if best is not None and astig_rows:
         consider(replace(best[1].model, astig=False))
     if best is None:
