@@ -384,3 +384,20 @@ def test_directional_foci_separate_blur_along_and_across_the_radius():
     assert np.median(t.z_sag_um[side]) == pytest.approx(10.0, abs=1.5)
     # the isotropic band-pass sees both foci: two peaks 22 um apart, rejected as ambiguous
     assert np.mean(t.status[side] == "multi_peak") > 0.5
+
+
+def test_tiles_across_a_steep_surface_are_placed_where_they_measure(models_dir):
+    """Where a tile spans several depths of focus (here ~60 µm of best focus across a 32 px edge tile at
+    10 µm steps), its best focus belongs to the focus-energy centre at the fitted best focus. Weighting by the
+    sharpest frame instead put edge tiles 4.2 µm RMS off (measured); now ~1 µm."""
+    spec = small_lens(models_dir, curv=-250.0, channels=("G",))
+    z = np.arange(-280.0, 40.0 + 1e-9, 10.0)
+    table, _ = measure_stack(render_stack(spec, z), fs_cyc_per_mm=fs_for(spec), quiet=True)
+    rows = np.flatnonzero(table.ok)
+    assert rows.size >= 24
+    err = table.z_best_um[rows] - tile_truth(spec, table, rows)
+    rho = np.hypot(table.x_px[rows] - 127.5, table.y_px[rows] - 79.5) / np.hypot(128.0, 80.0)
+    edge = rho > 0.6
+    assert edge.sum() >= 5
+    assert np.sqrt(np.mean(err[edge] ** 2)) <= 0.15 * 10.0
+    assert np.sqrt(np.mean(err ** 2)) <= 0.1 * 10.0
