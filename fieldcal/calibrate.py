@@ -34,7 +34,10 @@ EFFORTS = ("quick", "standard", "thorough")
 TILE_WINDOW_KAPPA = 1.0
 TILE_WINDOW_KAPPA_SD = 0.05
 MIN_FRAMES = 5
-SYSTEMATIC_STEP_FRACTION = 0.01  # measurement systematics, in scan steps (validation: 0.003-0.02 step)
+# No fixed systematic: the band's systematic terms (model misfit, common-mode tile error) are estimated from
+# the stack's own tiles (fieldcal.fit.discrepancy, docs/fitting.md "Systematic"). A fixed 0.01 scan step was
+# used before; profiles that carry it (calibration.systematic_sd_um > 0) keep their band.
+SYSTEMATIC_STEP_FRACTION = 0.0
 
 
 def _check(fs_cyc_per_mm, q, effort, pitch_um):
@@ -167,9 +170,9 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
                      "tile_px": int(table.tile_px), "seed": int(seed), "n_frames": int(len(stack)),
                      "z_range_um": [float(z[0]), float(z[-1])],
                      "z_step_um": float(np.median(steps)) if steps.size else None,
-                     # 1-sigma systematic error of the measured best focus, common to all tiles: 0.01 of the
-                     # scan step, the residual bias validated on simulated lenses (docs/fitting.md)
-                     "systematic_sd_um": SYSTEMATIC_STEP_FRACTION * float(np.median(steps)) if steps.size else 0.0},
+                     # kept for old readers: 0 = no fixed systematic beyond the estimated band terms below
+                     "systematic_sd_um": SYSTEMATIC_STEP_FRACTION * float(np.median(steps)) if steps.size else 0.0,
+                     "systematic": _systematic_record(surf)},
         z_ref_um=float(geo_c.z_ref_um),
         diagnostics={"tiles": counts, "n_tiles_ok": n_ok, "surface": surf.diagnostics,
                      "geometry": getattr(geom, "diagnostics", {}),
@@ -189,6 +192,17 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
            quiet=quiet)
     return profile
 
+
+
+def _systematic_record(surf) -> dict:
+    """How the band's systematic terms were estimated from this stack (the values in µm)."""
+    d = surf.discrepancy
+    rec = {"method": "estimated from the stack's tiles: model misfit by the F test of the chosen surface "
+                     "against the richest linear surface; common-mode tile error as a fixed fraction of the "
+                     "fitted per-tile noise sd (docs/fitting.md 'Systematic')"}
+    if d is not None:
+        rec.update(d.band_terms_um(float(surf.z_scale_um)))
+    return rec
 
 
 def fit_tile_surfaces(table, geometry, *, channels: tuple[str, ...], effort: str = "standard", seed: int = 0,

@@ -91,10 +91,11 @@ class LensProfile:
         sys_sd = float(self.calibration.get("systematic_sd_um") or 0.0)
         if sys_sd <= 0.0:
             return lo, hi
-        # The measurement's own systematic error (validated on simulated lenses, see docs/fitting.md) is common
-        # to all tiles, so no fit can see it: combine it in quadrature with the fitted band.
-        from scipy.stats import norm
-        zq = float(norm.ppf(0.5 + 0.5 * float(level)))
+        # Profiles written before the systematic was estimated from the data (docs/fitting.md "Systematic")
+        # carry a fixed systematic sd here: combine it in quadrature, so they keep the band they had. New
+        # profiles record 0 and carry the estimated terms in the surface fit.
+        from scipy.special import ndtri
+        zq = float(ndtri(0.5 + 0.5 * float(level)))
         mid = 0.5 * (np.asarray(lo) + np.asarray(hi))
         half = np.sqrt((0.5 * (np.asarray(hi) - np.asarray(lo))) ** 2 + (zq * sys_sd) ** 2)
         return mid - half, mid + half

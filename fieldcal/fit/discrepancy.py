@@ -39,6 +39,18 @@ from .surface import COEF_PRIOR_SD, Rows, SurfaceModel
 MAX_ROWS_HYPER = 400          # rows per channel used to fit the hyperparameters (evenly thinned beyond)
 LOG_S_BOUNDS = (math.log(0.5), math.log(1.0e4))
 JITTER = 1.0e-10
+# Shortest correlation length, in tile spacings. (A bound of one spacing would keep REML from splitting white
+# tile noise into a GP nugget, but it moved the kriging mean: surface RMS 0.39 -> 0.93 µm on one random lens.)
+ELL_MIN_SPACINGS = 0.5
+# Misfit test: the chosen model against the richest linear surface with the same centre (all terms per channel
+# up to rho^(2 RICH_ORDER), tilt); needs this many rows beyond its parameters.
+RICH_ORDER = 3
+MIN_RICH_DOF = 5
+# Common-mode tile error: a fraction of the per-tile noise shared by the whole field (frame-level errors of the
+# through-focus curves, shared by neighbouring tiles and the colour channels), which no fit can see in its
+# residuals. Measured on 16 random lenses x 2 efforts + the triplet: the surface error beyond the independent-
+# tile propagation is 0-0.75 (rms 0.4) of the per-tile noise sd (docs/fitting.md "Systematic").
+COMMON_MODE_FRACTION = 0.35
 
 
 def matern32(d_over_ell: np.ndarray) -> np.ndarray:
@@ -84,6 +96,15 @@ class Discrepancy:
     iid_cov : ndarray
         Covariance of the coefficients the *independent-tile* posterior has (the MAP's own weights); the band
         adds only the variance beyond it, so samples that already carry it are not counted twice.
+    jk_cov : ndarray or None
+        Block-jackknife covariance of the coefficients (errors shared by regions of tiles).
+    rich_model, rich_cov, misfit_scale : SurfaceModel, ndarray, float
+        Misfit term ``misfit_scale * (h_r rich_cov h_r^T - h iid_cov h^T)``: the variance the richest linear
+        surface adds over the chosen one, scaled by how much more than noise the two disagree on the tiles
+        (the F statistic of the extra terms minus 1; 0 when the data do not support them).
+    common_sd : ndarray or None
+        Per channel, the sd of the error shared by the whole field (``COMMON_MODE_FRACTION`` of the per-tile
+        noise sd); added in quadrature at every point.
     """
 
     model: SurfaceModel
@@ -99,6 +120,10 @@ class Discrepancy:
     iid_cov: np.ndarray
     jk_cov: np.ndarray | None = None
     diagnostics: dict = field(default_factory=dict)
+    rich_model: SurfaceModel | None = None      # misfit test: the richest linear surface (same centre)
+    rich_cov: np.ndarray | None = None          # its coefficient covariance under the MAP's weights
+    misfit_scale: float = 0.0                   # max(F - 1, 0) * Birge ratio of the rich fit
+    common_sd: np.ndarray | None = None         # per channel: common-mode sd (normalised z units)
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ------------------------------------------------------------------ linear algebra (cached)
@@ -161,7 +186,13 @@ class Discrepancy:
             L = st["chol"][ci][0]
             V = solve_triangular(L, ks.T, lower=True)                     # n_c x m
             R = H - ks @ st["kinv_x"][m]                                  # h - k^T K^-1 X
-            local = np.clip(self.tau[ci] ** 2 - np.sum(V * V, axis=0), 0.0, None)
+            # A GP shorter than a tile spacing cannot be told from tile noise (a nugget): its variance between
+            # tiles is noise, not surface (measured: 0.15-0.4 µm sd added where the errors were 0.07-0.2 µm).
+            # It counts in full from one spacing, not at all at the lower bound of half a spacing.
+            spacing = float(self.diagnostics.get("tile_spacing") or 0.0)
+            ident = 1.0 if spacing <= 0 else float(np.clip((self.length_scale / spacing - ELL_MIN_SPACINGS)
+                                                           / (1.0 - ELL_MIN_SPACINGS), 0.0, 1.0))
+            local = ident * np.clip(self.tau[ci] ** 2 - np.sum(V * V, axis=0), 0.0, None)
             var = local + np.einsum("mp,pq,mq->m", R, st["beta_cov"], R)
         else:
             local = 0.0
@@ -170,7 +201,25 @@ class Discrepancy:
             # sees them (docs/fitting.md "Discrepancy")
             var = np.maximum(var, local + np.einsum("mp,pq,mq->m", H, self.jk_cov, H))
         iid = np.einsum("mp,pq,mq->m", H, self.iid_cov, H)
-        return mean, np.clip(var - iid, 0.0, None)
+        extra = np.clip(var - iid, 0.0, None)
+        if self.rich_model is not None and self.misfit_scale > 0:
+            Hr = self.rich_model.design(x_hat, y_hat, np.full(x_hat.size, ci), np.zeros(x_hat.size, np.int64),
+                                        self.centre)
+            diff = np.einsum("mp,pq,mq->m", Hr, self.rich_cov, Hr) - iid
+            extra = extra + self.misfit_scale * np.clip(diff, 0.0, None)
+        if self.common_sd is not None and ci < self.common_sd.size:
+            extra = extra + float(self.common_sd[ci]) ** 2
+        return mean, extra
+
+    def band_terms_um(self, z_scale_um: float) -> dict[str, Any]:
+        """The data-estimated band terms in µm, for the profile's record."""
+        out = {"misfit_scale": float(self.misfit_scale),
+               "misfit_F": self.diagnostics.get("misfit", {}).get("F"),
+               "common_mode_fraction": self.diagnostics.get("common_mode_fraction"),
+               "common_mode_sd_um": {c: float(z_scale_um * v) for c, v in zip(self.model.channels,
+                                                                               self.common_sd)}
+               if self.common_sd is not None else None}
+        return out
 
     # ------------------------------------------------------------------ I/O
     def to_dict(self) -> dict[str, Any]:
@@ -180,7 +229,11 @@ class Discrepancy:
                 "tau": [float(v) for v in self.tau], "length_scale": float(self.length_scale),
                 "noise_scale": float(self.noise_scale), "iid_cov": self.iid_cov.tolist(),
                 "jk_cov": None if self.jk_cov is None else self.jk_cov.tolist(),
-                "diagnostics": self.diagnostics}
+                "diagnostics": self.diagnostics,
+                "rich_model": None if self.rich_model is None else self.rich_model.to_dict(),
+                "rich_cov": None if self.rich_cov is None else self.rich_cov.tolist(),
+                "misfit_scale": float(self.misfit_scale),
+                "common_sd": None if self.common_sd is None else [float(v) for v in self.common_sd]}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], model: SurfaceModel) -> "Discrepancy":
@@ -188,7 +241,12 @@ class Discrepancy:
         return cls(model, a("centre"), a("x_hat"), a("y_hat"), np.asarray(d["ch_index"], dtype=np.int64),
                    a("target"), a("noise_var"), a("tau"), float(d["length_scale"]), float(d["noise_scale"]),
                    a("iid_cov"), a("jk_cov") if d.get("jk_cov") is not None else None,
-                   dict(d.get("diagnostics", {})))
+                   dict(d.get("diagnostics", {})),
+                   # keys added later: absent in older profiles, whose bands stay as they were
+                   SurfaceModel.from_dict(d["rich_model"]) if d.get("rich_model") else None,
+                   a("rich_cov") if d.get("rich_cov") is not None else None,
+                   float(d.get("misfit_scale", 0.0)),
+                   a("common_sd") if d.get("common_sd") is not None else None)
 
 
 def _cov(x, y, tau, ell, noise_var) -> np.ndarray:
@@ -238,7 +296,7 @@ def fit_discrepancy(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, weig
     blocks = [(c, np.flatnonzero(cis == c)) for c in range(nc) if (cis == c).any()]
     D = {c: _dist(xs_[m], ys_[m], xs_[m], ys_[m]) for c, m in blocks}
     spacing = float(np.median([_nn_spacing(xs_[m], ys_[m]) for _, m in blocks]))
-    ell_lo, ell_hi = 0.5 * spacing, 3.0
+    ell_lo, ell_hi = ELL_MIN_SPACINGS * spacing, 3.0
     r0 = y - X @ beta_map
     res_sd = max(float(np.std(r0)), 1e-6)
     tau_lo, tau_hi = 1e-4 * res_sd, 10.0 * res_sd
@@ -305,8 +363,56 @@ def fit_discrepancy(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, weig
             "neg_reml": float(neg_reml(v))}
     jk_cov, n_blocks = block_jackknife_cov(X, y, W * s_map ** 2 / s ** 2, xh, yh)
     diag["jackknife_blocks"] = n_blocks
-    return Discrepancy(model, centre, xh, yh, ci.astype(np.int64), y, s * s * base_var, tau, ell, s, iid_cov,
-                       jk_cov, diag)
+    rich, rich_cov, misfit_scale, diag["misfit"] = misfit_term(model, centre, xh, yh, ci, y, W, iid_cov)
+    noise_var = s * s * base_var
+    # per-tile noise sd of each channel: the median of the fitted white-noise variances (outliers excluded)
+    common = np.array([COMMON_MODE_FRACTION * math.sqrt(float(np.median(noise_var[ci == c]))) if (ci == c).any()
+                       else 0.0 for c in range(nc)])
+    diag["common_mode_fraction"] = COMMON_MODE_FRACTION
+    diag["common_mode_sd"] = [float(v) for v in common]
+    return Discrepancy(model, centre, xh, yh, ci.astype(np.int64), y, noise_var, tau, ell, s, iid_cov,
+                       jk_cov, diag, rich, rich_cov, misfit_scale, common)
+
+
+def misfit_term(model: SurfaceModel, centre, xh, yh, ci, y, w, iid_cov):
+    """F test of the chosen model against the richest linear surface with the same centre.
+
+    Both are weighted least-squares fits with the MAP's weights ``w`` (``u_i / (s sigma_i)^2``). For nested
+    fits, ``RSS_c - RSS_r`` has expectation ``k`` (the extra terms) times the noise scale if the chosen model
+    is right; ``F = ((RSS_c - RSS_r) / k) / (RSS_r / (n - p_r))``. Its excess ``(F - 1) k phi`` (phi = the
+    rich fit's Birge ratio) estimates the weighted squared misfit on the tiles, and since the difference
+    variance ``h_r C_r h_r^T - h C_c h^T`` sums (weighted) to ``k`` over the tiles, scaling it by
+    ``max(F - 1, 0) phi`` adds, on average over the tiles, exactly that misfit — shaped like the extra terms
+    (largest where the two models can differ most: the corners).
+
+    Returns ``(rich_model or None, rich_cov or None, scale, diagnostics)``.
+    """
+    rich = SurfaceModel(model.channels, max(model.order, RICH_ORDER), True, model.decentre, False, False, None)
+    n = y.size
+    Xr = rich.design(xh, yh, ci, np.zeros(n, np.int64), centre)
+    Xc = model.design(xh, yh, ci, np.zeros(n, np.int64), centre)
+    # the chosen design may carry astigmatism columns that are zero on focus rows: count live columns only
+    live_c = np.any(Xc != 0, axis=0)
+    k = Xr.shape[1] - int(live_c.sum())
+    if k <= 0 or n - Xr.shape[1] < MIN_RICH_DOF:
+        return None, None, 0.0, {"status": f"skipped: {n} rows for {Xr.shape[1]} rich terms", "k": int(k)}
+    prior_r = np.eye(Xr.shape[1]) / COEF_PRIOR_SD ** 2
+    Ar = (Xr.T * w) @ Xr + prior_r
+    try:
+        cov_r = np.linalg.inv(0.5 * (Ar + Ar.T))
+    except np.linalg.LinAlgError:
+        return None, None, 0.0, {"status": "skipped: singular rich design", "k": int(k)}
+    if not np.all(np.isfinite(cov_r)) or np.linalg.cond(Ar) > 1e12:
+        return None, None, 0.0, {"status": "skipped: ill-conditioned rich design", "k": int(k)}
+    beta_r = cov_r @ ((Xr.T * w) @ y)
+    beta_c = iid_cov @ ((Xc.T * w) @ y)
+    rss_r = float(np.sum(w * (y - Xr @ beta_r) ** 2))
+    rss_c = float(np.sum(w * (y - Xc @ beta_c) ** 2))
+    phi = rss_r / (n - Xr.shape[1])
+    F = max(rss_c - rss_r, 0.0) / k / max(phi, 1e-300)
+    scale = max(F - 1.0, 0.0) * phi
+    return rich, cov_r, scale, {"status": "ok", "rich_model": rich.name, "k": int(k), "F": float(F),
+                                "birge_ratio": float(phi), "scale": float(scale)}
 
 
 JK_BLOCKS = (4, 3)  # blocks across x and y of the tile layout
@@ -319,7 +425,7 @@ def block_jackknife_cov(X, y, w, x_hat, y_hat, blocks=JK_BLOCKS):
     Tiles are grouped into ``blocks`` rectangles of the tile layout; errors may be correlated in any way
     within a block. Inflated by (t_{0.95, B-1} / z_{0.95})^2 for the few blocks. Returns ``(cov or None, B)``.
     """
-    from scipy.stats import norm, t as student_t
+    from scipy.special import ndtri, stdtrit
 
     def span(v, n):
         lo, hi = float(v.min()), float(v.max())
@@ -350,5 +456,5 @@ def block_jackknife_cov(X, y, w, x_hat, y_hat, blocks=JK_BLOCKS):
     E = np.array(est)
     d = E - E.mean(axis=0)
     cov = (B - 1) / B * (d.T @ d)
-    infl = (student_t.ppf(0.95, B - 1) / norm.ppf(0.95)) ** 2
+    infl = (float(stdtrit(B - 1, 0.95)) / float(ndtri(0.95))) ** 2
     return infl * cov, B
