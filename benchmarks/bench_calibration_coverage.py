@@ -36,7 +36,7 @@ def simulate_lens(k: int, width_px: int, workdir: Path, seed: int = 7000):
     from fieldcal.validate import chart_positions_um, default_fs
 
     rng = np.random.default_rng(seed + k)
-    spec = random_lens(rng, channels=("R", "G", "B") if k % 4 else ("Y",))
+    spec = random_lens(rng, channels=("R", "G", "B") if k % 4 else ("Y",), optics=True)
     spec = spec.with_sensor_size(width_px, int(round(width_px * 3 / 4)))
     fs = default_fs(spec.sensor.pixel_pitch_um)
     tol = min(spec.focus_tolerance_um(fs, 0.05, c) for c in spec.channel_names)

@@ -172,7 +172,9 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
                      "z_step_um": float(np.median(steps)) if steps.size else None,
                      # kept for old readers: 0 = no fixed systematic beyond the estimated band terms below
                      "systematic_sd_um": SYSTEMATIC_STEP_FRACTION * float(np.median(steps)) if steps.size else 0.0,
-                     "systematic": _systematic_record(surf)},
+                     "systematic": _systematic_record(surf),
+                     # 1-sigma breathing systematic per channel, shared by the whole field (µm)
+                     "breathing_systematic_sd_um": breathing_systematic_sd_um(table)},
         z_ref_um=float(geo_c.z_ref_um),
         diagnostics={"tiles": counts, "n_tiles_ok": n_ok, "surface": surf.diagnostics,
                      "geometry": getattr(geom, "diagnostics", {}),
@@ -192,6 +194,28 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
            quiet=quiet)
     return profile
 
+
+
+def breathing_systematic_sd_um(table) -> dict[str, float]:
+    """Per channel, the sd of the best-focus error the SML's breathing correction leaves (µm).
+
+    The window sum of the SML follows the image as m^gamma with gamma = 2 in theory; across simulated lenses
+    the gamma that removes each one's bias scatters by ``SML_WINDOW_EXPONENT_SD`` around 2. Every tile of a
+    channel shares that error, scaled by its own sensitivity dz/dgamma (measured on this stack): the RMS of
+    those sensitivities times the sd is a systematic no fit can see. Zero without breathing (telecentric).
+    """
+    from .measure.tiles import SML_WINDOW_EXPONENT_SD
+
+    out = {}
+    sens = getattr(table, "z_dgamma_um", None)
+    for c in dict.fromkeys(np.asarray(table.channel).tolist()):
+        if sens is None:
+            out[c] = 0.0
+            continue
+        v = np.asarray(sens, dtype=np.float64)[(np.asarray(table.channel) == c) & table.ok]
+        v = v[np.isfinite(v)]
+        out[c] = float(SML_WINDOW_EXPONENT_SD * np.sqrt(np.mean(v * v))) if v.size else 0.0
+    return out
 
 
 def _systematic_record(surf) -> dict:

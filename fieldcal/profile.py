@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -89,6 +90,10 @@ class LensProfile:
         x, y = _check_points(x, y)
         lo, hi = self.surfaces.interval(x, y, self._channel(channel), level=float(level))
         sys_sd = float(self.calibration.get("systematic_sd_um") or 0.0)
+        # the breathing systematic (per channel, measured on the stack; docs/fitting.md) is common to every
+        # tile of a channel, so no fit sees it either
+        breathing = (self.calibration.get("breathing_systematic_sd_um") or {}).get(channel) or 0.0
+        sys_sd = math.hypot(sys_sd, float(breathing))
         if sys_sd <= 0.0:
             return lo, hi
         # Profiles written before the systematic was estimated from the data (docs/fitting.md "Systematic")

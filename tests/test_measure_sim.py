@@ -401,3 +401,27 @@ def test_tiles_across_a_steep_surface_are_placed_where_they_measure(models_dir):
     assert edge.sum() >= 5
     assert np.sqrt(np.mean(err[edge] ** 2)) <= 0.15 * 10.0
     assert np.sqrt(np.mean(err ** 2)) <= 0.1 * 10.0
+
+
+def test_breathing_sensitivity_predicts_the_shift_of_another_window_exponent(colour, monkeypatch):
+    """z_dgamma_um is d z_best / d(SML window exponent): measuring with the exponent 0.5 higher moves each
+    tile's best focus by 0.5 z_dgamma (the bias is linear in it); a telecentric stack has none."""
+    import fieldcal.measure.tiles as tiles_mod
+
+    spec, stack = colour
+    fs = fs_for(spec)
+    table, _ = measure_stack(stack, fs_cyc_per_mm=fs, quiet=True)
+    sens = table.z_dgamma_um
+    ok = table.ok & np.isfinite(sens)
+    assert ok.sum() > 0.8 * table.ok.sum() and np.median(np.abs(sens[ok])) > 0.01
+    monkeypatch.setattr(tiles_mod, "SML_WINDOW_EXPONENT", tiles_mod.SML_WINDOW_EXPONENT + 0.5)
+    moved, _ = measure_stack(stack, fs_cyc_per_mm=fs, quiet=True)
+    both = ok & moved.ok
+    np.testing.assert_allclose(moved.z_best_um[both] - table.z_best_um[both], 0.5 * sens[both],
+                               atol=0.02 + 0.1 * float(np.max(np.abs(sens[both]))))
+    monkeypatch.undo()
+    flat = dataclasses.replace(spec, exit_pupil_mm=math.inf)
+    z = np.arange(-90.0, 40.0 + 1e-9, 2 * STEP_UM)
+    t2, _ = measure_stack(render_stack(flat, z), fs_cyc_per_mm=fs, quiet=True)
+    # the measured magnification of a telecentric stack is 1 to ~1e-5: its sensitivity is ~100x smaller
+    assert np.max(np.abs(t2.z_dgamma_um[t2.ok])) < 0.05 * np.median(np.abs(sens[ok]))

@@ -50,7 +50,7 @@ MIN_RICH_DOF = 5
 # through-focus curves, shared by neighbouring tiles and the colour channels), which no fit can see in its
 # residuals. Measured on 16 random lenses x 2 efforts + the triplet: the surface error beyond the independent-
 # tile propagation is 0-0.75 (rms 0.4) of the per-tile noise sd (docs/fitting.md "Systematic").
-COMMON_MODE_FRACTION = 0.35
+COMMON_MODE_FRACTION = 0.2
 
 
 def matern32(d_over_ell: np.ndarray) -> np.ndarray:

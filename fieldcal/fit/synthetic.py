@@ -26,8 +26,13 @@ def base_lens(channels=("R", "G", "B"), width_px: int = 320, height_px: int = 24
                     channels=chans, sensor=sensor)
 
 
-def random_lens(rng: np.random.Generator, channels=("R", "G", "B")) -> LensSpec:
-    """A lens with random field curvature (rho^2, sometimes rho^4/rho^6), colour, tilt, decentre, astigmatism."""
+def random_lens(rng: np.random.Generator, channels=("R", "G", "B"), optics: bool = False) -> LensSpec:
+    """A lens with random field curvature (rho^2, sometimes rho^4/rho^6), colour, tilt, decentre, astigmatism.
+
+    ``optics=True`` also draws what a real camera adds: F/2-F/4, focus breathing (exit pupil 12-60 mm before
+    the sensor, telecentric one time in four) and a stage axis tilted by up to 0.5 mrad. These are drawn after
+    everything else, so the same generator gives the same surfaces either way.
+    """
     spec = base_lens(channels)
     a1 = rng.uniform(-300.0, 60.0)
     a2 = rng.uniform(-40.0, 40.0) if rng.random() < 0.6 else 0.0
@@ -42,7 +47,13 @@ def random_lens(rng: np.random.Generator, channels=("R", "G", "B")) -> LensSpec:
                              astigmatism_um=astig))
     tilt = tuple(rng.uniform(-8.0, 8.0, 2)) if rng.random() < 0.5 else (0.0, 0.0)
     dec = tuple(rng.uniform(-0.3, 0.3, 2)) if rng.random() < 0.5 else (0.0, 0.0)
-    return replace(spec, channels=tuple(chans), tilt_um_per_mm=tilt, decentre_mm=dec)
+    spec = replace(spec, channels=tuple(chans), tilt_um_per_mm=tilt, decentre_mm=dec)
+    if optics:
+        f_number = float(rng.uniform(2.0, 4.0))
+        exit_pupil = float("inf") if rng.random() < 0.25 else float(rng.uniform(12.0, 60.0))
+        axis = tuple(float(v) for v in rng.uniform(-0.5, 0.5, 2))
+        spec = replace(spec, f_number=f_number, exit_pupil_mm=exit_pupil, stage_axis_tilt_mrad=axis)
+    return spec
 
 
 def synthetic_tiles(spec: LensSpec, rng: np.random.Generator, nx: int = 9, ny: int = 7,

@@ -30,14 +30,25 @@ from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
                        register_step)
 from .throughfocus import CurveFit, CurveRules, analyse_curves
 
+# The SML window sum follows the image as m^2 (an image magnified by m has second derivatives / m^2 over a
+# window of m^2 pixels). On 12 simulated breathing lenses (F/2.5-F/3.9, exit pupils 20-50 mm) the exponent
+# that removes each one's bias of the fitted surface averaged 1.99 with sd 0.61: texture and optics make the
+# true scaling differ from lens to lens. That sd times each tile's sensitivity dz/d(exponent), measured on
+# the stack itself, is the breathing systematic of the band (docs/fitting.md "Breathing systematic").
+SML_WINDOW_EXPONENT = 2.0
+SML_WINDOW_EXPONENT_SD = 0.61
+_DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
+
 EFFORTS = {
     # tile_div: default tile = min(W, H) / tile_div; geo_ds: downsampling for registration, keeping at least
     # geo_min_px on the short side; geo_all: register every channel through focus (else G, copied to all:
     # m(z) and s(z) are the same for every channel, lateral colour is measured at the reference frame); bp_all:
     # band-pass measure (hence widths) on every channel, else none unless it gives z_best; focus_bin: 2x2
-    # binning before the SML when there is no band-pass (quick); directional: z_tan/z_sag; cell: cell size.
+    # binning before the SML when there is no band-pass (quick), only if the binned short side keeps bin_min_px
+    # (binning halves the SML's top frequency and so doubles its curves' width: on a 240 px frame a quarter of
+    # the tiles then failed the peak-at-edge test, the centre among them); directional: z_tan/z_sag; cell size.
     "quick": {"tile_div": 8, "geo_ds": 8, "geo_min_px": 128, "geo_all": False, "bp_all": False, "focus_bin": 2,
-              "directional": False, "cell": 4},
+              "bin_min_px": 512, "directional": False, "cell": 4},
     "standard": {"tile_div": 12, "geo_ds": 4, "geo_min_px": 256, "geo_all": False, "bp_all": True, "focus_bin": 1,
                  "directional": False, "cell": 4},
     "thorough": {"tile_div": 16, "geo_ds": 2, "geo_min_px": 256, "geo_all": True, "bp_all": True, "focus_bin": 1,
@@ -94,6 +105,9 @@ class TileTable:
     image_size_px: tuple[int, int] = (0, 0)
     pixel_pitch_um: float = math.nan
     curves: dict[str, np.ndarray] = field(default_factory=dict)
+    # d z_best / d (SML window exponent) per row (µm per unit exponent; 0 without breathing, NaN when the
+    # best focus is not the SML's or the row is rejected): the breathing systematic's sensitivity
+    z_dgamma_um: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.channel.size)
@@ -121,7 +135,8 @@ class TileTable:
                 "measure": self.measure, "image_size_px": list(self.image_size_px),
                 "pixel_pitch_um": self.pixel_pitch_um,
                 **{k: col(getattr(self, k)) for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um",
-                                                        "width_um", "peak", "status", "z_tan_um", "z_sag_um")}}
+                                                        "width_um", "peak", "status", "z_tan_um", "z_sag_um")},
+                **({"z_dgamma_um": col(self.z_dgamma_um)} if self.z_dgamma_um is not None else {})}
 
 
 # ---------------------------------------------------------------------------------------------- helpers
@@ -286,6 +301,8 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
     maps: list[_Maps] = []
     with_bp = bool(bp_all or cfg["bp_all"])
     fbin = 1 if with_bp else int(cfg["focus_bin"])
+    if fbin > 1 and min(h, w) // fbin < cfg.get("bin_min_px", 0):
+        fbin = 1
     if want_focus:
         for li, lay0 in enumerate(layouts):
             # 2x2 binning (quick): a plane pixel then covers fbin x fbin plane pixels of the frame
@@ -475,11 +492,11 @@ def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: n
         # derivatives of an image magnified by m fall as 1/m^2, so its per-pixel mean trends as m^-2 through the
         # scan and pulls every peak towards smaller m (-0.47 µm on the triplet's breathing, measured on a flat
         # lens). The window *sum* (mean x m^2 in reference pixels) is invariant: use that.
-        mk = float(geometry.magnification[k, geometry.channel_index(lay.name)])
-        out["sml"][:, k] *= mk * mk
+        mk = float(geometry.magnification[k, geometry.channel_index(lay.name)]) ** SML_WINDOW_EXPONENT
+        out["sml"][:, k] *= mk
         if moments_of == "sml":  # its first moments share the normalisation (they are divided by it later)
-            out["mx"][:, k] *= mk * mk
-            out["my"][:, k] *= mk * mk
+            out["mx"][:, k] *= mk
+            out["my"][:, k] *= mk
         out["sat"][:, k] *= c * c  # sat cells hold fractions, not sums: back to a fraction of the tile
         # mean of the squared cell means: with "sum" it gives the texture contrast between cells (cell
         # averaging keeps sensor noise out of it)
@@ -539,6 +556,25 @@ def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurement
         x = np.where(tot > 0, (w0 * x0 + w1 * x1) / tot, np.where(t < 0.5, x0, x1))
         y = np.where(tot > 0, (w0 * y0 + w1 * y1) / tot, np.where(t < 0.5, y0, y1))
     return x, y
+
+
+def _exponent_sensitivity(cc, geometry: GeometryMeasurements, channel: str, z: np.ndarray, res: dict,
+                          measure: str, q: float, rules: TileRules) -> np.ndarray:
+    """d z_best / d(SML window exponent) of each accepted tile (µm per unit exponent), by refitting its SML
+    curve with the window sum scaled by m^_DGAMMA more. 0 when the image does not breathe."""
+    out = np.full(res["z_best_um"].size, np.nan)
+    if measure != "sml":
+        return out
+    ok = np.flatnonzero(res["status"] == "ok")
+    m = geometry.magnification[:, geometry.channel_index(channel)]
+    if ok.size == 0 or np.allclose(m, 1.0, rtol=0.0, atol=1e-12):
+        out[ok] = 0.0
+        return out
+    fits = analyse_curves(z, cc["sml"][ok] * (m ** _DGAMMA)[None, :], "peak", None, q, rules.curve)
+    for t, f in zip(ok, fits):
+        if f.status == "ok":
+            out[t] = (f.z_best_um - res["z_best_um"][t]) / _DGAMMA
+    return out
 
 
 def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per_mm: float, q: float,
@@ -677,13 +713,14 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                 have[key] = (have[key] * a0 + curves[key] * a1) / (a0 + a1)
             have["area"] = a0 + a1
     cols: dict[str, list] = {k: [] for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um", "width_um",
-                                             "peak", "status", "z_tan_um", "z_sag_um")}
+                                             "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
     for ch in stack.channels:
         cc = per_channel[ch]
         res = _analyse(cc, z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure, rules=rules,
                        bp_scale=bp_scale)
         cols["channel"].append(np.full(xs.size, ch))
+        cols["z_dgamma_um"].append(_exponent_sensitivity(cc, geometry, ch, z, res, measure, q, rules))
         xw, yw = _weighted_positions(cc, geometry, ch, measure, tile, z, res["z_best_um"])
         ok = res["status"] == "ok"  # rejected tiles keep their geometric centre
         cols["x_px"].append(np.where(ok, xw, xs))
@@ -699,7 +736,8 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                       z_sag_um=cat["z_sag_um"], z_um=z, tile_px=tile, fs_cyc_per_mm=float(fs_cyc_per_mm),
                       q=float(q), measure=measure, image_size_px=(int(w), int(h)),
                       pixel_pitch_um=float(stack.pixel_pitch_um),
-                      curves={k: np.concatenate(v, axis=0) for k, v in curves_out.items()})
+                      curves={k: np.concatenate(v, axis=0) for k, v in curves_out.items()},
+                      z_dgamma_um=cat["z_dgamma_um"])
     ok = int(table.ok.sum())
     status(f"measured {len(table)} tile curves ({ok} ok): {table.counts()}", quiet=quiet)
     return table, geometry
