@@ -117,7 +117,8 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     geometry : ImageGeometry
         Image size and pixel pitch of the tile coordinates.
     effort : {"quick", "standard", "thorough"}
-        "quick": MAP + Laplace; "standard": emcee, modest chains; "thorough": longer chains and rho^8.
+        "quick": MAP + Laplace; "standard": emcee, modest chains; "thorough": longer chains and every
+        decentred candidate.
     seed : int
         Seeds the samplers (results are reproducible).
     channels : tuple of str, optional
