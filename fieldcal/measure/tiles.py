@@ -36,6 +36,7 @@ from .throughfocus import CurveFit, CurveRules, analyse_curves
 # true scaling differ from lens to lens. That sd times each tile's sensitivity dz/d(exponent), measured on
 # the stack itself, is the breathing systematic of the band (docs/fitting.md "Breathing systematic").
 SML_WINDOW_EXPONENT = 2.0
+MIN_TILE_PX = 32
 SML_WINDOW_EXPONENT_SD = 0.61
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
 
@@ -149,7 +150,7 @@ def _effort(effort: str) -> dict:
 def default_tile_px(shape: tuple[int, int], effort: str = "standard") -> int:
     """Tile size (px) for an image of ``shape`` (H, W): about 1/8 (quick) to 1/16 (thorough) of its short side."""
     n = min(shape) / _effort(effort)["tile_div"]
-    return int(max(32, 8 * round(n / 8)))
+    return int(max(MIN_TILE_PX, 8 * round(n / 8)))
 
 
 def _check_params(stack, fs_cyc_per_mm, q, tile_px, measure):
