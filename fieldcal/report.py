@@ -212,6 +212,35 @@ def _table(rows: list[dict]) -> str:
     return f"<table><tr>{head}</tr>{''.join(body)}</table>"
 
 
+def uncertainty_budget(profile, level: float = 0.9) -> list[dict]:
+    """Per channel: the band's half-width at the optical centre and at a corner, and the terms that make it.
+
+    The band (``best_focus_interval_um``) is the posterior of the surface (model average, correlated
+    discrepancy, misfit and common-mode terms: docs/fitting.md) plus the fixed and breathing systematics in
+    quadrature; this lists the parts a lab would check before trusting it.
+    """
+    cal = getattr(profile, "calibration", {}) or {}
+    surf = profile.surfaces
+    post = (surf.diagnostics or {}).get("posterior", {}) or {}
+    rec = cal.get("systematic") or {}
+    common = rec.get("common_mode_sd_um") or {}
+    breathing = cal.get("breathing_systematic_sd_um") or {}
+    cx, cy = (float(v) for v in profile.optical_centre_px())
+    rows = []
+    for c in profile.channels:
+        lo, hi = profile.best_focus_interval_um(np.array([cx, 0.0]), np.array([cy, 0.0]), c, level=level)
+        hw = 0.5 * (np.asarray(hi) - np.asarray(lo))
+        rows.append({"channel": c, f"{level:.0%} half-width at centre (µm)": round(float(hw[0]), 3),
+                     f"{level:.0%} half-width at corner (µm)": round(float(hw[1]), 3),
+                     "breathing systematic sd (µm)": round(float(breathing.get(c, 0.0)), 3),
+                     "common-mode sd (µm)": round(float(common.get(c, 0.0)), 3),
+                     "misfit F": None if rec.get("misfit_F") is None else round(float(rec["misfit_F"]), 2),
+                     "error scale": round(float((surf.diagnostics or {}).get("error_scale", float("nan"))), 2),
+                     "posterior": post.get("method", "?") + ("" if post.get("converged", True) else " (NOT converged)"),
+                     "effective sample size": post.get("effective_sample_size")})
+    return rows
+
+
 def write_report(profile, out_dir: str | Path, *, fs: float | None = None, q: float | None = None) -> Path:
     """Write PNG plots and ``index.html`` for a profile into ``out_dir``; returns the HTML path."""
     out = Path(out_dir)
@@ -233,6 +262,8 @@ def write_report(profile, out_dir: str | Path, *, fs: float | None = None, q: fl
     for title, name in figs:
         if name:
             parts.append(f"<h2>{html.escape(title)}</h2><img src='{html.escape(name)}'>")
+    parts.append("<h2>Uncertainty budget</h2><p>The 90 % band and what it is made of (docs/fitting.md "
+                 "'Systematic').</p>" + _table(uncertainty_budget(profile)))
     parts.append("<h2>Model selection</h2>" + _table(sel))
     parts.append("<h2>Diagnostics</h2><pre>" + html.escape(json.dumps(diag, indent=2, default=str)) + "</pre>")
     parts.append("<h2>Provenance</h2><pre>" + html.escape(json.dumps(prov, indent=2, default=str)) + "</pre>")

@@ -143,3 +143,19 @@ def test_report_from_profile(profile_and_truth, tmp_path):
     assert {"index.html", "surfaces.png", "bands.png", "geometry.png", "tolerance.png", "residuals.png"} <= names
     text = html.read_text()
     assert "Model selection" in text and "chosen" in text
+    assert "Uncertainty budget" in text
+
+
+def test_uncertainty_budget_adds_up(profile_and_truth):
+    """The budget's half-widths are those of best_focus_interval_um and contain the systematic terms it lists."""
+    from fieldcal.report import uncertainty_budget
+    p, _ = profile_and_truth
+    rows = uncertainty_budget(p)
+    assert [r["channel"] for r in rows] == list(p.channels)
+    cx, cy = p.optical_centre_px()
+    for r in rows:
+        lo, hi = p.best_focus_interval_um(cx, cy, r["channel"])
+        assert r["90% half-width at centre (µm)"] == pytest.approx(0.5 * float(hi - lo), abs=1e-3)
+        floor = 1.6448536 * np.hypot(r["breathing systematic sd (µm)"], r["common-mode sd (µm)"])
+        assert r["90% half-width at centre (µm)"] >= floor - 2e-3
+        assert r["90% half-width at corner (µm)"] > 0
