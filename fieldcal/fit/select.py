@@ -94,8 +94,8 @@ def candidate_models(channels, max_order: int, astig: bool) -> list[SurfaceModel
 
 
 def _decentred_siblings(cands: list[SurfaceModel], table: list[dict], top: int) -> list[SurfaceModel]:
-    """Decentred candidates whose centred structure (with or without tilt, which a decentre can replace)
-    is among the ``top`` centred fits by BIC, best first."""
+    """Decentred candidates (in candidate order) whose centred structure, with or without tilt (which a
+    decentre can replace), is among the ``top`` centred fits by BIC."""
     ranked = sorted((e["bic"], e["name"]) for e in table if e.get("bic") is not None)
     keep = {n for _, n in ranked[:top]}
     out = []
