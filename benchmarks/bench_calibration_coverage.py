@@ -1,7 +1,7 @@
 """End-to-end band coverage: random simulated lenses → chart stacks → ``fieldcal.calibrate`` → truth.
 
-For each lens (``fieldcal.fit.synthetic.random_lens``: random curvature to rho^6, colour, tilt, decentre,
-astigmatism; mono on every 4th) a chart stack is rendered at a small size (default 320 px wide, same sensor
+For each lens (``fieldcal.fit.synthetic.random_lens(optics=True)``: random curvature to rho^6, colour, tilt,
+decentre, astigmatism, F/2-F/4, focus breathing, stage axis tilt; mono on every 4th) a chart stack is rendered at a small size (default 320 px wide, same sensor
 area) with the simulator's noise, over the focus range ± 2 tolerances in steps of half the tolerance at
 fs = 0.4 Nyquist; it is calibrated at each effort and the profile is compared with the truth on a grid over
 the whole field (corners included): coverage = fraction of (point, channel) whose true best focus lies in
@@ -114,8 +114,9 @@ def main(argv=None) -> int:
         "## Calibration end to end: 90 % band coverage over random lenses",
         "",
         f"`python benchmarks/bench_calibration_coverage.py {' '.join(argv if argv is not None else sys.argv[1:])}`"
-        f" — {run}. {n} random simulated lenses (`random_lens`: curvature to ρ⁶, colour, tilt, decentre, "
-        f"astigmatism; every 4th mono) rendered as chart stacks at {args.width} px wide over the same sensor "
+        f" — {run}. {n} random simulated lenses (`random_lens(optics=True)`: curvature to ρ⁶, colour, tilt, "
+        f"decentre, astigmatism, F/2-F/4, focus breathing (exit pupil 12-60 mm, telecentric 1 in 4), stage axis "
+        f"tilt; every 4th mono) rendered as chart stacks at {args.width} px wide over the same sensor "
         "area, simulator noise, fs = 0.4 Nyquist, steps of half the focus tolerance over the focus range ± 2 "
         "tolerances; `fieldcal.calibrate` → `surface_metrics` against `TruthProfile(spec, W, H, "
         "z_ref_um=profile.z_ref_um)` on a grid over the whole field (corners included). Coverage = fraction of "
