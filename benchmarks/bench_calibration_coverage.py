@@ -2,10 +2,11 @@
 
 For each lens (``fieldcal.fit.synthetic.random_lens(optics=True)``: random curvature to rho^6, colour, tilt,
 decentre, astigmatism, F/2-F/4, focus breathing, stage axis tilt; mono on every 4th) a chart stack is rendered
-at a small size (default 320 px wide, same sensor area) with the simulator's noise, over the focus range ± 2 tolerances in steps of half the tolerance at
-fs = 0.4 Nyquist; it is calibrated at each effort and the profile is compared with the truth on a grid over
-the whole field (corners included): coverage = fraction of (point, channel) whose true best focus lies in
-the 90 % band (target 0.85-0.95), RMS/max error, mean band half-width, time.
+at a small size (default 320 px wide, same sensor area) with the simulator's noise, over the focus range
+± 2 tolerances in steps of half the tolerance at fs = 0.4 Nyquist; it is calibrated at each effort and the
+profile is compared with the truth on a grid over the whole field (corners included): coverage = fraction of
+(point, channel) whose true best focus lies in the 90 % band (target 0.85-0.95), RMS/max error, mean band
+half-width, time.
 
 Writes a table into docs/benchmarks.md between ``<!-- bench_calibration_coverage:start -->`` and ``end``.
 
