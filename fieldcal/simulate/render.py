@@ -296,7 +296,7 @@ class Renderer:
             aff = self._affine(self.spec.z_ref_um if z_um is None else z_um, ch, breathing)
             img = self._warp(self.blur_map(ch, self._defocus_at(z_um, ch, aff)), aff)
             np.multiply(img, self._illum * np.float32(self.exposure), out=out[:, :, ci])
-        np.maximum(out, 0.0, out=out)  # bicubic/OTF ringing can dip below zero
+        np.maximum(out, 0.0, out=out)  # band-limited resampling and OTF ringing can dip below zero
         return out
 
     # ---------------------------------------------------------------------------------- public API
@@ -326,7 +326,7 @@ class Renderer:
         """What truth.json records about the renderer."""
         return {"version": RENDERER_VERSION, "level_ratio": self.level_ratio,
                 "level_floor_px": self.level_floor_px, "exposure_scale": float(self.exposure),
-                "warp": "separable Keys cubic (a=-0.5), mirrored edges", "padding": "symmetric"}
+                "warp": "separable band-limited resampling (chirp-z, fieldcal.simulate.warp.scale_shift), mirrored edges", "padding": "symmetric"}
 
 
 def _check_z(z_um) -> float:
