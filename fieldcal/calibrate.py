@@ -153,6 +153,9 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
         tol_note = f"no measured tolerance model: {e.what}"
     hasher.join()
     t_total = time.perf_counter() - t0
+    scan_end = scan_end_rejections(table)
+    if scan_end.get("warning"):
+        status("warning: " + scan_end["warning"], quiet=quiet)
 
     z = np.sort(np.asarray(stack.z_um, dtype=float))
     steps = np.diff(z)
@@ -180,6 +183,7 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
                      "geometry": getattr(geom, "diagnostics", {}),
                      "tolerance": tol_note if tol is None else getattr(tol, "diagnostics", {}),
                      "max_image_displacement_px": geo_c.max_displacement_px(),
+                     "scan_end": scan_end,
                      "timing_s": {"measure": round(t_measure, 3), "fit": round(t_fit, 3),
                                   "total": round(t_total, 3)}},
         provenance={"created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -194,6 +198,35 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
            quiet=quiet)
     return profile
 
+
+
+def scan_end_rejections(table) -> dict:
+    """Tiles rejected because their peak is at or beyond an end of the scan, per end, with a warning.
+
+    Their part of the field is then extrapolated from the others (on the triplet at F/4 that put the centre
+    1 µm low; docs/benchmarks.md), so the remedy — scanning further at that end — is worth saying.
+    """
+    st = np.asarray(table.status).astype(str)
+    bad = np.isin(st, ("peak_at_edge", "peak_outside_range"))
+    z = np.asarray(table.z_um, dtype=np.float64)
+    out = {"n_tiles": int(bad.sum()), "fraction": float(bad.mean()) if st.size else 0.0,
+           "n_low_end": 0, "n_high_end": 0}
+    curves = (getattr(table, "curves", None) or {}).get("sml")
+    if not bad.any() or z.size < 2 or curves is None or len(curves) != st.size:
+        return out
+    k = np.argmax(np.nan_to_num(np.asarray(curves)[bad], nan=-np.inf), axis=1)
+    order = np.argsort(z)
+    high = z[k] >= z[order[z.size // 2]]
+    out["n_high_end"], out["n_low_end"] = int(high.sum()), int((~high).sum())
+    ends = []
+    if out["n_low_end"]:
+        ends.append(f"below {z.min():g} µm")
+    if out["n_high_end"]:
+        ends.append(f"above {z.max():g} µm")
+    out["warning"] = (f"{out['n_tiles']} tiles ({100 * out['fraction']:.0f} %) peak at or beyond an end of the scan "
+                      f"and were rejected; their part of the field is extrapolated. Extend the scan "
+                      f"{' and '.join(ends)} by a few focus tolerances")
+    return out
 
 
 def breathing_systematic_sd_um(table) -> dict[str, float]:

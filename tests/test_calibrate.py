@@ -137,3 +137,24 @@ def test_band_survives_a_round_trip(tmp_path):
     for c in s.channels:
         np.testing.assert_allclose(back.predict(x, y, c), s.predict(x, y, c), atol=1e-9)
         np.testing.assert_allclose(np.array(back.interval(x, y, c)), np.array(s.interval(x, y, c)), atol=1e-9)
+
+
+def test_tiles_peaking_past_a_scan_end_are_reported_with_the_end_to_extend():
+    """Rejections at the scan's ends are counted per end from where the curves peak, with a warning naming
+    the end to extend; a table without them gets no warning."""
+    from fieldcal.calibrate import scan_end_rejections
+    from fieldcal.measure.tiles import TileTable
+
+    z = np.arange(0.0, 100.0, 10.0)
+    peak = lambda zc: np.exp(-0.5 * ((z - zc) / 15.0) ** 2)
+    status = np.array(["ok", "peak_at_edge", "peak_outside_range", "low_texture"])
+    curves = np.array([peak(50.0), peak(95.0), peak(-20.0), peak(40.0)])
+    nan = np.full(4, np.nan)
+    t = TileTable(channel=np.array(["G"] * 4), x_px=np.zeros(4), y_px=np.zeros(4), z_best_um=nan, z_sigma_um=nan,
+                  width_um=nan, peak=nan, status=status, z_tan_um=nan, z_sag_um=nan, z_um=z,
+                  curves={"sml": curves})
+    r = scan_end_rejections(t)
+    assert (r["n_tiles"], r["n_low_end"], r["n_high_end"]) == (2, 1, 1)
+    assert "below 0 µm" in r["warning"] and "above 90 µm" in r["warning"]
+    t.status = np.array(["ok", "ok", "low_texture", "ok"])
+    assert "warning" not in scan_end_rejections(t) and scan_end_rejections(t)["n_tiles"] == 0
