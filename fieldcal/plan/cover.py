@@ -44,13 +44,18 @@ def _check(lo, hi):
     return lo, hi
 
 
+def _touch_tol(values: np.ndarray) -> float:
+    """Distance below which two interval ends count as touching: float noise in bin edges never costs a frame."""
+    return 1e-9 * max(1.0, float(np.max(np.abs(values))) if np.size(values) else 1.0)
+
+
 def _greedy_sorted(lo: np.ndarray, hi: np.ndarray, start_after: float = -np.inf):
     """Greedy on intervals already sorted by ``hi``; skips intervals containing ``start_after``.
 
     Ends closer than ``1e-9 * scale`` count as touching, so float noise in bin edges never costs a frame.
     """
     points, wit = [], []
-    atol = 1e-9 * max(1.0, float(np.max(np.abs(hi))) if hi.size else 1.0)
+    atol = _touch_tol(hi)
     last = start_after
     i, n = 0, lo.size
     while i < n:
@@ -83,8 +88,11 @@ def anchored_cover(lo, hi, anchor_um: float) -> Cover:
     """
     lo, hi = _check(lo, hi)
     a = float(anchor_um)
-    above = lo > a
-    below = hi < a
+    # the anchor serves the intervals it touches within the greedy's own tolerance (ends closer than
+    # 1e-9 * scale touch): strict comparisons here gave a point more than min_cover + 1 on float noise
+    atol = _touch_tol(np.concatenate([lo, hi, [a]]))
+    above = lo > a + atol
+    below = hi < a - atol
     pts = [a]
     wit = []
     if above.any():
