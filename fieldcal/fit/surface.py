@@ -321,8 +321,7 @@ class SurfaceModel:
         x_hat = np.asarray(x_hat, dtype=np.float64).ravel()
         y_hat = np.asarray(y_hat, dtype=np.float64).ravel()
         beta, centre, *_ = self.split(theta)
-        r2 = (x_hat - centre[..., 0:1]) ** 2 + (y_hat - centre[..., 1:2]) ** 2 if theta.ndim == 2 else \
-            (x_hat - centre[0]) ** 2 + (y_hat - centre[1]) ** 2
+        r2 = _radius2(theta, centre, x_hat, y_hat)
         j0 = self._col_channel(channel_index, 0)
         z = beta[..., j0:j0 + 1] * np.ones_like(r2)
         pw = np.ones_like(r2)
@@ -343,8 +342,7 @@ class SurfaceModel:
         beta, centre, *_ = self.split(theta)
         if not self.astig:
             return np.zeros(theta.shape[:-1] + x_hat.shape)
-        r2 = (x_hat - centre[..., 0:1]) ** 2 + (y_hat - centre[..., 1:2]) ** 2 if theta.ndim == 2 else \
-            (x_hat - centre[0]) ** 2 + (y_hat - centre[1]) ** 2
+        r2 = _radius2(theta, centre, x_hat, y_hat)
         j = self._col_astig + channel_index
         return beta[..., j:j + 1] * r2 if theta.ndim == 2 else beta[j] * r2
 
@@ -395,6 +393,13 @@ class SurfaceModel:
     def from_dict(cls, d: dict) -> "SurfaceModel":
         return cls(tuple(d["channels"]), int(d["order"]), bool(d["tilt"]), bool(d["decentre"]),
                    bool(d["astig"]), bool(d["astig_rows"]), int(d.get("channel_order", d["order"])))
+
+
+def _radius2(theta: np.ndarray, centre: np.ndarray, x_hat: np.ndarray, y_hat: np.ndarray) -> np.ndarray:
+    """rho^2 about the centre of one parameter vector (m,) or of each of a batch (B, m)."""
+    if theta.ndim == 2:
+        return (x_hat - centre[..., 0:1]) ** 2 + (y_hat - centre[..., 1:2]) ** 2
+    return (x_hat - centre[0]) ** 2 + (y_hat - centre[1]) ** 2
 
 
 def student_t_loglik(resid, sigma, nu):
