@@ -9,7 +9,9 @@ from fieldcal.hardware.gcs2 import GCS2Client, GCS2Stage
 from fieldcal.hardware.gcs2_emulator import HELP_LINES, IDN, GCS2Emulator, PtyServer, TcpServer
 from fieldcal.hardware.protocols import DeviceFault
 
-TIMEOUT_MS = 60
+# Reply timeout of the clients under test. 60 ms was too short on a loaded 2-core CI machine (an emulator
+# thread starved by the other test worker missed it now and then); tests of late or dropped replies scale with it.
+TIMEOUT_MS = 300
 
 
 @pytest.fixture(params=["pty", "tcp"])
