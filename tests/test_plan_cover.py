@@ -41,6 +41,9 @@ def test_greedy_is_minimal_and_certified(iv):
 @settings(max_examples=60, deadline=None)
 @given(intervals, st.floats(-50, 60))
 @example(iv=[(0.0, 0.0), (1.1515657359150931e-138, 0.0)], anchor=2.5402085802883755e-158)  # float-noise anchor
+@example(iv=[(0.0, 0.0), (0.0, 5.0)], anchor=4.21621589438089e-09)  # anchor within the touching tolerance
+@example(iv=[(0.0, 0.0), (4.21621589438089e-09, 0.0), (-5.0, 0.0)], anchor=-1.0)
+@example(iv=[(0.0, 0.0), (5.0, 5.0)], anchor=1.409510979260042e-08)
 def test_anchored_cover_contains_anchor_and_costs_at_most_one_more(iv, anchor):
     lo = np.array([a for a, _ in iv])
     hi = lo + np.array([w for _, w in iv])

@@ -49,13 +49,14 @@ def _touch_tol(values: np.ndarray) -> float:
     return 1e-9 * max(1.0, float(np.max(np.abs(values))) if np.size(values) else 1.0)
 
 
-def _greedy_sorted(lo: np.ndarray, hi: np.ndarray, start_after: float = -np.inf):
+def _greedy_sorted(lo: np.ndarray, hi: np.ndarray, start_after: float = -np.inf, atol: float | None = None):
     """Greedy on intervals already sorted by ``hi``; skips intervals containing ``start_after``.
 
-    Ends closer than ``1e-9 * scale`` count as touching, so float noise in bin edges never costs a frame.
+    Ends closer than ``atol`` (default ``1e-9 * scale``) count as touching, so float noise in bin edges never
+    costs a frame.
     """
     points, wit = [], []
-    atol = _touch_tol(hi)
+    atol = _touch_tol(hi) if atol is None else atol
     last = start_after
     i, n = 0, lo.size
     while i < n:
@@ -70,13 +71,16 @@ def _greedy_sorted(lo: np.ndarray, hi: np.ndarray, start_after: float = -np.inf)
     return points, wit
 
 
-def min_cover(lo, hi) -> Cover:
-    """Minimum set of points such that every interval ``[lo_i, hi_i]`` contains one (exact, O(n log n + N n))."""
+def min_cover(lo, hi, atol: float | None = None) -> Cover:
+    """Minimum set of points such that every interval ``[lo_i, hi_i]`` contains one (exact, O(n log n + N n)).
+
+    Ends closer than ``atol`` touch (default: 1e-9 of the largest magnitude, at least 1e-9).
+    """
     lo, hi = _check(lo, hi)
     if lo.size == 0:
         return Cover(np.zeros(0), np.zeros(0, dtype=np.int64))
     order = np.argsort(hi, kind="stable")
-    pts, wit = _greedy_sorted(lo[order], hi[order])
+    pts, wit = _greedy_sorted(lo[order], hi[order], atol=atol)
     return Cover(np.asarray(pts, dtype=np.float64), order[np.asarray(wit, dtype=np.int64)])
 
 
@@ -97,21 +101,24 @@ def anchored_cover(lo, hi, anchor_um: float) -> Cover:
     wit = []
     if above.any():
         idx = np.flatnonzero(above)
-        c = min_cover(lo[idx], hi[idx])
+        c = min_cover(lo[idx], hi[idx], atol=atol)
         pts += list(c.points_um)
         wit += list(idx[c.witnesses])
     if below.any():
         idx = np.flatnonzero(below)
-        c = min_cover(-hi[idx], -lo[idx])  # mirror: greedy from the anchor downward
+        c = min_cover(-hi[idx], -lo[idx], atol=atol)  # mirror: greedy from the anchor downward
         pts += list(-c.points_um)
         wit += list(idx[c.witnesses])
     return Cover(np.sort(np.asarray(pts, dtype=np.float64)), np.asarray(wit, dtype=np.int64))
 
 
-def is_cover(points, lo, hi, atol: float = 1e-9) -> bool:
-    """True if every interval contains at least one of ``points``."""
+def is_cover(points, lo, hi, atol: float | None = None) -> bool:
+    """True if every interval contains at least one of ``points`` (within ``atol``: by default the covers'
+    own touching tolerance, 1e-9 of the largest magnitude and at least 1e-9)."""
     lo, hi = _check(lo, hi)
     p = np.sort(np.asarray(points, dtype=np.float64))
+    if atol is None:
+        atol = _touch_tol(np.concatenate([lo, hi, p]))
     if p.size == 0:
         return lo.size == 0
     # the first point >= lo must also be <= hi
