@@ -18,7 +18,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 os.environ.setdefault("MPLBACKEND", "Agg")
 
-from fieldcal._io import atomic_write_bytes, atomic_write_text  # noqa: E402
+from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text  # noqa: E402
 
 
 def pareto_front(rows: list[dict], objectives: list[tuple[str, str]]) -> list[bool]:
@@ -88,5 +88,5 @@ def save_fig(fig, path: Path) -> Path:
 
 
 def triplet(size: tuple[int, int]):
-    from fieldcal.lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
     return LensSpec.load(REPO / "models" / "triplet-uncorrected.json").with_sensor_size(*size)

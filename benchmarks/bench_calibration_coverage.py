@@ -34,7 +34,7 @@ def simulate_lens(k: int, width_px: int, workdir: Path, seed: int = 7000):
     """Render lens ``k``'s chart stack; returns (spec, stack dir, fs, z step)."""
     from fieldcal.fit.synthetic import random_lens
     from fieldcal.simulate.stackgen import simulate_stack
-    from fieldcal.validate import chart_positions_um, default_fs
+    from fieldcal.validation.run import chart_positions_um, default_fs
 
     rng = np.random.default_rng(seed + k)
     spec = random_lens(rng, channels=("R", "G", "B") if k % 4 else ("Y",), optics=True)
@@ -49,8 +49,8 @@ def simulate_lens(k: int, width_px: int, workdir: Path, seed: int = 7000):
 
 def run_one(spec, stack_dir, fs, effort, seed=0) -> dict:
     import fieldcal
-    from fieldcal.truth import TruthProfile
-    from fieldcal.validate import surface_metrics
+    from fieldcal.simulate.truth import TruthProfile
+    from fieldcal.validation.run import surface_metrics
 
     t0 = time.perf_counter()
     prof = fieldcal.calibrate(stack_dir, fs_cyc_per_mm=fs, effort=effort, z_ref_um=0.0, seed=seed, quiet=True)

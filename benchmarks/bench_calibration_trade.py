@@ -28,10 +28,10 @@ DEFAULT = {"step_tol": 0.5, "margin_tol": 3.0, "tile": "default", "effort": "sta
 
 
 def run_one(spec, z_um, stack_dir, fs, q, tile_px, effort, seed):
-    from fieldcal.calibrate import calibrate
-    from fieldcal.stack import Stack
-    from fieldcal.truth import TruthProfile
-    from fieldcal.validate import surface_metrics
+    from fieldcal.calibration.pipeline import calibrate
+    from fieldcal.formats.stack import Stack
+    from fieldcal.simulate.truth import TruthProfile
+    from fieldcal.validation.run import surface_metrics
     t0 = time.perf_counter()
     prof = calibrate(Stack.open(stack_dir), fs_cyc_per_mm=fs, q=q, effort=effort, tile_px=tile_px,
                      z_ref_um=spec.z_ref_um, seed=seed, quiet=True)
@@ -54,7 +54,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from fieldcal.simulate import simulate_stack
-    from fieldcal.validate import chart_positions_um, default_fs
+    from fieldcal.validation.run import chart_positions_um, default_fs
 
     size = tuple(int(v) for v in (args.size or ("160x90" if args.quick else "256x144")).split("x"))
     spec = triplet(size)

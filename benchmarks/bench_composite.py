@@ -167,9 +167,9 @@ def quality(lens: str, scene_name: str, width: int, work: Path, enfuse: bool, ca
     from fieldcal.composite.stream import accumulate
     from fieldcal.composite.surface import profile_focus_map
     from fieldcal.composite.weights import BlendKernel
-    from fieldcal.lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
     from fieldcal.simulate import simulate_stack
-    from fieldcal.truth import TruthProfile
+    from fieldcal.simulate.truth import TruthProfile
 
     spec0 = LensSpec.load(REPO / "models" / f"{lens}.json")
     height = round(width * spec0.sensor.height_px / spec0.sensor.width_px)
@@ -242,7 +242,7 @@ def quality(lens: str, scene_name: str, width: int, work: Path, enfuse: bool, ca
 
 def calibrated_psnr(spec, z, work: Path, scene_stack, truth, white) -> float:
     """Calibrate from a chart stack of the same lens, then composite the scene stack with that profile."""
-    from fieldcal.calibrate import calibrate
+    from fieldcal.calibration.pipeline import calibrate
     from fieldcal.composite import composite_stack
     from fieldcal.simulate import simulate_stack
     lo, hi = spec.focus_range_um()
@@ -260,9 +260,9 @@ def sweep(width: int, work: Path) -> dict:
     import tifffile
     from fieldcal.composite import deconvolve_sweep, emulate_sweep
     from fieldcal.composite.stack_profile import to_input_dtype
-    from fieldcal.lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
     from fieldcal.simulate import simulate_stack
-    from fieldcal.truth import TruthProfile
+    from fieldcal.simulate.truth import TruthProfile
 
     spec0 = LensSpec.load(REPO / "models" / "triplet-uncorrected.json")
     height = round(width * spec0.sensor.height_px / spec0.sensor.width_px)
@@ -295,8 +295,8 @@ def sweep(width: int, work: Path) -> dict:
 def make_speed_stack(path: Path, width: int, height: int, n: int) -> None:
     """N frames of smooth random texture, RGB uint16 with 12-bit values, z over the triplet's focus range."""
     import cv2
-    from fieldcal.lens import LensSpec
-    from fieldcal.stack import Stack, StackWriter
+    from fieldcal.simulate.lens import LensSpec
+    from fieldcal.formats.stack import Stack, StackWriter
     if (path / "stack.json").exists():
         try:
             s = Stack.open(path)
@@ -340,7 +340,7 @@ def _fieldcal_runs(spath: Path, lens: Path, out: Path, repeat: int, src: Path | 
 
 
 def _speed_inputs(width: int, height: int, n: int, work: Path) -> tuple[Path, Path]:
-    from fieldcal.lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
     spath = work / f"speed-{width}x{height}x{n}"
     make_speed_stack(spath, width, height, n)
     spec = LensSpec.load(REPO / "models" / "triplet-uncorrected.json").with_sensor_size(width, height)
@@ -354,7 +354,7 @@ def speed(size: tuple[int, int, int], work: Path, enfuse: bool, ratio_size: tupl
     """fieldcal's time on the speed stack (and a baseline source tree's, if given), and the ratio against
     align_image_stack + enfuse measured in the same run on ``ratio_size`` (default: the speed stack)."""
     import os
-    from fieldcal.stack import Stack
+    from fieldcal.formats.stack import Stack
     spath, lens = _speed_inputs(*size, work)
     out = {"size": list(size[:2]), "frames": size[2], "cores": len(os.sched_getaffinity(0))}
     out["fieldcal"] = _fieldcal_runs(spath, lens, work / "speed-profile.tiff", repeat)
@@ -469,7 +469,7 @@ def speed_markdown(res: dict) -> str:
 
 def write_docs(doc: Path, section: str, speed_only: bool = False) -> None:
     """Replace our section of docs/benchmarks.md (or, for a speed-only run, only its speed table)."""
-    from fieldcal._io import atomic_write_text
+    from fieldcal.formats.atomic import atomic_write_text
     text = doc.read_text() if doc.exists() else "# Benchmarks\n"
     if speed_only and START in text and END in text:
         if SPEED_START in text and SPEED_END in text:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fieldcal._io import atomic_write_text
+from fieldcal.formats.atomic import atomic_write_text
 from fieldcal.fit import fit_surfaces
 from fieldcal.fit.synthetic import band_coverage, random_lens, surface_rms_error_um, synthetic_tiles
 from fieldcal.progress import progress

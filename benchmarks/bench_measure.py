@@ -43,7 +43,7 @@ def _measure_child(stack_dir: str, effort: str, measure: str, fs: float, q: floa
         for name in [m for m in sys.modules if m == "fieldcal" or m.startswith("fieldcal.")]:
             del sys.modules[name]
     from fieldcal.measure import measure_stack
-    from fieldcal.stack import Stack
+    from fieldcal.formats.stack import Stack
     stack = Stack.open(stack_dir)
     t0, c0 = time.perf_counter(), time.process_time()
     table, geo = measure_stack(stack, fs_cyc_per_mm=fs, q=q, effort=effort, measure=measure, quiet=True)
@@ -74,7 +74,7 @@ def _tile_truth(tp, x, y, ch, tile):
 
 
 def _accuracy(res: dict, spec, fs: float, q: float, step_um: float) -> dict:
-    from fieldcal.truth import TruthProfile
+    from fieldcal.simulate.truth import TruthProfile
     # tile positions are in the geometry of the reference frame of the measurement
     tp = TruthProfile(spec, z_ref_um=float(res["geo"]["z_um"][res["geo"]["ref_index"]]))
     t = {k: np.asarray(v) for k, v in res["table"].items()}
@@ -120,9 +120,9 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline-label", default="before", help="label of the baseline rows (default: before)")
     args = ap.parse_args(argv)
 
-    from fieldcal.lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
     from fieldcal.simulate import simulate_stack
-    from fieldcal.stack import Stack
+    from fieldcal.formats.stack import Stack
 
     spec0 = LensSpec.load(REPO / "models" / "triplet-uncorrected.json")
     size, n_frames = ((480, 270), 21) if args.quick else ((1920, 1080), 41)

@@ -20,7 +20,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from fieldcal.lens import LensSpec  # noqa: E402
+from fieldcal.simulate.lens import LensSpec  # noqa: E402
 from fieldcal.raytrace.bestfocus import SearchSettings, trace_focus_table, through_focus_tolerance_um  # noqa: E402
 from fieldcal.raytrace.build import compare_with_spec, fit_even_polynomial  # noqa: E402
 from fieldcal.raytrace.prescription import load_prescription  # noqa: E402

@@ -38,9 +38,9 @@ def levels_used(renderer, z_um: float) -> int:
 
 
 def run(width: int, height: int, z_list, lens: str) -> dict:
-    from fieldcal.lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
     from fieldcal.simulate import Renderer
-    from fieldcal.targets import chart_image
+    from fieldcal.charts.targets import chart_image
 
     spec = LensSpec.load(REPO / "models" / f"{lens}.json").with_sensor_size(width, height)
     t0 = time.perf_counter()
@@ -82,7 +82,7 @@ def table(rows: list[dict]) -> str:
 
 
 def write_section(text: str, path: Path) -> None:
-    from fieldcal._io import atomic_write_text
+    from fieldcal.formats.atomic import atomic_write_text
     body = f"{START}\n{text}{END}"
     if path.exists():
         old = path.read_text()

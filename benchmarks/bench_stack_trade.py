@@ -49,8 +49,8 @@ def main(argv=None) -> int:
     from fieldcal.errors import FieldcalError
     from fieldcal.plan import StackRequest, plan_stack
     from fieldcal.simulate import Renderer, simulate_stack
-    from fieldcal.truth import TruthProfile
-    from fieldcal.validate import (_scene_image, border_px_for, chart_positions_um, default_fs, image_quality,
+    from fieldcal.simulate.truth import TruthProfile
+    from fieldcal.validation.run import (_scene_image, border_px_for, chart_positions_um, default_fs, image_quality,
                                    on_axis_focus_um, plan_coverage, true_tolerances)
 
     size = tuple(int(v) for v in (args.size or ("192x108" if args.quick else "256x144")).split("x"))
@@ -67,7 +67,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench-stack-") as tmp:
         tmp = Path(tmp)
         if source == "calibrate":
-            from fieldcal.calibrate import calibrate
+            from fieldcal.calibration.pipeline import calibrate
             tol0 = min(true_tolerances(spec, fs, 0.05).values())
             chart = simulate_stack(spec, tmp / "chart", chart_positions_um(spec, tol0, 0.5, 3.0), scene="chart",
                                    seed=args.seed, progress=False)

@@ -27,12 +27,12 @@ def main(argv=None) -> int:
     ap.add_argument("--q", type=float, default=0.05)
     args = ap.parse_args(argv)
 
-    from fieldcal.lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
     from fieldcal.plan import StackRequest, plan_stack
     from fieldcal.plan.plots import plot_alpha_trade, plot_masks, plot_stack_plan, plot_windows
     from fieldcal.plan.stack_plan import optimal_uniform_count
     from fieldcal.plan.sweep_plan import SweepRequest, plan_sweep
-    from fieldcal.truth import TruthProfile
+    from fieldcal.simulate.truth import TruthProfile
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

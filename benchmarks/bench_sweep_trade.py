@@ -48,8 +48,8 @@ def main(argv=None) -> int:
     from fieldcal.composite import deconvolve_sweep, emulate_sweep
     from fieldcal.plan import ipsf
     from fieldcal.simulate import simulate_stack
-    from fieldcal.truth import TruthProfile
-    from fieldcal.validate import _scene_image, border_px_for, default_fs, image_quality
+    from fieldcal.simulate.truth import TruthProfile
+    from fieldcal.validation.run import _scene_image, border_px_for, default_fs, image_quality
 
     size = tuple(int(v) for v in (args.size or ("160x90" if args.quick else "256x144")).split("x"))
     spec = triplet(size)

@@ -17,12 +17,12 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 _LAZY = {
-    "Stack": ("fieldcal.stack", "Stack"),
-    "StackWriter": ("fieldcal.stack", "StackWriter"),
-    "LensSpec": ("fieldcal.lens", "LensSpec"),
-    "LensProfile": ("fieldcal.profile", "LensProfile"),
-    "TruthProfile": ("fieldcal.truth", "TruthProfile"),
-    "calibrate": ("fieldcal.calibrate", "calibrate"),
+    "Stack": ("fieldcal.formats.stack", "Stack"),
+    "StackWriter": ("fieldcal.formats.stack", "StackWriter"),
+    "LensSpec": ("fieldcal.simulate.lens", "LensSpec"),
+    "LensProfile": ("fieldcal.profile.lens_profile", "LensProfile"),
+    "TruthProfile": ("fieldcal.simulate.truth", "TruthProfile"),
+    "calibrate": ("fieldcal.calibration.pipeline", "calibrate"),
     "FieldcalError": ("fieldcal.errors", "FieldcalError"),
 }
 

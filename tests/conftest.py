@@ -26,7 +26,7 @@ def small_chart_stack(tmp_path_factory):
 
     Shared by the calibration tests: fs must stay below this size's Nyquist (20 cycles/mm at 24.5 µm pixels).
     """
-    from fieldcal.lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
     from fieldcal.simulate.stackgen import simulate_stack, z_grid
 
     spec = LensSpec.load(MODELS / "triplet-uncorrected.json")

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fieldcal import Stack
-from fieldcal.acquire import JOURNAL, CapturePlan, Journal, capture
+from fieldcal.capture.acquire import JOURNAL, CapturePlan, Journal, capture
 from fieldcal.cli import main
 from fieldcal.errors import LinkError, ParameterError, SpecError, StackError
 from fieldcal.hardware.protocols import DeviceFault, Frame
@@ -161,7 +161,7 @@ def test_plan_outside_travel_is_refused_before_any_motion(tmp_path, triplet_path
 
 
 def test_every_frame_sees_the_same_backlash_offset(tmp_path, triplet_path):
-    plan = CapturePlan(tuple(__import__("fieldcal.acquire", fromlist=["PlannedFrame"]).PlannedFrame(i, z)
+    plan = CapturePlan(tuple(__import__("fieldcal.capture.acquire", fromlist=["PlannedFrame"]).PlannedFrame(i, z)
                              for i, z in enumerate([0.0, 30.0, 10.0, 40.0, 20.0])), approach="+z")
     stage, cam = _devices(triplet_path, backlash_um=5.0, noise_um=0.0)
     rendered = []

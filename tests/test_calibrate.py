@@ -10,13 +10,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fieldcal.calibrate import calibrate
+from fieldcal.calibration.pipeline import calibrate
 from fieldcal.fit.result import SurfaceFit
 from fieldcal.fit.synthetic import base_lens, random_lens
-from fieldcal.lens import LensSpec
+from fieldcal.simulate.lens import LensSpec
 from fieldcal.simulate.stackgen import simulate_stack
-from fieldcal.truth import TruthProfile
-from fieldcal.validate import chart_positions_um, default_fs, surface_metrics
+from fieldcal.simulate.truth import TruthProfile
+from fieldcal.validation.run import chart_positions_um, default_fs, surface_metrics
 
 W, H = 192, 144
 
@@ -142,7 +142,7 @@ def test_band_survives_a_round_trip(tmp_path):
 def test_tiles_peaking_past_a_scan_end_are_reported_with_the_end_to_extend():
     """Rejections at the scan's ends are counted per end from where the curves peak, with a warning naming
     the end to extend; a table without them gets no warning."""
-    from fieldcal.calibrate import scan_end_rejections
+    from fieldcal.calibration.pipeline import scan_end_rejections
     from fieldcal.measure.tiles import TileTable
 
     z = np.arange(0.0, 100.0, 10.0)

@@ -24,8 +24,8 @@ from fieldcal.composite.stream import accumulate
 from fieldcal.composite.surface import profile_focus_map
 from fieldcal.composite.weights import BlendKernel
 from fieldcal.errors import ParameterError
-from fieldcal.lens import LensSpec
-from fieldcal.truth import TruthProfile
+from fieldcal.simulate.lens import LensSpec
+from fieldcal.simulate.truth import TruthProfile
 
 SIZE = 160
 Z_UM = np.arange(-60.0, 12.1, 4.0)

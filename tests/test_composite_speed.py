@@ -19,9 +19,9 @@ from fieldcal.composite.surface import grid_step_px, output_best_focus_um, profi
 from fieldcal.composite.weights import BlendKernel, SweepKernel
 from fieldcal.composite.warp import FrameMap, affine_for, source_box
 from fieldcal.errors import StackError
-from fieldcal.lens import LensSpec
-from fieldcal.stack import Stack, StackWriter
-from fieldcal.truth import TruthProfile
+from fieldcal.simulate.lens import LensSpec
+from fieldcal.formats.stack import Stack, StackWriter
+from fieldcal.simulate.truth import TruthProfile
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")
 

@@ -16,8 +16,8 @@ from fieldcal.composite.sweep import (estimate_noise_sigma, integrated_otf, sign
 from fieldcal.composite.warp import FrameMap, affine_for, source_box, warp_region
 from fieldcal.composite.weights import BlendKernel, SweepKernel
 from fieldcal.errors import FieldcalError, ParameterError
-from fieldcal.lens import LensSpec
-from fieldcal.truth import TruthProfile
+from fieldcal.simulate.lens import LensSpec
+from fieldcal.simulate.truth import TruthProfile
 
 positions = st.lists(st.floats(-500, 500, allow_nan=False), min_size=1, max_size=12, unique=True).map(
     lambda v: np.array(sorted(v))).filter(lambda z: len(z) < 2 or np.min(np.diff(z)) > 1e-3)

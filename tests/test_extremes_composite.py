@@ -14,8 +14,8 @@ import pytest
 
 from fieldcal.composite import ArrayStack, composite_stack, deconvolve_sweep
 from fieldcal.errors import FieldcalError, ParameterError
-from fieldcal.lens import ChannelSpec, LensSpec, SensorSpec
-from fieldcal.truth import TruthProfile
+from fieldcal.simulate.lens import ChannelSpec, LensSpec, SensorSpec
+from fieldcal.simulate.truth import TruthProfile
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")
 
@@ -123,7 +123,7 @@ sys.path.insert(0, "tests")
 from test_extremes_composite import lens
 from fieldcal.composite import deconvolve_sweep
 from fieldcal.errors import FieldcalError
-from fieldcal.truth import TruthProfile
+from fieldcal.simulate.truth import TruthProfile
 img = np.random.default_rng(1).random((32, 48, 3)).astype(np.float32) * 4000 + 50
 try:
     res = deconvolve_sweep(img, TruthProfile(lens(curvature_um=-40.0)), 1e5, "RGB", black=0.0, white=4095.0,

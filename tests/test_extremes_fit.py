@@ -86,7 +86,7 @@ def test_curvature_of_any_sign_and_size_is_recovered(a_um, z0_um, seed):
 
 
 def _tiny_colour_lens(w=128, h=96):
-    from fieldcal.lens import ChannelSpec, LensSpec, SensorSpec
+    from fieldcal.simulate.lens import ChannelSpec, LensSpec, SensorSpec
     hmax = 0.5 * math.hypot(w, h) * 4.0 / 1000.0
     return LensSpec(name="tiny", focal_length_mm=10.0, f_number=4.0, image_height_max_mm=hmax,
                     channels=(ChannelSpec("Y", 546.1, 0.0, (-40.0,)),),
@@ -94,7 +94,7 @@ def _tiny_colour_lens(w=128, h=96):
 
 
 def _write(tmp_path, frames, z):
-    from fieldcal.stack import StackWriter
+    from fieldcal.formats.stack import StackWriter
     w = StackWriter.create(tmp_path / "s", pixel_pitch_um=4.0, channels=["Y"], bit_depth=12)
     for f, zi in zip(frames, z):
         w.add_frame(f, zi)
@@ -102,7 +102,7 @@ def _write(tmp_path, frames, z):
 
 
 def test_calibrating_a_textureless_stack_says_every_tile_was_rejected(tmp_path):
-    from fieldcal.calibrate import calibrate
+    from fieldcal.calibration.pipeline import calibrate
     z = np.arange(-40.0, 40.1, 8.0)
     stack = _write(tmp_path, [np.full((96, 128), 2000, np.uint16) for _ in z], z)
     with pytest.raises(FieldcalError) as e:
@@ -112,7 +112,7 @@ def test_calibrating_a_textureless_stack_says_every_tile_was_rejected(tmp_path):
 
 @pytest.mark.parametrize("n", [1, 2])
 def test_calibrating_one_or_two_frames_is_a_clear_error(tmp_path, n):
-    from fieldcal.calibrate import calibrate
+    from fieldcal.calibration.pipeline import calibrate
     z = [0.0, 8.0][:n]
     stack = _write(tmp_path, [np.full((96, 128), 2000, np.uint16) for _ in z], z)
     with pytest.raises(FieldcalError) as e:
@@ -122,9 +122,9 @@ def test_calibrating_one_or_two_frames_is_a_clear_error(tmp_path, n):
 
 def test_calibrate_a_tiny_simulated_stack_recovers_the_surface(tmp_path):
     """A working end-to-end reference for the cases above: the quick calibration of a 128x96 stack."""
-    from fieldcal.calibrate import calibrate
+    from fieldcal.calibration.pipeline import calibrate
     from fieldcal.simulate import simulate_stack
-    from fieldcal.truth import TruthProfile
+    from fieldcal.simulate.truth import TruthProfile
     spec = _tiny_colour_lens()
     stack = simulate_stack(spec, tmp_path / "s", np.arange(-100.0, 61.0, 5.0), seed=1, progress=False)
     prof = calibrate(stack, fs_cyc_per_mm=40.0, effort="quick", tile_px=16, quiet=True)
@@ -137,5 +137,5 @@ def test_calibrate_a_tiny_simulated_stack_recovers_the_surface(tmp_path):
 def test_public_calibrate_stays_callable_after_the_submodule_is_imported():
     import importlib
     import fieldcal
-    importlib.import_module("fieldcal.calibrate")
+    importlib.import_module("fieldcal.calibration.pipeline")
     assert callable(fieldcal.calibrate)

@@ -15,13 +15,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fieldcal.errors import ParameterError
-from fieldcal.lens import LensSpec, focus_tolerance_um
+from fieldcal.simulate.lens import LensSpec, focus_tolerance_um
 from fieldcal.plan import Scene, StackRequest, SweepRequest, check_coverage, plan_stack, plan_sweep
 from fieldcal.plan import ipsf
 from fieldcal.plan.stack_plan import MAX_FRAMES
 from fieldcal.plan.surfaces import sample_field
 from fieldcal.plan.synthetic import SyntheticProfile
-from fieldcal.truth import TruthProfile
+from fieldcal.simulate.truth import TruthProfile
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")
 

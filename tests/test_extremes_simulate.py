@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fieldcal.errors import FieldcalError, ParameterError
-from fieldcal.lens import ChannelSpec, LensSpec, SensorSpec
+from fieldcal.simulate.lens import ChannelSpec, LensSpec, SensorSpec
 from fieldcal.simulate import Renderer, simulate_stack
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")

@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fieldcal.errors import FieldcalError, StackError
-from fieldcal.stack import Stack, StackWriter
+from fieldcal.formats.stack import Stack, StackWriter
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")
 

@@ -9,7 +9,7 @@ import pytest
 from fieldcal.fit import FitError, GeometryData, GeometryFit, ToleranceFit, fit_geometry, fit_tolerance
 from fieldcal.fit.synthetic import base_lens, synthetic_tiles
 from fieldcal.fit.tolerance import shape_factor
-from fieldcal.lens import focus_tolerance_um
+from fieldcal.simulate.lens import focus_tolerance_um
 
 
 def _geometry_data(spec, z, rng, mag_sigma=2e-5, shift_sigma=0.02, quad=0.0, under=1.0):

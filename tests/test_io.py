@@ -3,7 +3,7 @@ import stat
 
 import pytest
 
-from fieldcal._io import atomic_write_bytes, atomic_write_text
+from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text
 
 
 def test_atomic_write_keeps_usual_permissions_and_leaves_no_temp(tmp_path):

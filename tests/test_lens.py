@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, strategies as st
 
 from fieldcal.errors import SpecError
-from fieldcal.lens import LensSpec, defocus_otf, diffraction_mtf, focus_tolerance_um
-from fieldcal.truth import TruthProfile
+from fieldcal.simulate.lens import LensSpec, defocus_otf, diffraction_mtf, focus_tolerance_um
+from fieldcal.simulate.truth import TruthProfile
 
 
 def test_triplet_matches_reconstruction_table(triplet_path):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from fieldcal.lens import focus_tolerance_um
+from fieldcal.simulate.lens import focus_tolerance_um
 from fieldcal.measure.throughfocus import (CurveRules, analyse_curve, analyse_curves, defocus_d, defocus_d_prime,
                                            otf_model, peak_model)
 
@@ -16,7 +16,7 @@ FS = 80.0
 
 
 def test_defocus_d_matches_lens_model_and_derivative():
-    from fieldcal.lens import defocus_otf
+    from fieldcal.simulate.lens import defocus_otf
     f = 80.0
     dz = np.linspace(-40, 40, 81)
     x = math.pi * f * 1e-3 * dz / 2.0  # F/2: blur diameter dz/2

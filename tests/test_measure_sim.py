@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from fieldcal.errors import ParameterError
-from fieldcal.lens import ChannelSpec, LensSpec
+from fieldcal.simulate.lens import ChannelSpec, LensSpec
 from fieldcal.measure import ArrayStack, GeometryMeasurements, measure_geometry, measure_stack, measure_tiles
 from fieldcal.simulate import Renderer
-from fieldcal.targets import chart_image
-from fieldcal.truth import TruthProfile
+from fieldcal.charts.targets import chart_image
+from fieldcal.simulate.truth import TruthProfile
 
 STEP_UM = 4.0
 WAVELENGTH = {"R": 656.3, "G": 546.1, "B": 486.1, "Y": 546.1}
@@ -271,7 +271,7 @@ def test_bad_parameters_are_clear_errors():
 
 def test_on_disk_stack_quick_effort(tmp_path, models_dir):
     from fieldcal.simulate import simulate_stack
-    from fieldcal.stack import Stack
+    from fieldcal.formats.stack import Stack
     spec = small_lens(models_dir, W=192, H=128, channels=("R", "G", "B"))
     z = np.arange(-84.0, 44.0 + 1e-9, STEP_UM)
     simulate_stack(spec, tmp_path / "s", z, seed=2, progress=False)
@@ -295,7 +295,7 @@ def test_focus_breathing_does_not_bias_best_focus(tmp_path):
 
     import fieldcal
     from conftest import MODELS
-    from fieldcal.lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
     from fieldcal.simulate.stackgen import simulate_stack, z_grid
 
     base = LensSpec.load(MODELS / "triplet-uncorrected.json")

@@ -8,14 +8,14 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from fieldcal.errors import ParameterError
-from fieldcal.lens import LensSpec
+from fieldcal.simulate.lens import LensSpec
 from fieldcal.plan import Scene, StackRequest, plan_stack
 from fieldcal.plan.cover import min_cover, nearest_index
 from fieldcal.plan.planfile import read_plan, validate_plan, write_plan
 from fieldcal.plan.scene import full_grid
 from fieldcal.plan.stack_plan import check_coverage, optimal_uniform_count, paper_stack_count
 from fieldcal.plan.synthetic import SyntheticProfile
-from fieldcal.truth import TruthProfile
+from fieldcal.simulate.truth import TruthProfile
 
 
 def full_grid_optimum(profile, plan):
@@ -220,7 +220,7 @@ def test_invalid_parameters_give_clear_errors(kw, field):
        cx=st.floats(-20, 60), step=st.integers(1, 16))
 def test_any_valid_request_covers_the_full_grid(fs, q, a, cx, step):
     # tolerance from the defocus model (F/2), surfaces of any sign and a centre anywhere (even off the image)
-    from fieldcal.lens import focus_tolerance_um
+    from fieldcal.simulate.lens import focus_tolerance_um
     tol = lambda rho, f, qq: np.full(np.shape(rho), focus_tolerance_um(f, qq, 2.0))  # noqa: E731
     prof = SyntheticProfile(41, 31, a_um=a, tolerance_fn=tol, centre_px=(cx, 14.0))
     plan = plan_stack(prof, StackRequest(fs_cyc_per_mm=fs, q=q, grid_step_px=step))

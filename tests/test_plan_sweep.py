@@ -8,7 +8,7 @@ import pytest
 from scipy import integrate, special
 
 from fieldcal.errors import ParameterError, SpecError
-from fieldcal.lens import LensSpec, defocus_otf
+from fieldcal.simulate.lens import LensSpec, defocus_otf
 from fieldcal.plan import Scene
 from fieldcal.plan import ipsf as ip
 from fieldcal.plan import masks as mk
@@ -16,7 +16,7 @@ from fieldcal.plan.planfile import read_plan, validate_plan
 from fieldcal.plan.scene import full_grid
 from fieldcal.plan.sweep_plan import SweepRequest, plan_sweep, write_sweep_plan
 from fieldcal.plan.synthetic import SyntheticProfile
-from fieldcal.truth import TruthProfile
+from fieldcal.simulate.truth import TruthProfile
 
 
 def test_paper_sweep_numbers():

@@ -10,8 +10,8 @@ from fieldcal.fit import ImageGeometry, fit_surfaces
 from fieldcal.fit.geometry import GeometryData, fit_geometry
 from fieldcal.fit.synthetic import base_lens, synthetic_tiles
 from fieldcal.fit.tolerance import fit_tolerance
-from fieldcal.profile import LensProfile
-from fieldcal.truth import TruthProfile
+from fieldcal.profile.lens_profile import LensProfile
+from fieldcal.simulate.truth import TruthProfile
 
 
 @pytest.fixture(scope="module")
@@ -136,7 +136,7 @@ def test_save_is_atomic_and_named(profile_and_truth, tmp_path):
 
 
 def test_report_from_profile(profile_and_truth, tmp_path):
-    from fieldcal.report import write_report
+    from fieldcal.report.calibration_report import write_report
     p, _ = profile_and_truth
     html = write_report(p, tmp_path / "rep")
     names = {f.name for f in (tmp_path / "rep").iterdir()}
@@ -148,7 +148,7 @@ def test_report_from_profile(profile_and_truth, tmp_path):
 
 def test_uncertainty_budget_adds_up(profile_and_truth):
     """The budget's half-widths are those of best_focus_interval_um and contain the systematic terms it lists."""
-    from fieldcal.report import uncertainty_budget
+    from fieldcal.report.calibration_report import uncertainty_budget
     p, _ = profile_and_truth
     rows = uncertainty_budget(p)
     assert [r["channel"] for r in rows] == list(p.channels)

@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("optiland")
 
 from fieldcal.cli import main  # noqa: E402
-from fieldcal.lens import LensSpec  # noqa: E402
+from fieldcal.simulate.lens import LensSpec  # noqa: E402
 from fieldcal.raytrace.bestfocus import SearchSettings, trace_focus_table  # noqa: E402
 from fieldcal.raytrace.build import build_lens_spec, compare_with_spec  # noqa: E402
 from fieldcal.raytrace.optiland_backend import TracedLens, _mtf_at  # noqa: E402

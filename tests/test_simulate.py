@@ -10,7 +10,7 @@ from scipy.optimize import minimize_scalar
 from skimage.registration import phase_cross_correlation
 
 from fieldcal.errors import ParameterError
-from fieldcal.lens import LensSpec
+from fieldcal.simulate.lens import LensSpec
 from fieldcal.simulate import Renderer
 from fieldcal.simulate.noise import gain_dn_per_e
 from fieldcal.simulate.render import fractional_level, level_diameters_px

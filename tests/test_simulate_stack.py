@@ -9,7 +9,7 @@ import pytest
 import fieldcal
 from fieldcal.cli import main
 from fieldcal.errors import ParameterError, StackError
-from fieldcal.lens import LensSpec
+from fieldcal.simulate.lens import LensSpec
 from fieldcal.simulate.scene import fit_to_sensor, load_scene
 from fieldcal.simulate.stackgen import simulate_stack, z_grid
 

@@ -15,9 +15,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import fieldcal
-import fieldcal.stack as stack_mod
+import fieldcal.formats.stack as stack_mod
 from fieldcal.errors import FieldcalError, ParameterError, StackError
-from fieldcal.stack import FORMAT, Stack, StackWriter
+from fieldcal.formats.stack import FORMAT, Stack, StackWriter
 
 H, W = 24, 32
 

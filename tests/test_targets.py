@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from fieldcal import lens as lensmod
+from fieldcal.simulate import lens as lensmod
 from fieldcal.cli import main
 from fieldcal.errors import FieldcalError, ParameterError
-from fieldcal.targets import (KINDS, CharucoSpec, chart_image, charuco_image, charuco_spec, detect_charuco,
+from fieldcal.charts.targets import (KINDS, CharucoSpec, chart_image, charuco_image, charuco_spec, detect_charuco,
                               parse_size_mm, print_requirements, random_texture, slanted_edge_image,
                               slanted_edge_spec, write_targets)
 
@@ -157,7 +157,7 @@ def test_charuco_detected_on_blurred_noisy_scaled_board():
 
 def test_charuco_detected_on_rendered_frame_with_focus_breathing():
     """DESIGN: the ChArUco chart is detected by OpenCV on a frame rendered by the simulator."""
-    from fieldcal.lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
     from fieldcal.simulate import Renderer
     from tests.conftest import MODELS
 
@@ -352,7 +352,7 @@ def test_parse_size_paper_names():
 
 def test_print_requirements_for_the_paper_triplet(triplet_path):
     """Closed form for models/triplet-uncorrected.json: f = 17.6 mm at 1 m gives m = 17.6 / 982.4."""
-    from fieldcal.lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
 
     spec = LensSpec.load(triplet_path)
     assert (spec.focal_length_mm, spec.object_distance_mm, spec.sensor.pixel_pitch_um) == (17.6, 1000.0, 1.6342)
@@ -378,7 +378,7 @@ def test_cli_writes_targets(tmp_path, capsys):
 
 
 def test_cli_lens_check_warns_when_dpi_too_low(tmp_path, capsys, monkeypatch, triplet_path):
-    from fieldcal.lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
 
     monkeypatch.setenv("FIELDCAL_PROGRESS", "1")  # the status lines are the output under test
     rc = main(["targets", "--out", str(tmp_path), "--kind", "slanted-edge", "--size-mm", "100x70",

@@ -20,9 +20,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fieldcal.errors import ParameterError, SpecError
-from fieldcal.lens import LensSpec
-from fieldcal.truth import TruthProfile
-from fieldcal.validate import (Check, Thresholds, ValidateConfig, chart_positions_um, geometry_metrics,
+from fieldcal.simulate.lens import LensSpec
+from fieldcal.simulate.truth import TruthProfile
+from fieldcal.validation.run import (Check, Thresholds, ValidateConfig, chart_positions_um, geometry_metrics,
                                plan_coverage, psnr_db, relative_mtf, resolve, surface_metrics, validate)
 from tests.conftest import MODELS
 
@@ -201,7 +201,7 @@ def test_given_profile_of_another_size_is_refused(spec):
 
 
 def test_report_files(truth_run, tmp_path):
-    from fieldcal.validation_report import write_report
+    from fieldcal.validation.report import write_report
     files = write_report(truth_run, tmp_path)
     names = {f.name for f in files}
     assert {"surfaces.png", "geometry.png", "plan.png", "composite.png", "index.html", "report.md",
@@ -263,7 +263,7 @@ def test_cli_errors_are_clean_and_write_nothing(tmp_path, args, needle):
 
 
 def test_cli_exit_status_follows_the_checks(tmp_path, monkeypatch):
-    import fieldcal.validate as fv
+    import fieldcal.validation.run as fv
     from fieldcal.cli import main
     monkeypatch.setenv("FIELDCAL_PROGRESS", "0")
     lens = str(MODELS / "triplet-uncorrected.json")

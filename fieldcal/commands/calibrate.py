@@ -32,7 +32,7 @@ def register(sub):
 
 
 def run(args) -> int:
-    from ..calibrate import calibrate
+    from fieldcal.calibration.pipeline import calibrate
     out = Path(args.out)
     if out.suffix.lower() != ".json":
         raise ParameterError(f"the profile must be a .json file, got {out.name!r}", field="--out",
@@ -45,6 +45,6 @@ def run(args) -> int:
     print(f"wrote {out} (model {profile.surfaces.model.name}; "
           f"{profile.diagnostics.get('n_tiles_ok')} tiles; z_ref {profile.z_ref_um:g} µm)")
     if args.report:
-        from ..report import write_report
+        from fieldcal.report.calibration_report import write_report
         print(f"wrote {write_report(profile, args.report)}")
     return 0

@@ -44,7 +44,7 @@ def register(sub):
 
 
 def _plan(args):
-    from ..acquire import CapturePlan
+    from fieldcal.capture.acquire import CapturePlan
     if args.plan:
         return CapturePlan.from_file(args.plan, exposure_ms=args.exposure_ms, approach=args.approach,
                                      overshoot_um=args.overshoot_um)
@@ -65,7 +65,7 @@ def _sigterm(signum, frame):  # a `kill` is handled like Ctrl-C: stop the stage,
 
 
 def run(args) -> int:
-    from ..acquire import capture
+    from fieldcal.capture.acquire import capture
     from ..errors import ParameterError
     from ..hardware.registry import make_device
     from ..progress import status

@@ -55,7 +55,7 @@ def register(sub):
 
 def load_profile_for(path: str | Path, size_px: tuple[int, int]):
     """A lens profile (fieldcal-profile/1) or a lens spec's truth (fieldcal-lens/1) at the stack's size."""
-    from ..profile import load_profile_or_truth
+    from fieldcal.profile.lens_profile import load_profile_or_truth
     return load_profile_or_truth(path, size_px)
 
 def plan_frames(stack, plan_path: str | Path) -> tuple[np.ndarray, dict, dict]:
@@ -127,7 +127,7 @@ def run(args) -> int:
         _report_sweep(res.info, out, args.quiet)
         return 0
 
-    from ..stack import Stack
+    from fieldcal.formats.stack import Stack
     stack = Stack.open(src)
     if stack.cfa is not None:
         raise StackError(f"a raw {stack.cfa} mosaic stack cannot be composited per channel", path=src,

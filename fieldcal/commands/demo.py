@@ -57,7 +57,7 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def run(args) -> int:
-    from ..lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
 
     lens_path = Path(args.lens) if args.lens else DEFAULT_LENS
     spec0 = LensSpec.load(lens_path)
@@ -131,9 +131,9 @@ def _compare(spec, scene_dir: Path, composite_path: Path, fs: float, seed: int, 
 
     from ..simulate import Renderer
     from ..simulate.scene import load_scene
-    from ..stack import Stack
-    from ..truth import TruthProfile
-    from ..validate import psnr_db
+    from fieldcal.formats.stack import Stack
+    from fieldcal.simulate.truth import TruthProfile
+    from fieldcal.validation.run import psnr_db
 
     stack = Stack.open(scene_dir)
     image, _ = load_scene("colour-leaves", spec.sensor.width_px, spec.sensor.height_px, seed=seed)

@@ -18,11 +18,11 @@ def register(sub):
 
 def load_profile_or_truth(path: str):
     """A LensProfile, or the TruthProfile of a fieldcal-lens/1 spec (for design studies and simulations)."""
-    from ..profile import load_profile_or_truth as load
+    from fieldcal.profile.lens_profile import load_profile_or_truth as load
     return load(path)[0]
 
 def run(args) -> int:
-    from ..report import write_report
+    from fieldcal.report.calibration_report import write_report
     profile = load_profile_or_truth(args.profile)
     print(f"wrote {write_report(profile, args.out, fs=args.fs, q=args.q)}")
     return 0

@@ -50,7 +50,7 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
 
 
 def run(args) -> int:
-    from ..lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
     from ..simulate.stackgen import simulate_stack, z_grid
 
     size = parse_size(args.size)

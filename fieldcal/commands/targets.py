@@ -37,7 +37,7 @@ def _number(text: str, field: str, kind=float):
 
 def run(args) -> int:
     from ..progress import status
-    from ..targets import KINDS, parse_size_mm, write_targets
+    from fieldcal.charts.targets import KINDS, parse_size_mm, write_targets
 
     width_mm, height_mm = parse_size_mm(args.size_mm)
     dpi = _number(args.dpi, "dpi")
@@ -58,9 +58,9 @@ def run(args) -> int:
 
 
 def _check_for_lens(lens_path: str, width_mm: float, height_mm: float, dpi: float) -> None:
-    from ..lens import LensSpec
+    from fieldcal.simulate.lens import LensSpec
     from ..progress import status
-    from ..targets import print_requirements
+    from fieldcal.charts.targets import print_requirements
 
     spec = LensSpec.load(lens_path)
     req = print_requirements(spec.sensor.pixel_pitch_um, spec.sensor.size_mm, spec.focal_length_mm,

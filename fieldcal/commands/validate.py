@@ -67,8 +67,8 @@ def register(sub):
 
 def run(args) -> int:
     from ..progress import status
-    from ..validate import ValidateConfig, validate
-    from ..validation_report import write_report
+    from fieldcal.validation.run import ValidateConfig, validate
+    from fieldcal.validation.report import write_report
 
     scene = args.scene
     if scene not in ("chart", "texture") and not Path(scene).is_file():
@@ -82,7 +82,7 @@ def run(args) -> int:
         if not Path(source).is_file():
             raise ParameterError(f"profile {source!r} is neither calibrate, truth nor a profile file", path=source,
                                  field="--profile", fix="use calibrate, truth or the path of a fieldcal-profile/1 JSON")
-        from ..profile import LensProfile
+        from fieldcal.profile.lens_profile import LensProfile
         given = LensProfile.load(source)
         source = "calibrate"
     cfg = ValidateConfig(size_px=_size(args.size) if args.size else None, fs_cyc_per_mm=args.fs, q=args.q,

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._io import atomic_write_bytes
+from fieldcal.formats.atomic import atomic_write_bytes
 from ..errors import FieldcalError, ParameterError
 
 COMPOSITE_FORMAT = "fieldcal-composite/1"
@@ -72,7 +72,7 @@ def read_composite_metadata(path: str | Path) -> dict:
 
 def read_single_image(path: str | Path) -> np.ndarray:
     """A captured image (TIFF or PNG) as H x W x C in its dtype (for captured sweep images)."""
-    from ..imageio import ImageFileError, read_image
+    from fieldcal.formats.imageio import ImageFileError, read_image
 
     path = Path(path)
     if not path.is_file():

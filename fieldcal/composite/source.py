@@ -127,7 +127,7 @@ class RowReader:
         if frames is None or getattr(self.stack, "cfa", None):
             return None
         try:
-            from ..imageio import probe
+            from fieldcal.formats.imageio import probe
             hdr = probe(frames[i].path)
         except Exception:  # the Stack API will report it properly
             return None

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ParameterError
-from ..lens import defocus_otf
+from fieldcal.simulate.lens import defocus_otf
 from .source import image_size, z_positions
 from .stack_profile import check_profile_matches, select_frames
 from .stream import DEFAULT_TILE_PX, accumulate

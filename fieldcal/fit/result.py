@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .._io import jsonable
+from fieldcal.formats.atomic import jsonable
 from ..errors import ParameterError, SpecError
 from .data import ImageGeometry
 from .discrepancy import Discrepancy

@@ -1,6 +1,6 @@
 """Simulated calibration data with known truth, for tests and the coverage benchmark.
 
-``random_lens`` draws a :class:`fieldcal.lens.LensSpec` with random curvature, per-channel focus offsets,
+``random_lens`` draws a :class:`fieldcal.simulate.lens.LensSpec` with random curvature, per-channel focus offsets,
 sensor tilt, decentre and astigmatism; ``synthetic_tiles`` measures it the way ``measure.tiles`` would
 (noisy best foci with per-tile sigmas that may be underestimated, a few outlier tiles, directional foci and
 through-focus widths); ``band_coverage`` scores a fit's credible band against the truth.
@@ -12,8 +12,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..lens import ChannelSpec, LensSpec, SensorSpec
-from ..truth import TruthProfile
+from fieldcal.simulate.lens import ChannelSpec, LensSpec, SensorSpec
+from fieldcal.simulate.truth import TruthProfile
 from .data import ImageGeometry, TileData
 
 

@@ -330,7 +330,7 @@ class SimCamera:
 
     def __init__(self, lens_path: str | Path, *, size: tuple[int, int] = DEFAULT_SIZE, seed: int = 0,
                  scene: str = "chart", noise: bool = True):
-        from ..lens import LensSpec
+        from fieldcal.simulate.lens import LensSpec
         self.lens_path = Path(lens_path)
         self.spec = LensSpec.load(self.lens_path).with_sensor_size(*size)
         self.size = (int(size[0]), int(size[1]))

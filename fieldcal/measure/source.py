@@ -1,4 +1,4 @@
-"""What measurement reads: anything with the ``fieldcal.stack.Stack`` reading interface.
+"""What measurement reads: anything with the ``fieldcal.formats.stack.Stack`` reading interface.
 
 :class:`ArrayStack` gives that interface to frames already in memory or rendered on demand (tests,
 benchmarks, a capture preview), so measurement code never depends on files.

@@ -4,7 +4,7 @@ Two curve models, both fitted to the whole peak (never argmax, never a bare thre
 ``scipy.optimize.least_squares`` in normalised coordinates (``u = (z - z_peak) / step``, values / max):
 
 * ``"otf"`` — for the band-pass energy at fs: ``E(z) = a * D(pi * fs * k * (z - z0))**2 + b`` with
-  ``D(x) = 2 J1(x) / x`` the geometric-defocus OTF of :mod:`fieldcal.lens` (a blur disc of diameter
+  ``D(x) = 2 J1(x) / x`` the geometric-defocus OTF of :mod:`fieldcal.simulate.lens` (a blur disc of diameter
   ``k |z - z0|``, ``k ~ 1/N``). Diffraction and residual blur only scale ``a``; ``b`` is the noise power
   in the band. The contrast at fs is ``sqrt(E - b) ~ |D|``, so the half-width where it falls by q is
   ``x_q / (pi * fs * k)`` with ``D(x_q) = 1 - q`` (the lens model's ``focus_tolerance_um`` at the fitted k).

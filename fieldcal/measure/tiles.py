@@ -629,7 +629,7 @@ def measure_geometry(stack, *, effort: str = "standard", centre_px: tuple[float,
 
     Parameters
     ----------
-    stack : fieldcal.stack.Stack or ArrayStack
+    stack : fieldcal.formats.stack.Stack or ArrayStack
         A chart stack (read one frame at a time).
     effort : {"quick", "standard", "thorough"}
         "quick" and "standard" register G through focus (8x / 4x downsampled) and copy it to every channel
@@ -660,7 +660,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
 
     Parameters
     ----------
-    stack : fieldcal.stack.Stack or ArrayStack
+    stack : fieldcal.formats.stack.Stack or ArrayStack
         A chart stack; frames are read once, in z order.
     fs_cyc_per_mm : float
         Target spatial frequency (cycles/mm at the sensor) of the band-pass measure and of ``width_um``.

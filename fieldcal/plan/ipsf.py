@@ -5,7 +5,7 @@ the mean of the *signed* through-focus OTF over the defocus range (contrast reve
 
     IOTF(f) = 1/(2α) ∫_{-α}^{α} OTF(f, dz) d(dz)        (normalised so IOTF(0) = 1)
 
-evaluated with Gauss-Legendre quadrature on the profile's defocus model (fieldcal.lens.otf: geometric defocus
+evaluated with Gauss-Legendre quadrature on the profile's defocus model (fieldcal.simulate.lens.otf: geometric defocus
 × diffraction × residual blur). The radial IPSF is the Hankel transform of the IOTF.
 
 Wiener deconvolution with noise-to-signal ratio K uses ``W = H / (H² + K)``; white noise of standard
@@ -23,7 +23,7 @@ import math
 import numpy as np
 from scipy import special
 
-from ..lens import otf as lens_otf
+from fieldcal.simulate.lens import otf as lens_otf
 
 
 def _residual_blur_um(profile) -> float:

@@ -12,7 +12,7 @@ from ..errors import SpecError
 
 def load_profile(path: str | Path, size_px: tuple[int, int] | None = None):
     """Return ``(profile, info)``; ``info`` goes into the plan's ``profile`` block."""
-    from ..profile import load_profile_or_truth
+    from fieldcal.profile.lens_profile import load_profile_or_truth
     prof, info = load_profile_or_truth(path, size_px)
     if info["format"].startswith("fieldcal-lens/"):
         info["source"] = "lens spec: planned from the simulated lens's true surfaces (design study)"

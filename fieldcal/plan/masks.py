@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._io import atomic_write_bytes
+from fieldcal.formats.atomic import atomic_write_bytes
 from ..errors import ParameterError, SpecError
 
 CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")

@@ -7,7 +7,7 @@ import math
 from pathlib import Path, PurePosixPath
 from typing import Any
 
-from .._io import atomic_write_text
+from fieldcal.formats.atomic import atomic_write_text
 from ..errors import SpecError
 
 PLAN_FORMAT = "fieldcal-plan/1"

@@ -19,7 +19,7 @@ def _plt():
 
 def _save(fig, path: Path) -> Path:
     import io
-    from .._io import atomic_write_bytes
+    from fieldcal.formats.atomic import atomic_write_bytes
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
     atomic_write_bytes(path, buf.getvalue())

@@ -3,7 +3,7 @@
 Best focus of every channel: ``z0 + offset[c] + a * rho**2`` with rho = distance from the optical centre over
 the half-diagonal, so the range over the full image is exactly ``|a|``; tolerance δ is uniform or a function of
 rho; the credible band is ``±band_um`` about the surface (Gaussian posterior). It answers the same interface as
-:class:`fieldcal.truth.TruthProfile`.
+:class:`fieldcal.simulate.truth.TruthProfile`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from ..lens import DEFAULT_WAVELENGTH_NM, defocus_otf
+from fieldcal.simulate.lens import DEFAULT_WAVELENGTH_NM, defocus_otf
 
 
 class SyntheticProfile:

@@ -1,7 +1,7 @@
 """Focus tolerance δ (half-width of the stage range keeping MTF(fs) within q of its peak) and MTF loss.
 
 δ comes from the profile's measured through-focus width when it has one (``has_measured_tolerance``); otherwise
-from the geometric defocus model with the profile's F-number (``fieldcal.lens.focus_tolerance_um``), and the
+from the geometric defocus model with the profile's F-number (``fieldcal.simulate.lens.focus_tolerance_um``), and the
 plan says which. The MTF loss of a defocus ``dz`` at a pixel with tolerance δ uses the defocus model's shape
 rescaled so that the loss is exactly q at ``|dz| = δ`` (so measured and modelled widths give consistent losses).
 """
@@ -14,7 +14,7 @@ import numpy as np
 from scipy import special
 
 from ..errors import ParameterError
-from ..lens import defocus_otf, focus_tolerance_um as model_tolerance_um
+from fieldcal.simulate.lens import defocus_otf, focus_tolerance_um as model_tolerance_um
 
 MODEL_SOURCE = "defocus model from the F-number (no measured through-focus width)"
 MEASURED_SOURCE = "measured through-focus width (profile)"

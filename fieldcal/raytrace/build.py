@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError, SpecError
-from ..lens import ChannelSpec, LensSpec, SensorSpec, diffraction_mtf
+from fieldcal.simulate.lens import ChannelSpec, LensSpec, SensorSpec, diffraction_mtf
 from .bestfocus import FocusTable
 from .paraxial import ParaxialData
 

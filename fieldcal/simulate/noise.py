@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ParameterError
-from ..lens import SensorSpec
+from fieldcal.simulate.lens import SensorSpec
 
 # (row, col) of each colour in the 2x2 Bayer tile, in the order (0,0), (0,1), (1,0), (1,1).
 CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")

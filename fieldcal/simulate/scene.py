@@ -9,7 +9,7 @@ import numpy as np
 
 from ..errors import ParameterError
 
-#: scene names understood by :func:`load_scene` -> the chart kind of :func:`fieldcal.targets.chart_image`.
+#: scene names understood by :func:`load_scene` -> the chart kind of :func:`fieldcal.charts.targets.chart_image`.
 CHARTS = {"chart": "texture", "texture": "texture", "charuco": "charuco", "slanted-edge": "slanted-edge"}
 
 #: synthetic colour scenes (test scenes for compositing, not charts).
@@ -22,7 +22,7 @@ def colour_leaves(width_px: int, height_px: int, seed: int = 0) -> np.ndarray:
     identical (per-channel focus matters). float32 H x W x 3 in [0.04, 0.96]."""
     import cv2
 
-    from ..targets import random_texture
+    from fieldcal.charts.targets import random_texture
     lum = random_texture(width_px, height_px, seed).astype(np.float32)
     sigma = max(width_px, height_px) / 60.0
     tints = []
@@ -52,7 +52,7 @@ def load_scene(scene, width_px: int, height_px: int, seed: int = 0) -> tuple[np.
         Seed of the random texture chart.
     """
     if isinstance(scene, str) and scene in CHARTS:
-        from ..targets import chart_image
+        from fieldcal.charts.targets import chart_image
         return chart_image(CHARTS[scene], width_px, height_px, seed).astype(np.float32), scene
     if isinstance(scene, str) and scene in COLOUR_SCENES:
         return colour_leaves(width_px, height_px, seed), scene

@@ -16,9 +16,9 @@ from typing import Sequence
 
 import numpy as np
 
-from .._io import atomic_write_bytes, atomic_write_text
+from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text
 from ..errors import ParameterError, StackError
-from ..lens import LensSpec
+from fieldcal.simulate.lens import LensSpec
 from ..progress import progress as _progress
 from .render import Renderer
 from .scene import load_scene
@@ -125,10 +125,10 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
 
     Returns
     -------
-    fieldcal.stack.Stack
+    fieldcal.formats.stack.Stack
         The written stack, opened for reading.
     """
-    from ..stack import Stack, StackWriter
+    from fieldcal.formats.stack import Stack, StackWriter
 
     z = _check_z(z_um)
     wh = _check_size(size)

@@ -1,5 +1,5 @@
 """The validation report: PNG plots, ``index.html``, ``report.md`` and ``summary.json`` of a
-:class:`fieldcal.validate.ValidationResult`.
+:class:`fieldcal.validation.run.ValidationResult`.
 
 Every file is written atomically (temporary name + rename); ``summary.json`` is written last, so a folder with a
 ``summary.json`` holds a complete report.
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import atomic_write_bytes, atomic_write_text
+from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text
 
 _COLOURS = {"R": "tab:red", "G": "tab:green", "B": "tab:blue", "Y": "0.2"}
 
@@ -84,7 +84,7 @@ def plot_geometry(result, out: Path) -> str:
         axes[1].plot(z, st[0], color=col, ls="--")
         axes[1].plot(z, sp[1], color=col, ls="-.", label=f"{c} dy profile")
         axes[1].plot(z, st[1], color=col, ls=":")
-        from .validate import _positions
+        from fieldcal.validation.run import _positions
         pts = np.array([[0.0, 0.0], [w - 1.0, h - 1.0]])
         d = _positions(p, z, c, pts) - _positions(t, z, c, pts)
         axes[2].plot(z, np.max(np.hypot(d[..., 0], d[..., 1]), axis=1), color=col, label=c)

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import sys
-import types
 from dataclasses import replace
 import threading
 import time
@@ -21,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
-from .errors import FieldcalError, ParameterError, StackError
-from .profile import LensProfile
-from .progress import status
+from fieldcal import __version__
+from fieldcal.errors import FieldcalError, ParameterError, StackError
+from fieldcal.profile.lens_profile import LensProfile
+from fieldcal.progress import status
 
 EFFORTS = ("quick", "standard", "thorough")
 # Effective window of a measured tile relative to a uniform square of side tile_px: the measured best focus is
@@ -111,11 +109,11 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     >>> profile = fieldcal.calibrate(fieldcal.Stack.open("STACK"), effort="quick")   # doctest: +SKIP
     >>> profile.save("lens.json")                                                     # doctest: +SKIP
     """
-    from .stack import Stack
-    from .measure import measure_stack
-    from .fit import ImageGeometry
-    from .fit.geometry import GeometryData, fit_geometry
-    from .fit.tolerance import fit_tolerance
+    from fieldcal.formats.stack import Stack
+    from fieldcal.measure import measure_stack
+    from fieldcal.fit import ImageGeometry
+    from fieldcal.fit.geometry import GeometryData, fit_geometry
+    from fieldcal.fit.tolerance import fit_tolerance
 
     if not isinstance(stack, Stack):
         stack = Stack.open(stack)
@@ -237,7 +235,7 @@ def breathing_systematic_sd_um(table) -> dict[str, float]:
     channel shares that error, scaled by its own sensitivity dz/dgamma (measured on this stack): the RMS of
     those sensitivities times the sd is a systematic no fit can see. Zero without breathing (telecentric).
     """
-    from .measure.tiles import SML_WINDOW_EXPONENT_SD
+    from fieldcal.measure.tiles import SML_WINDOW_EXPONENT_SD
 
     out = {}
     sens = getattr(table, "z_dgamma_um", None)
@@ -280,7 +278,7 @@ def fit_tile_surfaces(table, geometry, *, channels: tuple[str, ...], effort: str
     (SurfaceFit, TileData)
         The fit and the accepted tiles corrected to tile-centre values.
     """
-    from .fit import TileData, fit_surfaces
+    from fieldcal.fit import TileData, fit_surfaces
 
     tiles = TileData.from_table(table, source=source)
     # A tile measures the surface averaged over its window, not at its centre: for a surface with Laplacian
@@ -313,10 +311,10 @@ class _FirstSurface:
 
 def _first_surface(tiles, geometry, channels, source):
     """One MAP fit of poly3 (per-channel up to rho^2) + tilt [+ decentre]: enough to give the Laplacian."""
-    from .fit.data import FitError
-    from .fit.map import fit_map
-    from .fit.select import _validate, build_rows
-    from .fit.surface import Rows, SurfaceModel
+    from fieldcal.fit.data import FitError
+    from fieldcal.fit.map import fit_map
+    from fieldcal.fit.select import _validate, build_rows
+    from fieldcal.fit.surface import Rows, SurfaceModel
 
     _validate(tiles, geometry, channels, source)
     rows, zc, zs = build_rows(tiles, geometry, channels)
@@ -373,17 +371,3 @@ def _geometry_columns(geo) -> dict:
             "magnification": geo.magnification.ravel(), "mag_sigma": np.maximum(geo.mag_sigma.ravel(), tiny),
             "shift_x_px": geo.shift_x_px.ravel(), "shift_y_px": geo.shift_y_px.ravel(),
             "shift_sigma_px": np.maximum(geo.shift_sigma_px.ravel(), tiny)}
-
-
-class _CallableModule(types.ModuleType):
-    """``fieldcal.calibrate`` is both this module and DESIGN.md's function ``fieldcal.calibrate(stack)``.
-
-    Importing the submodule binds the package attribute ``fieldcal.calibrate`` to the module object, which
-    would shadow the function depending on import order; calling the module calls the function instead.
-    """
-
-    def __call__(self, *args, **kwargs):
-        return calibrate(*args, **kwargs)
-
-
-sys.modules[__name__].__class__ = _CallableModule

@@ -7,7 +7,7 @@ snap, read it again, write the frame, commit.
 
 Commit protocol (per frame)
 ---------------------------
-1. :meth:`fieldcal.stack.StackWriter.add_frame` writes the frame to a temporary file, fsyncs, renames it to
+1. :meth:`fieldcal.formats.stack.StackWriter.add_frame` writes the frame to a temporary file, fsyncs, renames it to
    ``frames/NNNN.tiff`` (NNNN = plan index) and then rewrites ``stack.json`` atomically (temp + fsync +
    rename). ``stack.json`` therefore parses and lists only complete frames at every moment.
 2. A line is appended to ``capture.journal`` and fsynced: **the commit point**.
@@ -32,9 +32,9 @@ from typing import Any
 
 import numpy as np
 
-from ._io import atomic_write_text, fsync_dir
-from .errors import DeviceError, LinkError, ParameterError, SpecError, StackError
-from .progress import progress, status
+from fieldcal.formats.atomic import atomic_write_text, fsync_dir
+from fieldcal.errors import DeviceError, LinkError, ParameterError, SpecError, StackError
+from fieldcal.progress import progress, status
 
 JOURNAL = "capture.journal"
 JOURNAL_FORMAT = "fieldcal-capture-journal/1"
@@ -276,7 +276,7 @@ def _stack_header(cam: dict, stage: dict, plan: CapturePlan) -> dict:
 
 def _prepare(out: Path, plan: CapturePlan, cam: dict, stage: dict):
     """Create or resume the folder; returns (writer, journal, committed {index: entry}, n_torn)."""
-    from .stack import STACK_JSON, StackWriter
+    from fieldcal.formats.stack import STACK_JSON, StackWriter
 
     journal = Journal(out / JOURNAL)
     header = {"journal": JOURNAL_FORMAT, "plan_sha256": plan.fingerprint(), "n_frames": len(plan.frames),

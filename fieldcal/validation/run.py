@@ -1,7 +1,7 @@
 """End-to-end validation against a simulated lens's truth (``fieldcal validate``).
 
 One run takes a ``fieldcal-lens/1`` spec through the whole pipeline and compares every stage with what the
-simulator knows exactly (:class:`fieldcal.truth.TruthProfile`):
+simulator knows exactly (:class:`fieldcal.simulate.truth.TruthProfile`):
 
 1. **chart stack** — a dead-leaves chart rendered at stage positions on a grid through ``z_ref`` spanning the
    lens's focus range plus a margin, with a step set by the true focus tolerance δ (MTF at fs within q of its
@@ -16,7 +16,7 @@ simulator knows exactly (:class:`fieldcal.truth.TruthProfile`):
    composite made with the true surfaces and geometry; the relative MTF at fs in the image corners.
 
 :func:`validate` returns a :class:`ValidationResult` (metrics, pass/fail checks against :class:`Thresholds`,
-and the maps the report draws); :mod:`fieldcal.validation_report` writes the plots, ``index.html`` and
+and the maps the report draws); :mod:`fieldcal.validation.report` writes the plots, ``index.html`` and
 ``summary.json``. See docs/validation.md.
 """
 
@@ -31,10 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ParameterError
-from .lens import LensSpec
-from .progress import status
-from .truth import TruthProfile
+from fieldcal.errors import ParameterError
+from fieldcal.simulate.lens import LensSpec
+from fieldcal.progress import status
+from fieldcal.simulate.truth import TruthProfile
 
 DEFAULT_WIDTH_PX = 640  # at 256 px the tiles stop far from the corners and the fit extrapolates
 PROFILE_SOURCES = ("calibrate", "truth")
@@ -321,7 +321,7 @@ def geometry_metrics(profile, truth: TruthProfile, z_lo_um: float, z_hi_um: floa
 def plan_coverage(frames_um: np.ndarray, truth: TruthProfile, tol_um: dict[str, float], refocus_um: float = 0.0):
     """Per channel: fraction of pixels (full grid) whose nearest frame is within the true tolerance, and the
     smallest margin δ − |z_frame − z_true| (µm). Returns ``(metrics, margin_maps)``."""
-    from .plan.cover import nearest_index
+    from fieldcal.plan.cover import nearest_index
 
     w, h = truth.image_size_px
     X, Y = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
@@ -410,7 +410,7 @@ def on_axis_focus_um(truth: TruthProfile) -> float:
 
 # ------------------------------------------------------------------------------------------- pipeline
 def _scene_image(scene, w: int, h: int, seed: int):
-    from .simulate.scene import load_scene
+    from fieldcal.simulate.scene import load_scene
     name = SCENES.get(scene, scene) if isinstance(scene, str) else scene
     # the scene chart uses another seed than the calibration chart: not the same picture
     img, label = load_scene(name, w, h, seed=seed + 1)
@@ -465,9 +465,9 @@ def validate(lens, config: ValidateConfig | None = None, *, workdir: str | Path 
 def _run(spec: LensSpec, fs: float, cfg: ValidateConfig, work: Path, quiet: bool, given=None) -> ValidationResult:
     import tifffile
 
-    from .composite import composite_stack
-    from .plan import StackRequest, plan_stack
-    from .simulate import Renderer, simulate_stack
+    from fieldcal.composite import composite_stack
+    from fieldcal.plan import StackRequest, plan_stack
+    from fieldcal.simulate import Renderer, simulate_stack
 
     th = cfg.thresholds
     t_all = time.perf_counter()
@@ -491,7 +491,7 @@ def _run(spec: LensSpec, fs: float, cfg: ValidateConfig, work: Path, quiet: bool
         setup["chart"] = None
         notes.append("a given profile is judged: no chart stack was simulated or calibrated")
     elif cfg.profile == "calibrate":
-        from .calibrate import calibrate
+        from fieldcal.calibration.pipeline import calibrate
         z_chart = chart_positions_um(spec, tol_min, cfg.chart_step_tol_frac, cfg.chart_margin_tol_frac)
         setup["chart"] = {"n_frames": int(z_chart.size), "z_first_um": float(z_chart[0]),
                           "z_last_um": float(z_chart[-1]), "step_um": float(z_chart[1] - z_chart[0])

@@ -22,9 +22,9 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from fieldcal._io import atomic_write_bytes, atomic_write_text
+from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text
 from fieldcal.errors import ParameterError, StackError
-from fieldcal.imageio import ImageFileError, ImageHeader, SUPPORTED_DTYPES, encode, kind_for_name, probe, read_image
+from fieldcal.formats.imageio import ImageFileError, ImageHeader, SUPPORTED_DTYPES, encode, kind_for_name, probe, read_image
 from fieldcal.progress import progress
 
 FORMAT = "fieldcal-stack/1"

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import atomic_write_text
+from fieldcal.formats.atomic import atomic_write_text
 
 _COLOURS = {"R": "tab:red", "G": "tab:green", "B": "tab:blue", "Y": "0.2"}
 

@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__
-from ._io import atomic_write_bytes, atomic_write_text, jsonable
-from .errors import ParameterError, SpecError
+from fieldcal import __version__
+from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text, jsonable
+from fieldcal.errors import ParameterError, SpecError
 
 PROFILE_FORMAT = "fieldcal-profile/1"
 PROFILE_VERSION = 1
@@ -157,7 +157,7 @@ class LensProfile:
         return float(fn(self._channel(channel))) if fn else 1.0
 
     def wavelength_nm(self, channel: str) -> float:
-        from .lens import DEFAULT_WAVELENGTH_NM
+        from fieldcal.simulate.lens import DEFAULT_WAVELENGTH_NM
         wl = self.optics.get("wavelength_nm", {}) or {}
         return float(wl.get(channel, DEFAULT_WAVELENGTH_NM.get(channel, 550.0)))
 
@@ -179,13 +179,13 @@ class LensProfile:
             raise SpecError("the profile has neither measured widths nor an F-number for the defocus model",
                             path=self.source_path, field="optics.f_number",
                             fix="recalibrate from a stack whose stack.json gives f_number")
-        from .lens import focus_tolerance_um
+        from fieldcal.simulate.lens import focus_tolerance_um
         t = focus_tolerance_um(fs_cyc_per_mm, q, float(self.f_number), self.wavelength_nm(ch))
         return np.full(np.broadcast(x, y).shape, t)
 
     def defocus_mtf(self, f_cyc_per_mm, defocus_um, channel: str):
         """MTF of the geometric defocus + diffraction model (needs the F-number)."""
-        from .lens import defocus_otf, diffraction_mtf
+        from fieldcal.simulate.lens import defocus_otf, diffraction_mtf
         n = float(self.f_number or 0.0)
         if n <= 0:
             raise SpecError("the profile has no F-number", path=self.source_path, field="optics.f_number",
@@ -271,13 +271,13 @@ class LensProfile:
             with np.load(io.BytesIO(raw), allow_pickle=False) as z:
                 arrays = {k: z[k] for k in z.files}
             samples = arrays.get("surface_samples")
-        from .fit import SurfaceFit
-        from .fit.geometry import GeometryFit
+        from fieldcal.fit import SurfaceFit
+        from fieldcal.fit.geometry import GeometryFit
         surfaces = SurfaceFit.from_dict(d["surfaces"], samples=samples, path=path)
         geometry = GeometryFit.from_dict(d["geometry"])
         tolerance = None
         if d.get("tolerance"):
-            from .fit.tolerance import ToleranceFit
+            from fieldcal.fit.tolerance import ToleranceFit
             tolerance = ToleranceFit.from_dict(d["tolerance"])
         tiles = {k[len("tiles__"):]: v for k, v in arrays.items() if k.startswith("tiles__")} or None
         geom = {k[len("geom__"):]: v for k, v in arrays.items() if k.startswith("geom__")} or None
@@ -304,7 +304,7 @@ def _check_format(fmt, path):
 def load_profile_or_truth(path: str | Path, size_px: tuple[int, int] | None = None):
     """A lens profile, or the exact answers of a simulated lens — whichever the file holds.
 
-    Returns ``(profile, info)``. A ``fieldcal-lens/1`` spec gives its :class:`fieldcal.truth.TruthProfile` at
+    Returns ``(profile, info)``. A ``fieldcal-lens/1`` spec gives its :class:`fieldcal.simulate.truth.TruthProfile` at
     ``size_px`` (design studies and simulated data); a ``fieldcal-profile/1`` file gives a :class:`LensProfile`
     (``size_px`` does not apply to it). ``info`` says which, for plans, composites and reports.
     """
@@ -318,8 +318,8 @@ def load_profile_or_truth(path: str | Path, size_px: tuple[int, int] | None = No
         raise SpecError(f"not valid JSON ({e})", path=path, fix="repair the JSON syntax") from None
     fmt = head.get("format") if isinstance(head, dict) else None
     if isinstance(fmt, str) and fmt.startswith("fieldcal-lens/"):
-        from .lens import LensSpec
-        from .truth import TruthProfile
+        from fieldcal.simulate.lens import LensSpec
+        from fieldcal.simulate.truth import TruthProfile
         spec = LensSpec.from_dict(head, path=path)
         prof = TruthProfile(spec, *(size_px or (None, None)))
         return prof, {"path": str(path), "format": fmt, "name": spec.name,

@@ -28,9 +28,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ._io import atomic_write_bytes
-from .errors import ParameterError
-from .progress import progress
+from fieldcal.formats.atomic import atomic_write_bytes
+from fieldcal.errors import ParameterError
+from fieldcal.progress import progress
 
 KINDS = ("texture", "charuco", "slanted-edge")
 TARGETS_FORMAT = "fieldcal-targets/1"

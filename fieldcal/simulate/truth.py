@@ -1,7 +1,7 @@
 """A simulated lens seen through the lens-profile API: the ground truth that tests, oracles and validation use.
 
 :class:`TruthProfile` answers every question a :class:`fieldcal.profile.LensProfile` answers, from the
-:class:`fieldcal.lens.LensSpec` itself (zero-width credible bands), in the pixel geometry of a given image size.
+:class:`fieldcal.simulate.lens.LensSpec` itself (zero-width credible bands), in the pixel geometry of a given image size.
 Planning and compositing code is written against this shared interface (see docs/architecture.md).
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .lens import LensSpec
+from fieldcal.simulate.lens import LensSpec
 
 
 class TruthProfile:

@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 from scipy import special
 
-from .errors import SpecError
+from fieldcal.errors import SpecError
 
 LENS_FORMAT = "fieldcal-lens/1"
 
@@ -249,7 +249,7 @@ class LensSpec:
         return d
 
     def save(self, path: str | Path) -> None:
-        from ._io import atomic_write_text
+        from fieldcal.formats.atomic import atomic_write_text
         atomic_write_text(path, json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod

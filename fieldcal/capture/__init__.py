@@ -1,0 +1,1 @@
+"""Capture: acquisition plans (inspectable streams of moves and exposures) and the one runner that executes them."""

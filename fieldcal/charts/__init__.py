@@ -1,0 +1,1 @@
+"""Calibration charts: random texture (focus), ChArUco (geometry) and slanted edges (MTF), as images and printable files."""

@@ -1,0 +1,1 @@
+"""Calibration reports: PNG plots of surfaces, bands and residuals, and one HTML page."""

@@ -1,0 +1,1 @@
+"""Validation: the whole pipeline against a simulated lens whose truth is known (``fieldcal validate``)."""
