@@ -24,6 +24,22 @@ def check_output_path(path: str | Path) -> Path:
     return path
 
 
+def check_composite_output(path: str | Path, *, stack: str | Path | None = None, profile: str | Path | None = None,
+                           plan: str | Path | None = None, overwrite: bool = False) -> Path:
+    """All the checks of a composite's ``--out`` before any work (docs/safety.md).
+
+    A TIFF name; not the input stack (or a file inside it, e.g. one of its frames), the profile and its
+    sidecar, the plan, or a captured sweep image; an existing file only with ``overwrite``; never a symbolic
+    link. The composite API and command call this once; :func:`write_composite_tiff` writes atomically.
+    """
+    from fieldcal.formats.atomic import check_output
+    from fieldcal.profile.lens_profile import profile_files
+
+    path = check_output_path(path)
+    inputs = [stack, plan, *(profile_files(profile) if profile else [])]
+    return check_output(path, inputs=inputs, overwrite=overwrite, suffixes=(".tif", ".tiff"))
+
+
 def _jsonable(v):
     if isinstance(v, (np.floating, np.integer)):
         return v.item()
