@@ -50,7 +50,7 @@ def run(args) -> int:
     check_output(out, inputs=[stack_dir], overwrite=args.overwrite)
     if args.report:
         from fieldcal.report.calibration_report import REPORT_FILES
-        check_output(args.report, inputs=[stack_dir, out], overwrite=args.overwrite, kind="dir",
+        check_output(args.report, inputs=[stack_dir], overwrite=args.overwrite, kind="dir",
                      files=REPORT_FILES, field="--report")
     stack = Stack.open(stack_dir, verify=not args.no_verify)
     profile = calibrate(stack, fs_cyc_per_mm=args.fs, q=args.q, effort=args.effort, z_ref_um=args.z_ref_um,

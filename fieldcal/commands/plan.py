@@ -91,7 +91,7 @@ def _check_outputs(args, files: tuple[str, ...], masks: bool = False) -> None:
         # write_sweep_plan puts the masks in PLAN.masks.npz beside the plan
         check_output(out.with_name(out.stem + ".masks.npz"), inputs=inputs, overwrite=args.overwrite)
     if args.plots:
-        check_output(args.plots, inputs=[*inputs, out], overwrite=args.overwrite, kind="dir", files=files,
+        check_output(args.plots, inputs=inputs, overwrite=args.overwrite, kind="dir", files=files,
                      field="--plots")
 
 
