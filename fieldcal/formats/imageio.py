@@ -78,8 +78,9 @@ def check_declared_size(header: "ImageHeader", file_bytes: int, compressed_bytes
                              "check the file (a damaged or crafted header); for a real image this large set "
                              "FIELDCAL_MAX_PIXELS")
     if header.mmap_offset is not None and header.mmap_offset + decoded > file_bytes:
-        raise ImageFileError(f"declares {size} of uncompressed data ({decoded:,} bytes) but the file holds "
-                             f"only {file_bytes:,} bytes", "re-export the frame; the file is truncated or damaged")
+        raise ImageFileError(f"declares {size} of uncompressed data ({decoded:,} bytes from byte "
+                             f"{header.mmap_offset:,}) but the file ends at byte {file_bytes:,}",
+                             "re-export the frame; the file is truncated or damaged")
     if compressed_bytes is not None and decoded > _DEFLATE_MAX_RATIO * max(compressed_bytes, 1) + 4096:
         raise ImageFileError(f"declares {size} ({decoded:,} bytes) in {compressed_bytes:,} bytes of compressed "
                              "data, more than deflate can hold", "re-export the frame; the file is damaged")
