@@ -535,3 +535,37 @@ def test_sha_helper_round_trip(w):
     for f in json.loads((w / "S" / "stack.json").read_text())["frames"]:
         h.update(hashlib.sha256((w / "S" / f["file"]).read_bytes()).digest())
     assert d["provenance"]["inputs_sha256"] == h.hexdigest()
+
+
+# ------------------------------------------------------------------------- the other commands' folders
+
+
+@pytest.mark.parametrize("cmd", ["targets", "validate", "demo", "simulate"])
+def test_folder_outputs_that_are_files(w, capsys, cmd):
+    f = w / "afile"
+    f.write_text("x")
+    argv = {"targets": ["targets", "--out", f, "--kind", "texture", "--size-mm", "A5", "--dpi", "50"],
+            "validate": ["validate", LENS, "--out", f, "--effort", "quick"],
+            "demo": ["demo", "--out", f],
+            "simulate": ["simulate", LENS, f, "--z", "-50", "50", "50", "--size", "64x36"]}[cmd]
+    refused(w, argv, capsys, "afile")
+
+
+def test_validate_refuses_a_link_at_its_report_before_any_work(w, capsys):
+    victim = w / "victim.txt"
+    victim.write_text("precious")
+    (w / "V").mkdir()
+    (w / "V" / "summary.json").symlink_to(victim)
+    refused(w, ["validate", LENS, "--out", w / "V", "--effort", "quick"], capsys, "symbolic link")
+
+
+def test_composite_case_twin_is_refused(w, capsys):
+    (w / "c.tiff").write_bytes(b"older")
+    refused(w, ["composite", w / "S", "--profile", w / "lens.json", "--out", w / "C.TIFF"], capsys,
+            "differs only in case")
+
+
+def test_usage_errors_exit_2(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["calibrate", "--no-such-option"])
+    assert e.value.code == EXIT_BAD_INPUT
