@@ -192,6 +192,14 @@ def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike 
 
 
 def _umask() -> int:
+    """The process umask, read without changing it where the OS allows (another thread may be creating files)."""
+    try:
+        with open("/proc/self/status", "rb") as f:
+            for line in f:
+                if line.startswith(b"Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
