@@ -10,6 +10,7 @@ from fieldcal.fit import ImageGeometry, fit_surfaces
 from fieldcal.fit.geometry import GeometryData, fit_geometry
 from fieldcal.fit.synthetic import base_lens, synthetic_tiles
 from fieldcal.fit.tolerance import fit_tolerance
+from fieldcal.optics import MTFCriterion
 from fieldcal.profile.lens_profile import LensProfile
 from fieldcal.simulate.truth import TruthProfile
 
@@ -38,7 +39,7 @@ def profile_and_truth():
             rows["shift_y_px"].append(float(dy) + rng.normal(0, 0.01))
             rows["shift_sigma_px"].append(0.01)
     gfit = fit_geometry(GeometryData.from_arrays(**rows), z_ref_um=0.0)
-    tol = fit_tolerance(tiles, geom, 40.0, 0.05)
+    tol = fit_tolerance(tiles, geom, MTFCriterion(40.0, 0.05))
     profile = LensProfile(
         surfaces=surf, geometry_fit=gfit, tolerance_fit=tol,
         image={"width_px": geom.width_px, "height_px": geom.height_px, "pixel_pitch_um": geom.pixel_pitch_um,

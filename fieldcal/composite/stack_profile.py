@@ -38,7 +38,7 @@ def to_input_dtype(acc: np.ndarray, dtype, white_level: float) -> np.ndarray:
 def check_profile_matches(stack, profile, where=None) -> None:
     """The profile must describe the stack's image size and channels."""
     w, h = image_size(stack)
-    size = tuple(int(v) for v in getattr(profile, "image_size_px", (w, h)))
+    size = tuple(int(v) for v in profile.image_size_px)
     if size != (w, h):
         raise ParameterError(f"the profile is for {size[0]}x{size[1]} px images but the stack has {w}x{h}",
                              path=where, field="image_size_px",

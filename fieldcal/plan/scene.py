@@ -78,8 +78,7 @@ def refocus_shift_um(profile, object_distance_mm) -> float:
     if object_distance_mm is None:
         return 0.0
     u_new = float(object_distance_mm)
-    f = getattr(profile, "focal_length_mm", None)
-    u_cal = getattr(profile, "object_distance_mm", None)
+    f, u_cal = profile.focal_length_mm, profile.object_distance_mm
     if f is None or u_cal is None:
         raise ParameterError("the profile does not record its calibration object distance and focal length, "
                              "so it cannot be refocused", field="object_distance_mm",
