@@ -201,8 +201,8 @@ def test_direction_and_plan_file_roundtrip(tmp_path):
 
 
 @pytest.mark.parametrize("kw,field", [({"q": 0.0}, "q"), ({"q": 1.0}, "q"), ({"q": float("nan")}, "q"),
-                                      ({"fs_cyc_per_mm": 0.0}, "fs"), ({"fs_cyc_per_mm": float("nan")}, "fs"),
-                                      ({"fs_cyc_per_mm": -5.0}, "fs"), ({"confidence": 1.0}, "confidence"),
+                                      ({"fs_cyc_per_mm": 0.0}, "fs_cyc_per_mm"), ({"fs_cyc_per_mm": float("nan")}, "fs_cyc_per_mm"),
+                                      ({"fs_cyc_per_mm": -5.0}, "fs_cyc_per_mm"), ({"confidence": 1.0}, "confidence"),
                                       ({"scene": Scene(roi=(10, 10, 0, 5))}, "roi"),
                                       ({"scene": Scene(roi=(500, 0, 5, 5))}, "roi"),
                                       ({"scene": Scene(channels=("Q",))}, "channels"),
