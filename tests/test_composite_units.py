@@ -328,3 +328,35 @@ def test_lateral_colour_correction_registers_channels(models_dir):
     for c in (0, 1, 2):
         assert err(fixed, c) < 0.1 * scene.std()
     assert err(keep, 0) > 3 * err(fixed, 0)  # by default the z_ref geometry (with lateral colour) is kept
+
+
+def test_richardson_lucy_reaches_scikit_images_restoration():
+    # fieldcal's RL is scikit-image's iteration started from the observed image (faster to converge) with
+    # OpenCV's mirrored convolutions; on the same PSF both restore the in-focus image and agree with each other
+    import cv2
+    from skimage import restoration
+
+    from fieldcal.composite.sweep import rl_deconvolve
+    from fieldcal.optics.sweep import sweep_psf_kernel
+    from fieldcal.plan.synthetic import SyntheticProfile
+
+    prof = SyntheticProfile(64, 64, pixel_pitch_um=5.0, f_number=2.0)
+    rng = np.random.default_rng(3)
+    latent = cv2.GaussianBlur(rng.uniform(0.2, 0.8, (96, 96)).astype(np.float32), (0, 0), 0.8)
+    alpha, size = 30.0, 2 * int(np.ceil(1.5 * 30.0 / 2.0 / 5.0)) + 9  # the kernel size rl_deconvolve uses
+    psf = sweep_psf_kernel(prof, alpha, "G", 5.0, size).astype(np.float32)
+    focus = sweep_psf_kernel(prof, 0.0, "G", 5.0, 15).astype(np.float32)
+    observed = cv2.filter2D(latent, -1, psf, borderType=cv2.BORDER_REFLECT)
+    target = cv2.filter2D(latent, -1, focus, borderType=cv2.BORDER_REFLECT)
+    ours, _ = rl_deconvolve(observed, prof, alpha, "G", 5.0, 0.0, 1.0, 100)
+    sk = restoration.richardson_lucy(np.pad(observed, size, mode="symmetric"), psf, num_iter=100,
+                                     clip=False)[size:-size, size:-size]
+    sk = cv2.filter2D(sk.astype(np.float32), -1, focus, borderType=cv2.BORDER_REFLECT)
+    m = slice(12, -12)
+
+    def rms(a, b):
+        return float(np.sqrt(np.mean((a - b)[m, m] ** 2)))
+
+    before = rms(observed, target)
+    assert rms(ours, target) < 0.2 * before and rms(sk, target) < 0.2 * before
+    assert rms(ours, sk) < 0.2 * before

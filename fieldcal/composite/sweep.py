@@ -9,7 +9,8 @@ integration window is centred on each pixel's own best focus, one ``H_s`` per ch
 Deconvolution restores the lens's *in-focus* image (the target OTF is ``H_0 = OTF(f, 0)``, so the result is
 comparable with a stack composite and with the all-in-focus truth), by Wiener filtering with a noise model
 (the noise variance estimated from the image, a power-law signal spectrum fitted to it), or by
-Richardson-Lucy (scikit-image) as an option. The noise gain — how much white pixel noise the filter amplifies,
+Richardson-Lucy as an option (scikit-image's iteration, started from the observed image; docs/dependencies.md
+says why neither is ``skimage.restoration``'s). The noise gain — how much white pixel noise the filter amplifies,
 ``sqrt(mean |G|^2)`` — is reported per channel.
 """
 
