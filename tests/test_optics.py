@@ -117,7 +117,11 @@ def test_every_lens_model_implements_the_protocol(triplet_path, tmp_path):
     assert isinstance(TruthProfile(spec, 64, 48), LensModel)
     assert isinstance(SyntheticProfile(), LensModel)
     assert not isinstance(spec, LensModel)  # works in sensor mm: TruthProfile is its lens model
-    members = list(LensModel.__annotations__) + [m for m in vars(LensModel) if not m.startswith("_")]
+    from fieldcal.composite.register import EstimatedGeometry
+    from fieldcal.optics import FrameGeometry
+    assert isinstance(EstimatedGeometry(0.0, (1.0, 1.0), 0.0, (0.0, 0.0), 1), FrameGeometry)
+    members = [m for cls in (LensModel, FrameGeometry) for m in
+               list(cls.__annotations__) + [m for m in vars(cls) if not m.startswith("_")]]
     assert len(members) > 15
     for m in members:
         assert hasattr(LensProfile, m) or m in LensProfile.__dataclass_fields__, m

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ParameterError, StackError
+from ..optics import LensModel
 from .source import image_size, z_positions
 from .stream import DEFAULT_TILE_PX, accumulate
 from .surface import default_fs_cyc_per_mm, profile_focus_map, profile_tolerance_um
@@ -35,7 +36,7 @@ def to_input_dtype(acc: np.ndarray, dtype, white_level: float) -> np.ndarray:
     return acc.astype(dtype)
 
 
-def check_profile_matches(stack, profile, where=None) -> None:
+def check_profile_matches(stack, profile: LensModel, where=None) -> None:
     """The profile must describe the stack's image size and channels."""
     w, h = image_size(stack)
     size = tuple(int(v) for v in profile.image_size_px)

@@ -17,13 +17,33 @@ import numpy as np
 
 
 @runtime_checkable
-class LensModel(Protocol):
+class FrameGeometry(Protocol):
+    """Where a frame at stage position z puts the scene, relative to the ``z_ref_um`` frame: the part of a lens
+    model that warping frames needs (a geometry measured from a stack alone, as compositing without a profile
+    does, answers only this)."""
+
+    #: stage position (µm) of the reference geometry: pixel coordinates are those of this frame
+    z_ref_um: float
+
+    def magnification(self, z_um, channel: str | None = None) -> np.ndarray:
+        """Image scale at z relative to z_ref (1 at z_ref)."""
+
+    def shift_px(self, z_um, channel: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(dx, dy) image shift (px) at z relative to z_ref."""
+
+    def optical_centre_px(self) -> tuple[float, float]:
+        """(cx, cy) of the optical axis in pixels."""
+
+    def lateral_colour_scale(self, channel: str) -> float:
+        """Channel scale about the optical centre relative to the reference channel."""
+
+
+@runtime_checkable
+class LensModel(FrameGeometry, Protocol):
     """Queries every lens model answers (docs/architecture.md, "Lens model interface")."""
 
     #: channel names, e.g. ("R", "G", "B")
     channels: tuple[str, ...]
-    #: stage position (µm) of the reference geometry: pixel coordinates are those of this frame
-    z_ref_um: float
     #: (width, height) in pixels
     image_size_px: tuple[int, int]
     pixel_pitch_um: float
@@ -44,18 +64,6 @@ class LensModel(Protocol):
 
     def best_focus_interval_um(self, x, y, channel: str, level: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) credible band of the best focus (µm); lo == hi for an exact model."""
-
-    def magnification(self, z_um, channel: str | None = None) -> np.ndarray:
-        """Image scale at z relative to z_ref (1 at z_ref)."""
-
-    def shift_px(self, z_um, channel: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(dx, dy) image shift (px) at z relative to z_ref."""
-
-    def optical_centre_px(self) -> tuple[float, float]:
-        """(cx, cy) of the optical axis in pixels."""
-
-    def lateral_colour_scale(self, channel: str) -> float:
-        """Channel scale about the optical centre relative to the reference channel."""
 
     def wavelength_nm(self, channel: str) -> float:
         """Wavelength (nm) the channel stands for."""

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
+from ..optics import LensModel
 
 
 @dataclass(frozen=True)
@@ -68,7 +69,7 @@ def resolve_channels(profile, channels) -> tuple[str, ...]:
     return tuple(out)
 
 
-def refocus_shift_um(profile, object_distance_mm) -> float:
+def refocus_shift_um(profile: LensModel, object_distance_mm) -> float:
     """Stage shift (µm, +z away from the lens) that refocuses the surfaces from the calibration distance.
 
     Thin-lens image distance ``v = f u / (u - f)``; a change of object distance moves every best-focus point by

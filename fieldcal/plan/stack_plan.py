@@ -24,7 +24,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..errors import ParameterError
-from ..optics import MTFCriterion
+from ..optics import LensModel, MTFCriterion
 from . import cover as cv
 from .scene import Scene
 from .surfaces import SampledField, sample_field
@@ -208,8 +208,8 @@ def _anchor(profile, fieldd: SampledField) -> float:
     return float(np.clip(z, s.z_min_um, s.z_max_um))
 
 
-def plan_stack(profile, request: StackRequest) -> StackPlan:
-    """Compute a stack plan for ``profile`` (any object with the lens-profile interface)."""
+def plan_stack(profile: LensModel, request: StackRequest) -> StackPlan:
+    """Compute a stack plan for ``profile`` (any :class:`fieldcal.optics.LensModel`)."""
     r = request
     crit, max_frames = _check_request(r)
     fs, q = crit.fs_cyc_per_mm, crit.q
