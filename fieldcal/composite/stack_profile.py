@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ParameterError, StackError
-from ..optics import LensModel
+from ..optics import LensModel, MTFCriterion
 from .source import image_size, z_positions
 from .stream import DEFAULT_TILE_PX, accumulate
 from .surface import default_fs_cyc_per_mm, profile_focus_map, profile_tolerance_um
@@ -72,8 +72,9 @@ def blend_kernel(stack, profile, frames, fs_cyc_per_mm=None, q: float = 0.05,
     z = np.sort(z_positions(stack)[frames])
     tol = 0.0
     if profile is not None and len(z) > 1:
-        fs = fs_cyc_per_mm or default_fs_cyc_per_mm(float(profile.pixel_pitch_um))
-        tol = min(profile_tolerance_um(profile, w, h, c, fs, q) for c in stack.channels)
+        fs = default_fs_cyc_per_mm(float(profile.pixel_pitch_um)) if fs_cyc_per_mm is None else fs_cyc_per_mm
+        crit = MTFCriterion(fs, q)
+        tol = min(profile_tolerance_um(profile, w, h, c, crit) for c in stack.channels)
     return BlendKernel(z, tol, min_band=min_band)
 
 

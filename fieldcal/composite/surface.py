@@ -11,7 +11,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from ..optics import LensModel
+from ..optics import LensModel, MTFCriterion
 
 GRID_STEP_PX = 8
 
@@ -88,11 +88,10 @@ def profile_focus_map(profile: LensModel, width: int, height: int, channels, lat
     return dense_maps(fns, width, height, grid_step_px(width, height))
 
 
-def profile_tolerance_um(profile: LensModel, width: int, height: int, channel: str, fs_cyc_per_mm: float,
-                         q: float) -> float:
+def profile_tolerance_um(profile: LensModel, width: int, height: int, channel: str, crit: MTFCriterion) -> float:
     """Median focus tolerance (half-width, µm) of a channel over a 5x5 grid of the field."""
     xs, ys = np.meshgrid(np.linspace(0, width - 1, 5), np.linspace(0, height - 1, 5))
-    tol = np.asarray(profile.focus_tolerance_um(xs, ys, channel, fs_cyc_per_mm, q), dtype=np.float64)
+    tol = np.asarray(profile.focus_tolerance_um(xs, ys, channel, crit.fs_cyc_per_mm, crit.q), dtype=np.float64)
     return float(np.median(tol))
 
 
