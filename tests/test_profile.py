@@ -147,6 +147,16 @@ def test_report_from_profile(profile_and_truth, tmp_path):
     assert "Uncertainty budget" in text
 
 
+def test_report_from_a_lens_spec_draws_what_a_lens_model_has(profile_and_truth, tmp_path):
+    # `fieldcal report LENS.json`: a TruthProfile has no tiles or calibration, so those parts are left out
+    from fieldcal.report.calibration_report import write_report
+    _, truth = profile_and_truth
+    html = write_report(truth, tmp_path / "rep", fs=40.0, q=0.05)
+    names = {f.name for f in (tmp_path / "rep").iterdir()}
+    assert {"index.html", "surfaces.png", "bands.png", "geometry.png", "tolerance.png"} <= names
+    assert "residuals.png" not in names and "Uncertainty budget" not in html.read_text()
+
+
 def test_uncertainty_budget_adds_up(profile_and_truth):
     """The budget's half-widths are those of best_focus_interval_um and contain the systematic terms it lists."""
     from fieldcal.report.calibration_report import uncertainty_budget
