@@ -45,7 +45,7 @@ def _check(fs_cyc_per_mm, q, effort, pitch_um):
     nyquist = 1000.0 / (2.0 * pitch_um)
     if crit.fs_cyc_per_mm >= 0.9 * nyquist:
         raise ParameterError(f"fs = {fs_cyc_per_mm:g} cycles/mm is at or above 90% of the sensor's Nyquist "
-                             f"frequency ({nyquist:.1f} cycles/mm at {pitch_um:g} µm pixels)", field="--fs",
+                             f"frequency ({nyquist:.1f} cycles/mm at {pitch_um:g} µm pixels)", field="fs_cyc_per_mm",
                              fix=f"use --fs below {0.9 * nyquist:.0f} (e.g. {min(80.0, 0.5 * nyquist):.0f})")
 
 

@@ -223,7 +223,7 @@ def resolve(spec: LensSpec, config: ValidateConfig) -> tuple[LensSpec, float]:
     if not fs < 0.9 * nyq:
         raise ParameterError(f"fs = {fs:g} cycles/mm is not below 90 % of the Nyquist frequency of a {w}x{h} render "
                              f"({nyq:.1f} cycles/mm at {sized.sensor.pixel_pitch_um:.2f} µm pixels: --size keeps the "
-                             "sensor area, so fewer pixels are coarser)", field="--fs",
+                             "sensor area, so fewer pixels are coarser)", field="fs_cyc_per_mm",
                              fix=f"use --fs below {0.9 * nyq:.1f} (default {default_fs(sized.sensor.pixel_pitch_um):g}) "
                                  "or a larger --size")
     return sized, fs
