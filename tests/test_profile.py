@@ -149,8 +149,10 @@ def test_report_from_profile(profile_and_truth, tmp_path):
 
 def test_report_from_a_lens_spec_draws_what_a_lens_model_has(profile_and_truth, tmp_path):
     # `fieldcal report LENS.json`: a TruthProfile has no tiles or calibration, so those parts are left out
+    from fieldcal.optics import LensModel
     from fieldcal.report.calibration_report import write_report
-    _, truth = profile_and_truth
+    p, truth = profile_and_truth
+    assert isinstance(p, LensModel) and isinstance(truth, LensModel)
     html = write_report(truth, tmp_path / "rep", fs=40.0, q=0.05)
     names = {f.name for f in (tmp_path / "rep").iterdir()}
     assert {"index.html", "surfaces.png", "bands.png", "geometry.png", "tolerance.png"} <= names
