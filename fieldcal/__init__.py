@@ -22,6 +22,8 @@ _LAZY = {
     "LensSpec": ("fieldcal.simulate.lens", "LensSpec"),
     "LensProfile": ("fieldcal.profile.lens_profile", "LensProfile"),
     "TruthProfile": ("fieldcal.simulate.truth", "TruthProfile"),
+    "LensModel": ("fieldcal.optics.model", "LensModel"),
+    "MTFCriterion": ("fieldcal.optics.criterion", "MTFCriterion"),
     "calibrate": ("fieldcal.calibration.pipeline", "calibrate"),
     "FieldcalError": ("fieldcal.errors", "FieldcalError"),
 }

@@ -11,8 +11,8 @@ from fieldcal.composite import ArrayStack, read_composite_metadata, write_compos
 from fieldcal.composite.dff import FocusVolume, fit_surface, peak_depth
 from fieldcal.composite.stack_profile import to_input_dtype
 from fieldcal.composite.surface import dense_map, output_best_focus_um
-from fieldcal.composite.sweep import (estimate_noise_sigma, integrated_otf, signed_otf, wiener_deconvolve,
-                                      _radial_grid)
+from fieldcal.composite.sweep import estimate_noise_sigma, wiener_deconvolve
+from fieldcal.optics.sweep import integrated_otf, rfft_radial_grid
 from fieldcal.composite.warp import FrameMap, affine_for, source_box, warp_region
 from fieldcal.composite.weights import BlendKernel, SweepKernel
 from fieldcal.errors import FieldcalError, ParameterError
@@ -192,20 +192,6 @@ def test_fit_surface_is_robust_to_outliers_and_drops_degree():
 
 
 # ---------------------------------------------------------------------------------------------- sweep
-def test_integrated_otf_matches_quadrature_and_limits(triplet_path):
-    from scipy.integrate import quad
-
-    p = TruthProfile(LensSpec.load(triplet_path))
-    f = np.array([0.0, 40.0, 120.0, 250.0])
-    h = integrated_otf(p, f, 20.0, "G")
-    ref = [quad(lambda d: float(signed_otf(p, np.array([fi]), d, "G")[0]), -20, 20, limit=200)[0] / 40.0
-           for fi in f]
-    np.testing.assert_allclose(h, ref, atol=2e-4)
-    assert h[0] == pytest.approx(1.0)
-    np.testing.assert_allclose(integrated_otf(p, f, 1e-6, "G"), signed_otf(p, f, 0.0, "G"), atol=1e-9)
-    assert np.all(np.abs(integrated_otf(p, f[1:], 40.0, "G")) < np.abs(h[1:]))  # paper Fig. 6: wider is worse
-
-
 def test_noise_estimate_on_flat_and_textured_images():
     rng = np.random.default_rng(5)
     flat = 1000.0 + rng.normal(0, 7.0, (256, 256))
@@ -222,9 +208,9 @@ def test_wiener_restores_a_sweep_and_reports_the_noise_gain(triplet_path):
     rng = np.random.default_rng(7)
     n = 256
     # A 1/f^2-spectrum scene (natural-image statistics), blurred by the in-focus OTF: the truth.
-    f = _radial_grid((n, n), p.pixel_pitch_um)
+    f = rfft_radial_grid((n, n), p.pixel_pitch_um)
     spec = fft.rfft2(rng.normal(size=(n, n))) / np.maximum(f, 2.0)
-    h0 = signed_otf(p, f, 0.0, "G")
+    h0 = p.defocus_otf(f, 0.0, "G")
     hs = integrated_otf(p, f, 20.0, "G")
     latent = fft.irfft2(spec, s=(n, n))
     latent = 2000 + 800 * latent / latent.std()
@@ -342,3 +328,35 @@ def test_lateral_colour_correction_registers_channels(models_dir):
     for c in (0, 1, 2):
         assert err(fixed, c) < 0.1 * scene.std()
     assert err(keep, 0) > 3 * err(fixed, 0)  # by default the z_ref geometry (with lateral colour) is kept
+
+
+def test_richardson_lucy_reaches_scikit_images_restoration():
+    # fieldcal's RL is scikit-image's iteration started from the observed image (faster to converge) with
+    # OpenCV's mirrored convolutions; on the same PSF both restore the in-focus image and agree with each other
+    import cv2
+    from skimage import restoration
+
+    from fieldcal.composite.sweep import rl_deconvolve
+    from fieldcal.optics.sweep import sweep_psf_kernel
+    from fieldcal.plan.synthetic import SyntheticProfile
+
+    prof = SyntheticProfile(64, 64, pixel_pitch_um=5.0, f_number=2.0)
+    rng = np.random.default_rng(3)
+    latent = cv2.GaussianBlur(rng.uniform(0.2, 0.8, (96, 96)).astype(np.float32), (0, 0), 0.8)
+    alpha, size = 30.0, 2 * int(np.ceil(1.5 * 30.0 / 2.0 / 5.0)) + 9  # the kernel size rl_deconvolve uses
+    psf = sweep_psf_kernel(prof, alpha, "G", 5.0, size).astype(np.float32)
+    focus = sweep_psf_kernel(prof, 0.0, "G", 5.0, 15).astype(np.float32)
+    observed = cv2.filter2D(latent, -1, psf, borderType=cv2.BORDER_REFLECT)
+    target = cv2.filter2D(latent, -1, focus, borderType=cv2.BORDER_REFLECT)
+    ours, _ = rl_deconvolve(observed, prof, alpha, "G", 5.0, 0.0, 1.0, 100)
+    sk = restoration.richardson_lucy(np.pad(observed, size, mode="symmetric"), psf, num_iter=100,
+                                     clip=False)[size:-size, size:-size]
+    sk = cv2.filter2D(sk.astype(np.float32), -1, focus, borderType=cv2.BORDER_REFLECT)
+    m = slice(12, -12)
+
+    def rms(a, b):
+        return float(np.sqrt(np.mean((a - b)[m, m] ** 2)))
+
+    before = rms(observed, target)
+    assert rms(ours, target) < 0.2 * before and rms(sk, target) < 0.2 * before
+    assert rms(ours, sk) < 0.2 * before

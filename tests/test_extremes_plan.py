@@ -15,7 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fieldcal.errors import ParameterError
-from fieldcal.simulate.lens import LensSpec, focus_tolerance_um
+from fieldcal.optics import MTFCriterion, focus_tolerance_um
+from fieldcal.simulate.lens import LensSpec
 from fieldcal.plan import Scene, StackRequest, SweepRequest, check_coverage, plan_stack, plan_sweep
 from fieldcal.plan import ipsf
 from fieldcal.plan.stack_plan import MAX_FRAMES
@@ -76,7 +77,7 @@ def test_fs_beyond_the_cutoff_is_a_clear_error(triplet):
 
 
 def test_q_to_one_uses_the_first_otf_zero_and_fewest_frames(triplet):
-    tol = focus_tolerance_um(80.0, 1 - 1e-12, 2.0)
+    tol = focus_tolerance_um(MTFCriterion(80.0, 1 - 1e-12), 2.0)
     assert tol == pytest.approx(3.8317059702 / (math.pi * 80.0) * 2.0 * 1000.0, rel=1e-9)
     counts = [plan_stack(triplet, StackRequest(q=q)).n_frames for q in (0.01, 0.05, 0.5, 0.999, 1 - 1e-12)]
     assert counts == sorted(counts, reverse=True)  # N is non-increasing in q

@@ -9,7 +9,7 @@ import pytest
 from fieldcal.fit import FitError, GeometryData, GeometryFit, ToleranceFit, fit_geometry, fit_tolerance
 from fieldcal.fit.synthetic import base_lens, synthetic_tiles
 from fieldcal.fit.tolerance import shape_factor
-from fieldcal.simulate.lens import focus_tolerance_um
+from fieldcal.optics import MTFCriterion, focus_tolerance_um
 
 
 def _geometry_data(spec, z, rng, mag_sigma=2e-5, shift_sigma=0.02, quad=0.0, under=1.0):
@@ -84,14 +84,14 @@ def test_geometry_round_trip_and_errors():
 def test_tolerance_matches_closed_form_at_calibration_and_converts(shape):
     spec = base_lens(("R", "G", "B"))
     tiles, geom, truth = synthetic_tiles(spec, np.random.default_rng(4), nx=7, ny=5, fs_cyc_per_mm=80.0, q=0.05)
-    t = fit_tolerance(tiles, geom, 80.0, 0.05, shape=shape)
+    t = fit_tolerance(tiles, geom, MTFCriterion(80.0, 0.05), shape=shape)
     for c in spec.channel_names:
         w = t.tolerance_um(160.0, 120.0, c, 80.0, 0.05)
         assert w == pytest.approx(spec.focus_tolerance_um(80.0, 0.05, c), rel=0.03)
         assert t.coef_um[c].__len__() == 1  # constant over the field: the truth is
         # other fs: exactly 1/fs; other q: by the shape (exact for the defocus disc, close for small q)
         assert t.tolerance_um(10.0, 10.0, c, 40.0, 0.05) == pytest.approx(2.0 * t.tolerance_um(10.0, 10.0, c, 80.0, 0.05))
-        exact = focus_tolerance_um(60.0, 0.2, spec.f_number)
+        exact = focus_tolerance_um(MTFCriterion(60.0, 0.2), spec.f_number)
         assert t.tolerance_um(10.0, 10.0, c, 60.0, 0.2) == pytest.approx(exact, rel=0.03 if shape == "defocus-disc" else 0.1)
 
 
@@ -100,7 +100,7 @@ def test_tolerance_follows_field_dependence_and_round_trips():
     tiles, geom, _ = synthetic_tiles(spec, np.random.default_rng(5), nx=9, ny=7)
     xh, yh = geom.normalise(tiles.x_px, tiles.y_px)
     tiles = replace(tiles, width_um=5.0 * (1.0 + 0.8 * (xh ** 2 + yh ** 2)) * (1 + 0.02 * np.random.default_rng(6).standard_normal(len(tiles))))
-    t = fit_tolerance(tiles, geom, 80.0, 0.05)
+    t = fit_tolerance(tiles, geom, MTFCriterion(80.0, 0.05))
     assert len(t.coef_um["G"]) == 2
     assert t.width_cal_um(0.0, 0.0, "G") == pytest.approx(5.0 * 1.8 * 0.985, rel=0.05)  # corner rho^2 ~ 0.985
     t2 = ToleranceFit.from_dict(json.loads(json.dumps(t.to_dict())))
@@ -110,6 +110,6 @@ def test_tolerance_follows_field_dependence_and_round_trips():
     with pytest.raises(Exception, match="fs"):
         t.tolerance_um(0, 0, "G", -1.0, 0.05)
     with pytest.raises(FitError, match="width"):
-        fit_tolerance(replace(tiles, width_um=np.full(len(tiles), np.nan)), geom, 80.0, 0.05)
+        fit_tolerance(replace(tiles, width_um=np.full(len(tiles), np.nan)), geom, MTFCriterion(80.0, 0.05))
     # 2 J1(x)/x ~ exp(-x^2 / 8) for small x: the disc is a Gaussian of scale 2 in x
     assert shape_factor(0.01, "gaussian") == pytest.approx(shape_factor(0.01, "defocus-disc") / 2, rel=0.01)

@@ -7,7 +7,8 @@ import pytest
 from hypothesis import given, strategies as st
 
 from fieldcal.errors import SpecError
-from fieldcal.simulate.lens import LensSpec, defocus_otf, diffraction_mtf, focus_tolerance_um
+from fieldcal.optics import MTFCriterion, defocus_otf, diffraction_mtf, focus_tolerance_um
+from fieldcal.simulate.lens import LensSpec
 from fieldcal.simulate.truth import TruthProfile
 
 
@@ -23,7 +24,7 @@ def test_triplet_matches_reconstruction_table(triplet_path):
 
 def test_tolerance_matches_traced_depth_of_focus():
     # Ray-traced triplet: MTF at 80 cy/mm within 5% of peak from -5.4 to +6.1 um on axis.
-    tol = focus_tolerance_um(80.0, 0.05, 2.0)
+    tol = focus_tolerance_um(MTFCriterion(80.0, 0.05), 2.0)
     assert 4.5 < tol < 6.1
     # 2J1(x)/x = 1 - q exactly at the tolerance
     assert defocus_otf(80.0, tol, 2.0) == pytest.approx(0.95, abs=1e-9)
@@ -31,10 +32,10 @@ def test_tolerance_matches_traced_depth_of_focus():
 
 @given(st.floats(5, 300), st.floats(1e-3, 0.9), st.floats(1.0, 16.0))
 def test_tolerance_scales_as_f_number_over_frequency(fs, q, n):
-    t = focus_tolerance_um(fs, q, n)
+    t = focus_tolerance_um(MTFCriterion(fs, q), n)
     assert t > 0 and math.isfinite(t)
-    assert focus_tolerance_um(fs, q, 2 * n) == pytest.approx(2 * t, rel=1e-6)
-    assert focus_tolerance_um(2 * fs, q, n) == pytest.approx(t / 2, rel=1e-6)
+    assert focus_tolerance_um(MTFCriterion(fs, q), 2 * n) == pytest.approx(2 * t, rel=1e-6)
+    assert focus_tolerance_um(MTFCriterion(2 * fs, q), n) == pytest.approx(t / 2, rel=1e-6)
 
 
 def test_diffraction_mtf_closed_form():

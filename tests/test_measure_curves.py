@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from fieldcal.simulate.lens import focus_tolerance_um
+from fieldcal.optics import MTFCriterion, focus_tolerance_um
 from fieldcal.measure.throughfocus import (CurveRules, analyse_curve, analyse_curves, defocus_d, defocus_d_prime,
                                            otf_model, peak_model)
 
@@ -16,7 +16,7 @@ FS = 80.0
 
 
 def test_defocus_d_matches_lens_model_and_derivative():
-    from fieldcal.simulate.lens import defocus_otf
+    from fieldcal.optics import defocus_otf
     f = 80.0
     dz = np.linspace(-40, 40, 81)
     x = math.pi * f * 1e-3 * dz / 2.0  # F/2: blur diameter dz/2
@@ -34,10 +34,10 @@ def test_otf_fit_recovers_peak_and_width_of_the_lens_model(f_number):
     r = analyse_curve(Z, e, "otf", FS, 0.05)
     assert r.status == "ok"
     assert abs(r.z_best_um - z0) < 1e-3
-    assert r.width_um == pytest.approx(focus_tolerance_um(FS, 0.05, f_number), rel=1e-3)
+    assert r.width_um == pytest.approx(focus_tolerance_um(MTFCriterion(FS, 0.05), f_number), rel=1e-3)
     # q changes the width as the closed form says
     r2 = analyse_curve(Z, e, "otf", FS, 0.2)
-    assert r2.width_um == pytest.approx(focus_tolerance_um(FS, 0.2, f_number), rel=1e-3)
+    assert r2.width_um == pytest.approx(focus_tolerance_um(MTFCriterion(FS, 0.2), f_number), rel=1e-3)
 
 
 def test_peak_fit_recovers_lorentzian_and_pearson_peaks():
@@ -62,7 +62,7 @@ def test_noisy_curves_meet_accuracy_target_and_sigma_is_calibrated():
     chi = np.sqrt(np.mean((err / sig) ** 2))
     assert 0.7 < chi < 1.4
     widths = np.array([f.width_um for f in fits])
-    assert np.median(widths) == pytest.approx(focus_tolerance_um(FS, 0.05, 2.0), rel=0.05)
+    assert np.median(widths) == pytest.approx(focus_tolerance_um(MTFCriterion(FS, 0.05), 2.0), rel=0.05)
 
 
 def test_batch_equals_single():

@@ -201,8 +201,8 @@ def test_direction_and_plan_file_roundtrip(tmp_path):
 
 
 @pytest.mark.parametrize("kw,field", [({"q": 0.0}, "q"), ({"q": 1.0}, "q"), ({"q": float("nan")}, "q"),
-                                      ({"fs_cyc_per_mm": 0.0}, "fs"), ({"fs_cyc_per_mm": float("nan")}, "fs"),
-                                      ({"fs_cyc_per_mm": -5.0}, "fs"), ({"confidence": 1.0}, "confidence"),
+                                      ({"fs_cyc_per_mm": 0.0}, "fs_cyc_per_mm"), ({"fs_cyc_per_mm": float("nan")}, "fs_cyc_per_mm"),
+                                      ({"fs_cyc_per_mm": -5.0}, "fs_cyc_per_mm"), ({"confidence": 1.0}, "confidence"),
                                       ({"scene": Scene(roi=(10, 10, 0, 5))}, "roi"),
                                       ({"scene": Scene(roi=(500, 0, 5, 5))}, "roi"),
                                       ({"scene": Scene(channels=("Q",))}, "channels"),
@@ -220,8 +220,8 @@ def test_invalid_parameters_give_clear_errors(kw, field):
        cx=st.floats(-20, 60), step=st.integers(1, 16))
 def test_any_valid_request_covers_the_full_grid(fs, q, a, cx, step):
     # tolerance from the defocus model (F/2), surfaces of any sign and a centre anywhere (even off the image)
-    from fieldcal.simulate.lens import focus_tolerance_um
-    tol = lambda rho, f, qq: np.full(np.shape(rho), focus_tolerance_um(f, qq, 2.0))  # noqa: E731
+    from fieldcal.optics import MTFCriterion, focus_tolerance_um
+    tol = lambda rho, f, qq: np.full(np.shape(rho), focus_tolerance_um(MTFCriterion(f, qq), 2.0))  # noqa: E731
     prof = SyntheticProfile(41, 31, a_um=a, tolerance_fn=tol, centre_px=(cx, 14.0))
     plan = plan_stack(prof, StackRequest(fs_cyc_per_mm=fs, q=q, grid_step_px=step))
     x, y = full_grid(plan.field.roi)
@@ -229,6 +229,6 @@ def test_any_valid_request_covers_the_full_grid(fs, q, a, cx, step):
     # optimum for the continuous surface: ceil(D / 2δ) over the pixels' range of best focus. (The optimum for the
     # bare set of pixel values can be lower on coarse grids, where values jump between pixels: a lower bound.)
     z = prof.best_focus_um(x, y, "G")
-    d = focus_tolerance_um(fs, q, 2.0)
+    d = focus_tolerance_um(MTFCriterion(fs, q), 2.0)
     assert full_grid_optimum(prof, plan) <= plan.n_frames <= optimal_uniform_count(float(np.ptp(z)), d) + 1
     assert np.all(np.diff(plan.frames_um) > 0)

@@ -5,10 +5,10 @@ import math
 
 import numpy as np
 import pytest
-from scipy import integrate, special
 
 from fieldcal.errors import ParameterError, SpecError
-from fieldcal.simulate.lens import LensSpec, defocus_otf
+from fieldcal.optics.sweep import integrated_psf_radial
+from fieldcal.simulate.lens import LensSpec
 from fieldcal.plan import Scene
 from fieldcal.plan import ipsf as ip
 from fieldcal.plan import masks as mk
@@ -132,28 +132,12 @@ def test_plan_file_rejects_inconsistent_or_orphaned_sweeps(tmp_path):
 
 
 # ----------------------------------------------------------------------------- integrated PSF and Wiener
-def test_integrated_otf_against_closed_forms():
-    prof = SyntheticProfile(17, 17, f_number=2.0)
-    f = np.array([0.0, 20.0, 80.0])
-    np.testing.assert_allclose(ip.integrated_otf(prof, f, 30.0, "G")[0], 1.0, atol=1e-12)
-    in_focus = ip.integrated_otf(prof, f, 0.0, "G")
-    # small α: mean of 2J1(x)/x ≈ 1 - x²/8 over dz uniform in ±α -> 1 - (π f / N)² α² / 24 (× in-focus factors)
-    a = 1.0
-    expect = 1.0 - (np.pi * 80.0 / 2.0 / 1000.0) ** 2 * a ** 2 / 24.0
-    ratio = ip.integrated_otf(prof, np.array([80.0]), a, "G")[0] / in_focus[2]
-    assert ratio == pytest.approx(expect, abs=1e-6)
-    # large α: against adaptive quadrature of the defocus factor (signed: contrast reversals cancel)
-    a = 40.0
-    q, _ = integrate.quad(lambda dz: float(defocus_otf(80.0, dz, 2.0)) / (2 * a), -a, a, limit=200)
-    assert ip.integrated_otf(prof, np.array([80.0]), a, "G")[0] / in_focus[2] == pytest.approx(q, abs=1e-6)
-
-
 def test_ipsf_is_normalised_and_widens_with_alpha():
     prof = SyntheticProfile(17, 17, f_number=4.0)
     r = np.linspace(0.0, 60.0, 1201)
     e = []
     for a in (0.0, 20.0, 40.0):
-        psf = ip.ipsf_profile(prof, r, a, "G", n_f=1024)
+        psf = integrated_psf_radial(prof, r, a, "G", n_f=1024)
         e.append(np.trapezoid(2 * np.pi * r * psf, r))
         if a == 0.0:
             peak0 = psf[0]

@@ -10,6 +10,7 @@ from fieldcal.fit import ImageGeometry, fit_surfaces
 from fieldcal.fit.geometry import GeometryData, fit_geometry
 from fieldcal.fit.synthetic import base_lens, synthetic_tiles
 from fieldcal.fit.tolerance import fit_tolerance
+from fieldcal.optics import MTFCriterion
 from fieldcal.profile.lens_profile import LensProfile
 from fieldcal.simulate.truth import TruthProfile
 
@@ -38,7 +39,7 @@ def profile_and_truth():
             rows["shift_y_px"].append(float(dy) + rng.normal(0, 0.01))
             rows["shift_sigma_px"].append(0.01)
     gfit = fit_geometry(GeometryData.from_arrays(**rows), z_ref_um=0.0)
-    tol = fit_tolerance(tiles, geom, 40.0, 0.05)
+    tol = fit_tolerance(tiles, geom, MTFCriterion(40.0, 0.05))
     profile = LensProfile(
         surfaces=surf, geometry_fit=gfit, tolerance_fit=tol,
         image={"width_px": geom.width_px, "height_px": geom.height_px, "pixel_pitch_um": geom.pixel_pitch_um,
@@ -146,6 +147,18 @@ def test_report_from_profile(profile_and_truth, tmp_path):
     text = html.read_text()
     assert "Model selection" in text and "chosen" in text
     assert "Uncertainty budget" in text
+
+
+def test_report_from_a_lens_spec_draws_what_a_lens_model_has(profile_and_truth, tmp_path):
+    # `fieldcal report LENS.json`: a TruthProfile has no tiles or calibration, so those parts are left out
+    from fieldcal.optics import LensModel
+    from fieldcal.report.calibration_report import write_report
+    p, truth = profile_and_truth
+    assert isinstance(p, LensModel) and isinstance(truth, LensModel)
+    html = write_report(truth, tmp_path / "rep", fs=40.0, q=0.05)
+    names = {f.name for f in (tmp_path / "rep").iterdir()}
+    assert {"index.html", "surfaces.png", "bands.png", "geometry.png", "tolerance.png"} <= names
+    assert "residuals.png" not in names and "Uncertainty budget" not in html.read_text()
 
 
 def test_uncertainty_budget_adds_up(profile_and_truth):

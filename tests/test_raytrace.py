@@ -12,7 +12,7 @@ from fieldcal.errors import SpecError
 from fieldcal.raytrace.build import check_first_order, fit_even_polynomial, parse_sensor, residual_blur_um
 from fieldcal.raytrace.paraxial import paraxial
 from fieldcal.raytrace.prescription import load_prescription, model_glass_index, parse_rows
-from fieldcal.simulate.lens import diffraction_mtf, gaussian_mtf
+from fieldcal.optics import diffraction_mtf, gaussian_mtf
 
 HEADER = "surface,type,radius,thickness,nd,vd,k,a4,a6,a8"
 

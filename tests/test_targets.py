@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from fieldcal.simulate import lens as lensmod
+from fieldcal.optics import through_focus_otf
 from fieldcal.cli import main
 from fieldcal.errors import FieldcalError, ParameterError
 from fieldcal.charts.targets import (KINDS, CharucoSpec, chart_image, charuco_image, charuco_spec, detect_charuco,
@@ -143,7 +143,7 @@ def test_charuco_detected_on_blurred_noisy_scaled_board():
     pitch_um, f_number, defocus_um = 5.0, 2.0, 30.0  # blur disc 15 µm = 3 px
     fy = np.fft.fftfreq(img.shape[0], d=pitch_um / 1000.0)[:, None]
     fx = np.fft.rfftfreq(img.shape[1], d=pitch_um / 1000.0)[None, :]
-    otf = lensmod.otf(np.hypot(fx, fy), defocus_um, f_number, 546.1, 0.5)
+    otf = through_focus_otf(np.hypot(fx, fy), defocus_um, f_number, 546.1, 0.5)
     blurred = np.fft.irfft2(np.fft.rfft2(img) * otf, s=img.shape)
     assert blurred.std() < 0.95 * img.std()  # the OTF really blurred it
     scaled, (cx, cy) = _scale_about_centre(blurred.astype(np.float32), 0.97)

@@ -142,8 +142,8 @@ def test_check_pass_fail_and_nan():
     assert not Check("c", math.nan, 1.0, "<=", "").passed
 
 
-@pytest.mark.parametrize("kw, field", [({"fs_cyc_per_mm": 30.0}, "--fs"), ({"fs_cyc_per_mm": -1.0}, "--fs"),
-                                       ({"q": 1.5}, "--q"), ({"effort": "fast"}, "--effort"),
+@pytest.mark.parametrize("kw, field", [({"fs_cyc_per_mm": 30.0}, "fs_cyc_per_mm"),
+                                       ({"fs_cyc_per_mm": -1.0}, "fs_cyc_per_mm"), ({"q": 1.5}, "q"), ({"effort": "fast"}, "--effort"),
                                        ({"size_px": (8, 8)}, "--size"), ({"profile": "magic"}, "--profile"),
                                        ({"confidence": 1.0}, "--confidence"), ({"seed": -1}, "--seed")])
 def test_bad_parameters_name_the_field(kw, field):

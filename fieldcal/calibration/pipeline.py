@@ -10,7 +10,6 @@ computed in a background thread while the frames are measured).
 from __future__ import annotations
 
 import hashlib
-import math
 from dataclasses import replace
 import threading
 import time
@@ -21,6 +20,7 @@ import numpy as np
 
 from fieldcal import __version__
 from fieldcal.errors import FieldcalError, ParameterError, StackError
+from fieldcal.optics import MTFCriterion
 from fieldcal.profile.lens_profile import LensProfile
 from fieldcal.progress import status
 
@@ -41,15 +41,11 @@ SYSTEMATIC_STEP_FRACTION = 0.0
 def _check(fs_cyc_per_mm, q, effort, pitch_um):
     if effort not in EFFORTS:
         raise ParameterError(f"unknown effort {effort!r}", field="--effort", fix="use quick, standard or thorough")
-    if not (isinstance(q, (int, float)) and math.isfinite(q) and 0.0 < q < 1.0):
-        raise ParameterError(f"q must be in (0, 1), got {q}", field="--q", fix="e.g. --q 0.05 (5% MTF loss)")
-    if not (isinstance(fs_cyc_per_mm, (int, float)) and math.isfinite(fs_cyc_per_mm) and fs_cyc_per_mm > 0):
-        raise ParameterError(f"fs must be a positive frequency in cycles/mm, got {fs_cyc_per_mm}", field="--fs",
-                             fix="e.g. --fs 80")
+    crit = MTFCriterion(fs_cyc_per_mm, q)
     nyquist = 1000.0 / (2.0 * pitch_um)
-    if fs_cyc_per_mm >= 0.9 * nyquist:
+    if crit.fs_cyc_per_mm >= 0.9 * nyquist:
         raise ParameterError(f"fs = {fs_cyc_per_mm:g} cycles/mm is at or above 90% of the sensor's Nyquist "
-                             f"frequency ({nyquist:.1f} cycles/mm at {pitch_um:g} µm pixels)", field="--fs",
+                             f"frequency ({nyquist:.1f} cycles/mm at {pitch_um:g} µm pixels)", field="fs_cyc_per_mm",
                              fix=f"use --fs below {0.9 * nyquist:.0f} (e.g. {min(80.0, 0.5 * nyquist):.0f})")
 
 
@@ -147,7 +143,7 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     geom = fit_geometry(gdata, z_ref_um=geo_c.z_ref_um, source=str(stack.path))
     tol, tol_note = None, None
     try:
-        tol = fit_tolerance(tiles, geometry, float(fs_cyc_per_mm), float(q), centre_px=centre,
+        tol = fit_tolerance(tiles, geometry, MTFCriterion(fs_cyc_per_mm, q), centre_px=centre,
                             source=str(stack.path))
     except FieldcalError as e:  # planning falls back to the defocus model and says so
         tol_note = f"no measured tolerance model: {e.what}"

@@ -122,7 +122,7 @@ def run_check(args) -> int:
 
 
 def _parse_channels(text: str) -> dict[str, float]:
-    from fieldcal.simulate.lens import DEFAULT_WAVELENGTH_NM
+    from fieldcal.optics import DEFAULT_WAVELENGTH_NM
 
     out: dict[str, float] = {}
     for part in (text or "").split(","):

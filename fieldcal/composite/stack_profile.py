@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ParameterError, StackError
+from ..optics import LensModel, MTFCriterion
 from .source import image_size, z_positions
 from .stream import DEFAULT_TILE_PX, accumulate
 from .surface import default_fs_cyc_per_mm, profile_focus_map, profile_tolerance_um
@@ -35,10 +36,10 @@ def to_input_dtype(acc: np.ndarray, dtype, white_level: float) -> np.ndarray:
     return acc.astype(dtype)
 
 
-def check_profile_matches(stack, profile, where=None) -> None:
+def check_profile_matches(stack, profile: LensModel, where=None) -> None:
     """The profile must describe the stack's image size and channels."""
     w, h = image_size(stack)
-    size = tuple(int(v) for v in getattr(profile, "image_size_px", (w, h)))
+    size = tuple(int(v) for v in profile.image_size_px)
     if size != (w, h):
         raise ParameterError(f"the profile is for {size[0]}x{size[1]} px images but the stack has {w}x{h}",
                              path=where, field="image_size_px",
@@ -71,8 +72,9 @@ def blend_kernel(stack, profile, frames, fs_cyc_per_mm=None, q: float = 0.05,
     z = np.sort(z_positions(stack)[frames])
     tol = 0.0
     if profile is not None and len(z) > 1:
-        fs = fs_cyc_per_mm or default_fs_cyc_per_mm(float(profile.pixel_pitch_um))
-        tol = min(profile_tolerance_um(profile, w, h, c, fs, q) for c in stack.channels)
+        fs = default_fs_cyc_per_mm(float(profile.pixel_pitch_um)) if fs_cyc_per_mm is None else fs_cyc_per_mm
+        crit = MTFCriterion(fs, q)
+        tol = min(profile_tolerance_um(profile, w, h, c, crit) for c in stack.channels)
     return BlendKernel(z, tol, min_band=min_band)
 
 

@@ -19,6 +19,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..optics import FrameGeometry
 from ..progress import progress
 from .source import RowReader, image_size, z_positions
 from .warp import frame_maps, source_box, warp_from
@@ -185,7 +186,7 @@ class _Job:
                     acc[:, x0:x1, run_ch] += wts
 
 
-def accumulate(stack, zb: np.ndarray, kernel, profile=None, *, lateral_colour: bool = False,
+def accumulate(stack, zb: np.ndarray, kernel, profile: FrameGeometry | None = None, *, lateral_colour: bool = False,
                tile: int = DEFAULT_TILE_PX, frames=None, desc: str = "compositing", quiet: bool = False,
                finish: Callable[[np.ndarray], np.ndarray] | None = None, workers: int | None = None) -> np.ndarray:
     """Weighted sum of warped frames, ``H x W x C`` in the stack's raw units.

@@ -11,6 +11,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from ..optics import LensModel, MTFCriterion
+
 GRID_STEP_PX = 8
 
 
@@ -51,7 +53,7 @@ def dense_maps(fns, width: int, height: int, step: int = GRID_STEP_PX) -> np.nda
     return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=-1)
 
 
-def output_best_focus_um(profile, x, y, channel: str, lateral_colour: bool = False, iterations: int = 4):
+def output_best_focus_um(profile: LensModel, x, y, channel: str, lateral_colour: bool = False, iterations: int = 4):
     """Stage position at which the point seen at output pixel (x, y) (z_ref geometry) is in focus.
 
     The profile's surface is a function of the *sensor* position, and focus breathing moves the point on the
@@ -80,17 +82,16 @@ def grid_step_px(width: int, height: int) -> int:
     return max(GRID_STEP_PX, -(-max(width, height) // 256))
 
 
-def profile_focus_map(profile, width: int, height: int, channels, lateral_colour: bool = False) -> np.ndarray:
+def profile_focus_map(profile: LensModel, width: int, height: int, channels, lateral_colour: bool = False) -> np.ndarray:
     """Best-focus positions (µm) of every output pixel and channel, ``H x W x C`` float32."""
     fns = [lambda x, y, ch=ch: output_best_focus_um(profile, x, y, ch, lateral_colour) for ch in channels]
     return dense_maps(fns, width, height, grid_step_px(width, height))
 
 
-def profile_tolerance_um(profile, width: int, height: int, channel: str, fs_cyc_per_mm: float,
-                         q: float) -> float:
+def profile_tolerance_um(profile: LensModel, width: int, height: int, channel: str, crit: MTFCriterion) -> float:
     """Median focus tolerance (half-width, µm) of a channel over a 5x5 grid of the field."""
     xs, ys = np.meshgrid(np.linspace(0, width - 1, 5), np.linspace(0, height - 1, 5))
-    tol = np.asarray(profile.focus_tolerance_um(xs, ys, channel, fs_cyc_per_mm, q), dtype=np.float64)
+    tol = np.asarray(profile.focus_tolerance_um(xs, ys, channel, crit.fs_cyc_per_mm, crit.q), dtype=np.float64)
     return float(np.median(tol))
 
 

@@ -1,18 +1,16 @@
 """Focal sweeps: emulate a sweep image from a dense stack, and deconvolve a sweep image with the integrated PSF.
 
 A pixel exposed while the sensor moves through ``[z_b - alpha, z_b + alpha]`` (paper eq. 2) records the scene
-blurred by the integrated PSF, whose OTF is the mean of the lens OTF over that defocus range::
-
-    H_s(f) = 1/(2 alpha) * integral_{-alpha}^{alpha} OTF(f, dz) d dz
-
-The OTF is taken from the profile's ``defocus_mtf`` with the sign of the geometric defocus OTF (``2 J1(x)/x``
-changes sign: a sweep integrates contrast reversals too). Because the integration window is centred on each
-pixel's own best focus, one ``H_s`` per channel serves the whole field (paper Fig. 7).
+blurred by the integrated PSF, whose OTF ``H_s`` is the mean of the lens model's signed OTF over that defocus
+range (:func:`fieldcal.optics.integrated_otf`, the same function the sweep planner uses). Because the
+integration window is centred on each pixel's own best focus, one ``H_s`` per channel serves the whole field
+(paper Fig. 7).
 
 Deconvolution restores the lens's *in-focus* image (the target OTF is ``H_0 = OTF(f, 0)``, so the result is
 comparable with a stack composite and with the all-in-focus truth), by Wiener filtering with a noise model
 (the noise variance estimated from the image, a power-law signal spectrum fitted to it), or by
-Richardson-Lucy (scikit-image) as an option. The noise gain — how much white pixel noise the filter amplifies,
+Richardson-Lucy as an option (scikit-image's iteration, started from the observed image; docs/dependencies.md
+says why neither is ``skimage.restoration``'s). The noise gain — how much white pixel noise the filter amplifies,
 ``sqrt(mean |G|^2)`` — is reported per channel.
 """
 
@@ -23,14 +21,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ParameterError
-from fieldcal.simulate.lens import defocus_otf
+from ..optics import LensModel
+from ..optics.sweep import integrated_otf, radial_on_grid, rfft_radial_grid, sweep_psf_kernel
 from .source import image_size, z_positions
 from .stack_profile import check_profile_matches, select_frames
 from .stream import DEFAULT_TILE_PX, accumulate
 from .surface import profile_focus_map
 from .weights import SweepKernel
-
-_N_QUAD = 64  # Gauss-Legendre nodes over [-alpha, alpha]: exact to far beyond the OTF's oscillations here
 
 
 @dataclass
@@ -39,56 +36,6 @@ class SweepResult:
 
     image: np.ndarray
     info: dict = field(default_factory=dict)
-
-
-def signed_otf(profile, f_cyc_per_mm, dz_um, channel: str) -> np.ndarray:
-    """OTF (real, signed) at frequency f and defocus dz: the profile's MTF with the defocus OTF's sign."""
-    mtf = np.asarray(profile.defocus_mtf(f_cyc_per_mm, dz_um, channel), dtype=np.float64)
-    sign = np.sign(defocus_otf(f_cyc_per_mm, dz_um, float(profile.f_number)))
-    return mtf * np.where(sign == 0, 1.0, sign)
-
-
-def integrated_otf(profile, f_cyc_per_mm, alpha_um: float, channel: str) -> np.ndarray:
-    """OTF of the integrated PSF of a sweep over ``[-alpha, alpha]`` around best focus (1-D in f)."""
-    f = np.asarray(f_cyc_per_mm, dtype=np.float64)
-    if alpha_um <= 0:
-        return signed_otf(profile, f, 0.0, channel)
-    x, w = np.polynomial.legendre.leggauss(_N_QUAD)
-    out = np.zeros_like(f)
-    for xi, wi in zip(x, w):
-        out += 0.5 * wi * signed_otf(profile, f, alpha_um * xi, channel)
-    return out
-
-
-def _radial_grid(shape: tuple[int, int], pitch_um: float) -> np.ndarray:
-    """|f| (cycles/mm) on an rfft2 grid."""
-    from scipy import fft  # imported when needed: ~0.15 s saved on stack composites
-
-    fy = fft.fftfreq(shape[0])[:, None]
-    fx = fft.rfftfreq(shape[1])[None, :]
-    return np.sqrt(fy * fy + fx * fx) / (pitch_um * 1e-3)
-
-
-def _on_grid(fn_1d, f_grid: np.ndarray, n: int = 4096) -> np.ndarray:
-    """Evaluate a radial function on a 2-D grid through a fine 1-D table (Bessel calls stay 1-D)."""
-    fmax = float(f_grid.max())
-    ft = np.linspace(0.0, fmax * (1 + 1e-9), n)
-    return np.interp(f_grid, ft, fn_1d(ft))
-
-
-def psf_kernel(profile, alpha_um: float, channel: str, pitch_um: float, size_px: int = 33) -> np.ndarray:
-    """Spatial PSF (normalised, non-negative, ``size_px`` square, odd) of a sweep over ``[-alpha, alpha]``
-    around best focus; ``alpha_um = 0`` gives the in-focus PSF."""
-    from scipy import fft  # imported when needed: ~0.15 s saved on stack composites
-
-    size_px = int(size_px) | 1
-    n = 4 * size_px
-    f = _radial_grid((n, n), pitch_um)
-    h = _on_grid(lambda t: integrated_otf(profile, t, alpha_um, channel), f)
-    psf = fft.fftshift(fft.irfft2(h, s=(n, n)))
-    c, r = n // 2, size_px // 2
-    k = np.clip(psf[c - r:c + r + 1, c - r:c + r + 1], 0.0, None)
-    return k / k.sum()
 
 
 def estimate_noise_sigma(channel_image: np.ndarray) -> float:
@@ -130,7 +77,7 @@ def _signal_spectrum_model(power: np.ndarray, f: np.ndarray, hs2: np.ndarray, no
     return float(np.exp(loga)), beta
 
 
-def wiener_deconvolve(channel_image: np.ndarray, profile, alpha_um: float, channel: str, pitch_um: float,
+def wiener_deconvolve(channel_image: np.ndarray, profile: LensModel, alpha_um: float, channel: str, pitch_um: float,
                       noise_sigma: float | None = None, target_focus: bool = True) -> tuple[np.ndarray, dict]:
     """Wiener-deconvolve one channel of a sweep image; returns ``(image, info)`` with the noise gain.
 
@@ -149,9 +96,9 @@ def wiener_deconvolve(channel_image: np.ndarray, profile, alpha_um: float, chann
     pad = min(int(np.ceil(2 * blur_px)) + 16, max(img.shape[0], img.shape[1]))
     padded, shape = _pad(img - mean, pad)
     y = fft.rfft2(padded, workers=-1)
-    f = _radial_grid(shape, pitch_um)
-    hs = _on_grid(lambda t: integrated_otf(profile, t, alpha_um, channel), f)
-    h0 = _on_grid(lambda t: signed_otf(profile, t, 0.0, channel), f) if target_focus else np.ones_like(hs)
+    f = rfft_radial_grid(shape, pitch_um)
+    hs = radial_on_grid(lambda t: integrated_otf(profile, t, alpha_um, channel), f)
+    h0 = radial_on_grid(lambda t: integrated_otf(profile, t, 0.0, channel), f) if target_focus else np.ones_like(hs)
     npix = shape[0] * shape[1]
     power = (np.abs(y) ** 2) / npix
     noise_power = sigma * sigma
@@ -173,7 +120,7 @@ def wiener_deconvolve(channel_image: np.ndarray, profile, alpha_um: float, chann
     return res.astype(np.float32), {"noise_sigma": sigma, "noise_gain": gain, "signal_beta": beta}
 
 
-def rl_deconvolve(channel_image: np.ndarray, profile, alpha_um: float, channel: str, pitch_um: float,
+def rl_deconvolve(channel_image: np.ndarray, profile: LensModel, alpha_um: float, channel: str, pitch_um: float,
                   black: float, white: float, iterations: int = 30) -> tuple[np.ndarray, dict]:
     """Richardson-Lucy with the integrated PSF, then the in-focus PSF applied to land on the lens's in-focus
     image (the same target as the Wiener filter).
@@ -185,9 +132,9 @@ def rl_deconvolve(channel_image: np.ndarray, profile, alpha_um: float, channel: 
 
     blur_px = alpha_um / float(profile.f_number) / pitch_um
     size = 2 * int(np.ceil(1.5 * blur_px)) + 9
-    psf = psf_kernel(profile, alpha_um, channel, pitch_um, size).astype(np.float32)
+    psf = sweep_psf_kernel(profile, alpha_um, channel, pitch_um, size).astype(np.float32)
     psf_flip = np.ascontiguousarray(psf[::-1, ::-1])
-    focus = psf_kernel(profile, 0.0, channel, pitch_um, 15).astype(np.float32)
+    focus = sweep_psf_kernel(profile, 0.0, channel, pitch_um, 15).astype(np.float32)
     scale = white - black
     u = np.clip((np.asarray(channel_image, dtype=np.float32) - black) / scale, 0.0, None)
     eps = np.float32(1e-6)
@@ -200,7 +147,7 @@ def rl_deconvolve(channel_image: np.ndarray, profile, alpha_um: float, channel: 
     return (est * scale + black).astype(np.float32), {"iterations": int(iterations), "psf_px": psf.shape[0]}
 
 
-def deconvolve_sweep(image: np.ndarray, profile, alpha_um: float, channels, *, black: float, white: float,
+def deconvolve_sweep(image: np.ndarray, profile: LensModel, alpha_um: float, channels, *, black: float, white: float,
                      method: str = "wiener", rl_iterations: int = 30, noise_sigma=None) -> SweepResult:
     """Deconvolve a sweep image (H x W x C, raw units) channel by channel.
 
@@ -212,7 +159,7 @@ def deconvolve_sweep(image: np.ndarray, profile, alpha_um: float, channels, *, b
     if not (np.isfinite(alpha_um) and alpha_um > 0):
         raise ParameterError(f"sweep half-range must be > 0 µm, got {alpha_um}", field="--sweep-alpha-um",
                              fix="e.g. --sweep-alpha-um 20")
-    if getattr(profile, "f_number", None) is None:
+    if profile.f_number is None:
         raise ParameterError("the profile has no f-number, which the integrated PSF needs", field="f_number",
                              fix="calibrate with the lens's f-number recorded in the stack (f_number in stack.json)")
     pitch = float(profile.pixel_pitch_um)

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from ..optics import FrameGeometry
 from .source import read_roi
 
 if TYPE_CHECKING:
@@ -54,7 +55,7 @@ def affine_for(scale: float, centre_px: tuple[float, float], shift_px: tuple[flo
                      [0.0, scale, cy * (1.0 - scale) + dy]], dtype=np.float64)
 
 
-def frame_maps(profile, z_um: float, channels, lateral_colour: bool = False) -> list[FrameMap]:
+def frame_maps(profile: FrameGeometry, z_um: float, channels, lateral_colour: bool = False) -> list[FrameMap]:
     """Maps of one frame, one per group of channels that share a transform (usually a single group).
 
     Parameters

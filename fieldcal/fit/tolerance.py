@@ -1,6 +1,7 @@
 """Focus-tolerance model: how far from best focus contrast at fs stays within q of its peak, over the field.
 
-Input: per-tile through-focus half-widths ``width_um`` measured at the calibration's (fs_cal, q_cal).
+Input: per-tile through-focus half-widths ``width_um`` measured at the calibration's MTF criterion (fs_cal, q_cal),
+an :class:`fieldcal.optics.MTFCriterion` (saved as ``fs_cal_cyc_per_mm`` and ``q_cal``).
 Per channel, a smooth model in the normalised radius, ``w_c(rho) = w_c0 [+ w_c1 rho^2]`` (the rho^2 term
 kept only if it lowers BIC), fitted robustly (SciPy ``least_squares`` with a soft-L1 loss: a few tiles with
 a misjudged width do not drag the field).
@@ -21,9 +22,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import optimize, special
+from scipy import optimize
 
 from ..errors import ParameterError
+from ..optics import MTFCriterion, disc_x_at_contrast, valid_q
 from .data import FitError, ImageGeometry, TileData
 
 TOLERANCE_FIT_FORMAT = "fieldcal-tolerance-fit/1"
@@ -32,13 +34,11 @@ SHAPES = ("defocus-disc", "gaussian")
 
 def shape_factor(q: float, shape: str = "defocus-disc") -> float:
     """g(q): half-width in units of the shape's defocus scale (see module docstring)."""
-    if not (isinstance(q, (int, float)) and 0.0 < q < 1.0):
-        raise ParameterError(f"q must be in (0, 1), got {q!r}", field="q", fix="e.g. q=0.05 (5% MTF loss)")
+    q = valid_q(q)
     if shape == "gaussian":
         return math.sqrt(-2.0 * math.log1p(-q))
     if shape == "defocus-disc":
-        # 2 J1(x)/x falls monotonically from 1 to 0 on (0, 3.8317): a unique root.
-        return float(optimize.brentq(lambda x: 2.0 * special.j1(x) / x - (1.0 - q), 1e-9, 3.8317))
+        return disc_x_at_contrast(1.0 - q)
     raise ParameterError(f"unknown tolerance shape {shape!r}", field="shape", fix=f"use one of {SHAPES}")
 
 
@@ -48,8 +48,7 @@ class ToleranceFit:
 
     geometry: ImageGeometry
     centre_px: tuple[float, float]
-    fs_cal_cyc_per_mm: float
-    q_cal: float
+    calibrated_at: MTFCriterion               # the (fs, q) the widths were measured at
     shape: str
     coef_um: dict[str, list[float]]          # w_c0 [, w_c1] in µm
     residual_sd_um: dict[str, float] = field(default_factory=dict)
@@ -71,17 +70,15 @@ class ToleranceFit:
 
     def tolerance_um(self, x_px, y_px, channel: str, fs_cyc_per_mm: float, q: float):
         """Half-width (µm) of the defocus range where MTF(fs) stays within q of its peak."""
-        if not (isinstance(fs_cyc_per_mm, (int, float)) and math.isfinite(fs_cyc_per_mm) and fs_cyc_per_mm > 0):
-            raise ParameterError(f"fs must be a positive frequency, got {fs_cyc_per_mm!r}", field="fs",
-                                 fix="give fs in cycles/mm at the sensor, e.g. 80")
-        scale = (shape_factor(q, self.shape) / shape_factor(self.q_cal, self.shape)
-                 * (self.fs_cal_cyc_per_mm / fs_cyc_per_mm))
+        crit, cal = MTFCriterion(fs_cyc_per_mm, q), self.calibrated_at
+        scale = (shape_factor(crit.q, self.shape) / shape_factor(cal.q, self.shape)
+                 * (cal.fs_cyc_per_mm / crit.fs_cyc_per_mm))
         return self.width_cal_um(x_px, y_px, channel) * scale
 
     def to_dict(self) -> dict[str, Any]:
         return {"format": TOLERANCE_FIT_FORMAT, "geometry": self.geometry.to_dict(),
-                "centre_px": list(self.centre_px), "fs_cal_cyc_per_mm": self.fs_cal_cyc_per_mm,
-                "q_cal": self.q_cal, "shape": self.shape, "coef_um": self.coef_um,
+                "centre_px": list(self.centre_px), "fs_cal_cyc_per_mm": self.calibrated_at.fs_cyc_per_mm,
+                "q_cal": self.calibrated_at.q, "shape": self.shape, "coef_um": self.coef_um,
                 "residual_sd_um": self.residual_sd_um, "diagnostics": self.diagnostics}
 
     @classmethod
@@ -92,22 +89,19 @@ class ToleranceFit:
                             fix="write it with ToleranceFit.to_dict()")
         try:
             return cls(ImageGeometry.from_dict(d["geometry"]), tuple(d["centre_px"]),
-                       float(d["fs_cal_cyc_per_mm"]), float(d["q_cal"]), str(d["shape"]),
+                       MTFCriterion(float(d["fs_cal_cyc_per_mm"]), float(d["q_cal"])), str(d["shape"]),
                        {c: [float(v) for v in cs] for c, cs in d["coef_um"].items()},
                        dict(d.get("residual_sd_um", {})), dict(d.get("diagnostics", {})))
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, ParameterError) as e:
             raise SpecError(f"malformed tolerance fit ({e})", path=path, field="tolerance",
                             fix="regenerate the profile") from None
 
 
-def fit_tolerance(tiles: TileData, geometry: ImageGeometry, fs_cal_cyc_per_mm: float, q_cal: float,
+def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCriterion,
                   centre_px: tuple[float, float] | None = None, shape: str = "defocus-disc",
                   min_tiles: int = 4, source: str | None = None) -> ToleranceFit:
-    """Fit the per-channel width model from tiles with a measured ``width_um``."""
-    shape_factor(q_cal, shape)  # validates q and shape
-    if not (math.isfinite(fs_cal_cyc_per_mm) and fs_cal_cyc_per_mm > 0):
-        raise ParameterError(f"calibration fs must be > 0, got {fs_cal_cyc_per_mm}", field="fs",
-                             fix="give the fs (cycles/mm) the widths were measured at")
+    """Fit the per-channel width model from tiles whose ``width_um`` was measured at ``calibrated_at``."""
+    shape_factor(calibrated_at.q, shape)  # validates the shape
     centre = centre_px if centre_px is not None else geometry.centre_px
     R = geometry.half_diagonal_px
     coef, rsd, diag = {}, {}, {}
@@ -135,5 +129,4 @@ def fit_tolerance(tiles: TileData, geometry: ImageGeometry, fs_cal_cyc_per_mm: f
         coef[c] = [float(v) for v in x]
         rsd[c] = sd
         diag[c] = {"n_tiles": int(m.sum()), "order": order, "bic": {int(o): b for b, o, *_ in cands}}
-    return ToleranceFit(geometry, (float(centre[0]), float(centre[1])), float(fs_cal_cyc_per_mm), float(q_cal),
-                        shape, coef, rsd, diag)
+    return ToleranceFit(geometry, (float(centre[0]), float(centre[1])), calibrated_at, shape, coef, rsd, diag)

@@ -20,12 +20,12 @@ beyond the ends of the scan (no extrapolation), or the fit fails; see :class:`Cu
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize, special
+
+from ..optics.defocus import disc_otf as defocus_d, disc_otf_derivative as defocus_d_prime, disc_x_at_contrast
 
 STATUS_OK = "ok"
 REASONS = ("too_few_frames", "low_texture", "saturated", "out_of_frame", "flat", "multi_peak",
@@ -80,40 +80,6 @@ class CurveFit:
     @classmethod
     def rejected(cls, status: str, peak: float = math.nan, floor: float = math.nan) -> "CurveFit":
         return cls(math.nan, math.nan, math.nan, peak, floor, status, 0)
-
-
-def defocus_d(x):
-    """``2 J1(x) / x`` (1 at x = 0), the geometric-defocus OTF."""
-    x = np.asarray(x, dtype=np.float64)
-    ax = np.abs(x)
-    small = ax < 1e-4
-    xs = np.where(small, 1.0, x)
-    return np.where(small, 1.0 - x * x / 8.0, 2.0 * special.j1(xs) / xs)
-
-
-def defocus_d_prime(x):
-    """Derivative of ``2 J1(x) / x``: ``-2 J2(x) / x``."""
-    x = np.asarray(x, dtype=np.float64)
-    small = np.abs(x) < 1e-4
-    xs = np.where(small, 1.0, x)
-    return np.where(small, -x / 4.0, -2.0 * special.jv(2, xs) / xs)
-
-
-def _x_at_fraction(level: float) -> float:
-    """x in (0, 3.83) where D(x) = level (monotonic branch).
-
-    At level -> 0 (q -> 1) the root is the first zero of J1 itself; the bracket's end, rounded, can then
-    fail to change sign, so levels at or below the end value return the zero (contrast entirely lost there).
-    """
-    x_end = float(special.jn_zeros(1, 1)[0])
-    if level <= float(defocus_d(x_end - 1e-9)):
-        return x_end
-    return float(optimize.brentq(lambda t: float(defocus_d(t)) - level, 1e-9, x_end - 1e-9))
-
-
-@functools.lru_cache(maxsize=64)
-def _x_at_fraction_cached(level: float) -> float:
-    return _x_at_fraction(level)
 
 
 def otf_model(z_um, a, z0_um, k, b, fs_cyc_per_mm):
@@ -260,7 +226,7 @@ def analyse_curves(z_um, values, model: str = "peak", fs_cyc_per_mm: float | Non
             pres.append((t, r))
     if pres:
         fits = _fit_batch(z, V, pres, step, model)
-        x_q = _x_at_fraction_cached(round(1.0 - q, 12)) if model == "otf" else math.nan
+        x_q = disc_x_at_contrast(round(1.0 - q, 12)) if model == "otf" else math.nan
         for (t, pre), fit in zip(pres, fits):
             out[t] = _finish(z, pre, fit, step, model, x_q)
     return out  # type: ignore[return-value]
@@ -416,4 +382,4 @@ def _half_width_units(v, i_max, floor, height, step_units_z, z):
 
 
 # x where D(x)^2 = 1/2, for the initial guess of the blur scale.
-_X_HALF_ENERGY = _x_at_fraction(math.sqrt(0.5))
+_X_HALF_ENERGY = disc_x_at_contrast(math.sqrt(0.5))

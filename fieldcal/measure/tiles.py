@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from ..errors import ParameterError
+from ..optics import MTFCriterion
 from ..progress import progress, status
 from . import focus
 from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
@@ -154,11 +155,7 @@ def default_tile_px(shape: tuple[int, int], effort: str = "standard") -> int:
 
 
 def _check_params(stack, fs_cyc_per_mm, q, tile_px, measure):
-    if not (isinstance(fs_cyc_per_mm, (int, float)) and math.isfinite(fs_cyc_per_mm) and fs_cyc_per_mm > 0):
-        raise ParameterError(f"fs must be a positive number of cycles/mm, got {fs_cyc_per_mm!r}",
-                             field="fs_cyc_per_mm", fix="e.g. fs_cyc_per_mm=80")
-    if not (isinstance(q, (int, float)) and 0.0 < q < 1.0):
-        raise ParameterError(f"q must be in (0, 1), got {q!r}", field="q", fix="e.g. q=0.05 (5 % contrast loss)")
+    MTFCriterion(fs_cyc_per_mm, q)
     if measure not in MEASURES:
         raise ParameterError(f"unknown focus measure {measure!r}", field="measure",
                              fix=f"use one of {', '.join(MEASURES)}")

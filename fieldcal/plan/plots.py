@@ -109,7 +109,7 @@ def plot_windows(plan, path: str | Path) -> Path:
 
 def plot_alpha_trade(profile, plan, path: str | Path) -> Path:
     """Total time vs noise gain and MTF at fs for the α values of the plan's table, plus the IPSF MTFs."""
-    from . import ipsf as ip
+    from ..optics.sweep import integrated_otf
     plt = _plt()
     rows = plan.trade
     a = np.array([r["alpha_um"] for r in rows])
@@ -130,7 +130,7 @@ def plot_alpha_trade(profile, plan, path: str | Path) -> Path:
     fc = 1.0 / (profile.wavelength_nm(ch) * 1e-6 * profile.f_number)
     f = np.linspace(0, min(fc, 1000.0 / (2 * profile.pixel_pitch_um) * 1.5), 300)
     for al in sorted({0.0, plan.request.alpha_um, 2 * plan.request.alpha_um}):
-        ax3.plot(f, ip.integrated_otf(profile, f, al, ch), label=f"α = {al:g} µm")
+        ax3.plot(f, integrated_otf(profile, f, al, ch), label=f"α = {al:g} µm")
     ax3.axhline(0, color="0.7", lw=0.6)
     ax3.set_xlabel("f (cycles/mm)")
     ax3.set_ylabel(f"IPSF OTF ({ch})")

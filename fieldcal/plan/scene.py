@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
+from ..optics import LensModel
 
 
 @dataclass(frozen=True)
@@ -68,7 +69,7 @@ def resolve_channels(profile, channels) -> tuple[str, ...]:
     return tuple(out)
 
 
-def refocus_shift_um(profile, object_distance_mm) -> float:
+def refocus_shift_um(profile: LensModel, object_distance_mm) -> float:
     """Stage shift (µm, +z away from the lens) that refocuses the surfaces from the calibration distance.
 
     Thin-lens image distance ``v = f u / (u - f)``; a change of object distance moves every best-focus point by
@@ -78,8 +79,7 @@ def refocus_shift_um(profile, object_distance_mm) -> float:
     if object_distance_mm is None:
         return 0.0
     u_new = float(object_distance_mm)
-    f = getattr(profile, "focal_length_mm", None)
-    u_cal = getattr(profile, "object_distance_mm", None)
+    f, u_cal = profile.focal_length_mm, profile.object_distance_mm
     if f is None or u_cal is None:
         raise ParameterError("the profile does not record its calibration object distance and focal length, "
                              "so it cannot be refocused", field="object_distance_mm",

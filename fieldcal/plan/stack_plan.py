@@ -17,17 +17,18 @@ How the cover is built (exact up to a bin width):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from scipy import ndimage
 
 from ..errors import ParameterError
+from ..optics import LensModel, MTFCriterion
 from . import cover as cv
 from .scene import Scene
 from .surfaces import SampledField, sample_field
-from .tolerance import (check_confidence, check_fs_q, coverage_probability, expected_mtf_loss, mtf_loss,
+from .tolerance import (check_confidence, coverage_probability, expected_mtf_loss, mtf_loss,
                         sigma_from_halfwidth, tolerance_um)
 
 PLAN_FORMAT = "fieldcal-plan/1"
@@ -165,15 +166,15 @@ def _needs_too_many(fieldd: SampledField, tols: dict) -> float | None:
     return worst or None
 
 
-def _tolerances(profile, fieldd, fs, q):
+def _tolerances(profile, fieldd, crit: MTFCriterion):
     tols, src = {}, {}
     for c, s in fieldd.samples.items():
-        tols[c], src[c] = tolerance_um(profile, s.x, s.y, c, fs, q)
+        tols[c], src[c] = tolerance_um(profile, s.x, s.y, c, crit)
     return tols, src
 
 
 def _check_request(r: StackRequest):
-    fs, q = check_fs_q(r.fs_cyc_per_mm, r.q)
+    crit = MTFCriterion(r.fs_cyc_per_mm, r.q)
     check_confidence(r.confidence)
     if r.placement not in ("optimal", "paper"):
         raise ParameterError(f"placement {r.placement!r} unknown", field="placement", fix="use optimal or paper")
@@ -195,7 +196,7 @@ def _check_request(r: StackRequest):
                                  field="max_time_ms", fix=f"allow at least {per} ms or shorten --exposure-ms")
         by_time = int(math.floor(r.max_time_ms / per + 1e-9))
         max_frames = by_time if max_frames is None else min(int(max_frames), by_time)
-    return fs, q, max_frames
+    return crit, max_frames
 
 
 def _anchor(profile, fieldd: SampledField) -> float:
@@ -207,16 +208,17 @@ def _anchor(profile, fieldd: SampledField) -> float:
     return float(np.clip(z, s.z_min_um, s.z_max_um))
 
 
-def plan_stack(profile, request: StackRequest) -> StackPlan:
-    """Compute a stack plan for ``profile`` (any object with the lens-profile interface)."""
+def plan_stack(profile: LensModel, request: StackRequest) -> StackPlan:
+    """Compute a stack plan for ``profile`` (any :class:`fieldcal.optics.LensModel`)."""
     r = request
-    fs, q, max_frames = _check_request(r)
+    crit, max_frames = _check_request(r)
+    fs, q = crit.fs_cyc_per_mm, crit.q
     fieldd = sample_field(profile, r.scene, r.grid_step_px, r.confidence)
     anchor = _anchor(profile, fieldd) if r.placement == "paper" else None
     warnings: list[str] = []
 
     def solve(qq):
-        tols, src = _tolerances(profile, fieldd, fs, qq)
+        tols, src = _tolerances(profile, fieldd, replace(crit, q=qq))
         short = {c: float(np.max(s.u_um - tols[c])) for c, s in fieldd.samples.items()}
         if any(v >= 0 for v in short.values()):
             return None, tols, src, short, None
@@ -274,7 +276,7 @@ def plan_stack(profile, request: StackRequest) -> StackPlan:
             flat = s.z_max_um == s.z_min_um and edges[i] <= s.z_min_um < edges[i + 1]
             bl.append([float(lo_b), float(hi_b)] if (lo_b < hi_b or flat) else None)
         bands[c] = bl
-    stats = _stats(profile, fieldd, frames, tols, fs, q_used, r.confidence)
+    stats = _stats(profile, fieldd, frames, tols, replace(crit, q=q_used), r.confidence)
     stats["grid_error_bound_um"] = max(s.grid_error_bound_um for s in fieldd.samples.values())
     stats["bin_width_um"] = width
     tol_info = {c: {"source": src[c], "min_um": float(tols[c].min()), "max_um": float(tols[c].max())}
@@ -282,7 +284,7 @@ def plan_stack(profile, request: StackRequest) -> StackPlan:
     return StackPlan(r, fieldd, frames, bands, q_used, tol_info, cov.lower_bound, stats, warnings)
 
 
-def _stats(profile, fieldd, frames, tols, fs, q, confidence):
+def _stats(profile, fieldd, frames, tols, crit: MTFCriterion, confidence):
     """Coverage probability and MTF losses on the sample grid (worst pixel)."""
     fno = float(profile.f_number)
     p_min, e_loss, loss_map, margin = 1.0, 0.0, 0.0, np.inf
@@ -290,8 +292,8 @@ def _stats(profile, fieldd, frames, tols, fs, q, confidence):
         zf = frames[cv.nearest_index(frames, s.z_um)]
         sigma = sigma_from_halfwidth(s.u_um, confidence) if confidence is not None else np.zeros_like(s.u_um)
         p_min = min(p_min, float(coverage_probability(zf, s.z_um, tols[c], sigma).min()))
-        loss_map = max(loss_map, float(mtf_loss(zf - s.z_um, tols[c], fs, q, fno).max()))
-        e_loss = max(e_loss, float(expected_mtf_loss(zf, s.z_um, tols[c], sigma, fs, q, fno).max()))
+        loss_map = max(loss_map, float(mtf_loss(zf - s.z_um, tols[c], crit, fno).max()))
+        e_loss = max(e_loss, float(expected_mtf_loss(zf, s.z_um, tols[c], sigma, crit, fno).max()))
         margin = min(margin, float(np.min(tols[c] - np.abs(zf - s.z_um))))
     return {
         "probability": p_min,
@@ -311,7 +313,7 @@ def check_coverage(profile, plan: StackPlan, x, y, channels=None) -> dict[str, f
     for c in channels or plan.field.channels:
         z = np.asarray(profile.best_focus_um(x, y, c), dtype=np.float64) + plan.field.refocus_um
         zf = plan.frames_um[cv.nearest_index(plan.frames_um, z)]
-        tol, _ = tolerance_um(profile, x, y, c, plan.request.fs_cyc_per_mm, plan.q_used)
+        tol, _ = tolerance_um(profile, x, y, c, MTFCriterion(plan.request.fs_cyc_per_mm, plan.q_used))
         out[c] = float(np.min(tol - np.abs(zf - z)))
     return out
 

@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import ParameterError
+from ..optics import LensModel, valid_fs_cyc_per_mm
+from ..optics.sweep import integrated_otf
 from . import ipsf as ip
 from . import masks as mk
 from .scene import Scene
@@ -158,24 +160,16 @@ def _check(r: SweepRequest):
         raise ParameterError(f"direction {r.direction!r} unknown", field="direction", fix="use +z or -z")
     if not (math.isfinite(r.wiener_nsr) and r.wiener_nsr > 0):
         raise ParameterError(f"Wiener NSR {r.wiener_nsr} must be > 0", field="wiener_nsr", fix="e.g. 0.01")
-    if not (math.isfinite(r.fs_cyc_per_mm) and r.fs_cyc_per_mm > 0):
-        raise ParameterError(f"fs = {r.fs_cyc_per_mm} must be > 0", field="fs", fix="e.g. --fs 80")
+    valid_fs_cyc_per_mm(r.fs_cyc_per_mm)
 
 
-def _profile_cfa(profile):
-    c = getattr(profile, "cfa", None)
-    if c is None:
-        c = getattr(getattr(getattr(profile, "spec", None), "sensor", None), "cfa", None)
-    return c
-
-
-def plan_sweep(profile, request: SweepRequest) -> SweepPlan:
+def plan_sweep(profile: LensModel, request: SweepRequest) -> SweepPlan:
     r = request
     _check(r)
     device = mk.make_device(r.device, r.pixel_exposure_ms, slot_ms=r.slot_ms, max_hold_ms=r.max_hold_ms,
                             clock_us=r.clock_us)
     fieldd = sample_field(profile, r.scene, r.grid_step_px)
-    cfa = r.cfa if r.cfa is not None else _profile_cfa(profile)
+    cfa = r.cfa if r.cfa is not None else profile.cfa
     if cfa is not None and cfa not in mk.CFA_PATTERNS:
         raise ParameterError(f"unknown CFA pattern {cfa!r}", field="cfa", fix=f"use one of {', '.join(mk.CFA_PATTERNS)}")
     chans = list(fieldd.channels)
@@ -219,7 +213,7 @@ def plan_sweep(profile, request: SweepRequest) -> SweepPlan:
     row = next(t for t in trade if t["alpha_um"] == alpha)
     summary = {"channel": ref, "fs_cyc_per_mm": r.fs_cyc_per_mm, "mtf_at_fs": row["mtf_at_fs"],
                "noise_gain": row["noise_gain"], "wiener_nsr": r.wiener_nsr,
-               "in_focus_mtf_at_fs": float(abs(ip.integrated_otf(profile, np.array([r.fs_cyc_per_mm]), 0.0, ref)[0]))}
+               "in_focus_mtf_at_fs": float(abs(integrated_otf(profile, np.array([r.fs_cyc_per_mm]), 0.0, ref)[0]))}
     if device.name == "lcos" and device.slot_ms < ts:
         warnings.append(f"each pixel's 2α range is off-centre by up to {v * device.slot_ms / 2:.2f} µm (half a slot)")
     return SweepPlan(r, fieldd, device, planes, cfa, float(start), float(stop), v, T, n_slots, starts, trade,

@@ -2,8 +2,8 @@
 
 Best focus of every channel: ``z0 + offset[c] + a * rho**2`` with rho = distance from the optical centre over
 the half-diagonal, so the range over the full image is exactly ``|a|``; tolerance δ is uniform or a function of
-rho; the credible band is ``±band_um`` about the surface (Gaussian posterior). It answers the same interface as
-:class:`fieldcal.simulate.truth.TruthProfile`.
+rho; the credible band is ``±band_um`` about the surface (Gaussian posterior); its OTF is the geometric blur
+disc alone (no diffraction). It implements :class:`fieldcal.optics.LensModel`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from fieldcal.simulate.lens import DEFAULT_WAVELENGTH_NM, defocus_otf
+from fieldcal.optics import default_wavelength_nm, defocus_otf
 
 
 class SyntheticProfile:
@@ -30,6 +30,7 @@ class SyntheticProfile:
         self.z_ref_um = 0.0
         self.has_measured_tolerance = True
         self.cfa = cfa
+        self.source_path = None
         cx, cy = self.centre
         self.r_max_px = max(math.hypot(x - cx, y - cy) for x in (0, width_px - 1) for y in (0, height_px - 1))
 
@@ -64,7 +65,10 @@ class SyntheticProfile:
         return 1.0
 
     def wavelength_nm(self, channel):
-        return DEFAULT_WAVELENGTH_NM.get(channel, 550.0)
+        return default_wavelength_nm(channel)
+
+    def defocus_otf(self, f_cyc_per_mm, defocus_um, channel):
+        return defocus_otf(f_cyc_per_mm, defocus_um, self.f_number)
 
     def defocus_mtf(self, f_cyc_per_mm, defocus_um, channel):
-        return np.abs(defocus_otf(f_cyc_per_mm, defocus_um, self.f_number))
+        return np.abs(self.defocus_otf(f_cyc_per_mm, defocus_um, channel))

@@ -1,9 +1,10 @@
 """Focus tolerance δ (half-width of the stage range keeping MTF(fs) within q of its peak) and MTF loss.
 
 δ comes from the profile's measured through-focus width when it has one (``has_measured_tolerance``); otherwise
-from the geometric defocus model with the profile's F-number (``fieldcal.simulate.lens.focus_tolerance_um``), and the
+from the geometric defocus model with the profile's F-number (:func:`fieldcal.optics.focus_tolerance_um`), and the
 plan says which. The MTF loss of a defocus ``dz`` at a pixel with tolerance δ uses the defocus model's shape
 rescaled so that the loss is exactly q at ``|dz| = δ`` (so measured and modelled widths give consistent losses).
+The MTF criterion (fs, q) arrives as a :class:`fieldcal.optics.MTFCriterion`, validated where it is built.
 """
 
 from __future__ import annotations
@@ -14,29 +15,10 @@ import numpy as np
 from scipy import special
 
 from ..errors import ParameterError
-from fieldcal.simulate.lens import defocus_otf, focus_tolerance_um as model_tolerance_um
+from ..optics import LensModel, MTFCriterion, defocus_otf, focus_tolerance_um as model_tolerance_um
 
 MODEL_SOURCE = "defocus model from the F-number (no measured through-focus width)"
 MEASURED_SOURCE = "measured through-focus width (profile)"
-
-
-def check_fs_q(fs_cyc_per_mm, q) -> tuple[float, float]:
-    """Validate the MTF criterion: fs > 0 finite (cycles/mm), q in (0, 1)."""
-    try:
-        fs = float(fs_cyc_per_mm)
-    except (TypeError, ValueError):
-        fs = math.nan
-    if not math.isfinite(fs) or fs <= 0:
-        raise ParameterError(f"spatial frequency fs = {fs_cyc_per_mm!r} cycles/mm must be a finite number > 0",
-                             field="fs", fix="give e.g. --fs 80 (cycles/mm at the sensor)")
-    try:
-        qq = float(q)
-    except (TypeError, ValueError):
-        qq = math.nan
-    if not math.isfinite(qq) or not (0.0 < qq < 1.0):
-        raise ParameterError(f"allowed MTF loss q = {q!r} must be in (0, 1)", field="q",
-                             fix="give e.g. --q 0.05 (5% loss of MTF at fs)")
-    return fs, qq
 
 
 def check_confidence(p) -> float | None:
@@ -51,21 +33,13 @@ def check_confidence(p) -> float | None:
     return pp
 
 
-def model_tolerance(profile, channel: str, fs: float, q: float) -> float:
-    """δ of the defocus model alone (F-number and wavelength of the channel)."""
-    return model_tolerance_um(fs, q, float(profile.f_number), float(profile.wavelength_nm(channel)), 0.0)
-
-
-def tolerance_um(profile, x, y, channel: str, fs: float, q: float) -> tuple[np.ndarray, str]:
+def tolerance_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion) -> tuple[np.ndarray, str]:
     """Per-pixel δ (µm) and where it came from. Non-finite or non-positive values fall back to the model."""
     shape = np.broadcast(np.asarray(x), np.asarray(y)).shape
-    model = model_tolerance(profile, channel, fs, q)
-    measured = bool(getattr(profile, "has_measured_tolerance", False))
-    try:
-        tol = np.asarray(profile.focus_tolerance_um(x, y, channel, fs, q), dtype=np.float64)
-        tol = np.broadcast_to(tol, shape).copy()
-    except (AttributeError, NotImplementedError):
-        return np.full(shape, model), MODEL_SOURCE
+    model = model_tolerance_um(crit, float(profile.f_number))
+    measured = bool(profile.has_measured_tolerance)
+    tol = np.asarray(profile.focus_tolerance_um(x, y, channel, crit.fs_cyc_per_mm, crit.q), dtype=np.float64)
+    tol = np.broadcast_to(tol, shape).copy()
     bad = ~np.isfinite(tol) | (tol <= 0)
     if bad.all():
         return np.full(shape, model), MODEL_SOURCE
@@ -90,12 +64,12 @@ def sigma_from_halfwidth(u, level: float) -> np.ndarray:
     return np.asarray(u, dtype=np.float64) / zq
 
 
-def mtf_loss(dz_um, tol_um, fs: float, q: float, f_number: float) -> np.ndarray:
+def mtf_loss(dz_um, tol_um, crit: MTFCriterion, f_number: float) -> np.ndarray:
     """1 - MTF(fs, dz)/MTF(fs, 0) with the defocus model rescaled to reach q at |dz| = tol_um."""
-    tol_model = model_tolerance_um(fs, q, f_number, 546.1, 0.0)
+    tol_model = model_tolerance_um(crit, f_number)
     tol = np.maximum(np.asarray(tol_um, dtype=np.float64), 1e-12)
     dz_eff = np.asarray(dz_um, dtype=np.float64) * (tol_model / tol)
-    return 1.0 - np.abs(defocus_otf(fs, dz_eff, f_number))
+    return 1.0 - np.abs(defocus_otf(crit.fs_cyc_per_mm, dz_eff, f_number))
 
 
 def coverage_probability(z_frame, z_map, tol, sigma) -> np.ndarray:
@@ -111,7 +85,7 @@ def coverage_probability(z_frame, z_map, tol, sigma) -> np.ndarray:
     return np.where(sigma > 0, p, certain)
 
 
-def expected_mtf_loss(z_frame, z_map, tol, sigma, fs: float, q: float, f_number: float, n_nodes: int = 21):
+def expected_mtf_loss(z_frame, z_map, tol, sigma, crit: MTFCriterion, f_number: float, n_nodes: int = 21):
     """E[MTF loss] over z_true ~ N(z_map, sigma^2) by Gauss-Hermite quadrature."""
     t, w = np.polynomial.hermite_e.hermegauss(n_nodes)
     w = w / w.sum()
@@ -119,5 +93,5 @@ def expected_mtf_loss(z_frame, z_map, tol, sigma, fs: float, q: float, f_number:
     s = np.asarray(sigma, dtype=np.float64)
     out = np.zeros(np.broadcast(d, s).shape)
     for ti, wi in zip(t, w):
-        out += wi * mtf_loss(d - s * ti, tol, fs, q, f_number)
+        out += wi * mtf_loss(d - s * ti, tol, crit, f_number)
     return out

@@ -12,6 +12,9 @@ The public API (DESIGN.md)::
     profile.best_focus_um(x, y, "G")                          # MAP surface (µm)
     profile.best_focus_interval_um(x, y, "G", level=0.9)      # credible band (µm)
     profile.magnification(z_um, "G"); profile.shift_px(z_um, "G")
+
+:class:`LensProfile` implements :class:`fieldcal.optics.LensModel`; its defocus physics is
+:mod:`fieldcal.optics` (the same model the simulator and planner use).
 """
 
 from __future__ import annotations
@@ -25,13 +28,19 @@ import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
 
 from fieldcal import __version__
 from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text, jsonable
 from fieldcal.errors import ParameterError, SpecError
+from fieldcal.optics import MTFCriterion, default_wavelength_nm, defocus_otf, diffraction_mtf, focus_tolerance_um
+
+if TYPE_CHECKING:  # the fits import the fitting stack; a profile loads them only when it reads one
+    from fieldcal.fit import SurfaceFit
+    from fieldcal.fit.geometry import GeometryFit
+    from fieldcal.fit.tolerance import ToleranceFit
 
 PROFILE_FORMAT = "fieldcal-profile/1"
 PROFILE_VERSION = 1
@@ -48,6 +57,25 @@ def _check_points(x, y):
     return x, y
 
 
+class ImageBlock(TypedDict, total=False):
+    """The profile's ``image`` block (docs/profile-format.md)."""
+
+    width_px: int
+    height_px: int
+    pixel_pitch_um: float
+    channels: list[str]
+    cfa: str | None
+
+
+class OpticsBlock(TypedDict, total=False):
+    """The profile's ``optics`` block: None where the stack did not record the value."""
+
+    f_number: float | None
+    focal_length_mm: float | None
+    object_distance_mm: float | None
+    wavelength_nm: dict[str, float]
+
+
 @dataclass
 class LensProfile:
     """A calibrated lens: per-channel best-focus surfaces with uncertainty, geometry vs z, tolerance model.
@@ -55,17 +83,17 @@ class LensProfile:
     Build with :func:`fieldcal.calibrate`; read with :meth:`load`; write with :meth:`save`.
     """
 
-    surfaces: Any                       # fieldcal.fit.SurfaceFit
-    geometry_fit: Any                   # fieldcal.fit.geometry.GeometryFit
-    tolerance_fit: Any | None           # fieldcal.fit.tolerance.ToleranceFit (None: use the defocus model)
-    image: dict                         # width_px, height_px, pixel_pitch_um, channels, cfa
-    optics: dict                        # f_number, focal_length_mm, object_distance_mm (None when unknown)
-    calibration: dict                   # fs_cyc_per_mm, q, effort, tile_px, z_range_um, z_step_um, ...
+    surfaces: SurfaceFit
+    geometry_fit: GeometryFit
+    tolerance_fit: ToleranceFit | None  # None: the tolerance comes from the defocus model
+    image: ImageBlock
+    optics: OpticsBlock
+    calibration: dict[str, Any]         # JSON block: fs_cyc_per_mm, q, effort, tile_px, z_range_um, ...
     z_ref_um: float
-    diagnostics: dict = field(default_factory=dict)
-    provenance: dict = field(default_factory=dict)
-    tiles: dict | None = None           # tile table columns (for reports)
-    geometry_measurements: dict | None = None
+    diagnostics: dict[str, Any] = field(default_factory=dict)   # JSON block, free-form
+    provenance: dict[str, Any] = field(default_factory=dict)    # JSON block, free-form
+    tiles: dict[str, np.ndarray] | None = None                  # tile table columns (for reports)
+    geometry_measurements: dict[str, np.ndarray] | None = None  # per-frame geometry columns
     source_path: str | None = None
 
     # ------------------------------------------------------------------------------ the DESIGN.md API
@@ -138,6 +166,10 @@ class LensProfile:
         return self.optics.get("object_distance_mm")
 
     @property
+    def cfa(self) -> str | None:
+        return self.image.get("cfa")
+
+    @property
     def has_measured_tolerance(self) -> bool:
         return self.tolerance_fit is not None
 
@@ -154,13 +186,11 @@ class LensProfile:
         return tuple(float(v) for v in self.surfaces.optical_centre_px())
 
     def lateral_colour_scale(self, channel: str) -> float:
-        fn = getattr(self.geometry_fit, "lateral_colour_scale", None)
-        return float(fn(self._channel(channel))) if fn else 1.0
+        return float(self.geometry_fit.lateral_colour_scale(self._channel(channel)))
 
     def wavelength_nm(self, channel: str) -> float:
-        from fieldcal.simulate.lens import DEFAULT_WAVELENGTH_NM
         wl = self.optics.get("wavelength_nm", {}) or {}
-        return float(wl.get(channel, DEFAULT_WAVELENGTH_NM.get(channel, 550.0)))
+        return float(wl.get(channel, default_wavelength_nm(channel)))
 
     def best_focus_sd_um(self, x, y, channel: str):
         x, y = _check_points(x, y)
@@ -172,27 +202,31 @@ class LensProfile:
         From the measured through-focus widths when the profile has them, else from the geometric defocus
         model with the stack's F-number (``has_measured_tolerance`` says which).
         """
+        crit = MTFCriterion(fs_cyc_per_mm, q)
         x, y = _check_points(x, y)
         ch = self._channel(channel)
         if self.tolerance_fit is not None:
-            return np.asarray(self.tolerance_fit.tolerance_um(x, y, ch, fs_cyc_per_mm, q), dtype=np.float64)
+            return np.asarray(self.tolerance_fit.tolerance_um(x, y, ch, crit.fs_cyc_per_mm, crit.q),
+                              dtype=np.float64)
         if not self.f_number:
             raise SpecError("the profile has neither measured widths nor an F-number for the defocus model",
                             path=self.source_path, field="optics.f_number",
                             fix="recalibrate from a stack whose stack.json gives f_number")
-        from fieldcal.simulate.lens import focus_tolerance_um
-        t = focus_tolerance_um(fs_cyc_per_mm, q, float(self.f_number), self.wavelength_nm(ch))
+        t = focus_tolerance_um(crit, float(self.f_number))
         return np.full(np.broadcast(x, y).shape, t)
 
-    def defocus_mtf(self, f_cyc_per_mm, defocus_um, channel: str):
-        """MTF of the geometric defocus + diffraction model (needs the F-number)."""
-        from fieldcal.simulate.lens import defocus_otf, diffraction_mtf
+    def defocus_otf(self, f_cyc_per_mm, defocus_um, channel: str):
+        """Signed OTF of the geometric defocus x diffraction model (needs the F-number)."""
         n = float(self.f_number or 0.0)
         if n <= 0:
             raise SpecError("the profile has no F-number", path=self.source_path, field="optics.f_number",
                             fix="recalibrate from a stack whose stack.json gives f_number")
-        return np.abs(defocus_otf(f_cyc_per_mm, defocus_um, n)) * diffraction_mtf(
-            f_cyc_per_mm, self.wavelength_nm(channel), n)
+        return defocus_otf(f_cyc_per_mm, defocus_um, n) * diffraction_mtf(
+            f_cyc_per_mm, self.wavelength_nm(self._channel(channel)), n)
+
+    def defocus_mtf(self, f_cyc_per_mm, defocus_um, channel: str):
+        """MTF (``|defocus_otf|``) of the geometric defocus x diffraction model."""
+        return np.abs(self.defocus_otf(f_cyc_per_mm, defocus_um, channel))
 
     # ---------------------------------------------------------------------------------------- I/O
     def to_dict(self, sidecar_name: str | None = None, sidecar_sha256: str | None = None) -> dict:

@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ..errors import ParameterError
+from ..optics import MTFCriterion
 from ..progress import progress
 from .optiland_backend import TracedLens
 from .prescription import Prescription
@@ -223,8 +224,7 @@ def through_focus_tolerance_um(rx: Prescription, wavelength_nm: float = 587.56, 
     """(z_best, lo, hi) µm: the range around best focus where the mean MTF at fs stays >= (1 - q) peak."""
     from scipy.optimize import brentq
 
-    if not (0.0 < q < 1.0):
-        raise ParameterError(f"q must be in (0, 1), got {q}", field="q", fix="e.g. 0.05")
+    MTFCriterion(fs_cyc_per_mm, q)
     lens = TracedLens(rx, wavelength_nm, f_number, num_rays)
     r = find_best_focus(lens, h_mm, SearchSettings(fs_cyc_per_mm=fs_cyc_per_mm, num_rays=num_rays))
     ev = _Evaluator(lens, h_mm, fs_cyc_per_mm)

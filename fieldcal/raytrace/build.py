@@ -12,7 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError, SpecError
-from fieldcal.simulate.lens import ChannelSpec, LensSpec, SensorSpec, diffraction_mtf
+from fieldcal.optics import diffraction_mtf
+from fieldcal.simulate.lens import ChannelSpec, LensSpec, SensorSpec
 from .bestfocus import FocusTable
 from .paraxial import ParaxialData
 

@@ -2,7 +2,10 @@
 
 Every figure is drawn from the profile's public API (best_focus_um, best_focus_interval_um, magnification,
 shift_px, focus_tolerance_um) plus the data it carries (tile table, geometry measurements, model-selection
-table), so the report shows exactly what a deployed profile will answer.
+table), so the report shows exactly what a deployed profile will answer. Any
+:class:`fieldcal.optics.LensModel` can be drawn (a lens spec's truth, for design studies); the parts that
+come from a calibration (tiles, measurements, uncertainty budget, model selection) need a
+:class:`fieldcal.profile.LensProfile` and are left out otherwise.
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from fieldcal.formats.atomic import atomic_write_text, save_figure
+from fieldcal.optics import LensModel
+from fieldcal.profile.lens_profile import LensProfile
 
 #: Every file a report writes into its folder (checked before any work; index.html is written last).
 REPORT_FILES = ("surfaces.png", "bands.png", "residuals.png", "geometry.png", "tolerance.png", "index.html")
@@ -104,9 +109,9 @@ def plot_bands(profile, out: Path, level: float = 0.9) -> str:
     return _save(fig, out / "bands.png")
 
 
-def plot_residuals(profile, out: Path) -> str | None:
-    """Per-tile residuals (measured − MAP) and the rejected tiles with their reasons."""
-    tiles = getattr(profile, "tiles", None)
+def plot_residuals(profile: LensModel, out: Path) -> str | None:
+    """Per-tile residuals (measured − MAP) and the rejected tiles with their reasons (a calibrated profile)."""
+    tiles = profile.tiles if isinstance(profile, LensProfile) else None
     if tiles is None or len(tiles.get("x_px", [])) == 0:
         return None
     plt = _plt()
@@ -153,10 +158,10 @@ def plot_residuals(profile, out: Path) -> str | None:
 def plot_geometry(profile, out: Path) -> str:
     """Magnification and shift vs z: the fitted model and the per-frame measurements."""
     plt = _plt()
-    meas = getattr(profile, "geometry_measurements", None) or {}
-    zr = getattr(profile, "z_range_um", None)
-    if zr is None:
-        zr = (profile.z_ref_um - 100.0, profile.z_ref_um + 100.0)
+    if isinstance(profile, LensProfile):
+        meas, zr = profile.geometry_measurements or {}, profile.z_range_um
+    else:
+        meas, zr = {}, (profile.z_ref_um - 100.0, profile.z_ref_um + 100.0)
     z = np.linspace(zr[0], zr[1], 200)
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
     for c in profile.channels:
@@ -214,14 +219,14 @@ def _table(rows: list[dict]) -> str:
     return f"<table><tr>{head}</tr>{''.join(body)}</table>"
 
 
-def uncertainty_budget(profile, level: float = 0.9) -> list[dict]:
+def uncertainty_budget(profile: LensProfile, level: float = 0.9) -> list[dict]:
     """Per channel: the band's half-width at the optical centre and at a corner, and the terms that make it.
 
     The band (``best_focus_interval_um``) is the posterior of the surface (model average, correlated
     discrepancy, misfit and common-mode terms: docs/fitting.md) plus the fixed and breathing systematics in
     quadrature; this lists the parts a lab would check before trusting it.
     """
-    cal = getattr(profile, "calibration", {}) or {}
+    cal = profile.calibration or {}
     surf = profile.surfaces
     post = (surf.diagnostics or {}).get("posterior", {}) or {}
     rec = cal.get("systematic") or {}
@@ -243,14 +248,16 @@ def uncertainty_budget(profile, level: float = 0.9) -> list[dict]:
     return rows
 
 
-def write_report(profile, out_dir: str | Path, *, fs: float | None = None, q: float | None = None) -> Path:
+def write_report(profile: LensModel, out_dir: str | Path, *, fs: float | None = None,
+                 q: float | None = None) -> Path:
     """Write PNG plots and ``index.html`` for a profile into ``out_dir``; returns the HTML path.
 
     Each file is written atomically (:func:`fieldcal.formats.atomic.write_bytes`), ``index.html`` last; the
     command checks the folder first (:data:`REPORT_FILES`, ``--overwrite``).
     """
     out = Path(out_dir)
-    cal = getattr(profile, "calibration", {}) or {}
+    calibrated = profile if isinstance(profile, LensProfile) else None
+    cal = calibrated.calibration if calibrated is not None else {}
     fs = float(fs if fs is not None else cal.get("fs_cyc_per_mm", 80.0))
     q = float(q if q is not None else cal.get("q", 0.05))
     figs = [("Best-focus surfaces", plot_surfaces(profile, out)),
@@ -258,18 +265,19 @@ def write_report(profile, out_dir: str | Path, *, fs: float | None = None, q: fl
             ("Per-tile residuals and rejected tiles", plot_residuals(profile, out)),
             ("Magnification and shift vs z", plot_geometry(profile, out)),
             ("Tolerance map", plot_tolerance(profile, out, fs, q))]
-    sel = list(getattr(profile, "model_selection", []) or [])
-    diag = getattr(profile, "diagnostics", {}) or {}
-    prov = getattr(profile, "provenance", {}) or {}
+    sel = calibrated.model_selection if calibrated is not None else []
+    diag = calibrated.diagnostics if calibrated is not None else {}
+    prov = calibrated.provenance if calibrated is not None else {"source": profile.source_path}
     parts = [f"<h1>Lens profile report</h1><p>channels {', '.join(profile.channels)}; image "
              f"{profile.image_size_px[0]}×{profile.image_size_px[1]} px at {profile.pixel_pitch_um:g} µm; "
              f"z_ref = {profile.z_ref_um:g} µm</p>"]
     for title, name in figs:
         if name:
             parts.append(f"<h2>{html.escape(title)}</h2><img src='{html.escape(name)}'>")
-    parts.append("<h2>Uncertainty budget</h2><p>The 90 % band and what it is made of (docs/fitting.md "
-                 "'Systematic').</p>" + _table(uncertainty_budget(profile)))
-    parts.append("<h2>Model selection</h2>" + _table(sel))
+    if calibrated is not None:
+        parts.append("<h2>Uncertainty budget</h2><p>The 90 % band and what it is made of (docs/fitting.md "
+                     "'Systematic').</p>" + _table(uncertainty_budget(calibrated)))
+        parts.append("<h2>Model selection</h2>" + _table(sel))
     parts.append("<h2>Diagnostics</h2><pre>" + html.escape(json.dumps(diag, indent=2, default=str)) + "</pre>")
     parts.append("<h2>Provenance</h2><pre>" + html.escape(json.dumps(prov, indent=2, default=str)) + "</pre>")
     page = ("<!doctype html><html><head><meta charset='utf-8'><title>fieldcal report</title><style>"

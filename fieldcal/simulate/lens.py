@@ -1,7 +1,7 @@
 """Simulated lens + camera spec (``fieldcal-lens/1``) and the optical model behind it.
 
-One model serves the simulator (what frames look like), the planner (depth-of-focus tolerance when a
-profile has no measured width) and validation (the truth). Everything in a spec is in physical units
+One spec serves the simulator (what frames look like) and validation (the truth, through
+:class:`fieldcal.simulate.truth.TruthProfile`). Everything in a spec is in physical units
 (mm on the sensor, µm along the axis), never pixels, so one spec renders at any image size.
 
 Coordinates
@@ -19,15 +19,9 @@ Best-focus surface of channel c (µm, stage coordinates)::
 Astigmatism splits it: tangential focus ``z_c + A/2``, sagittal ``z_c - A/2`` with ``A = astigmatism_um[c]
 * rho**2``. The renderer uses the isotropic equivalent defocus ``sqrt((dt**2 + ds**2) / 2)``.
 
-Through-focus optics: the OTF at spatial frequency f (cycles/mm) and defocus dz (µm) is the product of
-
-* geometric defocus: a uniform disc of diameter ``b = |dz| / N`` (image-side F-number N) whose OTF is
-  ``2 J1(pi b f) / (pi b f)`` (can go negative: contrast reversal);
-* diffraction: the incoherent MTF of a circular pupil, cut-off ``1 / (lambda N)``;
-* residual aberrations at best focus: a Gaussian of RMS ``residual_blur_um``.
-
-The product is exact at focus and at large defocus and a few-percent approximation between (Stokseth
-1969 gives the full defocused-diffraction OTF); docs/simulator.md states this.
+Through-focus optics: :func:`fieldcal.optics.through_focus_otf` (geometric defocus disc x diffraction x a
+Gaussian of RMS ``residual_blur_um``), with this spec's F-number and channel wavelengths; the focus tolerance
+is :func:`fieldcal.optics.focus_tolerance_um`. docs/simulator.md states the model's accuracy.
 
 Geometry vs z (DESIGN.md): a point at pixel p of the frame at z_ref appears at ``c + m(z) (p - c) + s(z)``
 with ``m(z) = 1 + (z - z_ref) / exit_pupil_um`` (non-telecentric image space: focus breathing) and
@@ -44,14 +38,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import special
-
 from fieldcal.errors import SpecError
+from fieldcal.optics import MTFCriterion, default_wavelength_nm, focus_tolerance_um, through_focus_otf
 
 LENS_FORMAT = "fieldcal-lens/1"
-
-# Default wavelengths (nm) of the usual channels: the paper's C, e and F lines.
-DEFAULT_WAVELENGTH_NM = {"R": 656.3, "G": 546.1, "B": 486.1, "Y": 546.1}
 
 
 @dataclass(frozen=True)
@@ -216,15 +206,15 @@ class LensSpec:
     def otf(self, f_cyc_per_mm, defocus_um, channel: str):
         """Real OTF (may be negative: contrast reversal) at frequency f and isotropic defocus."""
         c = self.channel(channel)
-        return otf(f_cyc_per_mm, defocus_um, self.f_number, c.wavelength_nm, self.residual_blur_um)
+        return through_focus_otf(f_cyc_per_mm, defocus_um, self.f_number, c.wavelength_nm, self.residual_blur_um)
 
     def mtf(self, f_cyc_per_mm, defocus_um, channel: str):
         return np.abs(self.otf(f_cyc_per_mm, defocus_um, channel))
 
     def focus_tolerance_um(self, fs_cyc_per_mm: float, q: float, channel: str) -> float:
         """Half-width of the defocus range over which MTF(fs) stays within a fraction q of its peak."""
-        return focus_tolerance_um(fs_cyc_per_mm, q, self.f_number, self.channel(channel).wavelength_nm,
-                                  self.residual_blur_um)
+        self.channel(channel)  # only the defocus factor depends on dz: δ is the same for every channel
+        return focus_tolerance_um(MTFCriterion(fs_cyc_per_mm, q), self.f_number)
 
     def focus_range_um(self, channels=None) -> tuple[float, float]:
         """(min, max) best focus over the sensor and channels: the paper's D is max - min."""
@@ -267,63 +257,6 @@ class LensSpec:
     @classmethod
     def from_dict(cls, d: dict[str, Any], path: str | Path | None = None) -> "LensSpec":
         return _lens_from_dict(d, path)
-
-
-# ---------------------------------------------------------------------------------------------- optics
-def defocus_otf(f_cyc_per_mm, defocus_um, f_number: float):
-    """Geometric-optics OTF of a uniform blur disc of diameter |dz|/N: 2 J1(x)/x, x = pi b f."""
-    b_mm = np.abs(np.asarray(defocus_um, dtype=np.float64)) / f_number / 1000.0
-    x = np.pi * b_mm * np.asarray(f_cyc_per_mm, dtype=np.float64)
-    small = x < 1e-6
-    xs = np.where(small, 1.0, x)  # guard the 0/0 at focus
-    return np.where(small, 1.0 - x * x / 8.0, 2.0 * special.j1(xs) / xs)
-
-
-def diffraction_mtf(f_cyc_per_mm, wavelength_nm: float, f_number: float):
-    """Incoherent MTF of an aberration-free circular pupil."""
-    fc = 1.0 / (wavelength_nm * 1e-6 * f_number)  # cycles/mm
-    v = np.clip(np.abs(np.asarray(f_cyc_per_mm, dtype=np.float64)) / fc, 0.0, 1.0)
-    return (2.0 / np.pi) * (np.arccos(v) - v * np.sqrt(1.0 - v * v))
-
-
-def gaussian_mtf(f_cyc_per_mm, sigma_um: float):
-    s_mm = sigma_um / 1000.0
-    f = np.asarray(f_cyc_per_mm, dtype=np.float64)
-    return np.exp(-2.0 * (np.pi * s_mm * f) ** 2)
-
-
-def otf(f_cyc_per_mm, defocus_um, f_number: float, wavelength_nm: float, residual_blur_um: float):
-    """Through-focus OTF of the model (see module docstring)."""
-    return (defocus_otf(f_cyc_per_mm, defocus_um, f_number)
-            * diffraction_mtf(f_cyc_per_mm, wavelength_nm, f_number)
-            * gaussian_mtf(f_cyc_per_mm, residual_blur_um))
-
-
-def focus_tolerance_um(fs_cyc_per_mm: float, q: float, f_number: float, wavelength_nm: float = 546.1,
-                       residual_blur_um: float = 0.0) -> float:
-    """Defocus |dz| at which MTF(fs) has fallen to (1 - q) of its in-focus value.
-
-    Only the defocus factor depends on dz, so this solves 2 J1(x)/x = 1 - q with x = pi (dz/N) fs.
-    Check: fs = 80 cycles/mm, q = 0.05, F/2 gives 5.08 µm; ray tracing the paper's triplet gives
-    -5.4/+6.1 µm on axis (shared/lenses/paper-triplet-uncorrected.md).
-    """
-    if not (0.0 < q < 1.0) or not math.isfinite(q):
-        raise ValueError("q must be in (0, 1)")
-    if not (fs_cyc_per_mm > 0.0) or not math.isfinite(fs_cyc_per_mm):
-        raise ValueError("fs must be > 0")
-    from scipy.optimize import brentq
-    # 2 J1(x)/x decreases monotonically from 1 to 0 on [0, j1] (j1 = 3.8317..., the first zero of J1).
-    # As q -> 1 the target 1 - q drops below the rounding floor of 2 J1(x)/x near j1, where brentq would find
-    # no sign change: the tolerance is then the first zero itself (the contrast is lost entirely there).
-    j1 = float(special.jn_zeros(1, 1)[0])
-    target = 1.0 - q
-
-    def d(t):
-        return (2.0 * special.j1(t) / t if t > 1e-12 else 1.0) - target
-
-    x = j1 if d(j1) >= 0.0 else brentq(d, 1e-12, j1)
-    b_mm = x / (math.pi * fs_cyc_per_mm)
-    return float(b_mm * f_number * 1000.0)
 
 
 # ------------------------------------------------------------------------------------------ validation
@@ -403,7 +336,7 @@ def _lens_from_dict(d: Any, path) -> LensSpec:
             raise err(pre + "curvature_um", "must be a list of finite numbers (µm at rho^2, rho^4, ...)", "e.g. [-294.3, -19.5]")
         channels.append(ChannelSpec(
             name=cname,
-            wavelength_nm=num("wavelength_nm", c, pre, positive=True, default=DEFAULT_WAVELENGTH_NM.get(cname, 550.0)),
+            wavelength_nm=num("wavelength_nm", c, pre, positive=True, default=default_wavelength_nm(cname)),
             focus_offset_um=num("focus_offset_um", c, pre, default=0.0),
             curvature_um=tuple(float(a) for a in curv),
             astigmatism_um=num("astigmatism_um", c, pre, default=0.0),

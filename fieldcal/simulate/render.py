@@ -2,7 +2,7 @@
 
 Spatially varying defocus without a kernel per pixel: the (reflect-padded) scene is Fourier transformed once
 per channel; for each of a few *blur levels* the spectrum is multiplied by the analytic OTF of
-:func:`fieldcal.simulate.lens.otf` and transformed back, and every pixel linearly interpolates between the two levels
+:func:`fieldcal.optics.through_focus_otf` and transformed back, and every pixel linearly interpolates between the two levels
 that bracket its own defocus. Levels are spaced geometrically in blur-disc diameter (ratio ``level_ratio``)
 above a floor of ``level_floor_px`` pixels, with an in-focus level at zero, so the interpolation error is a
 bounded fraction of the local blur change (docs/simulator.md gives the bound the tests check).

@@ -1,11 +1,14 @@
 """A simulated lens seen through the lens-profile API: the ground truth that tests, oracles and validation use.
 
-:class:`TruthProfile` answers every question a :class:`fieldcal.profile.LensProfile` answers, from the
-:class:`fieldcal.simulate.lens.LensSpec` itself (zero-width credible bands), in the pixel geometry of a given image size.
-Planning and compositing code is written against this shared interface (see docs/architecture.md).
+:class:`TruthProfile` implements :class:`fieldcal.optics.LensModel` (every question a
+:class:`fieldcal.profile.LensProfile` answers) from the :class:`fieldcal.simulate.lens.LensSpec` itself (zero-width
+credible bands), in the pixel geometry of a given image size. Planning and compositing code is written against
+that protocol (see docs/architecture.md).
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -19,20 +22,22 @@ class TruthProfile:
     has_measured_tolerance = False
 
     def __init__(self, spec: LensSpec, width_px: int | None = None, height_px: int | None = None,
-                 z_ref_um: float | None = None):
+                 z_ref_um: float | None = None, source_path: str | Path | None = None):
         if width_px is not None or height_px is not None:
             spec = spec.with_sensor_size(width_px or spec.sensor.width_px, height_px or spec.sensor.height_px)
         self.spec = spec
-        self.image_size_px = (spec.sensor.width_px, spec.sensor.height_px)
-        self.pixel_pitch_um = spec.sensor.pixel_pitch_um
-        self.channels = spec.channel_names
+        self.source_path: str | None = None if source_path is None else str(source_path)
+        self.image_size_px: tuple[int, int] = (spec.sensor.width_px, spec.sensor.height_px)
+        self.pixel_pitch_um: float = spec.sensor.pixel_pitch_um
+        self.channels: tuple[str, ...] = spec.channel_names
+        self.cfa: str | None = spec.sensor.cfa
         # The reference geometry. A calibrated profile's z_ref is a frame of its stack: compare it with
         # TruthProfile(spec, w, h, z_ref_um=profile.z_ref_um), or pixel coordinates mean different points.
-        self.z_ref_um = spec.z_ref_um if z_ref_um is None else float(z_ref_um)
-        self.f_number = spec.f_number
-        self.focal_length_mm = spec.focal_length_mm
-        self.object_distance_mm = spec.object_distance_mm
-        self.image_height_max_mm = spec.image_height_max_mm
+        self.z_ref_um: float = spec.z_ref_um if z_ref_um is None else float(z_ref_um)
+        self.f_number: float = spec.f_number
+        self.focal_length_mm: float = spec.focal_length_mm
+        self.object_distance_mm: float = spec.object_distance_mm
+        self.image_height_max_mm: float = spec.image_height_max_mm
 
     # -- the DESIGN.md API -------------------------------------------------------------------------
     def landing_px(self, x, y, z_um):
@@ -88,6 +93,10 @@ class TruthProfile:
         """Half-width of the in-tolerance defocus range (MTF at fs within q of its peak) at each point."""
         tol = self.spec.focus_tolerance_um(fs_cyc_per_mm, q, channel)
         return np.full(np.broadcast(np.asarray(x), np.asarray(y)).shape, tol)
+
+    def defocus_otf(self, f_cyc_per_mm, defocus_um, channel: str):
+        """The simulated lens's own signed OTF (defocus disc x diffraction x residual blur)."""
+        return self.spec.otf(f_cyc_per_mm, defocus_um, channel)
 
     def defocus_mtf(self, f_cyc_per_mm, defocus_um, channel: str):
         return self.spec.mtf(f_cyc_per_mm, defocus_um, channel)

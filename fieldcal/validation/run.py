@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from fieldcal.errors import ParameterError
+from fieldcal.optics import valid_fs_cyc_per_mm, valid_q
 from fieldcal.simulate.lens import LensSpec
 from fieldcal.progress import status
 from fieldcal.simulate.truth import TruthProfile
@@ -204,8 +205,7 @@ def resolve(spec: LensSpec, config: ValidateConfig) -> tuple[LensSpec, float]:
     if c.profile not in PROFILE_SOURCES:
         raise ParameterError(f"unknown profile source {c.profile!r}", field="--profile",
                              fix="use calibrate (the full pipeline) or truth (skip calibration)")
-    if not (isinstance(c.q, (int, float)) and math.isfinite(c.q) and 0.0 < c.q < 1.0):
-        raise ParameterError(f"q must be in (0, 1), got {c.q}", field="--q", fix="e.g. --q 0.05 (5 % MTF loss)")
+    valid_q(c.q)
     if c.confidence is not None and not (0.0 < c.confidence < 1.0):
         raise ParameterError(f"confidence must be in (0, 1), got {c.confidence}", field="--confidence",
                              fix="e.g. --confidence 0.9, or --confidence none")
@@ -219,11 +219,11 @@ def resolve(spec: LensSpec, config: ValidateConfig) -> tuple[LensSpec, float]:
         raise ParameterError(f"image size {w}x{h} is outside 16..8192 px", field="--size", fix="e.g. --size 256x144")
     sized = spec.with_sensor_size(int(w), int(h))
     nyq = nyquist_cyc_per_mm(sized.sensor.pixel_pitch_um)
-    fs = default_fs(sized.sensor.pixel_pitch_um) if c.fs_cyc_per_mm is None else float(c.fs_cyc_per_mm)
-    if not (math.isfinite(fs) and 0.0 < fs < 0.9 * nyq):
+    fs = default_fs(sized.sensor.pixel_pitch_um) if c.fs_cyc_per_mm is None else valid_fs_cyc_per_mm(c.fs_cyc_per_mm)
+    if not fs < 0.9 * nyq:
         raise ParameterError(f"fs = {fs:g} cycles/mm is not below 90 % of the Nyquist frequency of a {w}x{h} render "
                              f"({nyq:.1f} cycles/mm at {sized.sensor.pixel_pitch_um:.2f} µm pixels: --size keeps the "
-                             "sensor area, so fewer pixels are coarser)", field="--fs",
+                             "sensor area, so fewer pixels are coarser)", field="fs_cyc_per_mm",
                              fix=f"use --fs below {0.9 * nyq:.1f} (default {default_fs(sized.sensor.pixel_pitch_um):g}) "
                                  "or a larger --size")
     return sized, fs
@@ -448,11 +448,11 @@ def validate(lens, config: ValidateConfig | None = None, *, workdir: str | Path 
         if size != (spec.sensor.width_px, spec.sensor.height_px):
             raise ParameterError(f"the profile is for {size[0]}x{size[1]} px images, the render is "
                                  f"{spec.sensor.width_px}x{spec.sensor.height_px}",
-                                 path=getattr(profile, "source_path", None), field="--size",
+                                 path=profile.source_path, field="--size",
                                  fix=f"give --size {size[0]}x{size[1]}")
         if tuple(profile.channels) != tuple(spec.channel_names):
             raise ParameterError(f"the profile's channels {','.join(profile.channels)} are not the lens's "
-                                 f"{','.join(spec.channel_names)}", path=getattr(profile, "source_path", None),
+                                 f"{','.join(spec.channel_names)}", path=profile.source_path,
                                  field="channels", fix="validate a profile calibrated for this lens")
     if workdir is None:
         with tempfile.TemporaryDirectory(prefix="fieldcal-validate-") as tmp:
