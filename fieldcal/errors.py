@@ -65,3 +65,9 @@ class NotYetImplemented(FieldcalError):
     """A pipeline stage whose issue has not landed yet."""
 
     exit_code = 4
+
+
+class ResourceError(FieldcalError):
+    """The machine refused: disk full, read-only file system, permission denied, a lock another run holds."""
+
+    exit_code = 4
