@@ -355,12 +355,15 @@ class CaptureFolder:
         """Write frame ``index`` and append its journal line (the commit point); returns the stack entry."""
         try:
             info = self._writer.add_frame(image, z_um, file=frame_file(index), **frame_meta)
-            line = (json.dumps({"i": index, "entry": info.meta}, sort_keys=True, allow_nan=False) + "\n").encode()
-            fd = os.open(self.journal_path, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
-            with os.fdopen(fd, "ab") as f:
-                f.write(line)
-                f.flush()
-                os.fsync(f.fileno())
+            self._append_journal(json.dumps({"i": index, "entry": info.meta}, sort_keys=True, allow_nan=False))
         except OSError as exc:
             raise environment_error(exc, self.path, f"write frame {index}") from None
         return info.meta
+
+    def _append_journal(self, line: str) -> None:
+        """Append one line and fsync it (never through a link)."""
+        fd = os.open(self.journal_path, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
+        with os.fdopen(fd, "ab") as f:
+            f.write((line + "\n").encode("utf-8"))
+            f.flush()
+            os.fsync(f.fileno())

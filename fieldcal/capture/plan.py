@@ -100,7 +100,7 @@ class CapturePlan:
     def from_range(cls, start_um: float, stop_um: float, step_um: float, *, exposure_ms: float | None = None,
                    approach: str | None = None, overshoot_um: float = 20.0) -> "CapturePlan":
         """``start, start+step, ...`` up to and including ``stop`` when it falls on the grid."""
-        fix = "e.g. z_um=(-100, 100, 10): start, stop and step in um"
+        fix = f"give start, stop and step in um within +-{Z_LIMIT_UM:g}, e.g. -100 100 10"
         start = _finite(start_um, "start_um", lo=-Z_LIMIT_UM, hi=Z_LIMIT_UM, fix=fix)
         stop = _finite(stop_um, "stop_um", lo=-Z_LIMIT_UM, hi=Z_LIMIT_UM, fix=fix)
         step = _finite(step_um, "step_um", lo=-2 * Z_LIMIT_UM, hi=2 * Z_LIMIT_UM, fix=fix)
@@ -133,7 +133,7 @@ class CapturePlan:
         try:
             doc = read_plan(path, check_files=False)
             data = path.read_bytes()
-        except (OSError, RecursionError, ValueError) as exc:  # a folder, unreadable, absurdly nested JSON
+        except (OSError, RecursionError, ValueError, OverflowError) as exc:  # a folder, unreadable, deep JSON, 10**400
             raise SpecError(f"cannot read the plan ({type(exc).__name__}: {exc})", path=path,
                             fix="give the path of a plan made by `fieldcal plan`") from None
         if doc.get("kind") != "stack":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import sys
 
 from . import add_parser
@@ -26,6 +27,10 @@ def register(sub):
                                "journal line fsynced). Re-running the same command resumes: intact frames are "
                                "kept, torn ones re-taken; a changed plan is refused; a second capture into the "
                                "same folder is refused while the first runs. Device strings: docs/hardware.md.")
+    # argparse takes "-1e3" for an option (its negative-number pattern has no exponent): widen it, so that
+    # `--z -1e3 1e3 100` parses and out-of-range values get a message naming --z
+    if hasattr(p, "_negative_number_matcher"):
+        p._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)(e[+-]?\d+)?$|^-(inf|infinity|nan)$", re.I)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--plan", metavar="PLAN.json", help="a fieldcal-plan/1 stack plan")
     src.add_argument("--z", nargs=3, type=float, metavar=("START", "STOP", "STEP"),
