@@ -95,7 +95,7 @@ def test_fault_stops_and_resume_keeps_committed_frames(tmp_path, triplet_path):
     stage, cam = _devices(triplet_path, fail_after=5)
     with pytest.raises(DeviceFault) as e:
         capture(plan, stage, cam, tmp_path / "S", quiet=True)
-    assert e.value.code == -1024 and "re-run the same command to resume" in str(e.value)
+    assert e.value.code == 1024 and "re-run the same command to resume" in str(e.value)
     s = Stack.open(tmp_path / "S")
     assert len(s) == 4  # the back-off move + 4 frames succeeded; the 6th move failed
     kept = {f.file: f.path.read_bytes() for f in s.frames}
@@ -220,7 +220,7 @@ def test_cli_fault_then_resume_then_nothing(tmp_path, triplet_path, capsys):
     argv = ["capture", "--z", "-100", "100", "10", "--camera", cam, "--out", str(out), "--quiet"]
     assert main(argv + ["--stage", "sim:fail_after=7"]) == 3
     err = capsys.readouterr().err
-    assert "device error -1024" in err and "resume" in err and "Traceback" not in err
+    assert "device error 1024" in err and "resume" in err and "Traceback" not in err
     assert main(argv + ["--stage", "sim"]) == 0
     plan = CapturePlan.from_range(-100, 100, 10)
     s = _check_complete(out, plan)
