@@ -409,3 +409,24 @@ def test_a_killed_capture_resumes_with_no_frame_lost_or_doubled(tmp_path, triple
     before = _tree(out)
     assert main(argv) == 0  # complete: a re-run changes nothing
     assert _tree(out) == before
+
+
+def test_a_full_disk_is_an_environment_error_and_the_folder_resumes(tmp_path, triplet_path, capsys, monkeypatch):
+    import errno
+
+    import fieldcal.formats.stack as S
+    real, calls = S.atomic_write_bytes, {"n": 0}
+
+    def full(path, data):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        real(path, data)
+
+    monkeypatch.setattr(S, "atomic_write_bytes", full)
+    argv = ["capture", *Z, "--camera", _cam(triplet_path), "--out", str(tmp_path / "S"), "--quiet"]
+    rc, err = _run(argv, capsys)
+    assert rc == 4 and "No space left on device" in err and "re-run the same command" in err
+    monkeypatch.setattr(S, "atomic_write_bytes", real)
+    assert main(argv) == 0
+    _assert_complete_once(tmp_path / "S", CapturePlan.from_range(0, 30, 10))
