@@ -326,15 +326,26 @@ class GCS2Stage:
         if bad:
             raise ParameterError(f"unknown option(s) {', '.join(bad)}", path=device, field=bad[0],
                                  fix=f"known options: {', '.join(sorted(cls.OPTIONS))}")
+        # option -> (low, high, low excluded): finite ranges, so nan/inf/absurd values never reach the controller
+        ranges = {"zero_mm": (-1000.0, 1000.0, False), "timeout_ms": (0.0, 600000.0, True),
+                  "poll_ms": (0.0, 10000.0, True), "velocity_mm_s": (0.0, 1000.0, True)}
         try:
             kw: dict[str, Any] = {}
             if "axis" in options:
                 kw["axis"] = options["axis"]
             if "baud" in options:
                 kw["baudrate"] = int(options["baud"])
-            for key in ("zero_mm", "timeout_ms", "poll_ms", "velocity_mm_s"):
+                if not 50 <= kw["baudrate"] <= 10_000_000:
+                    raise ParameterError(f"baud={options['baud']} is out of range", path=device, field="baud",
+                                         fix="use the controller's baud rate, e.g. baud=115200")
+            for key, (lo, hi, lo_open) in ranges.items():
                 if key in options:
-                    kw[key] = float(options[key])
+                    v = float(options[key])
+                    if not (math.isfinite(v) and (v > lo if lo_open else v >= lo) and v <= hi):
+                        raise ParameterError(f"{key}={options[key]} must be finite and in "
+                                             f"{'(' if lo_open else '['}{lo:g}, {hi:g}]", path=device, field=key,
+                                             fix=f"give a finite {key}")
+                    kw[key] = v
             if "sign" in options:
                 kw["sign"] = int(options["sign"])
         except ValueError as exc:
