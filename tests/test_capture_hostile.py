@@ -137,6 +137,14 @@ JOURNAL_CASES = {
     "sha256 not hex": (lambda lines: [lines[0], json.dumps({"i": 0, "entry": {**_entry(lines)["entry"],
                                                                               "sha256": "../x"}})] + lines[2:],
                        "sha256 is not a hex digest"),
+    "an unknown field": (lambda lines: [lines[0], json.dumps({"i": 0, "entry": {**_entry(lines)["entry"],
+                                                                                "cfa": "RGGB"}})] + lines[2:],
+                         "field 'cfa' is unknown"),
+    "a non-finite exposure": (lambda lines: [lines[0], json.dumps({"i": 0, "entry": {**_entry(lines)["entry"],
+                                                                                     "exposure_ms": "abc"}})]
+                              + lines[2:], "field 'exposure_ms' is unknown or has a wrong value"),
+    "another frame's plan_index": (lambda lines: [lines[0], json.dumps({"i": 0, "entry": {
+        **_entry(lines)["entry"], "plan_index": 2}})] + lines[2:], "plan_index 2 is not 0"),
     "not JSON in the middle": (lambda lines: [lines[0], "{not json"] + lines[1:], "line 2 is not valid JSON"),
     "deeply nested": (lambda lines: lines[:1] + ["[" * 100000 + "]" * 100000] + lines[1:], "not valid JSON"),
 }
@@ -430,3 +438,17 @@ def test_a_full_disk_is_an_environment_error_and_the_folder_resumes(tmp_path, tr
     monkeypatch.setattr(S, "atomic_write_bytes", real)
     assert main(argv) == 0
     _assert_complete_once(tmp_path / "S", CapturePlan.from_range(0, 30, 10))
+
+
+def test_permission_denied_creating_out_is_an_environment_error(tmp_path, triplet_path, capsys, monkeypatch):
+    """The same case as the read-only parent, simulated (the test suite may run as root)."""
+    import errno
+
+    def denied(self, *a, **k):
+        raise PermissionError(errno.EACCES, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "mkdir", denied)
+    before = _tree(tmp_path)
+    rc, err = _run(["capture", *Z, "--camera", _cam(triplet_path), "--out", str(tmp_path / "S")], capsys)
+    assert rc == 4 and "Permission denied" in err and "permissions" in err
+    assert _tree(tmp_path) == before

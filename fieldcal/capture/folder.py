@@ -48,6 +48,23 @@ _TOP_TMP = re.compile(r"^\.(stack\.json|capture\.journal)\.[A-Za-z0-9_]+\.tmp$")
 MAX_JOURNAL_BYTES = 64 << 20
 
 
+def _is_num(v) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def _is_int(v) -> bool:
+    return not isinstance(v, bool) and isinstance(v, int)
+
+
+# Every key a committed frame's entry may have (what CaptureFolder.save writes), and its check: a journal line
+# with anything else was not written by capture, and nothing from it may reach stack.json.
+ENTRY_KEYS = {"file": lambda v: isinstance(v, str), "sha256": lambda v: isinstance(v, str) and bool(_HEX64.match(v)),
+              "z_um": _is_num, "z_commanded_um": _is_num, "z_measured_um": _is_num, "z_measured_before_um": _is_num,
+              "z_measured_after_um": _is_num, "exposure_ms": lambda v: _is_num(v) and v > 0,
+              "time": lambda v: isinstance(v, str) and len(v) <= 64, "camera_frame_id": _is_int,
+              "plan_index": _is_int}
+
+
 def frame_file(index: int) -> str:
     """The one file name frame ``index`` of a capture may have."""
     return f"frames/{index:04d}.tiff"
@@ -257,6 +274,13 @@ class CaptureFolder:
             if not (isinstance(entry.get("sha256"), str) and _HEX64.match(entry["sha256"])):
                 raise StackError(f"{where}: sha256 is not a hex digest", path=jp, field=f"{where}.entry.sha256",
                                  fix=fix)
+            bad = sorted(k for k in entry if k not in ENTRY_KEYS or not ENTRY_KEYS[k](entry[k]))
+            if bad:
+                raise StackError(f"{where}: field {bad[0]!r} is unknown or has a wrong value "
+                                 f"{entry.get(bad[0])!r:.60}", path=jp, field=f"{where}.entry.{bad[0]}", fix=fix)
+            if entry.get("plan_index", i) != i:
+                raise StackError(f"{where}: plan_index {entry['plan_index']} is not {i}", path=jp,
+                                 field=f"{where}.entry.plan_index", fix=fix)
             z = entry.get("z_um")
             if isinstance(z, bool) or not isinstance(z, (int, float)) or not math.isfinite(z) \
                     or float(z) != frame_z_um[i]:
