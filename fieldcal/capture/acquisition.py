@@ -209,9 +209,10 @@ class Acquisition:
         check_against_stage(list(plan.messages(**kw)), limits_um=self.stage.limits_um())
         cam = self.camera.describe()
         with CaptureFolder(out) as folder:
-            found = folder.prepare(plan_sha256=plan.fingerprint(), n_frames=len(plan.frames),
-                                   frame_z_um=[f.z_um for f in plan.frames], camera=cam,
-                                   stack_header=_stack_header(cam, self.stage.describe(), plan))
+            with self.critical():  # a resume's repairs (journal tail, stack.json, leftovers) finish before a signal
+                found = folder.prepare(plan_sha256=plan.fingerprint(), n_frames=len(plan.frames),
+                                       frame_z_um=[f.z_um for f in plan.frames], camera=cam,
+                                       stack_header=_stack_header(cam, self.stage.describe(), plan))
             todo = [f.index for f in plan.frames if f.index not in found.committed]
             result = CaptureResult(out, len(plan.frames), 0, len(found.committed), found.torn)
             if not todo:
