@@ -370,19 +370,61 @@ elif point == "resume-rewrite":    # a resume dies right after it rewrote stack.
         if str(path).endswith("stack.json") and due():
             die()
     F.atomic_write_text = f
+elif point == "pause":             # hold the run (and its lock) mid-capture until the test says go
+    import time
+    real = F.CaptureFolder._append_journal
+    def f(self, line):
+        if due():
+            open(os.environ["FIELDCAL_TEST_READY"], "w").close()
+            while not os.path.exists(os.environ["FIELDCAL_TEST_GO"]):
+                time.sleep(0.01)
+        real(self, line)
+    F.CaptureFolder._append_journal = f
 sys.exit(main(argv))
 '''
 
 
-def _kill_at(point, n, argv, tmp_path):
+def _start(point, n, argv, tmp_path, **env_extra):
     import subprocess
     import sys
     script = tmp_path / "killer.py"
     script.write_text(KILLER)
-    env = {**os.environ, "FIELDCAL_PROGRESS": "0", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    p = subprocess.run([sys.executable, str(script), point, str(n), *argv], env=env, capture_output=True,
-                       timeout=120)
+    env = {**os.environ, "FIELDCAL_PROGRESS": "0", "PYTHONPATH": str(Path(__file__).resolve().parents[1]),
+           **env_extra}
+    return subprocess.Popen([sys.executable, str(script), point, str(n), *argv], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def _kill_at(point, n, argv, tmp_path):
+    p = _start(point, n, argv, tmp_path)
+    p.communicate(timeout=120)
     return p.returncode
+
+
+def test_a_second_process_is_refused_while_the_first_runs(tmp_path, triplet_path, capsys):
+    """#12.7 with two real processes: the first is held mid-capture (by a file, not by a clock)."""
+    import time
+    out = tmp_path / "S"
+    argv = ["capture", *Z, "--camera", _cam(triplet_path), "--out", str(out), "--quiet"]
+    ready, go = tmp_path / "ready", tmp_path / "go"
+    first = _start("pause", 2, argv, tmp_path, FIELDCAL_TEST_READY=str(ready), FIELDCAL_TEST_GO=str(go))
+    try:
+        deadline = time.monotonic() + 120
+        while not ready.exists():
+            assert first.poll() is None, first.stderr.read()
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        before = _tree(out)
+        rc, err = _run(argv, capsys)
+        assert rc == 4 and "another capture is writing into this folder" in err
+        assert _tree(out) == before
+    finally:
+        go.touch()
+        first.communicate(timeout=120)
+    assert first.returncode == 0
+    lines = [json.loads(l)["i"] for l in (out / JOURNAL).read_text().splitlines()[1:]]
+    assert lines == [0, 1, 2, 3]  # one line per frame: no duplicate from a second run
+    _assert_complete_once(out, CapturePlan.from_range(0, 30, 10))
 
 
 def _assert_complete_once(out: Path, plan: CapturePlan):
