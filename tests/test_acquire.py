@@ -13,7 +13,7 @@ from fieldcal import Stack
 from fieldcal.capture import JOURNAL, CaptureFolder, CapturePlan, PlannedFrame, capture
 from fieldcal.cli import main
 from fieldcal.errors import LinkError, ParameterError, SpecError, StackError
-from fieldcal.hardware.protocols import DeviceFault, Frame
+from fieldcal.hardware.protocols import DeviceFault
 from fieldcal.hardware.sim import SimCamera, SimStage
 
 SIZE = (40, 24)

@@ -220,3 +220,11 @@ def test_cli_reports_an_interrupt_with_exit_130(tmp_path, triplet_path, capsys, 
                str(tmp_path / "S"), "--quiet"])
     err = capsys.readouterr().err
     assert rc == 130 and "resumable" in err and "Traceback" not in err
+
+
+def test_dry_run_that_leaves_the_travel_exits_2_and_moves_nothing(tmp_path, triplet_path, capsys):
+    rc = main(["capture", "--z", "0", "100", "50", "--stage", "sim:lo_um=-10,hi_um=100", "--camera",
+               f"sim:{triplet_path},size=16x10", "--out", str(tmp_path / "D"), "--dry-run"])
+    d = json.loads(capsys.readouterr().out)
+    assert rc == 2 and d["fits_travel"] is False and d["motion_range_um"] == [-20.0, 100.0]
+    assert not (tmp_path / "D").exists()

@@ -236,7 +236,8 @@ class Acquisition:
         return result
 
 
-def _resumable_hint(exc, result_path: Path, plan: CapturePlan) -> None:
+def _resumable_hint(exc, result_path: Path) -> None:
+    """Tell the user a device failure left a resumable folder."""
     exc.fix = ((exc.fix + "; ") if exc.fix else "") + \
         f"committed frames are kept in {result_path}: re-run the same command to resume"
     exc.args = (exc._format(),)
@@ -251,7 +252,7 @@ def capture(plan: CapturePlan, stage, camera, out: str | Path, *, retries: int =
         return acq.capture(plan, out, RunOptions(retries=retries, on_target_timeout_ms=on_target_timeout_ms,
                                                  settle_ms=settle_ms, quiet=quiet))
     except (DeviceError, LinkError) as exc:
-        _resumable_hint(exc, Path(out), plan)
+        _resumable_hint(exc, Path(out))
         raise
 
 
@@ -271,7 +272,7 @@ def run_capture(plan: CapturePlan, stage: str | Any, camera: str | Any, out: str
         try:
             return acq.capture(plan, out, options)
         except (DeviceError, LinkError) as exc:
-            _resumable_hint(exc, Path(out), plan)
+            _resumable_hint(exc, Path(out))
             raise
 
 
