@@ -10,10 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fieldcal import Stack
-from fieldcal.capture.acquire import JOURNAL, CapturePlan, Journal, capture
+from fieldcal.capture import JOURNAL, CaptureFolder, CapturePlan, PlannedFrame, capture
 from fieldcal.cli import main
 from fieldcal.errors import LinkError, ParameterError, SpecError, StackError
-from fieldcal.hardware.protocols import DeviceFault, Frame
+from fieldcal.hardware.protocols import DeviceFault
 from fieldcal.hardware.sim import SimCamera, SimStage
 
 SIZE = (40, 24)
@@ -61,14 +61,18 @@ def test_range_plan_and_one_sided_approach(start, step, n, sgn):
 def test_plan_rejects_bad_input(tmp_path):
     with pytest.raises(ParameterError):
         CapturePlan.from_range(0, 10, 0)
-    with pytest.raises(ParameterError, match="away from STOP"):
+    with pytest.raises(ParameterError, match="away from stop"):
         CapturePlan.from_range(0, 10, -1)
     p = tmp_path / "plan.json"
-    p.write_text(json.dumps({"format": "fieldcal-plan/1", "kind": "sweep"}))
+    sweep = {"format": "fieldcal-plan/1", "kind": "sweep", "parameters": {}, "direction": "+z", "range_um": 100.0,
+             "alpha_um": 5.0, "pixel_exposure_ms": 10.0, "velocity_um_per_ms": 1.0, "total_time_ms": 110.0,
+             "start_um": -50.0, "stop_um": 50.0, "masks": {"file": "x.npz"}}
+    p.write_text(json.dumps(sweep))
     with pytest.raises(SpecError, match="kind"):
         CapturePlan.from_file(p)
-    p.write_text(json.dumps({"format": "fieldcal-plan/1", "kind": "stack", "frames": [{"z_um": 1}, {"z_um": 1}]}))
-    with pytest.raises(SpecError, match="repeat"):
+    p.write_text(json.dumps({"format": "fieldcal-plan/1", "kind": "stack", "parameters": {}, "direction": "+z",
+                             "frames": [{"z_um": 1}, {"z_um": 1}]}))
+    with pytest.raises(SpecError, match="distinct z"):
         CapturePlan.from_file(p)
 
 
@@ -91,7 +95,7 @@ def test_fault_stops_and_resume_keeps_committed_frames(tmp_path, triplet_path):
     stage, cam = _devices(triplet_path, fail_after=5)
     with pytest.raises(DeviceFault) as e:
         capture(plan, stage, cam, tmp_path / "S", quiet=True)
-    assert e.value.code == -1024 and "re-run the same command to resume" in str(e.value)
+    assert e.value.code == 1024 and "re-run the same command to resume" in str(e.value)
     s = Stack.open(tmp_path / "S")
     assert len(s) == 4  # the back-off move + 4 frames succeeded; the 6th move failed
     kept = {f.file: f.path.read_bytes() for f in s.frames}
@@ -106,19 +110,20 @@ def test_torn_frame_is_retaken(tmp_path, triplet_path, monkeypatch):
     plan = CapturePlan.from_range(0, 50, 10)
     stage, cam = _devices(triplet_path)
     calls = {"n": 0}
-    real_append = Journal.append
+    real_save = CaptureFolder.save
 
-    def crash_on_third(self, entry):
+    def crash_on_third(self, index, z_um, image, **meta):
         calls["n"] += 1
-        if calls["n"] == 3:
-            raise SystemExit("power cut")  # after the frame and stack.json, before the commit point
-        real_append(self, entry)
+        if calls["n"] == 3:  # after the frame and stack.json, before the commit point
+            self._writer.add_frame(image, z_um, file=f"frames/{index:04d}.tiff", **meta)
+            raise SystemExit("power cut")
+        return real_save(self, index, z_um, image, **meta)
 
-    monkeypatch.setattr(Journal, "append", crash_on_third)
+    monkeypatch.setattr(CaptureFolder, "save", crash_on_third)
     with pytest.raises(SystemExit):
         capture(plan, stage, cam, tmp_path / "S", quiet=True)
     assert len(Stack.open(tmp_path / "S")) == 3  # stack.json valid, lists the uncommitted frame too
-    monkeypatch.setattr(Journal, "append", real_append)
+    monkeypatch.setattr(CaptureFolder, "save", real_save)
     # a torn half-line at the end of the journal and a stray temp file, as a crash mid-write leaves them
     with open(tmp_path / "S" / JOURNAL, "ab") as f:
         f.write(b'{"i": 4, "ent')
@@ -161,7 +166,7 @@ def test_plan_outside_travel_is_refused_before_any_motion(tmp_path, triplet_path
 
 
 def test_every_frame_sees_the_same_backlash_offset(tmp_path, triplet_path):
-    plan = CapturePlan(tuple(__import__("fieldcal.capture.acquire", fromlist=["PlannedFrame"]).PlannedFrame(i, z)
+    plan = CapturePlan(tuple(PlannedFrame(i, z)
                              for i, z in enumerate([0.0, 30.0, 10.0, 40.0, 20.0])), approach="+z")
     stage, cam = _devices(triplet_path, backlash_um=5.0, noise_um=0.0)
     rendered = []
@@ -215,7 +220,7 @@ def test_cli_fault_then_resume_then_nothing(tmp_path, triplet_path, capsys):
     argv = ["capture", "--z", "-100", "100", "10", "--camera", cam, "--out", str(out), "--quiet"]
     assert main(argv + ["--stage", "sim:fail_after=7"]) == 3
     err = capsys.readouterr().err
-    assert "device error -1024" in err and "resume" in err and "Traceback" not in err
+    assert "device error 1024" in err and "resume" in err and "Traceback" not in err
     assert main(argv + ["--stage", "sim"]) == 0
     plan = CapturePlan.from_range(-100, 100, 10)
     s = _check_complete(out, plan)
@@ -227,7 +232,7 @@ def test_cli_fault_then_resume_then_nothing(tmp_path, triplet_path, capsys):
 
 def test_cli_dry_run_plan_file_and_errors(tmp_path, triplet_path, capsys):
     plan = tmp_path / "plan.json"
-    plan.write_text(json.dumps({"format": "fieldcal-plan/1", "kind": "stack", "direction": "-z",
+    plan.write_text(json.dumps({"format": "fieldcal-plan/1", "kind": "stack", "direction": "-z", "parameters": {},
                                 "frames": [{"z_um": 20.0, "exposure_ms": 5}, {"z_um": 0.0, "exposure_ms": 5}]}))
     cam = f"sim:{triplet_path},size=16x10"
     assert main(["capture", "--plan", str(plan), "--camera", cam, "--out", str(tmp_path / "D"), "--dry-run"]) == 0

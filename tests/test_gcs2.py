@@ -1,12 +1,16 @@
-"""The GCS2 client against the bundled C-863 emulator, over a pseudo-terminal and a loopback TCP socket."""
+"""The GCS2 client against the bundled C-863 emulator, over a pseudo-terminal and a loopback TCP socket.
+
+The emulator's motion runs on a :class:`ManualClock` that advances with every reading (``tick_s``) or when a
+test says so: motion states never depend on how busy the machine is."""
 
 import time
 
 import pytest
 
 from fieldcal.errors import LinkError
-from fieldcal.hardware.gcs2 import GCS2Client, GCS2Stage
-from fieldcal.hardware.gcs2_emulator import HELP_LINES, IDN, GCS2Emulator, PtyServer, TcpServer
+from fieldcal.hardware.gcs2 import (GCS2_CONTROLLER_ERRORS, GCS2_FIXES, GCS_DLL_ERRORS, GCS2Client, GCS2Stage,
+                                    error_text)
+from fieldcal.hardware.gcs2_emulator import HELP_LINES, IDN, GCS2Emulator, ManualClock, PtyServer, TcpServer
 from fieldcal.hardware.protocols import DeviceFault
 
 # Reply timeout of the clients under test. 60 ms was too short on a loaded 2-core CI machine (an emulator
@@ -16,7 +20,7 @@ TIMEOUT_MS = 300
 
 @pytest.fixture(params=["pty", "tcp"])
 def bench(request):
-    emu = GCS2Emulator(time_scale=20.0, settle_ms=2.0)
+    emu = GCS2Emulator(settle_ms=2.0, clock=ManualClock(tick_s=0.05))
     srv = PtyServer(emu) if request.param == "pty" else TcpServer(emu)
     port = srv.path if request.param == "pty" else srv.url
     stage = GCS2Stage(port, timeout_ms=TIMEOUT_MS, poll_ms=2)
@@ -51,7 +55,7 @@ def test_move_converts_um_to_mm_at_the_edge(bench):
 
 
 def test_reversed_axis_sign():
-    emu = GCS2Emulator(time_scale=20.0)
+    emu = GCS2Emulator(clock=ManualClock(tick_s=0.05))
     with TcpServer(emu) as srv:
         st = GCS2Stage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=2, sign=-1, zero_mm=5.0)
         st.connect()
@@ -112,15 +116,21 @@ def test_multi_line_reply(bench):
 def test_single_char_commands(bench):
     emu, _, stage, _ = bench
     assert stage.client.query("#7") == ["\xb1"]
-    _referenced(stage)
+    emu.clock = ManualClock(100.0)  # stands still until the test advances it
+    emu.set_referenced_at(7.5)
     emu.vel = 0.5
-    stage.move_to_um(500.0)
-    assert stage.client.query("#5") == ["1"]  # moving
+    stage.move_to_um(500.0)  # 1 s of motion
+    assert stage.client.query("#5") == ["1"]  # moving, however long the reply took
+    emu.clock.advance(0.5)
+    assert stage.client.query("#5") == ["1"]
+    assert stage.position_um() == pytest.approx(250.0, abs=1e-3)
     stage.stop()
     assert "\x18" in emu.received
     assert emu.error == 0  # stop() read and cleared error 10
     assert not emu.moving()
     assert stage.client.query("#5") == ["0"]
+    emu.clock.advance(5.0)
+    assert stage.position_um() == pytest.approx(250.0, abs=1e-3)  # stopped where it was
 
 
 def test_dropped_reply_is_a_link_error_and_resync_recovers(bench):
@@ -153,20 +163,52 @@ def test_late_reply_is_drained_not_taken_for_the_next_answer(bench):
     assert stage.velocity_um_per_s() == pytest.approx(emu.vel * 1000.0)
 
 
-def test_motion_error_is_a_device_fault():
-    emu = GCS2Emulator(time_scale=1.0)  # real time so MOV's own ERR? precedes the fault
-    with PtyServer(emu) as srv:
-        st = GCS2Stage(srv.path, timeout_ms=TIMEOUT_MS, poll_ms=2)
+@pytest.mark.parametrize("kind", ["pty", "tcp"])
+def test_motion_error_is_code_1024_with_meaning_and_fix(kind):
+    """A C-863 answers ERR? with 1024 (PI_CNTR_MOTION_ERROR) after a following error, not the DLL's -1024."""
+    clock = ManualClock(0.0)
+    emu = GCS2Emulator(clock=clock)
+    srv = PtyServer(emu) if kind == "pty" else TcpServer(emu)
+    with srv:
+        st = GCS2Stage(srv.path if kind == "pty" else srv.url, timeout_ms=TIMEOUT_MS, poll_ms=2)
         st.connect()
         emu.set_referenced_at(7.5)
         emu.vel = 2.0
         emu.motion_error_on_next_move()
-        st.move_to_um(200.0)
+        st.move_to_um(200.0)  # MOV's own ERR? is 0: the clock has not moved
+        clock.advance(1.0)    # past the half-way point where the axis faults
         with pytest.raises(DeviceFault) as e:
             st.wait_on_target(3000)
-        assert e.value.code == -1024
+        assert e.value.code == 1024
+        msg = str(e.value)
+        assert "position error too large" in msg and "PI_CNTR_MOTION_ERROR" in msg and "obstruction" in msg
         assert not emu.servo and not st.on_target()
         st.close()
+
+
+def test_error_table_keys_controller_codes_and_keeps_dll_codes_apart():
+    assert 1024 in GCS2_CONTROLLER_ERRORS and -1024 not in GCS2_CONTROLLER_ERRORS
+    assert GCS2_CONTROLLER_ERRORS[1024][0] == "PI_CNTR_MOTION_ERROR"
+    assert GCS_DLL_ERRORS[-1024][0] == "PI_MOTION_ERROR"
+    assert all(code >= 0 for code in GCS2_CONTROLLER_ERRORS)
+    assert all(code < 0 for code in GCS_DLL_ERRORS)
+    assert all(name.startswith("PI_CNTR_") for name, _ in GCS2_CONTROLLER_ERRORS.values())
+    assert set(GCS2_FIXES) <= set(GCS2_CONTROLLER_ERRORS) | set(GCS_DLL_ERRORS)
+    assert "see the controller manual" in error_text(4242)
+
+
+def test_every_emulated_error_code_has_a_meaning():
+    emu = GCS2Emulator(clock=ManualClock(0.0))
+    codes = set()
+    for cmd in ("XYZ", "MOV 1 abc", "MOV 2 1", "MOV 1 1.0", "VEL 1 99"):
+        emu.handle(cmd)
+        codes.add(int(emu.handle("ERR?")))
+    emu.set_referenced_at(7.5)
+    for cmd in ("MOV 1 99", "STP"):
+        emu.handle(cmd)
+        codes.add(int(emu.handle("ERR?")))
+    assert codes == {1, 2, 5, 7, 8, 10, 15}
+    assert codes <= set(GCS2_CONTROLLER_ERRORS)
 
 
 def test_disconnect_is_a_link_error(bench):
@@ -175,9 +217,43 @@ def test_disconnect_is_a_link_error(bench):
     time.sleep(0.05)
     with pytest.raises(LinkError):
         stage.position_um()
-    if kind == "pty":  # the port itself is gone: resync cannot reopen it
-        with pytest.raises(LinkError):
+    if kind == "pty":  # the port itself is gone: resync tries to reopen it and says so
+        with pytest.raises(LinkError, match="cannot reopen the port"):
             stage.resync()
+    else:  # the server still listens: resync reopens the lost connection
+        stage.resync()
+        assert stage.limits_um() == pytest.approx((-7500.0, 7500.0))
+
+
+def test_a_lost_port_is_reopened_on_resync():
+    """pyserial keeps is_open True after an I/O error: the client must remember the loss and reopen."""
+    emu = GCS2Emulator(clock=ManualClock(0.0))
+    with TcpServer(emu) as srv:
+        c = GCS2Client(srv.url, timeout_ms=TIMEOUT_MS)
+        c.open()
+        first = c._ser
+        srv.disconnect()
+        with pytest.raises(LinkError) as e:
+            for _ in range(5):  # the first write may still be buffered; a read then sees the closed socket
+                c.query("POS? 1")
+        assert "POS? 1" in str(e.value)
+        assert first.is_open  # what pyserial reports: not a sign the port works
+        c.resync()
+        assert c._ser is not first and c.query_float("TMX?", "1") == pytest.approx(15.0)
+        c.close()
+
+
+def test_a_failed_resync_names_the_command_that_failed(bench):
+    emu, _, stage, _ = bench
+    emu.drop_replies(2)  # POS? is lost, and so is the resync's *IDN?
+    with pytest.raises(LinkError, match="POS\\? 1"):
+        stage.position_um()
+    with pytest.raises(LinkError) as e:
+        stage.resync()
+    assert "'*IDN?'" in str(e.value) and "while resyncing after 'POS? 1' failed" in str(e.value)
+    stage.resync()  # the next one succeeds, and forgets the failed command
+    assert stage.position_um() == pytest.approx(-7500.0, abs=1e-3)  # unreferenced: at 0 mm
+    assert stage.client._failed is None
 
 
 def test_port_is_opened_exclusively():
@@ -201,7 +277,7 @@ def test_pipython_backend_against_the_emulator():
     pytest.importorskip("pipython")
     from fieldcal.hardware.pipython_backend import PipythonStage
     from pipython.pidevice.interfaces.pigateway import PIGateway
-    emu1, emu2 = GCS2Emulator(time_scale=20.0), GCS2Emulator(time_scale=20.0)
+    emu1, emu2 = GCS2Emulator(clock=ManualClock(tick_s=0.05)), GCS2Emulator(clock=ManualClock(tick_s=0.05))
     with PtyServer(emu1) as s1, TcpServer(emu2) as s2:
         a = PipythonStage(s1.path, timeout_ms=200, poll_ms=2)
         b = PipythonStage(s2.url, timeout_ms=200, poll_ms=2)

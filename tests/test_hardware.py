@@ -195,3 +195,13 @@ def test_pylon_camera_replays_images_on_the_emulator(tmp_path):
 def test_pylon_needs_the_pixel_pitch():
     with pytest.raises(ParameterError, match="pixel_pitch_um"):
         make_device("camera", "pylon")
+
+
+@pytest.mark.parametrize("text,field", [("gcs:/dev/x,timeout_ms=nan", "timeout_ms"), ("gcs:/dev/x,zero_mm=inf", "zero_mm"),
+                                        ("gcs:/dev/x,poll_ms=0", "poll_ms"), ("gcs:/dev/x,velocity_mm_s=-1", "velocity_mm_s"),
+                                        ("gcs:/dev/x,baud=0", "baud"), ("sim:settle_ms=inf", "settle_ms"),
+                                        ("sim:velocity_um_per_s=nan", "velocity_um_per_s")])
+def test_device_options_must_be_finite_and_in_range(text, field):
+    with pytest.raises(ParameterError) as e:
+        make_device("stage", text)
+    assert e.value.field == field and "fix:" in str(e.value)

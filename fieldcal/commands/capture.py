@@ -1,9 +1,9 @@
-"""`fieldcal capture`: run a stack plan (or a --z range) on a stage and a camera into a resumable stack."""
+"""`fieldcal capture`: a thin CLI over :func:`fieldcal.capture.run_capture`."""
 
 from __future__ import annotations
 
 import json
-import signal
+import re
 import sys
 
 from . import add_parser
@@ -13,14 +13,24 @@ EXAMPLE = ("fieldcal capture --z -100 100 10 --stage sim --camera sim:models/tri
            "  fieldcal capture --z -100 100 10 --stage sim:fail_after=7 --camera sim:models/triplet-uncorrected.json "
            "--out S   (injected fault; re-run without it to resume)")
 
+# library field -> the flag that sets it (library errors name API fields; the user sees flags)
+FLAGS = {"start_um": "--z", "stop_um": "--z", "step_um": "--z", "exposure_ms": "--exposure-ms",
+         "overshoot_um": "--overshoot-um", "approach": "--approach", "settle_ms": "--settle-ms",
+         "on_target_timeout_ms": "--on-target-timeout-ms", "retries": "--retries", "frames": "--z",
+         "z_um": "--z / --plan"}
+
 
 def register(sub):
     p = add_parser(sub, "capture", "run a plan on a stage and camera into a crash-safe, resumable stack", EXAMPLE,
                    description="Move the stage to every planned position (approached from one side), snap a frame, "
                                "and commit it to a fieldcal-stack/1 folder (frame fsynced and renamed, then a "
                                "journal line fsynced). Re-running the same command resumes: intact frames are "
-                               "kept, torn ones re-taken; a changed plan is refused. Device strings: "
-                               "docs/hardware.md.")
+                               "kept, torn ones re-taken; a changed plan is refused; a second capture into the "
+                               "same folder is refused while the first runs. Device strings: docs/hardware.md.")
+    # argparse takes "-1e3" for an option (its negative-number pattern has no exponent): widen it, so that
+    # `--z -1e3 1e3 100` parses and out-of-range values get a message naming --z
+    if hasattr(p, "_negative_number_matcher"):
+        p._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)(e[+-]?\d+)?$|^-(inf|infinity|nan)$", re.I)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--plan", metavar="PLAN.json", help="a fieldcal-plan/1 stack plan")
     src.add_argument("--z", nargs=3, type=float, metavar=("START", "STOP", "STEP"),
@@ -38,74 +48,45 @@ def register(sub):
     p.add_argument("--on-target-timeout-ms", type=float, default=30000.0, help="per move (default 30000)")
     p.add_argument("--retries", type=int, default=2, help="resync-and-retry attempts per frame after a link "
                                                           "error (default 2)")
-    p.add_argument("--dry-run", action="store_true", help="print positions, time and disk needed; move nothing")
+    p.add_argument("--dry-run", action="store_true", help="print the acquisition stream, positions, time and disk "
+                                                          "needed; move nothing")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
 
-def _plan(args):
-    from fieldcal.capture.acquire import CapturePlan
-    if args.plan:
-        return CapturePlan.from_file(args.plan, exposure_ms=args.exposure_ms, approach=args.approach,
-                                     overshoot_um=args.overshoot_um)
-    start, stop, step = args.z
-    return CapturePlan.from_range(start, stop, step, exposure_ms=args.exposure_ms, approach=args.approach,
-                                  overshoot_um=args.overshoot_um)
-
-
-def _frame_bytes(cam: dict) -> int:
-    w, h = cam.get("size_px") or (0, 0)
-    if cam.get("roi"):
-        w, h = cam["roi"][2], cam["roi"][3]
-    return int(w) * int(h) * len(cam.get("channels") or ["Y"]) * (1 if (cam.get("bit_depth") or 16) <= 8 else 2)
-
-
-def _sigterm(signum, frame):  # a `kill` is handled like Ctrl-C: stop the stage, leave a resumable folder
-    raise KeyboardInterrupt
+def _with_flag(exc):
+    flag = FLAGS.get((exc.field or "").split("[")[0].split(".")[-1]) if exc.path is None else None
+    if flag:
+        exc.field = flag
+        exc.args = (exc._format(),)
+    return exc
 
 
 def run(args) -> int:
-    from fieldcal.capture.acquire import capture
+    from ..capture import CapturePlan, Interrupted, RunOptions, run_capture
     from ..errors import ParameterError
-    from ..hardware.registry import make_device
     from ..progress import status
 
-    if args.retries < 0:
-        raise ParameterError(f"--retries {args.retries} must be >= 0", field="--retries", fix="e.g. --retries 2")
-    plan = _plan(args)
-    stage = make_device("stage", args.stage)
-    camera = make_device("camera", args.camera)
-    old = signal.signal(signal.SIGTERM, _sigterm) if hasattr(signal, "SIGTERM") else None
     try:
-        stage.connect()
-        camera.connect()
-        if hasattr(camera, "observe_stage"):
-            camera.observe_stage(stage)
-        if args.dry_run:
-            cam = camera.describe()
-            s = plan.summary(velocity_um_per_s=stage.velocity_um_per_s(), frame_bytes=_frame_bytes(cam),
-                             exposure_ms=args.exposure_ms)
-            lo, hi = stage.limits_um()
-            s["stage_travel_um"] = [lo, hi]
-            s["fits_travel"] = lo <= s["motion_range_um"][0] and s["motion_range_um"][1] <= hi
-            print(json.dumps(s, indent=2))
-            print(f"{s['n_frames']} frames, about {s['time_s']:.1f} s, {s['disk_bytes'] / 1e6:.1f} MB"
-                  + ("" if s["fits_travel"] else "; the plan does NOT fit the stage's travel"), file=sys.stderr)
-            return 0 if s["fits_travel"] else 2
-        r = capture(plan, stage, camera, args.out, retries=args.retries,
-                    on_target_timeout_ms=args.on_target_timeout_ms, settle_ms=args.settle_ms, quiet=args.quiet)
-        status(f"capture: {r.path}: {r.n_frames} frames ({r.taken} taken, {r.skipped} already there, "
-               f"{r.retaken} torn re-taken)", args.quiet)
-        return 0
-    except KeyboardInterrupt:
-        print(f"fieldcal capture: interrupted; the stage was stopped and {args.out} is resumable: re-run the same "
-              "command", file=sys.stderr)
+        options = RunOptions(retries=args.retries, on_target_timeout_ms=args.on_target_timeout_ms,
+                             settle_ms=args.settle_ms, quiet=args.quiet)
+        common = dict(exposure_ms=args.exposure_ms, approach=args.approach, overshoot_um=args.overshoot_um)
+        plan = (CapturePlan.from_file(args.plan, **common) if args.plan
+                else CapturePlan.from_range(*args.z, **common))
+    except ParameterError as exc:
+        raise _with_flag(exc) from None
+    try:
+        r = run_capture(plan, args.stage, args.camera, args.out, options=options, dry_run=args.dry_run)
+    except Interrupted as exc:
+        print(f"fieldcal capture: interrupted ({exc}); the stage was stopped and {args.out} is resumable: re-run "
+              "the same command", file=sys.stderr)
         return 130
-    finally:
-        for dev in (camera, stage):
-            try:
-                dev.close()
-            except Exception:  # closing must not replace the error being reported
-                pass
-        if old is not None:
-            signal.signal(signal.SIGTERM, old)
+    if args.dry_run:
+        print(json.dumps(r, indent=2))
+        print(f"{r['n_frames']} frames, {r['n_moves']} moves, about {r['time_s']:.1f} s, "
+              f"{r['disk_bytes'] / 1e6:.1f} MB" + ("" if r["fits_travel"] else
+                                                  "; the plan does NOT fit the stage's travel"), file=sys.stderr)
+        return 0 if r["fits_travel"] else 2
+    status(f"capture: {r.path}: {r.n_frames} frames ({r.taken} taken, {r.skipped} already there, "
+           f"{r.retaken} torn re-taken)", args.quiet)
+    return 0

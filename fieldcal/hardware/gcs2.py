@@ -28,26 +28,57 @@ import serial
 from ..errors import LinkError, ParameterError
 from .protocols import DeviceFault
 
-# GCS2 error codes fieldcal names (PI's list; the controller's ERR? reply is the number).
-GCS2_ERRORS = {
-    0: "no error",
-    1: "parameter syntax error",
-    2: "unknown command",
-    3: "command length out of limits or command buffer overrun",
-    5: "unallowable move attempted on unreferenced axis, or move attempted with servo off",
-    7: "position out of limits",
-    8: "velocity out of limits",
-    10: "controller was stopped by command",
-    15: "invalid axis identifier",
-    17: "parameter out of range",
-    -1024: "motion error: position error too large, servo is switched off automatically",
+# Error codes a GCS2 controller answers to ``ERR?`` (PI's controller error list: the C-863.12 manual MS249E,
+# section "Error Codes", and PI's PIControllerErrors.h, "Controller Errors"): code -> (PI symbol, meaning).
+# docs/hardware.md lists the source of every code. A following (motion) error is 1024, PI_CNTR_MOTION_ERROR;
+# -1024 (PI_MOTION_ERROR) is the GCS *DLL*'s own code, which a controller never sends (GCS_DLL_ERRORS).
+GCS2_CONTROLLER_ERRORS = {
+    0: ("PI_CNTR_NO_ERROR", "no error"),
+    1: ("PI_CNTR_PARAM_SYNTAX", "parameter syntax error"),
+    2: ("PI_CNTR_UNKNOWN_COMMAND", "unknown command"),
+    3: ("PI_CNTR_COMMAND_TOO_LONG", "command length out of limits or command buffer overrun"),
+    5: ("PI_CNTR_MOVE_WITHOUT_REF_OR_NO_SERVO",
+        "unallowable move attempted on unreferenced axis, or move attempted with servo off"),
+    7: ("PI_CNTR_POS_OUT_OF_LIMITS", "position out of limits"),
+    8: ("PI_CNTR_VEL_OUT_OF_LIMITS", "velocity out of limits"),
+    10: ("PI_CNTR_STOP", "controller was stopped by command"),
+    15: ("PI_CNTR_INVALID_AXIS_IDENTIFIER", "invalid axis identifier"),
+    17: ("PI_CNTR_PARAM_OUT_OF_RANGE", "parameter out of range"),
+    23: ("PI_CNTR_ILLEGAL_AXIS", "illegal axis"),
+    24: ("PI_CNTR_PARAM_NR", "incorrect number of parameters"),
+    45: ("PI_CNTR_REFERENCING_FAILED", "referencing failed"),
+    215: ("PI_CNTR_CONN_POSSIBLY_BROKEN", "the connection between controller and stage may be broken"),
+    216: ("PI_CNTR_ON_LIMIT_SWITCH", "the connected stage has driven into a limit switch"),
+    1024: ("PI_CNTR_MOTION_ERROR", "motion error: position error too large, servo is switched off automatically"),
 }
+# Codes of PI's GCS DLL (negative; "DLL Errors" in PIControllerErrors.h): raised by PI's host library (pipython
+# over the DLL), never by the controller's ERR?.
+GCS_DLL_ERRORS = {
+    -1024: ("PI_MOTION_ERROR", "motion error: position error too large, servo is switched off automatically"),
+}
+GCS2_ERRORS = {code: text for code, (_, text) in GCS2_CONTROLLER_ERRORS.items()}
+_MOTION_FIX = "check the stage for obstruction or overload, switch the servo on again, then re-run"
 GCS2_FIXES = {
     5: "reference the axis (FRF) with the servo on (SVO) before moving",
     7: "keep the plan inside the stage's travel (TMN?/TMX?)",
+    8: "lower the velocity below the stage's maximum",
     10: "the stage was stopped (STP/#24); re-run to resume",
-    -1024: "check the stage for obstruction or overload, switch the servo on again, then re-run",
+    215: "check the cable between controller and stage, then re-run",
+    216: "move the stage off the limit switch (and clear it as the manual says), then re-run",
+    1024: _MOTION_FIX,
+    -1024: _MOTION_FIX,
 }
+MOTION_ERROR = 1024
+
+
+def error_text(code: int) -> str:
+    """The meaning of a GCS error code, with its PI symbol; unknown codes point to the manual."""
+    entry = GCS2_CONTROLLER_ERRORS.get(code) or GCS_DLL_ERRORS.get(code)
+    if entry is None:
+        return "see the controller manual's error list"
+    return f"{entry[1]} ({entry[0]})"
+
+
 SINGLE_CHAR = {"#5": b"\x05", "#7": b"\x07", "#24": b"\x18"}
 _AXIS_VALUE = re.compile(r"^\s*([A-Za-z0-9_]+)\s*=\s*(\S+)\s*$")
 
@@ -71,6 +102,9 @@ class GCS2Client:
         self.timeout_ms = float(timeout_ms)
         self.identity: str | None = None
         self._ser = None
+        self._lost = False          # an I/O error hit the port: resync closes and reopens it
+        self._resyncing = False
+        self._failed: str | None = None
         self.log: list[tuple[str, str]] = []  # (direction, text) of the last exchanges, for error messages
 
     # ------------------------------------------------------------------ link
@@ -78,8 +112,7 @@ class GCS2Client:
     def device(self) -> str:
         return f"stage gcs:{self.port}"
 
-    def open(self) -> None:
-        """Open the port (exclusively for a local device) and identify the controller."""
+    def _open_port(self, action: str) -> None:
         try:
             if "://" in self.port:
                 self._ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=self.timeout_ms / 1000)
@@ -87,9 +120,15 @@ class GCS2Client:
                 self._ser = serial.Serial(self.port, baudrate=self.baudrate, timeout=self.timeout_ms / 1000,
                                           exclusive=True)
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise LinkError(f"cannot open the port ({exc})", path=self.device,
-                            fix="check the port name and that no other program (PIMikroMove, a second fieldcal) "
-                                "holds it") from None
+            self._ser = None
+            raise LinkError(f"cannot {action} the port ({exc})" + self._after_failure(), path=self.device,
+                            fix="check the port name, cable and power, and that no other program (PIMikroMove, a "
+                                "second fieldcal) holds it") from None
+        self._lost = False
+
+    def open(self) -> None:
+        """Open the port (exclusively for a local device) and identify the controller."""
+        self._open_port("open")
         self.resync()
 
     def close(self) -> None:
@@ -100,9 +139,19 @@ class GCS2Client:
                 pass
             self._ser = None
 
+    def _after_failure(self) -> str:
+        return f" while resyncing after {self._failed!r} failed" if self._resyncing and self._failed else ""
+
     def _link_error(self, what: str, cmd: str) -> LinkError:
-        return LinkError(f"{what} (command {cmd!r})", path=self.device,
+        if not self._resyncing:
+            self._failed = cmd  # the command whose failure the next resync repairs, named in its errors
+        return LinkError(f"{what} (command {cmd!r}){self._after_failure()}", path=self.device,
                          fix="check cable, port and baud rate; the client resyncs before the next command")
+
+    def _port_error(self, what: str, cmd: str) -> LinkError:
+        """An I/O error of the port itself: pyserial still says ``is_open``, so remember to reopen it."""
+        self._lost = True
+        return self._link_error(what, cmd)
 
     def _write(self, cmd: str) -> None:
         if self._ser is None:
@@ -112,14 +161,14 @@ class GCS2Client:
             self._ser.write(data)
             self._ser.flush()
         except (serial.SerialException, OSError) as exc:
-            raise self._link_error(f"write failed ({exc})", cmd) from None
+            raise self._port_error(f"write failed ({exc})", cmd) from None
         self.log = (self.log + [(">", cmd)])[-20:]
 
     def _set_timeout(self, timeout_ms: float, cmd: str) -> None:
         try:
             self._ser.timeout = timeout_ms / 1000
         except (serial.SerialException, OSError) as exc:  # a vanished port fails even to be reconfigured
-            raise self._link_error(f"link lost ({exc})", cmd) from None
+            raise self._port_error(f"link lost ({exc})", cmd) from None
 
     def _read_line(self, cmd: str, timeout_ms: float | None = None) -> str:
         if self._ser is None:
@@ -130,7 +179,7 @@ class GCS2Client:
             try:
                 raw = self._ser.read_until(b"\n")
             except (serial.SerialException, OSError) as exc:
-                raise self._link_error(f"link lost ({exc})", cmd) from None
+                raise self._port_error(f"link lost ({exc})", cmd) from None
         finally:
             if timeout_ms is not None and self._ser is not None:
                 try:
@@ -192,7 +241,7 @@ class GCS2Client:
     def check_error(self, after: str) -> None:
         code = self.error_code()
         if code != 0:
-            raise DeviceFault(f"{GCS2_ERRORS.get(code, 'see the controller manual')} (after {after!r})", code=code,
+            raise DeviceFault(f"{error_text(code)} (after {after!r})", code=code,
                               device=self.device, fix=GCS2_FIXES.get(code))
 
     def command(self, cmd: str) -> None:
@@ -201,19 +250,22 @@ class GCS2Client:
         self.check_error(cmd)
 
     def resync(self, drain_ms: float | None = None) -> str:
-        """Drain the link, re-identify with ``*IDN?`` (skipping stale replies) and clear the error."""
-        if self._ser is None or not getattr(self._ser, "is_open", True):
+        """Reopen a lost port, drain the link, re-identify with ``*IDN?`` (skipping stale replies), clear the error.
+
+        Errors name the command whose failure made the resync necessary, not only the resync's own ``*IDN?``.
+        """
+        self._resyncing = True
+        try:
+            ident = self._resync(drain_ms)
+        finally:
+            self._resyncing = False
+        self._failed = None
+        return ident
+
+    def _resync(self, drain_ms: float | None) -> str:
+        if self._ser is None or self._lost or not getattr(self._ser, "is_open", True):
             self.close()
-            try:
-                if "://" in self.port:
-                    self._ser = serial.serial_for_url(self.port, baudrate=self.baudrate,
-                                                      timeout=self.timeout_ms / 1000)
-                else:
-                    self._ser = serial.Serial(self.port, baudrate=self.baudrate, timeout=self.timeout_ms / 1000,
-                                              exclusive=True)
-            except (serial.SerialException, OSError, ValueError) as exc:
-                raise LinkError(f"cannot reopen the port ({exc})", path=self.device,
-                                fix="check cable and power, then re-run") from None
+            self._open_port("reopen")
         drain_s = (self.timeout_ms if drain_ms is None else drain_ms) / 1000
         try:
             # a late reply may still be on its way: read until the line has been quiet for drain_s
@@ -223,7 +275,7 @@ class GCS2Client:
             self._ser.reset_input_buffer()
             self._ser.timeout = self.timeout_ms / 1000
         except (serial.SerialException, OSError) as exc:
-            raise self._link_error(f"link lost while draining ({exc})", "*IDN?") from None
+            raise self._port_error(f"link lost while draining ({exc})", "*IDN?") from None
         self._write("*IDN?")
         deadline = time.monotonic() + 4 * self.timeout_ms / 1000
         while True:
@@ -274,15 +326,26 @@ class GCS2Stage:
         if bad:
             raise ParameterError(f"unknown option(s) {', '.join(bad)}", path=device, field=bad[0],
                                  fix=f"known options: {', '.join(sorted(cls.OPTIONS))}")
+        # option -> (low, high, low excluded): finite ranges, so nan/inf/absurd values never reach the controller
+        ranges = {"zero_mm": (-1000.0, 1000.0, False), "timeout_ms": (0.0, 600000.0, True),
+                  "poll_ms": (0.0, 10000.0, True), "velocity_mm_s": (0.0, 1000.0, True)}
         try:
             kw: dict[str, Any] = {}
             if "axis" in options:
                 kw["axis"] = options["axis"]
             if "baud" in options:
                 kw["baudrate"] = int(options["baud"])
-            for key in ("zero_mm", "timeout_ms", "poll_ms", "velocity_mm_s"):
+                if not 50 <= kw["baudrate"] <= 10_000_000:
+                    raise ParameterError(f"baud={options['baud']} is out of range", path=device, field="baud",
+                                         fix="use the controller's baud rate, e.g. baud=115200")
+            for key, (lo, hi, lo_open) in ranges.items():
                 if key in options:
-                    kw[key] = float(options[key])
+                    v = float(options[key])
+                    if not (math.isfinite(v) and (v > lo if lo_open else v >= lo) and v <= hi):
+                        raise ParameterError(f"{key}={options[key]} must be finite and in "
+                                             f"{'(' if lo_open else '['}{lo:g}, {hi:g}]", path=device, field=key,
+                                             fix=f"give a finite {key}")
+                    kw[key] = v
             if "sign" in options:
                 kw["sign"] = int(options["sign"])
         except ValueError as exc:
@@ -366,7 +429,7 @@ class GCS2Stage:
                 raise DeviceFault(f"still moving after {timeout_ms:.0f} ms; stopped", code=0,
                                   device=self.client.device, fix="raise the on-target timeout or the velocity")
             time.sleep(self.poll_ms / 1000)
-        self.client.check_error("motion")  # a motion error (-1024) ends the motion early
+        self.client.check_error("motion")  # a motion error (1024) ends the motion early
         while not self.on_target():
             if time.monotonic() > deadline:
                 raise DeviceFault("motion ended off target", code=0, device=self.client.device,

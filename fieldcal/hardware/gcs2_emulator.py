@@ -11,7 +11,11 @@ What it emulates (GCS2 syntax; details we could not check against a real C-863 a
 ``#5`` (motion status), ``#7`` (ready) and ``#24`` (stop). Errors are latched like the controller does: the
 last error code is kept until ``ERR?`` reads (and clears) it. Codes: 0 none, 1 syntax, 2 unknown command,
 5 move without reference/servo, 7 out of limits, 8 velocity out of limits, 10 stopped, 15 invalid axis,
--1024 motion error.
+1024 motion error (PI_CNTR_MOTION_ERROR, as a C-863 answers ERR?; -1024 is the GCS DLL's code, not the
+controller's).
+
+Time: the motion model reads an injectable ``clock`` (seconds). The default is the wall clock; tests pass a
+:class:`ManualClock` and advance it themselves, so no test depends on how fast the machine is.
 
 Faults for tests: :meth:`GCS2Emulator.drop_replies`, :meth:`garble_replies`, :meth:`delay_replies`,
 :meth:`motion_error_on_next_move`, and ``disconnect()`` on the servers.
@@ -34,6 +38,30 @@ HELP_LINES = ["The following commands are available:", "#5 Request Motion Status
               "POS? [{<AxisID>}] Get Real Position", "end of help"]
 
 
+class ManualClock:
+    """A clock the caller drives: ``clock()`` returns the time (s); :meth:`advance` moves it on. With
+    ``tick_s`` every reading also advances it by that much, so motion progresses with the commands sent and
+    polling loops end without any wall-clock time passing."""
+
+    def __init__(self, t0_s: float = 0.0, *, tick_s: float = 0.0):
+        self.t_s = float(t0_s)
+        self.tick_s = float(tick_s)
+        self._lock = threading.Lock()
+
+    def __call__(self) -> float:
+        with self._lock:
+            t = self.t_s
+            self.t_s += self.tick_s
+            return t
+
+    def advance(self, dt_s: float) -> None:
+        with self._lock:
+            self.t_s += float(dt_s)
+
+
+MOTION_ERROR = 1024  # PI_CNTR_MOTION_ERROR: what ERR? answers after a following error
+
+
 class GCS2Emulator:
     """The controller's state machine: feed it command strings, get reply bytes back (or None).
 
@@ -43,18 +71,20 @@ class GCS2Emulator:
     velocity_mm_s : initial velocity (VEL); ``max_velocity_mm_s`` bounds VEL.
     settle_ms : time after the trajectory ends before ONT? reports 1.
     reference_mm : where FRF leaves the axis (the M-111's reference switch sits mid-travel).
-    time_scale : emulated seconds per real second (tests speed motion up).
+    time_scale : emulated seconds per clock second (speeds motion up on the wall clock).
+    clock : a callable returning seconds (default ``time.monotonic``); tests pass a :class:`ManualClock`.
     """
 
     def __init__(self, *, travel_mm=(0.0, 15.0), velocity_mm_s: float = 1.5, max_velocity_mm_s: float = 2.0,
                  settle_ms: float = 5.0, reference_mm: float = 7.5, time_scale: float = 1.0, idn: str = IDN,
-                 stage_name: str = "M-111.1DG"):
+                 stage_name: str = "M-111.1DG", clock=None):
         self.tmn, self.tmx = float(travel_mm[0]), float(travel_mm[1])
         self.vel = float(velocity_mm_s)
         self.max_vel = float(max_velocity_mm_s)
         self.settle_s = settle_ms / 1000
         self.reference_mm = float(reference_mm)
         self.time_scale = float(time_scale)
+        self.clock = clock or time.monotonic
         self.idn = idn
         self.stage_name = stage_name
         self.servo = False
@@ -85,7 +115,7 @@ class GCS2Emulator:
         self._delay = (n, delay_ms / 1000)
 
     def motion_error_on_next_move(self) -> None:
-        """The next MOV stops half-way with error -1024 and the servo switched off."""
+        """The next MOV stops half-way with error 1024 (PI_CNTR_MOTION_ERROR) and the servo switched off."""
         self._motion_error_armed = True
 
     def set_referenced_at(self, pos_mm: float) -> None:
@@ -96,7 +126,7 @@ class GCS2Emulator:
 
     # ------------------------------------------------------------------ motion model
     def _now(self) -> float:
-        return time.monotonic() * self.time_scale
+        return self.clock() * self.time_scale
 
     def position(self) -> float:
         t0, a, b, dur = self._seg
@@ -115,7 +145,7 @@ class GCS2Emulator:
     def _update(self) -> None:
         if self._motion_error and not self.moving() and self.servo:
             self.servo = False
-            self.error = -1024
+            self.error = MOTION_ERROR
         if self._referencing and not self.moving():
             self._referencing = False
             self.referenced = True

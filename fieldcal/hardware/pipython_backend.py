@@ -22,7 +22,7 @@ import time
 from typing import Any
 
 from ..errors import LinkError, ParameterError
-from .gcs2 import GCS2_FIXES, GCS2Stage
+from .gcs2 import GCS2_FIXES, GCS2Stage, error_text
 from .protocols import DeviceFault
 
 
@@ -181,7 +181,7 @@ class PipythonStage(GCS2Stage):
             time.sleep(self.poll_ms / 1000)
         code = int(self._call(self.dev.qERR))
         if code:
-            raise DeviceFault(f"pipython: controller error {code}", code=code, device=self.device,
+            raise DeviceFault(f"pipython: controller error: {error_text(code)}", code=code, device=self.device,
                               fix=GCS2_FIXES.get(code))
         while not self.on_target():
             if time.monotonic() > deadline:

@@ -8,7 +8,7 @@ sleeping, so simulated captures run as fast as the renderer. ``realtime=1`` slee
 Device strings (see docs/hardware.md)::
 
     sim                                   defaults: +-7500 um travel, 2 um backlash, 0.05 um servo noise
-    sim:fail_after=7                      the 8th move fails with a motion error (GCS2 code -1024)
+    sim:fail_after=7                      the 8th move fails with a motion error (GCS2 code 1024)
     sim:fail_after=3,fault=timeout,fail_times=1   one lost reply after 3 moves; resync recovers
     sim:models/triplet-uncorrected.json,size=320x180   (camera) render the lens at 320x180 px
 """
@@ -26,7 +26,7 @@ from ..errors import LinkError, ParameterError
 from .protocols import DeviceFault, Frame
 
 FAULT_KINDS = ("motion", "timeout", "garbled", "disconnect")
-MOTION_ERROR_CODE = -1024  # PI GCS2: "Motion error: position error too large, servo is switched off"
+MOTION_ERROR_CODE = 1024  # PI_CNTR_MOTION_ERROR, what a GCS2 controller's ERR? answers after a following error
 
 
 def _num(options: dict[str, str], key: str, default: float, *, device: str, positive=False, integer=False):
@@ -62,7 +62,7 @@ class SimStage:
     makes it jump by ``backlash_um``. A move takes ``|dz| / velocity + settle_ms``.
 
     Faults: after ``fail_after`` successful moves the next ``fail_times`` moves (default: all) fail with
-    ``fault`` = ``motion`` (:class:`DeviceFault` code -1024 while waiting), ``timeout`` (no reply:
+    ``fault`` = ``motion`` (:class:`DeviceFault` code 1024 while waiting), ``timeout`` (no reply:
     :class:`LinkError`, the move is lost), ``garbled`` (the position reply is unreadable: :class:`LinkError`)
     or ``disconnect`` (every call fails until reconnected).
     """

@@ -55,7 +55,10 @@ def make_device(kind: str, pixel_exposure_ms: float, *, slot_ms: float | None = 
         if slot_ms is None:
             m = max(1, math.ceil(pixel_exposure_ms / max_hold_ms - 1e-9))
             slot_ms = pixel_exposure_ms / m
-        if not (math.isfinite(slot_ms) and 0 < slot_ms <= max_hold_ms + 1e-9):
+        if not (math.isfinite(slot_ms) and slot_ms > 0):  # not "exceeds": a negative slot is not too long
+            raise ParameterError(f"slot of {slot_ms} ms must be a finite time > 0", field="slot_ms",
+                                 fix=f"use a slot in (0, {max_hold_ms}] ms, or leave it out")
+        if slot_ms > max_hold_ms + 1e-9:
             raise ParameterError(f"slot of {slot_ms} ms exceeds the LCoS hold limit of {max_hold_ms} ms",
                                  field="slot_ms", fix=f"use a slot <= {max_hold_ms} ms")
         m = pixel_exposure_ms / slot_ms

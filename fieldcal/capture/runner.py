@@ -1,0 +1,185 @@
+"""The one runner: executes a message stream on a stage and a camera, committing frames to a sink.
+
+Fault handling is part of the stream's structure, not of the plan generator: every frame's messages begin with a
+:class:`~fieldcal.capture.messages.Checkpoint`. On a :class:`~fieldcal.errors.LinkError` (the device's state is
+unknown) the runner resyncs the devices, moves to the checkpoint's back-off position (so the frame is approached
+from the right side again) and replays the frame's messages, at most ``retries`` times. A
+:class:`~fieldcal.errors.DeviceError` (the device reported a fault) or anything else stops the stage and is
+raised; committed frames stay committed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from typing import Any, Callable, Iterable, Protocol
+
+from ..errors import LinkError, ParameterError
+from ..progress import status
+from .messages import (Checkpoint, CloseExposure, Expose, Message, Move, OpenExposure, Save, Settle, SweepMove,
+                       WaitOnTarget)
+from .stream import needs_exposure_during_motion
+
+
+class FrameSink(Protocol):
+    """Where :class:`Save` commits a frame (:class:`fieldcal.capture.folder.CaptureFolder`)."""
+
+    def save(self, index: int, z_um: float, image, **frame_meta) -> dict: ...
+
+
+@dataclass
+class Shot:
+    """One exposure waiting for its :class:`Save`."""
+
+    frame_index: int
+    frame: Any
+    z_before_um: float
+    z_after_um: float
+    time: str
+
+
+def _now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+
+
+class Runner:
+    """Execute a stream on connected devices.
+
+    Parameters
+    ----------
+    stage, camera : connected :class:`~fieldcal.hardware.protocols.Stage` and ``Camera``.
+    sink : what :class:`Save` commits to.
+    retries : resync-and-replay attempts per frame after a link error.
+    critical : a context manager factory wrapped around each commit (the acquisition defers SIGTERM/SIGINT
+        there so a signal never lands between a frame file and its journal line).
+    sleep : how :class:`Settle` waits (tests pass a fake).
+    """
+
+    def __init__(self, stage, camera, sink: FrameSink, *, retries: int = 2, quiet: bool = True,
+                 critical: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext,
+                 sleep: Callable[[float], None] = time.sleep):
+        self.stage, self.camera, self.sink = stage, camera, sink
+        self.retries = int(retries)
+        self.quiet = quiet
+        self.critical = critical
+        self.sleep = sleep
+        self.link_retries = 0
+        self.saved = 0
+        self._shot: Shot | None = None
+        self._open: tuple[int, float, str] | None = None
+        self._exposure_ms: float | None = None
+        self._trigger_set = False
+        self._timeout_ms = 30000.0
+        self._restore_velocity: float | None = None
+
+    # ------------------------------------------------------------------ checks
+    def preflight(self, stream: list[Message]) -> None:
+        """Refuse, before anything moves, a stream these devices cannot run."""
+        if needs_exposure_during_motion(stream) and not hasattr(self.camera, "open_exposure"):
+            raise ParameterError(f"camera {getattr(self.camera, 'name', '?')} cannot expose during motion "
+                                 "(no open_exposure/close_exposure); nothing was moved", field="camera",
+                                 fix="use a camera (or exposure device) that exposes during a sweep")
+
+    # ------------------------------------------------------------------ run
+    def run(self, stream: Iterable[Message]) -> int:
+        """Execute ``stream``; returns the number of frames saved. Stops the stage on any failure."""
+        msgs = list(stream)
+        self.preflight(msgs)
+        k, seg, attempts, recovering = 0, None, 0, False
+        try:
+            while k < len(msgs):
+                m = msgs[k]
+                try:
+                    if isinstance(m, Checkpoint):
+                        if not recovering:
+                            seg, attempts = (k, m), 0
+                        else:  # the position is unknown after a resync: approach the frame's side again
+                            self._do(Move(m.back_off_um, "back-off"))
+                            self._do(WaitOnTarget(self._timeout_ms))
+                            recovering = False
+                    else:
+                        self._do(m)
+                    k += 1
+                except LinkError as exc:
+                    if seg is None or attempts >= self.retries:
+                        raise
+                    attempts += 1
+                    self.link_retries += 1
+                    status(f"capture: link error ({exc.what}); resyncing and retrying frame {seg[1].frame_index}",
+                           self.quiet)
+                    self._reset_device_state()
+                    self.stage.resync()
+                    if hasattr(self.camera, "resync"):
+                        self.camera.resync()
+                    k, recovering = seg[0], True
+        except BaseException:
+            self.stage.stop()  # a fault, Ctrl-C, SIGTERM or a bug: stop the motion first
+            raise
+        return self.saved
+
+    def _reset_device_state(self) -> None:
+        self._shot, self._open, self._exposure_ms, self._trigger_set = None, None, None, False
+
+    def _configure_exposure(self, exposure_ms: float | None) -> None:
+        if not self._trigger_set:
+            self.camera.configure(trigger="software")
+            self._trigger_set = True
+        if exposure_ms is not None and exposure_ms != self._exposure_ms:
+            self.camera.configure(exposure_ms=exposure_ms)
+            self._exposure_ms = exposure_ms
+
+    def _do(self, m: Message) -> None:
+        if isinstance(m, Move):
+            self.stage.move_to_um(m.z_um)
+        elif isinstance(m, WaitOnTarget):
+            self._timeout_ms = m.timeout_ms
+            self.stage.wait_on_target(m.timeout_ms)
+            if self._restore_velocity is not None:
+                self.stage.set_velocity_um_per_s(self._restore_velocity)
+                self._restore_velocity = None
+        elif isinstance(m, Settle):
+            self.sleep(m.ms / 1000.0)
+        elif isinstance(m, Expose):
+            self._configure_exposure(m.exposure_ms)
+            z0 = self.stage.position_um()
+            t = _now_iso()
+            frame = self.camera.snap()
+            self._shot = Shot(m.frame_index, frame, z0, self.stage.position_um(), t)
+        elif isinstance(m, SweepMove):
+            self._restore_velocity = self.stage.velocity_um_per_s()
+            self.stage.set_velocity_um_per_s(m.velocity_um_s)
+            self.stage.move_to_um(m.z_stop_um)
+        elif isinstance(m, OpenExposure):
+            self._configure_exposure(m.exposure_ms)
+            self._open = (m.frame_index, self.stage.position_um(), _now_iso())
+            self.camera.open_exposure()
+        elif isinstance(m, CloseExposure):
+            frame = self.camera.close_exposure()
+            if self._open is None or self._open[0] != m.frame_index:
+                raise ParameterError(f"CloseExposure({m.frame_index}) without its OpenExposure", field="stream",
+                                     fix="open an exposure before closing it")
+            self._shot = Shot(m.frame_index, frame, self._open[1], self.stage.position_um(), self._open[2])
+            self._open = None
+        elif isinstance(m, Save):
+            self._save(m)
+        else:
+            raise ParameterError(f"unknown message {m!r}", field="stream",
+                                 fix="build streams from fieldcal.capture.messages")
+
+    def _save(self, m: Save) -> None:
+        shot = self._shot
+        if shot is None or shot.frame_index != m.frame_index:
+            raise ParameterError(f"Save({m.frame_index}) without an exposure of that frame", field="stream",
+                                 fix="expose a frame before saving it")
+        f = shot.frame
+        with self.critical():
+            self.sink.save(m.frame_index, m.z_um, f.image,
+                           z_measured_um=round(0.5 * (shot.z_before_um + shot.z_after_um), 6),
+                           z_measured_before_um=round(shot.z_before_um, 6),
+                           z_measured_after_um=round(shot.z_after_um, 6), z_commanded_um=m.z_um,
+                           exposure_ms=f.exposure_ms, time=shot.time, camera_frame_id=int(f.frame_id),
+                           plan_index=m.frame_index)
+        self._shot = None
+        self.saved += 1
