@@ -89,13 +89,15 @@ def test_profile_composite_beats_single_frames_and_matches_the_oracle(sim):
 def test_dff_and_hybrid_track_the_true_surface(sim):
     st, truth, w = sim["stack"], sim["truth"], sim["white"]
     p_or = psnr(sim["oracle"], truth, w)
-    for method in ("dff", "hybrid"):
+    # With its own modified Laplacian (before DFF used calibration's) this stack gave RMS 0.590 / 0.545 µm,
+    # textureless-quadrant max 2.96 / 1.83 µm and PSNR oracle +1.10 / +1.09 dB (dff / hybrid): pinned here.
+    for method, rms_max, flat_max in (("dff", 0.62, 3.0), ("hybrid", 0.58, 2.2)):
         res = composite_stack(st, sim["prof"], method, quiet=True)
         err = res.focus_map_um - sim["zb"]
-        assert np.sqrt(np.mean(err ** 2)) < 1.5, method  # frames are 4 µm apart
+        assert np.sqrt(np.mean(err ** 2)) < rms_max, method  # frames are 4 µm apart
         # in the textureless quadrant the surface, not noise, decides
-        assert np.max(np.abs(err[: SIZE // 2, SIZE // 2:])) < 3.0, method
-        assert psnr(res.image, truth, w) >= p_or - 0.5, method
+        assert np.max(np.abs(err[: SIZE // 2, SIZE // 2:])) < flat_max, method
+        assert psnr(res.image, truth, w) >= p_or + 1.0, method
 
 
 def test_dff_without_profile_measures_geometry_and_focus(sim):
@@ -104,12 +106,13 @@ def test_dff_without_profile_measures_geometry_and_focus(sim):
     res = composite_stack(st, None, quiet=True, z_ref_um=spec.z_ref_um)
     assert res.method == "dff"
     reg = res.info["registration"]
-    # breathing m(z) = 1 + (z - z_ref)/exit_pupil: the measured rate within 15 %
-    assert reg["scale_rate_per_um"] == pytest.approx(1.0 / (spec.exit_pupil_mm * 1000.0), rel=0.15)
+    # breathing m(z) = 1 + (z - z_ref)/exit_pupil: calibration's registration gets it within 3 % (measured
+    # -0.8 %); the plain ECC used before measured +4.9 % (and PSNR oracle -0.05 dB, RMS 0.578 µm)
+    assert reg["scale_rate_per_um"] == pytest.approx(1.0 / (spec.exit_pupil_mm * 1000.0), rel=0.03)
     err = res.focus_map_um - sim["zb"]
-    assert np.sqrt(np.mean(err ** 2)) < 2.0
+    assert np.sqrt(np.mean(err ** 2)) < 0.65
     p_or = psnr(sim["oracle"], truth, w)
-    assert psnr(res.image, truth, w) >= p_or - 1.5
+    assert psnr(res.image, truth, w) >= p_or
     unregistered = composite_stack(st, None, quiet=True, register=False)
     assert psnr(unregistered.image, truth, w) < p_or - 2.0
 

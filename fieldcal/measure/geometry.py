@@ -135,6 +135,20 @@ def downsample(plane: np.ndarray, factor: int) -> np.ndarray:
     return cv2.resize(plane[:hs * factor, :ws * factor], (ws, hs), interpolation=cv2.INTER_AREA)
 
 
+# A mild low-pass (sigma 1 px of the registration grid) before registering: the highest frequencies carry the
+# most noise and the most blur change between neighbouring frames.
+REGISTRATION_BLUR_PX = 1.0
+
+
+def registration_plane(plane: np.ndarray, factor: int, blur_px: float = REGISTRATION_BLUR_PX) -> np.ndarray:
+    """A plane ready for :func:`register_step`: area-downsampled by ``factor`` and lightly blurred (float32).
+
+    Calibration (chart planes) and compositing (grey scene frames) both register through this.
+    """
+    small = downsample(plane, factor)
+    return cv2.GaussianBlur(small, (0, 0), blur_px) if blur_px > 0 else small
+
+
 def register_step(prev: np.ndarray, cur: np.ndarray, centre_xy: tuple[float, float],
                   init: tuple[float, float, float] | None = None, subsample: int = 2,
                   iterations: int = 8) -> StepFit | None:
