@@ -35,6 +35,14 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _name_flags(err: FieldcalError, parser: argparse.ArgumentParser, args) -> None:
+    """Library errors name API fields; show the CLI user the flag instead (fieldcal.commands.name_flags)."""
+    from .commands import name_flags
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[args.command]
+    extra = getattr(importlib.import_module(f"fieldcal.commands.{args.command}"), "FIELD_FLAGS", None)
+    name_flags(err, sub, args, extra)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -44,6 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except FieldcalError as e:
+        _name_flags(e, parser, args)
         print(f"fieldcal {args.command}: error: {e}", file=sys.stderr)
         return e.exit_code
     except KeyboardInterrupt:
