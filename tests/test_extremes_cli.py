@@ -24,7 +24,7 @@ def run(argv, capsys):
 def test_simulate_at_one_metre_defocus_is_a_clear_error_and_writes_nothing(tmp_path, capsys, triplet_path):
     code, _, err = run(["simulate", triplet_path, tmp_path / "s", "--z", -1e6, 1e6, 1e6, "--size", "32x18",
                         "--quiet"], capsys)
-    assert code == 2 and "z_um" in err and "fix:" in err
+    assert code == 2 and "field '--z'" in err and "fix:" in err
     assert not (tmp_path / "s").exists() and list(tmp_path.iterdir()) == []
 
 

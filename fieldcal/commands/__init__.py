@@ -67,3 +67,18 @@ def name_flags(err, parser: argparse.ArgumentParser, args: argparse.Namespace, e
     err.field = flag + field[len(base):]
     err.args = (err._format(),)
     return err
+
+
+def parse_size(text: str | None, minimum: int = 8) -> tuple[int, int] | None:
+    """``"640x360"`` -> (640, 360) for every command's ``--size`` (None stays None); a clear error otherwise."""
+    import re
+
+    from ..errors import ParameterError
+
+    if text is None:
+        return None
+    m = re.fullmatch(r"\s*(\d+)\s*[xX×]\s*(\d+)\s*", str(text))
+    if not m or int(m.group(1)) < minimum or int(m.group(2)) < minimum:
+        raise ParameterError(f"bad size {text!r}", field="size",
+                             fix=f"give WIDTHxHEIGHT in pixels, each at least {minimum}, e.g. 320x180")
+    return int(m.group(1)), int(m.group(2))
