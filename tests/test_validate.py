@@ -142,11 +142,14 @@ def test_check_pass_fail_and_nan():
     assert not Check("c", math.nan, 1.0, "<=", "").passed
 
 
-@pytest.mark.parametrize("kw, field", [({"fs_cyc_per_mm": 30.0}, "--fs"), ({"fs_cyc_per_mm": -1.0}, "--fs"),
-                                       ({"q": 1.5}, "--q"), ({"effort": "fast"}, "--effort"),
-                                       ({"size_px": (8, 8)}, "--size"), ({"profile": "magic"}, "--profile"),
-                                       ({"confidence": 1.0}, "--confidence"), ({"seed": -1}, "--seed")])
+@pytest.mark.parametrize("kw, field", [({"fs_cyc_per_mm": 30.0}, "fs_cyc_per_mm"),
+                                       ({"fs_cyc_per_mm": -1.0}, "fs_cyc_per_mm"),
+                                       ({"q": 1.5}, "q"), ({"effort": "fast"}, "effort"),
+                                       ({"size_px": (8, 8)}, "size_px"), ({"profile": "magic"}, "profile"),
+                                       ({"confidence": 1.0}, "confidence"), ({"seed": -1}, "seed"),
+                                       ({"scene": "nowhere.png"}, "scene")])
 def test_bad_parameters_name_the_field(kw, field):
+    """The library names its own parameters (the CLI shows the flags: test_cli_names_the_flags)."""
     base = LensSpec.load(MODELS / "triplet-uncorrected.json")
     with pytest.raises(ParameterError) as e:
         resolve(base, ValidateConfig(**{"size_px": SIZE, **kw}))
@@ -197,7 +200,16 @@ def test_given_profile_of_another_size_is_refused(spec):
     with pytest.raises(ParameterError) as e:
         validate(MODELS / "triplet-uncorrected.json", ValidateConfig(size_px=(96, 54), fs_cyc_per_mm=5.0),
                  profile=TruthProfile(spec), quiet=True)
-    assert e.value.field == "--size" and "256x144" in e.value.fix
+    assert e.value.field == "size_px" and "256x144" in e.value.fix
+
+
+@pytest.mark.parametrize("argv, flag", [(["--fs", "1000"], "--fs"), (["--size", "8x8"], "--size"),
+                                        (["--q", "2"], "--q"), (["--scene", "nowhere.png"], "--scene"),
+                                        (["--confidence", "x"], "--confidence")])
+def test_cli_names_the_flags(tmp_path, capsys, argv, flag):
+    from fieldcal.cli import main
+    code = main(["validate", str(MODELS / "triplet-uncorrected.json"), "--out", str(tmp_path / "v"), *argv])
+    assert code == 2 and f"field '{flag}'" in capsys.readouterr().err
 
 
 def test_report_files(truth_run, tmp_path):

@@ -48,8 +48,9 @@ def field_flags(parser: argparse.ArgumentParser, extra: dict[str, str] | None = 
 def name_flags(err, parser: argparse.ArgumentParser, args: argparse.Namespace, extra: dict[str, str] | None = None):
     """Rename ``err.field`` from an API field to the CLI flag that set it (in place; returns ``err``).
 
-    Only an error about an argument is renamed: one without a file, or whose file is the argument's value
-    (``--out x.png``). A field inside a file (``stack.json: field 'channels'``) keeps its name.
+    Only an error about an argument is renamed: one without a file, one whose file is the argument's value
+    (``--out x.png``), or a field the command's ``extra`` table names. A field inside a file
+    (``stack.json: field 'channels'``) keeps its name.
     """
     field = getattr(err, "field", None)
     if not field:
@@ -59,7 +60,7 @@ def name_flags(err, parser: argparse.ArgumentParser, args: argparse.Namespace, e
     flag = table.get(base)
     if flag is None:
         return err
-    if err.path is not None:
+    if err.path is not None and base not in (extra or {}):
         value = getattr(args, base, None)
         values = value if isinstance(value, (list, tuple)) else [value]
         if not any(v is not None and Path(str(v)) == Path(err.path) for v in values):
