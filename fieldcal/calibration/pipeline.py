@@ -40,17 +40,17 @@ SYSTEMATIC_STEP_FRACTION = 0.0
 
 def _check(fs_cyc_per_mm, q, effort, pitch_um):
     if effort not in EFFORTS:
-        raise ParameterError(f"unknown effort {effort!r}", field="--effort", fix="use quick, standard or thorough")
+        raise ParameterError(f"unknown effort {effort!r}", field="effort", fix="use quick, standard or thorough")
     if not (isinstance(q, (int, float)) and math.isfinite(q) and 0.0 < q < 1.0):
-        raise ParameterError(f"q must be in (0, 1), got {q}", field="--q", fix="e.g. --q 0.05 (5% MTF loss)")
+        raise ParameterError(f"q must be in (0, 1), got {q}", field="q", fix="e.g. 0.05 (5% MTF loss)")
     if not (isinstance(fs_cyc_per_mm, (int, float)) and math.isfinite(fs_cyc_per_mm) and fs_cyc_per_mm > 0):
-        raise ParameterError(f"fs must be a positive frequency in cycles/mm, got {fs_cyc_per_mm}", field="--fs",
-                             fix="e.g. --fs 80")
+        raise ParameterError(f"fs must be a positive frequency in cycles/mm, got {fs_cyc_per_mm}", field="fs_cyc_per_mm",
+                             fix="e.g. 80")
     nyquist = 1000.0 / (2.0 * pitch_um)
     if fs_cyc_per_mm >= 0.9 * nyquist:
         raise ParameterError(f"fs = {fs_cyc_per_mm:g} cycles/mm is at or above 90% of the sensor's Nyquist "
-                             f"frequency ({nyquist:.1f} cycles/mm at {pitch_um:g} µm pixels)", field="--fs",
-                             fix=f"use --fs below {0.9 * nyquist:.0f} (e.g. {min(80.0, 0.5 * nyquist):.0f})")
+                             f"frequency ({nyquist:.1f} cycles/mm at {pitch_um:g} µm pixels)", field="fs_cyc_per_mm",
+                             fix=f"use fs below {0.9 * nyquist:.0f} cycles/mm (e.g. {min(80.0, 0.5 * nyquist):.0f})")
 
 
 def _hash_inputs(stack, out: dict):

@@ -216,7 +216,7 @@ class LensProfile:
         """Write ``path`` (JSON) and ``<stem>.samples.npz`` beside it, each atomically (sidecar first)."""
         path = Path(path)
         if path.suffix.lower() != ".json":
-            raise ParameterError(f"a profile is a .json file, got {path.name!r}", path=path, field="--out",
+            raise ParameterError(f"a profile is a .json file, got {path.name!r}", path=path, field="path",
                                  fix="name it e.g. lens.json")
         sidecar = path.with_name(path.stem + ".samples.npz")
         buf = io.BytesIO()
