@@ -298,3 +298,22 @@ def test_lens_file_errors_are_spec_errors(tmp_path):
     bad.write_text("{")
     with pytest.raises(SpecError):
         validate(bad, ValidateConfig(size_px=SIZE), quiet=True)
+
+
+def test_demo_settings_follow_the_lens():
+    """The demo's choices (fieldcal.validation.demo): fs resolvable at the size, a z grid through z_ref that
+    covers the best-focus range with four steps of margin, steps about half the tolerance."""
+    from fieldcal.validation.demo import demo_settings
+    base = LensSpec.load(MODELS / "triplet-uncorrected.json")
+    for w, h in ((160, 90), (640, 360), (3840, 2160)):
+        spec = base.with_sensor_size(w, h)
+        d = demo_settings(spec, 0.05)
+        nyq = 500.0 / spec.sensor.pixel_pitch_um
+        assert d.fs_cyc_per_mm == min(80.0, round(0.4 * nyq)) and d.fs_cyc_per_mm < 0.9 * nyq
+        assert d.tolerance_um == pytest.approx(min(spec.focus_tolerance_um(d.fs_cyc_per_mm, 0.05, c)
+                                                   for c in spec.channel_names))
+        assert d.step_um == max(1.0, round(d.tolerance_um / 2, 1))
+        k = (spec.z_ref_um - d.z_start_um) / d.step_um
+        assert abs(k - round(k)) < 1e-9                                    # z_ref is on the grid
+        assert d.z_start_um <= d.focus_lo_um - 4 * d.step_um < d.z_start_um + d.step_um
+        assert d.z_stop_um >= d.focus_hi_um + 4 * d.step_um > d.z_stop_um - d.step_um
