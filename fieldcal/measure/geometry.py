@@ -9,7 +9,7 @@ step-to-step scatter (MAD of second differences), or the Gauss-Newton covariance
 steps. Steps are composed outward from the reference frame (``m_k = r m_{k-1}``, ``s_k = r s_{k-1} + t``),
 and their variances add along the way.
 
-DESIGN.md's meaning: a point at pixel p of the reference frame appears at ``c + m (p - c) + s`` in frame k.
+The geometry convention (docs/architecture.md): a point at pixel p of the reference frame appears at ``c + m (p - c) + s`` in frame k.
 """
 
 from __future__ import annotations
