@@ -63,3 +63,12 @@ def test_errors_name_the_field():
     with pytest.raises(ParameterError) as e:
         ArrayStack([np.zeros((4, 4))] * 2, [0.0, 1.0], ["Y"]).require_frames(3, "a test")
     assert e.value.field == "frames"
+
+
+def test_measurement_needs_a_pixel_pitch():
+    from fieldcal.measure import measure_stack
+    rng = np.random.default_rng(0)
+    frames = [rng.random((64, 64)).astype(np.float32) for _ in range(7)]
+    with pytest.raises(ParameterError) as e:
+        measure_stack(ArrayStack(frames, np.arange(7.0) * 10, ["Y"]), fs_cyc_per_mm=40.0, quiet=True)
+    assert e.value.field == "pixel_pitch_um"

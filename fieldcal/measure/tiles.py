@@ -167,6 +167,11 @@ def _check_params(stack, fs_cyc_per_mm, q, tile_px, measure):
                              f"({min(h, w) // 2} px), got {tile_px!r}", field="tile_px",
                              fix="use a tile of 32-128 px, or leave it unset for the default")
     stack.require_frames(CurveRules().min_frames, "through-focus measurement")
+    pitch = stack.pixel_pitch_um
+    if pitch is None or not (math.isfinite(pitch) and pitch > 0):  # an ArrayStack made without one
+        raise ParameterError(f"the stack's pixel pitch is {pitch!r}: fs in cycles/mm needs it",
+                             path=getattr(stack, "path", None), field="pixel_pitch_um",
+                             fix="give the sensor's pixel pitch in µm (ArrayStack(..., pixel_pitch_um=3.45))")
 
 
 def _reference_index(z_sorted: np.ndarray, z_ref_um: float | None) -> int:
