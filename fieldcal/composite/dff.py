@@ -150,7 +150,7 @@ def fit_surface(x_px, y_px, z_um, weight, centre_px, scale_px: float, degree: in
     x, y, z, w0 = x[good], y[good], z[good], w0[good]
     if len(z) == 0:
         raise ParameterError("no block has any focus signal (a blank or saturated scene?)", field="stack",
-                             fix="composite with a profile (--profile) or capture a textured scene")
+                             fix="composite with a lens profile, or capture a textured scene")
     degree = int(np.clip(degree, 0, max(_MODELS)))
     while degree > 0 and len(z) < 3 * _MODELS[degree]:
         degree -= 1
