@@ -149,7 +149,7 @@ def select_plan_frames(plan, stack) -> PlanSelection:
         k = int(np.argmin(np.abs(z - zp)))
         if abs(z[k] - zp) > tol:
             raise StackError(f"the plan's frame at z = {zp:g} µm is not in the stack (nearest {z[k]:g} µm)",
-                             path=getattr(stack, "path", None), field="frames",
+                             path=stack.path, field="frames",
                              fix="composite without the plan, or capture the stack with this plan")
         idx.append(k)
     params = doc.get("parameters", {})
@@ -323,9 +323,9 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
     st = Stack.open(stack) if isinstance(stack, (str, Path)) else stack
     if st.cfa is not None:
         raise StackError(f"a raw {st.cfa} mosaic stack cannot be composited per channel",
-                         path=getattr(st, "path", None), field="cfa", fix="demosaic the frames first (H x W x 3)")
+                         path=st.path, field="cfa", fix="demosaic the frames first (H x W x 3)")
     prof, pinfo = load((st.shape[1], st.shape[0]))
-    meta: dict = {"input": str(getattr(st, "path", None) or stack), "profile": pinfo}
+    meta: dict = {"input": str(st.path or stack), "profile": pinfo}
     frames, offset = None, 0.0
     if plan is not None:
         sel = select_plan_frames(plan, st)

@@ -59,8 +59,8 @@ class RowReader:
             self._layouts[int(i)] = self._layout(int(i))
 
     def _layout(self, i: int):
-        frames = getattr(self.stack, "frames", None)
-        if frames is None or getattr(self.stack, "cfa", None):
+        frames = getattr(self.stack, "frames", None)  # FrameInfo of an on-disk Stack; an ArrayStack has none
+        if frames is None or self.stack.cfa:
             return None
         try:
             from fieldcal.formats.imageio import probe

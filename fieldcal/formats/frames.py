@@ -36,6 +36,8 @@ class FrameSource(Protocol):
         Raw levels of black and of saturation (``read_normalized`` maps them to 0 and 1).
     pixel_pitch_um : float or None
         Sensor pixel pitch (µm); None when unknown (an in-memory stack made only for compositing).
+    path : Path or None
+        Where the frames come from (the stack folder), for messages; None for frames made in memory.
     """
 
     z_um: np.ndarray
@@ -46,6 +48,7 @@ class FrameSource(Protocol):
     black_level: float
     white_level: float
     pixel_pitch_um: float | None
+    path: Path | None
 
     def __len__(self) -> int: ...
 

@@ -170,7 +170,7 @@ def _check_params(stack, fs_cyc_per_mm, q, tile_px, measure):
     pitch = stack.pixel_pitch_um
     if pitch is None or not (math.isfinite(pitch) and pitch > 0):  # an ArrayStack made without one
         raise ParameterError(f"the stack's pixel pitch is {pitch!r}: fs in cycles/mm needs it",
-                             path=getattr(stack, "path", None), field="pixel_pitch_um",
+                             path=stack.path, field="pixel_pitch_um",
                              fix="give the sensor's pixel pitch in µm (ArrayStack(..., pixel_pitch_um=3.45))")
 
 
