@@ -32,8 +32,8 @@ above 90 % of Nyquist is refused. `tests/test_docs_commands.py` runs this block 
 ```
 fieldcal targets --out calibration_targets --dpi 100               # printable charts (PNG + PDF at a stated size)
 fieldcal simulate models/triplet-uncorrected.json chart --z -370 60 20 --size 320x180   # a chart stack
-fieldcal calibrate chart --out lens.json --fs 10 --q 0.05 --effort quick --report report/
-fieldcal report lens.json --out lens-report/
+fieldcal calibrate chart --out lens.json --fs 10 --q 0.05 --effort quick
+fieldcal report lens.json --out report/
 fieldcal plan stack lens.json --fs 10 --q 0.05 --confidence 0.95 --out plan.json --plots plan-plots/
 fieldcal plan sweep lens.json --alpha-um 20 --pixel-exposure-ms 16 --device lcos --channels G --out sweep.json
 fieldcal capture --plan plan.json --stage sim --camera sim:models/triplet-uncorrected.json,size=320x180 --out scene
