@@ -1,6 +1,6 @@
 """fieldcal: calibrate a lens's field curvature and emulate a curved sensor with focal stacks and sweeps.
 
-The public API (fixed by DESIGN.md)::
+The public API (docs/architecture.md)::
 
     import fieldcal
     stack = fieldcal.Stack.open("STACK")

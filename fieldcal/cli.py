@@ -53,6 +53,12 @@ def _command_name(args) -> str:
     name = getattr(args, "command", None) or ""
     kind = getattr(args, "plan_kind", None) or getattr(args, "lens_command", None)
     return f"{name} {kind}" if kind and isinstance(kind, str) else name
+def _name_flags(err: FieldcalError, parser: argparse.ArgumentParser, args) -> None:
+    """Library errors name API fields; show the CLI user the flag instead (fieldcal.commands.name_flags)."""
+    from .commands import name_flags
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[args.command]
+    extra = getattr(importlib.import_module(f"fieldcal.commands.{args.command}"), "FIELD_FLAGS", None)
+    name_flags(err, sub, args, extra)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     except FieldcalError as e:
         if debug:
             raise
+        _name_flags(e, parser, args)
         _say(name, f"error: {e}")
         return e.exit_code
     except KeyboardInterrupt:

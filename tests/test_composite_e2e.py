@@ -89,13 +89,15 @@ def test_profile_composite_beats_single_frames_and_matches_the_oracle(sim):
 def test_dff_and_hybrid_track_the_true_surface(sim):
     st, truth, w = sim["stack"], sim["truth"], sim["white"]
     p_or = psnr(sim["oracle"], truth, w)
-    for method in ("dff", "hybrid"):
+    # With its own modified Laplacian (before DFF used calibration's) this stack gave RMS 0.590 / 0.545 µm,
+    # textureless-quadrant max 2.96 / 1.83 µm and PSNR oracle +1.10 / +1.09 dB (dff / hybrid): pinned here.
+    for method, rms_max, flat_max in (("dff", 0.62, 3.0), ("hybrid", 0.58, 2.2)):
         res = composite_stack(st, sim["prof"], method, quiet=True)
         err = res.focus_map_um - sim["zb"]
-        assert np.sqrt(np.mean(err ** 2)) < 1.5, method  # frames are 4 µm apart
+        assert np.sqrt(np.mean(err ** 2)) < rms_max, method  # frames are 4 µm apart
         # in the textureless quadrant the surface, not noise, decides
-        assert np.max(np.abs(err[: SIZE // 2, SIZE // 2:])) < 3.0, method
-        assert psnr(res.image, truth, w) >= p_or - 0.5, method
+        assert np.max(np.abs(err[: SIZE // 2, SIZE // 2:])) < flat_max, method
+        assert psnr(res.image, truth, w) >= p_or + 1.0, method
 
 
 def test_dff_without_profile_measures_geometry_and_focus(sim):
@@ -104,12 +106,13 @@ def test_dff_without_profile_measures_geometry_and_focus(sim):
     res = composite_stack(st, None, quiet=True, z_ref_um=spec.z_ref_um)
     assert res.method == "dff"
     reg = res.info["registration"]
-    # breathing m(z) = 1 + (z - z_ref)/exit_pupil: the measured rate within 15 %
-    assert reg["scale_rate_per_um"] == pytest.approx(1.0 / (spec.exit_pupil_mm * 1000.0), rel=0.15)
+    # breathing m(z) = 1 + (z - z_ref)/exit_pupil: calibration's registration gets it within 3 % (measured
+    # -0.8 %); the plain ECC used before measured +4.9 % (and PSNR oracle -0.05 dB, RMS 0.578 µm)
+    assert reg["scale_rate_per_um"] == pytest.approx(1.0 / (spec.exit_pupil_mm * 1000.0), rel=0.03)
     err = res.focus_map_um - sim["zb"]
-    assert np.sqrt(np.mean(err ** 2)) < 2.0
+    assert np.sqrt(np.mean(err ** 2)) < 0.65
     p_or = psnr(sim["oracle"], truth, w)
-    assert psnr(res.image, truth, w) >= p_or - 1.5
+    assert psnr(res.image, truth, w) >= p_or
     unregistered = composite_stack(st, None, quiet=True, register=False)
     assert psnr(unregistered.image, truth, w) < p_or - 2.0
 
@@ -269,3 +272,44 @@ def test_cli_plan_selects_frames(sim, tmp_path, cli):
     pp.write_text(json.dumps(plan))
     r = cli(sim["root"] / "stack", "--profile", sim["spec_path"], "--plan", pp, "--out", tmp_path / "q.tiff")
     assert r.returncode == 2 and "not in the stack" in r.stderr and not (tmp_path / "q.tiff").exists()
+
+
+def test_python_api_reaches_what_the_cli_does(sim, tmp_path):
+    """select_plan_frames, composite_sweep, restore_sweep_image and composite_to_file: the command's path, as
+    Python, giving the same images as the command."""
+    from fieldcal.cli import main
+    from fieldcal.composite import (composite_sweep, composite_to_file, restore_sweep_image,
+                                    select_plan_frames)
+    from fieldcal.errors import SpecError, StackError
+
+    st, prof = sim["stack"], sim["prof"]
+    z = np.sort(st.z_um)[::2]
+    doc = {"format": "fieldcal-plan/1", "kind": "stack", "direction": "+z",
+           "parameters": {"fs_cyc_per_mm": 60.0, "q": 0.1}, "refocus_um": 0.0,
+           "frames": [{"z_um": float(v) + 0.5} for v in z]}      # within a quarter spacing of the frames
+    sel = select_plan_frames(doc, st)
+    np.testing.assert_array_equal(np.sort(st.z_um[sel.frames]), z)
+    assert (sel.fs_cyc_per_mm, sel.q, sel.refocus_um) == (60.0, 0.1, 0.0)
+    with pytest.raises(StackError):
+        select_plan_frames({**doc, "frames": [{"z_um": 500.0}]}, st)
+    with pytest.raises(SpecError):
+        select_plan_frames({**doc, "kind": "sweep"}, st)
+    # the whole path from files, as Python and as the command: the same pixels
+    pp = tmp_path / "plan.json"
+    pp.write_text(json.dumps(doc))
+    res = composite_to_file(sim["root"] / "stack", tmp_path / "py.tiff", profile=sim["spec_path"], plan=pp,
+                            quiet=True)
+    assert res.method == "profile" and res.metadata["frames_used"] == len(z)
+    assert main(["composite", str(sim["root"] / "stack"), "--profile", str(sim["spec_path"]), "--plan", str(pp),
+                 "--out", str(tmp_path / "cli.tiff"), "--quiet"]) == 0
+    np.testing.assert_array_equal(tifffile.imread(tmp_path / "py.tiff"), tifffile.imread(tmp_path / "cli.tiff"))
+    # a sweep emulated without deconvolution, then restored as a captured one
+    sw = composite_sweep(st, prof, 8.0, deconvolve="none", quiet=True)
+    assert sw.image.dtype == st.dtype and sw.info["method"] == "sweep-emulated"
+    rest = restore_sweep_image(sw.image, prof, 8.0)
+    assert rest.image.shape == sw.image.shape and rest.info["method"] == "sweep-captured"
+    # deconvolution sharpens: closer to the all-in-focus truth than the blurred sweep
+    assert psnr(rest.image, sim["truth"], sim["white"]) > psnr(sw.image, sim["truth"], sim["white"])
+    with pytest.raises(ParameterError) as e:
+        composite_sweep(st, None, 8.0)
+    assert e.value.field == "profile"

@@ -84,7 +84,7 @@ def test_q_close_to_one_gives_the_first_otf_zero_width():
 
 
 def _stack(frames, white=1.0, z=Z):
-    return ArrayStack(z, frames, pixel_pitch_um=4.0, channels=["Y"], white_level=white)
+    return ArrayStack(frames, z, ["Y"], pixel_pitch_um=4.0, white_level=white)
 
 
 H, W = 96, 128

@@ -34,7 +34,7 @@ def render_stack(spec, z_um, seed=1):
     r = Renderer(spec, chart_image("texture", W, H, 0), seed=seed)
     frames = [r.render(float(z)) for z in z_um]
     s = spec.sensor
-    return ArrayStack(z_um, frames, pixel_pitch_um=s.pixel_pitch_um, channels=spec.channel_names, cfa=s.cfa,
+    return ArrayStack(frames, z_um, pixel_pitch_um=s.pixel_pitch_um, channels=spec.channel_names, cfa=s.cfa,
                       black_level=s.black_level_dn, white_level=s.white_level_dn)
 
 
@@ -233,7 +233,7 @@ def _blocks_stack():
         noise = np.random.default_rng(i).normal(0.0, 0.003, out.shape).astype(np.float32)
         return np.clip(out + noise, 0.0, 1.0)
 
-    return z, cases, ArrayStack(z, [frame(i) for i in range(z.size)], pixel_pitch_um=5.0, channels=("Y",))
+    return z, cases, ArrayStack([frame(i) for i in range(z.size)], z, ("Y",), pixel_pitch_um=5.0)
 
 
 def test_every_rejection_reason_is_triggered_by_its_case():
@@ -261,7 +261,7 @@ def test_bad_parameters_are_clear_errors():
         with pytest.raises(ParameterError) as e:
             measure_tiles(stack, quiet=True, **kwargs)
         assert e.value.field == field and e.value.fix
-    few = ArrayStack(z[:3], [stack.read(i) for i in range(3)], pixel_pitch_um=5.0, channels=("Y",))
+    few = ArrayStack([stack.read(i) for i in range(3)], z[:3], ("Y",), pixel_pitch_um=5.0)
     with pytest.raises(ParameterError, match="too few frames"):
         measure_tiles(few, quiet=True)
     other = GeometryMeasurements.identity(z[:-1], ("Y",), (stack.shape[1], stack.shape[0]))
@@ -322,7 +322,7 @@ def _flat_lens_stack(exit_pupil_mm, z_um, size=(320, 180)):
                                exit_pupil_mm=exit_pupil_mm).with_sensor_size(*size)
     r = Renderer(spec, chart_image("texture", *size, 1), seed=1)
     s = spec.sensor
-    return spec, ArrayStack(z_um, [r.render(float(z), noise=False) for z in z_um], pixel_pitch_um=s.pixel_pitch_um,
+    return spec, ArrayStack([r.render(float(z), noise=False) for z in z_um], z_um, pixel_pitch_um=s.pixel_pitch_um,
                             channels=spec.channel_names, black_level=s.black_level_dn, white_level=s.white_level_dn)
 
 
@@ -371,7 +371,7 @@ def test_directional_foci_separate_blur_along_and_across_the_radius():
     z = np.arange(-40.0, 40.0 + 1e-9, 4.0)
     frames = [np.clip(cv2.GaussianBlur(tex, (0, 0), sigmaX=0.4 + abs(zz + 12.0) / 10.0,
                                        sigmaY=0.4 + abs(zz - 10.0) / 10.0), 0.0, 1.0) for zz in z]
-    stack = ArrayStack(z, frames, pixel_pitch_um=5.0, channels=("Y",))
+    stack = ArrayStack(frames, z, ("Y",), pixel_pitch_um=5.0)
     ident = GeometryMeasurements.identity(z, ("Y",), (W, H))
     t = measure_tiles(stack, geometry=ident, fs_cyc_per_mm=0.2 / 5e-3, tile_px=32, measure="bandpass",
                       effort="thorough", quiet=True)

@@ -40,12 +40,12 @@ def test_plan_sweep_cli_writes_plan_masks_and_pictures(tmp_path, models_dir):
 
 
 @pytest.mark.parametrize("args,needle", [
-    (["--fs", "80", "--q", "1.5"], "field 'q'"),
-    (["--fs", "nan", "--q", "0.05"], "field 'fs_cyc_per_mm'"),
-    (["--fs", "-3", "--q", "0.05"], "field 'fs_cyc_per_mm'"),
-    (["--fs", "80", "--q", "0.05", "--roi", "0,0,0,10"], "field 'roi'"),
-    (["--fs", "80", "--q", "0.05", "--roi", "a,b"], "field 'roi'"),
-    (["--fs", "80", "--q", "0.05", "--channels", "X"], "field 'channels'"),
+    (["--fs", "80", "--q", "1.5"], "field '--q'"),
+    (["--fs", "nan", "--q", "0.05"], "field '--fs'"),
+    (["--fs", "-3", "--q", "0.05"], "field '--fs'"),
+    (["--fs", "80", "--q", "0.05", "--roi", "0,0,0,10"], "field '--roi'"),
+    (["--fs", "80", "--q", "0.05", "--roi", "a,b"], "field '--roi'"),
+    (["--fs", "80", "--q", "0.05", "--channels", "X"], "field '--channels'"),
 ])
 def test_bad_parameters_exit_nonzero_with_a_message_and_no_file(tmp_path, triplet_path, capsys, args, needle):
     out = tmp_path / "p.json"

@@ -19,9 +19,9 @@ def test_z_grid_inclusive_stop():
     assert len(z) == 17 and z[0] == -200 and z[-1] == 200
     assert len(z_grid(-200, 190, 25)) == 16  # 190 is off the grid: stop at 175
     np.testing.assert_allclose(z_grid(0, 0.3, 0.1), [0, 0.1, 0.2, 0.3])
-    with pytest.raises(ParameterError, match="STEP"):
+    with pytest.raises(ParameterError, match="step_um"):  # library errors name the API parameter
         z_grid(0, 10, 0)
-    with pytest.raises(ParameterError, match="STOP"):
+    with pytest.raises(ParameterError, match="stop_um"):
         z_grid(10, 0, 1)
 
 

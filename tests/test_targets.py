@@ -396,9 +396,9 @@ def test_cli_lens_check_warns_when_dpi_too_low(tmp_path, capsys, monkeypatch, tr
     assert rc != 0 and "lens spec not found" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("args,field", [(["--size-mm", "297by210"], "size_mm"), (["--dpi", "5"], "dpi"),
-                                        (["--dpi", "many"], "dpi"), (["--seed", "-2"], "seed"),
-                                        (["--size-mm", "3x3"], "width_mm")])
+@pytest.mark.parametrize("args,field", [(["--size-mm", "297by210"], "--size-mm"), (["--dpi", "5"], "--dpi"),
+                                        (["--dpi", "many"], "--dpi"), (["--seed", "-2"], "--seed"),
+                                        (["--size-mm", "3x3"], "--size-mm")])
 def test_cli_bad_input_clear_error_no_output(tmp_path, capsys, args, field):
     out = tmp_path / "charts"
     rc = main(["targets", "--out", str(out)] + args)

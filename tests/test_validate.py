@@ -143,10 +143,13 @@ def test_check_pass_fail_and_nan():
 
 
 @pytest.mark.parametrize("kw, field", [({"fs_cyc_per_mm": 30.0}, "fs_cyc_per_mm"),
-                                       ({"fs_cyc_per_mm": -1.0}, "fs_cyc_per_mm"), ({"q": 1.5}, "q"), ({"effort": "fast"}, "--effort"),
-                                       ({"size_px": (8, 8)}, "--size"), ({"profile": "magic"}, "--profile"),
-                                       ({"confidence": 1.0}, "--confidence"), ({"seed": -1}, "--seed")])
+                                       ({"fs_cyc_per_mm": -1.0}, "fs_cyc_per_mm"),
+                                       ({"q": 1.5}, "q"), ({"effort": "fast"}, "effort"),
+                                       ({"size_px": (8, 8)}, "size_px"), ({"profile": "magic"}, "profile"),
+                                       ({"confidence": 1.0}, "confidence"), ({"seed": -1}, "seed"),
+                                       ({"scene": "nowhere.png"}, "scene")])
 def test_bad_parameters_name_the_field(kw, field):
+    """The library names its own parameters (the CLI shows the flags: test_cli_names_the_flags)."""
     base = LensSpec.load(MODELS / "triplet-uncorrected.json")
     with pytest.raises(ParameterError) as e:
         resolve(base, ValidateConfig(**{"size_px": SIZE, **kw}))
@@ -197,7 +200,16 @@ def test_given_profile_of_another_size_is_refused(spec):
     with pytest.raises(ParameterError) as e:
         validate(MODELS / "triplet-uncorrected.json", ValidateConfig(size_px=(96, 54), fs_cyc_per_mm=5.0),
                  profile=TruthProfile(spec), quiet=True)
-    assert e.value.field == "--size" and "256x144" in e.value.fix
+    assert e.value.field == "size_px" and "256x144" in e.value.fix
+
+
+@pytest.mark.parametrize("argv, flag", [(["--fs", "1000"], "--fs"), (["--size", "8x8"], "--size"),
+                                        (["--q", "2"], "--q"), (["--scene", "nowhere.png"], "--scene"),
+                                        (["--confidence", "x"], "--confidence")])
+def test_cli_names_the_flags(tmp_path, capsys, argv, flag):
+    from fieldcal.cli import main
+    code = main(["validate", str(MODELS / "triplet-uncorrected.json"), "--out", str(tmp_path / "v"), *argv])
+    assert code == 2 and f"field '{flag}'" in capsys.readouterr().err
 
 
 def test_report_files(truth_run, tmp_path):
@@ -286,3 +298,22 @@ def test_lens_file_errors_are_spec_errors(tmp_path):
     bad.write_text("{")
     with pytest.raises(SpecError):
         validate(bad, ValidateConfig(size_px=SIZE), quiet=True)
+
+
+def test_demo_settings_follow_the_lens():
+    """The demo's choices (fieldcal.validation.demo): fs resolvable at the size, a z grid through z_ref that
+    covers the best-focus range with four steps of margin, steps about half the tolerance."""
+    from fieldcal.validation.demo import demo_settings
+    base = LensSpec.load(MODELS / "triplet-uncorrected.json")
+    for w, h in ((160, 90), (640, 360), (3840, 2160)):
+        spec = base.with_sensor_size(w, h)
+        d = demo_settings(spec, 0.05)
+        nyq = 500.0 / spec.sensor.pixel_pitch_um
+        assert d.fs_cyc_per_mm == min(80.0, round(0.4 * nyq)) and d.fs_cyc_per_mm < 0.9 * nyq
+        assert d.tolerance_um == pytest.approx(min(spec.focus_tolerance_um(d.fs_cyc_per_mm, 0.05, c)
+                                                   for c in spec.channel_names))
+        assert d.step_um == max(1.0, round(d.tolerance_um / 2, 1))
+        k = (spec.z_ref_um - d.z_start_um) / d.step_um
+        assert abs(k - round(k)) < 1e-9                                    # z_ref is on the grid
+        assert d.z_start_um <= d.focus_lo_um - 4 * d.step_um < d.z_start_um + d.step_um
+        assert d.z_stop_um >= d.focus_hi_um + 4 * d.step_um > d.z_stop_um - d.step_um

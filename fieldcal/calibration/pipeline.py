@@ -40,13 +40,13 @@ SYSTEMATIC_STEP_FRACTION = 0.0
 
 def _check(fs_cyc_per_mm, q, effort, pitch_um):
     if effort not in EFFORTS:
-        raise ParameterError(f"unknown effort {effort!r}", field="--effort", fix="use quick, standard or thorough")
+        raise ParameterError(f"unknown effort {effort!r}", field="effort", fix="use quick, standard or thorough")
     crit = MTFCriterion(fs_cyc_per_mm, q)
     nyquist = 1000.0 / (2.0 * pitch_um)
     if crit.fs_cyc_per_mm >= 0.9 * nyquist:
         raise ParameterError(f"fs = {fs_cyc_per_mm:g} cycles/mm is at or above 90% of the sensor's Nyquist "
                              f"frequency ({nyquist:.1f} cycles/mm at {pitch_um:g} µm pixels)", field="fs_cyc_per_mm",
-                             fix=f"use --fs below {0.9 * nyquist:.0f} (e.g. {min(80.0, 0.5 * nyquist):.0f})")
+                             fix=f"use fs below {0.9 * nyquist:.0f} cycles/mm (e.g. {min(80.0, 0.5 * nyquist):.0f})")
 
 
 def _hash_inputs(stack, out: dict):

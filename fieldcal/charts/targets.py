@@ -492,6 +492,24 @@ def print_requirements(pixel_pitch_um: float, sensor_size_mm: tuple[float, float
             "field_width_mm": sensor_size_mm[0] / m, "field_height_mm": sensor_size_mm[1] / m}
 
 
+def check_chart_for_lens(spec, width_mm: float, height_mm: float, dpi: float) -> tuple[dict[str, float], list[str]]:
+    """:func:`print_requirements` for a simulated lens (``fieldcal-lens/1`` spec) and where a print falls short.
+
+    Returns ``(requirements, warnings)``: the dict of :func:`print_requirements` and one sentence per shortfall
+    (too few dpi for the sensor's Nyquist frequency; a chart smaller than the field of view).
+    """
+    req = print_requirements(spec.sensor.pixel_pitch_um, spec.sensor.size_mm, spec.focal_length_mm,
+                             spec.object_distance_mm)
+    warnings = []
+    if dpi < req["min_dpi"]:
+        warnings.append(f"{dpi:g} dpi is below {req['min_dpi']:.0f} dpi: the texture will not reach the sensor's "
+                        "Nyquist frequency (print at a higher dpi or move the chart farther away)")
+    if width_mm < req["field_width_mm"] or height_mm < req["field_height_mm"]:
+        warnings.append("the chart does not fill the field of view (print it larger, tile several prints, "
+                        "or move the chart farther away)")
+    return req, warnings
+
+
 def parse_size_mm(text: str) -> tuple[float, float]:
     """``"297x210"`` (width x height in mm) or a paper name (A5..A2, letter, legal; landscape) to mm."""
     t = str(text).strip()
@@ -573,6 +591,8 @@ def write_targets(out_dir: str | Path, width_mm: float = 297.0, height_mm: float
         The manifest written to ``targets.json`` (``format`` ``fieldcal-targets/1``, ``charts`` list).
     """
     _check_physical(width_mm, height_mm, dpi)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ParameterError(f"seed {seed!r} is not a whole number >= 0", field="seed", fix="use a seed >= 0, e.g. 0")
     kinds = list(kinds)
     bad = [k for k in kinds if k not in KINDS]
     if bad or not kinds:

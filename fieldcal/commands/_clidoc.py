@@ -28,21 +28,43 @@ No command writes through a symbolic link, over or into one of its inputs, or ov
 
 ## The pipeline, as commands
 
+A quick try on the simulated lens (the paper's uncorrected triplet), from the repository folder (it reads
+`models/`), in about a minute. It renders at a small size, 320x180 px over the same 3840x2160 sensor area, so
+the pixels are 19.6 µm and the Nyquist frequency is 25.5 cycles/mm: the target frequency is `--fs 10`
+(0.4 x Nyquist) here, where the full-size sensor (1.63 µm pixels) takes the paper's `--fs 80`. A frequency at or
+above 90 % of Nyquist is refused. `tests/test_docs_commands.py` runs this block as written.
+
 ```
-fieldcal targets --out calibration_targets                      # printable charts (PNG + PDF at a stated size)
-fieldcal simulate models/triplet-uncorrected.json chart --z -370 60 10 --size 640x360   # or capture a real one:
-fieldcal capture --z -370 60 10 --stage gcs:/dev/ttyUSB0 --camera pylon --out chart
-fieldcal calibrate chart --out lens.json --fs 80 --q 0.05 --effort standard --report report/
+fieldcal targets --out calibration_targets --dpi 100               # printable charts (PNG + PDF at a stated size)
+fieldcal simulate models/triplet-uncorrected.json chart --z -370 60 20 --size 320x180   # a chart stack
+fieldcal calibrate chart --out lens.json --fs 10 --q 0.05 --effort quick
 fieldcal report lens.json --out report/
-fieldcal plan stack lens.json --fs 80 --q 0.05 --confidence 0.95 --out plan.json --plots plan-plots/
-fieldcal plan sweep lens.json --alpha-um 20 --pixel-exposure-ms 16 --device lcos --out sweep.json
-fieldcal capture --plan plan.json --stage sim --camera sim:models/triplet-uncorrected.json --out scene
+fieldcal plan stack lens.json --fs 10 --q 0.05 --confidence 0.95 --out plan.json --plots plan-plots/
+fieldcal plan sweep lens.json --alpha-um 20 --pixel-exposure-ms 16 --device lcos --channels G --out sweep.json
+fieldcal capture --plan plan.json --stage sim --camera sim:models/triplet-uncorrected.json,size=320x180 --out scene
 fieldcal composite scene --profile lens.json --out image.tiff
-fieldcal validate models/triplet-uncorrected.json --out validation/
-fieldcal demo --out demo-out                                      # all of the above on a simulated lens
+fieldcal validate models/triplet-uncorrected.json --size 256x144 --effort quick --out validation/
+fieldcal demo --out demo-out --size 160x90                          # all of the above, compared with the truth
 ```
 
-`fieldcal demo` prints each command before it runs it, so its log is a worked example.
+The same at full size and on hardware (a PI stage on a serial port, a Basler camera; the simulated stage and
+camera are `--stage sim --camera sim:LENS.json`). The frames of `--camera sim:...` are 320x180 unless its
+`size=WxH` option says otherwise: a profile composites only stacks of its own image size.
+
+<!-- docs-test: not run (needs a stage and a camera, or several minutes) -->
+```
+fieldcal targets --out calibration_targets                         # 300 dpi, A4 landscape
+fieldcal capture --z -370 60 10 --stage gcs:/dev/ttyUSB0 --camera pylon --out chart
+fieldcal calibrate chart --out lens.json --fs 80 --q 0.05 --effort standard --report report/
+fieldcal plan stack lens.json --fs 80 --q 0.05 --confidence 0.95 --out plan.json --plots plan-plots/
+fieldcal capture --plan plan.json --stage gcs:/dev/ttyUSB0 --camera pylon --out scene
+fieldcal composite scene --profile lens.json --out image.tiff
+fieldcal validate models/triplet-uncorrected.json --out validation/   # 640x360, standard effort: minutes
+fieldcal demo --out demo-out                                          # 640x360
+```
+
+`fieldcal demo` prints each command before it runs it, so its log is a worked example. Every command's logic is
+a public Python function (docs/architecture.md lists them); the commands only parse flags and print.
 
 ## Reference (generated)
 

@@ -7,6 +7,9 @@ from pathlib import Path
 from ..errors import ParameterError
 from . import add_parser
 
+# library fields whose flag has another name (the rest map by each option's dest)
+FIELD_FLAGS = {"fs_cyc_per_mm": "--fs", "path": "--out"}
+
 
 def register(sub):
     p = add_parser(sub, "calibrate", "fit a lens profile (best-focus surfaces with uncertainty, geometry vs z, "

@@ -13,11 +13,9 @@ import shlex
 import time
 from pathlib import Path
 
-import numpy as np
-
 from ..errors import FieldcalError, ParameterError
-from ..formats.atomic import save_figure, write_text
-from . import add_parser
+from ..formats.atomic import write_text
+from . import add_parser, parse_size
 
 DEFAULT_LENS = Path(__file__).resolve().parents[2] / "models" / "triplet-uncorrected.json"
 
@@ -49,45 +47,30 @@ def _step(title: str, argv: list[str]) -> None:
         raise err
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ParameterError(f"size must be WxH, got {text!r}", field="--size", fix="e.g. --size 640x360") from None
-    if w < 64 or h < 64:
-        raise ParameterError(f"size {w}x{h} is too small for a demo", field="--size", fix="use at least 64x64")
-    return w, h
-
-
 def run(args) -> int:
     from fieldcal.simulate.lens import LensSpec
 
+    from fieldcal.validation.demo import compare_with_truth, demo_settings
+
     lens_path = Path(args.lens) if args.lens else DEFAULT_LENS
     spec0 = LensSpec.load(lens_path)
-    w, h = _size(args.size)
+    w, h = parse_size(args.size, minimum=64)
     spec = spec0.with_sensor_size(w, h)
     from fieldcal.formats.atomic import check_output
     out = check_output(args.out, inputs=[lens_path], kind="dir")
     if out.exists() and any(out.iterdir()) and not args.overwrite:
-        raise ParameterError(f"{out} exists and is not empty", path=out, field="--out",
+        raise ParameterError(f"{out} exists and is not empty", path=out, field="out",
                              fix="choose another --out or add --overwrite")
     if args.overwrite:  # the demo's own files only: never a link, a folder or an input under these names
         check_output(out, inputs=[lens_path], overwrite=True, kind="dir", files=("summary.json", "compare.png"))
     out.mkdir(parents=True, exist_ok=True)
     ow = ["--overwrite"] if args.overwrite else []
     t0 = time.perf_counter()
-
-    # fs: the paper's 80 cycles/mm where the render resolves it, else 40% of this size's Nyquist
-    nyquist = 1000.0 / (2.0 * spec.sensor.pixel_pitch_um)
-    fs = float(min(80.0, round(0.4 * nyquist)))
-    tol = min(spec.focus_tolerance_um(fs, args.q, c) for c in spec.channel_names)
-    lo, hi = spec.focus_range_um()
-    step = max(1.0, round(tol / 2.0, 1))
-    margin = 4 * step
-    z0 = spec.z_ref_um - np.ceil((spec.z_ref_um - (lo - margin)) / step) * step
-    z1 = spec.z_ref_um + np.ceil(((hi + margin) - spec.z_ref_um) / step) * step
+    d = demo_settings(spec, args.q)
+    fs, z0, z1, step = d.fs_cyc_per_mm, d.z_start_um, d.z_stop_um, d.step_um
     print(f"fieldcal demo: lens {spec0.name} ({lens_path}), {w}x{h} px at {spec.sensor.pixel_pitch_um:.2f} µm, "
-          f"fs = {fs:g} cycles/mm, q = {args.q:g}; best focus spans {lo:.0f}..{hi:.0f} µm (D = {hi - lo:.0f} µm)")
+          f"fs = {fs:g} cycles/mm, q = {args.q:g}; best focus spans {d.focus_lo_um:.0f}..{d.focus_hi_um:.0f} µm "
+          f"(D = {d.focus_hi_um - d.focus_lo_um:.0f} µm)")
 
     lens = str(lens_path)
     chart = out / "chart-stack"
@@ -103,7 +86,7 @@ def run(args) -> int:
     _step("3. plan a focal stack: fewest frames keeping every pixel within its tolerance",
           ["plan", "stack", str(profile), "--fs", f"{fs:g}", "--q", f"{args.q:g}", "--out", str(plan),
            "--plots", str(out / "plan-plots"), *ow])
-    alpha = max(2.0, round(2 * tol, 1))
+    alpha = d.alpha_um
     _step("4. plan a focal sweep (per-pixel exposure masks)",
           ["plan", "sweep", str(profile), "--alpha-um", f"{alpha:g}", "--pixel-exposure-ms", "16",
            "--out", str(out / "sweep-plan.json"), "--plots", str(out / "sweep-plots"), *ow])
@@ -120,7 +103,7 @@ def run(args) -> int:
           ["composite", str(scene), "--profile", str(profile), "--out", str(composite), *ow])
 
     print("\n== 7. compare with the truth (the simulator knows the all-in-focus image)")
-    summary = _compare(spec, scene, composite, fs, args.seed, out)
+    summary = compare_with_truth(spec, scene, composite, args.seed, out / "compare.png")
     summary.update({"lens": str(lens_path), "size_px": [w, h], "fs_cyc_per_mm": fs, "q": args.q,
                     "effort": args.effort, "elapsed_s": round(time.perf_counter() - t0, 1)})
     write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
@@ -129,53 +112,3 @@ def run(args) -> int:
           f"{out / 'compare.png'}")
     print(f"\nfieldcal demo: done in {summary['elapsed_s']:.0f} s; open {out / 'report' / 'index.html'}")
     return 0
-
-
-def _compare(spec, scene_dir: Path, composite_path: Path, fs: float, seed: int, out: Path) -> dict:
-    """PSNR of the composite and of a one-shot frame (the planned frame nearest the on-axis focus) vs the truth."""
-    import tifffile
-
-    from ..simulate import Renderer
-    from ..simulate.scene import load_scene
-    from fieldcal.formats.stack import Stack
-    from fieldcal.simulate.truth import TruthProfile
-    from fieldcal.validation.run import psnr_db
-
-    stack = Stack.open(scene_dir)
-    image, _ = load_scene("colour-leaves", spec.sensor.width_px, spec.sensor.height_px, seed=seed)
-    truth = Renderer(spec, image, seed=seed).truth()
-    comp = tifffile.imread(composite_path)
-    cx, cy = spec.optical_centre_px()
-    z_axis = float(np.mean([TruthProfile(spec).best_focus_um(cx, cy, c) for c in spec.channel_names]))
-    one = int(np.argmin(np.abs(np.asarray(stack.z_um) - z_axis)))
-    shot = stack.read(one)
-    black, white = float(stack.black_level), float(stack.white_level)
-    border = max(4, spec.sensor.width_px // 64)
-    res = {"psnr_composite_db": psnr_db(comp, truth, black, white, border_px=border),
-           "psnr_one_shot_db": psnr_db(shot, truth, black, white, border_px=border),
-           "one_shot_z_um": float(stack.z_um[one]), "n_frames": len(stack)}
-    _crops(truth, shot, comp, black, white, out / "compare.png")
-    return res
-
-
-def _crops(truth, shot, comp, black, white, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    h, w = truth.shape[:2]
-    ch, cw = h // 4, w // 4
-    fig, axes = plt.subplots(2, 3, figsize=(10, 5.6))
-    for row, (y0, x0, name) in enumerate(((0, 0, "top-left corner"), (h // 2 - ch // 2, w // 2 - cw // 2, "centre"))):
-        for col, (img, title) in enumerate(((shot, "one shot (on-axis focus)"), (comp, "fieldcal composite"),
-                                            (truth, "truth"))):
-            crop = (np.asarray(img[y0:y0 + ch, x0:x0 + cw], dtype=np.float32) - black) / (white - black)
-            axes[row, col].imshow(np.clip(crop.squeeze(), 0, 1), cmap=None if crop.ndim == 3 and crop.shape[2] == 3 else "gray",
-                                  interpolation="nearest")
-            axes[row, col].set_title(f"{title}: {name}", fontsize=8)
-            axes[row, col].axis("off")
-    fig.tight_layout()
-    try:
-        save_figure(fig, path, dpi=110)
-    finally:
-        plt.close(fig)

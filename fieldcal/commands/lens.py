@@ -9,6 +9,10 @@ from ..errors import ParameterError
 from ..progress import status
 from . import add_parser
 
+# library fields whose flag has another name (the rest map by each option's dest)
+FIELD_FLAGS = {"efl_mm": "--efl", "bfl_mm": "--bfl", "image_height_mm": "--image-height", "fs_cyc_per_mm": "--fs",
+               "channels_nm": "--channels"}
+
 _DESCRIPTION = """\
 Build simulated lenses (fieldcal-lens/1) from an optical prescription.
 
@@ -87,31 +91,10 @@ def _no_action(p) -> int:
     return 2
 
 
-def _positive(name: str, v, fix: str):
-    if v is not None and not (math.isfinite(v) and v > 0):
-        raise ParameterError(f"{name} must be a positive number, got {v}", field=name, fix=fix)
-    return v
-
-
-def _load_and_check(args):
-    from ..raytrace.build import check_first_order
-    from ..raytrace.paraxial import paraxial
-    from ..raytrace.prescription import load_prescription, meta_number
-
-    rx = load_prescription(args.table)
-    efl = _positive("--efl", args.efl, "e.g. --efl 17.6") or meta_number(rx, "efl_mm")
-    bfl = _positive("--bfl", args.bfl, "e.g. --bfl 10.511") or meta_number(rx, "bfl_mm")
-    try:
-        parax = paraxial(rx)
-    except ValueError as e:
-        from ..errors import SpecError
-        raise SpecError(f"{e}", path=args.table, field="radius", fix="check the radii and indices") from None
-    check_first_order(parax, efl, bfl, args.tolerance, path=args.table)
-    return rx, parax, efl, bfl
-
-
 def run_check(args) -> int:
-    rx, parax, efl, bfl = _load_and_check(args)
+    from ..raytrace.api import check_prescription
+    chk = check_prescription(args.table, args.efl, args.bfl, args.tolerance)
+    rx, parax, efl, bfl = chk.prescription, chk.paraxial, chk.efl_mm, chk.bfl_mm
     print(f"{args.table}: {len(rx.surfaces)} surfaces, stop at row {rx.stop_index + 1}")
     print(f"  EFL {parax.efl_mm:.4f} mm" + (f" (expected {efl:g}: ok)" if efl else ""))
     print(f"  BFL {parax.bfl_mm:.4f} mm" + (f" (expected {bfl:g}: ok)" if bfl else "")
@@ -146,53 +129,33 @@ def _parse_channels(text: str) -> dict[str, float]:
 
 
 def run_from_prescription(args) -> int:
-    import numpy as np
-
-    from ..raytrace.bestfocus import SearchSettings, trace_focus_table
-    from ..raytrace.build import build_lens_spec, parse_sensor, sensor_geometry
-    from ..raytrace.optiland_backend import require_optiland
-    from ..raytrace.prescription import meta_number
+    from ..raytrace.api import lens_from_prescription
+    from ..raytrace.build import parse_sensor
 
     from fieldcal.formats.atomic import check_output
     out = check_output(args.out, inputs=[args.table], overwrite=args.overwrite)
-    rx, parax, _, _ = _load_and_check(args)
-    f_number = _positive("--f-number", args.f_number, "e.g. --f-number 2") or meta_number(rx, "f_number")
-    if f_number is None:
-        raise ParameterError("the F-number is not known", field="--f-number",
-                             fix="give --f-number N (or '# f_number: N' in the table)")
-    h_max = _positive("--image-height", args.image_height, "e.g. --image-height 3.6") or meta_number(rx, "image_height_mm")
-    sensor = parse_sensor(args.sensor, h_max) if args.sensor else (3840, 2160, None)
-    if h_max is None:
-        w, h, pitch = sensor
-        if pitch is None:
-            raise ParameterError("the image height is not known", field="--image-height",
-                                 fix="give --image-height MM, or --sensor WxH@PITCH (its half diagonal is used)")
-        h_max = math.hypot(w / 2.0, h / 2.0) * pitch / 1000.0
-    if not (2 <= args.heights <= 41):
-        raise ParameterError(f"--heights must be in 2..41, got {args.heights}", field="--heights", fix="e.g. 9")
-    if not (1 <= args.terms <= 4) or args.terms > args.heights - 1:
-        raise ParameterError(f"--terms {args.terms} needs 1..4 and fewer than --heights ({args.heights})",
-                             field="--terms", fix="e.g. --terms 2 with --heights 9")
-    _positive("--fs", args.fs, "e.g. --fs 80")
-    sensor_geometry(sensor, h_max)  # a sensor beyond the traced field: say so before tracing for minutes
-    channels = _parse_channels(args.channels)
-    settings = SearchSettings(fs_cyc_per_mm=args.fs, num_rays=args.num_rays)
-    require_optiland()
-    heights = np.linspace(0.0, h_max, args.heights)
-    status(f"tracing {len(channels)} channel(s) x {len(heights)} heights at {args.fs:g} cy/mm, F/{f_number:g}",
-           quiet=args.quiet)
-    table = trace_focus_table(rx, heights, channels, f_number, settings, quiet=args.quiet)
-    spec = build_lens_spec(table, parax, name=args.name or rx.name, image_height_mm=h_max, sensor=sensor,
-                           n_terms=args.terms, description=str(rx.meta.get("description", "")))
+
+    def started(channels, heights, f_number):
+        status(f"tracing {len(channels)} channel(s) x {len(heights)} heights at {args.fs:g} cy/mm, F/{f_number:g}",
+               quiet=args.quiet)
+
+    sensor = parse_sensor(args.sensor, args.image_height) if args.sensor else None
+    res = lens_from_prescription(args.table, fs_cyc_per_mm=args.fs, f_number=args.f_number,
+                                 image_height_mm=args.image_height, sensor=sensor, heights=args.heights,
+                                 channels_nm=_parse_channels(args.channels), terms=args.terms,
+                                 num_rays=args.num_rays, name=args.name, efl_mm=args.efl, bfl_mm=args.bfl,
+                                 tolerance=args.tolerance, quiet=args.quiet, on_start=started)
+    spec = res.spec
     spec.save(out)
-    print(f"wrote {out}: EFL {parax.efl_mm:.3f} mm, F/{f_number:g}, image height {h_max:g} mm")
+    print(f"wrote {out}: EFL {res.paraxial.efl_mm:.3f} mm, F/{res.f_number:g}, image height {res.image_height_mm:g} mm")
     print("best focus (µm from the stated image plane; peak of mean T/S MTF at "
           f"{args.fs:g} cy/mm), traced | fitted:")
+    channels = res.table.channels
     print("  h (mm) " + "".join(f"{c:>18}" for c in channels))
-    for h in heights:
+    for h in res.heights_mm:
         cells = []
         for c in channels:
-            p = table.get(c, float(h))
+            p = res.table.get(c, float(h))
             cells.append(f"{p.z_um:8.1f} | {float(spec.best_focus_um(h, 0.0, c)):7.1f}")
         print(f"  {h:6.3f} " + "".join(f"{s:>18}" for s in cells))
     return 0

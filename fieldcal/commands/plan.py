@@ -2,22 +2,11 @@
 
 from __future__ import annotations
 
-import math
-from pathlib import Path
-
-from ..errors import ParameterError
 from ..progress import status
-from . import add_parser
+from . import add_parser, parse_size
 
-
-def _size(text):
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-        if w >= 8 and h >= 8:
-            return (w, h)
-    except ValueError:
-        pass
-    raise ParameterError(f"size {text!r} is not WxH", field="size", fix="e.g. --size 640x360")
+# library fields whose flag has another name (the rest map by each option's dest)
+FIELD_FLAGS = {"fs_cyc_per_mm": "--fs"}
 
 
 def _channels(text):
@@ -75,8 +64,6 @@ def register(sub):
 
 def _scene(args):
     from ..plan.scene import Scene, parse_roi
-    if args.object_distance_mm is not None and not math.isfinite(args.object_distance_mm):
-        raise ParameterError("object distance must be finite", field="object_distance_mm", fix="e.g. 500")
     return Scene(roi=parse_roi(args.roi) if args.roi else None, channels=_channels(args.channels),
                  object_distance_mm=args.object_distance_mm)
 
@@ -92,27 +79,19 @@ def _check_outputs(args, files: tuple[str, ...], masks: bool = False) -> None:
         check_output(out.with_name(out.stem + ".masks.npz"), inputs=inputs, overwrite=args.overwrite)
     if args.plots:
         check_output(args.plots, inputs=inputs, overwrite=args.overwrite, kind="dir", files=files,
-                     field="--plots")
+                     field="plots")
 
 
 def run_stack(args) -> int:
     _check_outputs(args, ("stack-plan.png",))
-    from ..plan.load import load_profile
-    from ..plan.planfile import write_plan
-    from ..plan.stack_plan import StackRequest, plan_stack
-    profile, info = load_profile(args.profile, _size(args.size) if args.size else None)
+    from ..plan.files import stack_plan_file
+    from ..plan.stack_plan import StackRequest
     req = StackRequest(fs_cyc_per_mm=args.fs, q=args.q, confidence=args.confidence, scene=_scene(args),
                        max_frames=args.max_frames, max_time_ms=args.max_time_ms, exposure_ms=args.exposure_ms,
                        frame_overhead_ms=args.frame_overhead_ms, placement=args.placement,
                        direction=args.direction, grid_step_px=args.grid_step_px)
     status(f"planning a focal stack from {args.profile} ...")
-    plan = plan_stack(profile, req)
-    doc = plan.to_dict(info)
-    doc["parameters"]["profile_source"] = info["source"]
-    if args.plots:
-        from ..plan.plots import plot_stack_plan
-        plot_stack_plan(profile, plan, Path(args.plots) / "stack-plan.png")
-    write_plan(args.out, doc)
+    doc = stack_plan_file(args.profile, req, args.out, size_px=parse_size(args.size), plots=args.plots)
     print(f"{args.out}: {doc['n_frames']} frames over D = {doc['D_um']:.1f} µm ({doc['direction']}), "
           f"q achieved {doc['q_achieved']:.4f}, total exposure {doc['total_exposure_ms']:.0f} ms, "
           f"coverage probability {doc['coverage']['probability']:.4f}")
@@ -123,22 +102,14 @@ def run_stack(args) -> int:
 
 def run_sweep(args) -> int:
     _check_outputs(args, ("sweep-masks.png", "sweep-windows.png", "alpha-trade.png"), masks=True)
-    from ..plan.load import load_profile
-    from ..plan.sweep_plan import SweepRequest, plan_sweep, write_sweep_plan
-    profile, info = load_profile(args.profile, _size(args.size) if args.size else None)
+    from ..plan.files import sweep_plan_file
+    from ..plan.sweep_plan import SweepRequest
     req = SweepRequest(alpha_um=args.alpha_um, pixel_exposure_ms=args.pixel_exposure_ms, device=args.device,
                        slot_ms=args.slot_ms, max_hold_ms=args.max_hold_ms, clock_us=args.clock_us, cfa=args.cfa,
                        scene=_scene(args), direction=args.direction, grid_step_px=args.grid_step_px,
                        fs_cyc_per_mm=args.fs, wiener_nsr=args.wiener_nsr)
     status(f"planning a focal sweep from {args.profile} ...")
-    plan = plan_sweep(profile, req)
-    if args.plots:
-        from ..plan.plots import plot_alpha_trade, plot_masks, plot_windows
-        d = Path(args.plots)
-        plot_masks(plan, d / "sweep-masks.png")
-        plot_windows(plan, d / "sweep-windows.png")
-        plot_alpha_trade(profile, plan, d / "alpha-trade.png")
-    doc = write_sweep_plan(plan, args.out, info, extra_parameters={"profile_source": info["source"]})
+    doc = sweep_plan_file(args.profile, req, args.out, size_px=parse_size(args.size), plots=args.plots)
     print(f"{args.out}: sweep {doc['start_um']:.1f} -> {doc['stop_um']:.1f} µm at {doc['velocity_um_per_ms']:.3f} µm/ms, "
           f"T = {doc['total_time_ms']:.1f} ms (D = {doc['range_um']:.1f} µm), masks in {doc['masks']['file']}")
     print("  alpha_um    T_ms  MTF@fs  Wiener_gain  restored@fs  gain_to_in_focus")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 from . import add_parser
 
 
@@ -17,17 +16,13 @@ def register(sub):
     p.set_defaults(func=run)
 
 
-def load_profile_or_truth(path: str):
-    """A LensProfile, or the TruthProfile of a fieldcal-lens/1 spec (for design studies and simulations)."""
-    from fieldcal.profile.lens_profile import load_profile_or_truth as load
-    return load(path)[0]
-
 def run(args) -> int:
     from fieldcal.formats.atomic import check_output
     from fieldcal.profile.lens_profile import profile_files
     from fieldcal.report.calibration_report import REPORT_FILES, write_report
     check_output(args.out, inputs=profile_files(args.profile), overwrite=args.overwrite, kind="dir",
                  files=REPORT_FILES)
-    profile = load_profile_or_truth(args.profile)
+    from fieldcal.profile.lens_profile import load_profile_or_truth
+    profile, _ = load_profile_or_truth(args.profile)
     print(f"wrote {write_report(profile, args.out, fs=args.fs, q=args.q)}")
     return 0

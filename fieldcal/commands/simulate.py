@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
-from ..errors import ParameterError
 from ..progress import status
-from . import add_parser
+from . import add_parser, parse_size
+
+# library fields whose flag has another name (the rest map by each option's dest)
+FIELD_FLAGS = {"start_um": "--z START", "stop_um": "--z STOP", "step_um": "--z STEP", "z_um": "--z"}
 
 _DESCRIPTION = """\
 Render what a camera with the simulated lens LENS (a fieldcal-lens/1 file, e.g. models/*.json) records
@@ -39,29 +40,16 @@ def register(sub):
     p.set_defaults(func=run)
 
 
-def parse_size(text: str | None) -> tuple[int, int] | None:
-    """``"640x480"`` -> (640, 480); clear error otherwise."""
-    if text is None:
-        return None
-    m = re.fullmatch(r"\s*(\d+)\s*[xX×]\s*(\d+)\s*", text)
-    if not m or int(m.group(1)) < 8 or int(m.group(2)) < 8:
-        raise ParameterError(f"bad --size {text!r}", field="--size",
-                             fix="give WIDTHxHEIGHT in pixels, each at least 8, e.g. --size 320x180")
-    return int(m.group(1)), int(m.group(2))
-
-
 def run(args) -> int:
     from fieldcal.simulate.lens import LensSpec
     from ..simulate.stackgen import simulate_stack, z_grid
 
     size = parse_size(args.size)
     z = z_grid(*args.z)
-    if args.seed < 0:
-        raise ParameterError(f"--seed must be >= 0, got {args.seed}", field="--seed", fix="e.g. --seed 0")
     from fieldcal.formats.atomic import check_output
     scene_file = args.scene if args.scene and Path(args.scene).is_file() else None
     # the old stack is replaced as a whole: refuse when it is, or holds, the lens spec or the scene image
-    check_output(args.stack, inputs=[args.lens, scene_file], kind="dir", replaces_folder=True, field="STACK")
+    check_output(args.stack, inputs=[args.lens, scene_file], kind="dir", replaces_folder=True, field="stack")
     spec = LensSpec.load(args.lens)
     stack = simulate_stack(spec, args.stack, z, scene=args.scene, seed=args.seed, size=size,
                            progress=not args.quiet, noise=not args.no_noise, overwrite=args.overwrite)

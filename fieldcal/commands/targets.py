@@ -5,6 +5,9 @@ from __future__ import annotations
 from ..errors import ParameterError
 from . import add_parser
 
+# library fields whose flag has another name (the rest map by each option's dest)
+FIELD_FLAGS = {"width_mm": "--size-mm", "height_mm": "--size-mm"}
+
 
 def register(sub):
     p = add_parser(sub, "targets", "write printable calibration charts (texture, ChArUco, slanted edge)",
@@ -32,7 +35,7 @@ def _number(text: str, field: str, kind=float):
         return kind(text)
     except (TypeError, ValueError):
         raise ParameterError(f"cannot read {text!r} as a number", field=field,
-                             fix=f"give --{field} a {'whole ' if kind is int else ''}number") from None
+                             fix=f"give a {'whole ' if kind is int else ''}number") from None
 
 
 def run(args) -> int:
@@ -44,8 +47,6 @@ def run(args) -> int:
     width_mm, height_mm = parse_size_mm(args.size_mm)
     dpi = _number(args.dpi, "dpi")
     seed = _number(args.seed, "seed", int)
-    if seed < 0:
-        raise ParameterError(f"seed {seed} is negative", field="seed", fix="use a seed >= 0")
     formats = tuple(f.strip().lower() for f in str(args.format).split(",") if f.strip())
     if args.lens:
         _check_for_lens(args.lens, width_mm, height_mm, dpi)
@@ -60,19 +61,14 @@ def run(args) -> int:
 
 
 def _check_for_lens(lens_path: str, width_mm: float, height_mm: float, dpi: float) -> None:
+    from fieldcal.charts.targets import check_chart_for_lens
     from fieldcal.simulate.lens import LensSpec
     from ..progress import status
-    from fieldcal.charts.targets import print_requirements
 
     spec = LensSpec.load(lens_path)
-    req = print_requirements(spec.sensor.pixel_pitch_um, spec.sensor.size_mm, spec.focal_length_mm,
-                             spec.object_distance_mm)
+    req, warnings = check_chart_for_lens(spec, width_mm, height_mm, dpi)
     status(f"{spec.name} at {spec.object_distance_mm:g} mm: magnification {req['magnification']:.4f}, "
            f"needs >= {req['min_dpi']:.0f} dpi and a chart of >= {req['field_width_mm']:.0f} x "
            f"{req['field_height_mm']:.0f} mm to fill the field")
-    if dpi < req["min_dpi"]:
-        status(f"warning: {dpi:g} dpi is below {req['min_dpi']:.0f} dpi: the texture will not reach the sensor's "
-               f"Nyquist frequency (raise --dpi or move the chart farther away)")
-    if width_mm < req["field_width_mm"] or height_mm < req["field_height_mm"]:
-        status("warning: the chart does not fill the field of view (use a larger --size-mm, tile several prints, "
-               "or move the chart farther away)")
+    for w in warnings:
+        status(f"warning: {w}")

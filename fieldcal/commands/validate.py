@@ -6,22 +6,18 @@ Exit status: 0 when every check passes, 1 when a check fails (the report says wh
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 from ..errors import ParameterError
-from . import add_parser
+from . import add_parser, parse_size
 
 EXAMPLE = ("fieldcal validate models/triplet-uncorrected.json --out validation   "
-           "# 256 px wide, fs = 0.4 Nyquist; open validation/index.html")
+           "# 640 px wide, fs = 0.4 Nyquist; open validation/index.html\n"
+           "  fieldcal validate models/triplet-uncorrected.json --size 256x144 --effort quick --out v   "
+           "# a quick try")
 
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ParameterError(f"size must be WxH in pixels, got {text!r}", field="--size", fix="e.g. --size 256x144") from None
-    return w, h
+# library fields whose flag has another name (the rest map by each option's dest)
+FIELD_FLAGS = {"size_px": "--size", "fs_cyc_per_mm": "--fs"}
 
 
 def _confidence(text: str):
@@ -30,8 +26,8 @@ def _confidence(text: str):
     try:
         v = float(text)
     except ValueError:
-        raise ParameterError(f"confidence must be a number in (0, 1) or 'none', got {text!r}", field="--confidence",
-                             fix="e.g. --confidence 0.9") from None
+        raise ParameterError(f"confidence must be a number in (0, 1) or 'none', got {text!r}", field="confidence",
+                             fix="e.g. 0.9") from None
     return v
 
 
@@ -46,7 +42,8 @@ def register(sub):
     p.add_argument("lens", help="simulated lens spec (fieldcal-lens/1 JSON), e.g. models/triplet-uncorrected.json")
     p.add_argument("--out", default="validation", help="report folder (default: validation)")
     p.add_argument("--size", type=str, default=None,
-                   help="render size WxH over the same sensor area (default 256 px wide at the sensor's aspect)")
+                   help="render size WxH over the same sensor area (default 640 px wide at the sensor's aspect, "
+                        "e.g. 640x360)")
     p.add_argument("--fs", type=float, default=None,
                    help="target frequency, cycles/mm (default 0.4 x Nyquist of the render size)")
     p.add_argument("--q", type=float, default=0.05, help="allowed MTF loss at fs (default 0.05)")
@@ -70,28 +67,15 @@ def run(args) -> int:
     from fieldcal.validation.run import ValidateConfig, validate
     from fieldcal.validation.report import write_report
 
-    scene = args.scene
-    if scene not in ("chart", "texture") and not Path(scene).is_file():
-        raise ParameterError(f"scene {scene!r} is neither chart, texture nor an image file", path=scene,
-                             field="--scene", fix="use chart, texture or the path of an existing image")
-    if not math.isfinite(args.q):
-        raise ParameterError(f"q must be a finite number, got {args.q}", field="--q", fix="e.g. --q 0.05")
-    given = None
-    source = args.profile
-    if source not in ("calibrate", "truth"):
-        if not Path(source).is_file():
-            raise ParameterError(f"profile {source!r} is neither calibrate, truth nor a profile file", path=source,
-                                 field="--profile", fix="use calibrate, truth or the path of a fieldcal-profile/1 JSON")
-        from fieldcal.profile.lens_profile import LensProfile
-        given = LensProfile.load(source)
-        source = "calibrate"
-    cfg = ValidateConfig(size_px=_size(args.size) if args.size else None, fs_cyc_per_mm=args.fs, q=args.q,
-                         effort=args.effort, seed=args.seed, scene=scene, confidence=_confidence(args.confidence),
-                         profile=source)
+    given = None if args.profile in ("calibrate", "truth") else args.profile  # a profile file to judge
+    cfg = ValidateConfig(size_px=parse_size(args.size, minimum=1), fs_cyc_per_mm=args.fs, q=args.q,
+                         effort=args.effort, seed=args.seed, scene=args.scene,
+                         confidence=_confidence(args.confidence),
+                         profile="calibrate" if given else args.profile)
     from fieldcal.formats.atomic import check_output
     from fieldcal.profile.lens_profile import profile_files
-    inputs = [args.lens, scene if Path(scene).is_file() else None,
-              *(profile_files(args.profile) if args.profile not in ("calibrate", "truth") else [])]
+    scene_file = args.scene if Path(args.scene).is_file() else None
+    inputs = [args.lens, scene_file, *(profile_files(given) if given else [])]
     out = check_output(args.out, inputs=inputs, kind="dir", overwrite=True,
                        files=("index.html", "report.md", "summary.json"))
     workdir = out / "stacks" if args.keep_stacks else None

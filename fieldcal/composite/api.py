@@ -1,10 +1,20 @@
-"""One entry point for stack compositing: ``composite_stack(stack, profile, method=...)``."""
+"""Compositing's public entry points.
+
+* :func:`composite_stack` — an all-in-focus composite of a stack (profile / depth from focus / hybrid);
+* :func:`select_plan_frames` — the stack frames a stack plan asked for, and the plan's criterion;
+* :func:`composite_sweep` — emulate a focal sweep from a stack and deconvolve it;
+* :func:`restore_sweep_image` — deconvolve a captured sweep image;
+* :func:`composite_to_file` — the whole ``fieldcal composite`` path: any of the above from files, to a TIFF.
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from pathlib import Path
+
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import ParameterError, SpecError, StackError
 from .dff import dff_focus_map, dff_surfaces, focus_volume, hybrid_corrections
 from .source import image_size
 from .stack_profile import (CompositeResult, blend_kernel, check_profile_matches, composite_profile,
@@ -47,10 +57,10 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     """
     method = method or ("profile" if profile is not None else "dff")
     if method not in METHODS:
-        raise ParameterError(f"unknown method {method!r}", field="--method", fix=f"use one of {', '.join(METHODS)}")
+        raise ParameterError(f"unknown method {method!r}", field="method", fix=f"use one of {', '.join(METHODS)}")
     if method in ("profile", "hybrid") and profile is None:
-        raise ParameterError(f"method '{method}' needs a lens profile", field="--profile",
-                             fix="give --profile PROFILE, or use --method dff")
+        raise ParameterError(f"method '{method}' needs a lens profile", field="profile",
+                             fix="give a lens profile, or use the dff method (depth from focus)")
     if method == "profile":
         return composite_profile(stack, profile, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm, q=q,
                                  min_band=min_band, lateral_colour=lateral_colour, tile=tile,
@@ -86,3 +96,261 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     img = composite_with_map(stack, zb, kernel, geometry, frames, lateral_colour=lateral_colour, tile=tile,
                              quiet=quiet)
     return CompositeResult(img, method, zb, info)
+
+
+# ------------------------------------------------------------------------------------------------ plans
+@dataclass(frozen=True)
+class PlanSelection:
+    """The frames of a stack that a stack plan asked for, and the plan's criterion.
+
+    ``frames`` are file indices into the stack (sorted, unique); ``fs_cyc_per_mm`` and ``q`` are the plan's
+    (None when it does not say); ``refocus_um`` is the plan's refocus offset; ``info`` goes into metadata.
+    """
+
+    frames: np.ndarray
+    fs_cyc_per_mm: float | None
+    q: float | None
+    refocus_um: float
+    info: dict = field(default_factory=dict)
+
+
+def select_plan_frames(plan, stack) -> PlanSelection:
+    """Match a stack plan's positions to a stack's frames.
+
+    Parameters
+    ----------
+    plan : path or dict
+        A ``fieldcal-plan/1`` file (or its loaded document) of kind ``stack``.
+    stack : FrameSource
+        The stack captured with that plan.
+
+    Raises
+    ------
+    SpecError
+        The plan is not a stack plan.
+    StackError
+        A planned position has no frame within a quarter of the plan's frame spacing (at least 1 µm).
+    """
+    from ..plan.planfile import read_plan, validate_plan
+
+    if isinstance(plan, dict):
+        doc, where = validate_plan(plan, check_files=False), None
+    else:
+        doc, where = read_plan(plan), str(plan)
+    if doc["kind"] != "stack":
+        raise SpecError(f"a {doc['kind']} plan cannot select stack frames", path=where, field="kind",
+                        fix="give the stack plan the stack was captured with (or no plan)")
+    z_plan = np.array([f["z_um"] for f in doc["frames"]], dtype=np.float64)
+    z = np.asarray(stack.z_um, dtype=np.float64)
+    spacing = float(np.min(np.abs(np.diff(np.sort(z_plan))))) if len(z_plan) > 1 else np.inf
+    tol = max(1.0, 0.25 * spacing) if np.isfinite(spacing) else 1.0
+    idx = []
+    for zp in z_plan:
+        k = int(np.argmin(np.abs(z - zp)))
+        if abs(z[k] - zp) > tol:
+            raise StackError(f"the plan's frame at z = {zp:g} µm is not in the stack (nearest {z[k]:g} µm)",
+                             path=stack.path, field="frames",
+                             fix="composite without the plan, or capture the stack with this plan")
+        idx.append(k)
+    params = doc.get("parameters", {})
+    fs = params.get("fs_cyc_per_mm")
+    q = params.get("q")
+    refocus = float(doc.get("refocus_um") or 0.0)
+    return PlanSelection(np.array(sorted(set(idx))),
+                         float(fs) if isinstance(fs, (int, float)) and not isinstance(fs, bool) else None,
+                         float(q) if isinstance(q, (int, float)) and not isinstance(q, bool) else None,
+                         refocus, {"path": where, "kind": "stack", "n_frames": len(z_plan), "refocus_um": refocus})
+
+
+# ----------------------------------------------------------------------------------------------- sweeps
+DECONVOLUTIONS = ("wiener", "rl", "none")
+
+
+@dataclass
+class SweepComposite:
+    """A (deconvolved) focal-sweep image in the input's dtype and scale, and what was done (``info``)."""
+
+    image: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+def _check_sweep_args(alpha_um, deconvolve: str) -> None:
+    if alpha_um is None or not (np.isfinite(alpha_um) and alpha_um > 0):
+        raise ParameterError(f"the sweep half-range must be > 0 µm, got {alpha_um}", field="sweep_alpha_um",
+                             fix="e.g. 20 µm (the paper's)")
+    if deconvolve not in DECONVOLUTIONS:
+        raise ParameterError(f"unknown deconvolution {deconvolve!r}", field="deconvolve",
+                             fix=f"use one of {', '.join(DECONVOLUTIONS)}")
+
+
+def composite_sweep(stack, profile, alpha_um: float, *, frames=None, deconvolve: str = "wiener",
+                    rl_iterations: int = 30, lateral_colour: bool = False, quiet: bool = False) -> SweepComposite:
+    """Emulate a per-pixel focal sweep of half-range ``alpha_um`` from a stack, then deconvolve it.
+
+    Parameters
+    ----------
+    stack : FrameSource
+        A dense through-focus stack (frames at most ``2 alpha_um`` apart).
+    profile : lens profile
+        Each pixel's best focus and the integrated PSF.
+    deconvolve : {"wiener", "rl", "none"}
+        Deconvolution with the integrated PSF (Richardson-Lucy takes ``rl_iterations``).
+    frames : array of int, optional
+        File indices to use (e.g. :func:`select_plan_frames`'s); default all.
+    """
+    from .stack_profile import to_input_dtype
+    from .sweep import deconvolve_sweep, emulate_sweep
+
+    _check_sweep_args(alpha_um, deconvolve)
+    if profile is None:
+        raise ParameterError("sweep emulation needs a profile (each pixel's best focus and the PSF)",
+                             field="profile", fix="give the lens profile")
+    stack.require_frames(2, "sweep emulation")
+    sw = emulate_sweep(stack, profile, alpha_um, frames=frames, lateral_colour=lateral_colour, quiet=quiet)
+    info = dict(sw.info)
+    img = sw.image
+    if deconvolve != "none":
+        res = deconvolve_sweep(img, profile, alpha_um, stack.channels, black=stack.black_level,
+                               white=stack.white_level, method=deconvolve, rl_iterations=rl_iterations,
+                               noise_sigma=sw.info["noise_sigma"])
+        img = res.image
+        info.update(res.info)
+    info.update({"method": "sweep-emulated", "z_ref_um": float(profile.z_ref_um)})
+    return SweepComposite(to_input_dtype(img, stack.dtype, stack.white_level), info)
+
+
+def restore_sweep_image(image: np.ndarray, profile, alpha_um: float, *, deconvolve: str = "wiener",
+                        rl_iterations: int = 30, where=None) -> SweepComposite:
+    """Deconvolve a captured focal-sweep image (``H x W x C``, raw, black level 0) with the integrated PSF.
+
+    The profile must be of this camera: same channels and image size. ``where`` names the image in errors.
+    """
+    from .stack_profile import to_input_dtype
+    from .sweep import deconvolve_sweep
+
+    _check_sweep_args(alpha_um, deconvolve)
+    if deconvolve == "none":
+        raise ParameterError("nothing to do for a captured sweep without deconvolution", field="deconvolve",
+                             fix="use wiener or rl")
+    image = np.asarray(image)
+    if image.ndim == 2:
+        image = image[..., None]
+    h, w = image.shape[:2]
+    channels = tuple(profile.channels)
+    if len(channels) != image.shape[2]:
+        raise ParameterError(f"the image has {image.shape[2]} channel(s), the profile {len(channels)}",
+                             path=where, field="channels", fix="use the profile of the camera that took it")
+    if tuple(profile.image_size_px) != (w, h):
+        raise ParameterError(f"the profile is for {profile.image_size_px} px images, the image is {w}x{h}",
+                             path=where, field="image_size_px", fix="use the profile of this camera")
+    white = float(np.iinfo(image.dtype).max) if np.issubdtype(image.dtype, np.integer) else 1.0
+    res = deconvolve_sweep(image.astype(np.float32), profile, alpha_um, channels, black=0.0, white=white,
+                           method=deconvolve, rl_iterations=rl_iterations)
+    return SweepComposite(to_input_dtype(res.image, image.dtype, white), {"method": "sweep-captured", **res.info})
+
+
+# ------------------------------------------------------------------------------------------ whole path
+@dataclass
+class CompositeOutput:
+    """What :func:`composite_to_file` wrote: the TIFF's path, the method and the metadata stored with it."""
+
+    path: Path
+    method: str
+    metadata: dict
+
+
+def composite_to_file(stack, out, *, profile=None, method: str | None = None, plan=None,
+                      sweep_alpha_um: float | None = None, deconvolve: str = "wiener", rl_iterations: int = 30,
+                      fs_cyc_per_mm: float | None = None, q: float | None = None, z_ref_um: float | None = None,
+                      register: bool = True, lateral_colour: bool = False, overwrite: bool = False,
+                      verify: bool = True, quiet: bool = False) -> CompositeOutput:
+    """Composite a stack folder (or restore a captured sweep image) into a TIFF with its metadata.
+
+    Parameters
+    ----------
+    stack : path or FrameSource
+        A ``fieldcal-stack/1`` folder or an open stack; or a captured sweep image file (TIFF/PNG), which
+        needs ``profile`` and ``sweep_alpha_um``.
+    out : path
+        The output ``.tif``/``.tiff``.
+    profile : path or lens profile, optional
+        A ``fieldcal-profile/1`` file, a ``fieldcal-lens/1`` spec (its truth, for simulated data), or a loaded
+        profile. Without one only depth from focus is possible.
+    method : {"profile", "dff", "hybrid"}, optional
+        See :func:`composite_stack`.
+    plan : path, optional
+        A stack plan: use its frames, and its ``fs_cyc_per_mm``, ``q`` and refocus where not given here.
+    sweep_alpha_um : float, optional
+        Emulate a focal sweep of this half-range (µm) and deconvolve it (``deconvolve``, ``rl_iterations``).
+    fs_cyc_per_mm, q : float, optional
+        The focus tolerance that sets the seam width (default: the plan's, else Nyquist/4 and 0.05).
+    z_ref_um, register, lateral_colour, quiet
+        See :func:`composite_stack`.
+    overwrite : bool
+        Replace an existing output file (never an input: the stack, its frames, the profile, the plan).
+    verify : bool
+        Check the frames against their recorded sha256 (docs/safety.md).
+    """
+    from ..formats.stack import Stack
+    from ..profile.lens_profile import load_profile_or_truth
+    from .io import check_composite_output, read_single_image, write_composite_tiff
+
+    out = check_composite_output(out, stack=stack if isinstance(stack, (str, Path)) else getattr(stack, "path", None),
+                                 profile=profile if isinstance(profile, (str, Path)) else None,
+                                 plan=plan if isinstance(plan, (str, Path)) else None, overwrite=overwrite)
+    if q is not None and not 0.0 < q < 1.0:
+        raise ParameterError(f"q must be in (0, 1), got {q}", field="q", fix="e.g. 0.05 (5 % MTF loss)")
+    if fs_cyc_per_mm is not None and not (np.isfinite(fs_cyc_per_mm) and fs_cyc_per_mm > 0):
+        raise ParameterError(f"fs must be > 0 cycles/mm, got {fs_cyc_per_mm}", field="fs_cyc_per_mm",
+                             fix="e.g. 80")
+    if sweep_alpha_um is not None:
+        _check_sweep_args(sweep_alpha_um, deconvolve)
+
+    def load(size_px):
+        if profile is None or not isinstance(profile, (str, Path)):
+            return profile, (None if profile is None else {"source": type(profile).__name__})
+        return load_profile_or_truth(profile, size_px)
+
+    if isinstance(stack, (str, Path)) and Path(stack).is_file():  # a captured sweep image
+        src = Path(stack)
+        for name, value in (("sweep_alpha_um", sweep_alpha_um), ("profile", profile)):
+            if value is None:
+                raise ParameterError(f"{src} is a single image, so a captured sweep: it needs the sweep's "
+                                     "half-range alpha (µm) and the lens profile", field=name,
+                                     fix="give both, or give a stack folder instead of the image")
+        img = read_single_image(src)
+        prof, pinfo = load((img.shape[1], img.shape[0]))
+        res = restore_sweep_image(img, prof, sweep_alpha_um, deconvolve=deconvolve, rl_iterations=rl_iterations,
+                                  where=src)
+        meta = {"input": str(src), "profile": pinfo, "method": res.info.pop("method"), "sweep": res.info}
+        write_composite_tiff(out, res.image, prof.channels, meta)
+        return CompositeOutput(out, meta["method"], meta)
+
+    st = Stack.open(stack, verify=verify) if isinstance(stack, (str, Path)) else stack
+    if st.cfa is not None:
+        raise StackError(f"a raw {st.cfa} mosaic stack cannot be composited per channel",
+                         path=st.path, field="cfa", fix="demosaic the frames first (H x W x 3)")
+    prof, pinfo = load((st.shape[1], st.shape[0]))
+    meta: dict = {"input": str(st.path or stack), "profile": pinfo}
+    frames, offset = None, 0.0
+    if plan is not None:
+        sel = select_plan_frames(plan, st)
+        frames, offset = sel.frames, sel.refocus_um
+        meta["plan"] = sel.info
+        fs_cyc_per_mm = fs_cyc_per_mm or sel.fs_cyc_per_mm
+        q = q if q is not None else sel.q
+    if sweep_alpha_um is not None:
+        res = composite_sweep(st, prof, sweep_alpha_um, frames=frames, deconvolve=deconvolve,
+                              rl_iterations=rl_iterations, lateral_colour=lateral_colour, quiet=quiet)
+        info = dict(res.info)
+        meta.update({"method": info.pop("method"), "z_ref_um": info.pop("z_ref_um"), "sweep": info})
+        write_composite_tiff(out, res.image, st.channels, meta)
+        return CompositeOutput(out, meta["method"], meta)
+    res = composite_stack(st, prof, method, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm,
+                          q=0.05 if q is None else q, lateral_colour=lateral_colour, focus_offset_um=offset,
+                          register=register, z_ref_um=z_ref_um, quiet=quiet)
+    z_ref = float(prof.z_ref_um) if prof is not None else res.info.get("registration", {}).get("z_ref_um")
+    meta.update({"method": res.method, "z_ref_um": z_ref, "lateral_colour_corrected": bool(lateral_colour),
+                 **res.info})
+    write_composite_tiff(out, res.image, st.channels, meta)
+    return CompositeOutput(out, res.method, meta)

@@ -1,8 +1,10 @@
 """Depth from focus (paper Fig. 12): where is each pixel in focus, measured from the stack itself.
 
-1. Focus volume: each frame (warped to the geometry of ``z_ref`` when a profile is known) is filtered with the
-   modified Laplacian ``|2I - I(x-1) - I(x+1)| + |2I - I(y-1) - I(y+1)|`` per channel and averaged over
-   blocks (sum-modified-Laplacian). Only the small block volume (frames x blocks x channels) is kept.
+1. Focus volume: each frame (warped to the geometry of ``z_ref`` when a profile is known) is lightly smoothed
+   and filtered with calibration's focus measure, the modified Laplacian ``|2I - I(x-1) - I(x+1)| +
+   |2I - I(y-1) - I(y+1)|`` (:func:`fieldcal.measure.focus.sml`), per channel, and averaged over blocks
+   (:func:`fieldcal.measure.focus.cell_sums`): the sum-modified-Laplacian. Only the small block volume
+   (frames x blocks x channels) is kept.
 2. Per block: the frame of peak focus, refined to sub-frame precision by a parabola through the peak and its
    neighbours; a confidence ``(peak - median) / median`` that is ~0 where there is no texture.
 3. A smooth surface (a general quadratic plus radial r^4, r^6 terms, in normalised coordinates) is fitted to the block
@@ -19,14 +21,11 @@ import cv2
 import numpy as np
 
 from ..errors import ParameterError
+from ..measure.focus import cell_sums, sml
 from ..progress import progress
 from .source import image_size, z_positions
 from .surface import dense_map, output_best_focus_um
 from .warp import frame_maps, warp_region
-
-_ML_X = np.array([[0, 0, 0], [-1, 2, -1], [0, 0, 0]], dtype=np.float32)
-_ML_Y = _ML_X.T.copy()
-
 
 def default_block_px(width: int, height: int) -> int:
     """Blocks of 8-32 px, at least ~16 across the short side."""
@@ -34,10 +33,11 @@ def default_block_px(width: int, height: int) -> int:
 
 
 def modified_laplacian(channel: np.ndarray) -> np.ndarray:
-    """Modified Laplacian (Nayar & Nakagawa 1994) of one float32 channel, lightly pre-smoothed against noise."""
-    g = cv2.GaussianBlur(channel, (3, 3), 0.7, borderType=cv2.BORDER_REFLECT)
-    return (np.abs(cv2.filter2D(g, -1, _ML_X, borderType=cv2.BORDER_REFLECT))
-            + np.abs(cv2.filter2D(g, -1, _ML_Y, borderType=cv2.BORDER_REFLECT)))
+    """Calibration's modified Laplacian (:func:`fieldcal.measure.focus.sml`) of one float32 channel, lightly
+    pre-smoothed: a scene (unlike a chart) has texture at the noise's frequencies, where the 1-px kernel would
+    measure noise."""
+    return sml(cv2.GaussianBlur(np.ascontiguousarray(channel, dtype=np.float32), (3, 3), 0.7,
+                                borderType=cv2.BORDER_REFLECT_101))
 
 
 @dataclass
@@ -69,8 +69,7 @@ def focus_volume(stack, profile=None, *, frames=None, block_px: int | None = Non
         for fmap in frame_maps(profile, float(z_all[i]), channels, lateral_colour):
             img = warp_region(stack, int(i), fmap, 0, 0, w, h)
             for j, ci in enumerate(fmap.channels):
-                ml = modified_laplacian(img[..., j])[:nby * b, :nbx * b]
-                vol[k, :, :, ci] = cv2.resize(ml, (nbx, nby), interpolation=cv2.INTER_AREA)
+                vol[k, :, :, ci] = cell_sums(modified_laplacian(img[..., j]), b) * np.float32(1.0 / (b * b))
     xs = (np.arange(nbx) + 0.5) * b - 0.5
     ys = (np.arange(nby) + 0.5) * b - 0.5
     return FocusVolume(z_all[order], vol, b, xs, ys)
@@ -151,7 +150,7 @@ def fit_surface(x_px, y_px, z_um, weight, centre_px, scale_px: float, degree: in
     x, y, z, w0 = x[good], y[good], z[good], w0[good]
     if len(z) == 0:
         raise ParameterError("no block has any focus signal (a blank or saturated scene?)", field="stack",
-                             fix="composite with a profile (--profile) or capture a textured scene")
+                             fix="composite with a lens profile, or capture a textured scene")
     degree = int(np.clip(degree, 0, max(_MODELS)))
     while degree > 0 and len(z) < 3 * _MODELS[degree]:
         degree -= 1

@@ -17,10 +17,10 @@ def check_output_path(path: str | Path) -> Path:
     """A composite goes to ``.tif``/``.tiff``; fail before any work, not after."""
     path = Path(path)
     if path.suffix.lower() not in (".tif", ".tiff"):
-        raise ParameterError(f"output {path.name!r} is not a TIFF", path=path, field="--out",
+        raise ParameterError(f"output {path.name!r} is not a TIFF", path=path, field="out",
                              fix="name the output IMAGE.tiff (TIFF keeps the bit depth and the metadata)")
     if path.exists() and path.is_dir():
-        raise ParameterError("output is a directory", path=path, field="--out", fix="give a file name")
+        raise ParameterError("output is a directory", path=path, field="out", fix="give a file name")
     return path
 
 

@@ -1,17 +1,19 @@
 """Frame geometry measured from the stack itself, for compositing without a profile.
 
-Between neighbouring frames (sorted by z) ``cv2.findTransformECC`` measures a scale and shift on a grey,
-downsampled copy (neighbours differ little in focus, so ECC locks on). The lens model of DESIGN.md makes the
-magnification and shift linear in z (``m(z) = 1 + a (z - z_ref)``, ``s(z) = b (z - z_ref)``), so the rates
-``a`` and ``b`` are the medians of the per-pair rates: robust to a failed pair, no drift from chaining.
+Between neighbouring frames (sorted by z) calibration's registration (:func:`fieldcal.measure.geometry.
+register_step`: Gauss-Newton on scale and shift with cubic-spline resampling, unbiased where OpenCV's ECC is
+biased by ~10 % of a small scale change) measures a scale and shift on a grey, downsampled copy (neighbours
+differ little in focus, so it locks on). The lens model (docs/architecture.md) makes the magnification and
+shift linear in z (``m(z) = 1 + a (z - z_ref)``, ``s(z) = b (z - z_ref)``), so the rates ``a`` and ``b`` are
+the medians of the per-pair rates: robust to a failed pair, no drift from chaining.
 The result answers the geometry part of the lens-profile interface.
 """
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
+from ..measure.geometry import register_step, registration_plane
 from ..progress import progress
 from .source import image_size, read_roi, z_positions
 
@@ -49,10 +51,7 @@ class EstimatedGeometry:
 
 def _grey(stack, i: int, factor: int) -> np.ndarray:
     w, h = image_size(stack)
-    img = read_roi(stack, i, 0, 0, w, h).astype(np.float32).mean(axis=2)
-    if factor > 1:
-        img = cv2.resize(img, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
-    return img
+    return registration_plane(read_roi(stack, i, 0, 0, w, h).astype(np.float32).mean(axis=2), factor)
 
 
 def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_side_px: int = 1024,
@@ -72,26 +71,19 @@ def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_sid
     c = ((w - 1) / 2.0, (h - 1) / 2.0)
     cs = ((w // factor - 1) / 2.0, (h // factor - 1) / 2.0)
     rates_m, rates_x, rates_y = [], [], []
-    prev = None
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-6)
+    prev, step = None, None
     for k, i in enumerate(progress(order, total=len(order), desc="registering", quiet=quiet, unit="frame")):
         cur = _grey(stack, int(i), factor)
         cur = (cur - cur.mean()) / max(float(cur.std()), 1e-12)
         if prev is not None:
             dz = float(zs[k] - zs[k - 1])
-            warp = np.eye(2, 3, dtype=np.float32)
-            try:
-                _, warp = cv2.findTransformECC(prev, cur, warp, cv2.MOTION_AFFINE, criteria, None, 5)
-            except cv2.error:
-                warp = None
-            if warp is not None:
-                s = 0.5 * float(warp[0, 0] + warp[1, 1])
-                # q = s p + t in downsampled px -> shift about the centre, in full-resolution px
-                sx = float(warp[0, 2]) + (s - 1.0) * cs[0]
-                sy = float(warp[1, 2]) + (s - 1.0) * cs[1]
-                rates_m.append(np.log(s) / dz)
-                rates_x.append(sx * factor / dz)
-                rates_y.append(sy * factor / dz)
+            # a point at p in prev is at cs + r (p - cs) + t in cur (downsampled px, about the centre)
+            init = (step.r, step.tx, step.ty) if step is not None else None
+            step = register_step(prev, cur, cs, init=init)
+            if step is not None:
+                rates_m.append(np.log(step.r) / dz)
+                rates_x.append(step.tx * factor / dz)
+                rates_y.append(step.ty * factor / dz)
         prev = cur
     if not rates_m:
         return EstimatedGeometry(z_ref_um, c, 0.0, (0.0, 0.0), 0)

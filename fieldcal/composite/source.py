@@ -1,83 +1,20 @@
-"""Frame sources for compositing: the ``fieldcal.Stack`` reader or frames already in memory.
+"""How compositing reads frames: any :class:`fieldcal.formats.frames.FrameSource`.
 
-Compositing only needs a small read-only slice of the Stack API (docs/architecture.md): ``z_um``, ``shape``,
-``channels``, ``dtype``, ``black_level``, ``white_level``, ``len()`` and ``read(i, roi)``. :class:`ArrayStack`
-offers the same slice over in-memory arrays (for the Python API and tests); :func:`read_roi` is the one place
-that knows how a region of a frame is asked for.
+The on-disk ``fieldcal.formats.stack.Stack`` and the in-memory :class:`ArrayStack` (both in
+:mod:`fieldcal.formats`) are the sources; compositing uses ``z_um``, ``shape``, ``channels``, ``dtype``,
+``black_level``, ``white_level``, ``len()`` and ``read(i, roi)``. :func:`read_roi` is the one place that knows
+how a region of a frame is asked for; :class:`RowReader` is the fast path for uncompressed TIFF frames.
 """
 
 from __future__ import annotations
 
 import mmap
-from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..formats.frames import ArrayStack, FrameSource
 
-
-class ArrayStack:
-    """Frames held in memory, seen through the read-only part of the ``fieldcal.Stack`` API.
-
-    Parameters
-    ----------
-    frames : sequence of ndarray
-        ``H x W x C`` (or ``H x W``) frames, all with the same shape and dtype.
-    z_um : sequence of float
-        Stage position of each frame (µm), distinct, any order.
-    channels : sequence of str
-        Channel names in the order of the last axis.
-    white_level, black_level : float, optional
-        Defaults from the dtype (uint8 255, uint16 65535, float 1.0) and 0.
-    """
-
-    def __init__(self, frames: Sequence[np.ndarray], z_um: Sequence[float], channels: Sequence[str],
-                 white_level: float | None = None, black_level: float = 0.0, path: str | Path | None = None):
-        frames = [f if f.ndim == 3 else f[..., None] for f in (np.asarray(a) for a in frames)]
-        if not frames:
-            raise ParameterError("no frames given", field="frames", fix="pass at least one frame")
-        if len(frames) != len(z_um):
-            raise ParameterError(f"{len(frames)} frames but {len(z_um)} z positions", field="z_um",
-                                 fix="give one z_um per frame")
-        shapes = {f.shape for f in frames}
-        dtypes = {f.dtype for f in frames}
-        if len(shapes) != 1 or len(dtypes) != 1:
-            raise ParameterError(f"frames differ in shape {shapes} or dtype {dtypes}", field="frames",
-                                 fix="give frames of one size and dtype")
-        if frames[0].shape[2] != len(channels):
-            raise ParameterError(f"frames have {frames[0].shape[2]} channels but {len(channels)} names",
-                                 field="channels", fix="name every channel")
-        z = np.asarray(z_um, dtype=np.float64)
-        if len(np.unique(z)) != len(z) or not np.all(np.isfinite(z)):
-            raise ParameterError("z positions must be finite and distinct", field="z_um",
-                                 fix="remove duplicate frames")
-        if frames[0].dtype.kind == "f":
-            bad = [k for k, f in enumerate(frames) if not np.isfinite(f).all()]
-            if bad:
-                raise ParameterError(f"frame(s) {bad} have NaN or Inf pixels", field="frames",
-                                     fix="repair or drop those frames (a file stack refuses them the same way)")
-        self._frames = frames
-        self.z_um = z
-        self.channels = tuple(channels)
-        self.dtype = frames[0].dtype
-        self.shape = frames[0].shape[:2]
-        self.path = None if path is None else Path(path)
-        self.black_level = float(black_level)
-        if white_level is None:
-            white_level = float(np.iinfo(self.dtype).max) if np.issubdtype(self.dtype, np.integer) else 1.0
-        self.white_level = float(white_level)
-        self.meta: dict = {}
-
-    def __len__(self) -> int:
-        return len(self._frames)
-
-    def read(self, i: int, roi=None) -> np.ndarray:
-        f = self._frames[i]
-        if roi is None:
-            return f
-        x, y, w, h = roi
-        return f[y:y + h, x:x + w]
+__all__ = ["ArrayStack", "FrameSource", "RowReader", "image_size", "read_roi", "z_positions"]
 
 
 def read_roi(stack, i: int, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
@@ -92,8 +29,7 @@ def read_roi(stack, i: int, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
 
 def z_positions(stack) -> np.ndarray:
     """Stage positions (µm) of the frames in file order."""
-    z = getattr(stack, "z_um")
-    return np.asarray(z() if callable(z) else z, dtype=np.float64)
+    return np.asarray(stack.z_um, dtype=np.float64)
 
 
 def image_size(stack) -> tuple[int, int]:
@@ -123,8 +59,8 @@ class RowReader:
             self._layouts[int(i)] = self._layout(int(i))
 
     def _layout(self, i: int):
-        frames = getattr(self.stack, "frames", None)
-        if frames is None or getattr(self.stack, "cfa", None):
+        frames = getattr(self.stack, "frames", None)  # FrameInfo of an on-disk Stack; an ArrayStack has none
+        if frames is None or self.stack.cfa:
             return None
         try:
             from fieldcal.formats.imageio import probe

@@ -52,13 +52,13 @@ def check_profile_matches(stack, profile: LensModel, where=None) -> None:
 
 def select_frames(stack, frames=None) -> np.ndarray:
     """File indices to use (all by default), validated."""
-    if getattr(stack, "cfa", None):
+    if stack.cfa:
         raise StackError(f"a raw {stack.cfa} mosaic stack cannot be composited per channel",
-                         path=getattr(stack, "path", None), field="cfa", fix="demosaic the frames first (H x W x 3)")
+                         path=stack.path, field="cfa", fix="demosaic the frames first (H x W x 3)")
     n = len(stack)
     idx = np.arange(n) if frames is None else np.asarray(frames, dtype=int)
     if len(idx) == 0:
-        raise StackError("too few frames for compositing: none selected", path=getattr(stack, "path", None),
+        raise StackError("too few frames for compositing: none selected", path=stack.path,
                          fix="select at least one frame")
     if idx.min() < 0 or idx.max() >= n:
         raise ParameterError(f"frame index out of range 0..{n - 1}", field="frames", fix="use valid frame indices")

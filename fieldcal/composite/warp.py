@@ -1,6 +1,6 @@
 """Undo focus breathing and stage-axis shift: map each frame (and channel) into the geometry of ``z_ref``.
 
-DESIGN.md: a point at pixel ``p`` of the frame at ``z_ref`` appears at ``c + m(z) (p - c) + s(z)`` in the frame
+docs/architecture.md: a point at pixel ``p`` of the frame at ``z_ref`` appears at ``c + m(z) (p - c) + s(z)`` in the frame
 at ``z`` (``c`` the optical centre). With lateral-colour correction the channel's constant scale ``L_c`` about
 ``c`` is undone too, so every channel lands in the reference channel's geometry. The map from output pixel to
 source pixel is affine, so a frame region is warped with one ``cv2.warpAffine`` call.

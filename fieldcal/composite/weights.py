@@ -184,7 +184,7 @@ class SweepKernel(_FrameKernel):
         self.z = _sorted_positions(z_sorted_um)
         if not (np.isfinite(alpha_um) and alpha_um > 0):
             raise ParameterError(f"sweep half-range alpha must be > 0 µm, got {alpha_um}", field="alpha_um",
-                                 fix="e.g. --sweep-alpha-um 20 (the paper's value)")
+                                 fix="e.g. 20 µm (the paper's value)")
         self.alpha = float(alpha_um)
         z = self.z
         if len(z) == 1:

@@ -75,8 +75,8 @@ class PipythonStage(GCS2Stage):
         try:
             import pipython  # noqa: F401
         except ImportError:
-            raise ParameterError("the pi: backend needs PI's pipython", field="--stage",
-                                 fix="pip install 'fieldcal[pi]', or use the built-in client: --stage gcs:PORT") from None
+            raise ParameterError("the pi: backend needs PI's pipython", field="stage",
+                                 fix="pip install 'fieldcal[pi]', or use the built-in client: stage gcs:PORT") from None
         base = GCS2Stage.from_spec(arg, options)
         return cls(arg, axis=base.axis, baudrate=base.client.baudrate, zero_mm=base.zero_mm, sign=base.sign,
                    timeout_ms=base.client.timeout_ms, poll_ms=base.poll_ms, velocity_mm_s=base._velocity_mm_s)

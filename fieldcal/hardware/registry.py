@@ -80,7 +80,7 @@ def make_device(role: str, text: str) -> Any:
         factory = _load(BUILTIN[role][kind])
     else:
         names = ", ".join(sorted(available(role)))
-        raise ParameterError(f"no {role} backend called '{kind}'", field=f"--{role}",
+        raise ParameterError(f"no {role} backend called '{kind}'", field=role,
                              fix=f"use one of: {names}; or register one under the entry-point group "
                                  f"'{GROUPS[role]}' (docs/hardware.md)")
     if hasattr(factory, "from_spec"):

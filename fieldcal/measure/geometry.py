@@ -9,7 +9,7 @@ step-to-step scatter (MAD of second differences), or the Gauss-Newton covariance
 steps. Steps are composed outward from the reference frame (``m_k = r m_{k-1}``, ``s_k = r s_{k-1} + t``),
 and their variances add along the way.
 
-DESIGN.md's meaning: a point at pixel p of the reference frame appears at ``c + m (p - c) + s`` in frame k.
+The geometry convention (docs/architecture.md): a point at pixel p of the reference frame appears at ``c + m (p - c) + s`` in frame k.
 """
 
 from __future__ import annotations
@@ -133,6 +133,20 @@ def downsample(plane: np.ndarray, factor: int) -> np.ndarray:
     h, w = plane.shape
     hs, ws = h // factor, w // factor
     return cv2.resize(plane[:hs * factor, :ws * factor], (ws, hs), interpolation=cv2.INTER_AREA)
+
+
+# A mild low-pass (sigma 1 px of the registration grid) before registering: the highest frequencies carry the
+# most noise and the most blur change between neighbouring frames.
+REGISTRATION_BLUR_PX = 1.0
+
+
+def registration_plane(plane: np.ndarray, factor: int, blur_px: float = REGISTRATION_BLUR_PX) -> np.ndarray:
+    """A plane ready for :func:`register_step`: area-downsampled by ``factor`` and lightly blurred (float32).
+
+    Calibration (chart planes) and compositing (grey scene frames) both register through this.
+    """
+    small = downsample(plane, factor)
+    return cv2.GaussianBlur(small, (0, 0), blur_px) if blur_px > 0 else small
 
 
 def register_step(prev: np.ndarray, cur: np.ndarray, centre_xy: tuple[float, float],

@@ -27,8 +27,8 @@ from ..optics import MTFCriterion
 from ..progress import progress, status
 from . import focus
 from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
-from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample, lateral_colour_scales,
-                       register_step)
+from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
+                       lateral_colour_scales, register_step, registration_plane)
 from .throughfocus import CurveFit, CurveRules, analyse_curves
 
 # The SML window sum follows the image as m^2 (an image magnified by m has second derivatives / m^2 over a
@@ -57,7 +57,6 @@ EFFORTS = {
                  "directional": True, "cell": 4},
 }
 MEASURES = ("sml", "bandpass")
-GEOMETRY_BLUR_PX = 1.0
 
 
 @dataclass(frozen=True)
@@ -165,6 +164,11 @@ def _check_params(stack, fs_cyc_per_mm, q, tile_px, measure):
                              f"({min(h, w) // 2} px), got {tile_px!r}", field="tile_px",
                              fix="use a tile of 32-128 px, or leave it unset for the default")
     stack.require_frames(CurveRules().min_frames, "through-focus measurement")
+    pitch = stack.pixel_pitch_um
+    if pitch is None or not (math.isfinite(pitch) and pitch > 0):  # an ArrayStack made without one
+        raise ParameterError(f"the stack's pixel pitch is {pitch!r}: fs in cycles/mm needs it",
+                             path=stack.path, field="pixel_pitch_um",
+                             fix="give the sensor's pixel pitch in µm (ArrayStack(..., pixel_pitch_um=3.45))")
 
 
 def _reference_index(z_sorted: np.ndarray, z_ref_um: float | None) -> int:
@@ -359,11 +363,9 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
                 elif want_focus:
                     planes[li] = (raw, black, gain)
                 if lateral_here:
-                    ref_small[lay.name] = cv2.GaussianBlur(downsample(planes[li], ds), (0, 0), GEOMETRY_BLUR_PX)
+                    ref_small[lay.name] = registration_plane(planes[li], ds)
                 if li in steps:
-                    # A mild extra low-pass (sigma 1 px of the registration grid): the highest frequencies carry
-                    # the most noise and the most blur change between neighbours.
-                    small = cv2.GaussianBlur(downsample(planes[li], ds), (0, 0), GEOMETRY_BLUR_PX)
+                    small = registration_plane(planes[li], ds)  # the one registration (also compositing's)
                     # Centre in the small grid: x_full = S x_small + O.
                     S, O = lay.stride * ds, lay.stride * (ds - 1) / 2.0
                     cs = ((centre[0] - lay.offset_x - O) / S, (centre[1] - lay.offset_y - O) / S)

@@ -17,6 +17,6 @@ def load_profile(path: str | Path, size_px: tuple[int, int] | None = None):
     if info["format"].startswith("fieldcal-lens/"):
         info["source"] = "lens spec: planned from the simulated lens's true surfaces (design study)"
     elif size_px is not None:
-        raise SpecError("--size applies to lens specs only", path=path, field="size",
-                        fix="drop --size: a profile plans at its own image size")
+        raise SpecError("an image size applies to lens specs only", path=path, field="size",
+                        fix="give no size: a profile plans at its own image size")
     return prof, info

@@ -27,6 +27,12 @@ class Scene:
     channels: tuple[str, ...] | None = None
     object_distance_mm: float | None = None
 
+    def __post_init__(self):
+        d = self.object_distance_mm
+        if d is not None and (isinstance(d, bool) or not isinstance(d, (int, float)) or not math.isfinite(d)):
+            raise ParameterError(f"object distance must be a finite number of mm, got {d!r}",
+                                 field="object_distance_mm", fix="e.g. 500")
+
 
 def parse_roi(text: str) -> tuple[int, int, int, int]:
     """``"X,Y,W,H"`` in pixels -> tuple, with a clear error."""

@@ -257,7 +257,7 @@ class LensProfile:
         """
         path = Path(path)
         if path.suffix.lower() != ".json":
-            raise ParameterError(f"a profile is a .json file, got {path.name!r}", path=path, field="--out",
+            raise ParameterError(f"a profile is a .json file, got {path.name!r}", path=path, field="path",
                                  fix="name it e.g. lens.json")
         buf = io.BytesIO()
         arrays = {"surface_samples": np.asarray(self.surfaces.samples, dtype=np.float64)}

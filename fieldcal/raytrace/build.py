@@ -80,11 +80,11 @@ def parse_sensor(text: str, image_height_mm: float | None) -> tuple[int, int, fl
 
     m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*(?:@\s*([0-9.eE+-]+)\s*(?:um|µm)?)?\s*", text or "")
     if not m:
-        raise ParameterError(f"cannot read the sensor {text!r}", field="--sensor",
+        raise ParameterError(f"cannot read the sensor {text!r}", field="sensor",
                              fix="write WIDTHxHEIGHT@PITCH_UM, e.g. 3840x2160@1.6342, or WIDTHxHEIGHT")
     w, h = int(m.group(1)), int(m.group(2))
     if w < 8 or h < 8:
-        raise ParameterError(f"sensor {w}x{h} px is too small", field="--sensor", fix="use at least 8x8 pixels")
+        raise ParameterError(f"sensor {w}x{h} px is too small", field="sensor", fix="use at least 8x8 pixels")
     pitch = None
     if m.group(3) is not None:
         try:
@@ -92,7 +92,7 @@ def parse_sensor(text: str, image_height_mm: float | None) -> tuple[int, int, fl
         except ValueError:
             pitch = -1.0
         if not (math.isfinite(pitch) and pitch > 0):
-            raise ParameterError(f"pixel pitch {m.group(3)!r} is not a positive number", field="--sensor",
+            raise ParameterError(f"pixel pitch {m.group(3)!r} is not a positive number", field="sensor",
                                  fix="e.g. 3840x2160@1.6342 (µm)")
     return w, h, pitch
 
@@ -105,8 +105,8 @@ def sensor_geometry(sensor: tuple[int, int, float | None], image_height_mm: floa
     corner_mm = math.hypot(w / 2.0, h / 2.0) * pitch / 1000.0
     if corner_mm > image_height_mm * 1.0005:
         raise ParameterError(f"the sensor corner is at {corner_mm:.3f} mm, beyond the image height "
-                             f"{image_height_mm:g} mm the lens is traced to", field="--sensor",
-                             fix="use a smaller sensor or pitch, or a larger --image-height")
+                             f"{image_height_mm:g} mm the lens is traced to", field="sensor",
+                             fix="use a smaller sensor or pitch, or a larger image height")
     return w, h, pitch, corner_mm
 
 

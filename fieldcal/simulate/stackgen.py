@@ -32,19 +32,19 @@ def z_grid(start_um: float, stop_um: float, step_um: float) -> np.ndarray:
     ``z_grid(-200, 200, 25)`` gives 17 positions. Values are rounded to 1e-6 µm so that decimal steps
     (e.g. 0.1) give clean numbers.
     """
-    for name, v in (("start", start_um), ("stop", stop_um), ("step", step_um)):
+    for name, v in (("start_um", start_um), ("stop_um", stop_um), ("step_um", step_um)):
         if not math.isfinite(v):
-            raise ParameterError(f"z {name} must be finite, got {v}", field=f"--z {name.upper()}",
-                                 fix="give START STOP STEP in µm, e.g. --z -200 200 25")
+            raise ParameterError(f"z {name[:-3]} must be finite, got {v}", field=name,
+                                 fix="give start, stop and step in µm, e.g. -200, 200, 25")
     if step_um <= 0:
-        raise ParameterError(f"z step must be > 0, got {step_um}", field="--z STEP",
-                             fix="give a positive STEP in µm, e.g. --z -200 200 25")
+        raise ParameterError(f"z step must be > 0, got {step_um}", field="step_um",
+                             fix="give a positive step in µm, e.g. -200, 200, 25")
     if stop_um < start_um:
-        raise ParameterError(f"z stop {stop_um} is below start {start_um}", field="--z STOP",
-                             fix="give START <= STOP, e.g. --z -200 200 25")
+        raise ParameterError(f"z stop {stop_um} is below start {start_um}", field="stop_um",
+                             fix="give start <= stop, e.g. -200, 200, 25")
     n = int(math.floor((stop_um - start_um) / step_um + 1e-9)) + 1
     if n > 100000:
-        raise ParameterError(f"{n} frames is too many", field="--z STEP", fix="use a larger STEP")
+        raise ParameterError(f"{n} frames is too many", field="step_um", fix="use a larger step")
     return np.round(start_um + step_um * np.arange(n), 6)
 
 
@@ -131,6 +131,8 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     from fieldcal.formats.stack import Stack, StackWriter
 
     z = _check_z(z_um)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ParameterError(f"seed must be a whole number >= 0, got {seed!r}", field="seed", fix="e.g. 0")
     wh = _check_size(size)
     if wh is not None:
         spec = spec.with_sensor_size(*wh)

@@ -70,7 +70,8 @@ class ValidateConfig:
     Attributes
     ----------
     size_px : (W, H) or None
-        Render size over the lens's sensor area (default 256 px wide at the sensor's aspect ratio).
+        Render size over the lens's sensor area (default ``DEFAULT_WIDTH_PX`` = 640 px wide at the sensor's
+        aspect ratio: 640x360 for a 16:9 sensor).
     fs_cyc_per_mm : float or None
         Target frequency (default: 0.4 x the Nyquist frequency of the render size, rounded).
     q : float
@@ -201,22 +202,25 @@ def resolve(spec: LensSpec, config: ValidateConfig) -> tuple[LensSpec, float]:
     """Check the config against the lens; return the spec at the render size and fs."""
     c = config
     if c.effort not in EFFORTS:
-        raise ParameterError(f"unknown effort {c.effort!r}", field="--effort", fix="use quick, standard or thorough")
+        raise ParameterError(f"unknown effort {c.effort!r}", field="effort", fix="use quick, standard or thorough")
     if c.profile not in PROFILE_SOURCES:
-        raise ParameterError(f"unknown profile source {c.profile!r}", field="--profile",
+        raise ParameterError(f"unknown profile source {c.profile!r}", field="profile",
                              fix="use calibrate (the full pipeline) or truth (skip calibration)")
     valid_q(c.q)
     if c.confidence is not None and not (0.0 < c.confidence < 1.0):
-        raise ParameterError(f"confidence must be in (0, 1), got {c.confidence}", field="--confidence",
-                             fix="e.g. --confidence 0.9, or --confidence none")
+        raise ParameterError(f"confidence must be in (0, 1), got {c.confidence}", field="confidence",
+                             fix="e.g. 0.9, or none (plan on the MAP surfaces)")
     if isinstance(c.seed, bool) or not isinstance(c.seed, (int, np.integer)) or c.seed < 0:
-        raise ParameterError(f"seed must be a non-negative integer, got {c.seed!r}", field="--seed", fix="e.g. 0")
+        raise ParameterError(f"seed must be a non-negative integer, got {c.seed!r}", field="seed", fix="e.g. 0")
+    if isinstance(c.scene, str) and c.scene not in SCENES and not Path(c.scene).is_file():
+        raise ParameterError(f"scene {c.scene!r} is neither {', '.join(SCENES)} nor an image file", path=c.scene,
+                             field="scene", fix=f"use {' or '.join(SCENES)}, or the path of an existing image")
     if not (c.chart_step_tol_frac > 0 and c.chart_margin_tol_frac >= 0):
         raise ParameterError("the chart step must be > 0 and the margin >= 0", field="chart_step_tol_frac",
                              fix="e.g. step 0.5, margin 3 (fractions of the tolerance)")
     w, h = c.size_px or default_size(spec)
     if not (16 <= w <= 8192 and 16 <= h <= 8192):
-        raise ParameterError(f"image size {w}x{h} is outside 16..8192 px", field="--size", fix="e.g. --size 256x144")
+        raise ParameterError(f"image size {w}x{h} is outside 16..8192 px", field="size_px", fix="e.g. 320x180")
     sized = spec.with_sensor_size(int(w), int(h))
     nyq = nyquist_cyc_per_mm(sized.sensor.pixel_pitch_um)
     fs = default_fs(sized.sensor.pixel_pitch_um) if c.fs_cyc_per_mm is None else valid_fs_cyc_per_mm(c.fs_cyc_per_mm)
@@ -224,8 +228,8 @@ def resolve(spec: LensSpec, config: ValidateConfig) -> tuple[LensSpec, float]:
         raise ParameterError(f"fs = {fs:g} cycles/mm is not below 90 % of the Nyquist frequency of a {w}x{h} render "
                              f"({nyq:.1f} cycles/mm at {sized.sensor.pixel_pitch_um:.2f} µm pixels: --size keeps the "
                              "sensor area, so fewer pixels are coarser)", field="fs_cyc_per_mm",
-                             fix=f"use --fs below {0.9 * nyq:.1f} (default {default_fs(sized.sensor.pixel_pitch_um):g}) "
-                                 "or a larger --size")
+                             fix=f"use fs below {0.9 * nyq:.1f} cycles/mm (default "
+                                 f"{default_fs(sized.sensor.pixel_pitch_um):g}) or a larger image size")
     return sized, fs
 
 
@@ -429,8 +433,9 @@ def validate(lens, config: ValidateConfig | None = None, *, workdir: str | Path 
         Size, fs, q, effort, seed, scene, thresholds (defaults: a small fast run).
     workdir : path, optional
         Where the chart and scene stacks are written (kept); default a temporary folder, removed afterwards.
-    profile : lens profile, optional
-        Judge this profile (a saved ``LensProfile`` or any object with the profile interface) instead of
+    profile : lens profile or path, optional
+        Judge this profile (a ``fieldcal-profile/1`` file, a ``LensProfile`` or any object with the profile
+        interface) instead of
         calibrating: its image size must be the render size. ``config.profile`` is then ignored.
     quiet : bool
         No status lines or progress bars.
@@ -443,13 +448,19 @@ def validate(lens, config: ValidateConfig | None = None, *, workdir: str | Path 
     config = config or ValidateConfig()
     spec0 = lens if isinstance(lens, LensSpec) else LensSpec.load(lens)
     spec, fs = resolve(spec0, config)
+    if isinstance(profile, (str, Path)):
+        if not Path(profile).is_file():
+            raise ParameterError(f"profile {str(profile)!r} is not a file", path=profile, field="profile",
+                                 fix="give the path of a fieldcal-profile/1 JSON")
+        from fieldcal.profile.lens_profile import LensProfile
+        profile = LensProfile.load(profile)
     if profile is not None:
         size = tuple(int(v) for v in profile.image_size_px)
         if size != (spec.sensor.width_px, spec.sensor.height_px):
             raise ParameterError(f"the profile is for {size[0]}x{size[1]} px images, the render is "
                                  f"{spec.sensor.width_px}x{spec.sensor.height_px}",
-                                 path=profile.source_path, field="--size",
-                                 fix=f"give --size {size[0]}x{size[1]}")
+                                 path=getattr(profile, "source_path", None), field="size_px",
+                                 fix=f"render at {size[0]}x{size[1]} px (the profile's size)")
         if tuple(profile.channels) != tuple(spec.channel_names):
             raise ParameterError(f"the profile's channels {','.join(profile.channels)} are not the lens's "
                                  f"{','.join(spec.channel_names)}", path=profile.source_path,
