@@ -58,5 +58,5 @@ def test_cli_messages_name_flags(tmp_path, capsys):
     code = main(["composite", str(tmp_path), "--out", str(tmp_path / "x.png")])
     err = capsys.readouterr().err
     assert code == 2 and "field '--out'" in err and "not a TIFF" in err
-    code = main(["composite", str(tmp_path), "--out", str(tmp_path / "x.tiff"), "--q", "3"])
+    code = main(["composite", str(tmp_path / "stack"), "--out", str(tmp_path / "x.tiff"), "--q", "3"])
     assert code == 2 and "field '--q'" in capsys.readouterr().err

@@ -435,7 +435,7 @@ def test_unexpected_exception_is_exit_5_with_a_short_message(w, capsys, monkeypa
     def bug(*a, **k):
         raise ZeroDivisionError("a bug")
 
-    monkeypatch.setattr(rep, "load_profile_or_truth", bug)
+    monkeypatch.setattr("fieldcal.profile.lens_profile.load_profile_or_truth", bug)
     before = snapshot(w)
     rc, err = run_cli(["report", w / "lens.json", "--out", w / "R"], capsys)
     assert rc == EXIT_INTERNAL
@@ -456,7 +456,7 @@ def test_failure_classes_map_to_documented_codes(w, capsys, monkeypatch, exc, co
     def boom(*a, **k):
         raise exc
 
-    monkeypatch.setattr(rep, "load_profile_or_truth", boom)
+    monkeypatch.setattr("fieldcal.profile.lens_profile.load_profile_or_truth", boom)
     rc, err = run_cli(["report", w / "lens.json", "--out", w / "R"], capsys)
     assert rc == code, err
     assert "Traceback" not in err and "fieldcal report" in err
