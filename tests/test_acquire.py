@@ -65,10 +65,15 @@ def test_plan_rejects_bad_input(tmp_path):
         CapturePlan.from_range(0, 10, -1)
     p = tmp_path / "plan.json"
     p.write_text(json.dumps({"format": "fieldcal-plan/1", "kind": "sweep"}))
+    with pytest.raises(SpecError, match="range_um"):  # the plan reader names the first missing field
+        CapturePlan.from_file(p)
+    sweep = json.loads((Path(__file__).parent / "data" / "legacy" / "plan-sweep.json").read_text())
+    p.write_text(json.dumps(sweep))
     with pytest.raises(SpecError, match="kind"):
         CapturePlan.from_file(p)
-    p.write_text(json.dumps({"format": "fieldcal-plan/1", "kind": "stack", "frames": [{"z_um": 1}, {"z_um": 1}]}))
-    with pytest.raises(SpecError, match="repeat"):
+    p.write_text(json.dumps({"format": "fieldcal-plan/1", "kind": "stack", "parameters": {}, "direction": "+z",
+                             "frames": [{"z_um": 1}, {"z_um": 1}]}))
+    with pytest.raises(SpecError, match="distinct z"):
         CapturePlan.from_file(p)
 
 

@@ -32,13 +32,13 @@ from typing import Any
 
 import numpy as np
 
+from fieldcal.formats import documents
 from fieldcal.formats.atomic import atomic_write_text, fsync_dir
 from fieldcal.errors import DeviceError, LinkError, ParameterError, SpecError, StackError
 from fieldcal.progress import progress, status
 
 JOURNAL = "capture.journal"
-JOURNAL_FORMAT = "fieldcal-capture-journal/1"
-PLAN_FORMAT = "fieldcal-plan/1"
+JOURNAL_FORMAT = documents.format_id("capture-journal")
 # camera keys that fix the stack's geometry: a resume with other values would mix two cameras
 CAMERA_STACK_KEYS = ("pixel_pitch_um", "channels", "bit_depth", "size_px", "roi", "lens")
 
@@ -111,36 +111,20 @@ class CapturePlan:
     @classmethod
     def from_file(cls, path: str | Path, *, exposure_ms: float | None = None, approach: str | None = None,
                   overshoot_um: float = 20.0) -> "CapturePlan":
-        """A ``fieldcal-plan/1`` stack plan (frames in capture order)."""
+        """A ``fieldcal-plan/1`` stack plan (frames in capture order), read by :func:`fieldcal.plan.read_plan`."""
+        from fieldcal.plan.planfile import read_plan
         path = Path(path)
-        try:
-            d = json.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise SpecError("plan file not found", path=path, fix="give the path of a plan made by `fieldcal plan`") from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise SpecError(f"not a readable JSON plan ({exc})", path=path, fix="regenerate it with `fieldcal plan`") from None
-        if not isinstance(d, dict) or d.get("format") != PLAN_FORMAT:
-            raise SpecError(f"format is {d.get('format') if isinstance(d, dict) else None!r}", path=path, field="format",
-                            fix=f'a capture plan has "format": "{PLAN_FORMAT}"')
-        if d.get("kind") != "stack":
-            raise SpecError(f"kind {d.get('kind')!r} cannot be captured frame by frame", path=path, field="kind",
+        d = read_plan(path, check_files=False)
+        if d["kind"] != "stack":
+            raise SpecError(f"kind {d['kind']!r} cannot be captured frame by frame", path=path, field="kind",
                             fix="capture runs stack plans (kind 'stack'); sweeps need a camera that exposes "
                                 "during motion and are not supported yet")
-        raw = d.get("frames")
-        if not isinstance(raw, list) or not raw:
-            raise SpecError("no frames", path=path, field="frames", fix="a stack plan lists frames with z_um")
         frames = []
-        for k, e in enumerate(raw):
-            if not isinstance(e, dict) or not isinstance(e.get("z_um"), (int, float)) or isinstance(e.get("z_um"), bool):
-                raise SpecError("each frame needs a numeric z_um", path=path, field=f"frames[{k}].z_um",
-                                fix="regenerate the plan with `fieldcal plan`")
+        for k, e in enumerate(d["frames"]):
             exp = exposure_ms if exposure_ms is not None else e.get("exposure_ms")
-            if exp is not None and (not isinstance(exp, (int, float)) or isinstance(exp, bool)):
-                raise SpecError("exposure_ms must be a number", path=path, field=f"frames[{k}].exposure_ms",
-                                fix="regenerate the plan with `fieldcal plan`")
             frames.append(PlannedFrame(k, float(e["z_um"]), None if exp is None else float(exp)))
         if approach is None:
-            approach = d.get("direction", "+z") if d.get("direction") in ("+z", "-z") else "+z"
+            approach = d.get("direction", "+z")
         try:
             return cls(tuple(frames), approach, overshoot_um,
                        {"kind": "plan", "file": str(path), "plan_sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
@@ -226,7 +210,8 @@ class Journal:
         self.path = path
 
     def create(self, header: dict) -> None:
-        atomic_write_text(self.path, json.dumps(header, sort_keys=True) + "\n")
+        atomic_write_text(self.path, documents.dumps(header, "capture-journal", self.path, indent=None,
+                                                     sort_keys=True, error=StackError) + "\n")
 
     def read(self) -> tuple[dict, list[dict]]:
         """Header and frame lines; a torn last line (no LF: a crash mid-append) is cut off the file."""
@@ -241,15 +226,12 @@ class Journal:
         lines = data.decode("utf-8", errors="replace").splitlines()
         if not lines:
             raise StackError("the capture journal is empty", path=self.path, fix="delete the folder and capture again")
-        try:
-            header = json.loads(lines[0])
-            entries = [json.loads(line) for line in lines[1:] if line.strip()]
-        except json.JSONDecodeError as exc:
-            raise StackError(f"the capture journal is corrupt ({exc})", path=self.path,
-                             fix="delete the folder and capture again, or move it away") from None
-        if header.get("journal") != JOURNAL_FORMAT:
-            raise StackError(f"unknown journal format {header.get('journal')!r}", path=self.path, field="journal",
-                             fix="this folder was not written by this fieldcal; use a new --out")
+        header = documents.validate(documents.loads(lines[0], self.path, where="line 1", error=StackError),
+                                    "capture-journal", self.path, where="line 1", error=StackError)
+        entries = [documents.validate(documents.loads(line, self.path, where=f"line {n}", error=StackError),
+                                      "capture-journal", self.path, pointer="/$defs/entry", where=f"line {n}",
+                                      error=StackError)
+                   for n, line in enumerate(lines[1:], start=2) if line.strip()]
         return header, entries
 
     def append(self, entry: dict) -> None:
@@ -312,20 +294,16 @@ def _prepare(out: Path, plan: CapturePlan, cam: dict, stage: dict):
                          f"{header['camera']})", path=journal.path, field="camera",
                          fix="use the same camera and settings, or capture into a new --out folder")
     latest: dict[int, dict] = {}
-    for e in entries:
-        if isinstance(e, dict) and isinstance(e.get("i"), int) and isinstance(e.get("entry"), dict):
-            latest[e["i"]] = e["entry"]
+    for e in entries:  # validated by Journal.read: "i" and a frame "entry" inside frames/
+        latest[e["i"]] = e["entry"]
     committed, torn_files = {}, set()
     for i, entry in latest.items():
         if 0 <= i < len(plan.frames) and _sha256_file(out / entry["file"]) == entry.get("sha256"):
             committed[i] = entry
         else:
-            torn_files.add(entry.get("file"))
+            torn_files.add(entry["file"])
     # stack.json := the committed, intact frames (drops frames written but never committed)
-    try:
-        meta = json.loads(json_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        meta = None
+    meta = documents.read_json(json_path, error=StackError, fix="move the folder away and capture again")
     if not isinstance(meta, dict):
         raise StackError("stack.json is unreadable", path=json_path, fix="move the folder away and capture again")
     keep = [committed[i] for i in sorted(committed, key=lambda k: committed[k].get("time", ""))]

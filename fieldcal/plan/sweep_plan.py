@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import ParameterError
 from . import ipsf as ip
 from . import masks as mk
+from .planfile import PLAN_FORMAT
 from .scene import Scene
 from .surfaces import SampledField, sample_field
 
@@ -114,7 +115,7 @@ class SweepPlan:
         else:
             dev.update({"wall_time_ms": round(self.total_time_ms, 4)})
         return {
-            "format": "fieldcal-plan/1",
+            "format": PLAN_FORMAT,
             "kind": "sweep",
             "profile": profile_info or {},
             "parameters": {

@@ -18,9 +18,8 @@ from __future__ import annotations
 
 import hashlib
 import io
-import json
 import math
-import re
+import zipfile
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -29,11 +28,11 @@ from typing import Any
 import numpy as np
 
 from fieldcal import __version__
+from fieldcal.formats import documents
 from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text, jsonable
 from fieldcal.errors import ParameterError, SpecError
 
-PROFILE_FORMAT = "fieldcal-profile/1"
-PROFILE_VERSION = 1
+PROFILE_FORMAT = documents.format_id("profile")
 
 
 def _check_points(x, y):
@@ -229,56 +228,39 @@ class LensProfile:
                 arrays[prefix + k] = a
         np.savez_compressed(buf, **arrays)
         data = buf.getvalue()
-        atomic_write_bytes(sidecar, data)
         d = self.to_dict(sidecar.name, hashlib.sha256(data).hexdigest())
-        atomic_write_text(path, json.dumps(d, indent=1, allow_nan=False) + "\n")
+        text = documents.dumps(d, "profile", path, indent=1)  # validated before anything is written
+        atomic_write_bytes(sidecar, data)
+        atomic_write_text(path, text)
         self.source_path = str(path)
         return path
 
     @classmethod
     def load(cls, path: str | Path) -> "LensProfile":
         """Read and validate a profile (and its samples sidecar)."""
+        doc = documents.read(path, "profile", not_found="profile not found",
+                             not_found_fix="give the .json written by `fieldcal calibrate`")
+        return cls.from_document(doc, path)
+
+    @classmethod
+    def from_document(cls, d: dict, path: str | Path) -> "LensProfile":
+        """A profile from its parsed ``fieldcal-profile/1`` document (validated here) and the sidecar beside
+        ``path``."""
         path = Path(path)
-        if not path.is_file():
-            raise SpecError("profile not found", path=path, fix="give the .json written by `fieldcal calibrate`")
-        try:
-            d = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise SpecError(f"not valid JSON ({e})", path=path, fix="regenerate it with `fieldcal calibrate`") from None
-        if not isinstance(d, dict):
-            raise SpecError("a profile must be a JSON object", path=path, fix="regenerate it with `fieldcal calibrate`")
-        _check_format(d.get("format"), path)
-        for key in ("image", "optics", "calibration", "z_ref_um", "surfaces", "geometry"):
-            if key not in d:
-                raise SpecError("missing", path=path, field=key, fix="regenerate the profile with `fieldcal calibrate`")
+        documents.validate(d, "profile", path)
         img = d["image"]
-        for key in ("width_px", "height_px", "pixel_pitch_um", "channels"):
-            if not isinstance(img, dict) or key not in img:
-                raise SpecError("missing", path=path, field=f"image.{key}", fix="regenerate the profile")
         samples = None
-        arrays: dict[str, np.ndarray] = {}
-        side = d.get("sidecar")
-        if side:
-            sp = path.with_name(str(side.get("file", "")))
-            if not sp.is_file():
-                raise SpecError(f"the posterior-samples sidecar {sp.name} is missing", path=path, field="sidecar.file",
-                                fix=f"copy {sp.name} next to {path.name} (they are written together)")
-            raw = sp.read_bytes()
-            if side.get("sha256") and hashlib.sha256(raw).hexdigest() != side["sha256"]:
-                raise SpecError(f"the sidecar {sp.name} does not belong to this profile (sha256 differs)",
-                                path=path, field="sidecar.sha256",
-                                fix=f"copy the {sp.name} written with this profile, or recalibrate")
-            with np.load(io.BytesIO(raw), allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
+        arrays = _read_sidecar(d.get("sidecar"), path)
+        if arrays:
             samples = arrays.get("surface_samples")
         from fieldcal.fit import SurfaceFit
         from fieldcal.fit.geometry import GeometryFit
         surfaces = SurfaceFit.from_dict(d["surfaces"], samples=samples, path=path)
-        geometry = GeometryFit.from_dict(d["geometry"])
+        geometry = GeometryFit.from_dict(d["geometry"], path=path)
         tolerance = None
         if d.get("tolerance"):
             from fieldcal.fit.tolerance import ToleranceFit
-            tolerance = ToleranceFit.from_dict(d["tolerance"])
+            tolerance = ToleranceFit.from_dict(d["tolerance"], path=path)
         tiles = {k[len("tiles__"):]: v for k, v in arrays.items() if k.startswith("tiles__")} or None
         geom = {k[len("geom__"):]: v for k, v in arrays.items() if k.startswith("geom__")} or None
         prov = dict(d.get("provenance", {}))
@@ -290,41 +272,56 @@ class LensProfile:
                    geometry_measurements=geom, source_path=str(path))
 
 
-def _check_format(fmt, path):
-    if fmt == PROFILE_FORMAT:
-        return
-    m = re.fullmatch(r"fieldcal-profile/(\d+)", str(fmt))
-    if m and int(m.group(1)) > PROFILE_VERSION:
-        raise SpecError(f"profile format {fmt} is newer than this fieldcal understands ({PROFILE_FORMAT})",
-                        path=path, field="format", fix="upgrade fieldcal (pip install -U fieldcal)")
-    raise SpecError(f"unknown profile format {fmt!r} (expected {PROFILE_FORMAT!r})", path=path, field="format",
-                    fix="give a lens profile written by `fieldcal calibrate`")
+def _read_sidecar(side: dict | None, path: Path) -> dict[str, np.ndarray]:
+    """The sidecar's arrays: a bare file name beside the profile (schema), inside its folder, matching its sha256."""
+    if not side:
+        return {}
+    sp = path.with_name(side["file"])
+    if sp.is_symlink() or sp.resolve().parent != path.resolve().parent:
+        raise SpecError(f"the sidecar {side['file']!r} is not a file in the profile's folder", path=path,
+                        field="sidecar.file", fix="keep the sidecar itself next to the profile (not a link)")
+    if not sp.is_file():
+        raise SpecError(f"the posterior-samples sidecar {sp.name} is missing", path=path, field="sidecar.file",
+                        fix=f"copy {sp.name} next to {path.name} (they are written together)")
+    raw = sp.read_bytes()
+    if side.get("sha256") and hashlib.sha256(raw).hexdigest() != side["sha256"].lower():
+        raise SpecError(f"the sidecar {sp.name} does not belong to this profile (sha256 differs)",
+                        path=path, field="sidecar.sha256",
+                        fix=f"copy the {sp.name} written with this profile, or recalibrate")
+    try:
+        with np.load(io.BytesIO(raw), allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+        raise SpecError(f"the sidecar {sp.name} is not a readable .npz ({exc})", path=sp, field="sidecar.file",
+                        fix="recalibrate: the sidecar is written with the profile") from None
 
 
 def load_profile_or_truth(path: str | Path, size_px: tuple[int, int] | None = None):
-    """A lens profile, or the exact answers of a simulated lens — whichever the file holds.
+    """A lens profile, or the exact answers of a simulated lens — whichever the file holds. The one loader.
 
-    Returns ``(profile, info)``. A ``fieldcal-lens/1`` spec gives its :class:`fieldcal.simulate.truth.TruthProfile` at
-    ``size_px`` (design studies and simulated data); a ``fieldcal-profile/1`` file gives a :class:`LensProfile`
-    (``size_px`` does not apply to it). ``info`` says which, for plans, composites and reports.
+    Returns ``(profile, info)``. A ``fieldcal-lens/1`` spec (or a simulated stack's ``fieldcal-truth/1``
+    truth.json) gives its :class:`fieldcal.simulate.truth.TruthProfile` at ``size_px`` (design studies and
+    simulated data; a truth.json defaults to the size it was rendered at); a ``fieldcal-profile/1`` file gives a
+    :class:`LensProfile` (``size_px`` does not apply to it). ``info`` says which, for plans, composites and reports.
+    The file is read once, through :mod:`fieldcal.formats.documents`.
     """
     path = Path(path)
-    if not path.is_file():
-        raise SpecError("profile not found", path=path,
-                        fix="give a profile from `fieldcal calibrate` or a lens spec such as models/triplet-uncorrected.json")
-    try:
-        head = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise SpecError(f"not valid JSON ({e})", path=path, fix="repair the JSON syntax") from None
+    head = documents.read_json(path, not_found="profile not found",
+                               not_found_fix="give a profile from `fieldcal calibrate` or a lens spec such as "
+                                             "models/triplet-uncorrected.json")
     fmt = head.get("format") if isinstance(head, dict) else None
-    if isinstance(fmt, str) and fmt.startswith("fieldcal-lens/"):
+    if isinstance(fmt, str) and fmt.startswith(("fieldcal-lens/", "fieldcal-truth/")):
         from fieldcal.simulate.lens import LensSpec
-        from fieldcal.simulate.truth import TruthProfile
-        spec = LensSpec.from_dict(head, path=path)
+        from fieldcal.simulate.truth import TruthProfile, truth_lens
+        if fmt.startswith("fieldcal-truth/"):
+            spec, rendered = truth_lens(head, path)
+            size_px = size_px or rendered
+        else:
+            spec = LensSpec.from_dict(head, path=path)
         prof = TruthProfile(spec, *(size_px or (None, None)))
         return prof, {"path": str(path), "format": fmt, "name": spec.name,
                       "source": "lens spec: the simulated lens's true surfaces",
                       "image_size_px": list(prof.image_size_px)}
-    prof = LensProfile.load(path)
+    prof = LensProfile.from_document(head, path)
     return prof, {"path": str(path), "format": fmt, "name": path.stem, "source": "lens profile (calibrated)",
                   "image_size_px": list(prof.image_size_px)}
