@@ -226,9 +226,10 @@ class Journal:
         lines = data.decode("utf-8", errors="replace").splitlines()
         if not lines:
             raise StackError("the capture journal is empty", path=self.path, fix="delete the folder and capture again")
-        header = documents.validate(documents.loads(lines[0], self.path, where="line 1", error=StackError),
+        fix = "move the folder away and capture again (the journal was not written by fieldcal capture)"
+        header = documents.validate(documents.loads(lines[0], self.path, where="line 1", error=StackError, fix=fix),
                                     "capture-journal", self.path, where="line 1", error=StackError)
-        entries = [documents.validate(documents.loads(line, self.path, where=f"line {n}", error=StackError),
+        entries = [documents.validate(documents.loads(line, self.path, where=f"line {n}", error=StackError, fix=fix),
                                       "capture-journal", self.path, pointer="/$defs/entry", where=f"line {n}",
                                       error=StackError)
                    for n, line in enumerate(lines[1:], start=2) if line.strip()]
