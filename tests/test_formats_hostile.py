@@ -308,3 +308,48 @@ def test_cli_exits_2_without_traceback(case, tmp_path, capsys):
 def test_at_least_sixty_cases():
     assert len(CASES) >= 60
     assert {c.base for c in CASES} == set(FILES)
+
+
+# ----------------------------------------------------------------------------------------- the parser itself
+def test_depth_limit_is_exact_and_ignores_brackets_in_strings():
+    from fieldcal.formats import documents
+    ok = "[" * documents.MAX_DEPTH + "]" * documents.MAX_DEPTH
+    assert documents.loads(ok) is not None
+    with pytest.raises(FieldcalError, match="levels deep"):
+        documents.loads("[" + ok + "]", "x.json")
+    assert documents.loads(json.dumps({"s": "[" * 1000 + '\\"{' * 100})) == {"s": "[" * 1000 + '\\"{' * 100}
+
+
+def test_number_limits_are_the_float_range():
+    from fieldcal.formats import documents
+    assert documents.loads(str(10 ** 308)) == 10 ** 308           # 309 digits, a float can hold it
+    for text in (str(2 * 10 ** 308), "1e309", "-1e309", "9" * 401):
+        with pytest.raises(FieldcalError, match="too large|overflows"):
+            documents.loads(text, "x.json")
+    assert documents.loads("1e-400") == 0.0                        # underflow is harmless
+
+
+def test_bom_is_accepted_and_size_is_limited(tmp_path, monkeypatch):
+    from fieldcal.formats import documents
+    p = tmp_path / "d.json"
+    p.write_bytes(b"\xef\xbb\xbf" + b'{"a": 1}')
+    assert documents.read_json(p) == {"a": 1}
+    monkeypatch.setattr(documents, "MAX_DOCUMENT_BYTES", 4)
+    with pytest.raises(FieldcalError, match="larger than") as ei:
+        documents.read_json(p)
+    assert "d.json" in str(ei.value)
+
+
+def test_write_validates_first_and_writes_nothing_when_invalid(tmp_path):
+    from fieldcal.formats import documents
+    doc = json.loads((L / "plan-stack.json").read_text())
+    doc["frames"][0]["z_um"] = float("nan")
+    with pytest.raises(FieldcalError, match="JSON"):
+        documents.write(tmp_path / "p.json", doc, "plan")
+    doc["frames"][0]["z_um"] = "abc"
+    with pytest.raises(FieldcalError, match=r"frames\[0\]\.z_um"):
+        documents.write(tmp_path / "p.json", doc, "plan")
+    assert list(tmp_path.iterdir()) == []
+    doc["frames"][0]["z_um"] = -300.0
+    documents.write(tmp_path / "p.json", doc, "plan")
+    assert documents.read(tmp_path / "p.json", "plan") == doc
