@@ -353,3 +353,27 @@ def test_write_validates_first_and_writes_nothing_when_invalid(tmp_path):
     doc["frames"][0]["z_um"] = -300.0
     documents.write(tmp_path / "p.json", doc, "plan")
     assert documents.read(tmp_path / "p.json", "plan") == doc
+
+
+@pytest.mark.parametrize("text, needle", [(DEEP, "levels deep"), ('{"surfaces": [{"radius": ' + BIG + "}]}", "surfaces[0].radius"),
+                                          ('{"surfaces": NaN}', "surfaces")])
+def test_prescription_json_is_parsed_safely(tmp_path, capsys, text, needle):
+    """The ray-trace prescription is not a fieldcal-*/N document but is JSON from the user: same safe parser."""
+    from fieldcal.raytrace.prescription import load_prescription
+    p = tmp_path / "lens.json"
+    p.write_text(text)
+    with pytest.raises(FieldcalError) as ei:
+        load_prescription(p)
+    assert "lens.json" in str(ei.value) and needle in str(ei.value)
+
+
+def test_capture_refuses_a_deeply_nested_stack_json_in_out(tmp_path, capsys):
+    """A folder without a journal is adopted only if its stack.json is an empty stack: a hostile one is refused."""
+    out = tmp_path / "X"
+    out.mkdir()
+    (out / "stack.json").write_text(DEEP)
+    cam = f"sim:{MODELS / 'triplet-uncorrected.json'},size=32x24"
+    rc = main(["capture", "--z", "-100", "100", "100", "--camera", cam, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err and "capture folder" in err
+    assert (out / "stack.json").read_text() == DEEP

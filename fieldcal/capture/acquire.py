@@ -34,7 +34,7 @@ import numpy as np
 
 from fieldcal.formats import documents
 from fieldcal.formats.atomic import atomic_write_text, fsync_dir
-from fieldcal.errors import DeviceError, LinkError, ParameterError, SpecError, StackError
+from fieldcal.errors import DeviceError, FieldcalError, LinkError, ParameterError, SpecError, StackError
 from fieldcal.progress import progress, status
 
 JOURNAL = "capture.journal"
@@ -269,9 +269,9 @@ def _prepare(out: Path, plan: CapturePlan, cam: dict, stage: dict):
     if not fresh and not journal.path.is_file():
         # a crash right after StackWriter.create leaves an empty stack and no journal: safe to adopt
         try:
-            meta = json.loads(json_path.read_text(encoding="utf-8"))
+            meta = documents.read_json(json_path, error=StackError)
             adoptable = meta.get("frames") == [] and not any((out / "frames").glob("*.tif*"))
-        except (OSError, ValueError, AttributeError):
+        except (FieldcalError, OSError, AttributeError):
             adoptable = False
         if not adoptable:
             raise StackError("exists and is not a capture folder (no capture.journal)", path=out,
