@@ -377,3 +377,27 @@ def test_capture_refuses_a_deeply_nested_stack_json_in_out(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and "Traceback" not in err and "capture folder" in err
     assert (out / "stack.json").read_text() == DEEP
+
+
+def test_links_out_of_the_folder_are_refused(tmp_path):
+    """A sidecar or mask file that is a symbolic link (to a file outside the document's folder) is refused."""
+    from fieldcal.plan.planfile import read_plan
+    from fieldcal.profile.lens_profile import LensProfile
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    here = tmp_path / "here"
+    here.mkdir()
+    for f in L.iterdir():
+        if f.is_file():
+            shutil.copy(f, outside / f.name)
+            shutil.copy(f, here / f.name)
+    (here / "lens.samples.npz").unlink()
+    (here / "lens.samples.npz").symlink_to(outside / "lens.samples.npz")
+    with pytest.raises(FieldcalError, match="sidecar") as ei:
+        LensProfile.load(here / "lens.json")
+    assert "field 'sidecar.file'" in str(ei.value)
+    (here / "plan-sweep.masks.npz").unlink()
+    (here / "plan-sweep.masks.npz").symlink_to(outside / "plan-sweep.masks.npz")
+    with pytest.raises(FieldcalError) as ei:
+        read_plan(here / "plan-sweep.json")
+    assert "field 'masks.file'" in str(ei.value) and "outside" in str(ei.value)
