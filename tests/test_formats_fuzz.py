@@ -131,8 +131,10 @@ HOSTILE_LITERALS = ["1" + "0" * 400, "-" + "9" * 5000, "NaN", "Infinity", "-Infi
                     "[" * 100 + "]" * 100, '"../../etc/passwd"', '"/etc/passwd"', '""', '"abc"', "true", "null",
                     "-5", "0", "1e300", "[]", "{}", '[1]', '{"format": "fieldcal-stack/1"}', "1e-320", "4.5",
                     '"' + "x" * 10000 + '"']
-json_values = st.recursive(st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=20),
-                           lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=5), inner, max_size=3),
+json_values = st.recursive(st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False)
+                           | st.text(max_size=20),
+                           lambda inner: st.lists(inner, max_size=3)
+                           | st.dictionaries(st.text(max_size=5), inner, max_size=3),
                            max_leaves=8)
 
 

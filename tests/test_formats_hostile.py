@@ -152,7 +152,8 @@ CASES = [
     Case("lens focal length 10**400", "lens", at("focal_length_mm", RAW), BIG, field="focal_length_mm"),
     Case("lens curvature 5000 digits", "lens", at("channels.0.curvature_um.0", RAW), HUGE,
          field="channels[0].curvature_um[0]"),
-    Case("lens curvature NaN", "lens", at("channels.1.curvature_um.0", RAW), "NaN", field="channels[1].curvature_um[0]"),
+    Case("lens curvature NaN", "lens", at("channels.1.curvature_um.0", RAW), "NaN",
+         field="channels[1].curvature_um[0]"),
     Case("lens f_number zero", "lens", at("f_number", 0), field="f_number"),
     Case("lens width -5", "lens", at("sensor.width_px", -5), field="sensor.width_px"),
     Case("lens width string", "lens", at("sensor.width_px", "640"), field="sensor.width_px"),
@@ -164,7 +165,8 @@ CASES = [
     Case("lens sensor missing", "lens", at("sensor", DELETE), field="sensor"),
     Case("lens decentre one value", "lens", at("decentre_mm", [1.0]), field="decentre_mm"),
     Case("lens channel names repeated", "lens", at("channels.1.name", "R"), field="channels"),
-    Case("lens cfa on a mono sensor", "lens", lambda d: [at("sensor.cfa", "RGGB")(d), at("channels", [{"name": "Y"}])(d)],
+    Case("lens cfa on a mono sensor", "lens",
+         lambda d: [at("sensor.cfa", "RGGB")(d), at("channels", [{"name": "Y"}])(d)],
          field="sensor.cfa"),
     Case("lens newer format", "lens", at("format", "fieldcal-lens/3"), field="format"),
     # ------------------------------------------------------------------ capture journal (JSON lines)
@@ -355,7 +357,8 @@ def test_write_validates_first_and_writes_nothing_when_invalid(tmp_path):
     assert documents.read(tmp_path / "p.json", "plan") == doc
 
 
-@pytest.mark.parametrize("text, needle", [(DEEP, "levels deep"), ('{"surfaces": [{"radius": ' + BIG + "}]}", "surfaces[0].radius"),
+@pytest.mark.parametrize("text, needle", [(DEEP, "levels deep"),
+                                          ('{"surfaces": [{"radius": ' + BIG + "}]}", "surfaces[0].radius"),
                                           ('{"surfaces": NaN}', "surfaces")])
 def test_prescription_json_is_parsed_safely(tmp_path, capsys, text, needle):
     """The ray-trace prescription is not a fieldcal-*/N document but is JSON from the user: same safe parser."""

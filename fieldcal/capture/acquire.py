@@ -236,7 +236,8 @@ class Journal:
         return header, entries
 
     def append(self, entry: dict) -> None:
-        line = (json.dumps(entry, sort_keys=True, allow_nan=False) + "\n").encode("utf-8")
+        text = documents.dumps(entry, path=self.path, indent=None, sort_keys=True, error=StackError)
+        line = text.encode("utf-8") + b"\n"
         with open(self.path, "ab") as f:
             f.write(line)
             f.flush()
@@ -312,7 +313,7 @@ def _prepare(out: Path, plan: CapturePlan, cam: dict, stage: dict):
     torn = len(torn_files | (listed - {e["file"] for e in keep}))
     if meta.get("frames") != keep:
         meta["frames"] = keep
-        atomic_write_text(json_path, json.dumps(meta, indent=2, allow_nan=False) + "\n")
+        documents.write(json_path, meta, "stack", error=StackError)
     keep_files = {(out / e["file"]).resolve() for e in keep}
     for p in (out / "frames").iterdir() if (out / "frames").is_dir() else ():
         if p.resolve() not in keep_files:  # uncommitted frame files and temporary files of an interrupted write

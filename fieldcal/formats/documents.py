@@ -384,7 +384,8 @@ def _format_error(doc: Any, kind: DocumentKind, path, where: str, error: type[Fi
     if m and int(m.group(1)) > int(version):
         raise error(f"{fmt} is newer than this fieldcal understands ({expected})", path=path, field=field,
                     fix="upgrade fieldcal (pip install -U fieldcal)")
-    raise error(f"unknown {kind.name} format {_show(fmt)}; this fieldcal reads only {expected!r}", path=path, field=field,
+    raise error(f"unknown {kind.name} format {_show(fmt)}; this fieldcal reads only {expected!r}", path=path,
+                field=field,
                 fix=f"{fix}, or give a {expected} file")
 
 
