@@ -18,7 +18,6 @@ pixel, x right, y down.
 from __future__ import annotations
 
 import io
-import json
 import math
 import os
 from dataclasses import asdict, dataclass, field
@@ -28,12 +27,13 @@ from typing import Any
 import cv2
 import numpy as np
 
+from fieldcal.formats import documents
 from fieldcal.formats.atomic import atomic_write_bytes
-from fieldcal.errors import ParameterError
+from fieldcal.errors import FieldcalError, ParameterError
 from fieldcal.progress import progress
 
 KINDS = ("texture", "charuco", "slanted-edge")
-TARGETS_FORMAT = "fieldcal-targets/1"
+TARGETS_FORMAT = documents.format_id("targets")
 MM_PER_INCH = 25.4
 
 # Sub-pixel precision of OpenCV's drawing functions: coordinates are fixed point with 4 fractional bits.
@@ -648,7 +648,7 @@ def write_targets(out_dir: str | Path, width_mm: float = 297.0, height_mm: float
                         "dpi": float(dpi), "width_px": w_px, "height_px": h_px,
                         "seed": seed if kind == "texture" else None, "params": params})
     manifest = _merge_manifest(out / "targets.json", entries)
-    _write_shareable(out / "targets.json", (json.dumps(manifest, indent=2) + "\n").encode("utf-8"))
+    _write_shareable(out / "targets.json", documents.dumps(manifest, "targets", out / "targets.json").encode("utf-8"))
     return manifest
 
 
@@ -667,12 +667,11 @@ def _fmt_num(v: float) -> str:
 def _merge_manifest(path: Path, entries: list[dict[str, Any]]) -> dict[str, Any]:
     """Keep earlier entries whose files still exist and are not rewritten now; a corrupt manifest is replaced."""
     old: list[dict[str, Any]] = []
-    try:
-        d = json.loads(path.read_text())
-        if isinstance(d, dict) and d.get("format") == TARGETS_FORMAT and isinstance(d.get("charts"), list):
-            old = [e for e in d["charts"] if isinstance(e, dict) and isinstance(e.get("files"), list)]
-    except (OSError, ValueError):
-        pass
+    if path.is_file():
+        try:
+            old = documents.read(path, "targets")["charts"]
+        except FieldcalError:
+            pass  # not a manifest fieldcal can trust: replaced
     new_files = {f for e in entries for f in e["files"]}
     kept = [e for e in old if not (set(e["files"]) & new_files) and all((path.parent / f).exists() for f in e["files"])]
     return {"format": TARGETS_FORMAT,

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from fieldcal.formats import documents
 from fieldcal.formats.atomic import atomic_write_bytes
 from ..errors import FieldcalError, ParameterError
 
-COMPOSITE_FORMAT = "fieldcal-composite/1"
+COMPOSITE_FORMAT = documents.format_id("composite")
 
 
 def check_output_path(path: str | Path) -> Path:
@@ -40,16 +40,6 @@ def check_composite_output(path: str | Path, *, stack: str | Path | None = None,
     return check_output(path, inputs=inputs, overwrite=overwrite, suffixes=(".tif", ".tiff"))
 
 
-def _jsonable(v):
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, Path):
-        return str(v)
-    raise TypeError(f"not JSON serialisable: {type(v).__name__}")
-
-
 def write_composite_tiff(path: str | Path, image: np.ndarray, channels, metadata: dict) -> Path:
     """Write ``image`` (H x W x C) atomically, with ``metadata`` (+ format and channels) as JSON description.
 
@@ -62,7 +52,7 @@ def write_composite_tiff(path: str | Path, image: np.ndarray, channels, metadata
     if image.ndim == 2:
         image = image[..., None]
     meta = {"format": COMPOSITE_FORMAT, "channels": list(channels), **metadata}
-    desc = json.dumps(meta, default=_jsonable)
+    desc = documents.dumps(meta, "composite", path, indent=None)
     photometric = "rgb" if list(channels) == ["R", "G", "B"] else "minisblack"
     data = image if image.shape[2] > 1 else image[..., 0]
     import io
@@ -78,12 +68,11 @@ def read_composite_metadata(path: str | Path) -> dict:
 
     with tifffile.TiffFile(path) as tf:
         desc = tf.pages[0].description
-    try:
-        meta = json.loads(desc)
-    except (json.JSONDecodeError, TypeError):
+    if not isinstance(desc, str) or not desc.lstrip().startswith("{"):
         raise FieldcalError("no fieldcal metadata in this TIFF", path=path,
-                            fix="read a file written by `fieldcal composite`") from None
-    return meta
+                            fix="read a file written by `fieldcal composite`")
+    return documents.validate(documents.loads(desc, path, where="ImageDescription"), "composite", path,
+                              where="ImageDescription")
 
 
 def read_single_image(path: str | Path) -> np.ndarray:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import hashlib
-import json
 import math
 import numbers
 import os
@@ -22,115 +21,46 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from fieldcal.formats import documents
 from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text
 from fieldcal.errors import ParameterError, StackError
 from fieldcal.formats.imageio import ImageFileError, ImageHeader, SUPPORTED_DTYPES, encode, kind_for_name, probe, read_image
 from fieldcal.progress import progress
 
-FORMAT = "fieldcal-stack/1"
+FORMAT = documents.format_id("stack")
 STACK_JSON = "stack.json"
 CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 REQUIRED_KEYS = ("format", "pixel_pitch_um", "channels", "frames")
 
-_FIX_FORMAT = f'set "format": "{FORMAT}" (fieldcal reads only this version)'
 
 
 # ----------------------------------------------------------------------------------------------- validation
+# Types, ranges and required keys are the schema's (fieldcal/formats/schemas/fieldcal-stack-1.schema.json,
+# read and checked by fieldcal.formats.documents); what a schema cannot say is checked here, in one place:
+# frame files inside the folder and distinct, z distinct, frame headers agreeing, levels within the dtype.
 
 
 def _is_number(v: Any) -> bool:
     return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
 
 
-def _finite_number(v: Any, where: str, json_path: Path, *, positive: bool = False,
-                   nonnegative: bool = False, fix: str) -> float:
-    """A JSON value that must be a finite (positive / non-negative) number, else StackError."""
-    if not _is_number(v) or not math.isfinite(v):
-        raise StackError(f"must be a finite number, got {v!r}", path=json_path, field=where, fix=fix)
-    if positive and not v > 0:
-        raise StackError(f"must be positive, got {v!r}", path=json_path, field=where, fix=fix)
-    if nonnegative and v < 0:
-        raise StackError(f"must not be negative, got {v!r}", path=json_path, field=where, fix=fix)
-    return float(v)
-
-
-def _check_channels(channels: Any, json_path: Path) -> tuple[str, ...]:
-    fix = 'list the channel names in image order, e.g. ["R", "G", "B"] or ["Y"]'
-    if not isinstance(channels, (list, tuple)) or not channels:
-        raise StackError(f"must be a non-empty list of channel names, got {channels!r}",
-                         path=json_path, field="channels", fix=fix)
-    if not all(isinstance(c, str) and c for c in channels):
-        raise StackError(f"must hold non-empty strings only, got {list(channels)!r}",
-                         path=json_path, field="channels", fix=fix)
-    dup = sorted({c for c in channels if list(channels).count(c) > 1})
-    if dup:
-        raise StackError(f"names {dup} more than once; channel names must be distinct",
-                         path=json_path, field="channels", fix=fix)
-    return tuple(channels)
-
-
-def _check_optional(meta: dict, json_path: Path) -> None:
-    """Types and ranges of the optional top-level keys fieldcal uses (unknown keys are not checked)."""
-    if "bit_depth" in meta:
-        b = meta["bit_depth"]
-        if not isinstance(b, int) or isinstance(b, bool) or not 1 <= b <= 32:
-            raise StackError(f"must be an integer from 1 to 32, got {b!r}", path=json_path, field="bit_depth",
-                             fix="set the number of significant bits per sample, e.g. 12, or remove the key")
-    for key in ("black_level", "white_level"):
-        if key in meta:
-            _finite_number(meta[key], key, json_path, nonnegative=True,
-                           fix=f"set {key} to the raw value of {'black' if key == 'black_level' else 'saturation'}"
-                               " or remove the key")
+def _check_white_above_black(meta: dict, json_path: Path) -> None:
     if "black_level" in meta and "white_level" in meta and not meta["white_level"] > meta["black_level"]:
         raise StackError(f"({meta['white_level']!r}) must be above black_level ({meta['black_level']!r})",
                          path=json_path, field="white_level", fix="check the camera's black and white levels")
-    for key in ("f_number", "exposure_ms"):
-        if key in meta:
-            _finite_number(meta[key], key, json_path, positive=True, fix=f"set {key} to a positive number or "
-                                                                        "remove the key")
-    if meta.get("object_distance_mm") is not None:  # null = unknown / infinity
-        _finite_number(meta["object_distance_mm"], "object_distance_mm", json_path, positive=True,
-                       fix="set the chart distance in mm, or null if unknown")
-    if meta.get("cfa") is not None:
-        cfa = meta["cfa"]
-        if cfa not in CFA_PATTERNS:
-            raise StackError(f"must be one of {list(CFA_PATTERNS)}, got {cfa!r}", path=json_path, field="cfa",
-                             fix="give the Bayer pattern of the top-left 2x2 pixels, or remove the key for "
-                                 "demosaicked frames")
-        if list(meta.get("channels", [])) != ["R", "G", "B"]:
-            raise StackError(f"is set ({cfa}) but channels is {meta.get('channels')!r}", path=json_path,
-                             field="channels", fix='a Bayer stack has channels ["R", "G", "B"]')
+
+
+def _validate_meta(meta: Any, json_path: Path) -> tuple[float, tuple[str, ...]]:
+    """stack.json against its schema, then the header checks a schema cannot express."""
+    documents.validate(meta, "stack", json_path, error=StackError)
+    _check_white_above_black(meta, json_path)
+    return float(meta["pixel_pitch_um"]), tuple(meta["channels"])
 
 
 def _check_frame_entry(entry: Any, i: int, json_path: Path) -> tuple[str, float]:
-    where = f"frames[{i}]"
-    if not isinstance(entry, dict):
-        raise StackError(f"must be an object with 'file' and 'z_um', got {entry!r}", path=json_path, field=where,
-                         fix='write each frame as {"file": "frames/0000.tiff", "z_um": -140.0}')
-    for key in ("file", "z_um"):
-        if key not in entry:
-            raise StackError("is missing", path=json_path, field=f"{where}.{key}",
-                             fix=f'give every frame a "{key}" (e.g. {{"file": "frames/0000.tiff", "z_um": -140.0}})')
-    file = entry["file"]
-    if not isinstance(file, str) or not file.strip():
-        raise StackError(f"must be a relative file path, got {file!r}", path=json_path, field=f"{where}.file",
-                         fix="give the frame file's path relative to the stack folder")
-    z = entry["z_um"]
-    if not _is_number(z) or not math.isfinite(z):
-        raise StackError(f"must be a finite number (stage position in µm), got {z!r}", path=json_path,
-                         field=f"{where}.z_um", fix="record the stage position of this frame in µm")
-    if entry.get("z_measured_um") is not None:
-        _finite_number(entry["z_measured_um"], f"{where}.z_measured_um", json_path,
-                       fix="record the measured position in µm, or remove the key")
-    if "exposure_ms" in entry:
-        _finite_number(entry["exposure_ms"], f"{where}.exposure_ms", json_path, positive=True,
-                       fix="record the exposure time in ms, or remove the key")
-    if "sha256" in entry:
-        h = entry["sha256"]
-        if not (isinstance(h, str) and len(h) == 64 and all(c in "0123456789abcdefABCDEF" for c in h)):
-            raise StackError(f"must be 64 hex digits, got {h!r}", path=json_path, field=f"{where}.sha256",
-                             fix="store the SHA-256 of the frame file in hex, or remove the key")
-    return file, float(z)
+    """One frames[] entry against the schema's frame definition; returns (file, z_um)."""
+    documents.validate(entry, "stack", json_path, pointer="/$defs/frame", where=f"frames[{i}]", error=StackError)
+    return entry["file"], float(entry["z_um"])
 
 
 def _resolve_frame_path(root: Path, file: str, where: str, json_path: Path) -> Path:
@@ -148,41 +78,10 @@ def _resolve_frame_path(root: Path, file: str, where: str, json_path: Path) -> P
     return full
 
 
-def _read_json(json_path: Path) -> dict:
-    if not json_path.is_file():
-        raise StackError("not found: a stack folder holds a stack.json", path=json_path,
-                         fix="give the stack folder (the one that contains stack.json)")
-    try:
-        meta = json.loads(json_path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as exc:
-        raise StackError(f"is not UTF-8 text ({exc})", path=json_path, fix="write stack.json as UTF-8 JSON") from None
-    except json.JSONDecodeError as exc:
-        raise StackError(f"is not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", path=json_path,
-                         fix="repair the JSON syntax (see docs/stack-format.md for an example)") from None
-    if not isinstance(meta, dict):
-        raise StackError(f"must hold a JSON object, got {type(meta).__name__}", path=json_path,
-                         fix="write stack.json as an object with format, pixel_pitch_um, channels and frames")
-    return meta
-
-
-def _check_header_keys(meta: dict, json_path: Path) -> tuple[float, tuple[str, ...]]:
-    if "format" not in meta:
-        raise StackError("is missing", path=json_path, field="format", fix=_FIX_FORMAT)
-    if meta["format"] != FORMAT:
-        raise StackError(f"is {meta['format']!r}; this fieldcal reads only {FORMAT!r}", path=json_path,
-                         field="format", fix=_FIX_FORMAT + ", or convert the stack / upgrade fieldcal")
-    for key in REQUIRED_KEYS[1:]:
-        if key not in meta:
-            raise StackError("is missing (required)", path=json_path, field=key,
-                             fix=f"add {key!r} (required keys: {', '.join(REQUIRED_KEYS)})")
-    pitch = _finite_number(meta["pixel_pitch_um"], "pixel_pitch_um", json_path, positive=True,
-                           fix="set the sensor pixel pitch in µm, e.g. 3.45")
-    channels = _check_channels(meta["channels"], json_path)
-    _check_optional(meta, json_path)
-    if not isinstance(meta["frames"], list):
-        raise StackError(f"must be a list of frames, got {type(meta['frames']).__name__}", path=json_path,
-                         field="frames", fix='write frames as [{"file": "frames/0000.tiff", "z_um": -140.0}, ...]')
-    return pitch, channels
+def _read_json(json_path: Path) -> Any:
+    return documents.read_json(json_path, error=StackError, not_found="not found: a stack folder holds a stack.json",
+                               not_found_fix="give the stack folder (the one that contains stack.json)",
+                               fix="repair the JSON syntax (see docs/stack-format.md for an example)")
 
 
 def _levels(meta: dict, dtype: np.dtype) -> tuple[float, float]:
@@ -337,7 +236,7 @@ class Stack:
                              fix="give the stack folder (the one that contains stack.json)")
         json_path = path / STACK_JSON
         meta = _read_json(json_path)
-        pitch, channels = _check_header_keys(meta, json_path)
+        pitch, channels = _validate_meta(meta, json_path)
         if not meta["frames"]:
             raise StackError("is empty: the stack has no frames", path=json_path, field="frames",
                              fix="capture at least one frame (an interrupted capture can be resumed with "
@@ -638,8 +537,8 @@ class StackWriter:
                                  path=json_path, field=sorted(reserved)[0], fix="remove them from the call")
         meta = {"format": FORMAT, "pixel_pitch_um": pixel_pitch_um, "channels": list(channels), **optional,
                 "frames": []}
-        _check_header_keys(meta, json_path)
-        meta["pixel_pitch_um"] = float(pixel_pitch_um)
+        meta["pixel_pitch_um"] = float(pixel_pitch_um) if _is_number(pixel_pitch_um) else pixel_pitch_um
+        _validate_meta(documents.loads(_dump(meta, json_path), json_path, error=StackError), json_path)
         text = _dump(meta, json_path)
         if path.exists() and not path.is_dir():
             raise StackError("exists and is not a folder", path=path, fix="choose another output path")
@@ -663,7 +562,7 @@ class StackWriter:
             path = path.parent
         json_path = path / STACK_JSON
         meta = _read_json(json_path)
-        _check_header_keys(meta, json_path)
+        _validate_meta(meta, json_path)
         headers: list[ImageHeader] = []
         if meta["frames"]:
             stack = Stack.open(path)
@@ -748,7 +647,7 @@ class StackWriter:
         except ImageFileError as exc:
             raise StackError(exc.what, path=json_path, field=f"{where}.file", fix=exc.fix) from None
         entry = {"file": file, "z_um": z, **frame_meta}
-        _check_frame_entry(entry, i, json_path)
+        _check_frame_entry(documents.loads(_dump(entry, json_path), json_path, error=StackError), i, json_path)
         frame_path = _resolve_frame_path(self.path, file, f"{where}.file", json_path)
         if PurePosixPath(file.replace("\\", "/")) in self._files:
             raise StackError(f"file {file!r} is already used by another frame", path=json_path,
@@ -767,18 +666,6 @@ class StackWriter:
         return FrameInfo(i, file, frame_path, z, copy.deepcopy(entry))
 
 
-def _json_default(v: Any) -> Any:
-    """numpy scalars and arrays in metadata become plain JSON values."""
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    raise TypeError(f"{type(v).__name__} {v!r} is not JSON serialisable")
-
-
 def _dump(meta: dict, json_path: Path) -> str:
-    try:
-        return json.dumps(meta, indent=2, allow_nan=False, default=_json_default) + "\n"
-    except (TypeError, ValueError) as exc:
-        raise StackError(f"metadata cannot be stored as JSON ({exc})", path=json_path,
-                         fix="pass only str, finite numbers, bools, None, lists and dicts as metadata") from None
+    """stack.json text (numpy values as plain JSON; NaN/Infinity and other non-JSON values refused)."""
+    return documents.dumps(meta, path=json_path, error=StackError)

@@ -31,7 +31,7 @@ from .surfaces import SampledField, sample_field
 from .tolerance import (check_confidence, coverage_probability, expected_mtf_loss, mtf_loss,
                         sigma_from_halfwidth, tolerance_um)
 
-PLAN_FORMAT = "fieldcal-plan/1"
+from .planfile import PLAN_FORMAT
 MAX_BINS = 200_000
 # No stage takes more frames than this; it also bounds the O(frames x bins) greedy cover (q -> 0 or fs beyond
 # the lens's cut-off would otherwise ask for millions of frames and never return).

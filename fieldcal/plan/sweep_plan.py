@@ -19,6 +19,7 @@ from ..optics import LensModel, valid_fs_cyc_per_mm
 from ..optics.sweep import integrated_otf
 from . import ipsf as ip
 from . import masks as mk
+from .planfile import PLAN_FORMAT
 from .scene import Scene
 from .surfaces import SampledField, sample_field
 
@@ -116,7 +117,7 @@ class SweepPlan:
         else:
             dev.update({"wall_time_ms": round(self.total_time_ms, 4)})
         return {
-            "format": "fieldcal-plan/1",
+            "format": PLAN_FORMAT,
             "kind": "sweep",
             "profile": profile_info or {},
             "parameters": {

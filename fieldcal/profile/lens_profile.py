@@ -21,10 +21,10 @@ from __future__ import annotations
 
 import hashlib
 import io
-import json
 import math
 import os
 import re
+import zipfile
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any, TypedDict
 import numpy as np
 
 from fieldcal import __version__
+from fieldcal.formats import documents
 from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text, jsonable
 from fieldcal.errors import ParameterError, SpecError
 from fieldcal.optics import MTFCriterion, default_wavelength_nm, defocus_otf, diffraction_mtf, focus_tolerance_um
@@ -42,8 +43,7 @@ if TYPE_CHECKING:  # the fits import the fitting stack; a profile loads them onl
     from fieldcal.fit.geometry import GeometryFit
     from fieldcal.fit.tolerance import ToleranceFit
 
-PROFILE_FORMAT = "fieldcal-profile/1"
-PROFILE_VERSION = 1
+PROFILE_FORMAT = documents.format_id("profile")
 
 
 def _check_points(x, y):
@@ -272,9 +272,10 @@ class LensProfile:
         digest = hashlib.sha256(data).hexdigest()
         sidecar = path.with_name(sidecar_name(path, digest))
         old = _referenced_sidecar(path)
-        atomic_write_bytes(sidecar, data)
         d = self.to_dict(sidecar.name, digest)
-        atomic_write_text(path, json.dumps(d, indent=1, allow_nan=False) + "\n")
+        text = documents.dumps(d, "profile", path, indent=1)  # validated before anything is written
+        atomic_write_bytes(sidecar, data)  # the sidecar first, under its own content-addressed name
+        atomic_write_text(path, text)      # the JSON last: until this rename the old profile is whole
         _remove_unreferenced_sidecars(path, keep=sidecar.name, old=old)
         self.source_path = str(path)
         return path
@@ -282,67 +283,28 @@ class LensProfile:
     @classmethod
     def load(cls, path: str | Path) -> "LensProfile":
         """Read and validate a profile (and its samples sidecar)."""
+        doc = documents.read(path, "profile", not_found="profile not found",
+                             not_found_fix="give the .json written by `fieldcal calibrate`")
+        return cls.from_document(doc, path)
+
+    @classmethod
+    def from_document(cls, d: dict, path: str | Path) -> "LensProfile":
+        """A profile from its parsed ``fieldcal-profile/1`` document (validated here) and the sidecar beside
+        ``path``."""
         path = Path(path)
-        if not path.is_file():
-            raise SpecError("profile not found", path=path, fix="give the .json written by `fieldcal calibrate`")
-        try:
-            d = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise SpecError(f"not valid JSON ({e})", path=path, fix="regenerate it with `fieldcal calibrate`") from None
-        if not isinstance(d, dict):
-            raise SpecError("a profile must be a JSON object", path=path, fix="regenerate it with `fieldcal calibrate`")
-        _check_format(d.get("format"), path)
-        for key in ("image", "optics", "calibration", "z_ref_um", "surfaces", "geometry"):
-            if key not in d:
-                raise SpecError("missing", path=path, field=key, fix="regenerate the profile with `fieldcal calibrate`")
+        documents.validate(d, "profile", path)
         img = d["image"]
-        for key in ("width_px", "height_px", "pixel_pitch_um", "channels"):
-            if not isinstance(img, dict) or key not in img:
-                raise SpecError("missing", path=path, field=f"image.{key}", fix="regenerate the profile")
         samples = None
-        arrays: dict[str, np.ndarray] = {}
-        side = d.get("sidecar")
-        if not isinstance(side, dict) or not isinstance(side.get("file"), str):
-            raise SpecError("names no samples sidecar", path=path, field="sidecar",
-                            fix="regenerate the profile with `fieldcal calibrate` (it writes the JSON and its "
-                                ".npz together)")
-        if not _SHA256.fullmatch(str(side.get("sha256", ""))):
-            # without the hash any .npz beside the JSON would be taken as this profile's samples
-            raise SpecError("the sidecar's sha256 is missing or not 64 hex digits, so its samples cannot be "
-                            "trusted", path=path, field="sidecar.sha256",
-                            fix="restore the profile as `fieldcal calibrate` wrote it, or recalibrate")
-        name = side["file"]
-        if not name or name != Path(name).name or name in (".", ".."):
-            raise SpecError(f"the sidecar must be a file name beside the profile, got {name!r}", path=path,
-                            field="sidecar.file", fix="restore the profile as `fieldcal calibrate` wrote it")
-        sp = path.with_name(name)
-        if not sp.is_file():
-            raise SpecError(f"the posterior-samples sidecar {sp.name} is missing", path=path, field="sidecar.file",
-                            fix=f"copy {sp.name} next to {path.name} (they are written together)")
-        try:
-            raw = sp.read_bytes()
-        except OSError as e:
-            raise SpecError(f"the sidecar {sp.name} cannot be read ({e.strerror or e})", path=sp,
-                            field="sidecar.file", fix="check the file and its permissions") from None
-        if hashlib.sha256(raw).hexdigest() != side["sha256"].lower():
-            raise SpecError(f"the sidecar {sp.name} does not belong to this profile (sha256 differs)",
-                            path=path, field="sidecar.sha256",
-                            fix=f"copy the {sp.name} written with this profile, or recalibrate")
-        try:
-            with np.load(io.BytesIO(raw), allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
-        except (ValueError, OSError, EOFError) as e:  # hash matched, so the writer made a bad file
-            raise SpecError(f"the sidecar {sp.name} cannot be read as .npz ({e})", path=sp, field="sidecar.file",
-                            fix="recalibrate") from None
+        arrays = _read_sidecar(d.get("sidecar"), path)
         samples = arrays.get("surface_samples")
         from fieldcal.fit import SurfaceFit
         from fieldcal.fit.geometry import GeometryFit
         surfaces = SurfaceFit.from_dict(d["surfaces"], samples=samples, path=path)
-        geometry = GeometryFit.from_dict(d["geometry"])
+        geometry = GeometryFit.from_dict(d["geometry"], path=path)
         tolerance = None
         if d.get("tolerance"):
             from fieldcal.fit.tolerance import ToleranceFit
-            tolerance = ToleranceFit.from_dict(d["tolerance"])
+            tolerance = ToleranceFit.from_dict(d["tolerance"], path=path)
         tiles = {k[len("tiles__"):]: v for k, v in arrays.items() if k.startswith("tiles__")} or None
         geom = {k[len("geom__"):]: v for k, v in arrays.items() if k.startswith("geom__")} or None
         prov = dict(d.get("provenance", {}))
@@ -433,41 +395,73 @@ def profile_files(path: str | Path) -> list[Path]:
     return files
 
 
-def _check_format(fmt, path):
-    if fmt == PROFILE_FORMAT:
-        return
-    m = re.fullmatch(r"fieldcal-profile/(\d+)", str(fmt))
-    if m and int(m.group(1)) > PROFILE_VERSION:
-        raise SpecError(f"profile format {fmt} is newer than this fieldcal understands ({PROFILE_FORMAT})",
-                        path=path, field="format", fix="upgrade fieldcal (pip install -U fieldcal)")
-    raise SpecError(f"unknown profile format {fmt!r} (expected {PROFILE_FORMAT!r})", path=path, field="format",
-                    fix="give a lens profile written by `fieldcal calibrate`")
+def _read_sidecar(side: dict | None, path: Path) -> dict[str, np.ndarray]:
+    """The sidecar's arrays: a bare file name beside the profile (schema), inside its folder, matching its sha256.
+
+    The sha256 is required: without it any .npz beside the JSON would be taken as this profile's samples.
+    """
+    if not isinstance(side, dict) or not isinstance(side.get("file"), str):
+        raise SpecError("names no samples sidecar", path=path, field="sidecar",
+                        fix="regenerate the profile with `fieldcal calibrate` (it writes the JSON and its .npz "
+                            "together)")
+    if not _SHA256.fullmatch(str(side.get("sha256", ""))):
+        raise SpecError("the sidecar's sha256 is missing or not 64 hex digits, so its samples cannot be trusted",
+                        path=path, field="sidecar.sha256",
+                        fix="restore the profile as `fieldcal calibrate` wrote it, or recalibrate")
+    name = side["file"]
+    if not name or name != Path(name).name or name in (".", ".."):
+        raise SpecError(f"the sidecar must be a file name beside the profile, got {name!r}", path=path,
+                        field="sidecar.file", fix="restore the profile as `fieldcal calibrate` wrote it")
+    sp = path.with_name(name)
+    if sp.is_symlink() or (sp.exists() and sp.resolve().parent != path.resolve().parent):
+        raise SpecError(f"the sidecar {name!r} is not a file in the profile's folder", path=path,
+                        field="sidecar.file", fix="keep the sidecar itself next to the profile (not a link)")
+    if not sp.is_file():
+        raise SpecError(f"the posterior-samples sidecar {sp.name} is missing", path=path, field="sidecar.file",
+                        fix=f"copy {sp.name} next to {path.name} (they are written together)")
+    try:
+        raw = sp.read_bytes()
+    except OSError as e:
+        raise SpecError(f"the sidecar {sp.name} cannot be read ({e.strerror or e})", path=sp,
+                        field="sidecar.file", fix="check the file and its permissions") from None
+    if hashlib.sha256(raw).hexdigest() != side["sha256"].lower():
+        raise SpecError(f"the sidecar {sp.name} does not belong to this profile (sha256 differs)",
+                        path=path, field="sidecar.sha256",
+                        fix=f"copy the {sp.name} written with this profile, or recalibrate")
+    try:
+        with np.load(io.BytesIO(raw), allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+        raise SpecError(f"the sidecar {sp.name} is not a readable .npz ({exc})", path=sp, field="sidecar.file",
+                        fix="recalibrate: the sidecar is written with the profile") from None
 
 
 def load_profile_or_truth(path: str | Path, size_px: tuple[int, int] | None = None):
-    """A lens profile, or the exact answers of a simulated lens — whichever the file holds.
+    """A lens profile, or the exact answers of a simulated lens — whichever the file holds. The one loader.
 
-    Returns ``(profile, info)``. A ``fieldcal-lens/1`` spec gives its :class:`fieldcal.simulate.truth.TruthProfile` at
-    ``size_px`` (design studies and simulated data); a ``fieldcal-profile/1`` file gives a :class:`LensProfile`
-    (``size_px`` does not apply to it). ``info`` says which, for plans, composites and reports.
+    Returns ``(profile, info)``. A ``fieldcal-lens/1`` spec (or a simulated stack's ``fieldcal-truth/1``
+    truth.json) gives its :class:`fieldcal.simulate.truth.TruthProfile` at ``size_px`` (design studies and
+    simulated data; a truth.json defaults to the size it was rendered at); a ``fieldcal-profile/1`` file gives a
+    :class:`LensProfile` (``size_px`` does not apply to it). ``info`` says which, for plans, composites and reports.
+    The file is read once, through :mod:`fieldcal.formats.documents`.
     """
     path = Path(path)
-    if not path.is_file():
-        raise SpecError("profile not found", path=path,
-                        fix="give a profile from `fieldcal calibrate` or a lens spec such as models/triplet-uncorrected.json")
-    try:
-        head = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise SpecError(f"not valid JSON ({e})", path=path, fix="repair the JSON syntax") from None
+    head = documents.read_json(path, not_found="profile not found",
+                               not_found_fix="give a profile from `fieldcal calibrate` or a lens spec such as "
+                                             "models/triplet-uncorrected.json")
     fmt = head.get("format") if isinstance(head, dict) else None
-    if isinstance(fmt, str) and fmt.startswith("fieldcal-lens/"):
+    if isinstance(fmt, str) and fmt.startswith(("fieldcal-lens/", "fieldcal-truth/")):
         from fieldcal.simulate.lens import LensSpec
-        from fieldcal.simulate.truth import TruthProfile
-        spec = LensSpec.from_dict(head, path=path)
+        from fieldcal.simulate.truth import TruthProfile, truth_lens
+        if fmt.startswith("fieldcal-truth/"):
+            spec, rendered = truth_lens(head, path)
+            size_px = size_px or rendered
+        else:
+            spec = LensSpec.from_dict(head, path=path)
         prof = TruthProfile(spec, *(size_px or (None, None)))
         return prof, {"path": str(path), "format": fmt, "name": spec.name,
                       "source": "lens spec: the simulated lens's true surfaces",
                       "image_size_px": list(prof.image_size_px)}
-    prof = LensProfile.load(path)
+    prof = LensProfile.from_document(head, path)
     return prof, {"path": str(path), "format": fmt, "name": path.stem, "source": "lens profile (calibrated)",
                   "image_size_px": list(prof.image_size_px)}

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 import re
 from dataclasses import dataclass, field
@@ -214,10 +213,8 @@ def _meta_from_csv(text: str) -> dict:
 
 
 def _rows_from_json(text: str, path) -> tuple[list[dict], dict]:
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise SpecError(f"not valid JSON ({e})", path=path, fix="repair the JSON syntax") from None
+    from fieldcal.formats.documents import loads
+    data = loads(text, path)  # safe parse: huge/deep/non-finite numbers and nesting refused with the field named
     meta = {}
     if isinstance(data, dict):
         meta = {k: v for k, v in data.items() if k in META_KEYS}

@@ -40,8 +40,9 @@ from typing import Any
 import numpy as np
 from fieldcal.errors import SpecError
 from fieldcal.optics import MTFCriterion, default_wavelength_nm, focus_tolerance_um, through_focus_otf
+from fieldcal.formats import documents
 
-LENS_FORMAT = "fieldcal-lens/1"
+LENS_FORMAT = documents.format_id("lens")
 
 
 @dataclass(frozen=True)
@@ -239,143 +240,73 @@ class LensSpec:
         return d
 
     def save(self, path: str | Path) -> None:
-        from fieldcal.formats.atomic import atomic_write_text
-        atomic_write_text(path, json.dumps(self.to_dict(), indent=2) + "\n")
+        documents.write(path, self.to_dict(), "lens")
 
     @classmethod
     def load(cls, path: str | Path) -> "LensSpec":
-        path = Path(path)
-        if not path.exists():
-            raise SpecError("lens spec not found", path=path,
-                            fix="give the path to a fieldcal-lens/1 JSON file, e.g. models/triplet-uncorrected.json")
-        try:
-            data = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise SpecError(f"not valid JSON ({e})", path=path, fix="repair the JSON syntax") from None
-        return cls.from_dict(data, path=path)
+        doc = documents.read(path, "lens", not_found="lens spec not found",
+                             not_found_fix="give the path to a fieldcal-lens/1 JSON file, e.g. "
+                                           "models/triplet-uncorrected.json")
+        return cls.from_dict(doc, path=path)
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], path: str | Path | None = None) -> "LensSpec":
-        return _lens_from_dict(d, path)
+    def from_dict(cls, d: dict[str, Any], path: str | Path | None = None, where: str = "") -> "LensSpec":
+        """A spec from its ``fieldcal-lens/1`` document (validated against the schema; ``where`` prefixes field
+        names when the spec sits inside another document, e.g. truth.json's ``lens``)."""
+        return _lens_from_dict(d, path, where)
 
 
 # ------------------------------------------------------------------------------------------ validation
-def _lens_from_dict(d: Any, path) -> LensSpec:
-    def err(field, what, fix):
-        return SpecError(what, path=path, field=field, fix=fix)
+_KNOWN_KEYS = {"format", "name", "focal_length_mm", "f_number", "image_height_max_mm", "channels", "sensor",
+               "object_distance_mm", "decentre_mm", "tilt_um_per_mm", "exit_pupil_mm", "stage_axis_tilt_mrad",
+               "z_ref_um", "residual_blur_um", "relative_illumination_edge", "description", "sources"}
 
-    if not isinstance(d, dict):
-        raise err(None, "a lens spec must be a JSON object", "see docs/lens-spec.md")
-    fmt = d.get("format")
-    if fmt != LENS_FORMAT:
-        raise err("format", f"unknown lens spec format {fmt!r}; this fieldcal reads {LENS_FORMAT!r}",
-                  f"set \"format\": \"{LENS_FORMAT}\" (or upgrade fieldcal if the file is newer)")
 
-    def num(key, src=d, prefix="", positive=False, nonneg=False, default=None, allow_none=False):
-        full = prefix + key
-        if key not in src:
-            if default is not None or allow_none:
-                return default
-            raise err(full, "missing", f"add \"{key}\" (see docs/lens-spec.md)")
-        v = src[key]
-        if v is None and allow_none:
-            return None
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise err(full, f"must be a finite number, got {v!r}", "write a number")
-        if positive and v <= 0:
-            raise err(full, f"must be > 0, got {v}", "use a positive value")
-        if nonneg and v < 0:
-            raise err(full, f"must be >= 0, got {v}", "use a non-negative value")
-        return float(v)
-
-    def pair(key, default=(0.0, 0.0)):
-        v = d.get(key, list(default))
-        if (not isinstance(v, (list, tuple)) or len(v) != 2
-                or not all(isinstance(a, (int, float)) and not isinstance(a, bool) and math.isfinite(a) for a in v)):
-            raise err(key, f"must be a list of two finite numbers, got {v!r}", "e.g. [0.0, 0.0]")
-        return (float(v[0]), float(v[1]))
-
-    name = d.get("name", Path(path).stem if path else "lens")
-    sens = d.get("sensor")
-    if not isinstance(sens, dict):
-        raise err("sensor", "missing or not an object", "add a sensor block (width_px, height_px, pixel_pitch_um, ...)")
-    try:
-        w = int(sens["width_px"]); h = int(sens["height_px"])
-    except (KeyError, TypeError, ValueError):
-        raise err("sensor.width_px", "sensor width_px and height_px must be integers", "e.g. 2592 and 1944") from None
-    if w < 8 or h < 8:
-        raise err("sensor.width_px", f"sensor of {w}x{h} px is too small", "use at least 8x8 pixels")
-    bit_depth = int(sens.get("bit_depth", 12))
-    if bit_depth not in (8, 10, 12, 14, 16, 32):
-        raise err("sensor.bit_depth", f"unsupported bit depth {bit_depth}", "use 8, 10, 12, 14, 16 or 32 (float)")
+def _lens_from_dict(d: Any, path, where: str = "") -> LensSpec:
+    """Types, ranges and required keys are the schema's (fieldcal-lens-1.schema.json); the checks across
+    fields a schema cannot express are here."""
+    documents.validate(d, "lens", path, where=where)
+    pre = f"{where}." if where else ""
+    sens = d["sensor"]
     cfa = sens.get("cfa")
-    if cfa is not None and cfa not in ("RGGB", "BGGR", "GRBG", "GBRG"):
-        raise err("sensor.cfa", f"unknown CFA pattern {cfa!r}", "use RGGB, BGGR, GRBG, GBRG or null")
     sensor = SensorSpec(
-        width_px=w, height_px=h,
-        pixel_pitch_um=num("pixel_pitch_um", sens, "sensor.", positive=True),
-        bit_depth=bit_depth,
-        black_level_dn=num("black_level_dn", sens, "sensor.", nonneg=True, default=0.0),
-        full_well_e=num("full_well_e", sens, "sensor.", positive=True, default=10000.0),
-        read_noise_e=num("read_noise_e", sens, "sensor.", nonneg=True, default=2.0),
-        cfa=cfa,
-        exposure_ms=num("exposure_ms", sens, "sensor.", positive=True, default=10.0),
-        signal_fraction=num("signal_fraction", sens, "sensor.", positive=True, default=0.7),
-    )
-    chans = d.get("channels")
-    if not isinstance(chans, list) or not chans:
-        raise err("channels", "must be a non-empty list of channel objects", "e.g. [{\"name\": \"G\", ...}]")
-    channels = []
-    for i, c in enumerate(chans):
-        pre = f"channels[{i}]."
-        if not isinstance(c, dict) or "name" not in c:
-            raise err(f"channels[{i}]", "each channel needs a name", "add \"name\": \"R\" (R, G, B or Y)")
-        cname = str(c["name"])
-        curv = c.get("curvature_um", [])
-        if not isinstance(curv, (list, tuple)) or not all(isinstance(a, (int, float)) and math.isfinite(a) for a in curv):
-            raise err(pre + "curvature_um", "must be a list of finite numbers (µm at rho^2, rho^4, ...)", "e.g. [-294.3, -19.5]")
-        channels.append(ChannelSpec(
-            name=cname,
-            wavelength_nm=num("wavelength_nm", c, pre, positive=True, default=default_wavelength_nm(cname)),
-            focus_offset_um=num("focus_offset_um", c, pre, default=0.0),
-            curvature_um=tuple(float(a) for a in curv),
-            astigmatism_um=num("astigmatism_um", c, pre, default=0.0),
-            lateral_colour=num("lateral_colour", c, pre, default=0.0),
-        ))
+        width_px=int(sens["width_px"]), height_px=int(sens["height_px"]),
+        pixel_pitch_um=float(sens["pixel_pitch_um"]), bit_depth=int(sens.get("bit_depth", 12)),
+        black_level_dn=float(sens.get("black_level_dn", 0.0)), full_well_e=float(sens.get("full_well_e", 10000.0)),
+        read_noise_e=float(sens.get("read_noise_e", 2.0)), cfa=cfa, exposure_ms=float(sens.get("exposure_ms", 10.0)),
+        signal_fraction=float(sens.get("signal_fraction", 0.7)))
+    channels = tuple(ChannelSpec(
+        name=c["name"],
+        wavelength_nm=float(c.get("wavelength_nm", default_wavelength_nm(c["name"]))),
+        focus_offset_um=float(c.get("focus_offset_um", 0.0)),
+        curvature_um=tuple(float(a) for a in c.get("curvature_um", [])),
+        astigmatism_um=float(c.get("astigmatism_um", 0.0)),
+        lateral_colour=float(c.get("lateral_colour", 0.0))) for c in d["channels"])
     names = [c.name for c in channels]
     if len(set(names)) != len(names):
-        raise err("channels", f"duplicate channel names {names}", "give each channel a distinct name")
-    if cfa is not None and sorted(set(names)) != ["B", "G", "R"]:
-        raise err("sensor.cfa", "a Bayer sensor needs exactly channels R, G, B", "set channels to R, G, B or cfa to null")
+        raise SpecError(f"duplicate channel names {names}", path=path, field=pre + "channels",
+                        fix="give each channel a distinct name")
+    if cfa is not None and sorted(names) != ["B", "G", "R"]:
+        raise SpecError("a Bayer sensor needs exactly channels R, G, B", path=path, field=pre + "sensor.cfa",
+                        fix="set channels to R, G, B or cfa to null")
     exit_pupil = d.get("exit_pupil_mm")
-    if exit_pupil is None:
-        exit_pupil = math.inf
-    else:
-        exit_pupil = num("exit_pupil_mm")
-        if exit_pupil == 0:
-            raise err("exit_pupil_mm", "cannot be 0", "use null for a telecentric image space")
-    known = {"format", "name", "focal_length_mm", "f_number", "image_height_max_mm", "channels", "sensor",
-             "object_distance_mm", "decentre_mm", "tilt_um_per_mm", "exit_pupil_mm", "stage_axis_tilt_mrad",
-             "z_ref_um", "residual_blur_um", "relative_illumination_edge", "description", "sources"}
-    ri = num("relative_illumination_edge", default=1.0)
-    if not (0.05 <= ri <= 1.0):
-        raise err("relative_illumination_edge", f"must be in [0.05, 1], got {ri}", "e.g. 0.8 for 20% corner fall-off")
+    pair = lambda key: tuple(float(v) for v in d.get(key, (0.0, 0.0)))  # noqa: E731
     return LensSpec(
-        name=str(name),
-        focal_length_mm=num("focal_length_mm", positive=True),
-        f_number=num("f_number", positive=True),
-        image_height_max_mm=num("image_height_max_mm", positive=True),
-        channels=tuple(channels),
+        name=str(d.get("name", Path(path).stem if path else "lens")),
+        focal_length_mm=float(d["focal_length_mm"]),
+        f_number=float(d["f_number"]),
+        image_height_max_mm=float(d["image_height_max_mm"]),
+        channels=channels,
         sensor=sensor,
-        object_distance_mm=num("object_distance_mm", positive=True, default=1000.0),
+        object_distance_mm=float(d.get("object_distance_mm", 1000.0)),
         decentre_mm=pair("decentre_mm"),
         tilt_um_per_mm=pair("tilt_um_per_mm"),
-        exit_pupil_mm=exit_pupil,
+        exit_pupil_mm=math.inf if exit_pupil is None else float(exit_pupil),
         stage_axis_tilt_mrad=pair("stage_axis_tilt_mrad"),
-        z_ref_um=num("z_ref_um", default=0.0),
-        residual_blur_um=num("residual_blur_um", nonneg=True, default=0.5),
-        relative_illumination_edge=ri,
+        z_ref_um=float(d.get("z_ref_um", 0.0)),
+        residual_blur_um=float(d.get("residual_blur_um", 0.5)),
+        relative_illumination_edge=float(d.get("relative_illumination_edge", 1.0)),
         description=str(d.get("description", "")),
-        sources=dict(d.get("sources", {})) if isinstance(d.get("sources", {}), dict) else {},
-        extra={k: v for k, v in d.items() if k not in known},
+        sources=dict(d.get("sources", {})),
+        extra={k: v for k, v in d.items() if k not in _KNOWN_KEYS},
     )

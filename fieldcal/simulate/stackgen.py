@@ -7,7 +7,6 @@ and ``truth.json`` are written, so an interrupted run never leaves a half-writte
 from __future__ import annotations
 
 import io
-import json
 import math
 import os
 import shutil
@@ -16,14 +15,15 @@ from typing import Sequence
 
 import numpy as np
 
-from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text
+from fieldcal.formats import documents
+from fieldcal.formats.atomic import atomic_write_bytes
 from ..errors import ParameterError, StackError
 from fieldcal.simulate.lens import LensSpec
 from ..progress import progress as _progress
 from .render import Renderer
 from .scene import load_scene
 
-TRUTH_FORMAT = "fieldcal-truth/1"
+TRUTH_FORMAT = documents.format_id("truth")
 
 
 def z_grid(start_um: float, stop_um: float, step_um: float) -> np.ndarray:
@@ -171,7 +171,7 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
             "truth_geometry": "z_ref_um, lateral colour included, in-focus PSF only, no noise",
             "renderer": renderer.settings(),
         }
-        atomic_write_text(tmp / "truth.json", json.dumps(truth, indent=2) + "\n")
+        documents.write(tmp / "truth.json", truth, "truth")
         _replace_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -12,7 +12,31 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldcal.formats import documents
 from fieldcal.simulate.lens import LensSpec
+
+TRUTH_FORMAT = documents.format_id("truth")
+TRUTH_JSON = "truth.json"
+
+
+def truth_lens(doc: dict, path: str | Path | None = None) -> tuple[LensSpec, tuple[int, int]]:
+    """The lens spec and render size ``(width_px, height_px)`` of a ``fieldcal-truth/1`` document (validated)."""
+    documents.validate(doc, "truth", path)
+    spec = LensSpec.from_dict(doc["lens"], path=path, where="lens")
+    w, h = doc["size_px"]
+    return spec, (int(w), int(h))
+
+
+def load_truth(path: str | Path) -> TruthProfile:
+    """The :class:`TruthProfile` of a simulated stack, at the size it was rendered: ``path`` is the stack folder
+    or its ``truth.json``."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / TRUTH_JSON
+    doc = documents.read(path, "truth", not_found="truth.json not found",
+                         not_found_fix="give a stack folder written by `fieldcal simulate` (it holds truth.json)")
+    spec, (w, h) = truth_lens(doc, path)
+    return TruthProfile(spec, w, h)
 
 
 class TruthProfile:

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import html
 import io
-import json
 from pathlib import Path
 
 import numpy as np
 
+from fieldcal.formats import documents
 from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text
 
 _COLOURS = {"R": "tab:red", "G": "tab:green", "B": "tab:blue", "Y": "0.2"}
@@ -274,5 +274,5 @@ def write_report(result, out_dir: str | Path, plots: bool = True) -> list[Path]:
     atomic_write_text(out / "index.html", _html(result, figures))
     summary = result.to_dict()
     summary["files"] = [*figures, "report.md", "index.html"]
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1, allow_nan=False) + "\n")
+    documents.write(out / "summary.json", summary, "validation", indent=1)
     return [out / f for f in summary["files"]] + [out / "summary.json"]

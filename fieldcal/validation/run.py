@@ -33,10 +33,12 @@ import numpy as np
 
 from fieldcal.errors import ParameterError
 from fieldcal.optics import valid_fs_cyc_per_mm, valid_q
+from fieldcal.formats import documents
 from fieldcal.simulate.lens import LensSpec
 from fieldcal.progress import status
 from fieldcal.simulate.truth import TruthProfile
 
+VALIDATION_FORMAT = documents.format_id("validation")
 DEFAULT_WIDTH_PX = 640  # at 256 px the tiles stop far from the corners and the fit extrapolates
 PROFILE_SOURCES = ("calibrate", "truth")
 EFFORTS = ("quick", "standard", "thorough")
@@ -152,7 +154,7 @@ class ValidationResult:
         return [c for c in self.checks if not c.passed]
 
     def to_dict(self) -> dict:
-        return _jsonable({"format": "fieldcal-validation/1", "lens": self.lens, "passed": self.passed,
+        return _jsonable({"format": VALIDATION_FORMAT, "lens": self.lens, "passed": self.passed,
                           "config": self.config, "setup": self.setup, "surface": self.surface,
                           "geometry": self.geometry, "plan": self.plan, "composite": self.composite,
                           "timings_s": self.timings_s, "checks": [c.to_dict() for c in self.checks],
