@@ -121,32 +121,32 @@ def _set_file(path):
 
 
 JOURNAL_CASES = {
-    "outside the folder (#12.8)": (_set_file("../../outside.tiff"), "must be 'frames/0000.tiff'"),
-    "absolute path": (_set_file("/etc/passwd"), "must be 'frames/0000.tiff'"),
+    "outside the folder (#12.8)": (_set_file("../../outside.tiff"), "directly inside the capture's frames/ folder"),
+    "absolute path": (_set_file("/etc/passwd"), "directly inside the capture's frames/ folder"),
     "another frame's file": (_set_file("frames/0001.tiff"), "must be 'frames/0000.tiff'"),
-    "header []": (lambda lines: ["[]"] + lines[1:], "header (line 1) is list"),
-    "header of another format": (lambda lines: ['{"journal": "x/1"}'] + lines[1:], "unknown journal format"),
+    "header []": (lambda lines: ["[]"] + lines[1:], "'line 1': must hold a JSON object"),
+    "header of another format": (lambda lines: ['{"journal": "x/1"}'] + lines[1:], "unknown capture-journal format"),
     "entry without file": (lambda lines: [lines[0], json.dumps({"i": 0, "entry": {
-        k: v for k, v in _entry(lines)["entry"].items() if k != "file"}})] + lines[2:], "must be 'frames/0000.tiff'"),
-    "entry without entry": (lambda lines: [lines[0], '{"i": 0}'] + lines[2:], "line 2 is not a frame record"),
+        k: v for k, v in _entry(lines)["entry"].items() if k != "file"}})] + lines[2:], "'line 2.entry.file': is missing"),
+    "entry without entry": (lambda lines: [lines[0], '{"i": 0}'] + lines[2:], "'line 2.entry': is missing"),
     "index out of range": (lambda lines: lines + [json.dumps({**_entry(lines), "i": 99})], "not a frame record"),
-    "bool index": (lambda lines: lines + [json.dumps({**_entry(lines), "i": True})], "not a frame record"),
+    "bool index": (lambda lines: lines + [json.dumps({**_entry(lines), "i": True})], "must be an integer, got true"),
     "z not the plan's": (lambda lines: [lines[0], json.dumps({"i": 0, "entry": {**_entry(lines)["entry"],
                                                                                 "z_um": 5.0}})] + lines[2:],
                          "is not the plan's"),
     "sha256 not hex": (lambda lines: [lines[0], json.dumps({"i": 0, "entry": {**_entry(lines)["entry"],
                                                                               "sha256": "../x"}})] + lines[2:],
-                       "sha256 is not a hex digest"),
+                       "'line 2.entry.sha256': must be 64 hex digits"),
     "an unknown field": (lambda lines: [lines[0], json.dumps({"i": 0, "entry": {**_entry(lines)["entry"],
                                                                                 "cfa": "RGGB"}})] + lines[2:],
                          "field 'cfa' is unknown"),
     "a non-finite exposure": (lambda lines: [lines[0], json.dumps({"i": 0, "entry": {**_entry(lines)["entry"],
                                                                                      "exposure_ms": "abc"}})]
-                              + lines[2:], "field 'exposure_ms' is unknown or has a wrong value"),
+                              + lines[2:], "'line 2.entry.exposure_ms': must be a number"),
     "another frame's plan_index": (lambda lines: [lines[0], json.dumps({"i": 0, "entry": {
         **_entry(lines)["entry"], "plan_index": 2}})] + lines[2:], "plan_index 2 is not 0"),
-    "not JSON in the middle": (lambda lines: [lines[0], "{not json"] + lines[1:], "line 2 is not valid JSON"),
-    "deeply nested": (lambda lines: lines[:1] + ["[" * 100000 + "]" * 100000] + lines[1:], "not valid JSON"),
+    "not JSON in the middle": (lambda lines: [lines[0], "{not json"] + lines[1:], "'line 2': is not valid JSON"),
+    "deeply nested": (lambda lines: lines[:1] + ["[" * 100000 + "]" * 100000] + lines[1:], "levels deep"),
 }
 
 

@@ -36,7 +36,7 @@ def _stack(path: Path):
 
 
 def _plan(path: Path):
-    from fieldcal.capture.acquire import CapturePlan
+    from fieldcal.capture.plan import CapturePlan
     from fieldcal.plan.planfile import read_plan
     try:
         read_plan(path)
@@ -65,8 +65,8 @@ def _truth(path: Path):
 
 
 def _journal(path: Path):
-    from fieldcal.capture.acquire import Journal
-    Journal(path).read()
+    from fieldcal.capture.folder import read_journal
+    read_journal(path)
 
 
 def _composite_meta(path: Path):

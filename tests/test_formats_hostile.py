@@ -233,7 +233,8 @@ def make(case: Case, tmp: Path) -> Path:
 
 def read_python(case: Case, target: Path) -> None:
     """The Python reader(s) of that kind of file."""
-    from fieldcal.capture.acquire import CapturePlan, Journal
+    from fieldcal.capture.folder import read_journal
+    from fieldcal.capture.plan import CapturePlan
     from fieldcal.formats.stack import Stack
     from fieldcal.plan.planfile import read_plan
     from fieldcal.profile.lens_profile import LensProfile, load_profile_or_truth
@@ -255,7 +256,7 @@ def read_python(case: Case, target: Path) -> None:
     elif case.base == "lens":
         LensSpec.load(target)
     elif case.base == "journal":
-        Journal(target).read()
+        read_journal(target)
     elif case.base == "truth":
         with pytest.raises(FieldcalError):
             load_profile_or_truth(target)

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldcal.capture.acquire import CapturePlan, Journal
+from fieldcal.capture.folder import read_journal
+from fieldcal.capture.plan import CapturePlan
 from fieldcal.formats.stack import Stack
 from fieldcal.plan.planfile import read_plan
 from fieldcal.profile.lens_profile import LensProfile, load_profile_or_truth
@@ -75,7 +76,7 @@ def test_stacks_open_with_the_same_values(name):
 
 def test_journal_reads_the_same(tmp_path):
     shutil.copytree(L / "capture", tmp_path / "c")  # Journal.read may cut a torn last line: work on a copy
-    header, entries = Journal(tmp_path / "c" / "capture.journal").read()
+    header, entries = read_journal(tmp_path / "c" / "capture.journal")
     assert header == EXP["journal"]["header"] and entries == EXP["journal"]["entries"]
 
 

@@ -36,7 +36,7 @@ def test_every_fieldcal_format_in_the_code_has_a_schema():
 
 
 def test_format_constants_come_from_the_schemas():
-    from fieldcal.capture.acquire import JOURNAL_FORMAT
+    from fieldcal.capture.folder import JOURNAL_FORMAT
     from fieldcal.charts.targets import TARGETS_FORMAT
     from fieldcal.composite.io import COMPOSITE_FORMAT
     from fieldcal.fit.geometry import GEOMETRY_FIT_FORMAT

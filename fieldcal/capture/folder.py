@@ -65,6 +65,38 @@ ENTRY_KEYS = {"file": lambda v: isinstance(v, str), "sha256": lambda v: isinstan
               "plan_index": _is_int}
 
 
+def parse_journal_lines(lines: list[bytes], path: Path, fix: str) -> tuple[dict, list[dict]]:
+    """Header and entry lines of a journal, each parsed safely and validated against the journal's JSON Schema
+    (``fieldcal-capture-journal/1``: line 1 is the header, later lines ``$defs/entry``)."""
+    from ..formats import documents
+
+    if not lines:
+        raise StackError("the capture journal has no complete header line", path=path, fix=fix)
+    docs = []
+    for k, raw in enumerate(lines, start=1):
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise StackError(f"line {k} is not UTF-8 text", path=path, field=f"line {k}", fix=fix) from None
+        doc = documents.loads(text, path, where=f"line {k}", error=StackError, fix=fix)
+        docs.append(documents.validate(doc, "capture-journal", path, where=f"line {k}", error=StackError,
+                                       pointer="" if k == 1 else "/$defs/entry"))
+    return docs[0], docs[1:]
+
+
+def read_journal(path: str | Path) -> tuple[dict, list[dict]]:
+    """A journal file's header and complete entry lines, validated (a torn last line is ignored)."""
+    path = Path(path)
+    data = path.read_bytes()[: MAX_JOURNAL_BYTES + 1]
+    if len(data) > MAX_JOURNAL_BYTES:
+        raise StackError(f"the capture journal is larger than {MAX_JOURNAL_BYTES >> 20} MiB", path=path,
+                         fix="this is not a journal capture wrote; capture into a new --out folder")
+    complete = data.rfind(b"\n") + 1
+    return parse_journal_lines(data[:complete].split(b"\n")[:-1], path,
+                               "this journal was not written by fieldcal capture (or was edited); capture into a "
+                               "new --out folder")
+
+
 def frame_file(index: int) -> str:
     """The one file name frame ``index`` of a capture may have."""
     return f"frames/{index:04d}.tiff"
@@ -242,26 +274,13 @@ class CaptureFolder:
         fix = "this journal was not written by fieldcal capture (or was edited); capture into a new --out folder"
         if not lines:
             raise StackError("the capture journal has no complete header line", path=jp, fix=fix)
-        parsed = []
-        for k, raw in enumerate(lines, start=1):
-            try:
-                parsed.append(json.loads(raw.decode("utf-8")))
-            except (UnicodeDecodeError, ValueError, RecursionError) as exc:
-                raise StackError(f"line {k} is not valid JSON ({type(exc).__name__})", path=jp, field=f"line {k}",
-                                 fix=fix) from None
-        header = parsed[0]
-        if not isinstance(header, dict):
-            raise StackError(f"the header (line 1) is {type(header).__name__}, not an object", path=jp,
-                             field="line 1", fix=fix)
-        if header.get("journal") != JOURNAL_FORMAT:
-            raise StackError(f"unknown journal format {header.get('journal')!r}", path=jp, field="journal",
-                             fix="this folder was not written by this fieldcal; use a new --out")
+        header, parsed = parse_journal_lines(lines, jp, fix)
         if not (isinstance(header.get("plan_sha256"), str) and _HEX64.match(header["plan_sha256"])):
             raise StackError("plan_sha256 is not a sha256 hex digest", path=jp, field="plan_sha256", fix=fix)
         if not isinstance(header.get("camera"), dict):
             raise StackError("camera is not an object", path=jp, field="camera", fix=fix)
         entries = []
-        for k, e in enumerate(parsed[1:], start=2):
+        for k, e in enumerate(parsed, start=2):
             where = f"line {k}"
             if not (isinstance(e, dict) and isinstance(e.get("i"), int) and not isinstance(e.get("i"), bool)
                     and 0 <= e["i"] < n_frames and isinstance(e.get("entry"), dict)):

@@ -148,7 +148,8 @@ class CapturePlan:
             exp = exposure_ms if exposure_ms is not None else e.get("exposure_ms")
             frames.append(PlannedFrame(k, e["z_um"], exp))
         try:
-            return cls(tuple(frames), approach or doc["direction"], overshoot_um,
+            # a hand-written plan may leave out its direction: approach every frame from below (+z)
+            return cls(tuple(frames), approach or doc.get("direction", "+z"), overshoot_um,
                        {"kind": "plan", "file": str(path), "plan_sha256": hashlib.sha256(data).hexdigest(),
                         "parameters": doc.get("parameters", {})})
         except ParameterError as exc:

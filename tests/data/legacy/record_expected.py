@@ -7,7 +7,8 @@ from fieldcal.profile.lens_profile import LensProfile, load_profile_or_truth
 from fieldcal.plan.planfile import read_plan
 from fieldcal.simulate.lens import LensSpec
 from fieldcal.formats.stack import Stack
-from fieldcal.capture.acquire import CapturePlan, Journal
+from fieldcal.capture.folder import read_journal
+from fieldcal.capture.plan import CapturePlan
 
 x = [0.0, 60.0, 128.0, 255.0]; y = [0.0, 30.0, 72.0, 143.0]
 p = LensProfile.load(L / "lens.json")
@@ -35,7 +36,7 @@ for name in ("stack", "capture"):
     st = Stack.open(L / name)
     exp[name] = {"z_um": st.z_um.tolist(), "pixel_pitch_um": st.pixel_pitch_um, "channels": list(st.channels),
                  "shape": list(st.shape), "levels": [st.black_level, st.white_level], "meta": st.meta}
-h, e = Journal(L / "capture" / "capture.journal").read()
+h, e = read_journal(L / "capture" / "capture.journal")
 exp["journal"] = {"header": h, "entries": e}
 exp["truth"] = json.loads((L / "stack" / "truth.json").read_text())
 exp["targets"] = json.loads((L / "targets.json").read_text())
