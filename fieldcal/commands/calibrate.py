@@ -25,6 +25,9 @@ def register(sub):
     p.add_argument("--measure", choices=["sml", "bandpass"], default="sml",
                    help="focus measure for best focus (default: sum-modified-Laplacian)")
     p.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
+    p.add_argument("--stage-repeatability-um", type=float, default=None, dest="stage_repeatability_um",
+                   help="stage position repeatability, 1 sigma in µm (default: the stage record in stack.json, "
+                        "else 0); recorded in the profile and included in the band")
     p.add_argument("--report", default=None, metavar="DIR", help="also write the HTML report into DIR")
     p.add_argument("--overwrite", action="store_true", help="replace an existing profile")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
@@ -40,7 +43,8 @@ def run(args) -> int:
     if out.exists() and not args.overwrite:
         raise ParameterError(f"{out} exists", path=out, field="--out", fix="choose another name or add --overwrite")
     profile = calibrate(args.stack, fs_cyc_per_mm=args.fs, q=args.q, effort=args.effort, z_ref_um=args.z_ref_um,
-                        tile_px=args.tile_px, measure=args.measure, seed=args.seed, quiet=args.quiet)
+                        tile_px=args.tile_px, measure=args.measure, seed=args.seed, quiet=args.quiet,
+                        stage_repeatability_um=args.stage_repeatability_um)
     profile.save(out)
     print(f"wrote {out} (model {profile.surfaces.model.name}; "
           f"{profile.diagnostics.get('n_tiles_ok')} tiles; z_ref {profile.z_ref_um:g} µm)")
