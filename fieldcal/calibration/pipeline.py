@@ -160,6 +160,9 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     scan_end = scan_end_rejections(table)
     if scan_end.get("warning"):
         status("warning: " + scan_end["warning"], quiet=quiet)
+    skew_note = curve_skew_warning(table, measure)
+    if skew_note:
+        status("warning: " + skew_note, quiet=quiet)
 
     z = np.sort(np.asarray(stack.z_um, dtype=float))
     steps = np.diff(z)
@@ -191,6 +194,8 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
                      "tolerance": tol_note if tol is None else getattr(tol, "diagnostics", {}),
                      "max_image_displacement_px": geo_c.max_displacement_px(),
                      "scan_end": scan_end,
+                     # per channel: the pooled through-focus skew (docs/measurement.md "Asymmetric curves")
+                     "curve_skew": {"channels": dict(getattr(table, "skew", {}) or {}), "warning": skew_note},
                      "timing_s": {"measure": round(t_measure, 3), "fit": round(t_fit, 3),
                                   "total": round(t_total, 3)}},
         provenance={"created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -205,6 +210,24 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
            quiet=quiet)
     return profile
 
+
+
+def curve_skew_warning(table, measure: str) -> str | None:
+    """A warning when the SML's through-focus curves are skewed the same way over the field (evidence weight
+    > 0.5, shift > 0.1 step): on such a lens (spherical aberration) the SML peaks elsewhere than contrast at fs,
+    which the paper's best focus is; the band-pass measure gives that point."""
+    if measure != "sml":
+        return None
+    z = np.sort(np.asarray(table.z_um, dtype=float))
+    step = float(np.median(np.diff(z))) if z.size > 1 else math.nan
+    bad = [c for c, r in (getattr(table, "skew", {}) or {}).items()
+           if r.get("weight", 0.0) > 0.5 and abs(r.get("shift_um", 0.0)) > 0.1 * step]
+    if not bad:
+        return None
+    return (f"the through-focus curves of {', '.join(bad)} are skewed (sharpest position "
+            + ", ".join(f"{table.skew[c]['shift_um']:+.2f} µm" for c in bad)
+            + " from the centre; spherical aberration?): the SML's peak is then not where contrast at fs peaks. "
+            "Calibrate with --measure bandpass --effort standard for the paper's best focus")
 
 
 def stage_repeatability(stack, given: float | None) -> tuple[float, str]:

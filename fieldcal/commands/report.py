@@ -22,7 +22,12 @@ def load_profile_or_truth(path: str):
     return load(path)[0]
 
 def run(args) -> int:
-    from fieldcal.report.calibration_report import write_report
+    from fieldcal.report.calibration_report import self_check_summary, write_report
     profile = load_profile_or_truth(args.profile)
     print(f"wrote {write_report(profile, args.out, fs=args.fs, q=args.q)}")
+    line, warn = self_check_summary(profile)
+    if line:
+        print(f"self-check: {line}")
+    if warn:
+        print(f"warning: {warn}")
     return 0
