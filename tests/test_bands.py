@@ -182,9 +182,16 @@ def test_stage_repeatability_comes_from_the_stack_and_joins_the_band(tmp_path):
     prof.surfaces.stage_sd_um = {}
     lo0, hi0 = prof.best_focus_interval_um(x, y, "G")
     assert (hi - lo)[0] > (hi0 - lo0)[0]
-    given = calibrate(d, fs_cyc_per_mm=fs, effort="quick", z_ref_um=0.0, quiet=True, stage_repeatability_um=0.0)
-    assert given.calibration["stage_repeatability_um"] == 0.0 and given.calibration["stage_repeatability_source"] == "given"
-    assert all(v == 0.0 for v in given.surfaces.stage_sd_um.values())
+    from fieldcal.calibration.pipeline import stage_repeatability, stage_sd_um
+    from fieldcal.errors import ParameterError
+    from fieldcal.formats.stack import Stack
+    assert stage_repeatability(Stack.open(d), 0.0) == (0.0, "given")   # --stage-repeatability-um wins
+    with pytest.raises(ParameterError):
+        stage_repeatability(Stack.open(d), -1.0)
+    table = type("T", (), {"channel": np.array(["G", "G"]), "ok": np.array([True, True]),
+                           "stage_gain": np.array([0.3, 0.4])})()
+    assert stage_sd_um(table, 2.0) == {"G": pytest.approx(2.0 * math.sqrt((0.09 + 0.16) / 2))}
+    assert stage_sd_um(table, 0.0) == {"G": 0.0}
 
 
 def test_coverage_with_stage_errors_and_self_check_agreement(tmp_path):
