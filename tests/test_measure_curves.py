@@ -292,3 +292,34 @@ def test_pooled_skew_of_a_channel_gives_the_sharpest_position(w040):
         assert np.sqrt(np.mean(err ** 2)) <= np.sqrt(np.mean(e_old ** 2)) + 0.005
     else:
         assert info["weight"] > 0.99 and info["shift_um"] < 0
+
+
+def test_tile_analysis_applies_the_channel_skew_to_band_pass_and_only_records_it_for_the_sml():
+    # A channel of 30 tiles whose curves are spherical-aberration curves (W040 = 1 wave) peaking at different
+    # positions: with the band-pass measure every tile lands on its sharpest position; with the SML the tiles
+    # keep their centres and the shift is recorded (an SML peak is not where contrast at fs peaks).
+    from fieldcal.measure.tiles import TileRules, _analyse
+    zd, bp, zt_bp = _sa_curves(1.0, "bp")
+    _, sml, zt_sml = _sa_curves(1.0, "sml")
+    rng = np.random.default_rng(31)
+    step = 4.0
+    z = np.arange(-200.0, 120.0, step)
+    offs = rng.uniform(-60, 20, 30)
+    B = np.array([np.interp(z - o, zd, bp, left=0, right=0) * (1 + 0.01 * rng.standard_normal(z.size))
+                  + 0.02 * bp.max() for o in offs])
+    S = np.array([np.interp(z - o, zd, sml, left=sml[0], right=sml[-1]) * (1 + 0.01 * rng.standard_normal(z.size))
+                  for o in offs])
+    cc = {"sml": S, "bandpass": B, "sum": np.full_like(S, 0.5), "sum2": np.full_like(S, 0.5 ** 2 * 1.01),
+          "sat": np.zeros_like(S)}
+    for measure, zt in (("bandpass", zt_bp), ("sml", zt_sml)):
+        res = _analyse(cc, z, fs_cyc_per_mm=FS, q=0.05, measure=measure, rules=TileRules())
+        ok = res["status"] == "ok"
+        assert ok.sum() >= 25, res["status"]
+        err = (res["z_best_um"][ok] - (offs[ok] + zt)) / step
+        skew = res["skew"]
+        assert skew["weight"] > 0.99 and skew["shift_um"] < -0.5 and skew["applied"] == (measure == "bandpass")
+        if measure == "bandpass":
+            assert abs(err.mean()) < 0.05 and np.sqrt(np.mean(err ** 2)) < 0.1
+        else:  # the centres: off the SML's sharpest position, by up to the recorded shift (tiles whose
+            # symmetric fit failed keep their local peak)
+            assert 0.05 < err.mean() <= -skew["shift_um"] / step + 0.03
