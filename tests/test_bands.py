@@ -196,7 +196,7 @@ def test_stage_repeatability_comes_from_the_stack_and_joins_the_band(tmp_path):
 
 def test_coverage_with_stage_errors_and_self_check_agreement(tmp_path):
     """Three random lenses with stage noise, backlash and a scale error at quick effort: the band holds the
-    truth (in commanded stage coordinates) at 0.75-0.99 on average (too narrow and too wide both fail), the
+    truth (in commanded stage coordinates) at 0.8-0.98 on average (too narrow and too wide both fail), the
     surface is within 0.1 step, and the profile's own self-check agrees with the measured mean coverage."""
     from fieldcal.calibration.pipeline import calibrate
     covs, checks = [], []
@@ -207,5 +207,6 @@ def test_coverage_with_stage_errors_and_self_check_agreement(tmp_path):
         assert rms < 0.1 * step, (k, rms, step)
         covs.append(cov)
         checks.append(prof.diagnostics["surface"]["self_check"]["coverage"])
-    assert 0.75 <= np.mean(covs) <= 0.99, covs
-    assert abs(np.mean(checks) - np.mean(covs)) <= 0.15, (checks, covs)
+    # measured: coverage 0.97 / 1.0 / 0.89, self-check 0.86 / 0.99 / 0.93
+    assert 0.8 <= np.mean(covs) <= 0.98, covs
+    assert abs(np.mean(checks) - np.mean(covs)) <= 0.1, (checks, covs)
