@@ -173,3 +173,153 @@ def test_second_peak_depth_agrees_with_scipy_find_peaks(values, prominence):
     depth = second_peak_depth(pad)
     if abs(depth - prominence) > 1e-9:  # on the threshold, rounding decides
         assert (len(peaks) >= 2) == (depth >= prominence)
+
+
+# ------------------------------------------------------------------------------- asymmetric curves (issue 14)
+def _pupil_mtf(w020_waves, w040_waves, freqs, n=48, pad=4):
+    """MTF (radial mean) at ``freqs`` (fractions of the cutoff 2 NA / lambda) of a circular pupil with defocus
+    W020 and spherical aberration W040 (waves), by FFTs of the pupil: |FFT(|FFT(P)|^2)| normalised."""
+    N = n * pad
+    y, x = (np.mgrid[0:N, 0:N] - N / 2) / (n / 2)
+    r2 = x * x + y * y
+    fr = np.hypot(*np.meshgrid(np.fft.fftfreq(N) * N / n, np.fft.fftfreq(N) * N / n))
+    rings = [np.abs(fr - f) < 0.5 / n for f in freqs]
+    out = []
+    for w in np.atleast_1d(w020_waves):
+        P = (r2 <= 1) * np.exp(2j * np.pi * (w * r2 + w040_waves * r2 * r2))
+        otf = np.abs(np.fft.fft2(np.abs(np.fft.fft2(P)) ** 2))
+        otf /= otf[0, 0]
+        out.append([otf[m].mean() for m in rings])
+    return np.array(out)
+
+
+def _sa_curves(w040, kind):
+    """Dense through-focus curve (z in µm at F/2.8, 550 nm) of a band-pass-at-fs ("bp") or broad-band ("sml")
+    measure, and its sharpest position (parabola through the dense maximum)."""
+    zd = np.linspace(-110, 70, 361)
+    w020 = zd / (8 * 2.8 ** 2 * 0.55)
+    freqs = np.linspace(0.02, 0.45, 12)
+    if kind == "bp":
+        c = _pupil_mtf(w020, w040, [0.15])[:, 0] ** 2
+    else:
+        c = _pupil_mtf(w020, w040, freqs) @ freqs
+    i = int(np.argmax(c))
+    a = np.polyfit(zd[i - 2:i + 3] - zd[i], c[i - 2:i + 3], 2)
+    return zd, c, zd[i] - a[1] / (2 * a[0])
+
+
+@pytest.mark.parametrize("kind,model", [("bp", "otf"), ("sml", "peak")])
+def test_asymmetric_spherical_aberration_curves_give_the_sharpest_position(kind, model):
+    # Spherical aberration (W040 = 1 wave) makes the through-focus curve skewed; the symmetric models put
+    # their centre 0.2-0.3 step off the sharpest position. Target: within 0.1 step (bias and RMS).
+    zd, c, zt = _sa_curves(1.0, kind)
+    step = 4.0
+    rng = np.random.default_rng(11)
+    errs, errs_old, sig = [], [], []
+    for off in np.linspace(0, step, 5, endpoint=False):
+        Z = np.arange(zt - 60, zt + 60, step) + off
+        v = np.interp(Z, zd, c)
+        V = np.array([v * (1 + 0.01 * rng.standard_normal(v.size)) + 0.02 * c.max() for _ in range(8)])
+        new = analyse_curves(Z, V, model, FS, 0.05)
+        old = analyse_curves(Z, V, model, FS, 0.05, CurveRules(skew=False))
+        assert all(f.status == "ok" for f in new)
+        errs += [f.z_best_um - zt for f in new]
+        sig += [f.z_sigma_um for f in new]
+        errs_old += [f.z_best_um - zt for f in old if f.status == "ok"]
+    errs = np.array(errs) / step
+    assert abs(np.mean(errs_old)) / step > 0.15          # the symmetric fit alone is biased (the issue)
+    assert abs(errs.mean()) < 0.05 and np.sqrt(np.mean(errs ** 2)) < 0.1
+    chi = np.sqrt(np.mean((errs * step / np.array(sig)) ** 2))
+    assert 0.5 < chi < 1.6                                 # the sigma carries the skew's uncertainty
+
+
+@pytest.mark.parametrize("kind,model,limit", [("bp", "otf", 0.03), ("sml", "peak", 0.05)])
+def test_symmetric_pupil_curves_keep_their_accuracy(kind, model, limit):
+    # W040 = 0 (pure defocus with diffraction), 1 % noise. Pinned: band-pass <= 0.03 step RMS (the symmetric
+    # fit alone: 0.013; the evidence-weighted skew correction adds its noise where the data allow a skew),
+    # broad-band <= 0.05 step (0.041 measured; the symmetric Pearson alone fails on some of these curves).
+    zd, c, zt = _sa_curves(0.0, kind)
+    rng = np.random.default_rng(12)
+    errs = []
+    for off in np.linspace(0, 4.0, 5, endpoint=False):
+        Z = np.arange(-60, 61, 4.0) + off - 20
+        v = np.interp(Z, zd, c)
+        V = np.array([v * (1 + 0.01 * rng.standard_normal(v.size)) + 0.02 * c.max() for _ in range(8)])
+        errs += [f.z_best_um - zt for f in analyse_curves(Z, V, model, FS, 0.05)]
+    assert np.sqrt(np.mean(np.square(errs))) / 4.0 < limit
+
+
+def test_skew_weight_is_low_on_model_curves_and_high_on_skewed_ones():
+    e = otf_model(Z, 1.0, 2.1, 0.5, 0.05, FS)
+    r = analyse_curve(Z, e, "otf", FS, 0.05)
+    assert r.skew_weight < 0.5 and abs(r.z_best_um - 2.1) < 1e-3
+    zd, c, zt = _sa_curves(1.0, "bp")
+    Zs = np.arange(zt - 60, zt + 60, 4.0)
+    r = analyse_curve(Zs, np.interp(Zs, zd, c) + 0.02 * c.max(), "otf", FS, 0.05)
+    assert r.skew_weight > 0.9
+
+
+def test_stage_gain_turns_frame_position_noise_into_best_focus_noise():
+    # Jitter the true frame positions (recorded positions unchanged): the best-focus scatter matches
+    # stage_gain x the position sd.
+    rng = np.random.default_rng(4)
+    sd = 1.0
+    V = np.array([otf_model(Z + sd * rng.standard_normal(Z.size), 1.0, 0.7, 0.5, 0.02, FS) for _ in range(300)])
+    fits = analyse_curves(Z, V, "otf", FS, 0.05, CurveRules(skew=False))
+    err = np.array([f.z_best_um for f in fits]) - 0.7
+    gain = np.median([f.stage_gain for f in fits])
+    assert np.std(err) == pytest.approx(gain * sd, rel=0.2)
+
+
+@pytest.mark.parametrize("w040", [0.0, 0.6, 1.0])
+def test_pooled_skew_of_a_channel_gives_the_sharpest_position(w040):
+    # Tiles of one channel share the lens's spherical aberration: the pooled shift (what measure_stack applies
+    # to band-pass tiles) puts every tile within a few hundredths of a step of its sharpest position, and on a
+    # symmetric lens leaves the centres as they were (RMS as the symmetric fit alone: ~0.01 step).
+    from fieldcal.measure.throughfocus import apply_pooled_skew
+    zd, c, zt = _sa_curves(w040, "bp")
+    rng = np.random.default_rng(21)
+    step = 4.0
+    Z = np.arange(zt - 60, zt + 60, step) + 1.3
+    v = np.interp(Z, zd, c)
+    V = np.array([v * (1 + 0.01 * rng.standard_normal(v.size)) + 0.02 * c.max() for _ in range(12)])
+    fits, info = apply_pooled_skew(analyse_curves(Z, V, "otf", FS, 0.05))
+    err = np.array([f.z_best_um - zt for f in fits]) / step
+    assert abs(err.mean()) < 0.03 and np.sqrt(np.mean(err ** 2)) < 0.05, (err.mean(), info)
+    if w040 == 0.0:
+        old = analyse_curves(Z, V, "otf", FS, 0.05, CurveRules(skew=False))
+        e_old = np.array([f.z_best_um - zt for f in old]) / step
+        assert np.sqrt(np.mean(err ** 2)) <= np.sqrt(np.mean(e_old ** 2)) + 0.005
+    else:
+        assert info["weight"] > 0.99 and info["shift_um"] < 0
+
+
+def test_tile_analysis_applies_the_channel_skew_to_band_pass_and_only_records_it_for_the_sml():
+    # A channel of 30 tiles whose curves are spherical-aberration curves (W040 = 1 wave) peaking at different
+    # positions: with the band-pass measure every tile lands on its sharpest position; with the SML the tiles
+    # keep their centres and the shift is recorded (an SML peak is not where contrast at fs peaks).
+    from fieldcal.measure.tiles import TileRules, _analyse
+    zd, bp, zt_bp = _sa_curves(1.0, "bp")
+    _, sml, zt_sml = _sa_curves(1.0, "sml")
+    rng = np.random.default_rng(31)
+    step = 4.0
+    z = np.arange(-200.0, 120.0, step)
+    offs = rng.uniform(-60, 20, 30)
+    B = np.array([np.interp(z - o, zd, bp, left=0, right=0) * (1 + 0.01 * rng.standard_normal(z.size))
+                  + 0.02 * bp.max() for o in offs])
+    S = np.array([np.interp(z - o, zd, sml, left=sml[0], right=sml[-1]) * (1 + 0.01 * rng.standard_normal(z.size))
+                  for o in offs])
+    cc = {"sml": S, "bandpass": B, "sum": np.full_like(S, 0.5), "sum2": np.full_like(S, 0.5 ** 2 * 1.01),
+          "sat": np.zeros_like(S)}
+    for measure, zt in (("bandpass", zt_bp), ("sml", zt_sml)):
+        res = _analyse(cc, z, fs_cyc_per_mm=FS, q=0.05, measure=measure, rules=TileRules())
+        ok = res["status"] == "ok"
+        assert ok.sum() >= 25, res["status"]
+        err = (res["z_best_um"][ok] - (offs[ok] + zt)) / step
+        skew = res["skew"]
+        assert skew["weight"] > 0.99 and skew["shift_um"] < -0.5 and skew["applied"] == (measure == "bandpass")
+        if measure == "bandpass":
+            assert abs(err.mean()) < 0.05 and np.sqrt(np.mean(err ** 2)) < 0.1
+        else:  # the centres: off the SML's sharpest position, by up to the recorded shift (tiles whose
+            # symmetric fit failed keep their local peak)
+            assert 0.05 < err.mean() <= -skew["shift_um"] / step + 0.03

@@ -76,7 +76,7 @@ def _hash_inputs(stack, out: dict):
 
 def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: str = "standard",
               z_ref_um: float | None = None, tile_px: int | None = None, measure: str = "sml", seed: int = 0,
-              quiet: bool = False) -> LensProfile:
+              quiet: bool = False, stage_repeatability_um: float | None = None) -> LensProfile:
     """Fit a lens profile from a chart stack.
 
     Parameters
@@ -96,6 +96,10 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
         Focus measure of the best-focus estimate.
     seed : int
         Seeds the samplers (reproducible profiles).
+    stage_repeatability_um : float, optional
+        1-sigma position repeatability of the stage (µm); default from the stage record in stack.json
+        (``capture.stage.repeatability_um`` or ``noise_um``), else 0. Its effect on the best focus joins the
+        band (docs/fitting.md "Stage errors").
 
     Returns
     -------
@@ -117,6 +121,7 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
         stack = Stack.open(stack)
     _check(fs_cyc_per_mm, q, effort, stack.pixel_pitch_um)
     stack.require_frames(MIN_FRAMES, "calibration (a through-focus curve needs points on both sides of its peak)")
+    stage_rep, stage_src = stage_repeatability(stack, stage_repeatability_um)
     t0 = time.perf_counter()
     digest: dict = {}
     hasher = threading.Thread(target=_hash_inputs, args=(stack, digest), daemon=True)
@@ -135,6 +140,7 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     geometry = ImageGeometry(w, h, float(stack.pixel_pitch_um))
     surf, tiles = fit_tile_surfaces(table, geometry, channels=tuple(stack.channels), effort=effort, seed=seed,
                                     quiet=quiet, source=str(stack.path))
+    surf.stage_sd_um = stage_sd_um(table, stage_rep)
     t_fit = time.perf_counter() - t0 - t_measure
     centre = surf.optical_centre_px()
     geo_c = geo_meas.recentred(tuple(float(v) for v in centre))
@@ -152,6 +158,9 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     scan_end = scan_end_rejections(table)
     if scan_end.get("warning"):
         status("warning: " + scan_end["warning"], quiet=quiet)
+    skew_note = curve_skew_warning(table, measure)
+    if skew_note:
+        status("warning: " + skew_note, quiet=quiet)
 
     z = np.sort(np.asarray(stack.z_um, dtype=float))
     steps = np.diff(z)
@@ -173,13 +182,18 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
                      "systematic_sd_um": SYSTEMATIC_STEP_FRACTION * float(np.median(steps)) if steps.size else 0.0,
                      "systematic": _systematic_record(surf),
                      # 1-sigma breathing systematic per channel, shared by the whole field (µm)
-                     "breathing_systematic_sd_um": breathing_systematic_sd_um(table)},
+                     "breathing_systematic_sd_um": breathing_systematic_sd_um(table),
+                     # stage repeatability (1 sigma, µm) and where it came from; its per-channel effect on the
+                     # best focus (in the band) is surfaces.stage_sd_um
+                     "stage_repeatability_um": stage_rep, "stage_repeatability_source": stage_src},
         z_ref_um=float(geo_c.z_ref_um),
         diagnostics={"tiles": counts, "n_tiles_ok": n_ok, "surface": surf.diagnostics,
                      "geometry": getattr(geom, "diagnostics", {}),
                      "tolerance": tol_note if tol is None else getattr(tol, "diagnostics", {}),
                      "max_image_displacement_px": geo_c.max_displacement_px(),
                      "scan_end": scan_end,
+                     # per channel: the pooled through-focus skew (docs/measurement.md "Asymmetric curves")
+                     "curve_skew": {"channels": dict(getattr(table, "skew", {}) or {}), "warning": skew_note},
                      "timing_s": {"measure": round(t_measure, 3), "fit": round(t_fit, 3),
                                   "total": round(t_total, 3)}},
         provenance={"created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -194,6 +208,59 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
            quiet=quiet)
     return profile
 
+
+
+def curve_skew_warning(table, measure: str) -> str | None:
+    """A warning when the SML's through-focus curves are skewed the same way over the field (evidence weight
+    > 0.5, shift > 0.1 step): on such a lens (spherical aberration) the SML peaks elsewhere than contrast at fs,
+    which the paper's best focus is; the band-pass measure gives that point."""
+    if measure != "sml":
+        return None
+    z = np.sort(np.asarray(table.z_um, dtype=float))
+    step = float(np.median(np.diff(z))) if z.size > 1 else math.nan
+    bad = [c for c, r in (getattr(table, "skew", {}) or {}).items()
+           if r.get("weight", 0.0) > 0.5 and abs(r.get("shift_um", 0.0)) > 0.1 * step]
+    if not bad:
+        return None
+    return (f"the through-focus curves of {', '.join(bad)} are skewed (sharpest position "
+            + ", ".join(f"{table.skew[c]['shift_um']:+.2f} µm" for c in bad)
+            + " from the centre; spherical aberration?): the SML's peak is then not where contrast at fs peaks. "
+            "Calibrate with --measure bandpass --effort standard for the paper's best focus")
+
+
+def stage_repeatability(stack, given: float | None) -> tuple[float, str]:
+    """The stage's 1-sigma repeatability (µm) and its source: the argument, else the stage record of
+    stack.json (``capture.stage.repeatability_um``, or a simulated stage's ``noise_um``), else 0."""
+    if given is not None:
+        if not (isinstance(given, (int, float)) and math.isfinite(given) and given >= 0):
+            raise ParameterError(f"stage repeatability must be a finite value >= 0 µm, got {given}",
+                                 field="--stage-repeatability-um", fix="e.g. --stage-repeatability-um 0.5")
+        return float(given), "given"
+    rec = ((stack.meta.get("capture") or {}).get("stage") or {}) if isinstance(stack.meta, dict) else {}
+    for key in ("repeatability_um", "noise_um"):
+        v = rec.get(key) if isinstance(rec, dict) else None
+        if isinstance(v, (int, float)) and math.isfinite(v) and v >= 0:
+            return float(v), f"stack.json capture.stage.{key}"
+    return 0.0, "none (no stage record; 0 assumed)"
+
+
+def stage_sd_um(table, repeatability_um: float) -> dict[str, float]:
+    """Per channel, the best-focus sd that independent per-frame stage-position noise causes (µm).
+
+    Each curve fit gives its ``stage_gain`` = sqrt(sum c_k^2), the best-focus change per unit of frame-position
+    noise (fieldcal.measure.throughfocus). The frames are shared by every tile, so the error is common to the
+    tiles that use the same frames: counted as a field-wide term, the RMS gain times the repeatability.
+    """
+    out = {}
+    gains = getattr(table, "stage_gain", None)
+    for c in dict.fromkeys(np.asarray(table.channel).tolist()):
+        if repeatability_um <= 0 or gains is None:
+            out[c] = 0.0
+            continue
+        g = np.asarray(gains, dtype=np.float64)[(np.asarray(table.channel) == c) & table.ok]
+        g = g[np.isfinite(g)]
+        out[c] = float(repeatability_um * np.sqrt(np.mean(g * g))) if g.size else float(repeatability_um)
+    return out
 
 
 def scan_end_rejections(table) -> dict:

@@ -29,6 +29,9 @@ def register(sub):
     p.add_argument("--measure", choices=["sml", "bandpass"], default="sml",
                    help="focus measure for best focus (default: sum-modified-Laplacian)")
     p.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
+    p.add_argument("--stage-repeatability-um", type=float, default=None, dest="stage_repeatability_um",
+                   help="stage position repeatability, 1 sigma in µm (default: the stage record in stack.json, "
+                        "else 0); recorded in the profile and included in the band")
     p.add_argument("--report", default=None, metavar="DIR", help="also write the HTML report into DIR")
     p.add_argument("--overwrite", action="store_true", help="replace an existing profile (and report files)")
     p.add_argument("--no-verify", action="store_true",
@@ -57,7 +60,8 @@ def run(args) -> int:
                      files=REPORT_FILES, field="--report")
     stack = Stack.open(stack_dir, verify=not args.no_verify)
     profile = calibrate(stack, fs_cyc_per_mm=args.fs, q=args.q, effort=args.effort, z_ref_um=args.z_ref_um,
-                        tile_px=args.tile_px, measure=args.measure, seed=args.seed, quiet=args.quiet)
+                        tile_px=args.tile_px, measure=args.measure, seed=args.seed, quiet=args.quiet,
+                        stage_repeatability_um=args.stage_repeatability_um)
     profile.save(out)
     print(f"wrote {out} (model {profile.surfaces.model.name}; "
           f"{profile.diagnostics.get('n_tiles_ok')} tiles; z_ref {profile.z_ref_um:g} µm)")

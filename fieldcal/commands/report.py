@@ -19,10 +19,15 @@ def register(sub):
 def run(args) -> int:
     from fieldcal.formats.atomic import check_output
     from fieldcal.profile.lens_profile import profile_files
-    from fieldcal.report.calibration_report import REPORT_FILES, write_report
+    from fieldcal.report.calibration_report import REPORT_FILES, self_check_summary, write_report
     check_output(args.out, inputs=profile_files(args.profile), overwrite=args.overwrite, kind="dir",
                  files=REPORT_FILES)
     from fieldcal.profile.lens_profile import load_profile_or_truth
     profile, _ = load_profile_or_truth(args.profile)
     print(f"wrote {write_report(profile, args.out, fs=args.fs, q=args.q)}")
+    line, warn = self_check_summary(profile)
+    if line:
+        print(f"self-check: {line}")
+    if warn:
+        print(f"warning: {warn}")
     return 0

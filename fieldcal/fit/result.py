@@ -53,6 +53,10 @@ class SurfaceFit:
     discrepancy: Discrepancy | None = None     # correlated residual term (docs/fitting.md "Discrepancy")
     tile_px: float | None = None               # tile side of the measurement (px), for the window systematic
     tile_correction_sd: float = 0.0            # sd of kappa in the tile-window correction kappa L s^2 / 24
+    # scale of the band's non-common field terms, learned by the leave-tiles-out check (fieldcal.fit.selfcheck)
+    band_scale: float = 1.0
+    # per channel, 1-sigma best-focus error shared by the field from stage-position noise (µm)
+    stage_sd_um: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.sample_model is None:
@@ -126,9 +130,16 @@ class SurfaceFit:
                 # surface, plus the variance the correlated discrepancy adds beyond independent tiles
                 z0, _ = self._eval(self.theta_map, xf[sl], yf[sl], channel)
                 xh, yh = self.geometry.normalise(xf[sl], yf[sl])
-                mean, extra = self._kriged(xh, yh, self._ch(channel))
-                extra = extra + self._window_var(xf[sl], yf[sl], channel)
-                z = z - z0 + mean + np.sqrt(extra) * xi
+                ci = self._ch(channel)
+                mean, extra = self._kriged(xh, yh, ci)
+                # the leave-tiles-out scale applies to what varies between tiles, not to the common mode
+                cs = self.discrepancy.common_sd
+                common = float(cs[ci]) ** 2 if cs is not None and ci < cs.size else 0.0
+                c = float(self.band_scale)
+                stage = float(self.stage_sd_um.get(channel, 0.0)) / self.z_scale_um
+                extra = (c * c * np.clip(extra - common, 0.0, None) + common + stage * stage
+                         + self._window_var(xf[sl], yf[sl], channel))
+                z = c * (z - z0) + mean + np.sqrt(extra) * xi
             yield sl, self.z_centre_um + self.z_scale_um * z
 
     def interval(self, x_px, y_px, channel: str, level: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
@@ -203,6 +214,10 @@ class SurfaceFit:
             d["discrepancy"] = jsonable(self.discrepancy.to_dict())
         if self.tile_px:
             d["tile_window"] = {"tile_px": float(self.tile_px), "kappa_sd": float(self.tile_correction_sd)}
+        if self.band_scale != 1.0:
+            d["band_scale"] = float(self.band_scale)
+        if self.stage_sd_um:
+            d["stage_sd_um"] = {str(k): float(v) for k, v in self.stage_sd_um.items()}
         if include_samples:
             d["samples"] = self.samples.tolist()
         return d
@@ -230,7 +245,10 @@ class SurfaceFit:
                        float(d["z_scale_um"]), theta, samples, list(d.get("candidates", [])),
                        dict(d.get("diagnostics", {})), str(d.get("effort", "standard")), smodel, disc,
                        (d.get("tile_window") or {}).get("tile_px"),
-                       float((d.get("tile_window") or {}).get("kappa_sd", 0.0)))
+                       float((d.get("tile_window") or {}).get("kappa_sd", 0.0)),
+                       # optional keys (absent in older profiles: their bands are unchanged)
+                       float(d.get("band_scale", 1.0)),
+                       {str(k): float(v) for k, v in (d.get("stage_sd_um") or {}).items()})
         except (KeyError, TypeError, ValueError) as e:
             raise SpecError(f"malformed surface fit ({e})", path=path, field="surface",
                             fix="regenerate the profile with fieldcal calibrate") from None

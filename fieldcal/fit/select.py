@@ -19,6 +19,7 @@ import numpy as np
 from ..progress import progress, status
 from .data import MIN_TILES_PER_CHANNEL, FitError, ImageGeometry, TileData
 from .discrepancy import fit_discrepancy
+from .selfcheck import predictive_check
 from .map import MAX_CONDITION, fit_map
 from .posterior import EFFORTS, MAX_SAMPLES, laplace, run_emcee
 from .result import SurfaceFit
@@ -248,6 +249,9 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     bma = {"members": [{"name": m.name, "weight": w / wsum} for m, _, w, _ in members],
            "sample_model": union.name, "dropped_unidentified": dropped}
     disc = fit_discrepancy(res.model, rows, res.theta, student_t_weights(res.model, rows, res.theta))
+    check = predictive_check(disc)
+    if check.warning:
+        status("warning: " + check.warning, quiet=quiet)
     t_total = time.perf_counter() - t0
     m = res.model
     diagnostics = {
@@ -259,6 +263,7 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         "error_scale": math.exp(float(m.split(res.theta)[2])),
         "student_t_nu": math.exp(float(m.split(res.theta)[4])),
         "posterior": post.diagnostics, "model_average": bma, "discrepancy": disc.diagnostics,
+        "self_check": check.to_dict(),
         "dropped_unlocated_decentre": unlocated, "time_map_s": t_map, "time_total_s": t_total,
     }
     if m.astig_rows:
@@ -266,7 +271,7 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     if post.diagnostics.get("converged") is False:
         status("warning: the surface posterior did not converge; use --effort thorough", quiet=quiet)
     return SurfaceFit(m, geometry, zc, zs, res.theta, samples, table, diagnostics, effort, sample_model=union,
-                      discrepancy=disc)
+                      discrepancy=disc, band_scale=check.band_scale)
 
 
 def student_t_weights(model: SurfaceModel, rows: Rows, theta: np.ndarray) -> np.ndarray:

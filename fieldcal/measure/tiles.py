@@ -29,7 +29,7 @@ from . import focus
 from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
 from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
                        lateral_colour_scales, register_step, registration_plane)
-from .throughfocus import CurveFit, CurveRules, analyse_curves
+from .throughfocus import CurveFit, CurveRules, analyse_curves, apply_pooled_skew
 
 # The SML window sum follows the image as m^2 (an image magnified by m has second derivatives / m^2 over a
 # window of m^2 pixels). On 12 simulated breathing lenses (F/2.5-F/3.9, exit pupils 20-50 mm) the exponent
@@ -109,6 +109,12 @@ class TileTable:
     # d z_best / d (SML window exponent) per row (µm per unit exponent; 0 without breathing, NaN when the
     # best focus is not the SML's or the row is rejected): the breathing systematic's sensitivity
     z_dgamma_um: np.ndarray | None = None
+    # best-focus sd per unit of independent per-frame stage-position noise (dimensionless; NaN when rejected):
+    # the stage-repeatability term of the band (docs/fitting.md "Stage errors")
+    stage_gain: np.ndarray | None = None
+    # per channel: the pooled skew correction applied to every tile's symmetric centre (shift_um, sd_um,
+    # weight; throughfocus.pooled_skew_shift)
+    skew: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.channel.size)
@@ -137,7 +143,9 @@ class TileTable:
                 "pixel_pitch_um": self.pixel_pitch_um,
                 **{k: col(getattr(self, k)) for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um",
                                                         "width_um", "peak", "status", "z_tan_um", "z_sag_um")},
-                **({"z_dgamma_um": col(self.z_dgamma_um)} if self.z_dgamma_um is not None else {})}
+                **({"z_dgamma_um": col(self.z_dgamma_um)} if self.z_dgamma_um is not None else {}),
+                **({"stage_gain": col(self.stage_gain)} if self.stage_gain is not None else {}),
+                **({"skew": self.skew} if self.skew else {})}
 
 
 # ---------------------------------------------------------------------------------------------- helpers
@@ -571,6 +579,8 @@ def _exponent_sensitivity(cc, geometry: GeometryMeasurements, channel: str, z: n
         out[ok] = 0.0
         return out
     fits = analyse_curves(z, cc["sml"][ok] * (m ** _DGAMMA)[None, :], "peak", None, q, rules.curve)
+    if rules.curve.skew:
+        fits = apply_pooled_skew(fits, apply=False)[0]
     for t, f in zip(ok, fits):
         if f.status == "ok":
             out[t] = (f.z_best_um - res["z_best_um"][t]) / _DGAMMA
@@ -585,7 +595,8 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
     ``fs / bp_scale[k]`` at the sensor), used to give the width at ``fs`` itself.
     """
     nt = channel_curves["sml"].shape[0]
-    res = {k: np.full(nt, np.nan) for k in ("z_best_um", "z_sigma_um", "width_um", "peak", "z_tan_um", "z_sag_um")}
+    res = {k: np.full(nt, np.nan) for k in ("z_best_um", "z_sigma_um", "width_um", "peak", "z_tan_um", "z_sag_um",
+                                            "stage_gain")}
     stat = np.full(nt, "ok", dtype=object)
     mean = channel_curves["sum"]
     var = np.maximum(channel_curves["sum2"] - mean * mean, 0.0)
@@ -603,10 +614,16 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             bp = [CurveFit.rejected("not_measured")] * todo.size
         main = bp if measure == "bandpass" else analyse_curves(z, channel_curves["sml"][todo], "peak", None, q,
                                                                 rules.curve)
+        if rules.curve.skew:
+            # One skew correction for the channel, applied where the curve is contrast at fs (the paper's best
+            # focus is where it peaks); an SML's peak is not that point on a skewed lens, so the SML keeps its
+            # centre and the shift is only recorded (docs/measurement.md "Asymmetric curves").
+            main, res["skew"] = apply_pooled_skew(main, apply=measure == "bandpass")
         for t, fb, fm in zip(todo, bp, main):
             stat[t] = fm.status
             if fm.status == "ok":
                 res["z_best_um"][t], res["z_sigma_um"][t], res["peak"][t] = fm.z_best_um, fm.z_sigma_um, fm.peak
+                res["stage_gain"][t] = fm.stage_gain
             if fb.status == "ok":
                 # the curve's peak saw the sensor frequency fs / s(z0); the width scales as 1 / frequency
                 s0 = 1.0 if bp_scale is None else float(np.interp(fb.z_best_um, z, bp_scale))
@@ -713,19 +730,22 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                 have[key] = (have[key] * a0 + curves[key] * a1) / (a0 + a1)
             have["area"] = a0 + a1
     cols: dict[str, list] = {k: [] for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um", "width_um",
-                                             "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um")}
+                                             "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um", "stage_gain")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
+    skew = {}
     for ch in stack.channels:
         cc = per_channel[ch]
         res = _analyse(cc, z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure, rules=rules,
                        bp_scale=bp_scale)
         cols["channel"].append(np.full(xs.size, ch))
+        if "skew" in res:
+            skew[ch] = {k: (v if isinstance(v, bool) else float(v)) for k, v in res["skew"].items()}
         cols["z_dgamma_um"].append(_exponent_sensitivity(cc, geometry, ch, z, res, measure, q, rules))
         xw, yw = _weighted_positions(cc, geometry, ch, measure, tile, z, res["z_best_um"])
         ok = res["status"] == "ok"  # rejected tiles keep their geometric centre
         cols["x_px"].append(np.where(ok, xw, xs))
         cols["y_px"].append(np.where(ok, yw, ys))
-        for key in ("z_best_um", "z_sigma_um", "width_um", "peak", "status", "z_tan_um", "z_sag_um"):
+        for key in ("z_best_um", "z_sigma_um", "width_um", "peak", "status", "z_tan_um", "z_sag_um", "stage_gain"):
             cols[key].append(res[key])
         curves_out["sml"].append(cc["sml"])
         curves_out["bandpass"].append(cc["bandpass"] if "bandpass" in cc else np.full_like(cc["sml"], np.nan))
@@ -737,7 +757,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                       q=float(q), measure=measure, image_size_px=(int(w), int(h)),
                       pixel_pitch_um=float(stack.pixel_pitch_um),
                       curves={k: np.concatenate(v, axis=0) for k, v in curves_out.items()},
-                      z_dgamma_um=cat["z_dgamma_um"])
+                      z_dgamma_um=cat["z_dgamma_um"], stage_gain=cat["stage_gain"], skew=skew)
     ok = int(table.ok.sum())
     status(f"measured {len(table)} tile curves ({ok} ok): {table.counts()}", quiet=quiet)
     return table, geometry

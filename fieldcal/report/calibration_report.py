@@ -241,11 +241,38 @@ def uncertainty_budget(profile: LensProfile, level: float = 0.9) -> list[dict]:
                      f"{level:.0%} half-width at corner (µm)": round(float(hw[1]), 3),
                      "breathing systematic sd (µm)": round(float(breathing.get(c, 0.0)), 3),
                      "common-mode sd (µm)": round(float(common.get(c, 0.0)), 3),
+                     "stage sd (µm)": round(float((getattr(surf, "stage_sd_um", None) or {}).get(c, 0.0)), 3),
+                     "band scale (held-out check)": round(float(getattr(surf, "band_scale", 1.0)), 2),
                      "misfit F": None if rec.get("misfit_F") is None else round(float(rec["misfit_F"]), 2),
                      "error scale": round(float((surf.diagnostics or {}).get("error_scale", float("nan"))), 2),
                      "posterior": post.get("method", "?") + ("" if post.get("converged", True) else " (NOT converged)"),
                      "effective sample size": post.get("effective_sample_size")})
     return rows
+
+
+def self_check_summary(profile) -> tuple[str, str | None]:
+    """One line on the profile's held-out-tile self-check (docs/fitting.md "Self-checked coverage") and its
+    warning (None when the coverage is in 0.8-0.97, or when an old profile has no self-check)."""
+    from fieldcal.fit.selfcheck import WARN_RANGE
+
+    if not isinstance(profile, LensProfile):
+        return "", None  # a simulated lens's truth: nothing was calibrated
+    sc = ((profile.diagnostics or {}).get("surface") or {}).get("self_check")
+    if not sc:
+        return "no self-check in this profile (written before it existed): recalibrate to get one", None
+    cov = sc.get("coverage")
+    if sc.get("status") != "ok" or cov is None or not np.isfinite(cov):
+        return f"self-check not run: {sc.get('status')}", None
+    line = (f"{100 * cov:.0f} % of {sc.get('n_tiles')} left-out tiles ({sc.get('n_blocks')} spatial blocks, each "
+            f"predicted from the others) fell inside their predicted {100 * sc.get('level', 0.9):.0f} % band "
+            f"(before the band scale: {100 * sc.get('coverage_unscaled', float('nan')):.0f} %; band scale "
+            f"{sc.get('band_scale', 1.0):.2f})")
+    lo, hi = WARN_RANGE
+    warn = None
+    if not (lo <= cov <= hi):
+        warn = sc.get("warning") or (f"self-checked coverage {cov:.2f} is outside {lo}-{hi}: the credible bands "
+                                     "may not hold for this lens")
+    return line, warn
 
 
 def write_report(profile: LensModel, out_dir: str | Path, *, fs: float | None = None,
@@ -277,6 +304,10 @@ def write_report(profile: LensModel, out_dir: str | Path, *, fs: float | None = 
     if calibrated is not None:
         parts.append("<h2>Uncertainty budget</h2><p>The 90 % band and what it is made of (docs/fitting.md "
                      "'Systematic').</p>" + _table(uncertainty_budget(calibrated)))
+        line, warn = self_check_summary(calibrated)
+        if line:
+            parts.append("<h2>Self-checked coverage</h2><p>" + html.escape(line) + "</p>"
+                         + (f"<p style='color:#b00'><b>warning:</b> {html.escape(warn)}</p>" if warn else ""))
         parts.append("<h2>Model selection</h2>" + _table(sel))
     parts.append("<h2>Diagnostics</h2><pre>" + html.escape(json.dumps(diag, indent=2, default=str)) + "</pre>")
     parts.append("<h2>Provenance</h2><pre>" + html.escape(json.dumps(prov, indent=2, default=str)) + "</pre>")

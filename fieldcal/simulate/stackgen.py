@@ -95,9 +95,28 @@ def _tiff_bytes(image: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def stage_positions_um(z_um, noise_um: float = 0.0, backlash_um: float = 0.0, scale_error: float = 0.0,
+                       seed: int = 0) -> np.ndarray:
+    """Where a stage commanded to ``z_um`` (in that order) really is: ``z (1 + scale_error)`` plus independent
+    position noise (repeatability, sd ``noise_um``) and backlash: the carriage lags by half the play in the
+    direction of the last move (as :class:`fieldcal.hardware.sim.SimStage`; the first move comes from below)."""
+    z = np.asarray(z_um, dtype=np.float64)
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x57A6E]))
+    moves = np.diff(np.concatenate([[-np.inf], z]))
+    direction = np.sign(moves)
+    for i in range(1, direction.size):  # no move: the play stays where it was
+        if direction[i] == 0:
+            direction[i] = direction[i - 1]
+    true = z * (1.0 + scale_error) - direction * 0.5 * backlash_um
+    if noise_um > 0:
+        true = true + rng.normal(0.0, noise_um, z.size)
+    return true
+
+
 def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart", seed: int = 0,
                    size: tuple[int, int] | None = None, progress: bool = True, noise: bool = True,
-                   overwrite: bool = False, level_ratio: float = 1.25, level_floor_px: float = 0.5):
+                   overwrite: bool = False, level_ratio: float = 1.25, level_floor_px: float = 0.5,
+                   stage_noise_um: float = 0.0, stage_backlash_um: float = 0.0, stage_scale_error: float = 0.0):
     """Render a through-focus stack of a scene through a simulated lens and write it with its truth.
 
     Parameters
@@ -122,6 +141,10 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
         Photon and read noise (False: the noise-free mean, still quantised).
     overwrite : bool
         Replace an existing stack folder (only one that holds a ``stack.json``).
+    stage_noise_um, stage_backlash_um, stage_scale_error : float
+        Stage errors (:func:`stage_positions_um`): frames are rendered where the stage really is and recorded
+        at the commanded ``z_um``; the stage record (``capture.stage`` in stack.json) states the
+        repeatability, the true positions go to truth.json (``z_true_um``).
 
     Returns
     -------
@@ -133,6 +156,7 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     z = _check_z(z_um)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ParameterError(f"seed must be a whole number >= 0, got {seed!r}", field="seed", fix="e.g. 0")
+    z_true = stage_positions_um(z, stage_noise_um, stage_backlash_um, stage_scale_error, seed)
     wh = _check_size(size)
     if wh is not None:
         spec = spec.with_sensor_size(*wh)
@@ -148,6 +172,9 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
                 lens=spec.name, chart=scene_name)
     if s.cfa:
         meta["cfa"] = s.cfa
+    if stage_noise_um or stage_backlash_um or stage_scale_error:
+        meta["capture"] = {"stage": {"kind": "simulated", "repeatability_um": float(stage_noise_um),
+                                     "backlash_um": float(stage_backlash_um)}}
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     if tmp.exists():
@@ -155,8 +182,8 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     try:
         writer = StackWriter.create(tmp, pixel_pitch_um=s.pixel_pitch_um, channels=list(spec.channel_names),
                                     **meta)
-        for zi in _progress(z, total=len(z), desc="simulate", quiet=not progress, unit="frame"):
-            writer.add_frame(renderer.render(float(zi), noise=noise), float(zi))
+        for zi, zt in _progress(zip(z, z_true), total=len(z), desc="simulate", quiet=not progress, unit="frame"):
+            writer.add_frame(renderer.render(float(zt), noise=noise), float(zi))
         atomic_write_bytes(tmp / "truth.tiff", _tiff_bytes(renderer.truth()))
         truth = {
             "format": TRUTH_FORMAT,
@@ -167,6 +194,10 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
             "scene": scene_name,
             "noise": bool(noise),
             "z_um": [float(v) for v in z],
+            **({"z_true_um": [float(v) for v in z_true],
+                "stage_errors": {"noise_um": float(stage_noise_um), "backlash_um": float(stage_backlash_um),
+                                 "scale_error": float(stage_scale_error)}}
+               if (stage_noise_um or stage_backlash_um or stage_scale_error) else {}),
             "truth_file": "truth.tiff",
             "truth_geometry": "z_ref_um, lateral colour included, in-focus PSF only, no noise",
             "renderer": renderer.settings(),
