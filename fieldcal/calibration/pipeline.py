@@ -10,6 +10,7 @@ computed in a background thread while the frames are measured).
 from __future__ import annotations
 
 import hashlib
+import math
 from dataclasses import replace
 import threading
 import time
@@ -234,7 +235,7 @@ def stage_repeatability(stack, given: float | None) -> tuple[float, str]:
     if given is not None:
         if not (isinstance(given, (int, float)) and math.isfinite(given) and given >= 0):
             raise ParameterError(f"stage repeatability must be a finite value >= 0 µm, got {given}",
-                                 field="--stage-repeatability-um", fix="e.g. --stage-repeatability-um 0.5")
+                                 field="stage_repeatability_um", fix="e.g. 0.5 (µm, 1 sigma)")
         return float(given), "given"
     rec = ((stack.meta.get("capture") or {}).get("stage") or {}) if isinstance(stack.meta, dict) else {}
     for key in ("repeatability_um", "noise_um"):
