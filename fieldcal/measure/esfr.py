@@ -94,9 +94,8 @@ def mtf50(freq: np.ndarray, mtf: np.ndarray) -> float:
 
 def _hamming(rel: np.ndarray, half: np.ndarray | float) -> np.ndarray:
     """Hamming weights at offsets ``rel`` for a window of half-length ``half`` (zero outside)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = 0.54 + 0.46 * np.cos(np.pi * rel / half)
-    return np.where(np.abs(rel) <= half, w, 0.0)
+    x = np.clip(rel / half, -1.0, 1.0)
+    return (0.54 + 0.46 * np.cos(np.pi * x)) * (np.abs(rel) <= half)
 
 
 def _row_centroids(d: np.ndarray, centre: np.ndarray, half: float) -> np.ndarray:
@@ -106,31 +105,41 @@ def _row_centroids(d: np.ndarray, centre: np.ndarray, half: float) -> np.ndarray
     w = d * _hamming(rel, half)
     s = w.sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return (w * x[None, :, None]).sum(axis=1) / s
+        return np.einsum("rwc,w->rc", w, x) / s
 
 
-def _fit_edge(rows: np.ndarray, cen: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
-    """Polynomial x(row) per channel, refitted once without centroids beyond 3 robust sigma; (coeffs, rms)."""
-    C = cen.shape[1]
-    coeffs = np.empty((degree + 1, C))
-    rms = np.empty(C)
+def _fit_edge(rows: np.ndarray, cen: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fit x(row) per channel; refit once without centroids beyond 3 robust sigma.
+
+    All channels in one least-squares solve (rows with a NaN centroid in any channel are dropped).
+    Returns ``(x_edge, slope, rms)``: the fitted edge column and dx/drow at every row (R x C), and the RMS of
+    the kept centroids about the fit (C,).
+    """
+    R, C = cen.shape
+    good = np.isfinite(cen).all(axis=1)
+    if good.sum() < degree + 2:
+        nan = np.full((R, C), np.nan)
+        return nan, nan.copy(), np.full(C, np.nan)
+    shift, scale = rows.mean(), max(rows.std(), 1.0)
+    t = (rows - shift) / scale  # conditioned abscissa
+    A = np.vander(t, degree + 1)  # columns t^deg .. t^0
+    coef = np.linalg.lstsq(A[good], cen[good], rcond=None)[0]
+    res = cen - A @ coef
+    rg = res[good]
+    mad = 1.4826 * np.median(np.abs(rg - np.median(rg, axis=0)), axis=0)
+    keep = good[:, None] & (np.abs(res) <= np.maximum(3.0 * mad, 0.05))
+    rms = np.full(C, np.nan)
     for c in range(C):
-        y = cen[:, c]
-        good = np.isfinite(y)
-        if good.sum() < degree + 2:
-            coeffs[:, c] = np.nan
-            rms[c] = np.nan
-            continue
-        p = np.polyfit(rows[good], y[good], degree)
-        res = y - np.polyval(p, rows)
-        mad = 1.4826 * np.nanmedian(np.abs(res[good] - np.nanmedian(res[good])))
-        keep = good & (np.abs(res) <= max(3.0 * mad, 0.05))
-        if keep.sum() >= degree + 2 and keep.sum() < good.sum():
-            p = np.polyfit(rows[keep], y[keep], degree)
-            res = y - np.polyval(p, rows)
-        coeffs[:, c] = p
-        rms[c] = float(np.sqrt(np.mean(res[keep] ** 2))) if keep.any() else np.nan
-    return coeffs, rms
+        kc = keep[:, c]
+        if degree + 2 <= kc.sum() < good.sum():
+            coef[:, c] = np.linalg.lstsq(A[kc], cen[kc, c], rcond=None)[0]
+            res[:, c] = cen[:, c] - A @ coef[:, c]
+        if kc.any():
+            rms[c] = float(np.sqrt(np.mean(res[kc, c] ** 2)))
+    powers = np.arange(degree, 0, -1)  # derivative of sum c_j t^p_j
+    dA = np.zeros_like(A)
+    dA[:, :degree] = powers[None, :] * t[:, None] ** (powers[None, :] - 1)
+    return A @ coef, (dA @ coef) / scale, rms
 
 
 def esfr_vertical(roi: np.ndarray, *, x_init: np.ndarray | None = None, half_width_px: float | None = None,
@@ -182,131 +191,116 @@ def esfr_vertical(roi: np.ndarray, *, x_init: np.ndarray | None = None, half_wid
         x_init = np.full(R, (W - 1) / 2.0)
     centre = np.repeat(np.asarray(x_init, dtype=np.float64).reshape(R, 1), C, axis=1)
 
-    # The step's sign (dark->light or light->dark) makes the derivative positive at the edge.
-    sign = np.sign(a[:, -max(1, W // 5):, :].mean(axis=(0, 1)) - a[:, :max(1, W // 5), :].mean(axis=(0, 1)))
+    # 1-2. Row centroids of the derivative (positive at the edge whichever way the step goes), line fit, again.
+    k5 = max(1, W // 5)
+    sign = np.sign(a[:, -k5:, :].mean(axis=(0, 1)) - a[:, :k5, :].mean(axis=(0, 1)))
     sign[sign == 0] = 1.0
     d = np.diff(a, axis=1) * sign
-    cen = _row_centroids(d, centre, hw)
-    coeffs, _ = _fit_edge(rows_all, cen, 1)
-    centre = np.stack([np.polyval(coeffs[:, c], rows_all) for c in range(C)], axis=1)
-    cen = _row_centroids(d, centre, hw)
-    coeffs, edge_rms = _fit_edge(rows_all, cen, poly_degree)
+    centre, _, _ = _fit_edge(rows_all, _row_centroids(d, centre, hw), 1)
+    if not np.isfinite(centre).all():
+        centre = np.repeat(np.asarray(x_init, dtype=np.float64).reshape(R, 1), C, axis=1)
+    x_edge, slope_r, edge_rms = _fit_edge(rows_all, _row_centroids(d, centre, hw), poly_degree)
 
-    # Whole phase cycles: rows * |slope| an integer (mean slope over channels), centred in the ROI.
-    slope0 = np.nanmean([np.polyval(np.polyder(coeffs[:, c]), (R - 1) / 2.0) for c in range(C)])
+    # 3. Whole phase cycles: rows * |slope| an integer (mean slope over channels), centred in the ROI.
+    slope0 = float(np.nanmean(slope_r[R // 2])) if np.isfinite(slope_r[R // 2]).any() else math.nan
     r0, r1 = 0, R
     if np.isfinite(slope0) and abs(slope0) > 1e-6:
         cycles = math.floor(R * abs(slope0))
         if cycles >= 1:
-            n = min(R, int(round(cycles / abs(slope0))))
+            n = min(R, int(math.ceil(cycles / abs(slope0) - 1e-9)))
             r0 = (R - n) // 2
             r1 = r0 + n
-    a = a[r0:r1]
-    rows = rows_all[r0:r1]
+    a, x_edge, slope_r = a[r0:r1], x_edge[r0:r1], slope_r[r0:r1]
     Ru = r1 - r0
 
+    # 4. Project onto the normal and bin (all channels in one bincount).
     nb_half = int(math.ceil(hw * oversample)) + 2
     nb = 2 * nb_half
     delta = 1.0 / oversample  # bin width along the normal (px)
     cols = np.arange(W, dtype=np.float64)
-    idx_all = np.empty((C, Ru, W), dtype=np.int64)
-    use = np.empty((C, Ru, W), dtype=bool)
-    dist_n = np.empty((C, Ru, W))
-    cos_t = np.empty(C)
-    for c in range(C):
-        p = coeffs[:, c]
-        if not np.all(np.isfinite(p)):
-            use[c] = False
-            idx_all[c] = 0
-            dist_n[c] = 0.0
-            cos_t[c] = np.nan
-            continue
-        xe = np.polyval(p, rows)
-        ct = 1.0 / np.sqrt(1.0 + np.polyval(np.polyder(p), rows) ** 2)  # cos of the local slant
-        dx = cols[None, :] - xe[:, None]
-        dn = dx * ct[:, None]  # distance along the edge normal
-        dist_n[c] = dn
-        use[c] = np.abs(dx) <= hw
-        idx_all[c] = np.floor(dn / delta).astype(np.int64) + nb_half + c * nb
-        cos_t[c] = float(np.mean(ct))
-    use &= (idx_all >= np.arange(C)[:, None, None] * nb) & (idx_all < (np.arange(C)[:, None, None] + 1) * nb)
     vals = np.moveaxis(a, 2, 0)  # C x R x W
-    sums = np.bincount(idx_all[use], weights=vals[use], minlength=C * nb).reshape(C, nb)
-    counts = np.bincount(idx_all[use], minlength=C * nb).reshape(C, nb)
+    fit_ok = np.isfinite(x_edge).all(axis=0)
+    xe = np.where(np.isfinite(x_edge), x_edge, 0.0).T  # C x R
+    ct = 1.0 / np.sqrt(1.0 + np.where(np.isfinite(slope_r), slope_r, 0.0).T ** 2)  # cos of the local slant
+    dx = cols[None, None, :] - xe[:, :, None]  # C x R x W
+    dist_n = dx * ct[:, :, None]  # distance along the edge normal
+    ib = np.floor(dist_n * oversample).astype(np.int64) + nb_half
+    use = (np.abs(dx) <= hw) & (ib >= 0) & (ib < nb) & fit_ok[:, None, None]
+    ib += (np.arange(C) * nb)[:, None, None]
+    sums = np.bincount(ib[use], weights=vals[use], minlength=C * nb).reshape(C, nb)
+    counts = np.bincount(ib[use], minlength=C * nb).reshape(C, nb)
 
     centres_n = (np.arange(nb) - nb_half + 0.5) * delta
-    esf = np.full((C, nb), np.nan)
-    empty = np.zeros(C, dtype=int)
-    for c in range(C):
-        filled = counts[c] > 0
-        if filled.sum() < 8:
-            continue
-        lo_i, hi_i = np.flatnonzero(filled)[[0, -1]]
-        inner = slice(lo_i, hi_i + 1)
-        e = np.where(filled, sums[c] / np.maximum(counts[c], 1), np.nan)[inner]
-        ok = np.isfinite(e)
-        empty[c] = int((~ok).sum())
-        if empty[c]:
-            x = np.arange(e.size)
-            e = np.interp(x, x[ok], e[ok])
-        esf[c, inner] = e
-
     nfft_min = 256 * oversample  # spectrum sampled every 1/256 cy/px
-    mtf_rows, freq, mtf50s, qual = [], None, [], []
+    clipped = np.mean((a >= 0.995 * white) | (a <= 0.0), axis=(0, 1))
+    esf_out = np.full((C, nb), np.nan)
+    mtf_rows, mtf50s, qual = [], [], []
+    freq = np.fft.rfftfreq(nfft_min, d=delta)
     x_mid = np.full(C, np.nan)
     y_mid = np.full(C, (R - 1) / 2.0)
     angle = np.full(C, np.nan)
-    clipped = np.mean((a >= 0.995 * white) | (a <= 0.0), axis=(0, 1))
+    rm = (R - 1) // 2 - r0  # the middle row, in the trimmed rows
     for c in range(C):
-        e = esf[c][np.isfinite(esf[c])]
-        p = coeffs[:, c]
-        if e.size < 8 or not np.all(np.isfinite(p)):
-            nf = nfft_min // 2 + 1
-            freq = np.fft.rfftfreq(max(nfft_min, 8), d=delta) if freq is None else freq
-            mtf_rows.append(np.full(freq.size if freq is not None else nf, np.nan))
+        filled = counts[c] > 0
+        if not fit_ok[c] or filled.sum() < 8:
+            mtf_rows.append(np.full(freq.size, np.nan))
             mtf50s.append(math.nan)
             qual.append(EdgeQuality(False, "no edge found in the region", math.nan, math.nan, math.nan, math.nan,
-                                    math.nan, float(clipped[c]), Ru, hw, math.nan, math.nan, math.nan,
-                                    int(nb)))
+                                    math.nan, float(clipped[c]), Ru, hw, math.nan, math.nan, math.nan, int(nb)))
             continue
-        lsf = (e[2:] - e[:-2]) * 0.5 * sign[c]
+        nz = np.flatnonzero(filled)
+        inner = slice(nz[0], nz[-1] + 1)
+        e = sums[c, inner] / np.maximum(counts[c, inner], 1)
+        hole = ~filled[inner]
+        if hole.any():  # empty bins (too few rows for the slant): linear interpolation
+            x = np.arange(e.size)
+            e[hole] = np.interp(x[hole], x[~hole], e[~hole])
+        esf_out[c, inner] = e
+
+        # 5. LSF, Hamming window centred on its centroid, |FFT| normalised at DC.
+        lsf = (e[2:] - e[:-2]) * (0.5 * sign[c])
         n = lsf.size
         idx = np.arange(n, dtype=np.float64)
         pos = np.clip(lsf, 0.0, None)
-        mid = float((idx * pos).sum() / pos.sum()) if pos.sum() > 0 else (n - 1) / 2.0
+        tot = float(pos.sum())
+        mid = float(idx @ pos / tot) if tot > 0 else (n - 1) / 2.0
         half = max(mid, n - 1 - mid, 1.0)
         if window_half_px is not None:
             half = min(half, max(float(window_half_px) / delta, 4.0))
         win = _hamming(idx - mid, half)
         nfft = max(nfft_min, 1 << int(math.ceil(math.log2(n))))
         spec = np.abs(np.fft.rfft(lsf * win, n=nfft))
-        freq = np.fft.rfftfreq(nfft, d=delta)
+        f = np.fft.rfftfreq(nfft, d=delta)
         m = spec / spec[0] if spec[0] > 0 else np.full_like(spec, np.nan)
-        corr = np.sinc(2.0 * freq * delta)
+        # 6. Transfer of the central difference (and of the binning box).
+        corr = np.sinc(2.0 * f * delta)
         if correct_binning:
-            corr = corr * np.sinc(freq * delta)
+            corr = corr * np.sinc(f * delta)
         m = m / np.maximum(corr, 0.1)  # sfrmat3 also caps the correction at x10
+        if nfft != nfft_min:
+            m = np.interp(freq, f, m)
         mtf_rows.append(m)
         mtf50s.append(mtf50(freq, m))
 
         # Quality.
         k = max(2, e.size // 5)
-        lo, hi = float(np.mean(e[:k])), float(np.mean(e[-k:]))
+        lo, hi = float(e[:k].mean()), float(e[-k:].mean())
         if sign[c] < 0:
             lo, hi = hi, lo
         step = hi - lo
         contrast = step / (hi + lo) if hi + lo > 0 else math.nan
-        resid = vals[c][use[c]] - np.interp(dist_n[c][use[c]], centres_n[np.isfinite(esf[c])], e)
+        uc = use[c]
+        resid = vals[c][uc] - np.interp(dist_n[c][uc], centres_n[inner], e)
         noise = float(1.4826 * np.median(np.abs(resid - np.median(resid)))) if resid.size else math.nan
         snr = step / noise if noise > 0 else math.inf
-        tot = pos.sum()
         kt = max(1, int(0.15 * n))
-        # Signed sums: noise averages out, a plateau that is still rising (blur wider than the ROI) does not.
-        tail = float(max(abs(lsf[:kt].sum()), abs(lsf[-kt:].sum())) / lsf.sum()) if lsf.sum() > 0 else math.nan
-        width = float(math.sqrt(max(((idx - mid) ** 2 * pos).sum() / tot, 0.0)) * delta) if tot > 0 else math.nan
-        slope = float(np.polyval(np.polyder(p), (R - 1) / 2.0))
+        lsum = float(lsf.sum())
+        # signed sums: noise averages out, a plateau that is still rising (blur wider than the ROI) does not
+        tail = max(abs(float(lsf[:kt].sum())), abs(float(lsf[-kt:].sum()))) / lsum if lsum > 0 else math.nan
+        width = math.sqrt(max(float(((idx - mid) ** 2) @ pos) / tot, 0.0)) * delta if tot > 0 else math.nan
+        slope = float(slope_r[rm, c])
         slant = math.degrees(math.atan(abs(slope)))
-        x_mid[c] = float(np.polyval(p, (R - 1) / 2.0))
+        x_mid[c] = float(x_edge[rm, c])
         angle[c] = math.degrees(math.atan2(1.0, slope)) % 180.0  # direction (dx, dy) = (slope, 1)
         reason = "ok"
         if not slant_range_deg[0] <= slant <= slant_range_deg[1]:
@@ -321,14 +315,13 @@ def esfr_vertical(roi: np.ndarray, *, x_init: np.ndarray | None = None, half_wid
             reason = f"edge blur wider than the region ({100 * tail:.0f} % of the LSF in its outer tails)"
         elif not edge_rms[c] < 1.0:
             reason = f"edge not straight or too noisy to locate (row centroids scatter {edge_rms[c]:.2f} px)"
-        elif Ru * abs(slope) < 1.0:
+        elif Ru * abs(slope) < 0.999:
             reason = "fewer rows than one phase cycle (bins unevenly sampled)"
         qual.append(EdgeQuality(reason == "ok", reason, slant, contrast, step, noise, snr, float(clipped[c]), Ru,
-                                hw, width, tail, float(edge_rms[c]), int(empty[c])))
-    L = max(r.size for r in mtf_rows)
-    mtf = np.stack([np.pad(r, (0, L - r.size), constant_values=np.nan) for r in mtf_rows])
-    return SfrResult(freq[:L], mtf, np.asarray(mtf50s), x_mid, y_mid, angle, qual,
-                     esf if keep_esf else None, delta)
+                                hw, width, tail, float(edge_rms[c]), int(hole.sum())))
+    y_mid[:] = (R - 1) // 2
+    return SfrResult(freq, np.stack(mtf_rows), np.asarray(mtf50s), x_mid, y_mid, angle, qual,
+                     esf_out if keep_esf else None, delta)
 
 
 def esfr_roi(roi: np.ndarray, *, vertical: bool = True, line_init: np.ndarray | None = None,
