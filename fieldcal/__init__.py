@@ -23,6 +23,7 @@ _LAZY = {
     "LensProfile": ("fieldcal.profile.lens_profile", "LensProfile"),
     "TruthProfile": ("fieldcal.simulate.truth", "TruthProfile"),
     "calibrate": ("fieldcal.calibration.pipeline", "calibrate"),
+    "measure_mtf": ("fieldcal.measure.mtf", "measure_mtf"),
     "FieldcalError": ("fieldcal.errors", "FieldcalError"),
 }
 

@@ -14,7 +14,8 @@ import sys
 from . import __version__
 from .errors import FieldcalError
 
-COMMANDS = ["demo", "targets", "simulate", "calibrate", "plan", "capture", "composite", "report", "validate", "lens"]
+COMMANDS = ["demo", "targets", "simulate", "calibrate", "mtf", "plan", "capture", "composite", "report", "validate",
+            "lens"]
 
 
 class _Parser(argparse.ArgumentParser):

@@ -48,7 +48,7 @@ class EdgeQuality:
     clipped_fraction: float  # fraction of ROI pixels at or beyond the black/white levels
     rows: int  # rows used (after phase trimming)
     half_width_px: float  # pixels within this distance of the edge (across the rows) were used
-    lsf_width_px: float  # RMS width of the LSF along the normal
+    rise_px: float  # 10-90 % rise distance of the ESF along the normal (robust to noise, unlike an LSF width)
     tail_fraction: float  # LSF area in the outer 15 % of the window at either end (blur wider than the ROI)
     edge_rms_px: float  # RMS of the row centroids about the fitted edge (straightness / noise)
     empty_bins: int  # ESF bins with no sample (filled by interpolation)
@@ -140,6 +140,22 @@ def _fit_edge(rows: np.ndarray, cen: np.ndarray, degree: int) -> tuple[np.ndarra
     dA = np.zeros_like(A)
     dA[:, :degree] = powers[None, :] * t[:, None] ** (powers[None, :] - 1)
     return A @ coef, (dA @ coef) / scale, rms
+
+
+def _rise_10_90(esf: np.ndarray, sign: float, centre: float) -> float:
+    """10-90 % rise of a binned ESF (in bins), found outward from ``centre`` (bin index)."""
+    k = max(2, esf.size // 5)
+    e = esf * sign
+    lo, hi = float(e[:k].mean()), float(e[-k:].mean())
+    if not hi > lo:
+        return math.nan
+    en = (e - lo) / (hi - lo)
+    c = int(np.clip(round(centre), 0, en.size - 1))
+    above = np.flatnonzero(en[c:] >= 0.9)
+    below = np.flatnonzero(en[: c + 1] <= 0.1)
+    if above.size == 0 or below.size == 0:
+        return math.nan
+    return float(c + above[0] - below[-1])
 
 
 def esfr_vertical(roi: np.ndarray, *, x_init: np.ndarray | None = None, half_width_px: float | None = None,
@@ -297,7 +313,7 @@ def esfr_vertical(roi: np.ndarray, *, x_init: np.ndarray | None = None, half_wid
         lsum = float(lsf.sum())
         # signed sums: noise averages out, a plateau that is still rising (blur wider than the ROI) does not
         tail = max(abs(float(lsf[:kt].sum())), abs(float(lsf[-kt:].sum()))) / lsum if lsum > 0 else math.nan
-        width = math.sqrt(max(float(((idx - mid) ** 2) @ pos) / tot, 0.0)) * delta if tot > 0 else math.nan
+        width = _rise_10_90(e, sign[c], mid + 1.0) * delta
         slope = float(slope_r[rm, c])
         slant = math.degrees(math.atan(abs(slope)))
         x_mid[c] = float(x_edge[rm, c])

@@ -3,13 +3,12 @@
 * :func:`link_tracks` — the same physical edge in successive frames (z order), matched by position and
   direction (Hungarian assignment, so two nearby edges never swap).
 * :func:`through_focus_peak` — best focus as the maximum of MTF(fs) over z, to a fraction of the scan step:
-  a least-squares cubic (quadratic when fewer samples) over the samples around the sampled maximum, in
-  normalised ``u = (z - z_k) / step``; a cubic allows a skewed peak, so no symmetry is assumed. Its
-  uncertainty is the delta-method standard deviation of the root of p'(u) from the fit's covariance (the
-  residual scatter, or the given per-sample sigma when that is larger).
-* :func:`tolerance_half_widths` — the measured depth of field: the distances from best focus to where
-  MTF(fs) crosses ``(1 - q) * peak`` on each side, from a cubic spline through the samples (root by Brent's
-  method in the bracketing interval); each side separately, so an asymmetric curve keeps its asymmetry.
+  the maximum of a cubic smoothing spline through the samples (interpolating when the values are exact,
+  ``s = n sigma^2`` for a known noise, else generalised cross-validation). A spline follows a skewed peak, so
+  no symmetry is assumed. Its uncertainty is the delta-method sigma of a local quadratic's vertex.
+* :func:`tolerance_half_widths` — the measured depth of field: the distances from best focus to where the
+  same smooth curve crosses ``(1 - q) * peak`` on each side (Brent's root in the bracketing sample interval);
+  each side separately, so an asymmetric curve keeps its asymmetry.
 """
 
 from __future__ import annotations
@@ -54,107 +53,125 @@ def link_tracks(frame: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, angle_deg
 
 @dataclass(frozen=True)
 class FocusPeak:
-    """Best focus of one through-focus curve."""
+    """Best focus of one through-focus curve, and the smooth curve it was read from."""
 
     z_um: float
-    sigma_um: float  # 1-sigma uncertainty of z_um
-    peak: float  # the curve's value at z_um (the fitted maximum)
-    n_used: int  # samples in the local fit
+    sigma_um: float  # 1-sigma uncertainty of z_um (noise only; see docs/measurement.md for the model error)
+    peak: float  # the smoothed curve's value at z_um
+    n_used: int  # samples in the curve
     ok: bool
     reason: str
+    curve: object = None  # callable z -> smoothed MTF(fs) (a scipy spline), None when not ok
 
 
-def through_focus_peak(z_um, values, *, half_window: int = 3, sigma=None) -> FocusPeak:
-    """Sub-step maximum of a sampled through-focus curve (no symmetry assumed).
-
-    Parameters
-    ----------
-    z_um, values : 1-D arrays (any order; NaN samples ignored).
-    half_window : samples on each side of the sampled maximum used in the local fit (3 -> up to 7 samples).
-    sigma : float or array, optional
-        1-sigma noise of the values; the uncertainty uses the larger of it and the fit's residual scatter.
-    """
+def _clean(z_um, values, sigma):
     z = np.asarray(z_um, dtype=np.float64)
     v = np.asarray(values, dtype=np.float64)
     if z.shape != v.shape or z.ndim != 1:
         raise ParameterError("z and values must be 1-D arrays of the same length", field="values",
                              fix="give one MTF(fs) value per z position")
     good = np.isfinite(z) & np.isfinite(v)
-    o = np.argsort(z[good])
-    z, v = z[good][o], v[good][o]
-    sig = None if sigma is None else np.broadcast_to(np.asarray(sigma, dtype=np.float64), good.shape)[good][o]
-    if z.size < 3:
-        return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, "fewer than 3 samples")
+    o = np.argsort(z[good], kind="stable")
+    sig = None if sigma is None else np.broadcast_to(np.asarray(sigma, dtype=np.float64), z.shape)[good][o]
+    return z[good][o], v[good][o], sig
+
+
+def smooth_curve(z: np.ndarray, v: np.ndarray, sigma: np.ndarray | None = None):
+    """Cubic smoothing spline of a sampled curve: ``s = n sigma^2`` when the noise is known (an interpolating
+    spline for sigma = 0), else the smoothing chosen by generalised cross-validation."""
+    from scipy.interpolate import UnivariateSpline, make_smoothing_spline
+    if sigma is not None:
+        s = float(np.sum(np.asarray(sigma) ** 2))
+        return UnivariateSpline(z, v, k=3, s=s)
+    try:
+        return make_smoothing_spline(z, v)
+    except (ValueError, np.linalg.LinAlgError):  # degenerate GCV (e.g. exactly polynomial data): interpolate
+        return UnivariateSpline(z, v, k=3, s=0.0)
+
+
+def _spline_peak(spl, z: np.ndarray, k: int) -> float:
+    """Maximum of ``spl`` within one sample of index ``k`` (fine grid + parabolic refinement); the scan's
+    maximum if the spline's peak is not in that bracket."""
+    zz = np.linspace(z[k - 1], z[k + 1], 201)
+    sv = spl(zz)
+    j = int(np.argmax(sv))
+    if j in (0, zz.size - 1):
+        zz = np.linspace(z[0], z[-1], 40 * z.size)
+        sv = spl(zz)
+        j = int(np.argmax(sv))
+    if 0 < j < zz.size - 1:
+        den = sv[j - 1] - 2 * sv[j] + sv[j + 1]
+        if den < 0:
+            return float(zz[j] + 0.5 * (sv[j - 1] - sv[j + 1]) / den * (zz[1] - zz[0]))
+    return float(zz[j])
+
+
+def through_focus_peak(z_um, values, *, sigma=None, n_boot: int = 24, seed: int = 0) -> FocusPeak:
+    """Sub-step maximum of a sampled through-focus curve; no symmetry assumed.
+
+    The curve is a cubic smoothing spline through the samples (:func:`smooth_curve`); best focus is its
+    maximum near the highest sample. The uncertainty is a parametric bootstrap: ``n_boot`` copies of the
+    smoothed curve plus noise of the given ``sigma`` (else the spline's residual scatter), each smoothed and
+    maximised the same way; their standard deviation. It covers noise only: a curve shape the spline cannot
+    follow adds a bias it does not see (docs/measurement.md).
+
+    Parameters
+    ----------
+    z_um, values : 1-D arrays (any order; NaN samples ignored).
+    sigma : float or array, optional
+        1-sigma noise of the values (0 for exact values); unknown -> smoothing by cross-validation.
+    n_boot, seed : bootstrap size and seed (deterministic).
+    """
+    z, v, sig = _clean(z_um, values, sigma)
+    if z.size < 5:
+        return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, "fewer than 5 samples")
     k = int(np.argmax(v))
     if k == 0 or k == z.size - 1:
-        return FocusPeak(float(z[k]), math.nan, float(v[k]), 1, False, "maximum at the end of the scan")
-    lo, hi = max(0, k - half_window), min(z.size, k + half_window + 1)
-    zz, vv = z[lo:hi], v[lo:hi]
-    step = float(np.median(np.diff(z)))
-    u = (zz - z[k]) / step
-    n = u.size
-    deg = 3 if n >= 5 else 2
-    A = np.vander(u, deg + 1)  # columns u^deg ... u^0
-    coef, *_ = np.linalg.lstsq(A, vv, rcond=None)
-    dof = n - (deg + 1)
-    res = vv - A @ coef
-    s2 = float(res @ res / dof) if dof > 0 else 0.0
-    if sig is not None:
-        s2 = max(s2, float(np.mean(sig[lo:hi] ** 2)))
-    # maximum of the polynomial between the neighbours of the sampled maximum
-    ul, ur = (z[k - 1] - z[k]) / step, (z[k + 1] - z[k]) / step
-    d1 = np.polyder(coef)
-    cands = [r.real for r in np.roots(d1) if abs(r.imag) < 1e-12 and ul <= r.real <= ur] if d1.size > 1 else []
-    cands += [ul, 0.0, ur]
-    ustar = max(cands, key=lambda t: np.polyval(coef, t))
-    d2 = np.polyval(np.polyder(d1), ustar)
-    if not d2 < 0:
-        return FocusPeak(float(z[k]), math.nan, float(v[k]), n, False, "no interior maximum in the local fit")
-    # delta method: g = d u* / d coef = -(d p'(u*) / d coef) / p''(u*)
-    dpd = np.array([(deg - j) * ustar ** (deg - j - 1) if deg - j >= 1 else 0.0 for j in range(deg + 1)])
-    g = -dpd / d2
-    try:
-        cov = s2 * np.linalg.inv(A.T @ A)
-        su = float(math.sqrt(max(g @ cov @ g, 0.0)))
-    except np.linalg.LinAlgError:
-        su = math.nan
-    return FocusPeak(float(z[k] + ustar * step), su * abs(step), float(np.polyval(coef, ustar)), n, True, "ok")
+        return FocusPeak(float(z[k]), math.nan, float(v[k]), int(z.size), False, "maximum at the end of the scan")
+    spl = smooth_curve(z, v, sig)
+    zbest = _spline_peak(spl, z, k)
+    peak = float(spl(zbest))
+    fit = spl(z)
+    resid = v - fit
+    s = sig if sig is not None else np.full(z.size, math.sqrt(float(resid @ resid) / max(z.size - 4, 1)))
+    sz = 0.0
+    if n_boot > 1 and np.any(s > 0):
+        rng = np.random.default_rng(seed)
+        zs = []
+        for _ in range(n_boot):
+            vb = fit + rng.normal(0.0, 1.0, z.size) * s
+            kb = int(np.clip(np.argmax(vb), 1, z.size - 2))
+            zs.append(_spline_peak(smooth_curve(z, vb, sig), z, kb))
+        sz = float(np.std(zs, ddof=1))
+    return FocusPeak(zbest, sz, peak, int(z.size), True, "ok", spl)
 
 
 def tolerance_half_widths(z_um, values, q: float, peak: FocusPeak) -> tuple[float, float]:
-    """(left, right) distances (µm) from ``peak.z_um`` to where the curve falls to ``(1 - q) * peak.peak``.
+    """(left, right) distances (µm) from ``peak.z_um`` to where the smoothed curve falls to
+    ``(1 - q) * peak.peak`` (Brent's root in the first sample interval where the curve is below).
 
     NaN on a side where the scan ends before the curve falls that far.
     """
-    from scipy.interpolate import CubicSpline
     from scipy.optimize import brentq
 
     if not 0.0 < q < 1.0:
         raise ParameterError(f"q = {q} outside (0, 1)", field="q", fix="give the MTF loss as a fraction, e.g. 0.05")
-    z = np.asarray(z_um, dtype=np.float64)
-    v = np.asarray(values, dtype=np.float64)
-    good = np.isfinite(z) & np.isfinite(v)
-    o = np.argsort(z[good])
-    z, v = z[good][o], v[good][o]
-    if not peak.ok or z.size < 4 or not math.isfinite(peak.peak):
+    z, v, _ = _clean(z_um, values, None)
+    if not peak.ok or peak.curve is None:
         return math.nan, math.nan
+    spl = peak.curve
     thr = (1.0 - q) * peak.peak
-    spl = CubicSpline(z, v, bc_type="not-a-knot")
     zp = peak.z_um
     out = []
     for direction in (-1, 1):
-        side = np.flatnonzero(z < zp)[::-1] if direction < 0 else np.flatnonzero(z > zp)
+        side = z[z < zp][::-1] if direction < 0 else z[z > zp]
         prev, found = zp, math.nan
-        for j in side:
-            if v[j] < thr:
-                a, b = (prev, z[j])
-                fa, fb = spl(a) - thr, spl(b) - thr
-                if fa > 0 > fb or fa < 0 < fb:
-                    found = brentq(lambda t: float(spl(t) - thr), min(a, b), max(a, b))
-                else:  # the spline does not bracket (noise at the peak): linear between the samples
-                    found = float(b)
+        for zj in side:
+            if spl(zj) < thr:
+                a, b = min(prev, zj), max(prev, zj)
+                found = brentq(lambda t: float(spl(t) - thr), a, b)
                 break
-            prev = z[j]
+            prev = zj
         out.append(abs(found - zp) if math.isfinite(found) else math.nan)
     return out[0], out[1]
 
@@ -177,9 +194,9 @@ class TrackFocus:
         return self.tol_left_um + self.tol_right_um
 
 
-def analyse_track(z_um, mtf_fs, q: float = 0.05, *, half_window: int = 3, sigma=None) -> TrackFocus:
+def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
     """Best focus (sub-step peak of MTF(fs)) and the tolerance half-widths of one edge track."""
-    pk = through_focus_peak(z_um, mtf_fs, half_window=half_window, sigma=sigma)
+    pk = through_focus_peak(z_um, mtf_fs, sigma=sigma)
     left, right = tolerance_half_widths(z_um, mtf_fs, q, pk)
     reason = pk.reason
     if pk.ok and not (math.isfinite(left) and math.isfinite(right)):

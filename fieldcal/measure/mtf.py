@@ -148,11 +148,14 @@ def measure_frame(frame: np.ndarray, *, channels=("Y",), cfa: str | None = None,
     if centre_px is None:
         centre_px = ((W - 1) / 2.0, (H - 1) / 2.0)
     cands = find_edges(planes.mean(axis=2), **(detect or {}))
+    esfr = dict(esfr or {})
+    if cfa is not None:  # a plane pixel is 2 sensor pixels: 8 bins per plane pixel keep 1/4-sensor-pixel bins
+        esfr.setdefault("oversample", 8)
     records, detections = [], []
     for ci, cand in enumerate(cands):
         y0, y1, x0, x1 = cand.roi
         res = esfr_roi(planes[y0:y1, x0:x1, :], vertical=cand.vertical, line_init=cand.line_init,
-                       half_width_px=cand.half_width_px, **(esfr or {}))
+                       half_width_px=cand.half_width_px, **esfr)
         det = None
         for k, (ch, label, stride, ox, oy) in enumerate(info):
             q = res.quality[k]
@@ -162,9 +165,10 @@ def measure_frame(frame: np.ndarray, *, channels=("Y",), cfa: str | None = None,
             xf, yf = stride * (x0 + xm) + ox, stride * (y0 + ym) + oy
             ang = float(res.angle_deg[k]) if np.isfinite(res.angle_deg[k]) else cand.angle_deg
             orient, phi = classify_orientation(xf, yf, ang, centre_px)
-            m = np.interp(grid * stride, res.freq_cy_per_px, res.mtf[k], right=np.nan)
+            # 5 decimals: far below the measurement noise, and the file is half the size
+            m = np.round(np.interp(grid * stride, res.freq_cy_per_px, res.mtf[k], right=np.nan), 5)
             qd = q.to_dict()
-            for key in ("half_width_px", "lsf_width_px", "edge_rms_px"):
+            for key in ("half_width_px", "rise_px", "edge_rms_px"):
                 qd[key] = qd[key] * stride
             r_px = math.hypot(xf - centre_px[0], yf - centre_px[1])
             qd["radial_angle_deg"] = phi
