@@ -76,6 +76,14 @@ def _clean(z_um, values, sigma):
     return z[good][o], v[good][o], sig
 
 
+def noise_from_differences(v: np.ndarray) -> float:
+    """Sample noise of a smooth curve: robust RMS (MAD) of its third differences / sqrt(20)."""
+    if v.size < 6:
+        return 0.0
+    d3 = np.diff(v, 3)
+    return float(1.4826 * np.median(np.abs(d3 - np.median(d3))) / math.sqrt(20.0))
+
+
 def smooth_curve(z: np.ndarray, v: np.ndarray, sigma: np.ndarray | None = None):
     """Cubic smoothing spline of a sampled curve: ``s = n sigma^2`` when the noise is known (an interpolating
     spline for sigma = 0), else the smoothing chosen by generalised cross-validation."""
@@ -128,12 +136,13 @@ def through_focus_peak(z_um, values, *, sigma=None, n_boot: int = 24, seed: int 
     k = int(np.argmax(v))
     if k == 0 or k == z.size - 1:
         return FocusPeak(float(z[k]), math.nan, float(v[k]), int(z.size), False, "maximum at the end of the scan")
+    if sig is None:  # noise unknown: from the third differences (blind to a curve's slope and curvature)
+        sig = np.full(z.size, noise_from_differences(v))
     spl = smooth_curve(z, v, sig)
     zbest = _spline_peak(spl, z, k)
     peak = float(spl(zbest))
     fit = spl(z)
-    resid = v - fit
-    s = sig if sig is not None else np.full(z.size, math.sqrt(float(resid @ resid) / max(z.size - 4, 1)))
+    s = sig
     sz = 0.0
     if n_boot > 1 and np.any(s > 0):
         rng = np.random.default_rng(seed)
