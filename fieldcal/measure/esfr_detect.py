@@ -75,6 +75,24 @@ def _free_distance(mask_v: np.ndarray, rows: np.ndarray, xs: np.ndarray, reach: 
     return best
 
 
+def _merge_collinear(poly: np.ndarray, tol_px: float) -> np.ndarray:
+    """Drop polygon vertices lying within ``tol_px`` of the line through their neighbours (approxPolyDP
+    sometimes splits one straight side into two at a spurious vertex)."""
+    pts = [p for p in poly]
+    changed = True
+    while changed and len(pts) > 3:
+        changed = False
+        for i in range(len(pts)):
+            a, b, c = pts[i - 1], pts[(i) % len(pts)], pts[(i + 1) % len(pts)]
+            ac = c - a
+            n = float(np.hypot(*ac))
+            if n == 0 or abs(float(ac[0] * (b - a)[1] - ac[1] * (b - a)[0])) / n <= tol_px:
+                del pts[i]
+                changed = True
+                break
+    return np.asarray(pts)
+
+
 def _segments(p0: np.ndarray, p1: np.ndarray, max_len: float) -> list[tuple[np.ndarray, np.ndarray]]:
     L = float(np.hypot(*(p1 - p0)))
     n = max(1, int(math.ceil(L / max_len)))
@@ -108,7 +126,7 @@ def find_edges(img: np.ndarray, *, min_length_px: float = 12.0, max_length_px: f
         if per < 4 * min_length_px:
             continue
         eps = float(np.clip(0.01 * per, 1.5, 4.0))
-        poly = cv2.approxPolyDP(cnt, eps, True)[:, 0, :].astype(np.float64)
+        poly = _merge_collinear(cv2.approxPolyDP(cnt, eps, True)[:, 0, :].astype(np.float64), eps + 1.0)
         pts = cnt[:, 0, :].astype(np.float64)
         for i in range(len(poly)):
             a, b = poly[i], poly[(i + 1) % len(poly)]
@@ -165,8 +183,9 @@ def _candidate(q0, q1, vertical: bool, mask_v: np.ndarray, shape: tuple[int, int
     xs = xa + (rows - ya) * slope
     reach = int(2 * max_half_width_px + 2)
     free = _free_distance(mask_v, rows, xs, reach)
-    hw = float(min(max_half_width_px, math.floor(free / 2.0)))
-    # every row must hold the edge +- hw inside the image
+    # half the room to the next boundary, and no further than the image border allows
+    border = math.floor(min(xs.min(), Wv - 1 - xs.max()))
+    hw = float(min(max_half_width_px, math.floor(free / 2.0), border))
     inside = (xs - hw >= 0) & (xs + hw <= Wv - 1)
     if not inside.all():
         keep = np.flatnonzero(inside)
