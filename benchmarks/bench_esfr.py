@@ -148,9 +148,11 @@ def main() -> None:
              f"then at SNR 50 over {seeds} noise seeds (median and 90th percentile of that maximum); MTF50 errors "
              "in %.", ""]
     lines += md_table(acc, [("angle °", "angle_deg", "g"), ("ch", "channel", ""), ("MTF50 true", "mtf50_true", ".4f"),
-                            ("max err, no noise", "err_clean", ".4f"), ("MTF50 err %, no noise", "mtf50_rel_clean_pct", "+.2f"),
+                            ("max err, no noise", "err_clean", ".4f"),
+                            ("MTF50 err %, no noise", "mtf50_rel_clean_pct", "+.2f"),
                             ("SNR", "snr", ".0f"), ("max err SNR50 median", "err50_median", ".4f"),
-                            ("max err SNR50 p90", "err50_p90", ".4f"), ("MTF50 err % RMS", "mtf50_rel50_rms_pct", ".2f"),
+                            ("max err SNR50 p90", "err50_p90", ".4f"),
+                            ("MTF50 err % RMS", "mtf50_rel50_rms_pct", ".2f"),
                             ("MTF50 err % max", "mtf50_rel50_max_pct", ".2f")])
     worst = max(r["err_clean"] for r in acc)
     lines += ["", f"Noise-free (the method's own bias): max err ≤ {worst:.4f}, MTF50 within "

@@ -106,3 +106,11 @@ def test_single_image_file(tmp_path):
     assert {e["channel"] for e in doc["edges"]} == {"Y"}
     assert sum(e["quality"]["ok"] for e in doc["edges"]) >= 0.9 * len(slanted_edge_spec(320, 180, cells_short=2)
                                                                         .edges())
+
+
+def test_texture_chart_gives_no_trusted_edges():
+    """The dead-leaves texture has no straight slanted edges: whatever the detector proposes is flagged, so a
+    caller can tell a texture chart from an edge chart."""
+    from fieldcal.charts.targets import chart_image
+    res = fieldcal.measure_mtf(chart_image("texture", 640, 360))
+    assert sum(e["quality"]["ok"] for e in res.edges) == 0

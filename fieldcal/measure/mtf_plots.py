@@ -48,7 +48,8 @@ def plot_mtf50_field(res: MtfResult, out: Path, frame: int | None = None) -> Pat
         for orient, marker in (("tangential", "^"), ("sagittal", "o")):
             sel = [e for e in edges if (e["plane"] or e["channel"]) == lab and e["orientation"] == orient]
             if sel:
-                sc = ax.scatter([e["x_px"] for e in sel], [e["y_px"] for e in sel], c=[e["mtf50_cy_per_px"] for e in sel],
+                sc = ax.scatter([e["x_px"] for e in sel], [e["y_px"] for e in sel],
+                                c=[e["mtf50_cy_per_px"] for e in sel],
                                 marker=marker, s=28, vmin=vmin, vmax=vmax, cmap="viridis", label=orient)
         ax.set_title(f"MTF50 {lab}" + (f" (frame {frame})" if frame is not None else ""))
         ax.invert_yaxis()
