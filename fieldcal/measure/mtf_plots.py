@@ -30,35 +30,41 @@ def _labels(res: MtfResult) -> list[str]:
     return sorted({e["plane"] or e["channel"] for e in res.edges}, key=lambda c: ("RGrGbBY".find(c[:2]), c))
 
 
-def plot_mtf50_field(res: MtfResult, out: Path, frame: int | None = None) -> Path:
+def plot_mtf50_field(res: MtfResult, out: Path) -> Path:
     """MTF50 of each ok edge at its position, one panel per channel (plane); tangential edges as triangles,
-    sagittal as circles. ``frame``: which frame (default: the one with the highest median MTF50)."""
+    sagittal as circles. For a stack, each edge track's highest MTF50 (its best frame) is shown."""
     plt = _plt()
-    edges = [e for e in res.edges if e["quality"]["ok"] and e["mtf50_cy_per_px"] is not None]
-    if frame is None and edges:
-        frames = sorted({e["frame"] for e in edges})
-        frame = max(frames, key=lambda f: np.median([e["mtf50_cy_per_px"] for e in edges if e["frame"] == f]))
-    edges = [e for e in edges if e["frame"] == frame]
+    best: dict[tuple, dict] = {}
+    for e in res.edges:
+        if not e["quality"]["ok"] or e["mtf50_cy_per_px"] is None:
+            continue
+        key = (e.get("track", e["edge"]), e["plane"] or e["channel"])
+        if key not in best or e["mtf50_cy_per_px"] > best[key]["mtf50_cy_per_px"]:
+            best[key] = e
+    edges = list(best.values())
+    stack = len({e["frame"] for e in res.edges}) > 1
     labels = _labels(res)
-    fig, axes = plt.subplots(1, max(1, len(labels)), figsize=(4.2 * max(1, len(labels)), 3.6), squeeze=False)
+    n = max(1, len(labels))
+    fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 3.4), squeeze=False, sharey=True, constrained_layout=True)
     vals = [e["mtf50_cy_per_px"] for e in edges]
     vmin, vmax = (min(vals), max(vals)) if vals else (0, 0.5)
     sc = None
-    for ax, lab in zip(axes[0], labels):
+    for i, (ax, lab) in enumerate(zip(axes[0], labels)):
         for orient, marker in (("tangential", "^"), ("sagittal", "o")):
             sel = [e for e in edges if (e["plane"] or e["channel"]) == lab and e["orientation"] == orient]
             if sel:
                 sc = ax.scatter([e["x_px"] for e in sel], [e["y_px"] for e in sel],
                                 c=[e["mtf50_cy_per_px"] for e in sel],
-                                marker=marker, s=28, vmin=vmin, vmax=vmax, cmap="viridis", label=orient)
-        ax.set_title(f"MTF50 {lab}" + (f" (frame {frame})" if frame is not None else ""))
-        ax.invert_yaxis()
+                                marker=marker, s=24, vmin=vmin, vmax=vmax, cmap="viridis", label=orient)
+        ax.set_title(("best-focus MTF50 " if stack else "MTF50 ") + lab)
+        if i == 0:
+            ax.invert_yaxis()
+            ax.set_ylabel("y (px)")
         ax.set_aspect("equal")
         ax.set_xlabel("x (px)")
-        ax.set_ylabel("y (px)")
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=2, frameon=False)
     if sc is not None:
-        fig.colorbar(sc, ax=axes[0].tolist(), label="MTF50 (cycles/px)")
+        axes[0][0].legend(fontsize=7, loc="lower left", bbox_to_anchor=(0.0, 1.08), ncol=2, frameon=False)
+        fig.colorbar(sc, ax=axes[0].tolist(), label="MTF50 (cycles/px)", shrink=0.8)
     return _save(fig, Path(out))
 
 
