@@ -58,12 +58,12 @@ def test_simulated_slanted_edge_stack(tmp_path):
     assert frames == set(range(5))
     spec = slanted_edge_spec(480, 270)
     per_frame = [sum(1 for e in doc["edges"] if e["frame"] == f and e["channel"] == "G") for f in frames]
-    assert min(per_frame) >= 0.5 * len(spec.edges())
+    assert min(per_frame) >= 0.85 * len(spec.edges())  # 147-160 of 160 over this scan
     tracks = {}
     for e in doc["edges"]:
         if e["channel"] == "G":
             tracks.setdefault(e["track"], set()).add(e["frame"])
-    assert sum(1 for f in tracks.values() if len(f) == 5) >= 0.5 * len(spec.edges())
+    assert sum(1 for f in tracks.values() if len(f) == 5) >= 0.8 * len(spec.edges())
     assert {p.name for p in plots.iterdir()} == {"mtf50_field.png", "through_focus.png"}
 
 
