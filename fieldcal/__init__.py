@@ -25,6 +25,7 @@ _LAZY = {
     "LensModel": ("fieldcal.optics.model", "LensModel"),
     "MTFCriterion": ("fieldcal.optics.criterion", "MTFCriterion"),
     "calibrate": ("fieldcal.calibration.pipeline", "calibrate"),
+    "measure_mtf": ("fieldcal.measure.mtf", "measure_mtf"),
     "FieldcalError": ("fieldcal.errors", "FieldcalError"),
 }
 

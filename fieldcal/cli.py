@@ -17,7 +17,8 @@ from . import __version__
 from .errors import (EXIT_BAD_INPUT, EXIT_ENVIRONMENT, EXIT_INTERNAL, EXIT_INTERRUPTED, FieldcalError,
                      from_oserror)
 
-COMMANDS = ["demo", "targets", "simulate", "calibrate", "plan", "capture", "composite", "report", "validate", "lens"]
+COMMANDS = ["demo", "targets", "simulate", "calibrate", "mtf", "plan", "capture", "composite", "report", "validate",
+            "lens"]
 
 
 class _Parser(argparse.ArgumentParser):

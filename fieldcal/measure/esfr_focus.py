@@ -1,0 +1,213 @@
+"""Through-focus MTF(fs) of slanted edges: edge tracks across frames, best focus (sub-step) and tolerance.
+
+* :func:`link_tracks` — the same physical edge in successive frames (z order), matched by position and
+  direction (Hungarian assignment, so two nearby edges never swap).
+* :func:`through_focus_peak` — best focus as the maximum of MTF(fs) over z, to a fraction of the scan step:
+  the maximum of a cubic smoothing spline through the samples (interpolating when the values are exact,
+  ``s = n sigma^2`` for a known noise, else generalised cross-validation). A spline follows a skewed peak, so
+  no symmetry is assumed. Its uncertainty is the delta-method sigma of a local quadratic's vertex.
+* :func:`tolerance_half_widths` — the measured depth of field: the distances from best focus to where the
+  same smooth curve crosses ``(1 - q) * peak`` on each side (Brent's root in the bracketing sample interval);
+  each side separately, so an asymmetric curve keeps its asymmetry.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ParameterError
+
+
+def link_tracks(frame: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, angle_deg: np.ndarray, z_um: np.ndarray,
+                *, max_shift_px: float = 6.0, max_turn_deg: float = 4.0) -> np.ndarray:
+    """Track id of each detection: detections of consecutive frames (in z order) within ``max_shift_px`` and
+    ``max_turn_deg`` are the same edge (optimal one-to-one assignment). A track may skip frames where the edge
+    was not found (it is matched against its last position)."""
+    from scipy.optimize import linear_sum_assignment
+
+    frame = np.asarray(frame)
+    x, y, ang, z = (np.asarray(v, dtype=np.float64) for v in (x_px, y_px, angle_deg, z_um))
+    track = np.full(frame.size, -1, dtype=np.int64)
+    frames = sorted(set(frame.tolist()), key=lambda f: (float(np.mean(z[frame == f])), f))
+    last: list[int] = []  # detection index of each track's latest member
+    for f in frames:
+        idx = np.flatnonzero(frame == f)
+        if last:
+            L = np.asarray(last)
+            dist = np.hypot(x[idx, None] - x[None, L], y[idx, None] - y[None, L])
+            turn = np.abs((ang[idx, None] - ang[None, L] + 90.0) % 180.0 - 90.0)
+            cost = np.where((dist <= max_shift_px) & (turn <= max_turn_deg), dist, 1e9)
+            ri, ci = linear_sum_assignment(cost)
+            for r, c in zip(ri, ci):
+                if cost[r, c] < 1e9:
+                    track[idx[r]] = c
+                    last[c] = int(idx[r])
+        for i in idx[track[idx] < 0]:
+            track[i] = len(last)
+            last.append(int(i))
+    return track
+
+
+@dataclass(frozen=True)
+class FocusPeak:
+    """Best focus of one through-focus curve, and the smooth curve it was read from."""
+
+    z_um: float
+    sigma_um: float  # 1-sigma uncertainty of z_um (noise only; see docs/measurement.md for the model error)
+    peak: float  # the smoothed curve's value at z_um
+    n_used: int  # samples in the curve
+    ok: bool
+    reason: str
+    curve: object = None  # callable z -> smoothed MTF(fs) (a scipy spline), None when not ok
+
+
+def _clean(z_um, values, sigma):
+    z = np.asarray(z_um, dtype=np.float64)
+    v = np.asarray(values, dtype=np.float64)
+    if z.shape != v.shape or z.ndim != 1:
+        raise ParameterError("z and values must be 1-D arrays of the same length", field="values",
+                             fix="give one MTF(fs) value per z position")
+    good = np.isfinite(z) & np.isfinite(v)
+    o = np.argsort(z[good], kind="stable")
+    sig = None if sigma is None else np.broadcast_to(np.asarray(sigma, dtype=np.float64), z.shape)[good][o]
+    return z[good][o], v[good][o], sig
+
+
+def noise_from_differences(v: np.ndarray) -> float:
+    """Sample noise of a smooth curve: robust RMS (MAD) of its third differences / sqrt(20)."""
+    if v.size < 6:
+        return 0.0
+    d3 = np.diff(v, 3)
+    return float(1.4826 * np.median(np.abs(d3 - np.median(d3))) / math.sqrt(20.0))
+
+
+def smooth_curve(z: np.ndarray, v: np.ndarray, sigma: np.ndarray | None = None):
+    """Cubic smoothing spline of a sampled curve: ``s = n sigma^2`` when the noise is known (an interpolating
+    spline for sigma = 0), else the smoothing chosen by generalised cross-validation."""
+    from scipy.interpolate import UnivariateSpline, make_smoothing_spline
+    if sigma is not None:
+        s = float(np.sum(np.asarray(sigma) ** 2))
+        return UnivariateSpline(z, v, k=3, s=s)
+    try:
+        return make_smoothing_spline(z, v)
+    except (ValueError, np.linalg.LinAlgError):  # degenerate GCV (e.g. exactly polynomial data): interpolate
+        return UnivariateSpline(z, v, k=3, s=0.0)
+
+
+def _spline_peak(spl, z: np.ndarray, k: int) -> float:
+    """Maximum of ``spl`` within one sample of index ``k`` (fine grid + parabolic refinement); the scan's
+    maximum if the spline's peak is not in that bracket."""
+    zz = np.linspace(z[k - 1], z[k + 1], 201)
+    sv = spl(zz)
+    j = int(np.argmax(sv))
+    if j in (0, zz.size - 1):
+        zz = np.linspace(z[0], z[-1], 40 * z.size)
+        sv = spl(zz)
+        j = int(np.argmax(sv))
+    if 0 < j < zz.size - 1:
+        den = sv[j - 1] - 2 * sv[j] + sv[j + 1]
+        if den < 0:
+            return float(zz[j] + 0.5 * (sv[j - 1] - sv[j + 1]) / den * (zz[1] - zz[0]))
+    return float(zz[j])
+
+
+def through_focus_peak(z_um, values, *, sigma=None, n_boot: int = 24, seed: int = 0) -> FocusPeak:
+    """Sub-step maximum of a sampled through-focus curve; no symmetry assumed.
+
+    The curve is a cubic smoothing spline through the samples (:func:`smooth_curve`); best focus is its
+    maximum near the highest sample. The uncertainty is a parametric bootstrap: ``n_boot`` copies of the
+    smoothed curve plus noise of the given ``sigma`` (else the spline's residual scatter), each smoothed and
+    maximised the same way; their standard deviation. It covers noise only: a curve shape the spline cannot
+    follow adds a bias it does not see (docs/measurement.md).
+
+    Parameters
+    ----------
+    z_um, values : 1-D arrays (any order; NaN samples ignored).
+    sigma : float or array, optional
+        1-sigma noise of the values (0 for exact values); unknown -> smoothing by cross-validation.
+    n_boot, seed : bootstrap size and seed (deterministic).
+    """
+    z, v, sig = _clean(z_um, values, sigma)
+    if z.size < 5:
+        return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, "fewer than 5 samples")
+    k = int(np.argmax(v))
+    if k == 0 or k == z.size - 1:
+        return FocusPeak(float(z[k]), math.nan, float(v[k]), int(z.size), False, "maximum at the end of the scan")
+    if sig is None:  # noise unknown: from the third differences (blind to a curve's slope and curvature)
+        sig = np.full(z.size, noise_from_differences(v))
+    spl = smooth_curve(z, v, sig)
+    zbest = _spline_peak(spl, z, k)
+    peak = float(spl(zbest))
+    fit = spl(z)
+    s = sig
+    sz = 0.0
+    if n_boot > 1 and np.any(s > 0):
+        rng = np.random.default_rng(seed)
+        zs = []
+        for _ in range(n_boot):
+            vb = fit + rng.normal(0.0, 1.0, z.size) * s
+            kb = int(np.clip(np.argmax(vb), 1, z.size - 2))
+            zs.append(_spline_peak(smooth_curve(z, vb, sig), z, kb))
+        sz = float(np.std(zs, ddof=1))
+    return FocusPeak(zbest, sz, peak, int(z.size), True, "ok", spl)
+
+
+def tolerance_half_widths(z_um, values, q: float, peak: FocusPeak) -> tuple[float, float]:
+    """(left, right) distances (µm) from ``peak.z_um`` to where the smoothed curve falls to
+    ``(1 - q) * peak.peak`` (Brent's root in the first sample interval where the curve is below).
+
+    NaN on a side where the scan ends before the curve falls that far.
+    """
+    from scipy.optimize import brentq
+
+    if not 0.0 < q < 1.0:
+        raise ParameterError(f"q = {q} outside (0, 1)", field="q", fix="give the MTF loss as a fraction, e.g. 0.05")
+    z, v, _ = _clean(z_um, values, None)
+    if not peak.ok or peak.curve is None:
+        return math.nan, math.nan
+    spl = peak.curve
+    thr = (1.0 - q) * peak.peak
+    zp = peak.z_um
+    out = []
+    for direction in (-1, 1):
+        side = z[z < zp][::-1] if direction < 0 else z[z > zp]
+        prev, found = zp, math.nan
+        for zj in side:
+            if spl(zj) < thr:
+                a, b = min(prev, zj), max(prev, zj)
+                found = brentq(lambda t: float(spl(t) - thr), a, b)
+                break
+            prev = zj
+        out.append(abs(found - zp) if math.isfinite(found) else math.nan)
+    return out[0], out[1]
+
+
+@dataclass(frozen=True)
+class TrackFocus:
+    """Best focus and measured tolerance of one edge track at one frequency."""
+
+    z_best_um: float
+    z_sigma_um: float
+    peak_mtf: float
+    tol_left_um: float  # best focus minus the near end of the tolerance
+    tol_right_um: float
+    ok: bool
+    reason: str
+
+    @property
+    def depth_um(self) -> float:
+        """Total depth of the tolerance interval, left + right."""
+        return self.tol_left_um + self.tol_right_um
+
+
+def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
+    """Best focus (sub-step peak of MTF(fs)) and the tolerance half-widths of one edge track."""
+    pk = through_focus_peak(z_um, mtf_fs, sigma=sigma)
+    left, right = tolerance_half_widths(z_um, mtf_fs, q, pk)
+    reason = pk.reason
+    if pk.ok and not (math.isfinite(left) and math.isfinite(right)):
+        reason = "the scan ends before MTF(fs) falls by q on one side"
+    return TrackFocus(pk.z_um, pk.sigma_um, pk.peak, left, right, pk.ok and reason == "ok", reason)
