@@ -47,6 +47,7 @@ import numpy as np
 from scipy import special
 
 from fieldcal.errors import SpecError
+from fieldcal.simulate.aberrations import Aberrations, parse_aberrations
 
 LENS_FORMAT = "fieldcal-lens/1"
 
@@ -111,6 +112,7 @@ class LensSpec:
     description: str = ""
     sources: dict[str, str] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
+    aberrations: Aberrations | None = None  # wave-optics terms (fieldcal.simulate.aberrations); None = none
 
     # ------------------------------------------------------------------ access
     @property
@@ -245,6 +247,9 @@ class LensSpec:
         d = {"format": LENS_FORMAT, **d}
         d["exit_pupil_mm"] = None if not math.isfinite(self.exit_pupil_mm) else self.exit_pupil_mm
         extra = d.pop("extra")
+        d.pop("aberrations")
+        if self.aberrations is not None:
+            d["aberrations"] = self.aberrations.to_dict()
         d.update(extra)
         return d
 
@@ -423,7 +428,7 @@ def _lens_from_dict(d: Any, path) -> LensSpec:
             raise err("exit_pupil_mm", "cannot be 0", "use null for a telecentric image space")
     known = {"format", "name", "focal_length_mm", "f_number", "image_height_max_mm", "channels", "sensor",
              "object_distance_mm", "decentre_mm", "tilt_um_per_mm", "exit_pupil_mm", "stage_axis_tilt_mrad",
-             "z_ref_um", "residual_blur_um", "relative_illumination_edge", "description", "sources"}
+             "z_ref_um", "residual_blur_um", "relative_illumination_edge", "description", "sources", "aberrations"}
     ri = num("relative_illumination_edge", default=1.0)
     if not (0.05 <= ri <= 1.0):
         raise err("relative_illumination_edge", f"must be in [0.05, 1], got {ri}", "e.g. 0.8 for 20% corner fall-off")
@@ -445,4 +450,6 @@ def _lens_from_dict(d: Any, path) -> LensSpec:
         description=str(d.get("description", "")),
         sources=dict(d.get("sources", {})) if isinstance(d.get("sources", {}), dict) else {},
         extra={k: v for k, v in d.items() if k not in known},
+        aberrations=(parse_aberrations(d["aberrations"], path, tuple(names))
+                     if d.get("aberrations") is not None else None),
     )
