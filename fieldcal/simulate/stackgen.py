@@ -97,7 +97,8 @@ def _tiff_bytes(image: np.ndarray) -> bytes:
 
 def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart", seed: int = 0,
                    size: tuple[int, int] | None = None, progress: bool = True, noise: bool = True,
-                   overwrite: bool = False, level_ratio: float = 1.25, level_floor_px: float = 0.5):
+                   overwrite: bool = False, level_ratio: float = 1.25, level_floor_px: float = 0.5,
+                   optics: str = "geometric", fs_cyc_per_mm: float = 80.0):
     """Render a through-focus stack of a scene through a simulated lens and write it with its truth.
 
     Parameters
@@ -122,6 +123,10 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
         Photon and read noise (False: the noise-free mean, still quantised).
     overwrite : bool
         Replace an existing stack folder (only one that holds a ``stack.json``).
+    optics : {"geometric", "wave"}
+        Image formation (docs/simulator.md); ``wave`` computes PSFs from the pupil and the spec's aberrations.
+    fs_cyc_per_mm : float
+        Wave optics: the frequency whose MTF peak defines the true best focus written to truth.json.
 
     Returns
     -------
@@ -138,7 +143,8 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     out = Path(out_dir)
     _prepare_out(out, overwrite)
     image, scene_name = load_scene(scene, s.width_px, s.height_px, seed)
-    renderer = Renderer(spec, image, seed=seed, level_ratio=level_ratio, level_floor_px=level_floor_px)
+    renderer = Renderer(spec, image, seed=seed, level_ratio=level_ratio, level_floor_px=level_floor_px,
+                        optics=optics, fs_cyc_per_mm=fs_cyc_per_mm)
     del image
 
     meta = dict(bit_depth=s.bit_depth, black_level=s.black_level_dn, white_level=s.white_level_dn,
@@ -168,13 +174,29 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
             "truth_file": "truth.tiff",
             "truth_geometry": "z_ref_um, lateral colour included, in-focus PSF only, no noise",
             "renderer": renderer.settings(),
+            "optics": optics,
         }
+        if optics == "wave":
+            truth["best_focus"] = _wave_best_focus(renderer, spec)
         atomic_write_text(tmp / "truth.json", json.dumps(truth, indent=2) + "\n")
         _replace_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return Stack.open(out)
+
+
+def _wave_best_focus(renderer: Renderer, spec: LensSpec) -> dict:
+    """truth.json's statement of where the wave path is sharpest, beside the lens's reference surface."""
+    tables = {c: renderer._wave.shift_table(c) for c in spec.channel_names}
+    return {
+        "definition": "best focus = stage position where the orientation-averaged MTF at fs_cyc_per_mm peaks "
+                      "(wave-optics PSF, numerically); reference focus = the lens spec's surface (W020 = 0, "
+                      "paraxial); best = reference + shift_um(rho), linear in rho between the listed heights",
+        "fs_cyc_per_mm": renderer._wave.fs_cyc_per_mm,
+        "rho": [float(v) for v in next(iter(tables.values()))[0]],
+        "shift_um": {c: [round(float(v), 4) for v in t[1]] for c, t in tables.items()},
+    }
 
 
 def _replace_dir(tmp: Path, out: Path) -> None:

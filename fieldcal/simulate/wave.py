@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy import fft, ndimage
+from scipy import fft
 from scipy.optimize import minimize_scalar
 
 from fieldcal.errors import ParameterError
@@ -99,6 +99,8 @@ def terms_at(spec: LensSpec, channel: str, rho: float, phi_rad: float) -> WaveTe
         w040 = float(ab.w040_um(rho))
         w131 = float(ab.w131_um(rho))
         wast += float(ab.wast_um(rho))
+    if w131 == 0.0 and wast == 0.0:
+        phi_rad = 0.0  # rotationally symmetric: one PSF serves every azimuth (and one cache entry)
     return WaveTerms(w040, w131, float(wast), float(phi_rad))
 
 
@@ -118,20 +120,25 @@ def wavefront_um(u, v, dz_um: float, f_number: float, terms: WaveTerms) -> np.nd
     return w
 
 
-def monochromatic_psf(wavelength_nm: float, f_number: float, spacing_um: float, n_fft: int, wavefront) -> np.ndarray:
+def monochromatic_psf(wavelength_nm: float, f_number: float, spacing_um: float, n_fft: int, wavefront,
+                      band_cyc_per_um: float | None = None) -> np.ndarray:
     """Intensity PSF (n_fft x n_fft, sum 1) sampled at ``spacing_um``, chief ray at index n_fft // 2.
 
     ``wavefront(u, v)`` returns W in µm on normalised pupil coordinates. The pupil is sampled with
     ``n_p = n_fft * spacing / (lambda N)`` samples across its diameter (any real number; the edge is
     anti-aliased: transmission = covered fraction across one sample), so the FFT grid step is exactly
-    ``spacing_um`` on the sensor. Needs ``n_p <= n_fft / 2`` (PSF sampled at least at the Nyquist rate of its
-    band, 1/(lambda N)).
+    ``spacing_um`` on the sensor. By default needs ``n_p <= n_fft / 2`` (PSF sampled at least at the Nyquist
+    rate of its band, 1/(lambda N)): exact at every frequency. With ``band_cyc_per_um`` = f_max, only
+    frequencies up to f_max are kept exact (the aliased copies of the OTF at multiples of 1/spacing start beyond
+    f_max): ``n_fft >= n_p (1 + lambda N f_max)``, i.e. ``spacing <= 1 / (1/(lambda N) + f_max)``.
     """
     lam_um = wavelength_nm * 1e-3
     n_p = n_fft * spacing_um / (lam_um * f_number)
-    if n_p > n_fft / 2.0 + 1e-9:
-        raise ParameterError(f"PSF spacing {spacing_um:.4g} µm is coarser than lambda N / 2 = "
-                             f"{lam_um * f_number / 2:.4g} µm", field="spacing_um", fix="sample the PSF more finely")
+    f_max = 1.0 / (lam_um * f_number) if band_cyc_per_um is None else float(band_cyc_per_um)
+    if n_p * (1.0 + lam_um * f_number * f_max) > n_fft * (1.0 + 1e-9):
+        raise ParameterError(f"PSF spacing {spacing_um:.4g} µm is too coarse for frequencies up to {f_max:.4g} "
+                             f"cycles/µm at {wavelength_nm:g} nm, F/{f_number:g}", field="spacing_um",
+                             fix="sample the PSF more finely")
     m = int(math.ceil(n_p)) + 2
     g = (np.arange(m, dtype=np.float64) - (m - 1) / 2.0) / (n_p / 2.0)
     u, v = g[None, :], g[:, None]
@@ -161,12 +168,14 @@ class ChannelOptics:
         spot = 2.0 * n * (2.0 * abs(dz_um) / (8.0 * n * n) + terms.max_slope_um())
         return spot + _TAIL_LAMBDA_N * self.lam_max_um * n + 4.0 * self.sigma_um
 
-    def psf(self, terms: WaveTerms, dz_um: float, spacing_um: float, n: int) -> np.ndarray:
-        """Polychromatic PSF (sum 1) on an n x n grid at ``spacing_um`` (n odd: chief ray at the centre sample).
+    def psf(self, terms: WaveTerms, dz_um: float, spacing_um: float, n: int,
+            band_cyc_per_um: float | None = None) -> np.ndarray:
+        """Polychromatic optical PSF on an n x n grid at ``spacing_um`` (n odd: chief ray at the centre sample).
 
         Each wavelength's PSF is computed on an FFT grid large enough for the spot and at least 64 pupil
-        samples, normalised, weighted by the band, then cropped to n x n; the residual Gaussian
-        (``residual_blur_um``) is applied last.
+        samples, normalised, weighted by the band, then cropped to n x n (so the sum is the energy inside the
+        window). ``band_cyc_per_um``: see :func:`monochromatic_psf`. The residual Gaussian is not included
+        (:meth:`kernel` and :meth:`mtf` apply it as its OTF).
         """
         n_min = _MIN_PUPIL_SAMPLES * self.lam_max_um * self.f_number / spacing_um
         n_fft = fft.next_fast_len(int(max(n, math.ceil(n_min), 2 * self.half_extent_um(terms, dz_um) / spacing_um)))
@@ -176,36 +185,57 @@ class ChannelOptics:
         lo = n_fft // 2 - n // 2
         for lam_nm, w in self.band:
             p = monochromatic_psf(lam_nm, self.f_number, spacing_um, n_fft,
-                                  lambda u, v: wavefront_um(u, v, dz_um, self.f_number, terms))
+                                  lambda u, v: wavefront_um(u, v, dz_um, self.f_number, terms), band_cyc_per_um)
             out += w * p[lo:lo + n, lo:lo + n]
-        if self.sigma_um > 0:
-            out = ndimage.gaussian_filter(out, self.sigma_um / spacing_um, mode="constant", truncate=4.0)
         return out
 
-    def kernel(self, terms: WaveTerms, dz_um: float, pitch_um: float) -> np.ndarray:
-        """Pixel kernel (K x K, K odd, float32, sum 1): the PSF integrated over each pixel's square aperture.
+    def _spacing_um(self, f_max_cyc_per_um: float) -> float:
+        """Coarsest PSF sampling whose OTF is exact up to f_max for every wavelength of the band."""
+        return 1.0 / (1.0 / (self.lam_min_um * self.f_number) + f_max_cyc_per_um)
 
-        The PSF is sampled ``os`` times per pixel (os odd, spacing <= lambda_min N / 2) so each pixel is exactly
-        os x os fine samples; the sum over them is the pixel integral (100% fill factor).
+    def residual_otf(self, f_cyc_per_um):
+        """OTF of the residual Gaussian (``residual_blur_um``)."""
+        return np.exp(-2.0 * (np.pi * self.sigma_um * np.asarray(f_cyc_per_um)) ** 2)
+
+    def kernel(self, terms: WaveTerms, dz_um: float, pitch_um: float) -> np.ndarray:
+        """Pixel kernel (K x K, K odd, float32, sum 1): the PSF integrated over each pixel's square aperture,
+        band-limited to the pixel grid.
+
+        The PSF is sampled ``os`` times per pixel (os odd; fine enough that the OTF is exact up to the corner
+        of the pixel grid's band, :meth:`_spacing_um`) on a K x K pixel window (``half_extent_um``); its DFT's
+        central K x K block is the optical OTF at the pixel grid's own frequencies, which is multiplied by the
+        residual Gaussian's OTF and the pixel aperture's OTF ``sinc(fx p) sinc(fy p)`` (100% fill factor) and
+        transformed back. So the kernel's transfer function is ``OTF(f) sinc(f p)`` below Nyquist,
+        with no aliased copies: the scene is itself sampled at the pixel grid (as in the geometric path), and
+        aliasing would move the sharpest position (high frequencies peak nearer the paraxial focus).
         """
-        os_ = int(math.ceil(2.0 * pitch_um / (self.lam_min_um * self.f_number)))
+        f_max = math.sqrt(0.5) / pitch_um  # the corner of the band, cycles/µm
+        os_ = int(math.ceil(pitch_um / self._spacing_um(f_max)))
         os_ += 1 - os_ % 2
         k = 2 * int(math.ceil(self.half_extent_um(terms, dz_um) / pitch_um)) + 1
-        fine = self.psf(terms, dz_um, pitch_um / os_, k * os_)
-        ker = fine.reshape(k, os_, k, os_).sum(axis=(1, 3))
+        n = k * os_
+        spectrum = fft.fft2(fft.ifftshift(self.psf(terms, dz_um, pitch_um / os_, n, f_max)), workers=-1)
+        h = (k - 1) // 2
+        keep = np.r_[0:h + 1, n - h:n]  # frequencies j / (K p), |j| <= h: the pixel grid's band
+        f_px = fft.fftfreq(k)  # cycles/px, in the same order as keep
+        pix = np.sinc(f_px)
+        res = self.residual_otf(np.hypot(f_px[:, None], f_px[None, :]) / pitch_um)
+        block = spectrum[np.ix_(keep, keep)] * (pix[:, None] * pix[None, :] * res)
+        ker = fft.fftshift(fft.ifft2(block, workers=-1).real)
         return (ker / ker.sum()).astype(np.float32)
 
     def mtf(self, terms: WaveTerms, dz_um: float, f_cyc_per_mm: float, n_angles: int = 12) -> float:
-        """MTF at f (cycles/mm), averaged over ``n_angles`` orientations (no pixel aperture)."""
-        spacing = self.lam_min_um * self.f_number / 2.5
+        """Optical MTF at f (cycles/mm), averaged over ``n_angles`` orientations (no pixel aperture)."""
+        f_um = f_cyc_per_mm * 1e-3
+        spacing = self._spacing_um(f_um)
         n = 2 * int(math.ceil(self.half_extent_um(terms, dz_um) / spacing)) + 1
-        p = self.psf(terms, dz_um, spacing, n)
+        p = self.psf(terms, dz_um, spacing, n, f_um)
         x = (np.arange(n) - n // 2) * spacing * 1e-3  # mm
         ang = np.arange(n_angles) * (np.pi / n_angles)
         ex = np.exp(-2j * np.pi * f_cyc_per_mm * np.cos(ang)[:, None] * x[None, :])
         ey = np.exp(-2j * np.pi * f_cyc_per_mm * np.sin(ang)[:, None] * x[None, :])
         otf = np.einsum("ty,yx,tx->t", ey, p, ex)
-        return float(np.mean(np.abs(otf)))
+        return float(np.mean(np.abs(otf)) * self.residual_otf(f_um))
 
     def best_focus_shift_um(self, terms: WaveTerms, fs_cyc_per_mm: float) -> float:
         """dz (µm from the reference surface) where the orientation-averaged MTF at fs peaks.
