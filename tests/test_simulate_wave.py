@@ -291,7 +291,7 @@ def test_simulate_command_wave(tmp_path):
     from fieldcal.cli import main
     out = tmp_path / "st"
     rc = main(["simulate", str(REPO / "models" / "triplet-wave-sa.json"), str(out), "--z", "-20", "0", "20",
-               "--size", "48x27", "--optics", "wave", "--fs", "10", "--quiet"])
+               "--size", "96x54", "--optics", "wave", "--fs", "10", "--quiet"])
     assert rc == 0
     t = json.loads((out / "truth.json").read_text())
     assert t["optics"] == "wave" and t["renderer"]["optics"] == "wave"

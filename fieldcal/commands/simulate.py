@@ -34,7 +34,7 @@ def register(sub):
     p.add_argument("--size", metavar="WxH", help="render at W x H px over the same sensor area (default: the "
                    "lens's sensor size)")
     p.add_argument("--no-noise", action="store_true", help="no photon/read noise (frames still quantised)")
-    p.add_argument("--optics", choices=("geometric", "wave"), default="geometric",
+    p.add_argument("--optics", choices=("geometric", "wave"), default="geometric", metavar="OPTICS",
                    help="image formation: geometric (analytic blur-disc OTFs, default) or wave (PSFs from the pupil "
                         "with the spec's aberrations, spectral bands, pixel aperture; docs/simulator.md)")
     p.add_argument("--fs", type=float, default=80.0, metavar="CYC_PER_MM",

@@ -55,7 +55,7 @@ _OTHER_BAND = ((-25.0, 0.25), (0.0, 0.5), (25.0, 0.25))
 
 _MIN_PUPIL_SAMPLES = 64.0  # pupil diameter in samples, at least (MTF error ~1e-3 at 64 with a soft edge)
 _TAIL_LAMBDA_N = 8.0  # kernel half-extent beyond the geometric spot, in lambda*N (Airy rings: ~99% energy)
-_RHO_NODES = 7  # field heights at which the sharpest position is computed (interpolated between)
+_RHO_NODES = 6  # field heights at which the sharpest position is computed (interpolated between)
 
 
 @dataclass(frozen=True)
@@ -251,7 +251,7 @@ class ChannelOptics:
             return 0.0
         dof_um = 1000.0 * n / (math.pi * fs_cyc_per_mm)
         centre = -8.0 * n * n * terms.w040_um  # minimum-RMS focus of primary spherical aberration
-        half = 16.0 * n * n * abs(terms.w040_um) + 3.0 * dof_um
+        half = 16.0 * n * n * abs(terms.w040_um) + 1.5 * dof_um
         step = dof_um / 2.0
         zs = centre + np.arange(-half, half + step / 2, step)
         vals = np.array([self.mtf(terms, float(z), fs_cyc_per_mm) for z in zs])
