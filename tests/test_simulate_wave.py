@@ -270,21 +270,54 @@ def test_aberrations_block_validation_and_round_trip(tmp_path):
     assert LensSpec.from_dict(spec.to_dict()) == spec
 
 
-def test_model_file_wave_best_focus_against_the_traced_triplet():
-    """models/triplet-wave-sa.json: its surfaces are the paraxial foci, its SA moves the sharpest position to the
-    ray-traced best focus of docs/raytrace.md (G, optiland, 80 cy/mm) within the model's own accuracy."""
+def test_meridional_trace_matches_a_single_refracting_sphere():
+    """Real-ray axis crossing of one spherical surface against the exact formula: a ray at height h meets the
+    sphere at sin i = h / R, leaves at sin i' = sin i / n and crosses the axis R sin i' / sin(i - i') beyond
+    the centre of curvature (the paraxial limit is n R / (n - 1))."""
+    from fieldcal.raytrace.meridional import axis_crossing_um
+    from fieldcal.raytrace.prescription import LINE_D_NM, Prescription, Surface
+    r_mm, n, back = 20.0, 1.5168, 58.0
+    rx = Prescription((Surface("stop", "standard", math.inf, 0.0, is_stop=True),
+                       Surface("1", "standard", r_mm, back, nd=n, vd=64.17)))
+    n_d = rx.index(1, LINE_D_NM)
+    for h in (0.01, 2.0, 5.0, 8.0):
+        i = math.asin(h / r_mm)
+        ip = math.asin(math.sin(i) / n_d)
+        z_mm = r_mm + r_mm * math.sin(ip) / math.sin(i - ip)
+        assert axis_crossing_um(rx, h, LINE_D_NM) == pytest.approx((z_mm - back) * 1000.0, abs=1e-6)
+
+
+def test_wave_best_focus_against_the_ray_traced_triplet():
+    """Independent of optiland: paraxial focus (y-nu trace) + spherical aberration (real meridional rays, numpy)
+    + the wave path's MTF peak predict the optiland-traced on-axis best focus of docs/raytrace.md (80 cy/mm);
+    models/triplet-wave-sa.json holds those terms and follows the traced G curve over the field."""
+    from fieldcal.raytrace.meridional import spherical_aberration
+    from fieldcal.raytrace.prescription import load_prescription
+    rx = load_prescription(REPO / "models" / "triplet-uncorrected.prescription.csv")
     spec = LensSpec.load(REPO / "models" / "triplet-wave-sa.json")
-    traced_g = {0.0: -5.7, 0.9: -24.3, 1.8: -80.5, 2.7: -177.3, 3.6: -321.3}
-    cx, cy = spec.optical_centre_px()
-    p = spec.sensor.pixel_pitch_um / 1000.0
+    traced_axis = {"R": 10.1, "G": -5.7, "B": -6.7}  # docs/raytrace.md, h = 0
+    for c in spec.channel_names:
+        sa = spherical_aberration(rx, spec.channel(c).wavelength_nm, spec.f_number)
+        assert abs(sa.la_um[0]) < 0.05  # the smallest zone converges to the paraxial focus
+        t = terms_at(spec, c, 0.0, 0.0)
+        assert (t.w040_um, t.w060_um) == pytest.approx((sa.w040_um, sa.w060_um), abs=1e-4)  # the model file's source
+        z = sa.paraxial_focus_um + ChannelOptics(spec, c).best_focus_shift_um(t, 80.0)
+        assert z == pytest.approx(traced_axis[c], abs=1.5)  # measured +0.74, +0.83, +0.82 µm
     spec0 = LensSpec.from_dict({**spec.to_dict(), "stage_axis_tilt_mrad": [0, 0], "exit_pupil_mm": None})
     t0 = TruthProfile(spec0, optics="wave", fs_cyc_per_mm=80.0)  # no breathing: image height fixed through focus
-    for h, z in traced_g.items():
-        ang = math.atan2(9, 16)
+    cx, cy = spec0.optical_centre_px()
+    p = spec0.sensor.pixel_pitch_um / 1000.0
+    ang = math.atan2(9, 16)
+    plain = LensSpec.load(REPO / "models" / "triplet-uncorrected.json")  # the traced best-focus polynomial
+    offsets = []
+    for h, z in {0.0: -5.7, 0.9: -24.3, 1.8: -80.5, 2.7: -177.3, 3.6: -321.3}.items():  # traced G
         zb = float(t0.best_focus_um(cx + h * math.cos(ang) / p, cy + h * math.sin(ang) / p, "G"))
-        assert zb == pytest.approx(z, abs=2.0)
-    zr = float(t0.reference_focus_um(cx, cy, "G"))
-    assert zr - float(t0.best_focus_um(cx, cy, "G")) == pytest.approx(20.3, abs=0.5)  # the notes' ~20 µm
+        assert zb == pytest.approx(z, abs=3.0)  # measured +0.8 .. +2.7 (the polynomial is 1.7 µm off at the edge)
+        offsets.append(zb - float(plain.best_focus_um(h * math.cos(ang), h * math.sin(ang), "G")))
+    assert np.ptp(offsets) < 0.5  # the SA shift hardly varies over the field: the spec's surface shape holds
+    shift = float(t0.reference_focus_um(cx, cy, "G") - t0.best_focus_um(cx, cy, "G"))
+    w = terms_at(spec, "G", 0.0, 0.0)
+    assert 8 * N * N * (w.w040_um + 0.9 * w.w060_um) < shift < 16 * N * N * (w.w040_um + w.w060_um)
 
 
 def test_simulate_command_wave(tmp_path):
@@ -297,5 +330,5 @@ def test_simulate_command_wave(tmp_path):
     assert t["optics"] == "wave" and t["renderer"]["optics"] == "wave"
     bf = t["best_focus"]
     assert bf["fs_cyc_per_mm"] == 10.0 and set(bf["shift_um"]) == {"R", "G", "B"}
-    assert all(v < -15 for v in bf["shift_um"]["G"])
+    assert all(-35 < v < -15 for v in bf["shift_um"]["G"])
     assert "aberrations" in t["lens"]

@@ -13,7 +13,7 @@ Pupil coordinates ``(u, v)`` are normalised to the pupil radius (``rho_p = hypot
 image x axis, v along y. ``phi`` is the field point's azimuth about the optical centre (tangential direction).
 The wavefront (µm of optical path) is::
 
-    W = W020 rho_p^2 + W040 rho_p^4 + W131 rho_p^2 t + Wast (t^2 - s^2)
+    W = W020 rho_p^2 + W040 rho_p^4 + W060 rho_p^6 + W131 rho_p^2 t + Wast (t^2 - s^2)
     t = u cos(phi) + v sin(phi),  s = -u sin(phi) + v cos(phi)       (tangential / sagittal pupil components)
     W020 = dz / (8 N^2),   dz = z - z_ref_surface(x, y)   (µm; + = sensor further from the lens)
 
@@ -66,10 +66,12 @@ class WaveTerms:
     w131_um: float = 0.0
     wast_um: float = 0.0
     phi_rad: float = 0.0
+    w060_um: float = 0.0
 
     def max_slope_um(self) -> float:
         """Upper bound of |grad W| (µm per pupil radius) of the non-defocus terms."""
-        return 4.0 * abs(self.w040_um) + 3.0 * abs(self.w131_um) + 2.0 * abs(self.wast_um)
+        return (4.0 * abs(self.w040_um) + 6.0 * abs(self.w060_um) + 3.0 * abs(self.w131_um)
+                + 2.0 * abs(self.wast_um))
 
 
 def band(spec: LensSpec, channel: str) -> tuple[tuple[float, float], ...]:
@@ -93,15 +95,17 @@ def terms_at(spec: LensSpec, channel: str, rho: float, phi_rad: float) -> WaveTe
     """
     n = spec.f_number
     wast = -spec.channel(channel).astigmatism_um * rho * rho / (16.0 * n * n)
-    w040 = w131 = 0.0
+    w040 = w060 = w131 = 0.0
     ab = spec.aberrations
     if ab is not None:
+        ab = ab.for_channel(channel)
         w040 = float(ab.w040_um(rho))
+        w060 = float(ab.w060_um(rho))
         w131 = float(ab.w131_um(rho))
         wast += float(ab.wast_um(rho))
     if w131 == 0.0 and wast == 0.0:
         phi_rad = 0.0  # rotationally symmetric: one PSF serves every azimuth (and one cache entry)
-    return WaveTerms(w040, w131, float(wast), float(phi_rad))
+    return WaveTerms(w040, w131, float(wast), float(phi_rad), w060)
 
 
 def wavefront_um(u, v, dz_um: float, f_number: float, terms: WaveTerms) -> np.ndarray:
@@ -112,6 +116,8 @@ def wavefront_um(u, v, dz_um: float, f_number: float, terms: WaveTerms) -> np.nd
     w = (dz_um / (8.0 * f_number * f_number)) * r2
     if terms.w040_um:
         w = w + terms.w040_um * r2 * r2
+    if terms.w060_um:
+        w = w + terms.w060_um * r2 * r2 * r2
     if terms.w131_um:
         w = w + terms.w131_um * r2 * t
     if terms.wast_um:
@@ -247,11 +253,12 @@ class ChannelOptics:
         rotation, which leaves the orientation-averaged MTF unchanged), so the shift is exactly 0.
         """
         n = self.f_number
-        if terms.w040_um == 0.0 and (terms.w131_um == 0.0 or terms.wast_um == 0.0):
+        if terms.w040_um == 0.0 and terms.w060_um == 0.0 and (terms.w131_um == 0.0 or terms.wast_um == 0.0):
             return 0.0
         dof_um = 1000.0 * n / (math.pi * fs_cyc_per_mm)
-        centre = -8.0 * n * n * terms.w040_um  # minimum-RMS focus of primary spherical aberration
-        half = 16.0 * n * n * abs(terms.w040_um) + 1.5 * dof_um
+        # minimum-RMS focus of primary + secondary spherical (W020 = -W040 - 0.9 W060), and their spread
+        centre = -8.0 * n * n * (terms.w040_um + 0.9 * terms.w060_um)
+        half = 16.0 * n * n * (abs(terms.w040_um) + 1.5 * abs(terms.w060_um)) + 1.5 * dof_um
         step = dof_um / 2.0
         zs = centre + np.arange(-half, half + step / 2, step)
         vals = np.array([self.mtf(terms, float(z), fs_cyc_per_mm) for z in zs])
