@@ -332,3 +332,23 @@ def test_simulate_command_wave(tmp_path):
     assert bf["fs_cyc_per_mm"] == 10.0 and set(bf["shift_um"]) == {"R", "G", "B"}
     assert all(-35 < v < -15 for v in bf["shift_um"]["G"])
     assert "aberrations" in t["lens"]
+
+
+def test_wave_reuses_the_sensor_chain():
+    """Bayer mosaic, noise and quantisation are the geometric path's: same shapes and dtypes, and the noise
+    variance of a flat grey frame is g^2 (e + read^2) + 1/12 as in docs/simulator.md."""
+    spec = LensSpec.from_dict({**json.loads((REPO / "models" / "triplet-wave-sa.json").read_text()),
+                               "relative_illumination_edge": 1.0}).with_sensor_size(96, 54)
+    d = spec.to_dict()
+    d["sensor"]["cfa"] = "RGGB"
+    bayer = LensSpec.from_dict(d)
+    scene = np.random.default_rng(0).uniform(0.2, 0.8, (54, 96, 3)).astype(np.float32)
+    r = Renderer(bayer, scene, optics="wave", fs_cyc_per_mm=10.0)
+    assert r.render(-40.0).shape == (54, 96) and r.truth().shape == (54, 96, 3)
+    flat = Renderer(spec, np.full((54, 96), 0.5, np.float32), optics="wave", fs_cyc_per_mm=10.0)
+    noisy = flat.render(-40.0).astype(np.float64)
+    clean = flat.render(-40.0, noise=False).astype(np.float64)
+    s = spec.sensor
+    g = (s.white_level_dn - s.black_level_dn) / s.full_well_e
+    e = (clean.mean() - s.black_level_dn) / g
+    assert np.var(noisy - clean) == pytest.approx(g * g * (e + s.read_noise_e ** 2) + 1 / 12, rel=0.1)

@@ -445,9 +445,13 @@ class WaveBlur:
                     if r > pad:
                         raise ParameterError(f"a wave kernel of radius {r} px exceeds the padding {pad} px",
                                              field="z_um", fix="report this: the padding estimate is wrong")
-                    tile = padded[pad + y0 - r:pad + y1 + r, pad + x0 - r:pad + x1 + r]
+                    # only the bounding box of the pixels that use this level (a band across the node's cells)
+                    rows = np.flatnonzero(wk.any(axis=1))
+                    cols = np.flatnonzero(wk.any(axis=0))
+                    ra, rb, ca, cb = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+                    tile = padded[pad + y0 + ra - r:pad + y0 + rb + r, pad + x0 + ca - r:pad + x0 + cb + r]
                     conv = cv2.filter2D(tile, cv2.CV_32F, ker[::-1, ::-1].copy(), borderType=cv2.BORDER_CONSTANT)
-                    acc += wk.astype(np.float32) * conv[r:r + y1 - y0, r:r + x1 - x0]
+                    acc[ra:rb, ca:cb] += wk[ra:rb, ca:cb].astype(np.float32) * conv[r:r + rb - ra, r:r + cb - ca]
                 out[y0:y1, x0:x1] += acc
         return out
 
