@@ -367,9 +367,9 @@ class WaveBlur:
     def kernel(self, channel: str, j: int, i: int, k: int) -> np.ndarray:
         """Pixel kernel of node (j, i) at ladder level k (cached by canonical terms, mirrored per node)."""
         terms = self._node_terms[channel, j, i]
-        key = (channel, terms, k)
+        dz = self._centre_um(channel, j, i) + self._level_dz_um(k)
+        key = (channel, terms, round(dz, 6))
         if key not in self._kernels:
-            dz = self._centre_um(channel, j, i) + self._level_dz_um(k)
             self._kernels[key] = self.optics[channel].kernel(terms, dz, self.pitch_um)
         ker = self._kernels[key]
         fx, fy = self._node_flip[channel, j, i]
