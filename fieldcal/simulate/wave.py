@@ -431,27 +431,38 @@ class WaveBlur:
                 wn = (wy[:, None] * wx[None, :]).astype(np.float32)
                 if not wn.any():
                     continue
-                idx = self._signed_level(dz[y0:y1, x0:x1] - self._centre_um(channel, j, i))
-                lo = np.floor(idx)
-                t = idx - lo
-                acc = np.zeros_like(wn)
-                for k in range(int(lo.min()), int(lo.max()) + 2):
-                    wk = np.where(lo == k, 1.0 - t, 0.0) + np.where(lo == k - 1, t, 0.0)
-                    wk *= wn
-                    if not wk.any():
+                idx = self._signed_level(dz[y0:y1, x0:x1] - self._centre_um(channel, j, i)).ravel()
+                lo = np.floor(idx).astype(np.int32)
+                t = (idx - lo) * wn.ravel()  # weight of the upper level, times the node's
+                t0 = wn.ravel() - t  # weight of the lower level
+                # group the tile's pixels by their lower level once (stable sort of small ints), so each level
+                # touches only the pixels it brackets, as in the geometric path
+                order = np.argsort(lo, kind="stable")
+                k0, k1 = int(lo[order[0]]), int(lo[order[-1]])
+                bounds = np.searchsorted(lo[order], np.arange(k0, k1 + 2))
+                tw = x1 - x0
+                acc = np.zeros(wn.size, dtype=np.float32)
+                for k in range(k0, k1 + 2):
+                    below = order[bounds[k - k0 - 1]:bounds[k - k0]] if k > k0 else order[:0]  # lo == k - 1
+                    here = order[bounds[k - k0]:bounds[k - k0 + 1]] if k <= k1 else order[:0]  # lo == k
+                    ids = np.concatenate([here, below])
+                    w = np.concatenate([t0[here], t[below]])
+                    keep = w > 0
+                    if not keep.any():
                         continue
+                    ids, w = ids[keep], w[keep]
                     ker = self.kernel(channel, j, i, k)
                     r = ker.shape[0] // 2
                     if r > pad:
                         raise ParameterError(f"a wave kernel of radius {r} px exceeds the padding {pad} px",
                                              field="z_um", fix="report this: the padding estimate is wrong")
                     # only the bounding box of the pixels that use this level (a band across the node's cells)
-                    rows = np.flatnonzero(wk.any(axis=1))
-                    cols = np.flatnonzero(wk.any(axis=0))
-                    ra, rb, ca, cb = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+                    rr, cc = np.divmod(ids, tw)
+                    ra, rb, ca, cb = int(rr.min()), int(rr.max()) + 1, int(cc.min()), int(cc.max()) + 1
                     tile = padded[pad + y0 + ra - r:pad + y0 + rb + r, pad + x0 + ca - r:pad + x0 + cb + r]
                     conv = cv2.filter2D(tile, cv2.CV_32F, ker[::-1, ::-1].copy(), borderType=cv2.BORDER_CONSTANT)
-                    acc[ra:rb, ca:cb] += wk[ra:rb, ca:cb].astype(np.float32) * conv[r:r + rb - ra, r:r + cb - ca]
+                    acc[ids] += w * conv[r + rr - ra, r + cc - ca]
+                acc = acc.reshape(wn.shape)
                 out[y0:y1, x0:x1] += acc
         return out
 
