@@ -7,6 +7,9 @@ that bracket its own defocus. Levels are spaced geometrically in blur-disc diame
 above a floor of ``level_floor_px`` pixels, with an in-focus level at zero, so the interpolation error is a
 bounded fraction of the local blur change (docs/simulator.md gives the bound the tests check).
 
+With ``optics="wave"`` the blur is :class:`fieldcal.simulate.wave.WaveBlur` instead (PSFs from the pupil function;
+docs/simulator.md); everything below is shared.
+
 Then geometry (focus breathing, stage-axis shift, lateral colour: one affine warp per channel), relative
 illumination and the sensor: photon and read noise, gain, black level, clipping and quantisation
 (:mod:`fieldcal.simulate.noise`).
@@ -357,9 +360,15 @@ class Renderer:
         Always H x W x C (demosaiced even for a Bayer sensor), dtype from the bit depth."""
         return _noise.to_dn(self._linear(None), self.spec.sensor, None)
 
+    def focus_shift_table(self, channel: str):
+        """Wave optics: ``(rho, shift_um)``, the sharpest position (MTF at fs peaks) minus the lens's reference
+        surface over normalised field height; ``None`` for the geometric path (they coincide)."""
+        return None if self._wave is None else self._wave.shift_table(channel)
+
     def settings(self) -> dict:
         """What truth.json records about the renderer."""
-        return {"optics": self.optics, **(self._wave.settings() if self._wave is not None else {}),"version": RENDERER_VERSION, "level_ratio": self.level_ratio,
+        wave = self._wave.settings() if self._wave is not None else {}
+        return {"optics": self.optics, **wave, "version": RENDERER_VERSION, "level_ratio": self.level_ratio,
                 "level_floor_px": self.level_floor_px, "exposure_scale": float(self.exposure),
                 "warp": "separable band-limited resampling (chirp-z, fieldcal.simulate.warp.scale_shift), mirrored edges", "padding": "symmetric"}
 

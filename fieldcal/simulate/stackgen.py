@@ -188,12 +188,12 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
 
 def _wave_best_focus(renderer: Renderer, spec: LensSpec) -> dict:
     """truth.json's statement of where the wave path is sharpest, beside the lens's reference surface."""
-    tables = {c: renderer._wave.shift_table(c) for c in spec.channel_names}
+    tables = {c: renderer.focus_shift_table(c) for c in spec.channel_names}
     return {
         "definition": "best focus = stage position where the orientation-averaged MTF at fs_cyc_per_mm peaks "
                       "(wave-optics PSF, numerically); reference focus = the lens spec's surface (W020 = 0, "
                       "paraxial); best = reference + shift_um(rho), linear in rho between the listed heights",
-        "fs_cyc_per_mm": renderer._wave.fs_cyc_per_mm,
+        "fs_cyc_per_mm": renderer.settings()["fs_cyc_per_mm"],
         "rho": [float(v) for v in next(iter(tables.values()))[0]],
         "shift_um": {c: [round(float(v), 4) for v in t[1]] for c, t in tables.items()},
     }

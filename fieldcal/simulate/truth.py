@@ -13,7 +13,12 @@ from fieldcal.simulate.lens import LensSpec
 
 
 class TruthProfile:
-    """The exact answers of a simulated lens, in the pixel grid of a ``width_px`` x ``height_px`` image."""
+    """The exact answers of a simulated lens, in the pixel grid of a ``width_px`` x ``height_px`` image.
+
+    ``optics="wave"``: the lens as the wave-optics renderer shows it — best focus is where the MTF at
+    ``fs_cyc_per_mm`` peaks (spherical aberration moves it off the spec's surface, which stays available as
+    :meth:`reference_focus_um`); tolerance and MTF answers are still the geometric model's.
+    """
 
     is_truth = True
     has_measured_tolerance = False

@@ -469,4 +469,4 @@ class WaveBlur:
     def settings(self) -> dict:
         return {"optics": "wave", "fs_cyc_per_mm": self.fs_cyc_per_mm, "field_grid": list(self.field_grid),
                 "bands_nm": {c: [list(p) for p in o.band] for c, o in self.optics.items()},
-                "kernels_cached": len(self._kernels)}
+                "pixel_aperture": "square, 100% fill factor (sinc OTF); kernels band-limited to the pixel grid"}
