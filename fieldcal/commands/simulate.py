@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
+from ..errors import ParameterError
 from ..progress import status
 from . import add_parser, parse_size
 
@@ -35,6 +37,11 @@ def register(sub):
     p.add_argument("--size", metavar="WxH", help="render at W x H px over the same sensor area (default: the "
                    "lens's sensor size)")
     p.add_argument("--no-noise", action="store_true", help="no photon/read noise (frames still quantised)")
+    p.add_argument("--optics", choices=("geometric", "wave"), default="geometric", metavar="OPTICS",
+                   help="image formation: geometric (analytic blur-disc OTFs, default) or wave (PSFs from the pupil "
+                        "with the spec's aberrations, spectral bands, pixel aperture; docs/simulator.md)")
+    p.add_argument("--fs", type=float, default=80.0, metavar="CYC_PER_MM",
+                   help="wave optics: the frequency whose MTF peak is the true best focus in truth.json (default 80)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing stack in STACK")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -46,13 +53,16 @@ def run(args) -> int:
 
     size = parse_size(args.size)
     z = z_grid(*args.z)
+    if not (args.fs > 0 and math.isfinite(args.fs)):
+        raise ParameterError(f"fs must be a positive frequency, got {args.fs}", field="fs_cyc_per_mm", fix="e.g. 80")
     from fieldcal.formats.atomic import check_output
     scene_file = args.scene if args.scene and Path(args.scene).is_file() else None
     # the old stack is replaced as a whole: refuse when it is, or holds, the lens spec or the scene image
     check_output(args.stack, inputs=[args.lens, scene_file], kind="dir", replaces_folder=True, field="stack")
     spec = LensSpec.load(args.lens)
     stack = simulate_stack(spec, args.stack, z, scene=args.scene, seed=args.seed, size=size,
-                           progress=not args.quiet, noise=not args.no_noise, overwrite=args.overwrite)
+                           progress=not args.quiet, noise=not args.no_noise, overwrite=args.overwrite,
+                           optics=args.optics, fs_cyc_per_mm=args.fs)
     h, w = stack.shape
     status(f"wrote {len(stack)} frames of {w}x{h} px ({', '.join(stack.channels)}) to {args.stack}",
            quiet=args.quiet)

@@ -41,6 +41,7 @@ import numpy as np
 from fieldcal.errors import SpecError
 from fieldcal.optics import MTFCriterion, default_wavelength_nm, focus_tolerance_um, through_focus_otf
 from fieldcal.formats import documents
+from fieldcal.simulate.aberrations import Aberrations, parse_aberrations
 
 LENS_FORMAT = documents.format_id("lens")
 
@@ -102,6 +103,7 @@ class LensSpec:
     description: str = ""
     sources: dict[str, str] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
+    aberrations: Aberrations | None = None  # wave-optics terms (fieldcal.simulate.aberrations); None = none
 
     # ------------------------------------------------------------------ access
     @property
@@ -236,6 +238,9 @@ class LensSpec:
         d = {"format": LENS_FORMAT, **d}
         d["exit_pupil_mm"] = None if not math.isfinite(self.exit_pupil_mm) else self.exit_pupil_mm
         extra = d.pop("extra")
+        d.pop("aberrations")
+        if self.aberrations is not None:
+            d["aberrations"] = self.aberrations.to_dict()
         d.update(extra)
         return d
 
@@ -259,7 +264,7 @@ class LensSpec:
 # ------------------------------------------------------------------------------------------ validation
 _KNOWN_KEYS = {"format", "name", "focal_length_mm", "f_number", "image_height_max_mm", "channels", "sensor",
                "object_distance_mm", "decentre_mm", "tilt_um_per_mm", "exit_pupil_mm", "stage_axis_tilt_mrad",
-               "z_ref_um", "residual_blur_um", "relative_illumination_edge", "description", "sources"}
+               "z_ref_um", "residual_blur_um", "relative_illumination_edge", "description", "sources", "aberrations"}
 
 
 def _lens_from_dict(d: Any, path, where: str = "") -> LensSpec:
@@ -309,4 +314,6 @@ def _lens_from_dict(d: Any, path, where: str = "") -> LensSpec:
         description=str(d.get("description", "")),
         sources=dict(d.get("sources", {})),
         extra={k: v for k, v in d.items() if k not in _KNOWN_KEYS},
+        aberrations=(parse_aberrations(d["aberrations"], path, tuple(c["name"] for c in d["channels"]))
+                     if d.get("aberrations") is not None else None),
     )

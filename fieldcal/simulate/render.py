@@ -7,6 +7,9 @@ that bracket its own defocus. Levels are spaced geometrically in blur-disc diame
 above a floor of ``level_floor_px`` pixels, with an in-focus level at zero, so the interpolation error is a
 bounded fraction of the local blur change (docs/simulator.md gives the bound the tests check).
 
+With ``optics="wave"`` the blur is :class:`fieldcal.simulate.wave.WaveBlur` instead (PSFs from the pupil function;
+docs/simulator.md); everything below is shared.
+
 Then geometry (focus breathing, stage-axis shift, lateral colour: one affine warp per channel), relative
 illumination and the sensor: photon and read noise, gain, black level, clipping and quantisation
 (:mod:`fieldcal.simulate.noise`).
@@ -25,6 +28,7 @@ from . import noise as _noise
 from .warp import scale_shift
 
 RENDERER_VERSION = "fieldcal-render/1"
+OPTICS = ("geometric", "wave")  # image-formation paths (docs/simulator.md)
 # Rec. 709 luma weights: an RGB scene seen by a monochrome sensor.
 _TABLE_STEP = 1.0 / 65536.0  # cycles/px: radial OTF table resolution
 _LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
@@ -102,10 +106,20 @@ class Renderer:
         Ratio of successive blur-level diameters (> 1). Smaller is more accurate and slower.
     level_floor_px : float
         Diameter of the first non-zero level (px); below it the blur interpolates linearly to focus.
+    optics : {"geometric", "wave"}
+        Image formation: ``geometric`` (analytic OTFs, symmetric through focus; default) or ``wave`` (PSFs from
+        the pupil function with the spec's aberrations, :mod:`fieldcal.simulate.wave`).
+    fs_cyc_per_mm : float
+        Wave optics only: the frequency whose MTF peak is the sharpest position (truth and level centres).
+    field_grid : (int, int)
+        Wave optics only: field nodes across x and y at which PSFs are computed (blended bilinearly).
     """
 
     def __init__(self, spec: LensSpec, scene, seed: int = 0, level_ratio: float = 1.25,
-                 level_floor_px: float = 0.5):
+                 level_floor_px: float = 0.5, optics: str = "geometric", fs_cyc_per_mm: float = 80.0,
+                 field_grid: tuple[int, int] = (5, 4)):
+        if optics not in OPTICS:
+            raise ParameterError(f"unknown optics {optics!r}", field="optics", fix=f"use one of {', '.join(OPTICS)}")
         if not (level_ratio > 1.0 and math.isfinite(level_ratio)):
             raise ParameterError(f"level_ratio must be > 1, got {level_ratio}", field="level_ratio",
                                  fix="e.g. 1.25")
@@ -133,6 +147,11 @@ class Renderer:
         self._illum = spec.relative_illumination(xm, ym).astype(np.float32)
         self._spectra: dict[tuple[int, int], tuple[int, np.ndarray]] = {}  # (channel, pad) -> (pad, rfft2)
         self._freq: dict[tuple[int, int], np.ndarray] = {}  # grid shape -> radial table index
+        self.optics = optics
+        self._wave = None
+        if optics == "wave":
+            from .wave import WaveBlur
+            self._wave = WaveBlur(spec, self.scene, self.level_ratio, self.level_floor_px, fs_cyc_per_mm, field_grid)
 
     # ---------------------------------------------------------------------------------------- levels
     def diameter_px(self, defocus_um) -> np.ndarray:
@@ -284,6 +303,22 @@ class Renderer:
             d = self.spec.effective_defocus_um(z_um, xm, ym, channel)
         return np.asarray(d, dtype=np.float32)
 
+    def _signed_defocus_at(self, z_um: float | None, channel: str, affine: np.ndarray) -> np.ndarray:
+        """Wave optics: signed defocus (µm) from the reference surface where each scene pixel lands.
+
+        ``z_um=None``: each pixel at its own sharpest position (the truth image).
+        """
+        xd = affine[0, 0] * self._xs + affine[0, 2]
+        yd = affine[1, 1] * self._ys + affine[1, 2]
+        xm, ym = self.spec.pixel_to_mm(xd, yd)
+        if z_um is None:
+            d = self._wave.best_focus_shift_um(channel, self.spec.rho(xm, ym))
+        else:
+            d = z_um - self.spec.best_focus_um(xm, ym, channel)
+        d = np.broadcast_to(d, (self.height_px, self.width_px))
+        self._check_blur(float(self.diameter_px(np.max(np.abs(d)))))
+        return np.asarray(d, dtype=np.float64)
+
     def _warp(self, img: np.ndarray, affine: np.ndarray) -> np.ndarray:
         if np.allclose(affine, [[1, 0, 0], [0, 1, 0]], rtol=0, atol=1e-12):
             return img
@@ -294,7 +329,10 @@ class Renderer:
         breathing = z_um is not None
         for ci, ch in enumerate(self.channels):
             aff = self._affine(self.spec.z_ref_um if z_um is None else z_um, ch, breathing)
-            img = self._warp(self.blur_map(ch, self._defocus_at(z_um, ch, aff)), aff)
+            if self._wave is not None:
+                img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff)
+            else:
+                img = self._warp(self.blur_map(ch, self._defocus_at(z_um, ch, aff)), aff)
             np.multiply(img, self._illum * np.float32(self.exposure), out=out[:, :, ci])
         np.maximum(out, 0.0, out=out)  # band-limited resampling and OTF ringing can dip below zero
         return out
@@ -322,9 +360,15 @@ class Renderer:
         Always H x W x C (demosaiced even for a Bayer sensor), dtype from the bit depth."""
         return _noise.to_dn(self._linear(None), self.spec.sensor, None)
 
+    def focus_shift_table(self, channel: str):
+        """Wave optics: ``(rho, shift_um)``, the sharpest position (MTF at fs peaks) minus the lens's reference
+        surface over normalised field height; ``None`` for the geometric path (they coincide)."""
+        return None if self._wave is None else self._wave.shift_table(channel)
+
     def settings(self) -> dict:
         """What truth.json records about the renderer."""
-        return {"version": RENDERER_VERSION, "level_ratio": self.level_ratio,
+        wave = self._wave.settings() if self._wave is not None else {}
+        return {"optics": self.optics, **wave, "version": RENDERER_VERSION, "level_ratio": self.level_ratio,
                 "level_floor_px": self.level_floor_px, "exposure_scale": float(self.exposure),
                 "warp": "separable band-limited resampling (chirp-z, fieldcal.simulate.warp.scale_shift), mirrored edges", "padding": "symmetric"}
 

@@ -10,6 +10,7 @@ import io
 import math
 import os
 import shutil
+import tempfile
 from pathlib import Path
 from typing import Sequence
 
@@ -116,7 +117,8 @@ def stage_positions_um(z_um, noise_um: float = 0.0, backlash_um: float = 0.0, sc
 def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart", seed: int = 0,
                    size: tuple[int, int] | None = None, progress: bool = True, noise: bool = True,
                    overwrite: bool = False, level_ratio: float = 1.25, level_floor_px: float = 0.5,
-                   stage_noise_um: float = 0.0, stage_backlash_um: float = 0.0, stage_scale_error: float = 0.0):
+                   stage_noise_um: float = 0.0, stage_backlash_um: float = 0.0, stage_scale_error: float = 0.0,
+                   optics: str = "geometric", fs_cyc_per_mm: float = 80.0):
     """Render a through-focus stack of a scene through a simulated lens and write it with its truth.
 
     Parameters
@@ -145,6 +147,10 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
         Stage errors (:func:`stage_positions_um`): frames are rendered where the stage really is and recorded
         at the commanded ``z_um``; the stage record (``capture.stage`` in stack.json) states the
         repeatability, the true positions go to truth.json (``z_true_um``).
+    optics : {"geometric", "wave"}
+        Image formation (docs/simulator.md); ``wave`` computes PSFs from the pupil and the spec's aberrations.
+    fs_cyc_per_mm : float
+        Wave optics: the frequency whose MTF peak defines the true best focus written to truth.json.
 
     Returns
     -------
@@ -164,7 +170,8 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     out = Path(out_dir)
     _prepare_out(out, overwrite)
     image, scene_name = load_scene(scene, s.width_px, s.height_px, seed)
-    renderer = Renderer(spec, image, seed=seed, level_ratio=level_ratio, level_floor_px=level_floor_px)
+    renderer = Renderer(spec, image, seed=seed, level_ratio=level_ratio, level_floor_px=level_floor_px,
+                        optics=optics, fs_cyc_per_mm=fs_cyc_per_mm)
     del image
 
     meta = dict(bit_depth=s.bit_depth, black_level=s.black_level_dn, white_level=s.white_level_dn,
@@ -176,9 +183,9 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
         meta["capture"] = {"stage": {"kind": "simulated", "repeatability_um": float(stage_noise_um),
                                      "backlash_um": float(stage_backlash_um)}}
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
+    # an unpredictable, freshly made folder: nothing that exists is ever reused or deleted
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    tmp.rmdir()  # StackWriter.create makes it again, empty
     try:
         writer = StackWriter.create(tmp, pixel_pitch_um=s.pixel_pitch_um, channels=list(spec.channel_names),
                                     **meta)
@@ -201,13 +208,29 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
             "truth_file": "truth.tiff",
             "truth_geometry": "z_ref_um, lateral colour included, in-focus PSF only, no noise",
             "renderer": renderer.settings(),
+            "optics": optics,
         }
+        if optics == "wave":
+            truth["best_focus"] = _wave_best_focus(renderer, spec)
         documents.write(tmp / "truth.json", truth, "truth")
         _replace_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return Stack.open(out)
+
+
+def _wave_best_focus(renderer: Renderer, spec: LensSpec) -> dict:
+    """truth.json's statement of where the wave path is sharpest, beside the lens's reference surface."""
+    tables = {c: renderer.focus_shift_table(c) for c in spec.channel_names}
+    return {
+        "definition": "best focus = stage position where the orientation-averaged MTF at fs_cyc_per_mm peaks "
+                      "(wave-optics PSF, numerically); reference focus = the lens spec's surface (W020 = 0, "
+                      "paraxial); best = reference + shift_um(rho), linear in rho between the listed heights",
+        "fs_cyc_per_mm": renderer.settings()["fs_cyc_per_mm"],
+        "rho": [float(v) for v in next(iter(tables.values()))[0]],
+        "shift_um": {c: [round(float(v), 4) for v in t[1]] for c, t in tables.items()},
+    }
 
 
 def _replace_dir(tmp: Path, out: Path) -> None:

@@ -40,13 +40,19 @@ def load_truth(path: str | Path) -> TruthProfile:
 
 
 class TruthProfile:
-    """The exact answers of a simulated lens, in the pixel grid of a ``width_px`` x ``height_px`` image."""
+    """The exact answers of a simulated lens, in the pixel grid of a ``width_px`` x ``height_px`` image.
+
+    ``optics="wave"``: the lens as the wave-optics renderer shows it — best focus is where the MTF at
+    ``fs_cyc_per_mm`` peaks (spherical aberration moves it off the spec's surface, which stays available as
+    :meth:`reference_focus_um`); tolerance and MTF answers are still the geometric model's.
+    """
 
     is_truth = True
     has_measured_tolerance = False
 
     def __init__(self, spec: LensSpec, width_px: int | None = None, height_px: int | None = None,
-                 z_ref_um: float | None = None, source_path: str | Path | None = None):
+                 z_ref_um: float | None = None, source_path: str | Path | None = None,
+                 optics: str = "geometric", fs_cyc_per_mm: float = 80.0):
         if width_px is not None or height_px is not None:
             spec = spec.with_sensor_size(width_px or spec.sensor.width_px, height_px or spec.sensor.height_px)
         self.spec = spec
@@ -62,6 +68,31 @@ class TruthProfile:
         self.focal_length_mm: float = spec.focal_length_mm
         self.object_distance_mm: float = spec.object_distance_mm
         self.image_height_max_mm: float = spec.image_height_max_mm
+        # Wave optics (fieldcal.simulate.wave): the lens's surface is the reference (paraxial, W020 = 0) focus;
+        # the sharpest position (MTF at fs peaks) is shifted from it by spherical aberration, computed numerically
+        # over field height. Geometric optics: the two coincide.
+        if optics not in ("geometric", "wave"):
+            raise ValueError(f"optics must be 'geometric' or 'wave', not {optics!r}")
+        self.optics = optics
+        self.fs_cyc_per_mm = float(fs_cyc_per_mm)
+        self._shift: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def focus_shift_table(self, channel: str) -> tuple[np.ndarray, np.ndarray]:
+        """(rho, shift_um): sharpest position minus the reference surface over normalised field height."""
+        if channel not in self._shift:
+            if self.optics == "wave":
+                from fieldcal.simulate.wave import best_focus_shift_table
+                self._shift[channel] = best_focus_shift_table(self.spec, channel, self.fs_cyc_per_mm)
+            else:
+                self._shift[channel] = (np.array([0.0, 1.0]), np.zeros(2))
+        return self._shift[channel]
+
+    def _surface_um(self, x_mm, y_mm, channel: str, reference: bool = False):
+        z = self.spec.best_focus_um(x_mm, y_mm, channel)
+        if self.optics == "geometric" or reference:
+            return z
+        r, s = self.focus_shift_table(channel)
+        return z + np.interp(self.spec.rho(x_mm, y_mm), r, s)
 
     # -- the DESIGN.md API -------------------------------------------------------------------------
     def landing_px(self, x, y, z_um):
@@ -80,11 +111,19 @@ class TruthProfile:
         that depends on z itself: solve z = z_c(landing(x, y, z)) by fixed-point iteration (the map contracts
         by |dz_c/dh| * h / exit pupil, ~0.03 for the triplet). Without breathing or shift this is z_c(x, y).
         """
+        return self._solve_focus(x, y, channel, reference=False)
+
+    def reference_focus_um(self, x, y, channel: str):
+        """Like :meth:`best_focus_um` for the lens's reference surface: with wave optics the paraxial focus
+        (W020 = 0), which spherical aberration moves away from the sharpest position; else the same."""
+        return self._solve_focus(x, y, channel, reference=True)
+
+    def _solve_focus(self, x, y, channel: str, reference: bool):
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
-        z = self.spec.best_focus_um(*self.spec.pixel_to_mm(x, y), channel)
+        z = self._surface_um(*self.spec.pixel_to_mm(x, y), channel, reference)
         for _ in range(100):
-            z_new = self.spec.best_focus_um(*self.spec.pixel_to_mm(*self.landing_px(x, y, z)), channel)
+            z_new = self._surface_um(*self.spec.pixel_to_mm(*self.landing_px(x, y, z)), channel, reference)
             done = np.max(np.abs(z_new - z), initial=0.0) < 1e-7
             z = z_new
             if done:

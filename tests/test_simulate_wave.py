@@ -1,0 +1,365 @@
+"""The wave-optics path against closed forms: diffraction MTF, Hopkins' defocus OTF, the geometric limit, the
+ray-error sign, spherical aberration's best focus and asymmetry; the renderer and truth built on it."""
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy import integrate, special
+from scipy.optimize import minimize_scalar
+
+from fieldcal.errors import SpecError
+from fieldcal.simulate import Renderer
+from fieldcal.simulate.lens import LensSpec
+from fieldcal.simulate.truth import TruthProfile
+from fieldcal.simulate.wave import (ChannelOptics, WaveTerms, best_focus_shift_table, monochromatic_psf,
+                                    terms_at, wavefront_um)
+
+REPO = Path(__file__).resolve().parents[1]
+LAM_NM, N = 550.0, 2.0
+
+
+def make_spec(w=64, h=64, pitch_um=2.0, f_number=N, aberrations=None, mono=True, **kw) -> LensSpec:
+    """Flat-field, telecentric test lens, float output, no noise; one wavelength unless ``mono=False``."""
+    d = {"format": "fieldcal-lens/1", "name": "wave-test", "focal_length_mm": 10.0, "f_number": f_number,
+         "image_height_max_mm": math.hypot(w, h) * pitch_um / 2000.0,
+         "channels": [{"name": "G", "wavelength_nm": LAM_NM}],
+         "sensor": {"width_px": w, "height_px": h, "pixel_pitch_um": pitch_um, "bit_depth": 32,
+                    "black_level_dn": 0, "read_noise_e": 0.0, "full_well_e": 10000},
+         "residual_blur_um": 0.0}
+    ab = dict(aberrations or {})
+    if mono:
+        ab.setdefault("spectral_response", {"G": [[LAM_NM, 1.0]]})
+    d["aberrations"] = ab
+    d.update(kw)
+    return LensSpec.from_dict(d)
+
+
+def hopkins_otf(s: float, w020_waves: float) -> float:
+    """Exact OTF of a defocused circular pupil (Hopkins 1955) as a 1-D integral, s = f / cutoff.
+
+    The overlap of two unit pupils shifted by +-s has |x| <= sqrt(1 - y^2) - s; W020 rho^2 differs between
+    them by 4 W020 s x, so OTF = (4 / (pi a)) int_0^sqrt(1-s^2) sin(a (sqrt(1-y^2) - s)) dy, a = 8 pi W020 s.
+    """
+    if s >= 1.0:
+        return 0.0
+    if w020_waves == 0.0 or s == 0.0:
+        return (2.0 / np.pi) * (np.arccos(s) - s * np.sqrt(1.0 - s * s))
+    a = 8.0 * np.pi * w020_waves * s
+    val, _ = integrate.quad(lambda y: np.sin(a * (np.sqrt(1.0 - y * y) - s)), 0.0, np.sqrt(1.0 - s * s), limit=400)
+    return 4.0 / (np.pi * a) * val
+
+
+def otf_on_axis(w020_waves: float, n_p: int = 128, n_fft: int = 512, lam_nm=LAM_NM):
+    """OTF along fx at the FFT bins s = k / n_p (exact samples of the discrete pupil autocorrelation)."""
+    lam_um = lam_nm * 1e-3
+    spacing = lam_um * N * n_p / n_fft
+    w020 = w020_waves * lam_um
+    p = monochromatic_psf(lam_nm, N, spacing, n_fft, lambda u, v: w020 * (u * u + v * v))
+    o = np.fft.fft2(np.fft.ifftshift(p))
+    k = np.arange(n_p + 1)
+    return k / n_p, o[0, k]
+
+
+# ------------------------------------------------------------------------------------------ closed forms
+def test_ray_error_sign_convention():
+    """eps = -2 N grad W: a tilt W = t u moves the PSF to x = -2 N t (the convention docs/simulator.md states)."""
+    n, sp, t = 512, 0.2, 1.0
+    p = monochromatic_psf(LAM_NM, N, sp, n, lambda u, v: t * u + 0.0 * v)
+    x = (np.arange(n) - n // 2) * sp
+    assert (p.sum(axis=0) * x).sum() == pytest.approx(-2 * N * t, abs=0.02)
+    assert abs((p.sum(axis=1) * x).sum()) < 1e-6
+    assert p.sum() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("n_p,tol", [(128, 0.006), (256, 0.003)])
+def test_diffraction_limited_mtf_matches_closed_form(n_p, tol):
+    s, otf = otf_on_axis(0.0, n_p=n_p, n_fft=4 * n_p)
+    ref = (2 / np.pi) * (np.arccos(s) - s * np.sqrt(1 - s * s))
+    assert np.max(np.abs(otf.real - ref)) < tol  # measured 0.0047 / 0.0024: the pupil edge's discretisation
+    assert np.max(np.abs(otf.imag)) < 1e-6
+    assert abs(otf[-1]) < 1e-6  # cut-off at 1 / (lambda N)
+
+
+@pytest.mark.parametrize("w020_waves", [0.25, 0.5, 1.0, 2.0])
+def test_defocus_otf_matches_hopkins(w020_waves):
+    s, otf = otf_on_axis(w020_waves)
+    ref = np.array([hopkins_otf(float(v), w020_waves) for v in s])
+    assert np.max(np.abs(otf.real - ref)) < 0.006  # measured <= 0.0047 (same discretisation as in focus)
+
+
+def test_large_defocus_approaches_the_geometric_disc():
+    """At many waves of defocus the OTF tends to 2 J1(pi b f)/(pi b f), b = |dz| / N (the geometric path)."""
+    errs = []
+    for w020_waves in (10.0, 20.0):
+        s, otf = otf_on_axis(w020_waves, n_p=512, n_fft=2048)
+        dz_um = 8 * N * N * w020_waves * LAM_NM * 1e-3
+        x = np.pi * (dz_um / N) * s / (LAM_NM * 1e-3 * N)
+        geo = 2 * special.j1(np.maximum(x, 1e-9)) / np.maximum(x, 1e-9)
+        errs.append(np.max(np.abs(otf.real - geo)[s <= 0.25]))
+    assert errs[1] < errs[0] < 0.03  # measured 0.025, 0.015
+    assert errs[1] < 0.02
+
+
+def test_pixel_kernel_energy_and_width():
+    """A kernel sums to 1; its variance is the blur disc's b^2/16 plus the pixel box's p^2/12 per axis."""
+    spec = make_spec(pitch_um=4.0)
+    opt = ChannelOptics(spec, "G")
+    for dz in (0.0, 40.0, 120.0):
+        k = opt.kernel(WaveTerms(), dz, 4.0).astype(np.float64)
+        assert k.sum() == pytest.approx(1.0, abs=1e-6) and k.shape[0] % 2 == 1
+        x = (np.arange(k.shape[0]) - k.shape[0] // 2) * 4.0
+        var = (k.sum(axis=0) * x * x).sum()
+        b = dz / N
+        if dz >= 40:
+            assert var == pytest.approx(b * b / 16 + 16.0 / 12, rel=0.06)
+    # energy kept inside the kernel before renormalising (an Airy pattern's far tail is dropped)
+    sp = LAM_NM * 1e-3 * N / 4
+    n = 2 * int(math.ceil(opt.half_extent_um(WaveTerms(), 0.0) / sp)) + 1
+    assert opt.psf(WaveTerms(), 0.0, sp, n).sum() > 0.97
+
+
+# -------------------------------------------------------------------------------- spherical aberration
+def test_spherical_aberration_best_focus_at_minus_w040():
+    """Primary SA: the Strehl (minimum-RMS) focus is at W020 = -W040, i.e. dz = -8 N^2 W040; the MTF(fs) peak
+    lies between paraxial (0) and marginal (-16 N^2 W040) focus, on the same side, for either sign."""
+    w040 = 0.5 * LAM_NM * 1e-3
+    terms = WaveTerms(w040_um=w040)
+    sp, n = LAM_NM * 1e-3 * N / 4, 256
+
+    def strehl(dz):
+        return monochromatic_psf(LAM_NM, N, sp, n, lambda u, v: wavefront_um(u, v, dz, N, terms)).max()
+
+    r = minimize_scalar(lambda z: -strehl(z), bounds=(-30, 10), method="bounded", options={"xatol": 1e-3})
+    assert r.x == pytest.approx(-8 * N * N * w040, rel=0.01)  # measured -8.808 vs -8.800
+    opt = ChannelOptics(make_spec(), "G")
+    for sign in (1, -1):
+        t = WaveTerms(w040_um=sign * w040)
+        for fs in (20.0, 80.0):
+            z = opt.best_focus_shift_um(t, fs)
+            assert 0 < -sign * z < 16 * N * N * w040  # measured -11.3 (20 cy/mm), -10.2 (80)
+
+
+def test_spherical_aberration_makes_through_focus_asymmetric():
+    """W040 > 0 (under-corrected): bright rim on the lens side of best focus, bright core beyond it, and the
+    MTF falls more slowly beyond it; W040 < 0 mirrors both."""
+    opt = ChannelOptics(make_spec(), "G")
+    w040 = 1.0 * LAM_NM * 1e-3
+    sp = LAM_NM * 1e-3 * N / 3
+    for sign in (1, -1):
+        t = WaveTerms(w040_um=sign * w040)
+        z0 = opt.best_focus_shift_um(t, 80.0)
+        d = 16 * N * N * w040  # the spread of the SA foci (paraxial to marginal)
+        lens_side, far_side = opt.mtf(t, z0 - sign * d / 2, 80.0), opt.mtf(t, z0 + sign * d / 2, 80.0)
+        assert far_side - lens_side > 0.04  # measured 0.519 vs 0.459
+        lens_side, far_side = opt.mtf(t, z0 - sign * 0.75 * d, 80.0), opt.mtf(t, z0 + sign * 0.75 * d, 80.0)
+        assert far_side - lens_side > 0.1  # measured 0.285 vs 0.132
+
+        def rim_fraction(dz):
+            n = 2 * int(math.ceil(opt.half_extent_um(t, dz) / sp)) + 1
+            p = opt.psf(t, dz, sp, n)
+            x = (np.arange(n) - n // 2) * sp
+            r = np.hypot(x[None, :], x[:, None])
+            r_edge = np.sqrt((p * r * r).sum() * 2)  # the uniform disc has <r^2> = R^2 / 2
+            return p[(r > 0.7 * r_edge) & (r < 1.2 * r_edge)].sum() / p[r < 0.4 * r_edge].sum()
+
+        rim_lens, rim_far = rim_fraction(z0 - sign * 2 * d), rim_fraction(z0 + sign * 2 * d)
+        assert rim_lens - rim_far > 0.2
+
+
+# ----------------------------------------------------------------------------------- renderer and truth
+def test_wave_render_is_the_kernel_convolution_at_a_level():
+    """No field dependence (flat field, no aberrations) and a defocus on a ladder level: the frame is the scene
+    convolved with that one kernel (the blend of nodes and levels adds nothing)."""
+    spec = make_spec(w=48, h=40, pitch_um=4.0)
+    rng = np.random.default_rng(1)
+    scene = rng.uniform(0.1, 0.9, (40, 48)).astype(np.float32)
+    r = Renderer(spec, scene, optics="wave")
+    dz = 0.5 * 1.25 ** 3 * N * 4.0  # level 4 of the ladder (floor 0.5 px, ratio 1.25)
+    img = r.render_float(dz)[:, :, 0] / np.float32(r.exposure)
+    ker = ChannelOptics(spec, "G").kernel(WaveTerms(), dz, 4.0)
+    ref = cv2.filter2D(scene, cv2.CV_32F, ker[::-1, ::-1].copy(), borderType=cv2.BORDER_REFLECT)
+    assert np.max(np.abs(img - ref)) < 1e-4
+    with pytest.raises(Exception, match="optics"):
+        Renderer(spec, scene, optics="ray")
+
+
+def test_rendered_sharpest_position_is_the_truth_best_focus():
+    """Frames of a white-noise scene through a lens with spherical aberration: the z where the frame's contrast
+    at fs peaks is TruthProfile(optics="wave").best_focus_um, not the lens's (paraxial) surface."""
+    w040 = 0.5
+    spec = make_spec(w=64, h=64, pitch_um=2.0, aberrations={"unit": "um", "spherical": [w040]})
+    fs = 80.0
+    truth = TruthProfile(spec, optics="wave", fs_cyc_per_mm=fs)
+    z_best = float(truth.best_focus_um(32, 32, "G"))
+    z_ref = float(truth.reference_focus_um(32, 32, "G"))
+    assert z_ref == pytest.approx(0.0, abs=1e-9)
+    assert -16 * N * N * w040 < z_best < -1.0  # the sharpest position is on the marginal side
+    scene = np.random.default_rng(0).uniform(0, 1, (64, 64)).astype(np.float32)
+    r = Renderer(spec, scene, optics="wave", fs_cyc_per_mm=fs)
+    fy, fx = np.meshgrid(np.fft.fftfreq(64), np.fft.fftfreq(64), indexing="ij")
+    f = np.hypot(fx, fy) / (2.0e-3)  # cycles/mm
+    band = np.abs(f - fs) < 12
+    s0 = np.abs(np.fft.fft2(scene - scene.mean())) ** 2
+
+    def contrast(z):
+        img = r.render_float(z)[:, :, 0]
+        return math.sqrt((np.abs(np.fft.fft2(img - img.mean())) ** 2)[band].sum() / s0[band].sum())
+
+    zs = z_best + np.array([-6.0, -3.0, 0.0, 3.0, 6.0])
+    c = np.array([contrast(z) for z in zs])
+    assert np.argmax(c) == 2
+    a, b, _ = np.polyfit(zs, c, 2)
+    assert -b / (2 * a) == pytest.approx(z_best, abs=1.0)
+    # and the paraxial surface is clearly less sharp than the truth
+    assert contrast(z_ref) < c[2] - 0.02
+
+
+def test_truth_without_spherical_aberration_is_the_surface():
+    spec = LensSpec.load(REPO / "models" / "triplet-uncorrected.json").with_sensor_size(64, 36)
+    t_w = TruthProfile(spec, optics="wave")
+    t_g = TruthProfile(spec)
+    x, y = np.array([5.0, 32.0, 60.0]), np.array([3.0, 18.0, 30.0])
+    for c in spec.channel_names:  # astigmatism alone is symmetric through focus
+        assert np.allclose(t_w.best_focus_um(x, y, c), t_g.best_focus_um(x, y, c), atol=1e-9)
+    with pytest.raises(ValueError):
+        TruthProfile(spec, optics="ray")
+
+
+def test_field_terms_follow_the_spec():
+    spec = make_spec(aberrations={"unit": "waves", "reference_wavelength_nm": 500, "spherical": [1.0],
+                                  "coma": [0, 0.2], "astigmatism": [0, 0, 0.4]},
+                     channels=[{"name": "G", "wavelength_nm": LAM_NM, "astigmatism_um": 8.0}])
+    t = terms_at(spec, "G", 0.5, 0.3)
+    assert t.w040_um == pytest.approx(0.5)
+    assert t.w131_um == pytest.approx(0.2 * 0.5 * 0.5)
+    assert t.wast_um == pytest.approx(0.4 * 0.25 * 0.5 - 8.0 * 0.25 / (16 * N * N))
+    assert t.phi_rad == 0.3
+    # the astigmatism_um convention: tangential focus at +A rho^2 / 2 (where t-direction defocus cancels)
+    a = 8.0 * 0.25
+    plain = make_spec(channels=[{"name": "G", "wavelength_nm": LAM_NM, "astigmatism_um": 8.0}])
+    tt = terms_at(plain, "G", 0.5, 0.0)
+    w = wavefront_um(np.array([1.0]), np.array([0.0]), a / 2, N, tt)  # tangential marginal ray at dz = +A/2
+    assert w[0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_best_focus_shift_table_over_field():
+    spec = make_spec(aberrations={"unit": "um", "spherical": [0.3, 0.0, 0.3]})
+    rho, shift = best_focus_shift_table(spec, "G", 80.0)
+    assert rho[0] == 0 and rho[-1] >= 0.98  # up to the corner pixel centres
+    assert np.all(np.diff(shift) < 0)  # more SA towards the edge -> further towards the lens
+
+
+# ------------------------------------------------------------------------------------ spec and command
+def test_aberrations_block_validation_and_round_trip(tmp_path):
+    base = json.loads((REPO / "models" / "triplet-uncorrected.json").read_text())
+    assert "aberrations" not in LensSpec.from_dict(base).to_dict()  # older specs load and save unchanged
+    for bad, field in [({"unit": "mm"}, "aberrations.unit"), ({"spherical": "big"}, "aberrations.spherical"),
+                       ({"sphercal": [1]}, "aberrations.sphercal"),
+                       ({"spectral_response": {"Q": [[500, 1]]}}, "aberrations.spectral_response.Q"),
+                       ({"spectral_response": {"G": [[500, -1]]}}, "aberrations.spectral_response.G"),
+                       ([1, 2], "aberrations")]:
+        with pytest.raises(SpecError) as e:
+            LensSpec.from_dict({**base, "aberrations": bad}, path=tmp_path / "x.json")
+        assert field in str(e.value) and "x.json" in str(e.value)
+    good = {**base, "aberrations": {"unit": "um", "spherical": [0.5], "coma": [0, 0.1]}}
+    spec = LensSpec.from_dict(good)
+    assert LensSpec.from_dict(spec.to_dict()) == spec
+
+
+def test_meridional_trace_matches_a_single_refracting_sphere():
+    """Real-ray axis crossing of one spherical surface against the exact formula: a ray at height h meets the
+    sphere at sin i = h / R, leaves at sin i' = sin i / n and crosses the axis R sin i' / sin(i - i') beyond
+    the centre of curvature (the paraxial limit is n R / (n - 1))."""
+    from fieldcal.raytrace.meridional import axis_crossing_um
+    from fieldcal.raytrace.prescription import LINE_D_NM, Prescription, Surface
+    r_mm, n, back = 20.0, 1.5168, 58.0
+    rx = Prescription((Surface("stop", "standard", math.inf, 0.0, is_stop=True),
+                       Surface("1", "standard", r_mm, back, nd=n, vd=64.17)))
+    n_d = rx.index(1, LINE_D_NM)
+    for h in (0.01, 2.0, 5.0, 8.0):
+        i = math.asin(h / r_mm)
+        ip = math.asin(math.sin(i) / n_d)
+        z_mm = r_mm + r_mm * math.sin(ip) / math.sin(i - ip)
+        assert axis_crossing_um(rx, h, LINE_D_NM) == pytest.approx((z_mm - back) * 1000.0, abs=1e-6)
+
+
+def test_wave_best_focus_against_the_ray_traced_triplet():
+    """Independent of optiland: paraxial focus (y-nu trace) + spherical aberration (real meridional rays, numpy)
+    + the wave path's MTF peak predict the optiland-traced on-axis best focus of docs/raytrace.md (80 cy/mm);
+    models/triplet-wave-sa.json holds those terms and follows the traced G curve over the field."""
+    from fieldcal.raytrace.meridional import spherical_aberration
+    from fieldcal.raytrace.prescription import load_prescription
+    rx = load_prescription(REPO / "models" / "triplet-uncorrected.prescription.csv")
+    spec = LensSpec.load(REPO / "models" / "triplet-wave-sa.json")
+    traced_axis = {"R": 10.1, "G": -5.7, "B": -6.7}  # docs/raytrace.md, h = 0
+    for c in spec.channel_names:
+        sa = spherical_aberration(rx, spec.channel(c).wavelength_nm, spec.f_number)
+        assert abs(sa.la_um[0]) < 0.05  # the smallest zone converges to the paraxial focus
+        t = terms_at(spec, c, 0.0, 0.0)
+        assert (t.w040_um, t.w060_um) == pytest.approx((sa.w040_um, sa.w060_um), abs=1e-4)  # the model file's source
+        z = sa.paraxial_focus_um + ChannelOptics(spec, c).best_focus_shift_um(t, 80.0)
+        assert z == pytest.approx(traced_axis[c], abs=1.5)  # measured +0.74, +0.83, +0.82 µm
+    spec0 = LensSpec.from_dict({**spec.to_dict(), "stage_axis_tilt_mrad": [0, 0], "exit_pupil_mm": None})
+    t0 = TruthProfile(spec0, optics="wave", fs_cyc_per_mm=80.0)  # no breathing: image height fixed through focus
+    cx, cy = spec0.optical_centre_px()
+    p = spec0.sensor.pixel_pitch_um / 1000.0
+    ang = math.atan2(9, 16)
+    plain = LensSpec.load(REPO / "models" / "triplet-uncorrected.json")  # the traced best-focus polynomial
+    offsets = []
+    for h, z in {0.0: -5.7, 0.9: -24.3, 1.8: -80.5, 2.7: -177.3, 3.6: -321.3}.items():  # traced G
+        zb = float(t0.best_focus_um(cx + h * math.cos(ang) / p, cy + h * math.sin(ang) / p, "G"))
+        assert zb == pytest.approx(z, abs=3.0)  # measured +0.8 .. +2.7 (the polynomial is 1.7 µm off at the edge)
+        offsets.append(zb - float(plain.best_focus_um(h * math.cos(ang), h * math.sin(ang), "G")))
+    assert np.ptp(offsets) < 0.5  # the SA shift hardly varies over the field: the spec's surface shape holds
+    shift = float(t0.reference_focus_um(cx, cy, "G") - t0.best_focus_um(cx, cy, "G"))
+    w = terms_at(spec, "G", 0.0, 0.0)
+    assert 8 * N * N * (w.w040_um + 0.9 * w.w060_um) < shift < 16 * N * N * (w.w040_um + w.w060_um)
+
+
+def test_simulate_command_wave(tmp_path):
+    from fieldcal.cli import main
+    out = tmp_path / "st"
+    rc = main(["simulate", str(REPO / "models" / "triplet-wave-sa.json"), str(out), "--z", "-20", "0", "20",
+               "--size", "96x54", "--optics", "wave", "--fs", "10", "--quiet"])
+    assert rc == 0
+    t = json.loads((out / "truth.json").read_text())
+    assert t["optics"] == "wave" and t["renderer"]["optics"] == "wave"
+    bf = t["best_focus"]
+    assert bf["fs_cyc_per_mm"] == 10.0 and set(bf["shift_um"]) == {"R", "G", "B"}
+    assert all(-35 < v < -15 for v in bf["shift_um"]["G"])
+    assert "aberrations" in t["lens"]
+
+
+def test_wave_reuses_the_sensor_chain():
+    """Bayer mosaic, noise and quantisation are the geometric path's: same shapes and dtypes, and the noise
+    variance of a flat grey frame is g^2 (e + read^2) + 1/12 as in docs/simulator.md."""
+    spec = LensSpec.from_dict({**json.loads((REPO / "models" / "triplet-wave-sa.json").read_text()),
+                               "relative_illumination_edge": 1.0}).with_sensor_size(96, 54)
+    d = spec.to_dict()
+    d["sensor"]["cfa"] = "RGGB"
+    bayer = LensSpec.from_dict(d)
+    scene = np.random.default_rng(0).uniform(0.2, 0.8, (54, 96, 3)).astype(np.float32)
+    r = Renderer(bayer, scene, optics="wave", fs_cyc_per_mm=10.0)
+    assert r.render(-40.0).shape == (54, 96) and r.truth().shape == (54, 96, 3)
+    flat = Renderer(spec, np.full((54, 96), 0.5, np.float32), optics="wave", fs_cyc_per_mm=10.0)
+    noisy = flat.render(-40.0).astype(np.float64)
+    clean = flat.render(-40.0, noise=False).astype(np.float64)
+    s = spec.sensor
+    g = (s.white_level_dn - s.black_level_dn) / s.full_well_e
+    e = (clean.mean() - s.black_level_dn) / g
+    assert np.var(noisy - clean) == pytest.approx(g * g * (e + s.read_noise_e ** 2) + 1 / 12, rel=0.1)
+
+
+def test_wave_frames_do_not_depend_on_render_order():
+    spec = make_spec(w=40, h=32, pitch_um=4.0, aberrations={"unit": "um", "spherical": [0.4], "coma": [0, 0.2]},
+                     channels=[{"name": "G", "wavelength_nm": LAM_NM, "curvature_um": [-60.0],
+                                "astigmatism_um": 10.0}])
+    scene = np.random.default_rng(3).uniform(0, 1, (32, 40)).astype(np.float32)
+    a = Renderer(spec, scene, optics="wave", seed=5)
+    b = Renderer(spec, scene, optics="wave", seed=5)
+    a.render(-120.0)  # fills the caches (kernels, a larger padding) first
+    assert np.array_equal(a.render(-10.0), b.render(-10.0))
