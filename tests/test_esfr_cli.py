@@ -119,10 +119,10 @@ def test_texture_chart_gives_no_trusted_edges():
 def test_raw_mosaic_stack_planes_and_tracks():
     """An RGGB ArrayStack: four planes per edge, frequencies in sensor cycles/px, one track per edge."""
     from fieldcal.measure.esfr_synth import render_edge
-    from fieldcal.measure.source import ArrayStack
+    from fieldcal.formats.frames import ArrayStack
     z = np.array([-10.0, 0.0, 10.0])
     frames = [render_edge(96, 96, normal_deg=-7.0, sigma_px=0.6, defocus_d_px=0.1 * abs(zi)) for zi in z]
-    stack = ArrayStack(z, frames, pixel_pitch_um=2.0, channels=("R", "G", "B"), cfa="RGGB")
+    stack = ArrayStack(frames, z, ("R", "G", "B"), pixel_pitch_um=2.0, cfa="RGGB")
     res = fieldcal.measure_mtf(stack)
     assert {e["plane"] for e in res.edges} == {"R", "Gr", "Gb", "B"}
     assert len({e["track"] for e in res.edges}) == 1

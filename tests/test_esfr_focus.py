@@ -109,13 +109,13 @@ def test_link_tracks_follows_drift_and_never_swaps():
 def test_end_to_end_through_focus_from_rendered_edges():
     """Slanted-edge frames rendered with a defocus disc growing with |z - z0|: e-SFR per frame, tracks, peak."""
     from fieldcal.measure.mtf import measure_mtf
-    from fieldcal.measure.source import ArrayStack
+    from fieldcal.formats.frames import ArrayStack
 
     z0, step = 3.7, 4.0
     z = np.arange(-40.0, 40.1, step)
     frames = [render_edge(160, 160, normal_deg=-6.0, sigma_px=0.5, defocus_d_px=0.15 * abs(zi - z0))
               for zi in z]
-    stack = ArrayStack(z, frames, pixel_pitch_um=3.0, channels=("Y",))
+    stack = ArrayStack(frames, z, ("Y",), pixel_pitch_um=3.0)
     res = measure_mtf(stack)
     tracks = {e["track"] for e in res.edges}
     assert len(tracks) == 1

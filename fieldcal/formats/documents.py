@@ -78,6 +78,7 @@ KINDS: dict[str, DocumentKind] = {k.name: k for k in (
                  "write the charts again with `fieldcal targets`"),
     DocumentKind("validation", "fieldcal-validation-1.schema.json", "format",
                  "run `fieldcal validate` again"),
+    DocumentKind("mtf", "fieldcal-mtf-1.schema.json", "format", "re-run `fieldcal mtf` (docs/measurement.md)"),
 )}
 
 

@@ -18,12 +18,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FieldcalError, ParameterError, SpecError
+from ..formats import documents
 from .bayer import extract_plane, plane_layouts
 from .esfr import esfr_roi
 from .esfr_detect import find_edges
 from .esfr_focus import link_tracks
 
-FORMAT = "fieldcal-mtf/1"
+FORMAT = documents.format_id("mtf")
 
 
 def default_grid(max_cy_per_px: float = 1.0, step_cy_per_px: float = 0.01) -> np.ndarray:
@@ -67,30 +68,22 @@ class MtfResult:
 
     def save(self, path) -> Path:
         """Write atomically as JSON."""
-        from ..formats.atomic import atomic_write_text
+        from ..formats import documents
         path = Path(path)
-        atomic_write_text(path, json.dumps(self.to_dict(), separators=(",", ":"), allow_nan=False))
+        documents.write(path, self.to_dict(), "mtf", indent=None)
         return path
 
     @classmethod
     def load(cls, path) -> "MtfResult":
+        from ..formats import documents
         path = Path(path)
-        try:
-            d = json.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise SpecError("not found", path=path, fix="give the file written by `fieldcal mtf --out`") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise SpecError(f"is not valid JSON ({exc})", path=path, fix="re-run `fieldcal mtf`") from None
+        d = documents.read(path, "mtf")
         return cls.from_dict(d, path)
 
     @classmethod
     def from_dict(cls, d: dict, path=None) -> "MtfResult":
-        if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise SpecError(f"format is {d.get('format') if isinstance(d, dict) else d!r}, expected {FORMAT!r}",
-                            path=path, field="format", fix="give a file written by `fieldcal mtf`")
-        for key in ("frequencies_cy_per_px", "edges"):
-            if key not in d:
-                raise SpecError("is missing", path=path, field=key, fix="re-run `fieldcal mtf`")
+        from ..formats import documents
+        documents.validate(d, "mtf", path)  # the schema checks types; the grid length is checked here
         f = np.asarray(d["frequencies_cy_per_px"], dtype=np.float64)
         for i, e in enumerate(d["edges"]):
             if len(e.get("mtf", [])) != f.size:
