@@ -23,6 +23,7 @@ _LAZY = {
     "LensProfile": ("fieldcal.profile.lens_profile", "LensProfile"),
     "TruthProfile": ("fieldcal.simulate.truth", "TruthProfile"),
     "calibrate": ("fieldcal.calibration.pipeline", "calibrate"),
+    "import_stack": ("fieldcal.formats.importer", "import_stack"),
     "FieldcalError": ("fieldcal.errors", "FieldcalError"),
 }
 

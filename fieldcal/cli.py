@@ -14,7 +14,7 @@ import sys
 from . import __version__
 from .errors import FieldcalError
 
-COMMANDS = ["demo", "targets", "simulate", "calibrate", "plan", "capture", "composite", "report", "validate", "lens"]
+COMMANDS = ["demo", "targets", "simulate", "import_stack", "calibrate", "plan", "capture", "composite", "report", "validate", "lens"]
 
 
 class _Parser(argparse.ArgumentParser):
