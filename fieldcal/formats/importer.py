@@ -460,7 +460,11 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
         meta["white_level"] = first.white_level
         meta["bit_depth"] = max(1, int(math.ceil(math.log2(first.white_level + 1)))) if first.white_level else 16
     else:
-        meta["channels"] = ["R", "G", "B"] if first.n_channels == 3 else ["Y"]
+        names = {1: ["Y"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}  # RGBA: e.g. align_image_stack's TIFFs
+        if first.n_channels not in names:
+            raise StackError(f"has {first.n_channels} channels", path=first.path, field="images",
+                             fix="save the frames as grayscale, RGB or RGBA")
+        meta["channels"] = names[first.n_channels]
         if first.kind == "jpeg":
             meta["encoding"] = "sRGB JPEG (8-bit, gamma-encoded)"
     if fnum:
