@@ -1,18 +1,21 @@
 """The ``fieldcal`` command: a thin dispatcher over fieldcal.commands.<name> modules.
 
 Each command module defines ``register(subparsers)`` that adds its parser and sets ``func=run``; ``run(args)``
-returns an exit code. User mistakes raise :class:`fieldcal.errors.FieldcalError` and end here as a one-paragraph
-message and a non-zero exit, never a traceback.
+returns an exit code. :func:`main` is the one place failures end: every failure class maps to a documented exit
+status (docs/safety.md) and a what/where/fix message on stderr, never a traceback (``--debug`` shows one).
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
+import os
 import sys
 
 from . import __version__
-from .errors import FieldcalError
+from .errors import (EXIT_BAD_INPUT, EXIT_ENVIRONMENT, EXIT_INTERNAL, EXIT_INTERRUPTED, FieldcalError,
+                     from_oserror)
 
 COMMANDS = ["demo", "targets", "simulate", "import_stack", "calibrate", "plan", "capture", "composite", "report", "validate", "lens"]
 
@@ -20,14 +23,18 @@ COMMANDS = ["demo", "targets", "simulate", "import_stack", "calibrate", "plan", 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # argparse's own usage errors: exit 2 with usage, as usual
         self.print_usage(sys.stderr)
-        self.exit(2, f"{self.prog}: error: {message}\n")
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message}\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="fieldcal", description="Field-curvature calibration and curved-sensor emulation.",
                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                epilog="example:\n  fieldcal demo --out demo-out\n\nRun 'fieldcal COMMAND --help' for each command.")
+                epilog="example:\n  fieldcal demo --out demo-out\n\nRun 'fieldcal COMMAND --help' for each command. "
+                       "Exit status: 0 done, 1 validate found a failed check, 2 bad input, 3 device, "
+                       "4 disk/permissions/memory, 5 internal error, 130 interrupted (docs/safety.md).")
     p.add_argument("--version", action="version", version=f"fieldcal {__version__}")
+    p.add_argument("--debug", action="store_true",
+                   help="show the Python traceback of a failure (also FIELDCAL_DEBUG=1); may go anywhere")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:
         mod = importlib.import_module(f"fieldcal.commands.{name}")
@@ -35,20 +42,68 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _say(command: str, text: str) -> None:
+    try:
+        print(f"fieldcal {command}: {text}", file=sys.stderr, flush=True)
+    except (OSError, ValueError):  # stderr itself is gone (closed pipe): nothing left to tell
+        pass
+
+
+def _command_name(args) -> str:
+    name = getattr(args, "command", None) or ""
+    kind = getattr(args, "plan_kind", None) or getattr(args, "lens_command", None)
+    return f"{name} {kind}" if kind and isinstance(kind, str) else name
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; returns its exit status (see :mod:`fieldcal.errors` ``EXIT_*``)."""
+    from .formats.atomic import command_scope
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv or os.environ.get("FIELDCAL_DEBUG", "") not in ("", "0")
+    argv = [a for a in argv if a != "--debug"]
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
-        return 2
+        return EXIT_BAD_INPUT
+    name = _command_name(args)
     try:
-        return int(args.func(args) or 0)
+        with command_scope():
+            return int(args.func(args) or 0)
     except FieldcalError as e:
-        print(f"fieldcal {args.command}: error: {e}", file=sys.stderr)
+        if debug:
+            raise
+        _say(name, f"error: {e}")
         return e.exit_code
     except KeyboardInterrupt:
-        print(f"fieldcal {args.command}: interrupted", file=sys.stderr)
-        return 130
+        _say(name, "interrupted")
+        return EXIT_INTERRUPTED
+    except MemoryError:
+        if debug:
+            raise
+        _say(name, "error: not enough memory\n  fix: work on smaller images or a smaller region, or free memory")
+        return EXIT_ENVIRONMENT
+    except OSError as e:
+        if debug:
+            raise
+        if e.errno == errno.EPIPE:  # the reader of our output went away (e.g. `| head`): nothing to say
+            return EXIT_ENVIRONMENT
+        err = from_oserror(e)
+        _say(name, f"error: {err}")
+        return err.exit_code
+    except RecursionError:
+        if debug:
+            raise
+        _say(name, "error: an input is nested too deeply to read\n  fix: check the input files (JSON nested "
+                   "thousands of levels deep is not a fieldcal file)")
+        return EXIT_BAD_INPUT
+    except Exception as e:  # a bug: short message, the traceback only with --debug
+        if debug:
+            raise
+        _say(name, f"internal error ({type(e).__name__}: {str(e)[:300]})\n  this is a bug in fieldcal: run the "
+                   f"same command again with --debug to see the traceback, and report it (exit {EXIT_INTERNAL})")
+        return EXIT_INTERNAL
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -85,7 +85,9 @@ def test_bad_queries_are_clear(profile_and_truth):
 def test_save_load_round_trip(profile_and_truth, tmp_path):
     p, _ = profile_and_truth
     path = p.save(tmp_path / "lens.json")
-    assert (tmp_path / "lens.samples.npz").is_file()
+    side = json.loads(path.read_text())["sidecar"]
+    assert (tmp_path / side["file"]).is_file()
+    assert side["file"] == f"lens.{side['sha256'][:16]}.samples.npz"  # content-addressed
     q = LensProfile.load(path)
     x, y = np.array([0.0, 100.0, 319.0]), np.array([0.0, 50.0, 239.0])
     for c in p.channels:
@@ -114,7 +116,7 @@ def test_load_refuses_newer_unknown_and_mismatched(profile_and_truth, tmp_path):
     with pytest.raises(SpecError, match="unknown profile format"):
         LensProfile.load(other)
     # tampered sidecar: refused, named
-    side = tmp_path / "lens.samples.npz"
+    side = tmp_path / d["sidecar"]["file"]
     side.write_bytes(side.read_bytes()[:-10] + b"0123456789")
     with pytest.raises(SpecError, match="sidecar"):
         LensProfile.load(path)

@@ -15,11 +15,16 @@ one-paragraph message that names the file, the field and the fix, and a non-zero
 | exit | meaning |
 | --- | --- |
 | 0 | done |
-| 1 | `validate`: a check failed (the report says which) |
-| 2 | a user mistake: bad argument, malformed stack/profile/plan/lens file (the message says how to fix it) |
+| 1 | `validate`: a check failed (the report says which); no other command uses 1 |
+| 2 | bad input: argument, malformed stack/profile/plan/lens file, altered frame, refused output path |
 | 3 | a device error or a lost link during `capture` (the folder is left resumable) |
-| 4 | a stage or optional extra not available (e.g. `lens from-prescription` without optiland) |
+| 4 | the machine: disk full, read-only file system, permission denied, out of memory, optional extra missing |
+| 5 | internal error (a bug): a short message naming the command; `--debug` shows the traceback |
 | 130 | interrupted (Ctrl-C); `capture` stops the stage and leaves a resumable folder |
+
+No command writes through a symbolic link, over or into one of its inputs, or over an existing output without
+`--overwrite`; every file appears whole or not at all; frames are checked against the sha256 stack.json records
+(`--no-verify` skips it). The rules, and what each command writes, are in [safety.md](safety.md).
 
 ## The pipeline, as commands
 

@@ -13,7 +13,8 @@ def register(sub):
                    "tolerance) from a chart stack",
                    "fieldcal calibrate chart-stack --out lens.json --fs 80 --q 0.05 --effort standard")
     p.add_argument("stack", help="fieldcal-stack/1 folder of a textured chart across sensor positions")
-    p.add_argument("--out", required=True, help="profile to write (.json; the samples go to <stem>.samples.npz)")
+    p.add_argument("--out", required=True,
+                   help="profile to write (.json; the samples go to <stem>.<hash>.samples.npz beside it)")
     p.add_argument("--fs", type=float, default=80.0, help="target frequency, cycles/mm at the sensor (default 80)")
     p.add_argument("--q", type=float, default=0.05, help="allowed MTF loss at fs defining the tolerance (default 0.05)")
     p.add_argument("--effort", choices=["quick", "standard", "thorough"], default="standard",
@@ -26,20 +27,33 @@ def register(sub):
                    help="focus measure for best focus (default: sum-modified-Laplacian)")
     p.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
     p.add_argument("--report", default=None, metavar="DIR", help="also write the HTML report into DIR")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing profile")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing profile (and report files)")
+    p.add_argument("--no-verify", action="store_true",
+                   help="use frames whose content no longer matches the sha256 stack.json records")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from fieldcal.calibration.pipeline import calibrate
+    from fieldcal.formats.atomic import check_output
+    from fieldcal.formats.stack import Stack
+
+    stack_dir = Path(args.stack)
+    if stack_dir.name == "stack.json":
+        stack_dir = stack_dir.parent
     out = Path(args.out)
     if out.suffix.lower() != ".json":
         raise ParameterError(f"the profile must be a .json file, got {out.name!r}", field="--out",
                              fix="e.g. --out lens.json")
-    if out.exists() and not args.overwrite:
-        raise ParameterError(f"{out} exists", path=out, field="--out", fix="choose another name or add --overwrite")
-    profile = calibrate(args.stack, fs_cyc_per_mm=args.fs, q=args.q, effort=args.effort, z_ref_um=args.z_ref_um,
+    # every output is checked before the work: a bad --report must not fail after the profile is written
+    check_output(out, inputs=[stack_dir], overwrite=args.overwrite)
+    if args.report:
+        from fieldcal.report.calibration_report import REPORT_FILES
+        check_output(args.report, inputs=[stack_dir], overwrite=args.overwrite, kind="dir",
+                     files=REPORT_FILES, field="--report")
+    stack = Stack.open(stack_dir, verify=not args.no_verify)
+    profile = calibrate(stack, fs_cyc_per_mm=args.fs, q=args.q, effort=args.effort, z_ref_um=args.z_ref_um,
                         tile_px=args.tile_px, measure=args.measure, seed=args.seed, quiet=args.quiet)
     profile.save(out)
     print(f"wrote {out} (model {profile.surfaces.model.name}; "

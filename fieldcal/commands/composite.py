@@ -49,6 +49,9 @@ def register(sub):
                    help="without a profile: take the frames as registered (no breathing/shift measurement)")
     p.add_argument("--lateral-colour", action="store_true",
                    help="also undo lateral colour (register every channel to the reference channel)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    p.add_argument("--no-verify", action="store_true",
+                   help="use frames whose content no longer matches the sha256 stack.json records")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
@@ -85,10 +88,11 @@ def plan_frames(stack, plan_path: str | Path) -> tuple[np.ndarray, dict, dict]:
 
 def run(args) -> int:
     from ..composite import (composite_stack, deconvolve_sweep, emulate_sweep, write_composite_tiff)
-    from ..composite.io import check_output_path, read_single_image
+    from ..composite.io import check_composite_output, read_single_image
     from ..composite.stack_profile import to_input_dtype
 
-    out = check_output_path(args.out)
+    out = check_composite_output(args.out, stack=args.stack, profile=args.profile, plan=args.plan,
+                                 overwrite=args.overwrite)
     src = Path(args.stack)
     q = 0.05 if args.q is None else args.q
     if not 0.0 < q < 1.0:
@@ -128,7 +132,7 @@ def run(args) -> int:
         return 0
 
     from fieldcal.formats.stack import Stack
-    stack = Stack.open(src)
+    stack = Stack.open(src, verify=not args.no_verify)
     if stack.cfa is not None:
         raise StackError(f"a raw {stack.cfa} mosaic stack cannot be composited per channel", path=src,
                          field="cfa", fix="demosaic the frames first (H x W x 3)")

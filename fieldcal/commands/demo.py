@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FieldcalError, ParameterError
+from ..formats.atomic import save_figure, write_text
 from . import add_parser
 
 DEFAULT_LENS = Path(__file__).resolve().parents[2] / "models" / "triplet-uncorrected.json"
@@ -42,8 +43,10 @@ def _step(title: str, argv: list[str]) -> None:
     print(f"\n== {title}\n$ fieldcal {' '.join(shlex.quote(a) for a in argv)}", flush=True)
     code = main(argv)
     if code != 0:
-        raise FieldcalError(f"the demo stopped: `fieldcal {argv[0]}` exited with {code}",
+        err = FieldcalError(f"the demo stopped: `fieldcal {argv[0]}` exited with {code}",
                             fix="see the message above; run that command on its own to investigate")
+        err.exit_code = code  # the step's own class of failure (2 input, 4 disk, 5 internal, ...)
+        raise err
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -63,10 +66,13 @@ def run(args) -> int:
     spec0 = LensSpec.load(lens_path)
     w, h = _size(args.size)
     spec = spec0.with_sensor_size(w, h)
-    out = Path(args.out)
+    from fieldcal.formats.atomic import check_output
+    out = check_output(args.out, inputs=[lens_path], kind="dir")
     if out.exists() and any(out.iterdir()) and not args.overwrite:
         raise ParameterError(f"{out} exists and is not empty", path=out, field="--out",
                              fix="choose another --out or add --overwrite")
+    if args.overwrite:  # the demo's own files only: never a link, a folder or an input under these names
+        check_output(out, inputs=[lens_path], overwrite=True, kind="dir", files=("summary.json", "compare.png"))
     out.mkdir(parents=True, exist_ok=True)
     ow = ["--overwrite"] if args.overwrite else []
     t0 = time.perf_counter()
@@ -96,11 +102,11 @@ def run(args) -> int:
     plan = out / "plan.json"
     _step("3. plan a focal stack: fewest frames keeping every pixel within its tolerance",
           ["plan", "stack", str(profile), "--fs", f"{fs:g}", "--q", f"{args.q:g}", "--out", str(plan),
-           "--plots", str(out / "plan-plots")])
+           "--plots", str(out / "plan-plots"), *ow])
     alpha = max(2.0, round(2 * tol, 1))
     _step("4. plan a focal sweep (per-pixel exposure masks)",
           ["plan", "sweep", str(profile), "--alpha-um", f"{alpha:g}", "--pixel-exposure-ms", "16",
-           "--out", str(out / "sweep-plan.json"), "--plots", str(out / "sweep-plots")])
+           "--out", str(out / "sweep-plan.json"), "--plots", str(out / "sweep-plots"), *ow])
     scene = out / "scene-stack"
     if args.overwrite and (scene / "stack.json").is_file():  # our own earlier capture: the plan changed
         import shutil
@@ -111,13 +117,13 @@ def run(args) -> int:
            "--exposure-ms", f"{spec.sensor.exposure_ms:g}"])
     composite = out / "composite.tiff"
     _step("6. composite: each pixel of each channel from the frames where it is in focus",
-          ["composite", str(scene), "--profile", str(profile), "--out", str(composite)])
+          ["composite", str(scene), "--profile", str(profile), "--out", str(composite), *ow])
 
     print("\n== 7. compare with the truth (the simulator knows the all-in-focus image)")
     summary = _compare(spec, scene, composite, fs, args.seed, out)
     summary.update({"lens": str(lens_path), "size_px": [w, h], "fs_cyc_per_mm": fs, "q": args.q,
                     "effort": args.effort, "elapsed_s": round(time.perf_counter() - t0, 1)})
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     print(f"  composite PSNR {summary['psnr_composite_db']:.2f} dB vs one-shot at the on-axis focus "
           f"{summary['psnr_one_shot_db']:.2f} dB ({summary['n_frames']} frames); corner crops in "
           f"{out / 'compare.png'}")
@@ -169,5 +175,7 @@ def _crops(truth, shot, comp, black, white, path: Path) -> None:
             axes[row, col].set_title(f"{title}: {name}", fontsize=8)
             axes[row, col].axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        save_figure(fig, path, dpi=110)
+    finally:
+        plt.close(fig)

@@ -153,9 +153,8 @@ def run_from_prescription(args) -> int:
     from ..raytrace.optiland_backend import require_optiland
     from ..raytrace.prescription import meta_number
 
-    out = Path(args.out)
-    if out.exists() and not args.overwrite:
-        raise ParameterError("the output file exists", field="--out", fix="choose another path or add --overwrite")
+    from fieldcal.formats.atomic import check_output
+    out = check_output(args.out, inputs=[args.table], overwrite=args.overwrite)
     rx, parax, _, _ = _load_and_check(args)
     f_number = _positive("--f-number", args.f_number, "e.g. --f-number 2") or meta_number(rx, "f_number")
     if f_number is None:

@@ -34,6 +34,7 @@ def _common(p):
     p.add_argument("--grid-step-px", type=int, default=8, help="surface sampling step in pixels (default 8)")
     p.add_argument("--size", help="plan a lens spec at another image size WxH (same sensor area)")
     p.add_argument("--plots", metavar="DIR", help="also write PNG pictures of the plan into DIR")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing plan (and its pictures)")
 
 
 def register(sub):
@@ -80,7 +81,22 @@ def _scene(args):
                  object_distance_mm=args.object_distance_mm)
 
 
+def _check_outputs(args, files: tuple[str, ...], masks: bool = False) -> None:
+    """Refuse --out/--plots before planning: not the profile (or its sidecar), not an existing file."""
+    from fieldcal.formats.atomic import check_output
+    from fieldcal.profile.lens_profile import profile_files
+    inputs = profile_files(args.profile)
+    out = check_output(args.out, inputs=inputs, overwrite=args.overwrite)
+    if masks:
+        # write_sweep_plan puts the masks in PLAN.masks.npz beside the plan
+        check_output(out.with_name(out.stem + ".masks.npz"), inputs=inputs, overwrite=args.overwrite)
+    if args.plots:
+        check_output(args.plots, inputs=inputs, overwrite=args.overwrite, kind="dir", files=files,
+                     field="--plots")
+
+
 def run_stack(args) -> int:
+    _check_outputs(args, ("stack-plan.png",))
     from ..plan.load import load_profile
     from ..plan.planfile import write_plan
     from ..plan.stack_plan import StackRequest, plan_stack
@@ -106,6 +122,7 @@ def run_stack(args) -> int:
 
 
 def run_sweep(args) -> int:
+    _check_outputs(args, ("sweep-masks.png", "sweep-windows.png", "alpha-trade.png"), masks=True)
     from ..plan.load import load_profile
     from ..plan.sweep_plan import SweepRequest, plan_sweep, write_sweep_plan
     profile, info = load_profile(args.profile, _size(args.size) if args.size else None)

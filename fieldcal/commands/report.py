@@ -13,6 +13,7 @@ def register(sub):
     p.add_argument("--out", required=True, help="folder for index.html and the PNGs")
     p.add_argument("--fs", type=float, default=None, help="frequency of the tolerance map (default: calibration's)")
     p.add_argument("--q", type=float, default=None, help="MTF loss of the tolerance map (default: calibration's)")
+    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier report in --out")
     p.set_defaults(func=run)
 
 
@@ -22,7 +23,11 @@ def load_profile_or_truth(path: str):
     return load(path)[0]
 
 def run(args) -> int:
-    from fieldcal.report.calibration_report import write_report
+    from fieldcal.formats.atomic import check_output
+    from fieldcal.profile.lens_profile import profile_files
+    from fieldcal.report.calibration_report import REPORT_FILES, write_report
+    check_output(args.out, inputs=profile_files(args.profile), overwrite=args.overwrite, kind="dir",
+                 files=REPORT_FILES)
     profile = load_profile_or_truth(args.profile)
     print(f"wrote {write_report(profile, args.out, fs=args.fs, q=args.q)}")
     return 0

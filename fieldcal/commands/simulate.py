@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 from ..errors import ParameterError
 from ..progress import status
@@ -57,6 +58,10 @@ def run(args) -> int:
     z = z_grid(*args.z)
     if args.seed < 0:
         raise ParameterError(f"--seed must be >= 0, got {args.seed}", field="--seed", fix="e.g. --seed 0")
+    from fieldcal.formats.atomic import check_output
+    scene_file = args.scene if args.scene and Path(args.scene).is_file() else None
+    # the old stack is replaced as a whole: refuse when it is, or holds, the lens spec or the scene image
+    check_output(args.stack, inputs=[args.lens, scene_file], kind="dir", replaces_folder=True, field="STACK")
     spec = LensSpec.load(args.lens)
     stack = simulate_stack(spec, args.stack, z, scene=args.scene, seed=args.seed, size=size,
                            progress=not args.quiet, noise=not args.no_noise, overwrite=args.overwrite)

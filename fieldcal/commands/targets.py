@@ -39,6 +39,8 @@ def run(args) -> int:
     from ..progress import status
     from fieldcal.charts.targets import KINDS, parse_size_mm, write_targets
 
+    from fieldcal.formats.atomic import check_output
+    check_output(args.out, inputs=[args.lens], kind="dir")
     width_mm, height_mm = parse_size_mm(args.size_mm)
     dpi = _number(args.dpi, "dpi")
     seed = _number(args.seed, "seed", int)

@@ -88,9 +88,12 @@ def run(args) -> int:
     cfg = ValidateConfig(size_px=_size(args.size) if args.size else None, fs_cyc_per_mm=args.fs, q=args.q,
                          effort=args.effort, seed=args.seed, scene=scene, confidence=_confidence(args.confidence),
                          profile=source)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ParameterError("the report folder is a file", path=out, field="--out", fix="give a folder name")
+    from fieldcal.formats.atomic import check_output
+    from fieldcal.profile.lens_profile import profile_files
+    inputs = [args.lens, scene if Path(scene).is_file() else None,
+              *(profile_files(args.profile) if args.profile not in ("calibrate", "truth") else [])]
+    out = check_output(args.out, inputs=inputs, kind="dir", overwrite=True,
+                       files=("index.html", "report.md", "summary.json"))
     workdir = out / "stacks" if args.keep_stacks else None
     result = validate(args.lens, cfg, workdir=workdir, profile=given)
     write_report(result, out, plots=not args.no_plots)

@@ -1,40 +1,297 @@
-"""Small I/O helpers: nothing is ever half-written (temporary name in the same folder, fsync, rename)."""
+"""The one way fieldcal writes a file, and the checks every output path passes first (docs/safety.md).
+
+:func:`write_bytes` creates a temporary file with an unpredictable name in the target folder
+(``O_CREAT|O_EXCL|O_NOFOLLOW``: it cannot be a planted file or a symbolic link), writes and fsyncs it, gives it
+the file mode of the file it replaces, and renames it over the final name; the folder is fsynced after. A
+reader therefore sees the old file or the new one, never a mix; a symbolic link at the final name is refused,
+never followed; a crash leaves at most a hidden ``.NAME.<random>.tmp`` beside the output.
+
+:func:`check_output` is called by every command before any work: it refuses an output that is, or lies
+inside, one of the command's inputs (even with ``--overwrite``), an existing output without ``--overwrite``,
+a folder where a file is wanted (or the reverse), a path through a file, and a name that differs from an
+existing one only in case (the same file on macOS and Windows). The inputs it is given stay protected for the
+rest of the command: :func:`write_bytes` refuses to write to them or inside them.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+import io
 import math
 import os
-import tempfile
+import secrets
+import stat
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 
+from fieldcal.errors import OutputError, from_oserror
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+# Inputs of the running command (resolved paths): nothing may be written to them or inside them.
+_PROTECTED: contextvars.ContextVar[tuple[Path, ...]] = contextvars.ContextVar("fieldcal_protected", default=())
+
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+_CLOEXEC = getattr(os, "O_CLOEXEC", 0)
+_FIX_ELSEWHERE = "write the output somewhere else: fieldcal never writes over or into its own inputs"
+
+
+# ------------------------------------------------------------------------------------------- input guard
+
+
+def _resolved(path: str | os.PathLike) -> Path:
+    """Absolute path with every existing symbolic link resolved (so a link to an input is that input)."""
+    return Path(os.path.abspath(os.path.expanduser(os.fspath(path)))).resolve(strict=False)
+
+
+def _within(path: Path, root: Path) -> bool:
+    return path == root or root in path.parents
+
+
+@contextlib.contextmanager
+def command_scope():
+    """Protected inputs last for one command (the CLI wraps each command, nested ``main`` calls included)."""
+    token = _PROTECTED.set(())
     try:
-        # mkstemp makes owner-only files; outputs should get the usual permissions (0666 less the umask)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
+        yield
+    finally:
+        _PROTECTED.reset(token)
+
+
+def protect(*paths: str | os.PathLike | None) -> None:
+    """Add ``paths`` (files or folders) to the inputs no write of this command may touch."""
+    new = tuple(_resolved(p) for p in paths if p is not None and str(p) != "")
+    _PROTECTED.set(_PROTECTED.get() + new)
+
+
+def protected_inputs() -> tuple[Path, ...]:
+    return _PROTECTED.get()
+
+
+def _refuse_if_input(path: Path, inputs: Iterable[Path | str], field: str | None, given: dict) -> None:
+    target = _resolved(path)
+    for inp in inputs:
+        root = _resolved(inp)
+        if _within(target, root):
+            rel = "is" if target == root else "lies inside"
+            raise OutputError(f"the output {rel} the input {given.get(root, root)}", path=path, field=field,
+                              fix=_FIX_ELSEWHERE)
+
+
+# -------------------------------------------------------------------------------------------- path checks
+
+
+def _nearest_existing(path: Path) -> Path:
+    p = path
+    while not os.path.lexists(p) and p != p.parent:
+        p = p.parent
+    return p
+
+
+def _check_parent(path: Path, field: str | None) -> None:
+    anc = _nearest_existing(path.parent if str(path.parent) else Path("."))
+    if os.path.lexists(anc) and not anc.is_dir():
+        raise OutputError(f"{anc} is a file, so {path} cannot be created inside it", path=path, field=field,
+                          fix="choose an output path whose folders are folders")
+
+
+def _case_twin(path: Path) -> str | None:
+    """The name of an existing sibling that differs from ``path``'s name only in case, if any."""
+    parent = path.parent if str(path.parent) else Path(".")
+    try:
+        names = os.listdir(parent)
+    except OSError:
+        return None
+    key = path.name.casefold()
+    for n in names:
+        if n != path.name and n.casefold() == key:
+            return n
+    return None
+
+
+def _check_file_target(path: Path, overwrite: bool, field: str | None) -> None:
+    if os.path.islink(path):
+        raise OutputError("is a symbolic link; fieldcal does not write through links", path=path, field=field,
+                          fix="remove the link, or give the real file's path")
+    if path.is_dir():
+        raise OutputError("is a folder, not a file", path=path, field=field,
+                          fix=f"give a file name, e.g. {path / 'out'}{path.suffix or ''}")
+    twin = _case_twin(path)
+    if twin is not None:
+        raise OutputError(f"differs only in case from the existing {twin} (the same file on macOS and Windows)",
+                          path=path, field=field, fix=f"choose another name, or write to {path.parent / twin} "
+                                                      "with --overwrite")
+    if os.path.lexists(path) and not overwrite:
+        raise OutputError("exists", path=path, field=field,
+                          fix="choose another name, or add --overwrite to replace it")
+
+
+def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike | None] = (),
+                 overwrite: bool = False, kind: str = "file", files: Iterable[str] = (),
+                 suffixes: Iterable[str] | None = None, field: str | None = "--out",
+                 replaces_folder: bool = False) -> Path:
+    """Refuse an output path before any work is done; returns it as a :class:`Path`.
+
+    Parameters
+    ----------
+    path : path-like
+        The output (a file when ``kind="file"``, a folder when ``kind="dir"``).
+    inputs : paths
+        The command's inputs (files or folders). The output may not be one of them or lie inside one, even
+        with ``overwrite``; they stay protected from every write for the rest of the command.
+    overwrite : bool
+        Whether an existing output may be replaced (the command's ``--overwrite``).
+    kind : {"file", "dir"}
+    files : names
+        For a folder output: the files the command writes in it (each is checked like a file output).
+    suffixes : extensions, optional
+        Accepted extensions (lower case, with the dot) of a file output.
+    replaces_folder : bool
+        A folder output that is replaced as a whole: an input inside it is refused too.
+
+    Raises
+    ------
+    OutputError
+        Naming the path, the option and the fix.
+    """
+    p = Path(os.path.expanduser(os.fspath(path)))
+    if not str(path).strip():
+        raise OutputError("is empty", field=field, fix="give an output path")
+    given = {_resolved(i): i for i in inputs if i is not None and str(i) != ""}
+    _refuse_if_input(p, given, field, given)
+    if replaces_folder:
+        for root, inp in given.items():
+            if _within(root, _resolved(p)):
+                raise OutputError(f"the output folder holds the input {inp}, which replacing it would delete",
+                                  path=p, field=field, fix=_FIX_ELSEWHERE)
+    protect(*given)
+    _check_parent(p, field)
+    if kind == "file":
+        if suffixes is not None:
+            suffixes = tuple(suffixes)
+            if p.suffix.lower() not in suffixes:
+                raise OutputError(f"must end in {' or '.join(suffixes)}, got {p.name!r}", path=p, field=field,
+                                  fix=f"e.g. {p.with_suffix(suffixes[0]).name}")
+        _check_file_target(p, overwrite, field)
+    elif kind == "dir":
+        if os.path.islink(p) and not p.is_dir():
+            raise OutputError("is a symbolic link that does not lead to a folder", path=p, field=field,
+                              fix="remove the link or choose another folder")
+        if os.path.lexists(p) and not p.is_dir():
+            raise OutputError("is a file, not a folder", path=p, field=field, fix="give a folder name")
+        for name in files:
+            _refuse_if_input(p / name, given, field, given)
+            _check_file_target(p / name, overwrite, field)
+    else:  # pragma: no cover - programming error
+        raise ValueError(kind)
+    return p
+
+
+# ----------------------------------------------------------------------------------------------- writing
+
+
+def _umask() -> int:
+    """The process umask, read without changing it where the OS allows (another thread may be creating files)."""
+    try:
+        with open("/proc/self/status", "rb") as f:
+            for line in f:
+                if line.startswith(b"Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _mkdirs(folder: Path) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise OutputError(f"cannot create the folder {folder}: a part of its path is a file", path=folder,
+                          fix="choose an output path whose folders are folders") from None
+    except OSError as e:
+        raise from_oserror(e, path=folder, action="create the folder") from None
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (see the module docstring); returns the path.
+
+    Raises
+    ------
+    OutputError
+        ``path`` is a symbolic link, a folder, or one of the command's protected inputs (exit 2).
+    ResourceError
+        The disk is full, read-only, or the folder not writable (exit 4); nothing is left behind.
+    """
+    path = Path(path)
+    for root in _PROTECTED.get():
+        if _within(_resolved(path), root):
+            raise OutputError(f"refusing to write over the input {root}", path=path, fix=_FIX_ELSEWHERE)
+    folder = path.parent if str(path.parent) else Path(".")
+    _mkdirs(folder)
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        st = None
+    except OSError as e:
+        raise from_oserror(e, path=path, action="write") from None
+    if st is not None and stat.S_ISLNK(st.st_mode):
+        raise OutputError("is a symbolic link; fieldcal does not write through links", path=path,
+                          fix="remove the link, or give the real file's path")
+    if st is not None and stat.S_ISDIR(st.st_mode):
+        raise OutputError("is a folder, not a file", path=path, fix="give a file name")
+    mode = stat.S_IMODE(st.st_mode) & 0o777 if st is not None else 0o666 & ~_umask()
+    stem = path.name[:180]
+    tmp = None
+    try:
+        for _ in range(64):
+            tmp = folder / f".{stem}.{secrets.token_hex(8)}.tmp"
+            try:
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW | _CLOEXEC, 0o600)
+                break
+            except FileExistsError:
+                tmp = None
+        else:  # pragma: no cover - 64 collisions of 64 random bits
+            raise OutputError("cannot create a unique temporary file", path=path, fix="clean the folder")
         try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    fsync_dir(path.parent)
+            view = memoryview(data)
+            while view:
+                n = os.write(fd, view)
+                view = view[n:]
+            os.fchmod(fd, mode)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+        tmp = None
+    except OSError as e:
+        raise from_oserror(e, path=path, action="write") from None
+    finally:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+    fsync_dir(folder)
+    return path
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """:func:`write_bytes` of UTF-8 text."""
+    return write_bytes(path, text.encode("utf-8"))
+
+
+def save_figure(fig, path: str | os.PathLike, **kwargs) -> Path:
+    """Render a Matplotlib figure in memory (format from the suffix) and :func:`write_bytes` it."""
+    path = Path(path)
+    buf = io.BytesIO()
+    fig.savefig(buf, format=(path.suffix[1:] or "png").lower(), **kwargs)
+    return write_bytes(path, buf.getvalue())
+
+
+# The names the package has always used
+atomic_write_bytes = write_bytes
+atomic_write_text = write_text
 
 
 def fsync_dir(path: str | Path) -> None:

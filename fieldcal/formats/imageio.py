@@ -28,6 +28,70 @@ _JPEG_MAGIC = b"\xff\xd8\xff"
 # PNG colour type -> channels OpenCV returns with IMREAD_UNCHANGED (gray+alpha and palette are refused).
 _PNG_CHANNELS = {0: 1, 2: 3, 6: 4}
 
+#: Largest image (pixels) a frame may declare: 2^28 = 16384 x 16384. A header is only a few bytes, so a tiny
+#: file can declare 200000 x 200000 px and make a decoder allocate tens of GiB ("image bomb"); sizes are
+#: checked here, from the header, before anything is allocated. FIELDCAL_MAX_PIXELS raises the limit.
+MAX_PIXELS_DEFAULT = 1 << 28
+# zlib/deflate cannot compress better than about 1032:1, so a PNG that claims more is damaged or crafted
+_DEFLATE_MAX_RATIO = 1100
+
+
+def max_pixels() -> int:
+    """The largest image (width x height) fieldcal decodes (``FIELDCAL_MAX_PIXELS``, default 2^28)."""
+    import os
+
+    try:
+        v = int(os.environ.get("FIELDCAL_MAX_PIXELS", "") or MAX_PIXELS_DEFAULT)
+    except ValueError:
+        v = MAX_PIXELS_DEFAULT
+    return max(1, v)
+
+
+def _physical_memory_bytes() -> int | None:
+    import os
+
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_declared_size(header: "ImageHeader", file_bytes: int, compressed_bytes: int | None = None) -> None:
+    """Refuse an image whose header declares more pixels than it can hold or than this machine can decode.
+
+    Parameters
+    ----------
+    header : ImageHeader
+    file_bytes : int
+        Size of the file on disk.
+    compressed_bytes : int, optional
+        Size of the deflate-compressed pixel data (PNG), for the compression-ratio bound.
+
+    Raises
+    ------
+    ImageFileError
+        Before any pixel buffer is allocated.
+    """
+    pixels = int(header.width) * int(header.height)
+    decoded = pixels * int(header.n_channels) * int(np.dtype(header.dtype).itemsize)
+    size = f"{header.width} x {header.height} px"
+    if pixels > max_pixels():
+        raise ImageFileError(f"declares {size} ({decoded / 2**30:.1f} GiB decoded), more than the "
+                             f"{max_pixels():,} px fieldcal decodes (the file is {file_bytes:,} bytes)",
+                             "check the file (a damaged or crafted header); for a real image this large set "
+                             "FIELDCAL_MAX_PIXELS")
+    if header.mmap_offset is not None and header.mmap_offset + decoded > file_bytes:
+        raise ImageFileError(f"declares {size} of uncompressed data ({decoded:,} bytes from byte "
+                             f"{header.mmap_offset:,}) but the file ends at byte {file_bytes:,}",
+                             "re-export the frame; the file is truncated or damaged")
+    if compressed_bytes is not None and decoded > _DEFLATE_MAX_RATIO * max(compressed_bytes, 1) + 4096:
+        raise ImageFileError(f"declares {size} ({decoded:,} bytes) in {compressed_bytes:,} bytes of compressed "
+                             "data, more than deflate can hold", "re-export the frame; the file is damaged")
+    mem = _physical_memory_bytes()
+    if mem is not None and decoded > mem // 2:
+        raise ImageFileError(f"needs {decoded / 2**30:.1f} GiB to decode, more than half of this machine's "
+                             f"{mem / 2**30:.1f} GiB of memory", "decode it on a larger machine, or crop it")
+
 
 class ImageFileError(ValueError):
     """A frame file that cannot be used; ``what`` says why, ``fix`` says what to do."""
@@ -110,7 +174,14 @@ def probe(path: str | Path) -> ImageHeader:
     """
     path = Path(path)
     kind = sniff_kind(path)
-    header = {"png": _probe_png, "tiff": _probe_tiff, "jpeg": _probe_jpeg}[kind](path)
+    if kind == "png":
+        header, idat_bytes = _probe_png(path)
+    elif kind == "jpeg":
+        header, idat_bytes = _probe_jpeg(path), None
+    else:
+        header, idat_bytes = _probe_tiff(path), None
+    if header.height >= 1 and header.width >= 1:
+        check_declared_size(header, path.stat().st_size, idat_bytes)
     if header.dtype not in SUPPORTED_DTYPES:
         raise ImageFileError(f"has unsupported sample type {header.dtype}",
                              "store frames as uint8, uint16 or float32")
@@ -119,7 +190,25 @@ def probe(path: str | Path) -> ImageHeader:
     return header
 
 
-def _probe_png(path: Path) -> ImageHeader:
+def _png_idat_bytes(path: Path) -> int:
+    """Total length of the IDAT (compressed pixel) chunks, read from the chunk headers only."""
+    total = 0
+    with open(path, "rb") as f:
+        f.seek(8)
+        while True:
+            head = f.read(8)
+            if len(head) < 8:
+                break
+            length, ctype = struct.unpack(">I4s", head)
+            if ctype == b"IDAT":
+                total += length
+            elif ctype == b"IEND":
+                break
+            f.seek(length + 4, 1)  # data + CRC
+    return total
+
+
+def _probe_png(path: Path) -> tuple[ImageHeader, int]:
     with open(path, "rb") as f:
         data = f.read(33)
     if len(data) < 33 or data[12:16] != b"IHDR":
@@ -135,7 +224,7 @@ def _probe_png(path: Path) -> ImageHeader:
                              "save the frame with 8 or 16 bits per sample (uint8 or uint16)")
     n = _PNG_CHANNELS[colour_type]
     dtype = np.dtype(np.uint8 if bit_depth == 8 else np.uint16)
-    return ImageHeader("png", height, width, n, 2 if n == 1 else 3, dtype)
+    return ImageHeader("png", height, width, n, 2 if n == 1 else 3, dtype), _png_idat_bytes(path)
 
 
 def _probe_jpeg(path: Path) -> ImageHeader:
@@ -182,6 +271,47 @@ def _probe_tiff(path: Path) -> ImageHeader:
     if axes == "YXS":
         return ImageHeader("tiff", shape[0], shape[1], shape[2], 3, _native(dtype), False, offset, file_dtype)
     return ImageHeader("tiff", shape[1], shape[2], shape[0], 3, _native(dtype), True, None, file_dtype)
+
+
+def check_image_file(path: str | Path) -> None:
+    """Size check of any PNG/TIFF (e.g. a scene image) from its header, before a decoder allocates it.
+
+    Unlike :func:`probe` it accepts every PNG colour type and TIFF layout; other formats are left to their
+    decoder (OpenCV refuses images above 2^30 px itself).
+
+    Raises
+    ------
+    ImageFileError
+        The header declares more pixels than :func:`max_pixels` or than the file/memory can hold.
+    """
+    path = Path(path)
+    try:
+        kind = sniff_kind(path)
+    except (ImageFileError, OSError):
+        return
+    size = path.stat().st_size
+    if kind == "png":
+        with open(path, "rb") as f:
+            data = f.read(33)
+        if len(data) < 33 or data[12:16] != b"IHDR":
+            return
+        width, height, bit_depth, colour_type = struct.unpack(">IIBB", data[16:26])
+        n = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}.get(colour_type, 4)
+        dtype = np.dtype(np.uint16 if bit_depth == 16 else np.uint8)
+        check_declared_size(ImageHeader("png", height, width, n, 3, dtype), size, _png_idat_bytes(path))
+        return
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tf:
+            shapes = [(tuple(sr.shape), sr.dtype) for sr in tf.series]
+    except Exception:
+        return  # the decoder reports a damaged file itself
+    for shape, dtype in shapes:
+        if len(shape) >= 2:  # the two largest axes are the image, the rest are samples/pages
+            dims = sorted(int(v) for v in shape)
+            h, w, n = dims[-1], dims[-2], int(np.prod(dims[:-2], dtype=object))
+            check_declared_size(ImageHeader("tiff", h, w, max(1, n), 3, np.dtype(dtype)), size)
 
 
 def read_image(path: str | Path, roi: tuple[int, int, int, int] | None = None,

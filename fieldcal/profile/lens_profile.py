@@ -20,6 +20,7 @@ import hashlib
 import io
 import json
 import math
+import os
 import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -213,12 +214,17 @@ class LensProfile:
         }
 
     def save(self, path: str | Path) -> Path:
-        """Write ``path`` (JSON) and ``<stem>.samples.npz`` beside it, each atomically (sidecar first)."""
+        """Write ``path`` (JSON) and its samples sidecar beside it as one unit (docs/safety.md).
+
+        The sidecar's name carries its content hash (``<stem>.<sha256[:16]>.samples.npz``), so a new sidecar
+        never replaces the one the current JSON names; the JSON is renamed into place last, and only then is
+        the previous sidecar removed. A crash at any point leaves the old profile or the new one, each with its
+        own samples (at worst an unreferenced ``.npz`` that the next save removes).
+        """
         path = Path(path)
         if path.suffix.lower() != ".json":
             raise ParameterError(f"a profile is a .json file, got {path.name!r}", path=path, field="--out",
                                  fix="name it e.g. lens.json")
-        sidecar = path.with_name(path.stem + ".samples.npz")
         buf = io.BytesIO()
         arrays = {"surface_samples": np.asarray(self.surfaces.samples, dtype=np.float64)}
         for prefix, cols in (("tiles__", self.tiles or {}), ("geom__", self.geometry_measurements or {})):
@@ -229,9 +235,13 @@ class LensProfile:
                 arrays[prefix + k] = a
         np.savez_compressed(buf, **arrays)
         data = buf.getvalue()
+        digest = hashlib.sha256(data).hexdigest()
+        sidecar = path.with_name(sidecar_name(path, digest))
+        old = _referenced_sidecar(path)
         atomic_write_bytes(sidecar, data)
-        d = self.to_dict(sidecar.name, hashlib.sha256(data).hexdigest())
+        d = self.to_dict(sidecar.name, digest)
         atomic_write_text(path, json.dumps(d, indent=1, allow_nan=False) + "\n")
+        _remove_unreferenced_sidecars(path, keep=sidecar.name, old=old)
         self.source_path = str(path)
         return path
 
@@ -258,19 +268,39 @@ class LensProfile:
         samples = None
         arrays: dict[str, np.ndarray] = {}
         side = d.get("sidecar")
-        if side:
-            sp = path.with_name(str(side.get("file", "")))
-            if not sp.is_file():
-                raise SpecError(f"the posterior-samples sidecar {sp.name} is missing", path=path, field="sidecar.file",
-                                fix=f"copy {sp.name} next to {path.name} (they are written together)")
+        if not isinstance(side, dict) or not isinstance(side.get("file"), str):
+            raise SpecError("names no samples sidecar", path=path, field="sidecar",
+                            fix="regenerate the profile with `fieldcal calibrate` (it writes the JSON and its "
+                                ".npz together)")
+        if not _SHA256.fullmatch(str(side.get("sha256", ""))):
+            # without the hash any .npz beside the JSON would be taken as this profile's samples
+            raise SpecError("the sidecar's sha256 is missing or not 64 hex digits, so its samples cannot be "
+                            "trusted", path=path, field="sidecar.sha256",
+                            fix="restore the profile as `fieldcal calibrate` wrote it, or recalibrate")
+        name = side["file"]
+        if not name or name != Path(name).name or name in (".", ".."):
+            raise SpecError(f"the sidecar must be a file name beside the profile, got {name!r}", path=path,
+                            field="sidecar.file", fix="restore the profile as `fieldcal calibrate` wrote it")
+        sp = path.with_name(name)
+        if not sp.is_file():
+            raise SpecError(f"the posterior-samples sidecar {sp.name} is missing", path=path, field="sidecar.file",
+                            fix=f"copy {sp.name} next to {path.name} (they are written together)")
+        try:
             raw = sp.read_bytes()
-            if side.get("sha256") and hashlib.sha256(raw).hexdigest() != side["sha256"]:
-                raise SpecError(f"the sidecar {sp.name} does not belong to this profile (sha256 differs)",
-                                path=path, field="sidecar.sha256",
-                                fix=f"copy the {sp.name} written with this profile, or recalibrate")
+        except OSError as e:
+            raise SpecError(f"the sidecar {sp.name} cannot be read ({e.strerror or e})", path=sp,
+                            field="sidecar.file", fix="check the file and its permissions") from None
+        if hashlib.sha256(raw).hexdigest() != side["sha256"].lower():
+            raise SpecError(f"the sidecar {sp.name} does not belong to this profile (sha256 differs)",
+                            path=path, field="sidecar.sha256",
+                            fix=f"copy the {sp.name} written with this profile, or recalibrate")
+        try:
             with np.load(io.BytesIO(raw), allow_pickle=False) as z:
                 arrays = {k: z[k] for k in z.files}
-            samples = arrays.get("surface_samples")
+        except (ValueError, OSError, EOFError) as e:  # hash matched, so the writer made a bad file
+            raise SpecError(f"the sidecar {sp.name} cannot be read as .npz ({e})", path=sp, field="sidecar.file",
+                            fix="recalibrate") from None
+        samples = arrays.get("surface_samples")
         from fieldcal.fit import SurfaceFit
         from fieldcal.fit.geometry import GeometryFit
         surfaces = SurfaceFit.from_dict(d["surfaces"], samples=samples, path=path)
@@ -288,6 +318,85 @@ class LensProfile:
                    optics=dict(d["optics"]), calibration=dict(d["calibration"]), z_ref_um=float(d["z_ref_um"]),
                    diagnostics=dict(d.get("diagnostics", {})), provenance=prov, tiles=tiles,
                    geometry_measurements=geom, source_path=str(path))
+
+
+_SHA256 = re.compile(r"[0-9a-fA-F]{64}")
+_SIDECAR_RE = r"{stem}\.[0-9a-f]{{16}}\.samples\.npz"
+
+
+def sidecar_name(path: str | Path, sha256_hex: str) -> str:
+    """The content-addressed sidecar name of profile ``path``: ``<stem>.<sha256[:16]>.samples.npz``."""
+    return f"{Path(path).stem}.{sha256_hex[:16]}.samples.npz"
+
+
+def _sidecar_of(json_path: Path) -> str | None:
+    """The plain file name an existing profile JSON gives as its sidecar (None if unreadable or not plain)."""
+    try:
+        if not json_path.is_file() or json_path.is_symlink() or json_path.stat().st_size > (64 << 20):
+            return None
+        d = json.loads(json_path.read_text())
+        name = d.get("sidecar", {}).get("file") if isinstance(d, dict) and isinstance(d.get("sidecar"), dict) else None
+    except (OSError, ValueError, RecursionError):
+        return None
+    if not isinstance(name, str) or not name or name != Path(name).name or name in (".", ".."):
+        return None
+    return name
+
+
+def _referenced_sidecar(path: Path) -> str | None:
+    return _sidecar_of(path)
+
+
+def _sidecars_in_use(folder: Path, skip: Path) -> set[str]:
+    """Sidecar names named by the other profile JSONs of ``folder`` (any case of .json)."""
+    used = set()
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return used
+    for e in entries:
+        if e.name.lower().endswith(".json") and e.name != skip.name:
+            n = _sidecar_of(Path(e.path))
+            if n:
+                used.add(n)
+    return used
+
+
+def _remove_unreferenced_sidecars(path: Path, keep: str, old: str | None) -> None:
+    """After the new JSON is in place: remove the old sidecar and orphans of killed saves of this profile.
+
+    Only files this profile wrote (its old sidecar, or ``<stem>.<16 hex>.samples.npz``) and that no other
+    profile JSON of the folder names are removed; failures leave an orphan, never a broken profile.
+    """
+    folder = path.parent if str(path.parent) else Path(".")
+    pattern = re.compile(_SIDECAR_RE.format(stem=re.escape(path.stem)))
+    candidates = set()
+    if old and old != keep:
+        candidates.add(old)
+    try:
+        candidates |= {n for n in os.listdir(folder) if pattern.fullmatch(n) and n != keep}
+    except OSError:
+        return
+    if not candidates:
+        return
+    in_use = _sidecars_in_use(folder, skip=path) | {keep}
+    for name in candidates - in_use:
+        f = folder / name
+        try:
+            if f.is_file() and not f.is_symlink():
+                f.unlink()
+        except OSError:
+            pass
+
+
+def profile_files(path: str | Path) -> list[Path]:
+    """A profile JSON and the sidecar it names (for protecting a command's inputs); a lens spec alone."""
+    path = Path(path)
+    files = [path]
+    name = _sidecar_of(path)
+    if name:
+        files.append(path.with_name(name))
+    return files
 
 
 def _check_format(fmt, path):

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import html
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
-from fieldcal.formats.atomic import atomic_write_text
+from fieldcal.formats.atomic import atomic_write_text, save_figure
+
+#: Every file a report writes into its folder (checked before any work; index.html is written last).
+REPORT_FILES = ("surfaces.png", "bands.png", "residuals.png", "geometry.png", "tolerance.png", "index.html")
 
 _COLOURS = {"R": "tab:red", "G": "tab:green", "B": "tab:blue", "Y": "0.2"}
 
@@ -27,10 +29,10 @@ def _plt():
 
 
 def _save(fig, path: Path) -> str:
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    os.replace(tmp, path)
-    _plt().close(fig)
+    try:  # rendered in memory, then the one atomic write (never through a link at the final name)
+        save_figure(fig, path, dpi=110, bbox_inches="tight")
+    finally:
+        _plt().close(fig)
     return path.name
 
 
@@ -242,9 +244,12 @@ def uncertainty_budget(profile, level: float = 0.9) -> list[dict]:
 
 
 def write_report(profile, out_dir: str | Path, *, fs: float | None = None, q: float | None = None) -> Path:
-    """Write PNG plots and ``index.html`` for a profile into ``out_dir``; returns the HTML path."""
+    """Write PNG plots and ``index.html`` for a profile into ``out_dir``; returns the HTML path.
+
+    Each file is written atomically (:func:`fieldcal.formats.atomic.write_bytes`), ``index.html`` last; the
+    command checks the folder first (:data:`REPORT_FILES`, ``--overwrite``).
+    """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     cal = getattr(profile, "calibration", {}) or {}
     fs = float(fs if fs is not None else cal.get("fs_cyc_per_mm", 80.0))
     q = float(q if q is not None else cal.get("q", 0.05))

@@ -66,6 +66,11 @@ def _read_file(path: Path) -> np.ndarray:
     if not path.is_file():
         raise ParameterError("scene image not found", path=path, field="scene",
                              fix="give chart, charuco, slanted-edge or the path of an image file")
+    from fieldcal.formats.imageio import ImageFileError, check_image_file
+    try:
+        check_image_file(path)  # a tiny file may declare a gigapixel image: refuse before decoding
+    except ImageFileError as e:
+        raise ParameterError(f"scene image {e.what}", path=path, field="scene", fix=e.fix) from None
     img = None
     if path.suffix.lower() in (".tif", ".tiff"):
         try:
