@@ -26,6 +26,7 @@ _LAZY = {
     "MTFCriterion": ("fieldcal.optics.criterion", "MTFCriterion"),
     "calibrate": ("fieldcal.calibration.pipeline", "calibrate"),
     "measure_mtf": ("fieldcal.measure.mtf", "measure_mtf"),
+    "import_stack": ("fieldcal.formats.importer", "import_stack"),
     "FieldcalError": ("fieldcal.errors", "FieldcalError"),
 }
 

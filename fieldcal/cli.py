@@ -17,8 +17,8 @@ from . import __version__
 from .errors import (EXIT_BAD_INPUT, EXIT_ENVIRONMENT, EXIT_INTERNAL, EXIT_INTERRUPTED, FieldcalError,
                      from_oserror)
 
-COMMANDS = ["demo", "targets", "simulate", "calibrate", "mtf", "plan", "capture", "composite", "report", "validate",
-            "lens"]
+COMMANDS = ["demo", "targets", "simulate", "import_stack", "calibrate", "mtf", "plan", "capture", "composite",
+            "report", "validate", "lens"]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -58,7 +58,8 @@ def _name_flags(err: FieldcalError, parser: argparse.ArgumentParser, args) -> No
     """Library errors name API fields; show the CLI user the flag instead (fieldcal.commands.name_flags)."""
     from .commands import name_flags
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[args.command]
-    extra = getattr(importlib.import_module(f"fieldcal.commands.{args.command}"), "FIELD_FLAGS", None)
+    module = {"import": "import_stack"}.get(args.command, args.command)  # `import` is a Python keyword
+    extra = getattr(importlib.import_module(f"fieldcal.commands.{module}"), "FIELD_FLAGS", None)
     name_flags(err, sub, args, extra)
 
 

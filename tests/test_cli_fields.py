@@ -55,8 +55,8 @@ def test_name_flags_renames_argument_fields_only():
 
 
 def test_cli_messages_name_flags(tmp_path, capsys):
-    code = main(["composite", str(tmp_path), "--out", str(tmp_path / "x.png")])
+    code = main(["composite", str(tmp_path), "--out", str(tmp_path / "x.bmp")])
     err = capsys.readouterr().err
-    assert code == 2 and "field '--out'" in err and "not a TIFF" in err
+    assert code == 2 and "field '--out'" in err and "not a .tiff, .png or .jpg" in err
     code = main(["composite", str(tmp_path / "stack"), "--out", str(tmp_path / "x.tiff"), "--q", "3"])
     assert code == 2 and "field '--q'" in capsys.readouterr().err

@@ -24,7 +24,7 @@ def register(sub):
                                                   "(TIFF/PNG) with --sweep-alpha-um")
     p.add_argument("--profile", metavar="PROFILE",
                    help="lens profile (fieldcal-profile/1) or, for simulated data, a lens spec (fieldcal-lens/1)")
-    p.add_argument("--out", required=True, metavar="IMAGE", help="output TIFF")
+    p.add_argument("--out", required=True, metavar="IMAGE", help="output image: .tiff keeps the stack's bit depth; .png (8/16-bit) or .jpg for viewing")
     p.add_argument("--method", choices=["profile", "dff", "hybrid"],
                    help="where each pixel is in focus: the profile's surfaces, depth from focus, or the profile "
                         "refined by depth from focus (default: profile with --profile, dff without)")

@@ -272,7 +272,7 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         A ``fieldcal-stack/1`` folder or an open stack; or a captured sweep image file (TIFF/PNG), which
         needs ``profile`` and ``sweep_alpha_um``.
     out : path
-        The output ``.tif``/``.tiff``.
+        The output image: ``.tif``/``.tiff`` (the stack's dtype), ``.png`` or ``.jpg`` (by extension, :func:`~fieldcal.composite.io.write_composite`).
     profile : path or lens profile, optional
         A ``fieldcal-profile/1`` file, a ``fieldcal-lens/1`` spec (its truth, for simulated data), or a loaded
         profile. Without one only depth from focus is possible.
@@ -293,7 +293,7 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
     """
     from ..formats.stack import Stack
     from ..profile.lens_profile import load_profile_or_truth
-    from .io import check_composite_output, read_single_image, write_composite_tiff
+    from .io import check_composite_output, read_single_image, write_composite
 
     out = check_composite_output(out, stack=stack if isinstance(stack, (str, Path)) else getattr(stack, "path", None),
                                  profile=profile if isinstance(profile, (str, Path)) else None,
@@ -323,7 +323,8 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         res = restore_sweep_image(img, prof, sweep_alpha_um, deconvolve=deconvolve, rl_iterations=rl_iterations,
                                   where=src)
         meta = {"input": str(src), "profile": pinfo, "method": res.info.pop("method"), "sweep": res.info}
-        write_composite_tiff(out, res.image, prof.channels, meta)
+        white = 1.0 if img.dtype.kind == "f" else float(np.iinfo(img.dtype).max)
+        write_composite(out, res.image, prof.channels, meta, white_level=white)
         return CompositeOutput(out, meta["method"], meta)
 
     st = Stack.open(stack, verify=verify) if isinstance(stack, (str, Path)) else stack
@@ -344,7 +345,7 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
                               rl_iterations=rl_iterations, lateral_colour=lateral_colour, quiet=quiet)
         info = dict(res.info)
         meta.update({"method": info.pop("method"), "z_ref_um": info.pop("z_ref_um"), "sweep": info})
-        write_composite_tiff(out, res.image, st.channels, meta)
+        _write(out, res.image, st, frames, meta)
         return CompositeOutput(out, meta["method"], meta)
     res = composite_stack(st, prof, method, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm,
                           q=0.05 if q is None else q, lateral_colour=lateral_colour, focus_offset_um=offset,
@@ -352,5 +353,18 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
     z_ref = float(prof.z_ref_um) if prof is not None else res.info.get("registration", {}).get("z_ref_um")
     meta.update({"method": res.method, "z_ref_um": z_ref, "lateral_colour_corrected": bool(lateral_colour),
                  **res.info})
-    write_composite_tiff(out, res.image, st.channels, meta)
+    _write(out, res.image, st, frames, meta)
     return CompositeOutput(out, res.method, meta)
+
+
+def _write(out: Path, image: np.ndarray, stack, frames, meta: dict) -> None:
+    """The composite as TIFF/PNG/JPEG by ``out``'s extension; a JPEG gets the first used frame's EXIF."""
+    from .io import write_composite
+
+    first = None
+    infos = getattr(stack, "frames", None)
+    if infos:
+        k = int(frames[0]) if frames is not None and len(frames) else 0
+        first = getattr(infos[k], "path", None)
+    write_composite(out, image, stack.channels, meta, black_level=float(stack.black_level),
+                    white_level=float(stack.white_level), exif_from=first)

@@ -1,8 +1,10 @@
 """Frame files of a stack: probe a header without decoding pixels, decode one frame, encode one frame.
 
 TIFF goes through tifffile (uncompressed contiguous pages are memory-mapped, so an ROI read touches only the
-ROI's bytes; compressed pages are decoded one page at a time); PNG through OpenCV, whose BGR(A) channel order
-is turned into RGB(A) here so that the rest of fieldcal never sees BGR.
+ROI's bytes; compressed pages are decoded one page at a time); PNG and JPEG through OpenCV, whose BGR(A) channel
+order is turned into RGB(A) here so that the rest of fieldcal never sees BGR. JPEG frames (what most cameras
+write) are read in their stored pixel order: the EXIF orientation tag is ignored, because calibration is about
+the sensor's own pixel grid, not how a viewer would rotate the picture.
 
 Everything here is about one file. Problems raise :class:`ImageFileError` (what + fix); the stack reader turns
 it into a :class:`fieldcal.errors.StackError` that also names the stack.json field.
@@ -22,6 +24,7 @@ SUPPORTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # classic and BigTIFF, both byte orders
+_JPEG_MAGIC = b"\xff\xd8\xff"
 # PNG colour type -> channels OpenCV returns with IMREAD_UNCHANGED (gray+alpha and palette are refused).
 _PNG_CHANNELS = {0: 1, 2: 3, 6: 4}
 
@@ -105,7 +108,7 @@ class ImageHeader:
 
     Attributes
     ----------
-    kind : {"tiff", "png"}
+    kind : {"tiff", "png", "jpeg"}
     height, width : int
         Image size in px.
     n_channels : int
@@ -145,15 +148,18 @@ def _native(dtype: np.dtype) -> np.dtype:
 
 
 def sniff_kind(path: Path) -> str:
-    """Return ``"tiff"`` or ``"png"`` from the file's magic bytes (the extension is not trusted)."""
+    """Return ``"tiff"``, ``"png"`` or ``"jpeg"`` from the file's magic bytes (the extension is not trusted)."""
     with open(path, "rb") as f:
         head = f.read(8)
     if head.startswith(_PNG_SIGNATURE):
         return "png"
     if head[:4] in _TIFF_MAGICS:
         return "tiff"
-    raise ImageFileError("is not a TIFF or PNG file (unknown magic bytes)",
-                         "write frames as TIFF (.tiff) or PNG (.png)")
+    if head.startswith(_JPEG_MAGIC):
+        return "jpeg"
+    raise ImageFileError("is not a TIFF, PNG or JPEG file (unknown magic bytes)",
+                         "write frames as TIFF (.tiff), PNG (.png) or JPEG (.jpg); bring camera raw files in "
+                         "with 'fieldcal import'")
 
 
 def probe(path: str | Path) -> ImageHeader:
@@ -170,6 +176,8 @@ def probe(path: str | Path) -> ImageHeader:
     kind = sniff_kind(path)
     if kind == "png":
         header, idat_bytes = _probe_png(path)
+    elif kind == "jpeg":
+        header, idat_bytes = _probe_jpeg(path), None
     else:
         header, idat_bytes = _probe_tiff(path), None
     if header.height >= 1 and header.width >= 1:
@@ -217,6 +225,21 @@ def _probe_png(path: Path) -> tuple[ImageHeader, int]:
     n = _PNG_CHANNELS[colour_type]
     dtype = np.dtype(np.uint8 if bit_depth == 8 else np.uint16)
     return ImageHeader("png", height, width, n, 2 if n == 1 else 3, dtype), _png_idat_bytes(path)
+
+
+def _probe_jpeg(path: Path) -> ImageHeader:
+    """Size and components from the JPEG's frame header (Pillow reads only the header here)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            width, height, mode = im.width, im.height, im.mode
+    except Exception as exc:  # Pillow raises several types for damaged headers (and for decompression bombs)
+        raise ImageFileError(f"has an unreadable JPEG header ({exc})", "re-export the frame; the file is damaged")
+    if mode not in ("L", "RGB"):
+        raise ImageFileError(f"is a {mode} JPEG", "save the frame as a grayscale or RGB JPEG (or as TIFF)")
+    n = 1 if mode == "L" else 3
+    return ImageHeader("jpeg", height, width, n, 2 if n == 1 else 3, np.dtype(np.uint8))
 
 
 def _probe_tiff(path: Path) -> ImageHeader:
@@ -321,6 +344,8 @@ def read_image(path: str | Path, roi: tuple[int, int, int, int] | None = None,
     try:
         if header.kind == "png":
             image, cropped = _read_png(path), False
+        elif header.kind == "jpeg":
+            image, cropped = _read_jpeg(path, header), False
         else:
             image, cropped = _read_tiff(path, header, roi)
     except (ImageFileError, FileNotFoundError):
@@ -388,6 +413,22 @@ def _read_png(path: Path) -> np.ndarray:
     return image
 
 
+def _read_jpeg(path: Path, header: ImageHeader) -> np.ndarray:
+    import cv2
+
+    data = np.fromfile(path, dtype=np.uint8)
+    flags = (cv2.IMREAD_GRAYSCALE if header.n_channels == 1 else cv2.IMREAD_COLOR) | cv2.IMREAD_IGNORE_ORIENTATION
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        image = cv2.imdecode(data, flags)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+    if image is None:
+        raise ImageFileError("cannot be decoded as JPEG (damaged or truncated)", "re-export or re-capture the frame")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB) if image.ndim == 3 else image
+
+
 def encode(image: np.ndarray, kind: str) -> bytes:
     """Encode one frame as ``"tiff"`` (uncompressed, memory-mappable) or ``"png"`` bytes.
 
@@ -431,5 +472,7 @@ def kind_for_name(name: str) -> str:
         return "tiff"
     if suffix == ".png":
         return "png"
+    if suffix in (".jpg", ".jpeg"):
+        return "jpeg"
     raise ImageFileError(f"frame file name {name!r} has extension {suffix or '(none)'!r}",
-                         "name frame files *.tiff, *.tif or *.png")
+                         "name frame files *.tiff, *.tif, *.png or *.jpg")

@@ -63,15 +63,19 @@ def _check_frame_entry(entry: Any, i: int, json_path: Path) -> tuple[str, float]
     return entry["file"], float(entry["z_um"])
 
 
-def _resolve_frame_path(root: Path, file: str, where: str, json_path: Path) -> Path:
-    """The frame file inside the stack folder; refuses absolute paths and paths that escape it."""
+def _resolve_frame_path(root: Path, file: str, where: str, json_path: Path, *, symlinks_out: bool = False) -> Path:
+    """The frame file inside the stack folder; refuses absolute paths and paths that escape it.
+
+    ``symlinks_out`` (a stack made by ``fieldcal import --link symlink``, ``"links": "symlink"``) lets the frame
+    file itself be a symlink to a file outside the folder; its name must still lie inside.
+    """
     fix = "frame paths are relative to the stack folder and stay inside it, e.g. frames/0000.tiff"
     p = PurePosixPath(file.replace("\\", "/"))
     if p.is_absolute() or Path(file).is_absolute() or ".." in p.parts:
         raise StackError(f"{file!r} points outside the stack folder", path=json_path, field=where, fix=fix)
     full = root.joinpath(*p.parts)
     try:  # symlinks out of the folder count as escaping too
-        full.resolve().relative_to(root.resolve())
+        (full.parent.resolve() if symlinks_out and full.is_symlink() else full.resolve()).relative_to(root.resolve())
     except ValueError:
         raise StackError(f"{file!r} resolves outside the stack folder", path=json_path, field=where,
                          fix=fix) from None
@@ -426,7 +430,7 @@ def _load_frames(root: Path, meta: dict, json_path: Path, n_channels: int,
     for i, entry in enumerate(meta["frames"]):
         file, z = _check_frame_entry(entry, i, json_path)
         where = f"frames[{i}].file"
-        path = _resolve_frame_path(root, file, where, json_path)
+        path = _resolve_frame_path(root, file, where, json_path, symlinks_out=meta.get("links") == "symlink")
         if z in seen_z:
             j = seen_z[z]
             raise StackError(f"frames[{j}] ({meta['frames'][j]['file']}) and frames[{i}] ({file}) both have "
