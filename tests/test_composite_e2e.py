@@ -229,7 +229,7 @@ def test_cli_writes_tiff_with_metadata(sim, tmp_path, cli):
 
 
 @pytest.mark.parametrize("args, needle", [
-    (["--out", "x.png"], "not a TIFF"),
+    (["--out", "x.bmp"], "not a .tiff, .png or .jpg"),
     (["--profile", "missing.json", "--out", "x.tiff"], "profile not found"),
     (["--method", "hybrid", "--out", "x.tiff"], "needs a lens profile"),
     (["--sweep-alpha-um", "-3", "--out", "x.tiff"], "must be > 0"),

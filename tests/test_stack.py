@@ -336,7 +336,7 @@ def test_missing_frame_file(tmp_path):
     expect_error(root, "stack.json", "'frames[1].file'", "0001.tiff", "does not exist")
 
 
-@pytest.mark.parametrize("content,needle", [(b"hello, not an image", "not a TIFF or PNG"),
+@pytest.mark.parametrize("content,needle", [(b"hello, not an image", "not a TIFF, PNG or JPEG"),
                                             (b"II*\x00\xff\xff\xff\x7f", "TIFF header"),
                                             (b"\x89PNG\r\n\x1a\n\x00\x00", "PNG header")])
 def test_corrupt_frame_header(tmp_path, content, needle):

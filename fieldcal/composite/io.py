@@ -61,6 +61,9 @@ def write_composite_tiff(path: str | Path, image: np.ndarray, channels, metadata
     import tifffile
 
     path = check_output_path(path)
+    if OUTPUT_SUFFIXES[path.suffix.lower()] != "tiff":
+        raise ParameterError(f"output {path.name!r} is not a TIFF", path=path, field="out",
+                             fix="name it IMAGE.tiff, or use write_composite for PNG/JPEG")
     image = np.asarray(image)
     if image.ndim == 2:
         image = image[..., None]

@@ -462,6 +462,9 @@ def encode(image: np.ndarray, kind: str) -> bytes:
         if not ok:  # pragma: no cover - OpenCV only fails on layouts refused above
             raise ImageFileError("OpenCV could not encode the frame as PNG", "write the frames as TIFF")
         return buf.tobytes()
+    if kind == "jpeg":
+        raise ImageFileError("fieldcal does not write .jpg frames (JPEG is lossy and 8-bit)",
+                             "use a .tiff, .tif or .png file name; bring a camera's JPEGs in with `fieldcal import`")
     raise ImageFileError(f"unknown frame file type {kind!r}", "use a .tiff, .tif or .png file name")
 
 
