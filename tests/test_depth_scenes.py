@@ -112,9 +112,27 @@ def test_depth_map_composite_is_near_the_oracle_and_beats_a_smooth_surface(spec,
     offs = zb_true - zb_true.mean(axis=2, keepdims=True)  # the lens's own channel offsets (a profile's)
     ours = psnr(composite_with_map(st, (dm.z_um[..., None] + offs).astype(np.float32), kernel, truth_p, frames,
                                    quiet=True))
-    surface = psnr(composite_stack(st, truth_p, method="dff", quiet=True).image)
+    surface = psnr(composite_stack(st, truth_p, method="dff", depth="flat", quiet=True).image)
+    auto = composite_stack(st, truth_p, method="dff", quiet=True)
     assert ours > oracle - 1.0, (ours, oracle)
     assert ours > surface + 1.0, (ours, surface)
+    # the scene's depth is found from the data, and the public path does what the pieces above do
+    assert auto.info["scene"] == "3d" and psnr(auto.image) > surface + 1.0, (auto.info, psnr(auto.image))
+
+
+def test_a_flat_chart_is_found_flat(spec):
+    """Depth from focus on a flat chart keeps the smooth surface (no per-pixel noise where there is no depth)."""
+    from fieldcal.charts.targets import chart_image
+    from fieldcal.composite.api import composite_stack
+
+    r = Renderer(spec, chart_image("texture", W, H, 3), seed=1)
+    tol = _tol(spec)
+    lo, hi = spec.focus_range_um()
+    z = np.arange(lo - tol, hi + tol, 1.5 * tol)
+    st = ArrayStack([r.render(float(v)) for v in z], z, spec.channel_names,
+                    black_level=spec.sensor.black_level_dn, white_level=spec.sensor.white_level_dn)
+    res = composite_stack(st, TruthProfile(spec, W, H), method="dff", quiet=True)
+    assert res.info["scene"] == "flat", res.info
 
 
 def test_fusion_keeps_the_sharp_frame_everywhere():

@@ -44,6 +44,9 @@ def register(sub):
                    help="without a profile: take the frames as registered (no breathing/shift measurement)")
     p.add_argument("--lateral-colour", action="store_true",
                    help="also undo lateral colour (register every channel to the reference channel)")
+    p.add_argument("--depth", choices=["auto", "flat", "3d"], default="auto",
+                   help="dff/hybrid: a flat scene (best focus from a smooth surface) or one with depth (per pixel, "
+                        "edge-aware); auto decides from how well a surface fits the measured depths (default)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("--no-verify", action="store_true",
                    help="use frames whose content no longer matches the sha256 stack.json records")
@@ -58,7 +61,7 @@ def run(args) -> int:
                             sweep_alpha_um=args.sweep_alpha_um, deconvolve=args.deconvolve,
                             rl_iterations=args.rl_iterations, fs_cyc_per_mm=args.fs_cyc_per_mm, q=args.q,
                             z_ref_um=args.z_ref_um, register=not args.no_register,
-                            lateral_colour=args.lateral_colour, overwrite=args.overwrite,
+                            lateral_colour=args.lateral_colour, depth=args.depth, overwrite=args.overwrite,
                             verify=not args.no_verify, quiet=args.quiet)
     if "sweep" in res.metadata:
         info = res.metadata["sweep"]
