@@ -24,11 +24,14 @@ from .surface import dense_map, profile_focus_map
 
 METHODS = ("profile", "dff", "hybrid")
 DEPTH_MODES = ("auto", "flat", "3d")
-#: ``depth="auto"``: the scene has depth when more than this fraction of the confident DFF blocks lies a frame
-#: spacing or more off the smooth surface fitted to them. Measured (simulated triplet, 160 and 320 px, steps of
-#: 1 and 1.5 tolerances): flat chart and colour scenes 0-0.9 %; steps 14-35 %, slopes 17-38 %, a relief 8-25 %,
-#: thin bars in front of a background 4-17 %; the real circuit-board stack 12.6 %.
-DEPTH_BLOCK_FRACTION = 0.03
+#: ``depth="auto"``: the scene has depth when more than these fractions of the confident DFF blocks lie off the
+#: smooth surface fitted to them by (a) a frame spacing, (b) half the curves' width (see
+#: :func:`surface_misfit_fractions`). Measured (simulated triplet at 160 and 320 px, steps of 1 and 1.5
+#: tolerances, without a profile): (a) flat chart and colour scenes 0-0.9 %, a flat chart with a textureless
+#: quarter at fine 4 µm steps 6.4 %; steps 14-35 %, slopes 17-38 %, reliefs 8-25 %, thin bars 4-17 %; the real
+#: circuit-board stack 12.6 %. (b) flat 0-4.1 %; reliefs 4.6-15 %, slopes 7-12 %, thin bars 3.9-13 %. Thin bars
+#: at 320 px (4-5 %, 3.9-4.1 %) are taken as flat: few blocks see them.
+DEPTH_BLOCK_FRACTION = (0.1, 0.05)
 
 
 def composite_stack(stack, profile=None, method: str | None = None, *, frames=None, fs_cyc_per_mm=None,
@@ -97,12 +100,14 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     centre = tuple(profile.optical_centre_px()) if profile is not None else None
     surfaces = dff_surfaces(vol, w, h, channels, centre)
     spacing = float(np.median(np.diff(vol.z_um))) if len(vol.z_um) > 1 else 0.0
-    off_surface = surface_misfit_fraction(vol, surfaces, spacing)
-    # a flat scene's confident blocks lie on a smooth surface to well within a frame spacing; a scene with depth
-    # puts a good part of them (a step, an object in front) a spacing or more away from any smooth surface
-    has_depth = depth == "3d" or (depth == "auto" and len(vol.z_um) > 2 and off_surface > DEPTH_BLOCK_FRACTION)
+    off_spacing, off_width = surface_misfit_fractions(vol, surfaces, spacing)
+    # a flat scene's confident blocks lie on a smooth surface within their own noise; a scene with depth puts a
+    # good part of them (a step, an object in front) a spacing, and a curve width, or more away from any
+    has_depth = depth == "3d" or (depth == "auto" and len(vol.z_um) > 2 and (
+        off_spacing > DEPTH_BLOCK_FRACTION[0] or off_width > DEPTH_BLOCK_FRACTION[1]))
     info.update({"surface_rms_um": {c: round(s.rms_um, 3) for c, s in zip(channels, surfaces)},
-                 "frame_spacing_um": round(spacing, 3), "blocks_off_surface": round(off_surface, 4),
+                 "frame_spacing_um": round(spacing, 3),
+                 "blocks_off_surface": {"by_a_spacing": round(off_spacing, 4), "by_half_a_width": round(off_width, 4)},
                  "scene": "3d" if has_depth else "flat"})
     if method == "dff":
         zb = dff_focus_map(surfaces, w, h)
@@ -129,21 +134,30 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     return CompositeResult(img, method, zb, info)
 
 
-def surface_misfit_fraction(vol, surfaces, spacing_um: float) -> float:
-    """Fraction of the confident DFF blocks (all channels) whose peak lies a frame spacing or more from the
-    smooth surface fitted to the blocks (:func:`fieldcal.composite.dff.dff_surfaces`)."""
+def surface_misfit_fractions(vol, surfaces, spacing_um: float) -> tuple[float, float]:
+    """How far the confident DFF blocks (all channels) lie from the smooth surface fitted to them
+    (:func:`fieldcal.composite.dff.dff_surfaces`): the fraction off by a frame spacing or more, and the fraction
+    off by more than half the through-focus curves' median width at half height (the blocks' own peak noise
+    scales with that width, which fine steps make larger than a spacing)."""
     from .dff import _block_weights, peak_depth
 
     zbest, conf = peak_depth(vol)
     xx, yy = np.meshgrid(vol.x_px, vol.y_px)
-    off = used = 0
+    v = vol.values.astype(np.float64)
+    half = 0.5 * (v.max(axis=0) + np.median(v, axis=0))
+    width = np.sum(v >= half[None], axis=0) * spacing_um  # frames above half height x spacing (FWHM)
+    res, widths = [], []
     for ci, s in enumerate(surfaces):
         w = _block_weights(conf[..., ci])
-        r = np.abs(zbest[..., ci] - s(xx, yy))
+        r = zbest[..., ci] - s(xx, yy)
         ok = (w > 0) & np.isfinite(r)
-        used += int(ok.sum())
-        off += int((ok & (r >= spacing_um)).sum())
-    return off / used if used else 0.0
+        res.append(np.abs(r[ok]))
+        widths.append(width[..., ci][ok])
+    r = np.concatenate(res) if res else np.zeros(0)
+    if r.size == 0:
+        return 0.0, 0.0
+    fwhm = float(np.median(np.concatenate(widths)))
+    return float(np.mean(r >= spacing_um)), float(np.mean(r > max(spacing_um, 0.5 * fwhm)))
 
 
 def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool) -> np.ndarray:
