@@ -23,9 +23,10 @@ from ..optics import LensModel, MTFCriterion
 GRID_STEP_PX = 8
 # Discrepancy grid: the a-posteriori bilinear error estimate (second differences / 8) must stay below this
 # (halving the step until it does); a margin around the image for points that breathing moves outside.
-RESIDUAL_TOL_UM = 0.002
-RESIDUAL_MIN_STEP_PX = 2
+RESIDUAL_TOL_UM = 0.005
+RESIDUAL_MIN_STEP_PX = 1
 RESIDUAL_MARGIN_PX = 64
+FIXED_POINT_ITERATIONS = 4
 
 
 class FocusEvaluator:
@@ -34,7 +35,8 @@ class FocusEvaluator:
     For a profile without a discrepancy term (a truth profile, an old profile) it is the profile's own exact
     ``best_focus_um``. Otherwise the kriged discrepancy is evaluated once on a grid covering the image plus
     ``margin_px`` (step: half the correlation length, at most ``max_step_px``, halved while the estimated error
-    exceeds ``tol_um``) and interpolated bilinearly; points outside the grid are evaluated exactly.
+    exceeds ``tol_um``) and interpolated bilinearly; points outside the grid are evaluated exactly. If a grid
+    fine enough would have more than ``budget_points`` nodes (the exact path's evaluations), it evaluates exactly.
 
     Attributes
     ----------
@@ -48,7 +50,8 @@ class FocusEvaluator:
     """
 
     def __init__(self, profile, channel: str, width: int, height: int, *, max_step_px: int = 32,
-                 margin_px: int = RESIDUAL_MARGIN_PX, tol_um: float = RESIDUAL_TOL_UM):
+                 margin_px: int = RESIDUAL_MARGIN_PX, tol_um: float = RESIDUAL_TOL_UM,
+                 budget_points: int | None = None):
         self.profile, self.channel = profile, channel
         self.step_px, self.error_estimate_um, self.error_bound_um = 0.0, 0.0, 0.0
         fit = getattr(profile, "surfaces", None)
@@ -62,6 +65,9 @@ class FocusEvaluator:
         step = float(np.clip(0.5 * ell_px, RESIDUAL_MIN_STEP_PX, max_step_px))
         ci = fit.channels.index(channel)
         while True:
+            if budget_points is not None and _grid_nodes(width, height, step, margin_px) > budget_points:
+                self._fit = None  # a grid fine enough costs more than evaluating exactly: evaluate exactly
+                return
             self._build(width, height, step, margin_px)
             g = self._grid
             d2x = np.abs(np.diff(g, 2, axis=1)).max(initial=0.0)
@@ -75,8 +81,7 @@ class FocusEvaluator:
         self.error_bound_um = float(fit.z_scale_um * h * h / 4.0 * disc.residual_curvature_bound(ci))
 
     def _build(self, width, height, step, margin):
-        nx = int(math.ceil((width - 1 + 2 * margin) / step)) + 1
-        ny = int(math.ceil((height - 1 + 2 * margin) / step)) + 1
+        nx, ny = _grid_shape(width, height, step, margin)
         self._x0, self._y0 = -float(margin), -float(margin)
         self._x1, self._y1 = self._x0 + (nx - 1) * step, self._y0 + (ny - 1) * step
         xx, yy = np.meshgrid(self._x0 + step * np.arange(nx), self._y0 + step * np.arange(ny))
@@ -95,6 +100,15 @@ class FocusEvaluator:
         if not inside.all():  # far outside the image (never for real breathing): exact
             res[~inside] = self._fit.predict_parts(x[~inside], y[~inside], self.channel)[1]
         return trend + res
+
+
+def _grid_shape(width, height, step, margin) -> tuple[int, int]:
+    return (int(math.ceil((width - 1 + 2 * margin) / step)) + 1, int(math.ceil((height - 1 + 2 * margin) / step)) + 1)
+
+
+def _grid_nodes(width, height, step, margin) -> int:
+    nx, ny = _grid_shape(width, height, step, margin)
+    return nx * ny
 
 
 def _trend_only(fit, x, y, channel):
@@ -142,7 +156,8 @@ def dense_maps(fns, width: int, height: int, step: int = GRID_STEP_PX) -> np.nda
     return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=-1)
 
 
-def output_best_focus_um(profile: LensModel, x, y, channel: str, lateral_colour: bool = False, iterations: int = 4,
+def output_best_focus_um(profile: LensModel, x, y, channel: str, lateral_colour: bool = False,
+                         iterations: int = FIXED_POINT_ITERATIONS,
                          focus: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None):
     """Stage position at which the point seen at output pixel (x, y) (z_ref geometry) is in focus.
 
@@ -180,13 +195,16 @@ def profile_focus_map(profile: LensModel, width: int, height: int, channels, lat
     """Best-focus positions (µm) of every output pixel and channel, ``H x W x C`` float32.
 
     ``exact=False`` (default) evaluates a calibrated profile's discrepancy through :class:`FocusEvaluator`
-    (adds at most its ``error_estimate_um``, <= 0.002 µm, to the map's own grid error); ``exact=True`` calls the
+    (adds about its ``error_estimate_um``, <= 0.005 µm unless the grid reaches 2 px, to the map's own grid error); ``exact=True`` calls the
     profile's ``best_focus_um`` at every node and fixed-point step (the reference; ~10x slower).
     """
     step = grid_step_px(width, height)
+    nx, ny = _grid_shape(width, height, step, 0)
+    budget = (FIXED_POINT_ITERATIONS + 1) * nx * ny  # exact evaluations the fixed point makes on the map's grid
     fns = []
     for ch in channels:
-        focus = None if exact else FocusEvaluator(profile, ch, width, height, max_step_px=4 * step)
+        focus = None if exact else FocusEvaluator(profile, ch, width, height, max_step_px=4 * step,
+                                                  budget_points=budget)
         fns.append(lambda x, y, ch=ch, f=focus: output_best_focus_um(profile, x, y, ch, lateral_colour, focus=f))
     return dense_maps(fns, width, height, step)
 
