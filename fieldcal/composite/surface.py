@@ -63,7 +63,7 @@ class FocusEvaluator:
         r_px = float(geom.half_diagonal_px)
         ell_px = float(disc.length_scale) * r_px
         step = float(np.clip(0.5 * ell_px, RESIDUAL_MIN_STEP_PX, max_step_px))
-        ci = fit.channels.index(channel)
+        ci = fit._ch(channel)  # a FieldcalError naming the channels if unknown
         while True:
             if budget_points is not None and _grid_nodes(width, height, step, margin_px) > budget_points:
                 self._fit = None  # a grid fine enough costs more than evaluating exactly: evaluate exactly
@@ -92,7 +92,7 @@ class FocusEvaluator:
         x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
         if self._fit is None:
             return np.asarray(self.profile.best_focus_um(x, y, self.channel), dtype=np.float64)
-        trend, _ = _trend_only(self._fit, x, y, self.channel)
+        trend = _trend_um(self._fit, x, y, self.channel)
         inside = (x >= self._x0) & (x <= self._x1) & (y >= self._y0) & (y <= self._y1)
         res = np.empty(x.shape)
         coords = np.stack([(y[inside] - self._y0) / self._step, (x[inside] - self._x0) / self._step])
@@ -111,12 +111,12 @@ def _grid_nodes(width, height, step, margin) -> int:
     return nx * ny
 
 
-def _trend_only(fit, x, y, channel):
-    """The polynomial part of ``fit.predict_parts`` without the discrepancy (cheap)."""
+def _trend_um(fit, x, y, channel) -> np.ndarray:
+    """The polynomial part of ``fit.predict_parts`` alone (cheap: no kriging)."""
     xh, yh = fit.geometry.normalise(x.ravel(), y.ravel())
-    ci = fit.channels.index(channel)
+    ci = fit._ch(channel)  # a FieldcalError naming the channels if unknown
     t = fit.z_centre_um + fit.z_scale_um * fit.discrepancy.trend(xh, yh, ci)
-    return t.reshape(x.shape), None
+    return t.reshape(x.shape)
 
 
 def dense_map(fn: Callable[[np.ndarray, np.ndarray], np.ndarray], width: int, height: int,
