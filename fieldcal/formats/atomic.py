@@ -324,3 +324,25 @@ def jsonable(v):
     if isinstance(v, np.ndarray):
         return jsonable(v.tolist())
     return v
+
+
+def replace_folder(staging: str | Path, out: str | Path) -> None:
+    """Rename a finished folder ``staging`` to ``out`` (same parent). An empty ``out`` is removed first; an
+    existing one (the caller has checked it may be replaced) is moved aside under an unpredictable name and
+    deleted only after the new folder took its name, so ``out`` is always either the old or the new folder."""
+    import shutil
+    import tempfile
+
+    staging, out = Path(staging), Path(out)
+    old = None
+    if out.exists():
+        if out.is_dir() and not out.is_symlink() and not any(out.iterdir()):
+            out.rmdir()
+        else:
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.resolve().parent))
+            old.rmdir()
+            os.rename(out, old)
+    os.rename(staging, out)
+    fsync_dir(out.resolve().parent)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)

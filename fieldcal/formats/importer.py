@@ -35,7 +35,7 @@ from typing import Sequence
 import numpy as np
 
 from fieldcal.errors import ParameterError, StackError
-from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text, fsync_dir
+from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text, replace_folder
 from fieldcal.formats.imageio import ImageFileError, encode, probe
 
 #: File name endings read through LibRaw (rawpy). Many raw formats are TIFF inside, so the ending decides.
@@ -329,14 +329,6 @@ def _positive(value, name: str) -> float | None:
     return v
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _check_out(out: Path, sources: list[Path], overwrite: bool) -> None:
     resolved = out.resolve()
     for s in sources:
@@ -397,7 +389,7 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     >>> stack = import_stack(["IMG_0001.JPG", "IMG_0002.JPG", "IMG_0003.JPG"], "STACK",
     ...                      z_start_um=0, z_step_um=20, pixel_pitch_um=1.4)   # doctest: +SKIP
     """
-    from fieldcal.formats.stack import FORMAT, STACK_JSON, Stack
+    from fieldcal.formats.stack import FORMAT, STACK_JSON, Stack, _sha256_file
 
     out = Path(out)
     paths = _expand(images)
@@ -496,7 +488,7 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
                 data = encode(mosaic, "tiff")
                 atomic_write_bytes(staging / rel, data)
                 entry["sha256"] = hashlib.sha256(data).hexdigest()
-                entry["source"] = {"file": src.name, "sha256": _sha256(src)}
+                entry["source"] = {"file": src.name, "sha256": _sha256_file(src)}
             else:
                 rel = f"frames/{k:0{width}d}_{stem}{src.suffix.lower()}"
                 dst = staging / rel
@@ -511,7 +503,7 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
                     os.symlink(src.resolve(), dst)
                 else:
                     shutil.copyfile(src, dst)
-                entry["sha256"] = _sha256(dst)
+                entry["sha256"] = _sha256_file(dst)
                 entry["source"] = {"file": src.name}
             entry = {"file": rel, **entry}
             if info.exposure_ms:
@@ -522,24 +514,8 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
         meta["frames"] = entries
         atomic_write_text(staging / STACK_JSON, json.dumps(meta, indent=2, allow_nan=False) + "\n")
         Stack.open(staging)  # validate what was built before it takes the final name
-        _install(staging, out)
+        replace_folder(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return Stack.open(out)
-
-
-def _install(staging: Path, out: Path) -> None:
-    """Rename the finished folder into place; an old stack there is moved aside first and removed last."""
-    old = None
-    if out.exists():
-        if out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
-        else:  # a stack folder, allowed by overwrite (checked before anything was built)
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.resolve().parent))
-            old.rmdir()
-            os.rename(out, old)
-    os.rename(staging, out)
-    fsync_dir(out.resolve().parent)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)

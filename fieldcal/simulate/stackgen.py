@@ -17,7 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from fieldcal.formats import documents
-from fieldcal.formats.atomic import atomic_write_bytes
+from fieldcal.formats.atomic import atomic_write_bytes, replace_folder
 from ..errors import ParameterError, StackError
 from fieldcal.simulate.lens import LensSpec
 from ..progress import progress as _progress
@@ -213,7 +213,7 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
         if optics == "wave":
             truth["best_focus"] = _wave_best_focus(renderer, spec)
         documents.write(tmp / "truth.json", truth, "truth")
-        _replace_dir(tmp, out)
+        replace_folder(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -233,12 +233,3 @@ def _wave_best_focus(renderer: Renderer, spec: LensSpec) -> dict:
     }
 
 
-def _replace_dir(tmp: Path, out: Path) -> None:
-    """Move the finished stack into place; an old stack (checked by _prepare_out) is removed after."""
-    old = None
-    if out.exists():
-        old = out.parent / f".{out.name}.old-{os.getpid()}"
-        os.replace(out, old)
-    os.replace(tmp, out)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)

@@ -1,0 +1,140 @@
+"""Scenes with depth: fieldcal's depth from focus against the oracle and align_image_stack + enfuse.
+
+For each depth layout of :mod:`fieldcal.simulate.depth` (steps, slope, thin bars, a relief) the paper's triplet
+renders a colour stack through the scene's depth plus the field curvature, one frame every 1.5 focus
+tolerances. Every method composites the same frames, registered by the same geometry (the lens's truth):
+
+* ``oracle``: the compositor with each pixel's true best focus (surface + depth);
+* ``depth map``: ``composite_stack(method="dff")`` (auto: the scene is found to have depth, best focus per pixel);
+* ``smooth surface``: ``composite_stack(method="dff", depth="flat")`` (what fieldcal did before);
+* ``enfuse``: enfuse's contrast-weighted hard mask (``--hard-mask``, exposure and saturation weights 0) on the
+  same registered frames (``apt-get install enfuse``; skipped when it is not installed).
+
+PSNR is against the truth's all-in-focus image (border of 12 px left out); the halo is the distance from the
+depth edges (> 5 µm steps) within which the mean absolute error stays above 1.5x its level far from any edge.
+
+Run: ``python benchmarks/bench_depth_scenes.py [--size 320x240] [--write]`` (``--write`` puts the table into
+docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import tifffile
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from fieldcal.composite.api import composite_stack  # noqa: E402
+from fieldcal.composite.stack_profile import blend_kernel, composite_with_map  # noqa: E402
+from fieldcal.composite.warp import frame_maps, warp_region  # noqa: E402
+from fieldcal.formats.frames import ArrayStack  # noqa: E402
+from fieldcal.simulate.depth import LAYOUTS, DepthRenderer, depth_edges, depth_scene  # noqa: E402
+from fieldcal.simulate.lens import LensSpec  # noqa: E402
+from fieldcal.simulate.truth import TruthProfile  # noqa: E402
+
+MARK_BEGIN = "<!-- bench_depth_scenes:begin -->"
+MARK_END = "<!-- bench_depth_scenes:end -->"
+
+
+def run_layout(layout: str, w: int, h: int, seed: int = 1) -> dict:
+    spec = LensSpec.load(REPO / "models" / "triplet-uncorrected.json").with_sensor_size(w, h)
+    fs = 0.25 / (spec.sensor.pixel_pitch_um * 1e-3)
+    tol = min(spec.focus_tolerance_um(fs, 0.05, c) for c in spec.channel_names)
+    scene = depth_scene(layout, w, h, 6 * tol, seed=seed)
+    r = DepthRenderer(spec, scene, seed=seed + 1)
+    lo, hi = spec.focus_range_um()
+    z = np.arange(lo - tol, hi + 7 * tol, 1.5 * tol)
+    st = ArrayStack([r.render(float(v)) for v in z], z, spec.channel_names,
+                    black_level=spec.sensor.black_level_dn, white_level=spec.sensor.white_level_dn)
+    truth = r.truth().astype(np.float64)
+    white = float(spec.sensor.white_level_dn)
+    prof = TruthProfile(spec, w, h)
+    dist = cv2.distanceTransform((~depth_edges(scene.depth_um, 5.0)).astype(np.uint8), cv2.DIST_L2, 3)
+
+    def psnr(img):
+        a = np.asarray(img, np.float64)[12:-12, 12:-12, :3]
+        return 10 * np.log10(white ** 2 / np.mean((a - truth[12:-12, 12:-12]) ** 2))
+
+    def halo(img):
+        err = np.abs(np.asarray(img, np.float64)[..., :3] - truth).mean(axis=2)
+        far = err[dist > 12].mean()
+        prof_d = [err[(dist >= d) & (dist < d + 1)].mean() for d in range(12)]
+        return next((d for d, e in enumerate(prof_d) if e <= 1.5 * far), 12)
+
+    xx, yy = np.meshgrid(np.arange(w), np.arange(h))
+    zb = np.stack([r.best_focus_um(xx, yy, c) for c in spec.channel_names], -1).astype(np.float32)
+    frames = np.arange(len(st))
+    out = {"layout": layout, "frames": len(st)}
+    out["oracle"] = composite_with_map(st, zb, blend_kernel(st, prof, frames, None, 0.05, 0.25), prof, frames,
+                                       quiet=True)
+    t0 = time.perf_counter()
+    auto = composite_stack(st, prof, method="dff", quiet=True)
+    out["t_depth_s"] = time.perf_counter() - t0
+    out["scene"] = auto.info["scene"]
+    out["depth map"] = auto.image
+    out["smooth surface"] = composite_stack(st, prof, method="dff", depth="flat", quiet=True).image
+    if shutil.which("enfuse"):
+        d = Path(tempfile.mkdtemp())
+        names = []
+        for i in range(len(st)):
+            im = np.zeros((h, w, 3), np.float32)
+            for fm in frame_maps(prof, float(st.z_um[i]), st.channels):
+                im[..., list(fm.channels)] = warp_region(st, i, fm, 0, 0, w, h)
+            p = d / f"f{i:02d}.tif"
+            tifffile.imwrite(p, np.clip(np.rint(im), 0, 65535).astype(np.uint16))
+            names.append(str(p))
+        subprocess.run(["enfuse", "--exposure-weight=0", "--saturation-weight=0", "--contrast-weight=1",
+                        "--hard-mask", f"--output={d}/enfuse.tif", *names], check=True, capture_output=True)
+        out["enfuse"] = tifffile.imread(d / "enfuse.tif")[..., :3]
+        shutil.rmtree(d, ignore_errors=True)
+    rows = {}
+    for k in ("oracle", "depth map", "smooth surface", "enfuse"):
+        if k in out:
+            rows[k] = (psnr(out[k]), halo(out[k]))
+    out["rows"] = rows
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--size", default="320x240")
+    ap.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
+    a = ap.parse_args()
+    w, h = (int(v) for v in a.size.lower().split("x"))
+    lines = [f"Scenes with depth ({w}x{h} px, paper triplet, one frame per 1.5 tolerances, depth 6 tolerances; "
+             "`python benchmarks/bench_depth_scenes.py --size {0}x{1} --write`):".format(w, h), "",
+             "| layout | frames | found | oracle dB | depth map dB | smooth surface dB | enfuse dB | depth map − enfuse |"
+             " halo px (depth map / enfuse) | depth map s |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for layout in LAYOUTS:
+        r = run_layout(layout, w, h)
+        R = r["rows"]
+        enf = R.get("enfuse", (float("nan"), -1))
+        lines.append(f"| {layout} | {r['frames']} | {r['scene']} | {R['oracle'][0]:.2f} | {R['depth map'][0]:.2f} | "
+                     f"{R['smooth surface'][0]:.2f} | {enf[0]:.2f} | {R['depth map'][0] - enf[0]:+.2f} | "
+                     f"{R['depth map'][1]} / {enf[1]} | {r['t_depth_s']:.1f} |")
+        print(lines[-1], flush=True)
+    if a.write:
+        doc = REPO / "docs" / "benchmarks.md"
+        text = doc.read_text(encoding="utf-8")
+        block = "\n".join([MARK_BEGIN, *lines, MARK_END])
+        if MARK_BEGIN in text:
+            s, e = text.index(MARK_BEGIN), text.index(MARK_END) + len(MARK_END)
+            text = text[:s] + block + text[e:]
+        else:
+            text = text.rstrip() + "\n\n## Scenes with depth\n\n" + block + "\n"
+        doc.write_text(text, encoding="utf-8")
+
+
+if __name__ == "__main__":
+    main()
