@@ -67,7 +67,7 @@ def _signal_spectrum_model(power: np.ndarray, f: np.ndarray, hs2: np.ndarray, no
         ok = (f > fmin) & (hs2 > 0.01)
     if np.count_nonzero(ok) < 2:
         raise ParameterError("the sweep's integrated PSF passes almost nothing (MTF below 0.1 at every frequency): "
-                             "alpha is too large to deconvolve", field="--sweep-alpha-um",
+                             "alpha is too large to deconvolve", field="sweep_alpha_um",
                              fix="use a smaller alpha (see the sweep trade table in docs/benchmarks.md)")
     px = np.maximum(power[ok] - noise_power, 1e-30) / hs2[ok]
     lf = np.log(f[ok])
@@ -155,10 +155,10 @@ def deconvolve_sweep(image: np.ndarray, profile: LensModel, alpha_um: float, cha
     ``info["noise_sigma"]``); estimated from the image when None.
     """
     if method not in ("wiener", "rl"):
-        raise ParameterError(f"unknown deconvolution {method!r}", field="--deconvolve", fix="use wiener, rl or none")
+        raise ParameterError(f"unknown deconvolution {method!r}", field="deconvolve", fix="use wiener, rl or none")
     if not (np.isfinite(alpha_um) and alpha_um > 0):
-        raise ParameterError(f"sweep half-range must be > 0 µm, got {alpha_um}", field="--sweep-alpha-um",
-                             fix="e.g. --sweep-alpha-um 20")
+        raise ParameterError(f"sweep half-range must be > 0 µm, got {alpha_um}", field="sweep_alpha_um",
+                             fix="e.g. 20 (µm)")
     if profile.f_number is None:
         raise ParameterError("the profile has no f-number, which the integrated PSF needs", field="f_number",
                              fix="calibrate with the lens's f-number recorded in the stack (f_number in stack.json)")
@@ -190,7 +190,7 @@ def emulate_sweep(stack, profile, alpha_um: float, *, frames=None, lateral_colou
     if len(z) > 1 and float(np.max(np.diff(z))) > 2.0 * alpha_um:
         raise ParameterError(f"frames are up to {float(np.max(np.diff(z))):g} µm apart, more than the sweep "
                              f"range 2 alpha = {2 * alpha_um:g} µm: that is a stack, not a sweep",
-                             field="--sweep-alpha-um", fix="use a denser stack or a larger alpha")
+                             field="sweep_alpha_um", fix="use a denser stack or a larger alpha")
     w, h = image_size(stack)
     zb = profile_focus_map(profile, w, h, stack.channels, lateral_colour)
     acc = accumulate(stack, zb, kernel, profile, lateral_colour=lateral_colour, tile=tile, frames=frames,
