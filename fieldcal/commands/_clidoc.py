@@ -44,7 +44,7 @@ fieldcal plan sweep lens.json --alpha-um 20 --pixel-exposure-ms 16 --device lcos
 fieldcal capture --plan plan.json --stage sim --camera sim:models/triplet-uncorrected.json,size=320x180 --out scene
 fieldcal composite scene --profile lens.json --out image.tiff
 fieldcal validate models/triplet-uncorrected.json --size 256x144 --effort quick --out validation/
-fieldcal demo --out demo-out --size 160x90                          # all of the above, compared with the truth
+fieldcal demo --out demo-out --size 320x180                         # all of the above, compared with the truth
 ```
 
 The same at full size and on hardware (a PI stage on a serial port, a Basler camera; the simulated stage and
