@@ -52,7 +52,7 @@ def build_rows(tiles: TileData, geometry: ImageGeometry, channels: tuple[str, ..
     return rows, zc, zs
 
 
-def _validate(tiles: TileData, geometry: ImageGeometry, channels, source):
+def validate_inputs(tiles: TileData, geometry: ImageGeometry, channels, source):
     if len(tiles) == 0:
         raise FitError("no accepted tiles to fit", path=source, field="tiles",
                        fix="check the stack covers best focus (measure reported every tile as rejected)")
@@ -139,7 +139,7 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     if unknown:
         raise FitError(f"tiles of channels {unknown} not in {list(channels)}", path=source, field="channel",
                        fix="pass every measured channel")
-    _validate(tiles, geometry, channels, source)
+    validate_inputs(tiles, geometry, channels, source)
     rows, zc, zs = build_rows(tiles, geometry, channels)
     astig_rows = rows.n_astig >= MIN_ASTIG_ROWS
     if not astig_rows and rows.n_astig:
