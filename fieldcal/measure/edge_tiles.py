@@ -33,6 +33,8 @@ from .tiles import TileTable
 # channel. A 480x270 frame of the default slanted-edge chart has ~160 (150+ ok); the random-texture chart 5
 # (none ok), the ChArUco board 14 (none ok).
 MIN_CHART_EDGES = 24
+# The chart test looks at no more than this many pixels on a side (a crop, then the whole frame shrunk).
+CHECK_SIDE_PX = 640
 # The bootstrap sd of a track's peak sees the noise of its MTF(fs) samples only. Against the simulator's
 # truth it was measured 1.2-2.2x too small on smooth closed-form curves and ~1.8x on the triplet stack
 # (docs/measurement.md "Through focus"); the measured z-score RMS of the triplet's tracks is stated in the
@@ -60,18 +62,45 @@ class ChartKind:
                 "frame_z_um": self.frame_z_um, "min_edges": MIN_CHART_EDGES}
 
 
-def chart_kind(frame: np.ndarray, channels: tuple[str, ...], cfa: str | None = None,
-               z_um: float = math.nan) -> ChartKind:
-    """Slanted edges or not, from one normalised frame (the e-SFR of each detected edge, all channels)."""
+def _count_ok_edges(frame: np.ndarray, channels: tuple[str, ...], cfa: str | None) -> tuple[int, int]:
+    """(edges found, edges whose e-SFR passes the quality rules in every channel) in one frame."""
     from .mtf import measure_frame
 
     records, dets = measure_frame(frame, channels=channels, cfa=cfa)
     ok_all: dict[int, bool] = {}
     for r in records:
         ok_all[r["edge"]] = ok_all.get(r["edge"], True) and bool(r["quality"]["ok"])
-    n_ok = int(sum(ok_all.values()))
-    kind = "esfr" if n_ok >= MIN_CHART_EDGES else "focus-measure"
-    return ChartKind(kind, len(dets), n_ok, float(z_um))
+    return len(dets), int(sum(ok_all.values()))
+
+
+def chart_kind(frame: np.ndarray, channels: tuple[str, ...], cfa: str | None = None,
+               z_um: float = math.nan, max_side_px: int = CHECK_SIDE_PX) -> ChartKind:
+    """Slanted edges or not, from one normalised frame (H x W x C; the e-SFR of each detected edge, all channels).
+
+    The cost is bounded whatever the frame size (edge finding on a fine texture costs ~5 s at 1920x1080):
+    first a central crop of at most ``max_side_px`` at full resolution (small chart squares keep their size),
+    then, if that is not enough, the whole frame shrunk to ``max_side_px`` on its long side (large squares
+    fit in it). A raw mosaic (``cfa``) is checked at full resolution.
+    """
+    frame = np.asarray(frame, dtype=np.float32)
+    if frame.ndim == 2:
+        frame = frame[:, :, None]
+    h, w = frame.shape[:2]
+    if cfa is not None or max(h, w) <= max_side_px:
+        found, ok = _count_ok_edges(frame if cfa is None else frame[:, :, 0], channels, cfa)
+    else:
+        ch, cw = min(h, max_side_px), min(w, max_side_px)
+        y0, x0 = (h - ch) // 2, (w - cw) // 2
+        found, ok = _count_ok_edges(frame[y0:y0 + ch, x0:x0 + cw], channels, None)
+        if ok < MIN_CHART_EDGES:
+            import cv2
+            f = max(h, w) / float(max_side_px)
+            small = cv2.resize(frame, (max(1, round(w / f)), max(1, round(h / f))), interpolation=cv2.INTER_AREA)
+            found2, ok2 = _count_ok_edges(small.reshape(small.shape[0], small.shape[1], -1), channels, None)
+            if ok2 > ok:
+                found, ok = found2, ok2
+    kind = "esfr" if ok >= MIN_CHART_EDGES else "focus-measure"
+    return ChartKind(kind, found, ok, float(z_um))
 
 
 def _usable(rec: dict) -> bool:
