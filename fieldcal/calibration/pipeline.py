@@ -283,9 +283,12 @@ def _require_tiles(table, stack, kind) -> None:
         return
     edges = (f"{kind.edges_ok} usable slanted edges (of {kind.edges_found} found; e-SFR needs {MIN_CHART_EDGES})"
              if kind.edges_found >= 0 else "no slanted-edge check (the focus measure was requested)")
-    raise StackError(f"neither measurement works on this stack: too few textured tiles give a best focus "
-                     f"({', '.join(f'{c}: {v}' for c, v in few.items())}; a surface needs {MIN_TILES_PER_CHANNEL} "
-                     f"per channel; tile status {table.counts()}) and the middle frame shows {edges}",
+    counts = ", ".join(f"{k}: {v}" for k, v in table.counts().items())
+    tiles = ("every tile was rejected" if not table.ok.any() else
+             f"too few textured tiles give a best focus ({', '.join(f'{c}: {v}' for c, v in few.items())}; "
+             f"a surface needs {MIN_TILES_PER_CHANNEL} per channel)")
+    raise StackError(f"neither measurement works on this stack: {tiles} (tile status {counts}) and the middle "
+                     f"frame shows {edges}",
                      path=stack.path, fix="calibrate on a random-texture or slanted-edge chart (fieldcal chart) "
                      "that fills the frame, exposed without clipping, over a z range that passes best focus "
                      "everywhere with margin")
