@@ -167,6 +167,23 @@ def _pairs(xt, yt, xs, ys, max_px: float) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(ri, ci) if cost[a, b] < 1e9]
 
 
+def _local_surface(x, y, z, image_size_px, degree: int = 4):
+    """A least-squares polynomial of ``degree`` in normalised x, y through the tracks' best foci (a callable
+    ``(x_px, y_px) -> z_um``), or None with fewer than 3x its terms."""
+    w, h = (float(v) for v in image_size_px)
+    r = 0.5 * math.hypot(w, h)
+
+    def design(xp, yp):
+        u, v = (np.asarray(xp, float) - 0.5 * w) / r, (np.asarray(yp, float) - 0.5 * h) / r
+        return np.stack([u ** i * v ** (k - i) for k in range(degree + 1) for i in range(k + 1)], axis=-1)
+
+    n_terms = (degree + 1) * (degree + 2) // 2
+    if np.size(z) < 3 * n_terms:
+        return None
+    coef, *_ = np.linalg.lstsq(design(x, y), np.asarray(z, float), rcond=None)
+    return lambda xp, yp: float(design(xp, yp) @ coef)
+
+
 def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_um, image_size_px,
                z_ref_um: float, channels: tuple[str, ...], pair_px: float | None = None,
                min_pairs_per_channel: int = 12) -> tuple[TileTable, dict]:
@@ -214,20 +231,31 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
         for k, v in zip(rows, (ch, x, y, zb, s, w, pk, st, zt, zs)):
             rows[k].append(v)
 
-    summary = {"tracks": {}, "pairs": {}, "unpaired_kept": {}, "status": {}}
+    summary = {"tracks": {}, "pairs": {}, "unpaired_kept": {}, "status": {}, "ts_transfer": {}}
     for ch in channels:
         m = tf["channel"] == ch
         t = np.flatnonzero(m & ok & (tf["orientation"] == "tangential"))
         s = np.flatnonzero(m & ok & (tf["orientation"] == "sagittal"))
         pairs = _pairs(tf["x_px"][t], tf["y_px"][t], tf["x_px"][s], tf["y_px"][s], pair_px)
+        local = _local_surface(tf["x_px"][m & ok], tf["y_px"][m & ok], tf["z_best_um"][m & ok], image_size_px)
+        summary["ts_transfer"][ch] = "quartic in x, y of the channel's tracks" if local else "none (too few tracks)"
         for a, b in pairs:
             i, j = t[a], s[b]
             wi, wj = tf["width_um"][i], tf["width_um"][j]
-            add(ch, 0.5 * (tf["x_px"][i] + tf["x_px"][j]), 0.5 * (tf["y_px"][i] + tf["y_px"][j]),
+            xm, ym = 0.5 * (tf["x_px"][i] + tf["x_px"][j]), 0.5 * (tf["y_px"][i] + tf["y_px"][j])
+            zt = zs = math.nan
+            if local is not None:
+                # T and S sit on different sides of a chart square: the field curvature between them (up to
+                # ~1 µm/px at the corners) would enter T - S, so each is moved to the midpoint along a smooth
+                # surface of all the channel's tracks first
+                zt = tf["z_best_um"][i] + local(xm, ym) - local(tf["x_px"][i], tf["y_px"][i])
+                zs = tf["z_best_um"][j] + local(xm, ym) - local(tf["x_px"][j], tf["y_px"][j])
+            add(ch, xm, ym,
+                # the mean of two points about the midpoint: the gradient cancels
                 0.5 * (tf["z_best_um"][i] + tf["z_best_um"][j]), 0.5 * math.hypot(sig[i], sig[j]),
                 # the tolerance of the pair is the narrower one: the plan must hold both orientations
                 float(np.nanmin([wi, wj])) if np.isfinite([wi, wj]).any() else math.nan,
-                0.5 * (tf["peak"][i] + tf["peak"][j]), "ok", tf["z_best_um"][i], tf["z_best_um"][j])
+                0.5 * (tf["peak"][i] + tf["peak"][j]), "ok", zt, zs)
         keep_lone = len(pairs) < min_pairs_per_channel
         used = {int(t[a]) for a, _ in pairs} | {int(s[b]) for _, b in pairs}
         n_lone = 0
