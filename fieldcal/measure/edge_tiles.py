@@ -37,15 +37,16 @@ MIN_CHART_EDGES = 24
 CHECK_SIDE_PX = 640
 # The bootstrap sd of a track's peak sees the noise of its MTF(fs) samples only. Against the simulator's
 # truth it was measured 1.2-2.2x too small on smooth closed-form curves and ~1.8x on the triplet stack
-# (docs/measurement.md "Through focus"); the measured z-score RMS of the triplet's tracks is stated in the
-# docs section "Calibrating from slanted edges". The fit's own error scale (>= 0.5) absorbs what is left.
+# (docs/measurement.md "Through focus"); scaled by 1.8 the rows' error / sd has RMS 0.98-1.34 on the triplet
+# and 0.76-1.2 on random lenses (docs/measurement.md "Calibrating from slanted edges"). The fit's own error
+# scale (>= 0.5) absorbs what is left.
 SIGMA_SCALE = 1.8
 # ... and never below this fraction of the scan step: a noise-free curve gives a bootstrap sd of 0, yet the
 # spline's peak on a sampled curve has a shape bias of up to ~0.1 step (esfr_focus benchmarks).
 SIGMA_FLOOR_STEP = 0.05
-# Quality reasons whose samples still carry MTF(fs): the far-defocused ends of a track (blur wider than the
-# region) lower the curve, which only the tails see.
-_USABLE = ("ok", "edge blur wider than the region")
+# Besides "ok", samples flagged only for a blur wider than the region still carry MTF(fs): they are the
+# far-defocused ends of a track, which only the curve's tails see.
+_BLUR_WIDER = "edge blur wider than the region"
 
 
 @dataclass(frozen=True)
@@ -105,7 +106,7 @@ def chart_kind(frame: np.ndarray, channels: tuple[str, ...], cfa: str | None = N
 
 def _usable(rec: dict) -> bool:
     q = rec["quality"]
-    return bool(q["ok"]) or str(q.get("reason", "")).startswith(_USABLE[1])
+    return bool(q["ok"]) or str(q.get("reason", "")).startswith(_BLUR_WIDER)
 
 
 def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frames: int = 5) -> dict:
