@@ -30,6 +30,7 @@ MIN_FRAMES = 5
 # the stack's own tiles (fieldcal.fit.discrepancy, docs/fitting.md "Systematic"). A fixed 0.01 scan step was
 # used before; profiles that carry it (calibration.systematic_sd_um > 0) keep their band.
 SYSTEMATIC_STEP_FRACTION = 0.0
+CHARTS = ("auto", "esfr", "focus-measure")
 
 
 def _check(fs_cyc_per_mm, q, effort, pitch_um):
@@ -70,7 +71,8 @@ def _hash_inputs(stack, out: dict):
 
 def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: str = "standard",
               z_ref_um: float | None = None, tile_px: int | None = None, measure: str = "sml", seed: int = 0,
-              quiet: bool = False, stage_repeatability_um: float | None = None) -> LensProfile:
+              quiet: bool = False, stage_repeatability_um: float | None = None,
+              chart: str = "auto") -> LensProfile:
     """Fit a lens profile from a chart stack.
 
     Parameters
@@ -94,6 +96,10 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
         1-sigma position repeatability of the stage (µm); default from the stage record in stack.json
         (``capture.stage.repeatability_um`` or ``noise_um``), else 0. Its effect on the best focus joins the
         band (docs/fitting.md "Stage errors").
+    chart : {"auto", "esfr", "focus-measure"}
+        The measurement: slanted-edge MTF through focus ("esfr"), the texture focus measure
+        ("focus-measure"), or chosen from the middle frame ("auto": e-SFR when it holds enough slanted edges;
+        docs/measurement.md "Calibrating from slanted edges"). Recorded as ``calibration.measurement``.
 
     Returns
     -------
@@ -116,7 +122,11 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     if not isinstance(stack, Stack):
         stack = Stack.open(stack)
     _check(fs_cyc_per_mm, q, effort, stack.pixel_pitch_um)
+    if chart not in CHARTS:
+        raise ParameterError(f"unknown chart measurement {chart!r}", field="chart",
+                             fix=f"use one of {', '.join(CHARTS)}")
     stack.require_frames(MIN_FRAMES, "calibration (a through-focus curve needs points on both sides of its peak)")
+    kind = chart_measurement(stack, chart)
     stage_rep, stage_src = stage_repeatability(stack, stage_repeatability_um)
     t0 = time.perf_counter()
     digest: dict = {}
@@ -125,6 +135,12 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
 
     table, geo_meas = measure_stack(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), tile_px=tile_px,
                                     effort=effort, measure=measure, z_ref_um=z_ref_um, quiet=quiet)
+    texture_counts, edge_summary = table.counts(), None
+    if kind.kind == "esfr":  # the texture pass above still measured the geometry (magnification, shift vs z)
+        table, edge_summary = measure_edges(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
+                                            z_ref_um=float(geo_meas.z_ref_um), quiet=quiet)
+    else:
+        _require_tiles(table, stack, kind)
     t_measure = time.perf_counter() - t0
     counts = table.counts()
     n_ok = int(table.ok.sum())
@@ -171,6 +187,9 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
         optics={"f_number": meta.get("f_number"), "focal_length_mm": meta.get("focal_length_mm"),
                 "object_distance_mm": meta.get("object_distance_mm"), "wavelength_nm": wl},
         calibration={"fs_cyc_per_mm": float(fs_cyc_per_mm), "q": float(q), "effort": effort, "measure": measure,
+                     # what the best foci were measured with: "esfr" (slanted-edge MTF(fs) through focus) or
+                     # "focus-measure" (texture tiles, `measure`); `chart` says why
+                     "measurement": kind.kind, "chart": kind.to_dict(),
                      "tile_px": int(table.tile_px), "seed": int(seed), "n_frames": int(len(stack)),
                      "z_range_um": [float(z[0]), float(z[-1])],
                      "z_step_um": float(np.median(steps)) if steps.size else None,
@@ -183,7 +202,8 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
                      # best focus (in the band) is surfaces.stage_sd_um
                      "stage_repeatability_um": stage_rep, "stage_repeatability_source": stage_src},
         z_ref_um=float(geo_c.z_ref_um),
-        diagnostics={"tiles": counts, "n_tiles_ok": n_ok, "surface": surf.diagnostics,
+        diagnostics={"tiles": counts, "n_tiles_ok": n_ok,
+                     **({"esfr": edge_summary, "texture_tiles": texture_counts} if edge_summary else {}), "surface": surf.diagnostics,
                      "geometry": getattr(geom, "diagnostics", {}),
                      "tolerance": tol_note if tol is None else getattr(tol, "diagnostics", {}),
                      "max_image_displacement_px": geo_c.max_displacement_px(),
@@ -200,9 +220,73 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
                     "stack_meta": {k: v for k, v in meta.items() if k != "frames"}},
         tiles=table.to_dict(), geometry_measurements=cols,
     )
-    status(f"calibrated {len(stack)} frames in {t_total:.1f} s: model {surf.model.name}, {n_ok} tiles used",
-           quiet=quiet)
+    status(f"calibrated {len(stack)} frames in {t_total:.1f} s from {kind.kind}: model {surf.model.name}, "
+           f"{n_ok} {'edge rows' if kind.kind == 'esfr' else 'tiles'} used", quiet=quiet)
     return profile
+
+
+def chart_measurement(stack, chart: str = "auto"):
+    """The measurement a stack's chart calls for (:class:`fieldcal.measure.edge_tiles.ChartKind`).
+
+    "auto" looks at the middle frame of the scan (:func:`fieldcal.measure.edge_tiles.chart_kind`): a
+    slanted-edge chart has many edges that pass the e-SFR rules; a texture chart has none. An explicit
+    choice is recorded as given (its edge counts are then not measured, -1)."""
+    from fieldcal.measure.edge_tiles import ChartKind, chart_kind
+
+    order = [int(k) for k in stack.order_by_z]
+    mid = order[len(order) // 2]
+    z_mid = float(np.asarray(stack.z_um, dtype=float)[mid])
+    if chart != "auto":
+        return ChartKind(chart, -1, -1, z_mid)
+    return chart_kind(stack.read_normalized(mid), tuple(stack.channels), getattr(stack, "cfa", None), z_mid)
+
+
+def measure_edges(stack, *, fs_cyc_per_mm: float, q: float, z_ref_um: float, quiet: bool = False):
+    """Slanted-edge best foci through the stack as a tile table (:func:`fieldcal.measure.edge_tiles.edge_table`);
+    refuses when a channel has too few edges for a surface."""
+    from fieldcal.fit.data import MIN_TILES_PER_CHANNEL
+    from fieldcal.measure.edge_tiles import edge_table
+    from fieldcal.measure.mtf import measure_mtf
+
+    status("measuring slanted edges through focus (e-SFR)", quiet=quiet)
+    res = measure_mtf(stack, quiet=quiet)
+    h, w = stack.shape
+    table, summary = edge_table(res, fs_cyc_per_mm=fs_cyc_per_mm, q=q, pixel_pitch_um=float(stack.pixel_pitch_um),
+                                z_um=stack.z_um, image_size_px=(w, h), z_ref_um=z_ref_um,
+                                channels=tuple(stack.channels))
+    n = {c: int((table.ok & (table.channel == c)).sum()) for c in stack.channels}
+    few = {c: v for c, v in n.items() if v < MIN_TILES_PER_CHANNEL}
+    if few:
+        raise StackError(f"the chart is a slanted-edge chart but too few edges give a best focus at "
+                         f"fs = {fs_cyc_per_mm:g} cycles/mm ({', '.join(f'{c}: {v}' for c, v in few.items())}; "
+                         f"a surface needs {MIN_TILES_PER_CHANNEL} per channel; track status "
+                         f"{summary['status']})", path=stack.path,
+                         fix="use a chart with more slanted edges over the whole field (fieldcal chart), a z range "
+                             "that passes best focus everywhere with margin, or a lower --fs")
+    return table, summary
+
+
+def _require_tiles(table, stack, kind) -> None:
+    """Refuse a focus-measure calibration with too few textured tiles in a channel: neither measurement can
+    give a surface, so say what the middle frame showed and what to change."""
+    from fieldcal.fit.data import MIN_TILES_PER_CHANNEL
+    from fieldcal.measure.edge_tiles import MIN_CHART_EDGES
+
+    n = {c: int((table.ok & (table.channel == c)).sum()) for c in stack.channels}
+    few = {c: v for c, v in n.items() if v < MIN_TILES_PER_CHANNEL}
+    if not few:
+        return
+    edges = (f"{kind.edges_ok} usable slanted edges (of {kind.edges_found} found; e-SFR needs {MIN_CHART_EDGES})"
+             if kind.edges_found >= 0 else "no slanted-edge check (the focus measure was requested)")
+    counts = ", ".join(f"{k}: {v}" for k, v in table.counts().items())
+    tiles = ("every tile was rejected" if not table.ok.any() else
+             f"too few textured tiles give a best focus ({', '.join(f'{c}: {v}' for c, v in few.items())}; "
+             f"a surface needs {MIN_TILES_PER_CHANNEL} per channel)")
+    raise StackError(f"neither measurement works on this stack: {tiles} (tile status {counts}) and the middle "
+                     f"frame shows {edges}",
+                     path=stack.path, fix="calibrate on a random-texture or slanted-edge chart (fieldcal chart) "
+                     "that fills the frame, exposed without clipping, over a z range that passes best focus "
+                     "everywhere with margin")
 
 
 

@@ -1,0 +1,290 @@
+"""Slanted-edge tracks through focus → a :class:`~fieldcal.measure.tiles.TileTable` the surface fit accepts.
+
+Calibration on a slanted-edge chart (docs/measurement.md "Calibrating from slanted edges"):
+
+* :func:`chart_kind` looks at one frame (the middle of the scan) and says whether it is a slanted-edge chart:
+  enough edges that pass the e-SFR quality rules in every channel.
+* :func:`edge_table` takes the e-SFR of every edge through the stack (:func:`fieldcal.measure.measure_mtf`),
+  reads each track's MTF at fs, finds its best focus (:func:`.esfr_focus.through_focus_peak`) and measured
+  half-widths, and writes one row per track and channel in the columns of a texture tile table.
+
+Tangential and sagittal. An edge measures the MTF across it, so a tangential edge gives the tangential focus
+and a sagittal one the sagittal focus. A row of the tile table is the *mean* surface with its T and S foci
+(``z_tan_um``, ``z_sag_um``): each tangential track is paired with the nearest sagittal track of the same
+channel (optimal one-to-one assignment, at most ``pair_px`` apart: two sides of one chart square), and the
+pair becomes one row at their midpoint, ``z_best = (z_T + z_S) / 2``. An edge near 45 degrees from the
+radius (``quality.orientation_clear`` false) sees both foci and its peak is near the mean: its own row, NaN
+T/S. Lone T or S tracks are dropped when there are enough pairs (a lone T or S focus is off the mean surface
+by half the astigmatism); otherwise kept with NaN T/S.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ParameterError
+from .esfr_focus import through_focus_peak, tolerance_half_widths
+from .tiles import TileTable
+
+# A frame is a slanted-edge chart when at least this many detected edges pass the e-SFR quality rules in every
+# channel. A 480x270 frame of the default slanted-edge chart has ~160 (150+ ok); the random-texture chart 5
+# (none ok), the ChArUco board 14 (none ok).
+MIN_CHART_EDGES = 24
+# The chart test looks at no more than this many pixels on a side (a crop, then the whole frame shrunk).
+CHECK_SIDE_PX = 640
+# The bootstrap sd of a track's peak sees the noise of its MTF(fs) samples only. Against the simulator's
+# truth it was measured 1.2-2.2x too small on smooth closed-form curves and ~1.8x on the triplet stack
+# (docs/measurement.md "Through focus"); scaled by 1.8 the rows' error / sd has RMS 0.98-1.34 on the triplet
+# and 0.76-1.2 on random lenses (docs/measurement.md "Calibrating from slanted edges"). The fit's own error
+# scale (>= 0.5) absorbs what is left.
+SIGMA_SCALE = 1.8
+# ... and never below this fraction of the scan step: a noise-free curve gives a bootstrap sd of 0, yet the
+# spline's peak on a sampled curve has a shape bias of up to ~0.1 step (esfr_focus benchmarks).
+SIGMA_FLOOR_STEP = 0.05
+# Besides "ok", samples flagged only for a blur wider than the region still carry MTF(fs): they are the
+# far-defocused ends of a track, which only the curve's tails see.
+_BLUR_WIDER = "edge blur wider than the region"
+
+
+@dataclass(frozen=True)
+class ChartKind:
+    """What one frame shows: ``kind`` "esfr" (slanted edges) or "focus-measure" (anything else)."""
+
+    kind: str
+    edges_found: int
+    edges_ok: int
+    frame_z_um: float
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "edges_found": self.edges_found, "edges_ok": self.edges_ok,
+                "frame_z_um": self.frame_z_um, "min_edges": MIN_CHART_EDGES}
+
+
+def _count_ok_edges(frame: np.ndarray, channels: tuple[str, ...], cfa: str | None) -> tuple[int, int]:
+    """(edges found, edges whose e-SFR passes the quality rules in every channel) in one frame."""
+    from .mtf import measure_frame
+
+    records, dets = measure_frame(frame, channels=channels, cfa=cfa)
+    ok_all: dict[int, bool] = {}
+    for r in records:
+        ok_all[r["edge"]] = ok_all.get(r["edge"], True) and bool(r["quality"]["ok"])
+    return len(dets), int(sum(ok_all.values()))
+
+
+def chart_kind(frame: np.ndarray, channels: tuple[str, ...], cfa: str | None = None,
+               z_um: float = math.nan, max_side_px: int = CHECK_SIDE_PX) -> ChartKind:
+    """Slanted edges or not, from one normalised frame (H x W x C; the e-SFR of each detected edge, all channels).
+
+    The cost is bounded whatever the frame size (edge finding on a fine texture costs ~5 s at 1920x1080):
+    first a central crop of at most ``max_side_px`` at full resolution (small chart squares keep their size),
+    then, if that is not enough, the whole frame shrunk to ``max_side_px`` on its long side (large squares
+    fit in it). A raw mosaic (``cfa``) is checked at full resolution.
+    """
+    frame = np.asarray(frame, dtype=np.float32)
+    if frame.ndim == 2:
+        frame = frame[:, :, None]
+    h, w = frame.shape[:2]
+    if cfa is not None or max(h, w) <= max_side_px:
+        found, ok = _count_ok_edges(frame if cfa is None else frame[:, :, 0], channels, cfa)
+    else:
+        ch, cw = min(h, max_side_px), min(w, max_side_px)
+        y0, x0 = (h - ch) // 2, (w - cw) // 2
+        found, ok = _count_ok_edges(frame[y0:y0 + ch, x0:x0 + cw], channels, None)
+        if ok < MIN_CHART_EDGES:
+            import cv2
+            f = max(h, w) / float(max_side_px)
+            small = cv2.resize(frame, (max(1, round(w / f)), max(1, round(h / f))), interpolation=cv2.INTER_AREA)
+            found2, ok2 = _count_ok_edges(small.reshape(small.shape[0], small.shape[1], -1), channels, None)
+            if ok2 > ok:
+                found, ok = found2, ok2
+    kind = "esfr" if ok >= MIN_CHART_EDGES else "focus-measure"
+    return ChartKind(kind, found, ok, float(z_um))
+
+
+def _usable(rec: dict) -> bool:
+    q = rec["quality"]
+    return bool(q["ok"]) or str(q.get("reason", "")).startswith(_BLUR_WIDER)
+
+
+def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frames: int = 5) -> dict:
+    """Per (track, channel): best focus at fs, its sd, peak MTF, half-widths, orientation and the position at
+    the frame nearest ``z_ref_um``.
+
+    Returns columns (dict of arrays): track, channel, x_px, y_px, orientation, z_best_um, z_sigma_um, peak,
+    width_um, status.
+    """
+    groups: dict[tuple[int, str], list[dict]] = {}
+    for e in mtf.edges:
+        if "track" in e and e.get("z_um") is not None:
+            groups.setdefault((int(e["track"]), str(e["channel"])), []).append(e)
+    vals = mtf.mtf_at(fs_cy_per_px)
+    index = {id(e): i for i, e in enumerate(mtf.edges)}
+    out = {k: [] for k in ("track", "channel", "x_px", "y_px", "orientation", "z_best_um", "z_sigma_um", "peak",
+                           "width_um", "status")}
+    for (tr, ch), recs in groups.items():
+        use = [e for e in recs if _usable(e) and np.isfinite(vals[index[id(e)]])]
+        near = min(recs, key=lambda e: abs(float(e["z_um"]) - z_ref_um))
+        orient = [e["orientation"] for e in recs if e["quality"].get("orientation_clear")]
+        status, zb, sz, pk, w = "ok", math.nan, math.nan, math.nan, math.nan
+        if len(use) < min_frames:
+            status = "few_frames"
+        else:
+            z = np.array([float(e["z_um"]) for e in use])
+            v = np.array([vals[index[id(e)]] for e in use])
+            fp = through_focus_peak(z, v)
+            if not fp.ok:
+                status = "peak_at_edge" if "end" in fp.reason else "no_peak"
+            else:
+                zb, sz, pk = fp.z_um, fp.sigma_um, fp.peak
+                left, right = tolerance_half_widths(z, v, q, fp)
+                if math.isfinite(left) and math.isfinite(right) and left > 0 and right > 0:
+                    w = 0.5 * (left + right)
+        out["track"].append(tr)
+        out["channel"].append(ch)
+        out["x_px"].append(float(near["x_px"]))
+        out["y_px"].append(float(near["y_px"]))
+        # near 45 deg from the radius (or near the centre) an edge sees both foci: "unclear", a mean-surface row
+        out["orientation"].append(max(set(orient), key=orient.count) if orient else "unclear")
+        out["z_best_um"].append(zb)
+        out["z_sigma_um"].append(sz)
+        out["peak"].append(pk)
+        out["width_um"].append(w)
+        out["status"].append(status)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def _pairs(xt, yt, xs, ys, max_px: float) -> list[tuple[int, int]]:
+    """Optimal one-to-one T-S pairs within ``max_px`` (Hungarian assignment on distance)."""
+    from scipy.optimize import linear_sum_assignment
+
+    if xt.size == 0 or xs.size == 0:
+        return []
+    d = np.hypot(xt[:, None] - xs[None, :], yt[:, None] - ys[None, :])
+    cost = np.where(d <= max_px, d, 1e9)
+    ri, ci = linear_sum_assignment(cost)
+    return [(int(a), int(b)) for a, b in zip(ri, ci) if cost[a, b] < 1e9]
+
+
+def _local_surface(x, y, z, image_size_px, degree: int = 4):
+    """A least-squares polynomial of ``degree`` in normalised x, y through the tracks' best foci (a callable
+    ``(x_px, y_px) -> z_um``), or None with fewer than 3x its terms."""
+    w, h = (float(v) for v in image_size_px)
+    r = 0.5 * math.hypot(w, h)
+
+    def design(xp, yp):
+        u, v = (np.asarray(xp, float) - 0.5 * w) / r, (np.asarray(yp, float) - 0.5 * h) / r
+        return np.stack([u ** i * v ** (k - i) for k in range(degree + 1) for i in range(k + 1)], axis=-1)
+
+    n_terms = (degree + 1) * (degree + 2) // 2
+    if np.size(z) < 3 * n_terms:
+        return None
+    coef, *_ = np.linalg.lstsq(design(x, y), np.asarray(z, float), rcond=None)
+    return lambda xp, yp: float(design(xp, yp) @ coef)
+
+
+def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_um, image_size_px,
+               z_ref_um: float, channels: tuple[str, ...], pair_px: float | None = None,
+               min_pairs_per_channel: int = 12) -> tuple[TileTable, dict]:
+    """A :class:`TileTable` of slanted-edge measurements (one row per T/S pair, or per track) and a summary.
+
+    Parameters
+    ----------
+    mtf : MtfResult
+        :func:`fieldcal.measure.measure_mtf` of the stack (records with ``track`` and ``z_um``).
+    fs_cyc_per_mm, q : the calibration's criterion; fs is converted to cycles/px with ``pixel_pitch_um``.
+    z_um : the stack's positions (µm); the median step sets the sd floor.
+    image_size_px : (W, H).
+    z_ref_um : positions are taken in the frame nearest this z (the reference geometry of the table).
+    pair_px : largest T-S distance of a pair (default 1.5x the median distance between neighbouring tracks).
+    min_pairs_per_channel : fewer pairs than this in a channel and its unpaired tracks are kept too.
+
+    Returns
+    -------
+    (TileTable, dict)
+        ``measure = "esfr"``; ``tile_px`` is the typical size of an edge region (the window a row averages
+        over); the dict records counts, the sd scale and the pairing distance.
+    """
+    if not (math.isfinite(pixel_pitch_um) and pixel_pitch_um > 0):
+        raise ParameterError(f"pixel pitch {pixel_pitch_um!r} µm", field="pixel_pitch_um",
+                             fix="give the sensor's pixel pitch in µm")
+    fs_px = float(fs_cyc_per_mm) * float(pixel_pitch_um) / 1000.0
+    z = np.sort(np.asarray(z_um, dtype=np.float64))
+    step = float(np.median(np.diff(z))) if z.size > 1 else 1.0
+    tf = track_foci(mtf, fs_px, q, z_ref_um)
+    sig = np.maximum(SIGMA_SCALE * np.nan_to_num(tf["z_sigma_um"], nan=0.0), SIGMA_FLOOR_STEP * step)
+    ok = tf["status"] == "ok"
+    if pair_px is None:
+        xy = np.column_stack([tf["x_px"], tf["y_px"]])[ok & (tf["channel"] == tf["channel"][0])] \
+            if tf["channel"].size else np.zeros((0, 2))
+        if len(xy) >= 2:
+            d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+            np.fill_diagonal(d, np.inf)
+            pair_px = 1.5 * float(np.median(d.min(axis=1)))
+        else:
+            pair_px = 0.0
+    rows = {k: [] for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um", "width_um", "peak", "status",
+                            "z_tan_um", "z_sag_um")}
+
+    def add(ch, x, y, zb, s, w, pk, st, zt=math.nan, zs=math.nan):
+        for k, v in zip(rows, (ch, x, y, zb, s, w, pk, st, zt, zs)):
+            rows[k].append(v)
+
+    summary = {"tracks": {}, "pairs": {}, "unpaired_kept": {}, "status": {}, "ts_transfer": {}}
+    for ch in channels:
+        m = tf["channel"] == ch
+        t = np.flatnonzero(m & ok & (tf["orientation"] == "tangential"))
+        s = np.flatnonzero(m & ok & (tf["orientation"] == "sagittal"))
+        pairs = _pairs(tf["x_px"][t], tf["y_px"][t], tf["x_px"][s], tf["y_px"][s], pair_px)
+        local = _local_surface(tf["x_px"][m & ok], tf["y_px"][m & ok], tf["z_best_um"][m & ok], image_size_px)
+        summary["ts_transfer"][ch] = "quartic in x, y of the channel's tracks" if local else "none (too few tracks)"
+        for a, b in pairs:
+            i, j = t[a], s[b]
+            wi, wj = tf["width_um"][i], tf["width_um"][j]
+            xm, ym = 0.5 * (tf["x_px"][i] + tf["x_px"][j]), 0.5 * (tf["y_px"][i] + tf["y_px"][j])
+            zt = zs = math.nan
+            if local is not None:
+                # T and S sit on different sides of a chart square: the field curvature between them (up to
+                # ~1 µm/px at the corners) would enter T - S, so each is moved to the midpoint along a smooth
+                # surface of all the channel's tracks first
+                zt = tf["z_best_um"][i] + local(xm, ym) - local(tf["x_px"][i], tf["y_px"][i])
+                zs = tf["z_best_um"][j] + local(xm, ym) - local(tf["x_px"][j], tf["y_px"][j])
+            add(ch, xm, ym,
+                # the mean of two points about the midpoint: the gradient cancels
+                0.5 * (tf["z_best_um"][i] + tf["z_best_um"][j]), 0.5 * math.hypot(sig[i], sig[j]),
+                # the tolerance of the pair is the narrower one: the plan must hold both orientations
+                float(np.nanmin([wi, wj])) if np.isfinite([wi, wj]).any() else math.nan,
+                0.5 * (tf["peak"][i] + tf["peak"][j]), "ok", zt, zs)
+        keep_lone = len(pairs) < min_pairs_per_channel
+        used = {int(t[a]) for a, _ in pairs} | {int(s[b]) for _, b in pairs}
+        n_lone = 0
+        for i in np.flatnonzero(m):
+            if int(i) in used:
+                continue
+            st = str(tf["status"][i])
+            if st == "ok" and not keep_lone and tf["orientation"][i] != "unclear":
+                st = "unpaired"
+            n_lone += st == "ok"
+            add(ch, tf["x_px"][i], tf["y_px"][i], tf["z_best_um"][i] if st == "ok" else math.nan,
+                sig[i] if st == "ok" else math.nan, tf["width_um"][i], tf["peak"][i], st)
+        summary["tracks"][ch] = int(m.sum())
+        summary["pairs"][ch] = len(pairs)
+        summary["unpaired_kept"][ch] = n_lone
+    st, n = np.unique(tf["status"], return_counts=True)
+    summary["status"] = {str(a): int(b) for a, b in zip(st, n)}
+    summary.update({"fs_cy_per_px": fs_px, "sigma_scale": SIGMA_SCALE, "sigma_floor_um": SIGMA_FLOOR_STEP * step,
+                    "pair_px": float(pair_px)})
+    roi = [e["quality"].get("roi") for e in mtf.edges if e["quality"].get("roi")]
+    if roi:  # the window a row averages over: the geometric mean of the edge regions' sides
+        r = np.asarray(roi, dtype=np.float64)
+        tile_px = int(max(1, round(float(np.median(np.sqrt((r[:, 1] - r[:, 0]) * (r[:, 3] - r[:, 2])))))))
+    else:
+        tile_px = 1
+    cols = {k: np.asarray(v, dtype=np.float64) if k not in ("channel", "status") else np.asarray(v, dtype=str)
+            for k, v in rows.items()}
+    table = TileTable(**cols, z_um=z, tile_px=tile_px, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
+                      measure="esfr", image_size_px=tuple(int(v) for v in image_size_px),
+                      pixel_pitch_um=float(pixel_pitch_um))
+    return table, summary
