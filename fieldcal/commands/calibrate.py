@@ -28,6 +28,9 @@ def register(sub):
     p.add_argument("--tile", type=int, default=None, dest="tile_px", help="tile size in px (default from size/effort)")
     p.add_argument("--measure", choices=["sml", "bandpass"], default="sml",
                    help="focus measure for best focus (default: sum-modified-Laplacian)")
+    p.add_argument("--chart", choices=["auto", "esfr", "focus-measure"], default="auto",
+                   help="how best focus is measured: slanted edges (ISO 12233 e-SFR), texture tiles (focus "
+                        "measure), or auto: from the chart the middle frame shows (default)")
     p.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
     p.add_argument("--stage-repeatability-um", type=float, default=None, dest="stage_repeatability_um",
                    help="stage position repeatability, 1 sigma in µm (default: the stage record in stack.json, "
@@ -61,6 +64,7 @@ def run(args) -> int:
     stack = Stack.open(stack_dir, verify=not args.no_verify)
     profile = calibrate(stack, fs_cyc_per_mm=args.fs, q=args.q, effort=args.effort, z_ref_um=args.z_ref_um,
                         tile_px=args.tile_px, measure=args.measure, seed=args.seed, quiet=args.quiet,
+                        chart=args.chart,
                         stage_repeatability_um=args.stage_repeatability_um)
     profile.save(out)
     print(f"wrote {out} (model {profile.surfaces.model.name}; "
