@@ -5,8 +5,10 @@ register_step`: Gauss-Newton on scale and shift with cubic-spline resampling, un
 biased by ~10 % of a small scale change) measures a scale and shift on a grey, downsampled copy (neighbours
 differ little in focus, so it locks on). The lens model (docs/architecture.md) makes the magnification and
 shift linear in z (``m(z) = 1 + a (z - z_ref)``, ``s(z) = b (z - z_ref)``), so the rates ``a`` and ``b`` are
-the medians of the per-pair rates: robust to a failed pair, no drift from chaining.
-The result answers the geometry part of the lens-profile interface.
+the medians of the per-pair rates: robust to a failed pair, no drift from chaining. A handheld or rail stack
+does not follow that model (the camera moves a little between frames): when the chained per-pair steps leave
+the linear model by more than half a pixel at the image corner, each frame gets its own chained scale and shift
+(:class:`ChainedGeometry`) instead. Either result answers the geometry part of the lens-profile interface.
 """
 
 from __future__ import annotations
@@ -16,6 +18,11 @@ import numpy as np
 from ..measure.geometry import register_step, registration_plane
 from ..progress import progress
 from .source import image_size, read_roi, z_positions
+
+
+#: Chained per-frame geometry replaces the linear model when the two differ by more than this at the image
+#: corner (px): below it the linear model's robustness (a median, no drift) is worth more.
+CHAIN_DEVIATION_PX = 0.5
 
 
 class EstimatedGeometry:
@@ -49,6 +56,51 @@ class EstimatedGeometry:
                 "shift_rate_px_per_um": list(self.shift_rate_px_per_um), "pairs_used": self.n_pairs}
 
 
+class ChainedGeometry(EstimatedGeometry):
+    """Per-frame geometry from chained neighbour registrations (interpolated in z between frames)."""
+
+    def __init__(self, z_ref_um, centre_px, z_um, magnification, shift_x_px, shift_y_px, linear: EstimatedGeometry,
+                 deviation_px: float):
+        super().__init__(z_ref_um, centre_px, linear.scale_rate_per_um, linear.shift_rate_px_per_um, linear.n_pairs)
+        self.z_table = np.asarray(z_um, dtype=np.float64)
+        self.m_table = np.asarray(magnification, dtype=np.float64)
+        self.sx_table = np.asarray(shift_x_px, dtype=np.float64)
+        self.sy_table = np.asarray(shift_y_px, dtype=np.float64)
+        self.deviation_px = float(deviation_px)
+
+    def magnification(self, z_um, channel=None):
+        return np.interp(np.asarray(z_um, dtype=np.float64), self.z_table, self.m_table)
+
+    def shift_px(self, z_um, channel=None):
+        z = np.asarray(z_um, dtype=np.float64)
+        return np.interp(z, self.z_table, self.sx_table), np.interp(z, self.z_table, self.sy_table)
+
+    def info(self) -> dict:
+        return {**super().info(), "model": "per-frame (chained)",
+                "linear_model_deviation_px": round(self.deviation_px, 3)}
+
+
+def _chain(zs, steps, linear: EstimatedGeometry, cs, factor: int, z_ref_um: float):
+    """Per-frame (m, sx, sy) relative to the frame at ``z_ref_um`` from neighbour steps (None: the linear model's
+    step for that pair). A step maps p in frame k-1 to cs + r (p - cs) + t in frame k (downsampled px)."""
+    R, T = [1.0], [np.zeros(2)]
+    for k in range(1, len(zs)):
+        s = steps[k - 1]
+        dz = float(zs[k] - zs[k - 1])
+        if s is None:
+            r = float(np.exp(linear.scale_rate_per_um * dz))
+            tt = np.array(linear.shift_rate_px_per_um) * dz / factor
+        else:
+            r, tt = float(s.r), np.array([s.tx, s.ty])
+        R.append(R[-1] * r)
+        T.append(r * T[-1] + tt)
+    R, T = np.array(R), np.array(T)
+    kr = int(np.argmin(np.abs(np.asarray(zs) - z_ref_um)))
+    m = R / R[kr]
+    shift = (T - m[:, None] * T[kr]) * factor
+    return m, shift[:, 0], shift[:, 1]
+
+
 def _grey(stack, i: int, factor: int) -> np.ndarray:
     w, h = image_size(stack)
     return registration_plane(read_roi(stack, i, 0, 0, w, h).astype(np.float32).mean(axis=2), factor)
@@ -71,6 +123,7 @@ def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_sid
     c = ((w - 1) / 2.0, (h - 1) / 2.0)
     cs = ((w // factor - 1) / 2.0, (h // factor - 1) / 2.0)
     rates_m, rates_x, rates_y = [], [], []
+    steps = []
     prev, step = None, None
     for k, i in enumerate(progress(order, total=len(order), desc="registering", quiet=quiet, unit="frame")):
         cur = _grey(stack, int(i), factor)
@@ -80,6 +133,7 @@ def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_sid
             # a point at p in prev is at cs + r (p - cs) + t in cur (downsampled px, about the centre)
             init = (step.r, step.tx, step.ty) if step is not None else None
             step = register_step(prev, cur, cs, init=init)
+            steps.append(step)
             if step is not None:
                 rates_m.append(np.log(step.r) / dz)
                 rates_x.append(step.tx * factor / dz)
@@ -87,5 +141,16 @@ def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_sid
         prev = cur
     if not rates_m:
         return EstimatedGeometry(z_ref_um, c, 0.0, (0.0, 0.0), 0)
-    return EstimatedGeometry(z_ref_um, c, float(np.median(rates_m)),
-                             (float(np.median(rates_x)), float(np.median(rates_y))), len(rates_m))
+    linear = EstimatedGeometry(z_ref_um, c, float(np.median(rates_m)),
+                               (float(np.median(rates_x)), float(np.median(rates_y))), len(rates_m))
+    if len(zs) < 3:
+        return linear
+    m, sx, sy = _chain(zs, steps, linear, cs, factor, float(z_ref_um))
+    # how far the chained positions of the image corner leave the linear model, in full-resolution px
+    corner = float(np.hypot(w / 2.0, h / 2.0))
+    lm = np.asarray(linear.magnification(zs))
+    lx, ly = linear.shift_px(zs)
+    dev = float(np.max(np.abs(m - lm) * corner + np.hypot(sx - lx, sy - ly)))
+    if dev <= CHAIN_DEVIATION_PX:
+        return linear
+    return ChainedGeometry(z_ref_um, c, zs, m, sx, sy, linear, dev)
