@@ -32,6 +32,9 @@ DEPTH_MODES = ("auto", "flat", "3d")
 #: circuit-board stack 12.6 %. (b) flat 0-4.1 %; reliefs 4.6-15 %, slopes 7-12 %, thin bars 3.9-13 %. Thin bars
 #: at 320 px (4-5 %, 3.9-4.1 %) are taken as flat: few blocks see them.
 DEPTH_BLOCK_FRACTION = (0.1, 0.05)
+#: Scenes with depth: a pixel takes the depth map's composite in full where its confidence reaches this fraction
+#: (second) of the given percentile (first) of the image's confidences, the multi-scale fusion where it has none.
+FUSION_CONFIDENCE = (75.0, 0.5)
 
 
 def composite_stack(stack, profile=None, method: str | None = None, *, frames=None, fs_cyc_per_mm=None,
@@ -109,11 +112,12 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
                  "frame_spacing_um": round(spacing, 3),
                  "blocks_off_surface": {"by_a_spacing": round(off_spacing, 4), "by_half_a_width": round(off_width, 4)},
                  "scene": "3d" if has_depth else "flat"})
+    fallback = None
     if method == "dff":
         zb = dff_focus_map(surfaces, w, h)
         info["surface_degree"] = {c: s.degree for c, s in zip(channels, surfaces)}
         if has_depth:
-            zb = _per_pixel_focus(stack, geometry, frames, zb, quiet)
+            zb, fallback = _per_pixel_focus(stack, geometry, frames, zb, quiet)
     else:
         zb = profile_focus_map(profile, w, h, channels, lateral_colour) + np.float32(focus_offset_um)
         corr = hybrid_corrections(vol, profile, w, h, channels, lateral_colour=lateral_colour,
@@ -123,7 +127,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         info["correction_limit_um"] = {c: round(lim, 3) for c, (_, lim) in zip(channels, corr)}
         if has_depth:
             # the data where they differ from the profile by more than its band allows, the profile elsewhere
-            per_pixel = _per_pixel_focus(stack, geometry, frames, zb, quiet)
+            per_pixel, fallback = _per_pixel_focus(stack, geometry, frames, zb, quiet)
             limit = np.array([lim for _, lim in corr], dtype=np.float32)
             off = np.abs(per_pixel - zb) > limit
             zb = np.where(off, per_pixel, zb).astype(np.float32)
@@ -131,6 +135,13 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     kernel = blend_kernel(stack, profile, frames, fs_cyc_per_mm, q, min_band)
     img = composite_with_map(stack, zb, kernel, geometry, frames, lateral_colour=lateral_colour, tile=tile,
                              quiet=quiet)
+    if has_depth and fallback is not None:
+        # where the depth map is unsure (little texture), the multi-scale fusion's pixels: it needs no depth
+        from .stack_profile import to_input_dtype
+        fused, weight = fallback
+        mixed = weight[..., None] * img.astype(np.float32) + (1.0 - weight[..., None]) * fused
+        img = to_input_dtype(mixed, img.dtype, float(stack.white_level))
+        info["pixels_from_fusion"] = round(float(np.mean(1.0 - weight)), 4)
     return CompositeResult(img, method, zb, info)
 
 
@@ -163,13 +174,27 @@ def surface_misfit_fractions(vol, surfaces, spacing_um: float) -> tuple[float, f
 def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool) -> np.ndarray:
     """Best focus per pixel for a scene with depth: the edge-aware depth map of the stack, plus each channel's
     offset from the others as the smooth map ``zb_smooth`` has it (chromatic focus is the lens's, not the scene's).
+    Also returns the multi-scale fusion and a per-pixel weight (0 where the depth map has no texture to go on,
+    1 where it is confident) for the final image.
     """
     from .fusion import depth_map, fuse_pyramid
 
-    guide = fuse_pyramid(stack, geometry, frames, quiet=quiet).image
+    import cv2
+
+    fusion = fuse_pyramid(stack, geometry, frames, quiet=quiet)
+    guide = fusion.image
     dm = depth_map(stack, geometry, frames, guide=guide, quiet=quiet)
     offsets = zb_smooth - zb_smooth.mean(axis=2, keepdims=True)
-    return (dm.z_um[..., None] + offsets).astype(np.float32)
+    # Trust in the depth map: its confidence against that of the image's well-textured pixels, and agreement
+    # (within a frame) with the frame the fusion took its detail from, an independent choice. Where the two
+    # disagree (low-contrast texture, compression noise) the fusion's pixels are kept: they need no depth.
+    conf = dm.confidence
+    ref = float(np.percentile(conf, FUSION_CONFIDENCE[0])) if conf.size else 0.0
+    weight = np.clip(conf / max(FUSION_CONFIDENCE[1] * ref, 1e-12), 0.0, 1.0).astype(np.float32)
+    index = np.interp(dm.z_um, fusion.z_um, np.arange(len(fusion.z_um), dtype=np.float64))
+    weight *= (np.abs(index - fusion.depth_index) <= 1.0).astype(np.float32)
+    weight = cv2.GaussianBlur(weight, (0, 0), 2.0)
+    return (dm.z_um[..., None] + offsets).astype(np.float32), (guide, weight)
 
 
 # ------------------------------------------------------------------------------------------------ plans

@@ -101,6 +101,23 @@ def _chain(zs, steps, linear: EstimatedGeometry, cs, factor: int, z_ref_um: floa
     return m, shift[:, 0], shift[:, 1]
 
 
+def _ecc_start(prev: np.ndarray, cur: np.ndarray, cs) -> tuple[float, float, float] | None:
+    """(r, tx, ty) about ``cs`` from OpenCV's ECC (affine, Gaussian-smoothed), or None when it fails."""
+    import cv2
+
+    warp = np.eye(2, 3, dtype=np.float32)
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
+    try:
+        _, warp = cv2.findTransformECC(prev.astype(np.float32), cur.astype(np.float32), warp, cv2.MOTION_AFFINE,
+                                       crit, None, 5)
+    except cv2.error:
+        return None
+    a = warp[:, :2].astype(np.float64)
+    r = 0.5 * (a[0, 0] + a[1, 1])
+    t = a @ np.asarray(cs, dtype=np.float64) + warp[:, 2].astype(np.float64) - np.asarray(cs, dtype=np.float64)
+    return (float(r), float(t[0]), float(t[1])) if 0.5 < r < 2.0 else None
+
+
 def _grey(stack, i: int, factor: int) -> np.ndarray:
     w, h = image_size(stack)
     return registration_plane(read_roi(stack, i, 0, 0, w, h).astype(np.float32).mean(axis=2), factor)
@@ -132,7 +149,11 @@ def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_sid
             dz = float(zs[k] - zs[k - 1])
             # a point at p in prev is at cs + r (p - cs) + t in cur (downsampled px, about the centre)
             init = (step.r, step.tx, step.ty) if step is not None else None
-            step = register_step(prev, cur, cs, init=init)
+            # photographs (not charts): neighbours differ in focus, so the update settles at noise level; a
+            # handheld step can be several px, beyond Gauss-Newton's reach from the previous step: ECC (on a
+            # smoothed copy, robust to the focus change) gives the start
+            ecc = _ecc_start(prev, cur, cs)
+            step = register_step(prev, cur, cs, init=ecc or init, iterations=20, tol_px=1e-3)
             steps.append(step)
             if step is not None:
                 rates_m.append(np.log(step.r) / dz)

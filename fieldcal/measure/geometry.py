@@ -151,7 +151,7 @@ def registration_plane(plane: np.ndarray, factor: int, blur_px: float = REGISTRA
 
 def register_step(prev: np.ndarray, cur: np.ndarray, centre_xy: tuple[float, float],
                   init: tuple[float, float, float] | None = None, subsample: int = 2,
-                  iterations: int = 8) -> StepFit | None:
+                  iterations: int = 8, tol_px: float = 1e-5) -> StepFit | None:
     """Scale ratio and translation of ``cur`` relative to ``prev`` (same plane grid, px of that grid).
 
     Model: a point at p in ``prev`` is at ``c + r (p - c) + t`` in ``cur``. Solved by Gauss-Newton on the
@@ -161,7 +161,9 @@ def register_step(prev: np.ndarray, cur: np.ndarray, centre_xy: tuple[float, flo
     gives the start when ``init`` (e.g. the previous step) does not converge. ``cov`` is the Gauss-Newton
     covariance of (r - 1, tx, ty) scaled by the residual variance (a lower bound: residuals are spatially
     correlated; :func:`compose_steps` uses the scatter of the steps when there are enough).
-    Returns None on failure.
+    ``tol_px`` is the convergence threshold on the last update (px at the image's half diagonal): the default
+    suits charts; real photographs with defocus differences between neighbours settle at noise level nearer
+    1e-3 px (compositing passes that, with more iterations). Returns None on failure.
     """
     if prev.shape != cur.shape:
         raise ParameterError(f"frames to register differ in size: {prev.shape} vs {cur.shape}", field="frames",
@@ -196,7 +198,7 @@ def register_step(prev: np.ndarray, cur: np.ndarray, centre_xy: tuple[float, flo
             res = back - target
             d = np.linalg.solve(H, np.einsum("ni,n->i", J, res))
             theta = theta - d
-            if np.max(np.abs(d)) < 1e-5:
+            if np.max(np.abs(d)) < tol_px:
                 return theta, res, True
         return theta, res, False
 
