@@ -135,6 +135,26 @@ def test_camera_without_a_size_is_checked_at_the_first_frame(size_plan, tmp_path
     assert "image_size_px" not in s.meta  # not stated by the camera: not claimed
 
 
+class _Liar(SimCamera):
+    """A camera that states the plan's size but delivers another (pylon's emulator states its default size)."""
+
+    def describe(self):
+        return dict(super().describe(), size_px=list(PLAN_SIZE))
+
+
+def test_a_camera_misstating_its_size_is_caught_by_the_first_frame(size_plan, tmp_path):
+    lens, plan = size_plan
+    with pytest.raises(SpecError):
+        run_capture(CapturePlan.from_file(plan), SimStage(), _Liar(lens, size=(160, 120), noise=False),
+                    tmp_path / "C", options=_quiet())
+    assert not list((tmp_path / "C" / "frames").glob("*.tiff"))
+    # without a plan size: captured, and stack.json records the size the frames have, not the stated one
+    run_capture(CapturePlan.from_range(-10, 10, 10), SimStage(), _Liar(lens, size=(160, 120), noise=False),
+                tmp_path / "R", options=_quiet())
+    s = Stack.open(tmp_path / "R")
+    assert s.meta["image_size_px"] == [s.shape[1], s.shape[0]] == [160, 120]
+
+
 def _quiet():
     from fieldcal.capture import RunOptions
     return RunOptions(quiet=True)

@@ -154,11 +154,11 @@ class _ProgressSink:
     def __init__(self, folder: CaptureFolder, n: int, quiet: bool, check_size=None):
         self.folder = folder
         self._ticks = iter(progress(range(n + 1), total=n, desc="capture", quiet=quiet, unit="frame"))
-        self._check_size = check_size  # a camera that states no size: the first frame is checked before saving
+        self._check_size = check_size  # the first frame's size, checked before it is saved
         next(self._ticks)
 
     def save(self, index, z_um, image, **meta):
-        if self._check_size is not None:
+        if self._check_size is not None and getattr(image, "ndim", 0) >= 2:
             self._check_size((int(image.shape[1]), int(image.shape[0])))
             self._check_size = None
         out = self.folder.save(index, z_um, image, **meta)
@@ -259,7 +259,8 @@ class Acquisition:
             The stream leaves the stage's travel (checked before any motion and before ``out`` is touched).
         SpecError
             The plan was made for another image size than the camera delivers (checked before any motion and
-            before ``out`` is touched; a camera that states no size: at the first frame, before it is saved).
+            before ``out`` is touched; a camera that states no size, or a wrong one: at the first frame, before
+            it is saved).
         StackError
             ``out`` holds a different plan or camera, is not a capture folder, or holds links/foreign files.
         ResourceError
@@ -292,8 +293,8 @@ class Acquisition:
                 status(f"capture: resuming {out}: {len(found.committed)} frames kept, {len(todo)} to take"
                        + (f" ({found.torn} torn)" if found.torn else ""), options.quiet)
             stream = list(plan.messages(todo, **kw))
-            late_check = (None if size is not None or plan.image_size_px is None
-                          else lambda wh: check_plan_size(plan, wh, name))
+            # the first frame is checked too: a camera may state no size, or a wrong one (pylon's emulator)
+            late_check = None if plan.image_size_px is None else (lambda wh: check_plan_size(plan, wh, name))
             runner = Runner(self.stage, self.camera, _ProgressSink(folder, len(todo), options.quiet, late_check),
                             retries=options.retries, quiet=options.quiet, critical=self.critical)
             runner.preflight(stream)
