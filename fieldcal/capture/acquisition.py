@@ -123,7 +123,7 @@ def check_plan_size(plan: CapturePlan, size_px: tuple[int, int] | None, camera_n
                     "nothing was moved or written", path=plan.source.get("file"), field="profile.image_size_px",
                     fix=f"set the camera to {w}x{h} px (e.g. size={w}x{h} for a sim camera, or its ROI), or "
                         f"make the plan again from a profile calibrated at {cw}x{ch} px (`fieldcal plan stack "
-                        "PROFILE --out PLAN.json`)")
+                        "PROFILE --fs FS --q Q --out PLAN.json`)")
 
 
 def _stack_header(cam: dict, stage: dict, plan: CapturePlan, lens: LensRecord = LensRecord()) -> dict:
