@@ -6,7 +6,7 @@ acquisition that owns devices and signals. See docs/architecture.md ("Capture: p
 executed by ``Runner`` inside an ``Acquisition`` into a locked, resumable ``CaptureFolder``.
 """
 
-from .acquisition import Acquisition, CaptureResult, Interrupted, RunOptions, capture, run_capture
+from .acquisition import Acquisition, CaptureResult, Interrupted, LensRecord, RunOptions, capture, run_capture
 from .folder import JOURNAL, JOURNAL_FORMAT, CaptureFolder
 from .messages import (Checkpoint, CloseExposure, Expose, Message, Move, OpenExposure, Save, Settle, SweepMove,
                        WaitOnTarget)
@@ -14,5 +14,5 @@ from .plan import CapturePlan, PlannedFrame
 from .runner import Runner
 
 __all__ = ["Acquisition", "CaptureFolder", "CapturePlan", "CaptureResult", "Checkpoint", "CloseExposure", "Expose",
-           "Interrupted", "JOURNAL", "JOURNAL_FORMAT", "Message", "Move", "OpenExposure", "PlannedFrame",
+           "Interrupted", "JOURNAL", "JOURNAL_FORMAT", "LensRecord", "Message", "Move", "OpenExposure", "PlannedFrame",
            "RunOptions", "Runner", "Save", "Settle", "SweepMove", "WaitOnTarget", "capture", "run_capture"]

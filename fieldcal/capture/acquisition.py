@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..errors import ParameterError
+from ..errors import ParameterError, SpecError
 from ..progress import progress, status
 from .folder import CaptureFolder
 from .plan import CapturePlan
@@ -80,10 +80,60 @@ def _frame_bytes(cam: dict) -> int:
     return int(w) * int(h) * len(cam.get("channels") or ["Y"]) * (1 if (cam.get("bit_depth") or 16) <= 8 else 2)
 
 
-def _stack_header(cam: dict, stage: dict, plan: CapturePlan) -> dict:
+@dataclass(frozen=True)
+class LensRecord:
+    """What the user states about the optics when the camera does not (``--focal-length-mm``,
+    ``--object-distance-mm``); a stated value overrides the camera's. Recorded in stack.json, from where
+    calibration copies it into the profile's ``optics`` block (refocusing a plan needs both)."""
+
+    focal_length_mm: float | None = None
+    object_distance_mm: float | None = None
+
+    def __post_init__(self):
+        for name in ("focal_length_mm", "object_distance_mm"):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and 0 < v <= 1e9
+            if not ok:
+                raise ParameterError(f"{name} = {v!r} must be a positive finite distance in mm", field=name,
+                                     fix="give the lens focal length / the chart distance in mm, e.g. 16 / 500")
+
+
+def delivered_size_px(cam: dict) -> tuple[int, int] | None:
+    """``(width, height)`` of the frames the camera delivers, from its record (:meth:`describe`): the ROI's size
+    when one is set, else ``size_px``; None when the camera states neither (then the first frame tells)."""
+    roi = cam.get("roi")
+    size = roi[2:4] if isinstance(roi, (list, tuple)) and len(roi) == 4 else cam.get("size_px")
+    if not isinstance(size, (list, tuple)) or len(size) != 2:
+        return None
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size):
+        return None
+    return int(size[0]), int(size[1])
+
+
+def check_plan_size(plan: CapturePlan, size_px: tuple[int, int] | None, camera_name: str = "?") -> None:
+    """Refuse a plan made for another image size than the camera delivers (a plan's frames and bands are in
+    the profile's pixels: another size would be captured without a word and composited wrongly)."""
+    want = plan.image_size_px
+    if want is None or size_px is None or tuple(want) == tuple(size_px):
+        return
+    (w, h), (cw, ch) = want, size_px
+    raise SpecError(f"the plan was made for {w}x{h} px images but camera {camera_name} delivers {cw}x{ch} px; "
+                    "nothing was moved or written", path=plan.source.get("file"), field="profile.image_size_px",
+                    fix=f"set the camera to {w}x{h} px (e.g. size={w}x{h} for a sim camera, or its ROI), or "
+                        f"make the plan again from a profile calibrated at {cw}x{ch} px (`fieldcal plan stack "
+                        "PROFILE --fs FS --q Q --out PLAN.json`)")
+
+
+def _stack_header(cam: dict, stage: dict, plan: CapturePlan, lens: LensRecord = LensRecord()) -> dict:
+    focal = lens.focal_length_mm if lens.focal_length_mm is not None else cam.get("focal_length_mm")
+    distance = lens.object_distance_mm if lens.object_distance_mm is not None else cam.get("object_distance_mm")
+    size = delivered_size_px(cam)
     keys = {"bit_depth": cam.get("bit_depth"), "black_level": cam.get("black_level"),
-            "white_level": cam.get("white_level"), "f_number": cam.get("f_number"),
-            "object_distance_mm": cam.get("object_distance_mm"), "lens": cam.get("lens")}
+            "white_level": cam.get("white_level"), "f_number": cam.get("f_number"), "focal_length_mm": focal,
+            "object_distance_mm": distance, "image_size_px": None if size is None else list(size),
+            "lens": cam.get("lens")}
     exps = {f.exposure_ms for f in plan.frames}
     if len(exps) == 1 and None not in exps:
         keys["exposure_ms"] = exps.pop()
@@ -91,18 +141,26 @@ def _stack_header(cam: dict, stage: dict, plan: CapturePlan) -> dict:
     keys["capture"] = {"stage": stage, "camera": cam, "plan": plan.source, "approach": plan.approach,
                        "overshoot_um": plan.overshoot_um, "z_um": "commanded position; z_measured_um = mean of "
                                                                    "the stage's readings before and after the exposure"}
+    given = {k: "given" for k in ("focal_length_mm", "object_distance_mm") if getattr(lens, k) is not None}
+    if given:
+        keys["capture"]["optics_from"] = {**{k: "camera" for k in ("focal_length_mm", "object_distance_mm")
+                                             if cam.get(k) is not None}, **given}
     return keys
 
 
 class _ProgressSink:
     """Advances a progress bar on each commit."""
 
-    def __init__(self, folder: CaptureFolder, n: int, quiet: bool):
+    def __init__(self, folder: CaptureFolder, n: int, quiet: bool, check_size=None):
         self.folder = folder
         self._ticks = iter(progress(range(n + 1), total=n, desc="capture", quiet=quiet, unit="frame"))
+        self._check_size = check_size  # the first frame's size, checked before it is saved
         next(self._ticks)
 
     def save(self, index, z_um, image, **meta):
+        if self._check_size is not None and getattr(image, "ndim", 0) >= 2:
+            self._check_size((int(image.shape[1]), int(image.shape[0])))
+            self._check_size = None
         out = self.folder.save(index, z_um, image, **meta)
         next(self._ticks, None)
         return out
@@ -179,21 +237,30 @@ class Acquisition:
         """The stream, its extent against the stage's travel, and the time and disk it needs. Moves nothing."""
         stream = list(plan.messages(on_target_timeout_ms=options.on_target_timeout_ms, settle_ms=options.settle_ms))
         cam = self.camera.describe()
+        size = delivered_size_px(cam)
+        check_plan_size(plan, size, getattr(self.camera, "name", "?"))
         lo, hi = self.stage.limits_um()
         m_lo, m_hi = extent_um(stream)
         est = estimate(stream, velocity_um_s=self.stage.velocity_um_per_s(), readout_ms=options.readout_ms,
                        frame_bytes=_frame_bytes(cam))
         return {**est, "z_um": [f.z_um for f in plan.frames], "approach": plan.approach,
                 "motion_range_um": [m_lo, m_hi], "stage_travel_um": [lo, hi],
+                "image_size_px": None if size is None else list(size),
+                "plan_image_size_px": None if plan.image_size_px is None else list(plan.image_size_px),
                 "fits_travel": lo <= m_lo and m_hi <= hi, "stream": as_json(stream)}
 
-    def capture(self, plan: CapturePlan, out: str | Path, options: RunOptions = RunOptions()) -> CaptureResult:
+    def capture(self, plan: CapturePlan, out: str | Path, options: RunOptions = RunOptions(),
+                lens: LensRecord = LensRecord()) -> CaptureResult:
         """Run ``plan`` into the stack folder ``out`` (created, or resumed); see :mod:`fieldcal.capture.folder`.
 
         Raises
         ------
         ParameterError
             The stream leaves the stage's travel (checked before any motion and before ``out`` is touched).
+        SpecError
+            The plan was made for another image size than the camera delivers (checked before any motion and
+            before ``out`` is touched; a camera that states no size, or a wrong one: at the first frame, before
+            it is saved).
         StackError
             ``out`` holds a different plan or camera, is not a capture folder, or holds links/foreign files.
         ResourceError
@@ -206,13 +273,16 @@ class Acquisition:
         """
         out = Path(out)
         kw = dict(on_target_timeout_ms=options.on_target_timeout_ms, settle_ms=options.settle_ms)
-        check_against_stage(list(plan.messages(**kw)), limits_um=self.stage.limits_um())
         cam = self.camera.describe()
+        name = getattr(self.camera, "name", "?")
+        size = delivered_size_px(cam)
+        check_plan_size(plan, size, name)
+        check_against_stage(list(plan.messages(**kw)), limits_um=self.stage.limits_um())
         with CaptureFolder(out) as folder:
             with self.critical():  # a resume's repairs (journal tail, stack.json, leftovers) finish before a signal
                 found = folder.prepare(plan_sha256=plan.fingerprint(), n_frames=len(plan.frames),
                                        frame_z_um=[f.z_um for f in plan.frames], camera=cam,
-                                       stack_header=_stack_header(cam, self.stage.describe(), plan))
+                                       stack_header=_stack_header(cam, self.stage.describe(), plan, lens))
             todo = [f.index for f in plan.frames if f.index not in found.committed]
             result = CaptureResult(out, len(plan.frames), 0, len(found.committed), found.torn)
             if not todo:
@@ -223,7 +293,9 @@ class Acquisition:
                 status(f"capture: resuming {out}: {len(found.committed)} frames kept, {len(todo)} to take"
                        + (f" ({found.torn} torn)" if found.torn else ""), options.quiet)
             stream = list(plan.messages(todo, **kw))
-            runner = Runner(self.stage, self.camera, _ProgressSink(folder, len(todo), options.quiet),
+            # the first frame is checked too: a camera may state no size, or a wrong one (pylon's emulator)
+            late_check = None if plan.image_size_px is None else (lambda wh: check_plan_size(plan, wh, name))
+            runner = Runner(self.stage, self.camera, _ProgressSink(folder, len(todo), options.quiet, late_check),
                             retries=options.retries, quiet=options.quiet, critical=self.critical)
             runner.preflight(stream)
             try:
@@ -244,22 +316,25 @@ def _resumable_hint(exc, result_path: Path) -> None:
 
 
 def capture(plan: CapturePlan, stage, camera, out: str | Path, *, retries: int = 2,
-            on_target_timeout_ms: float = 30000.0, settle_ms: float = 0.0, quiet: bool = False) -> CaptureResult:
+            on_target_timeout_ms: float = 30000.0, settle_ms: float = 0.0, quiet: bool = False,
+            lens: LensRecord = LensRecord()) -> CaptureResult:
     """Run ``plan`` on already connected devices into ``out`` (no signal handling; see :class:`Acquisition`)."""
     from ..errors import DeviceError, LinkError
     acq = Acquisition(stage, camera, handle_signals=False)
     try:
         return acq.capture(plan, out, RunOptions(retries=retries, on_target_timeout_ms=on_target_timeout_ms,
-                                                 settle_ms=settle_ms, quiet=quiet))
+                                                 settle_ms=settle_ms, quiet=quiet), lens)
     except (DeviceError, LinkError) as exc:
         _resumable_hint(exc, Path(out))
         raise
 
 
 def run_capture(plan: CapturePlan, stage: str | Any, camera: str | Any, out: str | Path | None, *,
-                options: RunOptions = RunOptions(), dry_run: bool = False) -> CaptureResult | dict:
+                options: RunOptions = RunOptions(), dry_run: bool = False,
+                lens: LensRecord = LensRecord()) -> CaptureResult | dict:
     """``fieldcal capture`` as a function: build the devices (device strings or objects), connect them, and
-    either describe the run (``dry_run``: the stream and the checks, a dict) or capture into ``out``."""
+    either describe the run (``dry_run``: the stream and the checks, a dict) or capture into ``out``. ``lens``
+    states the focal length and object distance where the camera does not (recorded in stack.json)."""
     from ..errors import DeviceError, LinkError
     from ..hardware.registry import make_device
     if isinstance(stage, str):
@@ -270,10 +345,11 @@ def run_capture(plan: CapturePlan, stage: str | Any, camera: str | Any, out: str
         if dry_run:
             return acq.dry_run(plan, options)
         try:
-            return acq.capture(plan, out, options)
+            return acq.capture(plan, out, options, lens)
         except (DeviceError, LinkError) as exc:
             _resumable_hint(exc, Path(out))
             raise
 
 
-__all__ = ["Acquisition", "CaptureResult", "Interrupted", "RunOptions", "capture", "run_capture"]
+__all__ = ["Acquisition", "CaptureResult", "Interrupted", "LensRecord", "RunOptions", "capture",
+           "check_plan_size", "delivered_size_px", "run_capture"]

@@ -396,6 +396,10 @@ class CaptureFolder:
     # ------------------------------------------------------------------ commit
     def save(self, index: int, z_um: float, image, **frame_meta) -> dict:
         """Write frame ``index`` and append its journal line (the commit point); returns the stack entry."""
+        size = [int(image.shape[1]), int(image.shape[0])] if getattr(image, "ndim", 0) >= 2 else None
+        if size is not None and self._writer.meta.get("image_size_px") not in (None, size):
+            # the camera stated another size than it delivers (pylon's emulator does): the frames are authoritative
+            self._writer.meta["image_size_px"] = size
         try:
             info = self._writer.add_frame(image, z_um, file=frame_file(index), **frame_meta)
             self._append_journal(json.dumps({"i": index, "entry": info.meta}, sort_keys=True, allow_nan=False))

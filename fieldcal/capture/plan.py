@@ -63,12 +63,15 @@ class CapturePlan:
     approach : ``"+z"`` (every position is reached moving +z, i.e. from below) or ``"-z"``.
     overshoot_um : how far past a position the stage backs off before approaching it (must exceed the backlash).
     source : where the plan came from (plan-file parameters or the ``--z`` range), stored in the stack.
+    image_size_px : ``(width, height)`` the plan was made for (its profile's image size), or None when it does
+        not say (a ``--z`` range, a hand-written plan); capture refuses a camera that delivers another size.
     """
 
     frames: tuple[PlannedFrame, ...]
     approach: str = "+z"
     overshoot_um: float = 20.0
     source: dict = field(default_factory=dict)
+    image_size_px: tuple[int, int] | None = None
 
     def __post_init__(self):
         if not self.frames:
@@ -94,6 +97,11 @@ class CapturePlan:
                                  fix="use '+z' or '-z'")
         _finite(self.overshoot_um, "overshoot_um", lo=0.0, hi=MAX_OVERSHOOT_UM,
                 fix="use e.g. 20 um (more than the stage's backlash)")
+        size = self.image_size_px
+        if size is not None and not (len(size) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
+                                                            and v > 0 for v in size)):
+            raise ParameterError(f"image_size_px = {size!r} must be (width, height) in whole pixels or None",
+                                 field="image_size_px", fix="e.g. (320, 180)")
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -128,6 +136,7 @@ class CapturePlan:
                   overshoot_um: float = 20.0) -> "CapturePlan":
         """A ``fieldcal-plan/1`` stack plan (frames in capture order), read by :func:`fieldcal.plan.read_plan`."""
         from fieldcal.plan import read_plan
+        from fieldcal.plan.planfile import plan_image_size_px
 
         path = Path(path)
         try:
@@ -151,7 +160,7 @@ class CapturePlan:
             # a hand-written plan may leave out its direction: approach every frame from below (+z)
             return cls(tuple(frames), approach or doc.get("direction", "+z"), overshoot_um,
                        {"kind": "plan", "file": str(path), "plan_sha256": hashlib.sha256(data).hexdigest(),
-                        "parameters": doc.get("parameters", {})})
+                        "parameters": doc.get("parameters", {})}, plan_image_size_px(doc, path))
         except ParameterError as exc:
             if exc.field in ("overshoot_um", "approach"):
                 raise

@@ -17,7 +17,8 @@ EXAMPLE = ("fieldcal capture --z -100 100 10 --stage sim --camera sim:models/tri
 FLAGS = {"start_um": "--z", "stop_um": "--z", "step_um": "--z", "exposure_ms": "--exposure-ms",
          "overshoot_um": "--overshoot-um", "approach": "--approach", "settle_ms": "--settle-ms",
          "on_target_timeout_ms": "--on-target-timeout-ms", "retries": "--retries", "frames": "--z",
-         "z_um": "--z / --plan"}
+         "z_um": "--z / --plan", "focal_length_mm": "--focal-length-mm",
+         "object_distance_mm": "--object-distance-mm"}
 
 
 def register(sub):
@@ -48,6 +49,11 @@ def register(sub):
     p.add_argument("--on-target-timeout-ms", type=float, default=30000.0, help="per move (default 30000)")
     p.add_argument("--retries", type=int, default=2, help="resync-and-retry attempts per frame after a link "
                                                           "error (default 2)")
+    p.add_argument("--focal-length-mm", type=float, help="the lens's focal length, recorded in stack.json (and by "
+                                                         "calibration in the profile) where the camera does not "
+                                                         "state it; overrides the camera's")
+    p.add_argument("--object-distance-mm", type=float, help="the chart's distance from the lens, recorded like "
+                                                            "--focal-length-mm (refocusing a plan needs both)")
     p.add_argument("--dry-run", action="store_true", help="print the acquisition stream, positions, time and disk "
                                                           "needed; move nothing")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -63,20 +69,21 @@ def _with_flag(exc):
 
 
 def run(args) -> int:
-    from ..capture import CapturePlan, Interrupted, RunOptions, run_capture
+    from ..capture import CapturePlan, Interrupted, LensRecord, RunOptions, run_capture
     from ..errors import ParameterError
     from ..progress import status
 
     try:
         options = RunOptions(retries=args.retries, on_target_timeout_ms=args.on_target_timeout_ms,
                              settle_ms=args.settle_ms, quiet=args.quiet)
+        lens = LensRecord(focal_length_mm=args.focal_length_mm, object_distance_mm=args.object_distance_mm)
         common = dict(exposure_ms=args.exposure_ms, approach=args.approach, overshoot_um=args.overshoot_um)
         plan = (CapturePlan.from_file(args.plan, **common) if args.plan
                 else CapturePlan.from_range(*args.z, **common))
     except ParameterError as exc:
         raise _with_flag(exc) from None
     try:
-        r = run_capture(plan, args.stage, args.camera, args.out, options=options, dry_run=args.dry_run)
+        r = run_capture(plan, args.stage, args.camera, args.out, options=options, dry_run=args.dry_run, lens=lens)
     except Interrupted as exc:
         print(f"fieldcal capture: interrupted ({exc}); the stage was stopped and {args.out} is resumable: re-run "
               "the same command", file=sys.stderr)

@@ -388,7 +388,8 @@ class SimCamera:
                 "size_px": list(self.size), "seed": self.seed, "scene": self.scene_kind,
                 "pixel_pitch_um": s.pixel_pitch_um, "channels": list(self.spec.channel_names),
                 "bit_depth": s.bit_depth, "black_level": s.black_level_dn, "white_level": s.white_level_dn,
-                "f_number": self.spec.f_number, "object_distance_mm": self.spec.object_distance_mm,
+                "f_number": self.spec.f_number, "focal_length_mm": self.spec.focal_length_mm,
+                "object_distance_mm": self.spec.object_distance_mm,
                 "roi": None if self._roi is None else list(self._roi)}
 
     def configure(self, *, exposure_ms: float | None = None, roi: tuple[int, int, int, int] | None = None,

@@ -9,6 +9,7 @@ beside the plan) are here, once.
 from __future__ import annotations
 
 import math
+import numbers
 from pathlib import Path, PurePosixPath
 from typing import Any
 
@@ -22,6 +23,7 @@ _FIX = "make the plan again with `fieldcal plan`"
 def validate_plan(doc: Any, path: str | Path | None = None, check_files: bool = True) -> dict:
     """Check a plan document; raise :class:`SpecError` naming the field and the fix. Returns the document."""
     documents.validate(doc, "plan", path)
+    plan_image_size_px(doc, path)
     if doc["kind"] == "stack":
         _validate_stack(doc, path, doc.get("direction"))
     else:
@@ -62,6 +64,22 @@ def _validate_sweep(doc, path, direction, check_files):
         if not p.is_file():
             raise SpecError(f"mask file {doc['masks']['file']} is missing beside the plan", path=path,
                             field="masks.file", fix="copy the .npz together with the plan, or make the plan again")
+
+
+def plan_image_size_px(doc: dict, path: str | Path | None = None) -> tuple[int, int] | None:
+    """The image size ``(width, height)`` in px the plan was made for: its ``profile.image_size_px``, which
+    ``fieldcal plan`` writes from the profile or lens spec it planned from. None when the plan does not say
+    (a hand-written plan); a malformed value is a :class:`SpecError` naming the field."""
+    prof = doc.get("profile")
+    size = prof.get("image_size_px") if isinstance(prof, dict) else None
+    if size is None:
+        return None
+    ok = (isinstance(size, (list, tuple)) and len(size) == 2
+          and all(isinstance(v, numbers.Integral) and not isinstance(v, bool) and 1 <= v <= 1_000_000 for v in size))
+    if not ok:
+        raise SpecError(f"image size {size!r} is not [width, height] in whole pixels", path=path,
+                        field="profile.image_size_px", fix=_FIX + ", or remove the key from a hand-written plan")
+    return int(size[0]), int(size[1])
 
 
 def write_plan(path: str | Path, doc: dict) -> None:

@@ -175,7 +175,8 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     del image
 
     meta = dict(bit_depth=s.bit_depth, black_level=s.black_level_dn, white_level=s.white_level_dn,
-                f_number=spec.f_number, exposure_ms=s.exposure_ms, object_distance_mm=spec.object_distance_mm,
+                f_number=spec.f_number, focal_length_mm=spec.focal_length_mm, exposure_ms=s.exposure_ms,
+                object_distance_mm=spec.object_distance_mm, image_size_px=[s.width_px, s.height_px],
                 lens=spec.name, chart=scene_name)
     if s.cfa:
         meta["cfa"] = s.cfa
