@@ -216,14 +216,14 @@ def export_device_masks(doc: dict, arrays: dict, out: str | Path, *, fmt: str | 
 
 def _prepare_out(out: Path, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
-        raise OutputError("is a file, not a folder", path=out, field="--out", fix="give a folder name")
+        raise OutputError("is a file, not a folder", path=out, field="out", fix="give a folder name")
     if out.is_dir() and any(out.iterdir()):
         if not overwrite:
-            raise OutputError("exists and is not empty", path=out, field="--out",
+            raise OutputError("exists and is not empty", path=out, field="out",
                               fix="choose a new folder, or add --overwrite to replace the exported masks")
         if not (out / MANIFEST).is_file():
             raise OutputError(f"is not empty and holds no {MANIFEST}: fieldcal will not delete it", path=out,
-                              field="--out", fix="choose a new or empty folder")
+                              field="out", fix="choose a new or empty folder")
 
 
 def export_plan_file(plan: str | Path, out: str | Path, *, fmt: str | None = None, overwrite: bool = False) -> dict:
