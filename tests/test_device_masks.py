@@ -154,7 +154,6 @@ def test_manifest_is_checked_against_its_schema(tmp_path):
 
 
 def test_sweeps_too_long_for_16_bit_registers_are_refused_with_a_clock_that_fits(tmp_path):
-    plan = _pixel_plan()
     plan = plan_sweep(SyntheticProfile(64, 48, a_um=-200.0, **RGB),
                       SweepRequest(alpha_um=15.0, pixel_exposure_ms=12.0, device="pixel", clock_us=0.5))
     top = int(plan.mask_arrays()["stop_tick"].max())
