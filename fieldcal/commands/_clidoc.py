@@ -41,6 +41,7 @@ fieldcal calibrate chart --out lens.json --fs 10 --q 0.05 --effort quick
 fieldcal report lens.json --out report/
 fieldcal plan stack lens.json --fs 10 --q 0.05 --confidence 0.95 --out plan.json --plots plan-plots/
 fieldcal plan sweep lens.json --alpha-um 20 --pixel-exposure-ms 16 --device lcos --channels G --out sweep.json
+fieldcal plan export-masks sweep.json --out sweep-masks            # the LCoS masks as 1-bit PNGs + masks.json
 fieldcal capture --plan plan.json --stage sim --camera sim:models/triplet-uncorrected.json,size=320x180 --out scene
 fieldcal composite scene --profile lens.json --out image.tiff
 fieldcal validate models/triplet-uncorrected.json --size 256x144 --effort quick --out validation/

@@ -1,4 +1,5 @@
-"""`fieldcal plan stack|sweep PROFILE`: make a focal-stack or focal-sweep plan (``fieldcal-plan/1``)."""
+"""`fieldcal plan stack|sweep PROFILE`: make a focal-stack or focal-sweep plan (``fieldcal-plan/1``);
+`fieldcal plan export-masks PLAN`: a sweep plan's masks as device files (``fieldcal-masks/1``)."""
 
 from __future__ import annotations
 
@@ -59,6 +60,15 @@ def register(sub):
     w.add_argument("--fs", type=float, default=80.0, help="frequency for the IPSF MTF column (cycles/mm, default 80)")
     w.add_argument("--wiener-nsr", type=float, default=0.01, help="Wiener noise-to-signal ratio for the noise gain")
     w.set_defaults(func=run_sweep)
+    e = add_parser(ps, "export-masks", "write a sweep plan's masks as device files (LCoS 1-bit PNGs or pixel-wise "
+                   "16-bit start/stop TIFFs) with a masks.json manifest",
+                   "fieldcal plan export-masks sweep-plan.json --out sweep-masks")
+    e.add_argument("plan", metavar="PLAN", help="sweep plan (fieldcal-plan/1) with its .masks.npz beside it")
+    e.add_argument("--out", required=True, help="folder to write (replaced as a whole with --overwrite)")
+    e.add_argument("--format", choices=("lcos", "pixelwise"),
+                   help="device format; must match the plan's --device (default: the plan's)")
+    e.add_argument("--overwrite", action="store_true", help="replace an earlier export in --out")
+    e.set_defaults(func=run_export_masks)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
 
 
@@ -116,4 +126,13 @@ def run_sweep(args) -> int:
     for r in doc["alpha_trade"]:
         print(f"  {r['alpha_um']:8.1f} {r['total_time_ms']:7.1f} {r['mtf_at_fs']:7.3f} {r['noise_gain']:12.3f} "
               f"{r['restored_mtf_at_fs']:12.3f} {r['noise_gain_to_in_focus']:17.3f}")
+    return 0
+
+
+def run_export_masks(args) -> int:
+    from ..plan.device_masks import export_plan_file
+    status(f"exporting the masks of {args.plan} ...")
+    man = export_plan_file(args.plan, args.out, fmt=args.format, overwrite=args.overwrite)
+    print(f"{args.out}: {len(man['files'])} {man['device']} files for {', '.join(man['planes'])}, "
+          f"{man['total_bytes'] / 1e6:.3f} MB, manifest masks.json")
     return 0

@@ -79,6 +79,8 @@ KINDS: dict[str, DocumentKind] = {k.name: k for k in (
     DocumentKind("validation", "fieldcal-validation-1.schema.json", "format",
                  "run `fieldcal validate` again"),
     DocumentKind("mtf", "fieldcal-mtf-1.schema.json", "format", "re-run `fieldcal mtf` (docs/measurement.md)"),
+    DocumentKind("masks", "fieldcal-masks-1.schema.json", "format",
+                 "export the masks again with `fieldcal plan export-masks` (docs/planning.md)"),
 )}
 
 
