@@ -346,3 +346,26 @@ def replace_folder(staging: str | Path, out: str | Path) -> None:
     fsync_dir(out.resolve().parent)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+
+
+def check_replaceable_folder(out: str | Path, marker: str, overwrite: bool, what: str,
+                             error: type | None = None) -> None:
+    """An output folder that a command builds aside and renames into place (:func:`replace_folder`): it may be
+    new or empty; an existing non-empty one is replaced only with ``overwrite`` and only when it holds
+    ``marker`` (the file that says fieldcal made it, e.g. ``stack.json``): fieldcal never deletes a folder it
+    did not create. ``what`` names the folder's kind in the messages ("a stack")."""
+    from fieldcal.errors import OutputError
+
+    err = error or OutputError
+    out = Path(out)
+    if out.is_symlink():
+        raise err("is a symbolic link", path=out, field="out", fix="give a real folder path")
+    if out.exists() and not out.is_dir():
+        raise err("exists and is not a folder", path=out, field="out", fix="choose another output path")
+    if out.is_dir() and any(out.iterdir()):
+        if not overwrite:
+            raise err("already exists and is not empty", path=out, field="out",
+                      fix=f"choose a new folder, or pass overwrite=True (CLI: --overwrite) to replace {what}")
+        if not (out / marker).is_file():
+            raise err(f"is not empty and holds no {marker}: fieldcal will not delete a folder that is not {what}",
+                      path=out, field="out", fix="choose a new or empty folder")

@@ -35,7 +35,8 @@ from typing import Sequence
 import numpy as np
 
 from fieldcal.errors import ParameterError, StackError
-from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text, replace_folder
+from fieldcal.formats.atomic import (atomic_write_bytes, atomic_write_text, check_replaceable_folder,
+                                     replace_folder)
 from fieldcal.formats.imageio import ImageFileError, encode, probe
 
 #: File name endings read through LibRaw (rawpy). Many raw formats are TIFF inside, so the ending decides.
@@ -338,17 +339,7 @@ def _check_out(out: Path, sources: list[Path], overwrite: bool) -> None:
             continue
         raise ParameterError("lies inside the output folder; importing would overwrite an input", path=s,
                              field="out", fix="choose an output folder that holds none of the images")
-    if out.is_symlink():
-        raise ParameterError("is a symbolic link", path=out, field="out", fix="give a real folder path")
-    if out.exists() and not out.is_dir():
-        raise ParameterError("exists and is not a folder", path=out, field="out", fix="choose another output path")
-    if out.is_dir() and any(out.iterdir()):
-        if not overwrite:
-            raise ParameterError("already exists and is not empty", path=out, field="out",
-                                 fix="choose a new folder, or pass overwrite=True (CLI: --overwrite) to replace a stack")
-        if not (out / "stack.json").is_file():
-            raise ParameterError("is not empty and holds no stack.json; refusing to replace a folder that is not a "
-                                 "stack", path=out, field="out", fix="choose a new or empty folder")
+    check_replaceable_folder(out, "stack.json", overwrite, "a stack", error=ParameterError)
 
 
 def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,

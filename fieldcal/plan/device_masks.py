@@ -33,7 +33,7 @@ import numpy as np
 
 from fieldcal.errors import OutputError, ParameterError, SpecError
 from fieldcal.formats import documents
-from fieldcal.formats.atomic import atomic_write_bytes, check_output, replace_folder
+from fieldcal.formats.atomic import atomic_write_bytes, check_output, check_replaceable_folder, replace_folder
 
 from . import masks as mk
 
@@ -173,7 +173,7 @@ def export_device_masks(doc: dict, arrays: dict, out: str | Path, *, fmt: str | 
     else:
         p, h, w = arrays["start_tick"].shape
         _check_ticks(arrays, float(dev["clock_ms"]))
-    _prepare_out(out, overwrite)
+    check_replaceable_folder(out, MANIFEST, overwrite, "exported masks")
     files = _files_for(fmt, planes, n_slots)
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
@@ -212,18 +212,6 @@ def export_device_masks(doc: dict, arrays: dict, out: str | Path, *, fmt: str | 
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return manifest
-
-
-def _prepare_out(out: Path, overwrite: bool) -> None:
-    if out.exists() and not out.is_dir():
-        raise OutputError("is a file, not a folder", path=out, field="out", fix="give a folder name")
-    if out.is_dir() and any(out.iterdir()):
-        if not overwrite:
-            raise OutputError("exists and is not empty", path=out, field="out",
-                              fix="choose a new folder, or add --overwrite to replace the exported masks")
-        if not (out / MANIFEST).is_file():
-            raise OutputError(f"is not empty and holds no {MANIFEST}: fieldcal will not delete it", path=out,
-                              field="out", fix="choose a new or empty folder")
 
 
 def export_plan_file(plan: str | Path, out: str | Path, *, fmt: str | None = None, overwrite: bool = False) -> dict:

@@ -17,7 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from fieldcal.formats import documents
-from fieldcal.formats.atomic import atomic_write_bytes, replace_folder
+from fieldcal.formats.atomic import atomic_write_bytes, check_replaceable_folder, replace_folder
 from ..errors import ParameterError, StackError
 from fieldcal.simulate.lens import LensSpec
 from ..progress import progress as _progress
@@ -73,18 +73,6 @@ def _check_size(size) -> tuple[int, int] | None:
         raise ParameterError(f"image size {size!r} is not a pair of integers from 8 to 100 Mpx", field="size",
                              fix="give WIDTHxHEIGHT in pixels, e.g. --size 320x180")
     return w, h
-
-
-def _prepare_out(out: Path, overwrite: bool) -> None:
-    if out.exists() and not out.is_dir():
-        raise StackError("output exists and is not a folder", path=out, fix="choose another STACK folder name")
-    if out.is_dir() and any(out.iterdir()):
-        if not overwrite:
-            raise StackError("output folder exists and is not empty", path=out,
-                             fix="choose a new folder, or pass --overwrite (overwrite=True) to replace the stack")
-        if not (out / "stack.json").is_file():
-            raise StackError("output folder is not empty and holds no stack.json: fieldcal will not delete it",
-                             path=out, fix="choose a new or empty folder")
 
 
 def _tiff_bytes(image: np.ndarray) -> bytes:
@@ -168,7 +156,7 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
         spec = spec.with_sensor_size(*wh)
     s = spec.sensor
     out = Path(out_dir)
-    _prepare_out(out, overwrite)
+    check_replaceable_folder(out, "stack.json", overwrite, "a stack", error=StackError)
     image, scene_name = load_scene(scene, s.width_px, s.height_px, seed)
     renderer = Renderer(spec, image, seed=seed, level_ratio=level_ratio, level_floor_px=level_floor_px,
                         optics=optics, fs_cyc_per_mm=fs_cyc_per_mm)
