@@ -23,7 +23,10 @@ import math
 import numpy as np
 from scipy import optimize, special
 
-from .criterion import MTFCriterion
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # for the annotation only: criterion.py uses this module
+    from .criterion import MTFCriterion
 
 # Default wavelengths (nm) of the usual channels: the C, e and F lines (Y: a monochrome sensor, e line).
 DEFAULT_WAVELENGTH_NM = {"R": 656.3, "G": 546.1, "B": 486.1, "Y": 546.1}

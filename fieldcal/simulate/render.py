@@ -25,6 +25,7 @@ from scipy import fft
 from ..errors import ParameterError
 from fieldcal.simulate.lens import LensSpec
 from . import noise as _noise
+from .levels import fractional_level, level_diameters_px  # noqa: F401  (re-exported)
 from .warp import scale_shift
 
 RENDERER_VERSION = "fieldcal-render/1"
@@ -37,24 +38,6 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 # 40 GiB array).
 _MAX_BLUR_FRAMES = 2.0
 _MIN_MAX_BLUR_PX = 256.0
-
-
-def level_diameters_px(max_diameter_px: float, ratio: float, floor_px: float) -> np.ndarray:
-    """Blur-level diameters (px): 0, then ``floor * ratio**k`` until ``max_diameter_px`` is covered (plus one
-    spare level, so that a diameter exactly on the last level still has an upper neighbour)."""
-    n = 0 if max_diameter_px <= floor_px else math.ceil(math.log(max_diameter_px / floor_px) / math.log(ratio))
-    return np.concatenate([[0.0], floor_px * ratio ** np.arange(n + 2)])
-
-
-def fractional_level(diameter_px: np.ndarray, ratio: float, floor_px: float) -> np.ndarray:
-    """Continuous level index of each blur diameter: integer at a level, linear in diameter between levels."""
-    b = np.asarray(diameter_px, dtype=np.float32)
-    safe = np.maximum(b, floor_px)  # the log below is only used above the floor
-    k = np.floor(np.log(safe / floor_px) / np.float32(math.log(ratio))).astype(np.float32)
-    lo = floor_px * np.power(np.float32(ratio), k)
-    frac = (safe - lo) / (lo * np.float32(ratio - 1.0))
-    above = 1.0 + k + np.clip(frac, 0.0, 1.0)
-    return np.where(b < floor_px, b / np.float32(floor_px), above).astype(np.float32)
 
 
 def scene_to_channels(scene, channels: tuple[str, ...], width_px: int, height_px: int) -> np.ndarray:

@@ -387,7 +387,7 @@ class WaveBlur:
 
     # ---------------------------------------------------------------------------------------- blur
     def _signed_level(self, u_um: np.ndarray) -> np.ndarray:
-        from .render import fractional_level
+        from .levels import fractional_level
         b = np.abs(u_um).astype(np.float32) / np.float32(self.spec.f_number * self.pitch_um)
         return np.sign(u_um).astype(np.float32) * fractional_level(b, self.level_ratio, self.level_floor_px)
 
