@@ -33,3 +33,27 @@ def small_chart_stack(tmp_path_factory):
     out = tmp_path_factory.mktemp("chart") / "stack"
     simulate_stack(spec, out, z_grid(-360.0, 50.0, 10.0), scene="chart", seed=3, size=(256, 144), progress=False)
     return out
+
+
+@pytest.fixture(scope="session")
+def hostile_world(tmp_path_factory):
+    """A small chart stack S and its profile lens.json (256x144 px, 21 frames), built once for the hostile-input
+    suites (tests/test_hostile_*.py); tests use a private copy (``w``)."""
+    from fieldcal.cli import main
+
+    root = tmp_path_factory.mktemp("hostile-world")
+    assert main(["simulate", str(MODELS / "triplet-uncorrected.json"), str(root / "S"), "--z", "-360", "50", "20",
+                 "--size", "256x144", "--quiet"]) == 0
+    assert main(["calibrate", str(root / "S"), "--out", str(root / "lens.json"), "--fs", "16", "--effort",
+                 "quick", "-q"]) == 0
+    return root
+
+
+@pytest.fixture
+def w(hostile_world, tmp_path):
+    """A private copy of the hostile-input world for one test."""
+    import shutil
+
+    dst = tmp_path / "w"
+    shutil.copytree(hostile_world, dst, symlinks=True)
+    return dst

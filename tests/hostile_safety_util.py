@@ -17,6 +17,7 @@ from fieldcal.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 LENS = REPO / "models" / "triplet-uncorrected.json"
+FS = "16"  # cycles/mm: below Nyquist of the 256x144 world
 EXIT_CODES = {"ok": 0, "check": 1, "input": 2, "device": 3, "env": 4, "internal": 5, "interrupted": 130}
 
 

@@ -8,35 +8,14 @@ is allocated.
 from __future__ import annotations
 
 import json
-import shutil
 
 import pytest
 
-from fieldcal.cli import main
 from fieldcal.errors import EXIT_BAD_INPUT, StackError
 from fieldcal.formats.stack import Stack
 
-from hostile_safety_util import (LENS, assert_clean_failure, changed, png_bomb, run_cli, set_frame_sha, snapshot,
+from hostile_safety_util import (FS, LENS, assert_clean_failure, changed, png_bomb, run_cli, set_frame_sha, snapshot,
                                  tiff_bomb)
-
-FS = "16"
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    root = tmp_path_factory.mktemp("hostile-frames")
-    assert main(["simulate", str(LENS), str(root / "S"), "--z", "-360", "50", "20", "--size", "256x144",
-                 "--quiet"]) == 0
-    assert main(["calibrate", str(root / "S"), "--out", str(root / "lens.json"), "--fs", FS, "--effort",
-                 "quick", "-q"]) == 0
-    return root
-
-
-@pytest.fixture
-def w(world, tmp_path):
-    dst = tmp_path / "w"
-    shutil.copytree(world, dst, symlinks=True)
-    return dst
 
 
 def alter(path, how):

@@ -10,7 +10,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -21,10 +20,9 @@ import pytest
 from fieldcal.cli import main
 from fieldcal.profile.lens_profile import LensProfile
 
-from hostile_safety_util import LENS
+from hostile_safety_util import FS
 
 REPO = Path(__file__).resolve().parents[1]
-FS = "16"
 
 CHILD = r"""
 import os, signal, sys
@@ -67,23 +65,6 @@ def run_killed(argv, point, n, cwd):
 
 def sha(p: Path) -> str:
     return hashlib.sha256(p.read_bytes()).hexdigest()
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    root = tmp_path_factory.mktemp("hostile-kill")
-    assert main(["simulate", str(LENS), str(root / "S"), "--z", "-360", "50", "20", "--size", "256x144",
-                 "--quiet"]) == 0
-    assert main(["calibrate", str(root / "S"), "--out", str(root / "lens.json"), "--fs", FS, "--effort",
-                 "quick", "-q"]) == 0
-    return root
-
-
-@pytest.fixture
-def w(world, tmp_path):
-    dst = tmp_path / "w"
-    shutil.copytree(world, dst, symlinks=True)
-    return dst
 
 
 # replace #1 = the new sidecar, #2 = the JSON; write #1 = the sidecar's bytes

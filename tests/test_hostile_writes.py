@@ -22,29 +22,8 @@ from fieldcal.errors import (EXIT_BAD_INPUT, EXIT_ENVIRONMENT, EXIT_INTERNAL, EX
 from fieldcal.formats import atomic
 from fieldcal.profile.lens_profile import LensProfile
 
-from hostile_safety_util import (LENS, assert_clean_failure, changed, no_temp_files, only_under, run_cli,
+from hostile_safety_util import (FS, LENS, assert_clean_failure, changed, no_temp_files, only_under, run_cli,
                                  snapshot)
-
-FS = "16"
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    """A small chart stack S and its profile lens.json (256x144 px, 21 frames), built once."""
-    root = tmp_path_factory.mktemp("hostile-world")
-    assert main(["simulate", str(LENS), str(root / "S"), "--z", "-360", "50", "20", "--size", "256x144",
-                 "--quiet"]) == 0
-    assert main(["calibrate", str(root / "S"), "--out", str(root / "lens.json"), "--fs", FS, "--effort",
-                 "quick", "-q"]) == 0
-    return root
-
-
-@pytest.fixture
-def w(world, tmp_path):
-    """A private copy of the world for one test."""
-    dst = tmp_path / "w"
-    shutil.copytree(world, dst, symlinks=True)
-    return dst
 
 
 def sidecar_of(profile: Path) -> Path:
@@ -430,7 +409,6 @@ def test_report_out_that_is_a_file(w, capsys):
 
 
 def test_unexpected_exception_is_exit_5_with_a_short_message(w, capsys, monkeypatch):
-    import fieldcal.commands.report as rep
 
     def bug(*a, **k):
         raise ZeroDivisionError("a bug")
@@ -451,7 +429,6 @@ def test_unexpected_exception_is_exit_5_with_a_short_message(w, capsys, monkeypa
                                       (OSError(errno.ENOENT, "No such file or directory", "x"), EXIT_BAD_INPUT),
                                       (PermissionError(errno.EACCES, "Permission denied", "y"), EXIT_ENVIRONMENT)])
 def test_failure_classes_map_to_documented_codes(w, capsys, monkeypatch, exc, code):
-    import fieldcal.commands.report as rep
 
     def boom(*a, **k):
         raise exc
