@@ -31,20 +31,11 @@ NAME = "calibration_coverage"
 
 
 def simulate_lens(k: int, width_px: int, workdir: Path, seed: int = 7000):
-    """Render lens ``k``'s chart stack; returns (spec, stack dir, fs, z step)."""
-    from fieldcal.fit.synthetic import random_lens
-    from fieldcal.simulate.stackgen import simulate_stack
-    from fieldcal.validation.run import chart_positions_um, default_fs
+    """Render lens ``k``'s chart stack (a perfect stage); returns (spec, stack dir, fs, z step)."""
+    from bench_band_coverage import simulate_lens as simulate_with_stage
 
-    rng = np.random.default_rng(seed + k)
-    spec = random_lens(rng, channels=("R", "G", "B") if k % 4 else ("Y",), optics=True)
-    spec = spec.with_sensor_size(width_px, int(round(width_px * 3 / 4)))
-    fs = default_fs(spec.sensor.pixel_pitch_um)
-    tol = min(spec.focus_tolerance_um(fs, 0.05, c) for c in spec.channel_names)
-    z = chart_positions_um(spec, tol, 0.5, 2.0)
-    d = workdir / f"lens{k}"
-    simulate_stack(spec, d, z, scene="chart", seed=k, progress=False)
-    return spec, d, fs, float(z[1] - z[0])
+    lens = simulate_with_stage(k, width_px, workdir, seed=seed, stage_errors=False)
+    return lens["spec"], lens["dir"], lens["fs"], lens["step_um"]
 
 
 def run_one(spec, stack_dir, fs, effort, seed=0) -> dict:
