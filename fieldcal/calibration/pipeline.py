@@ -23,6 +23,7 @@ from fieldcal.errors import FieldcalError, ParameterError, StackError
 from fieldcal.optics import MTFCriterion
 from fieldcal.profile.lens_profile import LensProfile
 from fieldcal.progress import status
+from fieldcal.fit.tiles import stage_sd_um  # the band's stage term (also re-exported for callers)
 
 EFFORTS = ("quick", "standard", "thorough")
 MIN_FRAMES = 5
@@ -117,7 +118,7 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     from fieldcal.fit.geometry import GeometryData, fit_geometry
     from fieldcal.fit.tolerance import fit_tolerance
     from fieldcal.fit.tiles import (breathing_systematic_sd_um, colour_rows, fit_tile_surfaces, geometry_columns,
-                                    stage_sd_um, systematic_record)
+                                    systematic_record)
 
     if not isinstance(stack, Stack):
         stack = Stack.open(stack)
@@ -306,9 +307,6 @@ def curve_skew_warning(table, measure: str) -> str | None:
             + ", ".join(f"{table.skew[c]['shift_um']:+.2f} µm" for c in bad)
             + " from the centre; spherical aberration?): the SML's peak is then not where contrast at fs peaks. "
             "Calibrate with --measure bandpass --effort standard for the paper's best focus")
-
-
-from fieldcal.fit.tiles import stage_sd_um  # noqa: E402  (re-exported: the band's stage term)
 
 
 def stage_repeatability(stack, given: float | None) -> tuple[float, str]:

@@ -246,9 +246,11 @@ class CaptureFolder:
             return False
         if os.listdir(self.path / "frames"):
             return False
+        from ..errors import FieldcalError
+        from ..formats import documents
         try:
-            meta = json.loads((self.path / "stack.json").read_text(encoding="utf-8"))
-        except (OSError, ValueError, RecursionError):
+            meta = documents.read_json(self.path / "stack.json", error=StackError)
+        except (FieldcalError, OSError):
             return False
         return (isinstance(meta, dict) and meta.get("frames") == [] and isinstance(meta.get("capture"), dict)
                 and meta["capture"].get("plan_sha256") == plan_sha256)
@@ -354,9 +356,11 @@ class CaptureFolder:
                              fix="use the same camera and settings, or capture into a new --out folder")
         leftovers = self._check_layout(n_frames)
         json_path = self.path / "stack.json"
+        from ..errors import FieldcalError
+        from ..formats import documents
         try:
-            meta = json.loads(json_path.read_text(encoding="utf-8"))
-        except (OSError, ValueError, RecursionError):
+            meta = documents.read_json(json_path, error=StackError)
+        except (FieldcalError, OSError):
             meta = None
         if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
             raise StackError("stack.json is unreadable; nothing was changed", path=json_path,

@@ -10,7 +10,6 @@ classified tangential or sagittal about the optical centre, and edges are linked
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import hashlib
 import io
-import json
 import math
 import os
 import re
@@ -328,13 +327,14 @@ def sidecar_name(path: str | Path, sha256_hex: str) -> str:
 
 def _sidecar_of(json_path: Path) -> str | None:
     """The plain file name an existing profile JSON gives as its sidecar (None if unreadable or not plain)."""
+    from fieldcal.errors import FieldcalError
     try:
-        if not json_path.is_file() or json_path.is_symlink() or json_path.stat().st_size > (64 << 20):
+        if not json_path.is_file() or json_path.is_symlink():
             return None
-        d = json.loads(json_path.read_text())
-        name = d.get("sidecar", {}).get("file") if isinstance(d, dict) and isinstance(d.get("sidecar"), dict) else None
-    except (OSError, ValueError, RecursionError):
+        d = documents.read_json(json_path)
+    except (FieldcalError, OSError):
         return None
+    name = d.get("sidecar", {}).get("file") if isinstance(d, dict) and isinstance(d.get("sidecar"), dict) else None
     if not isinstance(name, str) or not name or name != Path(name).name or name in (".", ".."):
         return None
     return name
