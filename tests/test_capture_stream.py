@@ -132,8 +132,9 @@ def test_room_for_a_constant_velocity_sweep(triplet_path):
     assert (i, z) == (0, 0.0)
     assert meta["z_measured_before_um"] == pytest.approx(-60.0) and meta["z_measured_after_um"] == pytest.approx(60.0)
     assert stage.velocity_um_per_s() == 1500.0  # the sweep's velocity was restored after the move
-    # 60 um back-off at 1500 um/s + 120 um at the sweep's 200 um/s, each + 20 ms settle (virtual clock)
-    assert stage._clock_ms == pytest.approx(40.0 + 20.0 + 600.0 + 20.0)
+    # 60 um back-off at 1500 um/s + 120 um at the sweep's 200 um/s, each a trapezoid (d/v + v/a) + 20 ms settle
+    a = stage.acceleration_um_per_s2()
+    assert stage._clock_ms == pytest.approx((60 / 1500 + 1500 / a) * 1e3 + 20.0 + (120 / 200 + 200 / a) * 1e3 + 20.0)
     # a camera that cannot expose during motion is refused before anything moves
     plain = SimCamera(triplet_path, size=SIZE)
     s2 = SimStage(referenced=True)

@@ -45,7 +45,8 @@ def test_settle_time_and_on_target_use_the_virtual_clock():
     s.move_to_um(100.0)
     assert not s.on_target()
     s.wait_on_target(1000)
-    assert s.on_target() and s._clock_ms == pytest.approx(120.0)
+    # trapezoid: |dz|/v + v/a (100 ms + 1000/50000 s), then the settle time
+    assert s.on_target() and s._clock_ms == pytest.approx(100.0 + 1000.0 / 50000.0 * 1000.0 + 20.0)
 
 
 def test_servo_noise_is_seeded_and_of_the_stated_size():

@@ -126,7 +126,8 @@ def check_plan_size(plan: CapturePlan, size_px: tuple[int, int] | None, camera_n
                         "PROFILE --fs FS --q Q --out PLAN.json`)")
 
 
-def _stack_header(cam: dict, stage: dict, plan: CapturePlan, lens: LensRecord = LensRecord()) -> dict:
+def _stack_header(cam: dict, stage: dict, plan: CapturePlan, lens: LensRecord = LensRecord(),
+                  exposure_device=None) -> dict:
     focal = lens.focal_length_mm if lens.focal_length_mm is not None else cam.get("focal_length_mm")
     distance = lens.object_distance_mm if lens.object_distance_mm is not None else cam.get("object_distance_mm")
     size = delivered_size_px(cam)
@@ -141,6 +142,12 @@ def _stack_header(cam: dict, stage: dict, plan: CapturePlan, lens: LensRecord = 
     keys["capture"] = {"stage": stage, "camera": cam, "plan": plan.source, "approach": plan.approach,
                        "overshoot_um": plan.overshoot_um, "z_um": "commanded position; z_measured_um = mean of "
                                                                    "the stage's readings before and after the exposure"}
+    if hasattr(plan, "describe"):
+        keys["capture"]["sweep"] = plan.describe()
+        keys["capture"]["z_um"] = ("middle of the swept range; each frame's sweep.* holds the stage's readings when "
+                                   "the exposure opened and closed")
+        if exposure_device is not None:
+            keys["capture"]["exposure_device"] = exposure_device.describe()
     given = {k: "given" for k in ("focal_length_mm", "object_distance_mm") if getattr(lens, k) is not None}
     if given:
         keys["capture"]["optics_from"] = {**{k: "camera" for k in ("focal_length_mm", "object_distance_mm")
@@ -175,8 +182,9 @@ class Acquisition:
     ...     result = acq.capture(CapturePlan.from_range(-100, 100, 10), "S")
     """
 
-    def __init__(self, stage, camera, *, handle_signals: bool = True):
+    def __init__(self, stage, camera, *, handle_signals: bool = True, exposure_device=None):
         self.stage, self.camera = stage, camera
+        self.exposure_device = exposure_device
         self.handle_signals = handle_signals
         self._old: dict[int, Any] = {}
         self._deferred: int | None = None
@@ -210,6 +218,10 @@ class Acquisition:
             self.camera.connect()
             if hasattr(self.camera, "observe_stage"):
                 self.camera.observe_stage(self.stage)
+            if self.exposure_device is not None:
+                self.exposure_device.connect()
+                if hasattr(self.camera, "observe_exposure_device"):
+                    self.camera.observe_exposure_device(self.exposure_device)
         except BaseException:
             self.__exit__(None, None, None)
             raise
@@ -222,7 +234,9 @@ class Acquisition:
                     self.stage.stop()
                 except Exception:  # stopping must not replace the error being reported
                     pass
-            for dev in (self.camera, self.stage):
+            for dev in (self.exposure_device, self.camera, self.stage):
+                if dev is None:
+                    continue
                 try:
                     dev.close()
                 except Exception:  # closing must not replace the error being reported
@@ -235,6 +249,7 @@ class Acquisition:
     # ------------------------------------------------------------------ the two consumers of the stream
     def dry_run(self, plan: CapturePlan, options: RunOptions = RunOptions()) -> dict[str, Any]:
         """The stream, its extent against the stage's travel, and the time and disk it needs. Moves nothing."""
+        plan = self._bind(plan, options)
         stream = list(plan.messages(on_target_timeout_ms=options.on_target_timeout_ms, settle_ms=options.settle_ms))
         cam = self.camera.describe()
         size = delivered_size_px(cam)
@@ -247,7 +262,20 @@ class Acquisition:
                 "motion_range_um": [m_lo, m_hi], "stage_travel_um": [lo, hi],
                 "image_size_px": None if size is None else list(size),
                 "plan_image_size_px": None if plan.image_size_px is None else list(plan.image_size_px),
-                "fits_travel": lo <= m_lo and m_hi <= hi, "stream": as_json(stream)}
+                "fits_travel": lo <= m_lo and m_hi <= hi, "stream": as_json(stream),
+                **({"sweep": plan.describe()} if hasattr(plan, "describe") else {})}
+
+    def _bind(self, plan, options: RunOptions):
+        """A sweep plan learns the stage's kinematics (velocity refused above the maximum, run-up from the
+        acceleration) and checks its exposure device; a stack plan with an exposure device is refused."""
+        if hasattr(plan, "bind"):
+            from .sweep import check_exposure_device
+            check_exposure_device(plan, self.exposure_device)
+            return plan.bind(self.stage, options.settle_ms)
+        if self.exposure_device is not None:
+            raise ParameterError("an exposure device gates a sweep's pixels; a stack plan takes frames without one",
+                                 field="exposure_device", fix="leave out --exposure-device, or give a sweep plan")
+        return plan
 
     def capture(self, plan: CapturePlan, out: str | Path, options: RunOptions = RunOptions(),
                 lens: LensRecord = LensRecord()) -> CaptureResult:
@@ -272,17 +300,22 @@ class Acquisition:
             SIGINT/SIGTERM, after stopping the stage; the folder is resumable.
         """
         out = Path(out)
+        plan = self._bind(plan, options)
         kw = dict(on_target_timeout_ms=options.on_target_timeout_ms, settle_ms=options.settle_ms)
         cam = self.camera.describe()
         name = getattr(self.camera, "name", "?")
         size = delivered_size_px(cam)
         check_plan_size(plan, size, name)
-        check_against_stage(list(plan.messages(**kw)), limits_um=self.stage.limits_um())
+        full = list(plan.messages(**kw))
+        check_against_stage(full, limits_um=self.stage.limits_um())
+        # a camera that cannot expose during motion is refused before the folder is touched
+        Runner(self.stage, self.camera, None).preflight(full)
         with CaptureFolder(out) as folder:
             with self.critical():  # a resume's repairs (journal tail, stack.json, leftovers) finish before a signal
                 found = folder.prepare(plan_sha256=plan.fingerprint(), n_frames=len(plan.frames),
                                        frame_z_um=[f.z_um for f in plan.frames], camera=cam,
-                                       stack_header=_stack_header(cam, self.stage.describe(), plan, lens))
+                                       stack_header=_stack_header(cam, self.stage.describe(), plan, lens,
+                                                                  self.exposure_device))
             todo = [f.index for f in plan.frames if f.index not in found.committed]
             result = CaptureResult(out, len(plan.frames), 0, len(found.committed), found.torn)
             if not todo:
@@ -296,7 +329,8 @@ class Acquisition:
             # the first frame is checked too: a camera may state no size, or a wrong one (pylon's emulator)
             late_check = None if plan.image_size_px is None else (lambda wh: check_plan_size(plan, wh, name))
             runner = Runner(self.stage, self.camera, _ProgressSink(folder, len(todo), options.quiet, late_check),
-                            retries=options.retries, quiet=options.quiet, critical=self.critical)
+                            retries=options.retries, quiet=options.quiet, critical=self.critical,
+                            exposure_device=self.exposure_device)
             runner.preflight(stream)
             try:
                 if not self.stage.is_referenced():
@@ -317,10 +351,12 @@ def _resumable_hint(exc, result_path: Path) -> None:
 
 def capture(plan: CapturePlan, stage, camera, out: str | Path, *, retries: int = 2,
             on_target_timeout_ms: float = 30000.0, settle_ms: float = 0.0, quiet: bool = False,
-            lens: LensRecord = LensRecord()) -> CaptureResult:
+            lens: LensRecord = LensRecord(), exposure_device=None) -> CaptureResult:
     """Run ``plan`` on already connected devices into ``out`` (no signal handling; see :class:`Acquisition`)."""
     from ..errors import DeviceError, LinkError
-    acq = Acquisition(stage, camera, handle_signals=False)
+    acq = Acquisition(stage, camera, handle_signals=False, exposure_device=exposure_device)
+    if exposure_device is not None and hasattr(camera, "observe_exposure_device"):
+        camera.observe_exposure_device(exposure_device)
     try:
         return acq.capture(plan, out, RunOptions(retries=retries, on_target_timeout_ms=on_target_timeout_ms,
                                                  settle_ms=settle_ms, quiet=quiet), lens)
@@ -331,17 +367,20 @@ def capture(plan: CapturePlan, stage, camera, out: str | Path, *, retries: int =
 
 def run_capture(plan: CapturePlan, stage: str | Any, camera: str | Any, out: str | Path | None, *,
                 options: RunOptions = RunOptions(), dry_run: bool = False,
-                lens: LensRecord = LensRecord()) -> CaptureResult | dict:
+                lens: LensRecord = LensRecord(), exposure_device: str | Any | None = None) -> CaptureResult | dict:
     """``fieldcal capture`` as a function: build the devices (device strings or objects), connect them, and
     either describe the run (``dry_run``: the stream and the checks, a dict) or capture into ``out``. ``lens``
-    states the focal length and object distance where the camera does not (recorded in stack.json)."""
+    states the focal length and object distance where the camera does not (recorded in stack.json). A sweep plan
+    (:class:`~fieldcal.capture.sweep.SweepCapturePlan`) needs ``exposure_device`` (e.g. ``"sim:MASKS"``)."""
     from ..errors import DeviceError, LinkError
     from ..hardware.registry import make_device
     if isinstance(stage, str):
         stage = make_device("stage", stage)
     if isinstance(camera, str):
         camera = make_device("camera", camera)
-    with Acquisition(stage, camera) as acq:
+    if isinstance(exposure_device, str):
+        exposure_device = make_device("exposure", exposure_device)
+    with Acquisition(stage, camera, exposure_device=exposure_device) as acq:
         if dry_run:
             return acq.dry_run(plan, options)
         try:

@@ -62,7 +62,26 @@ ENTRY_KEYS = {"file": lambda v: isinstance(v, str), "sha256": lambda v: isinstan
               "z_um": _is_num, "z_commanded_um": _is_num, "z_measured_um": _is_num, "z_measured_before_um": _is_num,
               "z_measured_after_um": _is_num, "exposure_ms": lambda v: _is_num(v) and v > 0,
               "time": lambda v: isinstance(v, str) and len(v) <= 64, "camera_frame_id": _is_int,
-              "plan_index": _is_int}
+              "plan_index": _is_int, "sweep": lambda v: _sweep_ok(v)}
+
+
+def _sweep_ok(v) -> bool:
+    """A sweep record (the runner's measured open/close positions and times): flat JSON of numbers, strings
+    and lists of numbers."""
+    if not isinstance(v, dict) or len(v) > 32:
+        return False
+    for k, x in v.items():
+        if not isinstance(k, str) or len(k) > 64:
+            return False
+        if isinstance(x, str):
+            if len(x) > 4096:
+                return False
+        elif isinstance(x, list):
+            if len(x) > 8 or not all(_is_num(e) for e in x):
+                return False
+        elif not (_is_num(x) or x is None):
+            return False
+    return True
 
 
 def parse_journal_lines(lines: list[bytes], path: Path, fix: str) -> tuple[dict, list[dict]]:

@@ -81,17 +81,24 @@ class SweepMove:
 
 @dataclass(frozen=True)
 class OpenExposure:
-    """Open one exposure that spans the following motion (a camera with ``open_exposure``)."""
+    """Open one exposure that spans the following motion (a camera with ``open_exposure``).
+
+    With ``at_um`` the runner first waits until the moving stage passes that position (the sweep's start, where
+    the stage is at constant velocity), then triggers the exposure device and the camera.
+    """
 
     frame_index: int
     exposure_ms: float | None = None
+    at_um: float | None = None
 
 
 @dataclass(frozen=True)
 class CloseExposure:
-    """Close the exposure opened by :class:`OpenExposure` and keep its frame for :class:`Save`."""
+    """Close the exposure opened by :class:`OpenExposure` and keep its frame for :class:`Save` (with ``at_um``:
+    once the stage passes that position, the sweep's stop)."""
 
     frame_index: int
+    at_um: float | None = None
 
 
 Message = Union[Checkpoint, Move, WaitOnTarget, Settle, Expose, Save, SweepMove, OpenExposure, CloseExposure]

@@ -134,7 +134,8 @@ class CapturePlan:
     @classmethod
     def from_file(cls, path: str | Path, *, exposure_ms: float | None = None, approach: str | None = None,
                   overshoot_um: float = 20.0) -> "CapturePlan":
-        """A ``fieldcal-plan/1`` stack plan (frames in capture order), read by :func:`fieldcal.plan.read_plan`."""
+        """A ``fieldcal-plan/1`` stack plan (frames in capture order), read by :func:`fieldcal.plan.read_plan`;
+        a sweep plan gives a :class:`fieldcal.capture.sweep.SweepCapturePlan` instead."""
         from fieldcal.plan import read_plan
         from fieldcal.plan.planfile import plan_image_size_px
 
@@ -145,10 +146,17 @@ class CapturePlan:
         except (OSError, RecursionError, ValueError, OverflowError) as exc:  # a folder, unreadable, deep JSON, 10**400
             raise SpecError(f"cannot read the plan ({type(exc).__name__}: {exc})", path=path,
                             fix="give the path of a plan made by `fieldcal plan`") from None
+        if doc.get("kind") == "sweep":
+            from .sweep import SweepCapturePlan
+            if exposure_ms is not None or approach is not None:
+                raise ParameterError("a sweep's exposure is its plan's sweep time and its direction the plan's",
+                                     field="exposure_ms" if exposure_ms is not None else "approach",
+                                     fix="leave out --exposure-ms and --approach for a sweep plan (plan the sweep "
+                                         "again to change them)")
+            return SweepCapturePlan.from_doc(doc, path, data)
         if doc.get("kind") != "stack":
-            raise SpecError(f"kind {doc.get('kind')!r} cannot be captured frame by frame", path=path, field="kind",
-                            fix="capture runs stack plans (kind 'stack'); sweeps need a camera that exposes "
-                                "during motion and are not supported yet")
+            raise SpecError(f"kind {doc.get('kind')!r} cannot be captured", path=path, field="kind",
+                            fix="give a stack or sweep plan made by `fieldcal plan`")
         if exposure_ms is not None:
             exposure_ms = _finite(exposure_ms, "exposure_ms", lo=0.0, hi=MAX_EXPOSURE_MS, lo_open=True,
                                   fix="use a positive exposure in ms")

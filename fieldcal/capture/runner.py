@@ -38,6 +38,13 @@ class Shot:
     z_before_um: float
     z_after_um: float
     time: str
+    sweep: dict | None = None
+
+
+def _stage_ms(stage) -> float | None:
+    """The stage's own clock (the simulated stage's virtual time), or None."""
+    f = getattr(stage, "now_ms", None)
+    return None if f is None else round(float(f()), 6)
 
 
 def _now_iso() -> str:
@@ -59,8 +66,11 @@ class Runner:
 
     def __init__(self, stage, camera, sink: FrameSink, *, retries: int = 2, quiet: bool = True,
                  critical: Callable[[], contextlib.AbstractContextManager] = contextlib.nullcontext,
-                 sleep: Callable[[float], None] = time.sleep):
+                 sleep: Callable[[float], None] = time.sleep, exposure_device=None, poll_ms: float = 1.0):
         self.stage, self.camera, self.sink = stage, camera, sink
+        self.exposure_device = exposure_device
+        self.poll_ms = float(poll_ms)
+        self._sweep: SweepMove | None = None
         self.retries = int(retries)
         self.quiet = quiet
         self.critical = critical
@@ -68,7 +78,7 @@ class Runner:
         self.link_retries = 0
         self.saved = 0
         self._shot: Shot | None = None
-        self._open: tuple[int, float, str] | None = None
+        self._open: tuple[int, float, str, float | None, float] | None = None
         self._exposure_ms: float | None = None
         self._trigger_set = False
         self._timeout_ms = 30000.0
@@ -121,6 +131,25 @@ class Runner:
 
     def _reset_device_state(self) -> None:
         self._shot, self._open, self._exposure_ms, self._trigger_set = None, None, None, False
+        self._sweep = None
+        if self.exposure_device is not None:
+            self.exposure_device.stop()
+
+    def _wait_past(self, z_um: float) -> None:
+        """Block until the sweep's move passes ``z_um``: the stage's own wait (exact on the simulated stage),
+        else polling its position (what is left on a stage whose position trigger is not wired to the camera)."""
+        if hasattr(self.stage, "wait_past_um"):
+            self.stage.wait_past_um(z_um, self._timeout_ms)
+            return
+        from ..errors import DeviceError
+        sign = 1.0 if self._sweep is None or self._sweep.z_stop_um >= self._sweep.z_start_um else -1.0
+        deadline = time.monotonic() + self._timeout_ms / 1000.0
+        while sign * (self.stage.position_um() - z_um) < 0:
+            if time.monotonic() > deadline:
+                raise DeviceError(f"the stage did not pass {z_um:g} um within {self._timeout_ms:.0f} ms",
+                                  path=f"stage {getattr(self.stage, 'name', '?')}",
+                                  fix="check the stage moves; raise --on-target-timeout-ms")
+            self.sleep(self.poll_ms / 1000.0)
 
     def _configure_exposure(self, exposure_ms: float | None) -> None:
         if not self._trigger_set:
@@ -151,16 +180,46 @@ class Runner:
             self._restore_velocity = self.stage.velocity_um_per_s()
             self.stage.set_velocity_um_per_s(m.velocity_um_s)
             self.stage.move_to_um(m.z_stop_um)
+            self._sweep = m
         elif isinstance(m, OpenExposure):
             self._configure_exposure(m.exposure_ms)
-            self._open = (m.frame_index, self.stage.position_um(), _now_iso())
+            dev = self.exposure_device
+            if dev is not None:
+                dev.arm()
+            if m.at_um is not None:
+                self._wait_past(m.at_um)
+            z0 = self.stage.position_um()
+            t_stage = _stage_ms(self.stage)
+            if dev is not None:
+                dev.start()
             self.camera.open_exposure()
+            self._open = (m.frame_index, z0, _now_iso(), t_stage, time.monotonic())
         elif isinstance(m, CloseExposure):
-            frame = self.camera.close_exposure()
             if self._open is None or self._open[0] != m.frame_index:
                 raise ParameterError(f"CloseExposure({m.frame_index}) without its OpenExposure", field="stream",
                                      fix="open an exposure before closing it")
-            self._shot = Shot(m.frame_index, frame, self._open[1], self.stage.position_um(), self._open[2])
+            if m.at_um is not None:
+                self._wait_past(m.at_um)
+            frame = self.camera.close_exposure()
+            z1, t1_stage, t1_host = self.stage.position_um(), _stage_ms(self.stage), time.monotonic()
+            if self.exposure_device is not None:
+                self.exposure_device.stop()
+            _, z0, t0_iso, t0_stage, t0_host = self._open
+            sweep = None
+            if self._sweep is not None:
+                sweep = {"z_open_measured_um": round(z0, 6), "z_close_measured_um": round(z1, 6),
+                         "time_open": t0_iso, "time_close": _now_iso(),
+                         "host_duration_ms": round((t1_host - t0_host) * 1000.0, 3),
+                         "velocity_um_s": self._sweep.velocity_um_s,
+                         "move_um": [self._sweep.z_start_um, self._sweep.z_stop_um]}
+                if t0_stage is not None and t1_stage is not None:
+                    sweep["stage_clock_ms"] = [t0_stage, t1_stage]
+                for key in ("z_open_um", "z_close_um", "sub_exposures"):
+                    if key in frame.meta:
+                        sweep[f"camera_{key}"] = frame.meta[key]
+                if self.exposure_device is not None:
+                    sweep["exposure_device"] = getattr(self.exposure_device, "name", "?")
+            self._shot = Shot(m.frame_index, frame, z0, z1, t0_iso, sweep)
             self._open = None
         elif isinstance(m, Save):
             self._save(m)
@@ -180,6 +239,6 @@ class Runner:
                            z_measured_before_um=round(shot.z_before_um, 6),
                            z_measured_after_um=round(shot.z_after_um, 6), z_commanded_um=m.z_um,
                            exposure_ms=f.exposure_ms, time=shot.time, camera_frame_id=int(f.frame_id),
-                           plan_index=m.frame_index)
+                           plan_index=m.frame_index, **({} if shot.sweep is None else {"sweep": shot.sweep}))
         self._shot = None
         self.saved += 1

@@ -23,6 +23,8 @@ def extent_um(stream: Iterable[Message]) -> tuple[float, float]:
             zs.append(m.back_off_um)
         elif isinstance(m, SweepMove):
             zs += [m.z_start_um, m.z_stop_um]
+        elif isinstance(m, (OpenExposure, CloseExposure)) and m.at_um is not None:
+            zs.append(m.at_um)
     if not zs:
         raise ParameterError("the stream has no moves", field="stream", fix="give a plan with at least one frame")
     return float(min(zs)), float(max(zs))
@@ -68,6 +70,9 @@ def estimate(stream: Iterable[Message], *, velocity_um_s: float, readout_ms: flo
         elif isinstance(m, SweepMove):
             t_ms += abs(m.z_stop_um - m.z_start_um) / m.velocity_um_s * 1000.0
             here, n_moves = m.z_stop_um, n_moves + 1
+            continue
+        elif isinstance(m, OpenExposure) and m.at_um is not None:
+            continue  # spans the SweepMove already counted
         elif isinstance(m, Settle):
             t_ms += m.ms
         elif isinstance(m, (Expose, OpenExposure)):

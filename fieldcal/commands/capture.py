@@ -11,14 +11,18 @@ from . import add_parser
 EXAMPLE = ("fieldcal capture --z -100 100 10 --stage sim --camera sim:models/triplet-uncorrected.json,size=320x180 "
            "--out S\n  fieldcal capture --plan plan.json --stage gcs:/dev/ttyUSB0,zero_mm=7.5 --camera pylon,pixel_pitch_um=3.45 --out S\n"
            "  fieldcal capture --z -100 100 10 --stage sim:fail_after=7 --camera sim:models/triplet-uncorrected.json "
-           "--out S   (injected fault; re-run without it to resume)")
+           "--out S   (injected fault; re-run without it to resume)\n"
+           "  fieldcal capture --plan sweep.json --stage sim --camera sim:models/triplet-uncorrected.json,size=320x180 "
+           "--exposure-device sim:sweep-masks --out swept   (a focal sweep: one exposure over a constant-velocity "
+           "move)")
 
 # library field -> the flag that sets it (library errors name API fields; the user sees flags)
 FLAGS = {"start_um": "--z", "stop_um": "--z", "step_um": "--z", "exposure_ms": "--exposure-ms",
          "overshoot_um": "--overshoot-um", "approach": "--approach", "settle_ms": "--settle-ms",
          "on_target_timeout_ms": "--on-target-timeout-ms", "retries": "--retries", "frames": "--z",
          "z_um": "--z / --plan", "focal_length_mm": "--focal-length-mm",
-         "object_distance_mm": "--object-distance-mm"}
+         "object_distance_mm": "--object-distance-mm", "exposure_device": "--exposure-device",
+         "velocity_um_s": "--plan"}
 
 
 def register(sub):
@@ -27,18 +31,23 @@ def register(sub):
                                "and commit it to a fieldcal-stack/1 folder (frame fsynced and renamed, then a "
                                "journal line fsynced). Re-running the same command resumes: intact frames are "
                                "kept, torn ones re-taken; a changed plan is refused; a second capture into the "
-                               "same folder is refused while the first runs. Device strings: docs/hardware.md.")
+                               "same folder is refused while the first runs. A sweep plan (`fieldcal plan sweep "
+                               "--device pixel`) runs as one exposure over a constant-velocity move, the per-pixel "
+                               "windows applied by --exposure-device. Device strings: docs/hardware.md.")
     # argparse takes "-1e3" for an option (its negative-number pattern has no exponent): widen it, so that
     # `--z -1e3 1e3 100` parses and out-of-range values get a message naming --z
     if hasattr(p, "_negative_number_matcher"):
         p._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)(e[+-]?\d+)?$|^-(inf|infinity|nan)$", re.I)
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--plan", metavar="PLAN.json", help="a fieldcal-plan/1 stack plan")
+    src.add_argument("--plan", metavar="PLAN.json", help="a fieldcal-plan/1 stack or sweep plan")
     src.add_argument("--z", nargs=3, type=float, metavar=("START", "STOP", "STEP"),
                      help="positions START, START+STEP, ... STOP in um")
     p.add_argument("--stage", default="sim", help="sim | sim:OPTIONS | gcs:PORT[,OPTIONS] | pi:PORT | a plug-in "
                                                   "(default: sim)")
     p.add_argument("--camera", required=True, help="sim:LENS.json[,size=WxH] | pylon[:SERIAL] | a plug-in")
+    p.add_argument("--exposure-device", metavar="DEVICE", help="per-pixel exposure device for a sweep plan: "
+                                                               "sim:MASKS (the folder `fieldcal plan export-masks` "
+                                                               "wrote) | a plug-in")
     p.add_argument("--out", required=True, metavar="STACK", help="output stack folder (created or resumed)")
     p.add_argument("--exposure-ms", type=float, help="exposure for every frame (overrides the plan's)")
     p.add_argument("--approach", choices=["+z", "-z"], help="side every position is approached from "
@@ -83,7 +92,8 @@ def run(args) -> int:
     except ParameterError as exc:
         raise _with_flag(exc) from None
     try:
-        r = run_capture(plan, args.stage, args.camera, args.out, options=options, dry_run=args.dry_run, lens=lens)
+        r = run_capture(plan, args.stage, args.camera, args.out, options=options, dry_run=args.dry_run, lens=lens,
+                        exposure_device=args.exposure_device)
     except Interrupted as exc:
         print(f"fieldcal capture: interrupted ({exc}); the stage was stopped and {args.out} is resumable: re-run "
               "the same command", file=sys.stderr)

@@ -21,7 +21,8 @@ import numpy as np
 
 from ..errors import DeviceError, LinkError
 
-__all__ = ["Stage", "Camera", "Frame", "DeviceFault", "LinkError", "DeviceError"]
+__all__ = ["Stage", "SweepStage", "Camera", "SweepCamera", "ExposureDevice", "Frame", "DeviceFault", "LinkError",
+           "DeviceError"]
 
 
 class DeviceFault(DeviceError):
@@ -141,3 +142,65 @@ class Camera(Protocol):
 
     def snap(self) -> Frame:
         """Trigger (when software-triggered), wait for and return one frame."""
+
+
+@runtime_checkable
+class SweepStage(Stage, Protocol):
+    """A stage that can run a focal sweep: its kinematic limits are queried before anything moves.
+
+    Optional: ``wait_past_um(z_um, timeout_ms)`` blocks until the move in progress passes ``z_um`` (the
+    simulated stage computes it exactly; without it the runner polls :meth:`position_um`). A backend with a
+    hardware position trigger (``configure_position_trigger``) fires the camera's trigger line itself.
+    """
+
+    def max_velocity_um_per_s(self) -> float:
+        """The fastest velocity the controller accepts."""
+
+    def acceleration_um_per_s2(self) -> float:
+        """The acceleration (and deceleration) of a move; decides the sweep's run-up."""
+
+
+@runtime_checkable
+class SweepCamera(Camera, Protocol):
+    """A camera with one exposure that spans a motion (open, the stage moves, close)."""
+
+    def open_exposure(self) -> None:
+        """Start integrating now (the configured ``exposure_ms`` is the exposure's length)."""
+
+    def close_exposure(self) -> Frame:
+        """End the exposure (wait for it) and return its frame."""
+
+
+@runtime_checkable
+class ExposureDevice(Protocol):
+    """Per-pixel exposure during a sweep: an LCoS showing a slot sequence in front of the sensor, or a sensor
+    with per-pixel start/stop registers.
+
+    Masks come from the device files ``fieldcal plan export-masks`` writes (``masks.json``, format
+    ``fieldcal-masks/1``). Time 0 of the masks is the trigger, which the capture gives when the sweep's
+    exposure opens (the stage passing the plan's ``start_um``).
+    """
+
+    name: str
+
+    def connect(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def identify(self) -> str: ...
+
+    def describe(self) -> dict[str, Any]:
+        """Provenance: the device kind, the masks' manifest (planes, size, hashes, the plan they belong to)."""
+
+    def load_masks(self, folder) -> dict:
+        """Load (upload) the masks of an export folder, every file checked against its sha256; returns the
+        manifest."""
+
+    def arm(self) -> None:
+        """Get ready for the trigger (an LCoS shows its first slot, a sensor latches its registers)."""
+
+    def start(self) -> None:
+        """The trigger: the exposure opened now."""
+
+    def stop(self) -> None:
+        """The exposure closed; back to idle (never raises)."""

@@ -20,11 +20,12 @@ from typing import Any
 
 from ..errors import ParameterError
 
-GROUPS = {"stage": "fieldcal.stages", "camera": "fieldcal.cameras"}
+GROUPS = {"stage": "fieldcal.stages", "camera": "fieldcal.cameras", "exposure": "fieldcal.exposure_devices"}
 BUILTIN = {
     "stage": {"sim": "fieldcal.hardware.sim:SimStage", "gcs": "fieldcal.hardware.gcs2:GCS2Stage",
               "pi": "fieldcal.hardware.pipython_backend:PipythonStage"},
     "camera": {"sim": "fieldcal.hardware.sim:SimCamera", "pylon": "fieldcal.hardware.camera_pylon:PylonCamera"},
+    "exposure": {"sim": "fieldcal.hardware.sim:SimExposureDevice"},
 }
 
 
@@ -63,7 +64,7 @@ def _load(ref: str):
 
 
 def available(role: str) -> dict[str, str]:
-    """Backend names for ``role`` ("stage" or "camera") -> where they come from."""
+    """Backend names for ``role`` ("stage", "camera" or "exposure") -> where they come from."""
     found = {name: ref for name, ref in BUILTIN[role].items()}
     for ep in entry_points(group=GROUPS[role]):
         found[ep.name] = ep.value

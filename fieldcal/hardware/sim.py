@@ -11,6 +11,11 @@ Device strings (see docs/hardware.md)::
     sim:fail_after=7                      the 8th move fails with a motion error (GCS2 code 1024)
     sim:fail_after=3,fault=timeout,fail_times=1   one lost reply after 3 moves; resync recovers
     sim:models/triplet-uncorrected.json,size=320x180   (camera) render the lens at 320x180 px
+    sim:sweep-masks                       (exposure device) the masks `fieldcal plan export-masks` wrote
+
+A sweep (``open_exposure`` ... ``close_exposure``) is emulated physically by
+:func:`fieldcal.simulate.sweep_exposure.render_sweep_exposure`: sub-exposures at the stage's true position
+along the move, each gated by the :class:`SimExposureDevice`'s masks, noise applied once to the total.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import LinkError, ParameterError
+from .motion import move_duration_s, time_at_um, travelled_um
 from .protocols import DeviceFault, Frame
 
 FAULT_KINDS = ("motion", "timeout", "garbled", "disconnect")
@@ -59,7 +65,9 @@ class SimStage:
     (target + servo error, ``noise_um`` RMS) while the carriage lags by half the ``backlash_um`` play in the
     direction of the last move: ``true = encoder - sign(last move) * backlash / 2``. Approaching every
     position from the same side makes that offset one constant (absorbed by calibration); mixing directions
-    makes it jump by ``backlash_um``. A move takes ``|dz| / velocity + settle_ms``.
+    makes it jump by ``backlash_um``. A move follows a trapezoidal velocity profile (``accel_um_per_s2``; see
+    :mod:`fieldcal.hardware.motion`): ``|dz| / v + v / a`` for a long move, then ``settle_ms``. Velocities above
+    ``max_velocity_um_per_s`` are refused (GCS2 code 8), as a controller refuses them.
 
     Faults: after ``fail_after`` successful moves the next ``fail_times`` moves (default: all) fail with
     ``fault`` = ``motion`` (:class:`DeviceFault` code 1024 while waiting), ``timeout`` (no reply:
@@ -67,13 +75,14 @@ class SimStage:
     or ``disconnect`` (every call fails until reconnected).
     """
 
-    OPTIONS = {"lo_um", "hi_um", "velocity_um_per_s", "settle_ms", "noise_um", "backlash_um", "seed",
+    OPTIONS = {"lo_um", "hi_um", "velocity_um_per_s", "max_velocity_um_per_s", "accel_um_per_s2", "settle_ms", "noise_um", "backlash_um", "seed",
                "realtime", "fail_after", "fail_times", "fault", "referenced"}
 
     def __init__(self, *, lo_um: float = -7500.0, hi_um: float = 7500.0, velocity_um_per_s: float = 1500.0,
                  settle_ms: float = 20.0, noise_um: float = 0.05, backlash_um: float = 2.0, seed: int = 0,
                  realtime: bool = False, fail_after: int | None = None, fail_times: int | None = None,
-                 fault: str = "motion", referenced: bool = False, name: str = "sim"):
+                 fault: str = "motion", referenced: bool = False, name: str = "sim",
+                 max_velocity_um_per_s: float = 5000.0, accel_um_per_s2: float = 50000.0):
         if not lo_um < hi_um:
             raise ParameterError(f"travel lo_um={lo_um} must be below hi_um={hi_um}", path=f"stage {name}",
                                  field="lo_um", fix="give lo_um < hi_um")
@@ -83,6 +92,14 @@ class SimStage:
         self.name = name
         self._lo, self._hi = float(lo_um), float(hi_um)
         self._v = float(velocity_um_per_s)
+        self._v_max = float(max_velocity_um_per_s)
+        self._accel = float(accel_um_per_s2)
+        if not (self._v_max > 0 and self._accel > 0 and 0 < self._v <= self._v_max):
+            raise ParameterError(f"velocity {self._v:g} um/s, max velocity {self._v_max:g} um/s and acceleration "
+                                 f"{self._accel:g} um/s^2 must be > 0, velocity <= max", path=f"stage {name}",
+                                 field="max_velocity_um_per_s", fix="e.g. max_velocity_um_per_s=5000,"
+                                                                     "accel_um_per_s2=50000")
+        self._v_move = self._v        # the velocity of the move in progress
         self._settle_ms = float(settle_ms)
         self._noise_um = float(noise_um)
         self._backlash_um = float(backlash_um)
@@ -121,8 +138,10 @@ class SimStage:
         for key in ("lo_um", "hi_um", "settle_ms", "noise_um", "backlash_um"):
             if key in options:
                 kw[key] = _num(options, key, 0.0, device=device)
-        if "velocity_um_per_s" in options:
-            kw["velocity_um_per_s"] = _num(options, "velocity_um_per_s", 1500.0, device=device, positive=True)
+        for key, default in (("velocity_um_per_s", 1500.0), ("max_velocity_um_per_s", 5000.0),
+                             ("accel_um_per_s2", 50000.0)):
+            if key in options:
+                kw[key] = _num(options, key, default, device=device, positive=True)
         for key in ("seed", "fail_after", "fail_times"):
             if key in options:
                 kw[key] = int(_num(options, key, 0, device=device, integer=True))
@@ -172,7 +191,8 @@ class SimStage:
     def describe(self) -> dict[str, Any]:
         return {"kind": "sim", "name": self.name, "units": "um (fieldcal z; no conversion)",
                 "travel_um": [self._lo, self._hi], "backlash_um": self._backlash_um, "noise_um": self._noise_um,
-                "velocity_um_per_s": self._v, "settle_ms": self._settle_ms, "seed": self._seed}
+                "velocity_um_per_s": self._v, "max_velocity_um_per_s": self._v_max,
+                "accel_um_per_s2": self._accel, "settle_ms": self._settle_ms, "seed": self._seed}
 
     def resync(self) -> None:
         if not self._connected:
@@ -203,23 +223,38 @@ class SimStage:
 
     def set_velocity_um_per_s(self, v: float) -> None:
         self._check_link()
-        if not (math.isfinite(v) and v > 0):
-            raise DeviceFault("velocity out of limits", code=8, device=f"stage {self.name}")
+        if not (math.isfinite(v) and 0 < v <= self._v_max):
+            raise DeviceFault(f"velocity {v:g} um/s out of limits (0, {self._v_max:g}]", code=8,
+                              device=f"stage {self.name}", fix="lower the velocity below the stage's maximum")
         self._v = float(v)
+
+    def max_velocity_um_per_s(self) -> float:
+        """The fastest velocity :meth:`set_velocity_um_per_s` accepts."""
+        self._check_link()
+        return self._v_max
+
+    def acceleration_um_per_s2(self) -> float:
+        """The acceleration (and deceleration) of every move."""
+        self._check_link()
+        return self._accel
 
     # ------------------------------------------------------------------ motion
     def _servo_now(self) -> float:
-        """Servo (encoder) position now: linear travel, then the settled target plus servo error."""
-        now = self._now_ms()
+        return self._servo_at(self._now_ms())
+
+    def _servo_at(self, now: float) -> float:
+        """Servo (encoder) position at stage time ``now`` (ms) of the current move: the trapezoidal profile,
+        then the settled target plus servo error."""
         travel_ms = self._t_arrive_ms - self._settle_ms - self._t0_ms
         if now >= self._t_arrive_ms or travel_ms <= 0:
             if self._motion_error:
                 return self._start_um + 0.5 * (self._target_um - self._start_um)
             return self._target_um + self._servo_err_um
-        frac = min(1.0, max(0.0, (now - self._t0_ms) / travel_ms))
+        dz = self._target_um - self._start_um
+        frac = travelled_um((now - self._t0_ms) / 1000.0, dz, self._v_move, self._accel) / abs(dz)
         if self._motion_error:
             frac = min(frac, 0.5)
-        return self._start_um + frac * (self._target_um - self._start_um)
+        return self._start_um + frac * dz
 
     def _begin_move(self, z_um: float) -> None:
         start = self._servo_now()
@@ -228,7 +263,8 @@ class SimStage:
             self._direction = math.copysign(1.0, dz)
         self._start_um, self._target_um = start, float(z_um)
         self._t0_ms = self._now_ms()
-        self._t_arrive_ms = self._t0_ms + abs(dz) / self._v * 1000.0 + self._settle_ms
+        self._v_move = self._v
+        self._t_arrive_ms = self._t0_ms + move_duration_s(dz, self._v, self._accel) * 1000.0 + self._settle_ms
         self._servo_err_um = float(self._rng.normal(0.0, self._noise_um)) if self._noise_um > 0 else 0.0
 
     def _fault_due(self) -> bool:
@@ -289,6 +325,35 @@ class SimStage:
         """Where the carriage (the sensor) really is: what the simulated camera renders. Not on real stages."""
         return float(self._servo_now() - self._direction * self._backlash_um / 2.0)
 
+    # ------------------------------------------------------------------ sweeps (simulation only)
+    def now_ms(self) -> float:
+        """The stage's clock (virtual unless ``realtime``), ms: what the simulated camera times exposures by."""
+        return self._now_ms()
+
+    def true_position_at_ms(self, t_ms: float) -> float:
+        """Where the carriage is at stage time ``t_ms`` of the current move (the camera integrates over it)."""
+        return float(self._servo_at(float(t_ms)) - self._direction * self._backlash_um / 2.0)
+
+    def wait_past_um(self, z_um: float, timeout_ms: float) -> None:
+        """Block until the move in progress reaches ``z_um`` (what a position trigger does on hardware); a
+        position the move does not pass is a :class:`DeviceFault`."""
+        self._check_link()
+        dz = self._target_um - self._start_um
+        x = (float(z_um) - self._start_um) * (1.0 if dz >= 0 else -1.0)
+        if self._motion_error or not (0.0 <= x <= abs(dz)) or self._now_ms() >= self._t_arrive_ms:
+            if self._motion_error:
+                self.wait_on_target(timeout_ms)  # raises the motion error
+            if abs(self._servo_now() - z_um) < 1e-9:
+                return
+            raise DeviceFault(f"the move in progress does not pass {z_um:g} um", code=0, device=f"stage {self.name}",
+                              fix="start the sweep's move before waiting for its trigger position")
+        t_at = self._t0_ms + time_at_um(x, dz, self._v_move, self._accel) * 1000.0
+        wait = t_at - self._now_ms()
+        if wait > timeout_ms:
+            raise DeviceFault(f"{z_um:g} um not reached within {timeout_ms:.0f} ms", code=0,
+                              device=f"stage {self.name}", fix="raise the on-target timeout")
+        self._sleep_ms(wait)
+
     def stop(self) -> None:
         if not self._connected or self._disconnected:
             return
@@ -325,11 +390,11 @@ class SimCamera:
         (:func:`fieldcal.simulate.scene.load_scene`).
     """
 
-    OPTIONS = {"size", "seed", "scene", "noise"}
+    OPTIONS = {"size", "seed", "scene", "noise", "sub_step_um"}
     DEFAULT_SIZE = (320, 180)
 
     def __init__(self, lens_path: str | Path, *, size: tuple[int, int] = DEFAULT_SIZE, seed: int = 0,
-                 scene: str = "chart", noise: bool = True):
+                 scene: str = "chart", noise: bool = True, sub_step_um: float = 1.0):
         from fieldcal.simulate.lens import LensSpec
         self.lens_path = Path(lens_path)
         self.spec = LensSpec.load(self.lens_path).with_sensor_size(*size)
@@ -345,6 +410,13 @@ class SimCamera:
         self._roi: tuple[int, int, int, int] | None = None
         self._trigger = "software"
         self._position = lambda: 0.0
+        self._stage = None
+        self._exposure_device = None
+        self._open: tuple[float | None, float] | None = None  # (stage time ms or None, position um) at open
+        if not (math.isfinite(sub_step_um) and sub_step_um > 0):
+            raise ParameterError(f"sub_step_um = {sub_step_um} must be > 0", path=f"camera sim:{lens_path}",
+                                 field="sub_step_um", fix="e.g. sub_step_um=1 (um of travel per sub-exposure)")
+        self.sub_step_um = float(sub_step_um)
 
     @classmethod
     def from_spec(cls, arg: str | None, options: dict[str, str]) -> "SimCamera":
@@ -359,11 +431,17 @@ class SimCamera:
         size = _parse_size(options["size"], device) if "size" in options else cls.DEFAULT_SIZE
         seed = int(_num(options, "seed", 0, device=device, integer=True))
         noise = options.get("noise", "1").lower() in ("1", "true", "yes", "on")
-        return cls(arg, size=size, seed=seed, scene=options.get("scene", "chart"), noise=noise)
+        step = _num(options, "sub_step_um", 1.0, device=device, positive=True)
+        return cls(arg, size=size, seed=seed, scene=options.get("scene", "chart"), noise=noise, sub_step_um=step)
 
     def observe_stage(self, stage) -> None:
         """Render at this stage's actual position (true position when simulated, else measured)."""
         self._position = getattr(stage, "true_position_um", None) or stage.position_um
+        self._stage = stage
+
+    def observe_exposure_device(self, device) -> None:
+        """Gate sweep exposures by this device's masks (a :class:`SimExposureDevice`)."""
+        self._exposure_device = device
 
     def connect(self) -> None:
         if self._renderer is None:
@@ -390,7 +468,7 @@ class SimCamera:
                 "bit_depth": s.bit_depth, "black_level": s.black_level_dn, "white_level": s.white_level_dn,
                 "f_number": self.spec.f_number, "focal_length_mm": self.spec.focal_length_mm,
                 "object_distance_mm": self.spec.object_distance_mm,
-                "roi": None if self._roi is None else list(self._roi)}
+                "roi": None if self._roi is None else list(self._roi), "sub_step_um": self.sub_step_um}
 
     def configure(self, *, exposure_ms: float | None = None, roi: tuple[int, int, int, int] | None = None,
                   trigger: str | None = None) -> None:
@@ -432,3 +510,136 @@ class SimCamera:
         self._frame_id += 1
         return Frame(image=np.ascontiguousarray(img), frame_id=self._frame_id, exposure_ms=self._exposure_ms,
                      timestamp_ms=time.time() * 1000.0, meta={"z_rendered_um": z_um})
+
+    # ------------------------------------------------------------------ sweeps: one exposure over a motion
+    def _stage_clock(self):
+        st = self._stage
+        if st is not None and hasattr(st, "now_ms") and hasattr(st, "true_position_at_ms"):
+            return st
+        return None
+
+    def open_exposure(self) -> None:
+        """Start integrating: remember when (the stage's clock) and where the sensor is."""
+        if not self._connected:
+            raise LinkError("the simulated camera is not connected", path=f"camera {self.name}",
+                            fix="call connect() first")
+        st = self._stage_clock()
+        self._open = (None if st is None else float(st.now_ms()), float(self._position()))
+
+    def _z_of_t(self):
+        """Sensor position over the exposure: the simulated stage's exact trajectory, else (another stage) the
+        readings at open and close joined at constant velocity."""
+        t_open, z_open = self._open
+        st = self._stage_clock()
+        if st is not None and t_open is not None:
+            return lambda t: st.true_position_at_ms(t_open + t)
+        z_close = float(self._position())
+        T = self._exposure_ms
+        return lambda t: z_open + (z_close - z_open) * (t / T)
+
+    def close_exposure(self) -> Frame:
+        """End the exposure: integrate the scene over the motion, gated by the exposure device, noise once."""
+        from ..simulate.noise import frame_rng
+        from ..simulate.sweep_exposure import n_sub_for, render_sweep_exposure
+        from .exposure import frame_weights
+        if self._open is None:
+            raise DeviceFault("close_exposure without open_exposure", code=1, device=f"camera {self.name}",
+                              fix="open the exposure before closing it")
+        z_of_t = self._z_of_t()
+        T = self._exposure_ms
+        n = n_sub_for(z_of_t(T) - z_of_t(0.0), self.sub_step_um)
+        weights = None
+        dev = self._exposure_device
+        if dev is not None:
+            tl = dev.timeline
+            if tuple(tl.shape[1:]) != (self.size[1], self.size[0]):
+                raise DeviceFault(f"the exposure device's masks are {tl.shape[2]}x{tl.shape[1]} px, the camera "
+                                  f"{self.size[0]}x{self.size[1]} px", code=1, device=f"camera {self.name}",
+                                  fix="export masks of a plan made for this camera's size")
+            mosaic = bool(self.spec.sensor.cfa)
+            weights = lambda t0, t1: frame_weights(tl.open_fraction(t0, t1), tl.planes, self.spec.channel_names,  # noqa: E731
+                                                   mosaic, dev.folder)
+        self._frame_id += 1
+        rng = frame_rng(self.seed + self._frame_id, self._open[1]) if self.noise else None
+        img = render_sweep_exposure(self._renderer, z_of_t, T, n_sub=n, weights=weights, rng=rng)
+        if img.ndim == 2:
+            img = img[:, :, None]
+        if self._roi is not None:
+            x, y, w, h = self._roi
+            img = img[y:y + h, x:x + w]
+        meta = {"z_open_um": float(z_of_t(0.0)), "z_close_um": float(z_of_t(T)), "sub_exposures": n,
+                "noise": "once, on the total exposure"}
+        self._open = None
+        return Frame(image=np.ascontiguousarray(img), frame_id=self._frame_id, exposure_ms=T,
+                     timestamp_ms=time.time() * 1000.0, meta=meta)
+
+
+class SimExposureDevice:
+    """A simulated per-pixel exposure device (LCoS or pixel-wise sensor) holding the masks of an export folder.
+
+    Device string: ``sim:FOLDER`` (the folder ``fieldcal plan export-masks`` wrote). The simulated camera reads
+    :attr:`timeline` while it integrates; :meth:`start`/:meth:`stop` record the trigger as hardware would.
+    """
+
+    OPTIONS: set[str] = set()
+
+    def __init__(self, folder: str | Path | None = None, *, name: str = "sim"):
+        self.name = name if folder is None else f"sim:{folder}"
+        self.folder: Path | None = None
+        self.manifest: dict | None = None
+        self.timeline = None
+        self.arrays: dict | None = None
+        self.state = "idle"
+        self.triggers = 0
+        if folder is not None:
+            self.load_masks(folder)
+
+    @classmethod
+    def from_spec(cls, arg: str | None, options: dict[str, str]) -> "SimExposureDevice":
+        device = "exposure device sim" + (f":{arg}" if arg else "")
+        _reject_unknown(options, cls.OPTIONS, device)
+        if not arg:
+            raise ParameterError("the simulated exposure device needs a masks folder", path=device,
+                                 fix="write e.g. --exposure-device sim:sweep-masks (from `fieldcal plan "
+                                     "export-masks PLAN --out sweep-masks`)")
+        return cls(arg)
+
+    def load_masks(self, folder) -> dict:
+        from ..plan.device_masks import load_device_masks
+        from .exposure import MaskTimeline
+        dm = load_device_masks(folder)
+        self.folder = Path(folder)
+        self.manifest, self.arrays = dm.manifest, dm.arrays
+        self.timeline = MaskTimeline.from_device_masks(dm)
+        return dm.manifest
+
+    def connect(self) -> None:
+        if self.manifest is None:
+            raise ParameterError("no masks loaded", path=f"exposure device {self.name}", field="masks",
+                                 fix="give the masks folder: --exposure-device sim:FOLDER")
+
+    def close(self) -> None:
+        self.state = "idle"
+
+    def identify(self) -> str:
+        return f"fieldcal simulated exposure device ({self.manifest['device'] if self.manifest else 'no masks'})"
+
+    def describe(self) -> dict[str, Any]:
+        m = self.manifest or {}
+        return {"kind": "sim", "name": self.name, "device": m.get("device"), "planes": m.get("planes"),
+                "image_size_px": m.get("image_size_px"), "total_time_ms": m.get("total_time_ms"),
+                "pixel_exposure_ms": m.get("pixel_exposure_ms"), "plan": m.get("plan"),
+                "folder": None if self.folder is None else str(self.folder)}
+
+    def arm(self) -> None:
+        self.state = "armed"
+
+    def start(self) -> None:
+        if self.state != "armed":
+            raise DeviceFault("triggered while not armed", code=1, device=f"exposure device {self.name}",
+                              fix="arm() before the exposure opens")
+        self.state = "running"
+        self.triggers += 1
+
+    def stop(self) -> None:
+        self.state = "idle"
