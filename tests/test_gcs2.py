@@ -123,14 +123,16 @@ def test_single_char_commands(bench):
     assert stage.client.query("#5") == ["1"]  # moving, however long the reply took
     emu.clock.advance(0.5)
     assert stage.client.query("#5") == ["1"]
-    assert stage.position_um() == pytest.approx(250.0, abs=1e-3)
+    # on the plateau of the trapezoid: x = v (t - v / 2a)
+    x_um = 0.5 * (0.5 - 0.5 / (2 * emu.acc)) * 1000.0
+    assert stage.position_um() == pytest.approx(x_um, abs=1e-3)
     stage.stop()
     assert "\x18" in emu.received
     assert emu.error == 0  # stop() read and cleared error 10
     assert not emu.moving()
     assert stage.client.query("#5") == ["0"]
     emu.clock.advance(5.0)
-    assert stage.position_um() == pytest.approx(250.0, abs=1e-3)  # stopped where it was
+    assert stage.position_um() == pytest.approx(x_um, abs=1e-3)  # stopped where it was
 
 
 def test_dropped_reply_is_a_link_error_and_resync_recovers(bench):

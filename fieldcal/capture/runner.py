@@ -83,6 +83,9 @@ class Runner:
         self._trigger_set = False
         self._timeout_ms = 30000.0
         self._restore_velocity: float | None = None
+        self._trigger_armed = False
+        self._msgs: list[Message] = []
+        self._k = 0
 
     # ------------------------------------------------------------------ checks
     def preflight(self, stream: list[Message]) -> None:
@@ -97,6 +100,7 @@ class Runner:
         """Execute ``stream``; returns the number of frames saved. Stops the stage on any failure."""
         msgs = list(stream)
         self.preflight(msgs)
+        self._msgs = msgs
         k, seg, attempts, recovering = 0, None, 0, False
         try:
             while k < len(msgs):
@@ -110,6 +114,7 @@ class Runner:
                             self._do(WaitOnTarget(self._timeout_ms))
                             recovering = False
                     else:
+                        self._k = k
                         self._do(m)
                     k += 1
                 except LinkError as exc:
@@ -134,6 +139,17 @@ class Runner:
         self._sweep = None
         if self.exposure_device is not None:
             self.exposure_device.stop()
+
+    def _arm_trigger(self) -> None:
+        """A stage with a position-trigger output is told the exposure's range before the sweep starts."""
+        self._trigger_armed = False
+        if not hasattr(self.stage, "arm_sweep_trigger"):
+            return
+        k = self._k + 1  # the OpenExposure/CloseExposure that follow name the range
+        at = [getattr(m, "at_um", None) for m in self._msgs[k:k + 2]]
+        if len(at) == 2 and None not in at:
+            self.stage.arm_sweep_trigger(at[0], at[1])
+            self._trigger_armed = True
 
     def _wait_past(self, z_um: float) -> None:
         """Block until the sweep's move passes ``z_um``: the stage's own wait (exact on the simulated stage),
@@ -168,6 +184,9 @@ class Runner:
             if self._restore_velocity is not None:
                 self.stage.set_velocity_um_per_s(self._restore_velocity)
                 self._restore_velocity = None
+                if self._trigger_armed:
+                    self.stage.disarm_sweep_trigger()
+                    self._trigger_armed = False
         elif isinstance(m, Settle):
             self.sleep(m.ms / 1000.0)
         elif isinstance(m, Expose):
@@ -179,6 +198,7 @@ class Runner:
         elif isinstance(m, SweepMove):
             self._restore_velocity = self.stage.velocity_um_per_s()
             self.stage.set_velocity_um_per_s(m.velocity_um_s)
+            self._arm_trigger()
             self.stage.move_to_um(m.z_stop_um)
             self._sweep = m
         elif isinstance(m, OpenExposure):

@@ -81,6 +81,7 @@ def error_text(code: int) -> str:
 
 SINGLE_CHAR = {"#5": b"\x05", "#7": b"\x07", "#24": b"\x18"}
 _AXIS_VALUE = re.compile(r"^\s*([A-Za-z0-9_]+)\s*=\s*(\S+)\s*$")
+_PARAM_VALUE = re.compile(r"^\s*([A-Za-z0-9_]+)\s+(0x[0-9A-Fa-f]+)\s*=\s*(\S+)\s*$")
 
 
 class GCS2Client:
@@ -296,15 +297,23 @@ class GCS2Client:
 class GCS2Stage:
     """One axis of a GCS2 controller as a fieldcal :class:`~fieldcal.hardware.protocols.Stage` (µm).
 
-    Device string: ``gcs:PORT[,axis=1][,baud=115200][,zero_mm=7.5][,sign=1][,timeout_ms=500][,poll_ms=10]``.
-    ``zero_mm`` defaults to mid-travel of the M-111.1DG (15 mm travel).
+    Device string: ``gcs:PORT[,axis=1][,baud=115200][,zero_mm=7.5][,sign=1][,timeout_ms=500][,poll_ms=10]``
+    ``[,max_velocity_mm_s=V][,trigger_out=N]``. ``zero_mm`` defaults to mid-travel of the M-111.1DG (15 mm travel).
+
+    Sweeps (docs/hardware.md, "Focal sweeps"): the velocity limit is ``max_velocity_mm_s`` when given, else the
+    controller's parameter 0xA (``SPA? axis 0xA``, "maximum closed-loop velocity"); the acceleration is
+    ``ACC?``. With ``trigger_out=N`` the controller's digital output N is configured with ``CTO`` (trigger mode 0,
+    PositionDistance, between the sweep's start and stop) and enabled with ``TRO`` for the sweep, so a camera
+    wired to it and set to an external trigger opens exactly at ``start_um``.
     """
 
-    OPTIONS = {"axis", "baud", "zero_mm", "sign", "timeout_ms", "poll_ms", "velocity_mm_s"}
+    OPTIONS = {"axis", "baud", "zero_mm", "sign", "timeout_ms", "poll_ms", "velocity_mm_s", "max_velocity_mm_s",
+               "trigger_out"}
 
     def __init__(self, port: str, *, axis: str = "1", baudrate: int = 115200, zero_mm: float = 7.5,
                  sign: int = 1, timeout_ms: float = 500.0, poll_ms: float = 10.0,
-                 velocity_mm_s: float | None = None):
+                 velocity_mm_s: float | None = None, max_velocity_mm_s: float | None = None,
+                 trigger_out: int | None = None):
         if sign not in (1, -1):
             raise ParameterError(f"sign must be 1 or -1, got {sign}", path=f"stage gcs:{port}", field="sign",
                                  fix="sign=1 when the controller's + moves the sensor away from the lens, else -1")
@@ -314,6 +323,12 @@ class GCS2Stage:
         self.sign = int(sign)
         self.poll_ms = float(poll_ms)
         self._velocity_mm_s = velocity_mm_s
+        self._max_velocity_mm_s = max_velocity_mm_s
+        if trigger_out is not None and trigger_out not in (1, 2, 3, 4):
+            raise ParameterError(f"trigger_out={trigger_out} is not a digital output line 1..4", path=f"stage gcs:{port}",
+                                 field="trigger_out", fix="give the C-863's output line the camera is wired to, e.g. "
+                                                          "trigger_out=1")
+        self.trigger_out = trigger_out
         self.name = f"gcs:{port}"
 
     @classmethod
@@ -328,7 +343,8 @@ class GCS2Stage:
                                  fix=f"known options: {', '.join(sorted(cls.OPTIONS))}")
         # option -> (low, high, low excluded): finite ranges, so nan/inf/absurd values never reach the controller
         ranges = {"zero_mm": (-1000.0, 1000.0, False), "timeout_ms": (0.0, 600000.0, True),
-                  "poll_ms": (0.0, 10000.0, True), "velocity_mm_s": (0.0, 1000.0, True)}
+                  "poll_ms": (0.0, 10000.0, True), "velocity_mm_s": (0.0, 1000.0, True),
+                  "max_velocity_mm_s": (0.0, 1000.0, True)}
         try:
             kw: dict[str, Any] = {}
             if "axis" in options:
@@ -348,6 +364,8 @@ class GCS2Stage:
                     kw[key] = v
             if "sign" in options:
                 kw["sign"] = int(options["sign"])
+            if "trigger_out" in options:
+                kw["trigger_out"] = int(options["trigger_out"])
         except ValueError as exc:
             raise ParameterError(f"bad option value ({exc})", path=device, fix="options are key=number") from None
         return cls(arg, **kw)
@@ -376,7 +394,8 @@ class GCS2Stage:
     def describe(self) -> dict[str, Any]:
         return {"kind": "gcs", "name": self.name, "identity": self.client.identity, "axis": self.axis,
                 "units": "controller mm; z_um = sign * (pos_mm - zero_mm) * 1000",
-                "zero_mm": self.zero_mm, "sign": self.sign, "port": self.client.port}
+                "zero_mm": self.zero_mm, "sign": self.sign, "port": self.client.port,
+                "max_velocity_mm_s": self._max_velocity_mm_s, "trigger_out": self.trigger_out}
 
     def resync(self) -> None:
         self.client.resync()
@@ -407,6 +426,44 @@ class GCS2Stage:
 
     def set_velocity_um_per_s(self, v: float) -> None:
         self.client.command(f"VEL {self.axis} {v / 1000.0:.6f}")
+
+    def max_velocity_um_per_s(self) -> float:
+        """``max_velocity_mm_s`` when given, else ``SPA? axis 0xA`` (maximum closed-loop velocity, mm/s)."""
+        if self._max_velocity_mm_s is not None:
+            return self._max_velocity_mm_s * 1000.0
+        cmd = f"SPA? {self.axis} 0xA"
+        lines = self.client.query(cmd)  # the reply names axis and parameter: "1 0xA=2.000000"
+        for line in lines:
+            m = _PARAM_VALUE.match(line)
+            if m and m.group(1) == self.axis and int(m.group(2), 16) == 0xA:
+                try:
+                    v = float(m.group(3))
+                except ValueError:
+                    break
+                if math.isfinite(v) and v > 0:
+                    return v * 1000.0
+        raise self.client._link_error(f"garbled reply {lines!r} (expected '{self.axis} 0xA=value')", cmd)
+
+    def acceleration_um_per_s2(self) -> float:
+        """``ACC?`` (closed-loop acceleration, mm/s²)."""
+        return self.client.query_float("ACC?", self.axis) * 1000.0
+
+    def arm_sweep_trigger(self, start_um: float, stop_um: float) -> None:
+        """With ``trigger_out``: ``CTO`` the line to pulse at ``start_um`` (and at ``stop_um``: TriggerStep is the
+        whole range) while the axis moves from start to stop, then ``TRO line 1``. Without it: nothing (the
+        runner polls ``POS?`` to open the exposure, which is late by up to one poll)."""
+        if self.trigger_out is None:
+            return
+        n = self.trigger_out
+        a, b = self._to_mm(start_um), self._to_mm(stop_um)
+        # CTO parameter IDs of the C-863.12 (MS249E, CTO): 1 TriggerStep, 2 Axis, 3 TriggerMode (0 =
+        # PositionDistance), 8 StartThreshold, 9 StopThreshold
+        self.client.command(f"CTO {n} 2 {self.axis} {n} 3 0 {n} 1 {abs(b - a):.6f} {n} 8 {a:.6f} {n} 9 {b:.6f}")
+        self.client.command(f"TRO {n} 1")
+
+    def disarm_sweep_trigger(self) -> None:
+        if self.trigger_out is not None:
+            self.client.command(f"TRO {self.trigger_out} 0")
 
     def move_to_um(self, z_um: float) -> None:
         self.client.command(f"MOV {self.axis} {self._to_mm(z_um):.6f}")

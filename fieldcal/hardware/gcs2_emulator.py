@@ -7,12 +7,18 @@ It is the test bench of :mod:`fieldcal.hardware.gcs2` and a dry-run aid for labs
 
 What it emulates (GCS2 syntax; details we could not check against a real C-863 are listed in docs/hardware.md):
 ``*IDN?``, ``ERR?``, ``MOV``, ``MOV?``, ``POS?``, ``ONT?``, ``SVO``, ``SVO?``, ``FRF``, ``FRF?``, ``VEL``,
-``VEL?``, ``TMN?``, ``TMX?``, ``CST?``, ``SAI?``, ``HLT``, ``STP``, ``HLP?`` (multi-line), and the single-byte
+``VEL?``, ``ACC``, ``ACC?``, ``SPA? axis 0xA`` (maximum velocity), ``CTO``, ``CTO?``, ``TRO``, ``TRO?``,
+``TMN?``, ``TMX?``, ``CST?``, ``SAI?``, ``HLT``, ``STP``, ``HLP?`` (multi-line), and the single-byte
 ``#5`` (motion status), ``#7`` (ready) and ``#24`` (stop). Errors are latched like the controller does: the
 last error code is kept until ``ERR?`` reads (and clears) it. Codes: 0 none, 1 syntax, 2 unknown command,
 5 move without reference/servo, 7 out of limits, 8 velocity out of limits, 10 stopped, 15 invalid axis,
 1024 motion error (PI_CNTR_MOTION_ERROR, as a C-863 answers ERR?; -1024 is the GCS DLL's code, not the
 controller's).
+
+Motion: a trapezoidal velocity profile (:mod:`fieldcal.hardware.motion`): a move of d mm takes
+``d / VEL + VEL / ACC`` s (a triangle when too short to reach VEL). Every ``VEL``, ``ACC`` and ``MOV`` accepted is
+appended to :attr:`GCS2Emulator.motion_log` with its emulated time; with a trigger output enabled (``CTO`` mode
+0, ``TRO n 1``) every crossing of a trigger position during a move is appended to :attr:`trigger_log`.
 
 Time: the motion model reads an injectable ``clock`` (seconds). The default is the wall clock; tests pass a
 :class:`ManualClock` and advance it themselves, so no test depends on how fast the machine is.
@@ -30,6 +36,8 @@ import socket
 import threading
 import time
 import tty
+
+from .motion import move_duration_s, time_at_um, travelled_um
 
 IDN = "(c)2015 Physik Instrumente (PI) GmbH & Co. KG, C-863.11, 0115000001, 01.000"
 HELP_LINES = ["The following commands are available:", "#5 Request Motion Status", "#7 Request Controller Ready Status",
@@ -77,10 +85,16 @@ class GCS2Emulator:
 
     def __init__(self, *, travel_mm=(0.0, 15.0), velocity_mm_s: float = 1.5, max_velocity_mm_s: float = 2.0,
                  settle_ms: float = 5.0, reference_mm: float = 7.5, time_scale: float = 1.0, idn: str = IDN,
-                 stage_name: str = "M-111.1DG", clock=None):
+                 stage_name: str = "M-111.1DG", clock=None, accel_mm_s2: float = 20.0):
         self.tmn, self.tmx = float(travel_mm[0]), float(travel_mm[1])
         self.vel = float(velocity_mm_s)
         self.max_vel = float(max_velocity_mm_s)
+        self.acc = float(accel_mm_s2)
+        self._seg_vel = self.vel
+        self.motion_log: list[dict] = []   # {"t_s", "cmd", "value"} of every accepted VEL/ACC/MOV
+        self.trigger_log: list[dict] = []  # {"t_s", "line", "pos_mm"} of every trigger pulse
+        self.cto: dict[int, dict[int, float]] = {}
+        self.tro: dict[int, bool] = {}
         self.settle_s = settle_ms / 1000
         self.reference_mm = float(reference_mm)
         self.time_scale = float(time_scale)
@@ -132,10 +146,10 @@ class GCS2Emulator:
         t0, a, b, dur = self._seg
         if dur <= 0:
             return b
-        frac = min(1.0, max(0.0, (self._now() - t0) / dur))
+        x = travelled_um(self._now() - t0, b - a, self._seg_vel, self.acc)
         if self._motion_error:
-            frac = min(frac, 0.5)
-        return a + frac * (b - a)
+            x = min(x, 0.5 * abs(b - a))  # a symmetric profile: half the distance at half the time
+        return a + (x if b >= a else -x)
 
     def moving(self) -> bool:
         t0, a, b, dur = self._seg
@@ -157,9 +171,30 @@ class GCS2Emulator:
 
     def _start(self, target: float) -> None:
         here = self.position()
-        dur = abs(target - here) / self.vel
+        dur = move_duration_s(target - here, self.vel, self.acc)
         self._seg = (self._now(), here, target, dur)
+        self._seg_vel = self.vel
         self._motion_error = False
+        self._log_triggers()
+
+    def _log_triggers(self) -> None:
+        """Trigger pulses of the move just started (PositionDistance between start and stop thresholds)."""
+        t0, a, b, dur = self._seg
+        for line, on in self.tro.items():
+            cfg = self.cto.get(line, {})
+            if not on or cfg.get(3, 0) != 0 or 8 not in cfg or 9 not in cfg:
+                continue
+            step = abs(cfg.get(1, 0.0))
+            lo, hi = cfg[8], cfg[9]
+            n = int(abs(hi - lo) / step + 1e-9) + 1 if step > 0 else 1
+            for k in range(n):
+                p = lo + (k * step if hi >= lo else -k * step)
+                if min(a, b) <= p <= max(a, b) and (b - a) * (hi - lo) > 0:
+                    t = t0 + time_at_um(abs(p - a), b - a, self._seg_vel, self.acc)
+                    self.trigger_log.append({"t_s": t, "line": line, "pos_mm": p})
+
+    def _log(self, cmd: str, value: float) -> None:
+        self.motion_log.append({"t_s": self._now(), "cmd": cmd, "value": value})
 
     def _halt(self) -> None:
         here = self.position()
@@ -204,13 +239,35 @@ class GCS2Emulator:
             return f"{code}\n"
         if name == "HLP?":
             return " \n".join(HELP_LINES) + "\n"
-        if name in ("POS?", "MOV?", "ONT?", "SVO?", "FRF?", "VEL?", "TMN?", "TMX?", "CST?"):
+        if name == "SPA?":
+            if len(args) != 2 or self._axes(args[:1]) is None:
+                if len(args) != 2:
+                    self._set_error(24)
+                return None
+            try:
+                pid = int(args[1], 0)
+            except ValueError:
+                self._set_error(1)
+                return None
+            if pid != 0xA:  # only the maximum closed-loop velocity is emulated
+                self._set_error(17)
+                return None
+            return f"{args[0]} 0xA={self.max_vel:.7f}\n"
+        if name in ("CTO", "TRO"):
+            return self._trigger_config(name, args)
+        if name in ("CTO?", "TRO?"):
+            if name == "TRO?":
+                return " \n".join(f"{k}={int(v)}" for k, v in sorted(self.tro.items())) + "\n" if self.tro else "\n"
+            rows = [f"{line} {pid}={val:g}" for line, cfg in sorted(self.cto.items()) for pid, val in sorted(cfg.items())]
+            return " \n".join(rows) + "\n" if rows else "\n"
+        if name in ("POS?", "MOV?", "ONT?", "SVO?", "FRF?", "VEL?", "ACC?", "TMN?", "TMX?", "CST?"):
             axes = self._axes(args)
             if axes is None:
                 return None
             vals = {"POS?": lambda: f"{self.position():.7f}", "MOV?": lambda: f"{self._seg[2]:.7f}",
                     "ONT?": lambda: str(int(self.on_target())), "SVO?": lambda: str(int(self.servo)),
                     "FRF?": lambda: str(int(self.referenced)), "VEL?": lambda: f"{self.vel:.7f}",
+                    "ACC?": lambda: f"{self.acc:.7f}",
                     "TMN?": lambda: f"{self.tmn:.7f}", "TMX?": lambda: f"{self.tmx:.7f}",
                     "CST?": lambda: self.stage_name}[name]
             return " \n".join(f"{a}={vals()}" for a in axes) + "\n"
@@ -239,7 +296,7 @@ class GCS2Emulator:
             self._referencing = True
             self._start(self.reference_mm)
             return None
-        if name in ("MOV", "VEL"):
+        if name in ("MOV", "VEL", "ACC"):
             if len(args) != 2:
                 self._set_error(1)
                 return None
@@ -255,18 +312,52 @@ class GCS2Emulator:
                     self._set_error(8)
                 else:
                     self.vel = value
+                    self._log("VEL", value)
+                return None
+            if name == "ACC":
+                if not (0 < value <= 1e4):
+                    self._set_error(17)
+                else:
+                    self.acc = value
+                    self._log("ACC", value)
                 return None
             if not (self.servo and self.referenced):
                 self._set_error(5)
             elif not (self.tmn <= value <= self.tmx):
                 self._set_error(7)
             else:
+                self._log("MOV", value)
                 self._start(value)
                 if self._motion_error_armed:
                     self._motion_error_armed = False
                     self._motion_error = True
             return None
         self._set_error(2)
+        return None
+
+    def _trigger_config(self, name: str, args: list[str]) -> None:
+        """``CTO {line pid value}`` / ``TRO {line 0|1}`` for digital outputs 1..4 (C-863.12: CTO parameter IDs 1
+        TriggerStep, 2 Axis, 3 TriggerMode, 7 Polarity, 8 StartThreshold, 9 StopThreshold, 10 TriggerPosition)."""
+        width = 3 if name == "CTO" else 2
+        if not args or len(args) % width:
+            self._set_error(24)
+            return None
+        try:
+            groups = [[float(v) for v in args[i:i + width]] for i in range(0, len(args), width)]
+        except ValueError:
+            self._set_error(1)
+            return None
+        for g in groups:
+            line = int(g[0])
+            if line not in (1, 2, 3, 4) or (name == "CTO" and int(g[1]) not in (1, 2, 3, 7, 8, 9, 10)) \
+                    or (name == "TRO" and g[1] not in (0, 1)):
+                self._set_error(17)
+                return None
+        for g in groups:
+            if name == "CTO":
+                self.cto.setdefault(int(g[0]), {})[int(g[1])] = g[2]
+            else:
+                self.tro[int(g[0])] = bool(g[1])
         return None
 
     # ------------------------------------------------------------------ faults applied on the way out
