@@ -69,7 +69,8 @@ def test_plan_rejects_bad_input(tmp_path):
         CapturePlan.from_file(p)
     sweep = json.loads((Path(__file__).parent / "data" / "legacy" / "plan-sweep.json").read_text())
     p.write_text(json.dumps(sweep))
-    with pytest.raises(SpecError, match="kind"):
+    # an LCoS sweep cannot be one constant-velocity exposure (pixel-wise sweeps run: tests/test_capture_sweep.py)
+    with pytest.raises(SpecError, match="pixel-wise exposure sensor only"):
         CapturePlan.from_file(p)
     p.write_text(json.dumps({"format": "fieldcal-plan/1", "kind": "stack", "parameters": {}, "direction": "+z",
                              "frames": [{"z_um": 1}, {"z_um": 1}]}))

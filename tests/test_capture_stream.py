@@ -109,6 +109,13 @@ class _ExposingCamera(SimCamera):
         return Frame(img, 1, self._exposure_ms, 0.0, {"z_open_um": self._opened_at, "z_close_um": z})
 
 
+class _SnapOnlyCamera:
+    """A camera that only snaps (the simulated camera also exposes during motion)."""
+
+    def __init__(self, *a, **k):
+        self.name = "snap-only"
+
+
 class _ListSink:
     def __init__(self):
         self.saved = []
@@ -136,7 +143,7 @@ def test_room_for_a_constant_velocity_sweep(triplet_path):
     a = stage.acceleration_um_per_s2()
     assert stage._clock_ms == pytest.approx((60 / 1500 + 1500 / a) * 1e3 + 20.0 + (120 / 200 + 200 / a) * 1e3 + 20.0)
     # a camera that cannot expose during motion is refused before anything moves
-    plain = SimCamera(triplet_path, size=SIZE)
+    plain = _SnapOnlyCamera(triplet_path, size=SIZE)
     s2 = SimStage(referenced=True)
     s2.connect()
     with pytest.raises(ParameterError, match="cannot expose during motion"):

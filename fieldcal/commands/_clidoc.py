@@ -42,6 +42,9 @@ fieldcal report lens.json --out report/
 fieldcal plan stack lens.json --fs 10 --q 0.05 --confidence 0.95 --out plan.json --plots plan-plots/
 fieldcal plan sweep lens.json --alpha-um 20 --pixel-exposure-ms 16 --device lcos --channels G --out sweep.json
 fieldcal plan export-masks sweep.json --out sweep-masks            # the LCoS masks as 1-bit PNGs + masks.json
+fieldcal plan sweep lens.json --alpha-um 20 --pixel-exposure-ms 10 --device pixel --out sweep-pixel.json
+fieldcal plan export-masks sweep-pixel.json --out sweep-pixel-masks   # start/stop register maps (16-bit TIFF)
+fieldcal capture --plan sweep-pixel.json --stage sim --camera sim:models/triplet-uncorrected.json,size=320x180,sub_step_um=5 --exposure-device sim:sweep-pixel-masks --out swept
 fieldcal capture --plan plan.json --stage sim --camera sim:models/triplet-uncorrected.json,size=320x180 --out scene
 fieldcal composite scene --profile lens.json --out image.tiff
 fieldcal validate models/triplet-uncorrected.json --size 256x144 --effort quick --out validation/
