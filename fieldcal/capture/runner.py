@@ -196,7 +196,8 @@ class Runner:
             frame = self.camera.snap()
             self._shot = Shot(m.frame_index, frame, z0, self.stage.position_um(), t)
         elif isinstance(m, SweepMove):
-            self._restore_velocity = self.stage.velocity_um_per_s()
+            if self._restore_velocity is None:  # a replayed sweep (after a link error) keeps the original
+                self._restore_velocity = self.stage.velocity_um_per_s()
             self.stage.set_velocity_um_per_s(m.velocity_um_s)
             self._arm_trigger()
             self.stage.move_to_um(m.z_stop_um)

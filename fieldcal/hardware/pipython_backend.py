@@ -79,7 +79,8 @@ class PipythonStage(GCS2Stage):
                                  fix="pip install 'fieldcal[pi]', or use the built-in client: stage gcs:PORT") from None
         base = GCS2Stage.from_spec(arg, options)
         return cls(arg, axis=base.axis, baudrate=base.client.baudrate, zero_mm=base.zero_mm, sign=base.sign,
-                   timeout_ms=base.client.timeout_ms, poll_ms=base.poll_ms, velocity_mm_s=base._velocity_mm_s)
+                   timeout_ms=base.client.timeout_ms, poll_ms=base.poll_ms, velocity_mm_s=base._velocity_mm_s,
+                   max_velocity_mm_s=base._max_velocity_mm_s, trigger_out=base.trigger_out)
 
     @property
     def device(self) -> str:
@@ -165,6 +166,26 @@ class PipythonStage(GCS2Stage):
 
     def set_velocity_um_per_s(self, v: float) -> None:
         self._call(self.dev.VEL, self.axis, v / 1000.0)
+
+    # sweeps: the same GCS2 commands as gcs:, through pipython's wrappers (untested without pipython installed)
+    def max_velocity_um_per_s(self) -> float:
+        if self._max_velocity_mm_s is not None:
+            return self._max_velocity_mm_s * 1000.0
+        return float(self._call(self.dev.qSPA, self.axis, 0xA)[self.axis][0xA]) * 1000.0
+
+    def acceleration_um_per_s2(self) -> float:
+        return float(self._call(self.dev.qACC, self.axis)[self.axis]) * 1000.0
+
+    def arm_sweep_trigger(self, start_um: float, stop_um: float) -> None:
+        if self.trigger_out is None:
+            return
+        n, a, b = self.trigger_out, self._to_mm(start_um), self._to_mm(stop_um)
+        self._call(self.dev.CTO, [n] * 5, [2, 3, 1, 8, 9], [self.axis, 0, abs(b - a), a, b])
+        self._call(self.dev.TRO, n, True)
+
+    def disarm_sweep_trigger(self) -> None:
+        if self.trigger_out is not None:
+            self._call(self.dev.TRO, self.trigger_out, False)
 
     def move_to_um(self, z_um: float) -> None:
         self._call(self.dev.MOV, self.axis, self._to_mm(z_um))
