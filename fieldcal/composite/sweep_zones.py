@@ -16,7 +16,7 @@ The kernel therefore varies over the field. :func:`deconvolve_zones` cuts the im
 exact moving-sweep OTF of its centre (:func:`fieldcal.optics.sweep.moving_sweep_otf`: defocus and motion
 integrated jointly) to the lens's in-focus image, and :func:`register_to_reference` then maps the result to the
 ``z_ref`` geometry (where stacks are composited and the simulator's truth lives). ``breathing="blind"`` keeps the
-zones and the registration but drops the motion from the kernel: the comparison ``benchmarks/bench_sweep_kernel.py``
+zones and the registration but drops the motion from the kernel: the comparison ``benchmarks/bench_sweep_vs_stack.py``
 measures.
 """
 

@@ -52,7 +52,8 @@ def default_step_um(renderer: Renderer, max_change_px: float = 0.25) -> float:
 def render_sweep_exposure(renderer: Renderer, start_um: float, velocity_um_per_ms: float, total_time_ms: float,
                           window_start_ms: np.ndarray, window_stop_ms: np.ndarray, *, direction: str = "+z",
                           step_um: float | None = None, noise: bool = True, seed: int | None = None) -> SweepExposure:
-    """Integrate the renderer's scene over a constant-velocity sweep with per-pixel exposure windows.
+    """Integrate the renderer's scene over a constant-velocity sweep with per-pixel exposure windows, then record
+    the total once (noise, gain, clipping, quantisation).
 
     Parameters
     ----------
@@ -74,6 +75,27 @@ def render_sweep_exposure(renderer: Renderer, start_um: float, velocity_um_per_m
         ``image`` in the sensor's dtype (a Bayer mosaic if the sensor has a CFA), ``info`` with the
         sub-exposure count, step and per-channel mean open time.
     """
+    signal, info = integrate_sweep_signal(renderer, start_um, velocity_um_per_ms, total_time_ms, window_start_ms,
+                                          window_stop_ms, direction=direction, step_um=step_um)
+    return SweepExposure(record(signal, renderer, noise=noise, seed=seed), info)
+
+
+def record(signal: np.ndarray, renderer: Renderer, *, noise: bool = True, seed: int | None = None) -> np.ndarray:
+    """The sensor's recording of an integrated signal (fraction of full well, H x W x C): mosaic if the sensor
+    has a CFA, photon and read noise once (seeded), gain, clipping, quantisation."""
+    if renderer.spec.sensor.cfa:
+        signal = _noise.mosaic(signal, renderer.channels, renderer.spec.sensor.cfa)
+    rng = None
+    if noise:
+        rng = np.random.default_rng(np.random.SeedSequence([renderer.seed if seed is None else int(seed), 0x5EE9]))
+    return _noise.to_dn(signal, renderer.spec.sensor, rng)
+
+
+def integrate_sweep_signal(renderer: Renderer, start_um: float, velocity_um_per_ms: float, total_time_ms: float,
+                           window_start_ms: np.ndarray, window_stop_ms: np.ndarray, *, direction: str = "+z",
+                           step_um: float | None = None) -> tuple[np.ndarray, dict]:
+    """The noise-free integrated signal of :func:`render_sweep_exposure` (float32 H x W x C, fraction of full
+    well) and the integration's info."""
     if direction not in ("+z", "-z"):
         raise ParameterError(f"direction {direction!r} unknown", field="direction", fix="use +z or -z")
     for name, val in (("velocity_um_per_ms", velocity_um_per_ms), ("total_time_ms", total_time_ms)):
@@ -108,13 +130,7 @@ def render_sweep_exposure(renderer: Renderer, start_um: float, velocity_um_per_m
         frame = renderer.render_float(float(start_um) + sign * float(velocity_um_per_ms) * 0.5 * (a + b))
         wts = np.moveaxis(open_ms, 0, -1) / np.float32(ref_ms)   # (H, W, 1 or C)
         signal += frame * wts
-    if renderer.spec.sensor.cfa:
-        signal = _noise.mosaic(signal, renderer.channels, renderer.spec.sensor.cfa)
-    rng = None
-    if noise:
-        rng = np.random.default_rng(np.random.SeedSequence([renderer.seed if seed is None else int(seed), 0x5EE9]))
-    img = _noise.to_dn(signal, renderer.spec.sensor, rng)
     open_total = np.maximum(t1 - t0, 0.0)
-    return SweepExposure(img, {"sub_exposures": n_sub, "step_um": step, "reference_exposure_ms": ref_ms,
-                               "mean_open_ms": [round(float(v), 4) for v in open_total.reshape(open_total.shape[0], -1)
-                                                .mean(axis=1)]})
+    mean_open = open_total.reshape(open_total.shape[0], -1).mean(axis=1)
+    return signal, {"sub_exposures": n_sub, "step_um": step, "reference_exposure_ms": ref_ms,
+                    "mean_open_ms": [round(float(v), 4) for v in mean_open]}
