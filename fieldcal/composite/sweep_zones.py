@@ -163,7 +163,8 @@ def register_to_reference(channel_image: np.ndarray, model: LensModel, channel: 
 
     Sensor pixel p saw the scene point q with ``p = c + m(z_c(p)) (q - c) + s(z_c(p))``, z_c its window centre;
     for each output pixel q this solves for p by fixed-point iteration (the map is within a few per cent of
-    the identity) and samples the image there (cubic, mirrored edges).
+    the identity) and samples the image there (Lanczos-4, mirrored edges: cubic interpolation cost 0.85 dB PSNR on
+    the sweep benchmark's chart).
     """
     import cv2
 
@@ -177,5 +178,5 @@ def register_to_reference(channel_image: np.ndarray, model: LensModel, channel: 
         m, sx, sy = _geometry(model, z, channel)
         px = cx + m * (qx - cx) + sx
         py = cy + m * (qy - cy) + sy
-    return cv2.remap(img, px.astype(np.float32), py.astype(np.float32), interpolation=cv2.INTER_CUBIC,
+    return cv2.remap(img, px.astype(np.float32), py.astype(np.float32), interpolation=cv2.INTER_LANCZOS4,
                      borderMode=cv2.BORDER_REFLECT)

@@ -134,3 +134,16 @@ def integrate_sweep_signal(renderer: Renderer, start_um: float, velocity_um_per_
     mean_open = open_total.reshape(open_total.shape[0], -1).mean(axis=1)
     return signal, {"sub_exposures": n_sub, "step_um": step, "reference_exposure_ms": ref_ms,
                     "mean_open_ms": [round(float(v), 4) for v in mean_open]}
+
+
+def model_noise_sigma(image: np.ndarray, renderer: Renderer) -> list[float]:
+    """RMS pixel noise (DN) per channel of a recorded image under the sensor's noise model (photon + read):
+    ``sqrt(mean(g (DN - black) + (g read)^2))`` — what a camera's noise calibration gives a deconvolution
+    instead of an estimate from the image (which texture inflates)."""
+    s = renderer.spec.sensor
+    g = _noise.gain_dn_per_e(s)
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim == 2:
+        img = img[..., None]
+    var = g * np.clip(img - s.black_level_dn, 0.0, None) + (g * s.read_noise_e) ** 2
+    return [float(np.sqrt(var[..., c].mean())) for c in range(img.shape[2])]
