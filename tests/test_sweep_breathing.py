@@ -107,3 +107,27 @@ def test_registration_undoes_the_sensor_geometry_of_a_captured_sweep(breathing_s
     reg = np.stack([register_to_reference(img[..., c], prof, ch) for c, ch in enumerate(spec.channel_names)], -1)
     # with 8x breathing the window centres (D ~ 330 µm apart) put the corners ~10 px off: registering must help
     assert _psnr(reg, truth, white) > _psnr(img, truth, white) + 1.0
+
+
+def test_sweep_exposure_weights_by_open_time_and_counts_noise_once():
+    from fieldcal.simulate.sweep_exposure import model_noise_sigma
+    base = LensSpec.load(MODELS / "doublet-mono.json").with_sensor_size(64, 48)
+    spec = dataclasses.replace(base, relative_illumination_edge=1.0,
+                               sensor=dataclasses.replace(base.sensor, exposure_ms=10.0, signal_fraction=0.5))
+    rend = Renderer(spec, np.full((48, 64), 0.5, np.float32), seed=4)  # flat: blur and breathing change nothing
+    start = np.zeros((48, 64), np.float32)
+    stop = np.where(np.arange(64)[None, :] < 32, 10.0, 5.0).astype(np.float32) + start  # left t_ref, right half
+    stop[:4, :4] = np.nan  # never exposed
+    sw = render_sweep_exposure(rend, -50.0, 2.0, 10.0, start, stop, step_um=1.0)
+    img = sw.image.astype(np.float64)[..., 0] if sw.image.ndim == 3 else sw.image.astype(np.float64)
+    s = spec.sensor
+    g = (s.white_level_dn - s.black_level_dn) / s.full_well_e
+    full = 0.5 * s.full_well_e * g  # DN above black of one metered exposure (mean scene 0.5 metered at 0.5 FW)
+    left, right = img[8:, 4:28] - s.black_level_dn, img[8:, 36:60] - s.black_level_dn
+    assert left.mean() == pytest.approx(full, rel=0.01) and right.mean() == pytest.approx(full / 2, rel=0.01)
+    assert np.all(img[:4, :4] <= s.black_level_dn + 4 * g * s.read_noise_e + 1)
+    # photon noise of one exposure of that many electrons (not averaged down over the 20 sub-exposures)
+    for part, e in ((left, full / g), (right, full / 2 / g)):
+        assert part.std() == pytest.approx(g * math.sqrt(e + s.read_noise_e ** 2), rel=0.1)
+    sig = model_noise_sigma(img[8:, 4:28, None], rend)[0]
+    assert sig == pytest.approx(left.std(), rel=0.1)
