@@ -131,3 +131,24 @@ def test_sweep_exposure_weights_by_open_time_and_counts_noise_once():
         assert part.std() == pytest.approx(g * math.sqrt(e + s.read_noise_e ** 2), rel=0.1)
     sig = model_noise_sigma(img[8:, 4:28, None], rend)[0]
     assert sig == pytest.approx(left.std(), rel=0.1)
+
+
+def test_without_breathing_or_shift_aware_and_blind_deconvolution_agree():
+    prof = SyntheticProfile(72, 48, a_um=-100.0, pixel_pitch_um=10.0)  # m(z) = 1, s(z) = 0
+    img = np.random.default_rng(5).uniform(100.0, 900.0, (48, 72, 1)).astype(np.float32)
+    out = {m: deconvolve_sweep(img, prof, 30.0, ("G",), black=0.0, white=1000.0, breathing=m, noise_sigma=[5.0],
+                               zone_px=32) for m in ("aware", "blind")}
+    assert out["aware"].info["channels"]["G"]["max_streak_px"] == 0.0
+    np.testing.assert_allclose(out["aware"].image, out["blind"].image, atol=1e-3)
+
+
+def test_bad_breathing_arguments_are_parameter_errors():
+    from fieldcal.errors import ParameterError
+    prof = SyntheticProfile(40, 30, pixel_pitch_um=10.0)
+    img = np.ones((30, 40, 1), np.float32)
+    for kw, field in (({"breathing": "yes"}, "breathing"), ({"breathing": "aware", "method": "rl"}, "deconvolve"),
+                      ({"breathing": "aware", "widen_um": np.ones((5, 5))}, "widen_um"),
+                      ({"breathing": "aware", "widen_um": -np.ones((30, 40))}, "widen_um")):
+        with pytest.raises(ParameterError) as e:
+            deconvolve_sweep(img, prof, 20.0, ("G",), black=0.0, white=1.0, **kw)
+        assert e.value.field == field

@@ -205,11 +205,20 @@ def _deconvolve_captured(image, profile, alpha_um, channels, noise_sigma, breath
     if profile.f_number is None:
         raise ParameterError("the profile has no f-number, which the integrated PSF needs", field="f_number",
                              fix="calibrate with the lens's f-number recorded in the stack (f_number in stack.json)")
+    if breathing not in sz.BREATHING:
+        raise ParameterError(f"unknown breathing mode {breathing!r}", field="breathing",
+                             fix=f"use one of {', '.join(sz.BREATHING)}, or None for an emulated sweep")
     h, w = image.shape[:2]
     pitch = float(profile.pixel_pitch_um)
-    widen = None if widen_um is None else np.broadcast_to(np.asarray(widen_um, dtype=np.float64)[..., None]
-                                                          if np.ndim(widen_um) == 2 else widen_um,
-                                                          (h, w, len(channels)))
+    widen = None
+    if widen_um is not None:
+        u = np.asarray(widen_um, dtype=np.float64)
+        u = u[..., None] if u.ndim == 2 else u
+        if u.shape[:2] != (h, w) or u.shape[2] not in (1, len(channels)) or not np.all(np.isfinite(u) & (u >= 0)):
+            raise ParameterError(f"band widening of shape {np.shape(widen_um)} does not fit a {w}x{h} image of "
+                                 f"{len(channels)} channel(s), or is not finite and >= 0", field="widen_um",
+                                 fix="pass the plan's widen_um (P x H x W moved to H x W x P), NaN set to 0")
+        widen = np.broadcast_to(u, (h, w, len(channels)))
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     out = np.empty(image.shape, dtype=np.float32)
     info: dict = {"deconvolution": "wiener", "alpha_um": float(alpha_um), "breathing": breathing,
