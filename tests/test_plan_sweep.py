@@ -164,3 +164,61 @@ def test_wiener_noise_gain_closed_form_and_trade():
     assert all(a < b for a, b in zip(gf, gf[1:]))
     assert ip.alpha_trade(prof, 332.0, 16.0, [1e-6], "G", 80.0)[0]["noise_gain_to_in_focus"] == pytest.approx(1.0)
     assert rows[2]["total_time_ms"] == pytest.approx((332 / 40 + 1) * 16)
+
+
+class _BandProfile(SyntheticProfile):
+    """A synthetic lens whose credible half-width grows over the field: u = u0 + u1 rho (µm)."""
+
+    def __init__(self, u0, u1, **kw):
+        super().__init__(**kw)
+        self.u0, self.u1 = u0, u1
+
+    def best_focus_interval_um(self, x, y, channel, level=0.9):
+        z = self.best_focus_um(x, y, channel)
+        u = self.u0 + self.u1 * self.rho(x, y)
+        return z - u, z + u
+
+
+@pytest.mark.parametrize("direction", ["+z", "-z"])
+def test_confidence_widens_each_window_by_its_band_in_z(direction):
+    alpha, ts = 10.0, 16.0
+    prof = _BandProfile(2.0, 6.0, width_px=48, height_px=32, a_um=-120.0)
+    plain = plan_sweep(prof, SweepRequest(alpha_um=alpha, pixel_exposure_ms=ts, direction=direction))
+    wide = plan_sweep(prof, SweepRequest(alpha_um=alpha, pixel_exposure_ms=ts, direction=direction, confidence=0.9))
+    x, y = full_grid(wide.field.roi)
+    z = prof.best_focus_um(x, y, "G")
+    u = 2.0 + 6.0 * prof.rho(x, y)
+    sgn = 1.0 if direction == "+z" else -1.0
+    v = wide.velocity_um_per_ms
+    assert v == pytest.approx(plain.velocity_um_per_ms)  # the stage moves as fast; the windows get longer
+    stage = lambda t: wide.start_um + sgn * v * t  # noqa: E731
+    t0, t1 = (a[0].astype(np.float64) for a in (wide.window_start_ms, wide.window_stop_ms))
+    # each pixel opens α + u before its MAP focus and closes α + u after it
+    np.testing.assert_allclose(stage(t0), z - sgn * (alpha + u), atol=2e-3)
+    np.testing.assert_allclose(stage(t1), z + sgn * (alpha + u), atol=2e-3)
+    # in z the window is wider by exactly 2u, so its exposure grows by t_s u / α
+    np.testing.assert_allclose((t1 - t0) - ts, ts * u / alpha, atol=2e-4)
+    np.testing.assert_allclose(plain.window_stop_ms[0] - plain.window_start_ms[0], ts, atol=1e-4)
+    # the sweep reaches α beyond every band: D = max(z + u) - min(z - u) over the pixels (z + u peaks off axis)
+    assert wide.range_um == pytest.approx(float(np.max(z + u) - np.min(z - u)), abs=1e-3)
+    assert wide.range_um > plain.range_um + 8.0 + 2.0 - 1e-3
+    assert wide.total_time_ms == pytest.approx((wide.range_um / (2 * alpha) + 1) * ts)
+    # any true surface inside the band is swept ±α while its pixel is open
+    for s in (-1.0, 0.0, 1.0):
+        zt = z + s * u
+        lo, hi = np.minimum(stage(t0), stage(t1)), np.maximum(stage(t0), stage(t1))
+        assert np.all(lo <= zt - alpha + 2e-3) and np.all(hi >= zt + alpha - 2e-3)
+    assert wide.to_dict()["band_widening"]["half_width_um"]["max"] == pytest.approx(8.0, abs=0.05)
+
+
+def test_confidence_windows_reach_the_device_files(tmp_path):
+    prof = _BandProfile(3.0, 0.0, width_px=40, height_px=24, a_um=-80.0)
+    plan = plan_sweep(prof, SweepRequest(alpha_um=10.0, pixel_exposure_ms=10.0, confidence=0.9, clock_us=10.0))
+    doc = write_sweep_plan(plan, tmp_path / "sw.json")
+    validate_plan(doc, tmp_path / "sw.json")
+    arr = mk.load_npz(tmp_path / doc["masks"]["file"])
+    ticks = (arr["stop_tick"] - arr["start_tick"]).astype(np.float64) * float(arr["clock_ms"])
+    np.testing.assert_allclose(ticks, 10.0 * (1 + 3.0 / 10.0), atol=0.011)  # t_s (1 + u/α), clock-rounded
+    with pytest.raises(ParameterError) as e:
+        plan_sweep(prof, SweepRequest(alpha_um=10.0, pixel_exposure_ms=10.0, confidence=1.5))
+    assert e.value.field == "confidence"

@@ -59,6 +59,8 @@ def register(sub):
     w.add_argument("--cfa", choices=("RGGB", "BGGR", "GRBG", "GBRG"), help="Bayer pattern of the sensor (CFA-aware masks)")
     w.add_argument("--fs", type=float, default=80.0, help="frequency for the IPSF MTF column (cycles/mm, default 80)")
     w.add_argument("--wiener-nsr", type=float, default=0.01, help="Wiener noise-to-signal ratio for the noise gain")
+    w.add_argument("--confidence", type=float,
+                   help="widen each pixel's window by the profile's credible band at this probability")
     w.set_defaults(func=run_sweep)
     e = add_parser(ps, "export-masks", "write a sweep plan's masks as device files (LCoS 1-bit PNGs or pixel-wise "
                    "16-bit start/stop TIFFs) with a masks.json manifest",
@@ -117,7 +119,7 @@ def run_sweep(args) -> int:
     req = SweepRequest(alpha_um=args.alpha_um, pixel_exposure_ms=args.pixel_exposure_ms, device=args.device,
                        slot_ms=args.slot_ms, max_hold_ms=args.max_hold_ms, clock_us=args.clock_us, cfa=args.cfa,
                        scene=_scene(args), direction=args.direction, grid_step_px=args.grid_step_px,
-                       fs_cyc_per_mm=args.fs, wiener_nsr=args.wiener_nsr)
+                       fs_cyc_per_mm=args.fs, wiener_nsr=args.wiener_nsr, confidence=args.confidence)
     status(f"planning a focal sweep from {args.profile} ...")
     doc = sweep_plan_file(args.profile, req, args.out, size_px=parse_size(args.size), plots=args.plots)
     print(f"{args.out}: sweep {doc['start_um']:.1f} -> {doc['stop_um']:.1f} µm at {doc['velocity_um_per_ms']:.3f} µm/ms, "

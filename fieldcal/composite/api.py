@@ -319,10 +319,14 @@ def composite_sweep(stack, profile, alpha_um: float, *, frames=None, deconvolve:
 
 
 def restore_sweep_image(image: np.ndarray, profile, alpha_um: float, *, deconvolve: str = "wiener",
-                        rl_iterations: int = 30, where=None) -> SweepComposite:
+                        rl_iterations: int = 30, where=None, breathing: str | None = None,
+                        refocus_um: float = 0.0) -> SweepComposite:
     """Deconvolve a captured focal-sweep image (``H x W x C``, raw, black level 0) with the integrated PSF.
 
     The profile must be of this camera: same channels and image size. ``where`` names the image in errors.
+    ``breathing="aware"`` deconvolves per field zone with the image motion during the sweep and registers the
+    result to the profile's ``z_ref`` geometry (``"blind"``: the same without the motion; None: one kernel, the
+    image taken as it is); ``refocus_um`` is the sweep plan's.
     """
     from .stack_profile import to_input_dtype
     from .sweep import deconvolve_sweep
@@ -344,7 +348,8 @@ def restore_sweep_image(image: np.ndarray, profile, alpha_um: float, *, deconvol
                              path=where, field="image_size_px", fix="use the profile of this camera")
     white = float(np.iinfo(image.dtype).max) if np.issubdtype(image.dtype, np.integer) else 1.0
     res = deconvolve_sweep(image.astype(np.float32), profile, alpha_um, channels, black=0.0, white=white,
-                           method=deconvolve, rl_iterations=rl_iterations)
+                           method=deconvolve, rl_iterations=rl_iterations, breathing=breathing,
+                           refocus_um=refocus_um)
     return SweepComposite(to_input_dtype(res.image, image.dtype, white), {"method": "sweep-captured", **res.info})
 
 

@@ -148,14 +148,30 @@ def rl_deconvolve(channel_image: np.ndarray, profile: LensModel, alpha_um: float
 
 
 def deconvolve_sweep(image: np.ndarray, profile: LensModel, alpha_um: float, channels, *, black: float, white: float,
-                     method: str = "wiener", rl_iterations: int = 30, noise_sigma=None) -> SweepResult:
+                     method: str = "wiener", rl_iterations: int = 30, noise_sigma=None, breathing: str | None = None,
+                     refocus_um: float = 0.0, widen_um: np.ndarray | None = None,
+                     zone_px: int | None = None) -> SweepResult:
     """Deconvolve a sweep image (H x W x C, raw units) channel by channel.
 
     ``noise_sigma``: pixel noise (raw units), one value or one per channel (e.g. ``emulate_sweep``'s
     ``info["noise_sigma"]``); estimated from the image when None.
+
+    ``breathing``: None for a sweep already in the ``z_ref`` geometry without image motion (``emulate_sweep``
+    registers every frame before averaging): one kernel for the whole field. For a *captured* sweep (sensor
+    geometry, the image moving with the stage) ``"aware"`` deconvolves per field zone with the motion in each
+    zone's kernel and then registers the result to ``z_ref`` (:mod:`.sweep_zones`); ``"blind"`` does the same
+    without the motion in the kernel (for comparison). ``refocus_um`` (the plan's) moves the window centres;
+    ``widen_um`` (H x W or H x W x C) is the per-pixel widening of the half-range of a plan made with a
+    confidence; ``zone_px`` the zone size (default 64).
     """
     if method not in ("wiener", "rl"):
         raise ParameterError(f"unknown deconvolution {method!r}", field="deconvolve", fix="use wiener, rl or none")
+    if breathing is not None:
+        if method != "wiener":
+            raise ParameterError("per-zone (breathing) deconvolution is Wiener only", field="deconvolve",
+                                 fix="use --deconvolve wiener for a captured sweep, or no breathing correction")
+        return _deconvolve_captured(image, profile, alpha_um, channels, noise_sigma, breathing, refocus_um, widen_um,
+                                    zone_px)
     if not (np.isfinite(alpha_um) and alpha_um > 0):
         raise ParameterError(f"sweep half-range must be > 0 µm, got {alpha_um}", field="sweep_alpha_um",
                              fix="e.g. 20 (µm)")
@@ -172,6 +188,58 @@ def deconvolve_sweep(image: np.ndarray, profile: LensModel, alpha_um: float, cha
         else:
             out[..., ci], inf = rl_deconvolve(image[..., ci], profile, alpha_um, ch, pitch, black, white,
                                               rl_iterations)
+        info["channels"][ch] = inf
+    return SweepResult(out, info)
+
+
+def _deconvolve_captured(image, profile, alpha_um, channels, noise_sigma, breathing, refocus_um, widen_um,
+                         zone_px) -> SweepResult:
+    """Per-zone Wiener deconvolution of a captured sweep, then registration to z_ref (:mod:`.sweep_zones`)."""
+    from scipy import fft
+
+    from . import sweep_zones as sz
+
+    if not (np.isfinite(alpha_um) and alpha_um > 0):
+        raise ParameterError(f"sweep half-range must be > 0 µm, got {alpha_um}", field="sweep_alpha_um",
+                             fix="e.g. 20 (µm)")
+    if profile.f_number is None:
+        raise ParameterError("the profile has no f-number, which the integrated PSF needs", field="f_number",
+                             fix="calibrate with the lens's f-number recorded in the stack (f_number in stack.json)")
+    if breathing not in sz.BREATHING:
+        raise ParameterError(f"unknown breathing mode {breathing!r}", field="breathing",
+                             fix=f"use one of {', '.join(sz.BREATHING)}, or None for an emulated sweep")
+    h, w = image.shape[:2]
+    pitch = float(profile.pixel_pitch_um)
+    widen = None
+    if widen_um is not None:
+        u = np.asarray(widen_um, dtype=np.float64)
+        u = u[..., None] if u.ndim == 2 else u
+        if u.shape[:2] != (h, w) or u.shape[2] not in (1, len(channels)) or not np.all(np.isfinite(u) & (u >= 0)):
+            raise ParameterError(f"band widening of shape {np.shape(widen_um)} does not fit a {w}x{h} image of "
+                                 f"{len(channels)} channel(s), or is not finite and >= 0", field="widen_um",
+                                 fix="pass the plan's widen_um (P x H x W moved to H x W x P), NaN set to 0")
+        widen = np.broadcast_to(u, (h, w, len(channels)))
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    out = np.empty(image.shape, dtype=np.float32)
+    info: dict = {"deconvolution": "wiener", "alpha_um": float(alpha_um), "breathing": breathing,
+                  "zone_px": int(zone_px or sz.DEFAULT_ZONE_PX), "channels": {}}
+    for ci, ch in enumerate(channels):
+        img = np.asarray(image[..., ci], dtype=np.float64)
+        sig = noise_sigma[ci] if isinstance(noise_sigma, (list, tuple, np.ndarray)) else noise_sigma
+        sigma = estimate_noise_sigma(img) if sig is None else float(sig)
+        sigma = max(sigma, 1e-6 * max(abs(float(img.mean())), 1e-12), 1e-12)
+        # one signal-spectrum model for every zone, fitted on the whole image with the field's mean kernel
+        padded, shape = _pad(img - img.mean(), 16)
+        y = fft.rfft2(padded, workers=-1)
+        f = rfft_radial_grid(shape, pitch)
+        hs = radial_on_grid(lambda t: integrated_otf(profile, t, alpha_um, ch), f)
+        power = np.abs(y) ** 2 / (shape[0] * shape[1])
+        model = _signal_spectrum_model(power, f, hs * hs, sigma * sigma, 4.0 / (max(shape) * pitch * 1e-3))
+        centre = sz.window_centres_um(profile, xx, yy, ch, refocus_um)
+        dec, inf = sz.deconvolve_zones(img, profile, alpha_um, ch, noise_sigma=sigma, signal_model=model,
+                                       centre_um=centre, widen_um=None if widen is None else widen[..., ci],
+                                       breathing=breathing, zone_px=zone_px or sz.DEFAULT_ZONE_PX)
+        out[..., ci] = sz.register_to_reference(dec, profile, ch, refocus_um)
         info["channels"][ch] = inf
     return SweepResult(out, info)
 

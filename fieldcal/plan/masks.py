@@ -82,33 +82,68 @@ def cfa_index(pattern: str, height: int, width: int, channels) -> np.ndarray:
     return lut[yy % 2, xx % 2]
 
 
+def focus_and_band(profile, field, planes, cfa: str | None, confidence: float | None = None,
+                   rows_per_chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """Full-frame best focus (refocused) and credible half-width of each pixel of each plane, float32 (P, H, W);
+    NaN outside the ROI, or where a CFA site's colour is not planned. The half-width is 0 without a confidence.
+
+    The half-width is the profile's band at ``confidence`` (the larger side about the MAP surface, as stack plans
+    shrink their tolerances by it: :func:`fieldcal.plan.tolerance.band_halfwidth_um`).
+    """
+    from .tolerance import band_halfwidth_um
+
+    w_img, h_img = (int(v) for v in profile.image_size_px)
+    x0, y0, w, h = field.roi
+    z_out = np.full((len(planes), h_img, w_img), np.nan, dtype=np.float32)
+    u_out = np.full((len(planes), h_img, w_img), np.nan, dtype=np.float32)
+    chans = list(field.channels)
+    xs = np.arange(x0, x0 + w, dtype=np.float64)
+    for r0 in range(y0, y0 + h, rows_per_chunk):
+        r1 = min(r0 + rows_per_chunk, y0 + h)
+        gx, gy = np.meshgrid(xs, np.arange(r0, r1, dtype=np.float64))
+        zs, us = {}, {}
+        for c in chans:
+            z = np.asarray(profile.best_focus_um(gx, gy, c), dtype=np.float64)
+            us[c] = (band_halfwidth_um(profile, gx, gy, c, z, confidence) if confidence is not None
+                     else np.zeros_like(z))
+            zs[c] = z + field.refocus_um
+        if cfa:
+            idx = cfa_index(cfa, h_img, w_img, chans)[r0:r1, x0:x0 + w]
+            zt, ut = np.full(idx.shape, np.nan), np.full(idx.shape, np.nan)
+            for k, c in enumerate(chans):
+                zt = np.where(idx == k, zs[c], zt)
+                ut = np.where(idx == k, us[c], ut)
+            z_out[0, r0:r1, x0:x0 + w], u_out[0, r0:r1, x0:x0 + w] = zt, ut
+        else:
+            for p, c in enumerate(planes):
+                z_out[p, r0:r1, x0:x0 + w], u_out[p, r0:r1, x0:x0 + w] = zs[c], us[c]
+    return z_out, u_out
+
+
 def window_starts(profile, field, planes, cfa: str | None, v_um_per_ms: float, direction: str,
                   rows_per_chunk: int = 256) -> np.ndarray:
     """Opening time (ms) of each pixel of each plane, full frame, float32, NaN where never exposed.
 
     +z: the pixel opens when the sensor is α below its best focus, ``(z_p - z_min) / v``; -z: ``(z_max - z_p) / v``.
     """
-    w_img, h_img = (int(v) for v in profile.image_size_px)
-    x0, y0, w, h = field.roi
-    out = np.full((len(planes), h_img, w_img), np.nan, dtype=np.float32)
-    chans = list(field.channels)
-    zmin, zmax = field.z_min_um, field.z_max_um
-    xs = np.arange(x0, x0 + w, dtype=np.float64)
-    for r0 in range(y0, y0 + h, rows_per_chunk):
-        r1 = min(r0 + rows_per_chunk, y0 + h)
-        gx, gy = np.meshgrid(xs, np.arange(r0, r1, dtype=np.float64))
-        zs = {c: np.asarray(profile.best_focus_um(gx, gy, c), dtype=np.float64) + field.refocus_um for c in chans}
-        ts = {c: ((z - zmin) if direction == "+z" else (zmax - z)) / v_um_per_ms for c, z in zs.items()}
-        if cfa:
-            idx = cfa_index(cfa, h_img, w_img, chans)[r0:r1, x0:x0 + w]
-            t = np.full(idx.shape, np.nan)
-            for k, c in enumerate(chans):
-                t = np.where(idx == k, ts[c], t)
-            out[0, r0:r1, x0:x0 + w] = t
-        else:
-            for p, c in enumerate(planes):
-                out[p, r0:r1, x0:x0 + w] = ts[c]
-    return out
+    z, _ = focus_and_band(profile, field, planes, cfa, None, rows_per_chunk)
+    t = (z - np.float32(field.z_min_um)) if direction == "+z" else (np.float32(field.z_max_um) - z)
+    return (t / np.float32(v_um_per_ms)).astype(np.float32)
+
+
+def widened_windows(z_um: np.ndarray, band_um: np.ndarray, alpha_um: float, v_um_per_ms: float, direction: str,
+                    lo_um: float, hi_um: float) -> tuple[np.ndarray, np.ndarray]:
+    """(start_ms, stop_ms) of windows spanning ``[z - u - α, z + u + α]`` of a sweep over ``[lo - α, hi + α]``.
+
+    Each pixel stays open while the stage is within α of *any* best focus its credible band allows, so the
+    stage passes the true best focus ±α with the band's probability; its exposure is ``t_s (1 + u/α)``.
+    """
+    if direction == "+z":
+        start = (z_um - band_um - np.float32(lo_um)) / np.float32(v_um_per_ms)
+    else:
+        start = (np.float32(hi_um) - z_um - band_um) / np.float32(v_um_per_ms)
+    stop = start + (np.float32(2.0 * alpha_um) + 2.0 * band_um) / np.float32(v_um_per_ms)
+    return start.astype(np.float32), stop.astype(np.float32)
 
 
 def slot_masks(start_ms: np.ndarray, pixel_exposure_ms: float, slot_ms: float, n_slots: int):

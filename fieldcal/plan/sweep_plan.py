@@ -22,6 +22,7 @@ from . import masks as mk
 from .planfile import PLAN_FORMAT
 from .scene import Scene
 from .surfaces import SampledField, sample_field
+from .tolerance import check_confidence
 
 DEFAULT_ALPHAS_UM = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0)
 # Every LCoS slot is a full-frame mask in the sidecar; beyond this (α -> 0 makes T = (D/2α + 1) t_s explode)
@@ -44,6 +45,7 @@ class SweepRequest:
     fs_cyc_per_mm: float = 80.0
     wiener_nsr: float = 0.01
     trade_alphas_um: tuple[float, ...] = DEFAULT_ALPHAS_UM
+    confidence: float | None = None   # widen each pixel's window by its credible band at this level
 
 
 @dataclass
@@ -62,14 +64,25 @@ class SweepPlan:
     trade: list[dict]
     ipsf_summary: dict[str, Any]
     warnings: list[str]
+    widen_um: np.ndarray | None = None  # (P, H, W) float32: each pixel's credible half-width (None: no confidence)
+
 
     @property
     def range_um(self) -> float:
-        return self.field.range_um
+        """D of eq. 3: the range of best focus, widened by the credible bands when the plan has a confidence."""
+        return abs(self.stop_um - self.start_um) - 2.0 * self.request.alpha_um
 
     @property
     def window_stop_ms(self) -> np.ndarray:
-        return self.window_start_ms + np.float32(self.request.pixel_exposure_ms)
+        """Closing time (ms): ``t_s`` after opening, plus the time the stage takes to cross twice the pixel's
+        credible half-width when the plan has a confidence."""
+        stop = self.window_start_ms + np.float32(self.request.pixel_exposure_ms)
+        if self.widen_um is not None:
+            stop = stop + np.float32(2.0 / self.velocity_um_per_ms) * self.widen_um
+        return stop
+
+    def band_summary(self) -> dict:
+        return band_summary_of(self.widen_um, self.request.alpha_um, self.request.confidence)
 
     def slot_z_edges_um(self) -> list[float]:
         if self.n_slots is None:
@@ -88,7 +101,8 @@ class SweepPlan:
         }
         p, h, w = self.window_start_ms.shape
         if self.device.name == "lcos":
-            bits = np.stack([mk.pack(m) for m in mk.slot_masks(self.window_start_ms, r.pixel_exposure_ms,
+            bits = np.stack([mk.pack(m) for m in mk.slot_masks(self.window_start_ms,
+                                                                 self.window_stop_ms - self.window_start_ms,
                                                                  self.device.slot_ms, self.n_slots)])
             arrays["mask_bits"] = bits
             arrays["mask_shape"] = np.asarray([self.n_slots, p, h, w], dtype=np.int64)
@@ -97,10 +111,13 @@ class SweepPlan:
             clk = self.device.clock_ms
             ok = np.isfinite(self.window_start_ms)
             start = np.where(ok, np.rint(np.nan_to_num(self.window_start_ms) / clk), 0).astype(np.uint32)
-            stop = np.where(ok, start + np.uint32(round(r.pixel_exposure_ms / clk)), 0).astype(np.uint32)
+            ticks = np.rint(np.nan_to_num(self.window_stop_ms - self.window_start_ms) / clk)
+            stop = np.where(ok, start + ticks.astype(np.uint32), 0).astype(np.uint32)
             arrays["start_tick"] = start
             arrays["stop_tick"] = stop
             arrays["clock_ms"] = np.asarray(clk)
+        if self.widen_um is not None:
+            arrays["widen_um"] = self.widen_um
         return arrays
 
     def to_dict(self, masks_file: str | None = None, masks_sha256: str | None = None,
@@ -126,7 +143,9 @@ class SweepPlan:
                 "roi": [x, y, w, h], "channels": list(self.field.channels),
                 "object_distance_mm": r.scene.object_distance_mm, "direction": r.direction,
                 "grid_step_px": r.grid_step_px, "fs_cyc_per_mm": r.fs_cyc_per_mm, "wiener_nsr": r.wiener_nsr,
+                "confidence": r.confidence,
             },
+            "band_widening": self.band_summary(),
             "direction": r.direction,
             "refocus_um": round(self.field.refocus_um, 4),
             "range_um": round(self.range_um, 4),
@@ -140,12 +159,26 @@ class SweepPlan:
             "device": dev,
             "masks": {"file": masks_file, "sha256": masks_sha256, "planes": self.planes,
                       "encoding": "npz: planes, window_start_ms/window_stop_ms (P,H,W) float32 NaN = never; "
+                                  + ("widen_um (P,H,W) float32 credible half-width added to α each side; "
+                                     if self.widen_um is not None else "")
                                   + ("mask_bits (n_slots,P,H,ceil(W/8)) uint8 numpy.packbits along x, mask_shape"
                                      if self.device.name == "lcos" else "start_tick/stop_tick (P,H,W) uint32, clock_ms")},
             "ipsf": self.ipsf_summary,
             "alpha_trade": self.trade,
             "warnings": self.warnings,
         }
+
+
+def band_summary_of(widen_um: np.ndarray | None, alpha_um: float, confidence: float | None) -> dict:
+    """What the plan document records about the windows' widening by the profile's credible band."""
+    if widen_um is None:
+        return {"confidence": None, "rule": "no widening: every pixel integrates ±α about its MAP best focus"}
+    u = widen_um[np.isfinite(widen_um)]
+    return {"confidence": confidence,
+            "rule": "each pixel integrates while the stage is within α + u of its MAP best focus, u its credible "
+                    "half-width at the confidence; its exposure is t_s (1 + u/α)",
+            "half_width_um": {"min": round(float(u.min(initial=0.0)), 4), "mean": round(float(u.mean()) if u.size else 0.0, 4),
+                              "max": round(float(u.max(initial=0.0)), 4)}}
 
 
 def _check(r: SweepRequest):
@@ -162,6 +195,7 @@ def _check(r: SweepRequest):
     if not (math.isfinite(r.wiener_nsr) and r.wiener_nsr > 0):
         raise ParameterError(f"Wiener NSR {r.wiener_nsr} must be > 0", field="wiener_nsr", fix="e.g. 0.01")
     valid_fs_cyc_per_mm(r.fs_cyc_per_mm)
+    check_confidence(r.confidence)
 
 
 def plan_sweep(profile: LensModel, request: SweepRequest) -> SweepPlan:
@@ -185,12 +219,20 @@ def plan_sweep(profile: LensModel, request: SweepRequest) -> SweepPlan:
         planes = chans
     alpha, ts = float(r.alpha_um), float(r.pixel_exposure_ms)
     v = 2.0 * alpha / ts
-    D = fieldd.range_um
+    lo, hi = fieldd.z_min_um, fieldd.z_max_um
+    z_map = band = None
+    if r.confidence is not None:
+        # the sweep must reach α beyond the farthest edge of any pixel's credible band
+        z_map, band = mk.focus_and_band(profile, fieldd, planes, cfa, r.confidence)
+        if np.isfinite(band).any():
+            lo = min(lo, float(np.nanmin(z_map - band)))
+            hi = max(hi, float(np.nanmax(z_map + band)))
+    D = hi - lo
     T = ip.sweep_total_time_ms(D, alpha, ts)
     if r.direction == "+z":
-        start, stop = fieldd.z_min_um - alpha, fieldd.z_max_um + alpha
+        start, stop = lo - alpha, hi + alpha
     else:
-        start, stop = fieldd.z_max_um + alpha, fieldd.z_min_um - alpha
+        start, stop = hi + alpha, lo - alpha
     n_slots = None
     warnings: list[str] = []
     if device.name == "lcos":
@@ -207,7 +249,10 @@ def plan_sweep(profile: LensModel, request: SweepRequest) -> SweepPlan:
         if ticks >= 2 ** device.register_bits:
             raise ParameterError(f"the sweep lasts {ticks:.0f} register clocks, more than {device.register_bits} bits hold",
                                  field="clock_us", fix="use a slower register clock (--clock-us)")
-    starts = mk.window_starts(profile, fieldd, planes, cfa, v, r.direction)
+    if band is None:
+        starts = mk.window_starts(profile, fieldd, planes, cfa, v, r.direction)
+    else:
+        starts, _ = mk.widened_windows(z_map, band, alpha, v, r.direction, lo, hi)
     ref = "G" if "G" in chans else chans[0]
     trade = ip.alpha_trade(profile, D, ts, sorted(set(r.trade_alphas_um) | {alpha}), ref, r.fs_cyc_per_mm,
                            r.wiener_nsr)
@@ -218,7 +263,7 @@ def plan_sweep(profile: LensModel, request: SweepRequest) -> SweepPlan:
     if device.name == "lcos" and device.slot_ms < ts:
         warnings.append(f"each pixel's 2α range is off-centre by up to {v * device.slot_ms / 2:.2f} µm (half a slot)")
     return SweepPlan(r, fieldd, device, planes, cfa, float(start), float(stop), v, T, n_slots, starts, trade,
-                     summary, warnings)
+                     summary, warnings, band)
 
 
 def write_sweep_plan(plan: SweepPlan, out: str | Path, profile_info: dict | None = None,
