@@ -258,7 +258,7 @@ def measure_geometry_map(stack, z_ref_um: float, *, chart: dict | None = None, r
         source = "charuco" if chart and chart.get("kind") == "charuco" else "texture"
     if source not in ("charuco", "texture"):
         raise ParameterError(f"unknown geometry source {source!r}", field="source", fix="use auto, charuco or texture")
-    order = np.asarray(stack.order_by_z())
+    order = np.asarray(stack.order_by_z)
     z = np.asarray(stack.z_um, dtype=np.float64)[order]
     ref_index = int(np.argmin(np.abs(z - float(z_ref_um))))
     channels = tuple(stack.channels)
