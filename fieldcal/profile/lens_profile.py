@@ -148,6 +148,11 @@ class LensProfile:
         return self.geometry_fit.shift_px(np.asarray(z_um, dtype=np.float64), ch)
 
     @property
+    def has_geometry_map(self) -> bool:
+        """Dense maps (the compositor warps with :meth:`warp_px`); False: the scalar model's affine maps."""
+        return self.geometry_map is not None
+
+    @property
     def reference_channel(self) -> str:
         """The channel whose frame at z_ref defines the pixel geometry of :meth:`warp_px`."""
         if self.geometry_map is not None:

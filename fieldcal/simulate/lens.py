@@ -104,16 +104,28 @@ def brown_conrady(wx, wy, k1: float, k2: float, p1: float, p2: float):
 
 
 def brown_conrady_inverse(ux, uy, k1: float, k2: float, p1: float, p2: float, iterations: int = 50):
-    """Undistorted normalised coordinates of distorted ones (fixed-point iteration, to 1e-13)."""
+    """Undistorted normalised coordinates of distorted ones (fixed-point iteration, to 1e-13).
+
+    Raises :class:`SpecError` where there is none: a strong barrel distortion folds the image (the radial
+    factor turns back before the sensor's edge).
+    """
     ux = np.asarray(ux, dtype=np.float64)
     uy = np.asarray(uy, dtype=np.float64)
     wx, wy = ux.copy(), uy.copy()
-    for _ in range(iterations):
-        dx, dy = brown_conrady(wx, wy, k1, k2, p1, p2)
-        ex, ey = dx - ux, dy - uy
-        wx, wy = wx - ex, wy - ey
-        if max(np.max(np.abs(ex), initial=0.0), np.max(np.abs(ey), initial=0.0)) < 1e-13:
-            break
+    err = np.inf
+    with np.errstate(over="ignore", invalid="ignore"):
+        for _ in range(iterations):
+            dx, dy = brown_conrady(wx, wy, k1, k2, p1, p2)
+            ex, ey = dx - ux, dy - uy
+            wx, wy = wx - ex, wy - ey
+            err = max(np.max(np.abs(ex), initial=0.0), np.max(np.abs(ey), initial=0.0))
+            if not err >= 1e-13:  # converged (or NaN: caught below)
+                break
+    if not (np.isfinite(err) and err < 1e-9):
+        raise SpecError(f"the distortion (k1 {k1:.4g}, k2 {k2:.4g}, p1 {p1:.4g}, p2 {p2:.4g}) folds the image: "
+                        "some sensor points see no scene point", field="distortion",
+                        fix="use smaller distortion terms (|k1| below ~0.1 over the sensor), or a smaller change "
+                            "with z (d*_dz_per_um) over the scan")
     return wx, wy
 
 

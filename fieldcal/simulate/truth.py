@@ -100,10 +100,16 @@ class TruthProfile:
         """The channel whose frame at z_ref defines the pixel geometry of :meth:`warp_px` (G if there is one)."""
         return "G" if "G" in self.channels else self.channels[0]
 
-    def warp_px(self, x, y, z_um, channel: str):
+    @property
+    def has_geometry_map(self) -> bool:
+        """Distortion makes the frame maps non-affine: the compositor then warps with :meth:`warp_px`."""
+        return not self.spec.distortion.is_zero
+
+    def warp_px(self, x, y, z_um, channel: str, lateral_colour: bool = True):
         """Exact map: where the scene point seen at pixel (x, y) of the z_ref geometry (the reference channel's
         frame at ``z_ref_um``) appears in channel ``channel`` of the frame at ``z_um``: distortion (changing with
-        z), breathing, shift and lateral colour (docs/geometry.md)."""
+        z), breathing, shift and lateral colour (docs/geometry.md). ``lateral_colour=False``: from the channel's
+        own frame at z_ref."""
         self.spec.channel(channel)
         x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
         z = np.asarray(z_um, dtype=np.float64)
@@ -112,9 +118,9 @@ class TruthProfile:
             ox, oy = np.empty(x.shape), np.empty(x.shape)
             for zz in np.unique(z):
                 m = z == zz
-                ox[m], oy[m] = self.warp_px(x[m], y[m], float(zz), channel)
+                ox[m], oy[m] = self.warp_px(x[m], y[m], float(zz), channel, lateral_colour)
             return ox, oy
-        sx, sy = self.spec.scene_px(x, y, self.z_ref_um, self.reference_channel)
+        sx, sy = self.spec.scene_px(x, y, self.z_ref_um, self.reference_channel if lateral_colour else channel)
         return self.spec.sensor_px(sx, sy, float(z), channel)
 
     def warp_sd_px(self, x, y, z_um, channel: str):
