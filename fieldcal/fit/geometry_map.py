@@ -27,9 +27,10 @@ from typing import Any
 
 import numpy as np
 
+from ..formats import documents
 from .data import FitError
 
-GEOMETRY_MAP_FORMAT = "fieldcal-geometry-map/1"
+GEOMETRY_MAP_FORMAT = documents.format_id("geometry-map")
 
 #: basis vector fields, in nesting order
 TERMS = ("scale", "shift_x", "shift_y", "k1", "k2", "p1", "p2")
