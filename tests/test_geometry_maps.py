@@ -328,3 +328,19 @@ def test_compositor_follows_the_dense_map():
     assert np.sqrt(np.mean((out[..., 0] - qx) ** 2 + (out[..., 1] - qy) ** 2)) < 0.06
     plain = TruthProfile(dataclasses.replace(truth.spec, distortion=Distortion()), z_ref_um=0.0)
     assert all(m.residual is None for m in frame_maps(plain, 60.0, plain.channels))
+
+
+def test_import_and_simulate_record_a_chart_from_targets(tmp_path, charuco_world):
+    from fieldcal.charts.targets import write_targets
+    from fieldcal.cli import main
+    from fieldcal.formats.stack import Stack, stack_chart
+    write_targets(tmp_path / "t", 200.0, 150.0, 100.0, kinds=["charuco"], formats=("png",))
+    frames = sorted((charuco_world / "S" / "frames").iterdir())
+    assert main(["import", *map(str, frames), "--out", str(tmp_path / "I"), "--z", "-100", "30",
+                 "--pixel-pitch-um", "5", "--chart", str(tmp_path / "t" / "targets.json"), "--quiet"]) == 0
+    chart = stack_chart(Stack.open(tmp_path / "I").meta)
+    assert chart["kind"] == "charuco" and chart["square_mm"] > 0
+    # a file that is no chart description is refused before anything is written
+    assert main(["import", *map(str, frames), "--out", str(tmp_path / "J"), "--z", "-100", "30",
+                 "--pixel-pitch-um", "5", "--chart", str(charuco_world / "lens.json"), "--quiet"]) != 0
+    assert not (tmp_path / "J").exists()
