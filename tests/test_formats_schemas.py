@@ -40,6 +40,7 @@ def test_format_constants_come_from_the_schemas():
     from fieldcal.charts.targets import TARGETS_FORMAT
     from fieldcal.composite.io import COMPOSITE_FORMAT
     from fieldcal.fit.geometry import GEOMETRY_FIT_FORMAT
+    from fieldcal.fit.geometry_map import GEOMETRY_MAP_FORMAT
     from fieldcal.fit.result import SURFACE_FIT_FORMAT
     from fieldcal.fit.tolerance import TOLERANCE_FIT_FORMAT
     from fieldcal.formats.stack import FORMAT
@@ -53,7 +54,8 @@ def test_format_constants_come_from_the_schemas():
     got = {"mtf": MTF_FORMAT, "stack": FORMAT, "profile": PROFILE_FORMAT, "plan": PLAN_FORMAT, "lens": LENS_FORMAT,
            "truth": TRUTH_FORMAT, "capture-journal": JOURNAL_FORMAT, "composite": COMPOSITE_FORMAT,
            "targets": TARGETS_FORMAT, "validation": VALIDATION_FORMAT, "surface-fit": SURFACE_FIT_FORMAT,
-           "geometry-fit": GEOMETRY_FIT_FORMAT, "tolerance-fit": TOLERANCE_FIT_FORMAT, "masks": MASKS_FORMAT}
+           "geometry-fit": GEOMETRY_FIT_FORMAT, "tolerance-fit": TOLERANCE_FIT_FORMAT, "masks": MASKS_FORMAT,
+           "geometry-map": GEOMETRY_MAP_FORMAT}
     assert got == {k: documents.format_id(k) for k in documents.KINDS}
 
 

@@ -73,7 +73,7 @@ def _hash_inputs(stack, out: dict):
 def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: str = "standard",
               z_ref_um: float | None = None, tile_px: int | None = None, measure: str = "sml", seed: int = 0,
               quiet: bool = False, stage_repeatability_um: float | None = None,
-              chart: str = "auto") -> LensProfile:
+              chart: str = "auto", geometry_maps: str = "auto") -> LensProfile:
     """Fit a lens profile from a chart stack.
 
     Parameters
@@ -97,6 +97,10 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
         1-sigma position repeatability of the stage (µm); default from the stage record in stack.json
         (``capture.stage.repeatability_um`` or ``noise_um``), else 0. Its effect on the best focus joins the
         band (docs/fitting.md "Stage errors").
+    geometry_maps : {"auto", "charuco", "texture", "off"}
+        Dense geometry maps (distortion, breathing, shift, lateral colour vs x, y, z; docs/geometry.md) from the
+        ChArUco board stack.json's ``chart`` records ("auto" measures them when there is one), from the texture
+        (slower), or none (the scalar magnification and shift model only).
     chart : {"auto", "esfr", "focus-measure"}
         The measurement: slanted-edge MTF through focus ("esfr"), the texture focus measure
         ("focus-measure"), or chosen from the middle frame ("auto": e-SFR when it holds enough slanted edges;
@@ -160,6 +164,7 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     cols = geometry_columns(geo_c)
     gdata = GeometryData.from_arrays(**cols, colour_scale=colour_rows(geo_c, cols), source=str(stack.path))
     geom = fit_geometry(gdata, z_ref_um=geo_c.z_ref_um, source=str(stack.path))
+    gmap = _geometry_map(stack, geometry_maps, float(geo_c.z_ref_um), quiet)
     tol, tol_note = None, None
     try:
         tol = fit_tolerance(tiles, geometry, MTFCriterion(fs_cyc_per_mm, q), centre_px=centre,
@@ -219,11 +224,28 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
                     "inputs_hash_method": digest.get("method"),
                     "inputs_hash_error": digest.get("error"),
                     "stack_meta": {k: v for k, v in meta.items() if k != "frames"}},
-        tiles=table.to_dict(), geometry_measurements=cols,
+        tiles=table.to_dict(), geometry_measurements=cols, geometry_map=gmap,
     )
     status(f"calibrated {len(stack)} frames in {t_total:.1f} s from {kind.kind}: model {surf.model.name}, "
            f"{n_ok} {'edge rows' if kind.kind == 'esfr' else 'tiles'} used", quiet=quiet)
     return profile
+
+
+GEOMETRY_MAPS = ("auto", "charuco", "texture", "off")
+
+
+def _geometry_map(stack, mode: str, z_ref_um: float, quiet: bool):
+    """The dense geometry maps calibrate measures (None: the scalar model only)."""
+    from fieldcal.formats.stack import stack_chart
+    if mode not in GEOMETRY_MAPS:
+        raise ParameterError(f"unknown geometry_maps {mode!r}", field="geometry_maps",
+                             fix=f"use one of {', '.join(GEOMETRY_MAPS)}")
+    chart = stack_chart(stack.meta, stack.json_path)
+    if mode == "off" or (mode == "auto" and not (chart and chart.get("kind") == "charuco")):
+        return None
+    from fieldcal.measure.charuco import measure_geometry_map
+    return measure_geometry_map(stack, z_ref_um, chart=chart, source="auto" if mode == "auto" else mode,
+                                quiet=quiet)
 
 
 def chart_measurement(stack, chart: str = "auto"):

@@ -221,6 +221,69 @@ class CharucoSpec:
         return d
 
 
+#: the keys of a stack's ``chart`` record for a ChArUco board (stack.json, docs/formats.md)
+CHARUCO_RECORD_KEYS = ("kind", "dictionary", "squares_x", "squares_y", "square_mm", "marker_mm")
+# a recorded board's OpenCV geometry in these units per mm: only the marker/square ratio matters to the detector
+_RECORD_PX_PER_SQUARE = 1000
+
+
+def charuco_record(spec: CharucoSpec, square_mm: float | None = None) -> dict[str, Any]:
+    """The ``chart`` record of a stack showing the board ``spec`` (as targets.json describes it).
+
+    ``square_mm``: the printed square (default ``spec.square_mm``; None when the board has no physical size).
+    """
+    sq = spec.square_mm if square_mm is None else float(square_mm)
+    return {"kind": "charuco", "dictionary": spec.dictionary, "squares_x": int(spec.squares_x),
+            "squares_y": int(spec.squares_y), "square_mm": sq,
+            "marker_mm": None if sq is None else sq * spec.marker_px / spec.square_px,
+            "marker_ratio": spec.marker_px / spec.square_px}
+
+
+def board_from_record(chart: dict[str, Any], width_px: int, height_px: int,
+                      path: str | Path | None = None) -> CharucoSpec:
+    """A :class:`CharucoSpec` that detects the board a stack's ``chart`` record describes in W x H frames.
+
+    Only the dictionary, the square counts and the marker-to-square ratio reach OpenCV's detector; the board's
+    placement in the frame is unknown (``origin`` 0) and found by detection.
+    """
+    try:
+        ratio = chart.get("marker_ratio")
+        if ratio is None:
+            ratio = float(chart["marker_mm"]) / float(chart["square_mm"])
+        sq = _RECORD_PX_PER_SQUARE
+        spec = {"squares_x": int(chart["squares_x"]), "squares_y": int(chart["squares_y"]), "square_px": sq,
+                "marker_px": int(round(float(ratio) * sq)), "dictionary": str(chart["dictionary"]),
+                "origin_x_px": 0, "origin_y_px": 0, "width_px": int(width_px), "height_px": int(height_px),
+                "square_mm": chart.get("square_mm")}
+    except (KeyError, TypeError, ValueError, ZeroDivisionError) as e:
+        raise ParameterError(f"the chart record is not a ChArUco board ({e!r})", path=path, field="chart",
+                             fix="give kind, dictionary, squares_x, squares_y, square_mm and marker_mm (as "
+                                 "targets.json's charuco entry)") from None
+    if not (0.1 <= spec["marker_px"] / sq <= 0.95) or min(spec["squares_x"], spec["squares_y"]) < 2:
+        raise ParameterError("the chart record's board is implausible (marker/square ratio or square counts)",
+                             path=path, field="chart", fix="copy the charuco entry of targets.json")
+    return CharucoSpec.from_dict(spec, path)
+
+
+def chart_record_from_targets(path: str | Path) -> dict[str, Any]:
+    """The ``chart`` record of the (first) ChArUco board in a ``targets.json`` (``fieldcal targets``), or of a
+    JSON file holding a record itself."""
+    doc = documents.read_json(path, not_found="chart description not found",
+                              not_found_fix="give the targets.json written by `fieldcal targets`")
+    if isinstance(doc, dict) and doc.get("format") == TARGETS_FORMAT:
+        for e in doc.get("charts", []):
+            if isinstance(e, dict) and e.get("kind") == "charuco":
+                return charuco_record(CharucoSpec.from_dict(e.get("params") or {}, path))
+        raise ParameterError("targets.json describes no ChArUco board", path=path, field="charts",
+                             fix="write one with `fieldcal targets OUT --kind charuco`")
+    if isinstance(doc, dict) and doc.get("kind") == "charuco":
+        board_from_record(doc, 1, 1, path)  # validates
+        return {k: doc.get(k) for k in CHARUCO_RECORD_KEYS if k in doc} | (
+            {"marker_ratio": doc["marker_ratio"]} if "marker_ratio" in doc else {})
+    raise ParameterError("not a chart description", path=path, field="chart",
+                         fix="give targets.json from `fieldcal targets`, or a JSON record with kind \"charuco\"")
+
+
 def charuco_spec(width_px: int, height_px: int, *, squares_short: int | None = None,
                  marker_ratio: float = 0.7, dpi: float | None = None) -> CharucoSpec:
     """Lay out a ChArUco board centred in a ``width_px x height_px`` chart.

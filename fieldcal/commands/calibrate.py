@@ -37,6 +37,9 @@ def register(sub):
                         "else 0); recorded in the profile and included in the band")
     p.add_argument("--report", default=None, metavar="DIR", help="also write the HTML report into DIR")
     p.add_argument("--overwrite", action="store_true", help="replace an existing profile (and report files)")
+    p.add_argument("--geometry-maps", choices=("auto", "charuco", "texture", "off"), default="auto",
+                   help="dense geometry maps (distortion, breathing, shift, lateral colour): auto measures them "
+                        "when stack.json records a ChArUco chart (default); texture registers the frames' texture")
     p.add_argument("--no-verify", action="store_true",
                    help="use frames whose content no longer matches the sha256 stack.json records")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
@@ -64,7 +67,7 @@ def run(args) -> int:
     stack = Stack.open(stack_dir, verify=not args.no_verify)
     profile = calibrate(stack, fs_cyc_per_mm=args.fs, q=args.q, effort=args.effort, z_ref_um=args.z_ref_um,
                         tile_px=args.tile_px, measure=args.measure, seed=args.seed, quiet=args.quiet,
-                        chart=args.chart,
+                        chart=args.chart, geometry_maps=args.geometry_maps,
                         stage_repeatability_um=args.stage_repeatability_um)
     profile.save(out)
     print(f"wrote {out} (model {profile.surfaces.model.name}; "

@@ -63,6 +63,8 @@ def register(sub):
                                                          "state it; overrides the camera's")
     p.add_argument("--object-distance-mm", type=float, help="the chart's distance from the lens, recorded like "
                                                             "--focal-length-mm (refocusing a plan needs both)")
+    p.add_argument("--chart", metavar="TARGETS.json", help="record the ChArUco board in view (targets.json of "
+                   "`fieldcal targets`) in stack.json, for `calibrate`'s geometry maps")
     p.add_argument("--dry-run", action="store_true", help="print the acquisition stream, positions, time and disk "
                                                           "needed; move nothing")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -89,6 +91,10 @@ def run(args) -> int:
         common = dict(exposure_ms=args.exposure_ms, approach=args.approach, overshoot_um=args.overshoot_um)
         plan = (CapturePlan.from_file(args.plan, **common) if args.plan
                 else CapturePlan.from_range(*args.z, **common))
+        chart = None
+        if args.chart:  # read before the stage moves: a bad chart file costs no capture
+            from ..charts.targets import chart_record_from_targets
+            chart = chart_record_from_targets(args.chart)
     except ParameterError as exc:
         raise _with_flag(exc) from None
     try:
@@ -104,6 +110,9 @@ def run(args) -> int:
               f"{r['disk_bytes'] / 1e6:.1f} MB" + ("" if r["fits_travel"] else
                                                   "; the plan does NOT fit the stage's travel"), file=sys.stderr)
         return 0 if r["fits_travel"] else 2
+    if chart is not None:
+        from ..formats.stack import record_chart
+        record_chart(r.path, chart)
     status(f"capture: {r.path}: {r.n_frames} frames ({r.taken} taken, {r.skipped} already there, "
            f"{r.retaken} torn re-taken)", args.quiet)
     return 0

@@ -37,6 +37,8 @@ def register(sub):
     p.add_argument("--link", nargs="?", const="hard", choices=["hard", "symlink"],
                    help="hard-link (default for --link) or symlink the frames instead of copying them")
     p.add_argument("--overwrite", action="store_true", help="replace an existing stack in STACK")
+    p.add_argument("--chart", metavar="TARGETS.json", help="record the ChArUco board the frames show (targets.json "
+                   "of `fieldcal targets`) in stack.json, for `calibrate`'s geometry maps")
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
     p.set_defaults(func=run)
 
@@ -45,10 +47,18 @@ def run(args) -> int:
     from ..formats.importer import import_stack
 
     z_start, z_step = (args.z if args.z else (None, None))
+    chart = None
+    if args.chart:  # read before anything is written: a bad chart file leaves no stack behind
+        from ..charts.targets import chart_record_from_targets
+        chart = chart_record_from_targets(args.chart)
     stack = import_stack(args.images, args.out, z_start_um=z_start, z_step_um=z_step, z_csv=args.z_csv,
                          pixel_pitch_um=args.pixel_pitch_um, f_number=args.f_number,
                          focal_length_mm=args.focal_length_mm, object_distance_mm=args.object_distance_mm,
                          link=args.link, overwrite=args.overwrite)
+    if chart is not None:
+        from ..formats.stack import Stack, record_chart
+        record_chart(args.out, chart)
+        stack = Stack.open(args.out)
     h, w = stack.shape
     kind = f"{stack.cfa} Bayer mosaics" if stack.cfa else ", ".join(stack.channels)
     status(f"imported {len(stack)} frames of {w}x{h} px ({kind}, pitch {stack.pixel_pitch_um:g} µm) into "

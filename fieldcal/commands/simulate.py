@@ -33,6 +33,8 @@ def register(sub):
     p.add_argument("--scene", default="chart",
                    help="chart (random texture, default), charuco, slanted-edge, colour-leaves (a colour test "
                         "scene), or an image file")
+    p.add_argument("--chart", metavar="TARGETS.json", help="record the ChArUco board the scene shows (targets.json "
+                   "of `fieldcal targets`) in stack.json; --scene charuco records its own board")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise and the texture chart (default 0)")
     p.add_argument("--size", metavar="WxH", help="render at W x H px over the same sensor area (default: the "
                    "lens's sensor size)")
@@ -60,9 +62,13 @@ def run(args) -> int:
     # the old stack is replaced as a whole: refuse when it is, or holds, the lens spec or the scene image
     check_output(args.stack, inputs=[args.lens, scene_file], kind="dir", replaces_folder=True, field="stack")
     spec = LensSpec.load(args.lens)
+    chart = None
+    if args.chart:
+        from ..charts.targets import chart_record_from_targets
+        chart = chart_record_from_targets(args.chart)
     stack = simulate_stack(spec, args.stack, z, scene=args.scene, seed=args.seed, size=size,
                            progress=not args.quiet, noise=not args.no_noise, overwrite=args.overwrite,
-                           optics=args.optics, fs_cyc_per_mm=args.fs)
+                           optics=args.optics, fs_cyc_per_mm=args.fs, chart=chart)
     h, w = stack.shape
     status(f"wrote {len(stack)} frames of {w}x{h} px ({', '.join(stack.channels)}) to {args.stack}",
            quiet=args.quiet)

@@ -160,7 +160,7 @@ class _Job:
         # Runs whose source boxes are close share one read (fewer calls); distant ones (the two sides of a ring)
         # are read apart (no pixels read for nothing).
         w, h = self.w, self.h
-        boxes = [source_box(fmap.matrix, x0, y0, x1, y1, w, h) for x0, x1, _, _ in todo]
+        boxes = [source_box(fmap.matrix, x0, y0, x1, y1, w, h, fmap.margin_px) for x0, x1, _, _ in todo]
         gap = self.tile
         groups: list[list[int]] = [[0]]
         for j in range(1, len(todo)):
@@ -178,7 +178,8 @@ class _Job:
                 x0, x1, run_ch, wts = todo[j]
                 bx0, by0, bx1, by1 = boxes[j]
                 part = src[by0 - sy0:by1 - sy0, bx0 - sx0:bx1 - sx0, run_ch].astype(np.float32)
-                warped = part if identity else warp_from(part, bx0, by0, fmap.matrix, x0, y0, x1, y1)
+                warped = part if identity else warp_from(part, bx0, by0, fmap.matrix, x0, y0, x1, y1,
+                                                         residual=fmap.residual)
                 if wts is None:  # between the seams: the frame is taken as it is
                     acc[:, x0:x1, run_ch] += warped
                 else:

@@ -4,6 +4,10 @@ docs/architecture.md: a point at pixel ``p`` of the frame at ``z_ref`` appears a
 at ``z`` (``c`` the optical centre). With lateral-colour correction the channel's constant scale ``L_c`` about
 ``c`` is undone too, so every channel lands in the reference channel's geometry. The map from output pixel to
 source pixel is affine, so a frame region is warped with one ``cv2.warpAffine`` call.
+
+Profiles with dense geometry maps (``profile.has_geometry_map``: distortion that changes with z, docs/geometry.md)
+add a non-affine part: the map ``profile.warp_px`` is split into its best scale-and-shift and a smooth residual
+sampled on a coarse grid (:class:`ResidualGrid`), and such frames are warped with ``cv2.remap``.
 """
 
 from __future__ import annotations
@@ -27,19 +31,51 @@ _MARGIN_PX = 3
 _IDENTITY = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
+# Node spacing of a map's residual grid (px): distortion varies over hundreds of pixels, bicubic between nodes
+# reproduces it to ~1e-3 px.
+_RESIDUAL_STEP_PX = 16
+
+
+@dataclass(frozen=True)
+class ResidualGrid:
+    """The non-affine part of a frame map, ``q - (A p + b)``, at nodes every ``step_px`` px (from pixel 0)."""
+
+    step_px: int
+    dx: np.ndarray
+    dy: np.ndarray
+
+    @cached_property
+    def max_px(self) -> float:
+        return float(max(np.max(np.abs(self.dx)), np.max(np.abs(self.dy))))
+
+    def at(self, x, y):
+        """Residual (dx, dy) at pixel positions (cubic-spline interpolation between nodes)."""
+        from scipy import ndimage
+        c = [np.asarray(y, dtype=np.float64) / self.step_px, np.asarray(x, dtype=np.float64) / self.step_px]
+        return (ndimage.map_coordinates(self.dx, c, order=3, mode="nearest"),
+                ndimage.map_coordinates(self.dy, c, order=3, mode="nearest"))
+
+
 @dataclass(frozen=True)
 class FrameMap:
-    """Affine map output pixel (z_ref geometry) -> source pixel (frame at z) for a group of channels.
+    """Map output pixel (z_ref geometry) -> source pixel (frame at z) for a group of channels.
 
-    ``matrix`` is the 2x3 ``[A | b]`` with ``q = A p + b``; ``channels`` are indices into the last image axis.
+    ``matrix`` is the 2x3 ``[A | b]`` with ``q = A p + b``; ``channels`` are indices into the last image axis;
+    ``residual`` the non-affine part of a dense geometry map (None: the map is affine).
     """
 
     matrix: np.ndarray
     channels: tuple[int, ...]
+    residual: ResidualGrid | None = None
 
     @cached_property
     def is_identity(self) -> bool:
-        return _is_identity(self.matrix)
+        return self.residual is None and _is_identity(self.matrix)
+
+    @property
+    def margin_px(self) -> int:
+        """Source pixels to read around the affine footprint of an output box."""
+        return _MARGIN_PX + (0 if self.residual is None else int(math.ceil(self.residual.max_px)))
 
 
 def _is_identity(matrix: np.ndarray) -> bool:
@@ -71,6 +107,8 @@ def frame_maps(profile: FrameGeometry, z_um: float, channels, lateral_colour: bo
     """
     if profile is None:
         return [FrameMap(affine_for(1.0, (0.0, 0.0), (0.0, 0.0)), tuple(range(len(channels))))]
+    if getattr(profile, "has_geometry_map", False):
+        return [dense_frame_map(profile, z_um, ch, ci, lateral_colour) for ci, ch in enumerate(channels)]
     centre = tuple(float(v) for v in profile.optical_centre_px())
     groups: list[FrameMap] = []
     for ci, ch in enumerate(channels):
@@ -88,6 +126,24 @@ def frame_maps(profile: FrameGeometry, z_um: float, channels, lateral_colour: bo
     return groups
 
 
+def dense_frame_map(profile, z_um: float, channel: str, ci: int, lateral_colour: bool) -> FrameMap:
+    """One channel's map from ``profile.warp_px``: its least-squares scale and shift, plus the residual grid."""
+    w, h = (int(v) for v in profile.image_size_px)
+    gx, gy = np.meshgrid(np.arange(0, w - 1 + _RESIDUAL_STEP_PX, _RESIDUAL_STEP_PX, dtype=np.float64),
+                         np.arange(0, h - 1 + _RESIDUAL_STEP_PX, _RESIDUAL_STEP_PX, dtype=np.float64))
+    qx, qy = profile.warp_px(gx, gy, float(z_um), channel, lateral_colour=lateral_colour)
+    # q = a p + t in the least-squares sense (about the frame centre: a well-conditioned 3-parameter fit)
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    u, v = (gx - cx).ravel(), (gy - cy).ravel()
+    A = np.concatenate([np.column_stack([u, np.ones_like(u), np.zeros_like(u)]),
+                        np.column_stack([v, np.zeros_like(v), np.ones_like(v)])])
+    b = np.concatenate([(qx - cx).ravel(), (qy - cy).ravel()])
+    a, tx, ty = np.linalg.lstsq(A, b, rcond=None)[0]
+    mat = affine_for(float(a), (cx, cy), (float(tx), float(ty)))
+    res = ResidualGrid(_RESIDUAL_STEP_PX, qx - (mat[0, 0] * gx + mat[0, 2]), qy - (mat[1, 1] * gy + mat[1, 2]))
+    return FrameMap(mat, (ci,), res if res.max_px > 1e-3 else None)
+
+
 def source_box(matrix: np.ndarray, x0: int, y0: int, x1: int, y1: int, width: int, height: int,
                margin: int = _MARGIN_PX) -> tuple[int, int, int, int]:
     """Bounding box (half-open, clipped to the frame) of the source pixels an output box needs.
@@ -96,7 +152,7 @@ def source_box(matrix: np.ndarray, x0: int, y0: int, x1: int, y1: int, width: in
     arithmetic: this runs for every run of tiles of every frame.
     """
     (a, b, c), (d, e, f) = (float(v) for v in matrix[0]), (float(v) for v in matrix[1])
-    if max(abs(a - 1.0), abs(b), abs(c), abs(d), abs(e - 1.0), abs(f)) <= 1e-6:
+    if margin <= _MARGIN_PX and max(abs(a - 1.0), abs(b), abs(c), abs(d), abs(e - 1.0), abs(f)) <= 1e-6:
         return int(x0), int(y0), int(x1), int(y1)
     xa, xb, ya, yb = float(x0), float(x1 - 1), float(y0), float(y1 - 1)
     qx = [a * x + b * y + c for x, y in ((xa, ya), (xb, ya), (xa, yb), (xb, yb))]
@@ -146,19 +202,33 @@ def warp_region(stack, i: int, fmap: FrameMap, x0: int, y0: int, x1: int, y1: in
     h, w = stack.shape[:2]
     if fmap.is_identity:
         return read_roi(stack, i, x0, y0, x1, y1)[..., list(fmap.channels)].astype(np.float32)
-    sx0, sy0, sx1, sy1 = source_box(fmap.matrix, x0, y0, x1, y1, w, h)
+    sx0, sy0, sx1, sy1 = source_box(fmap.matrix, x0, y0, x1, y1, w, h, fmap.margin_px)
     src = read_roi(stack, i, sx0, sy0, sx1, sy1)[..., list(fmap.channels)].astype(np.float32)
-    return warp_from(src, sx0, sy0, fmap.matrix, x0, y0, x1, y1, interpolation)
+    return warp_from(src, sx0, sy0, fmap.matrix, x0, y0, x1, y1, interpolation, fmap.residual)
 
 
 def warp_from(src: np.ndarray, sx0: int, sy0: int, matrix: np.ndarray, x0: int, y0: int, x1: int, y1: int,
-              interpolation: str = "cv2") -> np.ndarray:
+              interpolation: str = "cv2", residual: ResidualGrid | None = None) -> np.ndarray:
     """Warp output box ``[y0:y1, x0:x1]`` from ``src``, a region of the frame whose top-left pixel is
     ``(sx0, sy0)`` and which covers :func:`source_box` of the box, ``h x w x C``: float32, or the input's
-    dtype for uint8/uint16 with cv2 (rounded to whole DN, clipped to the dtype's range)."""
+    dtype for uint8/uint16 with cv2 (rounded to whole DN, clipped to the dtype's range). ``residual``: the
+    non-affine part of a dense map (bicubic ``cv2.remap``, like the affine path's kernel)."""
     m = matrix
     nch = src.shape[2]
     ow, oh = x1 - x0, y1 - y0
+    if residual is not None:
+        if src.dtype not in (np.uint8, np.uint16, np.float32):
+            src = src.astype(np.float32)
+        px, py = np.meshgrid(np.arange(x0, x1, dtype=np.float64), np.arange(y0, y1, dtype=np.float64))
+        rx, ry = residual.at(px, py)
+        mapx = (m[0, 0] * px + m[0, 1] * py + m[0, 2] + rx - sx0).astype(np.float32)
+        mapy = (m[1, 0] * px + m[1, 1] * py + m[1, 2] + ry - sy0).astype(np.float32)
+        out = np.empty((oh, ow, nch), dtype=src.dtype)
+        for k in range(0, nch, 4):
+            part = np.ascontiguousarray(src[..., k:k + 4])
+            res = cv2.remap(part, mapx, mapy, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+            out[..., k:k + 4] = res.reshape(oh, ow, -1)
+        return out
     keys = interpolation == "keys" and m[0, 1] == 0.0 and m[1, 0] == 0.0
     if keys or src.dtype not in (np.uint8, np.uint16, np.float32):
         src = src.astype(np.float32)

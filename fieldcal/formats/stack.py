@@ -57,6 +57,20 @@ def _validate_meta(meta: Any, json_path: Path) -> tuple[float, tuple[str, ...]]:
     return float(meta["pixel_pitch_um"]), tuple(meta["channels"])
 
 
+def stack_chart(meta: dict, json_path: Path | None = None) -> dict | None:
+    """The chart a stack shows, from stack.json's ``chart``: a record (``{"kind": "charuco", "dictionary", ...}``,
+    docs/stack-format.md), or older stacks' scene name as ``{"kind": name}``; None when not recorded."""
+    chart = meta.get("chart")
+    if chart is None:
+        return None
+    if isinstance(chart, str):
+        return {"kind": chart}
+    if chart.get("kind") == "charuco":
+        from fieldcal.charts.targets import board_from_record
+        board_from_record(chart, 1, 1, json_path)  # the checks across fields the schema cannot make
+    return dict(chart)
+
+
 def _check_frame_entry(entry: Any, i: int, json_path: Path) -> tuple[str, float]:
     """One frames[] entry against the schema's frame definition; returns (file, z_um)."""
     documents.validate(entry, "stack", json_path, pointer="/$defs/frame", where=f"frames[{i}]", error=StackError)
@@ -673,3 +687,15 @@ class StackWriter:
 def _dump(meta: dict, json_path: Path) -> str:
     """stack.json text (numpy values as plain JSON; NaN/Infinity and other non-JSON values refused)."""
     return documents.dumps(meta, path=json_path, error=StackError)
+
+
+def record_chart(path: str | os.PathLike, chart: dict) -> None:
+    """Write the chart record (:func:`stack_chart`) into an existing stack's ``stack.json`` (atomically), e.g.
+    after ``import`` or ``capture`` with ``--chart``."""
+    path = Path(path)
+    json_path = path / STACK_JSON if path.is_dir() else path
+    meta = _read_json(json_path)
+    meta["chart"] = chart
+    _validate_meta(meta, json_path)
+    stack_chart(meta, json_path)
+    atomic_write_text(json_path, _dump(meta, json_path))

@@ -12,6 +12,7 @@ The public API (DESIGN.md)::
     profile.best_focus_um(x, y, "G")                          # MAP surface (µm)
     profile.best_focus_interval_um(x, y, "G", level=0.9)      # credible band (µm)
     profile.magnification(z_um, "G"); profile.shift_px(z_um, "G")
+    profile.warp_px(x, y, z_um, "G"); profile.warp_sd_px(x, y, z_um, "G")   # dense geometry (docs/geometry.md)
 
 :class:`LensProfile` implements :class:`fieldcal.optics.LensModel`; its defocus physics is
 :mod:`fieldcal.optics` (the same model the simulator and planner use).
@@ -41,6 +42,7 @@ from fieldcal.optics import MTFCriterion, default_wavelength_nm, defocus_otf, di
 if TYPE_CHECKING:  # the fits import the fitting stack; a profile loads them only when it reads one
     from fieldcal.fit import SurfaceFit
     from fieldcal.fit.geometry import GeometryFit
+    from fieldcal.fit.geometry_map import GeometryMap
     from fieldcal.fit.tolerance import ToleranceFit
 
 PROFILE_FORMAT = documents.format_id("profile")
@@ -95,6 +97,7 @@ class LensProfile:
     tiles: dict[str, np.ndarray] | None = None                  # tile table columns (for reports)
     geometry_measurements: dict[str, np.ndarray] | None = None  # per-frame geometry columns
     source_path: str | None = None
+    geometry_map: GeometryMap | None = None  # dense maps (x, y, z) with covariance; None: the scalar m(z), s(z)
 
     # ------------------------------------------------------------------------------ the DESIGN.md API
     @property
@@ -143,6 +146,64 @@ class LensProfile:
         """(dx, dy) image shift (px) at z relative to z_ref."""
         ch = self.channels[0] if channel is None else self._channel(channel)
         return self.geometry_fit.shift_px(np.asarray(z_um, dtype=np.float64), ch)
+
+    @property
+    def has_geometry_map(self) -> bool:
+        """Dense maps (the compositor warps with :meth:`warp_px`); False: the scalar model's affine maps."""
+        return self.geometry_map is not None
+
+    @property
+    def reference_channel(self) -> str:
+        """The channel whose frame at z_ref defines the pixel geometry of :meth:`warp_px`."""
+        if self.geometry_map is not None:
+            return self.geometry_map.reference_channel
+        ref = getattr(self.geometry_fit, "reference_channel", None)
+        return ref if ref in self.channels else ("G" if "G" in self.channels else self.channels[0])
+
+    def warp_px(self, x, y, z_um, channel: str, lateral_colour: bool = True):
+        """Where the point at pixel (x, y) of the z_ref geometry appears in ``channel`` of the frame at z (px).
+
+        The z_ref geometry is the reference channel's frame at ``z_ref_um``; the map holds distortion (changing
+        with z), breathing, shift and lateral colour (docs/geometry.md). ``lateral_colour=False`` maps from the
+        channel's own frame at z_ref instead. Profiles without maps answer with the scalar model
+        ``c + m(z) L (p - c) + s(z)`` (``L`` the lateral-colour scale).
+        """
+        x, y = _check_points(x, y)
+        ch = self._channel(channel)
+        z = np.asarray(z_um, dtype=np.float64)
+        if self.geometry_map is None:
+            cx, cy = self.optical_centre_px()
+            m = self.geometry_fit.magnification(z, ch) * (self.lateral_colour_scale(ch) if lateral_colour else 1.0)
+            sx, sy = self.geometry_fit.shift_px(z, ch)
+            return cx + m * (x - cx) + sx, cy + m * (y - cy) + sy
+        if not lateral_colour:
+            x, y = self._from_own_frame(x, y, ch)
+        return self.geometry_map.warp_px(x, y, z, ch)
+
+    def _from_own_frame(self, x, y, channel: str):
+        """The z_ref-geometry point that channel ``channel``'s own z_ref frame shows at (x, y): the inverse of the
+        map at z_ref (fixed point: the map is within ~1e-2 of the identity in its derivative)."""
+        px, py = np.array(x, dtype=np.float64), np.array(y, dtype=np.float64)
+        for _ in range(20):
+            qx, qy = self.geometry_map.warp_px(px, py, self.geometry_map.z_ref_um, channel)
+            ex, ey = qx - x, qy - y
+            px, py = px - ex, py - ey
+            if max(np.max(np.abs(ex), initial=0.0), np.max(np.abs(ey), initial=0.0)) < 1e-9:
+                break
+        return px, py
+
+    def warp_sd_px(self, x, y, z_um, channel: str):
+        """1-sigma uncertainty (px, x and y) of :meth:`warp_px`: from the maps' covariance, or for profiles
+        without maps from the scalar fits' (magnification and shift sd)."""
+        x, y = _check_points(x, y)
+        ch = self._channel(channel)
+        z = np.asarray(z_um, dtype=np.float64)
+        if self.geometry_map is not None:
+            return self.geometry_map.warp_sd_px(x, y, z, ch)
+        cx, cy = self.optical_centre_px()
+        msd = self.geometry_fit.magnification_sd(z, ch)
+        ssx, ssy = self.geometry_fit.shift_sd_px(z, ch)
+        return np.hypot(msd * (x - cx), ssx), np.hypot(msd * (y - cy), ssy)
 
     # ------------------------------------------------------------------ what planning/compositing use
     @property
@@ -240,6 +301,7 @@ class LensProfile:
             "z_ref_um": float(self.z_ref_um),
             "surfaces": self.surfaces.to_dict(include_samples=False),
             "geometry": self.geometry_fit.to_dict(),
+            **({"geometry_map": self.geometry_map.to_dict()} if self.geometry_map is not None else {}),
             "tolerance": None if self.tolerance_fit is None else self.tolerance_fit.to_dict(),
             "model_selection": jsonable(self.model_selection),
             "diagnostics": jsonable(self.diagnostics),
@@ -301,6 +363,10 @@ class LensProfile:
         from fieldcal.fit.geometry import GeometryFit
         surfaces = SurfaceFit.from_dict(d["surfaces"], samples=samples, path=path)
         geometry = GeometryFit.from_dict(d["geometry"], path=path)
+        gmap = None
+        if d.get("geometry_map") is not None:  # profiles before the maps have none: the scalar model answers
+            from fieldcal.fit.geometry_map import GeometryMap
+            gmap = GeometryMap.from_dict(d["geometry_map"], path=path)
         tolerance = None
         if d.get("tolerance"):
             from fieldcal.fit.tolerance import ToleranceFit
@@ -313,7 +379,7 @@ class LensProfile:
         return cls(surfaces=surfaces, geometry_fit=geometry, tolerance_fit=tolerance, image=dict(img),
                    optics=dict(d["optics"]), calibration=dict(d["calibration"]), z_ref_um=float(d["z_ref_um"]),
                    diagnostics=dict(d.get("diagnostics", {})), provenance=prov, tiles=tiles,
-                   geometry_measurements=geom, source_path=str(path))
+                   geometry_measurements=geom, source_path=str(path), geometry_map=gmap)
 
 
 _SHA256 = re.compile(r"[0-9a-fA-F]{64}")

@@ -27,6 +27,16 @@ Geometry vs z (DESIGN.md): a point at pixel p of the frame at z_ref appears at `
 with ``m(z) = 1 + (z - z_ref) / exit_pupil_um`` (non-telecentric image space: focus breathing) and
 ``s(z) = (z - z_ref) * tan(stage_axis_tilt) / pixel_pitch`` (stage axis not parallel to the optical axis).
 Lateral colour is a constant per-channel scale about the optical centre, ``1 + lateral_colour[c]``.
+
+Distortion (optional block ``distortion``, all terms 0 by default): Brown-Conrady radial (k1, k2) and tangential
+(p1, p2) terms in the normalised coordinates ``w = (p - c) / image_height_max`` (sensor mm) about the optical
+centre, each changing linearly with z (``k1(z) = k1 + dk1_dz_per_um (z - z_ref)``)::
+
+    D_z(w) = w (1 + k1 r^2 + k2 r^4) + (2 p1 wx wy + p2 (r^2 + 2 wx^2), p1 (r^2 + 2 wy^2) + 2 p2 wx wy)
+
+The full map of channel c from the (undistorted) scene to the sensor at z (:meth:`LensSpec.sensor_px`) is
+``c + m(z) (1 + lateral_colour[c]) D_z(p - c) + s(z)``: the image is distorted and then scaled by breathing
+and lateral colour, so a distortion that does not change with z cancels out of frame-to-frame maps.
 """
 
 from __future__ import annotations
@@ -56,6 +66,67 @@ class ChannelSpec:
     curvature_um: tuple[float, ...] = ()
     astigmatism_um: float = 0.0
     lateral_colour: float = 0.0
+
+
+@dataclass(frozen=True)
+class Distortion:
+    """Radial (k1, k2) and tangential (p1, p2) distortion about the optical centre, each linear in z.
+
+    Coefficients are dimensionless, in coordinates normalised by ``image_height_max_mm``; ``d*_dz_per_um`` are
+    their changes per µm of stage travel from ``z_ref_um``. All zero: no distortion.
+    """
+
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    dk1_dz_per_um: float = 0.0
+    dk2_dz_per_um: float = 0.0
+    dp1_dz_per_um: float = 0.0
+    dp2_dz_per_um: float = 0.0
+
+    @property
+    def is_zero(self) -> bool:
+        return not any(getattr(self, f) for f in self.__dataclass_fields__)
+
+    def at(self, dz_um: float) -> tuple[float, float, float, float]:
+        """(k1, k2, p1, p2) at ``dz_um`` from z_ref."""
+        return (self.k1 + self.dk1_dz_per_um * dz_um, self.k2 + self.dk2_dz_per_um * dz_um,
+                self.p1 + self.dp1_dz_per_um * dz_um, self.p2 + self.dp2_dz_per_um * dz_um)
+
+
+def brown_conrady(wx, wy, k1: float, k2: float, p1: float, p2: float):
+    """Distorted normalised coordinates of undistorted ones (radial k1, k2; tangential p1, p2)."""
+    r2 = wx * wx + wy * wy
+    radial = 1.0 + r2 * (k1 + k2 * r2)
+    return (wx * radial + 2.0 * p1 * wx * wy + p2 * (r2 + 2.0 * wx * wx),
+            wy * radial + p1 * (r2 + 2.0 * wy * wy) + 2.0 * p2 * wx * wy)
+
+
+def brown_conrady_inverse(ux, uy, k1: float, k2: float, p1: float, p2: float, iterations: int = 50):
+    """Undistorted normalised coordinates of distorted ones (fixed-point iteration, to 1e-13).
+
+    Raises :class:`SpecError` where there is none: a strong barrel distortion folds the image (the radial
+    factor turns back before the sensor's edge).
+    """
+    ux = np.asarray(ux, dtype=np.float64)
+    uy = np.asarray(uy, dtype=np.float64)
+    wx, wy = ux.copy(), uy.copy()
+    err = np.inf
+    with np.errstate(over="ignore", invalid="ignore"):
+        for _ in range(iterations):
+            dx, dy = brown_conrady(wx, wy, k1, k2, p1, p2)
+            ex, ey = dx - ux, dy - uy
+            wx, wy = wx - ex, wy - ey
+            err = max(np.max(np.abs(ex), initial=0.0), np.max(np.abs(ey), initial=0.0))
+            if not err >= 1e-13:  # converged (or NaN: caught below)
+                break
+    if not (np.isfinite(err) and err < 1e-9):
+        raise SpecError(f"the distortion (k1 {k1:.4g}, k2 {k2:.4g}, p1 {p1:.4g}, p2 {p2:.4g}) folds the image: "
+                        "some sensor points see no scene point", field="distortion",
+                        fix="use smaller distortion terms (|k1| below ~0.1 over the sensor), or a smaller change "
+                            "with z (d*_dz_per_um) over the scan")
+    return wx, wy
 
 
 @dataclass(frozen=True)
@@ -104,6 +175,7 @@ class LensSpec:
     sources: dict[str, str] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
     aberrations: Aberrations | None = None  # wave-optics terms (fieldcal.simulate.aberrations); None = none
+    distortion: Distortion = field(default_factory=Distortion)
 
     # ------------------------------------------------------------------ access
     @property
@@ -200,6 +272,44 @@ class LensSpec:
         ax, ay = (math.tan(a * 1e-3) for a in self.stage_axis_tilt_mrad)
         return dz * ax / p, dz * ay / p
 
+    def _norm_px(self, pixel_pitch_um: float | None) -> float:
+        """Pixels per unit of normalised image height."""
+        p = self.sensor.pixel_pitch_um if pixel_pitch_um is None else pixel_pitch_um
+        return self.image_height_max_mm * 1000.0 / p
+
+    def sensor_px(self, x_px, y_px, z_um, channel: str, pixel_pitch_um: float | None = None,
+                  breathing: bool = True):
+        """Where the scene point at pixel (x, y) of the undistorted scene lands on the sensor at z, channel c.
+
+        ``c + m(z) (1 + lateral_colour) D_z(p - c) + s(z)`` (module docstring); ``breathing=False`` leaves
+        out m(z) and s(z) (the truth image, in the geometry of z_ref). Pixel coordinates at the spec's sensor
+        size (use :meth:`with_sensor_size` for another).
+        """
+        cx, cy = self.optical_centre_px(pixel_pitch_um=pixel_pitch_um)
+        n = self._norm_px(pixel_pitch_um)
+        wx = (np.asarray(x_px, dtype=np.float64) - cx) / n
+        wy = (np.asarray(y_px, dtype=np.float64) - cy) / n
+        dz = float(z_um) - self.z_ref_um if breathing else 0.0
+        if not self.distortion.is_zero:
+            wx, wy = brown_conrady(wx, wy, *self.distortion.at(dz))
+        a = self.lateral_colour_scale(channel) * (float(self.magnification(z_um)) if breathing else 1.0)
+        sx, sy = ((float(v) for v in self.shift_px(z_um, pixel_pitch_um)) if breathing else (0.0, 0.0))
+        return cx + a * n * wx + sx, cy + a * n * wy + sy
+
+    def scene_px(self, x_px, y_px, z_um, channel: str, pixel_pitch_um: float | None = None,
+                 breathing: bool = True):
+        """Inverse of :meth:`sensor_px`: the scene pixel that lands at sensor pixel (x, y)."""
+        cx, cy = self.optical_centre_px(pixel_pitch_um=pixel_pitch_um)
+        n = self._norm_px(pixel_pitch_um)
+        a = self.lateral_colour_scale(channel) * (float(self.magnification(z_um)) if breathing else 1.0)
+        sx, sy = ((float(v) for v in self.shift_px(z_um, pixel_pitch_um)) if breathing else (0.0, 0.0))
+        ux = (np.asarray(x_px, dtype=np.float64) - cx - sx) / (a * n)
+        uy = (np.asarray(y_px, dtype=np.float64) - cy - sy) / (a * n)
+        dz = float(z_um) - self.z_ref_um if breathing else 0.0
+        if not self.distortion.is_zero:
+            ux, uy = brown_conrady_inverse(ux, uy, *self.distortion.at(dz))
+        return cx + n * ux, cy + n * uy
+
     def relative_illumination(self, x_mm, y_mm):
         """Vignetting: 1 on axis falling quadratically in rho to ``relative_illumination_edge`` at rho=1."""
         r2 = self.rho(x_mm, y_mm) ** 2
@@ -239,6 +349,8 @@ class LensSpec:
         d["exit_pupil_mm"] = None if not math.isfinite(self.exit_pupil_mm) else self.exit_pupil_mm
         extra = d.pop("extra")
         d.pop("aberrations")
+        if self.distortion.is_zero:  # documents of lenses without distortion stay as they were
+            d.pop("distortion")
         if self.aberrations is not None:
             d["aberrations"] = self.aberrations.to_dict()
         d.update(extra)
@@ -264,7 +376,8 @@ class LensSpec:
 # ------------------------------------------------------------------------------------------ validation
 _KNOWN_KEYS = {"format", "name", "focal_length_mm", "f_number", "image_height_max_mm", "channels", "sensor",
                "object_distance_mm", "decentre_mm", "tilt_um_per_mm", "exit_pupil_mm", "stage_axis_tilt_mrad",
-               "z_ref_um", "residual_blur_um", "relative_illumination_edge", "description", "sources", "aberrations"}
+               "z_ref_um", "residual_blur_um", "relative_illumination_edge", "description", "sources", "aberrations",
+               "distortion"}
 
 
 def _lens_from_dict(d: Any, path, where: str = "") -> LensSpec:
@@ -316,4 +429,5 @@ def _lens_from_dict(d: Any, path, where: str = "") -> LensSpec:
         extra={k: v for k, v in d.items() if k not in _KNOWN_KEYS},
         aberrations=(parse_aberrations(d["aberrations"], path, tuple(c["name"] for c in d["channels"]))
                      if d.get("aberrations") is not None else None),
+        distortion=Distortion(**{k: float(v) for k, v in (d.get("distortion") or {}).items()}),
     )

@@ -26,7 +26,7 @@ from ..errors import ParameterError
 from fieldcal.simulate.lens import LensSpec
 from . import noise as _noise
 from .levels import fractional_level, level_diameters_px  # noqa: F401  (re-exported)
-from .warp import scale_shift
+from .warp import remap, scale_shift
 
 RENDERER_VERSION = "fieldcal-render/1"
 OPTICS = ("geometric", "wave")  # image-formation paths (docs/simulator.md)
@@ -276,8 +276,7 @@ class Renderer:
 
         ``z_um=None`` means each pixel's own best focus (the residual is then astigmatism only).
         """
-        xd = affine[0, 0] * self._xs + affine[0, 2]
-        yd = affine[1, 1] * self._ys + affine[1, 2]
+        xd, yd = self._landing(z_um, channel, affine)
         xm, ym = self.spec.pixel_to_mm(xd, yd)
         if z_um is None:
             astig = self.spec.channel(channel).astigmatism_um
@@ -291,8 +290,7 @@ class Renderer:
 
         ``z_um=None``: each pixel at its own sharpest position (the truth image).
         """
-        xd = affine[0, 0] * self._xs + affine[0, 2]
-        yd = affine[1, 1] * self._ys + affine[1, 2]
+        xd, yd = self._landing(z_um, channel, affine)
         xm, ym = self.spec.pixel_to_mm(xd, yd)
         if z_um is None:
             d = self._wave.best_focus_shift_um(channel, self.spec.rho(xm, ym))
@@ -302,7 +300,18 @@ class Renderer:
         self._check_blur(float(self.diameter_px(np.max(np.abs(d)))))
         return np.asarray(d, dtype=np.float64)
 
-    def _warp(self, img: np.ndarray, affine: np.ndarray) -> np.ndarray:
+    def _landing(self, z_um: float | None, channel: str, affine: np.ndarray):
+        """Sensor position of every scene pixel: the affine map, or the spec's full map with distortion."""
+        if self.spec.distortion.is_zero:
+            return affine[0, 0] * self._xs + affine[0, 2], affine[1, 1] * self._ys + affine[1, 2]
+        return self.spec.sensor_px(self._xs, self._ys, self.spec.z_ref_um if z_um is None else z_um, channel,
+                                   breathing=z_um is not None)
+
+    def _warp(self, img: np.ndarray, affine: np.ndarray, z_um: float | None = None, channel: str = "") -> np.ndarray:
+        if not self.spec.distortion.is_zero:  # non-affine: sample the scene where each sensor pixel comes from
+            xs, ys = np.broadcast_arrays(self._xs, self._ys)
+            return remap(img, *self.spec.scene_px(xs, ys, self.spec.z_ref_um if z_um is None else z_um, channel,
+                                                  breathing=z_um is not None))
         if np.allclose(affine, [[1, 0, 0], [0, 1, 0]], rtol=0, atol=1e-12):
             return img
         return scale_shift(img, affine[0, 0], affine[0, 2], affine[1, 2])
@@ -313,9 +322,9 @@ class Renderer:
         for ci, ch in enumerate(self.channels):
             aff = self._affine(self.spec.z_ref_um if z_um is None else z_um, ch, breathing)
             if self._wave is not None:
-                img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff)
+                img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff, z_um, ch)
             else:
-                img = self._warp(self.blur_map(ch, self._defocus_at(z_um, ch, aff)), aff)
+                img = self._warp(self.blur_map(ch, self._defocus_at(z_um, ch, aff)), aff, z_um, ch)
             np.multiply(img, self._illum * np.float32(self.exposure), out=out[:, :, ci])
         np.maximum(out, 0.0, out=out)  # band-limited resampling and OTF ringing can dip below zero
         return out

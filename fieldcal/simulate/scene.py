@@ -53,7 +53,13 @@ def load_scene(scene, width_px: int, height_px: int, seed: int = 0) -> tuple[np.
     """
     if isinstance(scene, str) and scene in CHARTS:
         from fieldcal.charts.targets import chart_image
-        return chart_image(CHARTS[scene], width_px, height_px, seed).astype(np.float32), scene
+        img = chart_image(CHARTS[scene], width_px, height_px, seed).astype(np.float32)
+        if CHARTS[scene] == "charuco":
+            # the printed board as the sensor's pixels integrate it: a binary image's hard edges ring past the
+            # white level (clipped, saturated tiles) and lock sub-pixel corners to the pixel grid
+            import cv2
+            img = np.clip(cv2.GaussianBlur(img, (0, 0), 0.5), 0.0, 1.0)
+        return img, scene
     if isinstance(scene, str) and scene in COLOUR_SCENES:
         return colour_leaves(width_px, height_px, seed), scene
     if isinstance(scene, (str, Path)):

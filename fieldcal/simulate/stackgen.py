@@ -105,7 +105,7 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
                    size: tuple[int, int] | None = None, progress: bool = True, noise: bool = True,
                    overwrite: bool = False, level_ratio: float = 1.25, level_floor_px: float = 0.5,
                    stage_noise_um: float = 0.0, stage_backlash_um: float = 0.0, stage_scale_error: float = 0.0,
-                   optics: str = "geometric", fs_cyc_per_mm: float = 80.0):
+                   optics: str = "geometric", fs_cyc_per_mm: float = 80.0, chart: dict | None = None):
     """Render a through-focus stack of a scene through a simulated lens and write it with its truth.
 
     Parameters
@@ -138,6 +138,9 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
         Image formation (docs/simulator.md); ``wave`` computes PSFs from the pupil and the spec's aberrations.
     fs_cyc_per_mm : float
         Wave optics: the frequency whose MTF peak defines the true best focus written to truth.json.
+    chart : dict, optional
+        stack.json's ``chart`` record (e.g. :func:`fieldcal.charts.targets.chart_record_from_targets` for an image
+        of a printed board); default: the ``"charuco"`` scene's own board, else the scene's name.
 
     Returns
     -------
@@ -164,7 +167,7 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     meta = dict(bit_depth=s.bit_depth, black_level=s.black_level_dn, white_level=s.white_level_dn,
                 f_number=spec.f_number, focal_length_mm=spec.focal_length_mm, exposure_ms=s.exposure_ms,
                 object_distance_mm=spec.object_distance_mm, image_size_px=[s.width_px, s.height_px],
-                lens=spec.name, chart=scene_name)
+                lens=spec.name, chart=chart if chart is not None else _chart_record(scene_name, spec))
     if s.cfa:
         meta["cfa"] = s.cfa
     if stage_noise_um or stage_backlash_um or stage_scale_error:
@@ -206,6 +209,19 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return Stack.open(out)
+
+
+def _chart_record(scene_name: str, spec: LensSpec):
+    """stack.json's ``chart``: the rendered ChArUco board's record (its printed size seen from the object
+    distance), else the scene's name."""
+    if scene_name != "charuco":
+        return scene_name
+    from fieldcal.charts.targets import charuco_record, charuco_spec
+    s = spec.sensor
+    board = charuco_spec(s.width_px, s.height_px)
+    f = spec.focal_length_mm
+    object_per_image = (spec.object_distance_mm - f) / f if spec.object_distance_mm > f else 1.0
+    return charuco_record(board, square_mm=board.square_px * s.pixel_pitch_um / 1000.0 * object_per_image)
 
 
 def _wave_best_focus(renderer: Renderer, spec: LensSpec) -> dict:

@@ -95,8 +95,45 @@ class TruthProfile:
         return z + np.interp(self.spec.rho(x_mm, y_mm), r, s)
 
     # -- the DESIGN.md API -------------------------------------------------------------------------
+    @property
+    def reference_channel(self) -> str:
+        """The channel whose frame at z_ref defines the pixel geometry of :meth:`warp_px` (G if there is one)."""
+        return "G" if "G" in self.channels else self.channels[0]
+
+    @property
+    def has_geometry_map(self) -> bool:
+        """Distortion makes the frame maps non-affine: the compositor then warps with :meth:`warp_px`."""
+        return not self.spec.distortion.is_zero
+
+    def warp_px(self, x, y, z_um, channel: str, lateral_colour: bool = True):
+        """Exact map: where the scene point seen at pixel (x, y) of the z_ref geometry (the reference channel's
+        frame at ``z_ref_um``) appears in channel ``channel`` of the frame at ``z_um``: distortion (changing with
+        z), breathing, shift and lateral colour (docs/geometry.md). ``lateral_colour=False``: from the channel's
+        own frame at z_ref."""
+        self.spec.channel(channel)
+        x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        z = np.asarray(z_um, dtype=np.float64)
+        if z.ndim:  # one z per point: evaluate per distinct z (scan positions are few)
+            z = np.broadcast_to(z, x.shape)
+            ox, oy = np.empty(x.shape), np.empty(x.shape)
+            for zz in np.unique(z):
+                m = z == zz
+                ox[m], oy[m] = self.warp_px(x[m], y[m], float(zz), channel, lateral_colour)
+            return ox, oy
+        sx, sy = self.spec.scene_px(x, y, self.z_ref_um, self.reference_channel if lateral_colour else channel)
+        return self.spec.sensor_px(sx, sy, float(z), channel)
+
+    def warp_sd_px(self, x, y, z_um, channel: str):
+        """The truth is exact: zero uncertainty, shaped like :meth:`warp_px`'s answer."""
+        ox, _ = self.warp_px(x, y, z_um, channel)
+        return np.zeros_like(ox), np.zeros_like(ox)
+
     def landing_px(self, x, y, z_um):
         """Where the scene point seen at pixel (x, y) of the z_ref frame appears in the frame at z."""
+        if not self.spec.distortion.is_zero:  # the same channel's frames (lateral colour cancels)
+            ch = self.reference_channel
+            sx, sy = self.spec.scene_px(x, y, self.z_ref_um, ch)
+            return self.spec.sensor_px(sx, sy, z_um, ch)
         cx, cy = self.spec.optical_centre_px()
         m = self.magnification(z_um)
         sx, sy = self.shift_px(z_um)

@@ -1,0 +1,303 @@
+"""Point correspondences for the geometry maps: ChArUco corners matched by id, or texture tracked on a grid.
+
+Both produce :class:`fieldcal.fit.geometry_map.Correspondences`: the point at ``p`` of the z_ref geometry (the
+reference channel of the reference frame) seen at ``q`` in channel c of frame k.
+
+* ChArUco (:func:`charuco_correspondences`): OpenCV's ``CharucoDetector`` per channel of every frame finds the
+  corners and their ids (on an 8-bit copy); each corner is then refined by ``cv2.cornerSubPix``'s method on
+  the float plane (:func:`refine_corners`: no 8-bit quantisation). Corners are matched across frames and channels by id.
+* Texture (:func:`texture_correspondences`): Lucas-Kanade (:func:`track_patches`, float, cubic splines) tracks
+  a grid of textured points from the reference plane into every channel of every frame, frame after frame
+  outward from the reference (each track starts from the previous frame's answer) but always against the
+  reference plane, so errors do not accumulate along the scan.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import cv2
+import numpy as np
+
+from ..charts.targets import CharucoSpec, detect_charuco
+from ..errors import ParameterError
+from ..fit.geometry_map import Correspondences
+
+
+
+def subpix_window_px(spec: CharucoSpec, xy: np.ndarray | None = None) -> int:
+    """Half-size of the corner-refinement window: the white gap between a corner and its markers' bit cells.
+
+    The window sees the chessboard saddle only; marker edges inside it would pull the corner. The square's
+    size in the image comes from the detected corners' spacing when given (a stack's chart record has no pixel
+    size), else from ``spec``.
+    """
+    square = float(spec.square_px)
+    if xy is not None and len(xy) >= 2:
+        d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+        np.fill_diagonal(d, np.inf)
+        square = float(np.median(d.min(axis=1)))
+    gap = square * (1.0 - spec.marker_px / spec.square_px) / 2.0
+    return int(max(2, min(12, round(gap - 1))))
+
+
+def refine_corners(plane: np.ndarray, xy: np.ndarray, half_px: int, iterations: int = 30,
+                   tol_px: float = 1e-4) -> np.ndarray:
+    """Sub-pixel saddle corners on a float plane: ``cv2.cornerSubPix``'s gradient-orthogonality estimate.
+
+    Every gradient in the window around a corner is orthogonal to the vector from the corner to its own
+    position, so the corner solves ``sum w g g^T (q - p) = 0``. Done here in float64 for all corners at once
+    (OpenCV's version takes 8-bit images only in 5.x, and 8 bits quantise a blurred corner's gradients).
+    """
+    from scipy import ndimage
+    f = np.asarray(plane, dtype=np.float64)
+    # Pixel locking: a sharp (aliased) corner pulls the estimate towards the pixel grid, so small motions are
+    # measured short. Gradients sampled by cubic splines, not bilinearly, and of the plane smoothed with
+    # sigma 1.5 px: a 1e-3 scale change of the simulator's aliased board is measured 0.3 % short, against
+    # 13 % with bilinear sampling of unsmoothed gradients (tests/test_geometry_maps.py).
+    gy, gx = (ndimage.spline_filter(g, order=3) for g in np.gradient(ndimage.gaussian_filter(f, 1.5)))
+    off = np.arange(-half_px, half_px + 1, dtype=np.float64)
+    oy, ox = (a.ravel() for a in np.meshgrid(off, off, indexing="ij"))
+    # Gaussian window (sigma = half size) as cornerSubPix uses, the centre cell kept (gradients vanish there)
+    wt = np.exp(-(ox ** 2 + oy ** 2) / (2.0 * max(half_px, 1) ** 2))
+    q = np.asarray(xy, dtype=np.float64).copy()
+    for _ in range(iterations):
+        px = q[:, 0:1] + ox[None, :]
+        py = q[:, 1:2] + oy[None, :]
+        ax = ndimage.map_coordinates(gx, [py.ravel(), px.ravel()], order=3, mode="nearest", prefilter=False).reshape(px.shape)
+        ay = ndimage.map_coordinates(gy, [py.ravel(), px.ravel()], order=3, mode="nearest", prefilter=False).reshape(px.shape)
+        a11 = np.sum(wt * ax * ax, axis=1)
+        a12 = np.sum(wt * ax * ay, axis=1)
+        a22 = np.sum(wt * ay * ay, axis=1)
+        b1 = np.sum(wt * (ax * ax * px + ax * ay * py), axis=1)
+        b2 = np.sum(wt * (ax * ay * px + ay * ay * py), axis=1)
+        det = a11 * a22 - a12 * a12
+        good = det > 1e-12 * (a11 + a22) ** 2
+        nx = np.where(good, (a22 * b1 - a12 * b2) / np.where(good, det, 1.0), q[:, 0])
+        ny = np.where(good, (a11 * b2 - a12 * b1) / np.where(good, det, 1.0), q[:, 1])
+        step = np.hypot(nx - q[:, 0], ny - q[:, 1])
+        q = np.column_stack([nx, ny])
+        if np.max(step, initial=0.0) < tol_px:
+            break
+    return q
+
+
+def charuco_corners(plane: np.ndarray, spec: CharucoSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel ChArUco corners of one plane (H x W, any dtype): (N x 2 px, N ids)."""
+    xy, ids = detect_charuco(plane, spec)
+    if ids.size == 0:
+        return xy, ids
+    win = subpix_window_px(spec, xy)
+    refined = refine_corners(plane, xy, win)
+    # a refinement that wandered off (a blurred-away saddle) keeps the detector's corner
+    moved = ~np.all(np.isfinite(refined), axis=1) | (np.hypot(*(refined - xy).T) > 0.5 * win)
+    refined[moved] = xy[moved]
+    return refined, ids
+
+
+def charuco_correspondences(read_plane: Callable[[int, int], np.ndarray], z_um: Sequence[float],
+                            channels: Sequence[str], spec: CharucoSpec, ref_index: int,
+                            reference_channel: str, min_corners: int = 6) -> Correspondences:
+    """Corners of every channel of every frame, matched to the reference plane's corners by id.
+
+    ``read_plane(k, ci)`` returns channel ``ci`` of frame ``k`` (any dtype). The reference positions ``p`` are
+    the corners found in the reference plane (re-estimated by the fit from all observations). Frames with
+    fewer than ``min_corners`` corners are skipped (too far out of focus for the detector).
+    """
+    channels = list(channels)
+    ref_ci = channels.index(reference_channel)
+    found: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+    for k in range(len(z_um)):
+        for ci in range(len(channels)):
+            xy, ids = charuco_corners(read_plane(k, ci), spec)
+            if ids.size >= min_corners:
+                found[(k, ci)] = (xy, ids)
+    if (ref_index, ref_ci) not in found:
+        raise ParameterError(f"no ChArUco board found in the reference frame (z = {z_um[ref_index]:g} µm, "
+                             f"channel {reference_channel})", field="chart",
+                             fix="check the stack's chart description (stack.json 'chart') and that the board "
+                                 "is near focus at the reference frame")
+    ref_xy, ref_ids = found[(ref_index, ref_ci)]
+    lut = {int(i): xy for i, xy in zip(ref_ids, ref_xy)}
+    P, Q, Z, C, I = [], [], [], [], []
+    for (k, ci), (xy, ids) in found.items():
+        for i, q in zip(ids, xy):
+            p = lut.get(int(i))
+            if p is None:
+                continue
+            P.append(p)
+            Q.append(q)
+            Z.append(float(z_um[k]))
+            C.append(channels[ci])
+            I.append(int(i))
+    n = len(Z)
+    return Correspondences(np.asarray(P, dtype=np.float64).reshape(n, 2), np.asarray(Q, dtype=np.float64).reshape(n, 2),
+                           np.asarray(Z), np.asarray(C), np.ones(n), np.asarray(I, dtype=np.int64))
+
+
+def _texture_grid(ref: np.ndarray, step_px: int, border_px: int, min_quality: float = 0.05) -> np.ndarray:
+    """Grid points with enough texture to track (min eigenvalue of the structure tensor)."""
+    h, w = ref.shape
+    eig = cv2.cornerMinEigenVal(np.ascontiguousarray(ref, dtype=np.float32), blockSize=9)
+    ys, xs = np.mgrid[border_px:h - border_px:step_px, border_px:w - border_px:step_px]
+    xs, ys = xs.ravel(), ys.ravel()
+    ok = eig[ys, xs] >= min_quality * float(np.percentile(eig, 99))
+    return np.column_stack([xs[ok], ys[ok]]).astype(np.float64)
+
+
+def track_patches(ref: np.ndarray, img: np.ndarray, grid: np.ndarray, start: np.ndarray, half_px: int,
+                  iterations: int = 30, tol_px: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+    """Lucas-Kanade translation of every grid patch of ``ref`` into ``img`` (float planes, already smoothed).
+
+    Gauss-Newton with the template's gradients, the image sampled by cubic splines at exact positions (no 8-bit
+    quantisation, no bilinear pixel locking as in ``cv2.calcOpticalFlowPyrLK``), a gain and offset per patch
+    (neighbouring frames differ in blur and so in contrast). Returns (positions N x 2, 1-sigma N: the
+    Gauss-Newton covariance scaled by the patch's residual variance; inf where it did not converge).
+    """
+    from scipy import ndimage
+    off = np.arange(-half_px, half_px + 1, dtype=np.float64)
+    oy, ox = (a.ravel() for a in np.meshgrid(off, off, indexing="ij"))
+    wt = np.exp(-(ox ** 2 + oy ** 2) / (2.0 * (0.5 * half_px) ** 2))
+    gy_ref, gx_ref = np.gradient(ref)
+    gxs, gys = grid[:, 0:1] + ox[None, :], grid[:, 1:2] + oy[None, :]
+    T = ndimage.map_coordinates(ref, [gys.ravel(), gxs.ravel()], order=1).reshape(gxs.shape)  # integer grid
+    gx = ndimage.map_coordinates(gx_ref, [gys.ravel(), gxs.ravel()], order=1).reshape(gxs.shape)
+    gy = ndimage.map_coordinates(gy_ref, [gys.ravel(), gxs.ravel()], order=1).reshape(gxs.shape)
+    tm = np.sum(wt * T, axis=1, keepdims=True) / wt.sum()
+    T0 = T - tm
+    tn = np.sqrt(np.sum(wt * T0 * T0, axis=1, keepdims=True))
+    a11, a12, a22 = (np.sum(wt * u * v, axis=1) for u, v in ((gx, gx), (gx, gy), (gy, gy)))
+    det = a11 * a22 - a12 * a12
+    coeffs = ndimage.spline_filter(np.asarray(img, dtype=np.float64), order=3)
+    q = np.asarray(start, dtype=np.float64).copy()
+    done = np.zeros(len(q), bool)
+    for _ in range(iterations):
+        px, py = q[:, 0:1] + ox[None, :], q[:, 1:2] + oy[None, :]
+        I = ndimage.map_coordinates(coeffs, [py.ravel(), px.ravel()], order=3, prefilter=False,
+                                    mode="nearest").reshape(px.shape)
+        I0 = I - np.sum(wt * I, axis=1, keepdims=True) / wt.sum()
+        gain = tn / np.maximum(np.sqrt(np.sum(wt * I0 * I0, axis=1, keepdims=True)), 1e-12)
+        r = I0 * gain - T0
+        b1, b2 = np.sum(wt * gx * r, axis=1), np.sum(wt * gy * r, axis=1)
+        dx = -(a22 * b1 - a12 * b2) / np.where(det > 0, det, np.inf)
+        dy = -(a11 * b2 - a12 * b1) / np.where(det > 0, det, np.inf)
+        q[:, 0] += dx
+        q[:, 1] += dy
+        done = np.hypot(dx, dy) < tol_px
+        if done.all():
+            break
+    s2 = np.sum(wt * r * r, axis=1) / wt.sum()
+    sigma = np.sqrt(s2 * 0.5 * (a11 + a22) / np.where(det > 0, det, np.inf) * wt.sum() / np.sum(wt))
+    sigma = np.where(done | (np.hypot(dx, dy) < 1e-2), sigma, np.inf)
+    return q, sigma
+
+
+def texture_correspondences(read_plane: Callable[[int, int], np.ndarray], z_um: Sequence[float],
+                            channels: Sequence[str], ref_index: int, reference_channel: str,
+                            step_px: int = 16, half_window_px: int = 12, smooth_px: float = 1.5,
+                            max_sigma_ratio: float = 5.0) -> Correspondences:
+    """Grid points of the reference plane tracked into every channel of every frame (:func:`track_patches`).
+
+    Frames are visited outward from the reference (``ref_index`` up, then down); each frame's track starts at
+    the previous frame's answer and is measured against the reference plane itself, so errors do not
+    accumulate along the scan. Both planes are smoothed by ``smooth_px`` (against pixel locking, as for the
+    corners). Tracks that did not converge or whose sigma exceeds ``max_sigma_ratio`` times the frame's
+    median are dropped.
+    """
+    from scipy import ndimage
+    channels = list(channels)
+    ref_ci = channels.index(reference_channel)
+    ref_raw = np.asarray(read_plane(ref_index, ref_ci), dtype=np.float64)
+    lo, hi = (float(v) for v in np.percentile(ref_raw, [0.5, 99.5]))
+    prep = lambda a: ndimage.gaussian_filter((np.asarray(a, dtype=np.float64) - lo) / max(hi - lo, 1e-12),  # noqa: E731
+                                             smooth_px)
+    ref = prep(ref_raw)
+    grid = _texture_grid(ref, step_px, half_window_px + 8)
+    if grid.shape[0] < 8:
+        raise ParameterError(f"only {grid.shape[0]} textured points in the reference frame", field="frames",
+                             fix="use a textured chart (fieldcal targets) or the ChArUco board with --chart")
+    P, Q, Z, C, S = [], [], [], [], []
+    order = list(range(ref_index, len(z_um))) + list(range(ref_index - 1, -1, -1))
+    for ci, ch in enumerate(channels):
+        prev: dict[int, np.ndarray] = {}
+        for k in order:
+            start = grid if k == ref_index else prev[k - 1 if k > ref_index else k + 1]
+            q, sig = track_patches(ref, prep(read_plane(k, ci)), grid, start, half_window_px)
+            ok = np.isfinite(sig) & np.all(np.isfinite(q), axis=1)
+            if ok.any():
+                ok &= sig <= max_sigma_ratio * np.median(sig[ok])
+            prev[k] = np.where(ok[:, None], q, start)
+            if k == ref_index and ci == ref_ci:
+                continue  # the identity by definition
+            P.append(grid[ok])
+            Q.append(q[ok])
+            Z.append(np.full(int(ok.sum()), float(z_um[k])))
+            C.append(np.full(int(ok.sum()), ch))
+            S.append(np.maximum(sig[ok], 1e-4))
+    n = sum(len(z) for z in Z)
+    return Correspondences(np.concatenate(P).reshape(n, 2), np.concatenate(Q).reshape(n, 2), np.concatenate(Z),
+                           np.concatenate(C), np.concatenate(S), np.full(n, -1, dtype=np.int64))
+
+
+def measure_geometry_map(stack, z_ref_um: float, *, chart: dict | None = None, reference_channel: str | None = None,
+                         source: str = "auto", max_order: int = 2, quiet: bool = True):
+    """Dense geometry maps of a stack (:class:`fieldcal.fit.geometry_map.GeometryMap`), z_ref a frame of it.
+
+    ``chart``: the stack's ``chart`` record (default: stack.json's); a ChArUco record makes ``source="auto"``
+    use the board's corners, anything else the texture. Raw Bayer stacks are measured on each colour's own
+    sub-lattice (no demosaicing) and reported in full-frame pixels.
+    """
+    from ..charts.targets import board_from_record
+    from ..fit.geometry_map import fit_geometry_map
+    from ..formats.stack import stack_chart
+    from ..progress import status
+    from .bayer import extract_plane, plane_layouts
+
+    chart = stack_chart(stack.meta, stack.json_path) if chart is None else chart
+    if source == "auto":
+        source = "charuco" if chart and chart.get("kind") == "charuco" else "texture"
+    if source not in ("charuco", "texture"):
+        raise ParameterError(f"unknown geometry source {source!r}", field="source", fix="use auto, charuco or texture")
+    order = np.asarray(stack.order_by_z)
+    z = np.asarray(stack.z_um, dtype=np.float64)[order]
+    ref_index = int(np.argmin(np.abs(z - float(z_ref_um))))
+    channels = tuple(stack.channels)
+    ref_ch = reference_channel or ("G" if "G" in channels else channels[0])
+    layouts = {}
+    for lay in plane_layouts(channels, getattr(stack, "cfa", None)):
+        layouts.setdefault(lay.name, lay)  # one plane per colour (the first G site of a mosaic)
+    names = [c for c in channels if c in layouts]
+    cache: dict[int, np.ndarray] = {}
+
+    def read_plane(k: int, ci: int) -> np.ndarray:
+        if k not in cache:
+            cache.clear()  # frames are visited one at a time per channel loop: keep one
+            cache[k] = stack.read_normalized(int(order[k]))
+        return extract_plane(cache[k], layouts[names[ci]])
+
+    h, w = stack.shape[:2]
+    status(f"geometry maps from {'ChArUco corners' if source == 'charuco' else 'texture'}: {len(z)} frames",
+           quiet=quiet)
+    if source == "charuco":
+        if not chart or chart.get("kind") != "charuco":
+            raise ParameterError("the stack records no ChArUco chart", path=stack.json_path, field="chart",
+                                 fix="record it with --chart targets.json (simulate, capture, import)")
+        lay0 = layouts[names[0]]
+        board = board_from_record(chart, *(np.array([w, h]) // lay0.stride), path=stack.json_path)
+        corr = charuco_correspondences(read_plane, z, names, board, ref_index, ref_ch)
+    else:
+        corr = texture_correspondences(read_plane, z, names, ref_index, ref_ch,
+                                       step_px=max(8, int(min(h, w) / layouts[names[0]].stride // 24)))
+    # plane pixels -> frame pixels (identity for demosaiced stacks)
+    ref_lay = layouts[ref_ch]
+    p = np.column_stack(ref_lay.to_full(*corr.p_px.T))
+    q = corr.q_px.copy()
+    sig = corr.sigma_px.copy()
+    for c in names:
+        m = corr.channel == c
+        q[m] = np.column_stack(layouts[c].to_full(*corr.q_px[m].T))
+        sig[m] = sig[m] * layouts[c].stride
+    from ..fit.geometry_map import Correspondences
+    corr = Correspondences(p, q, corr.z_um, corr.channel, sig, corr.point_id)
+    return fit_geometry_map(corr, float(z[ref_index]), (int(w), int(h)), reference_channel=ref_ch,
+                            max_order=max_order, source=source, path=stack.json_path)
