@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import ParameterError, SpecError, StackError
 from .dff import dff_focus_map, dff_surfaces, focus_volume, hybrid_corrections
-from .source import image_size
+from .source import hold_decoded, image_size
 from .stack_profile import (CompositeResult, blend_kernel, check_profile_matches, composite_profile,
                             composite_with_map, select_frames)
 from .stream import DEFAULT_TILE_PX
@@ -83,7 +83,10 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         raise ParameterError(f"method '{method}' needs a lens profile", field="profile",
                              fix="give a lens profile, or use the dff method (depth from focus)")
     if method == "profile":
-        return composite_profile(stack, profile, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm, q=q,
+        # JPEG/PNG frames decode whole per read: decoded once here instead of once per band
+        check_profile_matches(stack, profile)
+        src = hold_decoded(stack, select_frames(stack, frames))
+        return composite_profile(src, profile, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm, q=q,
                                  min_band=min_band, lateral_colour=lateral_colour, tile=tile,
                                  focus_offset_um=focus_offset_um, quiet=quiet)
     if profile is not None:
@@ -94,9 +97,13 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     geometry = profile
     info: dict = {"frames_used": int(len(frames))}
     if profile is None and register and len(frames) > 1:
-        from .register import estimate_geometry
-        geometry = estimate_geometry(stack, frames, z_ref_um=z_ref_um, quiet=quiet)
-        info["registration"] = geometry.info()
+        # each frame decoded once and warped once into the reference geometry; every pass below reads those
+        from .register import register_stack
+        stack, reg = register_stack(stack, frames, z_ref_um=z_ref_um, quiet=quiet)
+        info["registration"] = reg.info()
+        geometry = None
+    else:
+        stack = hold_decoded(stack, frames)
     vol = focus_volume(stack, geometry, frames=frames, block_px=block_px, lateral_colour=lateral_colour,
                        quiet=quiet)
     info["block_px"] = vol.block_px

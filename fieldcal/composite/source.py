@@ -97,3 +97,133 @@ class RowReader:
         finally:
             mm.close()
         return box
+
+
+# ------------------------------------------------------------------------------------- frames held once
+#: Frames compositing keeps decoded (or registered) for its several passes are held in memory up to this many
+#: bytes; beyond it they go to an anonymous temporary file (memory-mapped: the page cache keeps what fits).
+MEMORY_BUDGET_BYTES = 640 * 2 ** 20
+
+
+def roi_readable(stack, i: int) -> bool:
+    """Whether a region of frame ``i`` is read without decoding the whole frame: frames already in memory, or an
+    uncompressed contiguous TIFF (memory-mapped). JPEG, PNG and compressed TIFF decode the whole frame per read."""
+    infos = getattr(stack, "frames", None)
+    if infos is None or callable(infos):  # an ArrayStack: in memory (a lazy one renders on demand, uncached)
+        return not getattr(stack, "_lazy", False)
+    try:
+        from ..formats.imageio import probe
+        return probe(infos[int(i)].path).mmap_offset is not None
+    except Exception:  # the Stack API reports a bad file when it is read
+        return True
+
+
+class HeldFrames:
+    """A :class:`FrameSource` standing for ``source`` whose frames ``indices`` are held once, in memory (or a
+    temporary file beyond :data:`MEMORY_BUDGET_BYTES`), in ``storage`` dtype: decoded frames, or frames already
+    warped into the output geometry (:func:`fieldcal.composite.register.register_stack`).
+
+    ``dtype``, levels, channels, ``z_um`` and ``path`` are the source's (the composite keeps the input's dtype);
+    ``read`` returns the held samples (``storage`` dtype). Frames not held are read from the source, unless
+    ``strict`` (held frames were warped: the source's would be in another geometry).
+    """
+
+    def __init__(self, source, indices, storage, *, strict: bool = False,
+                 budget_bytes: int = MEMORY_BUDGET_BYTES):
+        import tempfile
+
+        self.source = source
+        self.z_um = np.asarray(source.z_um, dtype=np.float64)
+        self.shape = tuple(source.shape)
+        self.channels = tuple(source.channels)
+        self.cfa = None
+        self.dtype = np.dtype(source.dtype)
+        self.black_level = float(source.black_level)
+        self.white_level = float(source.white_level)
+        self.pixel_pitch_um = getattr(source, "pixel_pitch_um", None)
+        self.path = getattr(source, "path", None)
+        self.meta = dict(getattr(source, "meta", {}) or {})
+        self.strict = bool(strict)
+        self.slot = {int(i): k for k, i in enumerate(indices)}
+        h, w = self.shape
+        full = (len(self.slot), h, w, len(self.channels))
+        storage = np.dtype(storage)
+        self.in_memory = int(np.prod(full, dtype=np.int64)) * storage.itemsize <= budget_bytes
+        if self.in_memory:
+            self.data = np.empty(full, dtype=storage)
+        else:  # unlinked at once: nothing is left behind, whatever happens
+            self._file = tempfile.TemporaryFile(prefix="fieldcal-frames-")
+            self.data = np.memmap(self._file, dtype=storage, mode="w+", shape=full)
+
+    def __len__(self) -> int:
+        return int(self.z_um.size)
+
+    @property
+    def order_by_z(self) -> np.ndarray:
+        return np.argsort(self.z_um, kind="stable")
+
+    def put(self, i: int, image: np.ndarray) -> None:
+        """Hold ``image`` (``H x W x C``) as frame ``i`` (cast to the storage dtype; integers rounded, clipped)."""
+        dst = self.data[self.slot[int(i)]]
+        if dst.dtype.kind in "ui" and np.asarray(image).dtype.kind == "f":
+            lim = np.iinfo(dst.dtype)
+            image = np.clip(np.rint(image), lim.min, lim.max)
+        dst[...] = image.reshape(dst.shape)
+
+    def read(self, i: int, roi=None) -> np.ndarray:
+        k = self.slot.get(int(i))
+        if k is None:
+            if self.strict:
+                raise ValueError(f"frame {i} was not registered with the others")
+            return self.source.read(i, roi)
+        a = self.data[k]
+        if roi is None:
+            return a
+        x, y, w, h = (int(v) for v in roi)
+        return a[y:y + h, x:x + w]
+
+    def read_normalized(self, i: int, roi=None) -> np.ndarray:
+        a = self.read(i, roi).astype(np.float32)
+        a -= np.float32(self.black_level)
+        a *= np.float32(1.0 / (self.white_level - self.black_level))
+        return a
+
+    def require_frames(self, n: int, operation: str) -> None:
+        self.source.require_frames(n, operation)
+
+
+def read_frames_parallel(stack, indices, consume, workers: int | None = None) -> None:
+    """Decode frames ``indices`` on a few threads (decoders release the GIL) and pass each, in order, to
+    ``consume(i, image)`` in this thread; at most ``2 * workers`` frames are in flight."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .stream import default_workers
+
+    indices = [int(i) for i in indices]
+    workers = default_workers() if workers is None else max(1, int(workers))
+    if workers == 1 or len(indices) < 2:
+        for i in indices:
+            consume(i, read_roi(stack, i, 0, 0, *image_size(stack)))
+        return
+    w, h = image_size(stack)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        pending = [pool.submit(read_roi, stack, i, 0, 0, w, h) for i in indices[:2 * workers]]
+        for k, i in enumerate(indices):
+            image = pending[k].result()
+            pending[k] = None
+            nxt = k + 2 * workers
+            if nxt < len(indices):
+                pending.append(pool.submit(read_roi, stack, indices[nxt], 0, 0, w, h))
+            consume(i, image)
+
+
+def hold_decoded(stack, indices):
+    """``stack`` itself when its frames are read by region cheaply (:func:`roi_readable`), else the frames
+    ``indices`` decoded once (in parallel) and held (:class:`HeldFrames`): compositing's passes then re-read
+    memory instead of decoding every JPEG/PNG frame once per pass and per band."""
+    indices = [int(i) for i in indices]
+    if all(roi_readable(stack, i) for i in indices):
+        return stack
+    held = HeldFrames(stack, indices, stack.dtype)
+    read_frames_parallel(stack, indices, held.put)
+    return held
