@@ -168,19 +168,37 @@ def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_sid
     return geo
 
 
+def _map_threads(fn, items: list) -> list:
+    """``[fn(x) for x in items]`` on the compositing threads: OpenCV and SciPy's resampling release the GIL."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .stream import default_workers
+
+    workers = default_workers()
+    if workers == 1 or len(items) < 2:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(fn, items))
+
+
 def _pair_steps(planes, cs, quiet: bool):
     """Scale-and-shift steps between neighbouring planes (None where a pair fails)."""
-    steps, step = [], None
-    for k in progress(range(1, len(planes)), total=len(planes) - 1, desc="registering", quiet=quiet, unit="pair"):
-        prev, cur = planes[k - 1], planes[k]
-        # a point at p in prev is at cs + r (p - cs) + t in cur (downsampled px, about the centre)
-        init = (step.r, step.tx, step.ty) if step is not None else None
-        # photographs (not charts): neighbours differ in focus, so the update settles at noise level; a
-        # handheld step can be several px, beyond Gauss-Newton's reach from the previous step: ECC (on a
-        # smoothed copy, robust to the focus change) gives the start
-        ecc = _ecc_start(prev, cur, cs)
-        step = register_step(prev, cur, cs, init=ecc or init, iterations=20, tol_px=1e-3)
-        steps.append(step)
+    # a point at p in prev is at cs + r (p - cs) + t in cur (downsampled px, about the centre).
+    # Photographs (not charts): neighbours differ in focus, so the update settles at noise level; a handheld
+    # step can be several px, beyond Gauss-Newton's reach from zero: ECC (on a smoothed copy, robust to the
+    # focus change) gives the start. Pairs are independent given their start, so they run on threads.
+    def ecc_step(k):
+        ecc = _ecc_start(planes[k - 1], planes[k], cs)
+        return None if ecc is None else register_step(planes[k - 1], planes[k], cs, init=ecc, iterations=20,
+                                                       tol_px=1e-3)
+
+    pairs = list(range(1, len(planes)))
+    steps = _map_threads(ecc_step, pairs)
+    for k in progress(pairs, total=len(pairs), desc="registering", quiet=quiet, unit="pair"):
+        if steps[k - 1] is None:  # no ECC start: the previous step's, else register_step's own fallbacks
+            prev = steps[k - 2] if k >= 2 else None
+            init = (prev.r, prev.tx, prev.ty) if prev is not None else None
+            steps[k - 1] = register_step(planes[k - 1], planes[k], cs, init=init, iterations=20, tol_px=1e-3)
     return steps
 
 
@@ -262,24 +280,46 @@ def _apply(m: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.
     return (m[0, 0] * x + m[0, 1] * y + m[0, 2]) / d, (m[1, 0] * x + m[1, 1] * y + m[1, 2]) / d
 
 
-def _fit_level(prev: np.ndarray, cur: np.ndarray, model: str, m_norm: np.ndarray, iterations: int,
-               tol_px: float, subsample: int, part: str | None = None) -> np.ndarray | None:
+class _Level:
+    """One pyramid level of a neighbour pair, with what every fit on it shares: ``prev``'s gradients (per
+    normalised unit) and ``cur``'s cubic B-spline coefficients (computed once, on first use)."""
+
+    def __init__(self, prev: np.ndarray, cur: np.ndarray):
+        self.prev, self.cur = prev, cur
+        h, w = prev.shape
+        self.n = _normaliser(w, h)
+        self._grad = self._coeffs = None
+
+    @property
+    def grad(self):
+        if self._grad is None:
+            gy, gx = np.gradient(self.prev.astype(np.float64))
+            self._grad = gx / self.n[0, 0], gy / self.n[0, 0]
+        return self._grad
+
+    @property
+    def coeffs(self):
+        if self._coeffs is None:
+            self._coeffs = ndimage.spline_filter(self.cur.astype(np.float64), order=3)
+        return self._coeffs
+
+
+def _fit_level(level: _Level, model: str, m_norm: np.ndarray, iterations: int, tol_px: float, subsample: int,
+               part: str | None = None) -> np.ndarray | None:
     """Inverse-compositional Gauss-Newton (Baker & Matthews 2004) on one level: ``m_norm`` (normalised
     coordinates) maps a point of ``prev`` to ``cur``; ``cur`` is resampled by cubic B-splines (no 1/32 px
     quantisation, which biases OpenCV's warps: see :func:`fieldcal.measure.geometry.register_step`)."""
+    prev = level.prev
     h, w = prev.shape
     b = 4
     if min(h, w) < 4 * b + 8:
         return None
-    n = _normaliser(w, h)
-    lev = 1.0 / n[0, 0]
+    n = level.n
     # ``part``: only the top or bottom half of ``prev`` (two independent looks at the same motion)
     ya, yb = {None: (b, h - b), "top": (b, h // 2), "bottom": (h // 2, h - b)}[part]
     ys, xs = np.mgrid[ya:yb:subsample, b:w - b:subsample].astype(np.float64)
     xs, ys = xs.ravel(), ys.ravel()
-    gy, gx = np.gradient(prev.astype(np.float64))
-    gx = gx[ya:yb:subsample, b:w - b:subsample].ravel() * lev  # per normalised unit
-    gy = gy[ya:yb:subsample, b:w - b:subsample].ravel() * lev
+    gx, gy = (g[ya:yb:subsample, b:w - b:subsample].ravel() for g in level.grad)
     ux, uy = xs * n[0, 0] + n[0, 2], ys * n[1, 1] + n[1, 2]
     gens = _generators(model)
     cols = []
@@ -290,58 +330,78 @@ def _fit_level(prev: np.ndarray, cur: np.ndarray, model: str, m_norm: np.ndarray
         dy = G[1, 0] * ux + G[1, 1] * uy + G[1, 2] - uy * gz
         cols.append(gx * dx + gy * dy)
     J = np.stack(cols, axis=1)
+    # einsum, not J.T @ J: a threaded BLAS spins its threads after each product (measure/geometry.py)
+    H_all = np.einsum("ni,nj->ij", J, J)
     target = prev[ya:yb:subsample, b:w - b:subsample].astype(np.float64).ravel()
-    coeffs = ndimage.spline_filter(cur.astype(np.float64), order=3)
+    coeffs = level.coeffs
     n_inv = np.linalg.inv(n)
     corners = np.array([[0, 0, w - 1, w - 1], [0, h - 1, 0, h - 1]], dtype=np.float64)
     m = m_norm.copy()
     for _ in range(iterations):
         qx, qy = _apply(n_inv @ m @ n, xs, ys)
         inside = (qx >= 1) & (qx <= w - 2) & (qy >= 1) & (qy <= h - 2)  # points that left cur do not count
-        if inside.mean() < 0.5:
+        share = float(inside.mean())
+        if share < 0.5:
             return None
-        back = ndimage.map_coordinates(coeffs, [qy[inside], qx[inside]], order=3, prefilter=False, mode="nearest")
-        Ji = J[inside]
-        H = np.einsum("ni,nj->ij", Ji, Ji)
+        if share < 1.0:
+            qx, qy, Ji, ti = qx[inside], qy[inside], J[inside], target[inside]
+            H = np.einsum("ni,nj->ij", Ji, Ji)
+        else:
+            Ji, ti, H = J, target, H_all
+        back = ndimage.map_coordinates(coeffs, [qy, qx], order=3, prefilter=False, mode="nearest")
         if not np.all(np.isfinite(H)) or np.linalg.cond(H) > 1e12:
             return None
-        d = np.linalg.solve(H, np.einsum("ni,n->i", Ji, back - target[inside]))
+        d = np.linalg.solve(H, np.einsum("ni,n->i", Ji, back - ti))
         md = np.eye(3) + np.tensordot(d, gens, axes=1)
         m = m @ np.linalg.inv(md)
         m /= m[2, 2]
-        # the update's largest displacement at the frame's corners (px of this level)
-        cx, cy = _apply(n_inv @ md @ n, corners[0], corners[1])
         if not np.all(np.isfinite(m)):
             return None
+        # the update's largest displacement at the frame's corners (px of this level)
+        cx, cy = _apply(n_inv @ md @ n, corners[0], corners[1])
         if float(np.max(np.hypot(cx - corners[0], cy - corners[1]))) < tol_px:
             break
     return m
 
 
-def fit_pair(prev: np.ndarray, cur: np.ndarray, model: str = "homography", init: np.ndarray | None = None,
+class PlanePair:
+    """Two neighbouring registration planes and their pyramid (halved per level), shared by the fits of one
+    pair (whole frame, halves, several models): each level's gradients and spline coefficients are made once."""
+
+    def __init__(self, prev: np.ndarray, cur: np.ndarray, levels: int = 2):
+        if prev.shape != cur.shape:
+            raise ValueError(f"planes differ in size: {prev.shape} vs {cur.shape}")
+        self.levels = [_Level(prev, cur)]  # finest first
+        for _ in range(levels - 1):
+            a, b = self.levels[-1].prev, self.levels[-1].cur
+            if min(a.shape) < 64:
+                break
+            hh, ww = (a.shape[0] // 2) * 2, (a.shape[1] // 2) * 2
+            self.levels.append(_Level(downsample(a[:hh, :ww], 2), downsample(b[:hh, :ww], 2)))
+
+
+def fit_pair(prev, cur=None, model: str = "homography", init: np.ndarray | None = None,
              levels: int = 2, iterations: int = 30, tol_px: float = 1e-3, subsample: int = 2,
-             part: str | None = None) -> np.ndarray | None:
+             part: str | None = None, finest: int = 0) -> np.ndarray | None:
     """The warp of ``model`` taking a point of plane ``prev`` to plane ``cur`` (3 x 3, px of these planes).
 
     Coarse to fine over ``levels`` (halving the planes each level): the coarse levels widen the reach of the
-    fit, the finest sets its precision. ``init`` (px) is the start, e.g. the scale-and-shift step; None
-    when the fit fails (too small, lost contrast, diverged). ``part`` ("top", "bottom"): fit on that half of
-    ``prev`` only.
+    fit, the finest sets its precision. ``prev`` may be a :class:`PlanePair` (then ``cur`` is not given and
+    ``levels`` is the pair's). ``init`` (px) is the start, e.g. the scale-and-shift step; None when the fit
+    fails (too small, lost contrast, diverged). ``part`` ("top", "bottom"): fit on that half of ``prev``
+    only. ``finest``: stop that many levels above the full planes (a quick, coarser fit).
     """
-    h, w = prev.shape
+    _generators(model)  # an unknown model fails here, before any work
+    pair = prev if isinstance(prev, PlanePair) else PlanePair(prev, cur, levels)
+    h, w = pair.levels[0].prev.shape
     n = _normaliser(w, h)
     m = np.eye(3) if init is None else n @ np.asarray(init, dtype=np.float64) @ np.linalg.inv(n)
-    pyr = [(prev, cur)]
-    for _ in range(levels - 1):
-        a, b = pyr[-1]
-        if min(a.shape) < 64:
-            break
-        hh, ww = (a.shape[0] // 2) * 2, (a.shape[1] // 2) * 2
-        pyr.append((downsample(a[:hh, :ww], 2), downsample(b[:hh, :ww], 2)))
     # normalised coordinates are the same at every level (even sizes, area downsampling: pixel centres nest)
-    for lev, (a, b) in enumerate(reversed(pyr)):
-        fine = lev == len(pyr) - 1
-        m = _fit_level(a, b, model, m, iterations, tol_px if fine else 1e-2, subsample if fine else 1, part)
+    for k in range(len(pair.levels) - 1, min(finest, len(pair.levels) - 1) - 1, -1):
+        fine = k == finest
+        # every level but a small coarsest one is sampled every ``subsample`` px (~50k points a fit)
+        step = subsample if min(pair.levels[k].prev.shape) >= 256 else 1
+        m = _fit_level(pair.levels[k], model, m, iterations, tol_px if fine else 1e-2, step, part)
         if m is None:
             return None
     return np.linalg.inv(n) @ m @ n
@@ -487,21 +547,25 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
     ref = int(np.argmin(np.abs(zs - z_ref_um)))
     cs = ((w // factor - 1) / 2.0, (h // factor - 1) / 2.0)
     s_plane = _plane_scale(factor)
-    looks = {"all": [], "top": [], "bottom": []}  # neighbour homographies from the whole frame and its halves
-    for k, step in enumerate(steps):
+
+    def looks_of(k):
+        """The pair's homography from the whole frame and from each half (half-size level: the model check
+        needs ~0.1 px, which it gives at a quarter of the cost)."""
+        step = steps[k]
         if step is None:  # bridged with the scale-and-shift model's own step
             a = frame_map_matrix(geo, float(zs[k + 1])) @ np.linalg.inv(frame_map_matrix(geo, float(zs[k])))
-            for v in looks.values():
-                v.append(a)
-            continue
+            return None, (a, a, a)
         s = np.array([[step.r, 0.0, cs[0] * (1 - step.r) + step.tx], [0.0, step.r, cs[1] * (1 - step.r) + step.ty],
                       [0.0, 0.0, 1.0]])
-        full = fit_pair(planes[k], planes[k + 1], models[-1], init=s)
-        looks["all"].append(_to_full(full if full is not None else s, factor))
-        for part in ("top", "bottom"):
-            half = fit_pair(planes[k], planes[k + 1], models[-1], init=full if full is not None else s, levels=1,
-                            part=part)
-            looks[part].append(_to_full(half if half is not None else s, factor))
+        pp = PlanePair(planes[k], planes[k + 1], levels=3)
+        full = fit_pair(pp, model=models[-1], init=s, finest=1)
+        start = full if full is not None else s
+        halves = [fit_pair(pp, model=models[-1], init=start, part=part, finest=1) for part in ("top", "bottom")]
+        return pp, tuple(_to_full(m if m is not None else s, factor) for m in (start, *halves))
+
+    done = _map_threads(looks_of, list(range(len(steps))))
+    pairs_planes = [pp for pp, _ in done]
+    looks = {look: [v[j] for _, v in done] for j, look in enumerate(("all", "top", "bottom"))}
     chains = {(m, look): chain_to_reference([_project(p, m, w, h) for p in pairs], ref)
               for m in models for look, pairs in looks.items()}
     # A richer model is kept when what it adds to the simpler one moves the outline by more than the tolerance,
@@ -520,15 +584,14 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
     if chosen == "scale-shift":
         geo.model_checks = deviations
         return geo
-    if chosen != models[-1]:  # refit the chosen model to the images, from the homography's nearest
-        pairs = []
-        for k, p in enumerate(looks["all"]):
-            init = np.linalg.inv(s_plane) @ _project(p, chosen, w, h) @ s_plane  # in plane px
-            fit = fit_pair(planes[k], planes[k + 1], chosen, init=init, levels=1)
-            pairs.append(_to_full(fit, factor) if fit is not None else _project(p, chosen, w, h))
-        maps = chain_to_reference(pairs, ref)
-    else:
-        maps = chains[(chosen, "all")]
+
+    def refit(k):  # the chosen model, refitted on the full planes from the check's fit
+        p = looks["all"][k]
+        init = np.linalg.inv(s_plane) @ _project(p, chosen, w, h) @ s_plane  # in plane px
+        fit = None if pairs_planes[k] is None else fit_pair(pairs_planes[k], model=chosen, init=init)
+        return _to_full(fit, factor) if fit is not None else _project(p, chosen, w, h)
+
+    maps = chain_to_reference(_map_threads(refit, list(range(len(steps)))), ref)
     # maps[k] takes a reference px to frame k's: the output (reference geometry) samples frame k there
     return MatrixGeometry(z_ref_um, zs, maps, chosen, geo, deviations)
 
@@ -555,11 +618,16 @@ def warp_frame(image: np.ndarray, output_to_source: np.ndarray) -> np.ndarray:
     return out
 
 
-def storage_dtype(dtype) -> np.dtype:
-    """How registered frames are held: 16-bit and wider integers as they are (a rounding of 1 DN in 65535 is
-    far below noise), 8-bit and float frames as float32 (rounding to 1 DN of 255 would add visible noise)."""
+def storage_dtype(dtype) -> tuple[np.dtype, float]:
+    """How registered frames are held, ``(dtype, scale)``: 16-bit and wider integers as they are (a rounding of
+    1 DN in 65535 is far below noise); 8-bit as 16-bit fixed point (x 256: 1/256 DN, half float32's memory;
+    rounding to whole DN of 255 would add visible noise); float frames as float32."""
     dtype = np.dtype(dtype)
-    return dtype if dtype.kind in "ui" and dtype.itemsize >= 2 else np.dtype(np.float32)
+    if dtype.kind in "ui" and dtype.itemsize >= 2:
+        return dtype, 1.0
+    if dtype.kind == "u":
+        return np.dtype(np.uint16), 256.0
+    return np.dtype(np.float32), 1.0
 
 
 def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_side_px: int = 1024,
@@ -593,7 +661,8 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
 
     read_frames_parallel(stack, order, take)
     geo = choose_model(stack, order, z_ref_um, max_side_px, quiet, [planes[int(i)] for i in order], models)
-    out = HeldFrames(stack, order, storage_dtype(stack.dtype), strict=True)
+    storage, scale = storage_dtype(stack.dtype)
+    out = HeldFrames(stack, order, storage, strict=True, scale=scale)
     src = decoded if decoded is not None else stack
     for i, z in zip(order, zs):
         out.put(int(i), warp_frame(read_roi(src, int(i), 0, 0, w, h), frame_map_matrix(geo, float(z))))

@@ -124,11 +124,12 @@ class HeldFrames:
     warped into the output geometry (:func:`fieldcal.composite.register.register_stack`).
 
     ``dtype``, levels, channels, ``z_um`` and ``path`` are the source's (the composite keeps the input's dtype);
-    ``read`` returns the held samples (``storage`` dtype). Frames not held are read from the source, unless
-    ``strict`` (held frames were warped: the source's would be in another geometry).
+    ``read`` returns the held samples (``storage`` dtype), or, with a fixed-point ``scale`` (samples held as
+    ``value * scale``), float32 values. Frames not held are read from the source, unless ``strict`` (held frames
+    were warped: the source's would be in another geometry).
     """
 
-    def __init__(self, source, indices, storage, *, strict: bool = False,
+    def __init__(self, source, indices, storage, *, strict: bool = False, scale: float = 1.0,
                  budget_bytes: int = MEMORY_BUDGET_BYTES):
         import tempfile
 
@@ -144,6 +145,7 @@ class HeldFrames:
         self.path = getattr(source, "path", None)
         self.meta = dict(getattr(source, "meta", {}) or {})
         self.strict = bool(strict)
+        self.scale = float(scale)
         self.slot = {int(i): k for k, i in enumerate(indices)}
         h, w = self.shape
         full = (len(self.slot), h, w, len(self.channels))
@@ -165,9 +167,12 @@ class HeldFrames:
     def put(self, i: int, image: np.ndarray) -> None:
         """Hold ``image`` (``H x W x C``) as frame ``i`` (cast to the storage dtype; integers rounded, clipped)."""
         dst = self.data[self.slot[int(i)]]
-        if dst.dtype.kind in "ui" and np.asarray(image).dtype.kind == "f":
+        image = np.asarray(image)
+        if self.scale != 1.0:
+            image = image.astype(np.float32) * np.float32(self.scale)
+        if dst.dtype.kind in "ui" and image.dtype.kind == "f":
             lim = np.iinfo(dst.dtype)
-            image = np.clip(np.rint(image), lim.min, lim.max)
+            image = np.clip(np.rint(image, out=image if image.dtype == np.float32 else None), lim.min, lim.max)
         dst[...] = image.reshape(dst.shape)
 
     def read(self, i: int, roi=None) -> np.ndarray:
@@ -177,10 +182,14 @@ class HeldFrames:
                 raise ValueError(f"frame {i} was not registered with the others")
             return self.source.read(i, roi)
         a = self.data[k]
-        if roi is None:
-            return a
-        x, y, w, h = (int(v) for v in roi)
-        return a[y:y + h, x:x + w]
+        if roi is not None:
+            x, y, w, h = (int(v) for v in roi)
+            a = a[y:y + h, x:x + w]
+        if self.scale != 1.0:
+            out = a.astype(np.float32)
+            out *= np.float32(1.0 / self.scale)
+            return out
+        return a
 
     def read_normalized(self, i: int, roi=None) -> np.ndarray:
         a = self.read(i, roi).astype(np.float32)
