@@ -42,6 +42,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import flag_slowdowns, slowdown_note  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_composite:start -->", "<!-- bench_composite:end -->"
 SPEED_START, SPEED_END = "<!-- bench_composite_speed:start -->", "<!-- bench_composite_speed:end -->"
@@ -560,6 +563,11 @@ def main(argv=None) -> int:
         print("speed:", json.dumps(res["speed"]), file=sys.stderr)
     (work / "results.json").write_text(json.dumps(res, indent=2, default=str))
     section = speed_markdown(res) if args.no_quality else markdown(res)
+    # a figure 2x slower than the table it replaces is flagged, here and under the table
+    flags = flag_slowdowns("composite_speed", speed_markdown(res), ("what", "stack"),
+                           ("wall best (s)", "wall median (s)", "CPU (s)"), path=Path(args.docs))
+    if flags:
+        section = section.replace(SPEED_END, slowdown_note(flags) + "\n\n" + SPEED_END)
     print(section)
     if not args.no_docs and section:
         write_docs(Path(args.docs), section, speed_only=args.no_quality)
