@@ -597,20 +597,22 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
 
 
 # ----------------------------------------------------------------------------------- registered frames
-def warp_frame(image: np.ndarray, output_to_source: np.ndarray) -> np.ndarray:
-    """``image`` (``H x W x C``) resampled into the output geometry (float32, same size): output px p takes the
-    source at ``output_to_source @ p``. Bicubic (OpenCV, as :func:`fieldcal.composite.warp.warp_from`), edge
-    pixels repeated outside the frame; an affine map takes ``warpAffine``, a homography ``warpPerspective``."""
+def warp_frame(image: np.ndarray, output_to_source: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """``image`` (``H x W x C``) resampled into the output geometry (same size and dtype; uint8/uint16 rounded and
+    clipped by OpenCV): output px p takes the source at ``output_to_source @ p``. Bicubic (OpenCV, as
+    :func:`fieldcal.composite.warp.warp_from`), edge pixels repeated outside the frame; an affine map takes
+    ``warpAffine``, a homography ``warpPerspective``. ``out``: where to write (e.g. a held frame's slot)."""
     import cv2
 
-    src = np.asarray(image, dtype=np.float32)
+    src = np.asarray(image)
     h, w = src.shape[:2]
     m = np.asarray(output_to_source, dtype=np.float64) / output_to_source[2, 2]
     flags = cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP
-    out = np.empty(src.shape, dtype=np.float32)
+    out = np.empty(src.shape, dtype=src.dtype) if out is None else out
+    affine = abs(m[2, 0]) < 1e-15 and abs(m[2, 1]) < 1e-15
     for k in range(0, src.shape[2], 4):  # cv2 takes at most 4 channels a call and drops a single one's axis
         part = np.ascontiguousarray(src[..., k:k + 4])
-        if abs(m[2, 0]) < 1e-15 and abs(m[2, 1]) < 1e-15:
+        if affine:
             res = cv2.warpAffine(part, m[:2], (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
         else:
             res = cv2.warpPerspective(part, m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
@@ -619,11 +621,11 @@ def warp_frame(image: np.ndarray, output_to_source: np.ndarray) -> np.ndarray:
 
 
 def storage_dtype(dtype) -> tuple[np.dtype, float]:
-    """How registered frames are held, ``(dtype, scale)``: 16-bit and wider integers as they are (a rounding of
-    1 DN in 65535 is far below noise); 8-bit as 16-bit fixed point (x 256: 1/256 DN, half float32's memory;
-    rounding to whole DN of 255 would add visible noise); float frames as float32."""
+    """How registered frames are held, ``(dtype, scale)``: 16-bit integers as they are (a rounding of 1 DN in
+    65535 is far below noise); 8-bit as 16-bit fixed point (x 256: 1/256 DN, half float32's memory; rounding to
+    whole DN of 255 would add visible noise); anything else as float32 (OpenCV warps no other integers)."""
     dtype = np.dtype(dtype)
-    if dtype.kind in "ui" and dtype.itemsize >= 2:
+    if dtype == np.uint16:
         return dtype, 1.0
     if dtype.kind == "u":
         return np.dtype(np.uint16), 256.0
@@ -665,5 +667,10 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
     out = HeldFrames(stack, order, storage, strict=True, scale=scale)
     src = decoded if decoded is not None else stack
     for i, z in zip(order, zs):
-        out.put(int(i), warp_frame(read_roi(src, int(i), 0, 0, w, h), frame_map_matrix(geo, float(z))))
+        image = read_roi(src, int(i), 0, 0, w, h)
+        if scale == 256.0:  # 8-bit -> 16-bit fixed point, then warped in that dtype straight into its slot
+            image = image.astype(np.uint16) << 8
+        elif image.dtype != storage:
+            image = image.astype(storage)
+        warp_frame(image, frame_map_matrix(geo, float(z)), out=out.data[out.slot[int(i)]])
     return out, geo

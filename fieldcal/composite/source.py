@@ -146,6 +146,8 @@ class HeldFrames:
         self.meta = dict(getattr(source, "meta", {}) or {})
         self.strict = bool(strict)
         self.scale = float(scale)
+        #: ``read`` returns a new float32 array (fixed point scaled back): callers need not copy it
+        self.reads_new_float32 = self.scale != 1.0
         self.slot = {int(i): k for k, i in enumerate(indices)}
         h, w = self.shape
         full = (len(self.slot), h, w, len(self.channels))
