@@ -109,3 +109,23 @@ def test_register_stack_holds_frames_warped_to_the_reference():
         assert after < 0.05 * before
     with pytest.raises(ValueError):
         R.fit_pair(np.zeros((40, 40)), np.zeros((40, 40)), model="perspective")
+
+
+@pytest.mark.parametrize("budget", [None, 0])  # in memory, and streamed from the temporary file
+def test_held_frames_round_trip_in_memory_and_from_file(budget):
+    from fieldcal.composite.source import HeldFrames
+
+    rng = np.random.default_rng(4)
+    frames = [rng.integers(0, 256, (30, 40, 3), dtype=np.uint8) for _ in range(3)]
+    src = ArrayStack(frames, [0.0, 5.0, 10.0], ["R", "G", "B"])
+    held = HeldFrames(src, [0, 2], np.uint16, scale=256.0, budget_bytes=budget)
+    assert held.in_memory == (budget is None)
+    for i in (0, 2):
+        held.put(i, frames[i].astype(np.float32) + 0.25)
+    got = held.read(2, roi=(5, 7, 20, 10))
+    assert got.dtype == np.float32 and held.dtype == np.uint8 and len(held) == 3
+    np.testing.assert_allclose(got, frames[2][7:17, 5:25] + 0.25, atol=1 / 512)
+    np.testing.assert_array_equal(held.read(1), frames[1])  # not held: the source's
+    strict = HeldFrames(src, [0], np.float32, strict=True, budget_bytes=budget)
+    with pytest.raises(ValueError):
+        strict.read(1)

@@ -601,7 +601,7 @@ def warp_frame(image: np.ndarray, output_to_source: np.ndarray, out: np.ndarray 
     """``image`` (``H x W x C``) resampled into the output geometry (same size and dtype; uint8/uint16 rounded and
     clipped by OpenCV): output px p takes the source at ``output_to_source @ p``. Bicubic (OpenCV, as
     :func:`fieldcal.composite.warp.warp_from`), edge pixels repeated outside the frame; an affine map takes
-    ``warpAffine``, a homography ``warpPerspective``. ``out``: where to write (e.g. a held frame's slot)."""
+    ``warpAffine``, a homography ``warpPerspective``. ``out``: where to write (default a new array)."""
     import cv2
 
     src = np.asarray(image)
@@ -672,5 +672,5 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
             image = image.astype(np.uint16) << 8
         elif image.dtype != storage:
             image = image.astype(storage)
-        warp_frame(image, frame_map_matrix(geo, float(z)), out=out.data[out.slot[int(i)]])
+        out.put(int(i), warp_frame(image, frame_map_matrix(geo, float(z))), held_units=True)
     return out, geo

@@ -101,8 +101,10 @@ class RowReader:
 
 # ------------------------------------------------------------------------------------- frames held once
 #: Frames compositing keeps decoded (or registered) for its several passes are held in memory up to this many
-#: bytes; beyond it they go to an anonymous temporary file (memory-mapped: the page cache keeps what fits).
-MEMORY_BUDGET_BYTES = 640 * 2 ** 20
+#: bytes; beyond it they are streamed from an unlinked temporary file (the page cache keeps what fits, outside the
+#: process's own memory: a 7-frame 2048x1536 stack's registered frames would otherwise add 130 MB to a peak
+#: that the depth-map pass sets).
+MEMORY_BUDGET_BYTES = 96 * 2 ** 20
 
 
 def roi_readable(stack, i: int) -> bool:
@@ -120,17 +122,17 @@ def roi_readable(stack, i: int) -> bool:
 
 class HeldFrames:
     """A :class:`FrameSource` standing for ``source`` whose frames ``indices`` are held once, in memory (or a
-    temporary file beyond :data:`MEMORY_BUDGET_BYTES`), in ``storage`` dtype: decoded frames, or frames already
-    warped into the output geometry (:func:`fieldcal.composite.register.register_stack`).
+    temporary file beyond ``budget_bytes``), in ``storage`` dtype: decoded frames, or frames already warped into
+    the output geometry (:func:`fieldcal.composite.register.register_stack`).
 
     ``dtype``, levels, channels, ``z_um`` and ``path`` are the source's (the composite keeps the input's dtype);
     ``read`` returns the held samples (``storage`` dtype), or, with a fixed-point ``scale`` (samples held as
-    ``value * scale``), float32 values. Frames not held are read from the source, unless ``strict`` (held frames
-    were warped: the source's would be in another geometry).
+    ``value * scale``), new float32 arrays of the values. Frames not held are read from the source, unless
+    ``strict`` (held frames were warped: the source's would be in another geometry).
     """
 
     def __init__(self, source, indices, storage, *, strict: bool = False, scale: float = 1.0,
-                 budget_bytes: int = MEMORY_BUDGET_BYTES):
+                 budget_bytes: int | None = None):
         import tempfile
 
         self.source = source
@@ -150,14 +152,14 @@ class HeldFrames:
         self.reads_new_float32 = self.scale != 1.0
         self.slot = {int(i): k for k, i in enumerate(indices)}
         h, w = self.shape
-        full = (len(self.slot), h, w, len(self.channels))
-        storage = np.dtype(storage)
-        self.in_memory = int(np.prod(full, dtype=np.int64)) * storage.itemsize <= budget_bytes
-        if self.in_memory:
-            self.data = np.empty(full, dtype=storage)
-        else:  # unlinked at once: nothing is left behind, whatever happens
-            self._file = tempfile.TemporaryFile(prefix="fieldcal-frames-")
-            self.data = np.memmap(self._file, dtype=storage, mode="w+", shape=full)
+        self.storage = np.dtype(storage)
+        self.frame_shape = (h, w, len(self.channels))
+        self.frame_bytes = h * w * len(self.channels) * self.storage.itemsize
+        budget = MEMORY_BUDGET_BYTES if budget_bytes is None else budget_bytes
+        self.in_memory = len(self.slot) * self.frame_bytes <= budget
+        self.data = np.empty((len(self.slot), *self.frame_shape), dtype=self.storage) if self.in_memory else None
+        # unlinked at once: nothing is left behind, whatever happens
+        self._file = None if self.in_memory else tempfile.TemporaryFile(prefix="fieldcal-frames-")
 
     def __len__(self) -> int:
         return int(self.z_um.size)
@@ -166,16 +168,39 @@ class HeldFrames:
     def order_by_z(self) -> np.ndarray:
         return np.argsort(self.z_um, kind="stable")
 
-    def put(self, i: int, image: np.ndarray) -> None:
-        """Hold ``image`` (``H x W x C``) as frame ``i`` (cast to the storage dtype; integers rounded, clipped)."""
-        dst = self.data[self.slot[int(i)]]
+    def put(self, i: int, image: np.ndarray, *, held_units: bool = False) -> None:
+        """Hold ``image`` (``H x W x C``) as frame ``i``: cast to the storage dtype (integers rounded, clipped), and
+        scaled to fixed point unless ``held_units`` (already in the storage's dtype and units)."""
         image = np.asarray(image)
-        if self.scale != 1.0:
-            image = image.astype(np.float32) * np.float32(self.scale)
-        if dst.dtype.kind in "ui" and image.dtype.kind == "f":
-            lim = np.iinfo(dst.dtype)
-            image = np.clip(np.rint(image, out=image if image.dtype == np.float32 else None), lim.min, lim.max)
-        dst[...] = image.reshape(dst.shape)
+        if not held_units:
+            if self.scale != 1.0:
+                image = image.astype(np.float32) * np.float32(self.scale)
+            if self.storage.kind in "ui" and image.dtype.kind == "f":
+                lim = np.iinfo(self.storage)
+                image = np.clip(np.rint(image), lim.min, lim.max)
+        image = np.ascontiguousarray(image.reshape(self.frame_shape), dtype=self.storage)
+        k = self.slot[int(i)]
+        if self.in_memory:
+            self.data[k] = image
+        else:
+            import os
+            os.pwrite(self._file.fileno(), memoryview(image).cast("B"), k * self.frame_bytes)
+
+    def _rows(self, k: int, y0: int, y1: int) -> np.ndarray:
+        """Rows ``y0:y1`` of held frame ``k`` (a view in memory, a new array from the file)."""
+        if self.in_memory:
+            return self.data[k, y0:y1]
+        import os
+        row = self.frame_bytes // self.frame_shape[0]
+        out = np.empty((y1 - y0, *self.frame_shape[1:]), dtype=self.storage)
+        buf = memoryview(out).cast("B")
+        done = 0
+        while done < len(buf):  # pread may return less than asked
+            n = os.preadv(self._file.fileno(), [buf[done:]], k * self.frame_bytes + y0 * row + done)
+            if n <= 0:
+                raise OSError("the temporary file of held frames is shorter than written")
+            done += n
+        return out
 
     def read(self, i: int, roi=None) -> np.ndarray:
         k = self.slot.get(int(i))
@@ -183,10 +208,11 @@ class HeldFrames:
             if self.strict:
                 raise ValueError(f"frame {i} was not registered with the others")
             return self.source.read(i, roi)
-        a = self.data[k]
-        if roi is not None:
-            x, y, w, h = (int(v) for v in roi)
-            a = a[y:y + h, x:x + w]
+        h, w = self.shape
+        x, y, rw, rh = (0, 0, w, h) if roi is None else (int(v) for v in roi)
+        a = self._rows(k, y, y + rh)
+        if (x, rw) != (0, w):
+            a = a[:, x:x + rw]
         if self.scale != 1.0:
             out = a.astype(np.float32)
             out *= np.float32(1.0 / self.scale)
