@@ -433,34 +433,74 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         write_composite(out, res.image, prof.channels, meta, white_level=white)
         return CompositeOutput(out, meta["method"], meta)
 
-    st = Stack.open(stack, verify=verify) if isinstance(stack, (str, Path)) else stack
-    if st.cfa is not None:
-        raise StackError(f"a raw {st.cfa} mosaic stack cannot be composited per channel",
-                         path=st.path, field="cfa", fix="demosaic the frames first (H x W x 3)")
-    prof, pinfo = load((st.shape[1], st.shape[0]))
-    meta: dict = {"input": str(st.path or stack), "profile": pinfo}
-    frames, offset = None, 0.0
-    if plan is not None:
-        sel = select_plan_frames(plan, st)
-        frames, offset = sel.frames, sel.refocus_um
-        meta["plan"] = sel.info
-        fs_cyc_per_mm = fs_cyc_per_mm or sel.fs_cyc_per_mm
-        q = q if q is not None else sel.q
-    if sweep_alpha_um is not None:
-        res = composite_sweep(st, prof, sweep_alpha_um, frames=frames, deconvolve=deconvolve,
-                              rl_iterations=rl_iterations, lateral_colour=lateral_colour, quiet=quiet)
-        info = dict(res.info)
-        meta.update({"method": info.pop("method"), "z_ref_um": info.pop("z_ref_um"), "sweep": info})
+    on_disk = isinstance(stack, (str, Path))
+    st = Stack.open(stack, verify=False) if on_disk else stack
+    # The frames' sha256 are checked while compositing runs (hashing reads every file whole: ~55 ms a 4K RGB16
+    # frame, as long as the compositing of a 42-frame stack), and before anything is written.
+    with _BackgroundCheck(st.verify if verify and on_disk else None) as checked:
+        if st.cfa is not None:
+            raise StackError(f"a raw {st.cfa} mosaic stack cannot be composited per channel",
+                             path=st.path, field="cfa", fix="demosaic the frames first (H x W x 3)")
+        prof, pinfo = load((st.shape[1], st.shape[0]))
+        meta: dict = {"input": str(st.path or stack), "profile": pinfo}
+        frames, offset = None, 0.0
+        if plan is not None:
+            sel = select_plan_frames(plan, st)
+            frames, offset = sel.frames, sel.refocus_um
+            meta["plan"] = sel.info
+            fs_cyc_per_mm = fs_cyc_per_mm or sel.fs_cyc_per_mm
+            q = q if q is not None else sel.q
+        if sweep_alpha_um is not None:
+            res = composite_sweep(st, prof, sweep_alpha_um, frames=frames, deconvolve=deconvolve,
+                                  rl_iterations=rl_iterations, lateral_colour=lateral_colour, quiet=quiet)
+            info = dict(res.info)
+            meta.update({"method": info.pop("method"), "z_ref_um": info.pop("z_ref_um"), "sweep": info})
+            checked()
+            _write(out, res.image, st, frames, meta)
+            return CompositeOutput(out, meta["method"], meta)
+        res = composite_stack(st, prof, method, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm,
+                              q=0.05 if q is None else q, lateral_colour=lateral_colour, focus_offset_um=offset,
+                              register=register, z_ref_um=z_ref_um, depth=depth, quiet=quiet)
+        z_ref = float(prof.z_ref_um) if prof is not None else res.info.get("registration", {}).get("z_ref_um")
+        meta.update({"method": res.method, "z_ref_um": z_ref, "lateral_colour_corrected": bool(lateral_colour),
+                     **res.info})
+        checked()
         _write(out, res.image, st, frames, meta)
-        return CompositeOutput(out, meta["method"], meta)
-    res = composite_stack(st, prof, method, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm,
-                          q=0.05 if q is None else q, lateral_colour=lateral_colour, focus_offset_um=offset,
-                          register=register, z_ref_um=z_ref_um, depth=depth, quiet=quiet)
-    z_ref = float(prof.z_ref_um) if prof is not None else res.info.get("registration", {}).get("z_ref_um")
-    meta.update({"method": res.method, "z_ref_um": z_ref, "lateral_colour_corrected": bool(lateral_colour),
-                 **res.info})
-    _write(out, res.image, st, frames, meta)
-    return CompositeOutput(out, res.method, meta)
+        return CompositeOutput(out, res.method, meta)
+
+
+class _BackgroundCheck:
+    """Runs ``check`` (e.g. ``Stack.verify``) on a thread while the caller works. Calling the object waits for it
+    and re-raises its error; if the work fails first, the check's error (the root cause: a changed frame file)
+    replaces the work's."""
+
+    def __init__(self, check):
+        import threading
+
+        self._error: BaseException | None = None
+        self._thread = None
+        if check is not None:
+            def run():
+                try:
+                    check()
+                except BaseException as exc:  # handed to the caller's thread
+                    self._error = exc
+            self._thread = threading.Thread(target=run, name="fieldcal-verify", daemon=True)
+            self._thread.start()
+
+    def __call__(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+        if self._error is not None:
+            raise self._error
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        if exc is not None and self._thread is not None and not isinstance(exc, KeyboardInterrupt):
+            self()  # raises the check's error instead, if it failed
+        return False
 
 
 def _write(out: Path, image: np.ndarray, stack, frames, meta: dict) -> None:
