@@ -14,7 +14,8 @@ import numpy as np
 
 from ..formats.frames import ArrayStack, FrameSource
 
-__all__ = ["ArrayStack", "FrameSource", "RowReader", "image_size", "read_roi", "z_positions"]
+__all__ = ["ArrayStack", "FrameSource", "HeldFrames", "RowReader", "hold_decoded", "image_size", "read_frames_parallel",
+           "read_roi", "roi_readable", "z_positions"]
 
 
 def read_roi(stack, i: int, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
