@@ -34,7 +34,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import flag_slowdowns, slowdown_note  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-STACK = REPO.parent / "shared" / "data" / "real-stacks" / "pcb-depthmap"
+# ../shared beside the checkout (a worktree in wt/ has it two levels up)
+STACK = next((p / "shared" / "data" / "real-stacks" / "pcb-depthmap" for p in REPO.parents
+              if (p / "shared" / "data" / "real-stacks" / "pcb-depthmap").is_dir()),
+             REPO.parent / "shared" / "data" / "real-stacks" / "pcb-depthmap")
 BORDER = 96
 
 

@@ -4,6 +4,8 @@ The on-disk ``fieldcal.formats.stack.Stack`` and the in-memory :class:`ArrayStac
 :mod:`fieldcal.formats`) are the sources; compositing uses ``z_um``, ``shape``, ``channels``, ``dtype``,
 ``black_level``, ``white_level``, ``len()`` and ``read(i, roi)``. :func:`read_roi` is the one place that knows
 how a region of a frame is asked for; :class:`RowReader` is the fast path for uncompressed TIFF frames.
+:class:`HeldFrames` holds frames decoded (JPEG, PNG: :func:`hold_decoded`) or registered once, so that
+compositing's several passes read each file once.
 """
 
 from __future__ import annotations
@@ -220,11 +222,8 @@ class HeldFrames:
             return out
         return a
 
-    def read_normalized(self, i: int, roi=None) -> np.ndarray:
-        a = self.read(i, roi).astype(np.float32)
-        a -= np.float32(self.black_level)
-        a *= np.float32(1.0 / (self.white_level - self.black_level))
-        return a
+    #: ``(raw - black) / (white - black)`` as float32: the same as an in-memory stack's
+    read_normalized = ArrayStack.read_normalized
 
     def require_frames(self, n: int, operation: str) -> None:
         self.source.require_frames(n, operation)
