@@ -129,3 +129,33 @@ def test_held_frames_round_trip_in_memory_and_from_file(budget):
     strict = HeldFrames(src, [0], np.float32, strict=True, budget_bytes=budget)
     with pytest.raises(ValueError):
         strict.read(1)
+
+
+def test_a_jpeg_stack_is_decoded_once_per_frame(tmp_path, monkeypatch):
+    """JPEG frames decode whole for any region: compositing (registration, focus volume, blending) decodes each
+    frame once, and the registered composite matches the same frames composited from memory."""
+    import cv2
+
+    from fieldcal.composite import composite_stack
+    from fieldcal.formats import imageio
+    from fieldcal.formats.importer import import_stack
+    from fieldcal.formats.stack import Stack
+
+    tex = _texture(5)
+    files = []
+    for k in range(4):
+        g = _frame(tex, _similarity(1.0 + 0.002 * k, 0.0, 0.7 * k, -0.4 * k))
+        img = np.clip(g * 255, 0, 255).astype(np.uint8)
+        files.append(tmp_path / f"f{k}.jpg")
+        cv2.imwrite(str(files[-1]), np.repeat(img[..., None], 3, axis=2), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    import_stack(files, tmp_path / "st", z_start_um=0.0, z_step_um=10.0, pixel_pitch_um=2.0)
+    st = Stack.open(tmp_path / "st")
+    calls = []
+    real = imageio._read_jpeg
+    monkeypatch.setattr(imageio, "_read_jpeg", lambda *a: calls.append(a[0]) or real(*a))
+    res = composite_stack(st, None, quiet=True, depth="flat")
+    assert sorted(calls) == sorted(set(calls)) and len(calls) == 4
+    assert res.info["registration"]["model"].startswith("scale-shift")
+    mem = ArrayStack([st.read(i) for i in range(4)], st.z_um, st.channels)
+    ref = composite_stack(mem, None, quiet=True, depth="flat")
+    assert np.abs(res.image.astype(int) - ref.image.astype(int)).max() <= 1

@@ -64,9 +64,11 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     focus_offset_um : float
         Added to the profile's best focus (a plan's ``refocus_um``); not used by ``dff``.
     register, z_ref_um
-        ``dff`` without a profile: measure focus breathing and shift from the stack (:mod:`.register`) and
-        write the output in the geometry of the frame at ``z_ref_um`` (default: the middle frame);
-        ``register=False`` takes the frames as registered.
+        ``dff`` without a profile: register the frames to the frame at ``z_ref_um`` (default: the middle frame)
+        with the simplest model the data support — scale and shift (breathing, stage axis), similarity,
+        affine or homography (:func:`.register.choose_model`) — and write the output in its geometry; each
+        frame is read and warped once (:func:`.register.register_stack`). ``register=False`` takes the
+        frames as registered.
     depth : {"auto", "flat", "3d"}
         ``dff`` and ``hybrid``: is the scene a surface (a chart, a flat object) or does it have depth (steps,
         things in front of a background)? ``auto`` decides from the data: when the smooth surface fitted to
