@@ -314,6 +314,7 @@ def composite_sweep(stack, profile, alpha_um: float, *, frames=None, deconvolve:
         raise ParameterError("sweep emulation needs a profile (each pixel's best focus and the PSF)",
                              field="profile", fix="give the lens profile")
     stack.require_frames(2, "sweep emulation")
+    stack = hold_decoded(stack, select_frames(stack, frames))  # JPEG/PNG: decoded once, not once per band
     sw = emulate_sweep(stack, profile, alpha_um, frames=frames, lateral_colour=lateral_colour, quiet=quiet)
     info = dict(sw.info)
     img = sw.image
