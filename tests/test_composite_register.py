@@ -159,3 +159,10 @@ def test_a_jpeg_stack_is_decoded_once_per_frame(tmp_path, monkeypatch):
     mem = ArrayStack([st.read(i) for i in range(4)], st.z_um, st.channels)
     ref = composite_stack(mem, None, quiet=True, depth="flat")
     assert np.abs(res.image.astype(int) - ref.image.astype(int)).max() <= 1
+
+
+def test_model_check_on_a_coarser_level_of_larger_frames(monkeypatch):
+    """640x480 frames: the model check runs on a half-size level (CHECK_SIDE_PX), the refit on the full planes."""
+    monkeypatch.setitem(globals(), "W", 640)
+    monkeypatch.setitem(globals(), "H", 480)
+    test_handheld_roll_scale_and_shift_is_recovered_at_the_corners()
