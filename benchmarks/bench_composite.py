@@ -476,7 +476,7 @@ def speed_markdown(res: dict) -> str:
     w, h, n = sp["size"][0], sp["size"][1], sp["frames"]
     argv = res.get("argv", "")
     lines = [SPEED_START, "", f"#### Speed (`python benchmarks/bench_composite.py{' ' + argv if argv else ''}`)", "",
-             f"`fieldcal composite STACK --profile lens.json` (profile method, "
+             "`fieldcal composite STACK --profile lens.json` (profile method, "
              + ("a calibrated profile (`--speed-profile`; made for a coarser grid, it is moved onto this one by "
                 "`profile_on_finer_grid`)" if sp.get("profile") == "calibrated" else "the lens's truth profile")
              + f") on {n} frames of {w}x{h} RGB 16-bit "
