@@ -3,6 +3,7 @@
 Each benchmark owns one section of docs/benchmarks.md between ``<!-- bench_<name>:start -->`` and
 ``<!-- bench_<name>:end -->``; :func:`write_docs_section` replaces only that section (other benchmarks write
 theirs), creating the file or appending the section when it is missing. Files are written atomically.
+:func:`flag_slowdowns` compares a run's timings with the table it is about to replace (2x slower is flagged).
 """
 
 from __future__ import annotations
@@ -90,3 +91,84 @@ def save_fig(fig, path: Path) -> Path:
 def triplet(size: tuple[int, int]):
     from fieldcal.simulate.lens import LensSpec
     return LensSpec.load(REPO / "models" / "triplet-uncorrected.json").with_sensor_size(*size)
+
+
+# ------------------------------------------------------------------------------------ regression flags
+#: A figure this many times the stored table's is flagged.
+SLOWDOWN_FACTOR = 2.0
+
+
+def _section(name: str, text: str) -> str | None:
+    """The text of benchmark ``name``'s section (markers ``:start``/``:begin`` ... ``:end``), or None."""
+    for start in (f"<!-- bench_{name}:start -->", f"<!-- bench_{name}:begin -->"):
+        end = f"<!-- bench_{name}:end -->"
+        if start in text and end in text[text.index(start):]:
+            a = text.index(start) + len(start)
+            return text[a:text.index(end, a)]
+    return None
+
+
+def stored_rows(name: str, path: Path = DOCS) -> list[dict[str, str]]:
+    """Rows of every markdown table in benchmark ``name``'s section of docs/benchmarks.md, as header -> cell."""
+    return table_rows(_section(name, path.read_text(encoding="utf-8")) if path.exists() else None)
+
+
+def table_rows(text: str | None) -> list[dict[str, str]]:
+    """Rows of every markdown table in ``text``, as header -> cell."""
+    rows: list[dict[str, str]] = []
+    header: list[str] | None = None
+    for line in (text or "").splitlines():
+        line = line.strip()
+        if not (line.startswith("|") and line.endswith("|")):
+            header = None
+            continue
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if header is None:
+            header = cells
+        elif all(set(c) <= set("-: ") for c in cells):
+            continue  # the separator row
+        else:
+            rows.append(dict(zip(header, cells)))
+    return rows
+
+
+def _number(cell) -> float | None:
+    try:
+        return float(str(cell).replace("x", "").replace("×", "").strip())
+    except ValueError:
+        return None
+
+
+def flag_slowdowns(name: str, rows: list[dict] | str, key: tuple[str, ...], columns: tuple[str, ...],
+                   factor: float = SLOWDOWN_FACTOR, path: Path = DOCS) -> list[str]:
+    """Compare this run's timings with the table stored in docs/benchmarks.md (read before it is rewritten).
+
+    ``rows``: this run's table rows (header -> value), or its markdown (its tables are read); a row is matched to the stored row with the same
+    ``key`` cells; every ``columns`` figure (seconds: lower is better) at ``factor`` times the stored one or more
+    is flagged. The flags are printed (stderr) and returned, for the benchmark to write beside its table.
+    """
+    if isinstance(rows, str):
+        rows = table_rows(rows)
+    old = {tuple(r.get(k, "") for k in key): r for r in stored_rows(name, path)}
+    flags = []
+    for r in rows:
+        k = tuple(str(r.get(c, "")) for c in key)
+        prev = old.get(k)
+        if prev is None:
+            continue
+        for col in columns:
+            a, b = _number(r.get(col)), _number(prev.get(col))
+            if a is not None and b is not None and b > 0 and a >= factor * b:
+                flags.append(f"{' / '.join(k)}: {col} {a:g} against {b:g} in the stored table "
+                             f"({a / b:.1f}x slower)")
+    for f in flags:
+        print(f"SLOWER: {f}", file=sys.stderr)
+    return flags
+
+
+def slowdown_note(flags: list[str], factor: float = SLOWDOWN_FACTOR) -> str:
+    """The line a benchmark writes under its table when :func:`flag_slowdowns` found something ('' if not)."""
+    if not flags:
+        return ""
+    return (f"**Slower than the previous table (≥ {factor:g}x):** " + "; ".join(flags)
+            + ". Check the load, then the change.")

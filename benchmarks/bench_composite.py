@@ -24,6 +24,11 @@ align_image_stack + enfuse on the same stack (or on a smaller one, --ratio-size)
     python benchmarks/bench_composite.py                          # 960x540 quality, 3840x2160x42 speed (the lead)
     python benchmarks/bench_composite.py --no-quality --ratio-size 1920x1080x42 \
         --baseline-src /tmp/before               # speed only: 4K, the ratio vs enfuse at 1080p, before/after
+    python benchmarks/bench_composite_profile.py --work /tmp/bcp  # makes /tmp/bcp/lens.json (calibrated, 1080p)
+    python benchmarks/bench_composite.py --no-quality --no-enfuse --speed-profile /tmp/bcp/lens.json \
+        --work /tmp/bcs                          # issue 18: 42 x 4K RGB16 with a calibrated profile
+
+A timing 2x slower than the stored table's (same row) is flagged on stderr and under the table.
 
 Results go between ``<!-- bench_composite:start -->`` and ``<!-- bench_composite:end -->`` in
 docs/benchmarks.md (the rest of the file is left alone) and to --work/results.json.
@@ -41,6 +46,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import flag_slowdowns, slowdown_note  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_composite:start -->", "<!-- bench_composite:end -->"
@@ -339,10 +347,43 @@ def _fieldcal_runs(spath: Path, lens: Path, out: Path, repeat: int, src: Path | 
             "load_1min": float(np.mean([x["load_1min"] for x in runs]))}
 
 
-def _speed_inputs(width: int, height: int, n: int, work: Path) -> tuple[Path, Path]:
+def profile_on_finer_grid(src: Path, dst: Path, factor: int) -> Path:
+    """A calibrated ``fieldcal-profile/1`` moved onto a sensor grid ``factor`` times finer (same sensor area, pitch
+    / factor): image size and pitch, and the shift coefficients (px) scale; the surfaces and their discrepancy
+    are in normalised coordinates and stay. Lets the 4K speed run use a profile calibrated at 1920x1080 (a 4K
+    chart stack takes long to simulate): the compositing work is the same as with a 4K calibration."""
+    import json
+    d = json.loads(Path(src).read_text(encoding="utf-8"))
+    for block in (d["image"], d["surfaces"]["geometry"]):
+        block["width_px"] *= factor
+        block["height_px"] *= factor
+        block["pixel_pitch_um"] /= factor
+    for key in ("shift_x_px", "shift_y_px"):
+        for fit in d["geometry"][key].values():
+            fit["coef"] = [c * factor for c in fit["coef"]]
+            fit["cov"] = [[c * factor * factor for c in row] for row in fit["cov"]]
+    Path(dst).write_text(json.dumps(d), encoding="utf-8")
+    side = d.get("sidecar")
+    if side:  # the calibration samples, checked by sha256 when the profile loads
+        shutil.copy(Path(src).parent / side["file"], Path(dst).parent / side["file"])
+    return Path(dst)
+
+
+def _speed_inputs(width: int, height: int, n: int, work: Path, profile: Path | None = None) -> tuple[Path, Path]:
+    """The speed stack and its profile: the lens's truth, or ``profile`` (calibrated; resampled onto this size's
+    grid when it was calibrated at a whole fraction of it)."""
     from fieldcal.simulate.lens import LensSpec
     spath = work / f"speed-{width}x{height}x{n}"
     make_speed_stack(spath, width, height, n)
+    if profile is not None:
+        from fieldcal.profile.lens_profile import LensProfile
+        pw, ph = LensProfile.load(profile).image_size_px
+        factor = width // pw
+        if (pw * factor, ph * factor) != (width, height):
+            raise SystemExit(f"--speed-profile is for {pw}x{ph} px; the speed stack is {width}x{height}")
+        if factor == 1:
+            return spath, Path(profile)
+        return spath, profile_on_finer_grid(profile, work / f"speed-calibrated-{width}x{height}.json", factor)
     spec = LensSpec.load(REPO / "models" / "triplet-uncorrected.json").with_sensor_size(width, height)
     lens = work / f"speed-lens-{width}x{height}.json"
     spec.save(lens)
@@ -350,20 +391,22 @@ def _speed_inputs(width: int, height: int, n: int, work: Path) -> tuple[Path, Pa
 
 
 def speed(size: tuple[int, int, int], work: Path, enfuse: bool, ratio_size: tuple[int, int, int] | None = None,
-          repeat: int = 3, baseline: Path | None = None) -> dict:
+          repeat: int = 3, baseline: Path | None = None, profile: Path | None = None) -> dict:
     """fieldcal's time on the speed stack (and a baseline source tree's, if given), and the ratio against
-    align_image_stack + enfuse measured in the same run on ``ratio_size`` (default: the speed stack)."""
+    align_image_stack + enfuse measured in the same run on ``ratio_size`` (default: the speed stack).
+    ``profile``: a calibrated profile (see :func:`_speed_inputs`) instead of the lens's truth."""
     import os
     from fieldcal.formats.stack import Stack
-    spath, lens = _speed_inputs(*size, work)
-    out = {"size": list(size[:2]), "frames": size[2], "cores": len(os.sched_getaffinity(0))}
+    spath, lens = _speed_inputs(*size, work, profile)
+    out = {"size": list(size[:2]), "frames": size[2], "cores": len(os.sched_getaffinity(0)),
+           "profile": "calibrated" if profile is not None else "truth"}
     out["fieldcal"] = _fieldcal_runs(spath, lens, work / "speed-profile.tiff", repeat)
     if baseline is not None:
         out["baseline"] = _fieldcal_runs(spath, lens, work / "speed-baseline.tiff", repeat, src=baseline)
         out["baseline_src"] = str(baseline)
     if enfuse:
         rsize = ratio_size or size
-        rpath, rlens = (spath, lens) if tuple(rsize) == tuple(size) else _speed_inputs(*rsize, work)
+        rpath, rlens = (spath, lens) if tuple(rsize) == tuple(size) else _speed_inputs(*rsize, work, profile)
         fc = out["fieldcal"] if rpath == spath else _fieldcal_runs(rpath, rlens, work / "ratio-profile.tiff", repeat)
         st = Stack.open(rpath)
         order = [int(i) for i in np.argsort(st.z_um)[::-1]]
@@ -433,7 +476,10 @@ def speed_markdown(res: dict) -> str:
     w, h, n = sp["size"][0], sp["size"][1], sp["frames"]
     argv = res.get("argv", "")
     lines = [SPEED_START, "", f"#### Speed (`python benchmarks/bench_composite.py{' ' + argv if argv else ''}`)", "",
-             f"`fieldcal composite STACK --profile lens.json` (profile method) on {n} frames of {w}x{h} RGB 16-bit "
+             "`fieldcal composite STACK --profile lens.json` (profile method, "
+             + ("a calibrated profile (`--speed-profile`; made for a coarser grid, it is moved onto this one by "
+                "`profile_on_finer_grid`)" if sp.get("profile") == "calibrated" else "the lens's truth profile")
+             + f") on {n} frames of {w}x{h} RGB 16-bit "
              f"(uncompressed TIFF, 12-bit values), {sp['cores']} cores, {res.get('repeat', 1)} run(s) each: wall "
              "time of the whole process (imports, reading, compositing, writing the TIFF) best and median, CPU "
              "time (user + system) of the best run, peak RSS (`/usr/bin/time`), and the 1-minute load average "
@@ -450,12 +496,13 @@ def speed_markdown(res: dict) -> str:
     size = f"{w}x{h}x{n}"
     if "baseline" in sp:
         lines.append(row(f"fieldcal before (`{sp['baseline_src']}`)", size, sp["baseline"]))
-    lines.append(row("fieldcal", size, sp["fieldcal"]))
+    label = "fieldcal, calibrated profile" if sp.get("profile") == "calibrated" else "fieldcal"
+    lines.append(row(label, size, sp["fieldcal"]))
     ra = sp.get("ratio")
     if ra:
         rs = f"{ra['size'][0]}x{ra['size'][1]}x{ra['frames']}"
         if rs != size:
-            lines.append(row("fieldcal", rs, ra["fieldcal"]))
+            lines.append(row(label, rs, ra["fieldcal"]))
         e = ra["enfuse"]
         lines.append(f"| align_image_stack + enfuse | {rs} | {fmt(e['wall_s'])} | – | {fmt(e['cpu_s'])} | "
                      f"{fmt(e['rss_mb'])} | {e['load_1min']:.1f} |")
@@ -493,10 +540,10 @@ def _shown_argv(argv: list[str]) -> str:
         if hide:
             out.append("DIR")
             hide = False
-        elif a in ("--work", "--baseline-src", "--docs"):
+        elif a in ("--work", "--baseline-src", "--docs", "--speed-profile"):
             out.append(a)
             hide = True
-        elif a.split("=")[0] in ("--work", "--baseline-src", "--docs"):
+        elif a.split("=")[0] in ("--work", "--baseline-src", "--docs", "--speed-profile"):
             out.append(a.split("=")[0] + "=DIR")
         else:
             out.append(a)
@@ -518,6 +565,9 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline-src", default=None, metavar="DIR",
                     help="also time another fieldcal source tree on the speed stack, e.g. the code before a "
                          "change: git archive COMMIT fieldcal | tar -x -C DIR")
+    ap.add_argument("--speed-profile", default=None, metavar="PROFILE",
+                    help="time with this calibrated profile (e.g. bench_composite_profile.py's WORK/lens.json, "
+                         "1920x1080; moved onto a 2x finer grid for a 3840x2160 stack) instead of the truth")
     ap.add_argument("--no-enfuse", action="store_true", help="skip align_image_stack + enfuse")
     ap.add_argument("--no-calibrate", action="store_true", help="skip the calibrated-profile row")
     ap.add_argument("--no-speed", action="store_true")
@@ -556,10 +606,16 @@ def main(argv=None) -> int:
         print("sweep:", json.dumps(res["sweep"]["rows"]), file=sys.stderr)
     if not args.no_speed:
         res["speed"] = speed(size, work, enfuse, ratio, args.repeat,
-                             Path(args.baseline_src) if args.baseline_src else None)
+                             Path(args.baseline_src) if args.baseline_src else None,
+                             Path(args.speed_profile) if args.speed_profile else None)
         print("speed:", json.dumps(res["speed"]), file=sys.stderr)
     (work / "results.json").write_text(json.dumps(res, indent=2, default=str))
     section = speed_markdown(res) if args.no_quality else markdown(res)
+    # a figure 2x slower than the table it replaces is flagged, here and under the table
+    flags = flag_slowdowns("composite_speed", speed_markdown(res), ("what", "stack"),
+                           ("wall best (s)", "wall median (s)", "CPU (s)"), path=Path(args.docs))
+    if flags:
+        section = section.replace(SPEED_END, slowdown_note(flags) + "\n\n" + SPEED_END)
     print(section)
     if not args.no_docs and section:
         write_docs(Path(args.docs), section, speed_only=args.no_quality)

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import ParameterError, SpecError, StackError
 from .dff import dff_focus_map, dff_surfaces, focus_volume, hybrid_corrections
-from .source import image_size
+from .source import hold_decoded, image_size
 from .stack_profile import (CompositeResult, blend_kernel, check_profile_matches, composite_profile,
                             composite_with_map, select_frames)
 from .stream import DEFAULT_TILE_PX
@@ -64,9 +64,11 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     focus_offset_um : float
         Added to the profile's best focus (a plan's ``refocus_um``); not used by ``dff``.
     register, z_ref_um
-        ``dff`` without a profile: measure focus breathing and shift from the stack (:mod:`.register`) and
-        write the output in the geometry of the frame at ``z_ref_um`` (default: the middle frame);
-        ``register=False`` takes the frames as registered.
+        ``dff`` without a profile: register the frames to the frame at ``z_ref_um`` (default: the middle frame)
+        with the simplest model the data support — scale and shift (breathing, stage axis), similarity,
+        affine or homography (:func:`.register.choose_model`) — and write the output in its geometry; each
+        frame is read and warped once (:func:`.register.register_stack`). ``register=False`` takes the
+        frames as registered.
     depth : {"auto", "flat", "3d"}
         ``dff`` and ``hybrid``: is the scene a surface (a chart, a flat object) or does it have depth (steps,
         things in front of a background)? ``auto`` decides from the data: when the smooth surface fitted to
@@ -83,7 +85,10 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         raise ParameterError(f"method '{method}' needs a lens profile", field="profile",
                              fix="give a lens profile, or use the dff method (depth from focus)")
     if method == "profile":
-        return composite_profile(stack, profile, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm, q=q,
+        # JPEG/PNG frames decode whole per read: decoded once here instead of once per band
+        check_profile_matches(stack, profile)
+        src = hold_decoded(stack, select_frames(stack, frames))
+        return composite_profile(src, profile, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm, q=q,
                                  min_band=min_band, lateral_colour=lateral_colour, tile=tile,
                                  focus_offset_um=focus_offset_um, quiet=quiet)
     if profile is not None:
@@ -94,9 +99,13 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     geometry = profile
     info: dict = {"frames_used": int(len(frames))}
     if profile is None and register and len(frames) > 1:
-        from .register import estimate_geometry
-        geometry = estimate_geometry(stack, frames, z_ref_um=z_ref_um, quiet=quiet)
-        info["registration"] = geometry.info()
+        # each frame decoded once and warped once into the reference geometry; every pass below reads those
+        from .register import register_stack
+        stack, reg = register_stack(stack, frames, z_ref_um=z_ref_um, quiet=quiet)
+        info["registration"] = reg.info()
+        geometry = None
+    else:
+        stack = hold_decoded(stack, frames)
     vol = focus_volume(stack, geometry, frames=frames, block_px=block_px, lateral_colour=lateral_colour,
                        quiet=quiet)
     info["block_px"] = vol.block_px
@@ -305,6 +314,7 @@ def composite_sweep(stack, profile, alpha_um: float, *, frames=None, deconvolve:
         raise ParameterError("sweep emulation needs a profile (each pixel's best focus and the PSF)",
                              field="profile", fix="give the lens profile")
     stack.require_frames(2, "sweep emulation")
+    stack = hold_decoded(stack, select_frames(stack, frames))  # JPEG/PNG: decoded once, not once per band
     sw = emulate_sweep(stack, profile, alpha_um, frames=frames, lateral_colour=lateral_colour, quiet=quiet)
     info = dict(sw.info)
     img = sw.image
@@ -431,34 +441,74 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         write_composite(out, res.image, prof.channels, meta, white_level=white)
         return CompositeOutput(out, meta["method"], meta)
 
-    st = Stack.open(stack, verify=verify) if isinstance(stack, (str, Path)) else stack
-    if st.cfa is not None:
-        raise StackError(f"a raw {st.cfa} mosaic stack cannot be composited per channel",
-                         path=st.path, field="cfa", fix="demosaic the frames first (H x W x 3)")
-    prof, pinfo = load((st.shape[1], st.shape[0]))
-    meta: dict = {"input": str(st.path or stack), "profile": pinfo}
-    frames, offset = None, 0.0
-    if plan is not None:
-        sel = select_plan_frames(plan, st)
-        frames, offset = sel.frames, sel.refocus_um
-        meta["plan"] = sel.info
-        fs_cyc_per_mm = fs_cyc_per_mm or sel.fs_cyc_per_mm
-        q = q if q is not None else sel.q
-    if sweep_alpha_um is not None:
-        res = composite_sweep(st, prof, sweep_alpha_um, frames=frames, deconvolve=deconvolve,
-                              rl_iterations=rl_iterations, lateral_colour=lateral_colour, quiet=quiet)
-        info = dict(res.info)
-        meta.update({"method": info.pop("method"), "z_ref_um": info.pop("z_ref_um"), "sweep": info})
+    on_disk = isinstance(stack, (str, Path))
+    st = Stack.open(stack, verify=False) if on_disk else stack
+    # The frames' sha256 are checked while compositing runs (hashing reads every file whole: ~55 ms a 4K RGB16
+    # frame, as long as the compositing of a 42-frame stack), and before anything is written.
+    with _BackgroundCheck(st.verify if verify and on_disk else None) as checked:
+        if st.cfa is not None:
+            raise StackError(f"a raw {st.cfa} mosaic stack cannot be composited per channel",
+                             path=st.path, field="cfa", fix="demosaic the frames first (H x W x 3)")
+        prof, pinfo = load((st.shape[1], st.shape[0]))
+        meta: dict = {"input": str(st.path or stack), "profile": pinfo}
+        frames, offset = None, 0.0
+        if plan is not None:
+            sel = select_plan_frames(plan, st)
+            frames, offset = sel.frames, sel.refocus_um
+            meta["plan"] = sel.info
+            fs_cyc_per_mm = fs_cyc_per_mm or sel.fs_cyc_per_mm
+            q = q if q is not None else sel.q
+        if sweep_alpha_um is not None:
+            res = composite_sweep(st, prof, sweep_alpha_um, frames=frames, deconvolve=deconvolve,
+                                  rl_iterations=rl_iterations, lateral_colour=lateral_colour, quiet=quiet)
+            info = dict(res.info)
+            meta.update({"method": info.pop("method"), "z_ref_um": info.pop("z_ref_um"), "sweep": info})
+            checked()
+            _write(out, res.image, st, frames, meta)
+            return CompositeOutput(out, meta["method"], meta)
+        res = composite_stack(st, prof, method, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm,
+                              q=0.05 if q is None else q, lateral_colour=lateral_colour, focus_offset_um=offset,
+                              register=register, z_ref_um=z_ref_um, depth=depth, quiet=quiet)
+        z_ref = float(prof.z_ref_um) if prof is not None else res.info.get("registration", {}).get("z_ref_um")
+        meta.update({"method": res.method, "z_ref_um": z_ref, "lateral_colour_corrected": bool(lateral_colour),
+                     **res.info})
+        checked()
         _write(out, res.image, st, frames, meta)
-        return CompositeOutput(out, meta["method"], meta)
-    res = composite_stack(st, prof, method, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm,
-                          q=0.05 if q is None else q, lateral_colour=lateral_colour, focus_offset_um=offset,
-                          register=register, z_ref_um=z_ref_um, depth=depth, quiet=quiet)
-    z_ref = float(prof.z_ref_um) if prof is not None else res.info.get("registration", {}).get("z_ref_um")
-    meta.update({"method": res.method, "z_ref_um": z_ref, "lateral_colour_corrected": bool(lateral_colour),
-                 **res.info})
-    _write(out, res.image, st, frames, meta)
-    return CompositeOutput(out, res.method, meta)
+        return CompositeOutput(out, res.method, meta)
+
+
+class _BackgroundCheck:
+    """Runs ``check`` (e.g. ``Stack.verify``) on a thread while the caller works. Calling the object waits for it
+    and re-raises its error; if the work fails first, the check's error (the root cause: a changed frame file)
+    replaces the work's."""
+
+    def __init__(self, check):
+        import threading
+
+        self._error: BaseException | None = None
+        self._thread = None
+        if check is not None:
+            def run():
+                try:
+                    check()
+                except BaseException as exc:  # handed to the caller's thread
+                    self._error = exc
+            self._thread = threading.Thread(target=run, name="fieldcal-verify", daemon=True)
+            self._thread.start()
+
+    def __call__(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+        if self._error is not None:
+            raise self._error
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        if exc is not None and self._thread is not None and not isinstance(exc, KeyboardInterrupt):
+            self()  # raises the check's error instead, if it failed
+        return False
 
 
 def _write(out: Path, image: np.ndarray, stack, frames, meta: dict) -> None:

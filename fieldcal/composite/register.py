@@ -14,8 +14,9 @@ the linear model by more than half a pixel at the image corner, each frame gets 
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
-from ..measure.geometry import register_step, registration_plane
+from ..measure.geometry import downsample, register_step, registration_plane
 from ..progress import progress
 from .source import image_size, read_roi, z_positions
 
@@ -29,6 +30,8 @@ class EstimatedGeometry:
     """Geometry of the lens-profile interface, measured from a stack (``z_ref_um`` = a frame of the stack)."""
 
     has_measured_tolerance = False
+    #: What the richer models would add and how far the frame's halves disagree on it (:func:`choose_model`).
+    model_checks: dict | None = None
 
     def __init__(self, z_ref_um: float, centre_px: tuple[float, float], scale_rate_per_um: float,
                  shift_rate_px_per_um: tuple[float, float], n_pairs: int):
@@ -53,7 +56,10 @@ class EstimatedGeometry:
 
     def info(self) -> dict:
         return {"z_ref_um": self.z_ref_um, "scale_rate_per_um": self.scale_rate_per_um,
-                "shift_rate_px_per_um": list(self.shift_rate_px_per_um), "pairs_used": self.n_pairs}
+                "shift_rate_px_per_um": list(self.shift_rate_px_per_um), "pairs_used": self.n_pairs,
+                "model": "scale-shift",
+                **({"model_checks_px": {k: round(v, 3) for k, v in self.model_checks.items()}}
+                   if self.model_checks else {})}
 
 
 class ChainedGeometry(EstimatedGeometry):
@@ -76,7 +82,7 @@ class ChainedGeometry(EstimatedGeometry):
         return np.interp(z, self.z_table, self.sx_table), np.interp(z, self.z_table, self.sy_table)
 
     def info(self) -> dict:
-        return {**super().info(), "model": "per-frame (chained)",
+        return {**super().info(), "model": "scale-shift, per frame (chained)",
                 "linear_model_deviation_px": round(self.deviation_px, 3)}
 
 
@@ -102,70 +108,123 @@ def _chain(zs, steps, linear: EstimatedGeometry, cs, factor: int, z_ref_um: floa
 
 
 def _ecc_start(prev: np.ndarray, cur: np.ndarray, cs) -> tuple[float, float, float] | None:
-    """(r, tx, ty) about ``cs`` from OpenCV's ECC (affine, Gaussian-smoothed), or None when it fails."""
+    """(r, tx, ty) about ``cs`` from OpenCV's ECC (affine, Gaussian-smoothed), or None when it fails.
+
+    Only a start for :func:`register_step`: run on planes halved again (4x fewer pixels) when they are large.
+    """
     import cv2
 
+    f = 2 if min(prev.shape) >= 256 else 1
+    if f > 1:
+        hh, ww = (prev.shape[0] // 2) * 2, (prev.shape[1] // 2) * 2
+        prev, cur = downsample(prev[:hh, :ww], 2), downsample(cur[:hh, :ww], 2)
     warp = np.eye(2, 3, dtype=np.float32)
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
     try:
         _, warp = cv2.findTransformECC(prev.astype(np.float32), cur.astype(np.float32), warp, cv2.MOTION_AFFINE,
-                                       crit, None, 5)
+                                       crit, None, 5 if f == 1 else 3)
     except cv2.error:
         return None
-    a = warp[:, :2].astype(np.float64)
+    m = np.eye(3)
+    m[:2] = warp.astype(np.float64)
+    m = _to_full(m, f)
+    a = m[:2, :2]
     r = 0.5 * (a[0, 0] + a[1, 1])
-    t = a @ np.asarray(cs, dtype=np.float64) + warp[:, 2].astype(np.float64) - np.asarray(cs, dtype=np.float64)
+    t = a @ np.asarray(cs, dtype=np.float64) + m[:2, 2] - np.asarray(cs, dtype=np.float64)
     return (float(r), float(t[0]), float(t[1])) if 0.5 < r < 2.0 else None
 
 
-def _grey(stack, i: int, factor: int) -> np.ndarray:
-    w, h = image_size(stack)
-    return registration_plane(read_roi(stack, i, 0, 0, w, h).astype(np.float32).mean(axis=2), factor)
+def _grey(image: np.ndarray, factor: int) -> np.ndarray:
+    """The registration plane of a frame (``H x W x C``): grey, downsampled, lightly blurred, normalised."""
+    import cv2
+
+    a = np.asarray(image, dtype=np.float32)
+    # the channels' mean; cv2.transform is ~10x faster than ndarray.mean over a short last axis
+    grey = a[..., 0] if a.shape[2] == 1 else cv2.transform(a, np.full((1, a.shape[2]), 1.0 / a.shape[2], np.float32))
+    g = registration_plane(grey, factor)
+    return (g - g.mean()) / max(float(g.std()), 1e-12)
 
 
-def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_side_px: int = 1024,
-                      quiet: bool = False) -> EstimatedGeometry:
-    """Measure focus breathing and stage-axis shift from neighbouring frames (one or two in memory).
+def _factor(w: int, h: int, max_side_px: int) -> int:
+    return max(1, int(np.ceil(max(w, h) / max_side_px)))
 
-    ``z_ref_um`` (the output geometry) defaults to the frame at the middle of the z range.
-    """
-    w, h = image_size(stack)
+
+def _sorted_frames(stack, frames, z_ref_um):
     z_all = z_positions(stack)
     idx = np.arange(len(z_all)) if frames is None else np.asarray(frames, dtype=int)
     order = idx[np.argsort(z_all[idx], kind="stable")]
     zs = z_all[order]
-    if z_ref_um is None:
-        z_ref_um = float(zs[len(zs) // 2])
-    factor = max(1, int(np.ceil(max(w, h) / max_side_px)))
+    return order, zs, float(zs[len(zs) // 2]) if z_ref_um is None else float(z_ref_um)
+
+
+def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_side_px: int = 1024,
+                      quiet: bool = False, planes: list[np.ndarray] | None = None) -> EstimatedGeometry:
+    """Measure focus breathing and stage-axis shift from neighbouring frames (one or two in memory).
+
+    ``z_ref_um`` (the output geometry) defaults to the frame at the middle of the z range. ``planes``: the
+    frames' registration planes in z order (:func:`_grey` at :func:`_factor`), when already made.
+    """
+    geo, _ = _scale_shift(stack, frames, z_ref_um, max_side_px, quiet, planes)
+    return geo
+
+
+def _map_threads(fn, items: list) -> list:
+    """``[fn(x) for x in items]`` on the compositing threads: OpenCV and SciPy's resampling release the GIL."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .stream import default_workers
+
+    workers = default_workers()
+    if workers == 1 or len(items) < 2:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(fn, items))
+
+
+def _pair_steps(planes, cs, quiet: bool):
+    """Scale-and-shift steps between neighbouring planes (None where a pair fails)."""
+    # a point at p in prev is at cs + r (p - cs) + t in cur (downsampled px, about the centre).
+    # Photographs (not charts): neighbours differ in focus, so the update settles at noise level; a handheld
+    # step can be several px, beyond Gauss-Newton's reach from zero: ECC (on a smoothed copy, robust to the
+    # focus change) gives the start. Pairs are independent given their start, so they run on threads.
+    def ecc_step(k):
+        ecc = _ecc_start(planes[k - 1], planes[k], cs)
+        return None if ecc is None else register_step(planes[k - 1], planes[k], cs, init=ecc, iterations=20,
+                                                       tol_px=1e-3)
+
+    pairs = list(range(1, len(planes)))
+    steps = _map_threads(ecc_step, pairs)
+    for k in progress(pairs, total=len(pairs), desc="registering", quiet=quiet, unit="pair"):
+        if steps[k - 1] is None:  # no ECC start: the previous step's, else register_step's own fallbacks
+            prev = steps[k - 2] if k >= 2 else None
+            init = (prev.r, prev.tx, prev.ty) if prev is not None else None
+            steps[k - 1] = register_step(planes[k - 1], planes[k], cs, init=init, iterations=20, tol_px=1e-3)
+    return steps
+
+
+def _scale_shift(stack, frames, z_ref_um, max_side_px, quiet, planes):
+    """:func:`estimate_geometry` and the neighbour steps it was built from."""
+    w, h = image_size(stack)
+    order, zs, z_ref_um = _sorted_frames(stack, frames, z_ref_um)
+    factor = _factor(w, h, max_side_px)
     c = ((w - 1) / 2.0, (h - 1) / 2.0)
     cs = ((w // factor - 1) / 2.0, (h // factor - 1) / 2.0)
+    if planes is None:
+        planes = [_grey(read_roi(stack, int(i), 0, 0, w, h), factor) for i in order]
+    steps = _pair_steps(planes, cs, quiet) if len(planes) > 1 else []
     rates_m, rates_x, rates_y = [], [], []
-    steps = []
-    prev, step = None, None
-    for k, i in enumerate(progress(order, total=len(order), desc="registering", quiet=quiet, unit="frame")):
-        cur = _grey(stack, int(i), factor)
-        cur = (cur - cur.mean()) / max(float(cur.std()), 1e-12)
-        if prev is not None:
+    for k, step in enumerate(steps, start=1):
+        if step is not None:
             dz = float(zs[k] - zs[k - 1])
-            # a point at p in prev is at cs + r (p - cs) + t in cur (downsampled px, about the centre)
-            init = (step.r, step.tx, step.ty) if step is not None else None
-            # photographs (not charts): neighbours differ in focus, so the update settles at noise level; a
-            # handheld step can be several px, beyond Gauss-Newton's reach from the previous step: ECC (on a
-            # smoothed copy, robust to the focus change) gives the start
-            ecc = _ecc_start(prev, cur, cs)
-            step = register_step(prev, cur, cs, init=ecc or init, iterations=20, tol_px=1e-3)
-            steps.append(step)
-            if step is not None:
-                rates_m.append(np.log(step.r) / dz)
-                rates_x.append(step.tx * factor / dz)
-                rates_y.append(step.ty * factor / dz)
-        prev = cur
+            rates_m.append(np.log(step.r) / dz)
+            rates_x.append(step.tx * factor / dz)
+            rates_y.append(step.ty * factor / dz)
     if not rates_m:
-        return EstimatedGeometry(z_ref_um, c, 0.0, (0.0, 0.0), 0)
+        return EstimatedGeometry(z_ref_um, c, 0.0, (0.0, 0.0), 0), steps
     linear = EstimatedGeometry(z_ref_um, c, float(np.median(rates_m)),
                                (float(np.median(rates_x)), float(np.median(rates_y))), len(rates_m))
     if len(zs) < 3:
-        return linear
+        return linear, steps
     m, sx, sy = _chain(zs, steps, linear, cs, factor, float(z_ref_um))
     # how far the chained positions of the image corner leave the linear model, in full-resolution px
     corner = float(np.hypot(w / 2.0, h / 2.0))
@@ -173,5 +232,449 @@ def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_sid
     lx, ly = linear.shift_px(zs)
     dev = float(np.max(np.abs(m - lm) * corner + np.hypot(sx - lx, sy - ly)))
     if dev <= CHAIN_DEVIATION_PX:
-        return linear
-    return ChainedGeometry(z_ref_um, c, zs, m, sx, sy, linear, dev)
+        return linear, steps
+    return ChainedGeometry(z_ref_um, c, zs, m, sx, sy, linear, dev), steps
+
+
+# ------------------------------------------------------------------------------- beyond scale and shift
+#: Registration models, simplest first. ``scale-shift`` is the lens model (breathing, stage-axis shift);
+#: ``similarity`` adds a rotation (a handheld camera rolling), ``affine`` shear and unequal scale, ``homography``
+#: the perspective of a camera that tilts between frames.
+MODELS = ("scale-shift", "similarity", "affine", "homography")
+#: A richer model replaces a simpler one only where it moves some frame's image corner (or edge middle) by more
+#: than this (full-resolution px) from where the simpler one puts it: below that the difference is within the
+#: interpolation error of warping, and the extra parameters would only fit noise.
+MODEL_TOLERANCE_PX = 0.5
+#: The model check fits its homographies on the coarsest pyramid level whose short side is at least this (px):
+#: ~50k samples, precise to a few hundredths of a px there, enough to see a 0.5 px difference at full size.
+CHECK_SIDE_PX = 160
+
+
+def _generators(model: str) -> np.ndarray:
+    """(k, 3, 3) infinitesimal generators of ``model``'s warps about the identity (normalised coordinates)."""
+    def g(*entries):
+        m = np.zeros((3, 3))
+        for (r, c), v in entries:
+            m[r, c] = v
+        return m
+
+    tx, ty = g(((0, 2), 1.0)), g(((1, 2), 1.0))
+    if model == "scale-shift":
+        return np.stack([g(((0, 0), 1.0), ((1, 1), 1.0)), tx, ty])
+    if model == "similarity":
+        return np.stack([g(((0, 0), 1.0), ((1, 1), 1.0)), g(((0, 1), -1.0), ((1, 0), 1.0)), tx, ty])
+    aff = [g(((0, 0), 1.0)), g(((0, 1), 1.0)), g(((1, 0), 1.0)), g(((1, 1), 1.0)), tx, ty]
+    if model == "affine":
+        return np.stack(aff)
+    if model == "homography":
+        return np.stack(aff + [g(((2, 0), 1.0)), g(((2, 1), 1.0))])
+    raise ValueError(f"unknown registration model {model!r}")
+
+
+def _normaliser(w: int, h: int) -> np.ndarray:
+    """Pixel -> normalised coordinates (centre 0, half diagonal 1): a well-conditioned parameterisation."""
+    c = ((w - 1) / 2.0, (h - 1) / 2.0)
+    lev = max(float(np.hypot(w, h)) / 2.0, 1.0)
+    return np.array([[1.0 / lev, 0.0, -c[0] / lev], [0.0, 1.0 / lev, -c[1] / lev], [0.0, 0.0, 1.0]])
+
+
+def _apply(m: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    d = m[2, 0] * x + m[2, 1] * y + m[2, 2]
+    return (m[0, 0] * x + m[0, 1] * y + m[0, 2]) / d, (m[1, 0] * x + m[1, 1] * y + m[1, 2]) / d
+
+
+class _Level:
+    """One pyramid level of a neighbour pair, with what every fit on it shares: ``prev``'s gradients (per
+    normalised unit) and ``cur``'s cubic B-spline coefficients (computed once, on first use)."""
+
+    def __init__(self, prev: np.ndarray, cur: np.ndarray):
+        self.prev, self.cur = prev, cur
+        h, w = prev.shape
+        self.n = _normaliser(w, h)
+        self._grad = self._coeffs = None
+
+    @property
+    def grad(self):
+        if self._grad is None:
+            gy, gx = np.gradient(self.prev.astype(np.float64))
+            self._grad = gx / self.n[0, 0], gy / self.n[0, 0]
+        return self._grad
+
+    @property
+    def coeffs(self):
+        if self._coeffs is None:
+            self._coeffs = ndimage.spline_filter(self.cur.astype(np.float64), order=3)
+        return self._coeffs
+
+
+def _fit_level(level: _Level, model: str, m_norm: np.ndarray, iterations: int, tol_px: float, subsample: int,
+               part: str | None = None) -> np.ndarray | None:
+    """Inverse-compositional Gauss-Newton (Baker & Matthews 2004) on one level: ``m_norm`` (normalised
+    coordinates) maps a point of ``prev`` to ``cur``; ``cur`` is resampled by cubic B-splines (no 1/32 px
+    quantisation, which biases OpenCV's warps: see :func:`fieldcal.measure.geometry.register_step`)."""
+    prev = level.prev
+    h, w = prev.shape
+    b = 4
+    if min(h, w) < 4 * b + 8:
+        return None
+    n = level.n
+    # ``part``: only the top or bottom half of ``prev`` (two independent looks at the same motion)
+    ya, yb = {None: (b, h - b), "top": (b, h // 2), "bottom": (h // 2, h - b)}[part]
+    ys, xs = np.mgrid[ya:yb:subsample, b:w - b:subsample].astype(np.float64)
+    xs, ys = xs.ravel(), ys.ravel()
+    gx, gy = (g[ya:yb:subsample, b:w - b:subsample].ravel() for g in level.grad)
+    ux, uy = xs * n[0, 0] + n[0, 2], ys * n[1, 1] + n[1, 2]
+    gens = _generators(model)
+    cols = []
+    for G in gens:
+        # d/dθ of the warped point at the identity: (G u)_xy - u (G u)_z
+        gz = G[2, 0] * ux + G[2, 1] * uy + G[2, 2]
+        dx = G[0, 0] * ux + G[0, 1] * uy + G[0, 2] - ux * gz
+        dy = G[1, 0] * ux + G[1, 1] * uy + G[1, 2] - uy * gz
+        cols.append(gx * dx + gy * dy)
+    J = np.stack(cols, axis=1)
+    # einsum, not J.T @ J: a threaded BLAS spins its threads after each product (measure/geometry.py)
+    H_all = np.einsum("ni,nj->ij", J, J)
+    target = prev[ya:yb:subsample, b:w - b:subsample].astype(np.float64).ravel()
+    coeffs = level.coeffs
+    n_inv = np.linalg.inv(n)
+    corners = np.array([[0, 0, w - 1, w - 1], [0, h - 1, 0, h - 1]], dtype=np.float64)
+    m = m_norm.copy()
+    for _ in range(iterations):
+        qx, qy = _apply(n_inv @ m @ n, xs, ys)
+        inside = (qx >= 1) & (qx <= w - 2) & (qy >= 1) & (qy <= h - 2)  # points that left cur do not count
+        share = float(inside.mean())
+        if share < 0.5:
+            return None
+        if share < 1.0:
+            qx, qy, Ji, ti = qx[inside], qy[inside], J[inside], target[inside]
+            H = np.einsum("ni,nj->ij", Ji, Ji)
+        else:
+            Ji, ti, H = J, target, H_all
+        back = ndimage.map_coordinates(coeffs, [qy, qx], order=3, prefilter=False, mode="nearest")
+        if not np.all(np.isfinite(H)) or np.linalg.cond(H) > 1e12:
+            return None
+        d = np.linalg.solve(H, np.einsum("ni,n->i", Ji, back - ti))
+        md = np.eye(3) + np.tensordot(d, gens, axes=1)
+        m = m @ np.linalg.inv(md)
+        m /= m[2, 2]
+        if not np.all(np.isfinite(m)):
+            return None
+        # the update's largest displacement at the frame's corners (px of this level)
+        cx, cy = _apply(n_inv @ md @ n, corners[0], corners[1])
+        if float(np.max(np.hypot(cx - corners[0], cy - corners[1]))) < tol_px:
+            break
+    return m
+
+
+class PlanePair:
+    """Two neighbouring registration planes and their pyramid (halved per level), shared by the fits of one
+    pair (whole frame, halves, several models): each level's gradients and spline coefficients are made once."""
+
+    def __init__(self, prev: np.ndarray, cur: np.ndarray, levels: int = 2):
+        if prev.shape != cur.shape:
+            raise ValueError(f"planes differ in size: {prev.shape} vs {cur.shape}")
+        self.levels = [_Level(prev, cur)]  # finest first
+        for _ in range(levels - 1):
+            a, b = self.levels[-1].prev, self.levels[-1].cur
+            if min(a.shape) < 64:
+                break
+            hh, ww = (a.shape[0] // 2) * 2, (a.shape[1] // 2) * 2
+            self.levels.append(_Level(downsample(a[:hh, :ww], 2), downsample(b[:hh, :ww], 2)))
+
+
+def fit_pair(prev, cur=None, model: str = "homography", init: np.ndarray | None = None,
+             levels: int = 2, iterations: int = 30, tol_px: float = 1e-3, subsample: int = 2,
+             part: str | None = None, finest: int = 0) -> np.ndarray | None:
+    """The warp of ``model`` taking a point of plane ``prev`` to plane ``cur`` (3 x 3, px of these planes).
+
+    Coarse to fine over ``levels`` (halving the planes each level): the coarse levels widen the reach of the
+    fit, the finest sets its precision. ``prev`` may be a :class:`PlanePair` (then ``cur`` is not given and
+    ``levels`` is the pair's). ``init`` (px) is the start, e.g. the scale-and-shift step; None when the fit
+    fails (too small, lost contrast, diverged). ``part`` ("top", "bottom"): fit on that half of ``prev``
+    only. ``finest``: stop that many levels above the full planes (a quick, coarser fit).
+    """
+    _generators(model)  # an unknown model fails here, before any work
+    pair = prev if isinstance(prev, PlanePair) else PlanePair(prev, cur, levels)
+    h, w = pair.levels[0].prev.shape
+    n = _normaliser(w, h)
+    m = np.eye(3) if init is None else n @ np.asarray(init, dtype=np.float64) @ np.linalg.inv(n)
+    # normalised coordinates are the same at every level (even sizes, area downsampling: pixel centres nest)
+    for k in range(len(pair.levels) - 1, min(finest, len(pair.levels) - 1) - 1, -1):
+        fine = k == finest
+        # every level but a small coarsest one is sampled every ``subsample`` px (~50k points a fit)
+        step = subsample if min(pair.levels[k].prev.shape) >= 256 else 1
+        m = _fit_level(pair.levels[k], model, m, iterations, tol_px if fine else 1e-2, step, part)
+        if m is None:
+            return None
+    return np.linalg.inv(n) @ m @ n
+
+
+def _project(p: np.ndarray, model: str, w: int, h: int) -> np.ndarray:
+    """The ``model`` warp nearest (least squares on a grid over the frame) to the homography ``p`` (px)."""
+    if model == "homography":
+        return p
+    ys, xs = np.mgrid[0:h - 1:9j, 0:w - 1:9j]
+    xs, ys = xs.ravel(), ys.ravel()
+    qx, qy = _apply(p, xs, ys)
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    x, y = xs - cx, ys - cy
+    one, zero = np.ones_like(x), np.zeros_like(x)
+    if model == "scale-shift":  # q - c = s (p - c) + t
+        A = np.block([[x[:, None], one[:, None], zero[:, None]], [y[:, None], zero[:, None], one[:, None]]])
+        s, tx, ty = np.linalg.lstsq(A, np.concatenate([qx - cx, qy - cy]), rcond=None)[0]
+        lin = np.array([[s, 0.0], [0.0, s]])
+    elif model == "similarity":  # q - c = [[a, -b], [b, a]] (p - c) + t
+        A = np.block([[x[:, None], -y[:, None], one[:, None], zero[:, None]],
+                      [y[:, None], x[:, None], zero[:, None], one[:, None]]])
+        a, bb, tx, ty = np.linalg.lstsq(A, np.concatenate([qx - cx, qy - cy]), rcond=None)[0]
+        lin = np.array([[a, -bb], [bb, a]])
+    else:  # affine
+        A = np.stack([x, y, one], axis=1)
+        r0 = np.linalg.lstsq(A, qx - cx, rcond=None)[0]
+        r1 = np.linalg.lstsq(A, qy - cy, rcond=None)[0]
+        lin, (tx, ty) = np.array([r0[:2], r1[:2]]), (r0[2], r1[2])
+    c = np.array([cx, cy])
+    out = np.eye(3)
+    out[:2, :2] = lin
+    out[:2, 2] = c + np.array([tx, ty]) - lin @ c
+    return out
+
+
+def _plane_scale(factor: int) -> np.ndarray:
+    """Plane px -> full-resolution px (area downsampling: plane pixel i is centred on f i + (f - 1) / 2)."""
+    return np.array([[factor, 0.0, (factor - 1) / 2.0], [0.0, factor, (factor - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
+def _to_full(p: np.ndarray, factor: int) -> np.ndarray:
+    """A plane-px warp in full-resolution px."""
+    s = _plane_scale(factor)
+    return s @ p @ np.linalg.inv(s)
+
+
+def chain_to_reference(pairs: list[np.ndarray], ref_index: int) -> np.ndarray:
+    """Per frame, the map from the reference frame's px to that frame's px, from neighbour warps
+    (``pairs[k]``: frame k -> frame k + 1): ``(n, 3, 3)``."""
+    n = len(pairs) + 1
+    out = np.zeros((n, 3, 3))
+    out[ref_index] = np.eye(3)
+    for k in range(ref_index + 1, n):
+        out[k] = pairs[k - 1] @ out[k - 1]
+    for k in range(ref_index - 1, -1, -1):
+        out[k] = np.linalg.inv(pairs[k]) @ out[k + 1]
+    return out / out[:, 2:3, 2:3]
+
+
+def _outline(w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's corners and edge middles (px), where a model difference shows most."""
+    xs = np.array([0, (w - 1) / 2, w - 1, 0, w - 1, 0, (w - 1) / 2, w - 1], dtype=np.float64)
+    ys = np.array([0, 0, 0, (h - 1) / 2, (h - 1) / 2, h - 1, h - 1, h - 1], dtype=np.float64)
+    return xs, ys
+
+
+def outline_displacements(a: np.ndarray, b: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Per frame and outline point, where maps ``a`` put the frame's outline minus where ``b`` do: (n, 8, 2) px."""
+    xs, ys = _outline(w, h)
+    out = []
+    for ma, mb in zip(a, b):
+        ax, ay = _apply(ma, xs, ys)
+        bx, by = _apply(mb, xs, ys)
+        out.append(np.stack([ax - bx, ay - by], axis=1))
+    return np.array(out)
+
+
+def chain_difference_px(a: np.ndarray, b: np.ndarray, w: int, h: int) -> float:
+    """Largest distance (px) between where two sets of per-frame maps put the frame's outline."""
+    return float(np.max(np.hypot(*np.moveaxis(outline_displacements(a, b, w, h), -1, 0))))
+
+
+class MatrixGeometry:
+    """Per-frame maps (reference px -> frame px) of a registration richer than scale and shift."""
+
+    has_measured_tolerance = False
+
+    def __init__(self, z_ref_um: float, z_um, maps: np.ndarray, model: str, scale_shift: EstimatedGeometry,
+                 deviations_px: dict):
+        self.z_ref_um = float(z_ref_um)
+        self.z_table = np.asarray(z_um, dtype=np.float64)
+        self.maps = np.asarray(maps, dtype=np.float64)
+        self.model = model
+        self.scale_shift = scale_shift
+        self.deviations_px = deviations_px
+
+    def map_for(self, z_um: float) -> np.ndarray:
+        k = int(np.argmin(np.abs(self.z_table - float(z_um))))
+        return self.maps[k]
+
+    def info(self) -> dict:
+        return {**self.scale_shift.info(), "model": self.model,
+                "model_checks_px": {k: round(v, 3) for k, v in self.deviations_px.items()}}
+
+
+def frame_map_matrix(geometry, z_um: float) -> np.ndarray:
+    """3 x 3 map from output px (the reference frame's) to the frame at ``z_um``'s px."""
+    if isinstance(geometry, MatrixGeometry):
+        return geometry.map_for(z_um)
+    from .warp import affine_for
+
+    m = float(np.asarray(geometry.magnification(z_um)))
+    dx, dy = geometry.shift_px(z_um)
+    out = np.eye(3)
+    out[:2] = affine_for(m, geometry.optical_centre_px(), (float(np.asarray(dx)), float(np.asarray(dy))))
+    return out
+
+
+def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px: int = 1024,
+                 quiet: bool = False, planes: list[np.ndarray] | None = None, models=MODELS):
+    """Register a stack with the simplest model of ``models`` its data support.
+
+    Neighbouring frames (in z) are registered to each other (similar blur), scale and shift first
+    (:func:`estimate_geometry`), then with a homography started from that step (:func:`fit_pair`) on the whole
+    frame and on its top and bottom halves apart, and the steps are chained to the reference frame
+    (``z_ref_um``, default the middle frame). Each model's maps are the homographies' nearest of its kind.
+    Going from simple to rich, a model is taken when what it adds moves some frame's outline by more than
+    :data:`MODEL_TOLERANCE_PX` and the two halves agree on that addition within half of it; the chosen model
+    is then refitted to the images. Scale and shift keeps :func:`estimate_geometry`'s result as it is.
+
+    Returns an :class:`EstimatedGeometry` (scale and shift) or a :class:`MatrixGeometry`.
+    """
+    w, h = image_size(stack)
+    order, zs, z_ref_um = _sorted_frames(stack, frames, z_ref_um)
+    factor = _factor(w, h, max_side_px)
+    if planes is None:
+        planes = [_grey(read_roi(stack, int(i), 0, 0, w, h), factor) for i in order]
+    geo, steps = _scale_shift(stack, frames, z_ref_um, max_side_px, quiet, planes)
+    models = [m for m in MODELS if m in models]
+    if len(planes) < 2 or models == ["scale-shift"]:
+        return geo
+    ref = int(np.argmin(np.abs(zs - z_ref_um)))
+    cs = ((w // factor - 1) / 2.0, (h // factor - 1) / 2.0)
+    s_plane = _plane_scale(factor)
+
+    def looks_of(k):
+        """The pair's homography from the whole frame and from each half, on the coarsest level of at least
+        :data:`CHECK_SIDE_PX` (the model check needs ~0.1 px at full resolution, a fraction of the cost)."""
+        step = steps[k]
+        if step is None:  # bridged with the scale-and-shift model's own step
+            a = frame_map_matrix(geo, float(zs[k + 1])) @ np.linalg.inv(frame_map_matrix(geo, float(zs[k])))
+            return None, (a, a, a)
+        s = np.array([[step.r, 0.0, cs[0] * (1 - step.r) + step.tx], [0.0, step.r, cs[1] * (1 - step.r) + step.ty],
+                      [0.0, 0.0, 1.0]])
+        pp = PlanePair(planes[k], planes[k + 1], levels=3)
+        check = max(k for k, lev in enumerate(pp.levels) if k == 0 or min(lev.prev.shape) >= CHECK_SIDE_PX)
+        full = fit_pair(pp, model=models[-1], init=s, finest=check)
+        start = full if full is not None else s
+        halves = [fit_pair(pp, model=models[-1], init=start, part=part, finest=check) for part in ("top", "bottom")]
+        return pp, tuple(_to_full(m if m is not None else s, factor) for m in (start, *halves))
+
+    done = _map_threads(looks_of, list(range(len(steps))))
+    pairs_planes = [pp for pp, _ in done]
+    looks = {look: [v[j] for _, v in done] for j, look in enumerate(("all", "top", "bottom"))}
+    chains = {(m, look): chain_to_reference([_project(p, m, w, h) for p in pairs], ref)
+              for m in models for look, pairs in looks.items()}
+    # A richer model is kept when what it adds to the simpler one moves the outline by more than the tolerance,
+    # and the frame's two halves, fitted apart, see the same addition (within half of it): a camera that
+    # rolls or tilts moves both halves alike; a scene with depth (parallax) or blur changes pull them apart.
+    chosen, deviations = "scale-shift", {}
+    for model in models[1:]:
+        extra = {look: outline_displacements(chains[(model, look)], chains[(chosen, look)], w, h)
+                 for look in looks}
+        signal = float(np.max(np.hypot(*np.moveaxis(extra["all"], -1, 0))))
+        disagreement = float(np.max(np.hypot(*np.moveaxis(extra["top"] - extra["bottom"], -1, 0))))
+        deviations[f"{model}_over_{chosen}"] = signal
+        deviations[f"{model}_halves_disagree"] = disagreement
+        if signal > MODEL_TOLERANCE_PX and disagreement <= 0.5 * signal:
+            chosen = model
+    if chosen == "scale-shift":
+        geo.model_checks = deviations
+        return geo
+
+    def refit(k):  # the chosen model, refitted on the full planes from the check's fit
+        p = looks["all"][k]
+        init = np.linalg.inv(s_plane) @ _project(p, chosen, w, h) @ s_plane  # in plane px
+        fit = None if pairs_planes[k] is None else fit_pair(pairs_planes[k], model=chosen, init=init)
+        return _to_full(fit, factor) if fit is not None else _project(p, chosen, w, h)
+
+    maps = chain_to_reference(_map_threads(refit, list(range(len(steps)))), ref)
+    # maps[k] takes a reference px to frame k's: the output (reference geometry) samples frame k there
+    return MatrixGeometry(z_ref_um, zs, maps, chosen, geo, deviations)
+
+
+# ----------------------------------------------------------------------------------- registered frames
+def warp_frame(image: np.ndarray, output_to_source: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """``image`` (``H x W x C``) resampled into the output geometry (same size and dtype; uint8/uint16 rounded and
+    clipped by OpenCV): output px p takes the source at ``output_to_source @ p``. Bicubic (OpenCV, as
+    :func:`fieldcal.composite.warp.warp_from`), edge pixels repeated outside the frame; an affine map takes
+    ``warpAffine``, a homography ``warpPerspective``. ``out``: where to write (default a new array)."""
+    import cv2
+
+    src = np.asarray(image)
+    h, w = src.shape[:2]
+    m = np.asarray(output_to_source, dtype=np.float64) / output_to_source[2, 2]
+    flags = cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP
+    out = np.empty(src.shape, dtype=src.dtype) if out is None else out
+    affine = abs(m[2, 0]) < 1e-15 and abs(m[2, 1]) < 1e-15
+    for k in range(0, src.shape[2], 4):  # cv2 takes at most 4 channels a call and drops a single one's axis
+        part = np.ascontiguousarray(src[..., k:k + 4])
+        if affine:
+            res = cv2.warpAffine(part, m[:2], (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        else:
+            res = cv2.warpPerspective(part, m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        out[..., k:k + 4] = res.reshape(h, w, -1)
+    return out
+
+
+def storage_dtype(dtype) -> tuple[np.dtype, float]:
+    """How registered frames are held, ``(dtype, scale)``: 16-bit integers as they are (a rounding of 1 DN in
+    65535 is far below noise); 8-bit as 16-bit fixed point (x 256: 1/256 DN, half float32's memory; rounding to
+    whole DN of 255 would add visible noise); anything else as float32 (OpenCV warps no other integers)."""
+    dtype = np.dtype(dtype)
+    if dtype == np.uint16:
+        return dtype, 1.0
+    if dtype.kind == "u":
+        return np.dtype(np.uint16), 256.0
+    return np.dtype(np.float32), 1.0
+
+
+def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_side_px: int = 1024,
+                   models=MODELS, quiet: bool = False):
+    """Register a stack once and hold its frames warped into the reference frame's geometry.
+
+    Each frame is decoded once (in parallel); its registration plane is made from that decode, the model is
+    chosen (:func:`choose_model`), and each frame is warped once with its map and held
+    (:class:`~fieldcal.composite.source.HeldFrames`, in memory within its budget, else a temporary file), so
+    every later pass (focus volume, fusion, depth map, blending) reads registered pixels with no geometry.
+
+    Returns
+    -------
+    (HeldFrames, geometry)
+        The registered frames (file indices as in ``stack``; only ``frames`` are held) and the geometry
+        (``info()`` describes it).
+    """
+    from .source import HeldFrames, read_frames_parallel, roi_readable
+
+    w, h = image_size(stack)
+    order, zs, z_ref_um = _sorted_frames(stack, frames, z_ref_um)
+    factor = _factor(w, h, max_side_px)
+    keep = not all(roi_readable(stack, int(i)) for i in order)  # decoding again would cost a full decode
+    decoded = HeldFrames(stack, order, stack.dtype) if keep else None
+    planes = {}
+
+    def take(i, image):
+        planes[i] = _grey(image, factor)
+        if decoded is not None:
+            decoded.put(i, image)
+
+    read_frames_parallel(stack, order, take)
+    geo = choose_model(stack, order, z_ref_um, max_side_px, quiet, [planes[int(i)] for i in order], models)
+    storage, scale = storage_dtype(stack.dtype)
+    out = HeldFrames(stack, order, storage, strict=True, scale=scale)
+    src = decoded if decoded is not None else stack
+    for i, z in zip(order, zs):
+        image = read_roi(src, int(i), 0, 0, w, h)
+        if scale == 256.0:  # 8-bit -> 16-bit fixed point, then warped in that dtype straight into its slot
+            image = image.astype(np.uint16) << 8
+        elif image.dtype != storage:
+            image = image.astype(storage)
+        out.put(int(i), warp_frame(image, frame_map_matrix(geo, float(z))), held_units=True)
+    return out, geo

@@ -4,6 +4,8 @@ The on-disk ``fieldcal.formats.stack.Stack`` and the in-memory :class:`ArrayStac
 :mod:`fieldcal.formats`) are the sources; compositing uses ``z_um``, ``shape``, ``channels``, ``dtype``,
 ``black_level``, ``white_level``, ``len()`` and ``read(i, roi)``. :func:`read_roi` is the one place that knows
 how a region of a frame is asked for; :class:`RowReader` is the fast path for uncompressed TIFF frames.
+:class:`HeldFrames` holds frames decoded (JPEG, PNG: :func:`hold_decoded`) or registered once, so that
+compositing's several passes read each file once.
 """
 
 from __future__ import annotations
@@ -14,7 +16,8 @@ import numpy as np
 
 from ..formats.frames import ArrayStack, FrameSource
 
-__all__ = ["ArrayStack", "FrameSource", "RowReader", "image_size", "read_roi", "z_positions"]
+__all__ = ["ArrayStack", "FrameSource", "HeldFrames", "RowReader", "hold_decoded", "image_size", "read_frames_parallel",
+           "read_roi", "roi_readable", "z_positions"]
 
 
 def read_roi(stack, i: int, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
@@ -97,3 +100,167 @@ class RowReader:
         finally:
             mm.close()
         return box
+
+
+# ------------------------------------------------------------------------------------- frames held once
+#: Frames compositing keeps decoded (or registered) for its several passes are held in memory up to this many
+#: bytes; beyond it they are streamed from an unlinked temporary file (the page cache keeps what fits, outside the
+#: process's own memory: a 7-frame 2048x1536 stack's registered frames would otherwise add 130 MB to a peak
+#: that the depth-map pass sets).
+MEMORY_BUDGET_BYTES = 96 * 2 ** 20
+
+
+def roi_readable(stack, i: int) -> bool:
+    """Whether a region of frame ``i`` is read without decoding the whole frame: frames already in memory, or an
+    uncompressed contiguous TIFF (memory-mapped). JPEG, PNG and compressed TIFF decode the whole frame per read."""
+    infos = getattr(stack, "frames", None)
+    if infos is None or callable(infos):  # an ArrayStack: in memory (a lazy one renders on demand, uncached)
+        return not getattr(stack, "_lazy", False)
+    try:
+        from ..formats.imageio import probe
+        return probe(infos[int(i)].path).mmap_offset is not None
+    except Exception:  # the Stack API reports a bad file when it is read
+        return True
+
+
+class HeldFrames:
+    """A :class:`FrameSource` standing for ``source`` whose frames ``indices`` are held once, in memory (or a
+    temporary file beyond ``budget_bytes``), in ``storage`` dtype: decoded frames, or frames already warped into
+    the output geometry (:func:`fieldcal.composite.register.register_stack`).
+
+    ``dtype``, levels, channels, ``z_um`` and ``path`` are the source's (the composite keeps the input's dtype);
+    ``read`` returns the held samples (``storage`` dtype), or, with a fixed-point ``scale`` (samples held as
+    ``value * scale``), new float32 arrays of the values. Frames not held are read from the source, unless
+    ``strict`` (held frames were warped: the source's would be in another geometry).
+    """
+
+    def __init__(self, source, indices, storage, *, strict: bool = False, scale: float = 1.0,
+                 budget_bytes: int | None = None):
+        import tempfile
+
+        self.source = source
+        self.z_um = np.asarray(source.z_um, dtype=np.float64)
+        self.shape = tuple(source.shape)
+        self.channels = tuple(source.channels)
+        self.cfa = None
+        self.dtype = np.dtype(source.dtype)
+        self.black_level = float(source.black_level)
+        self.white_level = float(source.white_level)
+        self.pixel_pitch_um = getattr(source, "pixel_pitch_um", None)
+        self.path = getattr(source, "path", None)
+        self.meta = dict(getattr(source, "meta", {}) or {})
+        self.strict = bool(strict)
+        self.scale = float(scale)
+        #: ``read`` returns a new float32 array (fixed point scaled back): callers need not copy it
+        self.reads_new_float32 = self.scale != 1.0
+        self.slot = {int(i): k for k, i in enumerate(indices)}
+        h, w = self.shape
+        self.storage = np.dtype(storage)
+        self.frame_shape = (h, w, len(self.channels))
+        self.frame_bytes = h * w * len(self.channels) * self.storage.itemsize
+        budget = MEMORY_BUDGET_BYTES if budget_bytes is None else budget_bytes
+        self.in_memory = len(self.slot) * self.frame_bytes <= budget
+        self.data = np.empty((len(self.slot), *self.frame_shape), dtype=self.storage) if self.in_memory else None
+        # unlinked at once: nothing is left behind, whatever happens
+        self._file = None if self.in_memory else tempfile.TemporaryFile(prefix="fieldcal-frames-")
+
+    def __len__(self) -> int:
+        return int(self.z_um.size)
+
+    @property
+    def order_by_z(self) -> np.ndarray:
+        return np.argsort(self.z_um, kind="stable")
+
+    def put(self, i: int, image: np.ndarray, *, held_units: bool = False) -> None:
+        """Hold ``image`` (``H x W x C``) as frame ``i``: cast to the storage dtype (integers rounded, clipped), and
+        scaled to fixed point unless ``held_units`` (already in the storage's dtype and units)."""
+        image = np.asarray(image)
+        if not held_units:
+            if self.scale != 1.0:
+                image = image.astype(np.float32) * np.float32(self.scale)
+            if self.storage.kind in "ui" and image.dtype.kind == "f":
+                lim = np.iinfo(self.storage)
+                image = np.clip(np.rint(image), lim.min, lim.max)
+        image = np.ascontiguousarray(image.reshape(self.frame_shape), dtype=self.storage)
+        k = self.slot[int(i)]
+        if self.in_memory:
+            self.data[k] = image
+        else:
+            import os
+            os.pwrite(self._file.fileno(), memoryview(image).cast("B"), k * self.frame_bytes)
+
+    def _rows(self, k: int, y0: int, y1: int) -> np.ndarray:
+        """Rows ``y0:y1`` of held frame ``k`` (a view in memory, a new array from the file)."""
+        if self.in_memory:
+            return self.data[k, y0:y1]
+        import os
+        row = self.frame_bytes // self.frame_shape[0]
+        out = np.empty((y1 - y0, *self.frame_shape[1:]), dtype=self.storage)
+        buf = memoryview(out).cast("B")
+        done = 0
+        while done < len(buf):  # pread may return less than asked
+            n = os.preadv(self._file.fileno(), [buf[done:]], k * self.frame_bytes + y0 * row + done)
+            if n <= 0:
+                raise OSError("the temporary file of held frames is shorter than written")
+            done += n
+        return out
+
+    def read(self, i: int, roi=None) -> np.ndarray:
+        k = self.slot.get(int(i))
+        if k is None:
+            if self.strict:
+                raise ValueError(f"frame {i} was not registered with the others")
+            return self.source.read(i, roi)
+        h, w = self.shape
+        x, y, rw, rh = (0, 0, w, h) if roi is None else (int(v) for v in roi)
+        a = self._rows(k, y, y + rh)
+        if (x, rw) != (0, w):
+            a = a[:, x:x + rw]
+        if self.scale != 1.0:
+            out = a.astype(np.float32)
+            out *= np.float32(1.0 / self.scale)
+            return out
+        return a
+
+    #: ``(raw - black) / (white - black)`` as float32: the same as an in-memory stack's
+    read_normalized = ArrayStack.read_normalized
+
+    def require_frames(self, n: int, operation: str) -> None:
+        self.source.require_frames(n, operation)
+
+
+def read_frames_parallel(stack, indices, consume, workers: int | None = None) -> None:
+    """Decode frames ``indices`` on a few threads (decoders release the GIL) and pass each, in order, to
+    ``consume(i, image)`` in this thread; at most ``2 * workers`` frames are in flight."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .stream import default_workers
+
+    indices = [int(i) for i in indices]
+    workers = default_workers() if workers is None else max(1, int(workers))
+    if workers == 1 or len(indices) < 2:
+        for i in indices:
+            consume(i, read_roi(stack, i, 0, 0, *image_size(stack)))
+        return
+    w, h = image_size(stack)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        pending = [pool.submit(read_roi, stack, i, 0, 0, w, h) for i in indices[:2 * workers]]
+        for k, i in enumerate(indices):
+            image = pending[k].result()
+            pending[k] = None
+            nxt = k + 2 * workers
+            if nxt < len(indices):
+                pending.append(pool.submit(read_roi, stack, indices[nxt], 0, 0, w, h))
+            consume(i, image)
+
+
+def hold_decoded(stack, indices):
+    """``stack`` itself when its frames are read by region cheaply (:func:`roi_readable`), else the frames
+    ``indices`` decoded once (in parallel) and held (:class:`HeldFrames`): compositing's passes then re-read
+    memory instead of decoding every JPEG/PNG frame once per pass and per band."""
+    indices = [int(i) for i in indices]
+    if all(roi_readable(stack, i) for i in indices):
+        return stack
+    held = HeldFrames(stack, indices, stack.dtype)
+    read_frames_parallel(stack, indices, held.put)
+    return held

@@ -201,7 +201,14 @@ def warp_region(stack, i: int, fmap: FrameMap, x0: int, y0: int, x1: int, y1: in
     """
     h, w = stack.shape[:2]
     if fmap.is_identity:
-        return read_roi(stack, i, x0, y0, x1, y1)[..., list(fmap.channels)].astype(np.float32)
+        a = read_roi(stack, i, x0, y0, x1, y1)
+        chans = list(fmap.channels)
+        if chans != list(range(a.shape[2])):
+            return a[..., chans].astype(np.float32, copy=False)  # the selection is already a copy
+        # one copy at most: a source that hands out new float32 arrays (held fixed-point frames) needs none;
+        # any other may return its own pixels, which the caller must not get to modify
+        fresh = getattr(stack, "reads_new_float32", False) and a.dtype == np.float32
+        return a if fresh else a.astype(np.float32)
     sx0, sy0, sx1, sy1 = source_box(fmap.matrix, x0, y0, x1, y1, w, h, fmap.margin_px)
     src = read_roi(stack, i, sx0, sy0, sx1, sy1)[..., list(fmap.channels)].astype(np.float32)
     return warp_from(src, sx0, sy0, fmap.matrix, x0, y0, x1, y1, interpolation, fmap.residual)

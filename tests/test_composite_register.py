@@ -1,0 +1,168 @@
+"""Registration without a profile beyond scale and shift (fieldcal.composite.register), on frames made with a
+known warp: a rolled and shifted camera (similarity), a tilted one (homography), and the lens model's own
+breathing and shift, which must come back as scale-and-shift, unchanged."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from fieldcal.composite import register as R
+from fieldcal.formats.frames import ArrayStack
+
+W, H = 240, 180
+MARGIN = 40
+
+
+def _texture(seed=0):
+    rng = np.random.default_rng(seed)
+    import cv2
+    return cv2.GaussianBlur(rng.random((H + 2 * MARGIN, W + 2 * MARGIN)).astype(np.float32), (0, 0), 2.0)
+
+
+def _frame(tex, ref_to_frame):
+    """Frame whose pixel q shows the reference frame's pixel ``ref_to_frame^-1 q`` (cubic spline)."""
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
+    inv = np.linalg.inv(ref_to_frame)
+    px, py = R._apply(inv, xx, yy)
+    return ndimage.map_coordinates(tex.astype(np.float64), [py + MARGIN, px + MARGIN], order=3,
+                                   mode="reflect").astype(np.float32)
+
+
+def _similarity(scale, angle_deg, tx, ty):
+    c = np.array([(W - 1) / 2.0, (H - 1) / 2.0])
+    a = np.radians(angle_deg)
+    lin = scale * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    m = np.eye(3)
+    m[:2, :2] = lin
+    m[:2, 2] = c + np.array([tx, ty]) - lin @ c
+    return m
+
+
+def _corner_error_px(maps, truth):
+    xs = np.array([0.0, W - 1, 0.0, W - 1])
+    ys = np.array([0.0, 0.0, H - 1, H - 1])
+    err = 0.0
+    for m, t in zip(maps, truth):
+        ax, ay = R._apply(m, xs, ys)
+        bx, by = R._apply(t, xs, ys)
+        err = max(err, float(np.max(np.hypot(ax - bx, ay - by))))
+    return err
+
+
+def test_handheld_roll_scale_and_shift_is_recovered_at_the_corners():
+    tex = _texture()
+    z = np.arange(0.0, 50.1, 10.0)
+    # a hand that rolls (up to 0.6 deg), breathing of 0.4 % a frame and a drift of a few px
+    angles = [0.0, 0.35, -0.2, 0.6, 0.1, -0.3]
+    truth = [_similarity(1.0 + 0.004 * k, angles[k], 1.5 * k - 2.0, -0.8 * k + 1.0) for k in range(len(z))]
+    ref = 2
+    truth = [t @ np.linalg.inv(truth[ref]) for t in truth]  # reference frame: identity
+    frames = [_frame(tex, t) for t in truth]
+    geo = R.choose_model(ArrayStack(frames, z, ["Y"]), z_ref_um=z[ref], quiet=True)
+    assert isinstance(geo, R.MatrixGeometry)
+    assert geo.model == "similarity", geo.info()
+    assert _corner_error_px(geo.maps, truth) < 0.1
+
+
+def test_tilted_camera_takes_a_homography():
+    tex = _texture(1)
+    z = np.arange(0.0, 40.1, 10.0)
+    truth = []
+    for k in range(len(z)):
+        m = _similarity(1.0 + 0.003 * k, 0.1 * k, 0.5 * k, 0.3 * k)
+        m[2, :2] = np.array([4e-5, -3e-5]) * k  # perspective: corners move ~1-2 px per frame beyond affine
+        truth.append(m / m[2, 2])
+    frames = [_frame(tex, t) for t in truth]
+    geo = R.choose_model(ArrayStack(frames, z, ["Y"]), z_ref_um=0.0, quiet=True)
+    assert geo.model == "homography", geo.info()
+    assert _corner_error_px(geo.maps, truth) < 0.1
+
+
+def test_pure_breathing_and_shift_stays_scale_and_shift_unchanged():
+    tex = _texture(2)
+    z = np.arange(-40.0, 40.1, 10.0)
+    truth = [_similarity(1.0 + 3e-4 * zz, 0.0, 0.02 * zz, -0.01 * zz) for zz in z]
+    st = ArrayStack([_frame(tex, t) for t in truth], z, ["Y"])
+    geo = R.choose_model(st, z_ref_um=0.0, quiet=True)
+    plain = R.estimate_geometry(st, z_ref_um=0.0, quiet=True)
+    assert type(geo) is type(plain) and not isinstance(geo, R.MatrixGeometry)
+    assert geo.scale_rate_per_um == plain.scale_rate_per_um
+    assert geo.shift_rate_px_per_um == plain.shift_rate_px_per_um
+    assert geo.info()["model"].startswith("scale-shift")
+    maps = [R.frame_map_matrix(geo, zz) for zz in z]
+    assert _corner_error_px(maps, truth) < 0.1
+
+
+def test_register_stack_holds_frames_warped_to_the_reference():
+    tex = _texture(3)
+    z = np.arange(0.0, 30.1, 10.0)
+    truth = [_similarity(1.0, 0.5 * k, 2.0 * k, -1.0 * k) for k in range(len(z))]
+    frames = [np.repeat(_frame(tex, t)[..., None], 3, axis=2) for t in truth]
+    held, geo = R.register_stack(ArrayStack(frames, z, ["R", "G", "B"]), z_ref_um=0.0, quiet=True)
+    assert geo.model == "similarity"
+    ref = frames[0].astype(np.float64)
+    inner = (slice(20, -20), slice(20, -20))
+    for k in range(1, len(z)):
+        got = np.asarray(held.read(k), dtype=np.float64)
+        before = np.abs(frames[k].astype(np.float64) - ref)[inner].mean()
+        after = np.abs(got - ref)[inner].mean()
+        assert after < 0.05 * before
+    with pytest.raises(ValueError):
+        R.fit_pair(np.zeros((40, 40)), np.zeros((40, 40)), model="perspective")
+
+
+@pytest.mark.parametrize("budget", [None, 0])  # in memory, and streamed from the temporary file
+def test_held_frames_round_trip_in_memory_and_from_file(budget):
+    from fieldcal.composite.source import HeldFrames
+
+    rng = np.random.default_rng(4)
+    frames = [rng.integers(0, 256, (30, 40, 3), dtype=np.uint8) for _ in range(3)]
+    src = ArrayStack(frames, [0.0, 5.0, 10.0], ["R", "G", "B"])
+    held = HeldFrames(src, [0, 2], np.uint16, scale=256.0, budget_bytes=budget)
+    assert held.in_memory == (budget is None)
+    for i in (0, 2):
+        held.put(i, frames[i].astype(np.float32) + 0.25)
+    got = held.read(2, roi=(5, 7, 20, 10))
+    assert got.dtype == np.float32 and held.dtype == np.uint8 and len(held) == 3
+    np.testing.assert_allclose(got, frames[2][7:17, 5:25] + 0.25, atol=1 / 512)
+    np.testing.assert_array_equal(held.read(1), frames[1])  # not held: the source's
+    strict = HeldFrames(src, [0], np.float32, strict=True, budget_bytes=budget)
+    with pytest.raises(ValueError):
+        strict.read(1)
+
+
+def test_a_jpeg_stack_is_decoded_once_per_frame(tmp_path, monkeypatch):
+    """JPEG frames decode whole for any region: compositing (registration, focus volume, blending) decodes each
+    frame once, and the registered composite matches the same frames composited from memory."""
+    import cv2
+
+    from fieldcal.composite import composite_stack
+    from fieldcal.formats import imageio
+    from fieldcal.formats.importer import import_stack
+    from fieldcal.formats.stack import Stack
+
+    tex = _texture(5)
+    files = []
+    for k in range(4):
+        g = _frame(tex, _similarity(1.0 + 0.002 * k, 0.0, 0.7 * k, -0.4 * k))
+        img = np.clip(g * 255, 0, 255).astype(np.uint8)
+        files.append(tmp_path / f"f{k}.jpg")
+        cv2.imwrite(str(files[-1]), np.repeat(img[..., None], 3, axis=2), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    import_stack(files, tmp_path / "st", z_start_um=0.0, z_step_um=10.0, pixel_pitch_um=2.0)
+    st = Stack.open(tmp_path / "st")
+    calls = []
+    real = imageio._read_jpeg
+    monkeypatch.setattr(imageio, "_read_jpeg", lambda *a: calls.append(a[0]) or real(*a))
+    res = composite_stack(st, None, quiet=True, depth="flat")
+    assert sorted(calls) == sorted(set(calls)) and len(calls) == 4
+    assert res.info["registration"]["model"].startswith("scale-shift")
+    mem = ArrayStack([st.read(i) for i in range(4)], st.z_um, st.channels)
+    ref = composite_stack(mem, None, quiet=True, depth="flat")
+    assert np.abs(res.image.astype(int) - ref.image.astype(int)).max() <= 1
+
+
+def test_model_check_on_a_coarser_level_of_larger_frames(monkeypatch):
+    """640x480 frames: the model check runs on a half-size level (CHECK_SIDE_PX), the refit on the full planes."""
+    monkeypatch.setitem(globals(), "W", 640)
+    monkeypatch.setitem(globals(), "H", 480)
+    test_handheld_roll_scale_and_shift_is_recovered_at_the_corners()
