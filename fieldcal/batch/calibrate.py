@@ -85,11 +85,14 @@ def without_times(doc):
 
 def profile_without_times(path: str | Path) -> bytes:
     """A profile's JSON re-serialised without its time keys, plus its samples sidecar's bytes: two runs of the
-    same calibration give the same bytes (the sidecar's name carries its content hash, so it is compared too).
-    """
+    same calibration give the same bytes, whatever the profiles' file names. The sidecar's name is kept
+    without the profile's own stem (``<stem>.<sha256[:16]>.samples.npz``: its content hash is compared)."""
     path = Path(path)
     doc = json.loads(path.read_text(encoding="utf-8"))
-    side = doc.get("sidecar") or {}
-    data = (path.parent / side["file"]).read_bytes() if side.get("file") else b""
+    side = dict(doc.get("sidecar") or {})
+    data = b""
+    if side.get("file"):
+        data = (path.parent / side["file"]).read_bytes()
+        side["file"] = side["file"].removeprefix(path.stem + ".")
+        doc["sidecar"] = side
     return json.dumps(without_times(doc), indent=1, sort_keys=True).encode() + b"\0" + data
-
