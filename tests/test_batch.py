@@ -178,3 +178,12 @@ def test_validate_lenses_runs_one_task_per_lens(tmp_path, capsys):
                                   ["--lenses", "0"], ["--lenses", "1", "--profile", "lens.json"], []])
 def test_validate_lens_options_are_checked(argv, tmp_path):
     assert main(["validate", *argv, "--out", str(tmp_path / "v")]) == 2
+
+
+def test_only_the_engine_imports_dask():
+    import re
+
+    pkg = Path(__file__).resolve().parents[1] / "fieldcal"
+    hits = [p.relative_to(pkg).as_posix() for p in pkg.rglob("*.py")
+            if re.search(r"^\s*(import|from)\s+(dask|distributed)\b", p.read_text(encoding="utf-8"), re.M)]
+    assert hits == ["batch/engine.py"]

@@ -204,7 +204,7 @@ def open_client(scheduler: str = "local", workers: int | None = None):
         if scheduler in ("local", "threads"):
             cluster = stack.enter_context(distributed.LocalCluster(
                 n_workers=workers or default_workers(), threads_per_worker=1,
-                processes=scheduler == "local", dashboard_address=None, silence_logs=logging.ERROR))
+                processes=scheduler == "local", dashboard_address=":0", silence_logs=logging.ERROR))
             client = stack.enter_context(distributed.Client(cluster))
         else:
             try:
