@@ -172,6 +172,11 @@ def test_validate_lenses_runs_one_task_per_lens(tmp_path, capsys):
         assert summary["passed"] == u["passed"]
         assert (out / u["name"] / "lens.json").is_file()
     assert code == (0 if all(u["passed"] for u in doc["units"]) else 1)
+    # the same lens validated alone (from the lens.json its unit wrote) gives the same summary but for times
+    assert main(["validate", str(out / "lens-001" / "lens.json"), "--size", "96x72", "--profile", "truth",
+                 "--out", str(tmp_path / "one"), "--no-plots"]) in (0, 1)
+    one, unit = (json.loads((d / "summary.json").read_text()) for d in (tmp_path / "one", out / "lens-001"))
+    assert without_times(one) == without_times(unit) and "timings_s" in unit
 
 
 @pytest.mark.parametrize("argv", [["models/triplet-uncorrected.json", "--lenses", "2"], ["--workers", "2"],

@@ -21,7 +21,7 @@ CALIBRATE_OPTIONS = {"fs_cyc_per_mm": "fs", "q": "q", "effort": "effort", "z_ref
                      "tile_px": "tile_px", "measure": "measure", "chart": "chart", "seed": "seed",
                      "stage_repeatability_um": "stage_repeatability_um"}
 # Keys of a profile that record when it was made or how long it took: all that differs between two runs.
-_TIME_KEY = re.compile(r"^(created_utc|timing_s|time_s|time_[a-z_]+_s)$")
+_TIME_KEY = re.compile(r"^(created_utc|timings?_s|time_s|time_[a-z_]+_s)$")
 
 
 @dataclass(frozen=True)
@@ -75,7 +75,7 @@ def calibrate_unit(job: CalibrateJob) -> dict:
 
 def without_times(doc):
     """A copy of a JSON document without the keys that record times (``created_utc``, ``timing_s``,
-    ``time_s``, ``time_*_s``), at any depth."""
+    ``timings_s``, ``time_s``, ``time_*_s``), at any depth."""
     if isinstance(doc, dict):
         return {k: without_times(v) for k, v in doc.items() if not _TIME_KEY.match(k)}
     if isinstance(doc, list):
