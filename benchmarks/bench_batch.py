@@ -116,8 +116,12 @@ def main(argv=None) -> int:
                 print(f"{sched} workers={n_workers} run {r + 1}: {times[-1]:.1f} s", flush=True)
             doc = json.loads((outs[n_workers] / "fleet.json").read_text())
             unit_s = [u["time_s"] for u in doc["units"]]
-            rows.append({"scheduler": sched, "workers": n_workers or "cluster", "wall_s": statistics.median(times),
+            wall = statistics.median(times)
+            rows.append({"scheduler": sched, "workers": n_workers or "cluster", "wall_s": wall,
                          "runs": len(times), "unit_s": statistics.median(unit_s), "sum_unit_s": sum(unit_s),
+                         "sum_cpu_s": sum(u.get("cpu_s", 0.0) for u in doc["units"]),
+                         # how busy the workers were kept: unit time over workers x wall (start included)
+                         "busy": sum(unit_s) / ((n_workers or 1) * wall),
                          "failed": doc["n_failed"],
                          "significant": ", ".join(s["unit"] for s in doc["fleet"]["significant"]) or "none"})
         serial = root / "serial"
@@ -133,6 +137,7 @@ def main(argv=None) -> int:
     cols = [("scheduler", "scheduler", ""), ("workers", "workers", ""), ("runs", "runs", ""),
             ("wall time (s, median)", "wall_s", ".1f"), ("speed-up vs 1 worker", "speedup", ".2f"),
             ("median unit time (s)", "unit_s", ".2f"), ("sum of unit times (s)", "sum_unit_s", ".1f"),
+            ("sum of unit CPU (s)", "sum_cpu_s", ".1f"), ("workers busy", "busy", ".2f"),
             ("failed units", "failed", ""), ("units flagged by the fleet report", "significant", "")]
     cmd = f"python benchmarks/bench_batch.py {' '.join(argv if argv is not None else sys.argv[1:])}".rstrip()
     text = "\n".join([
@@ -150,6 +155,10 @@ def main(argv=None) -> int:
         *md_table(rows, cols),
         "",
         f"Speed-up 2 workers / 1 worker: **{speedup:.2f}×**." if speedup else "",
+        "*workers busy* = sum of unit wall times / (workers × wall time): the share of the run the workers spent "
+        "in tasks (cluster start, the parent's fleet report and waiting for the last task are the rest). The "
+        "sum of unit CPU times staying level from 1 to 2 workers says the workers do not oversubscribe the "
+        "cores; on a machine shared with other jobs each unit's wall time grows with the load instead.",
         f"Profiles byte-identical apart from their time keys: 1 worker vs 2 workers **{identical_workers}**; "
         f"batch vs serial `fieldcal calibrate` ({args.serial} stacks) **{identical_serial}**."])
     print(text)

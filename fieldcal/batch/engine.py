@@ -66,6 +66,9 @@ class UnitResult:
         The unit's return value (picklable; ``None`` when it failed).
     time_s : float
         Wall time of the unit on its worker.
+    cpu_s : float
+        CPU time of the worker's process during the unit (the unit's own with one task per process; any
+        other threads of the process count too).
     worker : str or None
         Where it ran (the worker's address; ``None`` in this process).
     trace : str or None
@@ -79,6 +82,7 @@ class UnitResult:
     field: str | None = None
     value: Any = None
     time_s: float = 0.0
+    cpu_s: float = 0.0
     worker: str | None = None
     trace: str | None = None
 
@@ -88,6 +92,7 @@ class UnitResult:
         d.pop("value")
         d.pop("trace")
         d["time_s"] = round(float(self.time_s), 3)
+        d["cpu_s"] = round(float(self.cpu_s), 3)
         return d
 
 
@@ -142,7 +147,7 @@ def run_unit(fn: Callable[[Any], Any], name: str, job: Any, threads_1: bool = Tr
     """
     from fieldcal.formats.atomic import command_scope
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     worker = _worker_address()
     res = UnitResult(name=name, ok=False, worker=worker)
     try:
@@ -163,6 +168,7 @@ def run_unit(fn: Callable[[Any], Any], name: str, job: Any, threads_1: bool = Tr
                      "again with --debug to see the traceback, and report it")
         res.trace = traceback.format_exc()
     res.time_s = time.perf_counter() - t0
+    res.cpu_s = time.process_time() - c0
     return res
 
 
