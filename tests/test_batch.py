@@ -69,7 +69,7 @@ def test_a_broken_stack_is_reported_and_the_others_finish(two_stacks, tmp_path, 
     bad = tmp_path / "broken"
     bad.mkdir()
     (bad / "stack.json").write_text('{"format": "fieldcal-stack/1"}')
-    code = _batch([str(two_stacks / "unit-a"), str(bad), "--out", str(tmp_path / "out"), *CAL])
+    code = _batch([str(two_stacks / "unit-a"), str(bad), "--out", str(tmp_path / "out"), *CAL, "--no-plots"])
     err = capsys.readouterr().err
     assert code == 2  # the failed unit's own exit status (a bad input), docs/batch.md
     assert "1 of 2 unit(s) FAILED" in err and "broken: error (exit 2)" in err and "pixel_pitch_um" in err
@@ -90,7 +90,7 @@ def test_an_existing_scheduler_over_tcp(two_stacks, tmp_path):
                       dashboard_address=None, silence_logs=logging.ERROR) as cluster:
         assert cluster.scheduler_address.startswith("tcp://")
         code = main(["batch", "calibrate", str(two_stacks / "unit-a"), "--out", str(tmp_path / "o"), *CAL,
-                     "--scheduler", cluster.scheduler_address, "-q"])
+                     "--scheduler", cluster.scheduler_address, "-q", "--no-plots"])
     assert code == 0 and (tmp_path / "o" / "unit-a.json").is_file()
 
 
@@ -192,3 +192,13 @@ def test_only_the_engine_imports_dask():
     hits = [p.relative_to(pkg).as_posix() for p in pkg.rglob("*.py")
             if re.search(r"^\s*(import|from)\s+(dask|distributed)\b", p.read_text(encoding="utf-8"), re.M)]
     assert hits == ["batch/engine.py"]
+
+
+def test_a_unit_error_names_the_flag(two_stacks, tmp_path, capsys):
+    """fs above a stack's Nyquist is found per stack (its pixel pitch): the unit fails naming --fs, as
+    `fieldcal calibrate` would."""
+    code = _batch([str(two_stacks / "unit-a"), "--out", str(tmp_path / "o"), "--fs", "19", "--no-plots"])
+    assert code == 2
+    assert "unit-a: error (exit 2): field '--fs'" in capsys.readouterr().err
+    doc = documents.read(tmp_path / "o" / "fleet.json", "fleet")
+    assert doc["units"][0]["error"].startswith("field '--fs'") and doc["fleet"] is None

@@ -130,6 +130,7 @@ def run_calibrate(args) -> int:
            + (f" ({args.workers} worker(s))" if args.workers else ""), args.quiet)
     results = run_units(calibrate_unit, jobs, scheduler=scheduler, workers=args.workers, desc="calibrating",
                         unit="stack", quiet=args.quiet, on_result=None if args.quiet else unit_status)
+    _name_unit_flags(results)
     units = []
     for (n, job), r in zip(jobs, results):
         units.append({**r.summary(), "input": job.stack, "output": job.out if r.ok else None})
@@ -138,7 +139,6 @@ def run_calibrate(args) -> int:
     doc = fleet_document("batch calibrate", units, stats, grid=GRID, fs_cyc_per_mm=args.fs, q=args.q,
                          scheduler=scheduler, workers=args.workers)
     written = write_fleet_report(doc, stats, out, plot=not args.no_plots)
-    _name_unit_flags(results, args)
     report_units("batch calibrate", results, debug=_debug())
     n_ok = sum(r.ok for r in results)
     sig = (doc["fleet"] or {}).get("significant", [])
@@ -154,7 +154,7 @@ def _debug() -> bool:
     return "--debug" in sys.argv or os.environ.get("FIELDCAL_DEBUG", "") not in ("", "0")
 
 
-def _name_unit_flags(results, args) -> None:
+def _name_unit_flags(results) -> None:
     """A unit's error that names an API field (``fs_cyc_per_mm``) names the flag instead (``--fs``)."""
     for r in results:
         if r.ok or not r.field:
