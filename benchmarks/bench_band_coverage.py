@@ -17,6 +17,11 @@ wave-optics path, issue 14); otherwise only ``geometric`` is available.
 
     python benchmarks/bench_band_coverage.py --lenses 12 --width 320 --docs     # docs/benchmarks.md table
     python benchmarks/bench_band_coverage.py --lenses 3 --efforts quick          # smoke run
+    python benchmarks/bench_band_coverage.py --lenses 40 --scheduler local      # one Dask task per lens
+
+``--scheduler local|threads|tcp://HOST:PORT`` runs one task per lens on Dask (fieldcal.batch, docs/batch.md;
+an existing cluster's workers need this repository on the same path and a shared temporary folder); without
+it the lenses run one after another in this process.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import md_table, write_docs_section  # noqa: E402
 
 NAME = "band_coverage"
+BENCH_DIR = str(Path(__file__).resolve().parent)
 
 
 def simulate_lens(k: int, width_px: int, workdir: Path, optics: str = "geometric", seed: int = 9100,
@@ -104,6 +110,31 @@ def run_one(lens: dict, effort: str, seed: int = 0) -> dict:
             "time_s": dt, "fit_s": prof.diagnostics["timing_s"]["fit"], "model": prof.surfaces.model.name}
 
 
+def lens_rows(job) -> list[dict]:
+    """Lens ``k``: render its stack and calibrate it at each effort (one task of a --scheduler run)."""
+    k, width, optics, stage_errors, efforts, workdir = job
+    if BENCH_DIR not in sys.path:  # on a Dask worker: this folder's modules (_common)
+        sys.path.insert(0, BENCH_DIR)
+    lens = simulate_lens(k, width, Path(workdir), optics, stage_errors=stage_errors)
+    rows = []
+    for eff in efforts:
+        r = run_one(lens, eff)
+        r.update(lens=k, effort=eff, step_um=lens["step_um"])
+        rows.append(r)
+    return rows
+
+
+def print_rows(res) -> None:
+    if not res.ok:
+        print(f"{res.name}: FAILED: {res.error}", flush=True)
+        return
+    for r in res.value:
+        print(f"lens {r['lens']:2d} {r['effort']:8s} cov {r['cov_before']:.2f} -> {r['cov_after']:.2f} "
+              f"(self-check {r['self_check']:.2f}, scale {r['band_scale']:.2f}) rms {r['rms_um']:.3f} µm "
+              f"({r['rms_um'] / r['step_um']:.3f} step) hw/rms {r['hw_um'] / max(r['rms_um'], 1e-9):.2f} "
+              f"check {1000 * r['check_s']:.0f} ms, calibrate {r['time_s']:.1f} s  {r['model']}", flush=True)
+
+
 def summarise(rows, efforts):
     out = []
     for eff in efforts:
@@ -132,21 +163,20 @@ def main(argv=None) -> int:
     ap.add_argument("--optics", default="geometric", help="simulator image-formation path (default geometric)")
     ap.add_argument("--no-stage-errors", action="store_true", help="a perfect stage")
     ap.add_argument("--docs", action="store_true", help="write the table into docs/benchmarks.md")
+    ap.add_argument("--scheduler", default=None,
+                    help="run one Dask task per lens: local, threads or tcp://HOST:PORT (default: in this process)")
+    ap.add_argument("--workers", type=int, default=None, help="workers of a local cluster (default: one per CPU)")
     args = ap.parse_args(argv)
     efforts = args.efforts.split(",")
-    rows = []
+    from fieldcal.batch.engine import check_scheduler, run_units
+
+    scheduler = check_scheduler(args.scheduler, args.workers)
     with tempfile.TemporaryDirectory(prefix="bench-bands-") as tmp:
-        for k in range(args.lenses):
-            lens = simulate_lens(k, args.width, Path(tmp), args.optics, stage_errors=not args.no_stage_errors)
-            for eff in efforts:
-                r = run_one(lens, eff)
-                r.update(lens=k, effort=eff, step_um=lens["step_um"])
-                rows.append(r)
-                print(f"lens {k:2d} {eff:8s} cov {r['cov_before']:.2f} -> {r['cov_after']:.2f} "
-                      f"(self-check {r['self_check']:.2f}, scale {r['band_scale']:.2f}) rms {r['rms_um']:.3f} µm "
-                      f"({r['rms_um'] / r['step_um']:.3f} step) hw/rms {r['hw_um'] / max(r['rms_um'], 1e-9):.2f} "
-                      f"check {1000 * r['check_s']:.0f} ms, calibrate {r['time_s']:.1f} s  {r['model']}",
-                      flush=True)
+        jobs = [(f"lens{k:02d}", (k, args.width, args.optics, not args.no_stage_errors, efforts, tmp))
+                for k in range(args.lenses)]
+        results = run_units(lens_rows, jobs, scheduler=scheduler, workers=args.workers, desc="lenses",
+                            unit="lens", quiet=scheduler is None, on_result=print_rows)
+    rows = [r for res in results if res.ok for r in res.value]
     summ = summarise(rows, efforts)
     cols = [("effort", "effort", ""), ("lenses", "lenses", ""), ("mean coverage before", "cov_before", ".3f"),
             ("mean coverage after", "cov_after", ".3f"), ("min", "cov_min", ".2f"),

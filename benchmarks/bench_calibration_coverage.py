@@ -12,6 +12,11 @@ Writes a table into docs/benchmarks.md between ``<!-- bench_calibration_coverage
 
     python benchmarks/bench_calibration_coverage.py --quick       # 4 lenses, quick effort (smoke run)
     python benchmarks/bench_calibration_coverage.py               # 20 lenses, quick + standard (the lead)
+    python benchmarks/bench_calibration_coverage.py --lenses 40 --scheduler local   # one Dask task per lens
+
+``--scheduler local|threads|tcp://HOST:PORT`` runs one task per lens on Dask (fieldcal.batch, docs/batch.md;
+an existing cluster's workers need this repository on the same path and a shared temporary folder, e.g.
+TMPDIR on shared storage); without it the lenses run one after another in this process.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import md_table, write_docs_section  # noqa: E402
 
 NAME = "calibration_coverage"
+BENCH_DIR = str(Path(__file__).resolve().parent)
 
 
 def simulate_lens(k: int, width_px: int, workdir: Path, seed: int = 7000):
@@ -56,6 +62,30 @@ def run_one(spec, stack_dir, fs, effort, seed=0) -> dict:
             "fit_s": prof.diagnostics["timing_s"]["fit"], "model": prof.surfaces.model.name}
 
 
+def lens_rows(job) -> list[dict]:
+    """Lens ``k``: render its stack and calibrate it at each effort (one task of a --scheduler run)."""
+    k, width, efforts, workdir = job
+    if BENCH_DIR not in sys.path:  # on a Dask worker: this folder's modules (bench_band_coverage, _common)
+        sys.path.insert(0, BENCH_DIR)
+    spec, d, fs, step = simulate_lens(k, width, Path(workdir))
+    rows = []
+    for eff in efforts:
+        r = run_one(spec, d, fs, eff)
+        r.update(lens=k, effort=eff, step_um=step, channels=len(spec.channels))
+        rows.append(r)
+    return rows
+
+
+def print_rows(res) -> None:
+    if not res.ok:
+        print(f"{res.name}: FAILED: {res.error}", flush=True)
+        return
+    for r in res.value:
+        print(f"lens {r['lens']:2d} {r['effort']:8s} cov {r['coverage']:.2f} rms {r['rms_um']:.3f} µm "
+              f"({r['rms_um'] / r['step_um']:.3f} step) max {r['max_um']:.2f} hw {r['halfwidth_um']:.3f} "
+              f"fit {r['fit_s']:.1f} s  {r['model']}", flush=True)
+
+
 def summarise(rows, efforts):
     out = []
     for eff in efforts:
@@ -81,20 +111,20 @@ def main(argv=None) -> int:
     ap.add_argument("--width", type=int, default=320, help="render width in px (height = 3/4)")
     ap.add_argument("--efforts", default=None, help="comma list (default quick,standard; --quick: quick)")
     ap.add_argument("--docs", action="store_true", help="write docs/benchmarks.md (default for full runs)")
+    ap.add_argument("--scheduler", default=None,
+                    help="run one Dask task per lens: local, threads or tcp://HOST:PORT (default: in this process)")
+    ap.add_argument("--workers", type=int, default=None, help="workers of a local cluster (default: one per CPU)")
     args = ap.parse_args(argv)
     n = args.lenses or (4 if args.quick else 20)
     efforts = (args.efforts or ("quick" if args.quick else "quick,standard")).split(",")
-    rows = []
+    from fieldcal.batch.engine import check_scheduler, run_units
+
+    scheduler = check_scheduler(args.scheduler, args.workers)
     with tempfile.TemporaryDirectory(prefix="bench-calcov-") as tmp:
-        for k in range(n):
-            spec, d, fs, step = simulate_lens(k, args.width, Path(tmp))
-            for eff in efforts:
-                r = run_one(spec, d, fs, eff)
-                r.update(lens=k, effort=eff, step_um=step, channels=len(spec.channels))
-                rows.append(r)
-                print(f"lens {k:2d} {eff:8s} cov {r['coverage']:.2f} rms {r['rms_um']:.3f} µm "
-                      f"({r['rms_um'] / step:.3f} step) max {r['max_um']:.2f} hw {r['halfwidth_um']:.3f} "
-                      f"fit {r['fit_s']:.1f} s  {r['model']}", flush=True)
+        jobs = [(f"lens{k:02d}", (k, args.width, efforts, tmp)) for k in range(n)]
+        results = run_units(lens_rows, jobs, scheduler=scheduler, workers=args.workers, desc="lenses",
+                            unit="lens", quiet=scheduler is None, on_result=print_rows)
+    rows = [r for res in results if res.ok for r in res.value]
     summ = summarise(rows, efforts)
     cols = [("effort", "effort", ""), ("lenses", "lenses", ""), ("mean coverage", "cov_mean", ".3f"),
             ("sd", "cov_sd", ".3f"), ("min", "cov_min", ".2f"), ("lenses in 0.85-0.95", "cov_in", ""),

@@ -83,6 +83,8 @@ KINDS: dict[str, DocumentKind] = {k.name: k for k in (
     DocumentKind("mtf", "fieldcal-mtf-1.schema.json", "format", "re-run `fieldcal mtf` (docs/measurement.md)"),
     DocumentKind("masks", "fieldcal-masks-1.schema.json", "format",
                  "export the masks again with `fieldcal plan export-masks` (docs/planning.md)"),
+    DocumentKind("fleet", "fieldcal-fleet-1.schema.json", "format",
+                 "run `fieldcal batch calibrate` (or `fieldcal validate --lenses N`) again (docs/batch.md)"),
 )}
 
 
