@@ -10,6 +10,12 @@ therefore spread over what is behind them, and a blurred background does not lea
 foreground edge, as in a real photograph (the layered model of depth of field; partial occlusion of the
 aperture by a foreground edge is approximated by the alpha blur).
 
+Each layer continues behind the layers in front of it (its colour there filled smoothly from its own pixels,
+:func:`fill_behind`), because a real background does not stop at the outline of what stands in front of it:
+the lens sees around a defocused wire or step edge. A layer cut off at its visible outline would show, where the
+defocused occluder becomes translucent, a sharp-edged dark hole in focus at the background's depth, a line no
+camera records (and one that misleads any depth from focus).
+
 The truth is the all-in-focus image (each layer at its own best focus, composited) and the depth map; the
 oracle best focus of every pixel is the lens's surface plus its depth.
 """
@@ -161,10 +167,12 @@ class DepthRenderer:
         self._full = full
         self._layers = []
         for k, d in enumerate(self.layer_depth_um):
-            alpha = (index == k).astype(np.float32)
-            if not alpha.any():
+            own = index == k
+            if not own.any():
                 continue
-            rc = Renderer(spec, colour * alpha[..., None], seed=seed)
+            # the layer, and behind every nearer layer its continuation (hidden where those are opaque)
+            alpha = (index >= k).astype(np.float32)
+            rc = Renderer(spec, fill_behind(colour, own, index > k) * alpha[..., None], seed=seed)
             ra = Renderer(spec, np.repeat(alpha[..., None], len(spec.channel_names), axis=2), seed=seed)
             rc.exposure = self.exposure  # one exposure for the whole scene
             ra.exposure = 1.0
@@ -226,6 +234,30 @@ class DepthRenderer:
         yi = np.clip(np.rint(np.asarray(y)).astype(int), 0, self.scene.depth_um.shape[0] - 1)
         xm, ym = self.spec.pixel_to_mm(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
         return self.spec.best_focus_um(xm, ym, channel) + self.scene.depth_um[yi, xi]
+
+
+def fill_behind(colour: np.ndarray, own: np.ndarray, behind: np.ndarray) -> np.ndarray:
+    """``colour`` with the pixels ``behind`` replaced by a smooth fill from the pixels ``own`` (normalised
+    Gaussian convolution at growing scales: each hidden pixel takes the local mean colour of the nearest
+    visible part of its layer, with no edges of its own)."""
+    out = colour.astype(np.float32, copy=True)
+    todo = behind.copy()
+    if not todo.any():
+        return out
+    m = own.astype(np.float32)
+    cm = colour * m[..., None]
+    sigma = 2.0
+    while todo.any():
+        num = cv2.GaussianBlur(cm, (0, 0), sigma, borderType=cv2.BORDER_REFLECT101)
+        den = cv2.GaussianBlur(m, (0, 0), sigma, borderType=cv2.BORDER_REFLECT101)
+        ok = todo & (den > 1e-3)
+        out[ok] = num[ok] / den[ok][:, None]
+        todo &= ~ok
+        if sigma > 2 * max(colour.shape[:2]):
+            out[todo] = cm.reshape(-1, cm.shape[2]).sum(0) / max(m.sum(), 1.0)
+            break
+        sigma *= 2.0
+    return out
 
 
 def depth_edges(depth_um: np.ndarray, min_step_um: float) -> np.ndarray:
