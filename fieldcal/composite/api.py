@@ -32,11 +32,12 @@ DEPTH_MODES = ("auto", "flat", "3d")
 #: circuit-board stack 12.6 %. (b) flat 0-4.1 %; reliefs 4.6-15 %, slopes 7-12 %, thin bars 3.9-13 %. Thin bars
 #: at 320 px (4-5 %, 3.9-4.1 %) are taken as flat: few blocks see them.
 DEPTH_BLOCK_FRACTION = (0.1, 0.05)
-#: ... or when more than this fraction of the textured pixels peak two frame spacings or more off that surface
-#: (:func:`fieldcal.composite.dff.pixel_misfit_fraction`: thin things that blocks average away). Measured (after
-#: the simulator's layers continue behind nearer ones): flat texture chart at 160 and 320 px, steps of 1 and 1.5
-#: tolerances, 0.0 %; thin bars at 320 px 7.9 %, slope 3.4 %, relief 17 %, steps 0.6 % (found by the blocks).
-DEPTH_PIXEL_FRACTION = 0.02
+#: ... or when more than this fraction of the textured pixels peak two frame spacings (and half a curve width)
+#: or more off that surface (:func:`fieldcal.composite.dff.pixel_misfit_fraction`: thin or small things that
+#: blocks average away). Measured (simulated triplet, layers continued behind nearer ones): flat texture chart
+#: and colour dead leaves at 160 and 320 px, steps of 0.5-2.5 tolerances, 0.0 %; at 320 px thin bars 8.0 %,
+#: slope 3.2 %, relief 17 %, steps 0.5 % (found by the blocks); at 160 px thin bars 15 %, relief 1.7 %.
+DEPTH_PIXEL_FRACTION = 0.01
 #: Scenes with depth: a pixel takes the depth map's composite in full where its confidence reaches this fraction
 #: (second) of the given percentile (first) of the image's confidences, the multi-scale fusion where it has none.
 FUSION_CONFIDENCE = (75.0, 0.5)

@@ -99,7 +99,8 @@ def focus_volume(stack, profile=None, *, frames=None, block_px: int | None = Non
 
 def pixel_misfit_fraction(vol: FocusVolume, surfaces: list[SurfaceFit], spacing_um: float) -> float:
     """Fraction of the textured pixels (the upper half of per-pixel focus peaks) whose own peak frame lies two
-    frame spacings or more from the smooth surface (mean over channels) fitted to the blocks.
+    frame spacings, and half the blocks' median through-focus width (FWHM), or more from the smooth surface (mean
+    over channels) fitted to the blocks.
 
     Blocks average a thin wire or a small part away (it covers a few per cent of a block); pixels do not. On a
     flat scene a pixel's peak wanders by a frame, rarely two (noise, low texture); a thin thing in front of a
@@ -116,7 +117,10 @@ def pixel_misfit_fraction(vol: FocusVolume, surfaces: list[SurfaceFit], spacing_
     textured = peak >= np.median(peak)
     if not np.any(textured):
         return 0.0
-    off = np.abs(vol.z_um[vol.pixel_peak_index] - z_surf) >= 2.0 * spacing_um
+    v = vol.values
+    half = 0.5 * (v.max(axis=0) + np.median(v, axis=0))
+    fwhm = float(np.median(np.sum(v >= half[None], axis=0))) * spacing_um  # fine steps: peaks wander further
+    off = np.abs(vol.z_um[vol.pixel_peak_index] - z_surf) >= max(2.0 * spacing_um, 0.5 * fwhm)
     return float(np.mean((off & inner)[textured]))
 
 
