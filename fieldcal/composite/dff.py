@@ -98,13 +98,14 @@ def focus_volume(stack, profile=None, *, frames=None, block_px: int | None = Non
 
 
 def pixel_misfit_fraction(vol: FocusVolume, surfaces: list[SurfaceFit], spacing_um: float) -> float:
-    """Fraction of the textured pixels (the upper half of per-pixel focus peaks) whose own peak frame lies two
-    frame spacings, and half the blocks' median through-focus width (FWHM), or more from the smooth surface (mean
-    over channels) fitted to the blocks.
+    """Fraction of the textured pixels (the upper half of per-pixel focus peaks) whose own peak frame lies a
+    frame spacing, and a third of the blocks' median through-focus width (FWHM, about three focus tolerances), or
+    more from the smooth surface (mean over channels) fitted to the blocks.
 
     Blocks average a thin wire or a small part away (it covers a few per cent of a block); pixels do not. On a
-    flat scene a pixel's peak wanders by a frame, rarely two (noise, low texture); a thin thing in front of a
-    background sits several spacings off at every one of its pixels.
+    flat scene a pixel's peak wanders with noise by a fraction of the curve's width (several frames in a fine
+    stack: 8 % of pixels by a spacing at half a tolerance per frame, 0.2 % by a third of the width); a thin
+    thing in front of a background sits that far off at every one of its pixels.
     """
     if vol.pixel_peak is None or len(vol.z_um) < 3 or not surfaces:
         return 0.0
@@ -120,7 +121,7 @@ def pixel_misfit_fraction(vol: FocusVolume, surfaces: list[SurfaceFit], spacing_
     v = vol.values
     half = 0.5 * (v.max(axis=0) + np.median(v, axis=0))
     fwhm = float(np.median(np.sum(v >= half[None], axis=0))) * spacing_um  # fine steps: peaks wander further
-    off = np.abs(vol.z_um[vol.pixel_peak_index] - z_surf) >= max(2.0 * spacing_um, 0.5 * fwhm)
+    off = np.abs(vol.z_um[vol.pixel_peak_index] - z_surf) >= max(spacing_um, fwhm / 3.0)
     return float(np.mean((off & inner)[textured]))
 
 
