@@ -1,20 +1,23 @@
 """Scenes with depth: fieldcal's depth from focus against the oracle and align_image_stack + enfuse.
 
 For each depth layout of :mod:`fieldcal.simulate.depth` (steps, slope, thin bars, a relief) the paper's triplet
-renders a colour stack through the scene's depth plus the field curvature, one frame every 1.5 focus
-tolerances. Every method composites the same frames, registered by the same geometry (the lens's truth):
+renders a colour stack through the scene's depth (6 focus tolerances) plus the field curvature, one frame every
+``--step`` focus tolerances. Every method composites the same frames, registered by the same geometry (the
+lens's truth):
 
 * ``oracle``: the compositor with each pixel's true best focus (surface + depth);
-* ``depth map``: ``composite_stack(method="dff")`` (auto: the scene is found to have depth, best focus per pixel);
-* ``smooth surface``: ``composite_stack(method="dff", depth="flat")`` (what fieldcal did before);
+* ``dff``: ``composite_stack(method="dff")`` (``depth="auto"``: the scene is found to have depth, best focus per
+  pixel);
+* ``hybrid``: ``composite_stack(method="hybrid")`` (the profile where the data agree with it, the data elsewhere);
+* ``smooth surface``: ``composite_stack(method="dff", depth="flat")`` (the surface fit alone);
 * ``enfuse``: enfuse's contrast-weighted hard mask (``--hard-mask``, exposure and saturation weights 0) on the
   same registered frames (``apt-get install enfuse``; skipped when it is not installed).
 
-PSNR is against the truth's all-in-focus image (border of 12 px left out); the halo is the distance from the
-depth edges (> 5 µm steps) within which the mean absolute error stays above 1.5x its level far from any edge.
+PSNR is against the truth's all-in-focus image (border of 12 px left out); the halo is
+:func:`fieldcal.simulate.depth.halo_width_px` (depth edges of > 5 µm; 1 = only the edge band itself).
 
-Run: ``python benchmarks/bench_depth_scenes.py [--size 320x240] [--write]`` (``--write`` puts the table into
-docs/benchmarks.md).
+Run: ``python benchmarks/bench_depth_scenes.py [--size 320x240] [--step 1.5] [--write]`` (``--write`` puts the
+table into docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -27,7 +30,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import tifffile
 
@@ -38,7 +40,7 @@ from fieldcal.composite.api import composite_stack  # noqa: E402
 from fieldcal.composite.stack_profile import blend_kernel, composite_with_map  # noqa: E402
 from fieldcal.composite.warp import frame_maps, warp_region  # noqa: E402
 from fieldcal.formats.frames import ArrayStack  # noqa: E402
-from fieldcal.simulate.depth import LAYOUTS, DepthRenderer, depth_edges, depth_scene  # noqa: E402
+from fieldcal.simulate.depth import LAYOUTS, DepthRenderer, depth_scene, halo_width_px  # noqa: E402
 from fieldcal.simulate.lens import LensSpec  # noqa: E402
 from fieldcal.simulate.truth import TruthProfile  # noqa: E402
 
@@ -46,30 +48,26 @@ MARK_BEGIN = "<!-- bench_depth_scenes:begin -->"
 MARK_END = "<!-- bench_depth_scenes:end -->"
 
 
-def run_layout(layout: str, w: int, h: int, seed: int = 1) -> dict:
+def run_layout(layout: str, w: int, h: int, seed: int = 1, step: float = 1.5) -> dict:
     spec = LensSpec.load(REPO / "models" / "triplet-uncorrected.json").with_sensor_size(w, h)
     fs = 0.25 / (spec.sensor.pixel_pitch_um * 1e-3)
     tol = min(spec.focus_tolerance_um(fs, 0.05, c) for c in spec.channel_names)
     scene = depth_scene(layout, w, h, 6 * tol, seed=seed)
     r = DepthRenderer(spec, scene, seed=seed + 1)
     lo, hi = spec.focus_range_um()
-    z = np.arange(lo - tol, hi + 7 * tol, 1.5 * tol)
+    z = np.arange(lo - tol, hi + 7 * tol, step * tol)
     st = ArrayStack([r.render(float(v)) for v in z], z, spec.channel_names,
                     black_level=spec.sensor.black_level_dn, white_level=spec.sensor.white_level_dn)
     truth = r.truth().astype(np.float64)
     white = float(spec.sensor.white_level_dn)
     prof = TruthProfile(spec, w, h)
-    dist = cv2.distanceTransform((~depth_edges(scene.depth_um, 5.0)).astype(np.uint8), cv2.DIST_L2, 3)
 
     def psnr(img):
         a = np.asarray(img, np.float64)[12:-12, 12:-12, :3]
         return 10 * np.log10(white ** 2 / np.mean((a - truth[12:-12, 12:-12]) ** 2))
 
     def halo(img):
-        err = np.abs(np.asarray(img, np.float64)[..., :3] - truth).mean(axis=2)
-        far = err[dist > 12].mean()
-        prof_d = [err[(dist >= d) & (dist < d + 1)].mean() for d in range(12)]
-        return next((d for d, e in enumerate(prof_d) if e <= 1.5 * far), 12)
+        return halo_width_px(img, truth, scene.depth_um, 5.0)
 
     xx, yy = np.meshgrid(np.arange(w), np.arange(h))
     zb = np.stack([r.best_focus_um(xx, yy, c) for c in spec.channel_names], -1).astype(np.float32)
@@ -81,7 +79,8 @@ def run_layout(layout: str, w: int, h: int, seed: int = 1) -> dict:
     auto = composite_stack(st, prof, method="dff", quiet=True)
     out["t_depth_s"] = time.perf_counter() - t0
     out["scene"] = auto.info["scene"]
-    out["depth map"] = auto.image
+    out["dff"] = auto.image
+    out["hybrid"] = composite_stack(st, prof, method="hybrid", quiet=True).image
     out["smooth surface"] = composite_stack(st, prof, method="dff", depth="flat", quiet=True).image
     if shutil.which("enfuse"):
         d = Path(tempfile.mkdtemp())
@@ -98,7 +97,7 @@ def run_layout(layout: str, w: int, h: int, seed: int = 1) -> dict:
         out["enfuse"] = tifffile.imread(d / "enfuse.tif")[..., :3]
         shutil.rmtree(d, ignore_errors=True)
     rows = {}
-    for k in ("oracle", "depth map", "smooth surface", "enfuse"):
+    for k in ("oracle", "dff", "hybrid", "smooth surface", "enfuse"):
         if k in out:
             rows[k] = (psnr(out[k]), halo(out[k]))
     out["rows"] = rows
@@ -108,33 +107,42 @@ def run_layout(layout: str, w: int, h: int, seed: int = 1) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", default="320x240")
+    ap.add_argument("--step", type=float, default=1.5, help="frame spacing in focus tolerances")
     ap.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
     a = ap.parse_args()
     w, h = (int(v) for v in a.size.lower().split("x"))
-    lines = [f"Scenes with depth ({w}x{h} px, paper triplet, one frame per 1.5 tolerances, depth 6 tolerances; "
-             "`python benchmarks/bench_depth_scenes.py --size {0}x{1} --write`):".format(w, h), "",
-             "| layout | frames | found | oracle dB | depth map dB | smooth surface dB | enfuse dB | depth map − enfuse |"
-             " halo px (depth map / enfuse) | depth map s |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [f"Scenes with depth ({w}x{h} px colour, paper triplet, one frame per {a.step:g} tolerances, depth 6 "
+             f"tolerances; `python benchmarks/bench_depth_scenes.py --size {w}x{h} --step {a.step:g} --write`):", "",
+             "| layout | frames | found | oracle dB | dff dB | hybrid dB | smooth surface dB | enfuse dB |"
+             " dff − enfuse | dff − oracle | hybrid − enfuse | hybrid − oracle | halo px (oracle / dff / hybrid / enfuse) |"
+             " dff s |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for layout in LAYOUTS:
-        r = run_layout(layout, w, h)
+        r = run_layout(layout, w, h, step=a.step)
         R = r["rows"]
         enf = R.get("enfuse", (float("nan"), -1))
-        lines.append(f"| {layout} | {r['frames']} | {r['scene']} | {R['oracle'][0]:.2f} | {R['depth map'][0]:.2f} | "
-                     f"{R['smooth surface'][0]:.2f} | {enf[0]:.2f} | {R['depth map'][0] - enf[0]:+.2f} | "
-                     f"{R['depth map'][1]} / {enf[1]} | {r['t_depth_s']:.1f} |")
+        o, d, hy = R["oracle"], R["dff"], R["hybrid"]
+        lines.append(f"| {layout} | {r['frames']} | {r['scene']} | {o[0]:.2f} | {d[0]:.2f} | {hy[0]:.2f} | "
+                     f"{R['smooth surface'][0]:.2f} | {enf[0]:.2f} | {d[0] - enf[0]:+.2f} | {d[0] - o[0]:+.2f} | "
+                     f"{hy[0] - enf[0]:+.2f} | {hy[0] - o[0]:+.2f} | {o[1]} / {d[1]} / {hy[1]} / {enf[1]} | "
+                     f"{r['t_depth_s']:.1f} |")
         print(lines[-1], flush=True)
     if a.write:
         doc = REPO / "docs" / "benchmarks.md"
         text = doc.read_text(encoding="utf-8")
-        block = "\n".join([MARK_BEGIN, *lines, MARK_END])
-        if MARK_BEGIN in text:
-            s, e = text.index(MARK_BEGIN), text.index(MARK_END) + len(MARK_END)
+        # one block per frame spacing; the default spacing's block keeps the original markers
+        tag = "" if a.step == 1.5 else f":step{a.step:g}"
+        begin, end = MARK_BEGIN.replace(":begin", tag + ":begin"), MARK_END.replace(":end", tag + ":end")
+        block = "\n".join([begin, *lines, end])
+        if begin in text:
+            s, e = text.index(begin), text.index(end) + len(end)
             text = text[:s] + block + text[e:]
+        elif MARK_END in text:
+            e = text.index(MARK_END) + len(MARK_END)
+            text = text[:e] + "\n\n" + block + text[e:]
         else:
             text = text.rstrip() + "\n\n## Scenes with depth\n\n" + block + "\n"
         doc.write_text(text, encoding="utf-8")
-
 
 if __name__ == "__main__":
     main()

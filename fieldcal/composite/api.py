@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ParameterError, SpecError, StackError
-from .dff import dff_focus_map, dff_surfaces, focus_volume, hybrid_corrections
+from .dff import dff_focus_map, dff_surfaces, focus_volume, hybrid_corrections, pixel_misfit_fraction
 from .source import hold_decoded, image_size
 from .stack_profile import (CompositeResult, blend_kernel, check_profile_matches, composite_profile,
                             composite_with_map, select_frames)
@@ -32,6 +32,12 @@ DEPTH_MODES = ("auto", "flat", "3d")
 #: circuit-board stack 12.6 %. (b) flat 0-4.1 %; reliefs 4.6-15 %, slopes 7-12 %, thin bars 3.9-13 %. Thin bars
 #: at 320 px (4-5 %, 3.9-4.1 %) are taken as flat: few blocks see them.
 DEPTH_BLOCK_FRACTION = (0.1, 0.05)
+#: ... or when more than this fraction of the textured pixels peak a frame spacing and a third of a curve width
+#: or more off that surface (:func:`fieldcal.composite.dff.pixel_misfit_fraction`: thin or small things that
+#: blocks average away). Measured (simulated triplet, layers continued behind nearer ones, 160 px; steps of 0.5,
+#: 1, 1.5, 2.5 and 3.5 tolerances): flat texture chart and colour dead leaves 0-0.17 % (0 % at 320 px); thin bars
+#: 11-19 %, slopes 4.5-20 %, steps 3-14 % (0 at 3.5 tolerances a frame), reliefs 1.5-7 %.
+DEPTH_PIXEL_FRACTION = 0.01
 #: Scenes with depth: a pixel takes the depth map's composite in full where its confidence reaches this fraction
 #: (second) of the given percentile (first) of the image's confidences, the multi-scale fusion where it has none.
 FUSION_CONFIDENCE = (75.0, 0.5)
@@ -113,13 +119,17 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     surfaces = dff_surfaces(vol, w, h, channels, centre)
     spacing = float(np.median(np.diff(vol.z_um))) if len(vol.z_um) > 1 else 0.0
     off_spacing, off_width = surface_misfit_fractions(vol, surfaces, spacing)
+    off_pixels = pixel_misfit_fraction(vol, surfaces, spacing)
     # a flat scene's confident blocks lie on a smooth surface within their own noise; a scene with depth puts a
-    # good part of them (a step, an object in front) a spacing, and a curve width, or more away from any
+    # good part of them (a step, an object in front) a spacing, and a curve width, or more away from any, or
+    # (thin things) a part of its textured pixels
     has_depth = depth == "3d" or (depth == "auto" and len(vol.z_um) > 2 and (
-        off_spacing > DEPTH_BLOCK_FRACTION[0] or off_width > DEPTH_BLOCK_FRACTION[1]))
+        off_spacing > DEPTH_BLOCK_FRACTION[0] or off_width > DEPTH_BLOCK_FRACTION[1]
+        or off_pixels > DEPTH_PIXEL_FRACTION))
     info.update({"surface_rms_um": {c: round(s.rms_um, 3) for c, s in zip(channels, surfaces)},
                  "frame_spacing_um": round(spacing, 3),
                  "blocks_off_surface": {"by_a_spacing": round(off_spacing, 4), "by_half_a_width": round(off_width, 4)},
+                 "pixels_off_surface": round(off_pixels, 4),
                  "scene": "3d" if has_depth else "flat"})
     fallback = None
     if method == "dff":
@@ -131,11 +141,14 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         zb = profile_focus_map(profile, w, h, channels, lateral_colour) + np.float32(focus_offset_um)
         corr = hybrid_corrections(vol, profile, w, h, channels, lateral_colour=lateral_colour,
                                   focus_offset_um=focus_offset_um)
-        for ci, (fit, limit) in enumerate(corr):
-            zb[..., ci] += np.clip(dense_map(fit, w, h), -limit, limit)
         info["correction_limit_um"] = {c: round(lim, 3) for c, (_, lim) in zip(channels, corr)}
-        if has_depth:
-            # the data where they differ from the profile by more than its band allows, the profile elsewhere
+        if not has_depth:
+            for ci, (fit, limit) in enumerate(corr):
+                zb[..., ci] += np.clip(dense_map(fit, w, h), -limit, limit)
+        else:
+            # the data where they differ from the profile by more than its band allows, the profile elsewhere; the
+            # profile uncorrected, as the low-order correction would be fitted to the scene's own depth (steps pull
+            # it up to its limit off the profile where the scene does lie on it: -0.5 dB, bench_depth_scenes)
             per_pixel, fallback = _per_pixel_focus(stack, geometry, frames, zb, quiet)
             limit = np.array([lim for _, lim in corr], dtype=np.float32)
             off = np.abs(per_pixel - zb) > limit

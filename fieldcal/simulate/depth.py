@@ -10,6 +10,12 @@ therefore spread over what is behind them, and a blurred background does not lea
 foreground edge, as in a real photograph (the layered model of depth of field; partial occlusion of the
 aperture by a foreground edge is approximated by the alpha blur).
 
+Each layer continues behind the layers in front of it (its colour there filled smoothly from its own pixels,
+:func:`fill_behind`), because a real background does not stop at the outline of what stands in front of it:
+the lens sees around a defocused wire or step edge. A layer cut off at its visible outline would show, where the
+defocused occluder becomes translucent, a sharp-edged dark hole in focus at the background's depth, a line no
+camera records (and one that misleads any depth from focus).
+
 The truth is the all-in-focus image (each layer at its own best focus, composited) and the depth map; the
 oracle best focus of every pixel is the lens's surface plus its depth.
 """
@@ -37,6 +43,9 @@ class DepthScene:
     image: np.ndarray
     depth_um: np.ndarray
     layout: str
+    #: optional H x W x 3: the farthest surface (background, board) continued behind everything in front of it;
+    #: without it the renderer fills hidden parts smoothly (:func:`fill_behind`)
+    behind: np.ndarray | None = None
 
 
 def _texture(width: int, height: int, seed: int) -> np.ndarray:
@@ -106,11 +115,14 @@ def depth_scene(layout: str, width_px: int, height_px: int, depth_range_um: floa
             objects[trace] = 100 + k
     depth = (d * np.float32(depth_range_um)).astype(np.float32)
     image = np.zeros((h, w, 3), np.float32)
+    behind = None
     for k, obj in enumerate(np.unique(objects)):
         tex = _texture(w, h, seed * 1000 + k)
         m = objects == obj
         image[m] = tex[m]
-    return DepthScene(image, depth, layout)
+        if k == 0:  # the farthest object's texture goes on behind the others
+            behind = tex.astype(np.float32)
+    return DepthScene(image, depth, layout, behind)
 
 
 def depth_layers(depth_um: np.ndarray, max_step_um: float) -> tuple[np.ndarray, np.ndarray]:
@@ -155,16 +167,24 @@ class DepthRenderer:
         self.scene = scene
         self.seed = int(seed)
         colour = scene_to_channels(scene.image, spec.channel_names, s.width_px, s.height_px)
+        behind = (None if scene.behind is None or scene.behind.shape[:2] != scene.depth_um.shape else
+                  scene_to_channels(scene.behind, spec.channel_names, s.width_px, s.height_px))
         index, self.layer_depth_um = depth_layers(scene.depth_um, float(max_layer_um))
         full = Renderer(spec, colour, seed=seed)
         self.exposure = full.exposure
         self._full = full
         self._layers = []
         for k, d in enumerate(self.layer_depth_um):
-            alpha = (index == k).astype(np.float32)
-            if not alpha.any():
+            own = index == k
+            if not own.any():
                 continue
-            rc = Renderer(spec, colour * alpha[..., None], seed=seed)
+            # the layer, and behind every nearer layer its continuation (hidden where those are opaque)
+            alpha = (index >= k).astype(np.float32)
+            if k == 0 and behind is not None:  # the background's own texture behind what stands on it
+                under = np.where(own[..., None], colour, behind)
+            else:
+                under = fill_behind(colour, own, index > k)
+            rc = Renderer(spec, under * alpha[..., None], seed=seed)
             ra = Renderer(spec, np.repeat(alpha[..., None], len(spec.channel_names), axis=2), seed=seed)
             rc.exposure = self.exposure  # one exposure for the whole scene
             ra.exposure = 1.0
@@ -228,9 +248,57 @@ class DepthRenderer:
         return self.spec.best_focus_um(xm, ym, channel) + self.scene.depth_um[yi, xi]
 
 
+def fill_behind(colour: np.ndarray, own: np.ndarray, behind: np.ndarray) -> np.ndarray:
+    """``colour`` with the pixels ``behind`` replaced by a smooth fill from the pixels ``own`` (normalised
+    Gaussian convolution at growing scales: each hidden pixel takes the local mean colour of the nearest
+    visible part of its layer, with no edges of its own)."""
+    out = colour.astype(np.float32, copy=True)
+    todo = behind.copy()
+    if not todo.any():
+        return out
+    m = own.astype(np.float32)
+    cm = colour * m[..., None]
+    sigma = 2.0
+    while todo.any():
+        num = cv2.GaussianBlur(cm, (0, 0), sigma, borderType=cv2.BORDER_REFLECT101)
+        den = cv2.GaussianBlur(m, (0, 0), sigma, borderType=cv2.BORDER_REFLECT101)
+        ok = todo & (den > 1e-3)
+        out[ok] = num[ok] / den[ok][:, None]
+        todo &= ~ok
+        if sigma > 2 * max(colour.shape[:2]):
+            out[todo] = cm.reshape(-1, cm.shape[2]).sum(0) / max(m.sum(), 1.0)
+            break
+        sigma *= 2.0
+    return out
+
+
 def depth_edges(depth_um: np.ndarray, min_step_um: float) -> np.ndarray:
     """Boolean map of pixels next to a depth step larger than ``min_step_um`` (for halo measurements)."""
     d = depth_um.astype(np.float32)
     k = np.ones((3, 3), np.uint8)
     jump = cv2.dilate(d, k) - cv2.erode(d, k)
     return jump > min_step_um
+
+
+def halo_width_px(image: np.ndarray, truth: np.ndarray, depth_um: np.ndarray, min_step_um: float,
+                  factor: float = 1.5, far_px: int = 12) -> int:
+    """Width (px) of the band around depth edges where a composite's error stands out.
+
+    The mean absolute error (over channels) against the all-in-focus ``truth`` is taken in 1-px rings of distance
+    from the depth edges (:func:`depth_edges` with ``min_step_um``; ring 0 is the edge band itself, the pixels
+    whose 3x3 neighbourhood straddles a step). The width is the first ring whose error is no more than ``factor``
+    times the error farther than ``far_px`` from any edge: 1 when only the edge band itself is worse (the least
+    any composite can do: a pixel on a step mixes two depths), ``far_px`` when the halo reaches that far.
+    """
+    err = np.abs(np.asarray(image, np.float64)[..., :truth.shape[2]] - np.asarray(truth, np.float64)).mean(axis=2)
+    edges = depth_edges(depth_um, min_step_um)
+    if not edges.any():
+        return 0
+    dist = cv2.distanceTransform((~edges).astype(np.uint8), cv2.DIST_L2, 3)
+    far = float(err[dist > far_px].mean()) if np.any(dist > far_px) else float(err.mean())
+    for d in range(far_px):
+        ring = (dist >= d) & (dist < d + 1)
+        if ring.any() and err[ring].mean() <= factor * far:
+            return d
+    return far_px
+
