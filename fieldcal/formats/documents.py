@@ -81,6 +81,8 @@ KINDS: dict[str, DocumentKind] = {k.name: k for k in (
     DocumentKind("mtf", "fieldcal-mtf-1.schema.json", "format", "re-run `fieldcal mtf` (docs/measurement.md)"),
     DocumentKind("masks", "fieldcal-masks-1.schema.json", "format",
                  "export the masks again with `fieldcal plan export-masks` (docs/planning.md)"),
+    DocumentKind("profile-diff", "fieldcal-profile-diff-1.schema.json", "format",
+                 "compare the profiles again with `fieldcal profile diff A B --json` (docs/profiles.md)"),
 )}
 
 
