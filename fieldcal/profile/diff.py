@@ -145,11 +145,40 @@ class _Family:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+#: low-order components of a surface difference, fitted by generalised least squares and tested with the grid
+COMPONENTS = ("offset_um", "tilt_x_um_per_mm", "tilt_y_um_per_mm", "rho2_um")
+
+
+def components_operator(profile, x_px, y_px, cov: np.ndarray) -> np.ndarray:
+    """L (4 x m): the GLS estimate ``L d`` of (offset, tilt x, tilt y, rho^2) of a field ``d ~ N(., cov)``.
+
+    Offset in µm, tilts in µm/mm on the sensor (about its centre), rho^2 in µm at the half-diagonal.
+    """
+    w, h = profile.image_size_px
+    r_px = 0.5 * math.hypot(w, h)
+    xh = (np.asarray(x_px, float) - 0.5 * (w - 1)) / r_px
+    yh = (np.asarray(y_px, float) - 0.5 * (h - 1)) / r_px
+    X = np.stack([np.ones_like(xh), xh, yh, xh * xh + yh * yh], axis=1)
+    # a small ridge: the covariance may be near-singular where the field is all one correlated error
+    reg = cov + 1e-9 * float(np.mean(np.diag(cov)) or 1.0) * np.eye(cov.shape[0])
+    wx = np.linalg.solve(reg, X)
+    L = np.linalg.solve(X.T @ wx, wx.T)
+    r_mm = r_px * profile.pixel_pitch_um / 1000.0
+    return L * np.array([1.0, 1.0 / r_mm, 1.0 / r_mm, 1.0])[:, None]
+
+
 def _surface_family(a, b, grid, ch, orientation) -> _Family:
     ea = surface_estimate(a, *grid.pixels(a), ch, orientation)
     eb = surface_estimate(b, *grid.pixels(b), ch, orientation)
-    return _Family(f"{ch}/{orientation}", "surface", ch, ea.value - eb.value, ea.cov + eb.cov,
-                   extra={"a": ea, "b": eb, "orientation": orientation})
+    d, cov = ea.value - eb.value, ea.cov + eb.cov
+    # the grid plus its low-order components in one max-|z| family: a smooth change (a tilt) averages over the
+    # whole field in its component, where no single point may stand out
+    L = components_operator(a, *grid.pixels(a), cov)
+    m = d.size
+    d_aug = np.concatenate([d, L @ d])
+    cov_aug = np.block([[cov, cov @ L.T], [L @ cov, L @ cov @ L.T]])
+    return _Family(f"{ch}/{orientation}", "surface", ch, d_aug, cov_aug,
+                   extra={"a": ea, "b": eb, "orientation": orientation, "m": m})
 
 
 def _tolerance_family(a, b, grid, ch) -> _Family | None:
@@ -243,8 +272,10 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
         if f.kind == "surface":
             entry = _field_entry(f, t, grid, a)
             doc["channels"].setdefault(f.channel, {"orientations": {}})["orientations"][f.extra["orientation"]] = entry
-            maps["families"][f.name] = {"diff": f.diff, "sd": np.sqrt(np.clip(np.diag(f.cov), 0, None)), "z": t.z,
-                                        "critical_z": t.critical_z, "unit": "µm", "kind": "best focus"}
+            m = f.extra["m"]
+            maps["families"][f.name] = {"diff": f.diff[:m], "sd": np.sqrt(np.clip(np.diag(f.cov)[:m], 0, None)),
+                                        "z": t.z[:m], "critical_z": t.critical_z, "unit": "µm",
+                                        "kind": f"best focus ({f.extra['orientation']})"}
         elif f.kind == "tolerance":
             entry = _field_entry(f, t, grid, a)
             entry.update(fs_cyc_per_mm=f.extra["fs_cyc_per_mm"], q=f.extra["q"])
@@ -264,6 +295,7 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
                                **g["statistics"]}
             g["significant"] = bool(g["significant"] or g0["significant"])
             g["max_z_score"] = max(g["max_z_score"], g0["max_z_score"])
+            g.setdefault("critical_z", g0.get("critical_z"))
     for ch in channels:   # the channel's headline: its worst surface orientation
         c = doc["channels"].setdefault(ch, {"orientations": {}})
         worst = max(c["orientations"].values(), key=lambda e: e["max_z_score"])
@@ -291,12 +323,16 @@ def _num(v) -> float | None:
 
 
 def _field_entry(f: _Family, t: MaxZTest, grid: FieldGrid, a) -> dict[str, Any]:
-    d = f.diff
+    m = f.extra.get("m", f.diff.size)
+    d, zf = f.diff[:m], t.z[:m]
     i_abs = int(np.argmax(np.abs(d)))
-    i_z = int(np.nanargmax(np.abs(t.z))) if np.isfinite(t.z).any() else i_abs
-    sd = np.sqrt(np.clip(np.diag(f.cov), 0.0, None))
-    return {"max_abs_diff_um": float(abs(d[i_abs])), "at_max_abs_diff": _where(grid, a, i_abs),
-            "max_z_score": float(t.max_z), "at_max_z": {**_where(grid, a, i_z), "diff_um": float(d[i_z]),
+    i_z = int(np.nanargmax(np.abs(zf))) if np.isfinite(zf).any() else i_abs
+    sd_all = np.sqrt(np.clip(np.diag(f.cov), 0.0, None))
+    sd = sd_all[:m]
+    comps = {name: {"diff": float(f.diff[m + i]), "sd": float(sd_all[m + i]), "z_score": _num(t.z[m + i])}
+             for i, name in enumerate(COMPONENTS)} if f.diff.size > m else None
+    return {"components": comps,"max_abs_diff_um": float(abs(d[i_abs])), "at_max_abs_diff": _where(grid, a, i_abs),
+            "max_z_score": float(np.nanmax(np.abs(zf))), "max_z_statistic": float(t.max_z), "at_max_z": {**_where(grid, a, i_z), "diff_um": float(d[i_z]),
                                                         "sd_um": float(sd[i_z])},
             "mean_diff_um": float(np.mean(d)), "rms_diff_um": float(np.sqrt(np.mean(d * d))),
             "median_sd_um": float(np.median(sd)),
@@ -323,6 +359,11 @@ def summary_lines(doc: dict[str, Any]) -> list[str]:
                          f"{e['max_z_score']:.2f} (critical {e['critical_z']:.2f}) at ({at['x_px']:.0f}, "
                          f"{at['y_px']:.0f}) px: {at['diff_um']:+.2f} ± {at['sd_um']:.2f} µm"
                          + ("  SIGNIFICANT" if e["significant"] else ""))
+            comps = e.get("components") or {}
+            if comps:
+                lines.append("      components A-B: " + "; ".join(
+                    f"{k} {v['diff']:+.3g} ± {v['sd']:.2g} (z {v['z_score']:+.1f})" for k, v in comps.items()
+                    if v["z_score"] is not None))
         if c.get("tolerance"):
             e = c["tolerance"]
             lines.append(f"  {ch} tolerance: max |A-B| {e['max_abs_diff_um']:.2f} µm, max |z| {e['max_z_score']:.2f}"
@@ -334,5 +375,5 @@ def summary_lines(doc: dict[str, Any]) -> list[str]:
             parts.append(f"{key} {s['diff']:+.3g} ± {s['sd']:.2g} (z {z:+.1f})" if z is not None
                          else f"{key} {s['diff']:+.3g}")
         lines.append(f"  {ch} geometry at z = {doc['geometry']['z_um']:.0f} µm: " + "; ".join(parts)
-                     + (f"  SIGNIFICANT (critical {g['critical_z']:.2f})" if g["significant"] else ""))
+                     + ("  SIGNIFICANT" if g["significant"] else ""))
     return lines
