@@ -40,19 +40,22 @@ SIZE = (256, 144)
 FS = 16.0                    # below this size's Nyquist (20 cycles/mm at 24.5 µm pixels)
 Z_START, Z_STOP, Z_STEP = -360.0, 40.0, 20.0
 TILT_CORNER_UM = 3.0
+TILT_PER_MM = 3.0            # the lens spec's unit: µm of best focus per mm on the sensor
 BREATHING_CHANGE = 0.001     # change of magnification at the scan's ends
 
 
-def changed_specs(spec):
-    """The lens with a 3 µm tilt at the corner, and with 0.1 % more magnification change over the scan."""
+def changed_specs(spec) -> dict:
+    """The changed lenses: tilted by 3 µm at the frame's corner, tilted by 3 µm/mm, and breathing 0.1 % more."""
     half_w, half_h = (0.5 * v for v in spec.sensor.size_mm)
     r2 = half_w ** 2 + half_h ** 2
     tx, ty = spec.tilt_um_per_mm
-    tilted = dataclasses.replace(spec, tilt_um_per_mm=(tx + TILT_CORNER_UM * half_w / r2,
-                                                       ty + TILT_CORNER_UM * half_h / r2))
     rate = 1.0 / (spec.exit_pupil_mm * 1000.0) + BREATHING_CHANGE / (0.5 * (Z_STOP - Z_START))
-    breathing = dataclasses.replace(spec, exit_pupil_mm=1.0 / rate / 1000.0)
-    return tilted, breathing
+    return {
+        "tilt": dataclasses.replace(spec, tilt_um_per_mm=(tx + TILT_CORNER_UM * half_w / r2,
+                                                          ty + TILT_CORNER_UM * half_h / r2)),
+        "tilt_mm": dataclasses.replace(spec, tilt_um_per_mm=(tx + TILT_PER_MM, ty)),
+        "breathing": dataclasses.replace(spec, exit_pupil_mm=1.0 / rate / 1000.0),
+    }
 
 
 def calibrate_one(spec, workdir: Path, name: str, seed: int, z_offset_um: float, extra_frames: int):
@@ -89,17 +92,16 @@ def trial(k: int, workdir: Path, level: float = 0.95, changes: bool = True) -> d
            "null_max_diff_um": max(c["max_abs_diff_um"] for c in null["channels"].values()),
            "time_calibrate_s": t_cal / 2, "time_diff_s": t_diff}
     if changes:
-        tilted, breathing = changed_specs(spec)
-        for label, s in (("tilt", tilted), ("breathing", breathing)):
+        for label, s in changed_specs(spec).items():
             c = LensProfile.load(calibrate_one(s, workdir, f"{label}{k}", 1001 + 2 * k, offset, 1))
             d, _ = diff_profiles(a, c, level=level)
             row[f"{label}_significant"] = d["significant"]
             row[f"{label}_p"] = d["p_value"]
-            if label == "tilt":
+            if label.startswith("tilt"):
                 comps = [e["components"] for ch in d["channels"].values() for e in ch["orientations"].values()]
-                row["tilt_z"] = max(math.hypot(cc["tilt_x_um_per_mm"]["z_score"] or 0.0,
+                row[f"{label}_z"] = max(math.hypot(cc["tilt_x_um_per_mm"]["z_score"] or 0.0,
                                                cc["tilt_y_um_per_mm"]["z_score"] or 0.0) for cc in comps)
-                row["tilt_surface_flagged"] = any(ch["significant"] for ch in d["channels"].values())
+                row[f"{label}_surface_flagged"] = any(ch["significant"] for ch in d["channels"].values())
             else:
                 row["breathing_z"] = max(abs(g["statistics"]["breathing_per_um"]["z_score"] or 0.0)
                                          for g in d["geometry"]["channels"].values()
@@ -119,7 +121,8 @@ def run(trials: int, level: float = 0.95, changes: bool = True, quiet: bool = Fa
             if not quiet:
                 r = rows[-1]
                 print(f"trial {k}: null significant={r['null_significant']} p={r['null_p']:.3f}"
-                      + (f"; tilt flagged={r['tilt_significant']} (z {r['tilt_z']:.1f}); breathing flagged="
+                      + (f"; tilt flagged={r['tilt_significant']} (z {r['tilt_z']:.1f}); 3 µm/mm tilt flagged="
+                         f"{r['tilt_mm_significant']}; breathing flagged="
                          f"{r['breathing_significant']} (z {r['breathing_z']:.1f})" if changes else ""),
                       flush=True)
     return rows
@@ -133,8 +136,9 @@ def summarise(rows: list[dict], level: float) -> dict:
            "time_diff_s": float(np.median([r["time_diff_s"] for r in rows]))}
     if "tilt_significant" in rows[0]:
         out.update(tilt_flagged=sum(r["tilt_significant"] for r in rows) / n,
-                   tilt_surface_flagged=sum(r["tilt_surface_flagged"] for r in rows) / n,
                    tilt_min_z=min(r["tilt_z"] for r in rows),
+                   tilt_mm_flagged=sum(r["tilt_mm_significant"] for r in rows) / n,
+                   tilt_mm_min_z=min(r["tilt_mm_z"] for r in rows),
                    breathing_flagged=sum(r["breathing_significant"] for r in rows) / n,
                    breathing_geometry_flagged=sum(r["breathing_geometry_flagged"] for r in rows) / n,
                    breathing_min_z=min(r["breathing_z"] for r in rows),
@@ -154,7 +158,8 @@ def main(argv=None) -> int:
     wall = time.perf_counter() - t0
     cols = [("trial", "trial", "d"), ("null: significant", "null_significant", ""), ("null p", "null_p", ".3f"),
             ("null max |z|", "null_max_z", ".2f"), ("tilt flagged", "tilt_significant", ""),
-            ("tilt |z|", "tilt_z", ".1f"), ("breathing flagged", "breathing_significant", ""),
+            ("tilt |z|", "tilt_z", ".1f"), ("3 µm/mm tilt flagged", "tilt_mm_significant", ""),
+            ("its |z|", "tilt_mm_z", ".1f"), ("breathing flagged", "breathing_significant", ""),
             ("breathing |z|", "breathing_z", ".1f")]
     text = "\n".join([
         "## profile diff: false alarms and detection (`benchmarks/bench_profile_diff.py`)",
@@ -167,8 +172,10 @@ def main(argv=None) -> int:
         "",
         f"* same lens, **no significant difference in {100 * s['null_no_difference']:.0f} % of {s['trials']} "
         "trials** (target ≥ 90 %; the stated level promises ≥ 95 % if the profiles' bands are honest)",
-        f"* tilt of 3 µm at the corner **flagged in {100 * s['tilt_flagged']:.0f} %** (smallest tilt |z| "
-        f"{s['tilt_min_z']:.1f}; target 100 %)",
+        f"* tilt of 3 µm at the frame's corner **flagged in {100 * s['tilt_flagged']:.0f} %** (smallest tilt |z| "
+        f"{s['tilt_min_z']:.1f}, the larger of the two tilt components' z in quadrature; target 100 %)",
+        f"* tilt of 3 µm/mm (the lens spec's unit; 9.4 µm at the frame's edge) **flagged in "
+        f"{100 * s['tilt_mm_flagged']:.0f} %** (smallest tilt |z| {s['tilt_mm_min_z']:.1f})",
         f"* breathing changed by 0.1 % of magnification over the scan **flagged in "
         f"{100 * s['breathing_flagged']:.0f} %** (smallest |z| {s['breathing_min_z']:.1f}; target 100 %). A "
         f"relative change of 0.1 % *of the breathing rate* is far below what one calibration resolves: the "

@@ -36,16 +36,38 @@ def matern32(d_over_ell: np.ndarray) -> np.ndarray:
 ORIENTATIONS = ("mean", "tangential", "sagittal")
 
 
+#: Correlation lengths (normalised: 1 = half the diagonal) the local term is also assumed to have. The profile
+#: records the discrepancy's fitted length, but the errors of two calibrations that remain after it (measurement
+#: systematics shared by regions of tiles) are smoother than that fit says; a test must hold for every one.
+LOCAL_LENGTHS = (0.25, 0.5, 1.0, 2.0)
+
+
 @dataclass(frozen=True)
 class FieldEstimate:
-    """An estimate over points with its joint covariance (units of ``value``)."""
+    """An estimate over points with its joint covariance (units of ``value``).
 
-    value: np.ndarray   # (m,)
-    cov: np.ndarray     # (m, m)
+    ``cov_fixed`` is the part whose structure the profile knows (posterior samples, field-wide terms);
+    ``local_sd`` the sd of the rest, correlated as Matérn 3/2 of the normalised distances ``dist`` at a length
+    not known for sure (:meth:`cov` at one length, :attr:`lengths` the ones to consider).
+    """
+
+    value: np.ndarray       # (m,)
+    cov_fixed: np.ndarray   # (m, m)
+    local_sd: np.ndarray    # (m,)
+    dist: np.ndarray        # (m, m) normalised distances
+    fitted_length: float
+
+    @property
+    def lengths(self) -> tuple[float, ...]:
+        return (self.fitted_length,) + tuple(v for v in LOCAL_LENGTHS if v > self.fitted_length)
+
+    def cov(self, length: float | None = None) -> np.ndarray:
+        ell = self.fitted_length if length is None else float(length)
+        return self.cov_fixed + self.local_sd[:, None] * matern32(self.dist / ell) * self.local_sd[None, :]
 
     @property
     def sd(self) -> np.ndarray:
-        return np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
+        return np.sqrt(np.clip(np.diag(self.cov_fixed) + self.local_sd ** 2, 0.0, None))
 
 
 def has_orientations(profile) -> bool:
@@ -121,11 +143,10 @@ def surface_estimate(profile, x_px, y_px, channel: str, orientation: str = "mean
     rest = np.clip(total - np.diag(cov_coef), 0.0, None)
     common = min(common, float(rest.min())) if rest.size else common
     local = np.clip(rest - common, 0.0, None)
-    ell = correlation_length(profile)
     d = np.hypot(xh[:, None] - xh[None, :], yh[:, None] - yh[None, :])
-    cov_local = np.sqrt(local)[:, None] * matern32(d / ell) * np.sqrt(local)[None, :]
-    cov = cov_coef + common + cov_local
-    return FieldEstimate(np.asarray(value, dtype=np.float64).ravel(), 0.5 * (cov + cov.T))
+    cov = cov_coef + common
+    return FieldEstimate(np.asarray(value, dtype=np.float64).ravel(), 0.5 * (cov + cov.T), np.sqrt(local), d,
+                         correlation_length(profile))
 
 
 def tolerance_estimate(profile, x_px, y_px, channel: str, fs_cyc_per_mm: float, q: float) -> FieldEstimate | None:
@@ -148,7 +169,9 @@ def tolerance_estimate(profile, x_px, y_px, channel: str, fs_cyc_per_mm: float, 
     if cov_coef is None:
         return None
     cov = ratio ** 2 * (J @ cov_coef @ J.T)
-    return FieldEstimate(np.asarray(value, dtype=np.float64), 0.5 * (cov + cov.T))
+    m = x.size
+    return FieldEstimate(np.asarray(value, dtype=np.float64), 0.5 * (cov + cov.T), np.zeros(m), np.zeros((m, m)),
+                         1.0)
 
 
 def _tolerance_coef_cov(profile, channel: str, order: int) -> np.ndarray | None:
