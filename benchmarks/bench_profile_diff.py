@@ -38,7 +38,7 @@ NAME = "profile_diff"
 LENS = REPO / "models" / "triplet-uncorrected.json"
 SIZE = (256, 144)
 FS = 16.0                    # below this size's Nyquist (20 cycles/mm at 24.5 µm pixels)
-Z_START, Z_STOP, Z_STEP = -360.0, 40.0, 20.0
+Z_START, Z_STOP, Z_STEP = -400.0, 100.0, 20.0   # the field's best focus -320..-8 µm with margin
 TILT_CORNER_UM = 3.0
 TILT_PER_MM = 3.0            # the lens spec's unit: µm of best focus per mm on the sensor
 BREATHING_CHANGE = 0.001     # change of magnification at the scan's ends
@@ -113,7 +113,7 @@ def trial(k: int, workdir: Path, level: float = 0.95, changes: bool = True) -> d
     return row
 
 
-def run(trials: int, level: float = 0.95, changes: bool = True, quiet: bool = False) -> list[dict]:
+def run(trials: int, level: float = 0.95, changes: bool = True, quiet: bool = False, on_row=None) -> list[dict]:
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-profile-diff-") as tmp:
         for k in range(trials):
@@ -125,6 +125,8 @@ def run(trials: int, level: float = 0.95, changes: bool = True, quiet: bool = Fa
                          f"{r['tilt_mm_significant']}; breathing flagged="
                          f"{r['breathing_significant']} (z {r['breathing_z']:.1f})" if changes else ""),
                       flush=True)
+            if on_row is not None:
+                on_row(rows)
     return rows
 
 
@@ -153,9 +155,20 @@ def main(argv=None) -> int:
     ap.add_argument("--docs", action="store_true", help="write the section of docs/benchmarks.md")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    rows = run(args.trials, args.level)
+
+    def report(rows):
+        text = section(rows, args, time.perf_counter() - t0)
+        if args.docs:   # after every trial: an interrupted run leaves its trials so far
+            write_docs_section(NAME, text)
+        return text
+
+    rows = run(args.trials, args.level, on_row=report)
+    print(report(rows))
+    return 0
+
+
+def section(rows: list[dict], args, wall: float) -> str:
     s = summarise(rows, args.level)
-    wall = time.perf_counter() - t0
     cols = [("trial", "trial", "d"), ("null: significant", "null_significant", ""), ("null p", "null_p", ".3f"),
             ("null max |z|", "null_max_z", ".2f"), ("tilt flagged", "tilt_significant", ""),
             ("tilt |z|", "tilt_z", ".1f"), ("3 µm/mm tilt flagged", "tilt_mm_significant", ""),
@@ -164,7 +177,8 @@ def main(argv=None) -> int:
     text = "\n".join([
         "## profile diff: false alarms and detection (`benchmarks/bench_profile_diff.py`)",
         "",
-        f"`python benchmarks/bench_profile_diff.py --trials {args.trials} --docs` ({wall / 60:.1f} min wall clock, "
+        f"`python benchmarks/bench_profile_diff.py --trials {args.trials} --docs` ({len(rows)} trials done, "
+        f"{wall / 60:.1f} min wall clock, "
         f"2 cores shared with other jobs). The triplet at {SIZE[0]}x{SIZE[1]} px, quick effort, calibrated twice "
         "per trial (different noise seed; the second scan starts a fraction of a step later and is one frame "
         "longer); the changed lenses are calibrated from the second scan's seed and positions and compared "
@@ -184,10 +198,7 @@ def main(argv=None) -> int:
         "",
         *md_table(rows, cols),
     ])
-    print(text)
-    if args.docs:
-        write_docs_section(NAME, text)
-    return 0
+    return text
 
 
 if __name__ == "__main__":
