@@ -72,8 +72,11 @@ def calibrate_one(spec, workdir: Path, name: str, seed: int, z_offset_um: float,
     return out
 
 
-def trial(k: int, workdir: Path, level: float = 0.95, changes: bool = True) -> dict:
-    """One trial: the same lens twice (null), and the changed lenses against the first calibration."""
+def trial(k: int, workdir: Path, level: float = 0.95, changes=True) -> dict:
+    """One trial: the same lens twice (null), and the changed lenses against the first calibration.
+
+    ``changes``: True for every changed lens of :func:`changed_specs`, or the names of some, or False.
+    """
     from fieldcal.profile import LensProfile
     from fieldcal.profile.diff import diff_profiles
     from fieldcal.simulate.lens import LensSpec
@@ -93,6 +96,8 @@ def trial(k: int, workdir: Path, level: float = 0.95, changes: bool = True) -> d
            "time_calibrate_s": t_cal / 2, "time_diff_s": t_diff}
     if changes:
         for label, s in changed_specs(spec).items():
+            if changes is not True and label not in changes:
+                continue
             c = LensProfile.load(calibrate_one(s, workdir, f"{label}{k}", 1001 + 2 * k, offset, 1))
             d, _ = diff_profiles(a, c, level=level)
             row[f"{label}_significant"] = d["significant"]
