@@ -189,13 +189,23 @@ def _surface_family(a, b, grid, ch, orientation) -> _Family:
     d = ea.value - eb.value
     # the grid plus its low-order components in one max-|z| family: a smooth change (a tilt) averages over the
     # whole field in its component, where no single point may stand out
-    L = components_operator(a, *grid.pixels(a), ea.cov() + eb.cov())
     m = d.size
+    # weights that minimise a bound on the component's worst-case variance over the local term's correlation:
+    # (sum |L_i| s_i)^2 <= m sum L_i^2 s_i^2, so the local variance counts m-fold (points the profiles only
+    # extrapolate to, with a wide local band, get little weight)
+    fixed = ea.cov_fixed + eb.cov_fixed
+    L = components_operator(a, *grid.pixels(a), fixed + m * np.diag(ea.local_sd ** 2 + eb.local_sd ** 2))
     d_aug = np.concatenate([d, L @ d])
     covs = []
     for ell in sorted(set(ea.lengths) | set(eb.lengths)):
-        cov = ea.cov(max(ell, ea.fitted_length)) + eb.cov(max(ell, eb.fitted_length))
-        covs.append(np.block([[cov, cov @ L.T], [L @ cov, L @ cov @ L.T]]))
+        covs.append(ea.cov(max(ell, ea.fitted_length)) + eb.cov(max(ell, eb.fitted_length)))
+    # and, per component, the local term correlated in the one pattern that makes that component's variance
+    # largest (signs of its weights: the Cauchy-Schwarz bound) -- a covariance with the same pointwise bands
+    for row in L:
+        sg = np.where(row >= 0, 1.0, -1.0)
+        va, vb = ea.local_sd * sg, eb.local_sd * sg
+        covs.append(fixed + np.outer(va, va) + np.outer(vb, vb))
+    covs = [np.block([[c, c @ L.T], [L @ c, L @ c @ L.T]]) for c in covs]
     return _Family(f"{ch}/{orientation}", "surface", ch, d_aug, covs,
                    extra={"a": ea, "b": eb, "orientation": orientation, "m": m})
 

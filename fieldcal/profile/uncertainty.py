@@ -39,7 +39,7 @@ ORIENTATIONS = ("mean", "tangential", "sagittal")
 #: Correlation lengths (normalised: 1 = half the diagonal) the local term is also assumed to have. The profile
 #: records the discrepancy's fitted length, but the errors of two calibrations that remain after it (measurement
 #: systematics shared by regions of tiles) are smoother than that fit says; a test must hold for every one.
-LOCAL_LENGTHS = (0.25, 0.5, 1.0, 2.0)
+LOCAL_LENGTHS = (0.5, 2.0)
 
 
 @dataclass(frozen=True)
