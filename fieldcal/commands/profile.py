@@ -7,7 +7,7 @@ import sys
 
 from . import add_parser
 
-FIELD_FLAGS = {"level": "--level", "out": "--out"}
+FIELD_FLAGS = {"level": "--level", "out": "--out", "n_null": "--draws"}
 
 EXIT_SIGNIFICANT = 1
 
@@ -59,6 +59,8 @@ def register(sub):
     d.add_argument("--plot", metavar="DIR", help="write difference maps (PNG) into DIR")
     d.add_argument("--grid", type=int, default=16, metavar="NX",
                    help="grid columns across the field (rows follow the aspect ratio; default 16)")
+    d.add_argument("--draws", type=int, default=10000, metavar="N",
+                   help="simulated null draws that calibrate each max-|z| test (default 10000)")
     d.add_argument("--fail-if-significant", action="store_true",
                    help=f"exit with status {EXIT_SIGNIFICANT} when the profiles differ significantly")
     d.add_argument("--overwrite", action="store_true", help="replace an existing --out file or plots")
@@ -111,7 +113,7 @@ def run_diff(args) -> int:
     if args.out:
         check_output(args.out, inputs=inputs, overwrite=args.overwrite, suffixes=(".json",))
     a, b = LensProfile.load(args.a), LensProfile.load(args.b)
-    doc, maps = diff_profiles(a, b, level=args.level, nx=args.grid)
+    doc, maps = diff_profiles(a, b, level=args.level, nx=args.grid, n_null=args.draws)
     if args.plot:
         check_output(args.plot, inputs=inputs, overwrite=args.overwrite, kind="dir", field="--plot",
                      files=[plot_file_name(n) for n in maps["families"]])

@@ -29,7 +29,7 @@ from scipy.special import ndtr
 from fieldcal import __version__
 from fieldcal.errors import ParameterError, SpecError
 from fieldcal.formats import documents
-from fieldcal.profile.uncertainty import (FieldEstimate, geometry_rates, has_orientations, surface_estimate,
+from fieldcal.profile.uncertainty import (geometry_rates, has_orientations, surface_estimate,
                                           tolerance_estimate)
 
 DIFF_FORMAT = documents.format_id("profile-diff")
@@ -261,6 +261,9 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
     level = float(level)
     if not (0.5 <= level < 1.0) or not math.isfinite(level):
         raise ParameterError(f"level must be in [0.5, 1), got {level}", field="level", fix="e.g. --level 0.95")
+    if int(n_null) < 1000:
+        raise ParameterError(f"{n_null} null draws cannot calibrate a test", field="n_null",
+                             fix="use at least 1000 draws (default 10000)")
     channels = [c for c in a.channels if c in b.channels]
     if not channels:
         raise SpecError(f"the profiles share no channel ({', '.join(a.channels)} vs {', '.join(b.channels)})",
