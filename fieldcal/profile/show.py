@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from fieldcal.errors import FieldcalError
 from fieldcal.profile.uncertainty import geometry_rates
 
 BAND_LEVEL = 0.9
@@ -52,7 +53,7 @@ def channel_summary(profile, ch: str) -> dict[str, Any]:
             out["tolerance_um"] = {"fs_cyc_per_mm": fs, "q": q, "centre": t_c, "corner": t_k,
                                    "source": "measured widths" if profile.has_measured_tolerance
                                    else "defocus model (F-number)"}
-        except Exception as e:  # noqa: BLE001 - a profile without F-number or widths: say so, do not fail
+        except FieldcalError as e:  # a profile without F-number or widths: say so, do not fail
             out["tolerance_um"] = {"fs_cyc_per_mm": fs, "q": q, "note": getattr(e, "what", str(e))}
     return out
 

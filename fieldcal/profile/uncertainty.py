@@ -20,18 +20,12 @@ The diagonal equals the profile's own band variance (``best_focus_sd_um`` square
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from fieldcal.errors import ParameterError
-
-#: Matérn 3/2 correlation (the discrepancy's kernel, docs/fitting.md "Discrepancy").
-def matern32(d_over_ell: np.ndarray) -> np.ndarray:
-    a = math.sqrt(3.0) * np.asarray(d_over_ell, dtype=np.float64)
-    return (1.0 + a) * np.exp(-a)
-
+from fieldcal.fit.discrepancy import matern32  # the discrepancy's own kernel
 
 ORIENTATIONS = ("mean", "tangential", "sagittal")
 
