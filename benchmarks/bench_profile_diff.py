@@ -72,7 +72,7 @@ def calibrate_one(spec, workdir: Path, name: str, seed: int, z_offset_um: float,
     return out
 
 
-def trial(k: int, workdir: Path, level: float = 0.95, changes=True) -> dict:
+def trial(k: int, workdir: Path, level: float = 0.95, changes=True, n_null: int = 10000) -> dict:
     """One trial: the same lens twice (null), and the changed lenses against the first calibration.
 
     ``changes``: True for every changed lens of :func:`changed_specs`, or the names of some, or False.
@@ -88,7 +88,7 @@ def trial(k: int, workdir: Path, level: float = 0.95, changes=True) -> dict:
     b = LensProfile.load(calibrate_one(spec, workdir, f"b{k}", 1001 + 2 * k, offset, 1))
     t_cal = time.perf_counter() - t0
     t1 = time.perf_counter()
-    null, _ = diff_profiles(a, b, level=level)
+    null, _ = diff_profiles(a, b, level=level, n_null=n_null)
     t_diff = time.perf_counter() - t1
     row = {"trial": k, "null_significant": null["significant"], "null_p": null["p_value"],
            "null_max_z": max(c["max_z_score"] for c in null["channels"].values()),
@@ -99,7 +99,7 @@ def trial(k: int, workdir: Path, level: float = 0.95, changes=True) -> dict:
             if changes is not True and label not in changes:
                 continue
             c = LensProfile.load(calibrate_one(s, workdir, f"{label}{k}", 1001 + 2 * k, offset, 1))
-            d, _ = diff_profiles(a, c, level=level)
+            d, _ = diff_profiles(a, c, level=level, n_null=n_null)
             row[f"{label}_significant"] = d["significant"]
             row[f"{label}_p"] = d["p_value"]
             if label.startswith("tilt"):
