@@ -335,6 +335,8 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
                  max_z_score=worst["max_z_score"], critical_z=worst["critical_z"],
                  significant=any(e["significant"] for e in c["orientations"].values())
                  or bool((c.get("tolerance") or {}).get("significant")))
+    doc["geometry"]["channels"] = {ch: doc["geometry"]["channels"][ch] for ch in channels
+                                   if ch in doc["geometry"]["channels"]}
     doc["geometry"]["significant"] = any(g["significant"] for g in doc["geometry"]["channels"].values())
     doc["summary"] = summary_lines(doc)
     return doc, maps
