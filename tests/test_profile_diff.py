@@ -152,3 +152,22 @@ def test_two_calibrations_of_one_lens(tmp_path):
         row = bench.trial(k, tmp_path, changes=("tilt_mm", "breathing"), n_null=2000)
         assert not row["null_significant"], row
         assert row["tilt_mm_significant"] and row["breathing_significant"], row
+
+
+def test_joint_uncertainty_has_the_profiles_own_bands(prof_path):
+    """The joint covariance's diagonal is the band's variance; breathing is d ln m / dz of the fitted m(z)."""
+    from fieldcal.profile.uncertainty import geometry_rates, surface_estimate
+    p = LensProfile.load(prof_path)
+    w, h = p.image_size_px
+    x, y = np.meshgrid(np.linspace(0, w - 1, 6), np.linspace(0, h - 1, 4))
+    e = surface_estimate(p, x.ravel(), y.ravel(), "G")
+    lo, hi = p.best_focus_interval_um(x.ravel(), y.ravel(), "G", 0.9)
+    # a Gaussian band: half-width = 1.645 sd (the samples' quantiles, so within a few per cent)
+    np.testing.assert_allclose(0.5 * (hi - lo), 1.6449 * e.sd, rtol=0.08)
+    for ell in e.lengths:
+        np.testing.assert_allclose(np.sqrt(np.diag(e.cov(ell))), e.sd, rtol=1e-9)
+    z = 0.5 * sum(p.z_range_um)
+    r = geometry_rates(p, "G", z)["breathing_per_um"]
+    dz = 1e-3
+    num = (np.log(p.magnification(z + dz, "G")) - np.log(p.magnification(z - dz, "G"))) / (2 * dz)
+    assert r.value == pytest.approx(float(num), rel=1e-6)
