@@ -18,7 +18,7 @@ from .errors import (EXIT_BAD_INPUT, EXIT_ENVIRONMENT, EXIT_INTERNAL, EXIT_INTER
                      from_oserror)
 
 COMMANDS = ["demo", "targets", "simulate", "import_stack", "calibrate", "mtf", "plan", "capture", "composite",
-            "report", "validate", "lens", "batch"]
+            "report", "validate", "lens", "batch", "profile"]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -53,8 +53,11 @@ def _say(command: str, text: str) -> None:
 def _command_name(args) -> str:
     name = getattr(args, "command", None) or ""
     kind = (getattr(args, "plan_kind", None) or getattr(args, "lens_command", None)
-            or getattr(args, "batch_command", None))
+            or getattr(args, "batch_command", None)
+            or getattr(args, "profile_command", None))
     return f"{name} {kind}" if kind and isinstance(kind, str) else name
+
+
 def _name_flags(err: FieldcalError, parser: argparse.ArgumentParser, args) -> None:
     """Library errors name API fields; show the CLI user the flag instead (fieldcal.commands.name_flags)."""
     from .commands import name_flags

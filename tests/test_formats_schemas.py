@@ -52,7 +52,8 @@ def test_format_constants_come_from_the_schemas():
     from fieldcal.validation.run import VALIDATION_FORMAT
     from fieldcal.plan.device_masks import MASKS_FORMAT
     from fieldcal.batch.fleet import FLEET_FORMAT
-    got = {"mtf": MTF_FORMAT, "stack": FORMAT, "profile": PROFILE_FORMAT, "plan": PLAN_FORMAT, "lens": LENS_FORMAT,
+    from fieldcal.profile.diff import DIFF_FORMAT
+    got = {"profile-diff": DIFF_FORMAT, "mtf": MTF_FORMAT, "stack": FORMAT, "profile": PROFILE_FORMAT, "plan": PLAN_FORMAT, "lens": LENS_FORMAT,
            "truth": TRUTH_FORMAT, "capture-journal": JOURNAL_FORMAT, "composite": COMPOSITE_FORMAT,
            "targets": TARGETS_FORMAT, "validation": VALIDATION_FORMAT, "surface-fit": SURFACE_FIT_FORMAT,
            "geometry-fit": GEOMETRY_FIT_FORMAT, "tolerance-fit": TOLERANCE_FIT_FORMAT, "masks": MASKS_FORMAT,

@@ -15,7 +15,7 @@ one-paragraph message that names the file, the field and the fix, and a non-zero
 | exit | meaning |
 | --- | --- |
 | 0 | done |
-| 1 | `validate`: a check failed (the report says which); no other command uses 1 |
+| 1 | `validate`: a check failed (the report says which); `profile diff --fail-if-significant`: the profiles differ |
 | 2 | bad input: argument, malformed stack/profile/plan/lens file, altered frame, refused output path |
 | 3 | a device error or a lost link during `capture` (the folder is left resumable) |
 | 4 | the machine: disk full, read-only file system, permission denied, out of memory, optional extra missing |
@@ -39,6 +39,8 @@ fieldcal targets --out calibration_targets --dpi 100               # printable c
 fieldcal simulate models/triplet-uncorrected.json chart --z -370 60 20 --size 320x180   # a chart stack
 fieldcal calibrate chart --out lens.json --fs 10 --q 0.05 --effort quick
 fieldcal report lens.json --out report/
+fieldcal profile show lens.json                                    # the profile in words (docs/profiles.md)
+fieldcal profile export lens.json --format lensfun --out lens.xml  # for darktable, RawTherapee, Hugin
 fieldcal plan stack lens.json --fs 10 --q 0.05 --confidence 0.95 --out plan.json --plots plan-plots/
 fieldcal plan sweep lens.json --alpha-um 20 --pixel-exposure-ms 16 --device lcos --channels G --out sweep.json
 fieldcal plan export-masks sweep.json --out sweep-masks            # the LCoS masks as 1-bit PNGs + masks.json

@@ -85,6 +85,8 @@ KINDS: dict[str, DocumentKind] = {k.name: k for k in (
                  "export the masks again with `fieldcal plan export-masks` (docs/planning.md)"),
     DocumentKind("fleet", "fieldcal-fleet-1.schema.json", "format",
                  "run `fieldcal batch calibrate` (or `fieldcal validate --lenses N`) again (docs/batch.md)"),
+    DocumentKind("profile-diff", "fieldcal-profile-diff-1.schema.json", "format",
+                 "compare the profiles again with `fieldcal profile diff A B --json` (docs/profiles.md)"),
 )}
 
 
