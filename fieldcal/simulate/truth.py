@@ -36,7 +36,10 @@ def load_truth(path: str | Path) -> TruthProfile:
     doc = documents.read(path, "truth", not_found="truth.json not found",
                          not_found_fix="give a stack folder written by `fieldcal simulate` (it holds truth.json)")
     spec, (w, h) = truth_lens(doc, path)
-    return TruthProfile(spec, w, h)
+    # a wave-optics stack's best focus is where its MTF at fs peaks, not the spec's surface (truth.json says so)
+    optics = doc.get("optics", "geometric")
+    fs = (doc.get("best_focus") or {}).get("fs_cyc_per_mm") or (doc.get("renderer") or {}).get("fs_cyc_per_mm")
+    return TruthProfile(spec, w, h, optics=optics, **({"fs_cyc_per_mm": float(fs)} if fs else {}))
 
 
 class TruthProfile:
@@ -76,6 +79,14 @@ class TruthProfile:
         self.optics = optics
         self.fs_cyc_per_mm = float(fs_cyc_per_mm)
         self._shift: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def with_z_ref(self, z_ref_um: float) -> "TruthProfile":
+        """The same lens, image size and optics path in the reference geometry of the frame at ``z_ref_um``
+        (a calibrated profile's z_ref): rebuilding without ``optics`` would silently give the geometric truth."""
+        out = TruthProfile(self.spec, z_ref_um=z_ref_um, source_path=self.source_path, optics=self.optics,
+                           fs_cyc_per_mm=self.fs_cyc_per_mm)
+        out._shift = self._shift  # the focus-shift tables do not depend on z_ref (they are per field height)
+        return out
 
     def focus_shift_table(self, channel: str) -> tuple[np.ndarray, np.ndarray]:
         """(rho, shift_um): sharpest position minus the reference surface over normalised field height."""
