@@ -54,12 +54,12 @@ def lens_plan(k: int, optics: str = "mixed") -> tuple[str, bool, int]:
 
 
 def simulate_lens(k: int, width_px: int, workdir: Path, optics: str = "mixed", seed: int = 9100,
-                  stage_errors: bool = True):
+                  stage_errors: bool = True, variety: bool = True):
     """Render lens ``k``'s chart stack with stage errors; returns a dict describing it.
 
     The lens is ``random_lens(optics=True)`` (same surfaces as before for a given k) with its F-number redrawn
     log-uniform in F/1.4-F/8 and, on the asymmetric wave-optics lenses, W040 = 0.25-0.8 waves; every 4th lens
-    is rendered 1.25x wider than ``width_px``.
+    is rendered 1.25x wider than ``width_px`` (``variety=False``: random_lens's own F/2-F/4, all at ``width_px``).
     """
     from fieldcal.fit.synthetic import random_lens
     from fieldcal.simulate.aberrations import Aberrations
@@ -70,7 +70,11 @@ def simulate_lens(k: int, width_px: int, workdir: Path, optics: str = "mixed", s
     rng = np.random.default_rng(seed + k)
     spec = random_lens(rng, channels=("R", "G", "B") if k % 4 else ("Y",), optics=True)
     rng2 = np.random.default_rng(seed + 7919 * (k + 1))  # drawn apart so the surfaces stay those of lens k
-    spec = replace(spec, f_number=float(math.exp(rng2.uniform(*LOG_F_RANGE))))
+    f_number = float(math.exp(rng2.uniform(*LOG_F_RANGE)))
+    if variety:
+        spec = replace(spec, f_number=f_number)
+    else:
+        wf = 4
     if spherical:
         spec = replace(spec, aberrations=Aberrations(spherical=(float(rng2.uniform(*SA_WAVES)),)))
     w = int(round(width_px * wf / 4))
@@ -121,6 +125,41 @@ def evaluate(prof, lens: dict, level: float = 0.9) -> dict:
             "err_hw_p90": float(np.quantile(q, 0.9)), "err_hw_median": float(np.median(q))}
 
 
+def field_wide_share(prof, hw_um: float, level: float = 0.9) -> float:
+    """Share of the band's variance that is common to the whole field (stage repeatability, common mode, the
+    breathing and fixed systematics), per channel averaged: the part of the error one lens draws only once."""
+    from scipy.special import ndtri
+
+    zq = float(ndtri(0.5 + 0.5 * level))
+    s = prof.surfaces
+    d = s.discrepancy
+    cal = prof.calibration or {}
+    out = []
+    for i, c in enumerate(s.model.channels):
+        v = float(s.stage_sd_um.get(c, 0.0)) ** 2 + float(cal.get("systematic_sd_um") or 0.0) ** 2
+        v += float((cal.get("breathing_systematic_sd_um") or {}).get(c) or 0.0) ** 2
+        if d is not None and d.common_sd is not None and i < d.common_sd.size:
+            v += (float(d.common_sd[i]) * s.z_scale_um) ** 2
+        out.append(v)
+    return float(min(np.mean(out) / max((hw_um / zq) ** 2, 1e-18), 1.0))
+
+
+def p_coverage_in_range(share: float, lo: float = 0.75, hi: float = 0.99, level: float = 0.9) -> float:
+    """Probability that a perfectly honest Gaussian band gives a lens a field coverage in [lo, hi] when a
+    ``share`` of its variance is one field-wide draw c and the rest varies over the field (independent points):
+    coverage(c) = P(|c + e| <= z) over e ~ N(0, 1 - share), c ~ N(0, share). A band dominated by field-wide
+    terms covers all or nothing, however honest it is."""
+    from scipy.special import ndtri
+    from scipy.stats import norm
+
+    zq = float(ndtri(0.5 + 0.5 * level))
+    x, w = np.polynomial.hermite_e.hermegauss(80)
+    c = math.sqrt(max(share, 0.0)) * x
+    se = math.sqrt(max(1.0 - share, 1e-12))
+    cov = norm.cdf((zq - c) / se) - norm.cdf((-zq - c) / se)
+    return float(np.sum(w * ((cov >= lo) & (cov <= hi))) / np.sum(w))
+
+
 def run_one(lens: dict, effort: str, seed: int = 0) -> dict:
     import fieldcal
 
@@ -134,7 +173,9 @@ def run_one(lens: dict, effort: str, seed: int = 0) -> dict:
     prof.surfaces.band_scale = 1.0
     before = evaluate(prof, lens)
     prof.surfaces.band_scale = scale
-    return {"cov_after": after["coverage"], "cov_before": before["coverage"], "rms_um": after["rms_um"],
+    share = field_wide_share(prof, after["hw_um"])
+    return {"field_share": share, "p_in_range": p_coverage_in_range(share),
+            "cov_after": after["coverage"], "cov_before": before["coverage"], "rms_um": after["rms_um"],
             "err_hw_p90": after["err_hw_p90"], "err_hw_median": after["err_hw_median"],
             "hw_um": after["hw_um"], "hw_before_um": before["hw_um"], "band_scale": scale,
             "self_check": sc.get("coverage", float("nan")), "check_s": sc.get("time_s", float("nan")),
@@ -150,7 +191,7 @@ def summarise(rows, efforts):
             r = [x for x in rows if x["effort"] == eff and opt in ("all", x["optics"])]
             if not r or (opt == "all" and len(groups) == 2):
                 continue
-            a = lambda k: np.array([x[k] for x in r], dtype=float)
+            a = lambda k: np.array([x.get(k, np.nan) for x in r], dtype=float)  # older rows lack new keys
             ca, cb = a("cov_after"), a("cov_before")
             ratio = a("hw_um") / np.maximum(a("rms_um"), 1e-9)
             asym = [x for x in r if x.get("asymmetric")]
@@ -161,6 +202,7 @@ def summarise(rows, efforts):
                         "rms_step_max": float(np.max(a("rms_um") / a("step_um"))),
                         "asym_rms_step_max": (f"{max(x['rms_um'] / x['step_um'] for x in asym):.3f} ({len(asym)})"
                                               if asym else "—"),
+                        "expected_in": f"{np.nansum(a('p_in_range')):.1f}", "share": float(np.nanmedian(a("field_share"))),
                         "hw_rms": float(np.mean(ratio)), "err_hw_p90": float(np.median(a("err_hw_p90"))),
                         "scale": float(np.median(a("band_scale"))),
                         "self_check": float(np.nanmean(a("self_check"))),
@@ -174,6 +216,7 @@ def render_table(rows, efforts, argv_text: str, note: str = "") -> str:
     cols = [("effort", "effort", ""), ("optics", "optics", ""), ("lenses", "lenses", ""),
             ("mean coverage before", "cov_before", ".3f"), ("mean coverage after", "cov_after", ".3f"),
             ("min", "cov_min", ".2f"), ("max", "cov_max", ".2f"), ("lenses in 0.75-0.99", "in_075_099", ""),
+            ("expected if honest", "expected_in", ""), ("median field-wide share", "share", ".2f"),
             ("mean RMS / step", "rms_step", ".4f"), ("max RMS / step", "rms_step_max", ".3f"),
             ("max RMS / step, asymmetric (n)", "asym_rms_step_max", ""),
             ("mean half-width / RMS", "hw_rms", ".2f"), ("median p90 of error / half-width", "err_hw_p90", ".2f"),
@@ -185,7 +228,7 @@ def render_table(rows, efforts, argv_text: str, note: str = "") -> str:
                 ("coverage after", "cov_after", ".2f"), ("self-check", "self_check", ".2f"),
                 ("band scale", "band_scale", ".2f"), ("RMS (µm)", "rms_um", ".3f"), ("RMS / step", "rms_step", ".3f"),
                 ("half-width (µm)", "hw_um", ".3f"), ("p90 error / half-width", "err_hw_p90", ".2f"),
-                ("model", "model", "")]
+                ("field-wide share", "field_share", ".2f"), ("model", "model", "")]
     for x in rows:
         x["asym"] = "yes" if x.get("asymmetric") else ""
         x["rms_step"] = x["rms_um"] / x["step_um"]
@@ -200,7 +243,10 @@ def render_table(rows, efforts, argv_text: str, note: str = "") -> str:
         "scale error ≤ 2e-4; truth in commanded stage coordinates, and for wave optics the sharpest position "
         "(MTF at fs peaks). *before* = band terms as estimated (band scale 1), *after* = with the leave-tiles-out "
         "band scale; self-check = the profile's own cross-validated coverage; *p90 of error / half-width* ≈ 1 "
-        "for an honest band (> 1 too narrow, < 1 too wide). Machine shared (2 cores)." + (" " + note if note else ""),
+        "for an honest band (> 1 too narrow, < 1 too wide); *field-wide share* = the part of the band's variance "
+        "that is one draw per lens (stage repeatability, common mode, systematics); *expected if honest* = the "
+        "number of lenses a perfectly honest band with those shares would put in 0.75-0.99 "
+        "(`p_coverage_in_range`). Machine shared (2 cores)." + (" " + note if note else ""),
         "", *md_table(summ, cols), "", "Per lens:", "", *md_table(rows, per_lens)])
 
 
