@@ -239,3 +239,23 @@ def test_wave_truth_survives_load_and_z_ref_rebuild(tmp_path):
     # truth is the wave one too
     metrics, _, _ = surface_metrics(moved, truth)
     assert max(m["rms_um"] for m in metrics.values()) < 1e-6
+
+
+def test_sub_spacing_discrepancy_is_tile_noise_in_the_check():
+    """A discrepancy GP shorter than a tile spacing cannot be told from tile noise, and the band leaves it out
+    (Discrepancy.gp_identified() = 0). Held-out tiles that scatter by exactly that nugget must not make the
+    check widen the surface band (it did: c = 2.3 on a random lens whose surface error was 1/7 of the band)."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(11)
+    fit, _ = _fit(random_lens(rng, channels=("R", "G", "B")), rng)
+    d = fit.discrepancy
+    spacing = d.diagnostics["tile_spacing"]
+    tau = 2.0 * np.sqrt(np.median(d.noise_var)) * np.ones(d.tau.size)
+    nug = replace(d, length_scale=0.5 * spacing, tau=tau, _cache={},
+                  target=d.target + tau[d.ch_index] * np.random.default_rng(2).standard_normal(d.target.size))
+    assert nug.gp_identified() == 0.0 and replace(d, length_scale=spacing).gp_identified() == 1.0
+    chk = predictive_check(nug)
+    assert chk.band_scale < 1.3 and 0.82 <= chk.coverage <= 0.97, chk
+    # the same scatter with the GP's identified (>= one spacing) is surface: then the check is free to widen
+    assert predictive_check(replace(nug, length_scale=0.5 * spacing, tau=0.0 * tau, _cache={})).band_scale > 1.3
