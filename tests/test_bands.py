@@ -259,3 +259,32 @@ def test_sub_spacing_discrepancy_is_tile_noise_in_the_check():
     assert chk.band_scale < 1.3 and 0.82 <= chk.coverage <= 0.97, chk
     # the same scatter with the GP's identified (>= one spacing) is surface: then the check is free to widen
     assert predictive_check(replace(nug, length_scale=0.5 * spacing, tau=0.0 * tau, _cache={})).band_scale > 1.3
+
+
+# ------------------------------------------------------------------------- --confidence stack plans
+def test_confidence_plan_states_the_expected_fraction_in_tolerance():
+    """The plan's expected_fraction is the fraction of pixels in tolerance it promises on average: with true
+    surfaces drawn from the profile's own band (a field-wide shift ~ N(0, sigma), sigma = band / z_0.95), the
+    measured fraction averaged over the draws (Gauss-Hermite) matches it within 2 points (issue 14); the worst-
+    pixel probability is a lower bound of it."""
+    from scipy.special import ndtri
+
+    from fieldcal.plan import StackRequest, plan_stack
+    from fieldcal.plan.cover import nearest_index
+    from fieldcal.plan.scene import full_grid
+    from fieldcal.plan.synthetic import SyntheticProfile
+
+    band, tol = 1.0, 4.0
+    prof = SyntheticProfile(97, 65, a_um=-120.0, tolerance_um=tol, band_um=band)
+    for conf in (0.5, 0.9):
+        plan = plan_stack(prof, StackRequest(confidence=conf, grid_step_px=4))
+        sigma = band / float(ndtri(0.5 + 0.5 * conf))
+        x, y = full_grid(plan.field.roi)
+        frames = np.sort(plan.frames_um)
+        z = prof.best_focus_um(x, y, "G")
+        nodes, w = np.polynomial.hermite_e.hermegauss(40)
+        zf = frames[nearest_index(frames, z)]  # the frame the profile assigns each pixel
+        measured = sum(wi * np.mean(np.abs(zf - (z + sigma * c)) <= tol) for c, wi in zip(nodes, w)) / w.sum()
+        st = plan.stats
+        assert st["probability"] <= st["expected_fraction"] <= 1.0
+        assert abs(st["expected_fraction"] - measured) <= 0.02, (conf, st["expected_fraction"], measured)
