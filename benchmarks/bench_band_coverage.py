@@ -217,9 +217,12 @@ def summarise(rows, efforts):
     """One row per (effort, optics path), then per effort over all lenses."""
     out = []
     for eff in efforts:
-        groups = sorted({x["optics"] for x in rows if x["effort"] == eff}) + ["all"]
+        kind = lambda x: x["optics"] + (" + SA" if x.get("asymmetric") else "")  # noqa: E731
+        groups = sorted({kind(x) for x in rows if x["effort"] == eff})
+        groups += (["wave (all)"] if sum(g.startswith("wave") for g in groups) > 1 else []) + ["all"]
         for opt in groups:
-            r = [x for x in rows if x["effort"] == eff and opt in ("all", x["optics"])]
+            r = [x for x in rows if x["effort"] == eff
+                 and (opt == "all" or opt == kind(x) or (opt == "wave (all)" and x["optics"] == "wave"))]
             if not r or (opt == "all" and len(groups) == 2):
                 continue
             a = lambda k: np.array([x.get(k, np.nan) for x in r], dtype=float)  # older rows lack new keys
