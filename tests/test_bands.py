@@ -288,3 +288,27 @@ def test_confidence_plan_states_the_expected_fraction_in_tolerance():
         st = plan.stats
         assert st["probability"] <= st["expected_fraction"] <= 1.0
         assert abs(st["expected_fraction"] - measured) <= 0.02, (conf, st["expected_fraction"], measured)
+
+
+def test_wave_truth_tolerance_is_the_pupils_own():
+    """Wave optics: the truth's tolerance comes from the pupil's through-focus MTF at fs (spherical aberration
+    skews it), the nearer of the two sides where MTF has fallen by q: there MTF = (1 - q) peak, on the far side
+    at the same distance it is still above."""
+    from pathlib import Path
+
+    from fieldcal.simulate.lens import LensSpec
+    from fieldcal.simulate.truth import TruthProfile
+    from fieldcal.simulate.wave import ChannelOptics, terms_at
+
+    spec = LensSpec.load(Path(__file__).resolve().parents[1] / "models" / "triplet-wave-sa.json")
+    spec = spec.with_sensor_size(96, 54)
+    fs, q = 40.0, 0.05
+    t = TruthProfile(spec, optics="wave", fs_cyc_per_mm=fs)
+    tol = float(t.focus_tolerance_um(10.0, 10.0, "G", fs, q))
+    opt = ChannelOptics(spec, "G")
+    terms = terms_at(spec, "G", 0.0, 0.0)
+    z0 = opt.best_focus_shift_um(terms, fs)
+    peak = opt.mtf(terms, z0, fs)
+    m = sorted(opt.mtf(terms, z0 + s * tol, fs) / peak for s in (-1.0, 1.0))
+    assert m[0] == pytest.approx(1.0 - q, abs=2e-4) and m[1] > m[0] + 1e-4, m  # skewed: the sides differ
+    assert tol != pytest.approx(TruthProfile(spec).focus_tolerance_um(10.0, 10.0, "G", fs, q), rel=1e-3)
