@@ -163,28 +163,27 @@ def p_coverage_in_range(share: float, lo: float = 0.75, hi: float = 0.99, level:
 def plan_check(prof, lens: dict, confidence: float = 0.9, q: float = 0.05, step_px: int = 4) -> dict:
     """A ``--confidence`` stack plan from the profile against the truth: its stated expected fraction of pixels
     in tolerance (and worst-pixel probability) vs the measured fraction of pixels whose assigned frame (nearest
-    the profile's best focus) is within the lens's true tolerance of the true best focus (commanded stage coordinates). Geometric lenses
-    only: TruthProfile's tolerance is the geometric model's (NaN for wave optics)."""
+    the profile's best focus) is within the lens's true tolerance of the true best focus (commanded stage
+    coordinates). Wave optics: the truth's sharpest position and the pupil's own tolerance (on axis)."""
     from fieldcal.plan import StackRequest, plan_stack
     from fieldcal.plan.cover import nearest_index
     from fieldcal.simulate.truth import TruthProfile
-    from fieldcal.validation.run import _grid, true_tolerances
+    from fieldcal.validation.run import _grid
 
-    if lens.get("optics", "geometric") != "geometric":
-        return {"plan_stated": float("nan"), "plan_worst": float("nan"), "plan_measured": float("nan")}
     plan = plan_stack(prof, StackRequest(fs_cyc_per_mm=lens["fs"], q=q, confidence=confidence))
     w, h = prof.image_size_px
-    truth = TruthProfile(lens["spec"], w, h, z_ref_um=prof.z_ref_um)
-    tol = true_tolerances(lens["spec"], lens["fs"], q)
+    truth = TruthProfile(lens["spec"], w, h, z_ref_um=prof.z_ref_um, optics=lens.get("optics", "geometric"),
+                         fs_cyc_per_mm=lens["fs"])
     frames = np.sort(np.asarray(plan.frames_um, dtype=np.float64))
     X, Y = _grid(w, h, step_px)
     inside = []
     for c in truth.channels:
+        tol = truth.focus_tolerance_um(X, Y, c, lens["fs"], q)
         zt = (np.asarray(truth.best_focus_um(X, Y, c)) + 0.5 * lens["stage_backlash_um"]) / (1.0 + lens["stage_scale_error"])
         zt = zt + plan.field.refocus_um
         # the frame the plan assigns the pixel (nearest the profile's best focus), as the stated probability has it
         zp = np.asarray(prof.best_focus_um(X, Y, c)) + plan.field.refocus_um
-        inside.append(np.abs(frames[nearest_index(frames, zp)] - zt) <= tol[c] + 1e-9)
+        inside.append(np.abs(frames[nearest_index(frames, zp)] - zt) <= tol + 1e-9)
     return {"plan_stated": float(plan.stats["expected_fraction"]), "plan_worst": float(plan.stats["probability"]),
             "plan_measured": float(np.mean(np.concatenate([a.ravel() for a in inside]))),
             "plan_frames": int(frames.size)}
@@ -299,7 +298,7 @@ def main(argv=None) -> int:
                          "odd wave)")
     ap.add_argument("--no-stage-errors", action="store_true", help="a perfect stage")
     ap.add_argument("--plans", action="store_true",
-                    help="also check a --confidence 0.9 stack plan from each profile against the truth (geometric)")
+                    help="also check a --confidence 0.9 stack plan from each profile against the truth")
     ap.add_argument("--jsonl", type=Path, help="append each lens's rows to this file (chunked runs)")
     ap.add_argument("--from-jsonl", type=Path, help="make the table from the rows of a --jsonl file, run nothing")
     ap.add_argument("--note", default="", help="a sentence appended to the table's caption")
