@@ -40,7 +40,8 @@ def simulate_lens(k: int, width_px: int, workdir: Path, seed: int = 7000):
     """Render lens ``k``'s chart stack (a perfect stage); returns (spec, stack dir, fs, z step)."""
     from bench_band_coverage import simulate_lens as simulate_with_stage
 
-    lens = simulate_with_stage(k, width_px, workdir, seed=seed, stage_errors=False)
+    lens = simulate_with_stage(k, width_px, workdir, optics="geometric", seed=seed, stage_errors=False,
+                                variety=False)
     return lens["spec"], lens["dir"], lens["fs"], lens["step_um"]
 
 

@@ -172,6 +172,14 @@ class Discrepancy:
         m = self.ch_index == ci
         return self.tau[ci] ** 2 * matern32(_dist(x_hat, y_hat, self.x_hat[m], self.y_hat[m]) / self.length_scale)
 
+    def gp_identified(self) -> float:
+        """Fraction (0-1) of the GP's local variance that is surface rather than tile noise: 0 at the shortest
+        length scale (half a tile spacing: a nugget), 1 from one spacing up (see :meth:`predict`)."""
+        spacing = float(self.diagnostics.get("tile_spacing") or 0.0)
+        if spacing <= 0:
+            return 1.0
+        return float(np.clip((self.length_scale / spacing - ELL_MIN_SPACINGS) / (1.0 - ELL_MIN_SPACINGS), 0.0, 1.0))
+
     def _has_gp(self, ci: int) -> bool:
         return ci in self._state()["chol"] and self.tau[ci] > 0
 
@@ -233,10 +241,7 @@ class Discrepancy:
             # A GP shorter than a tile spacing cannot be told from tile noise (a nugget): its variance between
             # tiles is noise, not surface (measured: 0.15-0.4 µm sd added where the errors were 0.07-0.2 µm).
             # It counts in full from one spacing, not at all at the lower bound of half a spacing.
-            spacing = float(self.diagnostics.get("tile_spacing") or 0.0)
-            ident = 1.0 if spacing <= 0 else float(np.clip((self.length_scale / spacing - ELL_MIN_SPACINGS)
-                                                           / (1.0 - ELL_MIN_SPACINGS), 0.0, 1.0))
-            local = ident * np.clip(self.tau[ci] ** 2 - np.sum(V * V, axis=0), 0.0, None)
+            local = self.gp_identified() * np.clip(self.tau[ci] ** 2 - np.sum(V * V, axis=0), 0.0, None)
             var = local + np.einsum("mp,pq,mq->m", R, st["beta_cov"], R)
         else:
             local = 0.0

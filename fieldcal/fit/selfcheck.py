@@ -13,7 +13,8 @@ Procedure (all in normalised z units, focus rows of the chosen model):
    discrepancy, block jackknife, misfit term; without the common-mode term, which shifts held-out and kept
    tiles alike and so cancels in a tile-to-tile check).
 2. A held-out tile is ``y_i ~ N(mu_i, c^2 v_i + n_i)`` with ``n_i = s^2 sigma_i^2 / u_i`` its own noise (the
-   fitted scale s and Student-t weight u of the full fit). The band scale ``c`` maximises this likelihood with
+   fitted scale s and Student-t weight u of the full fit) plus the part of the discrepancy GP that is too
+   short to be surface (``(1 - Discrepancy.gp_identified()) tau^2``: a nugget, which the band leaves out). The band scale ``c`` maximises this likelihood with
    a weak log-normal prior on c (sd 1 in ln c: where the tile noise dominates, c stays near 1), c in [1, 8]:
    c > 1 means the surface model misses structure between tiles. (c < 1 is not allowed: see SCALE_BOUNDS.)
 3. Self-check: for each block, c is re-estimated *without* that block and its tiles are tested against
@@ -88,7 +89,8 @@ def block_labels(x_hat: np.ndarray, y_hat: np.ndarray, blocks=JK_BLOCKS) -> np.n
 
 
 def held_out_predictions(disc: Discrepancy) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(residual, surface variance, noise variance, block label) of every focus row predicted without its block."""
+    """(residual, surface variance, tile noise variance, block label) of every focus row predicted without its
+    block; the tile noise includes the unidentified (sub-spacing) part of the discrepancy GP."""
     lab = block_labels(disc.x_hat, disc.y_hat)
     n = disc.target.size
     resid, v_surf = np.full(n, np.nan), np.full(n, np.nan)
@@ -112,7 +114,11 @@ def held_out_predictions(disc: Discrepancy) -> tuple[np.ndarray, np.ndarray, np.
             iid = np.einsum("mp,pq,mq->m", H, disc.iid_cov, H)
             resid[m] = disc.target[m] - mean
             v_surf[m] = np.clip(extra - common[int(ci)], 0.0, None) + iid
-    return resid, v_surf, disc.noise_var.copy(), lab
+    # A GP shorter than a tile spacing is tile noise, not surface (Discrepancy.predict leaves it out of the band):
+    # a held-out *tile* still has it, so it joins the tile's noise here. Left out, the check blamed it on the
+    # surface and widened the band (c = 2.3 on a random lens whose surface error was 1/7 of the band).
+    nugget = (1.0 - disc.gp_identified()) * np.asarray(disc.tau, float)[disc.ch_index] ** 2
+    return resid, v_surf, disc.noise_var + nugget, lab
 
 
 def _fit_scale(r: np.ndarray, v: np.ndarray, nv: np.ndarray) -> float:

@@ -288,10 +288,13 @@ def _stats(profile, fieldd, frames, tols, crit: MTFCriterion, confidence):
     """Coverage probability and MTF losses on the sample grid (worst pixel)."""
     fno = float(profile.f_number)
     p_min, e_loss, loss_map, margin = 1.0, 0.0, 0.0, np.inf
+    p_sum, n_px = 0.0, 0
     for c, s in fieldd.samples.items():
         zf = frames[cv.nearest_index(frames, s.z_um)]
         sigma = sigma_from_halfwidth(s.u_um, confidence) if confidence is not None else np.zeros_like(s.u_um)
-        p_min = min(p_min, float(coverage_probability(zf, s.z_um, tols[c], sigma).min()))
+        p = coverage_probability(zf, s.z_um, tols[c], sigma)
+        p_min = min(p_min, float(p.min()))
+        p_sum, n_px = p_sum + float(np.sum(p)), n_px + int(p.size)
         loss_map = max(loss_map, float(mtf_loss(zf - s.z_um, tols[c], crit, fno).max()))
         e_loss = max(e_loss, float(expected_mtf_loss(zf, s.z_um, tols[c], sigma, crit, fno).max()))
         margin = min(margin, float(np.min(tols[c] - np.abs(zf - s.z_um))))
@@ -299,6 +302,10 @@ def _stats(profile, fieldd, frames, tols, crit: MTFCriterion, confidence):
         "probability": p_min,
         "probability_definition": "smallest per-pixel probability that the assigned frame is within tolerance "
                                   "(Gaussian posterior matched to the profile's credible band; 1 without --confidence)",
+        # what a measured fraction of in-tolerance pixels is compared with (issue 14): the mean, not the worst
+        "expected_fraction": p_sum / max(n_px, 1),
+        "expected_fraction_definition": "mean over the sample grid and channels of the per-pixel probability: "
+                                        "the expected fraction of pixels whose assigned frame is within tolerance",
         "expected_worst_mtf_loss": e_loss,
         "worst_mtf_loss": loss_map,
         "min_margin_um": margin,

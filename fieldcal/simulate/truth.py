@@ -36,7 +36,10 @@ def load_truth(path: str | Path) -> TruthProfile:
     doc = documents.read(path, "truth", not_found="truth.json not found",
                          not_found_fix="give a stack folder written by `fieldcal simulate` (it holds truth.json)")
     spec, (w, h) = truth_lens(doc, path)
-    return TruthProfile(spec, w, h)
+    # a wave-optics stack's best focus is where its MTF at fs peaks, not the spec's surface (truth.json says so)
+    optics = doc.get("optics", "geometric")
+    fs = (doc.get("best_focus") or {}).get("fs_cyc_per_mm") or (doc.get("renderer") or {}).get("fs_cyc_per_mm")
+    return TruthProfile(spec, w, h, optics=optics, **({"fs_cyc_per_mm": float(fs)} if fs else {}))
 
 
 class TruthProfile:
@@ -44,7 +47,8 @@ class TruthProfile:
 
     ``optics="wave"``: the lens as the wave-optics renderer shows it — best focus is where the MTF at
     ``fs_cyc_per_mm`` peaks (spherical aberration moves it off the spec's surface, which stays available as
-    :meth:`reference_focus_um`); tolerance and MTF answers are still the geometric model's.
+    :meth:`reference_focus_um`); the tolerance is the wave path's own (on axis, :meth:`wave_tolerance_um`), the
+    MTF answers are still the geometric model's.
     """
 
     is_truth = True
@@ -76,6 +80,14 @@ class TruthProfile:
         self.optics = optics
         self.fs_cyc_per_mm = float(fs_cyc_per_mm)
         self._shift: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def with_z_ref(self, z_ref_um: float) -> "TruthProfile":
+        """The same lens, image size and optics path in the reference geometry of the frame at ``z_ref_um``
+        (a calibrated profile's z_ref): rebuilding without ``optics`` would silently give the geometric truth."""
+        out = TruthProfile(self.spec, z_ref_um=z_ref_um, source_path=self.source_path, optics=self.optics,
+                           fs_cyc_per_mm=self.fs_cyc_per_mm)
+        out._shift = self._shift  # the focus-shift tables do not depend on z_ref (they are per field height)
+        return out
 
     def focus_shift_table(self, channel: str) -> tuple[np.ndarray, np.ndarray]:
         """(rho, shift_um): sharpest position minus the reference surface over normalised field height."""
@@ -190,9 +202,43 @@ class TruthProfile:
         return self.spec.channel(channel).wavelength_nm
 
     def focus_tolerance_um(self, x, y, channel: str, fs_cyc_per_mm: float, q: float):
-        """Half-width of the in-tolerance defocus range (MTF at fs within q of its peak) at each point."""
-        tol = self.spec.focus_tolerance_um(fs_cyc_per_mm, q, channel)
+        """Half-width of the in-tolerance defocus range (MTF at fs within q of its peak) at each point.
+
+        Wave optics: from the pupil's own through-focus MTF on axis (:meth:`wave_tolerance_um`); geometric: the
+        spec's defocus model."""
+        if self.optics == "wave":
+            tol = self.wave_tolerance_um(channel, fs_cyc_per_mm, q)
+        else:
+            tol = self.spec.focus_tolerance_um(fs_cyc_per_mm, q, channel)
         return np.full(np.broadcast(np.asarray(x), np.asarray(y)).shape, tol)
+
+    def wave_tolerance_um(self, channel: str, fs_cyc_per_mm: float, q: float) -> float:
+        """Wave optics, on axis: the distance from the sharpest position (MTF at fs peaks) to the *nearer* point
+        where MTF(fs) has fallen by q. With spherical aberration the through-focus curve is skewed and the
+        two sides differ; the nearer one makes ``|z - z_best| <= tol`` a guarantee, as a planner reads it."""
+        from scipy.optimize import brentq
+
+        from fieldcal.simulate.wave import ChannelOptics, terms_at
+
+        key = (channel, float(fs_cyc_per_mm), float(q))
+        cache = self.__dict__.setdefault("_wave_tol", {})
+        if key not in cache:
+            opt = ChannelOptics(self.spec, channel)
+            terms = terms_at(self.spec, channel, 0.0, 0.0)
+            z0 = opt.best_focus_shift_um(terms, fs_cyc_per_mm)
+            level = (1.0 - q) * opt.mtf(terms, z0, fs_cyc_per_mm)
+            f = lambda dz: opt.mtf(terms, z0 + dz, fs_cyc_per_mm) - level  # noqa: E731
+            step = max(float(self.spec.focus_tolerance_um(fs_cyc_per_mm, q, channel)), 1e-3)
+            sides = []
+            for sign in (-1.0, 1.0):
+                a, b = 0.0, sign * 0.5 * step
+                for _ in range(40):  # walk out until MTF has fallen below the level (it does: defocus)
+                    if f(b) < 0:
+                        break
+                    a, b = b, 2.0 * b
+                sides.append(abs(brentq(f, a, b, xtol=1e-3)) if f(b) < 0 else abs(b))
+            cache[key] = float(min(sides))
+        return cache[key]
 
     def defocus_otf(self, f_cyc_per_mm, defocus_um, channel: str):
         """The simulated lens's own signed OTF (defocus disc x diffraction x residual blur)."""

@@ -263,7 +263,7 @@ def surface_metrics(profile, truth: TruthProfile, level: float = 0.9, step_px: i
     """
     if abs(truth.z_ref_um - profile.z_ref_um) > 1e-9:
         # pixel coordinates mean points of the z_ref frame: compare in the profile's own reference geometry
-        truth = TruthProfile(truth.spec, z_ref_um=profile.z_ref_um)
+        truth = truth.with_z_ref(profile.z_ref_um)
     w, h = truth.image_size_px
     X, Y = _grid(w, h, step_px)
     metrics, maps = {}, {}
