@@ -172,7 +172,7 @@ def _map_threads(fn, items: list) -> list:
     """``[fn(x) for x in items]`` on the compositing threads: OpenCV and SciPy's resampling release the GIL."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from .stream import default_workers
+    from .source import default_workers
 
     workers = default_workers()
     if workers == 1 or len(items) < 2:

@@ -11,6 +11,7 @@ compositing's several passes read each file once.
 from __future__ import annotations
 
 import mmap
+import os
 
 import numpy as np
 
@@ -229,12 +230,19 @@ class HeldFrames:
         self.source.require_frames(n, operation)
 
 
+def default_workers() -> int:
+    """Threads for compositing: the CPUs this process may use (at most 4: memory bandwidth bound beyond)."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        n = os.cpu_count() or 1
+    return max(1, min(4, n))
+
+
 def read_frames_parallel(stack, indices, consume, workers: int | None = None) -> None:
     """Decode frames ``indices`` on a few threads (decoders release the GIL) and pass each, in order, to
     ``consume(i, image)`` in this thread; at most ``2 * workers`` frames are in flight."""
     from concurrent.futures import ThreadPoolExecutor
-
-    from .stream import default_workers
 
     indices = [int(i) for i in indices]
     workers = default_workers() if workers is None else max(1, int(workers))

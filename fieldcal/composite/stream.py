@@ -13,7 +13,6 @@ number of frames.
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from typing import Callable
 
@@ -21,7 +20,7 @@ import numpy as np
 
 from ..optics import FrameGeometry
 from ..progress import progress
-from .source import RowReader, image_size, z_positions
+from .source import RowReader, default_workers, image_size, z_positions
 from .warp import frame_maps, source_box, warp_from
 
 DEFAULT_TILE_PX = 64
@@ -80,15 +79,6 @@ def _runs(mask_row: np.ndarray) -> list[tuple[int, int]]:
     starts = np.flatnonzero(d == 1)
     ends = np.flatnonzero(d == -1)
     return list(zip(starts.tolist(), ends.tolist()))
-
-
-def default_workers() -> int:
-    """Threads for compositing: the CPUs this process may use (at most 4: memory bandwidth bound beyond)."""
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        n = os.cpu_count() or 1
-    return max(1, min(4, n))
 
 
 class _Job:
