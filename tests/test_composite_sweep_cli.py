@@ -66,7 +66,7 @@ def test_the_flag_reaches_the_deconvolution_and_aware_beats_blind(captured):
     assert meta_a["sweep"]["channels"]["G"]["max_streak_px"] > 4.0
     assert meta_b["sweep"]["channels"]["G"]["max_streak_px"] == 0.0
     p_aware, p_blind = _psnr(aware, truth, white), _psnr(blind, truth, white)
-    assert p_aware > p_blind + 1.0, (p_aware, p_blind)  # measured 24.2 against 22.7 dB
+    assert p_aware > p_blind + 1.0, (p_aware, p_blind)  # measured 24.4 against 22.7 dB
 
 
 def test_the_default_is_aware_for_a_breathing_profile(captured):
