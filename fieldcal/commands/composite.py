@@ -5,11 +5,15 @@ from __future__ import annotations
 from ..progress import status
 from . import add_parser
 
+# the API fields composite_to_file's errors name, where the flag is spelt differently
+FIELD_FLAGS = {"fs_cyc_per_mm": "--fs", "breathing": "--breathing", "zone_px": "--zone-px"}
+
 EXAMPLE = ("fieldcal composite STACK --profile lens.json --out image.tiff\n"
            "  fieldcal composite STACK --out image.tiff                      (no profile: depth from focus)\n"
            "  fieldcal composite STACK --profile lens.json --method hybrid --plan plan.json --out image.tiff\n"
            "  fieldcal composite STACK --profile lens.json --sweep-alpha-um 20 --out sweep.tiff  (emulated sweep)\n"
-           "  fieldcal composite sweep.tiff --profile lens.json --sweep-alpha-um 20 --out restored.tiff")
+           "  fieldcal composite sweep.tiff --profile lens.json --sweep-alpha-um 20 --out restored.tiff\n"
+           "  fieldcal composite sweep.tiff --profile lens.json --sweep-alpha-um 20 --breathing blind --out b.tiff")
 
 
 def register(sub):
@@ -34,6 +38,13 @@ def register(sub):
     p.add_argument("--deconvolve", choices=["wiener", "rl", "none"], default="wiener",
                    help="sweep deconvolution with the integrated PSF (default wiener)")
     p.add_argument("--rl-iterations", type=int, default=30, metavar="N", help="Richardson-Lucy iterations")
+    p.add_argument("--breathing", choices=["aware", "blind"], default=None,
+                   help="captured sweep image: deconvolve per field zone with the image motion (breathing, shift) "
+                        "during each pixel's window and register to the profile's z_ref geometry (aware), or per "
+                        "zone without the motion (blind). Default: aware when the profile breathes or has geometry "
+                        "maps and --deconvolve is wiener, else one kernel for the whole image")
+    p.add_argument("--zone-px", type=int, metavar="PX",
+                   help="captured sweep image: size of the deconvolution zones (default 64)")
     p.add_argument("--fs", type=float, dest="fs_cyc_per_mm", metavar="CYC_PER_MM",
                    help="frequency of the focus tolerance that sets seam width (default: plan's, or Nyquist/4)")
     p.add_argument("--q", type=float, default=None, help="allowed MTF drop of the focus tolerance (default 0.05)")
@@ -62,12 +73,15 @@ def run(args) -> int:
                             rl_iterations=args.rl_iterations, fs_cyc_per_mm=args.fs_cyc_per_mm, q=args.q,
                             z_ref_um=args.z_ref_um, register=not args.no_register,
                             lateral_colour=args.lateral_colour, depth=args.depth, overwrite=args.overwrite,
-                            verify=not args.no_verify, quiet=args.quiet)
+                            verify=not args.no_verify, quiet=args.quiet,
+                            breathing=args.breathing or "auto", zone_px=args.zone_px)
     if "sweep" in res.metadata:
         info = res.metadata["sweep"]
         gains = {c: round(v.get("noise_gain", float("nan")), 2) for c, v in info.get("channels", {}).items()
                  if "noise_gain" in v}
         extra = f", noise gain {gains}" if gains else ""
+        if info.get("breathing"):
+            extra += f", breathing {info['breathing']}"
         status(f"wrote {res.path} (sweep, alpha {info.get('alpha_um')} µm{extra})", args.quiet)
     else:
         status(f"wrote {res.path} ({res.method}, {res.metadata.get('frames_used')} frames)", args.quiet)

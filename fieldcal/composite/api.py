@@ -341,15 +341,36 @@ def composite_sweep(stack, profile, alpha_um: float, *, frames=None, deconvolve:
     return SweepComposite(to_input_dtype(img, stack.dtype, stack.white_level), info)
 
 
+def profile_breathes(profile, span_um: float = 100.0) -> bool:
+    """Whether the image moves with the stage: dense geometry maps, or a magnification or shift that changes
+    within ``span_um`` of ``z_ref`` (then a captured sweep needs the breathing-aware deconvolution)."""
+    if getattr(profile, "has_geometry_map", False):
+        return True
+    z = float(profile.z_ref_um) + np.array([-span_um, span_um])
+    ch = profile.channels[0]
+    m = np.asarray(profile.magnification(z, ch), dtype=np.float64)
+    sx, sy = (np.asarray(v, dtype=np.float64) for v in profile.shift_px(z, ch))
+    return bool(np.any(np.abs(m - 1.0) > 1e-9) or np.any(np.abs(sx) > 1e-9) or np.any(np.abs(sy) > 1e-9))
+
+
+def resolve_breathing(breathing: str | None, profile, deconvolve: str) -> str | None:
+    """``"auto"``: ``"aware"`` when the profile breathes (:func:`profile_breathes`) and the deconvolution is
+    Wiener (the per-zone kernels are Wiener only), else None (one kernel, the image taken as it is)."""
+    if breathing != "auto":
+        return breathing
+    return "aware" if deconvolve == "wiener" and profile_breathes(profile) else None
+
+
 def restore_sweep_image(image: np.ndarray, profile, alpha_um: float, *, deconvolve: str = "wiener",
                         rl_iterations: int = 30, where=None, breathing: str | None = None,
-                        refocus_um: float = 0.0) -> SweepComposite:
+                        refocus_um: float = 0.0, zone_px: int | None = None) -> SweepComposite:
     """Deconvolve a captured focal-sweep image (``H x W x C``, raw, black level 0) with the integrated PSF.
 
     The profile must be of this camera: same channels and image size. ``where`` names the image in errors.
     ``breathing="aware"`` deconvolves per field zone with the image motion during the sweep and registers the
     result to the profile's ``z_ref`` geometry (``"blind"``: the same without the motion; None: one kernel, the
-    image taken as it is); ``refocus_um`` is the sweep plan's.
+    image taken as it is; ``"auto"``: :func:`resolve_breathing`); ``refocus_um`` is the sweep plan's; ``zone_px``
+    the zone size (default 64).
     """
     from .stack_profile import to_input_dtype
     from .sweep import deconvolve_sweep
@@ -358,6 +379,9 @@ def restore_sweep_image(image: np.ndarray, profile, alpha_um: float, *, deconvol
     if deconvolve == "none":
         raise ParameterError("nothing to do for a captured sweep without deconvolution", field="deconvolve",
                              fix="use wiener or rl")
+    if zone_px is not None and not (isinstance(zone_px, (int, np.integer)) and zone_px >= 8):
+        raise ParameterError(f"zone size {zone_px} px must be a whole number >= 8", field="zone_px",
+                             fix="e.g. 64 (the default); smaller zones follow faster-changing breathing")
     image = np.asarray(image)
     if image.ndim == 2:
         image = image[..., None]
@@ -371,8 +395,9 @@ def restore_sweep_image(image: np.ndarray, profile, alpha_um: float, *, deconvol
                              path=where, field="image_size_px", fix="use the profile of this camera")
     white = float(np.iinfo(image.dtype).max) if np.issubdtype(image.dtype, np.integer) else 1.0
     res = deconvolve_sweep(image.astype(np.float32), profile, alpha_um, channels, black=0.0, white=white,
-                           method=deconvolve, rl_iterations=rl_iterations, breathing=breathing,
-                           refocus_um=refocus_um)
+                           method=deconvolve, rl_iterations=rl_iterations,
+                           breathing=resolve_breathing(breathing, profile, deconvolve), refocus_um=refocus_um,
+                           zone_px=zone_px)
     return SweepComposite(to_input_dtype(res.image, image.dtype, white), {"method": "sweep-captured", **res.info})
 
 
@@ -390,7 +415,8 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
                       sweep_alpha_um: float | None = None, deconvolve: str = "wiener", rl_iterations: int = 30,
                       fs_cyc_per_mm: float | None = None, q: float | None = None, z_ref_um: float | None = None,
                       register: bool = True, lateral_colour: bool = False, depth: str = "auto",
-                      overwrite: bool = False, verify: bool = True, quiet: bool = False) -> CompositeOutput:
+                      overwrite: bool = False, verify: bool = True, quiet: bool = False,
+                      breathing: str | None = "auto", zone_px: int | None = None) -> CompositeOutput:
     """Composite a stack folder (or restore a captured sweep image) into a TIFF with its metadata.
 
     Parameters
@@ -417,6 +443,11 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         Replace an existing output file (never an input: the stack, its frames, the profile, the plan).
     verify : bool
         Check the frames against their recorded sha256 (docs/safety.md).
+    breathing : {"auto", "aware", "blind", None}
+        A captured sweep image only: deconvolve per field zone with the image motion during the sweep
+        (``"aware"``), per zone without it (``"blind"``), or with one kernel (None); ``"auto"`` (default):
+        aware when the profile breathes or has geometry maps and the deconvolution is Wiener
+        (:func:`resolve_breathing`). ``zone_px``: the zone size (default 64).
     """
     from ..formats.stack import Stack
     from ..profile.lens_profile import load_profile_or_truth
@@ -448,12 +479,17 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         img = read_single_image(src)
         prof, pinfo = load((img.shape[1], img.shape[0]))
         res = restore_sweep_image(img, prof, sweep_alpha_um, deconvolve=deconvolve, rl_iterations=rl_iterations,
-                                  where=src)
+                                  where=src, breathing=breathing, zone_px=zone_px)
         meta = {"input": str(src), "profile": pinfo, "method": res.info.pop("method"), "sweep": res.info}
         white = 1.0 if img.dtype.kind == "f" else float(np.iinfo(img.dtype).max)
         write_composite(out, res.image, prof.channels, meta, white_level=white)
         return CompositeOutput(out, meta["method"], meta)
 
+    if breathing not in ("auto", None) or zone_px is not None:  # never ignore a flag silently
+        raise ParameterError("breathing-aware or zoned deconvolution applies to a captured sweep image, not a stack "
+                             "(an emulated sweep is made of frames already registered to z_ref)",
+                             field="breathing" if zone_px is None else "zone_px",
+                             fix="give the captured sweep image instead of the stack, or drop the flag")
     on_disk = isinstance(stack, (str, Path))
     st = Stack.open(stack, verify=False) if on_disk else stack
     # The frames' sha256 are checked while compositing runs (hashing reads every file whole: ~55 ms a 4K RGB16

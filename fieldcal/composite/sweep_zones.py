@@ -34,10 +34,34 @@ BREATHING = ("aware", "blind")
 DEFAULT_ZONE_PX = 64
 
 
+_CENTRE_CACHE: dict = {}  # (id(model), channel, refocus) -> (model, correction): one lattice solve per sweep
+
+
+def _sensor_correction(model: LensModel, channel: str, refocus_um: float):
+    from ..plan.surfaces import sensor_focus_correction
+
+    size = getattr(model, "image_size_px", None)
+    if size is None:
+        return None
+    key = (id(model), channel, float(refocus_um))
+    hit = _CENTRE_CACHE.get(key)
+    if hit is not None and hit[0] is model:
+        return hit[1]
+    if len(_CENTRE_CACHE) > 16:
+        _CENTRE_CACHE.clear()
+    w, h = (int(v) for v in size)
+    corr = sensor_focus_correction(model, (0, 0, w, h), channel, float(refocus_um))
+    _CENTRE_CACHE[key] = (model, corr)
+    return corr
+
+
 def window_centres_um(model: LensModel, x, y, channel: str, refocus_um: float = 0.0) -> np.ndarray:
     """Stage position (µm) at the centre of the exposure window of sensor pixel(s) (x, y): the sweep plan opens
-    each pixel α before its best focus (:func:`fieldcal.plan.masks.window_starts`)."""
-    return np.asarray(model.best_focus_um(x, y, channel), dtype=np.float64) + float(refocus_um)
+    each pixel α before its best focus (:func:`fieldcal.plan.masks.window_starts`), that of the scene point the
+    sensor pixel images there through the profile's geometry (:func:`fieldcal.plan.surfaces.sensor_focus_um`)."""
+    z = np.asarray(model.best_focus_um(x, y, channel), dtype=np.float64) + float(refocus_um)
+    corr = _sensor_correction(model, channel, refocus_um)
+    return z if corr is None else z + corr(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
 
 
 def _geometry(model: LensModel, z_um, channel: str):

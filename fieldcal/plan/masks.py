@@ -83,13 +83,20 @@ def cfa_index(pattern: str, height: int, width: int, channels) -> np.ndarray:
 
 
 def focus_and_band(profile, field, planes, cfa: str | None, confidence: float | None = None,
-                   rows_per_chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+                   rows_per_chunk: int = 256, sensor_geometry: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Full-frame best focus (refocused) and credible half-width of each pixel of each plane, float32 (P, H, W);
     NaN outside the ROI, or where a CFA site's colour is not planned. The half-width is 0 without a confidence.
+
+    ``sensor_geometry`` (the default): each *sensor* pixel's best focus is that of the scene point it images at
+    that stage position, through the profile's geometry (``warp_px``: maps where the profile has them, else its
+    scalar magnification and shift; :func:`fieldcal.plan.surfaces.sensor_focus_um`), so windows stay centred on
+    the true best focus under strong breathing and distortion. False: the z_ref-geometry surface read at the
+    sensor pixel (map-blind; exact only without breathing, shift or distortion).
 
     The half-width is the profile's band at ``confidence`` (the larger side about the MAP surface, as stack plans
     shrink their tolerances by it: :func:`fieldcal.plan.tolerance.band_halfwidth_um`).
     """
+    from .surfaces import sensor_focus_correction
     from .tolerance import band_halfwidth_um
 
     w_img, h_img = (int(v) for v in profile.image_size_px)
@@ -98,12 +105,16 @@ def focus_and_band(profile, field, planes, cfa: str | None, confidence: float | 
     u_out = np.full((len(planes), h_img, w_img), np.nan, dtype=np.float32)
     chans = list(field.channels)
     xs = np.arange(x0, x0 + w, dtype=np.float64)
+    corr = {c: sensor_focus_correction(profile, field.roi, c, field.refocus_um) if sensor_geometry else None
+            for c in chans}
     for r0 in range(y0, y0 + h, rows_per_chunk):
         r1 = min(r0 + rows_per_chunk, y0 + h)
         gx, gy = np.meshgrid(xs, np.arange(r0, r1, dtype=np.float64))
         zs, us = {}, {}
         for c in chans:
             z = np.asarray(profile.best_focus_um(gx, gy, c), dtype=np.float64)
+            if corr[c] is not None:
+                z = z + corr[c](gx, gy)
             us[c] = (band_halfwidth_um(profile, gx, gy, c, z, confidence) if confidence is not None
                      else np.zeros_like(z))
             zs[c] = z + field.refocus_um
@@ -121,12 +132,13 @@ def focus_and_band(profile, field, planes, cfa: str | None, confidence: float | 
 
 
 def window_starts(profile, field, planes, cfa: str | None, v_um_per_ms: float, direction: str,
-                  rows_per_chunk: int = 256) -> np.ndarray:
+                  rows_per_chunk: int = 256, sensor_geometry: bool = True) -> np.ndarray:
     """Opening time (ms) of each pixel of each plane, full frame, float32, NaN where never exposed.
 
-    +z: the pixel opens when the sensor is α below its best focus, ``(z_p - z_min) / v``; -z: ``(z_max - z_p) / v``.
+    +z: the pixel opens when the sensor is α below its best focus, ``(z_p - z_min) / v``; -z: ``(z_max - z_p) / v``;
+    z_p the sensor pixel's best focus (:func:`focus_and_band`).
     """
-    z, _ = focus_and_band(profile, field, planes, cfa, None, rows_per_chunk)
+    z, _ = focus_and_band(profile, field, planes, cfa, None, rows_per_chunk, sensor_geometry)
     t = (z - np.float32(field.z_min_um)) if direction == "+z" else (np.float32(field.z_max_um) - z)
     return (t / np.float32(v_um_per_ms)).astype(np.float32)
 

@@ -203,7 +203,7 @@ def plan_sweep(profile: LensModel, request: SweepRequest) -> SweepPlan:
     _check(r)
     device = mk.make_device(r.device, r.pixel_exposure_ms, slot_ms=r.slot_ms, max_hold_ms=r.max_hold_ms,
                             clock_us=r.clock_us)
-    fieldd = sample_field(profile, r.scene, r.grid_step_px)
+    fieldd = sample_field(profile, r.scene, r.grid_step_px, sensor_geometry=True)  # windows are per sensor pixel
     cfa = r.cfa if r.cfa is not None else profile.cfa
     if cfa is not None and cfa not in mk.CFA_PATTERNS:
         raise ParameterError(f"unknown CFA pattern {cfa!r}", field="cfa", fix=f"use one of {', '.join(mk.CFA_PATTERNS)}")

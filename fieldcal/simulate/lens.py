@@ -289,11 +289,12 @@ class LensSpec:
         n = self._norm_px(pixel_pitch_um)
         wx = (np.asarray(x_px, dtype=np.float64) - cx) / n
         wy = (np.asarray(y_px, dtype=np.float64) - cy) / n
-        dz = float(z_um) - self.z_ref_um if breathing else 0.0
+        # z may be one per point (the truth's focus solve lands each pixel at its own z)
+        dz = np.asarray(z_um, dtype=np.float64) - self.z_ref_um if breathing else 0.0
         if not self.distortion.is_zero:
             wx, wy = brown_conrady(wx, wy, *self.distortion.at(dz))
-        a = self.lateral_colour_scale(channel) * (float(self.magnification(z_um)) if breathing else 1.0)
-        sx, sy = ((float(v) for v in self.shift_px(z_um, pixel_pitch_um)) if breathing else (0.0, 0.0))
+        a = self.lateral_colour_scale(channel) * (np.asarray(self.magnification(z_um)) if breathing else 1.0)
+        sx, sy = (self.shift_px(z_um, pixel_pitch_um) if breathing else (0.0, 0.0))
         return cx + a * n * wx + sx, cy + a * n * wy + sy
 
     def scene_px(self, x_px, y_px, z_um, channel: str, pixel_pitch_um: float | None = None,
