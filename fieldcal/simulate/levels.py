@@ -29,6 +29,19 @@ def fractional_level(diameter_px: np.ndarray, ratio: float, floor_px: float) -> 
     return np.where(b < floor_px, b / np.float32(floor_px), above).astype(np.float32)
 
 
+def fractional_level_lut(max_diameter_px: float, ratio: float, floor_px: float, n: int = 32000):
+    """A table of :func:`fractional_level` for ``cv2.remap`` (1 x n, float32) and its step (px).
+
+    ``cv2.remap(table, b / step, 0, INTER_LINEAR)`` evaluates the level of diameters b up to
+    ``max_diameter_px`` in one multithreaded pass. The level is piecewise linear in b with breakpoints at the
+    level diameters, so the table is exact except within one step of a breakpoint (error <= slope jump x
+    step / 4 <= 1.5 step levels) and the position rounding of remap (1/32 step, <= step / 4 levels).
+    """
+    step = max(float(max_diameter_px), floor_px) * 1.001 / (n - 2)
+    b = np.arange(n, dtype=np.float64) * step
+    return fractional_level(b.astype(np.float32), ratio, floor_px)[None, :], step
+
+
 # cv2.remap addresses at most 32767 rows: levels are stacked in pages of that height.
 _REMAP_MAX_ROWS = 32766
 
@@ -88,10 +101,22 @@ class LevelStack:
                 continue
             img = np.asarray(self._make(k), dtype=np.float32)
             for p in self._pages_with(k):
-                if p not in self._pages:
-                    self._pages[p] = np.empty((self.per_page * self.h, self.w), dtype=np.float32)
+                self._reserve(p, k, int(k_max))
                 self._pages[p][self._slot(p, k)] = img
             self._have.add(k)
+
+    def _reserve(self, page: int, k: int, k_max: int) -> None:
+        """Make page ``page`` hold level k (rows for the page's levels up to k_max, at most a full page): a
+        page grows only when a later frame needs more levels than the ones asked for so far."""
+        first = page * (self.per_page - 1)
+        need = min(self.per_page, max(k, k_max) - first + 1) * self.h
+        old = self._pages.get(page)
+        if old is not None and old.shape[0] >= need:
+            return
+        new = np.empty((need, self.w), dtype=np.float32)
+        if old is not None:
+            new[:old.shape[0]] = old
+        self._pages[page] = new
 
     def level(self, k: int) -> np.ndarray:
         """Level k (a view into its page)."""

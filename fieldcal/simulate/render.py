@@ -34,7 +34,7 @@ from ..errors import ParameterError
 from fieldcal.simulate.lens import LensSpec
 from . import noise as _noise
 from .bandwarp import scale_shift_fast, single_threaded_blas
-from .levels import LevelStack, fractional_level, level_diameters_px  # noqa: F401  (re-exported)
+from .levels import LevelStack, fractional_level, fractional_level_lut, level_diameters_px  # noqa: F401
 
 RENDERER_VERSION = "fieldcal-render/1"
 OPTICS = ("geometric", "wave")  # image-formation paths (docs/simulator.md)
@@ -320,43 +320,77 @@ class Renderer:
         m = int(math.ceil((n + 1.5 * s) / s)) + 1
         return (np.arange(m, dtype=np.float64) + 0.5) * s - 0.5 - s, m * s
 
+    def _coarse_blur(self, z_um: float | None, channel: str, affine: np.ndarray):
+        """On the coarse grid (:meth:`_coarse_axis`): signed defocus from the mean focus and the astigmatic
+        half-difference, both as blur-disc diameters (px; None where zero), and the largest effective diameter."""
+        xc, _ = self._coarse_axis(self.width_px)
+        yc, _ = self._coarse_axis(self.height_px)
+        xd = affine[0, 0] * xc[None, :] + affine[0, 2]
+        yd = affine[1, 1] * yc[:, None] + affine[1, 2]
+        xm, ym = self.spec.pixel_to_mm(xd, yd)
+        astig = self.spec.channel(channel).astigmatism_um
+        to_px = 1.0 / (self.spec.f_number * self.pitch_um)
+        dz = None if z_um is None else (z_um - self.spec.best_focus_um(xm, ym, channel)) * to_px
+        half = (0.5 * abs(astig) * self.spec.rho(xm, ym) ** 2) * to_px if astig else None
+        if dz is not None and half is not None:
+            b_max = float(np.max(np.hypot(dz, half)))
+        else:
+            b_max = 0.0 if dz is None and half is None else float(np.max(np.abs(dz if half is None else half)))
+        return dz, half, b_max
+
+    def prepare(self, z_um) -> None:
+        """Compute now every blur level that frames at these stage positions and the truth will need (channels
+        in parallel), instead of when a frame first needs it. Frames are identical either way."""
+        if self._wave is not None:
+            return
+        zs = [None] + [_check_z(z) for z in np.atleast_1d(np.asarray(z_um, dtype=np.float64))]
+
+        def build(ci):
+            ch = self.channels[ci]
+            b = 0.0
+            for z in zs:
+                aff = self._affine(self.spec.z_ref_um if z is None else z, ch, z is not None)
+                b = max(b, self._coarse_blur(z, ch, aff)[2])
+            self._check_blur(b)
+            k = int(math.floor(float(fractional_level(np.float32([b]), self.level_ratio, self.level_floor_px)[0])))
+            self._stacks[ci].ensure(k + 1)
+
+        self._per_channel(build)
+
     def _level_map(self, z_um: float | None, channel: str, affine: np.ndarray) -> np.ndarray:
         """Fractional blur level of each scene pixel (defocus where it lands on the sensor), float32 H x W.
 
         The same values as ``fractional_level(diameter_px(_defocus_at(...)))``, with the smooth parts (signed
         defocus from the mean focus, astigmatic half-difference) evaluated on a coarse grid and interpolated.
         """
+        dz, half, b_max = self._coarse_blur(z_um, channel, affine)
+        self._check_blur(b_max)
         xc, wt = self._coarse_axis(self.width_px)
         yc, ht = self._coarse_axis(self.height_px)
-        xd = affine[0, 0] * xc[None, :] + affine[0, 2]
-        yd = affine[1, 1] * yc[:, None] + affine[1, 2]
-        xm, ym = self.spec.pixel_to_mm(xd, yd)
-        astig = self.spec.channel(channel).astigmatism_um
-        to_px = 1.0 / (self.spec.f_number * self.pitch_um)
-        if z_um is None:
-            dz = None
-        else:
-            dz = (z_um - self.spec.best_focus_um(xm, ym, channel)) * to_px
-        half = (0.5 * abs(astig) * self.spec.rho(xm, ym) ** 2) * to_px if astig else None
-        b_max = math.hypot(0.0 if dz is None else float(np.max(np.abs(dz))),
-                           0.0 if half is None else float(np.max(half)))
-        self._check_blur(b_max)
+        # diameters in units of the level table's step (fractional_level_lut): one remap gives the level
+        lut, step = fractional_level_lut(b_max, self.level_ratio, self.level_floor_px)
+        to_lut = 1.0 / step
         s = _COARSE_PX
         crop = (slice(s, s + self.height_px), slice(s, s + self.width_px))
 
         def full(a):
-            a = np.broadcast_to(a, (yc.size, xc.size)).astype(np.float32)
+            a = np.broadcast_to(a * to_lut, (yc.size, xc.size)).astype(np.float32)
             return cv2.resize(a, (wt, ht), interpolation=cv2.INTER_LINEAR)[crop]
 
         if dz is None and half is None:
-            b = np.zeros((self.height_px, self.width_px), dtype=np.float32)
-        elif half is None:
+            return np.zeros((self.height_px, self.width_px), dtype=np.float32)
+        if half is None:
             b = np.abs(full(dz))
         elif dz is None:
             b = full(half)
         else:
             b = cv2.magnitude(full(dz), full(half))  # sqrt(0.5 ((dz - h)^2 + (dz + h)^2))
-        return fractional_level(b, self.level_ratio, self.level_floor_px)
+        return cv2.remap(lut, b, self._zeros(), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def _zeros(self) -> np.ndarray:
+        if getattr(self, "_zero_map", None) is None:
+            self._zero_map = np.zeros((self.height_px, self.width_px), dtype=np.float32)
+        return self._zero_map
 
     def _warp(self, img: np.ndarray, affine: np.ndarray) -> np.ndarray:
         if np.allclose(affine, [[1, 0, 0], [0, 1, 0]], rtol=0, atol=1e-12):
