@@ -23,7 +23,7 @@ from functools import lru_cache
 import numpy as np
 
 TAPS = 32  # kernel length (even): taps at floor(u) - 15 .. floor(u) + 16
-BETA = 4.0  # Kaiser window shape
+BETA = 5.0  # Kaiser window shape
 _BLOCK = 32  # output samples per matrix product
 
 

@@ -46,11 +46,13 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 # 40 GiB array).
 _MAX_BLUR_FRAMES = 2.0
 _MIN_MAX_BLUR_PX = 256.0
-# Step (px) of the coarse grid on which a frame's defocus is evaluated before bilinear interpolation: the
-# signed defocus and the astigmatic half-difference are smooth (polynomials in the field), so the
-# interpolation error is ~step^2/8 * curvature (1e-3 µm on the paper's triplet at 1920 x 1080); the kink of
-# |dz| at focus is taken after interpolation, at full resolution.
-_COARSE_PX = 8
+# The coarse grid on which a frame's defocus is evaluated before bilinear interpolation: the signed defocus and
+# the astigmatic half-difference are smooth (polynomials in rho), so the error is ~step^2/8 x curvature, and
+# the curvature in px units falls as 1/(half-diagonal in px)^2: a step of half-diagonal/128 px (2..8) keeps it
+# near 0.01 level (0.004 µm of defocus on the paper's triplet at 1920 x 1080). The kink of |dz| at focus is
+# taken after interpolation, at full resolution.
+_COARSE_PER_HALF_DIAGONAL = 128.0
+_COARSE_PX = (2, 8)
 _WORKERS = max(1, min(4, os.cpu_count() or 1))  # channel threads
 
 
@@ -142,6 +144,8 @@ class Renderer:
         self.centre_px = spec.optical_centre_px()
         xm, ym = spec.pixel_to_mm(self._xs, self._ys)
         self._illum = spec.relative_illumination(xm, ym).astype(np.float32)
+        self._coarse_px = int(np.clip(round(0.5 * math.hypot(self.width_px, self.height_px)
+                                            / _COARSE_PER_HALF_DIAGONAL), *_COARSE_PX))
         self._spectra: dict[int, dict[int, tuple[int, np.ndarray]]] = {}  # channel -> pad -> (pad, rfft2)
         self._freq: dict[tuple[int, int], np.ndarray] = {}  # grid shape -> radial table index
         # the blur levels of each channel, computed once when first needed (levels.LevelStack)
@@ -316,7 +320,7 @@ class Renderer:
         """Coarse sample positions (px) along an axis of n pixels, and the number of canvas pixels: sample j
         sits at ``(j + 0.5) s - 0.5 - s`` so that ``cv2.resize`` by s (bilinear between sample centres) covers
         pixels 0 .. n - 1 without extrapolation; the canvas is cropped by s on the low side."""
-        s = _COARSE_PX
+        s = self._coarse_px
         m = int(math.ceil((n + 1.5 * s) / s)) + 1
         return (np.arange(m, dtype=np.float64) + 0.5) * s - 0.5 - s, m * s
 
@@ -370,7 +374,7 @@ class Renderer:
         # diameters in units of the level table's step (fractional_level_lut): one remap gives the level
         lut, step = fractional_level_lut(b_max, self.level_ratio, self.level_floor_px)
         to_lut = 1.0 / step
-        s = _COARSE_PX
+        s = self._coarse_px
         crop = (slice(s, s + self.height_px), slice(s, s + self.width_px))
 
         def full(a):
@@ -384,7 +388,11 @@ class Renderer:
         elif dz is None:
             b = full(half)
         else:
-            b = cv2.magnitude(full(dz), full(half))  # sqrt(0.5 ((dz - h)^2 + (dz + h)^2))
+            # sqrt(0.5 ((dz - h)^2 + (dz + h)^2)); numpy, not cv2.magnitude, whose result depends on the
+            # arrays' memory alignment (frames must depend only on (seed, z))
+            b = np.square(full(dz))
+            b += np.square(full(half))
+            np.sqrt(b, out=b)
         return cv2.remap(lut, b, self._zeros(), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def _zeros(self) -> np.ndarray:
