@@ -143,10 +143,13 @@ class LevelStack:
         for p in range(p0, p1 + 1):
             if p not in self._pages:
                 continue
-            base = np.float32(p * (self.per_page - 1))
             # row in the page: (lo - first level of the page) * H + y; pixels of other pages are clamped and
             # masked out below
-            row = np.clip(lo - base, 0, self.per_page - 2) * np.float32(self.h) + ys
+            if p0 == p1 and p == 0:
+                row = lo * np.float32(self.h)
+            else:
+                row = np.clip(lo - np.float32(p * (self.per_page - 1)), 0, self.per_page - 2) * np.float32(self.h)
+            row += ys
             a = cv2.remap(self._pages[p], mx, row, cv2.INTER_NEAREST)
             b = cv2.remap(self._pages[p], mx, row + np.float32(self.h), cv2.INTER_NEAREST)
             b -= a

@@ -3,6 +3,7 @@
 Signals here are in units of the full well (0..1 = 0..full_well_e electrons). The gain maps the full well to
 the white level above black, ``g = (white - black) / full_well`` DN per electron, so a noise-free frame is
 ``black + g * e`` and the photon-noise variance of a pixel is ``g * (DN - black) + (g * read_noise_e)**2``.
+Photon noise is Poisson below 100 e- and a moment-matched normal approximation above (:func:`add_noise_e`).
 """
 
 from __future__ import annotations

@@ -259,8 +259,7 @@ class Renderer:
         d_px = self._level_diameter_px(k)
         pad, spectrum = self._spectrum(ci, self._pad_for(d_px, ch))
         d_um = d_px * self.spec.f_number * self.pitch_um
-        img = self._inverse(spectrum, pad, self._otf_grid(self._shape(spectrum, pad), d_um, ch))
-        return np.ascontiguousarray(img, dtype=np.float32)
+        return self._inverse(spectrum, pad, self._otf_grid(self._shape(spectrum, pad), d_um, ch))  # a float32 view
 
     def blur_map(self, channel: str, defocus_um: np.ndarray) -> np.ndarray:
         """The scene channel with a spatially varying defocus (µm, H x W), by level interpolation."""
@@ -413,9 +412,16 @@ class Renderer:
             img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff)
         else:
             img = self._warp(self._stacks[ci].blend(self._level_map(z_um, ch, aff)), aff)
-        img = np.multiply(img, self._illum * np.float32(self.exposure), dtype=np.float32)
+        img = np.multiply(img, self._exposed_illum(), dtype=np.float32)
         np.maximum(img, 0.0, out=img)  # band-limited resampling and OTF ringing can dip below zero
         return img
+
+    def _exposed_illum(self) -> np.ndarray:
+        """Relative illumination times the exposure (float32 H x W), kept while the exposure is unchanged."""
+        key = float(self.exposure)
+        if getattr(self, "_exposed", (None, None))[0] != key:
+            self._exposed = (key, self._illum * np.float32(key))
+        return self._exposed[1]
 
     def _per_channel(self, fn) -> list:
         """``[fn(ci) for ci in channels]``, channels in parallel threads (numpy, OpenCV and the FFTs release the
