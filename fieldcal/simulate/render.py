@@ -23,7 +23,6 @@ noise, gain, black level, clipping and quantisation (:mod:`fieldcal.simulate.noi
 from __future__ import annotations
 
 import math
-import os
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
@@ -53,7 +52,9 @@ _MIN_MAX_BLUR_PX = 256.0
 # taken after interpolation, at full resolution.
 _COARSE_PER_HALF_DIAGONAL = 128.0
 _COARSE_PX = (2, 8)
-_WORKERS = max(1, min(4, os.cpu_count() or 1))  # channel threads
+# One thread per channel (also on 2 cores: three equal tasks on two threads would leave one core idle a third
+# of the time; the OS shares the cores among three).
+_MAX_WORKERS = 8
 
 
 def scene_to_channels(scene, channels: tuple[str, ...], width_px: int, height_px: int) -> np.ndarray:
@@ -431,7 +432,7 @@ class Renderer:
         with single_threaded_blas():
             if n == 1:
                 return [fn(0)]
-            with ThreadPoolExecutor(max_workers=min(n, _WORKERS)) as pool:
+            with ThreadPoolExecutor(max_workers=min(n, _MAX_WORKERS)) as pool:
                 return list(pool.map(fn, range(n)))
 
     def _linear(self, z_um: float | None) -> np.ndarray:
