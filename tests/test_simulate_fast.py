@@ -73,13 +73,25 @@ def test_fast_frames_match_the_reference_path(lens, zs):
     spec = lens()
     s = spec.sensor
     scene = chart_image("texture", s.width_px, s.height_px, 3)
-    r = Renderer(spec, np.dstack([scene, scene[::-1], scene[:, ::-1]]))
+    r = Renderer(spec, np.dstack([scene, scene[::-1], scene[:, ::-1]]), warp="fast")
     for z in zs:
         fast = r._linear(None) if z is None else r.render_float(z)  # the truth's signal, before quantisation
         ref = reference_linear(r, z)
         assert psnr(fast, ref) >= 45.0, z
         # away from the mirrored border (what lies beyond the frame is unknown to any resampler)
         assert np.abs(fast - ref)[8:-8, 8:-8].max() <= 0.05, z
+
+
+def test_auto_warp_is_fast_only_where_the_optics_are_soft_near_nyquist():
+    from pathlib import Path
+    spec = LensSpec.load(Path(__file__).parents[1] / "models" / "triplet-uncorrected.json")
+    blank = np.zeros((8, 8), np.float32)
+    small = Renderer(spec.with_sensor_size(8, 8), blank)  # 0.4 mm pixels: sharp to Nyquist
+    assert small.warp == "exact" and "chirp-z" in small.settings()["warp"]
+    big = spec.with_sensor_size(1920, 1080)  # in-focus |OTF| ~0.5 at 0.47 cycles/px
+    assert Renderer(big, np.zeros((1080, 1920), np.float32)).warp == "fast"
+    with pytest.raises(Exception, match="warp"):
+        Renderer(spec.with_sensor_size(8, 8), blank, warp="cubic")
 
 
 def test_prepare_gives_the_same_frames_as_lazy_levels():
