@@ -169,3 +169,25 @@ def test_photon_noise_has_poisson_moments(e_mean, read):
     assert skew == pytest.approx(want, abs=5 * math.sqrt(6 / n) + 0.01)
     if e_mean < POISSON_EXACT_BELOW_E and read == 0:
         assert np.all(x == np.round(x))
+
+
+def test_large_frame_noise_path_keeps_the_sensor_statistics(monkeypatch):
+    """Frames above _EXACT_NOISE_MAX_PX draw per-channel streams with the normal approximation: same mean and
+    variance on a flat scene (as tests/test_simulate.py checks for the exact draw), still a function of (seed, z)."""
+    import fieldcal.simulate.render as render
+    from fieldcal.simulate.noise import gain_dn_per_e
+    monkeypatch.setattr(render, "_EXACT_NOISE_MAX_PX", 0)
+    spec = busy_lens(128, 128)
+    spec = LensSpec.from_dict({**spec.to_dict(), "sensor": {**spec.to_dict()["sensor"], "bit_depth": 12,
+                                                            "black_level_dn": 64, "full_well_e": 2000,
+                                                            "read_noise_e": 6.0, "signal_fraction": 0.5},
+                               "relative_illumination_edge": 1.0})
+    r = Renderer(spec, np.full((128, 128), 0.4, dtype=np.float32), seed=7)
+    frame = r.render(0.0).astype(np.float64)
+    e, g = 0.5 * 2000, gain_dn_per_e(spec.sensor)
+    mean, var = 64 + g * e, g * g * (e + 36.0) + 1 / 12
+    n = frame.size
+    assert frame.mean() == pytest.approx(mean, abs=5 * math.sqrt(var / n))
+    assert frame.var() == pytest.approx(var, rel=5 * math.sqrt(2 / n))
+    assert np.array_equal(Renderer(spec, np.full((128, 128), 0.4, dtype=np.float32), seed=7).render(0.0),
+                          r.render(0.0))

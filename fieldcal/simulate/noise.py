@@ -3,7 +3,7 @@
 Signals here are in units of the full well (0..1 = 0..full_well_e electrons). The gain maps the full well to
 the white level above black, ``g = (white - black) / full_well`` DN per electron, so a noise-free frame is
 ``black + g * e`` and the photon-noise variance of a pixel is ``g * (DN - black) + (g * read_noise_e)**2``.
-Photon noise is Poisson below 100 e- and a moment-matched normal approximation above (:func:`add_noise_e`).
+Large frames draw photon noise above 100 e- from a moment-matched normal approximation (:func:`add_noise_e`).
 """
 
 from __future__ import annotations
@@ -65,22 +65,29 @@ def check_levels(sensor: SensorSpec) -> None:
             fix="lower black_level_dn (for bit_depth 32 the levels are in [0, 1])")
 
 
-def to_dn(signal: np.ndarray, sensor: SensorSpec, rng: np.random.Generator | None) -> np.ndarray:
+def to_dn(signal: np.ndarray, sensor: SensorSpec, rng: np.random.Generator | None,
+          exact: bool = True) -> np.ndarray:
     """Signal (fraction of full well, float32) -> recorded frame in the sensor's dtype.
 
-    With ``rng``: photon noise in electrons plus Gaussian read noise (e-), :func:`add_noise_e`. Then gain, black
-    level, clipping to [0, white] and quantisation: uint8 for 8 bits, uint16 holding 0..2**bit-1 for 10-16 bits
-    (not rescaled), float32 for 32 bits (white = 1.0, not rounded).
+    With ``rng``: Poisson photon noise in electrons plus Gaussian read noise (e-); ``exact=False`` draws the
+    photon noise above 100 e- from the moment-matched normal approximation of :func:`add_noise_e` (3-5x faster,
+    a different realisation of the same statistics). Then gain, black level, clipping to [0, white] and
+    quantisation: uint8 for 8 bits, uint16 holding 0..2**bit-1 for 10-16 bits (not rescaled), float32 for 32
+    bits (white = 1.0, not rounded).
     """
     check_levels(sensor)
     g = np.float32(gain_dn_per_e(sensor))
     fw = np.float32(sensor.full_well_e)
     flat = signal.reshape(signal.shape[0], signal.shape[1], -1)
     dn = np.empty(flat.shape, dtype=np.float32)
-    for i in range(flat.shape[2]):
+    for i in range(flat.shape[2]):  # one plane at a time: Poisson needs float64 / int64 temporaries
         e = np.maximum(flat[:, :, i], 0.0) * fw
-        if rng is not None:
+        if rng is not None and not exact:
             e = add_noise_e(e, float(sensor.read_noise_e), rng)
+        elif rng is not None:
+            e = rng.poisson(e).astype(np.float32)
+            if sensor.read_noise_e > 0:
+                e += np.float32(sensor.read_noise_e) * rng.standard_normal(e.shape, dtype=np.float32)
         e *= g
         e += np.float32(sensor.black_level_dn)
         dn[:, :, i] = e
