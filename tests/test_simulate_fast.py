@@ -144,16 +144,16 @@ def test_level_pages_blend_like_a_direct_gather():
     # path and a direct formula agree
     rng = np.random.default_rng(3)
     levels = rng.random((12, 20, 30)).astype(np.float32)
-    st = LevelStack(20, 30, lambda k: levels[k])
+    st = LevelStack(20, 30)
     st.per_page = 5
     kf = rng.uniform(0, 10.99, (20, 30)).astype(np.float32)
     lo = np.floor(kf).astype(int)
     t = kf - lo
     yy, xx = np.mgrid[0:20, 0:30]
     want = (1 - t) * levels[lo, yy, xx] + t * levels[lo + 1, yy, xx]
-    np.testing.assert_allclose(st.blend(kf), want, atol=1e-6)
+    np.testing.assert_allclose(st.blend(kf, levels.__getitem__), want, atol=1e-6)
     st._remap_ok = False
-    np.testing.assert_allclose(st.blend(kf), want, atol=1e-6)
+    np.testing.assert_allclose(st.blend(kf, levels.__getitem__), want, atol=1e-6)
 
 
 @pytest.mark.parametrize("e_mean,read", [(150.0, 0.0), (1000.0, 3.0), (20.0, 2.0)])
@@ -191,3 +191,18 @@ def test_large_frame_noise_path_keeps_the_sensor_statistics(monkeypatch):
     assert frame.var() == pytest.approx(var, rel=5 * math.sqrt(2 / n))
     assert np.array_equal(Renderer(spec, np.full((128, 128), 0.4, dtype=np.float32), seed=7).render(0.0),
                           r.render(0.0))
+
+
+def test_a_renderer_and_its_levels_are_freed_without_the_cycle_collector():
+    import gc
+    import weakref
+    spec = busy_lens(64, 48)
+    r = Renderer(spec, chart_image("texture", 64, 48, 0))
+    r.render(30.0)
+    ref = weakref.ref(r._stacks[0])
+    gc.disable()
+    try:
+        del r
+        assert ref() is None  # no renderer <-> level-stack cycle keeps the levels alive
+    finally:
+        gc.enable()

@@ -61,13 +61,13 @@ class LevelStack:
     ----------
     height_px, width_px : int
         Level image size.
-    make_level : callable
-        ``make_level(k) -> float32 (H, W)``: computes level k on demand.
+
+    The methods that may compute levels take ``make_level(k) -> float32 (H, W)``; the stack keeps no reference
+    to its owner (a renderer <-> stack cycle would hold hundreds of MB until the cyclic garbage collector ran).
     """
 
-    def __init__(self, height_px: int, width_px: int, make_level):
+    def __init__(self, height_px: int, width_px: int):
         self.h, self.w = int(height_px), int(width_px)
-        self._make = make_level
         self.per_page = max(2, _REMAP_MAX_ROWS // self.h)  # levels per page (pages share one level)
         self._remap_ok = _REMAP_MAX_ROWS // self.h >= 2 and self.w < _REMAP_MAX_ROWS
         self._pages: dict[int, np.ndarray] = {}
@@ -94,12 +94,12 @@ class LevelStack:
             out.append(p - 1)
         return out
 
-    def ensure(self, k_max: int) -> None:
+    def ensure(self, k_max: int, make_level) -> None:
         """Compute (once) every level up to ``k_max`` that is missing."""
         for k in range(int(k_max) + 1):
             if k in self._have:
                 continue
-            img = np.asarray(self._make(k), dtype=np.float32)
+            img = np.asarray(make_level(k), dtype=np.float32)
             for p in self._pages_with(k):
                 self._reserve(p, k, int(k_max))
                 self._pages[p][self._slot(p, k)] = img
@@ -119,18 +119,19 @@ class LevelStack:
         self._pages[page] = new
 
     def level(self, k: int) -> np.ndarray:
-        """Level k (a view into its page)."""
-        self.ensure(k)
+        """Level k (a view into its page; computed by ``ensure`` or ``blend`` before)."""
+        if k not in self._have:
+            raise KeyError(f"level {k} has not been computed")
         p = self._page_of(k)
         return self._pages[p][self._slot(p, k)]
 
-    def blend(self, kf: np.ndarray) -> np.ndarray:
+    def blend(self, kf: np.ndarray, make_level) -> np.ndarray:
         """Per pixel: ``(1 - t) level[floor(kf)] + t level[floor(kf) + 1]``, t = kf - floor(kf); float32 H x W."""
         kf = np.asarray(kf, dtype=np.float32)
         lo = np.floor(kf)
         t = kf - lo
         k0, k1 = int(lo.min()), int(lo.max())
-        self.ensure(k1 + 1)
+        self.ensure(k1 + 1, make_level)
         p0, p1 = self._page_of(k0), self._page_of(k1)
         if not self._remap_ok:
             return self._blend_take(lo.astype(np.intp), t)

@@ -22,6 +22,7 @@ noise, gain, black level, clipping and quantisation (:mod:`fieldcal.simulate.noi
 
 from __future__ import annotations
 
+import functools
 import math
 from concurrent.futures import ThreadPoolExecutor
 
@@ -173,8 +174,7 @@ class Renderer:
         self._spectra: dict[int, dict[int, tuple[int, np.ndarray]]] = {}  # channel -> pad -> (pad, rfft2)
         self._freq: dict[tuple[int, int], np.ndarray] = {}  # grid shape -> radial table index
         # the blur levels of each channel, computed once when first needed (levels.LevelStack)
-        self._stacks = [LevelStack(self.height_px, self.width_px, lambda k, ci=ci: self._level_image(ci, k))
-                        for ci in range(len(self.channels))]
+        self._stacks = [LevelStack(self.height_px, self.width_px) for _ in self.channels]
         self.optics = optics
         self._wave = None
         if optics == "wave":
@@ -292,7 +292,7 @@ class Renderer:
                 / np.float32(self.spec.f_number * self.pitch_um))
         self._check_blur(float(b_px.max()))
         kf = fractional_level(b_px, self.level_ratio, self.level_floor_px)
-        return self._stacks[ci].blend(kf)
+        return self._stacks[ci].blend(kf, functools.partial(self._level_image, ci))
 
     # ------------------------------------------------------------------------------------ geometry
     def _affine(self, z_um: float, channel: str, breathing: bool = True) -> np.ndarray:
@@ -380,7 +380,7 @@ class Renderer:
                 b = max(b, self._coarse_blur(z, ch, aff)[2])
             self._check_blur(b)
             k = int(math.floor(float(fractional_level(np.float32([b]), self.level_ratio, self.level_floor_px)[0])))
-            self._stacks[ci].ensure(k + 1)
+            self._stacks[ci].ensure(k + 1, functools.partial(self._level_image, ci))
 
         self._per_channel(build)
 
@@ -436,7 +436,8 @@ class Renderer:
         if self._wave is not None:
             img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff)
         else:
-            img = self._warp(self._stacks[ci].blend(self._level_map(z_um, ch, aff)), aff)
+            img = self._warp(self._stacks[ci].blend(self._level_map(z_um, ch, aff),
+                                                    functools.partial(self._level_image, ci)), aff)
         img = np.multiply(img, self._exposed_illum(), dtype=np.float32)
         np.maximum(img, 0.0, out=img)  # band-limited resampling and OTF ringing can dip below zero
         return img
