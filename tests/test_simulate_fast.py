@@ -23,7 +23,7 @@ def reference_linear(r: Renderer, z_um):
     planes = []
     for ch in r.channels:
         aff = r._affine(r.spec.z_ref_um if z_um is None else z_um, ch, z_um is not None)
-        kf = fractional_level(r.diameter_px(r._defocus_at(z_um, ch, aff)).astype(np.float32), r.level_ratio,
+        kf = fractional_level(r.diameter_px(r._defocus_exact(z_um, ch, aff)).astype(np.float32), r.level_ratio,
                               r.level_floor_px)
         lo = np.floor(kf)
         t = kf - lo
@@ -67,9 +67,14 @@ def busy_lens(w=200, h=120):
         "tilt_um_per_mm": [4.0, -3.0], "stage_axis_tilt_mrad": [2.0, -1.0], "relative_illumination_edge": 0.8})
 
 
+@pytest.mark.parametrize("coarse", [False, True])
 @pytest.mark.parametrize("lens,zs", [(small_triplet, [-300.0, -150.0, 0.0, 200.0, None]),
                                      (busy_lens, [-120.0, -40.0, 0.0, 90.0, None])])
-def test_fast_frames_match_the_reference_path(lens, zs):
+def test_fast_frames_match_the_reference_path(lens, zs, coarse, monkeypatch):
+    """The fast warp always; with ``coarse`` the large-frame level map (coarse grid + table) as well."""
+    import fieldcal.simulate.render as render
+    if coarse:
+        monkeypatch.setattr(render, "_EXACT_MAP_MAX_PX", 0)
     spec = lens()
     s = spec.sensor
     scene = chart_image("texture", s.width_px, s.height_px, 3)

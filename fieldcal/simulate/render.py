@@ -50,6 +50,10 @@ _FAST_WARP_MAX_NYQUIST_OTF = 0.55
 # order (bit-identical to earlier versions where the signal is); larger ones the faster per-channel draw
 # (noise.add_noise_e: same mean, variance and, to < 0.01 in skewness, third cumulant).
 _EXACT_NOISE_MAX_PX = 1_000_000
+# Frames up to this many pixels evaluate the defocus map from the formulas at every pixel and the level in
+# closed form (as earlier versions); larger ones on a coarse grid and by a table (the same values to < 0.01
+# level; docs/simulator.md).
+_EXACT_MAP_MAX_PX = 1_000_000
 # Rec. 709 luma weights: an RGB scene seen by a monochrome sensor.
 _TABLE_STEP = 1.0 / 65536.0  # cycles/px: radial OTF table resolution
 _LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
@@ -290,8 +294,14 @@ class Renderer:
         ci = self.channels.index(channel)
         b_px = (np.abs(np.asarray(defocus_um, dtype=np.float32))
                 / np.float32(self.spec.f_number * self.pitch_um))
-        self._check_blur(float(b_px.max()))
-        kf = fractional_level(b_px, self.level_ratio, self.level_floor_px)
+        b_max = float(b_px.max())
+        self._check_blur(b_max)
+        if b_px.size > _EXACT_MAP_MAX_PX:  # one multithreaded table lookup instead of ~10 passes
+            lut, step = fractional_level_lut(b_max, self.level_ratio, self.level_floor_px)
+            b_px *= np.float32(1.0 / step)
+            kf = cv2.remap(lut, b_px, self._zeros(), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        else:
+            kf = fractional_level(b_px, self.level_ratio, self.level_floor_px)
         return self._stacks[ci].blend(kf, functools.partial(self._level_image, ci))
 
     # ------------------------------------------------------------------------------------ geometry
@@ -309,10 +319,17 @@ class Renderer:
         return np.array([[a, 0.0, cx - a * cx + sx], [0.0, a, cy - a * cy + sy]], dtype=np.float64)
 
     def _defocus_at(self, z_um: float | None, channel: str, affine: np.ndarray) -> np.ndarray:
-        """Effective defocus (µm) for each scene pixel, evaluated where it lands on the sensor.
+        """Effective defocus (µm, float32 H x W) for each scene pixel, evaluated where it lands on the sensor.
 
-        ``z_um=None`` means each pixel's own best focus (the residual is then astigmatism only).
+        ``z_um=None`` means each pixel's own best focus (the residual is then astigmatism only). Frames above
+        ``_EXACT_MAP_MAX_PX`` evaluate the smooth parts on a coarse grid (:meth:`_defocus_coarse`).
         """
+        if self.width_px * self.height_px > _EXACT_MAP_MAX_PX:
+            return self._defocus_coarse(z_um, channel, affine)
+        return self._defocus_exact(z_um, channel, affine)
+
+    def _defocus_exact(self, z_um: float | None, channel: str, affine: np.ndarray) -> np.ndarray:
+        """:meth:`_defocus_at` from the lens's formulas at every pixel (float64, then float32)."""
         xd = affine[0, 0] * self._xs + affine[0, 2]
         yd = affine[1, 1] * self._ys + affine[1, 2]
         xm, ym = self.spec.pixel_to_mm(xd, yd)
@@ -384,39 +401,32 @@ class Renderer:
 
         self._per_channel(build)
 
-    def _level_map(self, z_um: float | None, channel: str, affine: np.ndarray) -> np.ndarray:
-        """Fractional blur level of each scene pixel (defocus where it lands on the sensor), float32 H x W.
-
-        The same values as ``fractional_level(diameter_px(_defocus_at(...)))``, with the smooth parts (signed
-        defocus from the mean focus, astigmatic half-difference) evaluated on a coarse grid and interpolated.
-        """
-        dz, half, b_max = self._coarse_blur(z_um, channel, affine)
-        self._check_blur(b_max)
+    def _defocus_coarse(self, z_um: float | None, channel: str, affine: np.ndarray) -> np.ndarray:
+        """:meth:`_defocus_at` with the signed defocus from the mean focus and the astigmatic half-difference
+        (both smooth) evaluated on a coarse grid and interpolated bilinearly; |dz| or sqrt(dz^2 + h^2) is taken
+        at full resolution (the kink at focus stays sharp)."""
+        dz, half, _ = self._coarse_blur(z_um, channel, affine)
         xc, wt = self._coarse_axis(self.width_px)
         yc, ht = self._coarse_axis(self.height_px)
-        # diameters in units of the level table's step (fractional_level_lut): one remap gives the level
-        lut, step = fractional_level_lut(b_max, self.level_ratio, self.level_floor_px)
-        to_lut = 1.0 / step
+        to_um = self.spec.f_number * self.pitch_um  # _coarse_blur works in px
         s = self._coarse_px
         crop = (slice(s, s + self.height_px), slice(s, s + self.width_px))
 
         def full(a):
-            a = np.broadcast_to(a * to_lut, (yc.size, xc.size)).astype(np.float32)
+            a = np.broadcast_to(a * to_um, (yc.size, xc.size)).astype(np.float32)
             return cv2.resize(a, (wt, ht), interpolation=cv2.INTER_LINEAR)[crop]
 
         if dz is None and half is None:
             return np.zeros((self.height_px, self.width_px), dtype=np.float32)
         if half is None:
-            b = np.abs(full(dz))
-        elif dz is None:
-            b = full(half)
-        else:
-            # sqrt(0.5 ((dz - h)^2 + (dz + h)^2)); numpy, not cv2.magnitude, whose result depends on the
-            # arrays' memory alignment (frames must depend only on (seed, z))
-            b = np.square(full(dz))
-            b += np.square(full(half))
-            np.sqrt(b, out=b)
-        return cv2.remap(lut, b, self._zeros(), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            return np.abs(full(dz))
+        if dz is None:
+            return np.ascontiguousarray(full(half))
+        # sqrt(0.5 ((dz - h)^2 + (dz + h)^2)); numpy, not cv2.magnitude, whose result depends on the arrays'
+        # memory alignment (frames must depend only on (seed, z))
+        b = np.square(full(dz))
+        b += np.square(full(half))
+        return np.sqrt(b, out=b)
 
     def _zeros(self) -> np.ndarray:
         if getattr(self, "_zero_map", None) is None:
@@ -436,8 +446,7 @@ class Renderer:
         if self._wave is not None:
             img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff)
         else:
-            img = self._warp(self._stacks[ci].blend(self._level_map(z_um, ch, aff),
-                                                    functools.partial(self._level_image, ci)), aff)
+            img = self._warp(self.blur_map(ch, self._defocus_at(z_um, ch, aff)), aff)
         img = np.multiply(img, self._exposed_illum(), dtype=np.float32)
         np.maximum(img, 0.0, out=img)  # band-limited resampling and OTF ringing can dip below zero
         return img
