@@ -211,3 +211,10 @@ def test_a_renderer_and_its_levels_are_freed_without_the_cycle_collector():
         assert ref() is None  # no renderer <-> level-stack cycle keeps the levels alive
     finally:
         gc.enable()
+
+
+def test_a_pure_shift_is_exact():
+    # telecentric image space: scale 1, the stage-axis shift only; the phase ramp equals the chirp-z resampler
+    a = np.random.default_rng(4).random((40, 70)).astype(np.float32)
+    for tx, ty in ((0.3, -0.7), (2.5, 1.25), (0.0, 0.4)):
+        np.testing.assert_allclose(scale_shift_fast(a, 1.0, tx, ty), scale_shift(a, 1.0, tx, ty), atol=1e-5)
