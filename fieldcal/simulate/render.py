@@ -8,9 +8,9 @@ above a floor of ``level_floor_px`` pixels, with an in-focus level at zero, so t
 bounded fraction of the local blur change (docs/simulator.md gives the bound the tests check).
 
 The scene is fixed, so each level is computed once, when a frame first needs it, and kept
-(:class:`fieldcal.simulate.levels.LevelStack`); a frame costs a per-pixel level map (evaluated on a coarse grid
-and interpolated: it is smooth), a two-level gather, the warp and the sensor, with the channels rendered in
-parallel threads. docs/simulator.md ("Speed") has the figures and the agreement with the per-frame FFT path.
+(:class:`fieldcal.simulate.levels.LevelStack`); a frame costs a per-pixel level map (above 1 Mpx evaluated on a
+coarse grid and interpolated: it is smooth), a two-level gather, the warp and the sensor, with the channels
+rendered in parallel threads. docs/simulator.md ("Speed") has the figures and the agreement with the per-frame FFT path.
 
 With ``optics="wave"`` the blur is :class:`fieldcal.simulate.wave.WaveBlur` instead (PSFs from the pupil function;
 docs/simulator.md); everything below is shared.
