@@ -93,8 +93,12 @@ def test_auto_warp_is_fast_only_where_the_optics_are_soft_near_nyquist():
     blank = np.zeros((8, 8), np.float32)
     small = Renderer(spec.with_sensor_size(8, 8), blank)  # 0.4 mm pixels: sharp to Nyquist
     assert small.warp == "exact" and "chirp-z" in small.settings()["warp"]
-    big = spec.with_sensor_size(1920, 1080)  # in-focus |OTF| ~0.5 at 0.47 cycles/px
+    big = spec.with_sensor_size(1920, 1080)  # in-focus |OTF| ~0.5 at 0.47 cycles/px, 2 Mpx
     assert Renderer(big, np.zeros((1080, 1920), np.float32)).warp == "fast"
+    pitch = spec.with_sensor_size(1920, 1080).sensor.pixel_pitch_um  # the same pixels, a 0.5 Mpx frame
+    crop = LensSpec.from_dict({**big.to_dict(), "sensor": {**big.to_dict()["sensor"], "width_px": 960,
+                                                           "height_px": 540, "pixel_pitch_um": pitch}})
+    assert Renderer(crop, np.zeros((540, 960), np.float32)).warp == "exact"
     with pytest.raises(Exception, match="warp"):
         Renderer(spec.with_sensor_size(8, 8), blank, warp="cubic")
 

@@ -40,7 +40,8 @@ from .levels import LevelStack, fractional_level, fractional_level_lut, level_di
 RENDERER_VERSION = "fieldcal-render/1"
 OPTICS = ("geometric", "wave")  # image-formation paths (docs/simulator.md)
 WARPS = ("auto", "fast", "exact")  # the per-frame scale + shift (docs/simulator.md, "Geometry")
-# "auto" uses the fast 32-tap warp only when the optics leave little contrast within ~0.05 cycles/px of Nyquist
+# "auto" uses the fast 32-tap warp only for frames above 1 Mpx (_EXACT_MAP_MAX_PX; smaller ones render as
+# earlier versions did) and when the optics leave little contrast within ~0.05 cycles/px of Nyquist
 # (in-focus |OTF| at 0.47 cycles/px at most this, every channel), the band a finite kernel cannot resample
 # exactly: there a phase-dependent loss would move measured best focus (+0.7 µm on the triplet at 256x144,
 # where that contrast is 0.96; 0.01 µm at 1920x1080, where it is 0.50). Otherwise the exact chirp-z warp, which
@@ -133,7 +134,7 @@ class Renderer:
     warp : {"auto", "fast", "exact"}
         The per-frame scale + shift: ``exact`` band-limited (:func:`fieldcal.simulate.warp.scale_shift`),
         ``fast`` 32-tap windowed sinc (:func:`fieldcal.simulate.bandwarp.scale_shift_fast`), ``auto`` the fast
-        one only where the optics leave little contrast near Nyquist (docs/simulator.md, "Geometry").
+        one only above 1 Mpx where the optics leave little contrast near Nyquist (docs/simulator.md, "Geometry").
     """
 
     def __init__(self, spec: LensSpec, scene, seed: int = 0, level_ratio: float = 1.25,
@@ -171,7 +172,8 @@ class Renderer:
         if warp == "auto":
             f_mm = 0.47 / (self.pitch_um * 1e-3)
             near_nyquist = max(abs(float(spec.otf(f_mm, 0.0, c))) for c in self.channels)
-            warp = "fast" if near_nyquist <= _FAST_WARP_MAX_NYQUIST_OTF else "exact"
+            large = self.width_px * self.height_px > _EXACT_MAP_MAX_PX
+            warp = "fast" if large and near_nyquist <= _FAST_WARP_MAX_NYQUIST_OTF else "exact"
         self.warp = warp
         self._coarse_px = int(np.clip(round(0.5 * math.hypot(self.width_px, self.height_px)
                                             / _COARSE_PER_HALF_DIAGONAL), *_COARSE_PX))
