@@ -3,6 +3,7 @@
 Signals here are in units of the full well (0..1 = 0..full_well_e electrons). The gain maps the full well to
 the white level above black, ``g = (white - black) / full_well`` DN per electron, so a noise-free frame is
 ``black + g * e`` and the photon-noise variance of a pixel is ``g * (DN - black) + (g * read_noise_e)**2``.
+Large frames draw photon noise above 100 e- from a moment-matched normal approximation (:func:`add_noise_e`).
 """
 
 from __future__ import annotations
@@ -64,12 +65,15 @@ def check_levels(sensor: SensorSpec) -> None:
             fix="lower black_level_dn (for bit_depth 32 the levels are in [0, 1])")
 
 
-def to_dn(signal: np.ndarray, sensor: SensorSpec, rng: np.random.Generator | None) -> np.ndarray:
+def to_dn(signal: np.ndarray, sensor: SensorSpec, rng: np.random.Generator | None,
+          exact: bool = True) -> np.ndarray:
     """Signal (fraction of full well, float32) -> recorded frame in the sensor's dtype.
 
-    With ``rng``: Poisson photon noise in electrons plus Gaussian read noise (e-). Then gain, black level,
-    clipping to [0, white] and quantisation: uint8 for 8 bits, uint16 holding 0..2**bit-1 for 10-16 bits
-    (not rescaled), float32 for 32 bits (white = 1.0, not rounded).
+    With ``rng``: Poisson photon noise in electrons plus Gaussian read noise (e-); ``exact=False`` draws the
+    photon noise above 100 e- from the moment-matched normal approximation of :func:`add_noise_e` (3-5x faster,
+    a different realisation of the same statistics). Then gain, black level, clipping to [0, white] and
+    quantisation: uint8 for 8 bits, uint16 holding 0..2**bit-1 for 10-16 bits (not rescaled), float32 for 32
+    bits (white = 1.0, not rounded).
     """
     check_levels(sensor)
     g = np.float32(gain_dn_per_e(sensor))
@@ -78,11 +82,15 @@ def to_dn(signal: np.ndarray, sensor: SensorSpec, rng: np.random.Generator | Non
     dn = np.empty(flat.shape, dtype=np.float32)
     for i in range(flat.shape[2]):  # one plane at a time: Poisson needs float64 / int64 temporaries
         e = np.maximum(flat[:, :, i], 0.0) * fw
-        if rng is not None:
+        if rng is not None and not exact:
+            e = add_noise_e(e, float(sensor.read_noise_e), rng)
+        elif rng is not None:
             e = rng.poisson(e).astype(np.float32)
             if sensor.read_noise_e > 0:
                 e += np.float32(sensor.read_noise_e) * rng.standard_normal(e.shape, dtype=np.float32)
-        dn[:, :, i] = np.float32(sensor.black_level_dn) + g * e
+        e *= g
+        e += np.float32(sensor.black_level_dn)
+        dn[:, :, i] = e
     dn = dn.reshape(signal.shape)
     white = sensor.white_level_dn
     np.clip(dn, 0.0, white, out=dn)
@@ -90,3 +98,35 @@ def to_dn(signal: np.ndarray, sensor: SensorSpec, rng: np.random.Generator | Non
         return dn
     out_dtype = np.uint8 if sensor.bit_depth == 8 else np.uint16
     return np.rint(dn).astype(out_dtype)
+
+
+#: below this mean (electrons) photon noise is drawn from the Poisson distribution itself; above it from the
+#: skewness-corrected normal approximation of :func:`add_noise_e` (several times faster; the skewness of
+#: Poisson(100) is 0.1).
+POISSON_EXACT_BELOW_E = 100.0
+
+
+def add_noise_e(e: np.ndarray, read_noise_e: float, rng: np.random.Generator) -> np.ndarray:
+    """Electrons ``e`` (float32, >= 0, modified in place) plus photon and read noise; float32.
+
+    Where ``e >= POISSON_EXACT_BELOW_E``: one standard normal Z per pixel, ``e + s Z + (Z^2 - 1) / 6`` with
+    ``s^2 = e + r^2 - 1/18``: mean e, variance ``e + r^2`` and third cumulant ``e + r^2 - 1/54``, against
+    ``e`` for Poisson(e) + N(0, r^2) (a first-order Cornish-Fisher expansion; the skewness differs by
+    ``r^2 / (e + r^2)^1.5``, < 0.01 for r <= 3 e-, and the kurtosis by 1/e < 0.01). Below it: Poisson(e) plus
+    r Z, exactly.
+    """
+    z = rng.standard_normal(e.shape, dtype=np.float32)
+    low = e < np.float32(POISSON_EXACT_BELOW_E)
+    exact = e[low] if low.any() else None
+    s = e + np.float32(read_noise_e * read_noise_e - 1.0 / 18.0)
+    np.maximum(s, 0.0, out=s)  # only below the threshold (those pixels are drawn exactly below)
+    np.sqrt(s, out=s)
+    s *= z
+    e += s
+    z2 = np.square(z, out=s)
+    z2 *= np.float32(1.0 / 6.0)
+    e += z2
+    e -= np.float32(1.0 / 6.0)
+    if exact is not None:
+        e[low] = rng.poisson(exact).astype(np.float32) + np.float32(read_noise_e) * z[low]
+    return e

@@ -7,29 +7,54 @@ that bracket its own defocus. Levels are spaced geometrically in blur-disc diame
 above a floor of ``level_floor_px`` pixels, with an in-focus level at zero, so the interpolation error is a
 bounded fraction of the local blur change (docs/simulator.md gives the bound the tests check).
 
+The scene is fixed, so each level is computed once, when a frame first needs it, and kept
+(:class:`fieldcal.simulate.levels.LevelStack`); a frame costs a per-pixel level map (above 1 Mpx evaluated on a
+coarse grid and interpolated: it is smooth), a two-level gather, the warp and the sensor, with the channels
+rendered in parallel threads. docs/simulator.md ("Speed") has the figures and the agreement with the per-frame FFT path.
+
 With ``optics="wave"`` the blur is :class:`fieldcal.simulate.wave.WaveBlur` instead (PSFs from the pupil function;
 docs/simulator.md); everything below is shared.
 
-Then geometry (focus breathing, stage-axis shift, lateral colour: one affine warp per channel), relative
-illumination and the sensor: photon and read noise, gain, black level, clipping and quantisation
-(:mod:`fieldcal.simulate.noise`).
+Then geometry (focus breathing, stage-axis shift, lateral colour: one scale + shift per channel,
+:func:`fieldcal.simulate.bandwarp.scale_shift_fast`), relative illumination and the sensor: photon and read
+noise, gain, black level, clipping and quantisation (:mod:`fieldcal.simulate.noise`).
 """
 
 from __future__ import annotations
 
+import functools
 import math
+from concurrent.futures import ThreadPoolExecutor
 
+import cv2
 import numpy as np
 from scipy import fft
 
 from ..errors import ParameterError
 from fieldcal.simulate.lens import LensSpec
 from . import noise as _noise
-from .levels import fractional_level, level_diameters_px  # noqa: F401  (re-exported)
+from .bandwarp import scale_shift_fast, single_threaded_blas
 from .warp import remap, scale_shift
+from .levels import LevelStack, fractional_level, fractional_level_lut, level_diameters_px  # noqa: F401
 
 RENDERER_VERSION = "fieldcal-render/1"
 OPTICS = ("geometric", "wave")  # image-formation paths (docs/simulator.md)
+WARPS = ("auto", "fast", "exact")  # the per-frame scale + shift (docs/simulator.md, "Geometry")
+# "auto" uses the fast 32-tap warp only for frames above 1 Mpx (_EXACT_MAP_MAX_PX; smaller ones render as
+# earlier versions did) and when the optics leave little contrast within ~0.05 cycles/px of Nyquist
+# (in-focus |OTF| at 0.47 cycles/px at most this, every channel), the band a finite kernel cannot resample
+# exactly: there a phase-dependent loss would move measured best focus (+0.7 µm on the triplet at 256x144,
+# where that contrast is 0.96; 0.01 µm at 1920x1080, where it is 0.50). Otherwise the exact chirp-z warp, which
+# costs little at the sizes where the optics are that sharp per pixel.
+_FAST_WARP_MAX_NYQUIST_OTF = 0.55
+# Frames up to this many pixels (per channel) draw exact Poisson photon noise from the frame's generator in
+# order (bit-identical to earlier versions where the signal is); larger ones the faster per-channel draw
+# (noise.add_noise_e: same mean, variance and, to < 0.01 in skewness, third cumulant).
+_EXACT_NOISE_MAX_PX = 1_000_000
+# Frames up to this many pixels evaluate the defocus map from the formulas at every pixel and the level in
+# closed form (as earlier versions); larger ones on a coarse grid and by a table (the same values to < 0.01
+# level; docs/simulator.md).
+_EXACT_MAP_MAX_PX = 1_000_000
 # Rec. 709 luma weights: an RGB scene seen by a monochrome sensor.
 _TABLE_STEP = 1.0 / 65536.0  # cycles/px: radial OTF table resolution
 _LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
@@ -38,6 +63,16 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 # 40 GiB array).
 _MAX_BLUR_FRAMES = 2.0
 _MIN_MAX_BLUR_PX = 256.0
+# The coarse grid on which a frame's defocus is evaluated before bilinear interpolation: the signed defocus and
+# the astigmatic half-difference are smooth (polynomials in rho), so the error is ~step^2/8 x curvature, and
+# the curvature in px units falls as 1/(half-diagonal in px)^2: a step of half-diagonal/128 px (2..8) keeps it
+# near 0.01 level (0.004 µm of defocus on the paper's triplet at 1920 x 1080). The kink of |dz| at focus is
+# taken after interpolation, at full resolution.
+_COARSE_PER_HALF_DIAGONAL = 128.0
+_COARSE_PX = (2, 8)
+# One thread per channel (also on 2 cores: three equal tasks on two threads would leave one core idle a third
+# of the time; the OS shares the cores among three).
+_MAX_WORKERS = 8
 
 
 def scene_to_channels(scene, channels: tuple[str, ...], width_px: int, height_px: int) -> np.ndarray:
@@ -96,13 +131,19 @@ class Renderer:
         Wave optics only: the frequency whose MTF peak is the sharpest position (truth and level centres).
     field_grid : (int, int)
         Wave optics only: field nodes across x and y at which PSFs are computed (blended bilinearly).
+    warp : {"auto", "fast", "exact"}
+        The per-frame scale + shift: ``exact`` band-limited (:func:`fieldcal.simulate.warp.scale_shift`),
+        ``fast`` 32-tap windowed sinc (:func:`fieldcal.simulate.bandwarp.scale_shift_fast`), ``auto`` the fast
+        one only above 1 Mpx where the optics leave little contrast near Nyquist (docs/simulator.md, "Geometry").
     """
 
     def __init__(self, spec: LensSpec, scene, seed: int = 0, level_ratio: float = 1.25,
                  level_floor_px: float = 0.5, optics: str = "geometric", fs_cyc_per_mm: float = 80.0,
-                 field_grid: tuple[int, int] = (5, 4)):
+                 field_grid: tuple[int, int] = (5, 4), warp: str = "auto"):
         if optics not in OPTICS:
             raise ParameterError(f"unknown optics {optics!r}", field="optics", fix=f"use one of {', '.join(OPTICS)}")
+        if warp not in WARPS:
+            raise ParameterError(f"unknown warp {warp!r}", field="warp", fix=f"use one of {', '.join(WARPS)}")
         if not (level_ratio > 1.0 and math.isfinite(level_ratio)):
             raise ParameterError(f"level_ratio must be > 1, got {level_ratio}", field="level_ratio",
                                  fix="e.g. 1.25")
@@ -128,8 +169,18 @@ class Renderer:
         self.centre_px = spec.optical_centre_px()
         xm, ym = spec.pixel_to_mm(self._xs, self._ys)
         self._illum = spec.relative_illumination(xm, ym).astype(np.float32)
-        self._spectra: dict[tuple[int, int], tuple[int, np.ndarray]] = {}  # (channel, pad) -> (pad, rfft2)
+        if warp == "auto":
+            f_mm = 0.47 / (self.pitch_um * 1e-3)
+            near_nyquist = max(abs(float(spec.otf(f_mm, 0.0, c))) for c in self.channels)
+            large = self.width_px * self.height_px > _EXACT_MAP_MAX_PX
+            warp = "fast" if large and near_nyquist <= _FAST_WARP_MAX_NYQUIST_OTF else "exact"
+        self.warp = warp
+        self._coarse_px = int(np.clip(round(0.5 * math.hypot(self.width_px, self.height_px)
+                                            / _COARSE_PER_HALF_DIAGONAL), *_COARSE_PX))
+        self._spectra: dict[int, dict[int, tuple[int, np.ndarray]]] = {}  # channel -> pad -> (pad, rfft2)
         self._freq: dict[tuple[int, int], np.ndarray] = {}  # grid shape -> radial table index
+        # the blur levels of each channel, computed once when first needed (levels.LevelStack)
+        self._stacks = [LevelStack(self.height_px, self.width_px) for _ in self.channels]
         self.optics = optics
         self._wave = None
         if optics == "wave":
@@ -172,16 +223,16 @@ class Renderer:
         frame, never on what was rendered before (bit-identical frames, hence identical noise draws).
         """
         pad = int(16 * 1.5 ** max(0, math.ceil(math.log(max(pad, 1) / 16) / math.log(1.5))))
-        key = (ci, pad)
-        if key not in self._spectra:
+        cache = self._spectra.setdefault(ci, {})  # one dict per channel: channels render in parallel threads
+        if pad not in cache:
             h, w = self.height_px, self.width_px
             hp = fft.next_fast_len(h + 2 * pad, real=True)
             wp = fft.next_fast_len(w + 2 * pad, real=True)
             padded = np.pad(self.scene[:, :, ci], ((pad, hp - h - pad), (pad, wp - w - pad)), mode="symmetric")
-            if len(self._spectra) >= 2 * len(self.channels):  # bound memory: drop the oldest
-                self._spectra.pop(next(iter(self._spectra)))
-            self._spectra[key] = (pad, fft.rfft2(padded.astype(np.float32, copy=False), workers=-1))
-        return self._spectra[key]
+            if len(cache) >= 2:  # bound memory: drop the oldest
+                cache.pop(next(iter(cache)))
+            cache[pad] = (pad, fft.rfft2(padded.astype(np.float32, copy=False), workers=-1))
+        return cache[pad]
 
     def _radial(self, shape: tuple[int, int]) -> np.ndarray:
         """Index of each rfft2 grid point's radial frequency in a fine 1-D table (step ``_TABLE_STEP``)."""
@@ -228,34 +279,32 @@ class Renderer:
         img = fft.irfft2(spectrum * otf_grid, s=(hp, wp), workers=-1)
         return img[pad:pad + self.height_px, pad:pad + self.width_px]
 
+    def _level_diameter_px(self, k: int) -> float:
+        """Blur-disc diameter (px) of level k: 0, then ``floor * ratio**(k - 1)`` (:func:`level_diameters_px`)."""
+        return 0.0 if k == 0 else self.level_floor_px * self.level_ratio ** (k - 1)
+
+    def _level_image(self, ci: int, k: int) -> np.ndarray:
+        """Level k of channel ci: the scene blurred by the level's defocus everywhere (exact OTF), H x W."""
+        ch = self.channels[ci]
+        d_px = self._level_diameter_px(k)
+        pad, spectrum = self._spectrum(ci, self._pad_for(d_px, ch))
+        d_um = d_px * self.spec.f_number * self.pitch_um
+        return self._inverse(spectrum, pad, self._otf_grid(self._shape(spectrum, pad), d_um, ch))  # a float32 view
+
     def blur_map(self, channel: str, defocus_um: np.ndarray) -> np.ndarray:
         """The scene channel with a spatially varying defocus (µm, H x W), by level interpolation."""
         ci = self.channels.index(channel)
         b_px = (np.abs(np.asarray(defocus_um, dtype=np.float32))
                 / np.float32(self.spec.f_number * self.pitch_um))
-        self._check_blur(float(b_px.max()))
-        kf = fractional_level(b_px, self.level_ratio, self.level_floor_px)
-        diam = level_diameters_px(float(b_px.max()), self.level_ratio, self.level_floor_px)
-        pad, spectrum = self._spectrum(ci, self._pad_for(float(diam[-1]), channel))
-        shape = self._shape(spectrum, pad)
-        # Group pixels by their lower level once (stable radix sort of small ints), so each level touches only
-        # the pixels it brackets: O(pixels) gathers in all instead of O(levels x pixels).
-        lower = np.floor(kf).astype(np.int16).ravel()
-        t = kf.ravel() - lower
-        order = np.argsort(lower, kind="stable")
-        k0, k1 = int(lower[order[0]]), int(lower[order[-1]])
-        bounds = np.searchsorted(lower[order], np.arange(k0, k1 + 2))
-        out = np.zeros(self.height_px * self.width_px, dtype=np.float32)
-        for k in range(k0, k1 + 2):
-            below = order[bounds[k - k0 - 1]:bounds[k - k0]] if k > k0 else order[:0]  # lower == k - 1
-            here = order[bounds[k - k0]:bounds[k - k0 + 1]] if k <= k1 else order[:0]  # lower == k
-            if below.size == 0 and here.size == 0:
-                continue
-            d_um = float(diam[k]) * self.spec.f_number * self.pitch_um
-            img = self._inverse(spectrum, pad, self._otf_grid(shape, d_um, channel)).ravel()
-            out[here] += (1.0 - t[here]) * img[here]
-            out[below] += t[below] * img[below]
-        return out.reshape(self.height_px, self.width_px)
+        b_max = float(b_px.max())
+        self._check_blur(b_max)
+        if b_px.size > _EXACT_MAP_MAX_PX:  # one multithreaded table lookup instead of ~10 passes
+            lut, step = fractional_level_lut(b_max, self.level_ratio, self.level_floor_px)
+            b_px *= np.float32(1.0 / step)
+            kf = cv2.remap(lut, b_px, self._zeros(), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        else:
+            kf = fractional_level(b_px, self.level_ratio, self.level_floor_px)
+        return self._stacks[ci].blend(kf, functools.partial(self._level_image, ci))
 
     # ------------------------------------------------------------------------------------ geometry
     def _affine(self, z_um: float, channel: str, breathing: bool = True) -> np.ndarray:
@@ -272,10 +321,17 @@ class Renderer:
         return np.array([[a, 0.0, cx - a * cx + sx], [0.0, a, cy - a * cy + sy]], dtype=np.float64)
 
     def _defocus_at(self, z_um: float | None, channel: str, affine: np.ndarray) -> np.ndarray:
-        """Effective defocus (µm) for each scene pixel, evaluated where it lands on the sensor.
+        """Effective defocus (µm, float32 H x W) for each scene pixel, evaluated where it lands on the sensor.
 
-        ``z_um=None`` means each pixel's own best focus (the residual is then astigmatism only).
+        ``z_um=None`` means each pixel's own best focus (the residual is then astigmatism only). Frames above
+        ``_EXACT_MAP_MAX_PX`` evaluate the smooth parts on a coarse grid (:meth:`_defocus_coarse`).
         """
+        if self.width_px * self.height_px > _EXACT_MAP_MAX_PX and self.spec.distortion.is_zero:
+            return self._defocus_coarse(z_um, channel, affine)
+        return self._defocus_exact(z_um, channel, affine)
+
+    def _defocus_exact(self, z_um: float | None, channel: str, affine: np.ndarray) -> np.ndarray:
+        """:meth:`_defocus_at` from the lens's formulas at every pixel (float64, then float32)."""
         xd, yd = self._landing(z_um, channel, affine)
         xm, ym = self.spec.pixel_to_mm(xd, yd)
         if z_um is None:
@@ -300,6 +356,83 @@ class Renderer:
         self._check_blur(float(self.diameter_px(np.max(np.abs(d)))))
         return np.asarray(d, dtype=np.float64)
 
+    def _coarse_axis(self, n: int) -> tuple[np.ndarray, int]:
+        """Coarse sample positions (px) along an axis of n pixels, and the number of canvas pixels: sample j
+        sits at ``(j + 0.5) s - 0.5 - s`` so that ``cv2.resize`` by s (bilinear between sample centres) covers
+        pixels 0 .. n - 1 without extrapolation; the canvas is cropped by s on the low side."""
+        s = self._coarse_px
+        m = int(math.ceil((n + 1.5 * s) / s)) + 1
+        return (np.arange(m, dtype=np.float64) + 0.5) * s - 0.5 - s, m * s
+
+    def _coarse_blur(self, z_um: float | None, channel: str, affine: np.ndarray):
+        """On the coarse grid (:meth:`_coarse_axis`): signed defocus from the mean focus and the astigmatic
+        half-difference, both as blur-disc diameters (px; None where zero), and the largest effective diameter."""
+        xc, _ = self._coarse_axis(self.width_px)
+        yc, _ = self._coarse_axis(self.height_px)
+        xd = affine[0, 0] * xc[None, :] + affine[0, 2]
+        yd = affine[1, 1] * yc[:, None] + affine[1, 2]
+        xm, ym = self.spec.pixel_to_mm(xd, yd)
+        astig = self.spec.channel(channel).astigmatism_um
+        to_px = 1.0 / (self.spec.f_number * self.pitch_um)
+        dz = None if z_um is None else (z_um - self.spec.best_focus_um(xm, ym, channel)) * to_px
+        half = (0.5 * abs(astig) * self.spec.rho(xm, ym) ** 2) * to_px if astig else None
+        if dz is not None and half is not None:
+            b_max = float(np.max(np.hypot(dz, half)))
+        else:
+            b_max = 0.0 if dz is None and half is None else float(np.max(np.abs(dz if half is None else half)))
+        return dz, half, b_max
+
+    def prepare(self, z_um) -> None:
+        """Compute now every blur level that frames at these stage positions and the truth will need (channels
+        in parallel), instead of when a frame first needs it. Frames are identical either way."""
+        if self._wave is not None:
+            return
+        zs = [None] + [_check_z(z) for z in np.atleast_1d(np.asarray(z_um, dtype=np.float64))]
+
+        def build(ci):
+            ch = self.channels[ci]
+            b = 0.0
+            for z in zs:
+                aff = self._affine(self.spec.z_ref_um if z is None else z, ch, z is not None)
+                b = max(b, self._coarse_blur(z, ch, aff)[2])
+            self._check_blur(b)
+            k = int(math.floor(float(fractional_level(np.float32([b]), self.level_ratio, self.level_floor_px)[0])))
+            self._stacks[ci].ensure(k + 1, functools.partial(self._level_image, ci))
+
+        self._per_channel(build)
+
+    def _defocus_coarse(self, z_um: float | None, channel: str, affine: np.ndarray) -> np.ndarray:
+        """:meth:`_defocus_at` with the signed defocus from the mean focus and the astigmatic half-difference
+        (both smooth) evaluated on a coarse grid and interpolated bilinearly; |dz| or sqrt(dz^2 + h^2) is taken
+        at full resolution (the kink at focus stays sharp)."""
+        dz, half, _ = self._coarse_blur(z_um, channel, affine)
+        xc, wt = self._coarse_axis(self.width_px)
+        yc, ht = self._coarse_axis(self.height_px)
+        to_um = self.spec.f_number * self.pitch_um  # _coarse_blur works in px
+        s = self._coarse_px
+        crop = (slice(s, s + self.height_px), slice(s, s + self.width_px))
+
+        def full(a):
+            a = np.broadcast_to(a * to_um, (yc.size, xc.size)).astype(np.float32)
+            return cv2.resize(a, (wt, ht), interpolation=cv2.INTER_LINEAR)[crop]
+
+        if dz is None and half is None:
+            return np.zeros((self.height_px, self.width_px), dtype=np.float32)
+        if half is None:
+            return np.abs(full(dz))
+        if dz is None:
+            return np.ascontiguousarray(full(half))
+        # sqrt(0.5 ((dz - h)^2 + (dz + h)^2)); numpy, not cv2.magnitude, whose result depends on the arrays'
+        # memory alignment (frames must depend only on (seed, z))
+        b = np.square(full(dz))
+        b += np.square(full(half))
+        return np.sqrt(b, out=b)
+
+    def _zeros(self) -> np.ndarray:
+        if getattr(self, "_zero_map", None) is None:
+            self._zero_map = np.zeros((self.height_px, self.width_px), dtype=np.float32)
+        return self._zero_map
+
     def _landing(self, z_um: float | None, channel: str, affine: np.ndarray):
         """Sensor position of every scene pixel: the affine map, or the spec's full map with distortion."""
         if self.spec.distortion.is_zero:
@@ -314,20 +447,42 @@ class Renderer:
                                                   breathing=z_um is not None))
         if np.allclose(affine, [[1, 0, 0], [0, 1, 0]], rtol=0, atol=1e-12):
             return img
-        return scale_shift(img, affine[0, 0], affine[0, 2], affine[1, 2])
+        fn = scale_shift_fast if self.warp == "fast" else scale_shift
+        return fn(img, affine[0, 0], affine[0, 2], affine[1, 2])
+
+    def _channel_linear(self, z_um: float | None, ci: int) -> np.ndarray:
+        """One channel of :meth:`_linear`: blurred, warped, vignetted and exposed, float32 H x W, >= 0."""
+        ch = self.channels[ci]
+        aff = self._affine(self.spec.z_ref_um if z_um is None else z_um, ch, z_um is not None)
+        if self._wave is not None:
+            img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff, z_um, ch)
+        else:
+            img = self._warp(self.blur_map(ch, self._defocus_at(z_um, ch, aff)), aff, z_um, ch)
+        img = np.multiply(img, self._exposed_illum(), dtype=np.float32)
+        np.maximum(img, 0.0, out=img)  # band-limited resampling and OTF ringing can dip below zero
+        return img
+
+    def _exposed_illum(self) -> np.ndarray:
+        """Relative illumination times the exposure (float32 H x W), kept while the exposure is unchanged."""
+        key = float(self.exposure)
+        if getattr(self, "_exposed", (None, None))[0] != key:
+            self._exposed = (key, self._illum * np.float32(key))
+        return self._exposed[1]
+
+    def _per_channel(self, fn) -> list:
+        """``[fn(ci) for ci in channels]``, channels in parallel threads (numpy, OpenCV and the FFTs release the
+        GIL); BLAS is held to one thread meanwhile (the warp's small products). Results do not depend on the
+        thread schedule: each channel touches only its own caches."""
+        n = len(self.channels)
+        with single_threaded_blas():
+            if n == 1:
+                return [fn(0)]
+            with ThreadPoolExecutor(max_workers=min(n, _MAX_WORKERS)) as pool:
+                return list(pool.map(fn, range(n)))
 
     def _linear(self, z_um: float | None) -> np.ndarray:
-        out = np.empty((self.height_px, self.width_px, len(self.channels)), dtype=np.float32)
-        breathing = z_um is not None
-        for ci, ch in enumerate(self.channels):
-            aff = self._affine(self.spec.z_ref_um if z_um is None else z_um, ch, breathing)
-            if self._wave is not None:
-                img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff, z_um, ch)
-            else:
-                img = self._warp(self.blur_map(ch, self._defocus_at(z_um, ch, aff)), aff, z_um, ch)
-            np.multiply(img, self._illum * np.float32(self.exposure), out=out[:, :, ci])
-        np.maximum(out, 0.0, out=out)  # band-limited resampling and OTF ringing can dip below zero
-        return out
+        planes = self._per_channel(lambda ci: self._channel_linear(z_um, ci))
+        return np.stack(planes, axis=2)
 
     # ---------------------------------------------------------------------------------- public API
     def render_float(self, z_um: float) -> np.ndarray:
@@ -340,11 +495,20 @@ class Renderer:
         H x W x C, or an H x W Bayer mosaic when ``spec.sensor.cfa`` is set.
         """
         z = _check_z(z_um)
-        signal = self._linear(z)
-        if self.spec.sensor.cfa:
-            signal = _noise.mosaic(signal, self.channels, self.spec.sensor.cfa)
+        sensor = self.spec.sensor
         rng = _noise.frame_rng(self.seed, z) if noise else None
-        return _noise.to_dn(signal, self.spec.sensor, rng)
+        if sensor.cfa or self.width_px * self.height_px <= _EXACT_NOISE_MAX_PX:
+            # exact Poisson draws, in the frame generator's own order (the realisation earlier versions drew)
+            signal = self._linear(z)
+            if sensor.cfa:
+                signal = _noise.mosaic(signal, self.channels, sensor.cfa)
+            return _noise.to_dn(signal, sensor, rng)
+        # large frames: one noise stream per channel (spawned from the frame's generator: still a function of
+        # (seed, z)), drawn in the channel's thread with the moment-matched normal approximation above 100 e-
+        rngs = rng.spawn(len(self.channels)) if rng is not None else [None] * len(self.channels)
+        planes = self._per_channel(lambda ci: _noise.to_dn(self._channel_linear(z, ci)[:, :, None], sensor,
+                                                           rngs[ci], exact=False))
+        return np.concatenate(planes, axis=2)
 
     def truth(self) -> np.ndarray:
         """All-in-focus image in the geometry of z_ref (lateral colour included): each pixel blurred only by
@@ -362,7 +526,9 @@ class Renderer:
         wave = self._wave.settings() if self._wave is not None else {}
         return {"optics": self.optics, **wave, "version": RENDERER_VERSION, "level_ratio": self.level_ratio,
                 "level_floor_px": self.level_floor_px, "exposure_scale": float(self.exposure),
-                "warp": "separable band-limited resampling (chirp-z, fieldcal.simulate.warp.scale_shift), mirrored edges", "padding": "symmetric"}
+                "warp": ("separable 32-tap Kaiser-windowed sinc (fieldcal.simulate.bandwarp.scale_shift_fast)"
+                         if self.warp == "fast" else "separable band-limited resampling (chirp-z, "
+                         "fieldcal.simulate.warp.scale_shift)") + ", mirrored edges", "padding": "symmetric"}
 
 
 def _check_z(z_um) -> float:

@@ -180,6 +180,7 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     try:
         writer = StackWriter.create(tmp, pixel_pitch_um=s.pixel_pitch_um, channels=list(spec.channel_names),
                                     **meta)
+        renderer.prepare(z_true)  # every blur level the stack needs, once, channels in parallel
         for zi, zt in _progress(zip(z, z_true), total=len(z), desc="simulate", quiet=not progress, unit="frame"):
             writer.add_frame(renderer.render(float(zt), noise=noise), float(zi))
         atomic_write_bytes(tmp / "truth.tiff", _tiff_bytes(renderer.truth()))
