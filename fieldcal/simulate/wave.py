@@ -89,12 +89,12 @@ def band(spec: LensSpec, channel: str) -> tuple[tuple[float, float], ...]:
 def terms_at(spec: LensSpec, channel: str, rho: float, phi_rad: float) -> WaveTerms:
     """Wavefront terms of a channel at normalised field height rho and azimuth phi.
 
-    The spec's ``astigmatism_um`` (tangential - sagittal focus ``A rho^2``) becomes ``Wast = -A rho^2 / (16 N^2)``
-    (so the tangential focus lies at ``z_c + A rho^2 / 2``, as the geometric path has it); the ``aberrations``
-    block adds its own terms.
+    The spec's astigmatism (tangential - sagittal focus, the field polynomial ``A(rho)`` of ``astigmatism_um``)
+    becomes ``Wast = -A(rho) / (16 N^2)`` (so the tangential focus lies at ``z_c + A(rho) / 2``, as the geometric
+    path and the truth have it); the ``aberrations`` block adds its own terms.
     """
     n = spec.f_number
-    wast = -spec.channel(channel).astigmatism_um * rho * rho / (16.0 * n * n)
+    wast = -float(spec.channel(channel).astigmatism_at(rho)) / (16.0 * n * n)
     w040 = w060 = w131 = 0.0
     ab = spec.aberrations
     if ab is not None:
