@@ -113,3 +113,16 @@ def test_fit_follows_a_peaked_astigmatism():
     for c in spec.channel_names:
         want = truth.best_focus_um(x, y, c, "tangential") - truth.best_focus_um(x, y, c, "sagittal")
         assert np.max(np.abs(fit.astigmatism_um(x, y, c) - want)) <= 1.0, c
+
+
+@pytest.mark.parametrize("phi_t, phi_s", [(0.0, 90.0), (20.0, 75.0), (28.0, 62.0)])
+def test_pair_of_oblique_edges_gives_tangential_and_sagittal(phi_t, phi_s):
+    """An edge at angle phi from the radius peaks at z_mean + (A/2) cos 2 phi: the pair solves back to T and S."""
+    from fieldcal.measure.edge_tiles import _ts_from_pair
+
+    zm, a = -120.0, 12.0
+    c_t, c_s = math.cos(math.radians(2 * phi_t)), math.cos(math.radians(2 * phi_s))
+    z_t, z_s = zm + 0.5 * a * c_t, zm + 0.5 * a * c_s
+    got_m, sd, got_t, got_s = _ts_from_pair(z_t, z_s, 1.0, 1.0, c_t, c_s)
+    assert got_m == pytest.approx(zm) and got_t == pytest.approx(zm + 0.5 * a) and got_s == pytest.approx(zm - 0.5 * a)
+    assert 0.5 * math.sqrt(2.0) - 1e-9 <= sd <= 1.0
