@@ -79,3 +79,29 @@ def test_blank_chart_is_refused(tmp_path, triplet_path):
     msg = str(e.value)
     assert "stack" in msg and "chart" in msg
     assert str(out.name) in msg
+
+
+class _Widths:
+    """A profile with a measured width of 20 µm everywhere, from the given measurement."""
+
+    f_number = 2.0
+    has_measured_tolerance = True
+
+    def __init__(self, measurement):
+        self.calibration = {} if measurement is None else {"measurement": measurement}
+
+    def focus_tolerance_um(self, x, y, channel, fs, q):
+        return np.full(np.broadcast(np.asarray(x), np.asarray(y)).shape, 20.0)
+
+
+@pytest.mark.parametrize("measurement, factor", [("esfr", 1.0), ("focus-measure", None), (None, None)])
+def test_plans_use_the_measured_tolerance(measurement, factor):
+    """Edge widths measure MTF(fs) and are used as they are; texture widths (or profiles that do not say) are
+    narrowed by their measured bias, and the plan's source says so."""
+    from fieldcal.optics import MTFCriterion
+    from fieldcal.plan.tolerance import TEXTURE_WIDTH_BIAS, tolerance_um
+
+    tol, src = tolerance_um(_Widths(measurement), np.arange(3.0), np.zeros(3), "G", MTFCriterion(20.0, 0.05))
+    want = 20.0 / (TEXTURE_WIDTH_BIAS if factor is None else factor)
+    np.testing.assert_allclose(tol, want)
+    assert src.startswith("measured") and (("texture" in src) == (factor is None))

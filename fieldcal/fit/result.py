@@ -211,7 +211,8 @@ class SurfaceFit:
             out["tilt_x_um_per_mm"] = float(self.z_scale_um * beta[j] / r_mm)
             out["tilt_y_um_per_mm"] = float(self.z_scale_um * beta[j + 1] / r_mm)
         if m.astig:
-            out["astigmatism_um"] = float(self.z_scale_um * beta[m._col_astig + ci])
+            j = m._col_astig + ci * m.astig_order
+            out["astigmatism_um"] = float(self.z_scale_um * np.sum(beta[j:j + m.astig_order]))
         return out
 
     # ------------------------------------------------------------------ I/O

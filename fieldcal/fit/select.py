@@ -28,6 +28,8 @@ from .surface import Rows, SurfaceModel
 # Tiles must span at least this much of the normalised radius, or curvature is not identifiable.
 MIN_RADIAL_SPAN = 0.15
 MIN_ASTIG_ROWS = 6
+# ... and at least this many before the rho^4, rho^6 astigmatism terms are tried (BIC decides)
+MIN_ASTIG_POLY_ROWS = 24
 BMA_MIN_WEIGHT = 0.01
 
 
@@ -191,6 +193,8 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
                                         f"{eff.decentre_top} (effort {effort}; thorough fits every candidate)"})
     if best is not None and astig_rows:
         consider(replace(best[1].model, astig=False))
+        if rows.n_astig >= MIN_ASTIG_POLY_ROWS:  # e.g. slanted-edge T/S pairs: can follow a T - S peaked in the field
+            consider(replace(best[1].model, astig=True, astig_order=3))
     if best is None:
         raise FitError("no surface model could be fitted: every candidate's design is degenerate", path=source,
                        field="tiles", fix="measure tiles spread over the whole field in every channel")

@@ -3,7 +3,7 @@
 A model is one choice of terms for all channels (docs/fitting.md gives the formulas)::
 
     z_c(x, y) = a_c0 + sum_{k=1..K} a_ck rho^{2k} + t_x x_hat + t_y y_hat           (mean surface)
-    z_tan,c - z_sag,c = A_c rho^2                                                   (astigmatism rows)
+    z_tan,c - z_sag,c = A_c rho^2 (+ A_c2 rho^4 + A_c3 rho^6 with astig_order 3)     (astigmatism rows)
     rho^2 = (x_hat - c_x)^2 + (y_hat - c_y)^2
 
 in normalised coordinates (``data.ImageGeometry.normalise``) and normalised z (``(z - z_centre) / z_scale``).
@@ -67,6 +67,9 @@ class SurfaceModel:
     astig: bool
     astig_rows: bool  # the data have tangential/sagittal rows (adds the log_s_astig nuisance)
     channel_order: int | None = None  # rho^2k terms per channel up to this k; higher k shared (None: all)
+    # astigmatism terms per channel (rho^2 .. rho^(2 astig_order)): a traced T - S can peak inside the field
+    # (the triplet's, docs/raytrace.md), which one rho^2 term cannot follow; select.py tries 3 on many T/S rows
+    astig_order: int = 1
 
     @property
     def kc(self) -> int:
@@ -100,7 +103,7 @@ class SurfaceModel:
         if self.decentre:
             parts.append("decentre")
         if self.astig:
-            parts.append("astig")
+            parts.append("astig" if self.astig_order == 1 else f"astig(rho^2..rho^{2 * self.astig_order})")
         return "+".join(parts)
 
     @property
@@ -125,7 +128,8 @@ class SurfaceModel:
         if self.tilt:
             names += ["tilt_x", "tilt_y"]
         if self.astig:
-            names += [f"astig[{c}]" for c in self.channels]
+            for c in self.channels:
+                names += [f"astig[{c}]"] + [f"astig{k}[{c}]" for k in range(2, self.astig_order + 1)]
         return names
 
     @cached_property
@@ -207,7 +211,9 @@ class SurfaceModel:
         if self.astig:
             j = self._col_astig
             for ci in range(nc):
-                X[..., j + ci] = np.where((ch_index == ci) & ~mean_row, r2, 0.0)
+                for k in range(1, self.astig_order + 1):
+                    X[..., j + ci * self.astig_order + k - 1] = np.where((ch_index == ci) & ~mean_row, pw[k]
+                                                                         if k <= self.order else r2 ** k, 0.0)
         return X
 
     # ------------------------------------------------------------------ likelihood
@@ -343,8 +349,12 @@ class SurfaceModel:
         if not self.astig:
             return np.zeros(theta.shape[:-1] + x_hat.shape)
         r2 = _radius2(theta, centre, x_hat, y_hat)
-        j = self._col_astig + channel_index
-        return beta[..., j:j + 1] * r2 if theta.ndim == 2 else beta[j] * r2
+        j = self._col_astig + channel_index * self.astig_order
+        out = 0.0
+        for k in range(1, self.astig_order + 1):
+            b = beta[..., j + k - 1:j + k] if theta.ndim == 2 else beta[j + k - 1]
+            out = out + b * r2 ** k
+        return out
 
     def embed(self, theta: np.ndarray, target: "SurfaceModel") -> np.ndarray:
         """Express parameter vector(s) of this model in the layout of a larger ``target`` model.
@@ -355,6 +365,7 @@ class SurfaceModel:
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
         if (target.order < self.order or (self.tilt and not target.tilt) or (self.decentre and not target.decentre)
                 or (self.astig and not target.astig) or target.astig_rows != self.astig_rows
+                or (self.astig and target.astig_order < self.astig_order)
                 or target.channels != self.channels):
             raise ValueError(f"{self.name} is not nested in {target.name}")
         out = np.zeros((theta.shape[0], target.n_params))
@@ -364,8 +375,10 @@ class SurfaceModel:
         if self.tilt:
             out[:, target._col_tilt:target._col_tilt + 2] = theta[:, self._col_tilt:self._col_tilt + 2]
         if self.astig:
-            nc = len(self.channels)
-            out[:, target._col_astig:target._col_astig + nc] = theta[:, self._col_astig:self._col_astig + nc]
+            for ci in range(len(self.channels)):
+                src_j = self._col_astig + ci * self.astig_order
+                dst_j = target._col_astig + ci * target.astig_order
+                out[:, dst_j:dst_j + self.astig_order] = theta[:, src_j:src_j + self.astig_order]
         # nonlinear block: [centre?] log_s [log_s_astig] log_nu
         src = theta[:, self.n_linear:]
         dst_start = target.n_linear
@@ -382,17 +395,19 @@ class SurfaceModel:
         order = max(m.order for m in models)
         m0 = models[0]
         return cls(m0.channels, order, any(m.tilt for m in models), any(m.decentre for m in models),
-                   any(m.astig for m in models), m0.astig_rows, order)
+                   any(m.astig for m in models), m0.astig_rows, order,
+                   max(m.astig_order if m.astig else 1 for m in models))
 
     def to_dict(self) -> dict:
         return {"channels": list(self.channels), "order": self.order, "tilt": self.tilt,
                 "decentre": self.decentre, "astig": self.astig, "astig_rows": self.astig_rows,
-                "channel_order": self.kc}
+                "channel_order": self.kc, "astig_order": self.astig_order}
 
     @classmethod
     def from_dict(cls, d: dict) -> "SurfaceModel":
         return cls(tuple(d["channels"]), int(d["order"]), bool(d["tilt"]), bool(d["decentre"]),
-                   bool(d["astig"]), bool(d["astig_rows"]), int(d.get("channel_order", d["order"])))
+                   bool(d["astig"]), bool(d["astig_rows"]), int(d.get("channel_order", d["order"])),
+                   int(d.get("astig_order", 1)))
 
 
 def _radius2(theta: np.ndarray, centre: np.ndarray, x_hat: np.ndarray, y_hat: np.ndarray) -> np.ndarray:

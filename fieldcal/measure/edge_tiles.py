@@ -114,7 +114,7 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
     the frame nearest ``z_ref_um``.
 
     Returns columns (dict of arrays): track, channel, x_px, y_px, orientation, z_best_um, z_sigma_um, peak,
-    width_um, status.
+    width_um, status, cos2phi (cos 2 phi of the median angle phi between the edge normal and the radius).
     """
     groups: dict[tuple[int, str], list[dict]] = {}
     for e in mtf.edges:
@@ -123,7 +123,7 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
     vals = mtf.mtf_at(fs_cy_per_px)
     index = {id(e): i for i, e in enumerate(mtf.edges)}
     out = {k: [] for k in ("track", "channel", "x_px", "y_px", "orientation", "z_best_um", "z_sigma_um", "peak",
-                           "width_um", "status")}
+                           "width_um", "status", "cos2phi")}
     for (tr, ch), recs in groups.items():
         use = [e for e in recs if _usable(e) and np.isfinite(vals[index[id(e)]])]
         near = min(recs, key=lambda e: abs(float(e["z_um"]) - z_ref_um))
@@ -153,7 +153,30 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
         out["peak"].append(pk)
         out["width_um"].append(w)
         out["status"].append(status)
+        phi = [float(e["quality"]["radial_angle_deg"]) for e in recs
+               if e["quality"].get("radial_angle_deg") is not None and math.isfinite(e["quality"]["radial_angle_deg"])]
+        out["cos2phi"].append(math.cos(math.radians(2.0 * float(np.median(phi)))) if phi else math.nan)
     return {k: np.asarray(v) for k, v in out.items()}
+
+
+def _ts_from_pair(z_t: float, z_s: float, sd_t: float, sd_s: float, c_t: float, c_s: float):
+    """(z_mean, its sd, z_tan, z_sag) from a tangential-ish and a sagittal-ish edge focus at one point.
+
+    An edge whose normal makes an angle phi with the radius is sharpest where the wavefront's curvature along
+    its normal vanishes, ``z(phi) = z_mean + (A / 2) cos 2 phi`` (defocus + astigmatism, the ray aberration
+    along the normal). Edges are classified T for phi < 30 and S for phi > 60 degrees, so taking them as pure T
+    and S would read about 0.7-0.8 of A (measured 0.68 on the wave-optics astigmatic triplet): solve the two
+    equations for z_mean and A instead. Without angles (``c`` NaN): phi = 0 and 90.
+    """
+    c_t = 1.0 if not math.isfinite(c_t) else c_t
+    c_s = -1.0 if not math.isfinite(c_s) else c_s
+    d = c_t - c_s  # >= 1 for edges classified clearly (cos 60 - cos 120)
+    if d < 0.5:
+        c_t, c_s, d = 1.0, -1.0, 2.0
+    a = 2.0 * (z_t - z_s) / d
+    zm = (z_s * c_t - z_t * c_s) / d
+    sd = math.hypot(c_t * sd_s, c_s * sd_t) / d
+    return zm, sd, zm + 0.5 * a, zm - 0.5 * a
 
 
 def _pairs(xt, yt, xs, ys, max_px: float) -> list[tuple[int, int]]:
@@ -245,15 +268,19 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
             wi, wj = tf["width_um"][i], tf["width_um"][j]
             xm, ym = 0.5 * (tf["x_px"][i] + tf["x_px"][j]), 0.5 * (tf["y_px"][i] + tf["y_px"][j])
             zt = zs = math.nan
+            zi, zj = tf["z_best_um"][i], tf["z_best_um"][j]
             if local is not None:
                 # T and S sit on different sides of a chart square: the field curvature between them (up to
                 # ~1 µm/px at the corners) would enter T - S, so each is moved to the midpoint along a smooth
                 # surface of all the channel's tracks first
-                zt = tf["z_best_um"][i] + local(xm, ym) - local(tf["x_px"][i], tf["y_px"][i])
-                zs = tf["z_best_um"][j] + local(xm, ym) - local(tf["x_px"][j], tf["y_px"][j])
-            add(ch, xm, ym,
-                # the mean of two points about the midpoint: the gradient cancels
-                0.5 * (tf["z_best_um"][i] + tf["z_best_um"][j]), 0.5 * math.hypot(sig[i], sig[j]),
+                zi = zi + local(xm, ym) - local(tf["x_px"][i], tf["y_px"][i])
+                zj = zj + local(xm, ym) - local(tf["x_px"][j], tf["y_px"][j])
+            zb, sb, zt_, zs_ = _ts_from_pair(zi, zj, sig[i], sig[j], tf["cos2phi"][i], tf["cos2phi"][j])
+            if local is not None:
+                zt, zs = zt_, zs_
+            else:  # the mean of two points about the midpoint: the gradient cancels in the plain mean
+                zb = 0.5 * (tf["z_best_um"][i] + tf["z_best_um"][j])
+            add(ch, xm, ym, zb, sb,
                 # the tolerance of the pair is the narrower one: the plan must hold both orientations
                 float(np.nanmin([wi, wj])) if np.isfinite([wi, wj]).any() else math.nan,
                 0.5 * (tf["peak"][i] + tf["peak"][j]), "ok", zt, zs)

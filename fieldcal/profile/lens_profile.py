@@ -110,10 +110,23 @@ class LensProfile:
                                  field="channel", fix=f"use one of {', '.join(self.channels)}")
         return channel
 
-    def best_focus_um(self, x, y, channel: str):
-        """MAP best-focus stage position (µm) at pixel(s) (x, y) of the z_ref geometry."""
+    def best_focus_um(self, x, y, channel: str, orientation: str | None = None):
+        """MAP best-focus stage position (µm) at pixel(s) (x, y) of the z_ref geometry.
+
+        ``orientation``: None for the mean surface (circle of least confusion), "tangential" or "sagittal" for
+        the surface of edges seen across the radius / along it: the mean ± half the fitted astigmatism
+        ``z_tan - z_sag`` (zero when the calibration saw no directional foci).
+        """
         x, y = _check_points(x, y)
-        return self.surfaces.predict(x, y, self._channel(channel))
+        ch = self._channel(channel)
+        z = self.surfaces.predict(x, y, ch)
+        if orientation is None or orientation == "mean":
+            return z
+        if orientation not in ("tangential", "sagittal"):
+            raise ParameterError(f"orientation must be None, 'tangential' or 'sagittal', not {orientation!r}",
+                                 field="orientation", fix="use orientation='tangential' or 'sagittal' (None: the mean)")
+        half = 0.5 * np.asarray(self.surfaces.astigmatism_um(x, y, ch), dtype=np.float64)
+        return z + half if orientation == "tangential" else z - half
 
     def best_focus_interval_um(self, x, y, channel: str, level: float = 0.9):
         """(lo, hi) equal-tailed credible band of the best-focus surface (µm)."""

@@ -16,8 +16,11 @@ Best-focus surface of channel c (µm, stage coordinates)::
     z_c(x, y) = focus_offset_um[c] + sum_k curvature_um[c][k] * rho**(2k+2)
                 + tilt_um_per_mm[0] * x_mm + tilt_um_per_mm[1] * y_mm
 
-Astigmatism splits it: tangential focus ``z_c + A/2``, sagittal ``z_c - A/2`` with ``A = astigmatism_um[c]
-* rho**2``. The renderer uses the isotropic equivalent defocus ``sqrt((dt**2 + ds**2) / 2)``.
+Astigmatism splits it: tangential focus ``z_c + A/2``, sagittal ``z_c - A/2`` with the field polynomial
+``A(rho) = sum_k a_k rho**(2k+2)``; ``astigmatism_um`` is a number (``a_0``, the rho^2 term, as before) or a list
+``[a_0, a_1, ...]`` (rho^2, rho^4, rho^6, ...), so that A can follow a traced T - S that peaks inside the field.
+The geometric renderer uses the isotropic equivalent defocus ``sqrt((dt**2 + ds**2) / 2)``; the wave path
+(``--optics wave``) renders the anisotropic, radially oriented astigmatism (``simulate.wave.terms_at``).
 
 Through-focus optics: :func:`fieldcal.optics.through_focus_otf` (geometric defocus disc x diffraction x a
 Gaussian of RMS ``residual_blur_um``), with this spec's F-number and channel wavelengths; the focus tolerance
@@ -66,6 +69,27 @@ class ChannelSpec:
     curvature_um: tuple[float, ...] = ()
     astigmatism_um: float = 0.0
     lateral_colour: float = 0.0
+    astigmatism_higher_um: tuple[float, ...] = ()  # rho^4, rho^6, ... terms of A (astigmatism_um is rho^2's)
+
+    def astigmatism_at(self, rho) -> np.ndarray:
+        """Tangential - sagittal focus ``A(rho)`` (µm) at normalised field height(s) rho."""
+        r2 = np.asarray(rho, dtype=np.float64) ** 2
+        p = r2
+        a = self.astigmatism_um * p
+        for c in self.astigmatism_higher_um:
+            p = p * r2
+            a = a + c * p
+        return a
+
+    @property
+    def has_astigmatism(self) -> bool:
+        return self.astigmatism_um != 0.0 or any(self.astigmatism_higher_um)
+
+    def astigmatism_json(self) -> float | list[float]:
+        """The document's ``astigmatism_um``: a number for a pure rho^2 term (old documents unchanged), else a list."""
+        if not any(self.astigmatism_higher_um):
+            return float(self.astigmatism_um)
+        return [float(self.astigmatism_um), *(float(v) for v in self.astigmatism_higher_um)]
 
 
 @dataclass(frozen=True)
@@ -238,7 +262,7 @@ class LensSpec:
         z = z + self.tilt_um_per_mm[0] * x + self.tilt_um_per_mm[1] * y
         if which == "mean":
             return z
-        half = 0.5 * c.astigmatism_um * r2
+        half = 0.5 * c.astigmatism_at(np.sqrt(r2))
         if which == "tangential":
             return z + half
         if which == "sagittal":
@@ -249,9 +273,9 @@ class LensSpec:
         """Isotropic-equivalent defocus (µm, >= 0) at stage position z for a sensor point."""
         c = self.channel(channel)
         dz = np.asarray(z_um, dtype=np.float64) - self.best_focus_um(x_mm, y_mm, channel)
-        if c.astigmatism_um == 0.0:
+        if not c.has_astigmatism:
             return np.abs(dz)
-        half = 0.5 * c.astigmatism_um * self.rho(x_mm, y_mm) ** 2
+        half = 0.5 * c.astigmatism_at(self.rho(x_mm, y_mm))
         return np.sqrt(0.5 * ((dz - half) ** 2 + (dz + half) ** 2))
 
     def magnification(self, z_um, channel: str | None = None):
@@ -350,6 +374,9 @@ class LensSpec:
         d["exit_pupil_mm"] = None if not math.isfinite(self.exit_pupil_mm) else self.exit_pupil_mm
         extra = d.pop("extra")
         d.pop("aberrations")
+        for cd, c in zip(d["channels"], self.channels):
+            cd.pop("astigmatism_higher_um", None)
+            cd["astigmatism_um"] = c.astigmatism_json()
         if self.distortion.is_zero:  # documents of lenses without distortion stay as they were
             d.pop("distortion")
         if self.aberrations is not None:
@@ -381,6 +408,14 @@ _KNOWN_KEYS = {"format", "name", "focal_length_mm", "f_number", "image_height_ma
                "distortion"}
 
 
+def _astigmatism_fields(a) -> dict[str, Any]:
+    """ChannelSpec fields of a document's ``astigmatism_um``: a number is the rho^2 term, a list rho^2, rho^4, ..."""
+    if isinstance(a, (list, tuple)):
+        vals = [float(v) for v in a] or [0.0]
+        return {"astigmatism_um": vals[0], "astigmatism_higher_um": tuple(vals[1:])}
+    return {"astigmatism_um": float(a)}
+
+
 def _lens_from_dict(d: Any, path, where: str = "") -> LensSpec:
     """Types, ranges and required keys are the schema's (fieldcal-lens-1.schema.json); the checks across
     fields a schema cannot express are here."""
@@ -399,7 +434,7 @@ def _lens_from_dict(d: Any, path, where: str = "") -> LensSpec:
         wavelength_nm=float(c.get("wavelength_nm", default_wavelength_nm(c["name"]))),
         focus_offset_um=float(c.get("focus_offset_um", 0.0)),
         curvature_um=tuple(float(a) for a in c.get("curvature_um", [])),
-        astigmatism_um=float(c.get("astigmatism_um", 0.0)),
+        **_astigmatism_fields(c.get("astigmatism_um", 0.0)),
         lateral_colour=float(c.get("lateral_colour", 0.0))) for c in d["channels"])
     names = [c.name for c in channels]
     if len(set(names)) != len(names):

@@ -12,11 +12,22 @@ from pathlib import Path
 
 import numpy as np
 
+from fieldcal.errors import ParameterError
 from fieldcal.formats import documents
 from fieldcal.simulate.lens import LensSpec
 
 TRUTH_FORMAT = documents.format_id("truth")
 TRUTH_JSON = "truth.json"
+
+
+def _which(orientation: str | None) -> str:
+    """LensSpec.best_focus_um's ``which`` for a TruthProfile ``orientation`` (None = the mean surface)."""
+    if orientation in (None, "mean"):
+        return "mean"
+    if orientation in ("tangential", "sagittal"):
+        return orientation
+    raise ParameterError(f"orientation must be None, 'tangential' or 'sagittal', not {orientation!r}",
+                         field="orientation", fix="use orientation='tangential' or 'sagittal' (or None for the mean)")
 
 
 def truth_lens(doc: dict, path: str | Path | None = None) -> tuple[LensSpec, tuple[int, int]]:
@@ -99,8 +110,8 @@ class TruthProfile:
                 self._shift[channel] = (np.array([0.0, 1.0]), np.zeros(2))
         return self._shift[channel]
 
-    def _surface_um(self, x_mm, y_mm, channel: str, reference: bool = False):
-        z = self.spec.best_focus_um(x_mm, y_mm, channel)
+    def _surface_um(self, x_mm, y_mm, channel: str, reference: bool = False, orientation: str | None = None):
+        z = self.spec.best_focus_um(x_mm, y_mm, channel, _which(orientation))
         if self.optics == "geometric" or reference:
             return z
         r, s = self.focus_shift_table(channel)
@@ -153,26 +164,30 @@ class TruthProfile:
         y = np.asarray(y, dtype=np.float64)
         return cx + m * (x - cx) + sx, cy + m * (y - cy) + sy
 
-    def best_focus_um(self, x, y, channel: str):
+    def best_focus_um(self, x, y, channel: str, orientation: str | None = None):
         """Stage position at which the scene point seen at pixel (x, y) of the z_ref frame is in focus.
+
+        ``orientation``: None (the mean of tangential and sagittal, circle of least confusion), "tangential" or
+        "sagittal" (the lens spec's astigmatism ``A(rho)`` splits them by ±A/2).
 
         The lens's surface z_c is a function of where the point lands on the sensor, and with focus breathing
         that depends on z itself: solve z = z_c(landing(x, y, z)) by fixed-point iteration (the map contracts
         by |dz_c/dh| * h / exit pupil, ~0.03 for the triplet). Without breathing or shift this is z_c(x, y).
         """
-        return self._solve_focus(x, y, channel, reference=False)
+        return self._solve_focus(x, y, channel, reference=False, orientation=orientation)
 
     def reference_focus_um(self, x, y, channel: str):
         """Like :meth:`best_focus_um` for the lens's reference surface: with wave optics the paraxial focus
         (W020 = 0), which spherical aberration moves away from the sharpest position; else the same."""
         return self._solve_focus(x, y, channel, reference=True)
 
-    def _solve_focus(self, x, y, channel: str, reference: bool):
+    def _solve_focus(self, x, y, channel: str, reference: bool, orientation: str | None = None):
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
-        z = self._surface_um(*self.spec.pixel_to_mm(x, y), channel, reference)
+        z = self._surface_um(*self.spec.pixel_to_mm(x, y), channel, reference, orientation)
         for _ in range(100):
-            z_new = self._surface_um(*self.spec.pixel_to_mm(*self.landing_px(x, y, z)), channel, reference)
+            z_new = self._surface_um(*self.spec.pixel_to_mm(*self.landing_px(x, y, z)), channel, reference,
+                                     orientation)
             done = np.max(np.abs(z_new - z), initial=0.0) < 1e-7
             z = z_new
             if done:

@@ -55,6 +55,8 @@ _OTHER_BAND = ((-25.0, 0.25), (0.0, 0.5), (25.0, 0.25))
 
 _MIN_PUPIL_SAMPLES = 64.0  # pupil diameter in samples, at least (MTF error ~1e-3 at 64 with a soft edge)
 _TAIL_LAMBDA_N = 8.0  # kernel half-extent beyond the geometric spot, in lambda*N (Airy rings: ~99% energy)
+# field nodes of the wave renderer at least, for lenses with astigmatism (orientation varies with azimuth)
+ASTIG_FIELD_GRID = (11, 7)
 _RHO_NODES = 6  # field heights at which the sharpest position is computed (interpolated between)
 
 
@@ -89,12 +91,12 @@ def band(spec: LensSpec, channel: str) -> tuple[tuple[float, float], ...]:
 def terms_at(spec: LensSpec, channel: str, rho: float, phi_rad: float) -> WaveTerms:
     """Wavefront terms of a channel at normalised field height rho and azimuth phi.
 
-    The spec's ``astigmatism_um`` (tangential - sagittal focus ``A rho^2``) becomes ``Wast = -A rho^2 / (16 N^2)``
-    (so the tangential focus lies at ``z_c + A rho^2 / 2``, as the geometric path has it); the ``aberrations``
-    block adds its own terms.
+    The spec's astigmatism (tangential - sagittal focus, the field polynomial ``A(rho)`` of ``astigmatism_um``)
+    becomes ``Wast = -A(rho) / (16 N^2)`` (so the tangential focus lies at ``z_c + A(rho) / 2``, as the geometric
+    path and the truth have it); the ``aberrations`` block adds its own terms.
     """
     n = spec.f_number
-    wast = -spec.channel(channel).astigmatism_um * rho * rho / (16.0 * n * n)
+    wast = -float(spec.channel(channel).astigmatism_at(rho)) / (16.0 * n * n)
     w040 = w060 = w131 = 0.0
     ab = spec.aberrations
     if ab is not None:
@@ -315,6 +317,11 @@ class WaveBlur:
         if nx < 2 or ny < 2:
             raise ParameterError(f"field_grid must be at least 2 x 2, got {field_grid}", field="field_grid",
                                  fix="e.g. (5, 4)")
+        if any(spec.channel(c).has_astigmatism for c in spec.channel_names):
+            # Blending node PSFs of different azimuths mixes orientations: on the astigmatic triplet a 5x4 grid
+            # rendered ~0.8 of T - S (slanted-edge T/S 1.1-1.6 µm RMS off); 11x7 brings them to 0.6-1.0 µm for
+            # ~20 % more render time (docs/benchmarks.md "bench_edge_calibration")
+            nx, ny = max(nx, ASTIG_FIELD_GRID[0]), max(ny, ASTIG_FIELD_GRID[1])
         self.spec = spec
         self.scene = scene
         self.level_ratio = level_ratio
