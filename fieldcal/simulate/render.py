@@ -335,8 +335,8 @@ class Renderer:
         xd, yd = self._landing(z_um, channel, affine)
         xm, ym = self.spec.pixel_to_mm(xd, yd)
         if z_um is None:
-            astig = self.spec.channel(channel).astigmatism_um
-            d = 0.5 * abs(astig) * self.spec.rho(xm, ym) ** 2 * np.ones((self.height_px, self.width_px))
+            c = self.spec.channel(channel)
+            d = 0.5 * np.abs(c.astigmatism_at(self.spec.rho(xm, ym))) * np.ones((self.height_px, self.width_px))
         else:
             d = self.spec.effective_defocus_um(z_um, xm, ym, channel)
         return np.asarray(d, dtype=np.float32)
@@ -372,10 +372,11 @@ class Renderer:
         xd = affine[0, 0] * xc[None, :] + affine[0, 2]
         yd = affine[1, 1] * yc[:, None] + affine[1, 2]
         xm, ym = self.spec.pixel_to_mm(xd, yd)
-        astig = self.spec.channel(channel).astigmatism_um
+        c = self.spec.channel(channel)
         to_px = 1.0 / (self.spec.f_number * self.pitch_um)
         dz = None if z_um is None else (z_um - self.spec.best_focus_um(xm, ym, channel)) * to_px
-        half = (0.5 * abs(astig) * self.spec.rho(xm, ym) ** 2) * to_px if astig else None
+        # the full field polynomial A(rho), as effective_defocus_um uses on the exact path
+        half = (0.5 * np.abs(c.astigmatism_at(self.spec.rho(xm, ym)))) * to_px if c.has_astigmatism else None
         if dz is not None and half is not None:
             b_max = float(np.max(np.hypot(dz, half)))
         else:
