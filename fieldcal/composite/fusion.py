@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..progress import progress
 from .source import image_size, z_positions
-from .warp import frame_maps, warp_region
+from .dff import frame_planes
 
 _BORDER = cv2.BORDER_REFLECT101
 
@@ -64,17 +64,6 @@ def _level_shapes(h: int, w: int, levels: int) -> list[tuple[int, int]]:
         hh, ww = shapes[-1]
         shapes.append(((hh + 1) // 2, (ww + 1) // 2))
     return shapes
-
-
-def _warped(stack, geometry, z_um: float, i: int, channels, w: int, h: int) -> np.ndarray:
-    """Frame ``i`` in the output geometry, ``H x W x C`` float32 (a new array the caller may modify)."""
-    maps = list(frame_maps(geometry, z_um, channels, False))
-    if len(maps) == 1 and list(maps[0].channels) == list(range(len(channels))):
-        return warp_region(stack, i, maps[0], 0, 0, w, h)
-    img = np.empty((h, w, len(channels)), dtype=np.float32)
-    for fmap in maps:
-        img[..., list(fmap.channels)] = warp_region(stack, i, fmap, 0, 0, w, h)
-    return img
 
 
 class _ChannelSelection:
@@ -130,40 +119,64 @@ class _ChannelSelection:
         return img
 
 
-def _per_channel(selections: list[_ChannelSelection], frames) -> None:
-    """Feed ``(k, image)`` pairs to one thread per channel (``selections[c].add(image[..., c], k)``).
+def _per_channel(selections: list[_ChannelSelection], read, n_frames: int, shape: tuple[int, int]) -> None:
+    """Fuse ``n_frames`` frames with one thread per channel: ``read(k, planes)`` fills one float32 plane per
+    channel with frame ``k`` (z order) in this thread, and channel ``c``'s thread adds ``planes[c]`` to
+    ``selections[c]``.
 
-    Channels are independent: each thread keeps its own running selection, so the only hand-over is the
-    frame's planes (two frames may queue per channel, which bounds memory). OpenCV's own threads fill what is
-    left of the cores; NumPy's in-place arithmetic releases the GIL.
+    Channels are independent, so each thread keeps its own running selection and the only hand-over is a set
+    of planes; three sets circulate (one being read, two queued), which bounds memory and reuses the buffers.
+    OpenCV's own threads fill what is left of the cores; NumPy's in-place arithmetic releases the GIL.
     """
-    if len(selections) == 1:
-        for k, img in frames:
-            selections[0].add(np.ascontiguousarray(img[..., 0]), k)
+    n_ch = len(selections)
+    h, w = shape
+    if n_ch == 1:
+        planes = [np.empty((h, w), np.float32)]
+        for k in range(n_frames):
+            read(k, planes)
+            selections[0].add(planes[0], k)
         return
-    queues = [queue.Queue(maxsize=2) for _ in selections]
+    free: queue.Queue = queue.Queue()
+    for _ in range(3):
+        free.put([np.empty((h, w), np.float32) for _ in range(n_ch)])
+    todo = [queue.Queue() for _ in selections]
     errors: list[BaseException] = []
+    lock = threading.Lock()
+    users: dict[int, int] = {}
 
-    def work(sel: _ChannelSelection, q: queue.Queue) -> None:
+    def release(planes: list[np.ndarray]) -> None:
+        with lock:
+            users[id(planes)] -= 1
+            done = users[id(planes)] == 0
+        if done:
+            free.put(planes)
+
+    def work(sel: _ChannelSelection, c: int, q: queue.Queue) -> None:
         while (item := q.get()) is not None:
-            if not errors:  # after a failure the queue is drained so the reader never blocks
+            planes, k = item
+            if not errors:  # after a failure the frames are only passed on, so the reader never blocks
                 try:
-                    sel.add(*item)
+                    sel.add(planes[c], k)
                 except BaseException as exc:  # re-raised in the caller's thread
                     errors.append(exc)
+            release(planes)
 
-    threads = [threading.Thread(target=work, args=(sel, q), daemon=True, name=f"fieldcal-fuse-{c}")
-               for c, (sel, q) in enumerate(zip(selections, queues))]
+    threads = [threading.Thread(target=work, args=(sel, c, q), daemon=True, name=f"fieldcal-fuse-{c}")
+               for c, (sel, q) in enumerate(zip(selections, todo))]
     for t in threads:
         t.start()
     try:
-        for k, img in frames:
+        for k in range(n_frames):
+            planes = free.get()
             if errors:
                 break
-            for c, (plane, q) in enumerate(zip(cv2.split(img), queues)):
-                q.put((plane, k))
+            read(k, planes)
+            with lock:
+                users[id(planes)] = n_ch
+            for q in todo:
+                q.put((planes, k))
     finally:
-        for q in queues:
+        for q in todo:
             q.put(None)
         for t in threads:
             t.join()
@@ -227,9 +240,14 @@ def fuse_pyramid(stack, geometry=None, frames=None, *, levels: int | None = None
     # Level 1 (half resolution) is less noise-driven than level 0 and still follows edges within 2 px.
     index_level = 1 if n_levels > 1 else 0
     sels = [_ChannelSelection(h, w, n_levels, sigma, index_level) for _ in channels]
-    bar = progress(order, total=len(order), desc="fusing", quiet=quiet, unit="frame")
-    _per_channel(sels, ((k, _warped(stack, geometry, float(z_all[i]), int(i), channels, w, h))
-                        for k, i in enumerate(bar)))
+    bar = iter(progress(order, total=len(order), desc="fusing", quiet=quiet, unit="frame"))
+
+    def read(k: int, planes: list[np.ndarray]) -> None:
+        i = next(bar)
+        frame_planes(stack, geometry, float(z_all[i]), int(i), channels, w, h, out=planes)
+
+    _per_channel(sels, read, len(order), (h, w))
+    next(bar, None)  # closes the progress bar
     depth = _depth_index([s.best_idx for s in sels], [s.best_sal[index_level] for s in sels], w, h)
     fused = np.empty((h, w, len(channels)), dtype=np.float32)
     for c, sel in enumerate(sels):
@@ -324,24 +342,6 @@ class _PeakTracker:
         self.n += 1
 
 
-def _in_order(fn, items, workers: int):
-    """``fn(item)`` for each item on ``workers`` threads, yielded in order, at most ``2 * workers`` in flight."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    items = list(items)
-    if workers <= 1 or len(items) < 2:
-        yield from map(fn, items)
-        return
-    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fieldcal-dff") as pool:
-        pending = [pool.submit(fn, it) for it in items[:2 * workers]]
-        for k in range(len(items)):
-            result = pending[k].result()
-            pending[k] = None
-            if k + 2 * workers < len(items):
-                pending.append(pool.submit(fn, items[k + 2 * workers]))
-            yield result
-
-
 def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = None, window_px: float = 1.0,
               radius_px: int | None = None, eps: float = 1e-3, quiet: bool = False) -> DepthMap:
     """Per-pixel depth from focus with edge-aware aggregation (for scenes with depth).
@@ -372,8 +372,7 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
     eps : float
         Guided-filter regularisation, in units of the guide's normalised range squared.
     """
-    from .dff import modified_laplacian
-    from .stream import default_workers
+    from .dff import map_in_order, modified_laplacian
 
     w, h = image_size(stack)
     channels = tuple(stack.channels)
@@ -392,14 +391,21 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
     gf = _GuidedFilter(g, r, eps)
 
     def focus(i: int) -> np.ndarray:
-        e = modified_laplacian(_grey(_warped(stack, geometry, float(z_all[i]), int(i), channels, w, h)))
+        planes = frame_planes(stack, geometry, float(z_all[i]), int(i), channels, w, h)
+        lum = planes[0]
+        for plane in planes[1:]:
+            lum += plane
+        if len(planes) > 1:
+            lum /= np.float32(len(planes))
+        e = modified_laplacian(lum)
+        del planes, lum
         np.multiply(e, e, out=e)
         e = cv2.GaussianBlur(e, (0, 0), window_px, dst=e, borderType=_BORDER)
         return gf(e)
 
-    bar = progress(order, total=len(order), desc="depth from focus", quiet=quiet, unit="frame")
     track = None
-    for f in _in_order(focus, bar, default_workers()):
+    for f in progress(map_in_order(focus, order), total=len(order), desc="depth from focus", quiet=quiet,
+                      unit="frame"):
         if track is None:
             track = _PeakTracker(f)
         else:
