@@ -16,8 +16,8 @@ hard mask and of focus stackers, with the selection made per scale rather than o
    averages its noise;
 4. the pyramid is collapsed.
 
-Frames stream through one at a time: memory holds the running best coefficients and saliences (about twice
-one frame), never the whole stack. The selected frame at the finest level that carries signal is kept as a
+Frames stream through one at a time, one thread per channel: memory holds the running best coefficients and
+saliences (about twice one frame) and a few frames' planes, never the whole stack. The selected frame at the finest level that carries signal is kept as a
 depth index (frame order by z) for plots and for deciding, elsewhere, whether a scene is flat.
 """
 
@@ -348,7 +348,8 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
 
     1. Per frame (warped to the output geometry): the modified Laplacian of the luminance, squared, Gaussian-
        smoothed over ``window_px``.
-    2. Each frame's focus map is guided-filtered (He et al. 2013, OpenCV ``ximgproc``) with ``guide``, an
+    2. Each frame's focus map is guided-filtered (He et al. 2013; :class:`_GuidedFilter`, OpenCV ``ximgproc``'s
+       filter with the guide's statistics computed once) with ``guide``, an
        all-in-focus image of the same scene (e.g. :func:`fuse_pyramid`'s), so the aggregation follows the
        scene's edges: a sharp foreground edge does not lend its focus energy to the blurred background beside
        it (no halo), yet textureless stretches inherit the depth of the object they belong to.
