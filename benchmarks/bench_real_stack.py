@@ -1,6 +1,7 @@
 """A real 3-D focus stack: fieldcal against align_image_stack + enfuse, sharpness and crops side by side.
 
-Uses ``../shared/data/real-stacks/pcb-depthmap/`` (10 JPEG frames of a circuit board shot through focus). The
+Uses ``../shared/data/real-stacks/pcb-depthmap/`` beside the checkout (or ``--stack DIR``, or
+``$FIELDCAL_SHARED/data/real-stacks/pcb-depthmap``: 10 JPEG frames of a circuit board shot through focus). The
 frames are imported with ``fieldcal import`` (the pitch is not in their EXIF; 1.12 µm is given, z is a uniform
 step: only the order matters for depth from focus), composited without a profile in the geometry of the first
 frame (align_image_stack's reference), and compared with ``align_image_stack -m -a`` + ``enfuse --hard-mask``
@@ -8,7 +9,8 @@ frame (align_image_stack's reference), and compared with ``align_image_stack -m 
 
 Sharpness is the mean squared Laplacian (OpenCV ``Laplacian``, ksize 3, on grey 0-255) with a 96 px border left
 out: align_image_stack's frames carry black borders up to ~40 px wide, whose edges would otherwise count as
-detail. Writes ``docs/img/real-pcb-crops.png`` and prints a table row; ``--write`` adds it to docs/benchmarks.md.
+detail. Prints the table and writes crops to the temporary folder; ``--write`` puts the table into
+docs/benchmarks.md and the crops into ``docs/img/real-pcb-crops.png``.
 
 Speed: ``fieldcal composite`` in its own process, wall and CPU time (user + system, all threads) and peak RSS,
 on all frames and on the first 7 (issue 15: a 7-frame 2048x1536 stack, registration included, in 5 s on 2
@@ -34,10 +36,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import flag_slowdowns, slowdown_note  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-# ../shared beside the checkout (a worktree in wt/ has it two levels up)
-STACK = next((p / "shared" / "data" / "real-stacks" / "pcb-depthmap" for p in REPO.parents
-              if (p / "shared" / "data" / "real-stacks" / "pcb-depthmap").is_dir()),
-             REPO.parent / "shared" / "data" / "real-stacks" / "pcb-depthmap")
+# ../shared beside the checkout, or FIELDCAL_SHARED (the folder holding data/), or --stack
+_SUB = Path("data") / "real-stacks" / "pcb-depthmap"
+DEFAULT_STACK = (Path(os.environ["FIELDCAL_SHARED"]) / _SUB if os.environ.get("FIELDCAL_SHARED")
+                 else REPO.parent / "shared" / _SUB)
 BORDER = 96
 
 
@@ -66,10 +68,15 @@ def time_composite(py, stack: Path, out: Path, n: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--write", action="store_true")
+    ap.add_argument("--stack", type=Path, default=DEFAULT_STACK,
+                    help="folder of the JPEG frames (default ../shared/data/real-stacks/pcb-depthmap beside the "
+                         "checkout, or $FIELDCAL_SHARED/data/real-stacks/pcb-depthmap)")
+    ap.add_argument("--write", action="store_true",
+                    help="put the table into docs/benchmarks.md and the crops into docs/img/real-pcb-crops.png")
     a = ap.parse_args()
+    STACK = a.stack
     if not STACK.is_dir():
-        sys.exit(f"{STACK} not found (../shared beside the checkout)")
+        sys.exit(f"{STACK} not found: give --stack, or set FIELDCAL_SHARED to the folder holding data/")
     work = Path(tempfile.mkdtemp())
     py = [sys.executable, "-m", "fieldcal"]
     jpegs = sorted(STACK.glob("*.JPG"))
@@ -123,7 +130,8 @@ def main() -> None:
             e = enf if enf.dtype == np.uint8 else (enf / 257).astype(np.uint8)
             row = [e[y:y + 256, x:x + 256]] + row
         crops.append(np.concatenate(row, axis=1))
-    out = REPO / "docs" / "img" / "real-pcb-crops.png"
+    # the docs' figure only with --write; otherwise beside the run, kept for a look
+    out = (REPO / "docs" / "img" if a.write else Path(tempfile.gettempdir())) / "real-pcb-crops.png"
     cv2.imwrite(str(out), np.concatenate(crops, axis=0)[..., ::-1])
     print(f"crops ({'enfuse | fieldcal' if enf is not None else 'fieldcal'}, three regions): {out}")
     if a.write:

@@ -16,13 +16,15 @@ hard mask and of focus stackers, with the selection made per scale rather than o
    averages its noise;
 4. the pyramid is collapsed.
 
-Frames stream through one at a time: memory holds the running best coefficients and saliences (about twice
-one frame), never the whole stack. The selected frame at the finest level that carries signal is kept as a
+Frames stream through one at a time, one thread per channel: memory holds the running best coefficients and
+saliences (about twice one frame) and a few frames' planes, never the whole stack. The selected frame at the finest level that carries signal is kept as a
 depth index (frame order by z) for plots and for deciding, elsewhere, whether a scene is flat.
 """
 
 from __future__ import annotations
 
+import queue
+import threading
 from dataclasses import dataclass
 
 import cv2
@@ -31,7 +33,9 @@ import numpy as np
 from ..errors import ParameterError
 from ..progress import progress
 from .source import image_size, z_positions
-from .warp import frame_maps, warp_region
+from .dff import frame_planes
+
+_BORDER = cv2.BORDER_REFLECT101
 
 
 @dataclass
@@ -53,33 +57,131 @@ def default_levels(width: int, height: int) -> int:
     return int(np.clip(np.floor(np.log2(max(min(width, height), 2) / 16.0)), 1, 8))
 
 
-def _laplacian_pyramid(img: np.ndarray, levels: int) -> list[np.ndarray]:
-    pyr = []
-    cur = img
+def _level_shapes(h: int, w: int, levels: int) -> list[tuple[int, int]]:
+    """``(rows, cols)`` of each pyramid level (as ``cv2.pyrDown`` halves them), finest first, base last."""
+    shapes = [(h, w)]
     for _ in range(levels):
-        down = cv2.pyrDown(cur, borderType=cv2.BORDER_REFLECT101)
-        up = cv2.pyrUp(down, dstsize=(cur.shape[1], cur.shape[0]), borderType=cv2.BORDER_REFLECT101)
-        pyr.append(_as3d(cur - _as3d(up)))
-        cur = _as3d(down)
-    pyr.append(cur)
-    return pyr
+        hh, ww = shapes[-1]
+        shapes.append(((hh + 1) // 2, (ww + 1) // 2))
+    return shapes
 
 
-def _as3d(a: np.ndarray) -> np.ndarray:
-    return a[:, :, None] if a.ndim == 2 else a
+class _ChannelSelection:
+    """Per-scale selection for one channel, frame by frame: the running best coefficients and saliences.
+
+    All scratch (the frame's pyramid, its saliences, the selection mask) is allocated once and reused, every
+    operation writes in place: a frame costs no new full-size arrays (at 2048 x 1536 a fresh array costs as
+    much in page faults as the arithmetic on it).
+    """
+
+    def __init__(self, h: int, w: int, levels: int, sigma: float, index_level: int):
+        self.shapes = _level_shapes(h, w, levels)
+        self.levels, self.sigma, self.index_level = levels, sigma, index_level
+        self.gauss = [np.empty(s, np.float32) for s in self.shapes[1:]]
+        self.lap = [np.empty(s, np.float32) for s in self.shapes[:-1]]
+        self.best = [np.empty(s, np.float32) for s in self.shapes[:-1]]
+        self.best_sal = [np.empty(s, np.float32) for s in self.shapes[:-1]]
+        self.best_idx = np.zeros(self.shapes[index_level], np.int16)
+        self._sal = np.empty(h * w, np.float32)
+        self._take = np.empty(h * w, bool)
+        self.base_sum = np.zeros(self.shapes[-1], np.float64)
+
+    def add(self, plane: np.ndarray, k: int) -> None:
+        """Take frame ``k``'s (in z order) coefficients where it is more salient than the frames before."""
+        cur = plane
+        for lev in range(self.levels):
+            hh, ww = self.shapes[lev]
+            down = cv2.pyrDown(cur, dst=self.gauss[lev], borderType=_BORDER)
+            lap = cv2.pyrUp(down, dst=self.lap[lev], dstsize=(ww, hh), borderType=_BORDER)
+            np.subtract(cur, lap, out=lap)
+            sal = self._sal[:hh * ww].reshape(hh, ww)
+            np.multiply(lap, lap, out=sal)
+            sal = cv2.GaussianBlur(sal, (0, 0), self.sigma, dst=sal, borderType=_BORDER)
+            if k == 0:
+                np.copyto(self.best[lev], lap)
+                np.copyto(self.best_sal[lev], sal)
+            else:
+                take = np.greater(sal, self.best_sal[lev], out=self._take[:hh * ww].reshape(hh, ww))
+                np.copyto(self.best[lev], lap, where=take)
+                np.maximum(self.best_sal[lev], sal, out=self.best_sal[lev])
+                if lev == self.index_level:
+                    np.copyto(self.best_idx, k, where=take, casting="unsafe")
+            cur = down
+        self.base_sum += cur
+
+    def collapse(self, n_frames: int) -> np.ndarray:
+        """The fused channel: the selected pyramid over the mean base, collapsed (overwrites the coefficients)."""
+        img = (self.base_sum / n_frames).astype(np.float32)
+        for lev in range(self.levels - 1, -1, -1):
+            hh, ww = self.shapes[lev]
+            up = cv2.pyrUp(img, dstsize=(ww, hh), borderType=_BORDER)
+            img = np.add(self.best[lev], up, out=self.best[lev])
+        return img
 
 
-def _collapse(pyr: list[np.ndarray]) -> np.ndarray:
-    img = pyr[-1]
-    for lap in pyr[-2::-1]:
-        img = _as3d(cv2.pyrUp(img, dstsize=(lap.shape[1], lap.shape[0]), borderType=cv2.BORDER_REFLECT101)) + lap
-    return img
+def _per_channel(selections: list[_ChannelSelection], read, n_frames: int, shape: tuple[int, int]) -> None:
+    """Fuse ``n_frames`` frames with one thread per channel: ``read(k, planes)`` fills one float32 plane per
+    channel with frame ``k`` (z order) in this thread, and channel ``c``'s thread adds ``planes[c]`` to
+    ``selections[c]``.
 
+    Channels are independent, so each thread keeps its own running selection and the only hand-over is a set
+    of planes; three sets circulate (one being read, two queued), which bounds memory and reuses the buffers.
+    OpenCV's own threads fill what is left of the cores; NumPy's in-place arithmetic releases the GIL.
+    """
+    n_ch = len(selections)
+    h, w = shape
+    if n_ch == 1:
+        planes = [np.empty((h, w), np.float32)]
+        for k in range(n_frames):
+            read(k, planes)
+            selections[0].add(planes[0], k)
+        return
+    free: queue.Queue = queue.Queue()
+    for _ in range(3):
+        free.put([np.empty((h, w), np.float32) for _ in range(n_ch)])
+    todo = [queue.Queue() for _ in selections]
+    errors: list[BaseException] = []
+    lock = threading.Lock()
+    users: dict[int, int] = {}
 
-def _salience(lap: np.ndarray, sigma: float) -> np.ndarray:
-    """Local energy of one level's coefficients, per channel (Gaussian window of ``sigma`` px)."""
-    e = lap * lap
-    return _as3d(cv2.GaussianBlur(e, (0, 0), sigma, borderType=cv2.BORDER_REFLECT101))
+    def release(planes: list[np.ndarray]) -> None:
+        with lock:
+            users[id(planes)] -= 1
+            done = users[id(planes)] == 0
+        if done:
+            free.put(planes)
+
+    def work(sel: _ChannelSelection, c: int, q: queue.Queue) -> None:
+        while (item := q.get()) is not None:
+            planes, k = item
+            if not errors:  # after a failure the frames are only passed on, so the reader never blocks
+                try:
+                    sel.add(planes[c], k)
+                except BaseException as exc:  # re-raised in the caller's thread
+                    errors.append(exc)
+            release(planes)
+
+    threads = [threading.Thread(target=work, args=(sel, c, q), daemon=True, name=f"fieldcal-fuse-{c}")
+               for c, (sel, q) in enumerate(zip(selections, todo))]
+    for t in threads:
+        t.start()
+    try:
+        for k in range(n_frames):
+            planes = free.get()
+            if errors:
+                break
+            read(k, planes)
+            with lock:
+                users[id(planes)] = n_ch
+            for q in todo:
+                q.put((planes, k))
+    finally:
+        for q in todo:
+            q.put(None)
+        for t in threads:
+            t.join()
+    if errors:
+        raise errors[0]
 
 
 def fuse_pyramid(stack, geometry=None, frames=None, *, levels: int | None = None, window_px: float = 5.0,
@@ -107,6 +209,11 @@ def fuse_pyramid(stack, geometry=None, frames=None, *, levels: int | None = None
     -------
     FusionResult
 
+    Notes
+    -----
+    Float32 throughout, one thread per channel, each holding its running selection (the best coefficients and
+    saliences, ~2.7 planes) and one frame's scratch pyramid, reused.
+
     Examples
     --------
     >>> from fieldcal.composite.source import ArrayStack
@@ -130,42 +237,33 @@ def fuse_pyramid(stack, geometry=None, frames=None, *, levels: int | None = None
         raise ParameterError(f"{n_levels} pyramid levels do not fit a {w}x{h} image", field="levels",
                              fix="use fewer levels")
     sigma = max(float(window_px), 1.0) / 2.0
-    best: list[np.ndarray] | None = None
-    best_sal: list[np.ndarray] = []
-    best_idx: list[np.ndarray] = []
-    base_sum = None
-    for k, i in enumerate(progress(order, total=len(order), desc="fusing", quiet=quiet, unit="frame")):
-        img = np.empty((h, w, len(channels)), dtype=np.float32)
-        for fmap in frame_maps(geometry, float(z_all[i]), channels, False):
-            part = warp_region(stack, int(i), fmap, 0, 0, w, h)
-            img[..., list(fmap.channels)] = part
-        pyr = _laplacian_pyramid(img, n_levels)
-        base = pyr[-1].astype(np.float64)
-        base_sum = base if base_sum is None else base_sum + base
-        if best is None:
-            best = [lap.copy() for lap in pyr[:-1]]
-            best_sal = [_salience(lap, sigma) for lap in pyr[:-1]]
-            best_idx = [np.zeros(lap.shape, dtype=np.int16) for lap in pyr[:-1]]
-            continue
-        for lev, lap in enumerate(pyr[:-1]):
-            sal = _salience(lap, sigma)
-            take = sal > best_sal[lev]
-            np.copyto(best[lev], lap, where=take)
-            np.copyto(best_sal[lev], sal, where=take)
-            best_idx[lev][take] = k
-    assert best is not None and base_sum is not None
-    fused = _collapse([*best, (base_sum / len(order)).astype(np.float32)])
-    depth = _depth_index(best_idx, best_sal, w, h)
-    return FusionResult(fused.astype(np.float32, copy=False), depth, z_all[order], n_levels)
+    # Level 1 (half resolution) is less noise-driven than level 0 and still follows edges within 2 px.
+    index_level = 1 if n_levels > 1 else 0
+    sels = [_ChannelSelection(h, w, n_levels, sigma, index_level) for _ in channels]
+    bar = iter(progress(order, total=len(order), desc="fusing", quiet=quiet, unit="frame"))
+
+    def read(k: int, planes: list[np.ndarray]) -> None:
+        i = next(bar)
+        frame_planes(stack, geometry, float(z_all[i]), int(i), channels, w, h, out=planes)
+
+    _per_channel(sels, read, len(order), (h, w))
+    next(bar, None)  # closes the progress bar
+    depth = _depth_index([s.best_idx for s in sels], [s.best_sal[index_level] for s in sels], w, h)
+    fused = np.empty((h, w, len(channels)), dtype=np.float32)
+    for c, sel in enumerate(sels):
+        fused[..., c] = sel.collapse(len(order))
+    return FusionResult(fused, depth, z_all[order], n_levels)
 
 
 def _depth_index(best_idx: list[np.ndarray], best_sal: list[np.ndarray], w: int, h: int) -> np.ndarray:
-    """Frame choice per pixel: the finest level whose salience stands out, upsampled and median-filtered."""
-    # Level 1 (half resolution) is less noise-driven than level 0 and still follows edges within 2 px.
-    lev = 1 if len(best_idx) > 1 else 0
-    sal = best_sal[lev].sum(axis=2)
-    choice = np.take_along_axis(best_idx[lev], np.argmax(best_sal[lev], axis=2)[..., None], axis=2)[..., 0]
-    del sal
+    """Frame choice per pixel: at one level, each pixel takes the choice of its most salient channel;
+    median-filtered, upsampled (nearest) to ``w x h``."""
+    choice = best_idx[0].copy()
+    sal = best_sal[0].copy()
+    for idx, s in zip(best_idx[1:], best_sal[1:]):
+        more = s > sal  # strict: the first channel wins ties, as argmax does
+        np.copyto(choice, idx, where=more)
+        np.copyto(sal, s, where=more)
     d = cv2.medianBlur(choice.astype(np.uint8) if choice.max() < 256 else choice.astype(np.float32), 5)
     return cv2.resize(d.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
 
@@ -179,8 +277,69 @@ class DepthMap:
     confidence: np.ndarray
 
 
-def _guided(guide: np.ndarray, src: np.ndarray, radius: int, eps: float) -> np.ndarray:
-    return cv2.ximgproc.guidedFilter(guide, src.astype(np.float32), int(radius), float(eps))
+class _GuidedFilter:
+    """He et al.'s guided filter (2013) with a grey guide, the guide's statistics computed once for all the
+    inputs filtered with it (OpenCV ``ximgproc.guidedFilter`` recomputes them on every call). Box windows with
+    ``BORDER_REFLECT``, as ximgproc's: the output is ximgproc's to float32 rounding. Calls may run concurrently.
+    """
+
+    def __init__(self, guide: np.ndarray, radius: int, eps: float):
+        self.guide = np.ascontiguousarray(guide, dtype=np.float32)
+        self.ksize = (2 * int(radius) + 1, 2 * int(radius) + 1)
+        self.mean = self._box(self.guide)
+        var = self._box(self.guide * self.guide)
+        var -= self.mean * self.mean
+        var += np.float32(eps)
+        self.inv_var = np.divide(np.float32(1.0), var, out=var)
+
+    def _box(self, a: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        return cv2.boxFilter(a, cv2.CV_32F, self.ksize, dst=out, normalize=True, borderType=cv2.BORDER_REFLECT)
+
+    def __call__(self, src: np.ndarray) -> np.ndarray:
+        p = np.asarray(src, dtype=np.float32)
+        mean_p = self._box(p)
+        a = self._box(np.multiply(self.guide, p))  # mean of guide x input
+        tmp = np.multiply(self.mean, mean_p)
+        a -= tmp  # covariance of guide and input
+        a *= self.inv_var
+        b = np.subtract(mean_p, np.multiply(a, self.mean, out=tmp), out=mean_p)
+        a = self._box(a, out=a)
+        b = self._box(b, out=b)
+        a *= self.guide
+        a += b
+        return a
+
+
+class _PeakTracker:
+    """The per-pixel maximum over a focus volume streamed frame by frame (z order) and, for the sub-frame
+    parabola, the values at the frames on either side of it: the volume itself is never held.
+
+    Matches ``argmax`` over the volume (the first frame wins ties) and its neighbours clipped to the stack's
+    ends (at the first or last frame the missing neighbour is the peak itself).
+    """
+
+    def __init__(self, first: np.ndarray):
+        self.peak = first.copy()
+        self.before = first.copy()
+        self.after = first.copy()
+        self.total = first.copy()
+        self.index = np.zeros(first.shape, np.int16)
+        self._prev = first
+        self._mask = np.empty(first.shape, bool)
+        self.n = 1
+
+    def add(self, f: np.ndarray) -> None:
+        k = self.n
+        # the frame after a peak found at the previous frame
+        np.copyto(self.after, f, where=np.equal(self.index, k - 1, out=self._mask))
+        take = np.greater(f, self.peak, out=self._mask)
+        np.copyto(self.before, self._prev, where=take)
+        np.copyto(self.after, f, where=take)  # the peak's own value until a frame follows (clipped at the end)
+        np.copyto(self.peak, f, where=take)
+        np.copyto(self.index, k, where=take, casting="unsafe")
+        self.total += f
+        self._prev = f
+        self.n += 1
 
 
 def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = None, window_px: float = 1.0,
@@ -189,12 +348,16 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
 
     1. Per frame (warped to the output geometry): the modified Laplacian of the luminance, squared, Gaussian-
        smoothed over ``window_px``.
-    2. Each frame's focus map is guided-filtered (He et al. 2013, OpenCV ``ximgproc``) with ``guide``, an
+    2. Each frame's focus map is guided-filtered (He et al. 2013; :class:`_GuidedFilter`, OpenCV ``ximgproc``'s
+       filter with the guide's statistics computed once) with ``guide``, an
        all-in-focus image of the same scene (e.g. :func:`fuse_pyramid`'s), so the aggregation follows the
        scene's edges: a sharp foreground edge does not lend its focus energy to the blurred background beside
        it (no halo), yet textureless stretches inherit the depth of the object they belong to.
     3. Per pixel: the frame of peak focus, refined by a parabola through its neighbours (sub-frame), and a
        confidence.
+
+    Frames are measured on a few threads and the peak is tracked as they come (:class:`_PeakTracker`): memory
+    holds a few planes, not the focus volume.
 
     Parameters
     ----------
@@ -210,48 +373,87 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
     eps : float
         Guided-filter regularisation, in units of the guide's normalised range squared.
     """
+    from .dff import map_in_order, modified_laplacian
+
     w, h = image_size(stack)
     channels = tuple(stack.channels)
     z_all = z_positions(stack)
     idx = np.arange(len(z_all)) if frames is None else np.asarray(frames, dtype=int)
     order = idx[np.argsort(z_all[idx], kind="stable")]
+    if len(order) < 1:
+        raise ParameterError("no frames for depth from focus", field="frames", fix="give at least one frame")
     if guide is None:
         guide = fuse_pyramid(stack, geometry, frames, quiet=quiet).image
-    g = np.asarray(guide, dtype=np.float32)
-    g = g.mean(axis=2) if g.ndim == 3 else g
-    scale = max(float(np.percentile(g, 99.5) - np.percentile(g, 0.5)), 1e-12)
-    g = (g - float(g.min())) / scale
+    g = _grey(np.asarray(guide, dtype=np.float32))
+    lo, hi = np.percentile(g, [0.5, 99.5])
+    g -= np.float32(g.min())
+    g *= np.float32(1.0 / max(float(hi - lo), 1e-12))
     r = int(radius_px) if radius_px is not None else max(2, int(round(np.hypot(w, h) / 200)))
-    vol = np.empty((len(order), h, w), dtype=np.float32)
-    for k, i in enumerate(progress(order, total=len(order), desc="depth from focus", quiet=quiet, unit="frame")):
-        img = np.empty((h, w, len(channels)), dtype=np.float32)
-        for fmap in frame_maps(geometry, float(z_all[i]), channels, False):
-            img[..., list(fmap.channels)] = warp_region(stack, int(i), fmap, 0, 0, w, h)
-        from .dff import modified_laplacian
-        lum = img.mean(axis=2)
-        e = modified_laplacian(lum) ** 2
-        e = cv2.GaussianBlur(e, (0, 0), window_px, borderType=cv2.BORDER_REFLECT101)
-        vol[k] = _guided(g, e, r, eps)
+    gf = _GuidedFilter(g, r, eps)
+
+    def focus(i: int) -> np.ndarray:
+        planes = frame_planes(stack, geometry, float(z_all[i]), int(i), channels, w, h)
+        lum = planes[0]
+        for plane in planes[1:]:
+            lum += plane
+        if len(planes) > 1:
+            lum /= np.float32(len(planes))
+        e = modified_laplacian(lum)
+        del planes, lum
+        np.multiply(e, e, out=e)
+        e = cv2.GaussianBlur(e, (0, 0), window_px, dst=e, borderType=_BORDER)
+        return gf(e)
+
+    track = None
+    for f in progress(map_in_order(focus, order), total=len(order), desc="depth from focus", quiet=quiet,
+                      unit="frame"):
+        if track is None:
+            track = _PeakTracker(f)
+        else:
+            track.add(f)
+    del gf
     zs = z_all[order].astype(np.float64)
     n = len(zs)
-    k = np.argmax(vol, axis=0)
-    peak = np.take_along_axis(vol, k[None], 0)[0].astype(np.float64)
-    mean = vol.mean(axis=0, dtype=np.float64)
-    conf = np.clip(peak / np.maximum(mean, 1e-30) - 1.0, 0.0, None).astype(np.float32)
-    zb = zs[k]
+    k = track.index
+    peak = track.peak
+    mean = np.multiply(track.total, np.float32(1.0 / n), out=track.total)
+    conf = np.divide(peak, np.maximum(mean, np.float32(1e-30), out=mean), out=mean)
+    conf -= np.float32(1.0)
+    np.maximum(conf, np.float32(0.0), out=conf)
+    zb = zs.astype(np.float32)[k]
     if n >= 3:
-        km, kp = np.clip(k - 1, 0, n - 1), np.clip(k + 1, 0, n - 1)
-        fm = np.take_along_axis(vol, km[None], 0)[0].astype(np.float64)
-        fp = np.take_along_axis(vol, kp[None], 0)[0].astype(np.float64)
-        den = fm - 2 * peak + fp
+        fm, fp = track.before, track.after
+        den = peak * np.float32(-2.0)
+        den += fm
+        den += fp
         inner = (k > 0) & (k < n - 1) & (den < 0)
-        off = np.where(inner, 0.5 * (fm - fp) / np.where(inner, den, -1.0), 0.0)
-        step = np.where(off >= 0, zs[kp] - zs[k], zs[k] - zs[km])
-        zb = zb + np.clip(off, -0.5, 0.5) * step
+        off = np.subtract(fm, fp, out=fm)
+        off *= np.float32(0.5)
+        np.divide(off, den, out=off, where=inner)
+        off[~inner] = 0.0
+        np.clip(off, -0.5, 0.5, out=off)
+        up = np.diff(zs, append=zs[-1]).astype(np.float32)  # z[k + 1] - z[k], 0 at the last frame
+        down = np.diff(zs, prepend=zs[0]).astype(np.float32)  # z[k] - z[k - 1], 0 at the first
+        step = np.where(off >= 0, up[k], down[k])
+        off *= step
+        zb += off
+        del fm, fp, den, off, step, inner
+    del track
     # Confidence-weighted, edge-aware smoothing: a pixel with little texture takes the depth of the confident
     # pixels of its own object (the guide's edges bound the averaging); confident pixels barely move.
-    rf = max(1, r // 2)
-    num = _guided(g, (zb * conf).astype(np.float32), rf, 1e-2)
-    den = _guided(g, conf, rf, 1e-2)
-    zb = np.where(den > 1e-6, num / np.maximum(den, 1e-6), zb)
-    return DepthMap(zb.astype(np.float32), conf)
+    smooth = _GuidedFilter(g, max(1, r // 2), 1e-2)
+    num = smooth(zb * conf)
+    den = smooth(conf)
+    ok = den > 1e-6
+    np.divide(num, den, out=zb, where=ok)
+    return DepthMap(zb, conf)
+
+
+def _grey(img: np.ndarray) -> np.ndarray:
+    """Mean over channels of an ``H x W x C`` float32 image, ``H x W`` (OpenCV's ``transform``: one pass)."""
+    c = img.shape[2] if img.ndim == 3 else 1
+    if c == 1:
+        return np.array(img.reshape(img.shape[:2]), dtype=np.float32)
+    if c <= 4:
+        return cv2.transform(img, np.full((1, c), 1.0 / c, np.float32))
+    return img.mean(axis=2, dtype=np.float32)

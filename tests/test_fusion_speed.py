@@ -1,0 +1,71 @@
+"""The speed-ups of the depth-from-focus path compute what the plain formulations compute."""
+
+import cv2
+import numpy as np
+
+from fieldcal.composite.dff import _weighted_lstsq, frame_planes, map_in_order
+from fieldcal.composite.fusion import _GuidedFilter, _PeakTracker
+from fieldcal.formats.frames import ArrayStack
+
+
+def test_guided_filter_matches_opencv():
+    rng = np.random.default_rng(0)
+    guide = cv2.GaussianBlur(rng.random((90, 120)).astype(np.float32), (0, 0), 3)
+    guide = (guide - guide.min()) / np.ptp(guide)
+    gf = _GuidedFilter(guide, 5, 1e-3)
+    for _ in range(2):  # the guide's statistics are reused
+        src = rng.random((90, 120)).astype(np.float32) ** 3
+        ref = cv2.ximgproc.guidedFilter(guide, src, 5, 1e-3)
+        np.testing.assert_allclose(gf(src), ref, atol=5e-5 * float(np.abs(ref).max()))  # float32 rounding
+
+
+def test_peak_tracker_matches_argmax_and_neighbours():
+    rng = np.random.default_rng(1)
+    vol = rng.integers(0, 6, size=(7, 20, 30)).astype(np.float32)  # many ties: the first frame must win
+    t = _PeakTracker(vol[0])
+    for f in vol[1:]:
+        t.add(f)
+    n = len(vol)
+    k = np.argmax(vol, axis=0)
+    take = lambda j: np.take_along_axis(vol, j[None], 0)[0]  # noqa: E731
+    np.testing.assert_array_equal(t.index, k)
+    np.testing.assert_array_equal(t.peak, take(k))
+    np.testing.assert_array_equal(t.before, take(np.clip(k - 1, 0, n - 1)))
+    np.testing.assert_array_equal(t.after, take(np.clip(k + 1, 0, n - 1)))
+    np.testing.assert_allclose(t.total, vol.sum(axis=0))
+
+
+def test_map_in_order_keeps_order_and_raises():
+    assert list(map_in_order(lambda v: v * v, range(9), workers=2)) == [v * v for v in range(9)]
+
+    def bad(v):
+        if v == 3:
+            raise ValueError("frame 3")
+        return v
+
+    try:
+        list(map_in_order(bad, range(6), workers=2))
+    except ValueError as exc:
+        assert "frame 3" in str(exc)
+    else:
+        raise AssertionError("the worker's error was lost")
+
+
+def test_frame_planes_are_the_frame(monkeypatch):
+    rng = np.random.default_rng(2)
+    frames = [rng.integers(0, 255, size=(70, 50, 3)).astype(np.uint8) for _ in range(2)]
+    st = ArrayStack(frames, [0.0, 5.0], ["R", "G", "B"])
+    monkeypatch.setattr("fieldcal.composite.dff.BAND_BYTES", 50 * 3 * 4 * 16)  # 16-row bands: 5 bands
+    planes = frame_planes(st, None, 5.0, 1, st.channels, 50, 70)
+    for c in range(3):
+        np.testing.assert_array_equal(planes[c], frames[1][..., c].astype(np.float32))
+
+
+def test_weighted_lstsq_matches_lapack():
+    rng = np.random.default_rng(3)
+    u, v = rng.uniform(-1, 1, (2, 400))
+    a = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v, (u * u + v * v) ** 2, (u * u + v * v) ** 3], axis=1)
+    z = a @ rng.normal(size=8) + 0.01 * rng.normal(size=400)
+    sw = np.sqrt(rng.uniform(0, 1, 400))
+    ref = np.linalg.lstsq(a * sw[:, None], z * sw, rcond=None)[0]
+    np.testing.assert_allclose(_weighted_lstsq(a, z, sw), ref, rtol=1e-8, atol=1e-10)
