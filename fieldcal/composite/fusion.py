@@ -402,7 +402,10 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
         del planes, lum
         np.multiply(e, e, out=e)
         e = cv2.GaussianBlur(e, (0, 0), window_px, dst=e, borderType=_BORDER)
-        return gf(e)
+        q = gf(e)
+        # an energy is >= 0: the guided filter's undershoot beside strong edges is not focus, and negative
+        # values would make the mean below (the confidence's denominator) meaningless
+        return np.maximum(q, np.float32(0.0), out=q)
 
     track = None
     for f in progress(map_in_order(focus, order), total=len(order), desc="depth from focus", quiet=quiet,
@@ -417,7 +420,9 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
     k = track.index
     peak = track.peak
     mean = np.multiply(track.total, np.float32(1.0 / n), out=track.total)
-    conf = np.divide(peak, np.maximum(mean, np.float32(1e-30), out=mean), out=mean)
+    # a floor relative to the stack's strongest focus: where nothing is textured, confidence 0, not noise/noise
+    floor = np.float32(max(1e-6 * float(mean.max()), 1e-30))
+    conf = np.divide(peak, np.maximum(mean, floor, out=mean), out=mean)
     conf -= np.float32(1.0)
     np.maximum(conf, np.float32(0.0), out=conf)
     zb = zs.astype(np.float32)[k]
@@ -446,6 +451,9 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
     den = smooth(conf)
     ok = den > 1e-6
     np.divide(num, den, out=zb, where=ok)
+    # the guided filter is not a convex average: where the confidence nearly vanishes its ratio can leave the
+    # stack; no depth from focus lies beyond the frames
+    np.clip(zb, np.float32(zs[0]), np.float32(zs[-1]), out=zb)
     return DepthMap(zb, conf)
 
 
