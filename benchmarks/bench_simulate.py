@@ -123,7 +123,7 @@ def table(rows: list[dict]) -> str:
             "chirp-z resampler): 4.09 s/frame (0.24 frames/s) for the triplet and 1.35 s for the doublet "
             "(tracemalloc peak 343 / 257 MB, max RSS 506 MB), measured on a quieter machine. Under the same load as "
             "the after-figures (1-minute load 15-18, `/tmp` harness rendering the same 9 frames alternately with "
-            "the old and the new code, /tmp/simspeed/cmp.py): triplet at load 9, 4.11 s/frame before, 0.61 s after "
+            "the old and the new code at commits eb4c861 and 647438c): triplet at load 9, 4.11 s/frame before, 0.61 s after "
             "(9 frames and the truth: 45.6 s, 16.5 s CPU before; 10.5 s with the levels, 3.9 s CPU after); at "
             "load 15-18, 10.2-11.6 s before, 0.64-1.3 s after.\n")
     return "\n".join(lines) + "\n" + note
