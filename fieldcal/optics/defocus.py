@@ -21,7 +21,7 @@ import functools
 import math
 
 import numpy as np
-from scipy import optimize, special
+from scipy import special
 
 from typing import TYPE_CHECKING
 
@@ -96,6 +96,8 @@ def disc_x_at_contrast(level: float) -> float:
         return 0.0
     if level <= float(disc_otf(DISC_FIRST_ZERO - 1e-9)):
         return DISC_FIRST_ZERO
+    from scipy import optimize  # here, not at import: ~0.1 s of every command's start-up
+
     return float(optimize.brentq(lambda t: float(disc_otf(t)) - level, 1e-12, DISC_FIRST_ZERO - 1e-9,
                                  xtol=1e-14))
 
