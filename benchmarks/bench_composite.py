@@ -331,7 +331,7 @@ def _fieldcal_runs(spath: Path, lens: Path, out: Path, repeat: int, src: Path | 
     if src is not None:  # another fieldcal source tree (e.g. before a change), ahead of the installed one
         env["PYTHONPATH"] = os.pathsep.join([str(src), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     cmd = [sys.executable, "-m", "fieldcal", "composite", Path(spath).resolve(), "--profile", Path(lens).resolve(),
-           "--quiet", "--out", Path(out).resolve()]
+           "--quiet", "--overwrite", "--out", Path(out).resolve()]
     runs = []
     for _ in range(max(1, repeat)):
         load = os.getloadavg()[0]
