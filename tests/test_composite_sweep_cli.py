@@ -41,6 +41,8 @@ def captured(tmp_path_factory):
     tifffile.imwrite(d / "sweep.tiff", img, photometric="rgb")
     (d / "lens.json").write_text(json.dumps(spec.to_dict()))
     truth = rend.truth().astype(np.float64) - black
+    from fieldcal.simulate.noise import gain_dn_per_e
+    (d / "camera_noise.txt").write_text(f"{gain_dn_per_e(spec.sensor)} {spec.sensor.read_noise_e}")
     return d, truth, float(spec.sensor.white_level_dn) - black
 
 
@@ -91,3 +93,30 @@ def test_the_flag_on_a_stack_or_a_bad_zone_is_refused_naming_the_flag(captured, 
     stack.mkdir()
     rc = main(["composite", str(stack), "--breathing", "blind", "--out", str(tmp_path / "y.tiff")])
     assert rc != 0 and "--breathing" in capsys.readouterr().err
+
+
+def test_the_cameras_noise_model_sets_the_wiener_noise(captured):
+    """--camera-noise GAIN READ: the Wiener filter gets the photon + read noise of the image under the camera's
+    model (closed form), not the image-based estimate, which the chart's texture inflates."""
+    from fieldcal.composite.sweep import sensor_noise_sigma
+
+    d, truth, white = captured
+    g, r = (float(v) for v in (d / "camera_noise.txt").read_text().split())
+    img = read_image(d / "sweep.tiff")
+    expected = sensor_noise_sigma(img, g, r)
+    _, meta_m = _run(d, "--breathing", "aware", "--camera-noise", str(g), str(r), out="model.tiff")
+    _, meta_e = _run(d, "--breathing", "aware", out="estimated.tiff")
+    for ci, ch in enumerate(("R", "G", "B")):
+        assert meta_m["sweep"]["channels"][ch]["noise_sigma"] == pytest.approx(expected[ci], rel=1e-6)
+        assert meta_e["sweep"]["channels"][ch]["noise_sigma"] > expected[ci]  # texture inflates the estimate
+
+
+def test_camera_noise_on_a_stack_or_out_of_range_is_refused_naming_the_flag(captured, tmp_path, capsys):
+    d, _, _ = captured
+    rc = main(["composite", str(d / "sweep.tiff"), "--profile", str(d / "lens.json"), "--sweep-alpha-um",
+               str(ALPHA), "--camera-noise", "0", "3", "--out", str(tmp_path / "x.tiff")])
+    assert rc == 2 and "--camera-noise" in capsys.readouterr().err
+    stack = tmp_path / "stack"
+    stack.mkdir()
+    rc = main(["composite", str(stack), "--camera-noise", "0.5", "3", "--out", str(tmp_path / "y.tiff")])
+    assert rc == 2 and "--camera-noise" in capsys.readouterr().err

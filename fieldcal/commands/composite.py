@@ -6,7 +6,8 @@ from ..progress import status
 from . import add_parser
 
 # the API fields composite_to_file's errors name, where the flag is spelt differently
-FIELD_FLAGS = {"fs_cyc_per_mm": "--fs", "breathing": "--breathing", "zone_px": "--zone-px"}
+FIELD_FLAGS = {"fs_cyc_per_mm": "--fs", "breathing": "--breathing", "zone_px": "--zone-px",
+               "camera_noise": "--camera-noise"}
 
 EXAMPLE = ("fieldcal composite STACK --profile lens.json --out image.tiff\n"
            "  fieldcal composite STACK --out image.tiff                      (no profile: depth from focus)\n"
@@ -45,6 +46,10 @@ def register(sub):
                         "maps and --deconvolve is wiener, else one kernel for the whole image")
     p.add_argument("--zone-px", type=int, metavar="PX",
                    help="captured sweep image: size of the deconvolution zones (default 64)")
+    p.add_argument("--camera-noise", type=float, nargs=2, metavar=("GAIN_DN_PER_E", "READ_NOISE_E"),
+                   help="captured sweep image: the camera's gain (DN per electron) and read noise (electrons), from "
+                        "its photon-transfer calibration, for the Wiener filter's noise (default: estimated from "
+                        "the image, which texture inflates)")
     p.add_argument("--fs", type=float, dest="fs_cyc_per_mm", metavar="CYC_PER_MM",
                    help="frequency of the focus tolerance that sets seam width (default: plan's, or Nyquist/4)")
     p.add_argument("--q", type=float, default=None, help="allowed MTF drop of the focus tolerance (default 0.05)")
@@ -74,7 +79,8 @@ def run(args) -> int:
                             z_ref_um=args.z_ref_um, register=not args.no_register,
                             lateral_colour=args.lateral_colour, depth=args.depth, overwrite=args.overwrite,
                             verify=not args.no_verify, quiet=args.quiet,
-                            breathing=args.breathing or "auto", zone_px=args.zone_px)
+                            breathing=args.breathing or "auto", zone_px=args.zone_px,
+                            camera_noise=tuple(args.camera_noise) if args.camera_noise else None)
     if "sweep" in res.metadata:
         info = res.metadata["sweep"]
         gains = {c: round(v.get("noise_gain", float("nan")), 2) for c, v in info.get("channels", {}).items()

@@ -363,17 +363,20 @@ def resolve_breathing(breathing: str | None, profile, deconvolve: str) -> str | 
 
 def restore_sweep_image(image: np.ndarray, profile, alpha_um: float, *, deconvolve: str = "wiener",
                         rl_iterations: int = 30, where=None, breathing: str | None = None,
-                        refocus_um: float = 0.0, zone_px: int | None = None) -> SweepComposite:
+                        refocus_um: float = 0.0, zone_px: int | None = None,
+                        camera_noise: tuple[float, float] | None = None) -> SweepComposite:
     """Deconvolve a captured focal-sweep image (``H x W x C``, raw, black level 0) with the integrated PSF.
 
     The profile must be of this camera: same channels and image size. ``where`` names the image in errors.
     ``breathing="aware"`` deconvolves per field zone with the image motion during the sweep and registers the
     result to the profile's ``z_ref`` geometry (``"blind"``: the same without the motion; None: one kernel, the
     image taken as it is; ``"auto"``: :func:`resolve_breathing`); ``refocus_um`` is the sweep plan's; ``zone_px``
-    the zone size (default 64).
+    the zone size (default 64). ``camera_noise`` = (gain DN per electron, read noise in electrons) of the camera
+    sets the Wiener filter's noise (:func:`~fieldcal.composite.sweep.sensor_noise_sigma`, black level 0 as the
+    image is); without it the noise is estimated from the image.
     """
     from .stack_profile import to_input_dtype
-    from .sweep import deconvolve_sweep
+    from .sweep import deconvolve_sweep, sensor_noise_sigma
 
     _check_sweep_args(alpha_um, deconvolve)
     if deconvolve == "none":
@@ -394,8 +397,9 @@ def restore_sweep_image(image: np.ndarray, profile, alpha_um: float, *, deconvol
         raise ParameterError(f"the profile is for {profile.image_size_px} px images, the image is {w}x{h}",
                              path=where, field="image_size_px", fix="use the profile of this camera")
     white = float(np.iinfo(image.dtype).max) if np.issubdtype(image.dtype, np.integer) else 1.0
+    noise = None if camera_noise is None else sensor_noise_sigma(image, *camera_noise)
     res = deconvolve_sweep(image.astype(np.float32), profile, alpha_um, channels, black=0.0, white=white,
-                           method=deconvolve, rl_iterations=rl_iterations,
+                           method=deconvolve, rl_iterations=rl_iterations, noise_sigma=noise,
                            breathing=resolve_breathing(breathing, profile, deconvolve), refocus_um=refocus_um,
                            zone_px=zone_px)
     return SweepComposite(to_input_dtype(res.image, image.dtype, white), {"method": "sweep-captured", **res.info})
@@ -416,7 +420,8 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
                       fs_cyc_per_mm: float | None = None, q: float | None = None, z_ref_um: float | None = None,
                       register: bool = True, lateral_colour: bool = False, depth: str = "auto",
                       overwrite: bool = False, verify: bool = True, quiet: bool = False,
-                      breathing: str | None = "auto", zone_px: int | None = None) -> CompositeOutput:
+                      breathing: str | None = "auto", zone_px: int | None = None,
+                      camera_noise: tuple[float, float] | None = None) -> CompositeOutput:
     """Composite a stack folder (or restore a captured sweep image) into a TIFF with its metadata.
 
     Parameters
@@ -447,7 +452,9 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         A captured sweep image only: deconvolve per field zone with the image motion during the sweep
         (``"aware"``), per zone without it (``"blind"``), or with one kernel (None); ``"auto"`` (default):
         aware when the profile breathes or has geometry maps and the deconvolution is Wiener
-        (:func:`resolve_breathing`). ``zone_px``: the zone size (default 64).
+        (:func:`resolve_breathing`). ``zone_px``: the zone size (default 64). ``camera_noise``: the camera's
+        (gain DN per electron, read noise in electrons) for the Wiener filter's noise (default: estimated from
+        the image).
     """
     from ..formats.stack import Stack
     from ..profile.lens_profile import load_profile_or_truth
@@ -479,16 +486,18 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         img = read_single_image(src)
         prof, pinfo = load((img.shape[1], img.shape[0]))
         res = restore_sweep_image(img, prof, sweep_alpha_um, deconvolve=deconvolve, rl_iterations=rl_iterations,
-                                  where=src, breathing=breathing, zone_px=zone_px)
+                                  where=src, breathing=breathing, zone_px=zone_px, camera_noise=camera_noise)
         meta = {"input": str(src), "profile": pinfo, "method": res.info.pop("method"), "sweep": res.info}
         white = 1.0 if img.dtype.kind == "f" else float(np.iinfo(img.dtype).max)
         write_composite(out, res.image, prof.channels, meta, white_level=white)
         return CompositeOutput(out, meta["method"], meta)
 
-    if breathing not in ("auto", None) or zone_px is not None:  # never ignore a flag silently
-        raise ParameterError("breathing-aware or zoned deconvolution applies to a captured sweep image, not a stack "
-                             "(an emulated sweep is made of frames already registered to z_ref)",
-                             field="breathing" if zone_px is None else "zone_px",
+    if breathing not in ("auto", None) or zone_px is not None or camera_noise is not None:  # never ignore a flag
+        raise ParameterError("breathing-aware or zoned deconvolution and the camera's noise model apply to a "
+                             "captured sweep image, not a stack (an emulated sweep is made of frames already "
+                             "registered to z_ref, its noise measured from them)",
+                             field="camera_noise" if camera_noise is not None else
+                             ("breathing" if zone_px is None else "zone_px"),
                              fix="give the captured sweep image instead of the stack, or drop the flag")
     on_disk = isinstance(stack, (str, Path))
     st = Stack.open(stack, verify=False) if on_disk else stack

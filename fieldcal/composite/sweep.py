@@ -50,6 +50,31 @@ def estimate_noise_sigma(channel_image: np.ndarray) -> float:
     return float(np.median(np.abs(r[1:-1, 1:-1])) / 0.6745 / 6.0)
 
 
+def sensor_noise_sigma(image: np.ndarray, gain_dn_per_e: float, read_noise_e: float,
+                       black_dn: float = 0.0) -> list[float]:
+    """RMS pixel noise (DN) per channel of a recorded image under a camera's noise model (photon + read):
+    ``sqrt(mean(g (DN - black) + (g read)^2))``.
+
+    ``gain_dn_per_e`` and ``read_noise_e`` are what a camera's photon-transfer calibration (EMVA 1288) states.
+    A deconvolution given them does not estimate the noise from the image, which texture inflates
+    (:func:`estimate_noise_sigma` reads about 2x high on a chart, costing ~0.7 dB after Wiener filtering).
+
+    >>> sensor_noise_sigma(np.full((4, 4, 1), 1100.0), gain_dn_per_e=0.5, read_noise_e=4.0, black_dn=100.0)
+    [22.44...]
+    """
+    for name, v in (("gain_dn_per_e", gain_dn_per_e), ("read_noise_e", read_noise_e), ("black_dn", black_dn)):
+        if not np.isfinite(v) or v < 0 or (name == "gain_dn_per_e" and v == 0):
+            raise ParameterError(f"camera noise {name} = {v!r} must be a finite number"
+                                 f"{' > 0' if name == 'gain_dn_per_e' else ' >= 0'}", field="camera_noise",
+                                 fix="give the camera's gain (DN per electron) and read noise (electrons), e.g. 0.5 4")
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim == 2:
+        img = img[..., None]
+    g = float(gain_dn_per_e)
+    var = g * np.clip(img - float(black_dn), 0.0, None) + (g * float(read_noise_e)) ** 2
+    return [float(np.sqrt(var[..., c].mean())) for c in range(img.shape[2])]
+
+
 def _pad(img: np.ndarray, pad: int) -> tuple[np.ndarray, tuple[int, int]]:
     from scipy import fft  # imported when needed: ~0.15 s saved on stack composites
 

@@ -214,16 +214,13 @@ def integrate_sweep_signal(renderer: Renderer, start_um: float, velocity_um_per_
 
 
 def model_noise_sigma(image: np.ndarray, renderer: Renderer) -> list[float]:
-    """RMS pixel noise (DN) per channel of a recorded image under the sensor's noise model (photon + read):
-    ``sqrt(mean(g (DN - black) + (g read)^2))`` — what a camera's noise calibration gives a deconvolution
-    instead of an estimate from the image (which texture inflates)."""
+    """RMS pixel noise (DN) per channel of a recorded image under the simulated sensor's noise model (photon +
+    read): :func:`fieldcal.composite.sweep.sensor_noise_sigma` with the sensor's gain, read noise and black
+    level — what a camera's noise calibration gives a deconvolution instead of an estimate from the image."""
+    from ..composite.sweep import sensor_noise_sigma
+
     s = renderer.spec.sensor
-    g = _noise.gain_dn_per_e(s)
-    img = np.asarray(image, dtype=np.float64)
-    if img.ndim == 2:
-        img = img[..., None]
-    var = g * np.clip(img - s.black_level_dn, 0.0, None) + (g * s.read_noise_e) ** 2
-    return [float(np.sqrt(var[..., c].mean())) for c in range(img.shape[2])]
+    return sensor_noise_sigma(image, _noise.gain_dn_per_e(s), s.read_noise_e, s.black_level_dn)
 
 
 __all__ = ["SweepExposure", "Weights", "default_step_um", "integrate_sweep_signal", "model_noise_sigma", "n_sub_for",
