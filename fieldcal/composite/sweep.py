@@ -191,18 +191,18 @@ def deconvolve_sweep(image: np.ndarray, profile: LensModel, alpha_um: float, cha
     """
     if method not in ("wiener", "rl"):
         raise ParameterError(f"unknown deconvolution {method!r}", field="deconvolve", fix="use wiener, rl or none")
-    if breathing is not None:
-        if method != "wiener":
-            raise ParameterError("per-zone (breathing) deconvolution is Wiener only", field="deconvolve",
-                                 fix="use --deconvolve wiener for a captured sweep, or no breathing correction")
-        return _deconvolve_captured(image, profile, alpha_um, channels, noise_sigma, breathing, refocus_um, widen_um,
-                                    zone_px)
     if not (np.isfinite(alpha_um) and alpha_um > 0):
         raise ParameterError(f"sweep half-range must be > 0 µm, got {alpha_um}", field="sweep_alpha_um",
                              fix="e.g. 20 (µm)")
     if profile.f_number is None:
         raise ParameterError("the profile has no f-number, which the integrated PSF needs", field="f_number",
                              fix="calibrate with the lens's f-number recorded in the stack (f_number in stack.json)")
+    if breathing is not None:
+        if method != "wiener":
+            raise ParameterError("per-zone (breathing) deconvolution is Wiener only", field="deconvolve",
+                                 fix="use --deconvolve wiener for a captured sweep, or no breathing correction")
+        return _deconvolve_captured(image, profile, alpha_um, channels, noise_sigma, breathing, refocus_um, widen_um,
+                                    zone_px)
     pitch = float(profile.pixel_pitch_um)
     out = np.empty(image.shape, dtype=np.float32)
     info: dict = {"deconvolution": method, "alpha_um": float(alpha_um), "channels": {}}
@@ -224,12 +224,6 @@ def _deconvolve_captured(image, profile, alpha_um, channels, noise_sigma, breath
 
     from . import sweep_zones as sz
 
-    if not (np.isfinite(alpha_um) and alpha_um > 0):
-        raise ParameterError(f"sweep half-range must be > 0 µm, got {alpha_um}", field="sweep_alpha_um",
-                             fix="e.g. 20 (µm)")
-    if profile.f_number is None:
-        raise ParameterError("the profile has no f-number, which the integrated PSF needs", field="f_number",
-                             fix="calibrate with the lens's f-number recorded in the stack (f_number in stack.json)")
     if breathing not in sz.BREATHING:
         raise ParameterError(f"unknown breathing mode {breathing!r}", field="breathing",
                              fix=f"use one of {', '.join(sz.BREATHING)}, or None for an emulated sweep")
