@@ -192,7 +192,7 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     cols = geometry_columns(geo_c)
     gdata = GeometryData.from_arrays(**cols, colour_scale=colour_rows(geo_c, cols), source=str(stack.path))
     geom = fit_geometry(gdata, z_ref_um=geo_c.z_ref_um, source=str(stack.path))
-    gmap = _geometry_map(stack, geometry_maps, float(geo_c.z_ref_um), quiet)
+    gmap, absd = _geometry_map(stack, geometry_maps, float(geo_c.z_ref_um), quiet)
     tol, tol_note = None, None
     try:
         tol = fit_tolerance(tiles, geometry, MTFCriterion(fs_cyc_per_mm, q), centre_px=centre,
@@ -253,6 +253,7 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
                     "inputs_hash_error": digest.get("error"),
                     "stack_meta": {k: v for k, v in meta.items() if k != "frames"}},
         tiles=table.to_dict(), geometry_measurements=cols, geometry_map=gmap,
+        absolute_distortion=absd,
     )
     status(f"calibrated {len(stack)} frames in {t_total:.1f} s from {kind.kind}: model {surf.model.name}, "
            f"{n_ok} {'edge rows' if kind.kind == 'esfr' else 'tiles'} used", quiet=quiet)
@@ -263,16 +264,17 @@ GEOMETRY_MAPS = ("auto", "charuco", "texture", "off")
 
 
 def _geometry_map(stack, mode: str, z_ref_um: float, quiet: bool):
-    """The dense geometry maps calibrate measures (None: the scalar model only)."""
+    """The dense geometry maps calibrate measures and the absolute distortion (ChArUco only): (None, None) for
+    the scalar model only."""
     from fieldcal.formats.stack import stack_chart
     if mode not in GEOMETRY_MAPS:
         raise ParameterError(f"unknown geometry_maps {mode!r}", field="geometry_maps",
                              fix=f"use one of {', '.join(GEOMETRY_MAPS)}")
     chart = stack_chart(stack.meta, stack.json_path)
     if mode == "off" or (mode == "auto" and not (chart and chart.get("kind") == "charuco")):
-        return None
-    from fieldcal.measure.charuco import measure_geometry_map
-    return measure_geometry_map(stack, z_ref_um, chart=chart, source="auto" if mode == "auto" else mode,
+        return None, None
+    from fieldcal.measure.charuco import measure_geometry
+    return measure_geometry(stack, z_ref_um, chart=chart, source="auto" if mode == "auto" else mode,
                                 quiet=quiet)
 
 

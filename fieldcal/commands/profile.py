@@ -33,9 +33,11 @@ the JSON's "significant"); with --fail-if-significant, 1 when it found one. 2 fo
 
 _EXPORT_DESCRIPTION = """\
 Write the profile as a Lensfun database entry (version 1, which the lensfunpy package reads): camera, lens,
-distortion (poly5) and transverse chromatic aberration (poly3) at the calibrated focus -- the stage position
-where the reference channel is sharpest at the optical centre (or --z). fieldcal measures no vignetting, so
-the entry has none. Load it with lensfunpy.Database(paths=["lens.xml"])."""
+the absolute distortion (poly5 about a fitted centre) measured from the ChArUco board and transverse chromatic
+aberration (poly3) at the calibrated focus -- the stage position where the reference channel is sharpest at
+the optical centre, clipped to the scan (or --z). A profile without absolute distortion (texture-only) is
+refused; --allow-no-distortion writes its TCA alone, with no distortion element, and says so in the file.
+fieldcal measures no vignetting, so the entry has none. Load it with lensfunpy.Database(paths=["lens.xml"])."""
 
 
 def register(sub):
@@ -74,6 +76,9 @@ def register(sub):
     e.add_argument("--out", required=True, metavar="FILE.xml", help="output file")
     e.add_argument("--z", type=float, default=None, metavar="UM",
                    help="stage position of the exported geometry (default: the calibrated focus)")
+    e.add_argument("--allow-no-distortion", action="store_true",
+                   help="export a profile without absolute distortion (texture-only): TCA only, no distortion "
+                        "element (Lensfun then leaves the geometry alone)")
     e.add_argument("--lens-name", help="the lens's model name in the database (default: the stack's lens name)")
     e.add_argument("--camera-name", help="the camera's model name (default: the stack's camera, else "
                                          "'calibrated camera')")
@@ -139,9 +144,13 @@ def run_export(args) -> int:
     out = check_output(args.out, inputs=profile_files(args.profile), overwrite=args.overwrite,
                        suffixes=(".xml",))
     prof = LensProfile.load(args.profile)
-    model = lensfun_model(prof, z_um=args.z)
+    model = lensfun_model(prof, z_um=args.z, allow_no_distortion=args.allow_no_distortion)
     atomic_write_text(out, lensfun_xml(prof, model, lens_name=args.lens_name, camera_name=args.camera_name))
+    for note in model.notes:
+        print(f"warning: {note}", file=sys.stderr)
     fit = ", ".join(f"{ch} {v:.3f} px" for ch, v in model.fit_rms_px.items())
+    dist = ("no distortion" if model.k1 is None else
+            f"poly5 k1 {model.k1:.4g}, k2 {model.k2:.4g} about ({model.centre_px[0]:.1f}, {model.centre_px[1]:.1f}) px")
     print(f"wrote {out} (Lensfun database version 1): geometry at z = {model.z_um:.1f} µm from the "
-          f"{model.source}; poly5 k1 {model.k1:.4g}, k2 {model.k2:.4g}; fit residual rms {fit}")
+          f"{model.source}; {dist}; fit residual rms {fit or 'n/a'} (over the board's field)")
     return 0

@@ -64,6 +64,8 @@ KINDS: dict[str, DocumentKind] = {k.name: k for k in (
                  "regenerate the profile with `fieldcal calibrate`"),
     DocumentKind("geometry-map", "fieldcal-geometry-map-1.schema.json", "format",
                  "regenerate the profile with `fieldcal calibrate`"),
+    DocumentKind("distortion", "fieldcal-distortion-1.schema.json", "format",
+                 "regenerate the profile with `fieldcal calibrate` on a ChArUco stack (docs/geometry.md)"),
     DocumentKind("tolerance-fit", "fieldcal-tolerance-fit-1.schema.json", "format",
                  "regenerate the profile with `fieldcal calibrate`"),
     DocumentKind("plan", "fieldcal-plan-1.schema.json", "format",

@@ -239,9 +239,20 @@ def texture_correspondences(read_plane: Callable[[int, int], np.ndarray], z_um: 
                            np.concatenate(C), np.concatenate(S), np.full(n, -1, dtype=np.int64))
 
 
-def measure_geometry_map(stack, z_ref_um: float, *, chart: dict | None = None, reference_channel: str | None = None,
-                         source: str = "auto", max_order: int = 2, quiet: bool = True):
-    """Dense geometry maps of a stack (:class:`fieldcal.fit.geometry_map.GeometryMap`), z_ref a frame of it.
+def measure_geometry_map(stack, z_ref_um: float, **kw):
+    """Dense geometry maps of a stack (:class:`fieldcal.fit.geometry_map.GeometryMap`): :func:`measure_geometry`
+    without the absolute distortion."""
+    return measure_geometry(stack, z_ref_um, **kw)[0]
+
+
+def measure_geometry(stack, z_ref_um: float, *, chart: dict | None = None, reference_channel: str | None = None,
+                     source: str = "auto", max_order: int = 2, quiet: bool = True):
+    """Dense geometry maps of a stack and, from a ChArUco board, the absolute distortion of its z_ref geometry.
+
+    Returns ``(GeometryMap, AbsoluteDistortion or None)`` (:mod:`fieldcal.fit.geometry_map`,
+    :mod:`fieldcal.fit.distortion`); z_ref is a frame of the stack. The absolute distortion is fitted to every
+    corner's z_ref position estimated from all its observations through the maps (:func:`reference_points`)
+    against the board's own coordinates; texture gives none (no straight lines to compare with).
 
     ``chart``: the stack's ``chart`` record (default: stack.json's); a ChArUco record makes ``source="auto"``
     use the board's corners, anything else the texture. Raw Bayer stacks are measured on each colour's own
@@ -299,5 +310,14 @@ def measure_geometry_map(stack, z_ref_um: float, *, chart: dict | None = None, r
         sig[m] = sig[m] * layouts[c].stride
     from ..fit.geometry_map import Correspondences
     corr = Correspondences(p, q, corr.z_um, corr.channel, sig, corr.point_id)
-    return fit_geometry_map(corr, float(z[ref_index]), (int(w), int(h)), reference_channel=ref_ch,
+    gmap = fit_geometry_map(corr, float(z[ref_index]), (int(w), int(h)), reference_channel=ref_ch,
                             max_order=max_order, source=source, path=stack.json_path)
+    if source != "charuco":
+        return gmap, None
+    from ..fit.distortion import fit_absolute_distortion, reference_points
+    ids, p_ref, sd = reference_points(corr, gmap)
+    dist = fit_absolute_distortion(board.corner_px(ids), p_ref, (int(w), int(h)), sigma_px=sd,
+                                   reference_channel=ref_ch, z_um=float(z[ref_index]), path=stack.json_path)
+    status(f"absolute distortion: {', '.join(dist.terms) or 'none'} from {dist.n_points} corners, "
+           f"rms {dist.rms_px:.3f} px", quiet=quiet)
+    return gmap, dist

@@ -43,6 +43,7 @@ if TYPE_CHECKING:  # the fits import the fitting stack; a profile loads them onl
     from fieldcal.fit import SurfaceFit
     from fieldcal.fit.geometry import GeometryFit
     from fieldcal.fit.geometry_map import GeometryMap
+    from fieldcal.fit.distortion import AbsoluteDistortion
     from fieldcal.fit.tolerance import ToleranceFit
 
 PROFILE_FORMAT = documents.format_id("profile")
@@ -98,6 +99,7 @@ class LensProfile:
     geometry_measurements: dict[str, np.ndarray] | None = None  # per-frame geometry columns
     source_path: str | None = None
     geometry_map: GeometryMap | None = None  # dense maps (x, y, z) with covariance; None: the scalar m(z), s(z)
+    absolute_distortion: AbsoluteDistortion | None = None  # the z_ref geometry vs a board's ideal image (ChArUco)
 
     # ------------------------------------------------------------------------------ the DESIGN.md API
     @property
@@ -218,6 +220,53 @@ class LensProfile:
         ssx, ssy = self.geometry_fit.shift_sd_px(z, ch)
         return np.hypot(msd * (x - cx), ssx), np.hypot(msd * (y - cy), ssy)
 
+    # -------------------------------------------------------- absolute distortion (docs/geometry.md)
+    @property
+    def has_absolute_distortion(self) -> bool:
+        """A board measured the lens's absolute distortion (ChArUco); texture-only profiles have none."""
+        return self.absolute_distortion is not None
+
+    def _absolute(self) -> AbsoluteDistortion:
+        if self.absolute_distortion is None:
+            src = getattr(self.geometry_map, "source", None)
+            why = ("its geometry maps come from texture, which shows no straight lines" if src == "texture" else
+                   "it was calibrated without a ChArUco board's geometry")
+            raise ParameterError(f"this profile has no absolute distortion: {why}", path=self.source_path,
+                                 field="absolute_distortion",
+                                 fix="calibrate a stack that shows the ChArUco board (--chart, docs/geometry.md)")
+        return self.absolute_distortion
+
+    def distortion_px(self, x_u, y_u, z_um=None, channel: str | None = None):
+        """Where the undistorted pixel (x_u, y_u) appears in ``channel`` of the frame at ``z_um`` (px).
+
+        Undistorted pixels are the board's ideal (pinhole) image scaled and placed so that the reference
+        channel's distortion at z has no linear part at the centre (breathing and shift taken out); the other
+        channels keep their lateral colour. Default z: the maps' z_ref; default channel: the reference one.
+        Raises :class:`ParameterError` for profiles without absolute distortion (texture-only).
+        """
+        from fieldcal.fit.distortion import compose_distortion
+        d = self._absolute()
+        x, y = _check_points(x_u, y_u)
+        ch = self._channel(channel or d.reference_channel)
+        z = d.z_um if z_um is None else float(z_um)
+        return compose_distortion(d, self.warp_px, x, y, z, ch)
+
+    def distortion_sd_px(self, x_u, y_u, z_um=None, channel: str | None = None):
+        """1-sigma (px, x and y) of :meth:`distortion_px`."""
+        from fieldcal.fit.distortion import compose_distortion_sd
+        d = self._absolute()
+        x, y = _check_points(x_u, y_u)
+        ch = self._channel(channel or d.reference_channel)
+        z = d.z_um if z_um is None else float(z_um)
+        return compose_distortion_sd(d, self.warp_sd_px, x, y, z, ch)
+
+    def undistort_px(self, x_d, y_d, z_um=None, channel: str | None = None):
+        """The undistorted pixel that ``channel`` of the frame at ``z_um`` shows at (x_d, y_d): the inverse of
+        :meth:`distortion_px` (Newton's method)."""
+        from fieldcal.fit.distortion import invert_map
+        x, y = _check_points(x_d, y_d)
+        return invert_map(lambda u, v: self.distortion_px(u, v, z_um, channel), x, y)
+
     # ------------------------------------------------------------------ what planning/compositing use
     @property
     def image_size_px(self) -> tuple[int, int]:
@@ -315,6 +364,8 @@ class LensProfile:
             "surfaces": self.surfaces.to_dict(include_samples=False),
             "geometry": self.geometry_fit.to_dict(),
             **({"geometry_map": self.geometry_map.to_dict()} if self.geometry_map is not None else {}),
+            **({"absolute_distortion": self.absolute_distortion.to_dict()}
+               if self.absolute_distortion is not None else {}),
             "tolerance": None if self.tolerance_fit is None else self.tolerance_fit.to_dict(),
             "model_selection": jsonable(self.model_selection),
             "diagnostics": jsonable(self.diagnostics),
@@ -380,6 +431,10 @@ class LensProfile:
         if d.get("geometry_map") is not None:  # profiles before the maps have none: the scalar model answers
             from fieldcal.fit.geometry_map import GeometryMap
             gmap = GeometryMap.from_dict(d["geometry_map"], path=path)
+        absd = None
+        if d.get("absolute_distortion") is not None:  # ChArUco profiles; texture-only ones have none
+            from fieldcal.fit.distortion import AbsoluteDistortion
+            absd = AbsoluteDistortion.from_dict(d["absolute_distortion"], path=path)
         tolerance = None
         if d.get("tolerance"):
             from fieldcal.fit.tolerance import ToleranceFit
@@ -392,7 +447,8 @@ class LensProfile:
         return cls(surfaces=surfaces, geometry_fit=geometry, tolerance_fit=tolerance, image=dict(img),
                    optics=dict(d["optics"]), calibration=dict(d["calibration"]), z_ref_um=float(d["z_ref_um"]),
                    diagnostics=dict(d.get("diagnostics", {})), provenance=prov, tiles=tiles,
-                   geometry_measurements=geom, source_path=str(path), geometry_map=gmap)
+                   geometry_measurements=geom, source_path=str(path), geometry_map=gmap,
+                   absolute_distortion=absd)
 
 
 _SHA256 = re.compile(r"[0-9a-fA-F]{64}")

@@ -10,13 +10,19 @@ Checked against lensfunpy 1.18: its geometry and sub-pixel maps agree with these
   radial (k1, k2) in any other normalisation converts exactly (:func:`brown_to_poly5`);
 * transverse chromatic aberration, model ``poly3``: ``r_c = r (b r^2 + c r + v)`` for red and blue against green;
   a constant lateral-colour scale is ``v`` alone (the ``linear`` model's ``k``);
-* vignetting: fieldcal measures none, so the entry has no vignetting element (Lensfun then leaves it alone).
+* the lens's ``center`` (offset of the models' centre from the image centre, in units of half the image's
+  shorter side -- measured against lensfunpy): radial distortion about an off-centre axis is what fieldcal's
+  tangential terms p1, p2 describe to first order, so a free centre carries them;
+* vignetting: fieldcal measures none (a chart's white squares show the lighting's fall-off as much as the
+  lens's), so the entry has no vignetting element and Lensfun leaves it alone.
 
 All of it at one sensor position, the *calibrated focus*: the stage position where the reference channel is
-sharpest at the optical centre. The radial models come from the profile's geometry at that position: its
-``warp_px`` maps when it has them, else the scalar model (breathing, shift and lateral colour: no distortion).
-Lensfun centres every model on the image centre; fieldcal's optical centre may differ by a few pixels, so
-the fit is about the image centre and its residual is reported.
+sharpest at the optical centre (clipped to the scan). The distortion is the profile's **absolute** distortion
+there (:meth:`fieldcal.profile.LensProfile.distortion_px`, measured from the ChArUco board); the TCA is the
+other channels' distortion against the reference channel's. Profiles without absolute distortion (texture-only)
+are refused unless ``allow_no_distortion``: the entry then has TCA only, no distortion element, and says so.
+The fit is over the field the board covered (its convex hull); the residual inside it and the largest
+disagreement outside it (extrapolated) are reported.
 """
 
 from __future__ import annotations
@@ -52,28 +58,37 @@ def brown_to_poly5(k1: float, k2: float, r_model_px: float, r_lensfun_px: float)
     return float(k1) * s2, float(k2) * s2 * s2
 
 
+def lensfun_centre_unit_px(width_px: int, height_px: int) -> float:
+    """The pixel length of Lensfun's ``center`` unit: half the image's shorter side (measured with lensfunpy)."""
+    return 0.5 * (min(width_px, height_px) - 1)
+
+
 @dataclass(frozen=True)
 class LensfunModel:
-    """What the Lensfun entry holds, in Lensfun's normalisation."""
+    """What the Lensfun entry holds, in Lensfun's normalisation, and how well it fits the profile."""
 
-    k1: float
-    k2: float
+    k1: float | None                              # None: no absolute distortion (no distortion element)
+    k2: float | None
+    centre_px: tuple[float, float]                # the models' centre (px)
     tca: dict[str, tuple[float, float, float]]   # channel -> (v, c, b) of r_c = r (b r^2 + c r + v)
     focal_mm: float
     aperture: float | None
     distance_m: float
     crop_factor: float
     z_um: float
-    fit_rms_px: dict[str, float]
+    fit_rms_px: dict[str, float]                  # inside the board's hull
+    max_err_px: dict[str, float]                  # inside the board's hull
+    max_err_outside_px: dict[str, float]          # extrapolated beyond the hull (nan: the hull covers the frame)
     source: str
+    notes: tuple[str, ...] = ()
 
     def distort_px(self, x, y, width_px: int, height_px: int):
-        """Undistorted -> distorted pixel, as Lensfun's poly5 maps it (for checks)."""
+        """Undistorted -> distorted pixel, as Lensfun's poly5 maps it about :attr:`centre_px` (for checks)."""
         r_n = lensfun_norm_radius_px(width_px, height_px)
-        cx, cy = 0.5 * (width_px - 1), 0.5 * (height_px - 1)
+        cx, cy = self.centre_px
         ux, uy = (np.asarray(x, float) - cx) / r_n, (np.asarray(y, float) - cy) / r_n
         r2 = ux * ux + uy * uy
-        f = 1.0 + self.k1 * r2 + self.k2 * r2 * r2
+        f = 1.0 + (self.k1 or 0.0) * r2 + (self.k2 or 0.0) * r2 * r2
         return cx + r_n * ux * f, cy + r_n * uy * f
 
 
@@ -86,7 +101,9 @@ def calibrated_focus_um(profile, channel: str | None = None) -> float:
 
 
 def _reference_channel(profile) -> str:
-    ref = getattr(profile.geometry_fit, "reference_channel", None)
+    ref = getattr(profile, "reference_channel", None)
+    if not isinstance(ref, str):
+        ref = getattr(profile.geometry_fit, "reference_channel", None)
     return ref if ref in profile.channels else ("G" if "G" in profile.channels else profile.channels[0])
 
 
@@ -107,48 +124,122 @@ def _radial_fit(rho_u, rho_d, powers):
     return coef, A @ coef - rho_d
 
 
-def lensfun_model(profile, z_um: float | None = None, n: int = 41) -> LensfunModel:
-    """Fit Lensfun's poly5 distortion and poly3 TCA to the profile's geometry at ``z_um`` (default: the
-    calibrated focus)."""
+def _in_hull(hull: np.ndarray | None, x, y) -> np.ndarray:
+    """Points inside a convex polygon (vertices in order); everything when there is no hull."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    if hull is None or len(hull) < 3:
+        return np.ones(x.shape, bool)
+    h = np.asarray(hull, float)
+    e = np.roll(h, -1, axis=0) - h
+    cross = e[:, 0, None] * (y.ravel()[None, :] - h[:, 1, None]) - e[:, 1, None] * (x.ravel()[None, :] - h[:, 0, None])
+    return (np.all(cross >= -1e-9, axis=0) | np.all(cross <= 1e-9, axis=0)).reshape(x.shape)
+
+
+def _scan_focus(profile, z_um: float | None) -> tuple[float, list[str]]:
+    """The export's stage position: the calibrated focus clipped to the scan (a fit's extrapolation is no
+    calibration), or the one asked for."""
+    if z_um is not None:
+        return float(z_um), []
+    z = calibrated_focus_um(profile)
+    lo, hi = getattr(profile, "z_range_um", (-np.inf, np.inf))
+    if not (lo <= z <= hi):
+        zc = float(np.clip(z, lo, hi))
+        return zc, [f"the calibrated focus {z:.1f} um lies outside the scan [{lo:.1f}, {hi:.1f}] um: "
+                    f"exported at {zc:.1f} um"]
+    return z, []
+
+
+def lensfun_model(profile, z_um: float | None = None, n: int = 41,
+                  allow_no_distortion: bool = False) -> LensfunModel:
+    """Fit Lensfun's poly5 distortion (with its centre) and poly3 TCA to the profile's absolute distortion at
+    ``z_um`` (default: the calibrated focus).
+
+    Raises :class:`ParameterError` when the profile has no absolute distortion (texture-only), unless
+    ``allow_no_distortion``: the model then has no distortion (``k1 = k2 = None``) and its TCA comes from the
+    maps' lateral colour.
+    """
+    from scipy.optimize import least_squares
     w, h = profile.image_size_px
-    z = calibrated_focus_um(profile) if z_um is None else float(z_um)
-    warp = getattr(profile, "warp_px", None)
-    source = "warp_px maps" if callable(warp) else "scalar model (no distortion)"
-    if not callable(warp):
-        warp = lambda x, y, zz, ch: scalar_warp_px(profile, x, y, zz, ch)  # noqa: E731
+    z, notes = _scan_focus(profile, z_um)
+    absolute = bool(getattr(profile, "has_absolute_distortion", False))
     r_n = lensfun_norm_radius_px(w, h)
-    cx, cy = 0.5 * (w - 1), 0.5 * (h - 1)
+    c0 = np.array([0.5 * (w - 1), 0.5 * (h - 1)])
     gx, gy = np.meshgrid(np.linspace(0, w - 1, n), np.linspace(0, h - 1, max(5, round(n * h / w))))
     gx, gy = gx.ravel(), gy.ravel()
     ref = _reference_channel(profile)
-    qx, qy = (np.asarray(v, float).ravel() for v in warp(gx, gy, z, ref))
-    # remove the frame's shift (Lensfun has no translation): the map's mean displacement
-    qx, qy = qx - np.mean(qx - gx), qy - np.mean(qy - gy)
-    rho_u = np.hypot(gx - cx, gy - cy)
-    rho_d = np.hypot(qx - cx, qy - cy)
-    keep = rho_u > 1e-6 * r_n
-    r = rho_u[keep] / r_n
-    # r_d = m r (1 + k1 r^2 + k2 r^4): m is the breathing scale at z (a focal length, not distortion)
-    coef, res = _radial_fit(r, rho_d[keep] / r_n, (0, 2, 4))
-    m = coef[0]
-    k1, k2 = coef[1] / m, coef[2] / m
-    fit_rms = {ref: float(np.sqrt(np.mean((res * r_n) ** 2)))}
+    if absolute:
+        dist = lambda x, y, ch: profile.distortion_px(x, y, z, ch)  # noqa: E731
+        hull = getattr(profile.absolute_distortion, "hull_px", None) if hasattr(profile, "absolute_distortion") else None
+        inside = _in_hull(hull, gx, gy)
+        source = "absolute distortion (ChArUco board) composed with the geometry maps"
+    else:
+        if not allow_no_distortion:
+            why = ("its geometry maps come from texture" if getattr(getattr(profile, "geometry_map", None), "source",
+                                                                     None) == "texture" else "it has no board geometry")
+            raise ParameterError(f"the profile has no absolute distortion ({why}): a Lensfun entry would claim a "
+                                 "distortion-free lens", path=getattr(profile, "source_path", None),
+                                 field="absolute_distortion",
+                                 fix="calibrate a ChArUco stack (--chart), or export TCA only with "
+                                     "--allow-no-distortion")
+        warp = getattr(profile, "warp_px", None)
+        if not callable(warp):
+            warp = lambda x, y, zz, ch: scalar_warp_px(profile, x, y, zz, ch)  # noqa: E731
+
+        def dist(x, y, ch):
+            qx, qy = (np.asarray(v, float) for v in warp(x, y, z, ch))
+            rx, ry = (np.asarray(v, float) for v in warp(x, y, z, ref))
+            # the reference channel's geometry at z is the identity here: other channels relative to it
+            return x + (qx - rx), y + (qy - ry)
+        inside = np.ones(gx.shape, bool)
+        source = "NO absolute distortion (texture-only or no board): TCA from the geometry only"
+        notes.append("this profile has no absolute distortion: the entry holds TCA only, no distortion element "
+                     "(Lensfun leaves the geometry alone)")
+    qx, qy = (np.asarray(v, float).ravel() for v in dist(gx, gy, ref))
+    fit_rms, max_in, max_out = {}, {}, {}
+    if absolute:
+        def resid(p):
+            c = c0 + p[2:4]
+            ux, uy = (gx[inside] - c[0]) / r_n, (gy[inside] - c[1]) / r_n
+            r2 = ux * ux + uy * uy
+            f = 1.0 + p[0] * r2 + p[1] * r2 * r2
+            return np.concatenate([c[0] + r_n * ux * f - qx[inside], c[1] + r_n * uy * f - qy[inside]])
+        sol = least_squares(resid, np.zeros(4), method="lm", x_scale=np.array([0.01, 0.01, 1.0, 1.0]))
+        k1, k2 = (float(v) for v in sol.x[:2])
+        centre = c0 + sol.x[2:4]
+        m = LensfunModel(k1, k2, tuple(centre), {}, 0, None, 0, 1, z, {}, {}, {}, source)
+        fx, fy = m.distort_px(gx, gy, w, h)
+        e = np.hypot(fx - qx, fy - qy)
+        fit_rms[ref] = float(np.sqrt(np.mean(e[inside] ** 2)))
+        max_in[ref] = float(e[inside].max())
+        max_out[ref] = float(e[~inside].max()) if (~inside).any() else float("nan")
+    else:
+        k1 = k2 = None
+        centre = c0
     tca = {}
+    rho_g = np.hypot(qx - centre[0], qy - centre[1])
+    keep = inside & (rho_g > 1e-6 * r_n)
     for ch in profile.channels:
         if ch == ref:
             continue
-        px, py = (np.asarray(v, float).ravel() for v in warp(gx, gy, z, ch))
-        px, py = px - np.mean(px - gx), py - np.mean(py - gy)
-        rho_c = np.hypot(px - cx, py - cy)[keep]
-        # r_c = r_g (b r_g^2 + c r_g + v), in the reference channel's distorted radius
-        rg = rho_d[keep] / r_n
-        (v, c, b), res_c = _radial_fit(rg, rho_c / r_n, (0, 1, 2))
+        px, py = (np.asarray(v, float).ravel() for v in dist(gx, gy, ch))
+        rho_c = np.hypot(px - centre[0], py - centre[1])
+        # r_c = r_g (b r_g^2 + c r_g + v), in the reference channel's distorted radius about the centre
+        (v, c, b), _ = _radial_fit(rho_g[keep] / r_n, rho_c[keep] / r_n, (0, 1, 2))
         tca[ch] = (float(v), float(c), float(b))
-        fit_rms[ch] = float(np.sqrt(np.mean((res_c * r_n) ** 2)))
+        rg = rho_g / r_n
+        f = b * rg * rg + c * rg + v
+        e = np.hypot(centre[0] + (qx - centre[0]) * f - px, centre[1] + (qy - centre[1]) * f - py)
+        fit_rms[ch] = float(np.sqrt(np.mean(e[keep] ** 2)))
+        max_in[ch] = float(e[keep].max())
+        max_out[ch] = float(e[~inside].max()) if (~inside).any() else float("nan")
+    if absolute and (~inside).any():
+        worst = max(max_out.values())
+        notes.append(f"the board covered {100 * inside.mean():.0f} % of the frame: the distortion beyond it is "
+                     f"extrapolated (up to {worst:.2f} px from the profile's own extrapolation)")
     diag_mm = math.hypot(w, h) * profile.pixel_pitch_um / 1000.0
-    return LensfunModel(float(k1), float(k2), tca, float(profile.focal_length_mm or 50.0), profile.f_number,
-                        float((profile.object_distance_mm or 1000.0) / 1000.0), FULL_FRAME_DIAGONAL_MM / diag_mm,
-                        z, fit_rms, source)
+    return LensfunModel(k1, k2, (float(centre[0]), float(centre[1])), tca, float(profile.focal_length_mm or 50.0),
+                        profile.f_number, float((profile.object_distance_mm or 1000.0) / 1000.0),
+                        FULL_FRAME_DIAGONAL_MM / diag_mm, z, fit_rms, max_in, max_out, source, tuple(notes))
 
 
 def _clean(v: float) -> float:
@@ -176,19 +267,26 @@ def lensfun_xml(profile, model: LensfunModel, maker: str = "fieldcal", lens_name
     mount = f"fieldcal {camera}"
     e = lambda s: escape(str(s))  # noqa: E731
     aperture = f'        <aperture min="{model.aperture:.6g}"/>\n' if model.aperture else ""
+    w, h = profile.image_size_px
+    unit = lensfun_centre_unit_px(w, h)
+    ox, oy = ((model.centre_px[0] - 0.5 * (w - 1)) / unit, (model.centre_px[1] - 0.5 * (h - 1)) / unit)
+    centre = f'        <center x="{_clean(ox):.9g}" y="{_clean(oy):.9g}"/>\n' if (ox or oy) else ""
+    distortion = ("" if model.k1 is None else
+                  f'            <distortion model="poly5" focal="{model.focal_mm:.6g}" k1="{_clean(model.k1):.9g}" '
+                  f'k2="{_clean(model.k2):.9g}"/>\n')
+    notes = "".join(f"<!-- {e(n)} -->\n" for n in model.notes)
     return (
         '<?xml version="1.0" encoding="utf-8"?>\n'
         f"<!-- written by fieldcal from {e(profile.source_path or 'a lens profile')}: geometry at the calibrated "
-        f"focus z = {model.z_um:.1f} um ({e(model.source)}); fieldcal measures no vignetting -->\n"
+        f"focus z = {model.z_um:.1f} um ({e(model.source)}); fieldcal measures no vignetting -->\n{notes}"
         '<lensdatabase version="1">\n'
         f"    <mount>\n        <name>{e(mount)}</name>\n    </mount>\n"
         f"    <camera>\n        <maker>{e(maker)}</maker>\n        <model>{e(camera)}</model>\n"
         f"        <mount>{e(mount)}</mount>\n        <cropfactor>{model.crop_factor:.6g}</cropfactor>\n    </camera>\n"
         f"    <lens>\n        <maker>{e(maker)}</maker>\n        <model>{e(lens)}</model>\n"
         f"        <mount>{e(mount)}</mount>\n        <focal value=\"{model.focal_mm:.6g}\"/>\n{aperture}"
-        f"        <cropfactor>{model.crop_factor:.6g}</cropfactor>\n"
+        f"        <cropfactor>{model.crop_factor:.6g}</cropfactor>\n{centre}"
         "        <calibration>\n"
-        f'            <distortion model="poly5" focal="{model.focal_mm:.6g}" k1="{_clean(model.k1):.9g}" '
-        f'k2="{_clean(model.k2):.9g}"/>\n'
+        f"{distortion}"
         f"{_tca_xml(model, profile.channels)}"
         "        </calibration>\n    </lens>\n</lensdatabase>\n")

@@ -146,6 +146,18 @@ class TruthProfile:
         sx, sy = self.spec.scene_px(x, y, self.z_ref_um, self.reference_channel if lateral_colour else channel)
         return self.spec.sensor_px(sx, sy, float(z), channel)
 
+    def distortion_px(self, x_u, y_u, z_um=None, channel: str | None = None):
+        """Exact absolute distortion of ``channel`` at ``z_um`` (default z_ref): undistorted -> sensor pixel,
+        in :meth:`fieldcal.profile.LensProfile.distortion_px`'s convention (the reference channel's map has no
+        linear part at the optical centre; other channels keep their lateral colour)."""
+        from fieldcal.fit.distortion import distortion_at
+        z = self.z_ref_um if z_um is None else float(z_um)
+        ch = channel or self.reference_channel
+        self.spec.channel(ch)
+        return distortion_at(lambda x, y: self.spec.sensor_px(x, y, z, ch),
+                             lambda x, y: self.spec.sensor_px(x, y, z, self.reference_channel),
+                             self.spec.optical_centre_px(), x_u, y_u)
+
     def warp_sd_px(self, x, y, z_um, channel: str):
         """The truth is exact: zero uncertainty, shaped like :meth:`warp_px`'s answer."""
         ox, _ = self.warp_px(x, y, z_um, channel)
