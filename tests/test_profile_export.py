@@ -53,62 +53,57 @@ def _lensfun(xml_path, prof, flags):
     return mod
 
 
-def _brown_warp(prof, k1, k2, colour):
-    """A map with radial distortion about the image centre (normalised by the half-diagonal) and a
-    lateral-colour scale per channel: what the geometry maps of a distorting lens give at one z."""
+def _absolute(prof, terms, coef):
+    """An absolute distortion of the profile's z_ref geometry (radial and tangential about the image centre)."""
+    from fieldcal.fit.distortion import AbsoluteDistortion
     w, h = prof.image_size_px
-    cx, cy, r = 0.5 * (w - 1), 0.5 * (h - 1), 0.5 * math.hypot(w, h)
-
-    def warp(x, y, z_um, channel):
-        ux, uy = (np.asarray(x, float) - cx) / r, (np.asarray(y, float) - cy) / r
-        r2 = ux * ux + uy * uy
-        f = (1 + k1 * r2 + k2 * r2 * r2) * colour.get(channel, 1.0)
-        return cx + r * ux * f, cy + r * uy * f
-    return warp
+    return AbsoluteDistortion(prof.z_ref_um, prof.reference_channel, (0.5 * (w - 1), 0.5 * (h - 1)),
+                              0.5 * math.hypot(w - 1, h - 1), tuple(terms), np.asarray(coef, float),
+                              np.zeros((len(terms),) * 2), 0.01, 100)
 
 
-def test_lensfunpy_applies_the_distortion_and_tca_of_a_map(profile_path, tmp_path):
-    """Exported from a distorting map, lensfunpy's undistortion and TCA agree with the map within 0.1 px."""
+@pytest.mark.parametrize("terms, coef", [(("k1", "k2"), (-0.04, 0.012)), (("k1", "k2", "p1", "p2"),
+                                                                          (0.03, -0.005, 4e-4, -3e-4))])
+def test_lensfunpy_applies_the_distortion_and_tca_of_a_profile(profile_path, tmp_path, terms, coef):
+    """Exported from a profile's absolute distortion (barrel; pincushion with tangential terms, which the
+    entry's centre carries), lensfunpy's undistortion and TCA agree with ``distortion_px`` within 0.1 px."""
     lf = pytest.importorskip("lensfunpy")
     prof = LensProfile.load(profile_path)
-    colour = {"R": 1.0015, "B": 0.9990}
-    warp = _brown_warp(prof, -0.04, 0.012, colour)
-    prof.warp_px = warp  # as a profile with geometry maps offers it
+    prof.absolute_distortion = _absolute(prof, terms, coef)
     model = lensfun_model(prof)
-    assert model.source == "warp_px maps"
+    assert "absolute distortion" in model.source
     out = tmp_path / "lens.xml"
     out.write_text(lensfun_xml(prof, model))
     w, h = prof.image_size_px
-    mod = _lensfun(out, prof, lf.ModifyFlags.DISTORTION)
-    g = mod.apply_geometry_distortion()          # undistorted pixel -> where it lies in the distorted image
     ys, xs = np.mgrid[0:h:6, 0:w:6]
-    # the map's undistorted image is the one with Lensfun's scale: warp(p) for p on Lensfun's grid
-    wx, wy = warp(xs, ys, model.z_um, "G")
-    err = np.hypot(g[ys, xs, 0] - wx, g[ys, xs, 1] - wy)
+    z = model.z_um
+    g = _lensfun(out, prof, lf.ModifyFlags.DISTORTION).apply_geometry_distortion()[ys, xs]
+    fx, fy = prof.distortion_px(xs, ys, z, prof.reference_channel)
+    err = np.hypot(g[..., 0] - fx, g[..., 1] - fy)
     assert err.max() < 0.1, err.max()
-    mod = _lensfun(out, prof, lf.ModifyFlags.TCA)
-    s = mod.apply_subpixel_distortion()          # (h, w, 3, 2): per channel R, G, B
+    assert np.hypot(g[..., 0] - xs, g[..., 1] - ys).max() > 1.0
+    s = _lensfun(out, prof, lf.ModifyFlags.DISTORTION | lf.ModifyFlags.TCA).apply_subpixel_geometry_distortion()
     for i, ch in enumerate("RGB"):
-        # TCA is about the green channel: the R (B) image is green's scaled by its lateral colour
-        cx, cy = 0.5 * (w - 1), 0.5 * (h - 1)
-        ex = cx + colour.get(ch, 1.0) * (xs - cx)
-        ey = cy + colour.get(ch, 1.0) * (ys - cy)
-        err = np.hypot(s[ys, xs, i, 0] - ex, s[ys, xs, i, 1] - ey)
+        fx, fy = prof.distortion_px(xs, ys, z, ch)
+        err = np.hypot(s[ys, xs, i, 0] - fx, s[ys, xs, i, 1] - fy)
         assert err.max() < 0.1, (ch, err.max())
 
 
 def test_cli_export_of_a_calibrated_profile(profile_path, tmp_path, capsys):
-    """The scalar profile has no distortion: Lensfun's geometry map is the identity, its TCA the lateral colour."""
+    """The texture profile has no absolute distortion: refused, or with --allow-no-distortion an entry without a
+    distortion element (Lensfun's geometry map is the identity), its TCA the lateral colour."""
     lf = pytest.importorskip("lensfunpy")
     out = tmp_path / "lens.xml"
-    assert main(["profile", "export", str(profile_path), "--format", "lensfun", "--out", str(out)]) == 0
+    assert main(["profile", "export", str(profile_path), "--format", "lensfun", "--out", str(out)]) == 2
+    assert "no absolute distortion" in capsys.readouterr().err and not out.exists()
+    assert main(["profile", "export", str(profile_path), "--format", "lensfun", "--out", str(out),
+                 "--allow-no-distortion"]) == 0
     assert "Lensfun database version 1" in capsys.readouterr().out
+    assert "<distortion" not in out.read_text()
     prof = LensProfile.load(profile_path)
     mod = _lensfun(out, prof, lf.ModifyFlags.DISTORTION)
-    g = mod.apply_geometry_distortion()
+    assert mod.apply_geometry_distortion() is None  # no distortion element: Lensfun leaves the geometry alone
     w, h = prof.image_size_px
-    ys, xs = np.mgrid[0:h, 0:w]
-    assert np.hypot(g[..., 0] - xs, g[..., 1] - ys).max() < 0.1
     mod = _lensfun(out, prof, lf.ModifyFlags.TCA)
     s = mod.apply_subpixel_distortion()
     cx = 0.5 * (w - 1)
@@ -116,6 +111,7 @@ def test_cli_export_of_a_calibrated_profile(profile_path, tmp_path, capsys):
         sc = prof.lateral_colour_scale(ch)
         assert s[0, 0, i, 0] == pytest.approx(cx + sc * (0 - cx), abs=0.01)
     # refuses to overwrite without --overwrite, and then replaces
-    assert main(["profile", "export", str(profile_path), "--format", "lensfun", "--out", str(out)]) == 2
     assert main(["profile", "export", str(profile_path), "--format", "lensfun", "--out", str(out),
-                 "--overwrite", "--z", str(calibrated_focus_um(prof) + 50)]) == 0
+                 "--allow-no-distortion"]) == 2
+    assert main(["profile", "export", str(profile_path), "--format", "lensfun", "--out", str(out),
+                 "--allow-no-distortion", "--overwrite", "--z", str(calibrated_focus_um(prof) + 50)]) == 0
