@@ -25,6 +25,13 @@ from ..fit.geometry_map import Correspondences
 
 
 
+def _corner_spacing_px(xy: np.ndarray) -> float:
+    """The board's square in the image: the median distance from each corner to its nearest neighbour."""
+    d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+    np.fill_diagonal(d, np.inf)
+    return float(np.median(d.min(axis=1)))
+
+
 def subpix_window_px(spec: CharucoSpec, xy: np.ndarray | None = None) -> int:
     """Half-size of the corner-refinement window: the white gap between a corner and its markers' bit cells.
 
@@ -34,20 +41,24 @@ def subpix_window_px(spec: CharucoSpec, xy: np.ndarray | None = None) -> int:
     """
     square = float(spec.square_px)
     if xy is not None and len(xy) >= 2:
-        d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
-        np.fill_diagonal(d, np.inf)
-        square = float(np.median(d.min(axis=1)))
+        square = _corner_spacing_px(xy)
     gap = square * (1.0 - spec.marker_px / spec.square_px) / 2.0
     return int(max(2, min(12, round(gap - 1))))
 
 
 def refine_corners(plane: np.ndarray, xy: np.ndarray, half_px: int, iterations: int = 30,
-                   tol_px: float = 1e-4) -> np.ndarray:
+                   tol_px: float = 1e-4, return_sigma: bool = False):
     """Sub-pixel saddle corners on a float plane: ``cv2.cornerSubPix``'s gradient-orthogonality estimate.
 
     Every gradient in the window around a corner is orthogonal to the vector from the corner to its own
     position, so the corner solves ``sum w g g^T (q - p) = 0``. Done here in float64 for all corners at once
     (OpenCV's version takes 8-bit images only in 5.x, and 8 bits quantise a blurred corner's gradients).
+    A blurred saddle keeps its point symmetry, so the estimate stays at its centre (the equations' odd terms
+    cancel over the symmetric window): the method works through focus while the window sees the saddle.
+
+    ``return_sigma``: also return each corner's 1-sigma (px), the sandwich (heteroscedasticity-robust)
+    covariance of the normal equations' solution -- large where the saddle is weak, blurred or disturbed
+    (a marker's edge in the window); inf where the solve failed or did not converge.
     """
     from scipy import ndimage
     f = np.asarray(plane, dtype=np.float64)
@@ -60,7 +71,8 @@ def refine_corners(plane: np.ndarray, xy: np.ndarray, half_px: int, iterations: 
     oy, ox = (a.ravel() for a in np.meshgrid(off, off, indexing="ij"))
     # Gaussian window (sigma = half size) as cornerSubPix uses, the centre cell kept (gradients vanish there)
     wt = np.exp(-(ox ** 2 + oy ** 2) / (2.0 * max(half_px, 1) ** 2))
-    q = np.asarray(xy, dtype=np.float64).copy()
+    q = np.asarray(xy, dtype=np.float64).reshape(-1, 2).copy()
+    step = np.full(len(q), np.inf)
     for _ in range(iterations):
         px = q[:, 0:1] + ox[None, :]
         py = q[:, 1:2] + oy[None, :]
@@ -75,11 +87,23 @@ def refine_corners(plane: np.ndarray, xy: np.ndarray, half_px: int, iterations: 
         good = det > 1e-12 * (a11 + a22) ** 2
         nx = np.where(good, (a22 * b1 - a12 * b2) / np.where(good, det, 1.0), q[:, 0])
         ny = np.where(good, (a11 * b2 - a12 * b1) / np.where(good, det, 1.0), q[:, 1])
-        step = np.hypot(nx - q[:, 0], ny - q[:, 1])
+        step = np.where(good, np.hypot(nx - q[:, 0], ny - q[:, 1]), np.inf)
         q = np.column_stack([nx, ny])
         if np.max(step, initial=0.0) < tol_px:
             break
-    return q
+    if not return_sigma:
+        return q
+    # residual of each sample's orthogonality equation g . (q - p), and the sandwich A^-1 B A^-1
+    r = ax * (q[:, 0:1] - px) + ay * (q[:, 1:2] - py)
+    w2r2 = (wt * r) ** 2
+    b11, b12, b22 = (np.sum(w2r2 * u * v, axis=1) for u, v in ((ax, ax), (ax, ay), (ay, ay)))
+    det = np.where(good, det, np.nan)
+    i11, i12, i22 = a22 / det, -a12 / det, a11 / det
+    c11 = i11 * i11 * b11 + 2 * i11 * i12 * b12 + i12 * i12 * b22
+    c22 = i12 * i12 * b11 + 2 * i12 * i22 * b12 + i22 * i22 * b22
+    sigma = np.sqrt(np.clip(0.5 * (c11 + c22), 0, None))
+    sigma = np.where(np.isfinite(sigma) & (step < 1e-2), np.maximum(sigma, 1e-6), np.inf)
+    return q, sigma
 
 
 def charuco_corners(plane: np.ndarray, spec: CharucoSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -95,32 +119,152 @@ def charuco_corners(plane: np.ndarray, spec: CharucoSpec) -> tuple[np.ndarray, n
     return refined, ids
 
 
+def _similarity(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """2x3 least-squares similarity (scale, rotation, shift) taking ``src`` to ``dst``; identity for < 3 points."""
+    if len(src) < 3:
+        return np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    M, _ = cv2.estimateAffinePartial2D(src.astype(np.float32), dst.astype(np.float32), method=cv2.LMEDS)
+    return np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]) if M is None else M.astype(np.float64)
+
+
+def track_blurred_corners(read_planes: Callable[[int], Sequence[np.ndarray]], n_frames: int, ref_index: int,
+                          found: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]], square_px: float,
+                          smooth_px: float = 1.5, max_sigma_ratio: float = 5.0,
+                          passes: int = 3) -> dict[tuple[int, int], int]:
+    """Corners the detector missed (a blurred board), located from frames where they were found.
+
+    Frames are visited outward from the reference, then inward, then outward again (``passes``), so a corner
+    found anywhere reaches every frame. In each frame a channel's missing corners are predicted from the
+    previous frame of the walk through the similarity that takes the corners both frames share (the identity
+    when they share fewer than 3: neighbouring frames differ by focus breathing, ~1e-3), then registered by
+    Lucas-Kanade (:func:`track_patches`: gain and offset per patch, float, cubic splines) against the corner's
+    patch -- saddle and marker cells, ~0.8 square across -- in the reference frame where it was found there,
+    else in the previous frame of the walk. A blurred image of a patch correlates best with the sharp patch at
+    zero shift for any point-symmetric blur (the correlation is the patch's autocorrelation convolved with
+    the blur), which the saddle alone does not give once the blur reaches the markers. The quality flag: a
+    corner is kept when the registration converged within a quarter square of the prediction and its
+    sigma (Gauss-Newton, scaled by the patch residual) is within ``max_sigma_ratio`` of the frame's median.
+    ``found[(k, ci)] = (xy, ids, sigma)`` is extended in place; returns the corners added per (frame, channel).
+    """
+    from scipy import ndimage
+    prep = lambda a: ndimage.gaussian_filter(np.asarray(a, dtype=np.float64), smooth_px)  # noqa: E731
+    half = int(max(4, round(0.4 * square_px)))
+    added: dict[tuple[int, int], int] = {}
+    up = list(range(ref_index + 1, n_frames))
+    down = list(range(ref_index - 1, -1, -1))
+    walks = []
+    for p in range(passes):
+        walks += ([[ref_index] + up, [ref_index] + down] if p % 2 == 0 else
+                  [up[::-1] + [ref_index], down[::-1] + [ref_index]])
+    n_ch = 1 + max((ci for _, ci in found), default=0)
+    empty = (np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros(0))
+    ref_planes = [prep(a) for a in read_planes(ref_index)]
+    for walk in walks:
+        if len(walk) < 2:
+            continue
+        prev_planes = ref_planes if walk[0] == ref_index else None
+        for prev, k in zip(walk[:-1], walk[1:]):
+            cur_planes = ref_planes if k == ref_index else None
+            for ci in range(n_ch):
+                p_xy, p_ids, _ = found.get((prev, ci), empty)
+                k_xy, k_ids, k_sig = found.get((k, ci), empty)
+                missing = ~np.isin(p_ids, k_ids)
+                if not missing.any():
+                    continue
+                common = ~missing
+                M = _similarity(p_xy[common], k_xy[np.searchsorted(k_ids, p_ids[common])])
+                pred = p_xy[missing] @ M[:, :2].T + M[:, 2]
+                if cur_planes is None:
+                    cur_planes = [prep(a) for a in read_planes(k)]
+                plane = cur_planes[ci]
+                h, w = plane.shape
+                inside = ((pred[:, 0] > half + 2) & (pred[:, 0] < w - half - 3) &
+                          (pred[:, 1] > half + 2) & (pred[:, 1] < h - half - 3))
+                mids, pred = p_ids[missing][inside], pred[inside]
+                if not mids.size:
+                    continue
+                r_xy, r_ids, _ = found.get((ref_index, ci), empty)
+                in_ref = np.isin(mids, r_ids)
+                q = np.full_like(pred, np.nan)
+                sig = np.full(len(pred), np.inf)
+                for use_ref in (True, False):
+                    sel = in_ref if use_ref else ~in_ref
+                    if not sel.any():
+                        continue
+                    if use_ref:
+                        tmpl, t_xy = ref_planes[ci], r_xy[np.searchsorted(r_ids, mids[sel])]
+                    else:
+                        if prev_planes is None:
+                            prev_planes = [prep(a) for a in read_planes(prev)]
+                        tmpl, t_xy = prev_planes[ci], p_xy[missing][inside][sel]
+                    q[sel], sig[sel] = track_patches(tmpl, plane, t_xy, pred[sel], half)
+                ok = np.isfinite(sig) & np.all(np.isfinite(q), axis=1) & (np.hypot(*(q - pred).T) <= 0.25 * square_px)
+                if ok.any():
+                    ok &= sig <= max_sigma_ratio * float(np.median(sig[ok]))
+                if not ok.any():
+                    continue
+                ids = np.concatenate([k_ids, mids[ok]])
+                xy = np.concatenate([k_xy, q[ok]])
+                sg = np.concatenate([k_sig, sig[ok]])
+                o = np.argsort(ids, kind="stable")
+                found[(k, ci)] = (xy[o], ids[o], sg[o])
+                added[(k, ci)] = added.get((k, ci), 0) + int(ok.sum())
+            prev_planes = cur_planes
+    return added
+
+
 def charuco_correspondences(read_plane: Callable[[int, int], np.ndarray], z_um: Sequence[float],
                             channels: Sequence[str], spec: CharucoSpec, ref_index: int,
-                            reference_channel: str, min_corners: int = 6) -> Correspondences:
+                            reference_channel: str, min_corners: int = 6, track_blurred: bool = True,
+                            stats: dict | None = None) -> Correspondences:
     """Corners of every channel of every frame, matched to the reference plane's corners by id.
 
     ``read_plane(k, ci)`` returns channel ``ci`` of frame ``k`` (any dtype). The reference positions ``p`` are
     the corners found in the reference plane (re-estimated by the fit from all observations). Frames with
-    fewer than ``min_corners`` corners are skipped (too far out of focus for the detector).
+    fewer than ``min_corners`` detected corners contribute only what ``track_blurred`` finds in them
+    (:func:`track_blurred_corners`: corners located from the neighbouring frames where the board is too
+    blurred for the detector). Each correspondence carries its corner's sigma (a relative weight). ``stats``
+    (a dict) receives per-frame counts: detected and tracked corners.
     """
     channels = list(channels)
+    n_ch = len(channels)
     ref_ci = channels.index(reference_channel)
-    found: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+    found: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    square = None
+    detected: dict[tuple[int, int], int] = {}
     for k in range(len(z_um)):
-        for ci in range(len(channels)):
-            xy, ids = charuco_corners(read_plane(k, ci), spec)
-            if ids.size >= min_corners:
-                found[(k, ci)] = (xy, ids)
-    if (ref_index, ref_ci) not in found:
+        for ci in range(n_ch):
+            plane = read_plane(k, ci)
+            xy, ids = detect_charuco(plane, spec)
+            if ids.size < min_corners:
+                detected[(k, ci)] = 0
+                continue
+            if square is None or (k, ci) == (ref_index, ref_ci):
+                square = _corner_spacing_px(xy)
+            q, sig = refine_corners(plane, xy, subpix_window_px(spec, xy), return_sigma=True)
+            # a refinement that wandered off (a blurred-away saddle) is dropped: the detector's own corner is
+            # 8-bit and pixel-locked, worse than no corner for a 0.05 px map
+            ok = np.isfinite(sig) & (np.hypot(*(q - xy).T) <= 0.5 * subpix_window_px(spec, xy))
+            found[(k, ci)] = (q[ok], ids[ok], sig[ok])
+            detected[(k, ci)] = int(ok.sum())
+    if square is not None and track_blurred:
+        added = track_blurred_corners(lambda k: [read_plane(k, ci) for ci in range(n_ch)], len(z_um), ref_index,
+                                      found, square)
+    else:
+        added = {}
+    if stats is not None:
+        stats.update({"detected": {f"{k},{channels[ci]}": v for (k, ci), v in detected.items()},
+                      "tracked": {f"{k},{channels[ci]}": v for (k, ci), v in added.items()},
+                      "square_px": square})
+    if (ref_index, ref_ci) not in found or found[(ref_index, ref_ci)][1].size < min_corners:
         raise ParameterError(f"no ChArUco board found in the reference frame (z = {z_um[ref_index]:g} µm, "
                              f"channel {reference_channel})", field="chart",
                              fix="check the stack's chart description (stack.json 'chart') and that the board "
                                  "is near focus at the reference frame")
-    ref_xy, ref_ids = found[(ref_index, ref_ci)]
+    ref_xy, ref_ids, _ = found[(ref_index, ref_ci)]
     lut = {int(i): xy for i, xy in zip(ref_ids, ref_xy)}
     P, Q, Z, C, I = [], [], [], [], []
-    for (k, ci), (xy, ids) in found.items():
+    for (k, ci), (xy, ids, _) in found.items():
         for i, q in zip(ids, xy):
             p = lut.get(int(i))
             if p is None:
@@ -131,8 +275,12 @@ def charuco_correspondences(read_plane: Callable[[int, int], np.ndarray], z_um: 
             C.append(channels[ci])
             I.append(int(i))
     n = len(Z)
+    # equal weights: the detected corners' sandwich sigmas and the tracked ones' Lucas-Kanade sigmas are not on
+    # one scale (each is only a quality flag within its kind), and both kinds measure to ~0.015 px median
+    # against the simulator's truth through focus (docs/geometry.md)
+    sig = np.ones(n)
     return Correspondences(np.asarray(P, dtype=np.float64).reshape(n, 2), np.asarray(Q, dtype=np.float64).reshape(n, 2),
-                           np.asarray(Z), np.asarray(C), np.ones(n), np.asarray(I, dtype=np.int64))
+                           np.asarray(Z), np.asarray(C), sig, np.asarray(I, dtype=np.int64))
 
 
 def _texture_grid(ref: np.ndarray, step_px: int, border_px: int, min_quality: float = 0.05) -> np.ndarray:
@@ -295,7 +443,8 @@ def measure_geometry(stack, z_ref_um: float, *, chart: dict | None = None, refer
                                  fix="record it with --chart targets.json (simulate, capture, import)")
         lay0 = layouts[names[0]]
         board = board_from_record(chart, *(np.array([w, h]) // lay0.stride), path=stack.json_path)
-        corr = charuco_correspondences(read_plane, z, names, board, ref_index, ref_ch)
+        det_stats: dict = {}
+        corr = charuco_correspondences(read_plane, z, names, board, ref_index, ref_ch, stats=det_stats)
     else:
         corr = texture_correspondences(read_plane, z, names, ref_index, ref_ch,
                                        step_px=max(8, int(min(h, w) / layouts[names[0]].stride // 24)))
@@ -314,6 +463,7 @@ def measure_geometry(stack, z_ref_um: float, *, chart: dict | None = None, refer
                             max_order=max_order, source=source, path=stack.json_path)
     if source != "charuco":
         return gmap, None
+    gmap.diagnostics["charuco_corners"] = det_stats
     from ..fit.distortion import fit_absolute_distortion, reference_points
     ids, p_ref, sd = reference_points(corr, gmap)
     dist = fit_absolute_distortion(board.corner_px(ids), p_ref, (int(w), int(h)), sigma_px=sd,
