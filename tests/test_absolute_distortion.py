@@ -209,3 +209,33 @@ def test_absolute_distortion_block_round_trip_and_schema(world):
     rep = Path(__file__).resolve().parents[1]
     name = "fieldcal-distortion-1.schema.json"
     assert (rep / "fieldcal/formats/schemas" / name).read_bytes() == (rep / "docs/schemas" / name).read_bytes()
+
+
+# ------------------------------------------------------------------------------------- blurred boards
+def test_blurred_board_corners_are_found_and_accurate():
+    """Full field curvature over +-200 um: the detector finds no board at the scan's end; tracking from the
+    neighbouring frames finds every corner there, within 0.1 px of the simulator's truth."""
+    from fieldcal.charts.targets import charuco_image, charuco_spec
+    from fieldcal.measure.charuco import charuco_correspondences
+    from test_geometry_maps import render_frames
+    size = (320, 240)
+    spec = distorted_lens(size, curvature=1.0)
+    z = np.array([0.0, 100.0, 200.0])
+    board = charuco_spec(*size)
+    frames = render_frames(spec, charuco_image(board), z)
+    stats = {}
+    corr = charuco_correspondences(lambda k, ci: frames[k][..., ci], z, spec.channel_names, board, 0, "G",
+                                   stats=stats)
+    assert stats["detected"]["2,G"] == 0            # the detector alone loses the board
+    cp = board.corner_px(corr.point_id)
+    n_ref = int(np.sum((corr.z_um == 0.0) & (corr.channel == "G")))
+    for c in "RGB":
+        m = (corr.channel == c) & (corr.z_um == 200.0)
+        # tracking finds every corner the reference frame shows (its field edge is blurred too: 40 of 48)
+        assert m.sum() == n_ref >= 40
+        tx, ty = spec.sensor_px(cp[m, 0], cp[m, 1], 200.0, c)
+        err = np.hypot(corr.q_px[m, 0] - tx, corr.q_px[m, 1] - ty)
+        assert np.median(err) < 0.04 and err.max() < 0.1, (c, np.median(err), err.max())
+    off = charuco_correspondences(lambda k, ci: frames[k][..., ci], z, spec.channel_names, board, 0, "G",
+                                  track_blurred=False)
+    assert not np.any(off.z_um == 200.0)
