@@ -41,6 +41,7 @@ def test_format_constants_come_from_the_schemas():
     from fieldcal.composite.io import COMPOSITE_FORMAT
     from fieldcal.fit.geometry import GEOMETRY_FIT_FORMAT
     from fieldcal.fit.geometry_map import GEOMETRY_MAP_FORMAT
+    from fieldcal.fit.distortion import DISTORTION_FORMAT
     from fieldcal.fit.result import SURFACE_FIT_FORMAT
     from fieldcal.fit.tolerance import TOLERANCE_FIT_FORMAT
     from fieldcal.formats.stack import FORMAT
@@ -57,7 +58,7 @@ def test_format_constants_come_from_the_schemas():
            "truth": TRUTH_FORMAT, "capture-journal": JOURNAL_FORMAT, "composite": COMPOSITE_FORMAT,
            "targets": TARGETS_FORMAT, "validation": VALIDATION_FORMAT, "surface-fit": SURFACE_FIT_FORMAT,
            "geometry-fit": GEOMETRY_FIT_FORMAT, "tolerance-fit": TOLERANCE_FIT_FORMAT, "masks": MASKS_FORMAT,
-           "geometry-map": GEOMETRY_MAP_FORMAT, "fleet": FLEET_FORMAT}
+           "geometry-map": GEOMETRY_MAP_FORMAT, "fleet": FLEET_FORMAT, "distortion": DISTORTION_FORMAT}
     assert got == {k: documents.format_id(k) for k in documents.KINDS}
 
 

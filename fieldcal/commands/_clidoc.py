@@ -40,7 +40,7 @@ fieldcal simulate models/triplet-uncorrected.json chart --z -370 60 20 --size 32
 fieldcal calibrate chart --out lens.json --fs 10 --q 0.05 --effort quick
 fieldcal report lens.json --out report/
 fieldcal profile show lens.json                                    # the profile in words (docs/profiles.md)
-fieldcal profile export lens.json --format lensfun --out lens.xml  # for darktable, RawTherapee, Hugin
+fieldcal profile export lens.json --format lensfun --out lens.xml --allow-no-distortion  # TCA only: texture shows no distortion
 fieldcal plan stack lens.json --fs 10 --q 0.05 --confidence 0.95 --out plan.json --plots plan-plots/
 fieldcal plan sweep lens.json --alpha-um 20 --pixel-exposure-ms 16 --device lcos --channels G --out sweep.json
 fieldcal plan export-masks sweep.json --out sweep-masks            # the LCoS masks as 1-bit PNGs + masks.json
