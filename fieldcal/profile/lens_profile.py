@@ -13,6 +13,7 @@ The public API (DESIGN.md)::
     profile.best_focus_interval_um(x, y, "G", level=0.9)      # credible band (µm)
     profile.magnification(z_um, "G"); profile.shift_px(z_um, "G")
     profile.warp_px(x, y, z_um, "G"); profile.warp_sd_px(x, y, z_um, "G")   # dense geometry (docs/geometry.md)
+    profile.distortion_px(x_u, y_u, z_um, "G"); profile.undistort_px(x, y, z_um, "G")  # absolute (ChArUco)
 
 :class:`LensProfile` implements :class:`fieldcal.optics.LensModel`; its defocus physics is
 :mod:`fieldcal.optics` (the same model the simulator and planner use).
