@@ -239,3 +239,16 @@ def test_blurred_board_corners_are_found_and_accurate():
     off = charuco_correspondences(lambda k, ci: frames[k][..., ci], z, spec.channel_names, board, 0, "G",
                                   track_blurred=False)
     assert not np.any(off.z_um == 200.0)
+
+
+def test_profile_with_a_malformed_distortion_block_is_refused(world, tmp_path):
+    from fieldcal.profile import LensProfile
+    root, _ = world
+    d = json.loads((root / "p.json").read_text())
+    d["absolute_distortion"]["coef"] = d["absolute_distortion"]["coef"][:-1] + [1.0, 2.0]  # one too many
+    for f in root.glob("p.*.samples.npz"):
+        (tmp_path / f.name).write_bytes(f.read_bytes())
+    (tmp_path / "p.json").write_text(json.dumps(d))
+    with pytest.raises(FieldcalError) as e:
+        LensProfile.load(tmp_path / "p.json")
+    assert "absolute_distortion" in str(e.value) and e.value.fix

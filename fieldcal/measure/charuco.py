@@ -144,7 +144,8 @@ def track_blurred_corners(read_planes: Callable[[int], Sequence[np.ndarray]], n_
     the blur), which the saddle alone does not give once the blur reaches the markers. The quality flag: a
     corner is kept when the registration converged within a quarter square of the prediction and its
     sigma (Gauss-Newton, scaled by the patch residual) is within ``max_sigma_ratio`` of the frame's median.
-    ``found[(k, ci)] = (xy, ids, sigma)`` is extended in place; returns the corners added per (frame, channel).
+    ``found[(k, ci)] = (xy, ids, sigma, tracked)`` is extended in place (``tracked`` marks the corners added
+    here); returns the corners added per (frame, channel).
     """
     from scipy import ndimage
     prep = lambda a: ndimage.gaussian_filter(np.asarray(a, dtype=np.float64), smooth_px)  # noqa: E731
@@ -157,7 +158,7 @@ def track_blurred_corners(read_planes: Callable[[int], Sequence[np.ndarray]], n_
         walks += ([[ref_index] + up, [ref_index] + down] if p % 2 == 0 else
                   [up[::-1] + [ref_index], down[::-1] + [ref_index]])
     n_ch = 1 + max((ci for _, ci in found), default=0)
-    empty = (np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros(0))
+    empty = (np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, bool))
     ref_planes = [prep(a) for a in read_planes(ref_index)]
     for walk in walks:
         if len(walk) < 2:
@@ -166,8 +167,8 @@ def track_blurred_corners(read_planes: Callable[[int], Sequence[np.ndarray]], n_
         for prev, k in zip(walk[:-1], walk[1:]):
             cur_planes = ref_planes if k == ref_index else None
             for ci in range(n_ch):
-                p_xy, p_ids, _ = found.get((prev, ci), empty)
-                k_xy, k_ids, k_sig = found.get((k, ci), empty)
+                p_xy, p_ids, _, _ = found.get((prev, ci), empty)
+                k_xy, k_ids, k_sig, k_tr = found.get((k, ci), empty)
                 missing = ~np.isin(p_ids, k_ids)
                 if not missing.any():
                     continue
@@ -183,7 +184,7 @@ def track_blurred_corners(read_planes: Callable[[int], Sequence[np.ndarray]], n_
                 mids, pred = p_ids[missing][inside], pred[inside]
                 if not mids.size:
                     continue
-                r_xy, r_ids, _ = found.get((ref_index, ci), empty)
+                r_xy, r_ids, _, _ = found.get((ref_index, ci), empty)
                 in_ref = np.isin(mids, r_ids)
                 q = np.full_like(pred, np.nan)
                 sig = np.full(len(pred), np.inf)
@@ -206,8 +207,9 @@ def track_blurred_corners(read_planes: Callable[[int], Sequence[np.ndarray]], n_
                 ids = np.concatenate([k_ids, mids[ok]])
                 xy = np.concatenate([k_xy, q[ok]])
                 sg = np.concatenate([k_sig, sig[ok]])
+                tr = np.concatenate([k_tr, np.ones(int(ok.sum()), bool)])
                 o = np.argsort(ids, kind="stable")
-                found[(k, ci)] = (xy[o], ids[o], sg[o])
+                found[(k, ci)] = (xy[o], ids[o], sg[o], tr[o])
                 added[(k, ci)] = added.get((k, ci), 0) + int(ok.sum())
             prev_planes = cur_planes
     return added
@@ -245,7 +247,7 @@ def charuco_correspondences(read_plane: Callable[[int, int], np.ndarray], z_um: 
             # a refinement that wandered off (a blurred-away saddle) is dropped: the detector's own corner is
             # 8-bit and pixel-locked, worse than no corner for a 0.05 px map
             ok = np.isfinite(sig) & (np.hypot(*(q - xy).T) <= 0.5 * subpix_window_px(spec, xy))
-            found[(k, ci)] = (q[ok], ids[ok], sig[ok])
+            found[(k, ci)] = (q[ok], ids[ok], sig[ok], np.zeros(int(ok.sum()), bool))
             detected[(k, ci)] = int(ok.sum())
     if square is not None and track_blurred:
         added = track_blurred_corners(lambda k: [read_plane(k, ci) for ci in range(n_ch)], len(z_um), ref_index,
@@ -261,11 +263,20 @@ def charuco_correspondences(read_plane: Callable[[int, int], np.ndarray], z_um: 
                              f"channel {reference_channel})", field="chart",
                              fix="check the stack's chart description (stack.json 'chart') and that the board "
                                  "is near focus at the reference frame")
-    ref_xy, ref_ids, _ = found[(ref_index, ref_ci)]
+    ref_xy, ref_ids, _, _ = found[(ref_index, ref_ci)]
     lut = {int(i): xy for i, xy in zip(ref_ids, ref_xy)}
-    P, Q, Z, C, I = [], [], [], [], []
-    for (k, ci), (xy, ids, _) in found.items():
-        for i, q in zip(ids, xy):
+    # Relative weights. The detected corners' sandwich sigmas and the tracked ones' Lucas-Kanade sigmas are
+    # on different scales: each kind is divided by its own median over the stack, so a corner counts less
+    # the worse it is within its kind (a tracked corner in a badly blurred frame), and the kinds count alike
+    # at their typical quality (both measure ~0.015 px median against the simulator's truth through focus).
+    kinds = {}
+    for tracked in (False, True):
+        v = np.concatenate([sg[tr == tracked] for _, _, sg, tr in found.values()] or [np.zeros(0)])
+        v = v[np.isfinite(v) & (v > 0)]
+        kinds[tracked] = float(np.median(v)) if v.size else 1.0
+    P, Q, Z, C, I, S = [], [], [], [], [], []
+    for (k, ci), (xy, ids, sg, tr) in found.items():
+        for i, q, g, t in zip(ids, xy, sg, tr):
             p = lut.get(int(i))
             if p is None:
                 continue
@@ -274,11 +285,10 @@ def charuco_correspondences(read_plane: Callable[[int, int], np.ndarray], z_um: 
             Z.append(float(z_um[k]))
             C.append(channels[ci])
             I.append(int(i))
+            S.append(g / kinds[bool(t)])
     n = len(Z)
-    # equal weights: the detected corners' sandwich sigmas and the tracked ones' Lucas-Kanade sigmas are not on
-    # one scale (each is only a quality flag within its kind), and both kinds measure to ~0.015 px median
-    # against the simulator's truth through focus (docs/geometry.md)
-    sig = np.ones(n)
+    # floored at half the typical: no corner dominates the fit on a fortunate residual
+    sig = np.clip(np.nan_to_num(np.asarray(S, dtype=np.float64), nan=1.0, posinf=1.0), 0.5, None)
     return Correspondences(np.asarray(P, dtype=np.float64).reshape(n, 2), np.asarray(Q, dtype=np.float64).reshape(n, 2),
                            np.asarray(Z), np.asarray(C), sig, np.asarray(I, dtype=np.int64))
 
