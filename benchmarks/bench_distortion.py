@@ -81,7 +81,7 @@ def absolute(size, work: Path) -> list[dict]:
                 fx, fy = prof.distortion_px(xs, ys, zz, c)
                 sx, sy = prof.distortion_sd_px(xs, ys, zz, c)
                 e = np.hypot(fx - tx, fy - ty)
-                row = {"lens": label, "z": f"{zname} ({zz:g} µm)", "channel": c,
+                row = {"lens": label, "z": f"{zname} ({zz:.1f} µm)", "channel": c,
                        "terms": " ".join(prof.absolute_distortion.terms), "hull": float(ins.mean()),
                        "truth_disp_px": float(np.hypot(tx - xs, ty - ys).max()),
                        "prof_in_max": float(e[ins].max()), "prof_in_rms": float(np.sqrt(np.mean(e[ins] ** 2))),
