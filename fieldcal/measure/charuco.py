@@ -6,6 +6,10 @@ reference channel of the reference frame) seen at ``q`` in channel c of frame k.
 * ChArUco (:func:`charuco_correspondences`): OpenCV's ``CharucoDetector`` per channel of every frame finds the
   corners and their ids (on an 8-bit copy); each corner is then refined by ``cv2.cornerSubPix``'s method on
   the float plane (:func:`refine_corners`: no 8-bit quantisation). Corners are matched across frames and channels by id.
+  Corners the detector misses on a blurred board are located from the frames where they were found
+  (:func:`track_blurred_corners`: prediction from the neighbouring frame, Lucas-Kanade against the corner's patch).
+* Absolute distortion (:func:`measure_geometry`): the corners' z_ref positions against the board's own
+  coordinates (:mod:`fieldcal.fit.distortion`).
 * Texture (:func:`texture_correspondences`): Lucas-Kanade (:func:`track_patches`, float, cubic splines) tracks
   a grid of textured points from the reference plane into every channel of every frame, frame after frame
   outward from the reference (each track starts from the previous frame's answer) but always against the
