@@ -235,7 +235,7 @@ def lensfun_model(profile, z_um: float | None = None, n: int = 41,
     if absolute and (~inside).any():
         worst = max(max_out.values())
         notes.append(f"the board covered {100 * inside.mean():.0f} % of the frame: the distortion beyond it is "
-                     f"extrapolated (up to {worst:.2f} px from the profile's own extrapolation)")
+                     f"extrapolated (there the entry and the profile's extrapolation differ by up to {worst:.2f} px)")
     diag_mm = math.hypot(w, h) * profile.pixel_pitch_um / 1000.0
     return LensfunModel(k1, k2, (float(centre[0]), float(centre[1])), tca, float(profile.focal_length_mm or 50.0),
                         profile.f_number, float((profile.object_distance_mm or 1000.0) / 1000.0),
