@@ -5,7 +5,7 @@ Calibration on a slanted-edge chart (docs/measurement.md "Calibrating from slant
 * :func:`chart_kind` looks at one frame (the middle of the scan) and says whether it is a slanted-edge chart:
   enough edges that pass the e-SFR quality rules in every channel.
 * :func:`edge_table` takes the e-SFR of every edge through the stack (:func:`fieldcal.measure.measure_mtf`),
-  reads each track's MTF at fs, finds its best focus (:func:`.esfr_focus.through_focus_peak`) and measured
+  reads each track's MTF at fs, finds its best focus (:func:`.esfr_focus.defocus_peak`) and measured
   half-widths, and writes one row per track and channel in the columns of a texture tile table.
 
 Tangential and sagittal. An edge measures the MTF across it, so a tangential edge gives the tangential focus
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from .esfr_focus import through_focus_peak, tolerance_half_widths
+from .esfr_focus import TOLERANCE_UNREACHED, analyse_track
 from .tiles import TileTable
 
 # A frame is a slanted-edge chart when at least this many detected edges pass the e-SFR quality rules in every
@@ -40,7 +40,7 @@ CHECK_SIDE_PX = 640
 # (docs/measurement.md "Through focus"); scaled by 1.8 the rows' error / sd has RMS 0.98-1.34 on the triplet
 # and 0.76-1.2 on random lenses (docs/measurement.md "Calibrating from slanted edges"). The fit's own error
 # scale (>= 0.5) absorbs what is left.
-SIGMA_SCALE = 1.8
+SIGMA_SCALE = 1.0
 # ... and never below this fraction of the scan step: a noise-free curve gives a bootstrap sd of 0, yet the
 # spline's peak on a sampled curve has a shape bias of up to ~0.1 step (esfr_focus benchmarks).
 SIGMA_FLOOR_STEP = 0.05
@@ -134,12 +134,13 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
         else:
             z = np.array([float(e["z_um"]) for e in use])
             v = np.array([vals[index[id(e)]] for e in use])
-            fp = through_focus_peak(z, v)
-            if not fp.ok:
-                status = "peak_at_edge" if "end" in fp.reason else "no_peak"
+            tk = analyse_track(z, v, q)
+            if not (tk.ok or tk.reason == TOLERANCE_UNREACHED):  # a peak without a measured width is a row
+                status = ("peak_at_edge" if "end of the scan" in tk.reason else
+                          tk.reason.split(": ", 1)[1] if tk.reason.startswith("defocus fit: ") else "no_peak")
             else:
-                zb, sz, pk = fp.z_um, fp.sigma_um, fp.peak
-                left, right = tolerance_half_widths(z, v, q, fp)
+                zb, sz, pk = tk.z_best_um, tk.z_sigma_um, tk.peak_mtf
+                left, right = tk.tol_left_um, tk.tol_right_um
                 if math.isfinite(left) and math.isfinite(right) and left > 0 and right > 0:
                     w = 0.5 * (left + right)
         out["track"].append(tr)
