@@ -217,18 +217,6 @@ class TrackFocus:
         return self.tol_left_um + self.tol_right_um
 
 
-def _model_mtf(z: np.ndarray, fit) -> np.ndarray:
-    """The fitted law's MTF(fs) at ``z``: ``sqrt(a D(x_q (z - z0) / w)^2 + b)`` from a CurveFit of MTF^2 made
-    with q = :data:`_FIT_Q` (its width ``w`` is where D falls to 1 - q)."""
-    from ..optics.defocus import disc_otf, disc_x_at_contrast
-
-    x = disc_x_at_contrast(1.0 - _FIT_Q) * (z - fit.z_centre_um) / fit.width_um
-    return np.sqrt(np.maximum(fit.peak * disc_otf(x) ** 2 + fit.floor, 0.0))
-
-
-_FIT_Q = 0.05
-
-
 def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0) -> FocusPeak:
     """Best focus of one MTF(fs) track: the through-focus law of defocus, moved to the sharpest position of a
     skewed curve by the evidence for skew.
@@ -240,13 +228,13 @@ def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0) -
       the scan samples the curve; a smoothing spline's maximum is not (module docstring). Its sd is the fit's
       residual-scaled covariance.
     * **Skew.** An aberrated curve is not symmetric: its sharpest position is the maximum of the smooth curve
-      through the samples (:func:`through_focus_peak`). Its smoothing bias is removed as the texture path
-      removes its local fit's: the same spline (same smoothing) through the *law's own values* at the same z
-      gives the bias on a symmetric curve, and the shift is the difference of the two maxima, so a curve the
-      law describes keeps the law's centre and a noise-free curve gets the spline's exact maximum. The shift
-      is weighted by the texture path's evidence for skew (``CurveFit.skew_weight``), and the variance mixes
-      both with their spread (:func:`fieldcal.measure.throughfocus._finish`); the spline's own sd is a
-      parametric bootstrap (``n_boot``) when the weight is not negligible.
+      through the samples (:func:`through_focus_peak`), which follows any shape. The best focus moves from the
+      law's centre towards it by the texture path's evidence for skew (``CurveFit.skew_weight``: the data's
+      cubic skew in ln MTF^2 over the core against the law's own, with prior odds 10 for a symmetric curve),
+      and the variance mixes both with their spread (as :func:`fieldcal.measure.throughfocus._finish`); the
+      spline's own sd is a parametric bootstrap (``n_boot``). A symmetric noisy curve so keeps the law's
+      unbiased centre (weight ~0.03), a clearly skewed one gets the spline's maximum (and, near a scan end,
+      its bias back: the price of following a shape no law describes).
 
     The curve need only fall on both sides of its highest sample (:data:`EDGE_CURVE_RULES`): the law's blur
     rate comes from the sampled flanks, so a peak near a scan end is still located, with the larger sd its
@@ -259,22 +247,20 @@ def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0) -
     z, v = z[keep], v[keep]
     if z.size < 5:
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, "fewer than 5 samples")
-    # fs only scales the fitted blur rate k: the width is read in µm from the fit at _FIT_Q, any fs > 0 does
-    fit = analyse_curve(z, v ** 2, "otf", 1.0, _FIT_Q, EDGE_CURVE_RULES)
+    # fs and q only scale the fitted blur rate and the width, which are not read here: any positive values
+    fit = analyse_curve(z, v ** 2, "otf", 1.0, 0.05, EDGE_CURVE_RULES)
     if fit.status != "ok":
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, f"defocus fit: {fit.status}")
-    if not (math.isfinite(fit.z_centre_um) and math.isfinite(fit.width_um) and fit.width_um > 0):
+    if not math.isfinite(fit.z_centre_um):
         return FocusPeak(fit.z_best_um, fit.z_sigma_um, math.nan, int(z.size), True, "ok")  # skewed peak alone
     zc, var_c, w = fit.z_centre_um, fit.z_centre_sd_um ** 2, fit.skew_weight
     w = 0.0 if not math.isfinite(w) else w
     sig = np.full(z.size, noise_from_differences(v)) if sig is None else sig[keep]
-    m = _model_mtf(z, fit)
-    k_v, k_m = int(np.argmax(v)), int(np.argmax(m))
     du, var_du = 0.0, 0.0
-    if 0 < k_m < z.size - 1:
-        ref = _spline_peak(smooth_curve(z, m, sig), z, k_m)
-        du = _spline_peak(smooth_curve(z, v, sig), z, k_v) - ref
-        if w > 1e-3 and n_boot > 1 and np.any(sig > 0):
+    k = int(np.argmax(v))
+    if w > 1e-3 and 0 < k < z.size - 1:
+        du = _spline_peak(smooth_curve(z, v, sig), z, k) - zc
+        if n_boot > 1 and np.any(sig > 0):
             rng = np.random.default_rng(seed)
             boot = []
             for _ in range(n_boot):
@@ -282,8 +268,6 @@ def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0) -
                 kb = int(np.clip(np.argmax(vb), 1, z.size - 2))
                 boot.append(_spline_peak(smooth_curve(z, vb, sig), z, kb))
             var_du = float(np.var(boot, ddof=1))
-    else:
-        w = 0.0
     zb = zc + w * du
     var = w * (var_du + ((1.0 - w) * du) ** 2) + (1.0 - w) * (var_c + (w * du) ** 2)
     return FocusPeak(float(zb), math.sqrt(var), math.nan, int(z.size), True, "ok")
