@@ -76,6 +76,8 @@ class FocusPeak:
     ok: bool
     reason: str
     curve: object = None  # callable z -> smoothed MTF(fs) (a scipy spline), None when not ok
+    # best-focus sd per unit of independent per-frame stage-position noise (throughfocus.CurveFit.stage_gain)
+    stage_gain: float = math.nan
 
 
 def _clean(z_um, values, sigma):
@@ -210,6 +212,7 @@ class TrackFocus:
     tol_right_um: float
     ok: bool
     reason: str
+    stage_gain: float = math.nan  # best-focus sd per unit of per-frame stage-position noise
 
     @property
     def depth_um(self) -> float:
@@ -252,7 +255,7 @@ def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0) -
     if fit.status != "ok":
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, f"defocus fit: {fit.status}")
     if not math.isfinite(fit.z_centre_um):
-        return FocusPeak(fit.z_best_um, fit.z_sigma_um, math.nan, int(z.size), True, "ok")  # skewed peak alone
+        return FocusPeak(fit.z_best_um, fit.z_sigma_um, math.nan, int(z.size), True, "ok")  # the local peak alone
     zc, var_c, w = fit.z_centre_um, fit.z_centre_sd_um ** 2, fit.skew_weight
     w = 0.0 if not math.isfinite(w) else w
     sig = np.full(z.size, noise_from_differences(v)) if sig is None else sig[keep]
@@ -270,7 +273,7 @@ def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0) -
             var_du = float(np.var(boot, ddof=1))
     zb = zc + w * du
     var = w * (var_du + ((1.0 - w) * du) ** 2) + (1.0 - w) * (var_c + (w * du) ** 2)
-    return FocusPeak(float(zb), math.sqrt(var), math.nan, int(z.size), True, "ok")
+    return FocusPeak(float(zb), math.sqrt(var), math.nan, int(z.size), True, "ok", stage_gain=fit.stage_gain)
 
 
 def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
@@ -279,9 +282,10 @@ def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
     pk = through_focus_peak(z_um, mtf_fs, sigma=sigma, n_boot=0)
     if pk.ok:  # the smooth curve's maximum value is the peak the tolerance is measured down from
         fp = defocus_peak(z_um, mtf_fs, sigma=sigma)
-        pk = FocusPeak(fp.z_um, fp.sigma_um, pk.peak, pk.n_used, fp.ok, fp.reason, pk.curve if fp.ok else None)
+        pk = FocusPeak(fp.z_um, fp.sigma_um, pk.peak, pk.n_used, fp.ok, fp.reason, pk.curve if fp.ok else None,
+                       fp.stage_gain)
     left, right = tolerance_half_widths(z_um, mtf_fs, q, pk)
     reason = pk.reason
     if pk.ok and not (math.isfinite(left) and math.isfinite(right)):
         reason = TOLERANCE_UNREACHED
-    return TrackFocus(pk.z_um, pk.sigma_um, pk.peak, left, right, pk.ok and reason == "ok", reason)
+    return TrackFocus(pk.z_um, pk.sigma_um, pk.peak, left, right, pk.ok and reason == "ok", reason, pk.stage_gain)
