@@ -3,10 +3,10 @@
 * :func:`link_tracks` — the same physical edge in successive frames (z order), matched by position and
   direction (Hungarian assignment, so two nearby edges never swap).
 * :func:`defocus_peak` — best focus of a track: the through-focus law of defocus fitted to MTF(fs)^2
-  (:mod:`.throughfocus`, model "otf": ``a D(pi fs k (z - z0))^2 + b``, the texture path's band-pass model)
-  with its evidence-weighted skew correction, so an aberrated (skewed) curve still gives its sharpest
-  position. Least squares on the law is unbiased however the scan samples the curve; a smoothing spline's
-  maximum is not (below).
+  (:mod:`.throughfocus`, model "otf": ``a D(pi fs k (z - z0))^2 + b``, the texture path's band-pass model),
+  moved towards the smoothing spline's maximum by the evidence for skew, so an aberrated (skewed) curve
+  still gives its sharpest position. Least squares on the law is unbiased however the scan samples the
+  curve; a smoothing spline's maximum is not (below).
 * :func:`through_focus_peak` — the maximum of a cubic smoothing spline through the samples (interpolating
   when the values are exact, ``s = n sigma^2`` for a known noise, else the noise from third differences). It
   is the smooth curve the measured tolerance is read from. Its maximum is *not* the best focus of a noisy
