@@ -219,7 +219,7 @@ def edge_window_px(mtf) -> int:
     ``(z_xx + z_yy) s^2 / 24`` (fit.tiles.tile_average_correction_um). A T/S pair averages two perpendicular
     edges, ``(z_uu + z_vv) L^2 / 48`` = the Laplacian's, and an edge 45 degrees from the radius sees half the
     Laplacian of a rotationally symmetric surface: both are a square of side ``L / sqrt 2``. (The region's
-    area, 18 x 32 px at 480x270, had given a 24 px tile: 8x the correction, +0.3 µm on the triplet.)
+    area, 18 x 32 px at 480x270, had given a 24 px tile: 7x the correction, +0.3 µm on the triplet.)
     """
     lengths = [float(q["rows"]) / math.cos(math.radians(float(q["slant_deg"])))
                for q in (e["quality"] for e in mtf.edges if _usable(e))
@@ -329,7 +329,7 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
     summary["window_px"] = table_tile_px
     cols = {k: np.asarray(v, dtype=np.float64) if k not in ("channel", "status") else np.asarray(v, dtype=str)
             for k, v in rows.items()}
-    # the stage-repeatability term of the band (fit.tiles.stage_sd_um) reads it from the table
+    # stage_gain is a column: the band's stage-repeatability term (fit.tiles.stage_sd_um) reads it
     table = TileTable(**cols, z_um=z, tile_px=table_tile_px, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
                       measure="esfr", image_size_px=tuple(int(v) for v in image_size_px),
                       pixel_pitch_um=float(pixel_pitch_um))
