@@ -107,6 +107,20 @@ def test_best_focus_is_unbiased_one_or_two_depths_of_field_from_a_scan_end():
         assert 0.7 <= np.sqrt(np.mean(np.square(zs))) <= 1.4
 
 
+def test_no_tolerance_from_a_best_focus_outside_it():
+    """A best focus (e.g. the law's) where the smoothed curve is already below (1 - q) of its maximum: no
+    half-width is measured from there (NaN), never a root search without a sign change."""
+    from dataclasses import replace
+
+    from fieldcal.measure.esfr_focus import tolerance_half_widths
+    z = np.arange(-40.0, 40.1, 2.5)
+    v = _mtf_fs(CURVES["symmetric"](z))
+    pk = through_focus_peak(z, v, sigma=0.0, n_boot=0)
+    assert all(np.isfinite(tolerance_half_widths(z, v, 0.05, pk)))
+    off = replace(pk, z_um=25.0)  # MTF there is far below 0.95 of the peak
+    assert all(np.isnan(tolerance_half_widths(z, v, 0.05, off)))
+
+
 def test_peak_at_the_end_of_the_scan_is_refused():
     z = np.arange(0.0, 50.0, 5.0)
     pk = through_focus_peak(z, np.linspace(0.2, 0.8, z.size))

@@ -175,7 +175,9 @@ def tolerance_half_widths(z_um, values, q: float, peak: FocusPeak) -> tuple[floa
     """(left, right) distances (µm) from ``peak.z_um`` to where the smoothed curve falls to
     ``(1 - q) * peak.peak`` (Brent's root in the first sample interval where the curve is below).
 
-    NaN on a side where the scan ends before the curve falls that far.
+    NaN on a side where the scan ends before the curve falls that far, and on both when the smoothed curve at
+    ``peak.z_um`` is already below the threshold (a best focus read by the defocus law where the smoothed
+    curve's own maximum lies more than the tolerance away: no half-width is measured from there).
     """
     from scipy.optimize import brentq
 
@@ -187,6 +189,8 @@ def tolerance_half_widths(z_um, values, q: float, peak: FocusPeak) -> tuple[floa
     spl = peak.curve
     thr = (1.0 - q) * peak.peak
     zp = peak.z_um
+    if not float(spl(zp)) >= thr:
+        return math.nan, math.nan
     out = []
     for direction in (-1, 1):
         side = z[z < zp][::-1] if direction < 0 else z[z > zp]
