@@ -71,6 +71,8 @@ def run_lens(spec, name: str, size, step_um: float, optics: str, effort: str, se
     row["rms_step"] = max(m["rms_um"] for m in metrics.values()) / step_um
     row["coverage_min"] = min(m["band_coverage"] for m in metrics.values())
     row["coverage_max"] = max(m["band_coverage"] for m in metrics.values())
+    row["coverages"] = [float(m["band_coverage"]) for m in metrics.values()]
+    row["bias_step"] = [float(m["bias_um"]) / step_um for m in metrics.values()]
     row.update(_ts_errors(prof, truth, w, h))
     q = 0.05
     gx, gy = np.meshgrid(np.linspace(0.05, 0.95, 15) * (w - 1), np.linspace(0.05, 0.95, 9) * (h - 1))
@@ -99,6 +101,15 @@ def table(rows) -> str:
         r = dict(r, cov=f"{r['coverage_min']:.2f}-{r['coverage_max']:.2f}", n=f"{r['plan_n']} / {r['n_opt']}")
         lines.append("| " + " | ".join(format(r[k], f) for _, k, f in COLS) + " |")
     return "\n".join(lines)
+
+
+def summary(rows, lo: float = 0.85, hi: float = 0.95) -> str:
+    """Band coverage over every lens x channel: mean, how many in [lo, hi], and the worst surface."""
+    cov = np.concatenate([r["coverages"] for r in rows])
+    return (f"{len(rows)} lenses x channels = {cov.size}: 90 % band coverage mean {cov.mean():.3f}, median "
+            f"{np.median(cov):.3f}, {int(np.sum((cov >= lo) & (cov <= hi)))} in [{lo}, {hi}], "
+            f"{int(np.sum(cov < lo))} below, {int(np.sum(cov > hi))} above; surface RMS / step worst "
+            f"{max(r['rms_step'] for r in rows):.3f}, mean {np.mean([r['rms_step'] for r in rows]):.3f}")
 
 
 def main(argv=None) -> int:
@@ -131,6 +142,7 @@ def main(argv=None) -> int:
     # the whole process: rendering the stack included (an upper bound for the calibration)
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     print(table(rows))
+    print(summary(rows))
     return 0
 
 

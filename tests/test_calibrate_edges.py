@@ -39,9 +39,21 @@ def test_slanted_edge_stack_is_calibrated_from_edges(edge_stack):
     w, h = prof.image["width_px"], prof.image["height_px"]
     metrics, _, _ = surface_metrics(prof, TruthProfile(spec, w, h, z_ref_um=prof.z_ref_um))
     for c, m in metrics.items():
-        # the target: surface RMS <= 0.1 scan step (the texture path gave 2.9-3.3 µm on this stack)
-        assert m["rms_um"] <= 0.1 * STEP_UM, (c, m)
-        assert abs(m["bias_um"]) <= 0.05 * STEP_UM, (c, m)
+        # the target is surface RMS <= 0.1 scan step (the texture path gave 2.9-3.3 µm on this stack, the
+        # smoothing spline's peak 0.075 step); the defocus law's peak gives ~0.02 step
+        assert m["rms_um"] <= 0.05 * STEP_UM, (c, m)
+        assert abs(m["bias_um"]) <= 0.03 * STEP_UM, (c, m)
+    # each row's sd is honest against the truth at its position (the law fit's covariance, unscaled)
+    t = prof.tiles
+    ok = np.asarray(t["status"]) == "ok"
+    ch = np.asarray(t["channel"])[ok]
+    x, y, zb, sd = (np.asarray(t[k], dtype=float)[ok] for k in ("x_px", "y_px", "z_best_um", "z_sigma_um"))
+    truth = TruthProfile(spec, w, h, z_ref_um=prof.z_ref_um)
+    z_err = np.concatenate([(zb[ch == c] - truth.best_focus_um(x[ch == c], y[ch == c], c)) / sd[ch == c]
+                            for c in prof.channels])
+    assert 0.6 <= float(np.sqrt(np.mean(z_err ** 2))) <= 1.5
+    # every row carries its stage-position sensitivity (the band's stage term reads it)
+    assert np.all(np.isfinite(np.asarray(t["stage_gain"], dtype=float)[ok]))
     # tangential/sagittal pairs reach the fit as z_tan/z_sag (the astigmatism rows)
     zt = np.array([np.nan if v is None else v for v in prof.tiles["z_tan_um"]], dtype=float)
     zs = np.array([np.nan if v is None else v for v in prof.tiles["z_sag_um"]], dtype=float)

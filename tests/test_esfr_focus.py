@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from fieldcal.measure.esfr_focus import analyse_track, link_tracks, through_focus_peak
+from fieldcal.measure.esfr_focus import analyse_track, defocus_peak, link_tracks, through_focus_peak
 from fieldcal.measure.esfr_synth import analytic_mtf, render_edge
 
 FS = 0.2  # cycles/px
@@ -78,6 +78,47 @@ def test_noise_uncertainty_describes_the_scatter(noise, known):
         pk = through_focus_peak(z, v, sigma=noise if known else None)
         zs.append((pk.z_um - z0) / pk.sigma_um)
     assert 0.5 <= np.sqrt(np.mean(np.square(zs))) <= 2.5
+
+
+def test_best_focus_is_unbiased_one_or_two_depths_of_field_from_a_scan_end():
+    """The minimal reproduction of the per-channel bias on random lenses 0 and 2 (docs/measurement.md "Through
+    focus"): broad F/3.7 curves (fs = 0.25 cy/px, 13.3 µm pixels: δ(0.05) ~ 40 µm) on a 20 µm scan that ends
+    56 µm past the peak (or 120 µm after the start), MTF noise 0.01. A smoothing spline's maximum is pulled by
+    the long flank's slope towards the nearer scan end; the fitted defocus law is not, and its sd is honest."""
+    from fieldcal.optics.defocus import disc_otf
+
+    n_f, fs_mm = 3.726, 0.25 / 13.333 * 1000.0
+    z = np.arange(-193.9, 70.0, 20.0)
+    rng = np.random.default_rng(1)
+    for z0, towards in ((0.0, +1.0), (-120.0, -1.0)):
+        spline, law, zs = [], [], []
+        for _ in range(30):
+            for ph in np.linspace(0.0, 20.0, 5, endpoint=False):
+                t = z0 + ph
+                v = 0.86 * np.abs(disc_otf(np.pi * fs_mm * 1e-3 * (z - t) / n_f)) + rng.normal(0.0, 0.01, z.size)
+                spline.append(through_focus_peak(z, v, n_boot=0).z_um - t)
+                fp = defocus_peak(z, v)
+                assert fp.ok, fp.reason
+                law.append(fp.z_um - t)
+                zs.append((fp.z_um - t) / fp.sigma_um)
+        assert towards * np.mean(spline) > 1.0          # the cause: > 0.05 step towards the nearer end
+        assert abs(np.mean(law)) < 0.5                  # the law: < 0.025 step (its standard error ~0.15 µm)
+        assert np.std(law) < 0.75 * np.std(spline)
+        assert 0.7 <= np.sqrt(np.mean(np.square(zs))) <= 1.4
+
+
+def test_no_tolerance_from_a_best_focus_outside_it():
+    """A best focus (e.g. the law's) where the smoothed curve is already below (1 - q) of its maximum: no
+    half-width is measured from there (NaN), never a root search without a sign change."""
+    from dataclasses import replace
+
+    from fieldcal.measure.esfr_focus import tolerance_half_widths
+    z = np.arange(-40.0, 40.1, 2.5)
+    v = _mtf_fs(CURVES["symmetric"](z))
+    pk = through_focus_peak(z, v, sigma=0.0, n_boot=0)
+    assert all(np.isfinite(tolerance_half_widths(z, v, 0.05, pk)))
+    off = replace(pk, z_um=25.0)  # MTF there is far below 0.95 of the peak
+    assert all(np.isnan(tolerance_half_widths(z, v, 0.05, off)))
 
 
 def test_peak_at_the_end_of_the_scan_is_refused():

@@ -5,7 +5,7 @@ Calibration on a slanted-edge chart (docs/measurement.md "Calibrating from slant
 * :func:`chart_kind` looks at one frame (the middle of the scan) and says whether it is a slanted-edge chart:
   enough edges that pass the e-SFR quality rules in every channel.
 * :func:`edge_table` takes the e-SFR of every edge through the stack (:func:`fieldcal.measure.measure_mtf`),
-  reads each track's MTF at fs, finds its best focus (:func:`.esfr_focus.through_focus_peak`) and measured
+  reads each track's MTF at fs, finds its best focus (:func:`.esfr_focus.defocus_peak`) and measured
   half-widths, and writes one row per track and channel in the columns of a texture tile table.
 
 Tangential and sagittal. An edge measures the MTF across it, so a tangential edge gives the tangential focus
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from .esfr_focus import through_focus_peak, tolerance_half_widths
+from .esfr_focus import TOLERANCE_UNREACHED, analyse_track
 from .tiles import TileTable
 
 # A frame is a slanted-edge chart when at least this many detected edges pass the e-SFR quality rules in every
@@ -35,14 +35,12 @@ from .tiles import TileTable
 MIN_CHART_EDGES = 24
 # The chart test looks at no more than this many pixels on a side (a crop, then the whole frame shrunk).
 CHECK_SIDE_PX = 640
-# The bootstrap sd of a track's peak sees the noise of its MTF(fs) samples only. Against the simulator's
-# truth it was measured 1.2-2.2x too small on smooth closed-form curves and ~1.8x on the triplet stack
-# (docs/measurement.md "Through focus"); scaled by 1.8 the rows' error / sd has RMS 0.98-1.34 on the triplet
-# and 0.76-1.2 on random lenses (docs/measurement.md "Calibrating from slanted edges"). The fit's own error
-# scale (>= 0.5) absorbs what is left.
-SIGMA_SCALE = 1.8
-# ... and never below this fraction of the scan step: a noise-free curve gives a bootstrap sd of 0, yet the
-# spline's peak on a sampled curve has a shape bias of up to ~0.1 step (esfr_focus benchmarks).
+# A track's sd is the defocus-law fit's residual-scaled covariance (esfr_focus.defocus_peak): the MTF(fs) noise
+# as the track's own residuals show it. Against the simulator's truth its error / sd has RMS 0.9-1.0 per channel
+# (random lens 0, 480x270, 20 µm steps; docs/measurement.md "Calibrating from slanted edges"), so it enters the
+# fit unscaled; the fit's error scale and the held-out-tile check learn what is left. The floor below keeps a
+# noise-free curve from weighing like a perfect one: a sampled curve's peak carries a shape error of a few
+# hundredths of a step (esfr_focus benchmarks)
 SIGMA_FLOOR_STEP = 0.05
 # Besides "ok", samples flagged only for a blur wider than the region still carry MTF(fs): they are the
 # far-defocused ends of a track, which only the curve's tails see.
@@ -114,7 +112,8 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
     the frame nearest ``z_ref_um``.
 
     Returns columns (dict of arrays): track, channel, x_px, y_px, orientation, z_best_um, z_sigma_um, peak,
-    width_um, status, cos2phi (cos 2 phi of the median angle phi between the edge normal and the radius).
+    width_um, status, cos2phi (cos 2 phi of the median angle phi between the edge normal and the radius),
+    stage_gain (best-focus sd per unit of per-frame stage-position noise).
     """
     groups: dict[tuple[int, str], list[dict]] = {}
     for e in mtf.edges:
@@ -123,23 +122,24 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
     vals = mtf.mtf_at(fs_cy_per_px)
     index = {id(e): i for i, e in enumerate(mtf.edges)}
     out = {k: [] for k in ("track", "channel", "x_px", "y_px", "orientation", "z_best_um", "z_sigma_um", "peak",
-                           "width_um", "status", "cos2phi")}
+                           "width_um", "status", "cos2phi", "stage_gain")}
     for (tr, ch), recs in groups.items():
         use = [e for e in recs if _usable(e) and np.isfinite(vals[index[id(e)]])]
         near = min(recs, key=lambda e: abs(float(e["z_um"]) - z_ref_um))
         orient = [e["orientation"] for e in recs if e["quality"].get("orientation_clear")]
-        status, zb, sz, pk, w = "ok", math.nan, math.nan, math.nan, math.nan
+        status, zb, sz, pk, w, gain = "ok", math.nan, math.nan, math.nan, math.nan, math.nan
         if len(use) < min_frames:
             status = "few_frames"
         else:
             z = np.array([float(e["z_um"]) for e in use])
             v = np.array([vals[index[id(e)]] for e in use])
-            fp = through_focus_peak(z, v)
-            if not fp.ok:
-                status = "peak_at_edge" if "end" in fp.reason else "no_peak"
+            tk = analyse_track(z, v, q)
+            if not (tk.ok or tk.reason == TOLERANCE_UNREACHED):  # a peak without a measured width is a row
+                status = ("peak_at_edge" if "end of the scan" in tk.reason else
+                          tk.reason.split(": ", 1)[1] if tk.reason.startswith("defocus fit: ") else "no_peak")
             else:
-                zb, sz, pk = fp.z_um, fp.sigma_um, fp.peak
-                left, right = tolerance_half_widths(z, v, q, fp)
+                zb, sz, pk, gain = tk.z_best_um, tk.z_sigma_um, tk.peak_mtf, tk.stage_gain
+                left, right = tk.tol_left_um, tk.tol_right_um
                 if math.isfinite(left) and math.isfinite(right) and left > 0 and right > 0:
                     w = 0.5 * (left + right)
         out["track"].append(tr)
@@ -153,6 +153,7 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
         out["peak"].append(pk)
         out["width_um"].append(w)
         out["status"].append(status)
+        out["stage_gain"].append(gain)
         phi = [float(e["quality"]["radial_angle_deg"]) for e in recs
                if e["quality"].get("radial_angle_deg") is not None and math.isfinite(e["quality"]["radial_angle_deg"])]
         out["cos2phi"].append(math.cos(math.radians(2.0 * float(np.median(phi)))) if phi else math.nan)
@@ -208,6 +209,24 @@ def _local_surface(x, y, z, image_size_px, degree: int = 4):
     return lambda xp, yp: float(design(xp, yp) @ coef)
 
 
+def edge_window_px(mtf) -> int:
+    """The side of the square tile whose window correction equals an edge row's (``TileTable.tile_px``).
+
+    An edge's e-SFR bins every scan line of its region alike, so its MTF(fs) through focus is the mean of the
+    local curves *along the edge*: for a symmetric peak its maximum is the mean best focus along the edge,
+    ``z(p) + z_ss L^2 / 24`` (L the edge's length in the rows used, ``rows / cos(slant)``; z_ss the curvature
+    along it) — across the edge only the blur's own width is seen. A square tile of side s is off by
+    ``(z_xx + z_yy) s^2 / 24`` (fit.tiles.tile_average_correction_um). A T/S pair averages two perpendicular
+    edges, ``(z_uu + z_vv) L^2 / 48`` = the Laplacian's, and an edge 45 degrees from the radius sees half the
+    Laplacian of a rotationally symmetric surface: both are a square of side ``L / sqrt 2``. (The region's
+    area, 18 x 32 px at 480x270, had given a 24 px tile: 7x the correction, +0.3 µm on the triplet.)
+    """
+    lengths = [float(q["rows"]) / math.cos(math.radians(float(q["slant_deg"])))
+               for q in (e["quality"] for e in mtf.edges if _usable(e))
+               if q.get("rows") and q.get("slant_deg") is not None and math.isfinite(float(q["slant_deg"]))]
+    return int(max(1, round(float(np.median(lengths)) / math.sqrt(2.0)))) if lengths else 1
+
+
 def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_um, image_size_px,
                z_ref_um: float, channels: tuple[str, ...], pair_px: float | None = None,
                min_pairs_per_channel: int = 12) -> tuple[TileTable, dict]:
@@ -227,8 +246,8 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
     Returns
     -------
     (TileTable, dict)
-        ``measure = "esfr"``; ``tile_px`` is the typical size of an edge region (the window a row averages
-        over); the dict records counts, the sd scale and the pairing distance.
+        ``measure = "esfr"``; ``tile_px`` the square window equivalent to an edge row's (:func:`edge_window_px`);
+        the dict records counts, the sd floor, the window and the pairing distance.
     """
     if not (math.isfinite(pixel_pitch_um) and pixel_pitch_um > 0):
         raise ParameterError(f"pixel pitch {pixel_pitch_um!r} µm", field="pixel_pitch_um",
@@ -237,7 +256,7 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
     z = np.sort(np.asarray(z_um, dtype=np.float64))
     step = float(np.median(np.diff(z))) if z.size > 1 else 1.0
     tf = track_foci(mtf, fs_px, q, z_ref_um)
-    sig = np.maximum(SIGMA_SCALE * np.nan_to_num(tf["z_sigma_um"], nan=0.0), SIGMA_FLOOR_STEP * step)
+    sig = np.maximum(np.nan_to_num(tf["z_sigma_um"], nan=0.0), SIGMA_FLOOR_STEP * step)
     ok = tf["status"] == "ok"
     if pair_px is None:
         xy = np.column_stack([tf["x_px"], tf["y_px"]])[ok & (tf["channel"] == tf["channel"][0])] \
@@ -249,10 +268,10 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
         else:
             pair_px = 0.0
     rows = {k: [] for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um", "width_um", "peak", "status",
-                            "z_tan_um", "z_sag_um")}
+                            "z_tan_um", "z_sag_um", "stage_gain")}
 
-    def add(ch, x, y, zb, s, w, pk, st, zt=math.nan, zs=math.nan):
-        for k, v in zip(rows, (ch, x, y, zb, s, w, pk, st, zt, zs)):
+    def add(ch, x, y, zb, s, w, pk, st, zt=math.nan, zs=math.nan, gain=math.nan):
+        for k, v in zip(rows, (ch, x, y, zb, s, w, pk, st, zt, zs, gain)):
             rows[k].append(v)
 
     summary = {"tracks": {}, "pairs": {}, "unpaired_kept": {}, "status": {}, "ts_transfer": {}}
@@ -283,7 +302,9 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
             add(ch, xm, ym, zb, sb,
                 # the tolerance of the pair is the narrower one: the plan must hold both orientations
                 float(np.nanmin([wi, wj])) if np.isfinite([wi, wj]).any() else math.nan,
-                0.5 * (tf["peak"][i] + tf["peak"][j]), "ok", zt, zs)
+                0.5 * (tf["peak"][i] + tf["peak"][j]), "ok", zt, zs,
+                # both tracks saw the same frames: their stage errors add (an upper bound on the mean's)
+                0.5 * (tf["stage_gain"][i] + tf["stage_gain"][j]))
         keep_lone = len(pairs) < min_pairs_per_channel
         used = {int(t[a]) for a, _ in pairs} | {int(s[b]) for _, b in pairs}
         n_lone = 0
@@ -295,23 +316,21 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
                 st = "unpaired"
             n_lone += st == "ok"
             add(ch, tf["x_px"][i], tf["y_px"][i], tf["z_best_um"][i] if st == "ok" else math.nan,
-                sig[i] if st == "ok" else math.nan, tf["width_um"][i], tf["peak"][i], st)
+                sig[i] if st == "ok" else math.nan, tf["width_um"][i], tf["peak"][i], st,
+                gain=tf["stage_gain"][i] if st == "ok" else math.nan)
         summary["tracks"][ch] = int(m.sum())
         summary["pairs"][ch] = len(pairs)
         summary["unpaired_kept"][ch] = n_lone
     st, n = np.unique(tf["status"], return_counts=True)
     summary["status"] = {str(a): int(b) for a, b in zip(st, n)}
-    summary.update({"fs_cy_per_px": fs_px, "sigma_scale": SIGMA_SCALE, "sigma_floor_um": SIGMA_FLOOR_STEP * step,
+    summary.update({"fs_cy_per_px": fs_px, "sigma_floor_um": SIGMA_FLOOR_STEP * step,
                     "pair_px": float(pair_px)})
-    roi = [e["quality"].get("roi") for e in mtf.edges if e["quality"].get("roi")]
-    if roi:  # the window a row averages over: the geometric mean of the edge regions' sides
-        r = np.asarray(roi, dtype=np.float64)
-        tile_px = int(max(1, round(float(np.median(np.sqrt((r[:, 1] - r[:, 0]) * (r[:, 3] - r[:, 2])))))))
-    else:
-        tile_px = 1
+    table_tile_px = edge_window_px(mtf)
+    summary["window_px"] = table_tile_px
     cols = {k: np.asarray(v, dtype=np.float64) if k not in ("channel", "status") else np.asarray(v, dtype=str)
             for k, v in rows.items()}
-    table = TileTable(**cols, z_um=z, tile_px=tile_px, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
+    # stage_gain is a column: the band's stage-repeatability term (fit.tiles.stage_sd_um) reads it
+    table = TileTable(**cols, z_um=z, tile_px=table_tile_px, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
                       measure="esfr", image_size_px=tuple(int(v) for v in image_size_px),
                       pixel_pitch_um=float(pixel_pitch_um))
     return table, summary

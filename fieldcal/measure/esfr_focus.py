@@ -2,10 +2,17 @@
 
 * :func:`link_tracks` — the same physical edge in successive frames (z order), matched by position and
   direction (Hungarian assignment, so two nearby edges never swap).
-* :func:`through_focus_peak` — best focus as the maximum of MTF(fs) over z, to a fraction of the scan step:
-  the maximum of a cubic smoothing spline through the samples (interpolating when the values are exact,
-  ``s = n sigma^2`` for a known noise, else generalised cross-validation). A spline follows a skewed peak, so
-  no symmetry is assumed. Its uncertainty is the delta-method sigma of a local quadratic's vertex.
+* :func:`defocus_peak` — best focus of a track: the through-focus law of defocus fitted to MTF(fs)^2
+  (:mod:`.throughfocus`, model "otf": ``a D(pi fs k (z - z0))^2 + b``, the texture path's band-pass model),
+  moved towards the smoothing spline's maximum by the evidence for skew, so an aberrated (skewed) curve
+  still gives its sharpest position. Least squares on the law is unbiased however the scan samples the
+  curve; a smoothing spline's maximum is not (below).
+* :func:`through_focus_peak` — the maximum of a cubic smoothing spline through the samples (interpolating
+  when the values are exact, ``s = n sigma^2`` for a known noise, else the noise from third differences). It
+  is the smooth curve the measured tolerance is read from. Its maximum is *not* the best focus of a noisy
+  curve: the roughness penalty lets the long sampled flank's slope run into the peak, moving the maximum
+  towards the nearer scan end (+-2-3 µm, 0.1-0.15 step, on F/3.7 curves 1-2 depths of field from an end at
+  MTF noise 0.01; docs/measurement.md "Through focus").
 * :func:`tolerance_half_widths` — the measured depth of field: the distances from best focus to where the
   same smooth curve crosses ``(1 - q) * peak`` on each side (Brent's root in the bracketing sample interval);
   each side separately, so an asymmetric curve keeps its asymmetry.
@@ -19,6 +26,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
+from .throughfocus import CurveRules
+
+# The texture path's curve rules, except the flank test: a texture tile's flanks must fall to half height
+# (its peak model has no fixed shape), while an MTF(fs) track follows the defocus law, whose blur rate the
+# long flank measures; a curve whose highest sample is interior is located, and its sd says how well.
+EDGE_CURVE_RULES = CurveRules(edge_flank=1.0)
+TOLERANCE_UNREACHED = "the scan ends before MTF(fs) falls by q on one side"
 
 
 def link_tracks(frame: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, angle_deg: np.ndarray, z_um: np.ndarray,
@@ -62,6 +76,8 @@ class FocusPeak:
     ok: bool
     reason: str
     curve: object = None  # callable z -> smoothed MTF(fs) (a scipy spline), None when not ok
+    # best-focus sd per unit of independent per-frame stage-position noise (throughfocus.CurveFit.stage_gain)
+    stage_gain: float = math.nan
 
 
 def _clean(z_um, values, sigma):
@@ -159,7 +175,9 @@ def tolerance_half_widths(z_um, values, q: float, peak: FocusPeak) -> tuple[floa
     """(left, right) distances (µm) from ``peak.z_um`` to where the smoothed curve falls to
     ``(1 - q) * peak.peak`` (Brent's root in the first sample interval where the curve is below).
 
-    NaN on a side where the scan ends before the curve falls that far.
+    NaN on a side where the scan ends before the curve falls that far, and on both when the smoothed curve at
+    ``peak.z_um`` is already below the threshold (a best focus read by the defocus law where the smoothed
+    curve's own maximum lies more than the tolerance away: no half-width is measured from there).
     """
     from scipy.optimize import brentq
 
@@ -171,6 +189,8 @@ def tolerance_half_widths(z_um, values, q: float, peak: FocusPeak) -> tuple[floa
     spl = peak.curve
     thr = (1.0 - q) * peak.peak
     zp = peak.z_um
+    if not float(spl(zp)) >= thr:
+        return math.nan, math.nan
     out = []
     for direction in (-1, 1):
         side = z[z < zp][::-1] if direction < 0 else z[z > zp]
@@ -196,6 +216,7 @@ class TrackFocus:
     tol_right_um: float
     ok: bool
     reason: str
+    stage_gain: float = math.nan  # best-focus sd per unit of per-frame stage-position noise
 
     @property
     def depth_um(self) -> float:
@@ -203,11 +224,72 @@ class TrackFocus:
         return self.tol_left_um + self.tol_right_um
 
 
+def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0) -> FocusPeak:
+    """Best focus of one MTF(fs) track: the through-focus law of defocus, moved to the sharpest position of a
+    skewed curve by the evidence for skew.
+
+    * **The law.** MTF(fs, z) = M0(fs) |D(pi fs k (z - z0))| for a disc of blur ``k |z - z0|`` (the static MTF
+      M0 — pixel, diffraction, residual aberrations — only scales it), so MTF^2 is the texture path's band-pass
+      model ``a D^2 + b`` (:func:`fieldcal.measure.throughfocus.analyse_curve`, ``b`` absorbs the noise's
+      upward bias of a magnitude), fitted over the whole peak. Least squares on the law is unbiased however
+      the scan samples the curve; a smoothing spline's maximum is not (module docstring). Its sd is the fit's
+      residual-scaled covariance.
+    * **Skew.** An aberrated curve is not symmetric: its sharpest position is the maximum of the smooth curve
+      through the samples (:func:`through_focus_peak`), which follows any shape. The best focus moves from the
+      law's centre towards it by the texture path's evidence for skew (``CurveFit.skew_weight``: the data's
+      cubic skew in ln MTF^2 over the core against the law's own, with prior odds 10 for a symmetric curve),
+      and the variance mixes both with their spread (as :func:`fieldcal.measure.throughfocus._finish`); the
+      spline's own sd is a parametric bootstrap (``n_boot``). A symmetric noisy curve so keeps the law's
+      unbiased centre (weight ~0.03), a clearly skewed one gets the spline's maximum (and, near a scan end,
+      its bias back: the price of following a shape no law describes).
+
+    The curve need only fall on both sides of its highest sample (:data:`EDGE_CURVE_RULES`): the law's blur
+    rate comes from the sampled flanks, so a peak near a scan end is still located, with the larger sd its
+    short side gives. ``sigma``: the noise of the values (None: from the third differences).
+    """
+    from .throughfocus import analyse_curve
+
+    z, v, sig = _clean(z_um, mtf_fs, sigma)
+    keep = np.concatenate([[True], np.diff(z) > 0])  # analyse_curve wants strictly increasing z
+    z, v = z[keep], v[keep]
+    if z.size < 5:
+        return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, "fewer than 5 samples")
+    # fs and q only scale the fitted blur rate and the width, which are not read here: any positive values
+    fit = analyse_curve(z, v ** 2, "otf", 1.0, 0.05, EDGE_CURVE_RULES)
+    if fit.status != "ok":
+        return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, f"defocus fit: {fit.status}")
+    if not math.isfinite(fit.z_centre_um):
+        return FocusPeak(fit.z_best_um, fit.z_sigma_um, math.nan, int(z.size), True, "ok")  # the local peak alone
+    zc, var_c, w = fit.z_centre_um, fit.z_centre_sd_um ** 2, fit.skew_weight
+    w = 0.0 if not math.isfinite(w) else w
+    sig = np.full(z.size, noise_from_differences(v)) if sig is None else sig[keep]
+    du, var_du = 0.0, 0.0
+    k = int(np.argmax(v))
+    if w > 1e-3 and 0 < k < z.size - 1:
+        du = _spline_peak(smooth_curve(z, v, sig), z, k) - zc
+        if n_boot > 1 and np.any(sig > 0):
+            rng = np.random.default_rng(seed)
+            boot = []
+            for _ in range(n_boot):
+                vb = v + rng.normal(0.0, 1.0, z.size) * sig
+                kb = int(np.clip(np.argmax(vb), 1, z.size - 2))
+                boot.append(_spline_peak(smooth_curve(z, vb, sig), z, kb))
+            var_du = float(np.var(boot, ddof=1))
+    zb = zc + w * du
+    var = w * (var_du + ((1.0 - w) * du) ** 2) + (1.0 - w) * (var_c + (w * du) ** 2)
+    return FocusPeak(float(zb), math.sqrt(var), math.nan, int(z.size), True, "ok", stage_gain=fit.stage_gain)
+
+
 def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
-    """Best focus (sub-step peak of MTF(fs)) and the tolerance half-widths of one edge track."""
-    pk = through_focus_peak(z_um, mtf_fs, sigma=sigma)
+    """Best focus (:func:`defocus_peak`, sub-step) and the tolerance half-widths of one edge track, measured
+    from it on the smoothed curve (:func:`tolerance_half_widths`)."""
+    pk = through_focus_peak(z_um, mtf_fs, sigma=sigma, n_boot=0)
+    if pk.ok:  # the smooth curve's maximum value is the peak the tolerance is measured down from
+        fp = defocus_peak(z_um, mtf_fs, sigma=sigma)
+        pk = FocusPeak(fp.z_um, fp.sigma_um, pk.peak, pk.n_used, fp.ok, fp.reason, pk.curve if fp.ok else None,
+                       fp.stage_gain)
     left, right = tolerance_half_widths(z_um, mtf_fs, q, pk)
     reason = pk.reason
     if pk.ok and not (math.isfinite(left) and math.isfinite(right)):
-        reason = "the scan ends before MTF(fs) falls by q on one side"
-    return TrackFocus(pk.z_um, pk.sigma_um, pk.peak, left, right, pk.ok and reason == "ok", reason)
+        reason = TOLERANCE_UNREACHED
+    return TrackFocus(pk.z_um, pk.sigma_um, pk.peak, left, right, pk.ok and reason == "ok", reason, pk.stage_gain)
