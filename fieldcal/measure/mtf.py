@@ -19,7 +19,7 @@ import numpy as np
 from ..errors import FieldcalError, ParameterError, SpecError
 from ..formats import documents
 from .bayer import extract_plane, plane_layouts
-from .esfr import esfr_roi
+from .esfr import esfr_regions
 from .esfr_detect import find_edges
 from .esfr_focus import link_tracks
 
@@ -93,7 +93,11 @@ class MtfResult:
     # ---------------------------------------------------------------------------------------- queries
     def mtf_at(self, fs_cy_per_px: float) -> np.ndarray:
         """MTF of every edge record at one frequency (linear interpolation on the grid; None -> NaN)."""
-        m = np.array([[np.nan if v is None else v for v in e["mtf"]] for e in self.edges], dtype=np.float64)
+        rows = [e["mtf"] for e in self.edges]
+        if rows and all(isinstance(r, np.ndarray) for r in rows):  # in memory (measure_mtf): no None to map
+            m = np.stack(rows).astype(np.float64, copy=False)
+        else:
+            m = np.array([[np.nan if v is None else v for v in r] for r in rows], dtype=np.float64)
         if m.size == 0:
             return np.zeros(0)
         return np.array([np.interp(fs_cy_per_px, self.frequencies_cy_per_px, row) for row in m])
@@ -144,10 +148,12 @@ def measure_frame(frame: np.ndarray, *, channels=("Y",), cfa: str | None = None,
     if cfa is not None:  # a plane pixel is 2 sensor pixels: 8 bins per plane pixel keep 1/4-sensor-pixel bins
         esfr.setdefault("oversample", 8)
     records, detections = [], []
-    for ci, cand in enumerate(cands):
+    # every edge of the frame in one batched e-SFR pass
+    results = esfr_regions([planes[c.roi[0]:c.roi[1], c.roi[2]:c.roi[3], :] for c in cands],
+                           vertical=[c.vertical for c in cands], line_init=[c.line_init for c in cands],
+                           half_width_px=[c.half_width_px for c in cands], **esfr) if cands else []
+    for ci, (cand, res) in enumerate(zip(cands, results)):
         y0, y1, x0, x1 = cand.roi
-        res = esfr_roi(planes[y0:y1, x0:x1, :], vertical=cand.vertical, line_init=cand.line_init,
-                       half_width_px=cand.half_width_px, **esfr)
         det = None
         for k, (ch, label, stride, ox, oy) in enumerate(info):
             q = res.quality[k]
