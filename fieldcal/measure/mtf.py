@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -276,9 +278,14 @@ def measure_mtf(source, *, channels=None, cfa: str | None = None, centre_px=None
     det_frame: list[int] = []
     det_z: list[float] = []
 
+    def measure(i, z, frame):
+        return measure_frame(frame, channels=channels, cfa=cfa, centre_px=centre_px, grid=grid, frame_index=i,
+                             z_um=z, detect=detect, esfr=esfr)
+
     def run(i, z, frame):
-        recs, d = measure_frame(frame, channels=channels, cfa=cfa, centre_px=centre_px, grid=grid, frame_index=i,
-                                z_um=z, detect=detect, esfr=esfr)
+        add(i, z, *measure(i, z, frame))
+
+    def add(i, z, recs, d):
         base = len(dets)
         for r in recs:
             r["_det"] = base + r["edge"]
@@ -292,10 +299,24 @@ def measure_mtf(source, *, channels=None, cfa: str | None = None, centre_px=None
             raise FieldcalError("the stack has no frames", path=getattr(stack, "path", None), field="frames",
                                 fix="capture or simulate frames first")
         order = [int(k) for k in stack.order_by_z]
-        it = order if quiet else progress(order, total=len(order), desc="e-SFR", unit="frame")
-        for k in it:
+
+        def read_and_measure(k):
             z = float(stack.frames[k].z_um) if hasattr(stack, "frames") else float(stack.z_um[k])
-            run(k, z, stack.read_normalized(k))
+            return (k, z) + measure(k, z, stack.read_normalized(k))
+
+        # frames are independent: two workers (decoding, NumPy's array passes and OpenCV release the GIL), each
+        # holding one frame; results are added in z order, so tracks and records are as from one thread
+        workers = max(1, min(len(order), os.cpu_count() or 1, 2))
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fieldcal-esfr") as pool:
+            futures = [pool.submit(read_and_measure, k) for k in order]
+            it = futures if quiet else progress(futures, total=len(order), desc="e-SFR", unit="frame")
+            try:
+                for fut in it:
+                    add(*fut.result())
+            except BaseException:  # a bad frame (or Ctrl-C): do not measure the rest before saying so
+                for fut in futures:
+                    fut.cancel()
+                raise
         if centre_px is None:
             h, w = stack.shape
             prov["centre_px"] = [(w - 1) / 2.0, (h - 1) / 2.0]
