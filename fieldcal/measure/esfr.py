@@ -18,7 +18,10 @@ Frequencies are in cycles per pixel *along the edge normal*. The result includes
 along that normal, ``sinc(f cos θ) · sinc(f sin θ)`` for a square pixel and an edge normal at θ to the x axis.
 
 The core works on a near-vertical edge (each row crosses the edge once); callers transpose near-horizontal
-regions (:func:`esfr_roi` does this when ``vertical=False``).
+regions (:func:`esfr_roi` does this when ``vertical=False``). It runs on a batch of regions at once
+(:func:`esfr_regions`: every edge of a frame in one pass of array operations, regions zero-padded and masked);
+:func:`esfr_roi` and :func:`esfr_vertical` are a batch of one, so a region's result does not depend on its
+batch.
 """
 
 from __future__ import annotations
