@@ -130,6 +130,17 @@ def _plane_stack(frame: np.ndarray, channels: tuple[str, ...], cfa: str | None):
     return np.stack([p[:h, :w] for p in planes], axis=2), info
 
 
+def _plane_mean(planes: np.ndarray) -> np.ndarray:
+    """``planes.mean(axis=2)`` to the bit (float32 sums in order, then one division) at a tenth of its cost: the
+    reduction over a 3-wide axis is NumPy's slow case (~25 ms per 1080p frame)."""
+    if planes.dtype != np.float32 or not 1 < planes.shape[2] < 8:  # 8 or more: NumPy sums pairwise
+        return planes.mean(axis=2)
+    s = planes[:, :, 0] + planes[:, :, 1]
+    for k in range(2, planes.shape[2]):
+        s += planes[:, :, k]
+    return np.true_divide(s, np.intp(planes.shape[2]), out=s, casting="unsafe")
+
+
 def measure_frame(frame: np.ndarray, *, channels=("Y",), cfa: str | None = None, centre_px=None,
                   grid: np.ndarray | None = None, frame_index: int = 0, z_um: float | None = None,
                   detect: dict | None = None, esfr: dict | None = None) -> tuple[list[dict], list[tuple]]:
@@ -145,7 +156,7 @@ def measure_frame(frame: np.ndarray, *, channels=("Y",), cfa: str | None = None,
     H, W = frame.shape[:2]
     if centre_px is None:
         centre_px = ((W - 1) / 2.0, (H - 1) / 2.0)
-    cands = find_edges(planes.mean(axis=2), **(detect or {}))
+    cands = find_edges(_plane_mean(planes), **(detect or {}))
     esfr = dict(esfr or {})
     if cfa is not None:  # a plane pixel is 2 sensor pixels: 8 bins per plane pixel keep 1/4-sensor-pixel bins
         esfr.setdefault("oversample", 8)
