@@ -25,6 +25,7 @@ import json
 import math
 import os
 import time
+from pathlib import Path
 
 from _common import REPO, md_table, write_docs_section
 
@@ -157,9 +158,10 @@ def calibration(frames: int = 41, size: tuple[int, int] = (1920, 1080)) -> dict:
         wall = time.perf_counter() - t0
         if status != 0:
             raise RuntimeError(f"calibrate exited with status {status}")
-        prof = json.loads(open(out).read())
+        prof = json.loads(Path(out).read_text())
     return {"frames": frames, "size": f"{w}x{h}", "fs_cyc_per_mm": fs, "cpu_s": ru.ru_utime + ru.ru_stime,
-            "wall_s": wall, "peak_rss_mb": ru.ru_maxrss / 1024.0, "load_before": load0, "load_after": os.getloadavg()[0],
+            "wall_s": wall, "peak_rss_mb": ru.ru_maxrss / 1024.0, "load_before": load0,
+            "load_after": os.getloadavg()[0],
             "timing_s": prof.get("diagnostics", {}).get("timing_s"), "measurement": prof["calibration"]["measurement"],
             "commands": [f"python -m fieldcal {' '.join(sim).replace(tmp, '/tmp')}",
                          f"python -m fieldcal {' '.join(cal).replace(tmp, '/tmp')}"]}
