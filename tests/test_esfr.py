@@ -71,6 +71,25 @@ def test_snr50_accuracy(slant_deg):
     assert np.sqrt(np.mean(np.square(rels))) <= 0.02, rels
 
 
+def test_a_batch_measures_each_region_as_alone():
+    """esfr_regions pads regions of different sizes into one batch: no region may see its neighbours' padding,
+    rows or columns (each equals its own esfr_roi call), and the pixel-exact closed form still holds."""
+    from fieldcal.measure.esfr import esfr_regions
+    rois = [_rgb_edge(64, 4.0, noise=0.01, seed=1), _rgb_edge(128, 12.0, noise=0.01, seed=2),
+            _rgb_edge(96, 7.0, noise=0.01, seed=3, horizontal=True), _rgb_edge(128, 8.0)]
+    vert = [True, True, False, True]
+    hws = [HALF_WIDTH_PX, 20.0, HALF_WIDTH_PX, HALF_WIDTH_PX]
+    batch = esfr_regions(rois, vertical=vert, half_width_px=hws)
+    for roi, v, hw, b in zip(rois, vert, hws, batch):
+        one = esfr_roi(roi, vertical=v, half_width_px=hw)
+        assert np.allclose(b.mtf, one.mtf, rtol=0, atol=1e-12, equal_nan=True)
+        assert np.allclose(b.x_mid, one.x_mid, atol=1e-9) and np.allclose(b.angle_deg, one.angle_deg, atol=1e-9)
+        for qb, qo in zip(b.quality, one.quality):
+            assert qb.reason == qo.reason and qb.rows == qo.rows and qb.noise_rms == pytest.approx(qo.noise_rms)
+    for (err, rel50), q in zip(_errors(batch[3], 8.0), batch[3].quality):
+        assert q.ok and err <= 0.01 and abs(rel50) <= 0.01
+
+
 def test_quality_flags_clipping_low_contrast_and_shallow_slant():
     img = render_edge(96, 72, normal_deg=6.0, sigma_px=0.6)
     clipped = esfr_roi(np.clip(img * 1.5, 0, 1), half_width_px=24).quality[0]

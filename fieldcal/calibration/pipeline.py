@@ -145,7 +145,7 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
 def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, seed, quiet,
                stage_repeatability_um, chart, geometry_maps) -> LensProfile:
     from fieldcal.formats.stack import Stack
-    from fieldcal.measure import measure_stack
+    from fieldcal.measure import measure_geometry, measure_stack
     from fieldcal.fit import ImageGeometry
     from fieldcal.fit.geometry import GeometryData, fit_geometry
     from fieldcal.fit.tolerance import fit_tolerance
@@ -166,13 +166,14 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     hasher = threading.Thread(target=_hash_inputs, args=(stack, digest), daemon=True)
     hasher.start()
 
-    table, geo_meas = measure_stack(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), tile_px=tile_px,
-                                    effort=effort, measure=measure, z_ref_um=z_ref_um, quiet=quiet)
-    texture_counts, edge_summary = table.counts(), None
-    if kind.kind == "esfr":  # the texture pass above still measured the geometry (magnification, shift vs z)
+    edge_summary = None
+    if kind.kind == "esfr":  # the texture pass measures only the geometry (magnification, shift vs z): no focus maps
+        geo_meas = measure_geometry(stack, effort=effort, z_ref_um=z_ref_um, quiet=quiet)
         table, edge_summary = measure_edges(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
                                             z_ref_um=float(geo_meas.z_ref_um), quiet=quiet)
     else:
+        table, geo_meas = measure_stack(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), tile_px=tile_px,
+                                        effort=effort, measure=measure, z_ref_um=z_ref_um, quiet=quiet)
         _require_tiles(table, stack, kind)
     t_measure = time.perf_counter() - t0
     counts = table.counts()
@@ -237,7 +238,7 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
                      "stage_repeatability_um": stage_rep, "stage_repeatability_source": stage_src},
         z_ref_um=float(geo_c.z_ref_um),
         diagnostics={"tiles": counts, "n_tiles_ok": n_ok,
-                     **({"esfr": edge_summary, "texture_tiles": texture_counts} if edge_summary else {}), "surface": surf.diagnostics,
+                     **({"esfr": edge_summary} if edge_summary else {}), "surface": surf.diagnostics,
                      "geometry": getattr(geom, "diagnostics", {}),
                      "tolerance": tol_note if tol is None else getattr(tol, "diagnostics", {}),
                      "max_image_displacement_px": geo_c.max_displacement_px(),
