@@ -330,6 +330,8 @@ def main(argv=None) -> int:
     ap.add_argument("--optics", default="mixed",
                     help="simulator image-formation path: geometric, wave or mixed (default: even lenses geometric, "
                          "odd wave)")
+    ap.add_argument("--only", choices=("geometric", "wave"), default=None,
+                    help="run only the lenses of this image-formation path (the same lenses as in a full run)")
     ap.add_argument("--no-stage-errors", action="store_true", help="a perfect stage")
     ap.add_argument("--plans", action="store_true",
                     help="also check a --confidence 0.9 stack plan from each profile against the truth")
@@ -353,7 +355,8 @@ def main(argv=None) -> int:
         scheduler = check_scheduler(args.scheduler, args.workers) if args.scheduler else None
         with tempfile.TemporaryDirectory(prefix="bench-bands-") as tmp:
             jobs = [(f"lens{k:02d}", (k, args.width, args.optics, not args.no_stage_errors, efforts, tmp, args.plans))
-                    for k in range(args.start, args.start + args.lenses)]
+                    for k in range(args.start, args.start + args.lenses)
+                    if args.only is None or lens_plan(k, args.optics)[0] == args.only]
             if scheduler is None:
                 results = [lens_rows(job) for _, job in jobs]
                 for rs in results:

@@ -148,6 +148,7 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     from fieldcal.measure import measure_stack
     from fieldcal.fit import ImageGeometry
     from fieldcal.fit.geometry import GeometryData, fit_geometry
+    from fieldcal.fit.stage import fit_stage_errors
     from fieldcal.fit.tolerance import fit_tolerance
     from fieldcal.fit.tiles import (breathing_systematic_sd_um, colour_rows, fit_tile_surfaces, geometry_columns,
                                     systematic_record)
@@ -186,6 +187,9 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     surf, tiles = fit_tile_surfaces(table, geometry, channels=tuple(stack.channels), effort=effort, seed=seed,
                                     quiet=quiet, source=str(stack.path))
     surf.stage_sd_um = stage_sd_um(table, stage_rep)
+    # the frames' position errors fitted with the surface where the tiles' curves allow (replaces the field-wide
+    # term above in the band; docs/fitting.md "Stage errors")
+    stage_fit = fit_stage_errors(surf, table, stage_rep)
     t_fit = time.perf_counter() - t0 - t_measure
     centre = surf.optical_centre_px()
     geo_c = geo_meas.recentred(tuple(float(v) for v in centre))
@@ -234,7 +238,8 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
                      "breathing_systematic_sd_um": breathing_systematic_sd_um(table),
                      # stage repeatability (1 sigma, µm) and where it came from; its per-channel effect on the
                      # best focus (in the band) is surfaces.stage_sd_um
-                     "stage_repeatability_um": stage_rep, "stage_repeatability_source": stage_src},
+                     "stage_repeatability_um": stage_rep, "stage_repeatability_source": stage_src,
+                     "stage_errors": stage_fit},
         z_ref_um=float(geo_c.z_ref_um),
         diagnostics={"tiles": counts, "n_tiles_ok": n_ok,
                      **({"esfr": edge_summary, "texture_tiles": texture_counts} if edge_summary else {}), "surface": surf.diagnostics,

@@ -101,7 +101,8 @@ def held_out_predictions(disc: Discrepancy) -> tuple[np.ndarray, np.ndarray, np.
         out = lab == k
         keep = ~out
         sub = replace(disc, x_hat=disc.x_hat[keep], y_hat=disc.y_hat[keep], ch_index=disc.ch_index[keep],
-                      target=disc.target[keep], noise_var=disc.noise_var[keep], _cache={})
+                      target=disc.target[keep], noise_var=disc.noise_var[keep], _cache={},
+                      stage_c=None if disc.stage_c is None else disc.stage_c[keep])
         for ci in np.unique(disc.ch_index[out]):
             m = out & (disc.ch_index == ci)
             if not np.any(keep & (disc.ch_index == ci)):
