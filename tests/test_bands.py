@@ -187,6 +187,9 @@ def test_stage_repeatability_comes_from_the_stack_and_joins_the_band(tmp_path):
     # the frames' errors are fitted with the surface (fieldcal.fit.stage): without them the band narrows
     disc = prof.surfaces.discrepancy
     assert disc.has_stage and prof.calibration["stage_errors"]["n_frames"] == len(Stack_z(d))
+    sc = prof.diagnostics["surface"]["self_check"]
+    lo_c, hi_c = sc["coverage_range"]
+    assert 0.0 <= lo_c <= sc["coverage_median"] <= hi_c <= 1.0 and 0.0 <= sc["field_wide_share"] <= 1.0
     disc.stage_c = None
     disc._cache.clear()
     lo0, hi0 = prof.best_focus_interval_um(x, y, "G")

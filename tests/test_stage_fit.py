@@ -95,3 +95,32 @@ def test_frame_errors_that_tiles_share_by_height_are_recovered():
     # what the tiles identify is known better than the prior says, what they cannot keeps it
     P = np.eye(nf) - A @ np.linalg.pinv(A)
     assert np.sqrt(np.mean(np.diag(P @ np.diag(sd ** 2) @ P))) < r
+
+
+def test_coverage_given_shared_matches_closed_forms_and_monte_carlo():
+    from fieldcal.fit.selfcheck import coverage_given_shared
+
+    f = np.full(200, 0.04)
+    none = coverage_given_shared(f, 0.0)
+    assert none["expected"] == pytest.approx(0.9, abs=1e-6)
+    assert none["p05"] == pytest.approx(0.9, abs=1e-6) and none["p95"] == pytest.approx(0.9, abs=1e-6)
+    assert none["field_wide_share"] == 0.0
+    # all of the variance one draw: the band holds everything or nothing
+    allc = coverage_given_shared(np.full(50, 1e-12), 1.0)
+    assert allc["expected"] == pytest.approx(0.9, abs=0.01)
+    assert allc["p05"] < 0.01 and allc["p95"] > 0.99
+    # half and half, against draws
+    rng = np.random.default_rng(0)
+    fv = rng.uniform(0.02, 0.08, 300)
+    s = 0.05
+    half = coverage_given_shared(fv, s)
+    zq = 1.6448536269514722
+    draws = []
+    for _ in range(4000):
+        d = rng.normal(0.0, math.sqrt(s))
+        e = rng.normal(0.0, np.sqrt(fv))
+        draws.append(np.mean(np.abs(d + e) <= zq * np.sqrt(fv + s)))
+    draws = np.array(draws)
+    assert half["expected"] == pytest.approx(draws.mean(), abs=0.01)
+    assert half["p05"] == pytest.approx(np.quantile(draws, 0.05), abs=0.03)
+    assert half["p95"] == pytest.approx(np.quantile(draws, 0.95), abs=0.01)
