@@ -209,7 +209,8 @@ def run_one(lens: dict, effort: str, seed: int = 0, plans: bool = False) -> dict
     prof.surfaces.band_scale = 1.0
     before = evaluate(prof, lens)
     prof.surfaces.band_scale = scale
-    share = field_wide_share(prof, after["hw_um"])
+    # the profile's own split (fit/selfcheck.py: fitted stage frames and window exponent included) when it has one
+    share = sc.get("field_wide_share", field_wide_share(prof, after["hw_um"]))
     plan = plan_check(prof, lens) if plans else {}
     return {**plan, "field_share": share, "p_in_range": p_coverage_in_range(share),
             "cov_after": after["coverage"], "cov_before": before["coverage"], "rms_um": after["rms_um"],

@@ -124,3 +124,4 @@ def test_coverage_given_shared_matches_closed_forms_and_monte_carlo():
     assert half["expected"] == pytest.approx(draws.mean(), abs=0.01)
     assert half["p05"] == pytest.approx(np.quantile(draws, 0.05), abs=0.03)
     assert half["p95"] == pytest.approx(np.quantile(draws, 0.95), abs=0.01)
+

@@ -27,7 +27,7 @@ serialises in a few kB; the Cholesky factors are rebuilt on first use.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import nlopt
@@ -145,6 +145,10 @@ class Discrepancy:
         return (self.stage_c is not None and self.stage_prior_sd > 0 and self.stage_c.ndim == 2
                 and self.stage_c.shape[0] == self.target.size)
 
+    def without_nuisances(self) -> "Discrepancy":
+        """The same posterior without the fitted stage frames (their share of the band, by difference)."""
+        return replace(self, stage_c=None, stage_prior_sd=0.0, _cache={})
+
     def _state(self):
         if "chol" in self._cache:
             return self._cache
@@ -194,8 +198,8 @@ class Discrepancy:
         if not self.has_stage:
             return None
         st = self._state()
-        p = st["p"]
-        return st["beta"][p:], np.sqrt(np.clip(np.diag(st["beta_cov"])[p:], 0.0, None))
+        p, f = st["p"], self.stage_c.shape[1]
+        return st["beta"][p:p + f], np.sqrt(np.clip(np.diag(st["beta_cov"])[p:p + f], 0.0, None))
 
     def _kernel_rows(self, x_hat, y_hat, ci: int) -> np.ndarray:
         """``k(x, x_i)`` between points and the channel's rows (m x n_c)."""

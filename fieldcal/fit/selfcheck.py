@@ -217,14 +217,16 @@ def field_wide_coverage(surf, shared_extra_sd_um: dict | None = None, level: flo
         if not m.any():
             continue
         _, extra = d.predict(d.x_hat[m], d.y_hat[m], ci)
+        _, bare = d.without_nuisances().predict(d.x_hat[m], d.y_hat[m], ci)
         H = d._design(d.x_hat[m], d.y_hat[m], ci)
         iid = np.einsum("mp,pq,mq->m", H, d.iid_cov, H)
         common = float(d.common_sd[ci]) ** 2 if d.common_sd is not None and ci < d.common_sd.size else 0.0
-        stage = (float((getattr(surf, "stage_sd_um", None) or {}).get(ch, 0.0)) / zs) ** 2
-        inside = common + (stage if d.has_stage else 0.0)     # shared terms already in the kriging variance
-        fvar.append((c * c * np.clip(extra - inside, 0.0, None) + iid) * zs * zs)
+        # fitted stage frames: one draw for the field, their share by difference
+        nuisance = float(np.mean(np.clip(extra - bare, 0.0, None)))
+        stage = 0.0 if d.has_stage else (float((getattr(surf, "stage_sd_um", None) or {}).get(ch, 0.0)) / zs) ** 2
+        fvar.append((c * c * np.clip(bare - common, 0.0, None) + iid) * zs * zs)
         extra_sd = float((shared_extra_sd_um or {}).get(ch, 0.0))
-        svar.append((common + stage) * zs * zs + extra_sd ** 2)
+        svar.append((common + stage + nuisance) * zs * zs + extra_sd ** 2)
     # channels pooled: each channel's points with its own shared variance, averaged over the shared draws
     parts = [coverage_given_shared(f, s, level) for f, s in zip(fvar, svar)]
     if not parts:

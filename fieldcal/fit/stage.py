@@ -99,8 +99,7 @@ def fit_stage_errors(surf, table, repeatability_um: float) -> dict:
         if not m.any():
             continue
         _, v_with = d.predict(d.x_hat[m], d.y_hat[m], ci)
-        bare = type(d)(**{**{f: getattr(d, f) for f in d.__dataclass_fields__ if f != "_cache"},
-                          "stage_c": None, "stage_prior_sd": 0.0})
+        bare = d.without_nuisances()
         _, v_without = bare.predict(d.x_hat[m], d.y_hat[m], ci)
         per_channel[c] = float(zs * np.sqrt(max(float(np.mean(v_with - v_without)), 0.0)))
     surf.stage_sd_um = per_channel
