@@ -164,6 +164,7 @@ def predictive_check(disc: Discrepancy | None) -> SelfCheck:
 # Above this share of the band's variance in one field-wide draw the truth coverage of one lens is near 0 or 1
 # rather than near the level, however honest the band (docs/fitting.md "Self-checked coverage").
 FIELD_WIDE_WARN_SHARE = 0.5
+GRID = (16, 12)   # points across x and y of the image where the coverage range is evaluated
 
 
 def coverage_given_shared(field_var: np.ndarray, shared_var: float, level: float = LEVEL,
@@ -200,7 +201,8 @@ def coverage_given_shared(field_var: np.ndarray, shared_var: float, level: float
 def field_wide_coverage(surf, shared_extra_sd_um: dict | None = None, level: float = LEVEL) -> dict:
     """What the held-out check cannot see, as a range: the truth coverage this band gives on one lens, given the
     share of its variance that is one draw for the whole field (common mode, stage, breathing and other
-    systematics, ``shared_extra_sd_um`` per channel in µm), at the tiles, channels pooled.
+    systematics, ``shared_extra_sd_um`` per channel in µm), on a regular grid over the whole image (corners
+    included, where the field part is largest), channels pooled.
 
     Returns the record merged into ``diagnostics.surface.self_check``: ``coverage_expected``, the 5-95 %
     range ``coverage_range`` and ``field_wide_share``; a warning when the share is above
@@ -211,14 +213,17 @@ def field_wide_coverage(surf, shared_extra_sd_um: dict | None = None, level: flo
         return {}
     zs = float(surf.z_scale_um)
     c = float(getattr(surf, "band_scale", 1.0))
+    g = surf.geometry
+    gx, gy = np.meshgrid((np.arange(GRID[0]) + 0.5) * g.width_px / GRID[0] - 0.5,
+                         (np.arange(GRID[1]) + 0.5) * g.height_px / GRID[1] - 0.5)
+    xh, yh = g.normalise(gx.ravel(), gy.ravel())
     fvar, svar = [], []
     for ci, ch in enumerate(d.model.channels):
-        m = d.ch_index == ci
-        if not m.any():
+        if not np.any(d.ch_index == ci):
             continue
-        _, extra = d.predict(d.x_hat[m], d.y_hat[m], ci)
-        _, bare = d.without_nuisances().predict(d.x_hat[m], d.y_hat[m], ci)
-        H = d._design(d.x_hat[m], d.y_hat[m], ci)
+        _, extra = d.predict(xh, yh, ci)
+        _, bare = d.without_nuisances().predict(xh, yh, ci)
+        H = d._design(xh, yh, ci)
         iid = np.einsum("mp,pq,mq->m", H, d.iid_cov, H)
         common = float(d.common_sd[ci]) ** 2 if d.common_sd is not None and ci < d.common_sd.size else 0.0
         # fitted stage frames: one draw for the field, their share by difference
