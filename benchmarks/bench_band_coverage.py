@@ -21,6 +21,8 @@ aberration; the truth of a wave lens is its sharpest position (``TruthProfile(op
     python benchmarks/bench_band_coverage.py --from-jsonl rows.jsonl --docs               # docs/benchmarks.md
     python benchmarks/bench_band_coverage.py --lenses 3 --efforts quick          # smoke run
     python benchmarks/bench_band_coverage.py --lenses 40 --scheduler local      # one Dask task per lens
+    python benchmarks/bench_band_coverage.py --lenses 40 --only geometric --jsonl geo.jsonl   # the 20 geometric ones
+    python benchmarks/bench_band_coverage.py --from-jsonl geo.jsonl --docs --section "band_coverage_geometric_s5=Band coverage: geometric lenses (s5)"
 
 ``--scheduler local|threads|tcp://HOST:PORT`` runs one task per lens on Dask (fieldcal.batch, docs/batch.md;
 an existing cluster's workers need this repository on the same path and a shared temporary folder); without
