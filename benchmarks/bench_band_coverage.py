@@ -368,7 +368,12 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=None, help="workers of a local cluster (default: one per CPU)")
     args = ap.parse_args(argv)
     efforts = args.efforts.split(",")
-    argv_text = " ".join(argv if argv is not None else sys.argv[1:])
+    words = list(argv if argv is not None else sys.argv[1:])
+    for opt in ("--note", "--section"):  # captions, not how the figures were made
+        if opt in words:
+            i = words.index(opt)
+            del words[i:i + 2]
+    argv_text = " ".join(words)
     rows = []
     if args.from_jsonl:
         rows = [json.loads(line) for line in args.from_jsonl.read_text().splitlines() if line.strip()]
