@@ -169,6 +169,11 @@ def _coverage(prof, spec, backlash_um, scale_error):
     return float(np.mean(cov)), float(np.sqrt(np.mean(sq)))
 
 
+def Stack_z(d):
+    from fieldcal.formats.stack import Stack
+    return Stack.open(d).z_um
+
+
 def test_stage_repeatability_comes_from_the_stack_and_joins_the_band(tmp_path):
     from fieldcal.calibration.pipeline import calibrate
     spec, d, fs, step = _stage_stack(tmp_path, 1, noise_um=0.8)
@@ -179,7 +184,14 @@ def test_stage_repeatability_comes_from_the_stack_and_joins_the_band(tmp_path):
     assert set(sd) == {"R", "G", "B"} and all(0.05 < v < 0.8 for v in sd.values()), sd
     x, y = np.array([W / 2]), np.array([H / 2])
     lo, hi = prof.best_focus_interval_um(x, y, "G")
-    prof.surfaces.stage_sd_um = {}
+    # the frames' errors are fitted with the surface (fieldcal.fit.stage): without them the band narrows
+    disc = prof.surfaces.discrepancy
+    assert disc.has_stage and prof.calibration["stage_errors"]["n_frames"] == len(Stack_z(d))
+    sc = prof.diagnostics["surface"]["self_check"]
+    lo_c, hi_c = sc["coverage_range"]
+    assert 0.0 <= lo_c <= sc["coverage_median"] <= hi_c <= 1.0 and 0.0 <= sc["field_wide_share"] <= 1.0
+    disc.stage_c = None
+    disc._cache.clear()
     lo0, hi0 = prof.best_focus_interval_um(x, y, "G")
     assert (hi - lo)[0] > (hi0 - lo0)[0]
     from fieldcal.calibration.pipeline import stage_repeatability, stage_sd_um

@@ -148,6 +148,8 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     from fieldcal.measure import measure_geometry, measure_stack
     from fieldcal.fit import ImageGeometry
     from fieldcal.fit.geometry import GeometryData, fit_geometry
+    from fieldcal.fit.selfcheck import field_wide_coverage
+    from fieldcal.fit.stage import fit_stage_errors
     from fieldcal.fit.tolerance import fit_tolerance
     from fieldcal.fit.tiles import (breathing_systematic_sd_um, colour_rows, fit_tile_surfaces, geometry_columns,
                                     systematic_record)
@@ -187,6 +189,14 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     surf, tiles = fit_tile_surfaces(table, geometry, channels=tuple(stack.channels), effort=effort, seed=seed,
                                     quiet=quiet, source=str(stack.path))
     surf.stage_sd_um = stage_sd_um(table, stage_rep)
+    # the frames' position errors fitted with the surface where the tiles' curves allow (replaces the field-wide
+    # term above in the band; docs/fitting.md "Stage errors")
+    stage_fit = fit_stage_errors(surf, table, stage_rep)
+    breathing_sd = breathing_systematic_sd_um(table)
+    sc = (surf.diagnostics or {}).get("self_check")
+    if isinstance(sc, dict) and sc.get("status") == "ok":
+        # the held-out tiles cannot see errors shared by the whole field: say what range they leave
+        sc.update(field_wide_coverage(surf, breathing_sd))
     t_fit = time.perf_counter() - t0 - t_measure
     centre = surf.optical_centre_px()
     geo_c = geo_meas.recentred(tuple(float(v) for v in centre))
@@ -232,10 +242,11 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
                      "systematic_sd_um": SYSTEMATIC_STEP_FRACTION * float(np.median(steps)) if steps.size else 0.0,
                      "systematic": systematic_record(surf),
                      # 1-sigma breathing systematic per channel, shared by the whole field (µm)
-                     "breathing_systematic_sd_um": breathing_systematic_sd_um(table),
+                     "breathing_systematic_sd_um": breathing_sd,
                      # stage repeatability (1 sigma, µm) and where it came from; its per-channel effect on the
                      # best focus (in the band) is surfaces.stage_sd_um
-                     "stage_repeatability_um": stage_rep, "stage_repeatability_source": stage_src},
+                     "stage_repeatability_um": stage_rep, "stage_repeatability_source": stage_src,
+                     "stage_errors": stage_fit},
         z_ref_um=float(geo_c.z_ref_um),
         diagnostics={"tiles": counts, "n_tiles_ok": n_ok,
                      **({"esfr": edge_summary} if edge_summary else {}), "surface": surf.diagnostics,

@@ -27,7 +27,7 @@ serialises in a few kB; the Cholesky factors are rebuilt on first use.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import nlopt
@@ -105,6 +105,11 @@ class Discrepancy:
     common_sd : ndarray or None
         Per channel, the sd of the error shared by the whole field (``COMMON_MODE_FRACTION`` of the per-tile
         noise sd); added in quadrature at every point.
+    stage_c, stage_prior_sd : ndarray or None, float
+        Per-frame stage position errors as nuisance coefficients (:mod:`fieldcal.fit.stage`): row i's best focus
+        moves by ``stage_c[i] @ e`` with ``e ~ N(0, stage_prior_sd^2)`` per frame (normalised z units). They are
+        fitted jointly with the surface (GLS with their prior), so their identifiable part is removed and the
+        rest is marginalised into the band, correlated over the field as the frames are shared.
     """
 
     model: SurfaceModel
@@ -124,6 +129,8 @@ class Discrepancy:
     rich_cov: np.ndarray | None = None          # its coefficient covariance under the MAP's weights
     misfit_scale: float = 0.0                   # max(F - 1, 0) * Birge ratio of the rich fit
     common_sd: np.ndarray | None = None         # per channel: common-mode sd (normalised z units)
+    stage_c: np.ndarray | None = None           # rows x frames: best-focus change per frame position error
+    stage_prior_sd: float = 0.0                 # the stage's repeatability (normalised z units)
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ------------------------------------------------------------------ linear algebra (cached)
@@ -132,11 +139,26 @@ class Discrepancy:
         return self.model.design(np.asarray(x_hat, float), np.asarray(y_hat, float), np.full(n, ci),
                                  np.zeros(n, np.int64), self.centre)
 
+    @property
+    def has_stage(self) -> bool:
+        """True when the per-frame stage errors are fitted with the surface (and so are in :meth:`predict`)."""
+        return (self.stage_c is not None and self.stage_prior_sd > 0 and self.stage_c.ndim == 2
+                and self.stage_c.shape[0] == self.target.size)
+
+    def without_nuisances(self) -> "Discrepancy":
+        """The same posterior without the fitted stage frames (their share of the band, by difference)."""
+        return replace(self, stage_c=None, stage_prior_sd=0.0, _cache={})
+
     def _state(self):
         if "chol" in self._cache:
             return self._cache
         X = self.model.design(self.x_hat, self.y_hat, self.ch_index, np.zeros(self.x_hat.size, np.int64),
                               self.centre)
+        p = X.shape[1]
+        prior = np.full(p, 1.0 / COEF_PRIOR_SD ** 2)
+        if self.has_stage:  # the frames' position errors: coefficients shared by every channel, prior sd r
+            X = np.hstack([X, self.stage_c])
+            prior = np.concatenate([prior, np.full(self.stage_c.shape[1], 1.0 / self.stage_prior_sd ** 2)])
         chol, kinv_x, kinv_y = {}, np.zeros_like(X), np.zeros(self.target.size)
         for ci in range(len(self.model.channels)):
             m = self.ch_index == ci
@@ -147,7 +169,7 @@ class Discrepancy:
             chol[ci] = cf
             kinv_x[m] = cho_solve(cf, X[m])
             kinv_y[m] = cho_solve(cf, self.target[m])
-        A = X.T @ kinv_x + np.eye(X.shape[1]) / COEF_PRIOR_SD ** 2
+        A = X.T @ kinv_x + np.diag(prior)
         A_inv = np.linalg.inv(0.5 * (A + A.T))
         beta = A_inv @ (X.T @ kinv_y)
         resid = self.target - X @ beta
@@ -155,17 +177,29 @@ class Discrepancy:
         for ci, cf in chol.items():
             m = self.ch_index == ci
             alpha[m] = cho_solve(cf, resid[m])
-        self._cache.update(chol=chol, X=X, kinv_x=kinv_x, beta=beta, beta_cov=A_inv, alpha=alpha)
+        self._cache.update(chol=chol, X=X, kinv_x=kinv_x, beta=beta, beta_cov=A_inv, alpha=alpha, p=p)
         return self._cache
 
     @property
     def beta(self) -> np.ndarray:
-        """Generalised-least-squares coefficients under the correlated covariance."""
-        return self._state()["beta"]
+        """Generalised-least-squares coefficients of the surface under the correlated covariance."""
+        st = self._state()
+        return st["beta"][:st["p"]]
 
     @property
     def beta_cov(self) -> np.ndarray:
-        return self._state()["beta_cov"]
+        """Their covariance (the stage errors marginalised)."""
+        st = self._state()
+        return st["beta_cov"][:st["p"], :st["p"]]
+
+    @property
+    def stage_errors(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(estimate, sd) of the per-frame stage position errors (normalised z units), or None."""
+        if not self.has_stage:
+            return None
+        st = self._state()
+        p, f = st["p"], self.stage_c.shape[1]
+        return st["beta"][p:p + f], np.sqrt(np.clip(np.diag(st["beta_cov"])[p:p + f], 0.0, None))
 
     def _kernel_rows(self, x_hat, y_hat, ci: int) -> np.ndarray:
         """``k(x, x_i)`` between points and the channel's rows (m x n_c)."""
@@ -187,7 +221,7 @@ class Discrepancy:
         """The generalised-least-squares surface ``h beta`` at points (normalised z): cheap, polynomial."""
         x_hat = np.asarray(x_hat, float).ravel()
         y_hat = np.asarray(y_hat, float).ravel()
-        return self._design(x_hat, y_hat, ci) @ self._state()["beta"]
+        return self._design(x_hat, y_hat, ci) @ self.beta
 
     def residual(self, x_hat, y_hat, ci: int) -> np.ndarray:
         """The kriged discrepancy ``k^T K^-1 (y - X beta)`` at points (normalised z); 0 without a GP term.
@@ -225,19 +259,22 @@ class Discrepancy:
         x_hat = np.asarray(x_hat, float).ravel()
         y_hat = np.asarray(y_hat, float).ravel()
         H = self._design(x_hat, y_hat, ci)
-        mean = H @ st["beta"]
+        p = st["p"]
+        mean = H @ st["beta"][:p]
         if not with_variance:
             if self._has_gp(ci):
                 mean = mean + self._kernel_rows(x_hat, y_hat, ci) @ st["alpha"][self.ch_index == ci]
             return mean, None
-        var = np.einsum("mp,pq,mq->m", H, st["beta_cov"], H)
+        # a point's best focus has no stage term (zero columns): the frames' errors enter through the fit only
+        Ha = np.hstack([H, np.zeros((H.shape[0], st["beta"].size - p))])
+        var = np.einsum("mp,pq,mq->m", Ha, st["beta_cov"], Ha)
         if ci in st["chol"] and self.tau[ci] > 0:
             m = self.ch_index == ci
             ks = self._kernel_rows(x_hat, y_hat, ci)
             mean = mean + ks @ st["alpha"][m]
             L = st["chol"][ci][0]
             V = solve_triangular(L, ks.T, lower=True)                     # n_c x m
-            R = H - ks @ st["kinv_x"][m]                                  # h - k^T K^-1 X
+            R = Ha - ks @ st["kinv_x"][m]                                 # h - k^T K^-1 X
             # A GP shorter than a tile spacing cannot be told from tile noise (a nugget): its variance between
             # tiles is noise, not surface (measured: 0.15-0.4 µm sd added where the errors were 0.07-0.2 µm).
             # It counts in full from one spacing, not at all at the lower bound of half a spacing.
@@ -282,7 +319,9 @@ class Discrepancy:
                 "rich_model": None if self.rich_model is None else self.rich_model.to_dict(),
                 "rich_cov": None if self.rich_cov is None else self.rich_cov.tolist(),
                 "misfit_scale": float(self.misfit_scale),
-                "common_sd": None if self.common_sd is None else [float(v) for v in self.common_sd]}
+                "common_sd": None if self.common_sd is None else [float(v) for v in self.common_sd],
+                **({"stage_c": np.round(self.stage_c, 6).tolist(), "stage_prior_sd": float(self.stage_prior_sd)}
+                   if self.has_stage else {})}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], model: SurfaceModel) -> "Discrepancy":
@@ -295,7 +334,8 @@ class Discrepancy:
                    SurfaceModel.from_dict(d["rich_model"]) if d.get("rich_model") else None,
                    a("rich_cov") if d.get("rich_cov") is not None else None,
                    float(d.get("misfit_scale", 0.0)),
-                   a("common_sd") if d.get("common_sd") is not None else None)
+                   a("common_sd") if d.get("common_sd") is not None else None,
+                   a("stage_c") if d.get("stage_c") is not None else None, float(d.get("stage_prior_sd", 0.0)))
 
 
 def _cov(x, y, tau, ell, noise_var) -> np.ndarray:

@@ -153,7 +153,9 @@ class SurfaceFit:
                 cs = self.discrepancy.common_sd
                 common = float(cs[ci]) ** 2 if cs is not None and ci < cs.size else 0.0
                 c = float(self.band_scale)
-                stage = float(self.stage_sd_um.get(channel, 0.0)) / self.z_scale_um
+                # fitted frame errors are already in the kriging variance (Discrepancy.has_stage)
+                stage = (0.0 if self.discrepancy.has_stage
+                         else float(self.stage_sd_um.get(channel, 0.0)) / self.z_scale_um)
                 extra = (c * c * np.clip(extra - common, 0.0, None) + common + stage * stage
                          + self._window_var(xf[sl], yf[sl], channel))
                 z = c * (z - z0) + mean + np.sqrt(extra) * xi

@@ -101,7 +101,8 @@ def held_out_predictions(disc: Discrepancy) -> tuple[np.ndarray, np.ndarray, np.
         out = lab == k
         keep = ~out
         sub = replace(disc, x_hat=disc.x_hat[keep], y_hat=disc.y_hat[keep], ch_index=disc.ch_index[keep],
-                      target=disc.target[keep], noise_var=disc.noise_var[keep], _cache={})
+                      target=disc.target[keep], noise_var=disc.noise_var[keep], _cache={},
+                      stage_c=None if disc.stage_c is None else disc.stage_c[keep])
         for ci in np.unique(disc.ch_index[out]):
             m = out & (disc.ch_index == ci)
             if not np.any(keep & (disc.ch_index == ci)):
@@ -158,3 +159,90 @@ def predictive_check(disc: Discrepancy | None) -> SelfCheck:
     z_rms = float(np.sqrt(np.mean(r * r / (c * c * v + nv))))
     return SelfCheck(c, float(inside.mean()), unscaled, int(r.size), int(blocks.size), z_rms,
                      time.perf_counter() - t0)
+
+
+# Above this share of the band's variance in one field-wide draw the truth coverage of one lens is near 0 or 1
+# rather than near the level, however honest the band (docs/fitting.md "Self-checked coverage").
+FIELD_WIDE_WARN_SHARE = 0.5
+GRID = (16, 12)   # points across x and y of the image where the coverage range is evaluated
+
+
+def coverage_given_shared(field_var: np.ndarray, shared_var: float, level: float = LEVEL,
+                          quantiles=(0.05, 0.5, 0.95)) -> dict:
+    """The field coverage a Gaussian band of variance ``field_var + shared_var`` gives when ``shared_var`` is
+    one draw ``c`` for the whole field and ``field_var`` varies point to point.
+
+    Coverage(c) = mean over points of P(|c + e_j| <= z sqrt(field_var_j + shared_var)), e_j ~ N(0, field_var_j):
+    its mean over c ~ N(0, shared_var) is the level; it falls as |c| grows, so its quantiles are Coverage at the
+    matching quantiles of |c|, and its mean is the average over 200 equal-probability values of |c| (a step in
+    c when the field part is small, which Gauss-Hermite nodes would miss).
+    """
+    from scipy.stats import norm
+
+    f = np.clip(np.asarray(field_var, dtype=np.float64).ravel(), 1e-30, None)
+    s = max(float(shared_var), 0.0)
+    zq = float(ndtri(0.5 + 0.5 * level))
+    h = zq * np.sqrt(f + s)
+    sf = np.sqrt(f)
+
+    def cov(c):
+        c = np.atleast_1d(np.asarray(c, dtype=np.float64))[:, None]
+        return np.mean(norm.cdf((h - c) / sf) - norm.cdf((-h - c) / sf), axis=1)
+
+    u = (np.arange(200) + 0.5) / 200.0
+    mean = float(np.mean(cov(math.sqrt(s) * ndtri(0.5 + 0.5 * u))))
+    # coverage at quantile q is coverage at the (1 - q) quantile of |c|
+    qs = {f"p{int(round(100 * q)):02d}": float(cov(math.sqrt(s) * float(ndtri(1.0 - 0.5 * q)))[0])
+          for q in quantiles}
+    share = float(s / np.mean(f + s))
+    return {"expected": mean, **qs, "field_wide_share": share}
+
+
+def field_wide_coverage(surf, shared_extra_sd_um: dict | None = None, level: float = LEVEL) -> dict:
+    """What the held-out check cannot see, as a range: the truth coverage this band gives on one lens, given the
+    share of its variance that is one draw for the whole field (common mode, stage, breathing and other
+    systematics, ``shared_extra_sd_um`` per channel in µm), on a regular grid over the whole image (corners
+    included, where the field part is largest), channels pooled.
+
+    Returns the record merged into ``diagnostics.surface.self_check``: ``coverage_expected``, the 5-95 %
+    range ``coverage_range`` and ``field_wide_share``; a warning when the share is above
+    ``FIELD_WIDE_WARN_SHARE`` (one lens's coverage is then near 0 or 1, not near the level).
+    """
+    d = getattr(surf, "discrepancy", None)
+    if d is None or d.target.size == 0:
+        return {}
+    zs = float(surf.z_scale_um)
+    c = float(getattr(surf, "band_scale", 1.0))
+    g = surf.geometry
+    gx, gy = np.meshgrid((np.arange(GRID[0]) + 0.5) * g.width_px / GRID[0] - 0.5,
+                         (np.arange(GRID[1]) + 0.5) * g.height_px / GRID[1] - 0.5)
+    xh, yh = g.normalise(gx.ravel(), gy.ravel())
+    fvar, svar = [], []
+    for ci, ch in enumerate(d.model.channels):
+        if not np.any(d.ch_index == ci):
+            continue
+        _, extra = d.predict(xh, yh, ci)
+        _, bare = d.without_nuisances().predict(xh, yh, ci)
+        H = d._design(xh, yh, ci)
+        iid = np.einsum("mp,pq,mq->m", H, d.iid_cov, H)
+        common = float(d.common_sd[ci]) ** 2 if d.common_sd is not None and ci < d.common_sd.size else 0.0
+        # fitted stage frames: one draw for the field, their share by difference
+        nuisance = float(np.mean(np.clip(extra - bare, 0.0, None)))
+        stage = 0.0 if d.has_stage else (float((getattr(surf, "stage_sd_um", None) or {}).get(ch, 0.0)) / zs) ** 2
+        fvar.append((c * c * np.clip(bare - common, 0.0, None) + iid) * zs * zs)
+        extra_sd = float((shared_extra_sd_um or {}).get(ch, 0.0))
+        svar.append((common + stage + nuisance) * zs * zs + extra_sd ** 2)
+    # channels pooled: each channel's points with its own shared variance, averaged over the shared draws
+    parts = [coverage_given_shared(f, s, level) for f, s in zip(fvar, svar)]
+    if not parts:
+        return {}
+    avg = lambda k: float(np.mean([p[k] for p in parts]))  # noqa: E731
+    rec = {"coverage_expected": avg("expected"), "coverage_range": [avg("p05"), avg("p95")],
+           "coverage_median": avg("p50"), "field_wide_share": avg("field_wide_share")}
+    if rec["field_wide_share"] > FIELD_WIDE_WARN_SHARE:
+        rec["field_wide_warning"] = (
+            f"{100 * rec['field_wide_share']:.0f} % of the band's variance is one draw for the whole field "
+            "(stage, breathing, common mode): on this lens the band will hold the truth at between "
+            f"{100 * rec['coverage_range'][0]:.0f} % and {100 * rec['coverage_range'][1]:.0f} % of the field "
+            f"(5-95 %), not at {100 * level:.0f} % everywhere")
+    return rec
