@@ -104,7 +104,7 @@ def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fn, sigma: f
 
 def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray, *, geometry=None,
                      lateral_colour: bool = False, reach_disc_px: float = REACH_DISC_PX,
-                     quiet: bool = False) -> tuple[np.ndarray, dict]:
+                     noise_sigma=None, quiet: bool = False) -> tuple[np.ndarray, dict]:
     """All-in-focus image of a scene with depth from a best-focus map and the lens's defocus OTF.
 
     Parameters
@@ -123,6 +123,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         Warps frames to the output geometry (None: frames are registered).
     reach_disc_px : float
         Frames blurred by a wider disc at a label take no part in it.
+    noise_sigma : sequence of float, optional
+        Pixel noise (frame units) per channel, e.g. from the camera's noise model
+        (:func:`fieldcal.composite.sweep.sensor_noise_sigma`); default: estimated from the frames.
 
     Returns
     -------
@@ -163,7 +166,10 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     # noise per channel: the least of a few frames spread over the stack (texture only ever inflates the
     # estimate; far from focus a frame is smooth)
     probe = np.unique(np.linspace(0, len(order) - 1, min(len(order), 6)).round().astype(int))
-    sigma = [min(estimate_noise_sigma(planes(k)[c]) for k in probe) for c in range(len(channels))]
+    if noise_sigma is None:
+        sigma = [min(estimate_noise_sigma(planes(k)[c]) for k in probe) for c in range(len(channels))]
+    else:
+        sigma = [float(v) for v in np.broadcast_to(np.asarray(noise_sigma, dtype=np.float64), (len(channels),))]
     planes_cache.clear()
     models = []
     for c, ch in enumerate(channels):
