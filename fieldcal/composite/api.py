@@ -80,7 +80,9 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         things in front of a background)? ``auto`` decides from the data: when the smooth surface fitted to
         the block depths misses them by more than half a frame spacing (RMS), the scene has depth, and best
         focus is taken per pixel (:func:`fieldcal.composite.fusion.depth_map`, edge-aware) instead of from
-        the surface. The profile (``hybrid``) keeps the pixels the data cannot tell apart from it.
+        the surface. The profile (``hybrid``) keeps the pixels the data cannot tell apart from it. With a lens
+        model that states its F-number, the best focus is made occlusion-aware and the frames around each
+        pixel's depth are combined by a multi-frame Wiener filter (:mod:`fieldcal.composite.depth_wiener`).
     """
     if depth not in DEPTH_MODES:
         raise ParameterError(f"unknown depth mode {depth!r}", field="depth", fix=f"use one of {', '.join(DEPTH_MODES)}")

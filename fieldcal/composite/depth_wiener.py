@@ -130,8 +130,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     Returns
     -------
     (image, info)
-        Float32 ``H x W x C`` in the frames' units, and the noise level, spectrum slope and label count per
-        channel.
+        Float32 ``H x W x C`` in the frames' units, and the noise level per channel, the number of labels
+        filtered (all channels), their spacing (µm) and the mean number of frames per label.
     """
     from scipy import fft
 
