@@ -221,7 +221,7 @@ def test_thin_bars_are_found_to_have_depth_and_composited_per_pixel(thin_world, 
     per-pixel composites (dff and hybrid) must come within 1 dB of the oracle, beat the smooth surface by far
     and, where enfuse is installed, beat its hard mask on the same frames: with the lens model's defocus OTF the
     frames around each pixel's depth are combined (multi-frame Wiener), not one chosen (measured +1.05 to
-    +1.10 dB over enfuse here; one frame per pixel was +0.2 to +0.4)."""
+    +1.10 dB over enfuse here)."""
     from fieldcal.composite.api import DEPTH_PIXEL_FRACTION, composite_stack
 
     st, prof = thin_world["st"], thin_world["prof"]
