@@ -76,7 +76,7 @@ def test_wiener_combination_beats_the_nearest_frame(flat_world, noise):
     def rms(img):
         return float(np.sqrt(np.mean((np.asarray(img, np.float64)[m:-m, m:-m] - truth[m:-m, m:-m]) ** 2)))
 
-    assert info["labels"] >= 2 and info["frames_per_label"] >= 2
+    assert info["filters"] >= 2 and info["frames_per_label"] >= 2
     if noise:
         assert 20 * np.log10(rms(blend) / rms(out)) > 1.0, (rms(blend), rms(out))
     else:

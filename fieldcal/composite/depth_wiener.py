@@ -10,8 +10,8 @@ minimum-mean-square-error estimate of that image at a depth ``z`` from the frame
 
 (the multi-frame Wiener filter; ``H_0`` the in-focus OTF, the target, as the all-in-focus truth and a stack
 composite are the lens's in-focus image; ``sigma`` the frames' noise, ``P`` a power-law signal spectrum fitted to
-the composite). It is evaluated on a grid of depth labels (:func:`wiener_composite`) and each pixel interpolates
-between the two labels around its best focus. Only frames whose blur disc at the label is at most
+the composite). It is evaluated on a grid of depth labels (:func:`wiener_composite`), tile by tile with only the
+labels each tile's pixels use, and each pixel interpolates between the two labels around its best focus. Only frames whose blur disc at the label is at most
 :data:`REACH_DISC_PX` wide take part: a more defocused frame adds nothing above its low frequencies, and near a
 depth edge those carry the other side's light spread by more than the edge band.
 
@@ -36,8 +36,12 @@ REACH_DISC_PX = 3.0
 #: Spacing of the depth labels, as a change of the blur disc's diameter (px): between labels the OTFs differ by
 #: less than a quarter-pixel disc, which moves the MTF at Nyquist by < 2 %.
 LABEL_DISC_PX = 0.5
-#: At most this many labels per image (labels widen beyond it): the cost is one inverse FFT per label and channel.
+#: At most this many labels per image (labels widen beyond it).
 MAX_LABELS = 96
+#: Tiles (px) filtered one at a time, each with only the labels its pixels use ...
+TILE_PX = 256
+#: ... from a block with this margin (px, beyond the mirror pad) of real neighbours: the filters' support
+TILE_MARGIN_PX = 16
 
 
 def occlusion_focus_um(zb: np.ndarray, um_per_px: float) -> np.ndarray:
@@ -86,7 +90,8 @@ def _labels(zb: np.ndarray, step_um: float) -> tuple[np.ndarray, float]:
 
 
 def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fn, sigma: float):
-    """``P(f) = A f^-beta`` fitted to the reference image's spectrum (in-focus OTF divided out)."""
+    """``(A, beta, shape)`` of ``P(f) = A f^-beta`` (power per pixel, f in cycles/mm) fitted to the reference
+    image's spectrum (in-focus OTF divided out), and the padded FFT shape it was fitted on."""
     from scipy import fft
 
     from ..optics.sweep import radial_on_grid, rfft_radial_grid
@@ -99,7 +104,7 @@ def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fn, sigma: f
     h0 = radial_on_grid(h0_fn, f)
     fmin = 4.0 / (max(shape) * pitch_um * 1e-3)
     a, beta = _signal_spectrum_model(power, f, h0 * h0, sigma * sigma, fmin)
-    return a * np.maximum(f, fmin) ** (-beta), f, h0, shape
+    return a, beta, shape
 
 
 def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray, *, geometry=None,
@@ -130,8 +135,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     Returns
     -------
     (image, info)
-        Float32 ``H x W x C`` in the frames' units, and the noise level per channel, the number of labels
-        filtered (all channels), their spacing (µm) and the mean number of frames per label.
+        Float32 ``H x W x C`` in the frames' units, and the noise level per channel, the number of tiles and
+        of label filters applied (tiles x labels x channels), the labels' spacing (µm) and the mean number of
+        frames per label.
     """
     from scipy import fft
 
@@ -171,12 +177,12 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     else:
         sigma = [float(v) for v in np.broadcast_to(np.asarray(noise_sigma, dtype=np.float64), (len(channels),))]
     planes_cache.clear()
-    models = []
+    a_sig, beta = [], []
     for c, ch in enumerate(channels):
-        px_model, f, h0, shape = _power_law(reference[..., c], pad, pitch, lambda t, ch=ch: model.defocus_otf(t, 0.0, ch),
-                                            max(sigma[c], 1e-6))
-        models.append(((sigma[c] ** 2 / px_model).astype(np.float32), h0.astype(np.float32)))
-    f_grid = f
+        a_c, b_c, shape = _power_law(reference[..., c], pad, pitch, lambda t, ch=ch: model.defocus_otf(t, 0.0, ch),
+                                     max(sigma[c], 1e-6))
+        a_sig.append(a_c)
+        beta.append(b_c)
     mean = [float(np.mean(reference[..., c])) for c in range(len(channels))]
 
     # per channel: label index below each pixel and the fraction towards the next
@@ -186,17 +192,20 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         l0 = np.clip(np.floor(t), 0, n_lab - 2).astype(np.int32)
         lower.append(l0)
         frac.append(np.clip(t - l0, 0.0, 1.0).astype(np.float32))
-    used = [np.zeros(n_lab, bool) for _ in channels]
-    for c in range(len(channels)):
-        present = np.unique(lower[c])
-        used[c][present] = True
-        used[c][np.minimum(present + 1, n_lab - 1)] = True
 
-    spectra: dict[int, list[np.ndarray]] = {}  # frame (z order) -> rfft2 per channel, a sliding window
-    from .sweep import _pad
+    from ..optics.sweep import rfft_radial_grid
+    from .warp import frame_maps, warp_region
 
-    # OTFs are radial: each one is a 1-D table gathered onto the grid through one index (np.interp on the 2-D
-    # grid for every label, frame and channel cost half the time)
+    # Tiles: each core is filtered from a block with a margin of real neighbours (mirrored only at the image's
+    # border), and only with the labels and frames its own pixels need: a label's filter then costs a small FFT
+    # where the field curvature puts its pixels, not one of the whole image.
+    core = min(TILE_PX, max(w, h))
+    margin = pad + TILE_MARGIN_PX
+    nb_y = fft.next_fast_len(min(core, h) + 2 * margin, real=True)
+    nb_x = fft.next_fast_len(min(core, w) + 2 * margin, real=True)
+    f_grid = rfft_radial_grid((nb_y, nb_x), pitch)
+    fmin = 4.0 / (max(shape) * pitch * 1e-3)  # the power law as fitted on the whole image
+    # OTFs are radial: each one is a 1-D table gathered onto the grid through one index
     n_table = 4096
     f_step = float(f_grid.max()) * (1 + 1e-9) / (n_table - 1)
     f_table = np.arange(n_table) * f_step
@@ -205,46 +214,72 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     def otf(dz_um: float, ch: str) -> np.ndarray:
         return np.asarray(model.defocus_otf(f_table, dz_um, ch), dtype=np.float32)[f_index]
 
-    def spectrum(k: int) -> list[np.ndarray]:
-        if k not in spectra:
-            pl = frame_planes(stack, geometry, float(zs[k]), int(order[k]), channels, w, h,
-                              lateral_colour=lateral_colour)
-            spectra[k] = [fft.rfft2(_pad(p.astype(np.float32) - np.float32(mean[c]), pad)[0], workers=-1)
-                          .astype(np.complex64) for c, p in enumerate(pl)]
-        return spectra[k]
+    h0s = [otf(0.0, ch) for ch in channels]
+    nsrs = [(np.float32(sigma[c] ** 2) / (a_sig[c] * np.maximum(f_grid, fmin) ** (-beta[c]))).astype(np.float32)
+            for c in range(len(channels))]
+    maps = {}
+
+    def block(k: int, bx0: int, by0: int, bx1: int, by1: int, top: int, left: int) -> list[np.ndarray]:
+        """Frame k (z order) over the block, mirror-padded to the FFT size, mean removed, rfft2 per channel."""
+        if k not in maps:
+            maps[k] = frame_maps(geometry, float(zs[k]), channels, lateral_colour)
+        planes = [None] * len(channels)
+        for fm in maps[k]:
+            part = warp_region(stack, int(order[k]), fm, bx0, by0, bx1, by1)
+            for j, c in enumerate(fm.channels):
+                planes[c] = part[..., j]
+        out = []
+        for c, p in enumerate(planes):
+            p = p - np.float32(mean[c])
+            p = np.pad(p, ((top, nb_y - p.shape[0] - top), (left, nb_x - p.shape[1] - left)), mode="symmetric")
+            out.append(fft.rfft2(p, workers=-1).astype(np.complex64))
+        return out
 
     out = np.zeros((h, w, len(channels)), np.float32)
-    n_frames_used = []
-    for l in progress(range(n_lab), total=n_lab, desc="Wiener by depth", quiet=quiet, unit="label"):
-        if not any(u[l] for u in used):
-            continue
-        zl = labels[l]
-        near = np.flatnonzero(np.abs(zs - zl) <= reach)
-        below, above = np.searchsorted(zs, zl, side="right") - 1, np.searchsorted(zs, zl, side="left")
-        near = np.union1d(near, [k for k in (below, above) if 0 <= k < len(zs)]).astype(int)
-        for k in [k for k in spectra if k < near[0]]:
-            del spectra[k]
-        n_frames_used.append(len(near))
-        for c, ch in enumerate(channels):
-            if not used[c][l]:
-                continue
-            nsr, h0 = models[c]
-            num = np.zeros(f_grid.shape, np.complex64)
-            den = nsr.copy()
+    n_frames_used, n_filters = [], 0
+    tiles = [(x0, y0) for y0 in range(0, h, core) for x0 in range(0, w, core)]
+    for x0, y0 in progress(tiles, total=len(tiles), desc="Wiener by depth", quiet=quiet, unit="tile"):
+        x1, y1 = min(w, x0 + core), min(h, y0 + core)
+        bx0, by0, bx1, by1 = max(0, x0 - margin), max(0, y0 - margin), min(w, x1 + margin), min(h, y1 + margin)
+        top, left = margin - (y0 - by0), margin - (x0 - bx0)  # mirrored rows/columns above/left of the block
+        used = set()
+        for c in range(len(channels)):
+            present = np.unique(lower[c][y0:y1, x0:x1])
+            used |= {(c, int(l)) for l in present} | {(c, int(min(l + 1, n_lab - 1))) for l in present}
+        labels_used = sorted({l for _, l in used})
+        spectra: dict[int, list[np.ndarray]] = {}
+        for l in labels_used:
+            zl = labels[l]
+            near = np.flatnonzero(np.abs(zs - zl) <= reach)
+            below, above = np.searchsorted(zs, zl, side="right") - 1, np.searchsorted(zs, zl, side="left")
+            near = np.union1d(near, [k for k in (below, above) if 0 <= k < len(zs)]).astype(int)
+            for k in [k for k in spectra if k < near[0]]:
+                del spectra[k]
             for k in near:
-                hk = otf(float(zs[k] - zl), ch)
-                num += hk * spectrum(k)[c]
-                den = den + hk * hk
-            x = num * (h0 / den)
-            x[0, 0] = np.mean([spectrum(k)[c][0, 0] for k in near])  # keep the mean
-            img = fft.irfft2(x, s=shape, workers=-1)[pad:pad + h, pad:pad + w].astype(np.float32)
-            img += np.float32(mean[c])
-            l0, fr = lower[c], frac[c]
-            m = l0 == l
-            out[..., c][m] += (1.0 - fr[m]) * img[m]
-            m = l0 == l - 1
-            out[..., c][m] += fr[m] * img[m]
-    info = {"noise_sigma": [round(s, 3) for s in sigma], "labels": int(sum(u.sum() for u in used)),
+                if k not in spectra:
+                    spectra[k] = block(int(k), bx0, by0, bx1, by1, top, left)
+            n_frames_used.append(len(near))
+            for c, ch in enumerate(channels):
+                if (c, l) not in used:
+                    continue
+                n_filters += 1
+                num = np.zeros(f_grid.shape, np.complex64)
+                den = nsrs[c].copy()
+                for k in near:
+                    hk = otf(float(zs[k] - zl), ch)
+                    num += hk * spectra[k][c]
+                    den += hk * hk
+                x = num * (h0s[c] / den)
+                x[0, 0] = np.mean([spectra[k][c][0, 0] for k in near])  # keep the mean
+                img = fft.irfft2(x, s=(nb_y, nb_x), workers=-1)[margin:margin + y1 - y0, margin:margin + x1 - x0]
+                img = img.astype(np.float32) + np.float32(mean[c])
+                l0, fr = lower[c][y0:y1, x0:x1], frac[c][y0:y1, x0:x1]
+                dst = out[y0:y1, x0:x1, c]
+                m = l0 == l
+                dst[m] += (1.0 - fr[m]) * img[m]
+                m = l0 == l - 1
+                dst[m] += fr[m] * img[m]
+    info = {"noise_sigma": [round(s, 3) for s in sigma], "tiles": len(tiles), "filters": n_filters,
             "label_um": round(step, 3), "frames_per_label": round(float(np.mean(n_frames_used)), 2)
             if n_frames_used else 0.0}
     return out, info
