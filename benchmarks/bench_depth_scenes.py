@@ -5,7 +5,10 @@ renders a colour stack through the scene's depth (6 focus tolerances) plus the f
 ``--step`` focus tolerances. Every method composites the same frames, registered by the same geometry (the
 lens's truth):
 
-* ``oracle``: the compositor with each pixel's true best focus (surface + depth);
+* ``oracle``: the compositor with each pixel's true best focus (surface + depth): the nearest frame, blended
+  across seams;
+* ``oracle + Wiener``: the true best focus through dff's own combination (occlusion-aware best focus, the
+  multi-frame Wiener filter of :mod:`fieldcal.composite.depth_wiener`): what dff would reach with a perfect depth;
 * ``dff``: ``composite_stack(method="dff")`` (``depth="auto"``: the scene is found to have depth, best focus per
   pixel);
 * ``hybrid``: ``composite_stack(method="hybrid")`` (the profile where the data agree with it, the data elsewhere);
@@ -37,6 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from fieldcal.composite.api import composite_stack  # noqa: E402
+from fieldcal.composite.depth_wiener import occlusion_focus_um, wiener_composite  # noqa: E402
 from fieldcal.composite.stack_profile import blend_kernel, composite_with_map  # noqa: E402
 from fieldcal.composite.warp import frame_maps, warp_region  # noqa: E402
 from fieldcal.formats.frames import ArrayStack  # noqa: E402
@@ -75,6 +79,10 @@ def run_layout(layout: str, w: int, h: int, seed: int = 1, step: float = 1.5) ->
     out = {"layout": layout, "frames": len(st)}
     out["oracle"] = composite_with_map(st, zb, blend_kernel(st, prof, frames, None, 0.05, 0.25), prof, frames,
                                        quiet=True)
+    # the same oracle depth through dff's combination: occlusion-aware best focus, multi-frame Wiener
+    zo = occlusion_focus_um(zb, 2.0 * spec.f_number * spec.sensor.pixel_pitch_um)
+    ref = composite_with_map(st, zo, blend_kernel(st, prof, frames, None, 0.05, 0.25), prof, frames, quiet=True)
+    out["oracle wiener"] = wiener_composite(st, zo, prof, frames, ref, geometry=prof, quiet=True)[0]
     t0 = time.perf_counter()
     auto = composite_stack(st, prof, method="dff", quiet=True)
     out["t_depth_s"] = time.perf_counter() - t0
@@ -97,7 +105,7 @@ def run_layout(layout: str, w: int, h: int, seed: int = 1, step: float = 1.5) ->
         out["enfuse"] = tifffile.imread(d / "enfuse.tif")[..., :3]
         shutil.rmtree(d, ignore_errors=True)
     rows = {}
-    for k in ("oracle", "dff", "hybrid", "smooth surface", "enfuse"):
+    for k in ("oracle", "oracle wiener", "dff", "hybrid", "smooth surface", "enfuse"):
         if k in out:
             rows[k] = (psnr(out[k]), halo(out[k]))
     out["rows"] = rows
@@ -113,19 +121,19 @@ def main() -> None:
     w, h = (int(v) for v in a.size.lower().split("x"))
     lines = [f"Scenes with depth ({w}x{h} px colour, paper triplet, one frame per {a.step:g} tolerances, depth 6 "
              f"tolerances; `python benchmarks/bench_depth_scenes.py --size {w}x{h} --step {a.step:g} --write`):", "",
-             "| layout | frames | found | oracle dB | dff dB | hybrid dB | smooth surface dB | enfuse dB |"
-             " dff − enfuse | dff − oracle | hybrid − enfuse | hybrid − oracle | halo px (oracle / dff / hybrid / enfuse) |"
-             " dff s |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| layout | frames | found | oracle dB | oracle + Wiener dB | dff dB | hybrid dB | smooth surface dB |"
+             " enfuse dB | dff − enfuse | dff − oracle | dff − oracle + W | hybrid − enfuse | hybrid − oracle |"
+             " hybrid − oracle + W | halo px (oracle / dff / hybrid / enfuse) | dff s |",
+             "|" + " --- |" * 17]
     for layout in LAYOUTS:
         r = run_layout(layout, w, h, step=a.step)
         R = r["rows"]
         enf = R.get("enfuse", (float("nan"), -1))
-        o, d, hy = R["oracle"], R["dff"], R["hybrid"]
-        lines.append(f"| {layout} | {r['frames']} | {r['scene']} | {o[0]:.2f} | {d[0]:.2f} | {hy[0]:.2f} | "
-                     f"{R['smooth surface'][0]:.2f} | {enf[0]:.2f} | {d[0] - enf[0]:+.2f} | {d[0] - o[0]:+.2f} | "
-                     f"{hy[0] - enf[0]:+.2f} | {hy[0] - o[0]:+.2f} | {o[1]} / {d[1]} / {hy[1]} / {enf[1]} | "
-                     f"{r['t_depth_s']:.1f} |")
+        o, ow, d, hy = R["oracle"], R["oracle wiener"], R["dff"], R["hybrid"]
+        lines.append(f"| {layout} | {r['frames']} | {r['scene']} | {o[0]:.2f} | {ow[0]:.2f} | {d[0]:.2f} | "
+                     f"{hy[0]:.2f} | {R['smooth surface'][0]:.2f} | {enf[0]:.2f} | {d[0] - enf[0]:+.2f} | "
+                     f"{d[0] - o[0]:+.2f} | {d[0] - ow[0]:+.2f} | {hy[0] - enf[0]:+.2f} | {hy[0] - o[0]:+.2f} | "
+                     f"{hy[0] - ow[0]:+.2f} | {o[1]} / {d[1]} / {hy[1]} / {enf[1]} | {r['t_depth_s']:.1f} |")
         print(lines[-1], flush=True)
     if a.write:
         doc = REPO / "docs" / "benchmarks.md"

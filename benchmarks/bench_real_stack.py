@@ -43,13 +43,68 @@ DEFAULT_STACK = (Path(os.environ["FIELDCAL_SHARED"]) / _SUB if os.environ.get("F
 BORDER = 96
 
 
+def grey(img: np.ndarray) -> np.ndarray:
+    """Grey 0-255 float32 of an RGB image (8 or 16 bit)."""
+    img = np.asarray(img)
+    a = img[..., :3].astype(np.float32)
+    if img.dtype == np.uint16:
+        a /= np.float32(257.0)
+    return cv2.cvtColor(a, cv2.COLOR_RGB2GRAY)
+
+
 def msl(img: np.ndarray) -> float:
-    a = np.asarray(img)[..., :3].astype(np.float32)
-    if a.max() > 255.5:
-        a = a / 257.0
-    g = cv2.cvtColor(a, cv2.COLOR_RGB2GRAY)
-    lap = cv2.Laplacian(g, cv2.CV_32F, ksize=3)[BORDER:-BORDER, BORDER:-BORDER]
+    """Mean squared Laplacian (ksize 3): weighted towards the highest, diagonal frequencies."""
+    lap = cv2.Laplacian(grey(img), cv2.CV_32F, ksize=3)[BORDER:-BORDER, BORDER:-BORDER]
     return float(np.mean(lap.astype(np.float64) ** 2))
+
+
+def tenengrad(img: np.ndarray) -> float:
+    """Mean squared Sobel gradient (Tenengrad): edge contrast, less weight on single-pixel noise than msl."""
+    g = grey(img)
+    gx, gy = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
+    return float(np.mean((gx * gx + gy * gy)[BORDER:-BORDER, BORDER:-BORDER].astype(np.float64)))
+
+
+def noise_dn(img: np.ndarray) -> float:
+    """Pixel noise (grey DN) by Immerkaer's operator with a robust median: the flat majority of the image."""
+    from fieldcal.composite.sweep import estimate_noise_sigma
+
+    return estimate_noise_sigma(grey(img)[BORDER:-BORDER, BORDER:-BORDER])
+
+
+#: radial frequency bands (cycles/px) of the spectrum table; above 0.5 only diagonal frequencies remain
+BANDS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.71)
+
+
+def band_power(img: np.ndarray) -> list[float]:
+    """Mean power spectrum (Hann window, grey) in each radial band of :data:`BANDS`."""
+    g = grey(img)[BORDER:-BORDER, BORDER:-BORDER].astype(np.float64)
+    g -= g.mean()
+    g *= np.outer(np.hanning(g.shape[0]), np.hanning(g.shape[1]))
+    p = np.abs(np.fft.rfft2(g)) ** 2 / g.size
+    fy, fx = np.fft.fftfreq(g.shape[0])[:, None], np.fft.rfftfreq(g.shape[1])[None, :]
+    r = np.sqrt(fx * fx + fy * fy)
+    return [float(p[(r >= a) & (r < b)].mean()) for a, b in zip(BANDS[:-1], BANDS[1:])]
+
+
+def finest_octave_energy(g: np.ndarray, box_px: int = 9) -> np.ndarray:
+    """Local energy (box mean over ``box_px``) of the finest Laplacian-pyramid octave of a grey image."""
+    up = cv2.pyrUp(cv2.pyrDown(g), dstsize=(g.shape[1], g.shape[0]))
+    d = g - up
+    return cv2.blur(d * d, (box_px, box_px))
+
+
+def frame_detail_share(img: np.ndarray, frames: list[np.ndarray]) -> tuple[float, float]:
+    """A composite's finest-octave energy against the most any of its own (registered) frames holds at each
+    place (the per-pixel maximum of their local energies: what choosing frames can reach), and the share of its
+    energy above that bound (detail no frame recorded: switching steps, ringing, noise)."""
+    e = finest_octave_energy(grey(img))
+    bound = np.zeros_like(e)
+    for f in frames:
+        np.maximum(bound, finest_octave_energy(grey(f)), out=bound)
+    sl = (slice(BORDER, -BORDER), slice(BORDER, -BORDER))
+    total = max(float(e[sl].sum()), 1e-30)
+    return total / max(float(bound[sl].sum()), 1e-30), float(np.maximum(e - bound, 0.0)[sl].sum()) / total
 
 
 def time_composite(py, stack: Path, out: Path, n: int) -> dict:
@@ -92,21 +147,38 @@ def main() -> None:
     shutil.copy(work / f"fieldcal{len(jpegs)}.tiff", work / "fieldcal.tiff")
     t_fc = timing[0]["wall (s)"]
     ours = tifffile.imread(work / "fieldcal.tiff")
-    rows = {"a single frame (the sharpest, by this measure)": max(
-        msl(cv2.imread(str(p))[..., ::-1]) for p in sorted(STACK.glob("*.JPG"))), "fieldcal": msl(ours)}
+    single = [cv2.imread(str(p))[..., ::-1] for p in jpegs]
+    sharpest = int(np.argmax([msl(f) for f in single]))
+    # fieldcal's own registered frames (the geometry of its output), to bound what detail its frames hold
+    from fieldcal.composite.register import register_stack
+    from fieldcal.formats.stack import Stack
+
+    held, _ = register_stack(Stack.open(work / f"pcb{len(jpegs)}", verify=False), z_ref_um=0.0, quiet=True)
+    ours_frames = [held.read(i) for i in range(len(jpegs))]
+    rows = {f"a single frame (the sharpest by msl, {jpegs[sharpest].name})": (single[sharpest], None),
+            "fieldcal": (ours, ours_frames)}
     enf = None
     if shutil.which("enfuse") and shutil.which("align_image_stack"):
         t0 = time.perf_counter()
-        subprocess.run(["align_image_stack", "-m", "-a", str(work / "al_"), *map(str, sorted(STACK.glob("*.JPG")))],
+        subprocess.run(["align_image_stack", "-m", "-a", str(work / "al_"), *map(str, jpegs)],
                        check=True, capture_output=True)
         subprocess.run(["enfuse", "--exposure-weight=0", "--saturation-weight=0", "--contrast-weight=1",
                         "--hard-mask", f"--output={work / 'enfuse.tif'}", *map(str, sorted(work.glob("al_*.tif")))],
                        check=True, capture_output=True)
         t_enf = time.perf_counter() - t0
         enf = tifffile.imread(work / "enfuse.tif")[..., :3]
-        rows["align_image_stack + enfuse --hard-mask"] = msl(enf)
-    lines = ["| composite | mean squared Laplacian (96 px border out) |", "| --- | --- |"]
-    lines += [f"| {k} | {v:.0f} |" for k, v in rows.items()]
+        rows["align_image_stack + enfuse --hard-mask"] = (
+            enf, [tifffile.imread(p)[..., :3] for p in sorted(work.glob("al_*.tif"))])
+    lines = ["| composite | mean squared Laplacian | Tenengrad | noise (grey DN) | finest octave: energy / most its "
+             "frames hold at each place | of it beyond every frame |", "| --- | --- | --- | --- | --- | --- |"]
+    for k, (img, frames) in rows.items():
+        share = ("", "") if frames is None else tuple(f"{100 * v:.1f} %" for v in frame_detail_share(img, frames))
+        lines.append(f"| {k} | {msl(img):.0f} | {tenengrad(img):.0f} | {noise_dn(img):.3f} | {share[0]} | "
+                     f"{share[1]} |")
+    lines += ["", "| composite | " + " | ".join(f"{a:g}-{b:g}" for a, b in zip(BANDS[:-1], BANDS[1:])) + " |",
+              "|" + " --- |" * len(BANDS)]
+    for k, (img, _) in rows.items():
+        lines.append(f"| {k} | " + " | ".join(f"{v:.3g}" for v in band_power(img)) + " |")
     lines.append("")
     head = ["run", "frames", "wall (s)", "CPU (s)", "peak RSS (MB)", "load at start"]
     lines += ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
@@ -121,19 +193,22 @@ def main() -> None:
         lines += ["", slowdown_note(flags)]
     print(f"fieldcal composite (registration included): {t_fc} s")
     print("\n".join(lines))
-    # crops side by side (same geometry: the first frame's)
+    # crops side by side (same geometry: the first frame's), shown at 2x: depth edges of the switch against the
+    # board and its pads, the silkscreen, fine dust on the switch body
     h, w = ours.shape[:2]
     crops = []
-    for (y, x) in ((int(0.45 * h), int(0.45 * w)), (int(0.15 * h), int(0.65 * w)), (int(0.7 * h), int(0.15 * w))):
-        row = [ours[y:y + 256, x:x + 256, :3]]
+    size = 192
+    for (fx, fy) in ((0.576, 0.273), (0.303, 0.651), (0.703, 0.313), (0.508, 0.417)):
+        x, y = int(fx * w), int(fy * h)
+        row = [ours[y:y + size, x:x + size, :3]]
         if enf is not None:
             e = enf if enf.dtype == np.uint8 else (enf / 257).astype(np.uint8)
-            row = [e[y:y + 256, x:x + 256]] + row
-        crops.append(np.concatenate(row, axis=1))
+            row = [e[y:y + size, x:x + size], np.full((size, 4, 3), 255, np.uint8)] + row
+        crops.append(cv2.resize(np.concatenate(row, axis=1), None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST))
     # the docs' figure only with --write; otherwise beside the run, kept for a look
     out = (REPO / "docs" / "img" if a.write else Path(tempfile.gettempdir())) / "real-pcb-crops.png"
     cv2.imwrite(str(out), np.concatenate(crops, axis=0)[..., ::-1])
-    print(f"crops ({'enfuse | fieldcal' if enf is not None else 'fieldcal'}, three regions): {out}")
+    print(f"crops ({'enfuse | fieldcal' if enf is not None else 'fieldcal'}, four regions, 2x): {out}")
     if a.write:
         doc = REPO / "docs" / "benchmarks.md"
         text = doc.read_text(encoding="utf-8")

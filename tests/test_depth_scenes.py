@@ -219,7 +219,9 @@ def _enfuse(world, tmp_path):
 def test_thin_bars_are_found_to_have_depth_and_composited_per_pixel(thin_world, tmp_path):
     """Bars of 2-6 px that blocks average away: depth="auto" must see them (pixels off the surface), and the
     per-pixel composites (dff and hybrid) must come within 1 dB of the oracle, beat the smooth surface by far
-    and, where enfuse is installed, beat its hard mask on the same frames."""
+    and, where enfuse is installed, beat its hard mask on the same frames: with the lens model's defocus OTF the
+    frames around each pixel's depth are combined (multi-frame Wiener), not one chosen (measured +1.05 to
+    +1.10 dB over enfuse here)."""
     from fieldcal.composite.api import DEPTH_PIXEL_FRACTION, composite_stack
 
     st, prof = thin_world["st"], thin_world["prof"]
@@ -233,8 +235,9 @@ def test_thin_bars_are_found_to_have_depth_and_composited_per_pixel(thin_world, 
         ours = _psnr(thin_world, res.image)
         assert ours > oracle - 1.0, (res.method, ours, oracle)
         assert ours > flat + 2.0, (res.method, ours, flat)
+        assert "wiener" in res.info, res.info
         if enf is not None:
-            assert ours > _psnr(thin_world, enf) + 0.15, (res.method, ours, _psnr(thin_world, enf))
+            assert ours > _psnr(thin_world, enf) + 0.8, (res.method, ours, _psnr(thin_world, enf))
 
 
 def test_halo_width_is_measured_and_small(thin_world):

@@ -80,7 +80,9 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         things in front of a background)? ``auto`` decides from the data: when the smooth surface fitted to
         the block depths misses them by more than half a frame spacing (RMS), the scene has depth, and best
         focus is taken per pixel (:func:`fieldcal.composite.fusion.depth_map`, edge-aware) instead of from
-        the surface. The profile (``hybrid``) keeps the pixels the data cannot tell apart from it.
+        the surface. The profile (``hybrid``) keeps the pixels the data cannot tell apart from it. With a lens
+        model that states its F-number, the best focus is made occlusion-aware and the frames around each
+        pixel's depth are combined by a multi-frame Wiener filter (:mod:`fieldcal.composite.depth_wiener`).
     """
     if depth not in DEPTH_MODES:
         raise ParameterError(f"unknown depth mode {depth!r}", field="depth", fix=f"use one of {', '.join(DEPTH_MODES)}")
@@ -154,10 +156,22 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
             off = np.abs(per_pixel - zb) > limit
             zb = np.where(off, per_pixel, zb).astype(np.float32)
             info["pixels_from_data"] = round(float(off.mean()), 4)
+    wiener = has_depth and profile is not None and bool(getattr(profile, "f_number", None))
+    if wiener:
+        # a nearer object's blur disc kept off the pixels beside it (composite/depth_wiener.py)
+        from .depth_wiener import occlusion_focus_um
+        zb = occlusion_focus_um(zb, 2.0 * float(profile.f_number) * float(profile.pixel_pitch_um))
     kernel = blend_kernel(stack, profile, frames, fs_cyc_per_mm, q, min_band)
     img = composite_with_map(stack, zb, kernel, geometry, frames, lateral_colour=lateral_colour, tile=tile,
                              quiet=quiet)
-    if has_depth and fallback is not None:
+    if wiener:
+        # the frames around each pixel's depth combined by the lens's defocus OTF, not one frame chosen
+        from .depth_wiener import wiener_composite
+        from .stack_profile import to_input_dtype
+        combined, info["wiener"] = wiener_composite(stack, zb, profile, frames, img, geometry=geometry,
+                                                    lateral_colour=lateral_colour, quiet=quiet)
+        img = to_input_dtype(combined, img.dtype, float(stack.white_level))
+    if has_depth and fallback is not None and not wiener:
         # where the depth map is unsure (little texture), the multi-scale fusion's pixels: it needs no depth
         from .stack_profile import to_input_dtype
         fused, weight = fallback

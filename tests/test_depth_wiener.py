@@ -1,0 +1,114 @@
+"""Scenes with depth and a lens model: occlusion-aware best focus and the multi-frame Wiener combination."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fieldcal.composite.depth_wiener import occlusion_focus_um, wiener_composite
+from fieldcal.composite.source import ArrayStack
+from fieldcal.composite.stack_profile import blend_kernel, composite_with_map
+from fieldcal.errors import ParameterError
+from fieldcal.simulate.lens import LensSpec
+from fieldcal.simulate.render import Renderer
+from fieldcal.simulate.scene import colour_leaves
+from fieldcal.simulate.truth import TruthProfile
+
+W, H = 128, 96
+
+
+def test_occlusion_focus_is_the_upper_envelope_of_blur_cones():
+    """A near square (depth D) on a far background: beside it the best focus is D - c d at axis distance d and
+    D - c sqrt(2) k at diagonal steps k (the octagonal distance is exact there), never below the background."""
+    d, c = 100.0, 30.0
+    z = np.zeros((40, 40), np.float32)
+    z[15:25, 15:25] = d
+    out = occlusion_focus_um(z, c)
+    assert np.all(out[15:25, 15:25] == d)
+    for k in range(1, 6):
+        assert out[20, 24 + k] == pytest.approx(max(0.0, d - c * k), abs=1e-4)
+        assert out[24 + k, 24 + k] == pytest.approx(max(0.0, d - c * np.sqrt(2) * k), abs=1e-4)
+    assert np.all(out >= z) and out[0, 0] == 0.0
+    # a slope gentler than c per pixel (field curvature) is left as it is
+    ramp = np.tile(np.linspace(0, 0.5 * c * 39, 40, dtype=np.float32), (40, 1))
+    assert np.allclose(occlusion_focus_um(ramp, c), ramp)
+    # per channel for H x W x C
+    assert occlusion_focus_um(np.dstack([z, z + 5]), c)[20, 26, 1] == pytest.approx(d + 5 - 2 * c, abs=1e-4)
+    with pytest.raises(ParameterError):
+        occlusion_focus_um(z, 0.0)
+
+
+@pytest.fixture(scope="module")
+def flat_world():
+    spec = LensSpec.load(Path(__file__).resolve().parents[1] / "models" / "triplet-uncorrected.json").with_sensor_size(W, H)
+    fs = 0.25 / (spec.sensor.pixel_pitch_um * 1e-3)
+    tol = min(spec.focus_tolerance_um(fs, 0.05, c) for c in spec.channel_names)
+    r = Renderer(spec, colour_leaves(W, H, 3), seed=4)
+    lo, hi = spec.focus_range_um()
+    z = np.arange(lo - 2 * tol, hi + 2 * tol, 1.5 * tol)
+    prof = TruthProfile(spec, W, H)
+    xx, yy = np.meshgrid(np.arange(W), np.arange(H))
+    zb = np.stack([prof.best_focus_um(xx, yy, c) for c in spec.channel_names], -1).astype(np.float32)
+    return spec, r, z, prof, zb
+
+
+def _stack(spec, r, z, noise):
+    return ArrayStack([r.render(float(v), noise=noise) for v in z], z, spec.channel_names,
+                      black_level=spec.sensor.black_level_dn, white_level=spec.sensor.white_level_dn)
+
+
+@pytest.mark.parametrize("noise", [False, True])
+def test_wiener_combination_beats_the_nearest_frame(flat_world, noise):
+    """Every frame is the in-focus image through a known OTF: noise-free, the combination (sum H_k Y_k H_0 /
+    sum H_k^2 = H_0 X) undoes the defocus of the nearest frame, up to half a spacing out of focus (not exactly:
+    the renderer interpolates between blur levels and each frame is warped back from its own breathing, neither
+    of which is a pure OTF); with the camera's noise it also averages the frames' noise (> 1 dB)."""
+    spec, r, z, prof, zb = flat_world
+    st = _stack(spec, r, z, noise)
+    frames = np.arange(len(st))
+    blend = composite_with_map(st, zb, blend_kernel(st, prof, frames), prof, frames, quiet=True)
+    out, info = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
+    truth = r.truth().astype(np.float64)
+    m = 8
+
+    def rms(img):
+        return float(np.sqrt(np.mean((np.asarray(img, np.float64)[m:-m, m:-m] - truth[m:-m, m:-m]) ** 2)))
+
+    assert info["filters"] >= 2 and info["frames_per_label"] >= 2
+    if noise:
+        assert 20 * np.log10(rms(blend) / rms(out)) > 1.0, (rms(blend), rms(out))
+    else:
+        assert rms(out) < 0.9 * rms(blend), (rms(out), rms(blend))
+
+
+def test_wiener_needs_an_f_number(flat_world):
+    spec, r, z, prof, zb = flat_world
+    st = _stack(spec, r, z[:3], False)
+
+    class NoF:
+        f_number = None
+        pixel_pitch_um = prof.pixel_pitch_um
+
+    with pytest.raises(ParameterError, match="F-number"):
+        wiener_composite(st, zb, NoF(), np.arange(3), zb)
+
+
+def test_tiles_agree_with_one_whole_image_filter(flat_world, monkeypatch):
+    """Filtering tile by tile (a margin of real neighbours, only the tile's labels) is the same linear filter as
+    one pass over the whole image: the two agree to a small fraction of the pixel noise."""
+    import fieldcal.composite.depth_wiener as dw
+
+    spec, r, z, prof, zb = flat_world
+    st = _stack(spec, r, z, True)
+    frames = np.arange(len(st))
+    blend = composite_with_map(st, zb, blend_kernel(st, prof, frames), prof, frames, quiet=True)
+    monkeypatch.setattr(dw, "TILE_PX", 4096)
+    whole, info_w = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
+    monkeypatch.setattr(dw, "TILE_PX", 40)
+    tiled, info_t = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
+    assert info_w["tiles"] == 1 and info_t["tiles"] == 12
+    sigma = float(np.mean(info_w["noise_sigma"]))
+    d = np.abs(whole.astype(np.float64) - tiled)
+    assert np.sqrt(np.mean(d ** 2)) < 0.005 * sigma and d.max() < 0.02 * sigma, (d.max(), sigma)
