@@ -10,6 +10,7 @@ The MTF criterion (fs, q) arrives as a :class:`fieldcal.optics.MTFCriterion`, va
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import special
@@ -19,14 +20,29 @@ from ..optics import LensModel, MTFCriterion, defocus_otf, focus_tolerance_um as
 
 MODEL_SOURCE = "defocus model from the F-number (no measured through-focus width)"
 MEASURED_SOURCE = "measured through-focus width (profile)"
-# Widths from the texture focus measure, converted to δ(fs, q) through the defocus shape, come out too wide
-# against the true MTF tolerance: median ratio 1.011-1.050 on the triplet and two random lenses at 480x270
-# (docs/benchmarks.md "bench_edge_calibration", --scene chart), 1.05-1.12 in issue 13's runs on other lenses,
-# where plans left up to 6.5 % of pixels outside. Texture-measured δ is divided by this factor (the top of that
-# range), so the plan errs towards one frame too many; e-SFR (slanted-edge) widths measure MTF(fs) itself
-# (ratio 0.99-1.04) and are used as they are.
-TEXTURE_WIDTH_BIAS = 1.12
-TEXTURE_SOURCE = MEASURED_SOURCE + f" from the texture focus measure, / {TEXTURE_WIDTH_BIAS} (its measured bias)"
+
+
+@dataclass(frozen=True)
+class WidthBias:
+    """How a measurement's through-focus width, converted to δ(fs, q), compares with the true δ on simulated
+    lenses: ``factor`` = median of (profile δ / true δ), ``rel_sd`` = the lens-to-lens spread of that ratio
+    (relative sd). The plan divides by ``factor`` and carries ``rel_sd`` as the δ's systematic uncertainty:
+    one draw per lens, common to every pixel, that no fit to the lens's own tiles can see."""
+
+    factor: float
+    rel_sd: float
+    measured: str  # where the figures come from
+
+
+# Measured with ``benchmarks/bench_plan_coverage.py`` (docs/benchmarks.md "bench_plan_coverage"; the physics
+# in docs/planning.md "Measured tolerance"): the triplet and random lenses, F/1.4-F/8, both simulator paths
+# (geometric and wave optics, with and without spherical aberration), fs = 0.4 Nyquist, q = 0.05.
+TEXTURE_WIDTH = WidthBias(1.12, 0.04, "placeholder")
+ESFR_WIDTH = WidthBias(1.0, 0.03, "placeholder")
+TEXTURE_WIDTH_BIAS = TEXTURE_WIDTH.factor
+TEXTURE_SOURCE = (MEASURED_SOURCE + f" from the texture focus measure, / {TEXTURE_WIDTH.factor} (its measured "
+                  f"bias), ± {TEXTURE_WIDTH.rel_sd:.0%} lens to lens")
+ESFR_SOURCE = MEASURED_SOURCE + f" from slanted edges (e-SFR), ± {ESFR_WIDTH.rel_sd:.0%} lens to lens"
 
 
 def check_confidence(p) -> float | None:
@@ -41,17 +57,31 @@ def check_confidence(p) -> float | None:
     return pp
 
 
+def width_bias(profile) -> WidthBias | None:
+    """The width measurement's bias record of a calibrated profile with measured widths; None for models,
+    truths and synthetic profiles (their δ is exact). Profiles that do not say how they measured are texture."""
+    if not bool(getattr(profile, "has_measured_tolerance", False)):
+        return None
+    cal = getattr(profile, "calibration", None)
+    if not isinstance(cal, dict):
+        return None
+    return ESFR_WIDTH if cal.get("measurement", "focus-measure") == "esfr" else TEXTURE_WIDTH
+
+
 def tolerance_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion) -> tuple[np.ndarray, str]:
-    """Per-pixel δ (µm) and where it came from. Non-finite or non-positive values fall back to the model."""
+    """Per-pixel δ (µm) and where it came from. Non-finite or non-positive values fall back to the model.
+
+    A calibrated profile's measured widths are divided by their measurement's bias (:func:`width_bias`)."""
     shape = np.broadcast(np.asarray(x), np.asarray(y)).shape
     model = model_tolerance_um(crit, float(profile.f_number))
     measured = bool(profile.has_measured_tolerance)
     tol = np.asarray(profile.focus_tolerance_um(x, y, channel, crit.fs_cyc_per_mm, crit.q), dtype=np.float64)
     tol = np.broadcast_to(tol, shape).copy()
     measured_src = MEASURED_SOURCE
-    if measured and _texture_widths(profile):
-        tol = tol / TEXTURE_WIDTH_BIAS
-        measured_src = TEXTURE_SOURCE
+    bias = width_bias(profile)
+    if bias is not None:
+        tol = tol / bias.factor
+        measured_src = ESFR_SOURCE if bias is ESFR_WIDTH else TEXTURE_SOURCE
     bad = ~np.isfinite(tol) | (tol <= 0)
     if bad.all():
         return np.full(shape, model), MODEL_SOURCE
@@ -61,10 +91,27 @@ def tolerance_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion) -> 
     return tol, measured_src if measured else MODEL_SOURCE
 
 
-def _texture_widths(profile) -> bool:
-    """True for a calibrated profile whose widths came from the texture focus measure (not slanted edges)."""
-    cal = getattr(profile, "calibration", None)
-    return isinstance(cal, dict) and cal.get("measurement", "focus-measure") != "esfr"
+def tolerance_sd_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion, tol_um) -> np.ndarray:
+    """sd (µm) of the plan's δ at each point: the width fit's standard error (the profile's
+    ``focus_tolerance_sd_um``, tiles independent) and the measurement's lens-to-lens systematic
+    (``rel_sd`` of :func:`width_bias`) in quadrature. 0 where δ is exact (models, truths)."""
+    tol = np.asarray(tol_um, dtype=np.float64)
+    bias = width_bias(profile)
+    if bias is None:
+        return np.zeros_like(tol)
+    stat = np.zeros_like(tol)
+    sd_fn = getattr(profile, "focus_tolerance_sd_um", None)
+    if callable(sd_fn):
+        stat = np.broadcast_to(np.asarray(sd_fn(x, y, channel, crit.fs_cyc_per_mm, crit.q), dtype=np.float64),
+                               tol.shape) / bias.factor
+        stat = np.nan_to_num(stat, nan=0.0, posinf=0.0)
+    return np.hypot(stat, bias.rel_sd * tol)
+
+
+def lower_tolerance_um(tol_um, tol_sd_um, level: float) -> np.ndarray:
+    """Lower end of δ's central ``level`` credible interval (Gaussian), at least 0."""
+    zq = special.ndtri(0.5 + 0.5 * level)
+    return np.maximum(np.asarray(tol_um, dtype=np.float64) - zq * np.asarray(tol_sd_um, dtype=np.float64), 0.0)
 
 
 def band_halfwidth_um(profile, x, y, channel: str, z_map, level: float) -> np.ndarray:
@@ -90,17 +137,30 @@ def mtf_loss(dz_um, tol_um, crit: MTFCriterion, f_number: float) -> np.ndarray:
     return 1.0 - np.abs(defocus_otf(crit.fs_cyc_per_mm, dz_eff, f_number))
 
 
-def coverage_probability(z_frame, z_map, tol, sigma) -> np.ndarray:
-    """P(|z_frame - z_true| <= tol) for z_true ~ N(z_map, sigma^2) (sigma = 0: certain)."""
+def coverage_probability(z_frame, z_map, tol, sigma, tol_sd=0.0, n_nodes: int = 9) -> np.ndarray:
+    """P(|z_frame - Z| <= Δ) for Z ~ N(z_map, sigma^2) and Δ ~ N(tol, tol_sd^2) independent (sigma = 0:
+    certain position; tol_sd = 0: exact δ). Over Δ by Gauss-Hermite quadrature, Δ clipped at 0."""
     z_frame = np.asarray(z_frame, dtype=np.float64)
     z_map = np.asarray(z_map, dtype=np.float64)
     tol = np.asarray(tol, dtype=np.float64)
     sigma = np.asarray(sigma, dtype=np.float64)
+    tol_sd = np.asarray(tol_sd, dtype=np.float64)
     d = z_frame - z_map
-    certain = (np.abs(d) <= tol + 1e-9).astype(np.float64)
     s = np.where(sigma > 0, sigma, 1.0)
-    p = special.ndtr((d + tol) / s) - special.ndtr((d - tol) / s)
-    return np.where(sigma > 0, p, certain)
+
+    def p_at(t):
+        certain = (np.abs(d) <= t + 1e-9).astype(np.float64)
+        p = special.ndtr((d + t) / s) - special.ndtr((d - t) / s)
+        return np.where(sigma > 0, p, certain)
+
+    if not np.any(tol_sd > 0):
+        return p_at(tol)
+    nodes, w = np.polynomial.hermite_e.hermegauss(n_nodes)
+    w = w / w.sum()
+    out = np.zeros(np.broadcast(d, tol, tol_sd, sigma).shape)
+    for ti, wi in zip(nodes, w):
+        out += wi * p_at(np.maximum(tol + tol_sd * ti, 0.0))
+    return out
 
 
 def expected_mtf_loss(z_frame, z_map, tol, sigma, crit: MTFCriterion, f_number: float, n_nodes: int = 21):
