@@ -195,7 +195,7 @@ def write_docs(text: str) -> None:
     doc.write_text(s)
 
 
-def widths(work: Path, fs_factors, scene: str, effort: str, seed: int) -> list[dict]:
+def widths(work: Path, fs_factors, scene: str, effort: str, seed: int, only: str = "") -> list[dict]:
     """Raw width ratio (profile δ / true δ) of each stored ``scene`` stack recalibrated at fs = factor x the
     stored fs: how the width-to-δ conversion depends on fs (and, across the stacks, on F-number and optics)."""
     from fieldcal.calibration.pipeline import calibrate
@@ -204,6 +204,8 @@ def widths(work: Path, fs_factors, scene: str, effort: str, seed: int) -> list[d
 
     rows = []
     for d in sorted(p.parent for p in work.glob(f"*-{scene}/meta.json")):
+        if only and not any(o in d.name for o in only.split(",")):
+            continue
         meta = json.loads((d / "meta.json").read_text())
         spec = LensSpec.load(d / "spec.json")
         for k in fs_factors:
@@ -242,6 +244,7 @@ def main(argv=None) -> int:
     ap.add_argument("--coverage", type=float, default=0.99, help="the plans' coverage target (0: fewest frames)")
     ap.add_argument("--fs-factors", default="0.5,1,1.5", help="widths: fs as multiples of the stored fs")
     ap.add_argument("--widths-scene", default="chart", help="widths: which stored stacks (chart or slanted-edge)")
+    ap.add_argument("--only", default="", help="widths: only stacks whose name holds one of these (comma-separated)")
     ap.add_argument("--docs", action="store_true", help="write the table into docs/benchmarks.md")
     args = ap.parse_args(argv)
     work = Path(args.work)
@@ -250,7 +253,8 @@ def main(argv=None) -> int:
                 args.step_frac, args.min_frames)
         return 0
     if args.stage == "widths":
-        rows = widths(work, [float(v) for v in args.fs_factors.split(",")], args.widths_scene, args.effort, args.seed)
+        rows = widths(work, [float(v) for v in args.fs_factors.split(",")], args.widths_scene, args.effort, args.seed,
+                      args.only)
         (work / f"widths-{args.widths_scene}.json").write_text(json.dumps(rows, indent=1))
         return 0
     rows = []

@@ -210,7 +210,9 @@ def _surface_sd(profile, fieldd: SampledField, confidence) -> dict:
     for c, s in fieldd.samples.items():
         u = s.u_um if confidence is not None else band_halfwidth_um(profile, s.x, s.y, c, s.z_um - fieldd.refocus_um,
                                                                     level)
-        out[c] = np.asarray(sigma_from_halfwidth(np.where(np.isfinite(u), u, 0.0), level), dtype=np.float64)
+        # float noise of z ± 0 about a refocused z is no uncertainty (it would make the margin bisection move frames)
+        u = np.where(np.isfinite(u) & (u > 1e-9 * (1.0 + np.abs(s.z_um))), u, 0.0)
+        out[c] = np.asarray(sigma_from_halfwidth(u, level), dtype=np.float64)
     return out
 
 

@@ -96,16 +96,16 @@ def tolerance_sd_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion, 
     ``focus_tolerance_sd_um``, tiles independent) and the measurement's lens-to-lens systematic
     (``rel_sd`` of :func:`width_bias`) in quadrature. 0 where δ is exact (models, truths)."""
     tol = np.asarray(tol_um, dtype=np.float64)
-    bias = width_bias(profile)
-    if bias is None:
+    if not bool(getattr(profile, "has_measured_tolerance", False)):
         return np.zeros_like(tol)
+    bias = width_bias(profile)
     stat = np.zeros_like(tol)
     sd_fn = getattr(profile, "focus_tolerance_sd_um", None)
     if callable(sd_fn):
         stat = np.broadcast_to(np.asarray(sd_fn(x, y, channel, crit.fs_cyc_per_mm, crit.q), dtype=np.float64),
-                               tol.shape) / bias.factor
+                               tol.shape) / (bias.factor if bias is not None else 1.0)
         stat = np.nan_to_num(stat, nan=0.0, posinf=0.0)
-    return np.hypot(stat, bias.rel_sd * tol)
+    return np.hypot(stat, (bias.rel_sd if bias is not None else 0.0) * tol)
 
 
 def lower_tolerance_um(tol_um, tol_sd_um, level: float) -> np.ndarray:
