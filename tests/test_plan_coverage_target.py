@@ -84,13 +84,15 @@ def test_coverage_probability_with_an_uncertain_tolerance_matches_monte_carlo():
 
 
 class _Widths:
-    """A calibrated profile's measured width of 20 µm everywhere with a fit standard error of 0.3 µm."""
+    """A calibrated profile (5 µm pixels, calibrated at 40 cycles/mm = 0.2 cycles/px) with a measured width of
+    20 µm everywhere and a fit standard error of 0.3 µm."""
 
     f_number = 2.0
     has_measured_tolerance = True
+    pixel_pitch_um = 5.0
 
     def __init__(self, measurement):
-        self.calibration = {"measurement": measurement}
+        self.calibration = {"measurement": measurement, "fs_cyc_per_mm": 40.0}
 
     def focus_tolerance_um(self, x, y, channel, fs, q):
         return np.full(np.broadcast(np.asarray(x), np.asarray(y)).shape, 20.0)
@@ -104,10 +106,19 @@ def test_tolerance_sd_is_the_fit_error_and_the_measurements_systematic(measureme
     prof = _Widths(measurement)
     crit = MTFCriterion(20.0, 0.05)
     x, y = np.arange(3.0), np.zeros(3)
-    tol, _ = tolerance_um(prof, x, y, "G", crit)
+    tol, src = tolerance_um(prof, x, y, "G", crit)
     sd = tolerance_sd_um(prof, x, y, "G", crit, tol)
-    np.testing.assert_allclose(tol, 20.0 / bias.factor)
-    np.testing.assert_allclose(sd, np.hypot(0.3 / bias.factor, bias.rel_sd * 20.0 / bias.factor))
+    k = bias.intercept + bias.slope_per_cyc_px * 0.2  # the bias at the calibration's 0.2 cycles/px
+    np.testing.assert_allclose(tol, 20.0 / k)
+    np.testing.assert_allclose(sd, np.hypot(0.3 / k, bias.rel_sd * 20.0 / k))
+    assert ("texture" in src) == (bias is TEXTURE_WIDTH)
+
+
+def test_texture_width_bias_grows_with_fs_in_cycles_per_pixel_and_is_clipped_to_the_measured_range():
+    lo, hi = TEXTURE_WIDTH.fs_px_range
+    f = [TEXTURE_WIDTH.factor(v) for v in (0.0, lo, 0.2, 0.3, hi, 0.5, None)]
+    assert f[0] == f[1] < f[2] < f[3] < f[4] == f[5] == f[6]  # None (fs unknown): the narrowest δ
+    assert 0.9 < f[1] < 0.95 and 1.08 < f[4] < 1.12  # docs/planning.md "Measured tolerance"
 
 
 @pytest.mark.parametrize("bad", [0.0, 1.0, 1.5, -0.2, "x"])

@@ -25,24 +25,40 @@ MEASURED_SOURCE = "measured through-focus width (profile)"
 @dataclass(frozen=True)
 class WidthBias:
     """How a measurement's through-focus width, converted to δ(fs, q), compares with the true δ on simulated
-    lenses: ``factor`` = median of (profile δ / true δ), ``rel_sd`` = the lens-to-lens spread of that ratio
-    (relative sd). The plan divides by ``factor`` and carries ``rel_sd`` as the δ's systematic uncertainty:
-    one draw per lens, common to every pixel, that no fit to the lens's own tiles can see."""
+    lenses: the ratio (profile δ / true δ) is ``intercept + slope * fs_px`` with fs_px the calibration's fs in
+    cycles per pixel (clipped to the measured ``fs_px_range``; an unknown fs_px takes the range's top, the
+    narrowest δ), with a lens-to-lens relative sd ``rel_sd``. The plan divides by the ratio and carries
+    ``rel_sd`` as δ's systematic uncertainty: one draw per lens, common to every pixel, that no fit to the
+    lens's own tiles can see."""
 
-    factor: float
+    intercept: float
+    slope_per_cyc_px: float
     rel_sd: float
+    fs_px_range: tuple[float, float]
     measured: str  # where the figures come from
 
+    def factor(self, fs_cyc_per_px: float | None) -> float:
+        lo, hi = self.fs_px_range
+        f = hi if fs_cyc_per_px is None or not math.isfinite(fs_cyc_per_px) else min(max(fs_cyc_per_px, lo), hi)
+        return self.intercept + self.slope_per_cyc_px * f
 
-# Measured with ``benchmarks/bench_plan_coverage.py`` (docs/benchmarks.md "bench_plan_coverage"; the physics
-# in docs/planning.md "Measured tolerance"): the triplet and random lenses, F/1.4-F/8, both simulator paths
-# (geometric and wave optics, with and without spherical aberration), fs = 0.4 Nyquist, q = 0.05.
-TEXTURE_WIDTH = WidthBias(1.12, 0.04, "placeholder")
-ESFR_WIDTH = WidthBias(1.0, 0.03, "placeholder")
-TEXTURE_WIDTH_BIAS = TEXTURE_WIDTH.factor
-TEXTURE_SOURCE = (MEASURED_SOURCE + f" from the texture focus measure, / {TEXTURE_WIDTH.factor} (its measured "
-                  f"bias), ± {TEXTURE_WIDTH.rel_sd:.0%} lens to lens")
+
+# Measured with ``benchmarks/bench_plan_coverage.py`` (docs/benchmarks.md "bench_plan_coverage", the analysis in
+# docs/planning.md "Measured tolerance"): the triplet and 5 random lenses, F/1.7-F/3.8, both simulator paths
+# (geometric and wave optics, with and without spherical aberration), fs = 0.1-0.4 cycles/px, q = 0.05,
+# 35 texture calibrations. The texture ratio rises with fs in cycles/px (0.88-0.94 at 0.1, 1.04-1.11 at 0.4),
+# not with the scan step (0.25-1.0 δ at the same fs give the same ratio), the F-number or the optics path; the
+# residual about the line is 0.027 (sd). e-SFR widths measure MTF(fs) itself: 0.98-1.03 of the true δ.
+TEXTURE_WIDTH = WidthBias(0.875, 0.524, 0.03, (0.1, 0.45),
+                          "bench_plan_coverage: 35 texture calibrations, fs 0.1-0.4 cycles/px, both optics paths")
+ESFR_WIDTH = WidthBias(1.0, 0.0, 0.02, (0.05, 0.45),
+                       "bench_plan_coverage: e-SFR calibrations, fs 0.1-0.4 cycles/px, both optics paths")
 ESFR_SOURCE = MEASURED_SOURCE + f" from slanted edges (e-SFR), ± {ESFR_WIDTH.rel_sd:.0%} lens to lens"
+
+
+def texture_source(factor: float) -> str:
+    return (MEASURED_SOURCE + f" from the texture focus measure, / {factor:.3f} (its measured bias at the "
+            f"calibration's fs), ± {TEXTURE_WIDTH.rel_sd:.0%} lens to lens")
 
 
 def check_confidence(p) -> float | None:
@@ -57,15 +73,22 @@ def check_confidence(p) -> float | None:
     return pp
 
 
-def width_bias(profile) -> WidthBias | None:
-    """The width measurement's bias record of a calibrated profile with measured widths; None for models,
-    truths and synthetic profiles (their δ is exact). Profiles that do not say how they measured are texture."""
+def width_bias(profile) -> tuple[WidthBias, float] | None:
+    """The width measurement's bias record of a calibrated profile with measured widths and its factor at the
+    calibration's fs (cycles/px); None for models, truths and synthetic profiles (their δ is exact). Profiles
+    that do not say how they measured are texture."""
     if not bool(getattr(profile, "has_measured_tolerance", False)):
         return None
     cal = getattr(profile, "calibration", None)
     if not isinstance(cal, dict):
         return None
-    return ESFR_WIDTH if cal.get("measurement", "focus-measure") == "esfr" else TEXTURE_WIDTH
+    bias = ESFR_WIDTH if cal.get("measurement", "focus-measure") == "esfr" else TEXTURE_WIDTH
+    fs_px = None
+    try:
+        fs_px = float(cal["fs_cyc_per_mm"]) * float(profile.pixel_pitch_um) / 1000.0
+    except (KeyError, TypeError, ValueError, AttributeError):
+        pass
+    return bias, bias.factor(fs_px)
 
 
 def tolerance_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion) -> tuple[np.ndarray, str]:
@@ -78,10 +101,11 @@ def tolerance_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion) -> 
     tol = np.asarray(profile.focus_tolerance_um(x, y, channel, crit.fs_cyc_per_mm, crit.q), dtype=np.float64)
     tol = np.broadcast_to(tol, shape).copy()
     measured_src = MEASURED_SOURCE
-    bias = width_bias(profile)
-    if bias is not None:
-        tol = tol / bias.factor
-        measured_src = ESFR_SOURCE if bias is ESFR_WIDTH else TEXTURE_SOURCE
+    wb = width_bias(profile)
+    if wb is not None:
+        bias, factor = wb
+        tol = tol / factor
+        measured_src = ESFR_SOURCE if bias is ESFR_WIDTH else texture_source(factor)
     bad = ~np.isfinite(tol) | (tol <= 0)
     if bad.all():
         return np.full(shape, model), MODEL_SOURCE
@@ -98,14 +122,15 @@ def tolerance_sd_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion, 
     tol = np.asarray(tol_um, dtype=np.float64)
     if not bool(getattr(profile, "has_measured_tolerance", False)):
         return np.zeros_like(tol)
-    bias = width_bias(profile)
+    wb = width_bias(profile)
+    rel_sd, factor = (wb[0].rel_sd, wb[1]) if wb is not None else (0.0, 1.0)
     stat = np.zeros_like(tol)
     sd_fn = getattr(profile, "focus_tolerance_sd_um", None)
     if callable(sd_fn):
         stat = np.broadcast_to(np.asarray(sd_fn(x, y, channel, crit.fs_cyc_per_mm, crit.q), dtype=np.float64),
-                               tol.shape) / (bias.factor if bias is not None else 1.0)
+                               tol.shape) / factor
         stat = np.nan_to_num(stat, nan=0.0, posinf=0.0)
-    return np.hypot(stat, (bias.rel_sd if bias is not None else 0.0) * tol)
+    return np.hypot(stat, rel_sd * tol)
 
 
 def lower_tolerance_um(tol_um, tol_sd_um, level: float) -> np.ndarray:
