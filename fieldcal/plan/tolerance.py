@@ -25,14 +25,14 @@ MEASURED_SOURCE = "measured through-focus width (profile)"
 @dataclass(frozen=True)
 class WidthBias:
     """How a measurement's through-focus width, converted to δ(fs, q), compares with the true δ on simulated
-    lenses: the ratio (profile δ / true δ) is ``intercept + slope * fs_px`` with fs_px the calibration's fs in
+    lenses: the ratio (profile δ / true δ) is the largest of the ``lines`` ``intercept + slope * fs_px`` (one per
+    simulator path: the upper envelope, so δ is not over-wide on either) with fs_px the calibration's fs in
     cycles per pixel (clipped to the measured ``fs_px_range``; an unknown fs_px takes the range's top, the
-    narrowest δ), with a lens-to-lens relative sd ``rel_sd``. The plan divides by the ratio and carries
+    narrowest δ), with a lens-to-lens relative sd ``rel_sd`` about its line. The plan divides by the ratio and carries
     ``rel_sd`` as δ's systematic uncertainty: one draw per lens, common to every pixel, that no fit to the
     lens's own tiles can see."""
 
-    intercept: float
-    slope_per_cyc_px: float
+    lines: tuple[tuple[float, float], ...]  # (intercept, slope per cycle/px)
     rel_sd: float
     fs_px_range: tuple[float, float]
     measured: str  # where the figures come from
@@ -40,18 +40,19 @@ class WidthBias:
     def factor(self, fs_cyc_per_px: float | None) -> float:
         lo, hi = self.fs_px_range
         f = hi if fs_cyc_per_px is None or not math.isfinite(fs_cyc_per_px) else min(max(fs_cyc_per_px, lo), hi)
-        return self.intercept + self.slope_per_cyc_px * f
+        return max(a + b * f for a, b in self.lines)
 
 
 # Measured with ``benchmarks/bench_plan_coverage.py`` (docs/benchmarks.md "bench_plan_coverage", the analysis in
 # docs/planning.md "Measured tolerance"): the triplet and 5 random lenses, F/1.7-F/3.8, both simulator paths
 # (geometric and wave optics, with and without spherical aberration), fs = 0.1-0.4 cycles/px, q = 0.05,
-# 35 texture calibrations. The texture ratio rises with fs in cycles/px (0.88-0.94 at 0.1, 1.04-1.11 at 0.4),
-# not with the scan step (0.25-1.0 δ at the same fs give the same ratio), the F-number or the optics path; the
-# residual about the line is 0.027 (sd). e-SFR widths measure MTF(fs) itself: 0.98-1.03 of the true δ.
-TEXTURE_WIDTH = WidthBias(0.875, 0.524, 0.03, (0.1, 0.45),
-                          "bench_plan_coverage: 35 texture calibrations, fs 0.1-0.4 cycles/px, both optics paths")
-ESFR_WIDTH = WidthBias(1.0, 0.0, 0.02, (0.05, 0.45),
+# 39 texture calibrations. The texture ratio rises with fs in cycles/px (0.88-0.94 at 0.1, 1.04-1.11 at 0.4),
+# not with the scan step (0.25-1.0 δ at the same fs give the same ratio) or the F-number; steeper on the wave
+# path (0.838 + 0.683 fs_px) than on the geometric one (0.905 + 0.407 fs_px), residual sd 0.021-0.022 about
+# each. e-SFR widths measure MTF(fs) itself: 0.98-1.03 of the true δ.
+TEXTURE_WIDTH = WidthBias(((0.905, 0.407), (0.838, 0.683)), 0.025, (0.1, 0.45),
+                          "bench_plan_coverage: 39 texture calibrations, fs 0.1-0.4 cycles/px, both optics paths")
+ESFR_WIDTH = WidthBias(((1.0, 0.0),), 0.02, (0.05, 0.45),
                        "bench_plan_coverage: e-SFR calibrations, fs 0.1-0.4 cycles/px, both optics paths")
 ESFR_SOURCE = MEASURED_SOURCE + f" from slanted edges (e-SFR), ± {ESFR_WIDTH.rel_sd:.0%} lens to lens"
 
