@@ -111,9 +111,9 @@ def test_plans_use_the_measured_tolerance(measurement, factor):
     """Edge widths measure MTF(fs) and are used as they are; texture widths (or profiles that do not say) are
     narrowed by their measured bias, and the plan's source says so."""
     from fieldcal.optics import MTFCriterion
-    from fieldcal.plan.tolerance import TEXTURE_WIDTH_BIAS, tolerance_um
+    from fieldcal.plan.tolerance import TEXTURE_WIDTH, tolerance_um
 
     tol, src = tolerance_um(_Widths(measurement), np.arange(3.0), np.zeros(3), "G", MTFCriterion(20.0, 0.05))
-    want = 20.0 / (TEXTURE_WIDTH_BIAS if factor is None else factor)
+    want = 20.0 / (TEXTURE_WIDTH.factor(None) if factor is None else factor)  # fs unknown: the narrowest δ
     np.testing.assert_allclose(tol, want)
     assert src.startswith("measured") and (("texture" in src) == (factor is None))

@@ -38,6 +38,9 @@ def register(sub):
     s.add_argument("--fs", type=float, required=True, help="spatial frequency to preserve (cycles/mm at the sensor)")
     s.add_argument("--q", type=float, required=True, help="allowed MTF loss at fs, in (0, 1)")
     s.add_argument("--confidence", type=float, help="cover every pixel with this probability (shrinks tolerances)")
+    s.add_argument("--coverage", type=float, default=0.99,
+                   help="add frames until this expected fraction of pixels is within tolerance under the "
+                        "profile's uncertainty (default 0.99; 0 for the fewest frames)")
     s.add_argument("--max-frames", type=int, help="at most this many frames (then reports the q achieved)")
     s.add_argument("--max-time-ms", type=float, help="at most this much time (frames x (exposure + overhead))")
     s.add_argument("--exposure-ms", type=float, default=20.0, help="exposure per frame (default 20 ms)")
@@ -99,7 +102,7 @@ def run_stack(args) -> int:
     from ..plan.files import stack_plan_file
     from ..plan.stack_plan import StackRequest
     req = StackRequest(fs_cyc_per_mm=args.fs, q=args.q, confidence=args.confidence, scene=_scene(args),
-                       max_frames=args.max_frames, max_time_ms=args.max_time_ms, exposure_ms=args.exposure_ms,
+                       coverage=None if args.coverage == 0 else args.coverage, max_frames=args.max_frames, max_time_ms=args.max_time_ms, exposure_ms=args.exposure_ms,
                        frame_overhead_ms=args.frame_overhead_ms, placement=args.placement,
                        direction=args.direction, grid_step_px=args.grid_step_px)
     status(f"planning a focal stack from {args.profile} ...")

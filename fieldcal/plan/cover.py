@@ -142,12 +142,13 @@ def nearest_index(points_sorted, z):
 
 
 # --------------------------------------------------------------------- a continuum of best-focus values
-def _greedy_values(b0, b1, d, start: float):
+def _greedy_values(b0, b1, d, start: float, limit: int | None = None):
     """Greedy over every value z in each bin ``[b0, b1]`` (tolerance ``d`` per bin), frames above ``start``.
 
     After a frame at f, the values of bin b still unserved are those above ``f + d_b`` (lower ones were served
     earlier: the greedy keeps that invariant), so the next frame is ``min_b(max(b0_b, f + d_b) + d_b)`` over
-    the bins with such values. Exact for the continuum (no loss to the bin width); O(N * bins).
+    the bins with such values. Exact for the continuum (no loss to the bin width); O(N * bins). With ``limit``
+    it stops after ``limit + 1`` points (enough to know that more than ``limit`` are needed).
     """
     pts, wit = [], []
     f = start
@@ -162,23 +163,28 @@ def _greedy_values(b0, b1, d, start: float):
         f = float(right[k])
         pts.append(f)
         wit.append(k)
+        if limit is not None and len(pts) > limit:
+            break
     return pts, wit
 
 
-def min_cover_values(b0, b1, d) -> Cover:
-    """Fewest points such that every value z in every bin ``[b0_i, b1_i]`` has a point within ``d_i``."""
+def min_cover_values(b0, b1, d, limit: int | None = None) -> Cover:
+    """Fewest points such that every value z in every bin ``[b0_i, b1_i]`` has a point within ``d_i``.
+
+    ``limit``: stop after ``limit + 1`` points (the result then only says "more than ``limit``")."""
     b0, b1, d = (np.asarray(v, dtype=np.float64).ravel() for v in (b0, b1, d))
     if np.any(b1 < b0) or np.any(d < 0) or not np.all(np.isfinite(np.concatenate([b0, b1, d]))):
         raise ValueError("bins need finite b0 <= b1 and d >= 0")
-    pts, wit = _greedy_values(b0, b1, d, -np.inf)
+    pts, wit = _greedy_values(b0, b1, d, -np.inf, limit)
     return Cover(np.asarray(pts, dtype=np.float64), np.asarray(wit, dtype=np.int64))
 
 
-def anchored_cover_values(b0, b1, d, anchor_um: float) -> Cover:
-    """The paper's placement over a continuum of values: a point at the anchor, then greedy outward."""
+def anchored_cover_values(b0, b1, d, anchor_um: float, limit: int | None = None) -> Cover:
+    """The paper's placement over a continuum of values: a point at the anchor, then greedy outward
+    (``limit``: as :func:`min_cover_values`, per side)."""
     b0, b1, d = (np.asarray(v, dtype=np.float64).ravel() for v in (b0, b1, d))
     a = float(anchor_um)
-    up, wu = _greedy_values(b0, b1, d, a)
-    down, wd = _greedy_values(-b1, -b0, d, -a)
+    up, wu = _greedy_values(b0, b1, d, a, limit)
+    down, wd = _greedy_values(-b1, -b0, d, -a, limit)
     pts = np.sort(np.asarray([a] + up + [-p for p in down], dtype=np.float64))
     return Cover(pts, np.asarray(wu + wd, dtype=np.int64))

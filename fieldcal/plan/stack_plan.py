@@ -10,7 +10,12 @@ How the cover is built (exact up to a bin width):
 3. The fewest frames serving every value of every bin of every channel is the greedy cover over the continuum
    (cover.min_cover_values): exact for piecewise-constant δ, so with a uniform tolerance N = ceil(D / 2δ);
    a tolerance that varies over the field loses at most its variation across a bin.
-4. Compositing assigns each pixel to the *nearest* frame along z (bands are the Voronoi cells between
+4. Uncertainty (docs/planning.md "Coverage under uncertainty"): each sample's true best focus is N(MAP, σ_z²)
+   (σ_z from the profile's credible band) and its true δ is N(δ̂, σ_δ²) (the width fit's standard error and the
+   measurement's lens-to-lens systematic). For a given N the frames are placed to maximise the smallest margin
+   in units of sqrt(σ_z² + σ_δ²) (bisection on t in δ̂ - t·sqrt(...)); N grows from the fewest until the
+   expected fraction of pixels within their true δ reaches ``coverage``.
+5. Compositing assigns each pixel to the *nearest* frame along z (bands are the Voronoi cells between
    consecutive frames): if any frame is within a pixel's tolerance, the nearest one is too.
 """
 
@@ -28,8 +33,8 @@ from ..optics import LensModel, MTFCriterion
 from . import cover as cv
 from .scene import Scene
 from .surfaces import SampledField, sample_field
-from .tolerance import (check_confidence, coverage_probability, expected_mtf_loss, mtf_loss,
-                        sigma_from_halfwidth, tolerance_um)
+from .tolerance import (band_halfwidth_um, check_confidence, coverage_probability, expected_mtf_loss,
+                        lower_tolerance_um, mtf_loss, sigma_from_halfwidth, tolerance_sd_um, tolerance_um)
 
 from .planfile import PLAN_FORMAT
 MAX_BINS = 200_000
@@ -43,6 +48,9 @@ class StackRequest:
     fs_cyc_per_mm: float = 80.0
     q: float = 0.05
     confidence: float | None = None
+    # expected fraction of pixels within tolerance the plan must reach under the profile's uncertainty (its
+    # surface band and δ's sd): frames are added, one at a time, until it does (None: the fewest frames)
+    coverage: float | None = 0.99
     scene: Scene = field(default_factory=Scene)
     max_frames: int | None = None
     max_time_ms: float | None = None
@@ -94,7 +102,7 @@ class StackPlan:
             "kind": "stack",
             "profile": profile_info or {},
             "parameters": {
-                "fs_cyc_per_mm": r.fs_cyc_per_mm, "q": r.q, "confidence": r.confidence,
+                "fs_cyc_per_mm": r.fs_cyc_per_mm, "q": r.q, "confidence": r.confidence, "coverage": r.coverage,
                 "roi": [x, y, w, h], "channels": list(self.field.channels),
                 "object_distance_mm": r.scene.object_distance_mm,
                 "max_frames": r.max_frames, "max_time_ms": r.max_time_ms,
@@ -115,7 +123,8 @@ class StackPlan:
             "D_um": round(self.field.range_um, 4),
             "tolerance": self.tolerance,
             "lower_bound_frames": self.lower_bound,
-            "coverage": {k: (round(v, 6) if isinstance(v, float) else v) for k, v in self.stats.items()},
+            "coverage": {k: (round(v, 6) if isinstance(v, float) and math.isfinite(v) else v)
+                         for k, v in self.stats.items()},
             "warnings": self.warnings,
         }
 
@@ -141,17 +150,23 @@ def _bins(z, dtol, zmin, zmax, width):
     return edges[:-1], edges[1:], dmin
 
 
-def _cover(fieldd: SampledField, tols: dict, placement: str, anchor: float | None):
-    dmin_all = min(float((tols[c] - s.u_um).min()) for c, s in fieldd.samples.items())
-    width = max(dmin_all / 50.0, fieldd.range_um / MAX_BINS, 1e-9)
-    parts = [_bins(s.z_um, tols[c] - s.u_um, s.z_min_um, s.z_max_um, width) for c, s in fieldd.samples.items()]
+def _cover(fieldd: SampledField, eff: dict, placement: str, anchor: float | None, width: float | None = None,
+           limit: int | None = None):
+    """Fewest frames serving every bin with the effective tolerances ``eff`` (µm, per sample, > 0).
+
+    ``width``: the bin width (default: a 50th of the smallest tolerance); ``limit``: stop the greedy once it
+    needs more than that many frames."""
+    if width is None:
+        dmin_all = min(float(eff[c].min()) for c in fieldd.samples)
+        width = max(dmin_all / 50.0, fieldd.range_um / MAX_BINS, 1e-9)
+    parts = [_bins(s.z_um, eff[c], s.z_min_um, s.z_max_um, width) for c, s in fieldd.samples.items()]
     b0, b1, d = (np.concatenate([p[i] for p in parts]) for i in range(3))
     if placement == "paper":
-        return cv.anchored_cover_values(b0, b1, d, anchor), width
-    return cv.min_cover_values(b0, b1, d), width
+        return cv.anchored_cover_values(b0, b1, d, anchor, limit), width
+    return cv.min_cover_values(b0, b1, d, limit), width
 
 
-def _needs_too_many(fieldd: SampledField, tols: dict) -> float | None:
+def _needs_too_many(fieldd: SampledField, eff: dict) -> float | None:
     """A lower bound on the frames of any cover when it exceeds MAX_FRAMES, else None.
 
     One frame serves at most ``2 max(δ)`` of a channel's range of best focus, so every cover needs at least
@@ -159,23 +174,134 @@ def _needs_too_many(fieldd: SampledField, tols: dict) -> float | None:
     """
     worst = 0.0
     for c, s in fieldd.samples.items():
-        dmax = float(np.max(tols[c] - s.u_um))  # > 0: solve() checked that every tolerance exceeds its band
+        dmax = float(np.max(eff[c]))  # > 0: solve() checked that every tolerance exceeds its band
         span = s.z_max_um - s.z_min_um
         if span > 2.0 * dmax * MAX_FRAMES:
             worst = max(worst, span / (2.0 * dmax))
     return worst or None
 
 
-def _tolerances(profile, fieldd, crit: MTFCriterion):
-    tols, src = {}, {}
+@dataclass
+class _Tolerances:
+    """Per channel, per sample: δ̂ (µm), its sd, the tolerance the cover uses (``eff``: δ̂, or its lower credible
+    bound under --confidence, minus the band's half-width) and where δ came from."""
+
+    tol: dict
+    sd: dict
+    eff: dict
+    src: dict
+
+
+def _tolerances(profile, fieldd, crit: MTFCriterion, confidence) -> _Tolerances:
+    tols, sds, eff, src = {}, {}, {}, {}
     for c, s in fieldd.samples.items():
         tols[c], src[c] = tolerance_um(profile, s.x, s.y, c, crit)
-    return tols, src
+        sds[c] = tolerance_sd_um(profile, s.x, s.y, c, crit, tols[c])
+        low = lower_tolerance_um(tols[c], sds[c], confidence) if confidence is not None else tols[c]
+        eff[c] = low - s.u_um
+    return _Tolerances(tols, sds, eff, src)
+
+
+def _surface_sd(profile, fieldd: SampledField, confidence) -> dict:
+    """Per channel, per sample: sd (µm) of the true best focus about the MAP (Gaussian matched to the
+    profile's credible band at the --confidence level, else at 0.9); 0 for models without a band."""
+    level = 0.9 if confidence is None else confidence
+    out = {}
+    for c, s in fieldd.samples.items():
+        u = s.u_um if confidence is not None else band_halfwidth_um(profile, s.x, s.y, c, s.z_um - fieldd.refocus_um,
+                                                                    level)
+        # float noise of z ± 0 about a refocused z is no uncertainty (it would make the margin bisection move frames)
+        u = np.where(np.isfinite(u) & (u > 1e-9 * (1.0 + np.abs(s.z_um))), u, 0.0)
+        out[c] = np.asarray(sigma_from_halfwidth(u, level), dtype=np.float64)
+    return out
+
+
+def _expected_fraction(fieldd: SampledField, frames, T: _Tolerances, sig: dict) -> float:
+    p_sum, n_px = 0.0, 0
+    for c, s in fieldd.samples.items():
+        zf = frames[cv.nearest_index(frames, s.z_um)]
+        p = coverage_probability(zf, s.z_um, T.tol[c], sig[c], T.sd[c])
+        p_sum, n_px = p_sum + float(np.sum(p)), n_px + int(p.size)
+    return p_sum / max(n_px, 1)
+
+
+BISECTION_STEPS = 24
+
+
+def _balanced_cover(fieldd, T: _Tolerances, spread: dict, n: int, placement: str, anchor, width: float):
+    """N frames placed to maximise t, the smallest margin in units of ``spread`` (bisection on t: the cover of
+    ``eff - t * spread`` needs at most n frames). Returns (cover, t, bin width, saturated: t reached its top,
+    so more frames cannot widen the margin).
+
+    t stops where the smallest tolerance would fall to a quarter of its value (beyond that no cover of n frames
+    exists anyway once n is below ~4x the fewest); the bins keep the width of the fewest cover."""
+    ratios = [0.75 * T.eff[c][spread[c] > 0] / spread[c][spread[c] > 0] for c in fieldd.samples]
+    ratios = [r for r in ratios if r.size]
+    if not ratios:
+        cov, width = _cover(fieldd, T.eff, placement, anchor, width)
+        return cov, 0.0, width, True
+    t_hi = min(float(r.min()) for r in ratios)
+
+    def at(t):
+        return _cover(fieldd, {c: T.eff[c] - t * spread[c] for c in fieldd.samples}, placement, anchor,
+                      width, limit=n)
+
+    top = at(t_hi)
+    if top[0].n <= n:
+        return top[0], t_hi, top[1], True
+    lo, hi = 0.0, t_hi
+    best = at(0.0)
+    for _ in range(BISECTION_STEPS):
+        mid = 0.5 * (lo + hi)
+        cm = at(mid)
+        if cm[0].n <= n:
+            lo, best = mid, cm
+        else:
+            hi = mid
+    return best[0], lo, best[1], False
+
+
+def _reach_coverage(fieldd, T: _Tolerances, sig: dict, fewest, width, target: float, placement: str, anchor,
+                    max_frames: int | None):
+    """Add frames to the fewest cover until the expected fraction within the true δ reaches ``target``.
+
+    Returns (cover, bin width, margin t in sd units, expected fraction, warning or None)."""
+    spread = {c: np.hypot(sig[c], T.sd[c]) for c in fieldd.samples}
+    ef = _expected_fraction(fieldd, fewest.points_um, T, sig)
+    if not any(np.any(v > 0) for v in spread.values()):
+        return fewest, width, 0.0, ef, None
+    limit = min(MAX_FRAMES, max_frames if max_frames is not None else MAX_FRAMES, 2 * fewest.n + 2)
+    n, best = fewest.n, None
+    while True:
+        # the fraction is not monotone in n on a coarse sample grid (clustered values can sit on a band's
+        # edge), so every n is tried until the target, the budget or the largest margin is reached
+        cov_n, t, w, saturated = _balanced_cover(fieldd, T, spread, n, placement, anchor, width)
+        ef = _expected_fraction(fieldd, cov_n.points_um, T, sig)
+        if best is None or ef > best[3]:
+            best = (cov_n, w, t, ef)
+        if ef >= target or n >= limit or saturated:
+            break
+        n += 1
+    warn = None
+    if best[3] < target:
+        why = (f"the frame budget ({max_frames})" if max_frames is not None and n >= max_frames
+               else "the profile's uncertainty (credible band and δ's sd) against its tolerance")
+        warn = (f"expected fraction of pixels within tolerance {best[3]:.4f} < the target {target} with "
+                f"{best[0].n} frames: limited by {why}")
+    return best[0], best[1], best[2], best[3], warn
 
 
 def _check_request(r: StackRequest):
     crit = MTFCriterion(r.fs_cyc_per_mm, r.q)
     check_confidence(r.confidence)
+    if r.coverage is not None:
+        try:
+            cfr = float(r.coverage)
+        except (TypeError, ValueError):
+            cfr = math.nan
+        if not (0.0 < cfr < 1.0):
+            raise ParameterError(f"coverage target {r.coverage!r} must be in (0, 1)", field="coverage",
+                                 fix="give the expected fraction of pixels within tolerance, e.g. --coverage 0.99")
     if r.placement not in ("optimal", "paper"):
         raise ParameterError(f"placement {r.placement!r} unknown", field="placement", fix="use optimal or paper")
     if r.direction not in ("+z", "-z"):
@@ -218,20 +344,20 @@ def plan_stack(profile: LensModel, request: StackRequest) -> StackPlan:
     warnings: list[str] = []
 
     def solve(qq):
-        tols, src = _tolerances(profile, fieldd, replace(crit, q=qq))
-        short = {c: float(np.max(s.u_um - tols[c])) for c, s in fieldd.samples.items()}
+        T = _tolerances(profile, fieldd, replace(crit, q=qq), r.confidence)
+        short = {c: float(np.max(-T.eff[c])) for c in fieldd.samples}
         if any(v >= 0 for v in short.values()):
-            return None, tols, src, short, None
-        if _needs_too_many(fieldd, tols) is not None:
-            return None, tols, src, short, None
-        cov, width = _cover(fieldd, tols, r.placement, anchor)
-        return cov, tols, src, short, width
+            return None, T, short, None
+        if _needs_too_many(fieldd, T.eff) is not None:
+            return None, T, short, None
+        cov, width = _cover(fieldd, T.eff, r.placement, anchor)
+        return cov, T, short, width
 
-    cov, tols, src, short, width = solve(q)
+    cov, T, short, width = solve(q)
     q_used = q
     if cov is None and max_frames is None and all(v < 0 for v in short.values()):
-        need = _needs_too_many(fieldd, tols)
-        tmax = min(float(np.max(t)) for t in tols.values())
+        need = _needs_too_many(fieldd, T.eff)
+        tmax = min(float(np.max(t)) for t in T.tol.values())
         raise ParameterError(
             f"an MTF loss of at most q = {q:g} at fs = {fs:g} cycles/mm leaves a focus tolerance of only "
             f"{tmax:.3g} µm, so covering the {fieldd.range_um:.1f} µm range of best focus needs at least "
@@ -261,10 +387,19 @@ def plan_stack(profile: LensModel, request: StackRequest) -> StackPlan:
             if hi_q - lo_q < 1e-5:
                 break
         q_used = hi_q
-        cov, tols, src, short, width = solve(q_used)
+        cov, T, short, width = solve(q_used)
         warnings.append(f"{max_frames} frames allow an MTF loss of {q_used:.4f} at {fs} cycles/mm, not {q}")
 
-    frames = cov.points_um
+    sig = _surface_sd(profile, fieldd, r.confidence)
+    fewest, t_margin = cov.n, 0.0
+    if r.coverage is not None:
+        chosen, width, t_margin, _, warn = _reach_coverage(fieldd, T, sig, cov, width, float(r.coverage),
+                                                           r.placement, anchor, max_frames)
+        if warn:
+            warnings.append(warn)
+    else:
+        chosen = cov
+    frames = chosen.points_um
     # per-channel bands: Voronoi cells along z clipped to the channel's range
     mids = 0.5 * (frames[1:] + frames[:-1])
     edges = np.concatenate([[-np.inf], mids, [np.inf]])
@@ -276,32 +411,36 @@ def plan_stack(profile: LensModel, request: StackRequest) -> StackPlan:
             flat = s.z_max_um == s.z_min_um and edges[i] <= s.z_min_um < edges[i + 1]
             bl.append([float(lo_b), float(hi_b)] if (lo_b < hi_b or flat) else None)
         bands[c] = bl
-    stats = _stats(profile, fieldd, frames, tols, replace(crit, q=q_used), r.confidence)
+    stats = _stats(profile, fieldd, frames, T, sig, replace(crit, q=q_used))
+    stats["target_fraction"] = None if r.coverage is None else float(r.coverage)
+    stats["fewest_frames"] = int(fewest)
+    stats["margin_sd"] = float(t_margin)
     stats["grid_error_bound_um"] = max(s.grid_error_bound_um for s in fieldd.samples.values())
     stats["bin_width_um"] = width
-    tol_info = {c: {"source": src[c], "min_um": float(tols[c].min()), "max_um": float(tols[c].max())}
+    tol_info = {c: {"source": T.src[c], "min_um": float(T.tol[c].min()), "max_um": float(T.tol[c].max()),
+                    "sd_max_um": float(T.sd[c].max())}
                 for c in fieldd.channels}
     return StackPlan(r, fieldd, frames, bands, q_used, tol_info, cov.lower_bound, stats, warnings)
 
 
-def _stats(profile, fieldd, frames, tols, crit: MTFCriterion, confidence):
-    """Coverage probability and MTF losses on the sample grid (worst pixel)."""
+def _stats(profile, fieldd, frames, T: _Tolerances, sig: dict, crit: MTFCriterion):
+    """Coverage probability and MTF losses on the sample grid under the profile's uncertainty."""
     fno = float(profile.f_number)
     p_min, e_loss, loss_map, margin = 1.0, 0.0, 0.0, np.inf
     p_sum, n_px = 0.0, 0
     for c, s in fieldd.samples.items():
         zf = frames[cv.nearest_index(frames, s.z_um)]
-        sigma = sigma_from_halfwidth(s.u_um, confidence) if confidence is not None else np.zeros_like(s.u_um)
-        p = coverage_probability(zf, s.z_um, tols[c], sigma)
+        p = coverage_probability(zf, s.z_um, T.tol[c], sig[c], T.sd[c])
         p_min = min(p_min, float(p.min()))
         p_sum, n_px = p_sum + float(np.sum(p)), n_px + int(p.size)
-        loss_map = max(loss_map, float(mtf_loss(zf - s.z_um, tols[c], crit, fno).max()))
-        e_loss = max(e_loss, float(expected_mtf_loss(zf, s.z_um, tols[c], sigma, crit, fno).max()))
-        margin = min(margin, float(np.min(tols[c] - np.abs(zf - s.z_um))))
+        loss_map = max(loss_map, float(mtf_loss(zf - s.z_um, T.tol[c], crit, fno).max()))
+        e_loss = max(e_loss, float(expected_mtf_loss(zf, s.z_um, T.tol[c], sig[c], crit, fno).max()))
+        margin = min(margin, float(np.min(T.tol[c] - np.abs(zf - s.z_um))))
     return {
         "probability": p_min,
-        "probability_definition": "smallest per-pixel probability that the assigned frame is within tolerance "
-                                  "(Gaussian posterior matched to the profile's credible band; 1 without --confidence)",
+        "probability_definition": "smallest per-pixel probability that the assigned frame is within the true "
+                                  "tolerance: true best focus Gaussian, matched to the profile's credible band, "
+                                  "and true δ Gaussian with the tolerance's sd (1 for a model without uncertainty)",
         # what a measured fraction of in-tolerance pixels is compared with (issue 14): the mean, not the worst
         "expected_fraction": p_sum / max(n_px, 1),
         "expected_fraction_definition": "mean over the sample grid and channels of the per-pixel probability: "

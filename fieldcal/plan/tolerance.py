@@ -10,6 +10,7 @@ The MTF criterion (fs, q) arrives as a :class:`fieldcal.optics.MTFCriterion`, va
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import special
@@ -19,14 +20,46 @@ from ..optics import LensModel, MTFCriterion, defocus_otf, focus_tolerance_um as
 
 MODEL_SOURCE = "defocus model from the F-number (no measured through-focus width)"
 MEASURED_SOURCE = "measured through-focus width (profile)"
-# Widths from the texture focus measure, converted to δ(fs, q) through the defocus shape, come out too wide
-# against the true MTF tolerance: median ratio 1.011-1.050 on the triplet and two random lenses at 480x270
-# (docs/benchmarks.md "bench_edge_calibration", --scene chart), 1.05-1.12 in issue 13's runs on other lenses,
-# where plans left up to 6.5 % of pixels outside. Texture-measured δ is divided by this factor (the top of that
-# range), so the plan errs towards one frame too many; e-SFR (slanted-edge) widths measure MTF(fs) itself
-# (ratio 0.99-1.04) and are used as they are.
-TEXTURE_WIDTH_BIAS = 1.12
-TEXTURE_SOURCE = MEASURED_SOURCE + f" from the texture focus measure, / {TEXTURE_WIDTH_BIAS} (its measured bias)"
+
+
+@dataclass(frozen=True)
+class WidthBias:
+    """How a measurement's through-focus width, converted to δ(fs, q), compares with the true δ on simulated
+    lenses: the ratio (profile δ / true δ) is the largest of the ``lines`` ``intercept + slope * fs_px`` (one per
+    simulator path: the upper envelope, so δ is not over-wide on either) with fs_px the calibration's fs in
+    cycles per pixel (clipped to the measured ``fs_px_range``; an unknown fs_px takes the range's top, the
+    narrowest δ), with a lens-to-lens relative sd ``rel_sd`` about its line. The plan divides by the ratio and carries
+    ``rel_sd`` as δ's systematic uncertainty: one draw per lens, common to every pixel, that no fit to the
+    lens's own tiles can see."""
+
+    lines: tuple[tuple[float, float], ...]  # (intercept, slope per cycle/px)
+    rel_sd: float
+    fs_px_range: tuple[float, float]
+    measured: str  # where the figures come from
+
+    def factor(self, fs_cyc_per_px: float | None) -> float:
+        lo, hi = self.fs_px_range
+        f = hi if fs_cyc_per_px is None or not math.isfinite(fs_cyc_per_px) else min(max(fs_cyc_per_px, lo), hi)
+        return max(a + b * f for a, b in self.lines)
+
+
+# Measured with ``benchmarks/bench_plan_coverage.py`` (docs/benchmarks.md "bench_plan_coverage", the analysis in
+# docs/planning.md "Measured tolerance"): the triplet and 5 random lenses, F/1.7-F/3.8, both simulator paths
+# (geometric and wave optics, with and without spherical aberration), fs = 0.1-0.4 cycles/px, q = 0.05,
+# 39 texture calibrations. The texture ratio rises with fs in cycles/px (0.88-0.94 at 0.1, 1.04-1.11 at 0.4),
+# not with the scan step (0.25-1.0 δ at the same fs give the same ratio) or the F-number; steeper on the wave
+# path (0.838 + 0.683 fs_px) than on the geometric one (0.905 + 0.407 fs_px), residual sd 0.021-0.022 about
+# each. e-SFR widths measure MTF(fs) itself: 0.98-1.03 of the true δ.
+TEXTURE_WIDTH = WidthBias(((0.905, 0.407), (0.838, 0.683)), 0.025, (0.1, 0.45),
+                          "bench_plan_coverage: 39 texture calibrations, fs 0.1-0.4 cycles/px, both optics paths")
+ESFR_WIDTH = WidthBias(((1.0, 0.0),), 0.02, (0.05, 0.45),
+                       "bench_plan_coverage: e-SFR calibrations, fs 0.1-0.4 cycles/px, both optics paths")
+ESFR_SOURCE = MEASURED_SOURCE + f" from slanted edges (e-SFR), ± {ESFR_WIDTH.rel_sd:.0%} lens to lens"
+
+
+def texture_source(factor: float) -> str:
+    return (MEASURED_SOURCE + f" from the texture focus measure, / {factor:.3f} (its measured bias at the "
+            f"calibration's fs), ± {TEXTURE_WIDTH.rel_sd:.0%} lens to lens")
 
 
 def check_confidence(p) -> float | None:
@@ -41,17 +74,39 @@ def check_confidence(p) -> float | None:
     return pp
 
 
+def width_bias(profile) -> tuple[WidthBias, float] | None:
+    """The width measurement's bias record of a calibrated profile with measured widths and its factor at the
+    calibration's fs (cycles/px); None for models, truths and synthetic profiles (their δ is exact). Profiles
+    that do not say how they measured are texture."""
+    if not bool(getattr(profile, "has_measured_tolerance", False)):
+        return None
+    cal = getattr(profile, "calibration", None)
+    if not isinstance(cal, dict):
+        return None
+    bias = ESFR_WIDTH if cal.get("measurement", "focus-measure") == "esfr" else TEXTURE_WIDTH
+    fs_px = None
+    try:
+        fs_px = float(cal["fs_cyc_per_mm"]) * float(profile.pixel_pitch_um) / 1000.0
+    except (KeyError, TypeError, ValueError, AttributeError):
+        pass
+    return bias, bias.factor(fs_px)
+
+
 def tolerance_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion) -> tuple[np.ndarray, str]:
-    """Per-pixel δ (µm) and where it came from. Non-finite or non-positive values fall back to the model."""
+    """Per-pixel δ (µm) and where it came from. Non-finite or non-positive values fall back to the model.
+
+    A calibrated profile's measured widths are divided by their measurement's bias (:func:`width_bias`)."""
     shape = np.broadcast(np.asarray(x), np.asarray(y)).shape
     model = model_tolerance_um(crit, float(profile.f_number))
     measured = bool(profile.has_measured_tolerance)
     tol = np.asarray(profile.focus_tolerance_um(x, y, channel, crit.fs_cyc_per_mm, crit.q), dtype=np.float64)
     tol = np.broadcast_to(tol, shape).copy()
     measured_src = MEASURED_SOURCE
-    if measured and _texture_widths(profile):
-        tol = tol / TEXTURE_WIDTH_BIAS
-        measured_src = TEXTURE_SOURCE
+    wb = width_bias(profile)
+    if wb is not None:
+        bias, factor = wb
+        tol = tol / factor
+        measured_src = ESFR_SOURCE if bias is ESFR_WIDTH else texture_source(factor)
     bad = ~np.isfinite(tol) | (tol <= 0)
     if bad.all():
         return np.full(shape, model), MODEL_SOURCE
@@ -61,10 +116,28 @@ def tolerance_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion) -> 
     return tol, measured_src if measured else MODEL_SOURCE
 
 
-def _texture_widths(profile) -> bool:
-    """True for a calibrated profile whose widths came from the texture focus measure (not slanted edges)."""
-    cal = getattr(profile, "calibration", None)
-    return isinstance(cal, dict) and cal.get("measurement", "focus-measure") != "esfr"
+def tolerance_sd_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion, tol_um) -> np.ndarray:
+    """sd (µm) of the plan's δ at each point: the width fit's standard error (the profile's
+    ``focus_tolerance_sd_um``, tiles independent) and the measurement's lens-to-lens systematic
+    (``rel_sd`` of :func:`width_bias`) in quadrature. 0 where δ is exact (models, truths)."""
+    tol = np.asarray(tol_um, dtype=np.float64)
+    if not bool(getattr(profile, "has_measured_tolerance", False)):
+        return np.zeros_like(tol)
+    wb = width_bias(profile)
+    rel_sd, factor = (wb[0].rel_sd, wb[1]) if wb is not None else (0.0, 1.0)
+    stat = np.zeros_like(tol)
+    sd_fn = getattr(profile, "focus_tolerance_sd_um", None)
+    if callable(sd_fn):
+        stat = np.broadcast_to(np.asarray(sd_fn(x, y, channel, crit.fs_cyc_per_mm, crit.q), dtype=np.float64),
+                               tol.shape) / factor
+        stat = np.nan_to_num(stat, nan=0.0, posinf=0.0)
+    return np.hypot(stat, rel_sd * tol)
+
+
+def lower_tolerance_um(tol_um, tol_sd_um, level: float) -> np.ndarray:
+    """Lower end of δ's central ``level`` credible interval (Gaussian), at least 0."""
+    zq = special.ndtri(0.5 + 0.5 * level)
+    return np.maximum(np.asarray(tol_um, dtype=np.float64) - zq * np.asarray(tol_sd_um, dtype=np.float64), 0.0)
 
 
 def band_halfwidth_um(profile, x, y, channel: str, z_map, level: float) -> np.ndarray:
@@ -90,17 +163,30 @@ def mtf_loss(dz_um, tol_um, crit: MTFCriterion, f_number: float) -> np.ndarray:
     return 1.0 - np.abs(defocus_otf(crit.fs_cyc_per_mm, dz_eff, f_number))
 
 
-def coverage_probability(z_frame, z_map, tol, sigma) -> np.ndarray:
-    """P(|z_frame - z_true| <= tol) for z_true ~ N(z_map, sigma^2) (sigma = 0: certain)."""
+def coverage_probability(z_frame, z_map, tol, sigma, tol_sd=0.0, n_nodes: int = 9) -> np.ndarray:
+    """P(|z_frame - Z| <= Δ) for Z ~ N(z_map, sigma^2) and Δ ~ N(tol, tol_sd^2) independent (sigma = 0:
+    certain position; tol_sd = 0: exact δ). Over Δ by Gauss-Hermite quadrature, Δ clipped at 0."""
     z_frame = np.asarray(z_frame, dtype=np.float64)
     z_map = np.asarray(z_map, dtype=np.float64)
     tol = np.asarray(tol, dtype=np.float64)
     sigma = np.asarray(sigma, dtype=np.float64)
+    tol_sd = np.asarray(tol_sd, dtype=np.float64)
     d = z_frame - z_map
-    certain = (np.abs(d) <= tol + 1e-9).astype(np.float64)
     s = np.where(sigma > 0, sigma, 1.0)
-    p = special.ndtr((d + tol) / s) - special.ndtr((d - tol) / s)
-    return np.where(sigma > 0, p, certain)
+
+    def p_at(t):
+        certain = (np.abs(d) <= t + 1e-9).astype(np.float64)
+        p = special.ndtr((d + t) / s) - special.ndtr((d - t) / s)
+        return np.where(sigma > 0, p, certain)
+
+    if not np.any(tol_sd > 0):
+        return p_at(tol)
+    nodes, w = np.polynomial.hermite_e.hermegauss(n_nodes)
+    w = w / w.sum()
+    out = np.zeros(np.broadcast(d, tol, tol_sd, sigma).shape)
+    for ti, wi in zip(nodes, w):
+        out += wi * p_at(np.maximum(tol + tol_sd * ti, 0.0))
+    return out
 
 
 def expected_mtf_loss(z_frame, z_map, tol, sigma, crit: MTFCriterion, f_number: float, n_nodes: int = 21):

@@ -339,6 +339,30 @@ class LensProfile:
         t = focus_tolerance_um(crit, float(self.f_number))
         return np.full(np.broadcast(x, y).shape, t)
 
+    def focus_tolerance_sd_um(self, x, y, channel: str, fs_cyc_per_mm: float, q: float):
+        """Standard error (µm) of :meth:`focus_tolerance_um` from the width fit (its coefficients' covariance
+        with the tiles' residual sd, tiles independent); 0 where the tolerance comes from the defocus model.
+
+        Only the fit's own scatter: a bias common to every tile of the measurement (docs/planning.md "Measured
+        tolerance") is not in it."""
+        crit = MTFCriterion(fs_cyc_per_mm, q)
+        x, y = _check_points(x, y)
+        ch = self._channel(channel)
+        shape = np.broadcast(x, y).shape
+        tol = self.tolerance_fit
+        if tol is None or ch not in tol.coef_um:
+            return np.zeros(shape)
+        from fieldcal.profile.uncertainty import _tolerance_coef_cov
+        order = len(tol.coef_um[ch])
+        cov = _tolerance_coef_cov(self, ch, order)
+        if cov is None:
+            return np.zeros(shape)
+        xb, yb = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        J = np.stack([tol._rho2(xb, yb) ** k for k in range(order)], axis=-1)
+        ratio = (np.asarray(tol.tolerance_um(xb, yb, ch, crit.fs_cyc_per_mm, crit.q), dtype=np.float64)
+                 / np.asarray(tol.width_cal_um(xb, yb, ch), dtype=np.float64))
+        return ratio * np.sqrt(np.maximum(np.einsum("...i,ij,...j->...", J, cov, J), 0.0))
+
     def defocus_otf(self, f_cyc_per_mm, defocus_um, channel: str):
         """Signed OTF of the geometric defocus x diffraction model (needs the F-number)."""
         n = float(self.f_number or 0.0)
