@@ -58,17 +58,23 @@ def changed_specs(spec) -> dict:
     }
 
 
-def calibrate_one(spec, workdir: Path, name: str, seed: int, z_offset_um: float, extra_frames: int):
-    """Simulate and calibrate one scan; returns the saved profile's path."""
+def calibrate_one(spec, workdir: Path, name: str, seed: int, z_offset_um: float, extra_frames: int,
+                  size=SIZE, effort: str = "quick"):
+    """Simulate and calibrate one scan; returns the saved profile's path (reused when it exists: ``--keep``)."""
+    import shutil
+
     import fieldcal
     from fieldcal.simulate.stackgen import simulate_stack, z_grid
 
+    out = workdir / f"{name}.json"
+    if out.exists():
+        return out
     stack = workdir / name
     z = z_grid(Z_START + z_offset_um, Z_STOP + z_offset_um + extra_frames * Z_STEP, Z_STEP)
-    simulate_stack(spec, stack, z, scene="chart", seed=seed, size=SIZE, progress=False)
-    prof = fieldcal.calibrate(stack, fs_cyc_per_mm=FS, effort="quick", quiet=True)
-    out = workdir / f"{name}.json"
+    simulate_stack(spec, stack, z, scene="chart", seed=seed, size=tuple(size), progress=False, overwrite=True)
+    prof = fieldcal.calibrate(stack, fs_cyc_per_mm=FS, effort=effort, quiet=True)
     prof.save(out)
+    shutil.rmtree(stack, ignore_errors=True)
     return out
 
 

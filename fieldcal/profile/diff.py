@@ -29,8 +29,8 @@ from scipy.special import ndtr
 from fieldcal import __version__
 from fieldcal.errors import ParameterError, SpecError
 from fieldcal.formats import documents
-from fieldcal.profile.uncertainty import (geometry_rates, has_orientations, surface_estimate,
-                                          tolerance_estimate)
+from fieldcal.profile.uncertainty import (MODES, geometry_rates, has_orientations, mode_design, mode_units,
+                                          surface_estimate, tile_modes, tolerance_estimate)
 
 DIFF_FORMAT = documents.format_id("profile-diff")
 #: grid columns across the field (rows follow the aspect ratio)
@@ -84,7 +84,8 @@ class MaxZTest:
         return bool(self.max_z > self.critical_z)
 
 
-def max_z_test(diff: np.ndarray, covs, family_level: float, n_null: int = N_NULL, seed: int = 0) -> MaxZTest:
+def max_z_test(diff: np.ndarray, covs, family_level: float, n_null: int = N_NULL, seed: int = 0,
+               t_block: tuple[int, int] | None = None) -> MaxZTest:
     """Max-|z| test of ``diff ~ N(0, cov)`` at ``family_level`` (e.g. 0.99), calibrated by simulation.
 
     Parameters
@@ -97,6 +98,9 @@ def max_z_test(diff: np.ndarray, covs, family_level: float, n_null: int = N_NULL
         holds its level under each of them.
     family_level : float
         Probability that the test does not reject when there is no difference.
+    t_block : (start, dof), optional
+        Entries ``start:`` have a covariance *estimated* from residuals with ``dof`` degrees of freedom: their null
+        is multivariate Student-t (each Gaussian draw of the block divided by ``sqrt(chi2_dof / dof)``).
     """
     diff = np.asarray(diff, dtype=np.float64).ravel()
     covs = [covs] if isinstance(covs, np.ndarray) else list(covs)
@@ -110,14 +114,18 @@ def max_z_test(diff: np.ndarray, covs, family_level: float, n_null: int = N_NULL
     obs = float(np.nanmax(np.abs(z)))
     crit, p = 0.0, 0.0
     for k, c in enumerate(covs):
-        null = _null_max(c[np.ix_(ok, ok)], sd[ok], n_null, seed + 7919 * k)
+        t_mask = None
+        if t_block is not None:
+            t_mask = (np.arange(diff.size) >= t_block[0])[ok]
+        null = _null_max(c[np.ix_(ok, ok)], sd[ok], n_null, seed + 7919 * k,
+                         None if t_mask is None or not t_mask.any() else (t_mask, int(t_block[1])))
         crit = max(crit, float(np.quantile(null, family_level)))
         p = max(p, float((1 + np.sum(null >= obs)) / (1 + n_null)))
     return MaxZTest(z, obs, crit, p, _n_effective(crit, family_level))
 
 
-def _null_max(cov: np.ndarray, sd: np.ndarray, n_null: int, seed: int) -> np.ndarray:
-    """Draws of max_i |g_i / sd_i| for g ~ N(0, cov)."""
+def _null_max(cov: np.ndarray, sd: np.ndarray, n_null: int, seed: int, t_part=None) -> np.ndarray:
+    """Draws of max_i |g_i / sd_i| for g ~ N(0, cov); ``t_part = (mask, dof)``: those entries Student-t."""
     corr = cov / np.outer(sd, sd)
     try:   # a Cholesky factor is ~10x cheaper than eigh; a tiny ridge keeps a rank-deficient matrix factorable
         root = np.linalg.cholesky(corr + 1e-10 * np.eye(corr.shape[0]))
@@ -128,6 +136,9 @@ def _null_max(cov: np.ndarray, sd: np.ndarray, n_null: int, seed: int) -> np.nda
     null = np.empty(n_null)
     for a in range(0, n_null, 2000):
         g = rng.standard_normal((min(2000, n_null - a), root.shape[1])) @ root.T
+        if t_part is not None:
+            mask, dof = t_part
+            g[:, mask] /= np.sqrt(rng.chisquare(dof, size=g.shape[0]) / dof)[:, None]
         null[a:a + g.shape[0]] = np.max(np.abs(g), axis=1)
     return null
 
@@ -154,6 +165,7 @@ class _Family:
     covs: list                      # candidate covariances (the test holds under each)
     labels: list[str] | None = None  # geometry: the statistic of each entry
     extra: dict[str, Any] = field(default_factory=dict)
+    t_block: tuple[int, int] | None = None  # (first entry, dof) of entries with a residual-estimated variance
 
     @property
     def sd(self) -> np.ndarray:
@@ -162,7 +174,7 @@ class _Family:
 
 
 #: low-order components of a surface difference, fitted by generalised least squares and tested with the grid
-COMPONENTS = ("offset_um", "tilt_x_um_per_mm", "tilt_y_um_per_mm", "rho2_um")
+COMPONENTS = MODES
 
 
 def components_operator(profile, x_px, y_px, cov: np.ndarray) -> np.ndarray:
@@ -170,17 +182,12 @@ def components_operator(profile, x_px, y_px, cov: np.ndarray) -> np.ndarray:
 
     Offset in µm, tilts in µm/mm on the sensor (about its centre), rho^2 in µm at the half-diagonal.
     """
-    w, h = profile.image_size_px
-    r_px = 0.5 * math.hypot(w, h)
-    xh = (np.asarray(x_px, float) - 0.5 * (w - 1)) / r_px
-    yh = (np.asarray(y_px, float) - 0.5 * (h - 1)) / r_px
-    X = np.stack([np.ones_like(xh), xh, yh, xh * xh + yh * yh], axis=1)
+    X = mode_design(profile, x_px, y_px)
     # a small ridge: the covariance may be near-singular where the field is all one correlated error
     reg = cov + 1e-9 * float(np.mean(np.diag(cov)) or 1.0) * np.eye(cov.shape[0])
     wx = np.linalg.solve(reg, X)
     L = np.linalg.solve(X.T @ wx, wx.T)
-    r_mm = r_px * profile.pixel_pitch_um / 1000.0
-    return L * np.array([1.0, 1.0 / r_mm, 1.0 / r_mm, 1.0])[:, None]
+    return L * mode_units(profile)[:, None]
 
 
 def _surface_family(a, b, grid, ch, orientation) -> _Family:
@@ -206,8 +213,50 @@ def _surface_family(a, b, grid, ch, orientation) -> _Family:
         va, vb = ea.local_sd * sg, eb.local_sd * sg
         covs.append(fixed + np.outer(va, va) + np.outer(vb, vb))
     covs = [np.block([[c, c @ L.T], [L @ c, L @ c @ L.T]]) for c in covs]
-    return _Family(f"{ch}/{orientation}", "surface", ch, d_aug, covs,
-                   extra={"a": ea, "b": eb, "orientation": orientation, "m": m})
+    extra = {"a": ea, "b": eb, "orientation": orientation, "m": m}
+    modes = _tile_modes_diff(a, b, ch, orientation)
+    t_block = None
+    if modes is not None:
+        # the modes of the two calibrations' own tiles, after the mean surface: entries with a zero
+        # cross-covariance to the grid -- by Sidak's inequality, treating the blocks as independent can only
+        # raise the critical value, whatever their true correlation (docs/profiles.md)
+        dm, cm, dof = modes
+        n0 = d_aug.size
+        d_aug = np.concatenate([d_aug, dm])
+        covs = [np.block([[c, np.zeros((n0, dm.size))], [np.zeros((dm.size, n0)), cm]]) for c in covs]
+        t_block = (n0, dof)
+        extra["n_grid_entries"] = n0
+    return _Family(f"{ch}/{orientation}", "surface", ch, d_aug, covs, extra=extra, t_block=t_block)
+
+
+def _frac_surface(profile, fx, fy, ch, orientation) -> np.ndarray:
+    """The profile's best focus (µm) of one orientation at fractions of the frame."""
+    w, h = profile.image_size_px
+    x, y = fx * (w - 1), fy * (h - 1)
+    z = profile.best_focus_um(x, y, ch)
+    if orientation != "mean":
+        z = z + (0.5 if orientation == "tangential" else -0.5) * profile.surfaces.astigmatism_um(x, y, ch)
+    return np.asarray(z, dtype=np.float64)
+
+
+def _tile_modes_diff(a, b, ch, orientation):
+    """(A - B of the tile modes, their covariance, the smaller residual dof), or None where a profile lacks tiles.
+
+    Both profiles' tiles are referred to the mean of the two surfaces (one function for both): see
+    :func:`fieldcal.profile.uncertainty.tile_modes`."""
+    def reference(profile):
+        w, h = profile.image_size_px
+
+        def f(x, y):
+            fx, fy = np.asarray(x) / (w - 1), np.asarray(y) / (h - 1)
+            return 0.5 * (_frac_surface(a, fx, fy, ch, orientation) + _frac_surface(b, fx, fy, ch, orientation))
+        return f
+
+    ma = tile_modes(a, ch, orientation, reference(a))
+    mb = tile_modes(b, ch, orientation, reference(b))
+    if ma is None or mb is None:
+        return None
+    return ma.value - mb.value, ma.cov + mb.cov, min(ma.dof, mb.dof)
 
 
 def _tolerance_family(a, b, grid, ch) -> _Family | None:
@@ -284,7 +333,7 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
             (families if geo.diff.size else copies).append(geo)
     k = len(families)
     family_level = level ** (1.0 / k)
-    tests = [max_z_test(f.diff, f.covs, family_level, n_null, seed + i) for i, f in enumerate(families)]
+    tests = [max_z_test(f.diff, f.covs, family_level, n_null, seed + i, f.t_block) for i, f in enumerate(families)]
     p_min = min(t.p_value for t in tests)
     doc: dict[str, Any] = {
         "format": DIFF_FORMAT, "tool": {"name": "fieldcal", "version": __version__},
@@ -365,7 +414,11 @@ def _field_entry(f: _Family, t: MaxZTest, grid: FieldGrid, a) -> dict[str, Any]:
     sd = sd_all[:m]
     comps = {name: {"diff": float(f.diff[m + i]), "sd": float(sd_all[m + i]), "z_score": _num(t.z[m + i])}
              for i, name in enumerate(COMPONENTS)} if f.diff.size > m else None
-    return {"components": comps,"max_abs_diff_um": float(abs(d[i_abs])), "at_max_abs_diff": _where(grid, a, i_abs),
+    n0 = f.extra.get("n_grid_entries")
+    modes = {name: {"diff": float(f.diff[n0 + i]), "sd": float(sd_all[n0 + i]), "z_score": _num(t.z[n0 + i])}
+             for i, name in enumerate(MODES)} if n0 is not None else None
+    return {"components": comps, "tile_modes": modes,
+            "tile_modes_dof": None if f.t_block is None else int(f.t_block[1]),"max_abs_diff_um": float(abs(d[i_abs])), "at_max_abs_diff": _where(grid, a, i_abs),
             "max_z_score": float(np.nanmax(np.abs(zf))), "max_z_statistic": float(t.max_z), "at_max_z": {**_where(grid, a, i_z), "diff_um": float(d[i_z]),
                                                         "sd_um": float(sd[i_z])},
             "mean_diff_um": float(np.mean(d)), "rms_diff_um": float(np.sqrt(np.mean(d * d))),
@@ -393,11 +446,12 @@ def summary_lines(doc: dict[str, Any]) -> list[str]:
                          f"{e['max_z_score']:.2f} (critical {e['critical_z']:.2f}) at ({at['x_px']:.0f}, "
                          f"{at['y_px']:.0f}) px: {at['diff_um']:+.2f} ± {at['sd_um']:.2f} µm"
                          + ("  SIGNIFICANT" if e["significant"] else ""))
-            comps = e.get("components") or {}
-            if comps:
-                lines.append("      components A-B: " + "; ".join(
-                    f"{k} {v['diff']:+.3g} ± {v['sd']:.2g} (z {v['z_score']:+.1f})" for k, v in comps.items()
-                    if v["z_score"] is not None))
+            for label, key in (("components A-B", "components"), ("tile modes A-B", "tile_modes")):
+                comps = e.get(key) or {}
+                if comps:
+                    lines.append(f"      {label}: " + "; ".join(
+                        f"{k} {v['diff']:+.3g} ± {v['sd']:.2g} (z {v['z_score']:+.1f})" for k, v in comps.items()
+                        if v["z_score"] is not None))
         if c.get("tolerance"):
             e = c["tolerance"]
             lines.append(f"  {ch} tolerance: max |A-B| {e['max_abs_diff_um']:.2f} µm, max |z| {e['max_z_score']:.2f}"
