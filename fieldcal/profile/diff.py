@@ -29,8 +29,9 @@ from scipy.special import ndtr
 from fieldcal import __version__
 from fieldcal.errors import ParameterError, SpecError
 from fieldcal.formats import documents
-from fieldcal.profile.uncertainty import (MODES, geometry_rates, has_orientations, mode_design, mode_units,
-                                          surface_estimate, tile_modes, tolerance_estimate)
+from fieldcal.profile.uncertainty import (MODES, colour_estimate, displacement_estimate, geometry_rates,
+                                          has_orientations, mode_design, mode_units, surface_estimate, tile_modes,
+                                          tolerance_estimate)
 
 DIFF_FORMAT = documents.format_id("profile-diff")
 #: grid columns across the field (rows follow the aspect ratio)
@@ -300,6 +301,40 @@ def _geometry_family(a, b, ch, z_um, seen: dict) -> _Family | None:
                    extra={"a": ra, "b": rb, "copy_of": copy_of})
 
 
+def common_z_range_um(a, b) -> tuple[float, float] | None:
+    """The z range both scans cover, or None when they do not overlap."""
+    (a0, a1), (b0, b1) = a.z_range_um, b.z_range_um
+    lo, hi = max(a0, b0), min(a1, b1)
+    return (lo, hi) if hi > lo else None
+
+
+def _map_family(a, b, grid: FieldGrid, ch: str, z_span: tuple[float, float]) -> _Family:
+    """The channel's geometry from both profiles' maps: the displacement field over the common z range (frame
+    at its start -> frame at its end; breathing, drift and distortion changing with z) and, for channels other
+    than the reference, the lateral-colour field at its middle; both on the grid, in A's pixels."""
+    (wa, ha), (wb, hb) = a.image_size_px, b.image_size_px
+    scale = np.concatenate([np.full(grid.fx.size, (wa - 1) / (wb - 1)), np.full(grid.fy.size, (ha - 1) / (hb - 1))])
+    (xa, ya), (xb, yb) = grid.pixels(a), grid.pixels(b)
+    z0, z1 = z_span
+    parts = [("displacement", displacement_estimate(a, xa, ya, z0, z1, ch),
+              displacement_estimate(b, xb, yb, z0, z1, ch))]
+    if ch != a.geometry_map.reference_channel and ch != b.geometry_map.reference_channel:
+        zm = 0.5 * (z0 + z1)
+        parts.append(("lateral_colour", colour_estimate(a, xa, ya, zm, ch), colour_estimate(b, xb, yb, zm, ch)))
+    d = np.concatenate([ea.value - scale * eb.value for _, ea, eb in parts])
+    # the parts share coefficients; a zero cross-covariance between them can only raise the critical value
+    # (Sidak's inequality), so the test keeps its level
+    blocks = [ea.cov + scale[:, None] * eb.cov * scale[None, :] for _, ea, eb in parts]
+    cov = np.zeros((d.size, d.size))
+    k = 0
+    for c in blocks:
+        cov[k:k + c.shape[0], k:k + c.shape[0]] = c
+        k += c.shape[0]
+    return _Family(f"{ch}/geometry", "geometry", ch, d, [cov], labels=None,
+                   extra={"maps": [name for name, _, _ in parts], "m": grid.fx.size, "z_span_um": [z0, z1],
+                          "a_values": np.concatenate([ea.value for _, ea, _ in parts])})
+
+
 def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_NULL,
                   seed: int = 0) -> tuple[dict[str, Any], dict[str, Any]]:
     """Compare profiles ``a`` and ``b``; returns ``(document, maps)``.
@@ -320,6 +355,9 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
     grid = field_grid(a, b, nx)
     orientations = ("tangential", "sagittal") if has_orientations(a) and has_orientations(b) else ("mean",)
     z_geo = common_z_um(a, b)
+    z_span = common_z_range_um(a, b)
+    # dense maps when both profiles have them (over the z range both scans cover); else the scalar statistics
+    use_maps = bool(a.has_geometry_map and b.has_geometry_map and z_span is not None)
     families: list[_Family] = []
     copies: list[_Family] = []   # geometry copied from another channel: reported with that channel's test
     seen: dict = {}
@@ -328,7 +366,7 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
         tol = _tolerance_family(a, b, grid, ch)
         if tol is not None:
             families.append(tol)
-        geo = _geometry_family(a, b, ch, z_geo, seen)
+        geo = (_map_family(a, b, grid, ch, z_span) if use_maps else _geometry_family(a, b, ch, z_geo, seen))
         if geo is not None:
             (families if geo.diff.size else copies).append(geo)
     k = len(families)
@@ -346,7 +384,8 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
         "orientations": list(orientations),
         "p_value": float(min(1.0, 1.0 - (1.0 - p_min) ** k)),
         "significant": any(t.significant for t in tests),
-        "channels": {}, "geometry": {"z_um": z_geo, "channels": {}},
+        "channels": {}, "geometry": {"z_um": z_geo, "source": "maps" if use_maps else "scalar",
+                                     "channels": {}},
     }
     maps: dict[str, Any] = {"shape": grid.shape, "fx": grid.fx, "fy": grid.fy, "families": {}}
     for f, t in zip(families, tests):
@@ -364,7 +403,7 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
             maps["families"][f.name] = {"diff": f.diff, "sd": f.sd, "z": t.z,
                                         "critical_z": t.critical_z, "unit": "µm", "kind": "focus tolerance"}
         else:
-            doc["geometry"]["channels"][f.channel] = _geometry_entry(f, t)
+            doc["geometry"]["channels"][f.channel] = _geometry_entry(f, t, grid, a)
     for f in copies:
         doc["geometry"]["channels"][f.channel] = {"statistics": {}, "max_z_score": 0.0, "significant": False}
     for f in families + copies:   # channels whose breathing and drift are another channel's fit
@@ -391,7 +430,25 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
     return doc, maps
 
 
-def _geometry_entry(f: _Family, t: MaxZTest) -> dict[str, Any]:
+def _geometry_entry(f: _Family, t: MaxZTest, grid: FieldGrid | None = None, a=None) -> dict[str, Any]:
+    if f.labels is None:   # dense maps
+        m = f.extra["m"]
+        maps = {}
+        for i, name in enumerate(f.extra["maps"]):
+            sl = slice(2 * m * i, 2 * m * (i + 1))
+            dx, dy = f.diff[sl][:m], f.diff[sl][m:]
+            mag = np.hypot(dx, dy)
+            z = t.z[sl]
+            zmax = np.nanmax(np.abs(np.stack([z[:m], z[m:]])), axis=0)
+            j, jz = int(np.argmax(mag)), int(np.nanargmax(zmax))
+            ax, ay = f.extra["a_values"][sl][:m], f.extra["a_values"][sl][m:]
+            maps[name] = {"max_abs_diff_px": float(mag[j]), "at_max_abs_diff": _where(grid, a, j),
+                          "rms_diff_px": float(np.sqrt(np.mean(mag ** 2))),
+                          "max_abs_a_px": float(np.max(np.hypot(ax, ay))),
+                          "max_z_score": float(zmax[jz]), "at_max_z": _where(grid, a, jz),
+                          "median_sd_px": float(np.median(f.sd[sl]))}
+        return {"statistics": {}, "maps": maps, "z_span_um": f.extra["z_span_um"], "max_z_score": t.max_z,
+                "critical_z": t.critical_z, "p_value": t.p_value, "significant": t.significant}
     stats = {}
     for i, key in enumerate(f.labels):
         stats[key] = {"a": f.extra["a"][key].value, "b": f.extra["b"][key].value, "diff": float(f.diff[i]),
@@ -457,6 +514,13 @@ def summary_lines(doc: dict[str, Any]) -> list[str]:
             lines.append(f"  {ch} tolerance: max |A-B| {e['max_abs_diff_um']:.2f} µm, max |z| {e['max_z_score']:.2f}"
                          f" (critical {e['critical_z']:.2f})" + ("  SIGNIFICANT" if e["significant"] else ""))
     for ch, g in doc["geometry"]["channels"].items():
+        if g.get("maps"):
+            z0, z1 = g["z_span_um"]
+            lines.append(f"  {ch} geometry maps, {z0:.0f} -> {z1:.0f} µm: " + "; ".join(
+                f"{name} max |A-B| {e['max_abs_diff_px']:.3f} px (of {e['max_abs_a_px']:.2f}), max |z| "
+                f"{e['max_z_score']:.1f}" for name, e in g["maps"].items())
+                + f" (critical {g['critical_z']:.2f})" + ("  SIGNIFICANT" if g["significant"] else ""))
+            continue
         parts = []
         for key, s in g["statistics"].items():
             z = s["z_score"]

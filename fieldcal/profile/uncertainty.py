@@ -313,3 +313,68 @@ def geometry_rates(profile, channel: str, z_um: float, at_px: tuple[float, float
         scale, sd = g.colour[channel]
         out["lateral_colour_scale"] = Scalar(float(scale), float(sd))
     return out
+
+
+def _invert_map(gmap, x, y, z_um: float, channel: str) -> tuple[np.ndarray, np.ndarray]:
+    """The z_ref-geometry points that ``channel`` of the frame at ``z_um`` shows at (x, y) (fixed point: the maps
+    are within ~1e-2 of the identity in their derivative)."""
+    px, py = np.array(x, dtype=np.float64), np.array(y, dtype=np.float64)
+    for _ in range(30):
+        qx, qy = gmap.warp_px(px, py, z_um, channel)
+        ex, ey = qx - x, qy - y
+        px, py = px - ex, py - ey
+        if max(np.max(np.abs(ex), initial=0.0), np.max(np.abs(ey), initial=0.0)) < 1e-9:
+            break
+    return px, py
+
+
+def _map_rows(gmap, px, py, z_um: float, channel: str) -> np.ndarray:
+    """(2m, P) derivative (px) of the warp of points (px, py) at z with respect to the channel's coefficients:
+    x rows then y rows."""
+    cm = gmap.channels[channel]
+    ux = (px - gmap.centre_px[0]) / gmap.norm_px
+    uy = (py - gmap.centre_px[1]) / gmap.norm_px
+    t = np.full(ux.shape, (float(z_um) - gmap.z_ref_um) / gmap.z_scale_um)
+    dx, dy = cm.design(ux, uy, t)
+    return gmap.norm_px * np.concatenate([dx, dy])
+
+
+def displacement_estimate(profile, x, y, z_from_um: float, z_to_um: float, channel: str) -> FieldEstimate:
+    """Where the points at pixels (x, y) of the frame at ``z_from_um`` move by ``z_to_um`` (px; x entries then
+    y), from the profile's geometry maps, with the joint covariance of the map coefficients.
+
+    A frame-to-frame map ``W(z_to) o W(z_from)^-1``: it does not depend on which frame the calibration chose as
+    z_ref, so two profiles of one lens agree on it (breathing, drift and distortion changing with z). The
+    covariance neglects the inverse's own dependence on the coefficients (its derivative differs from the
+    identity by ~1e-2).
+    """
+    g = profile.geometry_map
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    px, py = _invert_map(g, x, y, z_from_um, channel)
+    qx, qy = g.warp_px(px, py, z_to_um, channel)
+    J = _map_rows(g, px, py, z_to_um, channel) - _map_rows(g, px, py, z_from_um, channel)
+    cov = J @ g.channels[channel].cov @ J.T
+    return _fixed_estimate(np.concatenate([qx - x, qy - y]), cov)
+
+
+def colour_estimate(profile, x, y, z_um: float, channel: str) -> FieldEstimate:
+    """Where ``channel`` shows the scene point the reference channel shows at pixels (x, y) of the frame at z,
+    minus (x, y) (px; x entries then y): lateral colour and any difference of distortion between channels, from
+    the geometry maps, with the covariance of both channels' coefficients (fitted separately: added)."""
+    g = profile.geometry_map
+    ref = g.reference_channel
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    px, py = _invert_map(g, x, y, z_um, ref)
+    qx, qy = g.warp_px(px, py, z_um, channel)
+    # d(q)/d(theta_c) directly; through p = W_ref^-1(x): dq = -(dW_ref) to first order
+    Jc = _map_rows(g, px, py, z_um, channel)
+    Jr = _map_rows(g, px, py, z_um, ref)
+    cov = Jc @ g.channels[channel].cov @ Jc.T + Jr @ g.channels[ref].cov @ Jr.T
+    return _fixed_estimate(np.concatenate([qx - x, qy - y]), cov)
+
+
+def _fixed_estimate(value: np.ndarray, cov: np.ndarray) -> FieldEstimate:
+    m = value.size
+    return FieldEstimate(value, 0.5 * (cov + cov.T), np.zeros(m), np.zeros((m, m)), 1.0)
