@@ -324,7 +324,7 @@ def _map_family(a, b, grid: FieldGrid, ch: str, z_span: tuple[float, float]) -> 
     d = np.concatenate([ea.value - scale * eb.value for _, ea, eb in parts])
     # the parts share coefficients; a zero cross-covariance between them can only raise the critical value
     # (Sidak's inequality), so the test keeps its level
-    blocks = [ea.cov + scale[:, None] * eb.cov * scale[None, :] for _, ea, eb in parts]
+    blocks = [ea.cov_fixed + scale[:, None] * eb.cov_fixed * scale[None, :] for _, ea, eb in parts]
     cov = np.zeros((d.size, d.size))
     k = 0
     for c in blocks:
@@ -475,9 +475,10 @@ def _field_entry(f: _Family, t: MaxZTest, grid: FieldGrid, a) -> dict[str, Any]:
     modes = {name: {"diff": float(f.diff[n0 + i]), "sd": float(sd_all[n0 + i]), "z_score": _num(t.z[n0 + i])}
              for i, name in enumerate(MODES)} if n0 is not None else None
     return {"components": comps, "tile_modes": modes,
-            "tile_modes_dof": None if f.t_block is None else int(f.t_block[1]),"max_abs_diff_um": float(abs(d[i_abs])), "at_max_abs_diff": _where(grid, a, i_abs),
-            "max_z_score": float(np.nanmax(np.abs(zf))), "max_z_statistic": float(t.max_z), "at_max_z": {**_where(grid, a, i_z), "diff_um": float(d[i_z]),
-                                                        "sd_um": float(sd[i_z])},
+            "tile_modes_dof": None if f.t_block is None else int(f.t_block[1]),
+            "max_abs_diff_um": float(abs(d[i_abs])), "at_max_abs_diff": _where(grid, a, i_abs),
+            "max_z_score": float(np.nanmax(np.abs(zf))), "max_z_statistic": float(t.max_z),
+            "at_max_z": {**_where(grid, a, i_z), "diff_um": float(d[i_z]), "sd_um": float(sd[i_z])},
             "mean_diff_um": float(np.mean(d)), "rms_diff_um": float(np.sqrt(np.mean(d * d))),
             "median_sd_um": float(np.median(sd)),
             "critical_z": float(t.critical_z), "p_value": float(t.p_value),
