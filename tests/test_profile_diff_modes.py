@@ -107,6 +107,12 @@ def test_tangential_and_sagittal_surfaces_are_compared_with_their_tile_modes(ast
             assert abs(tm["z_score"]) > 4
 
 
+#: corner noise of the synthetic correspondences (px): low enough that BIC keeps the lens's distortion terms (at
+#: 0.02 px it drops k2 and the tangential terms in some draws, and the maps are then biased by ~3 sd -- model
+#: choice, which the covariance does not hold)
+NOISE_PX = 0.01
+
+
 def _with_maps(profile, breathing=0.0, seed=0):
     """The profile with geometry maps fitted to noisy synthetic correspondences of a lens with distortion."""
     from fieldcal.fit.geometry_map import fit_geometry_map
@@ -130,19 +136,19 @@ def _with_maps(profile, breathing=0.0, seed=0):
         for zz in z:
             qx, qy = truth.warp_px(gx.ravel(), gy.ravel(), zz, c)
             P.append(np.column_stack([gx.ravel(), gy.ravel()]))
-            Q.append(np.column_stack([qx, qy]) + rng.normal(0.0, 0.02, (gx.size, 2)))
+            Q.append(np.column_stack([qx, qy]) + rng.normal(0.0, NOISE_PX, (gx.size, 2)))
             Z.append(np.full(gx.size, zz))
             C.append(np.full(gx.size, c))
             I.append(np.arange(gx.size))
     # the reference positions are measurements too: the G frame at z_ref
     P = np.concatenate(P)
     ref = (np.concatenate(C) == "G") & (np.concatenate(Z) == 0.0)
-    noise = rng.normal(0.0, 0.02, (gx.size, 2))
+    noise = rng.normal(0.0, NOISE_PX, (gx.size, 2))
     P = P + noise[np.concatenate(I)]
     Q = np.concatenate(Q)
     Q[ref] = P[ref]
     from fieldcal.fit.geometry_map import Correspondences
-    corr = Correspondences(P, Q, np.concatenate(Z), np.concatenate(C), np.full(len(P), 0.02), np.concatenate(I))
+    corr = Correspondences(P, Q, np.concatenate(Z), np.concatenate(C), np.full(len(P), NOISE_PX), np.concatenate(I))
     gmap = fit_geometry_map(corr, 0.0, (w, h))
     cal = {**profile.calibration, "z_range_um": [-120.0, 40.0]}
     return dataclasses.replace(profile, geometry_map=gmap, calibration=cal), truth

@@ -234,20 +234,10 @@ def _psd_max(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 0.5 * (env + env.T)
 
 
-def _ordered_columns(max_order: int) -> tuple[tuple[str, int], ...]:
-    """Every (term, power of t) in the order the nested fits use."""
-    return tuple((term, k) for term in TERMS for k in range(0, max_order + 1))
-
-
 def _select_channel(ux, uy, t, dx, dy, w, reference: bool, max_order: int, clusters=None):
-    """BIC over nested term sets and z degrees; returns (ChannelMap, table).
-
-    The map is fitted with the union of the BIC choice and the AIC choice: BIC names the most probable model,
-    but with thousands of points it drops terms (small tangential distortion, k2) whose omission biases the map
-    by several of its sds; AIC's choice is the predictive one. Keeping both makes the map's covariance cover its
-    error against truth (benchmarks/bench_geometry.py measures it)."""
+    """BIC over nested term sets and z degrees; returns (ChannelMap, table) (AIC is recorded too)."""
     n = 2 * ux.size
-    best, best_aic, table = None, None, []
+    best, table = None, []
     k0 = 1 if reference else 0
     for terms in TERM_SETS:
         for order in range(1, max_order + 1):
@@ -262,15 +252,9 @@ def _select_channel(ux, uy, t, dx, dy, w, reference: bool, max_order: int, clust
                           "chi2_dof": chi2 / (n - len(cols)), "cond": cond})
             if best is None or bic < best[0]:
                 best = (bic, ChannelMap(cols, coef, cov, chi2 / (n - len(cols)), ux.size))
-            if best_aic is None or aic < best_aic[0]:
-                best_aic = (aic, cols)
     if best is None:
         raise FitError(f"too few correspondences ({ux.size}) for a geometry map", field="points",
                        fix="measure more chart corners or texture points")
-    union = tuple(c for c in _ordered_columns(max_order) if c in best[1].columns or c in best_aic[1])
-    if union != best[1].columns:
-        coef, cov, chi2, _, _ = _fit_columns(ux, uy, t, dx, dy, w, union, clusters)
-        best = (best[0], ChannelMap(union, coef, cov, chi2 / (n - len(union)), ux.size))
     return best[1], table
 
 
