@@ -181,8 +181,12 @@ class Correspondences:
                            fix="give each point a positive 1-sigma (px)")
 
 
-def _fit_columns(ux, uy, t, dx, dy, w, columns):
-    """Weighted LS for one column set; returns (coef, cov, chi2, rss_w, cond)."""
+def _fit_columns(ux, uy, t, dx, dy, w, columns, clusters=None):
+    """Weighted LS for one column set; returns (coef, cov, chi2, cond, residuals).
+
+    ``clusters`` (one label per point): the covariance is the cluster-robust sandwich (CR1) over them -- the
+    observations of one scene point share its estimator error across frames and channels -- or the classical
+    one where that is larger (few clusters make the sandwich itself noisy)."""
     cm = ChannelMap(columns, np.zeros(len(columns)), np.zeros((len(columns),) * 2), 0.0, 0)
     Ax, Ay = cm.design(ux, uy, t)
     A = np.concatenate([Ax, Ay]) * np.concatenate([w, w])[:, None]
@@ -197,14 +201,41 @@ def _fit_columns(ux, uy, t, dx, dy, w, columns):
     dof = max(1, b.size - len(columns))
     cond = float(np.linalg.cond(An))
     # the sigmas are relative weights (corner noise is not known a priori): scale by the residual variance
-    cov_n = np.linalg.pinv(An.T @ An) * (chi2 / dof)
+    bread = np.linalg.pinv(An.T @ An)
+    cov_n = bread * (chi2 / dof)
+    if clusters is not None:
+        cl = np.concatenate([clusters, clusters])
+        uniq, inv = np.unique(cl, return_inverse=True)
+        g = uniq.size
+        if g > len(columns) + 1:
+            score = np.zeros((g, An.shape[1]))
+            np.add.at(score, inv, An * r[:, None])
+            meat = score.T @ score
+            cr = bread @ meat @ bread * (g / (g - 1.0)) * ((b.size - 1.0) / dof)
+            cov_n = _psd_max(cov_n, cr)
     coef = coef_n / norms
     cov = cov_n / np.outer(norms, norms)
     return coef, cov, chi2, cond, r
 
 
-def _select_channel(ux, uy, t, dx, dy, w, reference: bool, max_order: int):
-    """BIC over nested term sets and z degrees; returns (ChannelMap, table)."""
+def _psd_max(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """A covariance at least as large as ``a`` and ``b`` in every direction (the upper envelope of their
+    eigen-decomposition in the metric of ``a``)."""
+    w, v = np.linalg.eigh(0.5 * (a + a.T))
+    ok = w > 1e-12 * max(float(w.max(initial=0.0)), 1e-300)
+    if not ok.any():
+        return 0.5 * (b + b.T)
+    # whiten by a: a -> I on its range, b -> M; the envelope keeps max(1, eig(M)) per direction
+    s = v[:, ok] / np.sqrt(w[ok])
+    m = s.T @ b @ s
+    mw, mv = np.linalg.eigh(0.5 * (m + m.T))
+    root = v[:, ok] * np.sqrt(w[ok])
+    env = root @ (mv * np.maximum(mw, 1.0)) @ mv.T @ root.T
+    return 0.5 * (env + env.T)
+
+
+def _select_channel(ux, uy, t, dx, dy, w, reference: bool, max_order: int, clusters=None):
+    """BIC over nested term sets and z degrees; returns (ChannelMap, table) (AIC is recorded too)."""
     n = 2 * ux.size
     best, table = None, []
     k0 = 1 if reference else 0
@@ -213,16 +244,95 @@ def _select_channel(ux, uy, t, dx, dy, w, reference: bool, max_order: int):
             cols = tuple((term, k) for term in terms for k in range(k0, order + 1))
             if n <= len(cols) + 2:
                 continue
-            coef, cov, chi2, cond, _ = _fit_columns(ux, uy, t, dx, dy, w, cols)
-            bic = n * math.log(max(chi2, 1e-300) / n) + len(cols) * math.log(n)
-            table.append({"terms": list(terms), "z_order": order, "bic": bic, "chi2_dof": chi2 / (n - len(cols)),
-                          "cond": cond})
+            coef, cov, chi2, cond, _ = _fit_columns(ux, uy, t, dx, dy, w, cols, clusters)
+            fit_term = n * math.log(max(chi2, 1e-300) / n)
+            bic = fit_term + len(cols) * math.log(n)
+            aic = fit_term + 2.0 * len(cols)
+            table.append({"terms": list(terms), "z_order": order, "bic": bic, "aic": aic,
+                          "chi2_dof": chi2 / (n - len(cols)), "cond": cond})
             if best is None or bic < best[0]:
                 best = (bic, ChannelMap(cols, coef, cov, chi2 / (n - len(cols)), ux.size))
     if best is None:
         raise FitError(f"too few correspondences ({ux.size}) for a geometry map", field="points",
                        fix="measure more chart corners or texture points")
     return best[1], table
+
+
+def _joint_with_reference(gmap: GeometryMap, corr: Correspondences, p: np.ndarray, keep: np.ndarray, ch: np.ndarray,
+                          chans: list[str], ids: np.ndarray) -> tuple[GeometryMap, np.ndarray]:
+    """Errors in variables: refit every channel's chosen columns with each corner's reference position a free
+    parameter (``p_i + delta_i``), linearised at the current ``p`` (the maps' derivative is within ~1e-2 of the
+    identity). The deltas are fixed effects, projected out (Frisch-Waugh-Lovell: weighted demeaning of each
+    corner's x and y rows), so the coefficients' covariance is the exact one of the joint problem, with the
+    degrees of freedom the positions use. Ignoring the positions' error (they are measurements in the reference
+    frame, as noisy as any other) made the maps' sd about half their error against truth."""
+    norm, span, cx, cy = gmap.norm_px, gmap.z_scale_um, gmap.centre_px[0], gmap.centre_px[1]
+    blocks, start = {}, 0
+    for c in chans:
+        blocks[c] = slice(start, start + len(gmap.channels[c].columns))
+        start += len(gmap.channels[c].columns)
+    A_rows, b_rows, w_rows, g_rows = [], [], [], []
+    for c in chans:
+        m = np.flatnonzero((ch == c) & keep)
+        cm = gmap.channels[c]
+        ux, uy = (p[m, 0] - cx) / norm, (p[m, 1] - cy) / norm
+        dx, dy = cm.design(ux, uy, (corr.z_um[m] - gmap.z_ref_um) / span)
+        # per-channel noise scale: the sigmas are relative weights within a channel
+        w = norm / corr.sigma_px[m] / math.sqrt(max(cm.chi2_dof, 1e-300))
+        for axis, dd in ((0, dx), (1, dy)):
+            A = np.zeros((m.size, start))
+            A[:, blocks[c]] = dd
+            A_rows.append(A)
+            b_rows.append((corr.q_px[m, axis] - p[m, axis]) / norm)
+            w_rows.append(w)
+            g_rows.append(np.where(ids[m] >= 0, 2 * ids[m] + axis, -1))
+    A, b, w, grp = (np.concatenate(v) for v in (A_rows, b_rows, w_rows, g_rows))
+    Aw, bw = A * w[:, None], b * w
+    fe = grp >= 0
+    uniq, inv = np.unique(grp[fe], return_inverse=True)
+    den = np.bincount(inv, weights=w[fe] ** 2, minlength=uniq.size)
+
+    def within(v):   # residual maker of the weighted group indicators
+        v = v.copy()
+        s = np.zeros((uniq.size,) + v.shape[1:])
+        np.add.at(s, inv, v[fe] * w[fe].reshape((-1,) + (1,) * (v.ndim - 1)))
+        v[fe] -= w[fe].reshape((-1,) + (1,) * (v.ndim - 1)) * (s / den.reshape((-1,) + (1,) * (v.ndim - 1)))[inv]
+        return v
+
+    At, bt = within(Aw), within(bw)
+    norms = np.linalg.norm(At, axis=0)
+    norms[norms == 0] = 1.0
+    coef_n, *_ = np.linalg.lstsq(At / norms, bt, rcond=None)
+    coef = coef_n / norms
+    r = bt - At @ coef
+    dof = max(1, b.size - start - uniq.size)
+    cov = np.linalg.pinv((At / norms).T @ (At / norms)) / np.outer(norms, norms) * (float(r @ r) / dof)
+    # the positions' corrections (normalised units), and the new p
+    delta = np.zeros(uniq.size)
+    np.add.at(delta, inv, w[fe] * (bw[fe] - Aw[fe] @ coef))
+    delta /= den
+    lut = dict(zip(uniq.tolist(), delta.tolist()))
+    p = p.copy()
+    for i in np.flatnonzero(ids >= 0):
+        for axis in (0, 1):
+            p[i, axis] += norm * lut.get(2 * int(ids[i]) + axis, 0.0)
+    maps = {}
+    for c in chans:
+        sl, cm = blocks[c], gmap.channels[c]
+        maps[c] = ChannelMap(cm.columns, coef[sl], 0.5 * (cov[sl, sl] + cov[sl, sl].T), cm.chi2_dof, cm.n_points)
+    return GeometryMap(gmap.z_ref_um, span, gmap.centre_px, norm, gmap.reference_channel, maps, gmap.source), p
+
+
+def scene_points(corr: Correspondences) -> np.ndarray:
+    """A label per observation naming its scene point: the ChArUco corner id, or for points without one (texture)
+    the reference position they were measured at (one grid point, seen in every frame and channel)."""
+    ids = np.asarray(corr.point_id, dtype=np.int64)
+    out = ids.copy()
+    free = ids < 0
+    if free.any():
+        _, inv = np.unique(np.round(corr.p_px[free], 3), axis=0, return_inverse=True)
+        out[free] = int(ids.max(initial=-1)) + 1 + inv.ravel()
+    return out
 
 
 def fit_geometry_map(corr: Correspondences, z_ref_um: float, image_size_px: tuple[int, int],
@@ -250,6 +360,7 @@ def fit_geometry_map(corr: Correspondences, z_ref_um: float, image_size_px: tupl
     p = corr.p_px.copy()
     keep = np.ones(len(ch), bool)
     ids = np.asarray(corr.point_id)
+    clusters = scene_points(corr)
     gmap = None
     n_iter = 4 if refine_reference and (ids >= 0).any() else 2
     for it in range(n_iter):
@@ -261,7 +372,7 @@ def fit_geometry_map(corr: Correspondences, z_ref_um: float, image_size_px: tupl
             t = (corr.z_um[m] - z_ref_um) / span
             d = (corr.q_px[m] - p[m]) / norm
             maps[c], tables[c] = _select_channel(ux, uy, t, d[:, 0], d[:, 1], norm / corr.sigma_px[m], c == ref,
-                                                 max_order)
+                                                 max_order, clusters[m])
         gmap = GeometryMap(float(z_ref_um), span, centre, norm, ref, maps, source)
         # residuals of every observation through the current maps
         pred = np.empty_like(corr.q_px)
@@ -273,6 +384,14 @@ def fit_geometry_map(corr: Correspondences, z_ref_um: float, image_size_px: tupl
         # |residual| / sigma is Rayleigh for Gaussian errors: its median is sqrt(2 ln 2) robust sigmas
         s_hat = float(np.median(rn[keep])) / math.sqrt(2.0 * math.log(2.0))
         if it == n_iter - 1:
+            if refine_reference and (ids >= 0).any():
+                # the chosen columns once more, jointly with every corner's z_ref position: its covariance then
+                # holds the reference positions' own error (they are measured, not known)
+                gmap, p = _joint_with_reference(gmap, corr, p, keep, ch, chans, ids)
+                for c in chans:
+                    m = ch == c
+                    pred[m, 0], pred[m, 1] = gmap.warp_px(p[m, 0], p[m, 1], corr.z_um[m], c)
+                res = corr.q_px - pred
             break
         keep = rn <= clip_sigma * max(s_hat, 1e-12)
         if refine_reference and (ids >= 0).any():

@@ -29,7 +29,8 @@ from scipy.special import ndtr
 from fieldcal import __version__
 from fieldcal.errors import ParameterError, SpecError
 from fieldcal.formats import documents
-from fieldcal.profile.uncertainty import (geometry_rates, has_orientations, surface_estimate,
+from fieldcal.profile.uncertainty import (MODES, colour_estimate, displacement_estimate, geometry_rates,
+                                          has_orientations, mode_design, mode_units, surface_estimate, tile_modes,
                                           tolerance_estimate)
 
 DIFF_FORMAT = documents.format_id("profile-diff")
@@ -84,7 +85,8 @@ class MaxZTest:
         return bool(self.max_z > self.critical_z)
 
 
-def max_z_test(diff: np.ndarray, covs, family_level: float, n_null: int = N_NULL, seed: int = 0) -> MaxZTest:
+def max_z_test(diff: np.ndarray, covs, family_level: float, n_null: int = N_NULL, seed: int = 0,
+               t_block: tuple[int, int] | None = None) -> MaxZTest:
     """Max-|z| test of ``diff ~ N(0, cov)`` at ``family_level`` (e.g. 0.99), calibrated by simulation.
 
     Parameters
@@ -97,6 +99,9 @@ def max_z_test(diff: np.ndarray, covs, family_level: float, n_null: int = N_NULL
         holds its level under each of them.
     family_level : float
         Probability that the test does not reject when there is no difference.
+    t_block : (start, dof), optional
+        Entries ``start:`` have a covariance *estimated* from residuals with ``dof`` degrees of freedom: their null
+        is multivariate Student-t (each Gaussian draw of the block divided by ``sqrt(chi2_dof / dof)``).
     """
     diff = np.asarray(diff, dtype=np.float64).ravel()
     covs = [covs] if isinstance(covs, np.ndarray) else list(covs)
@@ -110,14 +115,18 @@ def max_z_test(diff: np.ndarray, covs, family_level: float, n_null: int = N_NULL
     obs = float(np.nanmax(np.abs(z)))
     crit, p = 0.0, 0.0
     for k, c in enumerate(covs):
-        null = _null_max(c[np.ix_(ok, ok)], sd[ok], n_null, seed + 7919 * k)
+        t_mask = None
+        if t_block is not None:
+            t_mask = (np.arange(diff.size) >= t_block[0])[ok]
+        null = _null_max(c[np.ix_(ok, ok)], sd[ok], n_null, seed + 7919 * k,
+                         None if t_mask is None or not t_mask.any() else (t_mask, int(t_block[1])))
         crit = max(crit, float(np.quantile(null, family_level)))
         p = max(p, float((1 + np.sum(null >= obs)) / (1 + n_null)))
     return MaxZTest(z, obs, crit, p, _n_effective(crit, family_level))
 
 
-def _null_max(cov: np.ndarray, sd: np.ndarray, n_null: int, seed: int) -> np.ndarray:
-    """Draws of max_i |g_i / sd_i| for g ~ N(0, cov)."""
+def _null_max(cov: np.ndarray, sd: np.ndarray, n_null: int, seed: int, t_part=None) -> np.ndarray:
+    """Draws of max_i |g_i / sd_i| for g ~ N(0, cov); ``t_part = (mask, dof)``: those entries Student-t."""
     corr = cov / np.outer(sd, sd)
     try:   # a Cholesky factor is ~10x cheaper than eigh; a tiny ridge keeps a rank-deficient matrix factorable
         root = np.linalg.cholesky(corr + 1e-10 * np.eye(corr.shape[0]))
@@ -128,6 +137,9 @@ def _null_max(cov: np.ndarray, sd: np.ndarray, n_null: int, seed: int) -> np.nda
     null = np.empty(n_null)
     for a in range(0, n_null, 2000):
         g = rng.standard_normal((min(2000, n_null - a), root.shape[1])) @ root.T
+        if t_part is not None:
+            mask, dof = t_part
+            g[:, mask] /= np.sqrt(rng.chisquare(dof, size=g.shape[0]) / dof)[:, None]
         null[a:a + g.shape[0]] = np.max(np.abs(g), axis=1)
     return null
 
@@ -154,6 +166,7 @@ class _Family:
     covs: list                      # candidate covariances (the test holds under each)
     labels: list[str] | None = None  # geometry: the statistic of each entry
     extra: dict[str, Any] = field(default_factory=dict)
+    t_block: tuple[int, int] | None = None  # (first entry, dof) of entries with a residual-estimated variance
 
     @property
     def sd(self) -> np.ndarray:
@@ -162,7 +175,7 @@ class _Family:
 
 
 #: low-order components of a surface difference, fitted by generalised least squares and tested with the grid
-COMPONENTS = ("offset_um", "tilt_x_um_per_mm", "tilt_y_um_per_mm", "rho2_um")
+COMPONENTS = MODES
 
 
 def components_operator(profile, x_px, y_px, cov: np.ndarray) -> np.ndarray:
@@ -170,17 +183,12 @@ def components_operator(profile, x_px, y_px, cov: np.ndarray) -> np.ndarray:
 
     Offset in µm, tilts in µm/mm on the sensor (about its centre), rho^2 in µm at the half-diagonal.
     """
-    w, h = profile.image_size_px
-    r_px = 0.5 * math.hypot(w, h)
-    xh = (np.asarray(x_px, float) - 0.5 * (w - 1)) / r_px
-    yh = (np.asarray(y_px, float) - 0.5 * (h - 1)) / r_px
-    X = np.stack([np.ones_like(xh), xh, yh, xh * xh + yh * yh], axis=1)
+    X = mode_design(profile, x_px, y_px)
     # a small ridge: the covariance may be near-singular where the field is all one correlated error
     reg = cov + 1e-9 * float(np.mean(np.diag(cov)) or 1.0) * np.eye(cov.shape[0])
     wx = np.linalg.solve(reg, X)
     L = np.linalg.solve(X.T @ wx, wx.T)
-    r_mm = r_px * profile.pixel_pitch_um / 1000.0
-    return L * np.array([1.0, 1.0 / r_mm, 1.0 / r_mm, 1.0])[:, None]
+    return L * mode_units(profile)[:, None]
 
 
 def _surface_family(a, b, grid, ch, orientation) -> _Family:
@@ -206,8 +214,50 @@ def _surface_family(a, b, grid, ch, orientation) -> _Family:
         va, vb = ea.local_sd * sg, eb.local_sd * sg
         covs.append(fixed + np.outer(va, va) + np.outer(vb, vb))
     covs = [np.block([[c, c @ L.T], [L @ c, L @ c @ L.T]]) for c in covs]
-    return _Family(f"{ch}/{orientation}", "surface", ch, d_aug, covs,
-                   extra={"a": ea, "b": eb, "orientation": orientation, "m": m})
+    extra = {"a": ea, "b": eb, "orientation": orientation, "m": m}
+    modes = _tile_modes_diff(a, b, ch, orientation)
+    t_block = None
+    if modes is not None:
+        # the modes of the two calibrations' own tiles, after the mean surface: entries with a zero
+        # cross-covariance to the grid -- by Sidak's inequality, treating the blocks as independent can only
+        # raise the critical value, whatever their true correlation (docs/profiles.md)
+        dm, cm, dof = modes
+        n0 = d_aug.size
+        d_aug = np.concatenate([d_aug, dm])
+        covs = [np.block([[c, np.zeros((n0, dm.size))], [np.zeros((dm.size, n0)), cm]]) for c in covs]
+        t_block = (n0, dof)
+        extra["n_grid_entries"] = n0
+    return _Family(f"{ch}/{orientation}", "surface", ch, d_aug, covs, extra=extra, t_block=t_block)
+
+
+def _frac_surface(profile, fx, fy, ch, orientation) -> np.ndarray:
+    """The profile's best focus (µm) of one orientation at fractions of the frame."""
+    w, h = profile.image_size_px
+    x, y = fx * (w - 1), fy * (h - 1)
+    z = profile.best_focus_um(x, y, ch)
+    if orientation != "mean":
+        z = z + (0.5 if orientation == "tangential" else -0.5) * profile.surfaces.astigmatism_um(x, y, ch)
+    return np.asarray(z, dtype=np.float64)
+
+
+def _tile_modes_diff(a, b, ch, orientation):
+    """(A - B of the tile modes, their covariance, the smaller residual dof), or None where a profile lacks tiles.
+
+    Both profiles' tiles are referred to the mean of the two surfaces (one function for both): see
+    :func:`fieldcal.profile.uncertainty.tile_modes`."""
+    def reference(profile):
+        w, h = profile.image_size_px
+
+        def f(x, y):
+            fx, fy = np.asarray(x) / (w - 1), np.asarray(y) / (h - 1)
+            return 0.5 * (_frac_surface(a, fx, fy, ch, orientation) + _frac_surface(b, fx, fy, ch, orientation))
+        return f
+
+    ma = tile_modes(a, ch, orientation, reference(a))
+    mb = tile_modes(b, ch, orientation, reference(b))
+    if ma is None or mb is None:
+        return None
+    return ma.value - mb.value, ma.cov + mb.cov, min(ma.dof, mb.dof)
 
 
 def _tolerance_family(a, b, grid, ch) -> _Family | None:
@@ -251,6 +301,40 @@ def _geometry_family(a, b, ch, z_um, seen: dict) -> _Family | None:
                    extra={"a": ra, "b": rb, "copy_of": copy_of})
 
 
+def common_z_range_um(a, b) -> tuple[float, float] | None:
+    """The z range both scans cover, or None when they do not overlap."""
+    (a0, a1), (b0, b1) = a.z_range_um, b.z_range_um
+    lo, hi = max(a0, b0), min(a1, b1)
+    return (lo, hi) if hi > lo else None
+
+
+def _map_family(a, b, grid: FieldGrid, ch: str, z_span: tuple[float, float]) -> _Family:
+    """The channel's geometry from both profiles' maps: the displacement field over the common z range (frame
+    at its start -> frame at its end; breathing, drift and distortion changing with z) and, for channels other
+    than the reference, the lateral-colour field at its middle; both on the grid, in A's pixels."""
+    (wa, ha), (wb, hb) = a.image_size_px, b.image_size_px
+    scale = np.concatenate([np.full(grid.fx.size, (wa - 1) / (wb - 1)), np.full(grid.fy.size, (ha - 1) / (hb - 1))])
+    (xa, ya), (xb, yb) = grid.pixels(a), grid.pixels(b)
+    z0, z1 = z_span
+    parts = [("displacement", displacement_estimate(a, xa, ya, z0, z1, ch),
+              displacement_estimate(b, xb, yb, z0, z1, ch))]
+    if ch != a.geometry_map.reference_channel and ch != b.geometry_map.reference_channel:
+        zm = 0.5 * (z0 + z1)
+        parts.append(("lateral_colour", colour_estimate(a, xa, ya, zm, ch), colour_estimate(b, xb, yb, zm, ch)))
+    d = np.concatenate([ea.value - scale * eb.value for _, ea, eb in parts])
+    # the parts share coefficients; a zero cross-covariance between them can only raise the critical value
+    # (Sidak's inequality), so the test keeps its level
+    blocks = [ea.cov_fixed + scale[:, None] * eb.cov_fixed * scale[None, :] for _, ea, eb in parts]
+    cov = np.zeros((d.size, d.size))
+    k = 0
+    for c in blocks:
+        cov[k:k + c.shape[0], k:k + c.shape[0]] = c
+        k += c.shape[0]
+    return _Family(f"{ch}/geometry", "geometry", ch, d, [cov], labels=None,
+                   extra={"maps": [name for name, _, _ in parts], "m": grid.fx.size, "z_span_um": [z0, z1],
+                          "a_values": np.concatenate([ea.value for _, ea, _ in parts])})
+
+
 def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_NULL,
                   seed: int = 0) -> tuple[dict[str, Any], dict[str, Any]]:
     """Compare profiles ``a`` and ``b``; returns ``(document, maps)``.
@@ -271,6 +355,9 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
     grid = field_grid(a, b, nx)
     orientations = ("tangential", "sagittal") if has_orientations(a) and has_orientations(b) else ("mean",)
     z_geo = common_z_um(a, b)
+    z_span = common_z_range_um(a, b)
+    # dense maps when both profiles have them (over the z range both scans cover); else the scalar statistics
+    use_maps = bool(a.has_geometry_map and b.has_geometry_map and z_span is not None)
     families: list[_Family] = []
     copies: list[_Family] = []   # geometry copied from another channel: reported with that channel's test
     seen: dict = {}
@@ -279,12 +366,12 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
         tol = _tolerance_family(a, b, grid, ch)
         if tol is not None:
             families.append(tol)
-        geo = _geometry_family(a, b, ch, z_geo, seen)
+        geo = (_map_family(a, b, grid, ch, z_span) if use_maps else _geometry_family(a, b, ch, z_geo, seen))
         if geo is not None:
             (families if geo.diff.size else copies).append(geo)
     k = len(families)
     family_level = level ** (1.0 / k)
-    tests = [max_z_test(f.diff, f.covs, family_level, n_null, seed + i) for i, f in enumerate(families)]
+    tests = [max_z_test(f.diff, f.covs, family_level, n_null, seed + i, f.t_block) for i, f in enumerate(families)]
     p_min = min(t.p_value for t in tests)
     doc: dict[str, Any] = {
         "format": DIFF_FORMAT, "tool": {"name": "fieldcal", "version": __version__},
@@ -297,7 +384,8 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
         "orientations": list(orientations),
         "p_value": float(min(1.0, 1.0 - (1.0 - p_min) ** k)),
         "significant": any(t.significant for t in tests),
-        "channels": {}, "geometry": {"z_um": z_geo, "channels": {}},
+        "channels": {}, "geometry": {"z_um": z_geo, "source": "maps" if use_maps else "scalar",
+                                     "channels": {}},
     }
     maps: dict[str, Any] = {"shape": grid.shape, "fx": grid.fx, "fy": grid.fy, "families": {}}
     for f, t in zip(families, tests):
@@ -315,7 +403,7 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
             maps["families"][f.name] = {"diff": f.diff, "sd": f.sd, "z": t.z,
                                         "critical_z": t.critical_z, "unit": "µm", "kind": "focus tolerance"}
         else:
-            doc["geometry"]["channels"][f.channel] = _geometry_entry(f, t)
+            doc["geometry"]["channels"][f.channel] = _geometry_entry(f, t, grid, a)
     for f in copies:
         doc["geometry"]["channels"][f.channel] = {"statistics": {}, "max_z_score": 0.0, "significant": False}
     for f in families + copies:   # channels whose breathing and drift are another channel's fit
@@ -342,7 +430,25 @@ def diff_profiles(a, b, level: float = 0.95, nx: int = GRID_NX, n_null: int = N_
     return doc, maps
 
 
-def _geometry_entry(f: _Family, t: MaxZTest) -> dict[str, Any]:
+def _geometry_entry(f: _Family, t: MaxZTest, grid: FieldGrid | None = None, a=None) -> dict[str, Any]:
+    if f.labels is None:   # dense maps
+        m = f.extra["m"]
+        maps = {}
+        for i, name in enumerate(f.extra["maps"]):
+            sl = slice(2 * m * i, 2 * m * (i + 1))
+            dx, dy = f.diff[sl][:m], f.diff[sl][m:]
+            mag = np.hypot(dx, dy)
+            z = t.z[sl]
+            zmax = np.nanmax(np.abs(np.stack([z[:m], z[m:]])), axis=0)
+            j, jz = int(np.argmax(mag)), int(np.nanargmax(zmax))
+            ax, ay = f.extra["a_values"][sl][:m], f.extra["a_values"][sl][m:]
+            maps[name] = {"max_abs_diff_px": float(mag[j]), "at_max_abs_diff": _where(grid, a, j),
+                          "rms_diff_px": float(np.sqrt(np.mean(mag ** 2))),
+                          "max_abs_a_px": float(np.max(np.hypot(ax, ay))),
+                          "max_z_score": float(zmax[jz]), "at_max_z": _where(grid, a, jz),
+                          "median_sd_px": float(np.median(f.sd[sl]))}
+        return {"statistics": {}, "maps": maps, "z_span_um": f.extra["z_span_um"], "max_z_score": t.max_z,
+                "critical_z": t.critical_z, "p_value": t.p_value, "significant": t.significant}
     stats = {}
     for i, key in enumerate(f.labels):
         stats[key] = {"a": f.extra["a"][key].value, "b": f.extra["b"][key].value, "diff": float(f.diff[i]),
@@ -365,9 +471,14 @@ def _field_entry(f: _Family, t: MaxZTest, grid: FieldGrid, a) -> dict[str, Any]:
     sd = sd_all[:m]
     comps = {name: {"diff": float(f.diff[m + i]), "sd": float(sd_all[m + i]), "z_score": _num(t.z[m + i])}
              for i, name in enumerate(COMPONENTS)} if f.diff.size > m else None
-    return {"components": comps,"max_abs_diff_um": float(abs(d[i_abs])), "at_max_abs_diff": _where(grid, a, i_abs),
-            "max_z_score": float(np.nanmax(np.abs(zf))), "max_z_statistic": float(t.max_z), "at_max_z": {**_where(grid, a, i_z), "diff_um": float(d[i_z]),
-                                                        "sd_um": float(sd[i_z])},
+    n0 = f.extra.get("n_grid_entries")
+    modes = {name: {"diff": float(f.diff[n0 + i]), "sd": float(sd_all[n0 + i]), "z_score": _num(t.z[n0 + i])}
+             for i, name in enumerate(MODES)} if n0 is not None else None
+    return {"components": comps, "tile_modes": modes,
+            "tile_modes_dof": None if f.t_block is None else int(f.t_block[1]),
+            "max_abs_diff_um": float(abs(d[i_abs])), "at_max_abs_diff": _where(grid, a, i_abs),
+            "max_z_score": float(np.nanmax(np.abs(zf))), "max_z_statistic": float(t.max_z),
+            "at_max_z": {**_where(grid, a, i_z), "diff_um": float(d[i_z]), "sd_um": float(sd[i_z])},
             "mean_diff_um": float(np.mean(d)), "rms_diff_um": float(np.sqrt(np.mean(d * d))),
             "median_sd_um": float(np.median(sd)),
             "critical_z": float(t.critical_z), "p_value": float(t.p_value),
@@ -393,16 +504,24 @@ def summary_lines(doc: dict[str, Any]) -> list[str]:
                          f"{e['max_z_score']:.2f} (critical {e['critical_z']:.2f}) at ({at['x_px']:.0f}, "
                          f"{at['y_px']:.0f}) px: {at['diff_um']:+.2f} ± {at['sd_um']:.2f} µm"
                          + ("  SIGNIFICANT" if e["significant"] else ""))
-            comps = e.get("components") or {}
-            if comps:
-                lines.append("      components A-B: " + "; ".join(
-                    f"{k} {v['diff']:+.3g} ± {v['sd']:.2g} (z {v['z_score']:+.1f})" for k, v in comps.items()
-                    if v["z_score"] is not None))
+            for label, key in (("components A-B", "components"), ("tile modes A-B", "tile_modes")):
+                comps = e.get(key) or {}
+                if comps:
+                    lines.append(f"      {label}: " + "; ".join(
+                        f"{k} {v['diff']:+.3g} ± {v['sd']:.2g} (z {v['z_score']:+.1f})" for k, v in comps.items()
+                        if v["z_score"] is not None))
         if c.get("tolerance"):
             e = c["tolerance"]
             lines.append(f"  {ch} tolerance: max |A-B| {e['max_abs_diff_um']:.2f} µm, max |z| {e['max_z_score']:.2f}"
                          f" (critical {e['critical_z']:.2f})" + ("  SIGNIFICANT" if e["significant"] else ""))
     for ch, g in doc["geometry"]["channels"].items():
+        if g.get("maps"):
+            z0, z1 = g["z_span_um"]
+            lines.append(f"  {ch} geometry maps, {z0:.0f} -> {z1:.0f} µm: " + "; ".join(
+                f"{name} max |A-B| {e['max_abs_diff_px']:.3f} px (of {e['max_abs_a_px']:.2f}), max |z| "
+                f"{e['max_z_score']:.1f}" for name, e in g["maps"].items())
+                + f" (critical {g['critical_z']:.2f})" + ("  SIGNIFICANT" if g["significant"] else ""))
+            continue
         parts = []
         for key, s in g["statistics"].items():
             z = s["z_score"]

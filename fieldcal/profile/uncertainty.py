@@ -190,6 +190,83 @@ def _tolerance_coef_cov(profile, channel: str, order: int) -> np.ndarray | None:
     return sd2 * np.linalg.pinv(A.T @ A)
 
 
+#: low-order modes of a best-focus field: offset (µm), tilt x and y (µm/mm on the sensor, about its centre) and
+#: the rho^2 term (µm at the half-diagonal)
+MODES = ("offset_um", "tilt_x_um_per_mm", "tilt_y_um_per_mm", "rho2_um")
+
+
+def mode_design(profile, x_px, y_px) -> np.ndarray:
+    """(m, 4) design of :data:`MODES` at pixels of ``profile`` (normalised by its half-diagonal, about the frame
+    centre); multiply the fitted coefficients by :func:`mode_units` for the physical units."""
+    w, h = profile.image_size_px
+    r_px = 0.5 * float(np.hypot(w, h))
+    xh = (np.asarray(x_px, float) - 0.5 * (w - 1)) / r_px
+    yh = (np.asarray(y_px, float) - 0.5 * (h - 1)) / r_px
+    return np.stack([np.ones_like(xh), xh, yh, xh * xh + yh * yh], axis=1)
+
+
+def mode_units(profile) -> np.ndarray:
+    """Factors from the normalised coefficients of :func:`mode_design` to µm, µm/mm, µm/mm, µm."""
+    w, h = profile.image_size_px
+    r_mm = 0.5 * float(np.hypot(w, h)) * profile.pixel_pitch_um / 1000.0
+    return np.array([1.0, 1.0 / r_mm, 1.0 / r_mm, 1.0])
+
+
+@dataclass(frozen=True)
+class ModeFit:
+    """Low-order modes (:data:`MODES`) fitted to a profile's own tile measurements, with their covariance.
+
+    ``dof``: residual degrees of freedom of the variance estimate (the modes' null is Student-t, not Gaussian).
+    """
+
+    value: np.ndarray   # (4,)
+    cov: np.ndarray     # (4, 4)
+    dof: int
+    n_tiles: int
+    residual_sd_um: float
+
+
+_TILE_COLUMN = {"mean": "z_best_um", "tangential": "z_tan_um", "sagittal": "z_sag_um"}
+
+
+def tile_modes(profile, channel: str, orientation: str = "mean", reference=None) -> ModeFit | None:
+    """The modes of the profile's measured best focus per tile, by ordinary least squares; None when the
+    profile holds too few tiles (or none for this orientation).
+
+    ``reference(x_px, y_px) -> µm``: a surface subtracted first (the two compared profiles' mean surface), so the
+    fixed 4-term basis only has to describe what is left; what the basis cannot describe is then nearly the same
+    in two calibrations of one lens and cancels in their difference even where their tiles sit at slightly
+    different positions. The covariance is the classical OLS one, ``s^2 (X'X)^-1`` with the residual variance:
+    the tiles' scatter about the fit measures the repeat error of this calibration directly (noise, the
+    estimator's step-dependent bias, anything the model does not hold), unlike the posterior of a model chosen
+    by evidence, whose tilt and decentre terms come and go between calibrations of one lens.
+    """
+    tiles = profile.tiles
+    col = _TILE_COLUMN.get(orientation)
+    if not tiles or col not in tiles or "channel" not in tiles:
+        return None
+    ch = np.asarray(tiles["channel"]).astype(str)
+    z = np.asarray(tiles[col], dtype=np.float64).ravel()
+    x = np.asarray(tiles["x_px"], dtype=np.float64).ravel()
+    y = np.asarray(tiles["y_px"], dtype=np.float64).ravel()
+    n = min(ch.size, z.size, x.size, y.size)
+    ok = (ch[:n] == channel) & np.isfinite(z[:n]) & np.isfinite(x[:n]) & np.isfinite(y[:n])
+    if "status" in tiles and np.asarray(tiles["status"]).size >= n:
+        ok &= np.asarray(tiles["status"]).astype(str)[:n] == "ok"
+    X = mode_design(profile, x[:n][ok], y[:n][ok])
+    p = X.shape[1]
+    if ok.sum() < p + 3:
+        return None
+    zz = z[:n][ok] - (0.0 if reference is None else np.asarray(reference(x[:n][ok], y[:n][ok]), float))
+    coef, *_ = np.linalg.lstsq(X, zz, rcond=None)
+    res = zz - X @ coef
+    dof = int(ok.sum()) - p
+    s2 = float(res @ res) / dof
+    u = mode_units(profile)
+    cov = s2 * np.linalg.pinv(X.T @ X) * np.outer(u, u)
+    return ModeFit(coef * u, 0.5 * (cov + cov.T), dof, int(ok.sum()), float(np.sqrt(s2)))
+
+
 @dataclass(frozen=True)
 class Scalar:
     """A scalar estimate with its standard deviation."""
@@ -236,3 +313,68 @@ def geometry_rates(profile, channel: str, z_um: float, at_px: tuple[float, float
         scale, sd = g.colour[channel]
         out["lateral_colour_scale"] = Scalar(float(scale), float(sd))
     return out
+
+
+def _invert_map(gmap, x, y, z_um: float, channel: str) -> tuple[np.ndarray, np.ndarray]:
+    """The z_ref-geometry points that ``channel`` of the frame at ``z_um`` shows at (x, y) (fixed point: the maps
+    are within ~1e-2 of the identity in their derivative)."""
+    px, py = np.array(x, dtype=np.float64), np.array(y, dtype=np.float64)
+    for _ in range(30):
+        qx, qy = gmap.warp_px(px, py, z_um, channel)
+        ex, ey = qx - x, qy - y
+        px, py = px - ex, py - ey
+        if max(np.max(np.abs(ex), initial=0.0), np.max(np.abs(ey), initial=0.0)) < 1e-9:
+            break
+    return px, py
+
+
+def _map_rows(gmap, px, py, z_um: float, channel: str) -> np.ndarray:
+    """(2m, P) derivative (px) of the warp of points (px, py) at z with respect to the channel's coefficients:
+    x rows then y rows."""
+    cm = gmap.channels[channel]
+    ux = (px - gmap.centre_px[0]) / gmap.norm_px
+    uy = (py - gmap.centre_px[1]) / gmap.norm_px
+    t = np.full(ux.shape, (float(z_um) - gmap.z_ref_um) / gmap.z_scale_um)
+    dx, dy = cm.design(ux, uy, t)
+    return gmap.norm_px * np.concatenate([dx, dy])
+
+
+def displacement_estimate(profile, x, y, z_from_um: float, z_to_um: float, channel: str) -> FieldEstimate:
+    """Where the points at pixels (x, y) of the frame at ``z_from_um`` move by ``z_to_um`` (px; x entries then
+    y), from the profile's geometry maps, with the joint covariance of the map coefficients.
+
+    A frame-to-frame map ``W(z_to) o W(z_from)^-1``: it does not depend on which frame the calibration chose as
+    z_ref, so two profiles of one lens agree on it (breathing, drift and distortion changing with z). The
+    covariance neglects the inverse's own dependence on the coefficients (its derivative differs from the
+    identity by ~1e-2).
+    """
+    g = profile.geometry_map
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    px, py = _invert_map(g, x, y, z_from_um, channel)
+    qx, qy = g.warp_px(px, py, z_to_um, channel)
+    J = _map_rows(g, px, py, z_to_um, channel) - _map_rows(g, px, py, z_from_um, channel)
+    cov = J @ g.channels[channel].cov @ J.T
+    return _fixed_estimate(np.concatenate([qx - x, qy - y]), cov)
+
+
+def colour_estimate(profile, x, y, z_um: float, channel: str) -> FieldEstimate:
+    """Where ``channel`` shows the scene point the reference channel shows at pixels (x, y) of the frame at z,
+    minus (x, y) (px; x entries then y): lateral colour and any difference of distortion between channels, from
+    the geometry maps, with the covariance of both channels' coefficients (fitted separately: added)."""
+    g = profile.geometry_map
+    ref = g.reference_channel
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    px, py = _invert_map(g, x, y, z_um, ref)
+    qx, qy = g.warp_px(px, py, z_um, channel)
+    # d(q)/d(theta_c) directly; through p = W_ref^-1(x): dq = -(dW_ref) to first order
+    Jc = _map_rows(g, px, py, z_um, channel)
+    Jr = _map_rows(g, px, py, z_um, ref)
+    cov = Jc @ g.channels[channel].cov @ Jc.T + Jr @ g.channels[ref].cov @ Jr.T
+    return _fixed_estimate(np.concatenate([qx - x, qy - y]), cov)
+
+
+def _fixed_estimate(value: np.ndarray, cov: np.ndarray) -> FieldEstimate:
+    m = value.size
+    return FieldEstimate(value, 0.5 * (cov + cov.T), np.zeros(m), np.zeros((m, m)), 1.0)
