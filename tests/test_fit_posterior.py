@@ -96,3 +96,27 @@ def test_pilot_chain_matches_a_long_chain_in_far_fewer_steps():
     sd_ref = ref.samples.std(0)
     np.testing.assert_allclose(post.samples.std(0) / sd_ref, 1.0, atol=0.12)
     np.testing.assert_allclose((post.samples.mean(0) - ref.samples.mean(0)) / sd_ref, 0.0, atol=0.15)
+
+from fieldcal.fit.posterior import _tau as posterior_tau  # noqa: E402
+
+
+# The chain-length rule must survive a parameter whose walkers never move (its autocorrelation is 0/0).
+
+
+class _Chain:
+    def __init__(self, chain):
+        self._chain = chain
+
+    def get_chain(self):
+        return self._chain
+
+
+def test_tau_is_finite_when_a_parameter_is_stuck():
+    rng = np.random.default_rng(0)
+    n_steps, n_walkers = 400, 16
+    moving = rng.normal(size=(n_steps, n_walkers))
+    stuck = np.full((n_steps, n_walkers), 3.0)  # zero variance: emcee's estimate is NaN
+    tau = posterior_tau(_Chain(np.stack([moving, stuck], axis=-1)))
+    assert np.all(np.isfinite(tau))
+    assert tau[0] < 5.0  # white noise: tau ~ 1
+    assert tau[1] == n_steps  # counted as not mixing within the chain: the caller extends and flags it

@@ -315,4 +315,9 @@ def _tau(sampler) -> np.ndarray:
 
     chain = sampler.get_chain()
     # tol=0: always return the estimate; convergence is judged by the caller's rule.
-    return emcee.autocorr.integrated_time(chain, c=5, tol=0, quiet=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tau = np.asarray(emcee.autocorr.integrated_time(chain, c=5, tol=0, quiet=True), dtype=float)
+    # A parameter whose walkers do not move has no defined autocorrelation (0/0 -> NaN): count it as mixing
+    # no faster than the whole chain, so the chain is extended to its cap and reported not converged rather
+    # than crashing on int(NaN) (seen at 320x180 standard effort).
+    return np.where(np.isfinite(tau), tau, float(chain.shape[0]))
