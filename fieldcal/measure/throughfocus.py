@@ -455,6 +455,14 @@ def pooled_skew_shift(fits: list[CurveFit]) -> tuple[float, float, float]:
     """
     d = np.array([f.skew_shift_um for f in fits if f.status == STATUS_OK], dtype=np.float64)
     sd = np.array([f.skew_shift_sd_um for f in fits if f.status == STATUS_OK], dtype=np.float64)
+    return pooled_mean(d, sd)
+
+
+def pooled_mean(d, sd) -> tuple[float, float, float]:
+    """(mean, sd, weight) of per-tile values ``d`` with sds ``sd`` that share one value over a channel: the
+    inverse-variance mean, its sd Birge-inflated by their scatter, and the evidence weight for a non-zero mean
+    ``1 / (1 + O sqrt(N) exp(-chi2 / 2))``, ``chi2 = (mean / sd)^2``, prior odds O = SKEW_PRIOR_ODDS."""
+    d, sd = np.asarray(d, dtype=np.float64), np.asarray(sd, dtype=np.float64)
     ok = np.isfinite(d) & np.isfinite(sd) & (sd > 0)
     if ok.sum() < 2:
         return 0.0, 0.0, 0.0
@@ -486,6 +494,29 @@ def apply_pooled_skew(fits: list[CurveFit], apply: bool = True) -> tuple[list[Cu
         var = f.z_centre_sd_um ** 2 + weight * se * se + weight * (1.0 - weight) * mean * mean
         out.append(_replace(f, z_best_um=f.z_centre_um + weight * mean, z_sigma_um=math.sqrt(var),
                             skew_weight=weight))
+    return out, info
+
+
+def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit]) -> tuple[list[CurveFit], dict]:
+    """``main``'s best foci moved by the channel's pooled offset to ``ref`` (same tiles, in order).
+
+    For the SML moved to the band-pass at fs (``measure="auto"``): the SML's broad band gives the lower tile
+    noise, the band-pass at fs the paper's definition of best focus. Where the through-focus curves are
+    symmetric the two peak together and the offset's evidence weight is ~0; spherical aberration skews the
+    curves and moves them apart by the same amount over a channel (docs/measurement.md "Asymmetric curves").
+    The offset is :func:`pooled_mean` of the per-tile differences (sd from both fits' sds); each tile's
+    variance adds ``w sd^2 + w (1 - w) mean^2`` (the offset's uncertainty and whether it applies at all).
+    """
+    from dataclasses import replace as _replace
+    both = [(a, b) for a, b in zip(main, ref) if a.status == STATUS_OK and b.status == STATUS_OK]
+    d = np.array([b.z_best_um - a.z_best_um for a, b in both])
+    sd = np.array([math.hypot(a.z_sigma_um, b.z_sigma_um) for a, b in both])
+    mean, se, weight = pooled_mean(d, sd)
+    info = {"offset_um": mean, "offset_sd_um": se, "offset_weight": weight, "n_tiles": len(both)}
+    var_add = weight * se * se + weight * (1.0 - weight) * mean * mean
+    out = [f if f.status != STATUS_OK else
+           _replace(f, z_best_um=f.z_best_um + weight * mean, z_sigma_um=math.sqrt(f.z_sigma_um ** 2 + var_add))
+           for f in main]
     return out, info
 
 
