@@ -606,9 +606,10 @@ def _exponent_sensitivity(cc, geometry: GeometryMeasurements, channel: str, z: n
     fits = analyse_curves(z, cc["sml"][ok] * (m ** _DGAMMA)[None, :], "peak", None, q, rules.curve)
     if rules.curve.skew:
         fits = apply_pooled_skew(fits, apply=False)[0]
+    base = res.get("z_sml_um", res["z_best_um"])
     for t, f in zip(ok, fits):
         if f.status == "ok":
-            out[t] = (f.z_best_um - res["z_best_um"][t]) / _DGAMMA
+            out[t] = (f.z_best_um - base[t]) / _DGAMMA
     return out
 
 
@@ -651,6 +652,9 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
         if measure == SML_AT_FS:
             if rules.curve.skew:
                 bp = apply_pooled_skew(bp, apply=True)[0]
+            # the SML's own best foci: the breathing sensitivity is of the SML curve (_exponent_sensitivity)
+            res["z_sml_um"] = np.full(nt, np.nan)
+            res["z_sml_um"][todo] = [f.z_best_um for f in main]
             main, offset = apply_measure_offset(main, bp)
             res["skew"] = {**res.get("skew", {}), **offset}
         for t, fb, fm in zip(todo, bp, main):
