@@ -253,7 +253,10 @@ def summarise(rows, efforts):
     return out
 
 
-def render_table(rows, efforts, argv_text: str, note: str = "") -> str:
+TITLE = "Band coverage with stage errors and the leave-tiles-out self-check (issue 14)"
+
+
+def render_table(rows, efforts, argv_text: str, note: str = "", title: str = TITLE) -> str:
     summ = summarise(rows, efforts)
     cols = [("effort", "effort", ""), ("optics", "optics", ""), ("lenses", "lenses", ""),
             ("mean coverage before", "cov_before", ".3f"), ("mean coverage after", "cov_after", ".3f"),
@@ -277,7 +280,7 @@ def render_table(rows, efforts, argv_text: str, note: str = "") -> str:
         x["rms_step"] = x["rms_um"] / x["step_um"]
     lenses = len({x["lens"] for x in rows})
     return "\n".join([
-        "## Band coverage with stage errors and the leave-tiles-out self-check (issue 14)",
+        f"## {title}",
         "",
         f"`python benchmarks/bench_band_coverage.py {argv_text}` — {lenses} random lenses (`random_lens(optics=True)`, "
         "F-number redrawn log-uniform F/1.4-F/8; even lenses geometric optics, odd ones wave optics, every other "
@@ -337,6 +340,10 @@ def main(argv=None) -> int:
     ap.add_argument("--from-jsonl", type=Path, help="make the table from the rows of a --jsonl file, run nothing")
     ap.add_argument("--note", default="", help="a sentence appended to the table's caption")
     ap.add_argument("--docs", action="store_true", help="write the table into docs/benchmarks.md")
+    ap.add_argument("--section", default=None,
+                    help="with --docs: write to this section of docs/benchmarks.md (its key) instead of the "
+                         "benchmark's own, e.g. a run restricted with --optics")
+    ap.add_argument("--title", default=TITLE, help="the section's heading")
     ap.add_argument("--scheduler", default=None,
                     help="run one Dask task per lens: local, threads or tcp://HOST:PORT (default: in this process)")
     ap.add_argument("--workers", type=int, default=None, help="workers of a local cluster (default: one per CPU)")
@@ -365,10 +372,10 @@ def main(argv=None) -> int:
                                 print(f"{r.name}: FAILED: {r.error}", flush=True))
                 results = [r.value for r in res if r.ok]
             rows = [r for rs in results for r in rs]
-    text = render_table(rows, efforts, argv_text, args.note)
+    text = render_table(rows, efforts, argv_text, args.note, args.title)
     print(text)
     if args.docs:
-        write_docs_section(NAME, text)
+        write_docs_section(f"{NAME}_{args.section}" if args.section else NAME, text)
     return 0
 
 
