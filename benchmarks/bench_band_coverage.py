@@ -362,9 +362,10 @@ def main(argv=None) -> int:
             jobs = [(f"lens{k:02d}", (k, args.width, args.optics, not args.no_stage_errors, efforts, tmp, args.plans))
                     for k in range(args.start, args.start + args.lenses)]
             if scheduler is None:
-                results = [lens_rows(job) for _, job in jobs]
-                for rs in results:
-                    _record(rs, args.jsonl)
+                results = []
+                for _, job in jobs:  # each lens recorded as it finishes (a long run can be cut short)
+                    results.append(lens_rows(job))
+                    _record(results[-1], args.jsonl)
             else:
                 res = run_units(lens_rows, jobs, scheduler=scheduler, workers=args.workers, desc="lenses",
                                 unit="lens", quiet=False,
