@@ -676,6 +676,40 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
     return res
 
 
+def _borrow_offsets(results: dict[str, dict]) -> None:
+    """``"sml@fs"``: a channel whose band-pass curves gave no offset (fewer than 2 tiles with both curves, e.g.
+    its fs-contrast peaks at an end of the scan, where the broad band-pass curve fails the edge test and the
+    narrower SML curve does not) takes the other channels' offset, in place.
+
+    Why: the SML-to-fs offset is set by the lens's spherical aberration, which is the same pupil for every
+    channel (in µm of wavefront, and the geometric peak does not depend on the wavelength); on a W040 = 0.8
+    wave F/6.9 lens G and B measured -7.4 and -6.9 µm while R, keeping its SML, sat 8 µm off. The borrowed
+    offset is the inverse-variance mean of the others' (evidence-weighted as there); its variance is theirs
+    plus their spread across channels (the chromatic part), and joins each tile's.
+    """
+    have = {c: r["skew"] for c, r in results.items()
+            if r.get("skew", {}).get("n_tiles", 0) >= 2 and r["skew"].get("offset_weight", 0.0) > 0.0}
+    lack = [c for c, r in results.items() if c not in have and "skew" in r]
+    if not have or not lack:
+        return
+    m = np.array([h["offset_um"] for h in have.values()])
+    sd = np.array([max(h["offset_sd_um"], 1e-9) for h in have.values()])
+    w = np.array([h["offset_weight"] for h in have.values()])
+    iv = 1.0 / sd ** 2
+    mean = float(np.sum(iv * m) / np.sum(iv))
+    spread2 = float(np.sum(iv * (m - mean) ** 2) / np.sum(iv)) * (m.size / max(m.size - 1, 1))
+    var = 1.0 / float(np.sum(iv)) + spread2
+    weight = float(np.min(w))
+    add = weight * var + weight * (1.0 - weight) * mean * mean
+    for c in lack:
+        r = results[c]
+        ok = r["status"] == "ok"
+        r["z_best_um"] = np.where(ok, r["z_best_um"] + weight * mean, r["z_best_um"])
+        r["z_sigma_um"] = np.where(ok, np.sqrt(r["z_sigma_um"] ** 2 + add), r["z_sigma_um"])
+        r["skew"] = {**r["skew"], "offset_um": mean, "offset_sd_um": math.sqrt(var), "offset_weight": weight,
+                     "offset_from": ",".join(have)}
+
+
 # ----------------------------------------------------------------------------------------- entry points
 def measure_geometry(stack, *, effort: str = "standard", centre_px: tuple[float, float] | None = None,
                      z_ref_um: float | None = None, quiet: bool = False) -> GeometryMeasurements:
@@ -775,13 +809,16 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                                              "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um", "stage_gain")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
     skew = {}
+    results = {ch: _analyse(per_channel[ch], z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
+                            rules=rules, bp_scale=bp_scale) for ch in stack.channels}
+    if measure == SML_AT_FS:
+        _borrow_offsets(results)
     for ch in stack.channels:
         cc = per_channel[ch]
-        res = _analyse(cc, z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure, rules=rules,
-                       bp_scale=bp_scale)
+        res = results[ch]
         cols["channel"].append(np.full(xs.size, ch))
         if "skew" in res:
-            skew[ch] = {k: (v if isinstance(v, bool) else float(v)) for k, v in res["skew"].items()}
+            skew[ch] = {k: (v if isinstance(v, (bool, str)) else float(v)) for k, v in res["skew"].items()}
         cols["z_dgamma_um"].append(_exponent_sensitivity(cc, geometry, ch, z, res, measure, q, rules))
         xw, yw = _weighted_positions(cc, geometry, ch, "sml" if measure in _SML_BASED else measure, tile, z,
                                      res["z_best_um"])
