@@ -404,3 +404,25 @@ def test_sml_at_fs_takes_the_sml_to_where_contrast_at_fs_peaks(w040):
         np.testing.assert_allclose(res["z_best_um"][ok], res["z_sml_um"][ok], atol=0.5 * step)
     else:
         assert res["skew"]["offset_weight"] > 0.99 and abs(zt_bp - zt_sml) > 0.5 * step  # a real gap, closed
+
+
+def test_a_channel_without_a_band_pass_offset_borrows_the_others():
+    # R's band-pass curves all failed (its fs peak near a scan end): it takes the inverse-variance mean of G's and
+    # B's offsets, with their spread across channels in its variance; G and B are untouched.
+    from fieldcal.measure.tiles import _borrow_offsets
+
+    def res(offset, sd, n, z):
+        return {"status": np.array(["ok", "ok", "flat"]), "z_best_um": np.array(z, float),
+                "z_sigma_um": np.array([0.3, 0.3, np.nan]),
+                "skew": {"offset_um": offset, "offset_sd_um": sd, "offset_weight": 1.0 if n else 0.0,
+                         "n_tiles": float(n)}}
+    results = {"R": res(0.0, 0.0, 0, [10.0, 20.0, np.nan]), "G": res(-7.4, 0.25, 50, [1.0, 2.0, np.nan]),
+               "B": res(-6.9, 0.25, 20, [1.0, 2.0, np.nan])}
+    _borrow_offsets(results)
+    r = results["R"]
+    np.testing.assert_allclose(r["z_best_um"][:2], [10.0 - 7.15, 20.0 - 7.15])
+    assert np.isnan(r["z_best_um"][2])
+    # spread: both weights equal -> mean of squared deviations (0.25^2) x n/(n-1) = 0.125; plus 0.25^2/2
+    np.testing.assert_allclose(r["z_sigma_um"][:2] ** 2, 0.3 ** 2 + 0.25 ** 2 / 2 + 0.125)
+    assert r["skew"]["offset_from"] == "G,B"
+    np.testing.assert_allclose(results["G"]["z_best_um"][:2], [1.0, 2.0])
