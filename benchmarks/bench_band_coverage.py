@@ -349,7 +349,10 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=None, help="workers of a local cluster (default: one per CPU)")
     args = ap.parse_args(argv)
     efforts = args.efforts.split(",")
-    argv_text = " ".join(argv if argv is not None else sys.argv[1:])
+    raw = list(argv if argv is not None else sys.argv[1:])
+    # the command as run, without the caption's own options (--note/--title/--section and their values)
+    skip = {"--note", "--title", "--section"}
+    argv_text = " ".join(a for i, a in enumerate(raw) if a not in skip and (i == 0 or raw[i - 1] not in skip))
     rows = []
     if args.from_jsonl:
         rows = [json.loads(line) for line in args.from_jsonl.read_text().splitlines() if line.strip()]
