@@ -110,8 +110,9 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
     tile_px : int, optional
         Tile size (default from the image size and effort).
     measure : {"auto", "sml", "bandpass"}
-        Focus measure of the best-focus estimate: "auto" (default) the band-pass at fs (contrast at fs, the
-        paper's best focus) where the pixels resolve fs, else the SML (``calibration.measure`` records which).
+        Focus measure of the best-focus estimate: "auto" (default) ``"sml@fs"`` — the SML moved by each
+        channel's pooled offset to the band-pass at fs (where contrast at fs peaks, the paper's best focus) —
+        where the pixels resolve fs, else the SML (``calibration.measure`` records which).
     seed : int
         Seeds the samplers (reproducible profiles).
     stage_repeatability_um : float, optional
