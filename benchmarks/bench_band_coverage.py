@@ -268,8 +268,10 @@ def summarise(rows, efforts):
     return out
 
 
-def render_table(rows, efforts, argv_text: str, note: str = "",
-                 title: str = "Band coverage with stage errors and the leave-tiles-out self-check (issue 14)") -> str:
+TITLE = "Band coverage with stage errors and the leave-tiles-out self-check (issue 14)"
+
+
+def render_table(rows, efforts, argv_text: str, note: str = "", title: str = TITLE) -> str:
     summ = summarise(rows, efforts)
     cols = [("effort", "effort", ""), ("optics", "optics", ""), ("lenses", "lenses", ""),
             ("mean coverage before", "cov_before", ".3f"), ("mean coverage after", "cov_after", ".3f"),
@@ -362,18 +364,18 @@ def main(argv=None) -> int:
     ap.add_argument("--note", default="", help="a sentence appended to the table's caption")
     ap.add_argument("--docs", action="store_true", help="write the table into docs/benchmarks.md")
     ap.add_argument("--section", default=None,
-                    help="docs/benchmarks.md section key and title as KEY=TITLE (default: this benchmark's own)")
+                    help="with --docs: write to this section of docs/benchmarks.md (its key) instead of the "
+                         "benchmark's own, e.g. a run restricted with --optics")
+    ap.add_argument("--title", default=TITLE, help="the section's heading")
     ap.add_argument("--scheduler", default=None,
                     help="run one Dask task per lens: local, threads or tcp://HOST:PORT (default: in this process)")
     ap.add_argument("--workers", type=int, default=None, help="workers of a local cluster (default: one per CPU)")
     args = ap.parse_args(argv)
     efforts = args.efforts.split(",")
-    words = list(argv if argv is not None else sys.argv[1:])
-    for opt in ("--note", "--section"):  # captions, not how the figures were made
-        if opt in words:
-            i = words.index(opt)
-            del words[i:i + 2]
-    argv_text = " ".join(words)
+    raw = list(argv if argv is not None else sys.argv[1:])
+    # the command as run, without the caption's own options (--note/--title/--section and their values)
+    skip = {"--note", "--title", "--section"}
+    argv_text = " ".join(a for i, a in enumerate(raw) if a not in skip and (i == 0 or raw[i - 1] not in skip))
     rows = []
     if args.from_jsonl:
         rows = [json.loads(line) for line in args.from_jsonl.read_text().splitlines() if line.strip()]
@@ -387,9 +389,10 @@ def main(argv=None) -> int:
                     for k in range(args.start, args.start + args.lenses)
                     if args.only is None or lens_plan(k, args.optics)[0] == args.only]
             if scheduler is None:
-                results = [lens_rows(job) for _, job in jobs]
-                for rs in results:
-                    _record(rs, args.jsonl)
+                results = []
+                for _, job in jobs:  # each lens recorded as it finishes (a long run can be cut short)
+                    results.append(lens_rows(job))
+                    _record(results[-1], args.jsonl)
             else:
                 res = run_units(lens_rows, jobs, scheduler=scheduler, workers=args.workers, desc="lenses",
                                 unit="lens", quiet=False,
@@ -397,11 +400,10 @@ def main(argv=None) -> int:
                                 print(f"{r.name}: FAILED: {r.error}", flush=True))
                 results = [r.value for r in res if r.ok]
             rows = [r for rs in results for r in rs]
-    key, title = (args.section.split("=", 1) if args.section else (NAME, None))
-    text = render_table(rows, efforts, argv_text, args.note, **({"title": title} if title else {}))
+    text = render_table(rows, efforts, argv_text, args.note, args.title)
     print(text)
     if args.docs:
-        write_docs_section(key, text)
+        write_docs_section(f"{NAME}_{args.section}" if args.section else NAME, text)
     return 0
 
 

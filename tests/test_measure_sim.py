@@ -279,12 +279,18 @@ def test_on_disk_stack_quick_effort(tmp_path, models_dir):
     table, geo = measure_stack(stack, fs_cyc_per_mm=fs_for(spec), effort="quick", quiet=True)
     assert table.tile_px == 32
     assert table.ok.mean() > 0.8, table.counts()
-    # quick: SML on 2x2-binned planes, no band-pass (no widths), geometry of G copied to every channel
-    assert np.all(np.isnan(table.width_um))
+    # quick, measure "auto": the pixels resolve fs, so the SML moved to the band-pass at fs (which gives widths)
+    # on every channel; geometry of G copied to every channel
+    assert table.measure == "sml@fs" and np.all(np.isfinite(table.width_um[table.ok]))
     np.testing.assert_array_equal(geo.magnification[:, 0], geo.magnification[:, 1])
-    rows = np.flatnonzero(table.ok)
-    err = table.z_best_um[rows] - tile_truth(spec, table, rows)
-    assert np.sqrt(np.mean(err ** 2)) <= 0.1 * STEP_UM
+    # quick with the SML: no band-pass (no widths)
+    sml, _ = measure_stack(stack, fs_cyc_per_mm=fs_for(spec), effort="quick", measure="sml", geometry=geo,
+                           quiet=True)
+    assert np.all(np.isnan(sml.width_um))
+    for t in (table, sml):
+        rows = np.flatnonzero(t.ok)
+        err = t.z_best_um[rows] - tile_truth(spec, t, rows)
+        assert np.sqrt(np.mean(err ** 2)) <= 0.1 * STEP_UM
 
 
 def test_focus_breathing_does_not_bias_best_focus(tmp_path):
@@ -410,18 +416,18 @@ def test_breathing_sensitivity_predicts_the_shift_of_another_window_exponent(col
 
     spec, stack = colour
     fs = fs_for(spec)
-    table, _ = measure_stack(stack, fs_cyc_per_mm=fs, quiet=True)
+    table, _ = measure_stack(stack, fs_cyc_per_mm=fs, measure="sml", quiet=True)
     sens = table.z_dgamma_um
     ok = table.ok & np.isfinite(sens)
     assert ok.sum() > 0.8 * table.ok.sum() and np.median(np.abs(sens[ok])) > 0.01
     monkeypatch.setattr(tiles_mod, "SML_WINDOW_EXPONENT", tiles_mod.SML_WINDOW_EXPONENT + 0.5)
-    moved, _ = measure_stack(stack, fs_cyc_per_mm=fs, quiet=True)
+    moved, _ = measure_stack(stack, fs_cyc_per_mm=fs, measure="sml", quiet=True)
     both = ok & moved.ok
     np.testing.assert_allclose(moved.z_best_um[both] - table.z_best_um[both], 0.5 * sens[both],
                                atol=0.02 + 0.1 * float(np.max(np.abs(sens[both]))))
     monkeypatch.undo()
     flat = dataclasses.replace(spec, exit_pupil_mm=math.inf)
     z = np.arange(-90.0, 40.0 + 1e-9, 2 * STEP_UM)
-    t2, _ = measure_stack(render_stack(flat, z), fs_cyc_per_mm=fs, quiet=True)
+    t2, _ = measure_stack(render_stack(flat, z), fs_cyc_per_mm=fs, measure="sml", quiet=True)
     # the measured magnification of a telecentric stack is 1 to ~1e-5: its sensitivity is ~100x smaller
     assert np.max(np.abs(t2.z_dgamma_um[t2.ok])) < 0.05 * np.median(np.abs(sens[ok]))

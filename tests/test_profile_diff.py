@@ -111,7 +111,10 @@ def test_cli_diff_show_and_exit_codes(prof_path, tmp_path, capsys):
                  str(tmp_path / "d.json"), "--grid", "8", "--draws", "2000"]) == 0
     out = capsys.readouterr().out
     assert "DIFFERENT" in out and "SIGNIFICANT" in out
-    assert sorted(p.name for p in plots.iterdir()) == [f"diff-{c}-mean.png" for c in sorted(["R", "G", "B"])]
+    # a mean-difference plot per channel, and a tolerance one where the profiles measured widths (quick effort
+    # does since its default measure takes the band-pass too)
+    kinds = ["mean"] + (["tolerance"] if LensProfile.load(prof_path).tolerance_fit is not None else [])
+    assert sorted(p.name for p in plots.iterdir()) == sorted(f"diff-{c}-{k}.png" for c in "RGB" for k in kinds)
     assert documents.read(tmp_path / "d.json", "profile-diff")["significant"] is True
     assert main(["profile", "diff", str(prof_path), str(b), "--grid", "8", "--draws", "2000", "--fail-if-significant"]) == 1
     assert main(["profile", "diff", str(prof_path), str(prof_path), "--grid", "8", "--draws", "2000", "--fail-if-significant"]) == 0

@@ -91,7 +91,7 @@ def one_blas_thread():
 
 
 def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: str = "standard",
-              z_ref_um: float | None = None, tile_px: int | None = None, measure: str = "sml", seed: int = 0,
+              z_ref_um: float | None = None, tile_px: int | None = None, measure: str = "auto", seed: int = 0,
               quiet: bool = False, stage_repeatability_um: float | None = None,
               chart: str = "auto", geometry_maps: str = "auto") -> LensProfile:
     """Fit a lens profile from a chart stack.
@@ -109,8 +109,10 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
         Reference position of the geometry model (default: the middle frame).
     tile_px : int, optional
         Tile size (default from the image size and effort).
-    measure : {"sml", "bandpass"}
-        Focus measure of the best-focus estimate.
+    measure : {"auto", "sml", "bandpass"}
+        Focus measure of the best-focus estimate: "auto" (default) ``"sml@fs"`` — the SML moved by each
+        channel's pooled offset to the band-pass at fs (where contrast at fs peaks, the paper's best focus) —
+        where the pixels resolve fs, else the SML (``calibration.measure`` records which).
     seed : int
         Seeds the samplers (reproducible profiles).
     stage_repeatability_um : float, optional
@@ -177,6 +179,7 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
         table, geo_meas = measure_stack(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), tile_px=tile_px,
                                         effort=effort, measure=measure, z_ref_um=z_ref_um, quiet=quiet)
         _require_tiles(table, stack, kind)
+    measure = table.measure  # "auto" resolved (measure.tiles.resolve_measure); "esfr" on edges
     t_measure = time.perf_counter() - t0
     counts = table.counts()
     n_ok = int(table.ok.sum())
@@ -370,7 +373,8 @@ def curve_skew_warning(table, measure: str) -> str | None:
     return (f"the through-focus curves of {', '.join(bad)} are skewed (sharpest position "
             + ", ".join(f"{table.skew[c]['shift_um']:+.2f} µm" for c in bad)
             + " from the centre; spherical aberration?): the SML's peak is then not where contrast at fs peaks. "
-            "Calibrate with --measure bandpass --effort standard for the paper's best focus")
+            "Calibrate with --measure bandpass (what the default, auto, uses where the pixels resolve fs) "
+            "for the paper's best focus")
 
 
 def stage_repeatability(stack, given: float | None) -> tuple[float, str]:

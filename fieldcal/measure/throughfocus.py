@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import spherical
 from ..optics.defocus import disc_otf as defocus_d, disc_otf_derivative as defocus_d_prime, disc_x_at_contrast
 
 STATUS_OK = "ok"
@@ -246,8 +247,10 @@ def analyse_curves(z_um, values, model: str = "peak", fs_cyc_per_mm: float | Non
     if pres:
         fits = _fit_batch(z, V, pres, step, model)
         x_q = disc_x_at_contrast(round(1.0 - q, 12)) if model == "otf" else math.nan
-        for (t, pre), fit in zip(pres, fits):
-            out[t] = _finish(z, V[t], pre, fit, step, model, x_q, rules)
+        sa = (_sa_corrections(z, V, pres, fits, step) if model == "otf" and rules.skew
+              else [_LOCAL] * len(pres))
+        for (t, pre), fit, corr in zip(pres, fits, sa):
+            out[t] = _finish(z, V[t], pre, fit, step, model, x_q, rules, corr)
     return out  # type: ignore[return-value]
 
 
@@ -348,7 +351,59 @@ def _skew_correction(z, v, pre: _Pre, fit, step, model, rules: CurveRules):
     return loc.u0 - ref.u0, loc.var_u0, w_skew
 
 
-def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules) -> CurveFit:
+_LOCAL = "local"  # _finish: the skew correction from the local skewed peak (_skew_correction)
+
+
+def _sa_corrections(z, V, pres, fits, step) -> list:
+    """Skew corrections of band-pass curves from the spherical-aberration model (:mod:`.spherical`).
+
+    Each curve whose symmetric ``"otf"`` fit succeeded is refitted on the same window with the skewed model
+    ``a O(kappa (u - u0), s)^2 + b`` (started from the symmetric fit, s = 0). Per curve: ``(du, var_du, w)``
+    with ``du`` = the skewed model's peak minus the symmetric centre, ``var_du`` the peak's variance (delta
+    method through :func:`spherical.peak_u` with the residual-scaled covariance, so the uncertainty of s is in
+    it), ``w = 1 / (1 + O sqrt(n) exp(-chi2 / 2))`` with ``chi2`` the drop in the residual sum of squares over
+    the skewed fit's residual variance (the evidence for s != 0; prior odds O = SKEW_PRIOR_ODDS). None where
+    the skewed fit fails or has < 2 degrees of freedom; ``_LOCAL`` (the local skewed peak) where the symmetric
+    fit failed.
+    """
+    out: list = [_LOCAL if f is None else None for f in fits]
+    idx = [j for j, f in enumerate(fits) if f is not None and f.n - 5 >= 2]
+    if not idx:
+        return out
+    sub = [pres[j] for j in idx]
+    p_init = [[fits[j].params[0], fits[j].params[1], fits[j].params[2], 0.0, fits[j].params[3]] for j in idx]
+    sa = _fit_batch(z, V, sub, step, "otf_sa", p_init=p_init)
+    ok = [k for k, f in enumerate(sa) if f is not None]
+    if not ok:
+        return out
+    P = np.array([sa[k].params for k in ok])
+    lo = np.array([(z[sub[k][1].lo] - z[sub[k][1].i_max]) / step for k in ok])
+    hi = np.array([(z[sub[k][1].hi] - z[sub[k][1].i_max]) / step for k in ok])
+    u_pk = spherical.peak_u(P[:, 0], P[:, 1], P[:, 2], P[:, 3], lo, hi)
+    # d u_pk / d params: 0 for a and b, 1 for u0; kappa and s by central differences
+    grad = np.zeros((len(ok), 5))
+    grad[:, 1] = 1.0
+    for i in (2, 3):
+        h = 1e-4 * np.maximum(np.abs(P[:, i]), 1e-2)
+        q = [P[:, c] for c in range(4)]
+        q[i] = P[:, i] + h
+        up = spherical.peak_u(*q, lo, hi)
+        q[i] = P[:, i] - h
+        um = spherical.peak_u(*q, lo, hi)
+        grad[:, i] = (up - um) / (2.0 * h)
+    for r, k in enumerate(ok):
+        j, f = idx[k], sa[k]
+        var = float(grad[r] @ f.cov @ grad[r])
+        if not (math.isfinite(u_pk[r]) and math.isfinite(var) and var > 0.0):
+            continue
+        s2 = max(f.rss / (f.n - 5), 1e-30)
+        chi2 = max(fits[j].rss - f.rss, 0.0) / s2
+        w = 1.0 / (1.0 + SKEW_PRIOR_ODDS * math.sqrt(f.n) * math.exp(-0.5 * min(chi2, 1400.0)))
+        out[j] = (float(u_pk[r] - fits[j].params[1]), var, w)
+    return out
+
+
+def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules, corr=_LOCAL) -> CurveFit:
     """The symmetric fit's centre, moved by the evidence-weighted skew correction to the sharpest position.
 
     Variance: the weighted mix of "no skew" (the symmetric fit's variance) and "skew" (the local peak's
@@ -359,7 +414,8 @@ def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules) -> CurveF
     """
     if fit is not None and not (math.isfinite(fit.var_u0) and fit.var_u0 > 0.0):
         fit = None
-    corr = _skew_correction(z, v, pre, fit, step, model, rules) if rules.skew else None
+    if corr == _LOCAL or fit is None:
+        corr = _skew_correction(z, v, pre, fit, step, model, rules) if rules.skew else None
     if fit is None and corr is None:
         return CurveFit.rejected("fit_failed", pre.height, pre.floor)
     if fit is None:
@@ -399,6 +455,14 @@ def pooled_skew_shift(fits: list[CurveFit]) -> tuple[float, float, float]:
     """
     d = np.array([f.skew_shift_um for f in fits if f.status == STATUS_OK], dtype=np.float64)
     sd = np.array([f.skew_shift_sd_um for f in fits if f.status == STATUS_OK], dtype=np.float64)
+    return pooled_mean(d, sd)
+
+
+def pooled_mean(d, sd) -> tuple[float, float, float]:
+    """(mean, sd, weight) of per-tile values ``d`` with sds ``sd`` that share one value over a channel: the
+    inverse-variance mean, its sd Birge-inflated by their scatter, and the evidence weight for a non-zero mean
+    ``1 / (1 + O sqrt(N) exp(-chi2 / 2))``, ``chi2 = (mean / sd)^2``, prior odds O = SKEW_PRIOR_ODDS."""
+    d, sd = np.asarray(d, dtype=np.float64), np.asarray(sd, dtype=np.float64)
     ok = np.isfinite(d) & np.isfinite(sd) & (sd > 0)
     if ok.sum() < 2:
         return 0.0, 0.0, 0.0
@@ -433,8 +497,33 @@ def apply_pooled_skew(fits: list[CurveFit], apply: bool = True) -> tuple[list[Cu
     return out, info
 
 
+def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit]) -> tuple[list[CurveFit], dict]:
+    """``main``'s best foci moved by the channel's pooled offset to ``ref`` (same tiles, in order).
+
+    For the SML moved to the band-pass at fs (``measure="auto"``): the SML's broad band gives the lower tile
+    noise, the band-pass at fs the paper's definition of best focus. Where the through-focus curves are
+    symmetric the two peak together and the offset's evidence weight is ~0; spherical aberration skews the
+    curves and moves them apart by the same amount over a channel (docs/measurement.md "Asymmetric curves").
+    The offset is :func:`pooled_mean` of the per-tile differences (sd from both fits' sds); each tile's
+    variance adds ``w sd^2 + w (1 - w) mean^2`` (the offset's uncertainty and whether it applies at all).
+    """
+    from dataclasses import replace as _replace
+    both = [(a, b) for a, b in zip(main, ref) if a.status == STATUS_OK and b.status == STATUS_OK]
+    d = np.array([b.z_best_um - a.z_best_um for a, b in both])
+    sd = np.array([math.hypot(a.z_sigma_um, b.z_sigma_um) for a, b in both])
+    mean, se, weight = pooled_mean(d, sd)
+    info = {"offset_um": mean, "offset_sd_um": se, "offset_weight": weight, "n_tiles": len(both)}
+    var_add = weight * se * se + weight * (1.0 - weight) * mean * mean
+    out = [f if f.status != STATUS_OK else
+           _replace(f, z_best_um=f.z_best_um + weight * mean, z_sigma_um=math.sqrt(f.z_sigma_um ** 2 + var_add))
+           for f in main]
+    return out, info
+
+
 def _model_eval(model: str, u: np.ndarray, p: np.ndarray, free_p: np.ndarray):
     """Model values (T x n) and Jacobian (T x n x P) for parameter rows p (T x P)."""
+    if model == "otf_sa":
+        return spherical.model(u, *(p[:, i:i + 1] for i in range(5)))
     if model == "otf":
         a, u0, kappa, b = (p[:, i:i + 1] for i in range(4))
         du = u - u0
@@ -455,11 +544,12 @@ def _model_eval(model: str, u: np.ndarray, p: np.ndarray, free_p: np.ndarray):
     return f, J
 
 
-def _fit_batch(z, V, pres, step, model, n_iter: int = 100):
+def _fit_batch(z, V, pres, step, model, n_iter: int = 100, p_init: list | None = None):
     """Batched Levenberg-Marquardt over the windows of ``pres``; a :class:`_Fit` or None for each.
 
     Coordinates are normalised (u in steps from the sampled maximum, values / the maximum); the covariance
-    is ``(J^T J)^-1`` scaled by the residual variance.
+    is ``(J^T J)^-1`` scaled by the residual variance. ``p_init``: starting parameters per window (normalised
+    coordinates), instead of the guesses from the data.
     """
     T = len(pres)
     nmax = max(p.hi - p.lo + 1 for _, p in pres)
@@ -479,7 +569,9 @@ def _fit_batch(z, V, pres, step, model, n_iter: int = 100):
         w[j, :k] = 1.0
         hw = _half_width_units(V[t], pre.i_max, pre.floor, pre.height, step, z)
         a0, b0 = pre.height / sc, max(pre.floor / sc, 0.0)
-        if model == "otf":
+        if p_init is not None:
+            p0.append(list(p_init[j]))
+        elif model == "otf":
             p0.append([a0, 0.0, _X_HALF_ENERGY / hw, b0])
         else:
             free_p[j] = 1.0 if k >= 8 else 0.0  # the shape exponent only when the window can support it
@@ -532,9 +624,10 @@ def _fit_batch(z, V, pres, step, model, n_iter: int = 100):
     out = []
     for j in range(T):
         pj = p[j].copy()
-        pj[2] = abs(pj[2])  # both models are even in their width parameter
+        if model != "otf_sa":  # even in the width parameter (otf_sa: in (kappa, s) jointly; its peak is too)
+            pj[2] = abs(pj[2])
         ok = ((dof[j] > 0) and bool(np.all(np.isfinite(pj))) and pj[0] > 0.0
-              and pj[2] > 1e-6 and bool(np.all(np.isfinite(cov[j]))) and cond[j] < 1e13)
+              and abs(pj[2]) > 1e-6 and bool(np.all(np.isfinite(cov[j]))) and cond[j] < 1e13)
         if model == "peak":
             ok = ok and 0.1 <= pj[3] <= 1e4
         if not ok:
@@ -543,7 +636,7 @@ def _fit_batch(z, V, pres, step, model, n_iter: int = 100):
         # an exact (noise-free) fit has zero residual: floor the variance at float precision, not zero
         s2 = max(cost[j] / dof[j], 1e-24)
         out.append(_Fit(pj, float(cov[j][1, 1] * s2), float(scale[j]), float(cost[j]), int(w[j].sum()),
-                        float(gain[j])))
+                        float(gain[j]), cov[j] * s2))
     return out
 
 
@@ -555,6 +648,7 @@ class _Fit:
     rss: float
     n: int
     stage_gain: float
+    cov: np.ndarray | None = None  # residual-scaled parameter covariance
 
 
 def _solve_spd(A: np.ndarray, b: np.ndarray) -> np.ndarray:

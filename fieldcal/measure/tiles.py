@@ -29,7 +29,7 @@ from . import focus
 from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
 from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
                        lateral_colour_scales, register_step, registration_plane)
-from .throughfocus import CurveFit, CurveRules, analyse_curves, apply_pooled_skew
+from .throughfocus import CurveFit, CurveRules, analyse_curves, apply_measure_offset, apply_pooled_skew
 
 # The SML window sum follows the image as m^2 (an image magnified by m has second derivatives / m^2 over a
 # window of m^2 pixels). On 12 simulated breathing lenses (F/2.5-F/3.9, exit pupils 20-50 mm) the exponent
@@ -56,7 +56,12 @@ EFFORTS = {
     "thorough": {"tile_div": 16, "geo_ds": 2, "geo_min_px": 256, "geo_all": True, "bp_all": True, "focus_bin": 1,
                  "directional": True, "cell": 4},
 }
-MEASURES = ("sml", "bandpass")
+SML_AT_FS = "sml@fs"
+MEASURES = ("auto", "sml", "bandpass", SML_AT_FS)
+_SML_BASED = ("sml", SML_AT_FS)  # measures whose tile curve (and breathing sensitivity) is the SML's
+# Highest band-pass frequency a plane resolves (cycles per plane pixel): the log-Gabor ring reaches ~1.6 f0 at
+# 2 sigma, so above 0.4 it would pass aliased energy (Nyquist 0.5).
+MAX_BANDPASS_CYC_PER_PX = 0.4
 
 
 @dataclass(frozen=True)
@@ -177,6 +182,24 @@ def _check_params(stack, fs_cyc_per_mm, q, tile_px, measure):
         raise ParameterError(f"the stack's pixel pitch is {pitch!r}: fs in cycles/mm needs it",
                              path=stack.path, field="pixel_pitch_um",
                              fix="give the sensor's pixel pitch in µm (ArrayStack(..., pixel_pitch_um=3.45))")
+
+
+def resolve_measure(stack, fs_cyc_per_mm: float, measure: str) -> str:
+    """The focus measure ``measure="auto"`` uses: ``"sml@fs"`` when every plane resolves fs
+    (``fs x pitch x stride <= MAX_BANDPASS_CYC_PER_PX``), else the SML.
+
+    ``"sml@fs"``: each tile's SML best focus moved by the channel's pooled offset to the band-pass at fs
+    (:func:`fieldcal.measure.throughfocus.apply_measure_offset`). Why: the paper's best focus is where contrast
+    at fs peaks, and where the through-focus curves are skewed (spherical aberration) the broad-band SML peaks
+    elsewhere (docs/measurement.md "Asymmetric curves"); where they are symmetric both peak together and the
+    SML, which sums every frequency, scatters less from tile to tile (0.18-0.25 vs 0.34-0.63 µm on the triplet
+    at 384x216, 1.0 vs 0.35 µm on its RGGB sub-lattices).
+    """
+    if measure != "auto":
+        return measure
+    stride = max(lay.stride for lay in plane_layouts(stack.channels, stack.cfa))
+    f0 = fs_cyc_per_mm * float(stack.pixel_pitch_um) * 1e-3 * stride
+    return SML_AT_FS if f0 <= MAX_BANDPASS_CYC_PER_PX else "sml"
 
 
 def _reference_index(z_sorted: np.ndarray, z_ref_um: float | None) -> int:
@@ -320,12 +343,14 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
                                                      lay0.offset_x + lay0.stride * (fbin - 1) / 2.0,
                                                      lay0.offset_y + lay0.stride * (fbin - 1) / 2.0)
             f0 = fs_cyc_per_mm * pitch_mm * lay.stride
-            if with_bp and f0 > 0.4:
+            if with_bp and f0 > MAX_BANDPASS_CYC_PER_PX:
                 raise ParameterError(
                     f"fs = {fs_cyc_per_mm:g} cycles/mm is {f0:.2f} cycles per pixel of the {lay.name} "
-                    f"{'sub-lattice' if lay.stride > 1 else 'plane'}: above what the pixels resolve (0.4)",
+                    f"{'sub-lattice' if lay.stride > 1 else 'plane'}: above what the pixels resolve "
+                    f"({MAX_BANDPASS_CYC_PER_PX})",
                     field="fs_cyc_per_mm",
-                    fix=f"use fs <= {0.4 / (pitch_mm * lay.stride):.0f} cycles/mm for this stack")
+                    fix=f"use fs <= {MAX_BANDPASS_CYC_PER_PX / (pitch_mm * lay.stride):.0f} cycles/mm for "
+                        "this stack, or measure='sml'")
             cell = max(2, cfg["cell"] // lay0.stride)
             ph, pw = plane_shape((h, w), lay0)
             hc, wc = focus.cell_grid((ph // fbin, pw // fbin), cell)
@@ -571,7 +596,7 @@ def _exponent_sensitivity(cc, geometry: GeometryMeasurements, channel: str, z: n
     """d z_best / d(SML window exponent) of each accepted tile (µm per unit exponent), by refitting its SML
     curve with the window sum scaled by m^_DGAMMA more. 0 when the image does not breathe."""
     out = np.full(res["z_best_um"].size, np.nan)
-    if measure != "sml":
+    if measure not in _SML_BASED:
         return out
     ok = np.flatnonzero(res["status"] == "ok")
     m = geometry.magnification[:, geometry.channel_index(channel)]
@@ -581,9 +606,10 @@ def _exponent_sensitivity(cc, geometry: GeometryMeasurements, channel: str, z: n
     fits = analyse_curves(z, cc["sml"][ok] * (m ** _DGAMMA)[None, :], "peak", None, q, rules.curve)
     if rules.curve.skew:
         fits = apply_pooled_skew(fits, apply=False)[0]
+    base = res.get("z_sml_um", res["z_best_um"])
     for t, f in zip(ok, fits):
         if f.status == "ok":
-            out[t] = (f.z_best_um - res["z_best_um"][t]) / _DGAMMA
+            out[t] = (f.z_best_um - base[t]) / _DGAMMA
     return out
 
 
@@ -609,7 +635,11 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
     todo = np.flatnonzero(~(low | sat))
     if todo.size:
         if "bandpass" in channel_curves:
-            bp = analyse_curves(z, channel_curves["bandpass"][todo], "otf", fs_cyc_per_mm, q, rules.curve)
+            # Band energy / mean level^2 = (contrast at fs)^2 x the texture's power there: invariant to the
+            # illumination and exposure of each frame (a 1 % flicker would otherwise move a broad peak by a
+            # large fraction of a step); the tile mean is averaged over thousands of pixels, so it adds no noise.
+            e_bp = channel_curves["bandpass"][todo] / np.square(safe_mean[todo])
+            bp = analyse_curves(z, e_bp, "otf", fs_cyc_per_mm, q, rules.curve)
         else:  # quick effort: no band-pass on this channel, so no width
             bp = [CurveFit.rejected("not_measured")] * todo.size
         main = bp if measure == "bandpass" else analyse_curves(z, channel_curves["sml"][todo], "peak", None, q,
@@ -619,6 +649,14 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             # focus is where it peaks); an SML's peak is not that point on a skewed lens, so the SML keeps its
             # centre and the shift is only recorded (docs/measurement.md "Asymmetric curves").
             main, res["skew"] = apply_pooled_skew(main, apply=measure == "bandpass")
+        if measure == SML_AT_FS:
+            if rules.curve.skew:
+                bp = apply_pooled_skew(bp, apply=True)[0]
+            # the SML's own best foci: the breathing sensitivity is of the SML curve (_exponent_sensitivity)
+            res["z_sml_um"] = np.full(nt, np.nan)
+            res["z_sml_um"][todo] = [f.z_best_um for f in main]
+            main, offset = apply_measure_offset(main, bp)
+            res["skew"] = {**res.get("skew", {}), **offset}
         for t, fb, fm in zip(todo, bp, main):
             stat[t] = fm.status
             if fm.status == "ok":
@@ -630,12 +668,46 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
                 res["width_um"][t] = fb.width_um / s0
         if "along" in channel_curves:
             for key, col in (("along", "z_tan_um"), ("across", "z_sag_um")):
-                for t, d in zip(todo, analyse_curves(z, channel_curves[key][todo], "otf", fs_cyc_per_mm, q,
-                                                     rules.curve)):
+                e_dir = channel_curves[key][todo] / np.square(safe_mean[todo])  # as the band energy above
+                for t, d in zip(todo, analyse_curves(z, e_dir, "otf", fs_cyc_per_mm, q, rules.curve)):
                     if d.status == "ok":
                         res[col][t] = d.z_best_um
     res["status"] = stat.astype(str)
     return res
+
+
+def _borrow_offsets(results: dict[str, dict]) -> None:
+    """``"sml@fs"``: a channel whose band-pass curves gave no offset (fewer than 2 tiles with both curves, e.g.
+    its fs-contrast peaks at an end of the scan, where the broad band-pass curve fails the edge test and the
+    narrower SML curve does not) takes the other channels' offset, in place.
+
+    Why: the SML-to-fs offset is set by the lens's spherical aberration, which is the same pupil for every
+    channel (in µm of wavefront, and the geometric peak does not depend on the wavelength); on a W040 = 0.8
+    wave F/6.9 lens G and B measured -7.4 and -6.9 µm while R, keeping its SML, sat 8 µm off. The borrowed
+    offset is the inverse-variance mean of the others' (evidence-weighted as there); its variance is theirs
+    plus their spread across channels (the chromatic part), and joins each tile's.
+    """
+    have = {c: r["skew"] for c, r in results.items()
+            if r.get("skew", {}).get("n_tiles", 0) >= 2 and r["skew"].get("offset_weight", 0.0) > 0.0}
+    lack = [c for c, r in results.items() if c not in have and "skew" in r]
+    if not have or not lack:
+        return
+    m = np.array([h["offset_um"] for h in have.values()])
+    sd = np.array([max(h["offset_sd_um"], 1e-9) for h in have.values()])
+    w = np.array([h["offset_weight"] for h in have.values()])
+    iv = 1.0 / sd ** 2
+    mean = float(np.sum(iv * m) / np.sum(iv))
+    spread2 = float(np.sum(iv * (m - mean) ** 2) / np.sum(iv)) * (m.size / max(m.size - 1, 1))
+    var = 1.0 / float(np.sum(iv)) + spread2
+    weight = float(np.min(w))
+    add = weight * var + weight * (1.0 - weight) * mean * mean
+    for c in lack:
+        r = results[c]
+        ok = r["status"] == "ok"
+        r["z_best_um"] = np.where(ok, r["z_best_um"] + weight * mean, r["z_best_um"])
+        r["z_sigma_um"] = np.where(ok, np.sqrt(r["z_sigma_um"] ** 2 + add), r["z_sigma_um"])
+        r["skew"] = {**r["skew"], "offset_um": mean, "offset_sd_um": math.sqrt(var), "offset_weight": weight,
+                     "offset_from": ",".join(have)}
 
 
 # ----------------------------------------------------------------------------------------- entry points
@@ -669,7 +741,7 @@ def measure_geometry(stack, *, effort: str = "standard", centre_px: tuple[float,
 
 
 def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_px: int | None = None,
-                  effort: str = "standard", measure: str = "sml", rules: TileRules | None = None,
+                  effort: str = "standard", measure: str = "auto", rules: TileRules | None = None,
                   geometry: GeometryMeasurements | None = None, centre_px: tuple[float, float] | None = None,
                   z_ref_um: float | None = None, quiet: bool = False) -> tuple[TileTable, GeometryMeasurements]:
     """Measure per-tile through-focus curves and (unless given) the per-frame geometry, in one pass.
@@ -686,8 +758,11 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         Tile size in frame pixels (default :func:`default_tile_px`).
     effort : {"quick", "standard", "thorough"}
         Speed/detail trade-off (module constant ``EFFORTS``); "thorough" adds z_tan/z_sag.
-    measure : {"sml", "bandpass"}
+    measure : {"auto", "sml", "bandpass", "sml@fs"}
         Focus measure whose curve gives ``z_best_um`` (the width always comes from the band-pass curve).
+        "auto" (default): ``"sml@fs"`` (the SML moved by the channel's pooled offset to the band-pass at fs)
+        where the planes resolve fs, else the SML (:func:`resolve_measure`); ``TileTable.measure`` records the
+        one used.
     rules : TileRules, optional
         Rejection thresholds.
     geometry : GeometryMeasurements, optional
@@ -698,6 +773,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     (TileTable, GeometryMeasurements)
     """
     _check_params(stack, fs_cyc_per_mm, q, tile_px, measure)
+    measure = resolve_measure(stack, float(fs_cyc_per_mm), measure)
     rules = rules or TileRules()
     z_sorted = np.sort(np.asarray(stack.z_um, dtype=np.float64))
     if geometry is not None:
@@ -707,7 +783,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                                  field="geometry", fix="measure the geometry on this stack (measure_geometry(stack))")
     z, order, maps, geo, bp_scale = _scan(stack, want_focus=True, want_geometry=geometry is None,
                                           fs_cyc_per_mm=float(fs_cyc_per_mm), effort=effort, centre_px=centre_px,
-                                          z_ref_um=z_ref_um, quiet=quiet, bp_all=measure == "bandpass",
+                                          z_ref_um=z_ref_um, quiet=quiet, bp_all=measure in ("bandpass", SML_AT_FS),
                                           known_geometry=geometry)
     geometry = geometry or geo
     h, w = stack.shape
@@ -718,7 +794,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                              "is too large)", field="tile_px", fix="use a smaller tile_px")
     per_channel: dict[str, dict[str, np.ndarray]] = {}
     for m in maps:
-        curves = _tile_curves(m, geometry, xs, ys, tile, moments_of=measure)
+        curves = _tile_curves(m, geometry, xs, ys, tile, moments_of="sml" if measure in _SML_BASED else measure)
         have = per_channel.get(m.layout.name)
         if have is None:
             per_channel[m.layout.name] = curves
@@ -733,15 +809,19 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                                              "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um", "stage_gain")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
     skew = {}
+    results = {ch: _analyse(per_channel[ch], z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
+                            rules=rules, bp_scale=bp_scale) for ch in stack.channels}
+    if measure == SML_AT_FS:
+        _borrow_offsets(results)
     for ch in stack.channels:
         cc = per_channel[ch]
-        res = _analyse(cc, z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure, rules=rules,
-                       bp_scale=bp_scale)
+        res = results[ch]
         cols["channel"].append(np.full(xs.size, ch))
         if "skew" in res:
-            skew[ch] = {k: (v if isinstance(v, bool) else float(v)) for k, v in res["skew"].items()}
+            skew[ch] = {k: (v if isinstance(v, (bool, str)) else float(v)) for k, v in res["skew"].items()}
         cols["z_dgamma_um"].append(_exponent_sensitivity(cc, geometry, ch, z, res, measure, q, rules))
-        xw, yw = _weighted_positions(cc, geometry, ch, measure, tile, z, res["z_best_um"])
+        xw, yw = _weighted_positions(cc, geometry, ch, "sml" if measure in _SML_BASED else measure, tile, z,
+                                     res["z_best_um"])
         ok = res["status"] == "ok"  # rejected tiles keep their geometric centre
         cols["x_px"].append(np.where(ok, xw, xs))
         cols["y_px"].append(np.where(ok, yw, ys))
