@@ -89,7 +89,7 @@ def world(request, tmp_path_factory):
     root = tmp_path_factory.mktemp(request.param)
     spec = distorted_lens(SIZE, distortion=BARREL if request.param == "barrel" else PINCUSHION)
     spec.save(root / "lens.json")
-    assert main(["simulate", str(root / "lens.json"), str(root / "S"), "--z", "-100", "20", "30", "--scene",
+    assert main(["simulate", str(root / "lens.json"), str(root / "S"), "--z", "-180", "60", "40", "--scene",
                  "charuco", "--quiet"]) == 0
     assert main(["calibrate", str(root / "S"), "--out", str(root / "p.json"), "--fs", "12", "--effort", "quick",
                  "--z-ref", "-40", "-q"]) == 0
