@@ -66,7 +66,8 @@ def _table(truth, z, xs, status):
     curves = np.stack([_lorentz(z, truth(x)) for x in xs])
     return SimpleNamespace(z_um=z, curves={"sml": curves}, measure="sml", status=np.array(status),
                            x_px=np.asarray(xs, float), y_px=np.full(len(xs), 120.0), channel=np.array(["G"] * len(xs)),
-                           ok=np.array([s == "ok" for s in status]), tile_px=32)
+                           ok=np.array([s == "ok" for s in status]), tile_px=32,
+                           z_best_um=np.array([float(truth(x)) if s == "ok" else np.nan for x, s in zip(xs, status)]))
 
 
 def test_bracket_check_passes_the_truth_and_fails_a_wrong_extrapolation():
@@ -82,6 +83,12 @@ def test_bracket_check_passes_the_truth_and_fails_a_wrong_extrapolation():
     # a band wide enough to hold the brackets is not contradicted (the extrapolation is then honest)
     assert not check_brackets(_Plane(-300.0, 0.0, 400.0), t).failed
     assert not BracketCheck(10, 2, None).failed and BracketCheck(10, 3, None).failed
+    # fitted tiles whose best foci lie far outside their own curves' brackets (strongly asymmetric curves): the
+    # brackets then say little, and the check allows the surface that much more
+    assert check_brackets(_Plane(-300.0, 0.0, 20.0), t).margin_um == 0.0
+    t.z_best_um = np.where(np.isfinite(t.z_best_um), t.z_best_um + 400.0, np.nan)
+    loose = check_brackets(_Plane(-300.0, 0.0, 20.0), t)
+    assert loose.margin_um > 400.0 - 60.0 and not loose.failed
 
 
 def test_centre_support_flags_an_unmeasured_centre():

@@ -7,8 +7,9 @@ peaks between z_k-1 and z_k+1 (beyond z_1 or z_n-2 when k is an end). Where the 
 the field unmeasured (a ChArUco board's flat squares, a scan that ends close to the sharpest zone), the surface
 is extrapolated there; the rejected tiles' brackets show whether the extrapolation is physically possible.
 
-A surface whose 90 % band misses many brackets is wrong where it was not measured, so the calibration refuses
-it. (Noise can move a curve's sampled maximum by one frame only when its two highest samples are within noise
+A surface whose 90 % band misses many brackets, by more than the accepted tiles' own best foci miss theirs
+(:func:`sampling_margin_um`: an asymmetric curve's best focus is not its maximum), is wrong where it was not
+measured, so the calibration refuses it. (Noise can move a curve's sampled maximum by one frame only when its two highest samples are within noise
 of each other, i.e. when the peak lies near their midpoint, which the bracket of either one still contains.)
 
 Where the brackets allow the surface but the optical centre -- the *calibrated focus*, the field's sharpest
@@ -38,6 +39,7 @@ class BracketCheck:
     n_bracketed: int
     n_contradicted: int
     worst: dict | None
+    margin_um: float = 0.0   # the accepted tiles' largest best focus outside their own bracket
 
     @property
     def failed(self) -> bool:
@@ -46,17 +48,17 @@ class BracketCheck:
 
     def to_dict(self) -> dict:
         return {"n_bracketed": self.n_bracketed, "n_contradicted": self.n_contradicted, "worst": self.worst,
-                "failed": self.failed}
+                "margin_um": self.margin_um, "failed": self.failed}
 
 
-def curve_brackets(z_um, curves, status) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def curve_brackets(z_um, curves, status, statuses=BRACKETED) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(index, lo_um, hi_um): the best-focus interval each rejected-but-unimodal tile's curve brackets.
 
     ``curves`` has one row per tile in ``z_um``'s order (any order of z); lo/hi are -inf/+inf beyond an end.
     """
     z = np.asarray(z_um, dtype=np.float64)
     st = np.asarray(status).astype(str)
-    idx = np.flatnonzero(np.isin(st, BRACKETED))
+    idx = np.flatnonzero(np.isin(st, statuses))
     if curves is None or z.size < 3 or idx.size == 0:
         return idx[:0], np.zeros(0), np.zeros(0)
     order = np.argsort(z)
@@ -89,13 +91,29 @@ def check_brackets(profile, table) -> BracketCheck:
         a, b = profile.best_focus_interval_um(x[m], y[m], c, level=0.9)
         half[m] = 0.5 * (np.asarray(b) - np.asarray(a))
     miss = np.maximum(lo - pred, pred - hi)           # > 0 outside the bracket
-    bad = np.isfinite(miss) & (miss > np.nan_to_num(half, nan=np.inf))
+    margin = sampling_margin_um(z, curves, table)
+    bad = np.isfinite(miss) & (miss > margin + np.nan_to_num(half, nan=np.inf))
     worst = None
     if bad.any():
         j = int(np.argmax(np.where(bad, miss, -np.inf)))
         worst = {"x_px": float(x[j]), "y_px": float(y[j]), "channel": str(ch[j]), "surface_um": float(pred[j]),
                  "bracket_um": [float(lo[j]), float(hi[j])], "band_half_um": float(half[j])}
-    return BracketCheck(int(idx.size), int(bad.sum()), worst)
+    return BracketCheck(int(idx.size), int(bad.sum()), worst, margin)
+
+
+def sampling_margin_um(z_um, curves, table) -> float:
+    """How far the fitted tiles' own best foci lie outside their curves' brackets (the largest, µm; 0 if none).
+
+    The bracket locates the curve's maximum; the best focus is the fitted centre moved by the skew correction
+    (throughfocus.py), which on an asymmetric curve (spherical aberration) lies up to a step or more from it.
+    The accepted tiles measure that gap on this stack, so the check allows it instead of assuming it away."""
+    idx, lo, hi = curve_brackets(z_um, curves, table.status, statuses=("ok",))
+    if idx.size == 0:
+        return 0.0
+    zb = np.asarray(table.z_best_um, dtype=np.float64)[idx]
+    m = np.maximum(lo - zb, zb - hi)
+    m = m[np.isfinite(m)]
+    return float(max(0.0, m.max())) if m.size else 0.0
 
 
 def refuse_contradicted_surface(check: BracketCheck, stack_path, z_range_um) -> None:
