@@ -6,11 +6,12 @@ still *brackets* its best focus: a unimodal curve sampled at z_0 < ... < z_n-1 w
 peaks between z_k-1 and z_k+1 (beyond z_1 or z_n-2 when k is an end). Where the accepted tiles leave a part of
 the field unmeasured (a ChArUco board's flat squares, a scan that ends close to the sharpest zone), the surface
 is extrapolated there; the rejected tiles' brackets show whether the extrapolation is physically possible.
+Noise widens a bracket: every sample within 3 noise sd (MAD of second differences) of the maximum may be it, so
+the bracket runs from the step below the first such sample to the step above the last.
 
 A surface whose 90 % band misses many brackets, by more than the accepted tiles' own best foci miss theirs
 (:func:`sampling_margin_um`: an asymmetric curve's best focus is not its maximum), is wrong where it was not
-measured, so the calibration refuses it. (Noise can move a curve's sampled maximum by one frame only when its two highest samples are within noise
-of each other, i.e. when the peak lies near their midpoint, which the bracket of either one still contains.)
+measured, so the calibration refuses it.
 
 Where the brackets allow the surface but the optical centre -- the *calibrated focus*, the field's sharpest
 point on a rotationally symmetric lens -- is far from every fitted tile, the surface there is an extrapolation
@@ -24,12 +25,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from fieldcal.errors import StackError
+from fieldcal.measure.throughfocus import noise_sigma
 
 BRACKETED = ("peak_at_edge", "peak_outside_range")
 # A few contradicted tiles are what noise and an occasional two-peaked curve give; a tenth of the bracketed
 # tiles is a systematic contradiction (the surface's shape is wrong there), not scatter.
 MAX_CONTRADICTED_FRACTION = 0.1
 MIN_CONTRADICTED = 3
+#: samples this many noise sd (throughfocus.noise_sigma) below a curve's maximum could still be its maximum
+NOISE_SIGMAS = 3.0
 
 
 @dataclass(frozen=True)
@@ -66,8 +70,12 @@ def curve_brackets(z_um, curves, status, statuses=BRACKETED) -> tuple[np.ndarray
     v = np.asarray(curves, dtype=np.float64)[idx][:, order]
     good = np.all(np.isfinite(v), axis=1)
     idx, v = idx[good], v[good]
-    k = np.argmax(v, axis=1) + 1            # index into the padded grid
-    return idx, zs[k - 1], zs[k + 1]
+    # every sample within NOISE_SIGMAS of the maximum may be the true maximum (a flat-topped curve has several)
+    sig = np.array([noise_sigma(r) for r in v])
+    near = v >= (v.max(axis=1) - NOISE_SIGMAS * sig)[:, None]
+    first = np.argmax(near, axis=1) + 1                                # indices into the padded grid
+    last = near.shape[1] - np.argmax(near[:, ::-1], axis=1)
+    return idx, zs[first - 1], zs[last + 1]
 
 
 def check_brackets(profile, table) -> BracketCheck:
