@@ -22,16 +22,20 @@ def _lorentz(z, z0, w=40.0):
 
 
 def test_brackets_contain_the_peak_of_unimodal_curves():
-    z = np.array([20.0, -100.0, -70.0, -40.0, -10.0])   # any order
+    z = np.arange(-100.0, 21.0, 10.0)[::-1]                  # any order
     z0 = np.array([-50.0, -8.0, 35.0, -130.0, -26.0])
     curves = np.stack([_lorentz(z, v) for v in z0])
     st = np.array(["peak_at_edge"] * 4 + ["flat"])
     idx, lo, hi = curve_brackets(z, curves, st)
     assert idx.tolist() == [0, 1, 2, 3]                     # the flat tile gives no bracket
     assert np.all((lo <= z0[idx]) & (z0[idx] <= hi))
-    assert lo[2] == -10.0 and hi[2] == np.inf                # beyond the high end
-    assert lo[3] == -np.inf and hi[3] == -70.0               # beyond the low end
-    assert (lo[0], hi[0]) == (-70.0, -10.0)                # sampled maximum at -40
+    assert (lo[0], hi[0]) == (-60.0, -40.0) and (lo[1], hi[1]) == (-20.0, 0.0)
+    assert (lo[2], hi[2]) == (10.0, np.inf) and (lo[3], hi[3]) == (-np.inf, -90.0)   # beyond the ends
+    # a flat top with noise (the triplet's blue tile at 256x144): any sample within noise of the maximum may be it
+    zt = np.arange(-100.0, 21.0, 10.0)
+    top = np.array([0.72, 0.772, 0.835, 0.883, 0.931, 0.972, 1.0, 0.996, 0.997, 0.979, 0.958, 0.92, 0.865])
+    _, lo, hi = curve_brackets(zt, top[None, :], np.array(["peak_at_edge"]))
+    assert lo[0] <= -50.0 and hi[0] >= -10.0                  # its true best focus was -24.4 um
 
 
 class _Plane:
