@@ -285,6 +285,11 @@ def test_show_prints_the_absolute_distortion_block(world, capsys):
     assert s["max_distortion_px"] == pytest.approx(np.max(np.hypot(tx - xs[m], ty - ys[m])), abs=0.1)
     assert s["max_distortion_px"] > 1.0
     assert f"{s['max_distortion_px']:.2f} px" in out
+    # calibrate's warning that the calibrated focus is extrapolated is shown too (the board's centre has flat
+    # squares and broad curves; docs/fitting.md "Bracket check")
+    sup = prof.diagnostics["surface_support"]["centre"]
+    assert (sup["warning"] is None) == (sup["nearest_tile_px"] <= 2 * sup["tile_px"])
+    assert sup["warning"] is None or sup["warning"] in out
 
 
 def test_diff_compares_absolute_distortion(world, tmp_path):

@@ -132,6 +132,9 @@ def profile_summary(profile) -> dict[str, Any]:
         "surface_model": profile.surfaces.model.name,
         "self_check": {"coverage": sc.get("coverage"), "level": sc.get("level"), "status": sc.get("status"),
                        "band_scale": sc.get("band_scale"), "warning": sc.get("warning")} if sc else None,
+        # calibrate's warning when the calibrated focus (the optical centre) is far from every fitted tile
+        "centre_support_warning": (((profile.diagnostics or {}).get("surface_support") or {}).get("centre")
+                                   or {}).get("warning"),
         "surfaces": {ch: channel_summary(profile, ch) for ch in profile.channels},
         "geometry": geometry_summary(profile),
         "absolute_distortion": absolute_distortion_summary(profile),
@@ -165,6 +168,8 @@ def format_summary(s: dict[str, Any]) -> str:
         L.append(f"self-check  {100 * sc['coverage']:.0f}% of held-out tiles inside the "
                  f"{100 * (sc.get('level') or 0.9):.0f}% band (band scale {_f(sc.get('band_scale'), '.2f')})"
                  + (f"; warning: {sc['warning']}" if sc.get("warning") else ""))
+    if s.get("centre_support_warning"):
+        L.append(f"warning  {s['centre_support_warning']}")
     L.append("")
     L.append("best focus (stage µm)   mean    centre  sag c->corner  tilt x, y (µm/mm)   90% band ± (median, corner)"
              "   tolerance ± (centre, corner)")
