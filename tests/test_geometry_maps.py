@@ -240,7 +240,7 @@ def charuco_world(tmp_path_factory):
     root = tmp_path_factory.mktemp("charuco")
     spec = distorted_lens((320, 240))
     spec.save(root / "lens.json")
-    assert main(["simulate", str(root / "lens.json"), str(root / "S"), "--z", "-100", "20", "30", "--scene",
+    assert main(["simulate", str(root / "lens.json"), str(root / "S"), "--z", "-120", "40", "20", "--scene",
                  "charuco", "--quiet"]) == 0
     assert main(["calibrate", str(root / "S"), "--out", str(root / "p.json"), "--fs", "12", "--effort", "quick",
                  "--z-ref", "-40", "-q"]) == 0

@@ -270,9 +270,22 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
         tiles=table.to_dict(), geometry_measurements=cols, geometry_map=gmap,
         absolute_distortion=absd,
     )
+    _check_surface_support(profile, table, stack, (float(z[0]), float(z[-1])), quiet)
     status(f"calibrated {len(stack)} frames in {t_total:.1f} s from {kind.kind}: model {surf.model.name}, "
            f"{n_ok} {'edge rows' if kind.kind == 'esfr' else 'tiles'} used", quiet=quiet)
     return profile
+
+
+def _check_surface_support(profile, table, stack, z_range_um, quiet: bool) -> None:
+    """Refuse a surface the rejected tiles' curves contradict; warn when the calibrated focus (the optical
+    centre) is extrapolated (:mod:`fieldcal.calibration.consistency`). Both go to ``diagnostics``."""
+    from fieldcal.calibration.consistency import centre_support, check_brackets, refuse_contradicted_surface
+    br = check_brackets(profile, table)
+    refuse_contradicted_surface(br, stack.path, z_range_um)
+    sup = centre_support(profile, table, profile.reference_channel)
+    profile.diagnostics["surface_support"] = {"brackets": br.to_dict(), "centre": sup}
+    if sup["warning"]:
+        status("warning: " + sup["warning"], quiet=quiet)
 
 
 GEOMETRY_MAPS = ("auto", "charuco", "texture", "off")

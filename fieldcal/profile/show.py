@@ -79,6 +79,36 @@ def geometry_summary(profile) -> dict[str, Any]:
     return out
 
 
+def absolute_distortion_summary(profile, n: int = 33) -> dict[str, Any] | None:
+    """The absolute distortion block (ChArUco; None without one): terms with their sd, the board fit, and the
+    largest distortion of the reference channel at the block's z over the board's hull (the measured field;
+    outside it the polynomial is extrapolated) with its 1-sigma there and the largest 1-sigma inside.
+
+    The sd comes from the board fit's covariance composed with the maps'; on rendered stacks it was measured
+    about 3x smaller than the error against the simulator's truth (docs/geometry.md), so read it as a floor."""
+    from fieldcal.profile.lensfun import _in_hull
+    d = getattr(profile, "absolute_distortion", None)
+    if d is None:
+        return None
+    w, h = profile.image_size_px
+    gx, gy = np.meshgrid(np.linspace(0, w - 1, n), np.linspace(0, h - 1, max(3, round(n * h / w))))
+    inside = _in_hull(d.hull_px, gx, gy)
+    x, y = gx[inside], gy[inside]
+    fx, fy = profile.distortion_px(x, y)
+    sx, sy = profile.distortion_sd_px(x, y)
+    mag, sd = np.hypot(fx - x, fy - y), np.hypot(sx, sy)
+    i = int(np.argmax(mag))
+    cov = np.asarray(d.cov, dtype=np.float64).reshape(len(d.terms), len(d.terms))
+    return {"z_um": float(d.z_um), "reference_channel": d.reference_channel, "source": d.source,
+            "n_points": int(d.n_points), "rms_px": float(d.rms_px),
+            "terms": {t: {"value": float(c), "sd": float(math.sqrt(max(cov[k, k], 0.0)))}
+                      for k, (t, c) in enumerate(zip(d.terms, d.coef))},
+            "hull_fraction": float(inside.mean()),
+            "max_distortion_px": float(mag[i]), "at_px": [float(x[i]), float(y[i])], "sd_at_max_px": float(sd[i]),
+            "max_sd_px": float(np.max(sd)),
+            "sd_note": "the sd is about 3x too small on rendered stacks (docs/geometry.md): a floor, not a band"}
+
+
 def profile_summary(profile) -> dict[str, Any]:
     """The numbers :func:`format_summary` shows (JSON-safe)."""
     prov = profile.provenance or {}
@@ -102,8 +132,12 @@ def profile_summary(profile) -> dict[str, Any]:
         "surface_model": profile.surfaces.model.name,
         "self_check": {"coverage": sc.get("coverage"), "level": sc.get("level"), "status": sc.get("status"),
                        "band_scale": sc.get("band_scale"), "warning": sc.get("warning")} if sc else None,
+        # calibrate's warning when the calibrated focus (the optical centre) is far from every fitted tile
+        "centre_support_warning": (((profile.diagnostics or {}).get("surface_support") or {}).get("centre")
+                                   or {}).get("warning"),
         "surfaces": {ch: channel_summary(profile, ch) for ch in profile.channels},
         "geometry": geometry_summary(profile),
+        "absolute_distortion": absolute_distortion_summary(profile),
         "provenance": {"created_utc": prov.get("created_utc"), "tool": prov.get("tool"), "stack": prov.get("stack"),
                        "inputs_sha256": prov.get("inputs_sha256")},
     }
@@ -134,6 +168,8 @@ def format_summary(s: dict[str, Any]) -> str:
         L.append(f"self-check  {100 * sc['coverage']:.0f}% of held-out tiles inside the "
                  f"{100 * (sc.get('level') or 0.9):.0f}% band (band scale {_f(sc.get('band_scale'), '.2f')})"
                  + (f"; warning: {sc['warning']}" if sc.get("warning") else ""))
+    if s.get("centre_support_warning"):
+        L.append(f"warning  {s['centre_support_warning']}")
     L.append("")
     L.append("best focus (stage µm)   mean    centre  sag c->corner  tilt x, y (µm/mm)   90% band ± (median, corner)"
              "   tolerance ± (centre, corner)")
@@ -164,9 +200,21 @@ def format_summary(s: dict[str, Any]) -> str:
     L.append(f"  distortion: {g['distortion']}")
     for ch, terms in (g.get("maps") or {}).items():
         L.append(f"    {ch}: {', '.join(terms)}")
+    L += _absolute_distortion_lines(s.get("absolute_distortion"))
     p = s["provenance"]
     L.append("")
     tool = p.get("tool") or {}
     L.append(f"written  {p.get('created_utc') or '—'} by {tool.get('name', 'fieldcal')} {tool.get('version', '')}"
              f" from {p.get('stack') or '—'} (inputs sha256 {(p.get('inputs_sha256') or '—')[:16]})")
     return "\n".join(L)
+
+
+def _absolute_distortion_lines(a: dict[str, Any] | None) -> list[str]:
+    if a is None:
+        return ["  absolute distortion: none (no ChArUco board in the stack; texture shows no straight lines)"]
+    terms = ", ".join(f"{t} {v['value']:+.3g} ± {v['sd']:.1g}" for t, v in a["terms"].items()) or "none (BIC)"
+    return [f"  absolute distortion at z = {a['z_um']:g} µm ({a['reference_channel']}, {a['source']}: "
+            f"{a['n_points']} corners, fit rms {a['rms_px']:.3f} px): {terms}",
+            f"    over the board's hull ({100 * a['hull_fraction']:.0f}% of the frame): max {a['max_distortion_px']:.2f}"
+            f" px at ({a['at_px'][0]:.0f}, {a['at_px'][1]:.0f}) px, sd {a['sd_at_max_px']:.3f} px there, "
+            f"<= {a['max_sd_px']:.3f} px (about 3x too small on rendered stacks: a floor)"]
