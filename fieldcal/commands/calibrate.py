@@ -26,10 +26,10 @@ def register(sub):
     p.add_argument("--z-ref", type=float, default=None, dest="z_ref_um",
                    help="reference sensor position (µm) of the geometry model (default: the middle frame)")
     p.add_argument("--tile", type=int, default=None, dest="tile_px", help="tile size in px (default from size/effort)")
-    p.add_argument("--measure", choices=["auto", "sml", "bandpass"], default="auto",
+    p.add_argument("--measure", choices=["auto", "sml", "bandpass", "sml@fs"], default="auto",
                    help="focus measure for best focus: band-pass energy at fs (contrast at fs), "
-                        "sum-modified-Laplacian, or auto: the SML moved to where the band-pass at fs peaks, "
-                        "where the pixels resolve fs (default)")
+                        "sum-modified-Laplacian, sml@fs: the SML moved to where the band-pass at fs peaks, or "
+                        "auto: sml@fs where the pixels resolve fs, the SML alone at --effort quick (default)")
     p.add_argument("--chart", choices=["auto", "esfr", "focus-measure"], default="auto",
                    help="how best focus is measured: slanted edges (ISO 12233 e-SFR), texture tiles (focus "
                         "measure), or auto: from the chart the middle frame shows (default)")

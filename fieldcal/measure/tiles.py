@@ -50,7 +50,7 @@ EFFORTS = {
     # (binning halves the SML's top frequency and so doubles its curves' width: on a 240 px frame a quarter of
     # the tiles then failed the peak-at-edge test, the centre among them); directional: z_tan/z_sag; cell size.
     "quick": {"tile_div": 8, "geo_ds": 8, "geo_min_px": 128, "geo_all": False, "bp_all": False, "focus_bin": 2,
-              "bin_min_px": 512, "directional": False, "cell": 4},
+              "bin_min_px": 512, "directional": False, "cell": 4, "auto_at_fs": False},
     "standard": {"tile_div": 12, "geo_ds": 4, "geo_min_px": 256, "geo_all": False, "bp_all": True, "focus_bin": 1,
                  "directional": False, "cell": 4},
     "thorough": {"tile_div": 16, "geo_ds": 2, "geo_min_px": 256, "geo_all": True, "bp_all": True, "focus_bin": 1,
@@ -184,9 +184,14 @@ def _check_params(stack, fs_cyc_per_mm, q, tile_px, measure):
                              fix="give the sensor's pixel pitch in µm (ArrayStack(..., pixel_pitch_um=3.45))")
 
 
-def resolve_measure(stack, fs_cyc_per_mm: float, measure: str) -> str:
+def resolve_measure(stack, fs_cyc_per_mm: float, measure: str, effort: str = "standard") -> str:
     """The focus measure ``measure="auto"`` uses: ``"sml@fs"`` when every plane resolves fs
-    (``fs x pitch x stride <= MAX_BANDPASS_CYC_PER_PX``), else the SML.
+    (``fs x pitch x stride <= MAX_BANDPASS_CYC_PER_PX``), else the SML; at ``effort="quick"`` always the SML.
+
+    Why quick keeps the SML alone: the band-pass is a full-resolution DFT of every plane of every frame, which
+    took 42 frames of 1080p RGB from 2.1 to 3.3 s (the quick target is 2 s); quick is the speed end of the
+    trade. The cost: on lenses with strong spherical aberration a quick profile reads the SML's peak, which can
+    be 2-4 µm from the fs-contrast peak (docs/measurement.md "Asymmetric curves"); use standard there.
 
     ``"sml@fs"``: each tile's SML best focus moved by the channel's pooled offset to the band-pass at fs
     (:func:`fieldcal.measure.throughfocus.apply_measure_offset`). Why: the paper's best focus is where contrast
@@ -197,6 +202,8 @@ def resolve_measure(stack, fs_cyc_per_mm: float, measure: str) -> str:
     """
     if measure != "auto":
         return measure
+    if not _effort(effort).get("auto_at_fs", True):
+        return "sml"
     stride = max(lay.stride for lay in plane_layouts(stack.channels, stack.cfa))
     f0 = fs_cyc_per_mm * float(stack.pixel_pitch_um) * 1e-3 * stride
     return SML_AT_FS if f0 <= MAX_BANDPASS_CYC_PER_PX else "sml"
@@ -773,7 +780,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     (TileTable, GeometryMeasurements)
     """
     _check_params(stack, fs_cyc_per_mm, q, tile_px, measure)
-    measure = resolve_measure(stack, float(fs_cyc_per_mm), measure)
+    measure = resolve_measure(stack, float(fs_cyc_per_mm), measure, effort)
     rules = rules or TileRules()
     z_sorted = np.sort(np.asarray(stack.z_um, dtype=np.float64))
     if geometry is not None:
