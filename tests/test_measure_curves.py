@@ -296,14 +296,12 @@ def test_pooled_skew_of_a_channel_gives_the_sharpest_position(w040):
         assert info["weight"] > 0.99 and info["shift_um"] < 0
 
 
-def test_tile_analysis_applies_the_channel_skew_to_band_pass_and_only_records_it_for_the_sml():
-    # A channel of 30 tiles whose curves are spherical-aberration curves (W040 = 1 wave) peaking at different
-    # positions: with the band-pass measure every tile lands on its sharpest position; with the SML the tiles
-    # keep their centres and the shift is recorded (an SML peak is not where contrast at fs peaks).
-    from fieldcal.measure.tiles import TileRules, _analyse
-    zd, bp, zt_bp = _sa_curves(1.0, "bp")
-    _, sml, zt_sml = _sa_curves(1.0, "sml")
-    rng = np.random.default_rng(31)
+def _sa_tile_channel(w040: float, seed: int):
+    """A channel of 30 tiles whose band-pass and SML curves are spherical-aberration curves (W040 in waves)
+    peaking at random positions, 1 % multiplicative noise, 4 µm steps: (zt_bp, zt_sml, step, z, offsets, maps)."""
+    zd, bp, zt_bp = _sa_curves(w040, "bp")
+    _, sml, zt_sml = _sa_curves(w040, "sml")
+    rng = np.random.default_rng(seed)
     step = 4.0
     z = np.arange(-200.0, 120.0, step)
     offs = rng.uniform(-60, 20, 30)
@@ -313,6 +311,15 @@ def test_tile_analysis_applies_the_channel_skew_to_band_pass_and_only_records_it
                   for o in offs])
     cc = {"sml": S, "bandpass": B, "sum": np.full_like(S, 0.5), "sum2": np.full_like(S, 0.5 ** 2 * 1.01),
           "sat": np.zeros_like(S)}
+    return zt_bp, zt_sml, step, z, offs, cc
+
+
+def test_tile_analysis_applies_the_channel_skew_to_band_pass_and_only_records_it_for_the_sml():
+    # A channel of 30 tiles whose curves are spherical-aberration curves (W040 = 1 wave) peaking at different
+    # positions: with the band-pass measure every tile lands on its sharpest position; with the SML the tiles
+    # keep their centres and the shift is recorded (an SML peak is not where contrast at fs peaks).
+    from fieldcal.measure.tiles import TileRules, _analyse
+    zt_bp, zt_sml, step, z, offs, cc = _sa_tile_channel(1.0, seed=31)
     for measure, zt in (("bandpass", zt_bp), ("sml", zt_sml)):
         res = _analyse(cc, z, fs_cyc_per_mm=FS, q=0.05, measure=measure, rules=TileRules())
         ok = res["status"] == "ok"
@@ -380,18 +387,7 @@ def test_sml_at_fs_takes_the_sml_to_where_contrast_at_fs_peaks(w040):
     # band-pass at fs. Skewed curves (W040 = 1 wave): the tiles land on the band-pass sharpest position;
     # symmetric ones: the offset has no evidence and the tiles keep the SML's estimate.
     from fieldcal.measure.tiles import TileRules, _analyse
-    zd, bp, zt_bp = _sa_curves(w040, "bp")
-    _, sml, zt_sml = _sa_curves(w040, "sml")
-    rng = np.random.default_rng(32)
-    step = 4.0
-    z = np.arange(-200.0, 120.0, step)
-    offs = rng.uniform(-60, 20, 30)
-    B = np.array([np.interp(z - o, zd, bp, left=0, right=0) * (1 + 0.01 * rng.standard_normal(z.size))
-                  + 0.02 * bp.max() for o in offs])
-    S = np.array([np.interp(z - o, zd, sml, left=sml[0], right=sml[-1]) * (1 + 0.01 * rng.standard_normal(z.size))
-                  for o in offs])
-    cc = {"sml": S, "bandpass": B, "sum": np.full_like(S, 0.5), "sum2": np.full_like(S, 0.5 ** 2 * 1.01),
-          "sat": np.zeros_like(S)}
+    zt_bp, zt_sml, step, z, offs, cc = _sa_tile_channel(w040, seed=32)
     res = _analyse(cc, z, fs_cyc_per_mm=FS, q=0.05, measure="sml@fs", rules=TileRules())
     ok = res["status"] == "ok"
     assert ok.sum() >= 25

@@ -130,6 +130,17 @@ def _spline_peak(spl, z: np.ndarray, k: int) -> float:
     return float(zz[j])
 
 
+
+def _bootstrap_spline_peaks(z: np.ndarray, base: np.ndarray, sig: np.ndarray, n_boot: int, seed) -> np.ndarray:
+    """Smoothing-spline peaks of ``n_boot`` curves ``base + N(0, sig)``: the spread of the spline's maximum."""
+    rng = np.random.default_rng(seed)
+    peaks = []
+    for _ in range(n_boot):
+        vb = base + rng.normal(0.0, 1.0, z.size) * sig
+        kb = int(np.clip(np.argmax(vb), 1, z.size - 2))
+        peaks.append(_spline_peak(smooth_curve(z, vb, sig), z, kb))
+    return np.asarray(peaks)
+
 def through_focus_peak(z_um, values, *, sigma=None, n_boot: int = 24, seed: int = 0) -> FocusPeak:
     """Sub-step maximum of a sampled through-focus curve; no symmetry assumed.
 
@@ -161,13 +172,7 @@ def through_focus_peak(z_um, values, *, sigma=None, n_boot: int = 24, seed: int 
     s = sig
     sz = 0.0
     if n_boot > 1 and np.any(s > 0):
-        rng = np.random.default_rng(seed)
-        zs = []
-        for _ in range(n_boot):
-            vb = fit + rng.normal(0.0, 1.0, z.size) * s
-            kb = int(np.clip(np.argmax(vb), 1, z.size - 2))
-            zs.append(_spline_peak(smooth_curve(z, vb, sig), z, kb))
-        sz = float(np.std(zs, ddof=1))
+        sz = float(np.std(_bootstrap_spline_peaks(z, fit, sig, n_boot, seed), ddof=1))
     return FocusPeak(zbest, sz, peak, int(z.size), True, "ok", spl)
 
 
@@ -268,13 +273,7 @@ def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0) -
     if w > 1e-3 and 0 < k < z.size - 1:
         du = _spline_peak(smooth_curve(z, v, sig), z, k) - zc
         if n_boot > 1 and np.any(sig > 0):
-            rng = np.random.default_rng(seed)
-            boot = []
-            for _ in range(n_boot):
-                vb = v + rng.normal(0.0, 1.0, z.size) * sig
-                kb = int(np.clip(np.argmax(vb), 1, z.size - 2))
-                boot.append(_spline_peak(smooth_curve(z, vb, sig), z, kb))
-            var_du = float(np.var(boot, ddof=1))
+            var_du = float(np.var(_bootstrap_spline_peaks(z, v, sig, n_boot, seed), ddof=1))
     zb = zc + w * du
     var = w * (var_du + ((1.0 - w) * du) ** 2) + (1.0 - w) * (var_c + (w * du) ** 2)
     return FocusPeak(float(zb), math.sqrt(var), math.nan, int(z.size), True, "ok", stage_gain=fit.stage_gain)
