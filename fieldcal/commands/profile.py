@@ -151,6 +151,7 @@ def run_export(args) -> int:
     fit = ", ".join(f"{ch} {v:.3f} px" for ch, v in model.fit_rms_px.items())
     dist = ("no distortion" if model.k1 is None else
             f"poly5 k1 {model.k1:.4g}, k2 {model.k2:.4g} about ({model.centre_px[0]:.1f}, {model.centre_px[1]:.1f}) px")
-    print(f"wrote {out} (Lensfun database version 1): geometry at z = {model.z_um:.1f} µm from the "
-          f"{model.source}; {dist}; fit residual rms {fit or 'n/a'} (over the board's field)")
+    where = "over the board's field" if model.k1 is not None else "of the TCA fit"
+    print(f"wrote {out} (Lensfun database version 1): geometry at z = {model.z_um:.1f} µm; source: "
+          f"{model.source}; {dist}; fit residual rms {fit or 'n/a'} ({where})")
     return 0
