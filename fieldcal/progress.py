@@ -1,4 +1,7 @@
-"""Progress display for long work: tqdm on stderr, silenced with FIELDCAL_PROGRESS=0 or quiet=True."""
+"""Progress display for long work: tqdm on stderr, silenced with FIELDCAL_PROGRESS=0 or quiet=True.
+
+Warnings (:func:`warn`) are not progress: they always reach stderr, so ``-q`` and ``FIELDCAL_PROGRESS=0``
+(which silence bars and status lines) never hide that a result is doubtful."""
 
 from __future__ import annotations
 
@@ -29,3 +32,8 @@ def status(msg: str, quiet: bool = False) -> None:
     """One line of status on stderr."""
     if enabled(quiet):
         print(msg, file=sys.stderr, flush=True)
+
+
+def warn(msg: str) -> None:
+    """A warning line on stderr (``warning: msg``), printed whatever the progress setting."""
+    print("warning: " + msg, file=sys.stderr, flush=True)

@@ -23,7 +23,7 @@ from fieldcal import __version__
 from fieldcal.errors import FieldcalError, ParameterError, StackError
 from fieldcal.optics import MTFCriterion
 from fieldcal.profile.lens_profile import LensProfile
-from fieldcal.progress import status
+from fieldcal.progress import status, warn
 from fieldcal.fit.tiles import stage_sd_um  # the band's stage term (also re-exported for callers)
 
 EFFORTS = ("quick", "standard", "thorough")
@@ -217,10 +217,10 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     t_total = time.perf_counter() - t0
     scan_end = scan_end_rejections(table)
     if scan_end.get("warning"):
-        status("warning: " + scan_end["warning"], quiet=quiet)
+        warn(scan_end["warning"])
     skew_note = curve_skew_warning(table, measure)
     if skew_note:
-        status("warning: " + skew_note, quiet=quiet)
+        warn(skew_note)
 
     z = np.sort(np.asarray(stack.z_um, dtype=float))
     steps = np.diff(z)
@@ -285,7 +285,7 @@ def _check_surface_support(profile, table, stack, z_range_um, quiet: bool) -> No
     sup = centre_support(profile, table, profile.reference_channel)
     profile.diagnostics["surface_support"] = {"brackets": br.to_dict(), "centre": sup}
     if sup["warning"]:
-        status("warning: " + sup["warning"], quiet=quiet)
+        warn(sup["warning"])
 
 
 GEOMETRY_MAPS = ("auto", "charuco", "texture", "off")

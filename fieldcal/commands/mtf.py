@@ -43,7 +43,7 @@ def _centre(text: str | None):
 
 def run(args) -> int:
     from fieldcal.measure.mtf import measure_mtf
-    from ..progress import status
+    from ..progress import status, warn
 
     if not 0 < args.fs <= 1.0:
         raise ParameterError(f"--fs {args.fs} outside (0, 1] cycles/px", field="--fs", fix="e.g. --fs 0.25")
@@ -56,8 +56,8 @@ def run(args) -> int:
     status(f"wrote {args.out}: {len(res.edges)} edge measurements ({n_ok} ok) in {frames} frame(s)",
            quiet=args.quiet)
     if not res.edges:
-        status("warning: no slanted edge found (the chart needs dark squares or half-planes 2-20 degrees off the "
-               "pixel axes; try `fieldcal targets --kind slanted-edge`)")
+        warn("no slanted edge found (the chart needs dark squares or half-planes 2-20 degrees off the "
+             "pixel axes; try `fieldcal targets --kind slanted-edge`)")
     if args.plots:
         from fieldcal.measure.mtf_plots import write_plots
         for p in write_plots(res, args.plots, args.fs, args.q):

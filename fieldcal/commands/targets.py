@@ -63,7 +63,7 @@ def run(args) -> int:
 def _check_for_lens(lens_path: str, width_mm: float, height_mm: float, dpi: float) -> None:
     from fieldcal.charts.targets import check_chart_for_lens
     from fieldcal.simulate.lens import LensSpec
-    from ..progress import status
+    from ..progress import status, warn
 
     spec = LensSpec.load(lens_path)
     req, warnings = check_chart_for_lens(spec, width_mm, height_mm, dpi)
@@ -71,4 +71,4 @@ def _check_for_lens(lens_path: str, width_mm: float, height_mm: float, dpi: floa
            f"needs >= {req['min_dpi']:.0f} dpi and a chart of >= {req['field_width_mm']:.0f} x "
            f"{req['field_height_mm']:.0f} mm to fill the field")
     for w in warnings:
-        status(f"warning: {w}")
+        warn(w)

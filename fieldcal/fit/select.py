@@ -16,7 +16,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..progress import progress, status
+from ..progress import progress, warn
 from .data import MIN_TILES_PER_CHANNEL, FitError, ImageGeometry, TileData
 from .discrepancy import fit_discrepancy
 from .selfcheck import predictive_check
@@ -255,7 +255,7 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     disc = fit_discrepancy(res.model, rows, res.theta, student_t_weights(res.model, rows, res.theta))
     check = predictive_check(disc)
     if check.warning:
-        status("warning: " + check.warning, quiet=quiet)
+        warn(check.warning)
     t_total = time.perf_counter() - t0
     m = res.model
     diagnostics = {
@@ -273,7 +273,7 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     if m.astig_rows:
         diagnostics["error_scale_astig"] = math.exp(float(m.split(res.theta)[3]))
     if post.diagnostics.get("converged") is False:
-        status("warning: the surface posterior did not converge; use --effort thorough", quiet=quiet)
+        warn("the surface posterior did not converge; use --effort thorough")
     return SurfaceFit(m, geometry, zc, zs, res.theta, samples, table, diagnostics, effort, sample_model=union,
                       discrepancy=disc, band_scale=check.band_scale)
 
