@@ -147,11 +147,15 @@ class Renderer:
         Geometric optics only: astigmatic channels blur with the elliptical defocus PSF (semi-axes from the
         tangential and sagittal defocus, oriented radially; :mod:`fieldcal.simulate.astigmatism`; default), or
         with a disc of the RMS of the two defocus values (earlier versions; 1/K of the level memory).
+    compact_levels : bool
+        Anisotropic astigmatism only: keep the K orientation wedges' levels as int16 (steps of 2**-14; half the
+        memory, 1.8e-5 RMS rounding per wedge) rather than float32.
     """
 
     def __init__(self, spec: LensSpec, scene, seed: int = 0, level_ratio: float = 1.25,
                  level_floor_px: float = 0.5, optics: str = "geometric", fs_cyc_per_mm: float = 80.0,
-                 field_grid: tuple[int, int] = (5, 4), warp: str = "auto", astigmatism: str = "anisotropic"):
+                 field_grid: tuple[int, int] = (5, 4), warp: str = "auto", astigmatism: str = "anisotropic",
+                 compact_levels: bool = True):
         if optics not in OPTICS:
             raise ParameterError(f"unknown optics {optics!r}", field="optics", fix=f"use one of {', '.join(OPTICS)}")
         if astigmatism not in ASTIGMATISM:
@@ -198,14 +202,14 @@ class Renderer:
         self._stacks = [LevelStack(self.height_px, self.width_px) for _ in self.channels]
         self.optics = optics
         self.astigmatism = astigmatism
+        self.compact_levels = bool(compact_levels)
         # geometric path, astigmatic channels: wedge count K and K level stacks per channel (astigmatism.py)
         self._wedges: dict[int, int] = {}
         if optics == "geometric" and astigmatism == "anisotropic":
             for ci, ch in enumerate(self.channels):
                 if spec.channel(ch).has_astigmatism:
                     self._wedges[ci] = _astig.wedge_count(self._astig_px(ch))
-        self._wedge_stacks = {ci: [LevelStack(self.height_px, self.width_px) for _ in range(k)]
-                              for ci, k in self._wedges.items()}
+        self._wedge_stacks = {ci: self._new_wedge_stacks(k) for ci, k in self._wedges.items()}
         self._wedge_grids: dict[tuple, list[np.ndarray]] = {}  # (grid shape, K) -> K wedge weights on the grid
         self._wave = None
         if optics == "wave":
@@ -341,6 +345,9 @@ class Renderer:
         a = np.max(np.abs(self.spec.channel(channel).astigmatism_at(rho)))
         return float(a) / (self.spec.f_number * self.pitch_um)
 
+    def _new_wedge_stacks(self, k: int) -> list[LevelStack]:
+        return [LevelStack(self.height_px, self.width_px, compact=self.compact_levels) for _ in range(k)]
+
     def _wedge_grid(self, shape: tuple[int, int], k: int) -> list[np.ndarray]:
         """The K orientation-wedge weights on an rfft2 grid (float32, each hp x wp//2+1; they sum to 1)."""
         key = (shape, k)
@@ -378,7 +385,7 @@ class Renderer:
                                    / (self.spec.f_number * self.pitch_um)))
         if k > self._wedges.get(ci, 0):
             self._wedges[ci] = k
-            self._wedge_stacks[ci] = [LevelStack(self.height_px, self.width_px) for _ in range(k)]
+            self._wedge_stacks[ci] = self._new_wedge_stacks(k)
         shape = (self.height_px, self.width_px)
         h = np.asarray(half_um, dtype=np.float64)
         az = np.asarray(azimuth_rad, dtype=np.float64)
@@ -437,12 +444,18 @@ class Renderer:
         g = np.divide(h, r2, out=np.zeros(np.broadcast(h, r2).shape), where=r2 > 0)
         return dz, g * (dx * dx - dy * dy), g * (2.0 * dx * dy)
 
-    def _geometric_blur(self, channel: str, z_um: float | None, affine: np.ndarray) -> np.ndarray:
-        """The geometric path's blurred scene channel at stage position z (None: the truth, at best focus)."""
+    def _geometric_blur(self, channel: str, z_um: float | None, affine: np.ndarray,
+                        scale: float = 1.0) -> np.ndarray:
+        """The geometric path's blurred scene channel at stage position z (None: the truth, at best focus).
+
+        ``scale`` multiplies every blur diameter (disc, or both axes of the astigmatic ellipse): e.g. 1/a to blur
+        in scene pixels a frame that the warp then magnifies by a."""
         ci = self.channels.index(channel)
         if z_um is None or ci not in self._wedges:
-            return self.blur_map(channel, self._defocus_at(z_um, channel, affine))
-        return self._blur_parts(ci, *self._astig_parts_at(z_um, channel, affine))
+            d = self._defocus_at(z_um, channel, affine)
+            return self.blur_map(channel, d if scale == 1.0 else d * np.float32(scale))
+        parts = self._astig_parts_at(z_um, channel, affine)
+        return self._blur_parts(ci, *(parts if scale == 1.0 else [p * np.float32(scale) for p in parts]))
 
     # ------------------------------------------------------------------------------------ geometry
     def _affine(self, z_um: float, channel: str, breathing: bool = True) -> np.ndarray:
@@ -679,8 +692,8 @@ class Renderer:
         """What truth.json records about the renderer."""
         wave = self._wave.settings() if self._wave is not None else {}
         astig = ({"astigmatism": self.astigmatism, "orientation_wedges": {self.channels[ci]: k for ci, k in
-                                                                          self._wedges.items()}}
-                 if self._wave is None else {})
+                                                                          self._wedges.items()},
+                  "wedge_levels": "int16" if self.compact_levels else "float32"} if self._wave is None else {})
         return {"optics": self.optics, **wave, **astig, "version": RENDERER_VERSION, "level_ratio": self.level_ratio,
                 "level_floor_px": self.level_floor_px, "exposure_scale": float(self.exposure),
                 "warp": ("separable 32-tap Kaiser-windowed sinc (fieldcal.simulate.bandwarp.scale_shift_fast)"
