@@ -693,6 +693,8 @@ class Renderer:
         wave = self._wave.settings() if self._wave is not None else {}
         astig = ({"astigmatism": self.astigmatism, "orientation_wedges": {self.channels[ci]: k for ci, k in
                                                                           self._wedges.items()},
+                  "orientation_otf_error": {self.channels[ci]: round(_astig.interpolation_error(
+                      k, round(self._astig_px(self.channels[ci]), 3)), 4) for ci, k in self._wedges.items()},
                   "wedge_levels": "int16" if self.compact_levels else "float32"} if self._wave is None else {})
         return {"optics": self.optics, **wave, **astig, "version": RENDERER_VERSION, "level_ratio": self.level_ratio,
                 "level_floor_px": self.level_floor_px, "exposure_scale": float(self.exposure),
