@@ -231,8 +231,9 @@ def test_blurred_board_corners_are_found_and_accurate():
     n_ref = int(np.sum((corr.z_um == 0.0) & (corr.channel == "G")))
     for c in "RGB":
         m = (corr.channel == c) & (corr.z_um == 200.0)
-        # tracking finds every corner the reference frame shows (its field edge is blurred too: 40 of 48)
-        assert m.sum() == n_ref >= 40
+        # tracking finds the corners the reference frame shows (its field edge is blurred too: 40-42 of 48; with
+        # the elliptical astigmatic PSF the reference shows two field-corner ones that B loses at z = 200)
+        assert n_ref - 2 <= m.sum() <= n_ref and m.sum() >= 40
         tx, ty = spec.sensor_px(cp[m, 0], cp[m, 1], 200.0, c)
         err = np.hypot(corr.q_px[m, 0] - tx, corr.q_px[m, 1] - ty)
         assert np.median(err) < 0.04 and err.max() < 0.1, (c, np.median(err), err.max())

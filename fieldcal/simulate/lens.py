@@ -19,8 +19,10 @@ Best-focus surface of channel c (µm, stage coordinates)::
 Astigmatism splits it: tangential focus ``z_c + A/2``, sagittal ``z_c - A/2`` with the field polynomial
 ``A(rho) = sum_k a_k rho**(2k+2)``; ``astigmatism_um`` is a number (``a_0``, the rho^2 term, as before) or a list
 ``[a_0, a_1, ...]`` (rho^2, rho^4, rho^6, ...), so that A can follow a traced T - S that peaks inside the field.
-The geometric renderer uses the isotropic equivalent defocus ``sqrt((dt**2 + ds**2) / 2)``; the wave path
-(``--optics wave``) renders the anisotropic, radially oriented astigmatism (``simulate.wave.terms_at``).
+Both renderers draw it anisotropic and radially oriented: the geometric path as the elliptical defocus PSF
+(diameters ``|z - z_T| / N`` radially, ``|z - z_S| / N`` azimuthally; ``simulate.astigmatism``), the wave path
+from the pupil (``simulate.wave.terms_at``). :meth:`LensSpec.effective_defocus_um` is the isotropic equivalent
+``sqrt((dt**2 + ds**2) / 2)`` (the geometric renderer's ``astigmatism="isotropic"``).
 
 Through-focus optics: :func:`fieldcal.optics.through_focus_otf` (geometric defocus disc x diffraction x a
 Gaussian of RMS ``residual_blur_um``), with this spec's F-number and channel wavelengths; the focus tolerance

@@ -12,6 +12,11 @@ The scene is fixed, so each level is computed once, when a frame first needs it,
 coarse grid and interpolated: it is smooth), a two-level gather, the warp and the sensor, with the channels
 rendered in parallel threads. docs/simulator.md ("Speed") has the figures and the agreement with the per-frame FFT path.
 
+Astigmatic channels (``astigmatism="anisotropic"``, the default) blur with the elliptical, radially oriented
+defocus PSF instead of a disc: the spectrum is split into K orientation wedges, each with its own level stack,
+and each pixel blends each wedge's levels at its own diameter along that wedge's direction
+(:mod:`fieldcal.simulate.astigmatism`). Channels without astigmatism render as before.
+
 With ``optics="wave"`` the blur is :class:`fieldcal.simulate.wave.WaveBlur` instead (PSFs from the pupil function;
 docs/simulator.md); everything below is shared.
 
@@ -32,6 +37,7 @@ from scipy import fft
 
 from ..errors import ParameterError
 from fieldcal.simulate.lens import LensSpec
+from . import astigmatism as _astig
 from . import noise as _noise
 from .bandwarp import scale_shift_fast, single_threaded_blas
 from .warp import remap, scale_shift
@@ -39,6 +45,8 @@ from .levels import LevelStack, fractional_level, fractional_level_lut, level_di
 
 RENDERER_VERSION = "fieldcal-render/1"
 OPTICS = ("geometric", "wave")  # image-formation paths (docs/simulator.md)
+# the geometric path's astigmatic PSF: the elliptical defocus PSF, or the old round one of the RMS defocus
+ASTIGMATISM = ("anisotropic", "isotropic")
 WARPS = ("auto", "fast", "exact")  # the per-frame scale + shift (docs/simulator.md, "Geometry")
 # "auto" uses the fast 32-tap warp only for frames above 1 Mpx (_EXACT_MAP_MAX_PX; smaller ones render as
 # earlier versions did) and when the optics leave little contrast within ~0.05 cycles/px of Nyquist
@@ -135,13 +143,24 @@ class Renderer:
         The per-frame scale + shift: ``exact`` band-limited (:func:`fieldcal.simulate.warp.scale_shift`),
         ``fast`` 32-tap windowed sinc (:func:`fieldcal.simulate.bandwarp.scale_shift_fast`), ``auto`` the fast
         one only above 1 Mpx where the optics leave little contrast near Nyquist (docs/simulator.md, "Geometry").
+    astigmatism : {"anisotropic", "isotropic"}
+        Geometric optics only: astigmatic channels blur with the elliptical defocus PSF (semi-axes from the
+        tangential and sagittal defocus, oriented radially; :mod:`fieldcal.simulate.astigmatism`; default), or
+        with a disc of the RMS of the two defocus values (earlier versions; 1/K of the level memory).
+    compact_levels : bool
+        Anisotropic astigmatism only: keep the K orientation wedges' levels as int16 (steps of 2**-14; half the
+        memory, 1.8e-5 RMS rounding per wedge) rather than float32.
     """
 
     def __init__(self, spec: LensSpec, scene, seed: int = 0, level_ratio: float = 1.25,
                  level_floor_px: float = 0.5, optics: str = "geometric", fs_cyc_per_mm: float = 80.0,
-                 field_grid: tuple[int, int] = (5, 4), warp: str = "auto"):
+                 field_grid: tuple[int, int] = (5, 4), warp: str = "auto", astigmatism: str = "anisotropic",
+                 compact_levels: bool = True):
         if optics not in OPTICS:
             raise ParameterError(f"unknown optics {optics!r}", field="optics", fix=f"use one of {', '.join(OPTICS)}")
+        if astigmatism not in ASTIGMATISM:
+            raise ParameterError(f"unknown astigmatism model {astigmatism!r}", field="astigmatism",
+                                 fix=f"use one of {', '.join(ASTIGMATISM)}")
         if warp not in WARPS:
             raise ParameterError(f"unknown warp {warp!r}", field="warp", fix=f"use one of {', '.join(WARPS)}")
         if not (level_ratio > 1.0 and math.isfinite(level_ratio)):
@@ -182,6 +201,16 @@ class Renderer:
         # the blur levels of each channel, computed once when first needed (levels.LevelStack)
         self._stacks = [LevelStack(self.height_px, self.width_px) for _ in self.channels]
         self.optics = optics
+        self.astigmatism = astigmatism
+        self.compact_levels = bool(compact_levels)
+        # geometric path, astigmatic channels: wedge count K and K level stacks per channel (astigmatism.py)
+        self._wedges: dict[int, int] = {}
+        if optics == "geometric" and astigmatism == "anisotropic":
+            for ci, ch in enumerate(self.channels):
+                if spec.channel(ch).has_astigmatism:
+                    self._wedges[ci] = _astig.wedge_count(self._astig_px(ch))
+        self._wedge_stacks = {ci: self._new_wedge_stacks(k) for ci, k in self._wedges.items()}
+        self._wedge_grids: dict[tuple, list[np.ndarray]] = {}  # (grid shape, K) -> K wedge weights on the grid
         self._wave = None
         if optics == "wave":
             from .wave import WaveBlur
@@ -306,6 +335,128 @@ class Renderer:
             kf = fractional_level(b_px, self.level_ratio, self.level_floor_px)
         return self._stacks[ci].blend(kf, functools.partial(self._level_image, ci))
 
+    # ------------------------------------------------------------------- astigmatism (geometric path)
+    def _astig_px(self, channel: str) -> float:
+        """Largest ``|A(rho)| / (N pitch)`` over the sensor: T - S as a blur-disc diameter in pixels."""
+        s = self.spec.sensor
+        xs, ys = self.spec.pixel_to_mm(np.array([0, s.width_px - 1, 0, s.width_px - 1]),
+                                       np.array([0, 0, s.height_px - 1, s.height_px - 1]))
+        rho = np.linspace(0.0, float(np.max(self.spec.rho(xs, ys))), 257)  # A(rho) may peak inside the field
+        a = np.max(np.abs(self.spec.channel(channel).astigmatism_at(rho)))
+        return float(a) / (self.spec.f_number * self.pitch_um)
+
+    def _new_wedge_stacks(self, k: int) -> list[LevelStack]:
+        return [LevelStack(self.height_px, self.width_px, compact=self.compact_levels) for _ in range(k)]
+
+    def _wedge_grid(self, shape: tuple[int, int], k: int) -> list[np.ndarray]:
+        """The K orientation-wedge weights on an rfft2 grid (float32, each hp x wp//2+1; they sum to 1)."""
+        key = (shape, k)
+        if key not in self._wedge_grids:
+            hp, wp = shape
+            fy = fft.fftfreq(hp)[:, None]
+            fx = fft.rfftfreq(wp)[None, :]
+            w = _astig.wedge_weights(np.arctan2(fy, fx), k)  # alpha of (0, 0) is 0: the weights still sum to 1
+            self._wedge_grids[key] = [np.ascontiguousarray(w[..., j], dtype=np.float32) for j in range(k)]
+        return self._wedge_grids[key]
+
+    def _wedge_level_image(self, ci: int, j: int, k: int) -> np.ndarray:
+        """Level k of wedge j of channel ci: the scene's wedge-j spectrum blurred by the level's disc, H x W."""
+        ch = self.channels[ci]
+        d_px = self._level_diameter_px(k)
+        pad, spectrum = self._spectrum(ci, self._pad_for(d_px, ch))
+        shape = self._shape(spectrum, pad)
+        d_um = d_px * self.spec.f_number * self.pitch_um
+        otf = self._otf_grid(shape, d_um, ch)
+        otf *= self._wedge_grid(shape, self._wedges[ci])[j]
+        return self._inverse(spectrum, pad, otf)
+
+    def blur_astigmatic(self, channel: str, defocus_um, half_um, azimuth_rad) -> np.ndarray:
+        """The scene channel blurred by the elliptical (astigmatic) defocus PSF of each pixel.
+
+        ``defocus_um``: signed defocus from the mean (least-confusion) focus; ``half_um``: ``A/2``, half the
+        tangential - sagittal focus difference (signed); ``azimuth_rad``: the field point's direction from the
+        optical centre (image axes, x right, y down). Scalars or H x W maps. The PSF is a uniform ellipse of
+        diameter ``|dz - A/2| / N`` radially and ``|dz + A/2| / N`` azimuthally, times diffraction and the
+        residual Gaussian (:mod:`fieldcal.simulate.astigmatism`).
+        """
+        ci = self.channels.index(channel)
+        # the wedge count must suit the largest T - S asked for (the lens's, or larger maps than it has)
+        k = _astig.wedge_count(max(self._astig_px(channel), float(np.max(np.abs(half_um))) * 2.0
+                                   / (self.spec.f_number * self.pitch_um)))
+        if k > self._wedges.get(ci, 0):
+            self._wedges[ci] = k
+            self._wedge_stacks[ci] = self._new_wedge_stacks(k)
+        shape = (self.height_px, self.width_px)
+        h = np.asarray(half_um, dtype=np.float64)
+        az = np.asarray(azimuth_rad, dtype=np.float64)
+        to_px = 1.0 / (self.spec.f_number * self.pitch_um)
+        parts = [np.broadcast_to(np.asarray(v * to_px, dtype=np.float32), shape)
+                 for v in (np.asarray(defocus_um, dtype=np.float64), h * np.cos(2.0 * az), h * np.sin(2.0 * az))]
+        return self._blur_parts(ci, *parts)
+
+    def _blur_parts(self, ci: int, dz_px: np.ndarray, hc_px: np.ndarray, hs_px: np.ndarray) -> np.ndarray:
+        """Anisotropic blur from the smooth parts (px of blur diameter, float32 H x W): signed defocus ``dz``,
+        ``h cos 2 theta`` and ``h sin 2 theta`` (h = A/2): each wedge blends its levels at its own diameter."""
+        qs = _astig.diameters_from_parts(dz_px, hc_px, hs_px, self._wedges[ci])
+        b_max = max(float(q.max()) for q in qs)
+        self._check_blur(b_max)
+        lut = None
+        if self.width_px * self.height_px > _EXACT_MAP_MAX_PX:
+            lut, step = fractional_level_lut(b_max, self.level_ratio, self.level_floor_px)
+        out = None
+        for j, q in enumerate(qs):
+            if lut is not None:
+                q *= np.float32(1.0 / step)
+                kf = cv2.remap(lut, q, self._zeros(), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            else:
+                kf = fractional_level(q, self.level_ratio, self.level_floor_px)
+            img = self._wedge_stacks[ci][j].blend(kf, functools.partial(self._wedge_level_image, ci, j))
+            if out is None:
+                out = np.array(img, dtype=np.float32, copy=True)
+            else:
+                out += img
+        return out
+
+    def _astig_parts_at(self, z_um: float, channel: str, affine: np.ndarray):
+        """Signed defocus from the mean focus, ``h cos 2 theta`` and ``h sin 2 theta`` (px of blur diameter,
+        float32 H x W) where each scene pixel lands: above 1 Mpx from a coarse grid (all three are smooth:
+        h is even in rho with no constant term), else at every pixel."""
+        if self.width_px * self.height_px > _EXACT_MAP_MAX_PX and self.spec.distortion.is_zero:
+            xc, _ = self._coarse_axis(self.width_px)
+            yc, _ = self._coarse_axis(self.height_px)
+            xd = affine[0, 0] * xc[None, :] + affine[0, 2]
+            yd = affine[1, 1] * yc[:, None] + affine[1, 2]
+            return tuple(self._coarse_to_full(a) for a in self._astig_parts(z_um, channel, xd, yd))
+        xd, yd = self._landing(z_um, channel, affine)
+        return tuple(np.ascontiguousarray(np.broadcast_to(a, (self.height_px, self.width_px)), dtype=np.float32)
+                     for a in self._astig_parts(z_um, channel, xd, yd))
+
+    def _astig_parts(self, z_um: float, channel: str, xd, yd):
+        """(dz, h cos 2 theta, h sin 2 theta) in px of blur diameter at sensor pixels (xd, yd), float64."""
+        xm, ym = self.spec.pixel_to_mm(xd, yd)
+        to_px = 1.0 / (self.spec.f_number * self.pitch_um)
+        dz = (z_um - self.spec.best_focus_um(xm, ym, channel)) * to_px
+        dx = np.asarray(xm, dtype=np.float64) - self.spec.decentre_mm[0]
+        dy = np.asarray(ym, dtype=np.float64) - self.spec.decentre_mm[1]
+        r2 = dx * dx + dy * dy
+        h = 0.5 * self.spec.channel(channel).astigmatism_at(self.spec.rho(xm, ym)) * to_px
+        # cos 2 theta = (dx^2 - dy^2) / r^2, sin 2 theta = 2 dx dy / r^2; at the centre h = 0
+        g = np.divide(h, r2, out=np.zeros(np.broadcast(h, r2).shape), where=r2 > 0)
+        return dz, g * (dx * dx - dy * dy), g * (2.0 * dx * dy)
+
+    def _geometric_blur(self, channel: str, z_um: float | None, affine: np.ndarray,
+                        scale: float = 1.0) -> np.ndarray:
+        """The geometric path's blurred scene channel at stage position z (None: the truth, at best focus).
+
+        ``scale`` multiplies every blur diameter (disc, or both axes of the astigmatic ellipse): e.g. 1/a to blur
+        in scene pixels a frame that the warp then magnifies by a."""
+        ci = self.channels.index(channel)
+        if z_um is None or ci not in self._wedges:
+            d = self._defocus_at(z_um, channel, affine)
+            return self.blur_map(channel, d if scale == 1.0 else d * np.float32(scale))
+        parts = self._astig_parts_at(z_um, channel, affine)
+        return self._blur_parts(ci, *(parts if scale == 1.0 else [p * np.float32(scale) for p in parts]))
+
     # ------------------------------------------------------------------------------------ geometry
     def _affine(self, z_um: float, channel: str, breathing: bool = True) -> np.ndarray:
         """2x3 matrix mapping a z_ref pixel p to ``c + m(z) * lc * (p - c) + s(z)``."""
@@ -390,15 +541,27 @@ class Renderer:
             return
         zs = [None] + [_check_z(z) for z in np.atleast_1d(np.asarray(z_um, dtype=np.float64))]
 
+        def top(b):
+            self._check_blur(b)
+            return int(math.floor(float(fractional_level(np.float32([b]), self.level_ratio, self.level_floor_px)[0])))
+
         def build(ci):
             ch = self.channels[ci]
-            b = 0.0
+            b = bw = 0.0
             for z in zs:
                 aff = self._affine(self.spec.z_ref_um if z is None else z, ch, z is not None)
-                b = max(b, self._coarse_blur(z, ch, aff)[2])
-            self._check_blur(b)
-            k = int(math.floor(float(fractional_level(np.float32([b]), self.level_ratio, self.level_floor_px)[0])))
-            self._stacks[ci].ensure(k + 1, functools.partial(self._level_image, ci))
+                if z is not None and ci in self._wedges:
+                    # a wedge's diameter is at most max(b_T, b_S) = |dz| + |h|
+                    xc, _ = self._coarse_axis(self.width_px)
+                    yc, _ = self._coarse_axis(self.height_px)
+                    dz, hc, hs = self._astig_parts(z, ch, aff[0, 0] * xc[None, :] + aff[0, 2],
+                                                   aff[1, 1] * yc[:, None] + aff[1, 2])
+                    bw = max(bw, float(np.max(np.abs(dz) + np.hypot(hc, hs))))
+                else:
+                    b = max(b, self._coarse_blur(z, ch, aff)[2])
+            self._stacks[ci].ensure(top(b) + 1, functools.partial(self._level_image, ci))
+            for j, st in enumerate(self._wedge_stacks.get(ci, [])):
+                st.ensure(top(bw) + 1, functools.partial(self._wedge_level_image, ci, j))
 
         self._per_channel(build)
 
@@ -407,15 +570,10 @@ class Renderer:
         (both smooth) evaluated on a coarse grid and interpolated bilinearly; |dz| or sqrt(dz^2 + h^2) is taken
         at full resolution (the kink at focus stays sharp)."""
         dz, half, _ = self._coarse_blur(z_um, channel, affine)
-        xc, wt = self._coarse_axis(self.width_px)
-        yc, ht = self._coarse_axis(self.height_px)
         to_um = self.spec.f_number * self.pitch_um  # _coarse_blur works in px
-        s = self._coarse_px
-        crop = (slice(s, s + self.height_px), slice(s, s + self.width_px))
 
         def full(a):
-            a = np.broadcast_to(a * to_um, (yc.size, xc.size)).astype(np.float32)
-            return cv2.resize(a, (wt, ht), interpolation=cv2.INTER_LINEAR)[crop]
+            return self._coarse_to_full(a * to_um)
 
         if dz is None and half is None:
             return np.zeros((self.height_px, self.width_px), dtype=np.float32)
@@ -428,6 +586,14 @@ class Renderer:
         b = np.square(full(dz))
         b += np.square(full(half))
         return np.sqrt(b, out=b)
+
+    def _coarse_to_full(self, a) -> np.ndarray:
+        """A map on the coarse grid (:meth:`_coarse_axis`) interpolated bilinearly to every pixel (float32)."""
+        xc, wt = self._coarse_axis(self.width_px)
+        yc, ht = self._coarse_axis(self.height_px)
+        s = self._coarse_px
+        a = np.broadcast_to(a, (yc.size, xc.size)).astype(np.float32)
+        return cv2.resize(a, (wt, ht), interpolation=cv2.INTER_LINEAR)[s:s + self.height_px, s:s + self.width_px]
 
     def _zeros(self) -> np.ndarray:
         if getattr(self, "_zero_map", None) is None:
@@ -458,7 +624,7 @@ class Renderer:
         if self._wave is not None:
             img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff, z_um, ch)
         else:
-            img = self._warp(self.blur_map(ch, self._defocus_at(z_um, ch, aff)), aff, z_um, ch)
+            img = self._warp(self._geometric_blur(ch, z_um, aff), aff, z_um, ch)
         img = np.multiply(img, self._exposed_illum(), dtype=np.float32)
         np.maximum(img, 0.0, out=img)  # band-limited resampling and OTF ringing can dip below zero
         return img
@@ -525,7 +691,12 @@ class Renderer:
     def settings(self) -> dict:
         """What truth.json records about the renderer."""
         wave = self._wave.settings() if self._wave is not None else {}
-        return {"optics": self.optics, **wave, "version": RENDERER_VERSION, "level_ratio": self.level_ratio,
+        astig = ({"astigmatism": self.astigmatism, "orientation_wedges": {self.channels[ci]: k for ci, k in
+                                                                          self._wedges.items()},
+                  "orientation_otf_error": {self.channels[ci]: round(_astig.interpolation_error(
+                      k, round(self._astig_px(self.channels[ci]), 3)), 4) for ci, k in self._wedges.items()},
+                  "wedge_levels": "int16" if self.compact_levels else "float32"} if self._wave is None else {})
+        return {"optics": self.optics, **wave, **astig, "version": RENDERER_VERSION, "level_ratio": self.level_ratio,
                 "level_floor_px": self.level_floor_px, "exposure_scale": float(self.exposure),
                 "warp": ("separable 32-tap Kaiser-windowed sinc (fieldcal.simulate.bandwarp.scale_shift_fast)"
                          if self.warp == "fast" else "separable band-limited resampling (chirp-z, "
