@@ -1,0 +1,218 @@
+"""Fine detail for scenes with depth: per-coefficient selection at the finest pyramid levels, held to the depth map.
+
+A depth-map composite (:func:`fieldcal.composite.fusion.depth_map`, blended by :mod:`.stack_profile`) chooses
+frames by a focus measure aggregated over an object, so it has no halo at depth edges and little noise, but
+where a pixel's depth falls between two frames it blends them, and the finest octave of the sharper one is
+diluted. Pyramid and wavelet stackers (Burt & Kolczynski 1993; focus-stack's complex-wavelet rule; Zerene's
+PMax, Helicon's method B) take, per coefficient, the frame with the most local energy: all the fine detail, but
+also noise and the blurred ghost of a near object wherever no frame is sharp. This step combines the two:
+
+* the coarse levels (and the base) are the depth-map composite's;
+* at the ``levels`` finest Laplacian-pyramid levels each coefficient comes from the frame with the largest
+  local energy of the luminance's coefficients (squared, Gaussian-weighted over ``window_px`` at that level),
+  among the frames within ``reach_frames`` of the depth map's (sub-frame) choice at that place: the sharpest
+  of the frames the depth map allows, never a far frame's noise or ghost;
+* the choice is made spatially consistent by a median filter (``consistency_px``) of the chosen frame index
+  (focus-stack's consistency step): an isolated pixel does not switch frames on its noise alone;
+* one choice per place for all channels (made on the luminance), so the colours come from one frame and no
+  colour fringes appear.
+
+The choice needs the final index before the coefficients are gathered, so the frames stream through twice
+(measure, then gather); memory holds the choice, the gathered levels and a few frames' planes.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..errors import ParameterError
+from ..progress import progress
+from .dff import frame_planes, map_in_order
+from .source import image_size, z_positions
+from .sweep import estimate_noise_sigma
+
+_BORDER = cv2.BORDER_REFLECT101
+
+#: Finest pyramid levels selected per coefficient: the two octaves above a quarter of the sampling frequency,
+#: where a blend of two frames loses most; coarser levels follow the depth map (no halo wider than level 1's
+#: ~4 px support at depth edges).
+FINE_LEVELS = 2
+#: Frames either side of the depth map's choice that may lend a coefficient: the depth map is right to about a
+#: frame (its sub-frame peak), and a frame further off is defocused by more than a step.
+REACH_FRAMES = 1.0
+#: Salience window (Gaussian sigma, px at each level): wide enough that one noisy coefficient does not decide,
+#: narrow enough to follow a fine edge.
+WINDOW_PX = 1.0
+#: Median filter of the chosen frame index (px, odd): the consistency check.
+CONSISTENCY_PX = 3
+#: A frame beyond the reach may still lend a coefficient where its local energy exceeds this many times what its
+#: own noise puts there (the depth map is unsure or wrong where real detail stands that far out of the noise);
+#: its noise alone does so with a probability of ~1e-3 (chi-square, the window's ~6 degrees of freedom).
+SIGNIFICANCE = 4.0
+
+
+def noise_gains(levels: int) -> list[float]:
+    """Variance of each fine level's coefficients per unit variance of white pixel noise (measured once on a
+    noise image through the same pyramid)."""
+    n = np.random.default_rng(0).standard_normal((256, 256)).astype(np.float32)
+    return [float(np.var(lap[8:-8, 8:-8])) for lap in _fine_levels(n, levels)]
+
+
+def _fine_levels(plane: np.ndarray, levels: int) -> list[np.ndarray]:
+    """The ``levels`` finest Laplacian-pyramid levels of one float32 plane (as :mod:`.fusion` builds them)."""
+    out, cur = [], plane
+    for _ in range(levels):
+        hh, ww = cur.shape
+        down = cv2.pyrDown(cur, borderType=_BORDER)
+        up = cv2.pyrUp(down, dstsize=(ww, hh), borderType=_BORDER)
+        out.append(np.subtract(cur, up, out=up))
+        cur = down
+    return out
+
+
+def _level_index(depth_index: np.ndarray, shapes: list[tuple[int, int]]) -> list[np.ndarray]:
+    """The depth map's frame index at each level's resolution (area-averaged)."""
+    out = [np.asarray(depth_index, dtype=np.float32)]
+    for hh, ww in shapes[1:]:
+        out.append(cv2.resize(out[-1], (ww, hh), interpolation=cv2.INTER_AREA))
+    return out
+
+
+def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *, levels: int = FINE_LEVELS,
+                reach_frames: float = REACH_FRAMES, window_px: float = WINDOW_PX,
+                consistency_px: int = CONSISTENCY_PX, significance: float | None = SIGNIFICANCE, support=None,
+                quiet: bool = False) -> tuple[np.ndarray, dict]:
+    """Replace the finest pyramid levels of a depth-map composite by per-coefficient selection near its depth.
+
+    Parameters
+    ----------
+    stack : FrameSource
+        The frames, registered to the output geometry (e.g. :func:`fieldcal.composite.register.register_stack`'s).
+    base : H x W x C array
+        The depth-map composite (any dtype; its coarse levels are kept).
+    depth_index : H x W array
+        The depth map as a frame position in z order (0 = the lowest frame of ``frames``; sub-frame values).
+    frames : array of int, optional
+        File indices to use (default all), as for the depth map.
+    levels, reach_frames, window_px, consistency_px
+        See :data:`FINE_LEVELS`, :data:`REACH_FRAMES`, :data:`WINDOW_PX`, :data:`CONSISTENCY_PX`.
+    support : callable, optional
+        ``support(i)``: an ``H x W`` bool mask of where frame ``i`` holds recorded pixels (registered frames
+        repeat their edge beyond it); a frame is never chosen outside it.
+    quiet : bool
+        No progress bar.
+
+    Returns
+    -------
+    (image, info)
+        The composite (``H x W x C`` float32, the frames' units) and what was chosen: the share of
+        coefficients taken from another frame than the depth map's nearest, per level.
+
+    Examples
+    --------
+    >>> from fieldcal.composite.source import ArrayStack
+    >>> rng = np.random.default_rng(0)
+    >>> sharp = rng.random((32, 32, 1)).astype(np.float32)
+    >>> soft = cv2.GaussianBlur(sharp, (0, 0), 2.0)[..., None]
+    >>> st = ArrayStack([soft, sharp], [0.0, 10.0], ["Y"])
+    >>> mix = 0.5 * (soft + sharp)  # a depth-map blend half-way between the frames
+    >>> out, _ = fine_detail(st, mix, np.full((32, 32), 0.5, np.float32), quiet=True)
+    >>> bool(np.abs(out - sharp).mean() < 0.5 * np.abs(mix - sharp).mean())
+    True
+    """
+    w, h = image_size(stack)
+    channels = tuple(stack.channels)
+    base = np.asarray(base)
+    if base.shape[:2] != (h, w) or np.shape(depth_index) != (h, w):
+        raise ParameterError(f"composite {base.shape[:2]} or depth map {np.shape(depth_index)} is not the stack's "
+                             f"{h}x{w}", field="base", fix="give the composite and depth map of this stack")
+    levels = int(levels)
+    if levels < 1 or (min(w, h) >> levels) < 2:
+        raise ParameterError(f"{levels} fine levels do not fit a {w}x{h} image", field="levels",
+                             fix="use fewer levels")
+    if consistency_px < 1 or consistency_px % 2 == 0:
+        raise ParameterError(f"consistency filter of {consistency_px} px", field="consistency_px",
+                             fix="use an odd width (1 = no filter)")
+    z_all = z_positions(stack)
+    idx = np.arange(len(z_all)) if frames is None else np.asarray(frames, dtype=int)
+    order = idx[np.argsort(z_all[idx], kind="stable")]
+    if len(order) > 255:
+        raise ParameterError(f"{len(order)} frames: the choice is held in 8 bits", field="frames",
+                             fix="composite at most 255 frames at a time")
+    shapes = [(h, w)]
+    for _ in range(levels - 1):
+        shapes.append(((shapes[-1][0] + 1) // 2, (shapes[-1][1] + 1) // 2))
+    kd = _level_index(depth_index, shapes)
+    reach = np.float32(reach_frames)
+    gains = noise_gains(levels)
+
+    def planes_of(i: int) -> list[np.ndarray]:
+        return frame_planes(stack, None, float(z_all[i]), int(i), channels, w, h)
+
+    def salience(k_i):
+        k, i = k_i
+        planes = planes_of(i)
+        lum = planes[0]
+        for p in planes[1:]:
+            lum += p
+        sal = []
+        for lev, lap in enumerate(_fine_levels(lum, levels)):
+            e = np.multiply(lap, lap, out=lap)
+            e = cv2.GaussianBlur(e, (0, 0), float(window_px), dst=e, borderType=_BORDER)
+            # a frame beyond the depth map's reach only where its detail stands out of its noise; outside its
+            # recorded support, never
+            far = np.abs(kd[lev] - np.float32(k)) > reach
+            if significance is not None:
+                far &= e < np.float32(significance * np.median(e[::4, ::4]))
+            e[far] = -1.0
+            if support is not None:
+                m = support(int(i))
+                if m is not None:
+                    if lev:
+                        m = cv2.resize(m.astype(np.uint8), (e.shape[1], e.shape[0]),
+                                       interpolation=cv2.INTER_NEAREST).astype(bool)
+                    e[~m] = -1.0
+            sal.append(e)
+        return sal
+
+    best = [np.full(s, -2.0, np.float32) for s in shapes]
+    choice = [np.zeros(s, np.uint8) for s in shapes]
+    items = list(enumerate(order))
+    for k, sal in progress(zip(range(len(items)), map_in_order(salience, items)), total=len(items),
+                           desc="fine detail", quiet=quiet, unit="frame"):
+        for lev, e in enumerate(sal):
+            take = e > best[lev]
+            np.copyto(best[lev], e, where=take)
+            np.copyto(choice[lev], k, where=take, casting="unsafe")
+    del best
+    if consistency_px > 1:
+        choice = [cv2.medianBlur(c, int(consistency_px)) for c in choice]
+    nearest = [np.clip(np.rint(d), 0, len(order) - 1).astype(np.uint8) for d in kd]
+    info = {"fine_levels": levels, "reach_frames": float(reach_frames),
+            "coefficients_off_depth_map": [round(float(np.mean(c != n)), 4) for c, n in zip(choice, nearest)]}
+    gathered = [np.zeros((*s, len(channels)), np.float32) for s in shapes]
+
+    def gather(k_i) -> None:
+        k, i = k_i
+        masks = [c == k for c in choice]
+        if not any(m.any() for m in masks):
+            return
+        for ci, plane in enumerate(planes_of(i)):
+            for lev, lap in enumerate(_fine_levels(plane, levels)):
+                # each frame writes only where it was chosen: the threads' writes never overlap
+                np.copyto(gathered[lev][..., ci], lap, where=masks[lev])
+
+    for _ in map_in_order(gather, items):
+        pass
+    out = np.empty((h, w, len(channels)), np.float32)
+    for ci in range(len(channels)):
+        cur = np.ascontiguousarray(base[..., ci], dtype=np.float32)
+        for _ in range(levels):  # the base's coarse part: its Gaussian level below the fine ones
+            cur = cv2.pyrDown(cur, borderType=_BORDER)
+        for lev in range(levels - 1, -1, -1):
+            hh, ww = shapes[lev]
+            cur = cv2.pyrUp(cur, dstsize=(ww, hh), borderType=_BORDER)
+            cur += gathered[lev][..., ci]
+        out[..., ci] = cur
+    return out, info
