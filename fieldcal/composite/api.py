@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import ParameterError, SpecError, StackError
 from .dff import dff_focus_map, dff_surfaces, focus_volume, hybrid_corrections, pixel_misfit_fraction
-from .source import hold_decoded, image_size
+from .source import hold_decoded, image_size, z_positions
 from .stack_profile import (CompositeResult, blend_kernel, check_profile_matches, composite_profile,
                             composite_with_map, select_frames)
 from .stream import DEFAULT_TILE_PX
@@ -178,6 +178,16 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         mixed = weight[..., None] * img.astype(np.float32) + (1.0 - weight[..., None]) * fused
         img = to_input_dtype(mixed, img.dtype, float(stack.white_level))
         info["pixels_from_fusion"] = round(float(np.mean(1.0 - weight)), 4)
+    if has_depth and not wiener:
+        # the finest octaves per coefficient from the sharpest frame near the depth map's choice
+        # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost
+        from .detail import fine_detail
+        from .stack_profile import to_input_dtype
+        z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
+        kd = np.interp(zb.mean(axis=2), z_sorted, np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32)
+        sharp, info["fine_detail"] = fine_detail(stack, img, kd, frames, geometry=geometry,
+                                                 support=getattr(stack, "support", None), quiet=quiet)
+        img = to_input_dtype(sharp, img.dtype, float(stack.white_level))
     return CompositeResult(img, method, zb, info)
 
 

@@ -10,8 +10,9 @@ also noise and the blurred ghost of a near object wherever no frame is sharp. Th
 * the coarse levels (and the base) are the depth-map composite's;
 * at the ``levels`` finest Laplacian-pyramid levels each coefficient comes from the frame with the largest
   local energy of the luminance's coefficients (squared, Gaussian-weighted over ``window_px`` at that level),
-  among the frames within ``reach_frames`` of the depth map's (sub-frame) choice at that place: the sharpest
-  of the frames the depth map allows, never a far frame's noise or ghost;
+  among the frames within ``reach_frames`` of the depth map's (sub-frame) choice at that place (the sharpest
+  of the frames the depth map allows), or a frame further off where its detail stands well out of its own
+  noise (``significance``: the depth map is unsure or wrong there), never a far frame's noise or ghost;
 * the choice is made spatially consistent by a median filter (``consistency_px``) of the chosen frame index
   (focus-stack's consistency step): an isolated pixel does not switch frames on its noise alone;
 * one choice per place for all channels (made on the luminance), so the colours come from one frame and no
@@ -30,7 +31,6 @@ from ..errors import ParameterError
 from ..progress import progress
 from .dff import frame_planes, map_in_order
 from .source import image_size, z_positions
-from .sweep import estimate_noise_sigma
 
 _BORDER = cv2.BORDER_REFLECT101
 
@@ -46,17 +46,11 @@ REACH_FRAMES = 1.0
 WINDOW_PX = 1.0
 #: Median filter of the chosen frame index (px, odd): the consistency check.
 CONSISTENCY_PX = 3
-#: A frame beyond the reach may still lend a coefficient where its local energy exceeds this many times what its
-#: own noise puts there (the depth map is unsure or wrong where real detail stands that far out of the noise);
-#: its noise alone does so with a probability of ~1e-3 (chi-square, the window's ~6 degrees of freedom).
-SIGNIFICANCE = 4.0
-
-
-def noise_gains(levels: int) -> list[float]:
-    """Variance of each fine level's coefficients per unit variance of white pixel noise (measured once on a
-    noise image through the same pyramid)."""
-    n = np.random.default_rng(0).standard_normal((256, 256)).astype(np.float32)
-    return [float(np.var(lap[8:-8, 8:-8])) for lap in _fine_levels(n, levels)]
+#: A frame beyond the reach may still lend a coefficient where its local energy exceeds this many times the median
+#: of its own energy at that level (3x in amplitude over the frame's typical, mostly noise, coefficient): real
+#: detail the depth map missed (it is unsure, or wrong, there) stands that far out; a frame's noise, whatever
+#: its spectrum (raw, JPEG), rarely does, and a defocused ghost has next to no energy at these levels.
+SIGNIFICANCE = 9.0
 
 
 def _fine_levels(plane: np.ndarray, levels: int) -> list[np.ndarray]:
@@ -79,7 +73,7 @@ def _level_index(depth_index: np.ndarray, shapes: list[tuple[int, int]]) -> list
     return out
 
 
-def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *, levels: int = FINE_LEVELS,
+def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *, geometry=None, levels: int = FINE_LEVELS,
                 reach_frames: float = REACH_FRAMES, window_px: float = WINDOW_PX,
                 consistency_px: int = CONSISTENCY_PX, significance: float | None = SIGNIFICANCE, support=None,
                 quiet: bool = False) -> tuple[np.ndarray, dict]:
@@ -88,15 +82,17 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     Parameters
     ----------
     stack : FrameSource
-        The frames, registered to the output geometry (e.g. :func:`fieldcal.composite.register.register_stack`'s).
+        The frames: registered to the output geometry (e.g. :func:`fieldcal.composite.register.register_stack`'s),
+        or warped to it by ``geometry`` (a lens profile; ``None``: taken as registered).
     base : H x W x C array
         The depth-map composite (any dtype; its coarse levels are kept).
     depth_index : H x W array
         The depth map as a frame position in z order (0 = the lowest frame of ``frames``; sub-frame values).
     frames : array of int, optional
         File indices to use (default all), as for the depth map.
-    levels, reach_frames, window_px, consistency_px
-        See :data:`FINE_LEVELS`, :data:`REACH_FRAMES`, :data:`WINDOW_PX`, :data:`CONSISTENCY_PX`.
+    levels, reach_frames, window_px, consistency_px, significance
+        See :data:`FINE_LEVELS`, :data:`REACH_FRAMES`, :data:`WINDOW_PX`, :data:`CONSISTENCY_PX`,
+        :data:`SIGNIFICANCE` (``None``: never beyond the reach).
     support : callable, optional
         ``support(i)``: an ``H x W`` bool mask of where frame ``i`` holds recorded pixels (registered frames
         repeat their edge beyond it); a frame is never chosen outside it.
@@ -145,10 +141,9 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
         shapes.append(((shapes[-1][0] + 1) // 2, (shapes[-1][1] + 1) // 2))
     kd = _level_index(depth_index, shapes)
     reach = np.float32(reach_frames)
-    gains = noise_gains(levels)
 
     def planes_of(i: int) -> list[np.ndarray]:
-        return frame_planes(stack, None, float(z_all[i]), int(i), channels, w, h)
+        return frame_planes(stack, geometry, float(z_all[i]), int(i), channels, w, h)
 
     def salience(k_i):
         k, i = k_i
