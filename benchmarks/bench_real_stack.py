@@ -124,6 +124,33 @@ def onto(img: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return cv2.warpAffine(img, m, (ref.shape[1], ref.shape[0]), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
 
 
+def flat_noise(img: np.ndarray, frames: list[np.ndarray], share: float = 0.3) -> tuple[float, float]:
+    """Pixel noise (grey DN, as :func:`noise_dn`) where no frame has texture (the ``share`` of pixels with the
+    least finest-octave energy in the frame holding the most there), of a composite and of its frames (their
+    median, rounded to the composite's 8 bits when it has them) at the same pixels: whether compositing added
+    noise, with texture kept out of both figures."""
+    bound, covered = None, None
+    for f in frames:
+        g = grey(f)
+        e = finest_octave_energy(g)
+        bound = e if bound is None else np.maximum(bound, e)
+        c = cv2.erode((g > 0).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # not align_image_stack's black
+        covered = c if covered is None else covered & c
+    sl = (slice(BORDER, -BORDER), slice(BORDER, -BORDER))
+    bound, covered = bound[sl], covered[sl]
+    flat = covered & (bound <= np.quantile(bound[covered], share))
+    k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+    def sigma(a: np.ndarray) -> float:  # Immerkaer's operator, robust, over the flat pixels only
+        r = cv2.filter2D(grey(a), -1, k, borderType=cv2.BORDER_REFLECT)[sl]
+        return float(np.median(np.abs(r[flat])) / 0.6745 / 6.0)
+
+    def as_written(f: np.ndarray) -> np.ndarray:  # rounding to 8 bits adds 0.29 DN rms to a composite, so to its frames
+        return np.clip(np.rint(f), 0, 255).astype(np.uint8) if img.dtype == np.uint8 else f
+
+    return sigma(img), float(np.median([sigma(as_written(f)) for f in frames]))
+
+
 def time_composite(py, stack: Path, out: Path, n: int) -> dict:
     """Wall, CPU (user + system of the child) and peak RSS of one ``fieldcal composite`` process."""
     load = os.getloadavg()[0]
@@ -193,11 +220,13 @@ def main() -> None:
                 e, [tifffile.imread(p)[..., :3] for p in sorted(work.glob(f"al{n}_*.tif"))])
             if enf is None:
                 enf = e
-    lines = ["| composite | mean squared Laplacian | Tenengrad | noise (grey DN) | finest octave: energy / most its "
-             "frames hold at each place | of it beyond every frame |", "| --- | --- | --- | --- | --- | --- |"]
+    lines = ["| composite | mean squared Laplacian | Tenengrad | noise (grey DN) | noise where no frame has texture: "
+             "composite / its frames at its bit depth (DN) | finest octave: energy / most its frames hold at each place | of it "
+             "beyond every frame |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for k, (img, frames) in rows.items():
         share = ("", "") if frames is None else tuple(f"{100 * v:.1f} %" for v in frame_detail_share(img, frames))
-        lines.append(f"| {k} | {msl(img):.0f} | {tenengrad(img):.0f} | {noise_dn(img):.3f} | {share[0]} | "
+        flat = "" if frames is None else "{:.3f} / {:.3f}".format(*flat_noise(img, frames))
+        lines.append(f"| {k} | {msl(img):.0f} | {tenengrad(img):.0f} | {noise_dn(img):.3f} | {flat} | {share[0]} | "
                      f"{share[1]} |")
     lines += ["", "| composite | " + " | ".join(f"{a:g}-{b:g}" for a, b in zip(BANDS[:-1], BANDS[1:])) + " |",
               "|" + " --- |" * len(BANDS)]

@@ -15,6 +15,9 @@ also noise and the blurred ghost of a near object wherever no frame is sharp. Th
   noise (``significance``: the depth map is unsure or wrong there), never a far frame's noise or ghost;
 * the choice is made spatially consistent by a median filter (``consistency_px``) of the chosen frame index
   (focus-stack's consistency step): an isolated pixel does not switch frames on its noise alone;
+* where even the best frame's energy is what noise alone puts there (no frame is sharp: defocused background,
+  blank surfaces), the frames within reach are averaged instead, so the composite has less noise there than a
+  frame, not the noise of whichever frame happened to be loudest; a ramp (:data:`NOISE_RATIO`) joins the two;
 * one choice per place for all channels (made on the luminance), so the colours come from one frame and no
   colour fringes appear.
 
@@ -23,6 +26,8 @@ The choice needs the final index before the coefficients are gathered, so the fr
 """
 
 from __future__ import annotations
+
+import threading
 
 import cv2
 import numpy as np
@@ -51,6 +56,12 @@ CONSISTENCY_PX = 3
 #: detail the depth map missed (it is unsure, or wrong, there) stands that far out; a frame's noise, whatever
 #: its spectrum (raw, JPEG), rarely does, and a defocused ghost has next to no energy at these levels.
 SIGNIFICANCE = 9.0
+
+
+#: Local energy, in units of the noise's (the most defocused frame's typical energy at that level), up to which
+#: the frames within reach are averaged rather than one chosen: at 1 nothing but noise, from 4 (2x in amplitude)
+#: the sharpest is taken outright.
+NOISE_RATIO = 4.0
 
 
 def _fine_levels(plane: np.ndarray, levels: int) -> list[np.ndarray]:
@@ -155,51 +166,89 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
         for lev, lap in enumerate(_fine_levels(lum, levels)):
             e = np.multiply(lap, lap, out=lap)
             e = cv2.GaussianBlur(e, (0, 0), float(window_px), dst=e, borderType=_BORDER)
+            typical = float(np.median(e[::4, ::4]))
             # a frame beyond the depth map's reach only where its detail stands out of its noise; outside its
             # recorded support, never
             far = np.abs(kd[lev] - np.float32(k)) > reach
             if significance is not None:
-                far &= e < np.float32(significance * np.median(e[::4, ::4]))
+                far &= e < np.float32(significance * typical)
             e[far] = -1.0
-            if support is not None:
-                m = support(int(i))
-                if m is not None:
-                    if lev:
-                        m = cv2.resize(m.astype(np.uint8), (e.shape[1], e.shape[0]),
-                                       interpolation=cv2.INTER_NEAREST).astype(bool)
-                    e[~m] = -1.0
-            sal.append(e)
+            m = recorded(i, lev)
+            if m is not None:
+                e[~m] = -1.0
+            sal.append((e, typical))
         return sal
+
+    def recorded(i, lev: int) -> np.ndarray | None:
+        m = support(int(i)) if support is not None else None
+        if m is not None and lev:
+            hh, ww = shapes[lev]
+            m = cv2.resize(m.view(np.uint8), (ww, hh), interpolation=cv2.INTER_NEAREST) > 0
+        return m
 
     best = [np.full(s, -2.0, np.float32) for s in shapes]
     choice = [np.zeros(s, np.uint8) for s in shapes]
+    noise = [np.inf] * levels
     items = list(enumerate(order))
     for k, sal in progress(zip(range(len(items)), map_in_order(salience, items)), total=len(items),
                            desc="fine detail", quiet=quiet, unit="frame"):
-        for lev, e in enumerate(sal):
+        for lev, (e, typical) in enumerate(sal):
             take = e > best[lev]
             np.copyto(best[lev], e, where=take)
             np.copyto(choice[lev], k, where=take, casting="unsafe")
+            noise[lev] = min(noise[lev], typical)
+    # Where even the best frame's energy is what noise alone puts there (the typical energy of the most
+    # defocused frame, mostly noise), no frame is sharp: the frames within reach are averaged (their noise
+    # falls) rather than one chosen for its noise; a ramp up to NOISE_RATIO times that energy joins the two.
+    select = []
+    for lev, b in enumerate(best):
+        r = np.divide(b, np.float32(max(noise[lev], 1e-30)))
+        r -= np.float32(1.0)
+        r *= np.float32(1.0 / (NOISE_RATIO - 1.0))
+        np.clip(r, 0.0, 1.0, out=r)
+        select.append(cv2.GaussianBlur(r, (0, 0), float(window_px), borderType=_BORDER))
     del best
     if consistency_px > 1:
         choice = [cv2.medianBlur(c, int(consistency_px)) for c in choice]
     nearest = [np.clip(np.rint(d), 0, len(order) - 1).astype(np.uint8) for d in kd]
     info = {"fine_levels": levels, "reach_frames": float(reach_frames),
             "coefficients_off_depth_map": [round(float(np.mean(c != n)), 4) for c, n in zip(choice, nearest)]}
+    info["coefficients_averaged"] = [round(float(np.mean(sel < 0.5)), 4) for sel in select]
     gathered = [np.zeros((*s, len(channels)), np.float32) for s in shapes]
+    total = [np.zeros((*s, len(channels)), np.float32) for s in shapes]
+    count = [np.zeros(s, np.float32) for s in shapes]
+    lock = threading.Lock()
 
     def gather(k_i) -> None:
         k, i = k_i
-        masks = [c == k for c in choice]
-        if not any(m.any() for m in masks):
-            return
+        chosen = [c == k for c in choice]
+        near = []
+        for lev in range(levels):
+            m = np.abs(kd[lev] - np.float32(k)) <= reach
+            rec = recorded(i, lev)
+            near.append(m if rec is None else m & rec)
+        laps = []
         for ci, plane in enumerate(planes_of(i)):
             for lev, lap in enumerate(_fine_levels(plane, levels)):
                 # each frame writes only where it was chosen: the threads' writes never overlap
-                np.copyto(gathered[lev][..., ci], lap, where=masks[lev])
+                np.copyto(gathered[lev][..., ci], lap, where=chosen[lev])
+                lap *= near[lev]
+                laps.append((lev, ci, lap))
+        with lock:  # the averages are shared by every frame within reach
+            for lev, ci, lap in laps:
+                total[lev][..., ci] += lap
+            for lev in range(levels):
+                count[lev] += near[lev]
 
     for _ in map_in_order(gather, items):
         pass
+    for lev in range(levels):
+        sel = select[lev][..., None]
+        n = count[lev][..., None]
+        mean = np.divide(total[lev], n, out=total[lev], where=n > 0)
+        mean = np.where(n > 0, mean, gathered[lev])  # nothing recorded within reach: the chosen frame
+        gathered[lev] = sel * gathered[lev] + (1.0 - sel) * mean
+    del total, count
     out = np.empty((h, w, len(channels)), np.float32)
     for ci in range(len(channels)):
         cur = np.ascontiguousarray(base[..., ci], dtype=np.float32)
