@@ -116,3 +116,17 @@ def test_frame_support_follows_the_registration_shift():
     assert cols.min() == 0 and cols.max() == W - 1 - 10 - sup.margin
     assert not m[:, W - 10:].any()
     assert sup(5) is None  # not a held frame: nothing known, nothing cut
+
+
+def test_where_no_frame_is_sharp_the_frames_within_reach_are_averaged():
+    # blank ground, every frame its own noise (sigma 1): the depth map at 1.5 reaches frames 1 and 2 (and 0.5
+    # and 2.5 are beyond), whose average has 1/sqrt(2) of a frame's noise at the fine levels; choosing the
+    # louder of the two would raise it instead
+    rng = np.random.default_rng(11)
+    frames = [np.full((H, W), 80.0, np.float32) + rng.standard_normal((H, W)).astype(np.float32) for _ in range(4)]
+    base = np.full((H, W, 1), 80.0, np.float32)  # the coarse levels carry no noise: only the fine ones count
+    out, info = fine_detail(_stack(frames), base, np.full((H, W), 1.5, np.float32), quiet=True)
+    fine = out[8:-8, 8:-8, 0] - 80.0
+    single = frames[1] - cv2.pyrUp(cv2.pyrUp(cv2.pyrDown(cv2.pyrDown(frames[1]))))  # its two finest levels
+    assert info["coefficients_averaged"][0] > 0.9
+    assert np.std(fine) < 0.8 * np.std(single[8:-8, 8:-8])
