@@ -90,13 +90,23 @@ def run_layout(layout: str, w: int, h: int, seed: int = 1, step: float = 1.5) ->
     out["dff"] = auto.image
     out["hybrid"] = composite_stack(st, prof, method="hybrid", quiet=True).image
     out["smooth surface"] = composite_stack(st, prof, method="dff", depth="flat", quiet=True).image
+    # the frames registered by the truth's geometry: enfuse's input, and dff's without a profile (no F-number, so
+    # no Wiener filter: the depth map's blend plus the per-coefficient fine detail of composite/detail.py)
+    registered = []
+    for i in range(len(st)):
+        im = np.zeros((h, w, 3), np.float32)
+        for fm in frame_maps(prof, float(st.z_um[i]), st.channels):
+            im[..., list(fm.channels)] = warp_region(st, i, fm, 0, 0, w, h)
+        registered.append(im)
+    reg = ArrayStack(registered, st.z_um, spec.channel_names, black_level=spec.sensor.black_level_dn,
+                     white_level=spec.sensor.white_level_dn)
+    out["dff, no profile"] = composite_stack(reg, None, method="dff", register=False, quiet=True).image
+    out["dff, no profile, no fine detail"] = composite_stack(reg, None, method="dff", register=False,
+                                                             fine_detail=False, quiet=True).image
     if shutil.which("enfuse"):
         d = Path(tempfile.mkdtemp())
         names = []
-        for i in range(len(st)):
-            im = np.zeros((h, w, 3), np.float32)
-            for fm in frame_maps(prof, float(st.z_um[i]), st.channels):
-                im[..., list(fm.channels)] = warp_region(st, i, fm, 0, 0, w, h)
+        for i, im in enumerate(registered):
             p = d / f"f{i:02d}.tif"
             tifffile.imwrite(p, np.clip(np.rint(im), 0, 65535).astype(np.uint16))
             names.append(str(p))
@@ -105,7 +115,8 @@ def run_layout(layout: str, w: int, h: int, seed: int = 1, step: float = 1.5) ->
         out["enfuse"] = tifffile.imread(d / "enfuse.tif")[..., :3]
         shutil.rmtree(d, ignore_errors=True)
     rows = {}
-    for k in ("oracle", "oracle wiener", "dff", "hybrid", "smooth surface", "enfuse"):
+    for k in ("oracle", "oracle wiener", "dff", "hybrid", "smooth surface", "dff, no profile",
+              "dff, no profile, no fine detail", "enfuse"):
         if k in out:
             rows[k] = (psnr(out[k]), halo(out[k]))
     out["rows"] = rows
@@ -125,6 +136,11 @@ def main() -> None:
              " enfuse dB | dff − enfuse | dff − oracle | dff − oracle + W | hybrid − enfuse | hybrid − oracle |"
              " hybrid − oracle + W | halo px (oracle / dff / hybrid / enfuse) | dff s |",
              "|" + " --- |" * 17]
+    free = ["", "Without a profile (the same frames registered by the truth's geometry, no F-number: no Wiener "
+                "filter), fieldcal's depth-map blend with and without the per-coefficient fine detail "
+                "(`fieldcal/composite/detail.py`):", "",
+            "| layout | no profile dB | no fine detail dB | no profile − enfuse | no profile − oracle | halo px "
+            "(no profile / no fine detail) |", "|" + " --- |" * 6]
     for layout in LAYOUTS:
         r = run_layout(layout, w, h, step=a.step)
         R = r["rows"]
@@ -135,6 +151,11 @@ def main() -> None:
                      f"{d[0] - o[0]:+.2f} | {d[0] - ow[0]:+.2f} | {hy[0] - enf[0]:+.2f} | {hy[0] - o[0]:+.2f} | "
                      f"{hy[0] - ow[0]:+.2f} | {o[1]} / {d[1]} / {hy[1]} / {enf[1]} | {r['t_depth_s']:.1f} |")
         print(lines[-1], flush=True)
+        npf, nfd = R["dff, no profile"], R["dff, no profile, no fine detail"]
+        free.append(f"| {layout} | {npf[0]:.2f} | {nfd[0]:.2f} | {npf[0] - enf[0]:+.2f} | {npf[0] - o[0]:+.2f} | "
+                    f"{npf[1]} / {nfd[1]} |")
+        print(free[-1], flush=True)
+    lines += free
     if a.write:
         doc = REPO / "docs" / "benchmarks.md"
         text = doc.read_text(encoding="utf-8")

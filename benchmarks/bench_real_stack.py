@@ -5,12 +5,17 @@ Uses ``../shared/data/real-stacks/pcb-depthmap/`` beside the checkout (or ``--st
 frames are imported with ``fieldcal import`` (the pitch is not in their EXIF; 1.12 µm is given, z is a uniform
 step: only the order matters for depth from focus), composited without a profile in the geometry of the first
 frame (align_image_stack's reference), and compared with ``align_image_stack -m -a`` + ``enfuse --hard-mask``
-(contrast weight only) on the same JPEGs when those tools are installed (``apt-get install enfuse hugin-tools``).
+(contrast weight only) on the same JPEGs when those tools are installed (``apt-get install enfuse hugin-tools``),
+on all frames and on the first 7.
 
 Sharpness is the mean squared Laplacian (OpenCV ``Laplacian``, ksize 3, on grey 0-255) with a 96 px border left
 out: align_image_stack's frames carry black borders up to ~40 px wide, whose edges would otherwise count as
-detail. Prints the table and writes crops to the temporary folder; ``--write`` puts the table into
-docs/benchmarks.md and the crops into ``docs/img/real-pcb-crops.png``.
+detail. Also Tenengrad, the pixel noise (Immerkaer, robust: texture in the composite's flat majority raises it
+too), the power in radial frequency bands, and the finest octave's energy against the most the composite's own
+registered frames hold at each place. Prints the tables and writes crops to the temporary folder (enfuse's
+output resampled onto fieldcal's geometry by an affine ECC fit first: align_image_stack's ``-m`` output frame is
+not exactly the first frame's); ``--write`` puts the tables into docs/benchmarks.md and the crops into
+``docs/img/real-pcb-crops.png``.
 
 Speed: ``fieldcal composite`` in its own process, wall and CPU time (user + system, all threads) and peak RSS,
 on all frames and on the first 7 (issue 15: a 7-frame 2048x1536 stack, registration included, in 5 s on 2
@@ -107,6 +112,45 @@ def frame_detail_share(img: np.ndarray, frames: list[np.ndarray]) -> tuple[float
     return total / max(float(bound[sl].sum()), 1e-30), float(np.maximum(e - bound, 0.0)[sl].sum()) / total
 
 
+def onto(img: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """``img`` (8-bit RGB) resampled onto ``ref``'s geometry by an affine ECC fit of their grey half-size copies:
+    align_image_stack's output frame (``-m`` fits the field of view) is not exactly the first frame's, so crops
+    at the same coordinates would show different places."""
+    a, b = (cv2.resize(grey(v), None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA) for v in (ref, img))
+    m = np.eye(2, 3, dtype=np.float32)
+    _, m = cv2.findTransformECC(a, b, m, cv2.MOTION_AFFINE,
+                                (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6), None, 5)
+    m[:, 2] *= 2.0
+    return cv2.warpAffine(img, m, (ref.shape[1], ref.shape[0]), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
+
+
+def flat_noise(img: np.ndarray, frames: list[np.ndarray], share: float = 0.3) -> tuple[float, float]:
+    """Pixel noise (grey DN, as :func:`noise_dn`) where no frame has texture (the ``share`` of pixels with the
+    least finest-octave energy in the frame holding the most there), of a composite and of its frames (their
+    median, rounded to the composite's 8 bits when it has them) at the same pixels: whether compositing added
+    noise, with texture kept out of both figures."""
+    bound, covered = None, None
+    for f in frames:
+        g = grey(f)
+        e = finest_octave_energy(g)
+        bound = e if bound is None else np.maximum(bound, e)
+        c = cv2.erode((g > 0).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # not align_image_stack's black
+        covered = c if covered is None else covered & c
+    sl = (slice(BORDER, -BORDER), slice(BORDER, -BORDER))
+    bound, covered = bound[sl], covered[sl]
+    flat = covered & (bound <= np.quantile(bound[covered], share))
+    k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+    def sigma(a: np.ndarray) -> float:  # Immerkaer's operator, robust, over the flat pixels only
+        r = cv2.filter2D(grey(a), -1, k, borderType=cv2.BORDER_REFLECT)[sl]
+        return float(np.median(np.abs(r[flat])) / 0.6745 / 6.0)
+
+    def as_written(f: np.ndarray) -> np.ndarray:  # rounding to 8 bits adds 0.29 DN rms to a composite, so to its frames
+        return np.clip(np.rint(f), 0, 255).astype(np.uint8) if img.dtype == np.uint8 else f
+
+    return sigma(img), float(np.median([sigma(as_written(f)) for f in frames]))
+
+
 def time_composite(py, stack: Path, out: Path, n: int) -> dict:
     """Wall, CPU (user + system of the child) and peak RSS of one ``fieldcal composite`` process."""
     load = os.getloadavg()[0]
@@ -144,36 +188,45 @@ def main() -> None:
         subprocess.run([*py, "import", str(src), "--out", str(work / f"pcb{n}"), "--z", "0", "50",
                         "--pixel-pitch-um", "1.12", "--quiet"], check=True)
         timing.append(time_composite(py, work / f"pcb{n}", work / f"fieldcal{n}.tiff", n))
-    shutil.copy(work / f"fieldcal{len(jpegs)}.tiff", work / "fieldcal.tiff")
     t_fc = timing[0]["wall (s)"]
-    ours = tifffile.imread(work / "fieldcal.tiff")
     single = [cv2.imread(str(p))[..., ::-1] for p in jpegs]
     sharpest = int(np.argmax([msl(f) for f in single]))
     # fieldcal's own registered frames (the geometry of its output), to bound what detail its frames hold
     from fieldcal.composite.register import register_stack
     from fieldcal.formats.stack import Stack
 
-    held, _ = register_stack(Stack.open(work / f"pcb{len(jpegs)}", verify=False), z_ref_um=0.0, quiet=True)
-    ours_frames = [held.read(i) for i in range(len(jpegs))]
-    rows = {f"a single frame (the sharpest by msl, {jpegs[sharpest].name})": (single[sharpest], None),
-            "fieldcal": (ours, ours_frames)}
-    enf = None
-    if shutil.which("enfuse") and shutil.which("align_image_stack"):
-        t0 = time.perf_counter()
-        subprocess.run(["align_image_stack", "-m", "-a", str(work / "al_"), *map(str, jpegs)],
-                       check=True, capture_output=True)
-        subprocess.run(["enfuse", "--exposure-weight=0", "--saturation-weight=0", "--contrast-weight=1",
-                        "--hard-mask", f"--output={work / 'enfuse.tif'}", *map(str, sorted(work.glob("al_*.tif")))],
-                       check=True, capture_output=True)
-        t_enf = time.perf_counter() - t0
-        enf = tifffile.imread(work / "enfuse.tif")[..., :3]
-        rows["align_image_stack + enfuse --hard-mask"] = (
-            enf, [tifffile.imread(p)[..., :3] for p in sorted(work.glob("al_*.tif"))])
-    lines = ["| composite | mean squared Laplacian | Tenengrad | noise (grey DN) | finest octave: energy / most its "
-             "frames hold at each place | of it beyond every frame |", "| --- | --- | --- | --- | --- | --- |"]
+    rows = {f"a single frame (the sharpest by msl, {jpegs[sharpest].name})": (single[sharpest], None)}
+    ours = enf = None
+    t_enf = None
+    have_enfuse = bool(shutil.which("enfuse") and shutil.which("align_image_stack"))
+    for n in (len(jpegs), 7):
+        img = tifffile.imread(work / f"fieldcal{n}.tiff")
+        held, _ = register_stack(Stack.open(work / f"pcb{n}", verify=False), z_ref_um=0.0, quiet=True)
+        rows[f"fieldcal, {n} frames"] = (img, [held.read(i) for i in range(n)])
+        del held
+        if ours is None:
+            ours = img
+        if have_enfuse:
+            t0 = time.perf_counter()
+            subprocess.run(["align_image_stack", "-m", "-a", str(work / f"al{n}_"), *map(str, jpegs[:n])],
+                           check=True, capture_output=True)
+            subprocess.run(["enfuse", "--exposure-weight=0", "--saturation-weight=0", "--contrast-weight=1",
+                            "--hard-mask", f"--output={work / f'enfuse{n}.tif'}",
+                            *map(str, sorted(work.glob(f"al{n}_*.tif")))], check=True, capture_output=True)
+            if t_enf is None:
+                t_enf = time.perf_counter() - t0
+            e = tifffile.imread(work / f"enfuse{n}.tif")[..., :3]
+            rows[f"align_image_stack + enfuse --hard-mask, {n} frames"] = (
+                e, [tifffile.imread(p)[..., :3] for p in sorted(work.glob(f"al{n}_*.tif"))])
+            if enf is None:
+                enf = e
+    lines = ["| composite | mean squared Laplacian | Tenengrad | noise (grey DN) | noise where no frame has texture: "
+             "composite / its frames at its bit depth (DN) | finest octave: energy / most its frames hold at each place | of it "
+             "beyond every frame |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for k, (img, frames) in rows.items():
         share = ("", "") if frames is None else tuple(f"{100 * v:.1f} %" for v in frame_detail_share(img, frames))
-        lines.append(f"| {k} | {msl(img):.0f} | {tenengrad(img):.0f} | {noise_dn(img):.3f} | {share[0]} | "
+        flat = "" if frames is None else "{:.3f} / {:.3f}".format(*flat_noise(img, frames))
+        lines.append(f"| {k} | {msl(img):.0f} | {tenengrad(img):.0f} | {noise_dn(img):.3f} | {flat} | {share[0]} | "
                      f"{share[1]} |")
     lines += ["", "| composite | " + " | ".join(f"{a:g}-{b:g}" for a, b in zip(BANDS[:-1], BANDS[1:])) + " |",
               "|" + " --- |" * len(BANDS)]
@@ -183,7 +236,7 @@ def main() -> None:
     head = ["run", "frames", "wall (s)", "CPU (s)", "peak RSS (MB)", "load at start"]
     lines += ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     lines += ["| " + " | ".join(str(r[k]) for k in head) + " |" for r in timing]
-    if enf is not None:
+    if t_enf is not None:
         lines.append(f"| align_image_stack + enfuse | {len(jpegs)} | {t_enf:.1f} | | | |")
     lines += ["", "Wall and CPU time (user + system, all threads) of `fieldcal composite STACK --out OUT "
                   "--z-ref-um 0` in its own process, registration included, 2048x1536 JPEG frames, first N "
@@ -196,25 +249,28 @@ def main() -> None:
     # crops side by side (same geometry: the first frame's), shown at 2x: depth edges of the switch against the
     # board and its pads, the silkscreen, fine dust on the switch body
     h, w = ours.shape[:2]
+    if enf is not None:
+        enf = onto(enf if enf.dtype == np.uint8 else (enf / 257).astype(np.uint8), ours)
     crops = []
     size = 192
-    for (fx, fy) in ((0.576, 0.273), (0.303, 0.651), (0.703, 0.313), (0.508, 0.417)):
+    # ... and the left edge, where frames magnified less than the reference hold no pixels (no streaks)
+    for (fx, fy) in ((0.576, 0.273), (0.303, 0.651), (0.703, 0.313), (0.508, 0.417), (0.0, 0.45)):
         x, y = int(fx * w), int(fy * h)
         row = [ours[y:y + size, x:x + size, :3]]
         if enf is not None:
-            e = enf if enf.dtype == np.uint8 else (enf / 257).astype(np.uint8)
-            row = [e[y:y + size, x:x + size], np.full((size, 4, 3), 255, np.uint8)] + row
+            row = [enf[y:y + size, x:x + size], np.full((size, 4, 3), 255, np.uint8)] + row
         crops.append(cv2.resize(np.concatenate(row, axis=1), None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST))
     # the docs' figure only with --write; otherwise beside the run, kept for a look
     out = (REPO / "docs" / "img" if a.write else Path(tempfile.gettempdir())) / "real-pcb-crops.png"
     cv2.imwrite(str(out), np.concatenate(crops, axis=0)[..., ::-1])
-    print(f"crops ({'enfuse | fieldcal' if enf is not None else 'fieldcal'}, four regions, 2x): {out}")
+    print(f"crops ({'enfuse | fieldcal' if enf is not None else 'fieldcal'}, five regions, 2x): {out}")
     if a.write:
         doc = REPO / "docs" / "benchmarks.md"
         text = doc.read_text(encoding="utf-8")
         b, e = "<!-- bench_real_stack:begin -->", "<!-- bench_real_stack:end -->"
         block = "\n".join([b, "Real circuit-board stack (`python benchmarks/bench_real_stack.py --write`; crops: "
-                              "[img/real-pcb-crops.png](img/real-pcb-crops.png), left enfuse, right fieldcal):", "",
+                              "[img/real-pcb-crops.png](img/real-pcb-crops.png), left enfuse (10 frames, brought onto fieldcal's "
+                              "geometry), right fieldcal (10 frames); the last row is the left edge):", "",
                            *lines, e])
         if b in text:
             text = text[:text.index(b)] + block + text[text.index(e) + len(e):]

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import ParameterError, SpecError, StackError
 from .dff import dff_focus_map, dff_surfaces, focus_volume, hybrid_corrections, pixel_misfit_fraction
-from .source import hold_decoded, image_size
+from .source import hold_decoded, image_size, z_positions
 from .stack_profile import (CompositeResult, blend_kernel, check_profile_matches, composite_profile,
                             composite_with_map, select_frames)
 from .stream import DEFAULT_TILE_PX
@@ -47,7 +47,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
                     q: float = 0.05, min_band: float = 0.25, lateral_colour: bool = False,
                     block_px: int | None = None, tile: int = DEFAULT_TILE_PX, focus_offset_um: float = 0.0,
                     register: bool = True, z_ref_um: float | None = None, depth: str = "auto",
-                    quiet: bool = False) -> CompositeResult:
+                    fine_detail: bool = True, quiet: bool = False) -> CompositeResult:
     """All-in-focus composite of a stack.
 
     Parameters
@@ -83,6 +83,10 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         the surface. The profile (``hybrid``) keeps the pixels the data cannot tell apart from it. With a lens
         model that states its F-number, the best focus is made occlusion-aware and the frames around each
         pixel's depth are combined by a multi-frame Wiener filter (:mod:`fieldcal.composite.depth_wiener`).
+    fine_detail : bool
+        A scene with depth composited without the Wiener filter (no profile, or no F-number): the two finest
+        pyramid levels per coefficient from the sharpest frame near the depth map's choice
+        (:mod:`fieldcal.composite.detail`). ``False`` keeps the depth map's blend there.
     """
     if depth not in DEPTH_MODES:
         raise ParameterError(f"unknown depth mode {depth!r}", field="depth", fix=f"use one of {', '.join(DEPTH_MODES)}")
@@ -178,6 +182,16 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         mixed = weight[..., None] * img.astype(np.float32) + (1.0 - weight[..., None]) * fused
         img = to_input_dtype(mixed, img.dtype, float(stack.white_level))
         info["pixels_from_fusion"] = round(float(np.mean(1.0 - weight)), 4)
+    if has_depth and not wiener and fine_detail:
+        # the finest octaves per coefficient from the sharpest frame near the depth map's choice
+        # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost
+        from .detail import fine_detail as add_fine_detail
+        from .stack_profile import to_input_dtype
+        z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
+        kd = np.interp(zb.mean(axis=2), z_sorted, np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32)
+        sharp, info["fine_detail"] = add_fine_detail(stack, img, kd, frames, geometry=geometry,
+                                                     support=getattr(stack, "support", None), quiet=quiet)
+        img = to_input_dtype(sharp, img.dtype, float(stack.white_level))
     return CompositeResult(img, method, zb, info)
 
 

@@ -125,13 +125,17 @@ def focus_volume(stack, profile=None, *, frames=None, block_px: int | None = Non
     channels = tuple(stack.channels)
     vol = np.empty((len(order), nby, nbx, len(channels)), dtype=np.float32)
     s = PIXEL_STRIDE
+    cover = getattr(stack, "support", None)  # registered frames: where each holds recorded pixels
 
     def measure(i: int) -> tuple[np.ndarray, np.ndarray]:
         cells = np.empty((nby, nbx, len(channels)), dtype=np.float32)
         pix = None
+        mask = cover(int(i)) if cover is not None else None
         for ci, plane in enumerate(frame_planes(stack, profile, float(z_all[i]), int(i), channels, w, h,
                                                 lateral_colour=lateral_colour)):
             ml = modified_laplacian(plane)
+            if mask is not None:  # a registered frame's repeated edge pixels are streaks, not focus
+                ml[~mask] = 0.0
             cells[..., ci] = cell_sums(ml, b) * np.float32(1.0 / (b * b))
             if pix is None:
                 pix = ml

@@ -86,8 +86,9 @@ class _ChannelSelection:
         self._take = np.empty(h * w, bool)
         self.base_sum = np.zeros(self.shapes[-1], np.float64)
 
-    def add(self, plane: np.ndarray, k: int) -> None:
-        """Take frame ``k``'s (in z order) coefficients where it is more salient than the frames before."""
+    def add(self, plane: np.ndarray, k: int, support: np.ndarray | None = None) -> None:
+        """Take frame ``k``'s (in z order) coefficients where it is more salient than the frames before (never
+        outside ``support``, where the frame holds recorded pixels, when given)."""
         cur = plane
         for lev in range(self.levels):
             hh, ww = self.shapes[lev]
@@ -97,6 +98,10 @@ class _ChannelSelection:
             sal = self._sal[:hh * ww].reshape(hh, ww)
             np.multiply(lap, lap, out=sal)
             sal = cv2.GaussianBlur(sal, (0, 0), self.sigma, dst=sal, borderType=_BORDER)
+            if support is not None:
+                if support.shape != (hh, ww):
+                    support = cv2.resize(support.view(np.uint8), (ww, hh), interpolation=cv2.INTER_NEAREST) > 0
+                sal[~support] = -1.0
             if k == 0:
                 np.copyto(self.best[lev], lap)
                 np.copyto(self.best_sal[lev], sal)
@@ -119,10 +124,13 @@ class _ChannelSelection:
         return img
 
 
-def _per_channel(selections: list[_ChannelSelection], read, n_frames: int, shape: tuple[int, int]) -> None:
+def _per_channel(selections: list[_ChannelSelection], read, n_frames: int, shape: tuple[int, int],
+                 support=None) -> None:
     """Fuse ``n_frames`` frames with one thread per channel: ``read(k, planes)`` fills one float32 plane per
     channel with frame ``k`` (z order) in this thread, and channel ``c``'s thread adds ``planes[c]`` to
     ``selections[c]``.
+
+    ``support(k)``, when given, is frame ``k``'s mask of recorded pixels (or ``None``: everywhere).
 
     Channels are independent, so each thread keeps its own running selection and the only hand-over is a set
     of planes; three sets circulate (one being read, two queued), which bounds memory and reuses the buffers.
@@ -134,7 +142,7 @@ def _per_channel(selections: list[_ChannelSelection], read, n_frames: int, shape
         planes = [np.empty((h, w), np.float32)]
         for k in range(n_frames):
             read(k, planes)
-            selections[0].add(planes[0], k)
+            selections[0].add(planes[0], k, support(k) if support is not None else None)
         return
     free: queue.Queue = queue.Queue()
     for _ in range(3):
@@ -153,10 +161,10 @@ def _per_channel(selections: list[_ChannelSelection], read, n_frames: int, shape
 
     def work(sel: _ChannelSelection, c: int, q: queue.Queue) -> None:
         while (item := q.get()) is not None:
-            planes, k = item
+            planes, k, mask = item
             if not errors:  # after a failure the frames are only passed on, so the reader never blocks
                 try:
-                    sel.add(planes[c], k)
+                    sel.add(planes[c], k, mask)
                 except BaseException as exc:  # re-raised in the caller's thread
                     errors.append(exc)
             release(planes)
@@ -173,8 +181,9 @@ def _per_channel(selections: list[_ChannelSelection], read, n_frames: int, shape
             read(k, planes)
             with lock:
                 users[id(planes)] = n_ch
+            mask = support(k) if support is not None else None
             for q in todo:
-                q.put((planes, k))
+                q.put((planes, k, mask))
     finally:
         for q in todo:
             q.put(None)
@@ -246,7 +255,8 @@ def fuse_pyramid(stack, geometry=None, frames=None, *, levels: int | None = None
         i = next(bar)
         frame_planes(stack, geometry, float(z_all[i]), int(i), channels, w, h, out=planes)
 
-    _per_channel(sels, read, len(order), (h, w))
+    cover = getattr(stack, "support", None)  # registered frames: where each holds recorded pixels
+    _per_channel(sels, read, len(order), (h, w), (lambda k: cover(int(order[k]))) if cover is not None else None)
     next(bar, None)  # closes the progress bar
     depth = _depth_index([s.best_idx for s in sels], [s.best_sal[index_level] for s in sels], w, h)
     fused = np.empty((h, w, len(channels)), dtype=np.float32)
@@ -390,6 +400,7 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
     g *= np.float32(1.0 / max(float(hi - lo), 1e-12))
     r = int(radius_px) if radius_px is not None else max(2, int(round(np.hypot(w, h) / 200)))
     gf = _GuidedFilter(g, r, eps)
+    cover = getattr(stack, "support", None)  # registered frames: where each holds recorded pixels
 
     def focus(i: int) -> np.ndarray:
         planes = frame_planes(stack, geometry, float(z_all[i]), int(i), channels, w, h)
@@ -405,7 +416,11 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
         q = gf(e)
         # an energy is >= 0: the guided filter's undershoot beside strong edges is not focus, and negative
         # values would make the mean below (the confidence's denominator) meaningless
-        return np.maximum(q, np.float32(0.0), out=q)
+        q = np.maximum(q, np.float32(0.0), out=q)
+        mask = cover(int(i)) if cover is not None else None
+        if mask is not None:  # a registered frame's repeated edge pixels are streaks, not focus
+            q[~mask] = 0.0
+        return q
 
     track = None
     for f in progress(map_in_order(focus, order), total=len(order), desc="depth from focus", quiet=quiet,

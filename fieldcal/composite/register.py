@@ -636,6 +636,60 @@ def storage_dtype(dtype) -> tuple[np.dtype, float]:
     return np.dtype(np.float32), 1.0
 
 
+#: Pixels next to the edge of a frame's recorded area that the bicubic warp already mixes with repeated edge
+#: pixels (its kernel reaches 2 px).
+SUPPORT_MARGIN_PX = 2
+
+
+class FrameSupport:
+    """Where each registered frame holds recorded pixels: ``support(i)`` is an ``H x W`` bool mask for file index
+    ``i`` (``None`` when the frame covers the whole output, e.g. the reference frame).
+
+    Outside it :func:`warp_frame` repeats the frame's edge pixels, which makes streaks with a strong focus
+    measure: the compositing passes never choose a frame there (another frame, at least the reference, covers
+    every pixel). Masks are made on first use (a nearest-neighbour warp of the frame's rectangle) and kept.
+    """
+
+    def __init__(self, geometry, z_by_index: dict[int, float], width: int, height: int,
+                 margin_px: int = SUPPORT_MARGIN_PX):
+        self.geometry, self.z = geometry, dict(z_by_index)
+        self.width, self.height, self.margin = int(width), int(height), int(margin_px)
+        self._masks: dict[int, np.ndarray | None] = {}
+
+    def __call__(self, i: int) -> np.ndarray | None:
+        i = int(i)
+        if i not in self._masks and i in self.z:
+            import cv2
+
+            w, h, m = self.width, self.height, self.margin
+            rect = np.zeros((h, w), np.uint8)
+            rect[m:h - m, m:w - m] = 1
+            mat = frame_map_matrix(self.geometry, self.z[i])
+            mat = np.asarray(mat, dtype=np.float64) / mat[2, 2]
+            flags = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+            if abs(mat[2, 0]) < 1e-15 and abs(mat[2, 1]) < 1e-15:
+                cover = cv2.warpAffine(rect, mat[:2], (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT)
+            else:
+                cover = cv2.warpPerspective(rect, mat, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT)
+            # the frame's own border band (within the margin of its edge) stays usable where it maps onto the
+            # output's own border band: that is recorded, not repeated
+            inside = cover.astype(bool)
+            self._masks[i] = None if inside[m:h - m, m:w - m].all() else _grow_to_edges(inside, m)
+        return self._masks.get(i)
+
+
+def _grow_to_edges(mask: np.ndarray, margin: int) -> np.ndarray:
+    """``mask`` with the output's outer ``margin`` px following their inner neighbours (the reference frame's own
+    edge band is recorded; only the warp's repeated pixels are cut)."""
+    out = mask.copy()
+    h, w = out.shape
+    out[:margin] = out[margin]
+    out[h - margin:] = out[h - margin - 1]
+    out[:, :margin] = out[:, margin:margin + 1]
+    out[:, w - margin:] = out[:, w - margin - 1:w - margin]
+    return out
+
+
 def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_side_px: int = 1024,
                    models=MODELS, quiet: bool = False):
     """Register a stack once and hold its frames warped into the reference frame's geometry.
@@ -648,8 +702,8 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
     Returns
     -------
     (HeldFrames, geometry)
-        The registered frames (file indices as in ``stack``; only ``frames`` are held) and the geometry
-        (``info()`` describes it).
+        The registered frames (file indices as in ``stack``; only ``frames`` are held; ``support``, a
+        :class:`FrameSupport`, says where each holds recorded pixels) and the geometry (``info()`` describes it).
     """
     from .source import HeldFrames, read_frames_parallel, roi_readable
 
@@ -677,4 +731,5 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
         elif image.dtype != storage:
             image = image.astype(storage)
         out.put(int(i), warp_frame(image, frame_map_matrix(geo, float(z))), held_units=True)
+    out.support = FrameSupport(geo, {int(i): float(z) for i, z in zip(order, zs)}, w, h)
     return out, geo
