@@ -161,8 +161,8 @@ def section(a: list[dict], b: list[dict], maps: dict, size, cmd: str, load: str)
              "effort quick. `profile.distortion_px` against the truth's (undistorted -> distorted px, the "
              "reference channel's linear part at the centre taken out) inside the board's convex hull ('in') and "
              "over the whole frame ('all': beyond the hull the model extrapolates); lensfunpy applying the "
-             "exported entry (distortion + TCA, per channel) against the truth and the profile. Target: Lensfun "
-             "within 0.1 px (issue 16).", ""]
+             "exported entry (distortion + TCA, per channel; fitted to the profile over the whole frame) against the "
+             "truth and the profile. Target: Lensfun within 0.1 px of the profile (issue 16).", ""]
     lines += md_table(a, [("lens", "lens", ""), ("z", "z", ""), ("ch", "channel", ""), ("terms", "terms", ""),
                           ("hull frac", "hull", ".2f"), ("truth |D - 1| max (px)", "truth_disp_px", ".2f"),
                           ("profile err in, max (px)", "prof_in_max", ".3f"),
