@@ -89,6 +89,29 @@ def test_lensfunpy_applies_the_distortion_and_tca_of_a_profile(profile_path, tmp
         assert err.max() < 0.1, (ch, err.max())
 
 
+def test_entry_is_fitted_over_the_whole_frame_beyond_the_board(profile_path, tmp_path):
+    """A board that covered the central half of the frame: the entry still follows the profile (barrel, k2 and
+    tangential terms: the benchmark lens's coefficients) over the whole frame within 0.1 px, what it reports
+    of its own fit is what lensfunpy does, and the note says the field beyond the board is extrapolated."""
+    lf = pytest.importorskip("lensfunpy")
+    prof = LensProfile.load(profile_path)
+    w, h = prof.image_size_px
+    prof.absolute_distortion = _absolute(prof, ("k1", "k2", "p1", "p2"), (-0.04, 0.008, 1e-3, -6e-4))
+    a, b = 0.5 * (1 - math.sqrt(0.5)), 0.5 * (1 + math.sqrt(0.5))   # a centred box of half the frame's area
+    prof.absolute_distortion.hull_px = np.array([[a * w, a * h], [b * w, a * h], [b * w, b * h], [a * w, b * h]])
+    model = lensfun_model(prof)
+    assert any("extrapolation" in n for n in model.notes)
+    out = tmp_path / "lens.xml"
+    out.write_text(lensfun_xml(prof, model))
+    ys, xs = np.mgrid[0:h, 0:w]
+    g = _lensfun(out, prof, lf.ModifyFlags.DISTORTION).apply_geometry_distortion()
+    fx, fy = prof.distortion_px(xs, ys, model.z_um, prof.reference_channel)
+    err = np.hypot(g[..., 0] - fx, g[..., 1] - fy)
+    ref = prof.reference_channel
+    assert err.max() < 0.1, err.max()
+    assert err.max() == pytest.approx(max(model.max_err_px[ref], model.max_err_outside_px[ref]), abs=0.01)
+
+
 def test_cli_export_of_a_calibrated_profile(profile_path, tmp_path, capsys):
     """The texture profile has no absolute distortion: refused, or with --allow-no-distortion an entry without a
     distortion element (Lensfun's geometry map is the identity), its TCA the lateral colour."""

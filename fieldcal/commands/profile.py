@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 
 from . import add_parser
@@ -148,10 +149,13 @@ def run_export(args) -> int:
     atomic_write_text(out, lensfun_xml(prof, model, lens_name=args.lens_name, camera_name=args.camera_name))
     for note in model.notes:
         print(f"warning: {note}", file=sys.stderr)
-    fit = ", ".join(f"{ch} {v:.3f} px" for ch, v in model.fit_rms_px.items())
+    fit = ", ".join(f"{ch} {v:.3f}" + (f" / {model.max_err_outside_px[ch]:.3f}"
+                                        if math.isfinite(model.max_err_outside_px[ch]) else "")
+                    for ch, v in model.max_err_px.items())
     dist = ("no distortion" if model.k1 is None else
             f"poly5 k1 {model.k1:.4g}, k2 {model.k2:.4g} about ({model.centre_px[0]:.1f}, {model.centre_px[1]:.1f}) px")
-    where = "over the board's field" if model.k1 is not None else "of the TCA fit"
+    where = ("fitted over the whole frame; px inside the board's field / beyond it" if model.k1 is not None
+             else "px, the TCA fit")
     print(f"wrote {out} (Lensfun database version 1): geometry at z = {model.z_um:.1f} µm; source: "
-          f"{model.source}; {dist}; fit residual rms {fit or 'n/a'} ({where})")
+          f"{model.source}; {dist}; largest error against the profile {fit or 'n/a'} ({where})")
     return 0

@@ -216,8 +216,8 @@ def _fit_terms(b: np.ndarray, w_obs: np.ndarray, wt: np.ndarray, h0: np.ndarray,
 
 
 def fit_absolute_distortion(board_xy, image_px, image_size_px: tuple[int, int], *, sigma_px=None,
-                            reference_channel: str = "G", z_um: float = 0.0, clip_sigma: float = 5.0,
-                            source: str = "charuco", path=None) -> AbsoluteDistortion:
+                            shared_cov_px2=None, reference_channel: str = "G", z_um: float = 0.0,
+                            clip_sigma: float = 5.0, source: str = "charuco", path=None) -> AbsoluteDistortion:
     """Absolute distortion of one view of a planar board (terms by BIC, covariance kept).
 
     Parameters
@@ -230,6 +230,10 @@ def fit_absolute_distortion(board_xy, image_px, image_size_px: tuple[int, int], 
         The frame's size: the centre and the normalisation radius come from it.
     sigma_px : (N,) array, optional
         Relative 1-sigma of each image point (weights; the scale comes from the residuals).
+    shared_cov_px2 : (2N, 2N) array, optional
+        A covariance of the image points (px^2, x of all points then y) that the residuals cannot show because
+        it moves the points together (:func:`reference_points_map_cov`): propagated into the coefficients'
+        covariance and added.
     """
     import cv2
     b_raw = np.asarray(board_xy, dtype=np.float64).reshape(-1, 2)
@@ -240,6 +244,9 @@ def fit_absolute_distortion(board_xy, image_px, image_size_px: tuple[int, int], 
                        "board", path=path, field="points",
                        fix="show the whole board (ChArUco) near focus in the reference frame")
     sig = np.ones(n) if sigma_px is None else np.asarray(sigma_px, dtype=np.float64).reshape(n)
+    if shared_cov_px2 is not None and np.shape(shared_cov_px2) != (2 * n, 2 * n):
+        raise FitError(f"the shared covariance is {np.shape(shared_cov_px2)}, not (2N, 2N) for N = {n} points",
+                       path=path, field="shared_cov_px2", fix="give it over x of all points, then y")
     w_px, h_px = image_size_px
     centre = ((w_px - 1) / 2.0, (h_px - 1) / 2.0)
     R = 0.5 * math.hypot(w_px - 1, h_px - 1)
@@ -265,8 +272,8 @@ def fit_absolute_distortion(board_xy, image_px, image_size_px: tuple[int, int], 
             table.append({"terms": list(terms), "bic": bic, "rms_px": R * math.sqrt(rss / m)})
             if best is None or bic < best[0]:
                 cov = np.linalg.pinv(J.T @ J) * (rss / max(1, m - k))
-                best = (bic, terms, params, cov, r)
-        _, terms, params, cov, r = best
+                best = (bic, terms, params, cov, r, J)
+        _, terms, params, cov, r, best_jac = best
         if it == 1:
             break
         # drop mis-detections (beyond clip_sigma robust sigmas of the first fit) and refit once
@@ -285,6 +292,13 @@ def fit_absolute_distortion(board_xy, image_px, image_size_px: tuple[int, int], 
     rms = math.sqrt(float(r_px @ r_px) / r_px.size)
     for row in table:
         row["chosen"] = row["terms"] == list(terms)
+    if shared_cov_px2 is not None:
+        # d params = (J^T J)^-1 J^T diag(wt) d w_obs (the residuals are weighted, w_obs = (q - centre) / R)
+        J = best_jac
+        sens = (np.linalg.pinv(J.T @ J) @ J.T) * np.concatenate([wt, wt])[None, :] / R
+        kk = np.concatenate([keep, keep])
+        shared = np.asarray(shared_cov_px2, dtype=np.float64)[np.ix_(kk, kk)]
+        cov = cov + sens @ shared @ sens.T
     hx, hy = _project(params[:8], b[keep])
     ideal = np.column_stack([centre[0] + R * hx, centre[1] + R * hy]).astype(np.float32)
     hull = cv2.convexHull(ideal).reshape(-1, 2).astype(np.float64)
@@ -333,6 +347,45 @@ def reference_points(corr, gmap, iterations: int = 3) -> tuple[np.ndarray, np.nd
     sd = np.where(cnt > 1, sd, np.nan)
     sd = np.where(np.isfinite(sd) & (sd > 0), sd, np.nanmedian(sd) if np.isfinite(sd).any() else 1.0)
     return uid, p, np.maximum(sd, 1e-6)
+
+
+def reference_points_map_cov(corr, gmap, ids: np.ndarray, p_px: np.ndarray) -> np.ndarray:
+    """The covariance (px^2) the maps' own error gives the reference points of :func:`reference_points`.
+
+    ``p_i`` is the weighted mean over its observations of ``q - (warp_px(p_i, z, c) - p_i)``, so an error
+    ``d theta`` of the maps' coefficients moves every point at once: ``d p_i = -A_i d theta`` with ``A_i`` the
+    weighted mean of the maps' design rows over point i's observations. In the joint fit of maps and
+    positions the coefficients are estimated from within-point deviations, uncorrelated with the points'
+    means (Frisch-Waugh-Lovell), so the points' covariance is their independent scatter plus this shared,
+    low-rank part ``A Cov(theta) A^T`` -- which the board fit's residuals cannot show (it moves all corners
+    together, into the distortion coefficients). Channels' coefficients are taken as uncorrelated (the joint
+    fit keeps per-channel blocks). Returns a (2M, 2M) array over [x of the M points, then y], in ``ids``'s order.
+    """
+    sel = np.asarray(corr.point_id) >= 0
+    pid = np.asarray(corr.point_id)[sel]
+    ch = np.asarray(corr.channel).astype(str)[sel]
+    z = np.asarray(corr.z_um, dtype=np.float64)[sel]
+    w = 1.0 / corr.sigma_px[sel] ** 2
+    lut = {int(v): k for k, v in enumerate(np.asarray(ids).tolist())}
+    row = np.array([lut.get(int(v), -1) for v in pid])
+    ok = row >= 0
+    m = len(ids)
+    den = np.bincount(row[ok], weights=w[ok], minlength=m)
+    cov = np.zeros((2 * m, 2 * m))
+    for c, cm in gmap.channels.items():
+        k = ok & (ch == c)
+        if not k.any():
+            continue
+        r = row[k]
+        ux = (p_px[r, 0] - gmap.centre_px[0]) / gmap.norm_px
+        uy = (p_px[r, 1] - gmap.centre_px[1]) / gmap.norm_px
+        ax, ay = cm.design(ux, uy, (z[k] - gmap.z_ref_um) / gmap.z_scale_um)
+        A = np.zeros((2 * m, ax.shape[1]))
+        np.add.at(A, r, ax * w[k, None])
+        np.add.at(A, m + r, ay * w[k, None])
+        A /= np.concatenate([den, den])[:, None]
+        cov += gmap.norm_px ** 2 * (A @ cm.cov @ A.T)
+    return 0.5 * (cov + cov.T)
 
 
 # ------------------------------------------------------------------------------ composition with the maps

@@ -478,9 +478,10 @@ def measure_geometry(stack, z_ref_um: float, *, chart: dict | None = None, refer
     if source != "charuco":
         return gmap, None
     gmap.diagnostics["charuco_corners"] = det_stats
-    from ..fit.distortion import fit_absolute_distortion, reference_points
+    from ..fit.distortion import fit_absolute_distortion, reference_points, reference_points_map_cov
     ids, p_ref, sd = reference_points(corr, gmap)
     dist = fit_absolute_distortion(board.corner_px(ids), p_ref, (int(w), int(h)), sigma_px=sd,
+                                   shared_cov_px2=reference_points_map_cov(corr, gmap, ids, p_ref),
                                    reference_channel=ref_ch, z_um=float(z[ref_index]), path=stack.json_path)
     status(f"absolute distortion: {', '.join(dist.terms) or 'none'} from {dist.n_points} corners, "
            f"rms {dist.rms_px:.3f} px", quiet=quiet)

@@ -21,8 +21,15 @@ sharpest at the optical centre (clipped to the scan). The distortion is the prof
 there (:meth:`fieldcal.profile.LensProfile.distortion_px`, measured from the ChArUco board); the TCA is the
 other channels' distortion against the reference channel's. Profiles without absolute distortion (texture-only)
 are refused unless ``allow_no_distortion``: the entry then has TCA only, no distortion element, and says so.
-The fit is over the field the board covered (its convex hull); the residual inside it and the largest
-disagreement outside it (extrapolated) are reported.
+
+The entry is fitted to the profile over the **whole frame** (a dense grid), minimising the largest error
+(:func:`minimax_fit`), since a Lensfun user undistorts the whole frame. Lensfun's models are radial, so the
+profile's tangential terms are carried by the centre only to first order: the second-order remainder (the k2
+term about the shifted centre) is what is left, ~0.05 px at 480x360 for the benchmark's barrel lens (k1 -0.04,
+k2 0.008, p1 5e-4, p2 -3e-4 in half-diagonal units; a least-squares fit leaves 0.135 px in the corners) and
+it grows with the image size in pixels and with (p / k1)^2. Beyond the board's convex hull the profile itself
+is an extrapolation: the fit's largest error inside and outside the hull are reported, and the file's comment
+gives the board's coverage and the profile's own 1-sigma beyond it.
 """
 
 from __future__ import annotations
@@ -117,11 +124,32 @@ def scalar_warp_px(profile, x, y, z_um: float, channel: str):
     return cx + m * (x - cx) + float(sx), cy + m * (y - cy) + float(sy)
 
 
-def _radial_fit(rho_u, rho_d, powers):
-    """Least squares of ``rho_d / rho_u = sum a_p r^p`` weighted by rho_u (pixel errors), r normalised."""
-    A = np.stack([rho_u * rho_u ** p for p in powers], axis=1)
-    coef, *_ = np.linalg.lstsq(A, rho_d, rcond=None)
-    return coef, A @ coef - rho_d
+def minimax_fit(resid, x0, x_scale=1.0, scale_px=None, iterations: int = 40) -> np.ndarray:
+    """Parameters minimising the largest per-point error ``hypot`` of ``resid(p)`` (x residuals, then y), each
+    point's error in units of ``scale_px`` (default 1).
+
+    Lawson's algorithm: weighted least squares (``scipy.optimize.least_squares``) whose weights grow with each
+    point's error until the error is levelled; the best iterate (smallest maximum) is returned. The export is
+    used over the whole frame, so its largest error, not its RMS, is what a user meets (a least-squares fit of a
+    radial model to a decentred lens leaves ~2.5x larger errors in the corners).
+    """
+    from scipy.optimize import least_squares
+    x0 = np.asarray(x0, float)
+    n = np.asarray(resid(x0)).size // 2
+    inv = np.ones(n) if scale_px is None else 1.0 / np.asarray(scale_px, float).ravel()
+    inv2 = np.concatenate([inv, inv])
+    p = least_squares(lambda q: resid(q) * inv2, x0, method="lm", x_scale=x_scale).x
+    e = np.hypot(*resid(p).reshape(2, -1)) * inv
+    best, best_max = p, float(e.max())
+    w = np.full(e.size, 1.0 / e.size)
+    for _ in range(iterations):
+        w = w * e / max(float(w @ e), 1e-300)
+        sw = np.sqrt(np.concatenate([w, w])) * inv2
+        p = least_squares(lambda q: resid(q) * sw, p, method="lm", x_scale=x_scale).x
+        e = np.hypot(*resid(p).reshape(2, -1)) * inv
+        if e.max() < best_max:
+            best, best_max = p, float(e.max())
+    return best
 
 
 def _in_hull(hull: np.ndarray | None, x, y) -> np.ndarray:
@@ -149,16 +177,18 @@ def _scan_focus(profile, z_um: float | None) -> tuple[float, list[str]]:
     return z, []
 
 
-def lensfun_model(profile, z_um: float | None = None, n: int = 41,
-                  allow_no_distortion: bool = False) -> LensfunModel:
+def lensfun_model(profile, z_um: float | None = None, n: int = 41, allow_no_distortion: bool = False,
+                  tolerance_px: float = 0.1) -> LensfunModel:
     """Fit Lensfun's poly5 distortion (with its centre) and poly3 TCA to the profile's absolute distortion at
-    ``z_um`` (default: the calibrated focus).
+    ``z_um`` (default: the calibrated focus), over the whole frame on an ``n``-point-wide grid, minimising the
+    largest error in units of ``hypot(profile's 1-sigma, tolerance_px)`` (:func:`minimax_fit`): where the
+    profile knows the lens far better than ``tolerance_px`` every point counts alike; beyond the board, where
+    the profile's extrapolation grows uncertain, a point counts less.
 
     Raises :class:`ParameterError` when the profile has no absolute distortion (texture-only), unless
     ``allow_no_distortion``: the model then has no distortion (``k1 = k2 = None``) and its TCA comes from the
     maps' lateral colour.
     """
-    from scipy.optimize import least_squares
     w, h = profile.image_size_px
     z, notes = _scan_focus(profile, z_um)
     absolute = bool(getattr(profile, "has_absolute_distortion", False))
@@ -196,46 +226,56 @@ def lensfun_model(profile, z_um: float | None = None, n: int = 41,
                      "(Lensfun leaves the geometry alone)")
     qx, qy = (np.asarray(v, float).ravel() for v in dist(gx, gy, ref))
     fit_rms, max_in, max_out = {}, {}, {}
+
+    def report(ch, e):
+        fit_rms[ch] = float(np.sqrt(np.mean(e[inside] ** 2)))
+        max_in[ch] = float(e[inside].max())
+        max_out[ch] = float(e[~inside].max()) if (~inside).any() else float("nan")
+    def scale(ch):
+        """Each grid point's weight in the fit: the profile's own 1-sigma there beside the export's tolerance
+        (where the profile is known far better than the tolerance, every point counts alike; beyond the board,
+        where it extrapolates, a point counts less as its uncertainty grows)."""
+        if not absolute:
+            return None
+        sx, sy = profile.distortion_sd_px(gx, gy, z, ch)
+        return np.hypot(np.hypot(np.ravel(sx), np.ravel(sy)), tolerance_px)
     if absolute:
         def resid(p):
             c = c0 + p[2:4]
-            ux, uy = (gx[inside] - c[0]) / r_n, (gy[inside] - c[1]) / r_n
+            ux, uy = (gx - c[0]) / r_n, (gy - c[1]) / r_n
             r2 = ux * ux + uy * uy
             f = 1.0 + p[0] * r2 + p[1] * r2 * r2
-            return np.concatenate([c[0] + r_n * ux * f - qx[inside], c[1] + r_n * uy * f - qy[inside]])
-        sol = least_squares(resid, np.zeros(4), method="lm", x_scale=np.array([0.01, 0.01, 1.0, 1.0]))
-        k1, k2 = (float(v) for v in sol.x[:2])
-        centre = c0 + sol.x[2:4]
-        m = LensfunModel(k1, k2, tuple(centre), {}, 0, None, 0, 1, z, {}, {}, {}, source)
-        fx, fy = m.distort_px(gx, gy, w, h)
-        e = np.hypot(fx - qx, fy - qy)
-        fit_rms[ref] = float(np.sqrt(np.mean(e[inside] ** 2)))
-        max_in[ref] = float(e[inside].max())
-        max_out[ref] = float(e[~inside].max()) if (~inside).any() else float("nan")
+            return np.concatenate([c[0] + r_n * ux * f - qx, c[1] + r_n * uy * f - qy])
+        p = minimax_fit(resid, np.zeros(4), x_scale=np.array([0.01, 0.01, 1.0, 1.0]),
+                        scale_px=scale(ref))
+        k1, k2 = (float(v) for v in p[:2])
+        centre = c0 + p[2:4]
+        report(ref, np.hypot(*resid(p).reshape(2, -1)))
     else:
         k1 = k2 = None
         centre = c0
     tca = {}
     rho_g = np.hypot(qx - centre[0], qy - centre[1])
-    keep = inside & (rho_g > 1e-6 * r_n)
+    rg = rho_g / r_n
     for ch in profile.channels:
         if ch == ref:
             continue
         px, py = (np.asarray(v, float).ravel() for v in dist(gx, gy, ch))
-        rho_c = np.hypot(px - centre[0], py - centre[1])
+
         # r_c = r_g (b r_g^2 + c r_g + v), in the reference channel's distorted radius about the centre
-        (v, c, b), _ = _radial_fit(rho_g[keep] / r_n, rho_c[keep] / r_n, (0, 1, 2))
-        tca[ch] = (float(v), float(c), float(b))
-        rg = rho_g / r_n
-        f = b * rg * rg + c * rg + v
-        e = np.hypot(centre[0] + (qx - centre[0]) * f - px, centre[1] + (qy - centre[1]) * f - py)
-        fit_rms[ch] = float(np.sqrt(np.mean(e[keep] ** 2)))
-        max_in[ch] = float(e[keep].max())
-        max_out[ch] = float(e[~inside].max()) if (~inside).any() else float("nan")
+        def resid_tca(p, px=px, py=py):
+            f = p[2] * rg * rg + p[1] * rg + p[0]
+            return np.concatenate([centre[0] + (qx - centre[0]) * f - px, centre[1] + (qy - centre[1]) * f - py])
+        v, c, b = (float(t) for t in minimax_fit(resid_tca, np.array([1.0, 0.0, 0.0]), scale_px=scale(ch)))
+        tca[ch] = (v, c, b)
+        report(ch, np.hypot(*resid_tca(np.array([v, c, b])).reshape(2, -1)))
     if absolute and (~inside).any():
         worst = max(max_out.values())
-        notes.append(f"the board covered {100 * inside.mean():.0f} % of the frame: the distortion beyond it is "
-                     f"extrapolated (there the entry and the profile's extrapolation differ by up to {worst:.2f} px)")
+        sx, sy = profile.distortion_sd_px(gx[~inside], gy[~inside], z, ref)
+        notes.append(f"the board covered {100 * inside.mean():.0f} % of the frame: the entry is fitted to the "
+                     f"profile over the whole frame, and beyond the board that is the profile's extrapolation "
+                     f"(its own 1-sigma there reaches {float(np.max(np.hypot(sx, sy))):.2f} px; the entry and the "
+                     f"profile differ by up to {worst:.2f} px there)")
     diag_mm = math.hypot(w, h) * profile.pixel_pitch_um / 1000.0
     return LensfunModel(k1, k2, (float(centre[0]), float(centre[1])), tca, float(profile.focal_length_mm or 50.0),
                         profile.f_number, float((profile.object_distance_mm or 1000.0) / 1000.0),
