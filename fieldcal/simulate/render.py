@@ -108,19 +108,6 @@ def scene_to_channels(scene, channels: tuple[str, ...], width_px: int, height_px
                          fix="pass a mono scene, an RGB scene or one plane per lens channel")
 
 
-def _breathing_scale(affine: np.ndarray, spec: LensSpec, channel: str) -> float:
-    """m(z), the breathing part of the scale the warp applies after the blur (the frame's ``affine`` over the
-    channel's lateral colour; 1 for the truth image, which has no breathing).
-
-    The blur is applied in scene pixels and then magnified with the image, but a defocus cone's disc on the
-    sensor is ``|dz| / N`` whatever the image scale: blurring with ``|dz| / (N m)`` makes it so. Without it the
-    disc was ``m(z) |dz| / N``, wider on the side of the scan where the image is larger, so every through-focus
-    curve of a breathing lens was skewed towards that side (edge best foci -0.3 µm at exit pupil 20-30 mm,
-    480x270, 20 µm steps: docs/measurement.md "Calibrating from slanted edges"). The constant lateral-colour
-    scale (<= 0.1 %, the same on both sides of focus) is left as it was, so frames at z_ref are unchanged."""
-    return float(affine[0, 0]) / spec.lateral_colour_scale(channel)
-
-
 class Renderer:
     """Render frames of a scene through a simulated lens (``fieldcal-lens/1``) at stage positions.
 
@@ -340,10 +327,8 @@ class Renderer:
         ``_EXACT_MAP_MAX_PX`` evaluate the smooth parts on a coarse grid (:meth:`_defocus_coarse`).
         """
         if self.width_px * self.height_px > _EXACT_MAP_MAX_PX and self.spec.distortion.is_zero:
-            d = self._defocus_coarse(z_um, channel, affine)
-        else:
-            d = self._defocus_exact(z_um, channel, affine)
-        return d / np.float32(_breathing_scale(affine, self.spec, channel))
+            return self._defocus_coarse(z_um, channel, affine)
+        return self._defocus_exact(z_um, channel, affine)
 
     def _defocus_exact(self, z_um: float | None, channel: str, affine: np.ndarray) -> np.ndarray:
         """:meth:`_defocus_at` from the lens's formulas at every pixel (float64, then float32)."""
@@ -367,7 +352,7 @@ class Renderer:
             d = self._wave.best_focus_shift_um(channel, self.spec.rho(xm, ym))
         else:
             d = z_um - self.spec.best_focus_um(xm, ym, channel)
-        d = np.broadcast_to(d / _breathing_scale(affine, self.spec, channel), (self.height_px, self.width_px))
+        d = np.broadcast_to(d, (self.height_px, self.width_px))
         self._check_blur(float(self.diameter_px(np.max(np.abs(d)))))
         return np.asarray(d, dtype=np.float64)
 
