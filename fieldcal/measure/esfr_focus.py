@@ -78,6 +78,10 @@ class FocusPeak:
     curve: object = None  # callable z -> smoothed MTF(fs) (a scipy spline), None when not ok
     # best-focus sd per unit of independent per-frame stage-position noise (throughfocus.CurveFit.stage_gain)
     stage_gain: float = math.nan
+    # the defocus law's half-width where MTF(fs) falls by q (its fitted blur rate), and the evidence weight for
+    # skew that moved the best focus off the law's centre (0: the law holds; defocus_peak)
+    law_width_um: float = math.nan
+    skew_weight: float = math.nan
 
 
 def _clean(z_um, values, sigma):
@@ -229,7 +233,7 @@ class TrackFocus:
         return self.tol_left_um + self.tol_right_um
 
 
-def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0) -> FocusPeak:
+def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0, q: float = 0.05) -> FocusPeak:
     """Best focus of one MTF(fs) track: the through-focus law of defocus, moved to the sharpest position of a
     skewed curve by the evidence for skew.
 
@@ -251,6 +255,10 @@ def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0) -
     The curve need only fall on both sides of its highest sample (:data:`EDGE_CURVE_RULES`): the law's blur
     rate comes from the sampled flanks, so a peak near a scan end is still located, with the larger sd its
     short side gives. ``sigma``: the noise of the values (None: from the third differences).
+
+    ``law_width_um`` is the law's tolerance, ``x_q / (pi fs k)`` with ``|D(x_q)| = 1 - q``: the half-width
+    where the *signal's* MTF(fs) falls by q (the floor ``b`` holds the noise's bias of MTF^2, which would
+    otherwise flatten the curve), from the blur rate the whole peak fixes (fs only scales k: any units).
     """
     from .throughfocus import analyse_curve
 
@@ -259,8 +267,8 @@ def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0) -
     z, v = z[keep], v[keep]
     if z.size < 5:
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, "fewer than 5 samples")
-    # fs and q only scale the fitted blur rate and the width, which are not read here: any positive values
-    fit = analyse_curve(z, v ** 2, "otf", 1.0, 0.05, EDGE_CURVE_RULES)
+    # fs only scales the fitted blur rate k; the width x_q / (pi fs k) is the same in µm whatever fs is given
+    fit = analyse_curve(z, v ** 2, "otf", 1.0, q, EDGE_CURVE_RULES)
     if fit.status != "ok":
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, f"defocus fit: {fit.status}")
     if not math.isfinite(fit.z_centre_um):
@@ -276,18 +284,33 @@ def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0) -
             var_du = float(np.var(_bootstrap_spline_peaks(z, v, sig, n_boot, seed), ddof=1))
     zb = zc + w * du
     var = w * (var_du + ((1.0 - w) * du) ** 2) + (1.0 - w) * (var_c + (w * du) ** 2)
-    return FocusPeak(float(zb), math.sqrt(var), math.nan, int(z.size), True, "ok", stage_gain=fit.stage_gain)
+    return FocusPeak(float(zb), math.sqrt(var), math.nan, int(z.size), True, "ok", stage_gain=fit.stage_gain,
+                     law_width_um=float(fit.width_um), skew_weight=float(w))
 
 
 def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
-    """Best focus (:func:`defocus_peak`, sub-step) and the tolerance half-widths of one edge track, measured
-    from it on the smoothed curve (:func:`tolerance_half_widths`)."""
+    """Best focus (:func:`defocus_peak`, sub-step) and the tolerance half-widths of one edge track.
+
+    The half-widths are the defocus law's (``FocusPeak.law_width_um``), moved towards the smoothed curve's own
+    crossings (:func:`tolerance_half_widths`) by the same evidence for skew that moves the best focus: a
+    symmetric curve keeps the law's width, a clearly skewed one its measured asymmetric sides. Why not the
+    smoothed curve alone: the q = 5 % crossing lies within a step of the peak when the scan step is near the
+    tolerance, where a smoothing spline's shape is set by its roughness penalty, not by the data — it read
+    +4-7 % wide at 480x270 with 20 µm steps (step / tolerance 1.1-1.2), and a noisy magnitude's upward bias
+    flattens it further; the law's blur rate comes from the whole peak, with the noise floor fitted apart.
+    """
     pk = through_focus_peak(z_um, mtf_fs, sigma=sigma, n_boot=0)
+    law, w = math.nan, math.nan
     if pk.ok:  # the smooth curve's maximum value is the peak the tolerance is measured down from
-        fp = defocus_peak(z_um, mtf_fs, sigma=sigma)
+        fp = defocus_peak(z_um, mtf_fs, sigma=sigma, q=q)
         pk = FocusPeak(fp.z_um, fp.sigma_um, pk.peak, pk.n_used, fp.ok, fp.reason, pk.curve if fp.ok else None,
                        fp.stage_gain)
+        law, w = fp.law_width_um, (0.0 if not math.isfinite(fp.skew_weight) else fp.skew_weight)
     left, right = tolerance_half_widths(z_um, mtf_fs, q, pk)
+    if pk.ok and math.isfinite(law) and law > 0:
+        # a side the smoothed curve never crosses keeps the law's width while the law holds (w < 1/2)
+        left, right = (w * s + (1.0 - w) * law if math.isfinite(s) else (law if w < 0.5 else math.nan)
+                       for s in (left, right))
     reason = pk.reason
     if pk.ok and not (math.isfinite(left) and math.isfinite(right)):
         reason = TOLERANCE_UNREACHED
