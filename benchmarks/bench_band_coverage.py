@@ -149,6 +149,7 @@ def field_wide_share(prof, hw_um: float, level: float = 0.9) -> float:
     for i, c in enumerate(s.model.channels):
         v = float(s.stage_sd_um.get(c, 0.0)) ** 2 + float(cal.get("systematic_sd_um") or 0.0) ** 2
         v += float((cal.get("breathing_systematic_sd_um") or {}).get(c) or 0.0) ** 2
+        v += float((cal.get("measure_offset_sd_um") or {}).get(c) or 0.0) ** 2
         if d is not None and d.common_sd is not None and i < d.common_sd.size:
             v += (float(d.common_sd[i]) * s.z_scale_um) ** 2
         out.append(v)

@@ -8,6 +8,9 @@ high, crosses every radius out to the frame's half-width (the field positions at
 aberrations, and so the offset, change) and costs that fraction of the full-frame band-pass DFT (1.2 s of
 42 x 1080p RGB frames; the quick target is 2 s for the whole calibration).
 
+The strip's tiles are its own (one tile row through the middle, at the grid's columns): their SML and
+band-pass curves give the offset, which then moves every grid tile's SML best focus.
+
 The strip is band-passed with a margin of :func:`margin_px` rows above and below, then cropped: the log-Gabor
 filter's response to the zero padding of the crop's borders stays in the margin, so the strip's cells see the
 same filter as a full-frame band-pass would give them.
@@ -81,17 +84,11 @@ def coverage_cells(shape: tuple[int, int], strip: Strip, per_cell: float) -> np.
     return out
 
 
-def central_tile_row(height_px: int, tile_px: float, margin_px: float = 6.0) -> float:
-    """Centre row (frame px) of the tile row nearest the frame's middle on the grid of
-    :func:`fieldcal.measure.tiles.tile_centres` (rows centred on the frame: an odd number of rows puts one on
-    the middle, an even number two half a tile off it)."""
-    n_rows = int(math.floor(max(height_px - 1.0 - 2.0 * margin_px - tile_px, 0.0) / tile_px)) + 1
-    return (height_px - 1) / 2.0 + (0.0 if n_rows % 2 else 0.5 * tile_px)
-
-
 def slack_px(tile_px: float) -> float:
-    """Rows added above and below one tile row, for the tile's motion through the scan (image shift, and
-    breathing, which moves a row near the middle by (m - 1) x its distance from the centre)."""
+    """Rows added above and below the strip's row of tiles (centred on the frame's middle), for the tiles'
+    motion through the scan (image shift, and breathing, which moves a row near the middle by (m - 1) x its
+    distance from the centre); a tile that still leaves the strip in some frame is not used
+    (:func:`inside`)."""
     return max(8.0, 0.1 * float(tile_px))
 
 

@@ -29,7 +29,8 @@ from . import focus, fs_strip
 from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
 from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
                        lateral_colour_scales, register_step, registration_plane)
-from .throughfocus import CurveFit, CurveRules, analyse_curves, apply_measure_offset, apply_pooled_skew
+from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_offset, apply_pooled_skew,
+                          shift_by_offset)
 
 # The SML window sum follows the image as m^2 (an image magnified by m has second derivatives / m^2 over a
 # window of m^2 pixels). On 12 simulated breathing lenses (F/2.5-F/3.9, exit pupils 20-50 mm) the exponent
@@ -633,11 +634,13 @@ def _exponent_sensitivity(cc, geometry: GeometryMeasurements, channel: str, z: n
 
 
 def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per_mm: float, q: float,
-             measure: str, rules: TileRules, bp_scale: np.ndarray | None = None) -> dict[str, np.ndarray]:
+             measure: str, rules: TileRules, bp_scale: np.ndarray | None = None,
+             offset_from: dict | None = None) -> dict[str, np.ndarray]:
     """Tile tests (saturation, texture) then the batched curve fits of one channel's tiles.
 
     ``bp_scale[k]``: the magnification the band-pass filter followed in frame k (its frequency was
-    ``fs / bp_scale[k]`` at the sensor), used to give the width at ``fs`` itself.
+    ``fs / bp_scale[k]`` at the sensor), used to give the width at ``fs`` itself. ``offset_from``: the
+    ``"sml@fs"`` offset record measured on other tiles (quick's strip, :mod:`.fs_strip`), applied here.
     """
     nt = channel_curves["sml"].shape[0]
     res = {k: np.full(nt, np.nan) for k in ("z_best_um", "z_sigma_um", "width_um", "peak", "z_tan_um", "z_sag_um",
@@ -683,7 +686,8 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             # the SML's own best foci: the breathing sensitivity is of the SML curve (_exponent_sensitivity)
             res["z_sml_um"] = np.full(nt, np.nan)
             res["z_sml_um"][todo] = [f.z_best_um for f in main]
-            main, offset = apply_measure_offset(main, bp)
+            main, offset = (apply_measure_offset(main, bp) if offset_from is None
+                            else (shift_by_offset(main, offset_from), {**offset_from, "from": "strip"}))
             res["skew"] = {**res.get("skew", {}), **offset}
         for t, fb, fm in zip(todo, bp, main):
             stat[t] = fm.status
@@ -790,7 +794,8 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         Focus measure whose curve gives ``z_best_um`` (the width always comes from the band-pass curve).
         "auto" (default): ``"sml@fs"`` (the SML moved by the channel's pooled offset to the band-pass at fs)
         where the planes resolve fs, else the SML (:func:`resolve_measure`); ``TileTable.measure`` records the
-        one used.
+        one used. At quick effort "auto" takes the offset from a strip of tiles through the middle
+        (:mod:`.fs_strip`: no widths); "sml@fs" asked for by name band-passes every tile (widths everywhere).
     rules : TileRules, optional
         Rejection thresholds.
     geometry : GeometryMeasurements, optional
@@ -801,6 +806,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     (TileTable, GeometryMeasurements)
     """
     _check_params(stack, fs_cyc_per_mm, q, tile_px, measure)
+    asked = measure
     measure = resolve_measure(stack, float(fs_cyc_per_mm), measure, effort)
     rules = rules or TileRules()
     z_sorted = np.sort(np.asarray(stack.z_um, dtype=np.float64))
@@ -812,9 +818,9 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     h, w = stack.shape
     tile = int(tile_px) if tile_px is not None else default_tile_px((h, w), effort)
     strip = None
-    if measure == SML_AT_FS and _effort(effort).get("bp_strip", False):
-        # quick: the offset is one number per channel; the central tile row's band-pass gives it
-        strip = (fs_strip.central_tile_row(h, tile), tile + 2.0 * fs_strip.slack_px(tile))
+    if asked == "auto" and measure == SML_AT_FS and _effort(effort).get("bp_strip", False):
+        # quick: the offset is one number per channel; a row of tiles through the middle gives it
+        strip = ((h - 1) / 2.0, tile + 2.0 * fs_strip.slack_px(tile))
     z, order, maps, geo, bp_scale = _scan(stack, want_focus=True, want_geometry=geometry is None,
                                           fs_cyc_per_mm=float(fs_cyc_per_mm), effort=effort, centre_px=centre_px,
                                           z_ref_um=z_ref_um, quiet=quiet, bp_all=measure in ("bandpass", SML_AT_FS),
@@ -824,6 +830,9 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     if xs.size == 0:
         raise ParameterError(f"no {tile} px tile fits inside every frame (the image moves too much or the tile "
                              "is too large)", field="tile_px", fix="use a smaller tile_px")
+    n_grid = xs.size
+    if strip is not None:  # the strip's own tiles (rows n_grid on), split off below
+        xs, ys = np.concatenate([xs, np.unique(xs)]), np.concatenate([ys, np.full(np.unique(xs).size, strip[0])])
     per_channel: dict[str, dict[str, np.ndarray]] = {}
     for m in maps:
         curves = _tile_curves(m, geometry, xs, ys, tile, moments_of="sml" if measure in _SML_BASED else measure)
@@ -841,8 +850,17 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                                              "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um", "stage_gain")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
     skew = {}
+    offsets = {ch: None for ch in stack.channels}
+    if strip is not None:
+        xs, ys = xs[:n_grid], ys[:n_grid]
+        for ch, cc in per_channel.items():
+            on_strip = {k: v[n_grid:] for k, v in cc.items()}
+            per_channel[ch] = {k: v[:n_grid] for k, v in cc.items() if k not in ("bandpass", "bp_cover")}
+            rec = _analyse(on_strip, z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
+                           rules=rules, bp_scale=bp_scale).get("skew", {})
+            offsets[ch] = {k: rec.get(k, 0.0) for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles")}
     results = {ch: _analyse(per_channel[ch], z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
-                            rules=rules, bp_scale=bp_scale) for ch in stack.channels}
+                            rules=rules, bp_scale=bp_scale, offset_from=offsets[ch]) for ch in stack.channels}
     if measure == SML_AT_FS:
         _borrow_offsets(results)
     for ch in stack.channels:
