@@ -95,3 +95,14 @@ def test_profile_band_adds_the_offset_error_in_quadrature(tmp_path):
     np.testing.assert_allclose(0.5 * (hi1 - lo1), np.sqrt(core2 + (zq * math.hypot(base, br, 1.5)) ** 2),
                                rtol=1e-6)
     np.testing.assert_allclose(0.5 * (hi1 + lo1), 0.5 * (hi0 + lo0), atol=1e-9)
+
+
+def test_strip_rows_follow_the_tile_count_and_the_pixel_budget():
+    """One row on a 1080p frame (its 14 columns hold MIN_TILES; the budget pays for one 136 px row), more rows on
+    narrow frames, every row on a small one, never more than the grid has."""
+    assert fs_strip.tile_rows(14, 7, 1920, 136) == 1
+    assert fs_strip.tile_rows(14, 7, 1920, 136) * 1920 * 136 <= fs_strip.BUDGET_PX
+    assert fs_strip.tile_rows(3, 9, 4000, 400) == math.ceil(fs_strip.MIN_TILES / 3)   # narrow: the tile count
+    assert fs_strip.tile_rows(9, 7, 320, 32) == 7                                     # small: every row
+    ys = fs_strip.tile_centres_y(119.5, 3, 32.0)
+    np.testing.assert_allclose(ys, [87.5, 119.5, 151.5])

@@ -8,8 +8,9 @@ high, crosses every radius out to the frame's half-width (the field positions at
 aberrations, and so the offset, change) and costs that fraction of the full-frame band-pass DFT (1.2 s of
 42 x 1080p RGB frames; the quick target is 2 s for the whole calibration).
 
-The strip's tiles are its own (one tile row through the middle, at the grid's columns): their SML and
-band-pass curves give the offset, which then moves every grid tile's SML best focus.
+The strip's tiles are its own (one tile row through the middle, at the grid's columns; more rows when the
+frame is too narrow for :data:`MIN_TILES` in one, and as many as :data:`BUDGET_PX` pays for on small frames):
+their SML and band-pass curves give the offset, which then moves every grid tile's SML best focus.
 
 The strip is band-passed with a margin of :func:`margin_px` rows above and below, then cropped: the log-Gabor
 filter's response to the zero padding of the crop's borders stays in the margin, so the strip's cells see the
@@ -82,6 +83,27 @@ def coverage_cells(shape: tuple[int, int], strip: Strip, per_cell: float) -> np.
     c0, c1 = strip.row0 // strip.cell_px, strip.row1 // strip.cell_px
     out[c0:c1] = per_cell
     return out
+
+
+# Tiles the strip should hold at least (the offset is their pooled mean: its sd falls as 1/sqrt(n)).
+MIN_TILES = 12
+# Frame pixels per plane the strip may band-pass: about one tile row of a 1080p frame with its slack and
+# margins (1920 x 200). The cost of quick effort is set by its largest frames; a smaller frame gets as many
+# rows as this budget pays for, so its offset comes from more tiles (every row on a frame up to ~0.4 MP).
+BUDGET_PX = 400_000
+
+
+def tile_rows(n_columns: int, n_grid_rows: int, width_px: int, tile_px: float) -> int:
+    """Rows of tiles in the strip: at least 1 and enough for :data:`MIN_TILES` tiles, more while the band-pass
+    stays within :data:`BUDGET_PX`, at most the grid's rows."""
+    want = int(math.ceil(MIN_TILES / max(int(n_columns), 1)))
+    afford = int(BUDGET_PX // max(float(width_px) * float(tile_px), 1.0))
+    return int(min(max(want, afford, 1), max(int(n_grid_rows), 1)))
+
+
+def tile_centres_y(centre_row: float, n_rows: int, tile_px: float) -> np.ndarray:
+    """Centre rows (frame px) of the strip's tile rows, stacked about ``centre_row`` a tile apart."""
+    return centre_row + (np.arange(n_rows) - 0.5 * (n_rows - 1)) * float(tile_px)
 
 
 def slack_px(tile_px: float) -> float:

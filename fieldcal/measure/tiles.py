@@ -819,8 +819,11 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     tile = int(tile_px) if tile_px is not None else default_tile_px((h, w), effort)
     strip = None
     if asked == "auto" and measure == SML_AT_FS and _effort(effort).get("bp_strip", False):
-        # quick: the offset is one number per channel; a row of tiles through the middle gives it
-        strip = ((h - 1) / 2.0, tile + 2.0 * fs_strip.slack_px(tile))
+        # quick: the offset is one number per channel; a row of tiles through the middle gives it (the grid's
+        # columns and rows: from the frame alone, as tile_centres lays them out without motion)
+        n_cols = int(math.floor(max(w - 13.0 - tile, 0.0) / tile)) + 1
+        strip_rows = fs_strip.tile_rows(n_cols, int(math.floor(max(h - 13.0 - tile, 0.0) / tile)) + 1, w, tile)
+        strip = ((h - 1) / 2.0, strip_rows * tile + 2.0 * fs_strip.slack_px(tile))
     z, order, maps, geo, bp_scale = _scan(stack, want_focus=True, want_geometry=geometry is None,
                                           fs_cyc_per_mm=float(fs_cyc_per_mm), effort=effort, centre_px=centre_px,
                                           z_ref_um=z_ref_um, quiet=quiet, bp_all=measure in ("bandpass", SML_AT_FS),
@@ -832,7 +835,8 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                              "is too large)", field="tile_px", fix="use a smaller tile_px")
     n_grid = xs.size
     if strip is not None:  # the strip's own tiles (rows n_grid on), split off below
-        xs, ys = np.concatenate([xs, np.unique(xs)]), np.concatenate([ys, np.full(np.unique(xs).size, strip[0])])
+        sx, sy = np.meshgrid(np.unique(xs), fs_strip.tile_centres_y(strip[0], strip_rows, tile))
+        xs, ys = np.concatenate([xs, sx.ravel()]), np.concatenate([ys, sy.ravel()])
     per_channel: dict[str, dict[str, np.ndarray]] = {}
     for m in maps:
         curves = _tile_curves(m, geometry, xs, ys, tile, moments_of="sml" if measure in _SML_BASED else measure)
