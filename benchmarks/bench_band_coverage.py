@@ -32,6 +32,7 @@ it the lenses run one after the other in this process.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import inspect
@@ -101,7 +102,8 @@ def simulate_lens(k: int, width_px: int, workdir: Path, optics: str = "mixed", s
             raise SystemExit(f"this simulator has no optics option (asked for --optics {path})")
         kw.update(optics=path, fs_cyc_per_mm=fs)
     d = workdir / f"lens{k}"
-    simulate_stack(spec, d, z, scene="chart", seed=k, progress=False, **kw)
+    if not (d / "stack.json").exists():  # --keep: a stack rendered by an earlier run is the same stack
+        simulate_stack(spec, d, z, scene="chart", seed=k, progress=False, **kw)
     return {"spec": spec, "dir": d, "fs": fs, "step_um": float(z[1] - z[0]), "optics": path,
             "asymmetric": bool(spherical), "f_number": spec.f_number, "width_px": w, **stage}
 
@@ -147,6 +149,7 @@ def field_wide_share(prof, hw_um: float, level: float = 0.9) -> float:
     for i, c in enumerate(s.model.channels):
         v = float(s.stage_sd_um.get(c, 0.0)) ** 2 + float(cal.get("systematic_sd_um") or 0.0) ** 2
         v += float((cal.get("breathing_systematic_sd_um") or {}).get(c) or 0.0) ** 2
+        v += float((cal.get("measure_offset_sd_um") or {}).get(c) or 0.0) ** 2
         if d is not None and d.common_sd is not None and i < d.common_sd.size:
             v += (float(d.common_sd[i]) * s.z_scale_um) ** 2
         out.append(v)
@@ -345,6 +348,13 @@ def _record(rows: list[dict], jsonl: Path | None) -> None:
               f"p90 err/hw {r['err_hw_p90']:.2f} calibrate {r['time_s']:.1f} s  {r['model']}", flush=True)
 
 
+@contextlib.contextmanager
+def _kept(folder: Path):
+    """The --keep folder as the run's working folder (created, never removed)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    yield str(folder)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--lenses", type=int, default=40, help="number of random lenses (default 40)")
@@ -359,6 +369,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-stage-errors", action="store_true", help="a perfect stage")
     ap.add_argument("--plans", action="store_true",
                     help="also check a --confidence 0.9 stack plan from each profile against the truth")
+    ap.add_argument("--keep", type=Path, default=None,
+                    help="render the stacks into this folder and reuse those already there (re-runs of the same "
+                         "lenses skip the slow wave-optics rendering)")
     ap.add_argument("--jsonl", type=Path, help="append each lens's rows to this file (chunked runs)")
     ap.add_argument("--from-jsonl", type=Path, help="make the table from the rows of a --jsonl file, run nothing")
     ap.add_argument("--note", default="", help="a sentence appended to the table's caption")
@@ -384,7 +397,8 @@ def main(argv=None) -> int:
         from fieldcal.batch.engine import check_scheduler, run_units
 
         scheduler = check_scheduler(args.scheduler, args.workers) if args.scheduler else None
-        with tempfile.TemporaryDirectory(prefix="bench-bands-") as tmp:
+        with (tempfile.TemporaryDirectory(prefix="bench-bands-") if args.keep is None
+              else _kept(args.keep)) as tmp:
             jobs = [(f"lens{k:02d}", (k, args.width, args.optics, not args.no_stage_errors, efforts, tmp, args.plans))
                     for k in range(args.start, args.start + args.lenses)
                     if args.only is None or lens_plan(k, args.optics)[0] == args.only]

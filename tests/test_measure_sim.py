@@ -279,15 +279,19 @@ def test_on_disk_stack_quick_effort(tmp_path, models_dir):
     table, geo = measure_stack(stack, fs_cyc_per_mm=fs_for(spec), effort="quick", quiet=True)
     assert table.tile_px == 32
     assert table.ok.mean() > 0.8, table.counts()
-    # quick, measure "auto": the SML alone (speed), no band-pass, so no widths; geometry of G copied to every
-    # channel
-    assert table.measure == "sml" and np.all(np.isnan(table.width_um))
+    # quick, measure "auto": the SML moved by the offset measured on a strip of tiles through the middle
+    # (measure/fs_strip.py: speed), so no widths; geometry of G copied to every channel
+    assert table.measure == "sml@fs" and np.all(np.isnan(table.width_um))
+    assert all(r["from"] == "strip" and r["n_tiles"] >= 2 for r in table.skew.values()), table.skew
     np.testing.assert_array_equal(geo.magnification[:, 0], geo.magnification[:, 1])
+    sml, _ = measure_stack(stack, fs_cyc_per_mm=fs_for(spec), effort="quick", measure="sml", geometry=geo,
+                           quiet=True)
+    assert sml.measure == "sml" and np.all(np.isnan(sml.width_um))
     # quick asked for the SML moved to the band-pass at fs: widths on every channel
     atfs, _ = measure_stack(stack, fs_cyc_per_mm=fs_for(spec), effort="quick", measure="sml@fs", geometry=geo,
                             quiet=True)
     assert atfs.measure == "sml@fs" and np.all(np.isfinite(atfs.width_um[atfs.ok]))
-    for t in (table, atfs):
+    for t in (table, atfs, sml):
         rows = np.flatnonzero(t.ok)
         err = t.z_best_um[rows] - tile_truth(spec, t, rows)
         assert np.sqrt(np.mean(err ** 2)) <= 0.1 * STEP_UM

@@ -154,7 +154,7 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     from fieldcal.fit.stage import fit_stage_errors
     from fieldcal.fit.tolerance import fit_tolerance
     from fieldcal.fit.tiles import (breathing_systematic_sd_um, colour_rows, fit_tile_surfaces, geometry_columns,
-                                    systematic_record)
+                                    measure_offset_sd_um, systematic_record)
 
     if not isinstance(stack, Stack):
         stack = Stack.open(stack)
@@ -196,10 +196,12 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     # term above in the band; docs/fitting.md "Stage errors")
     stage_fit = fit_stage_errors(surf, table, stage_rep)
     breathing_sd = breathing_systematic_sd_um(table)
+    offset_sd = measure_offset_sd_um(table)
     sc = (surf.diagnostics or {}).get("self_check")
     if isinstance(sc, dict) and sc.get("status") == "ok":
         # the held-out tiles cannot see errors shared by the whole field: say what range they leave
-        sc.update(field_wide_coverage(surf, breathing_sd))
+        sc.update(field_wide_coverage(surf, {c: math.hypot(breathing_sd.get(c, 0.0), offset_sd.get(c, 0.0))
+                                             for c in set(breathing_sd) | set(offset_sd)}))
     t_fit = time.perf_counter() - t0 - t_measure
     centre = surf.optical_centre_px()
     geo_c = geo_meas.recentred(tuple(float(v) for v in centre))
@@ -246,6 +248,8 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
                      "systematic": systematic_record(surf),
                      # 1-sigma breathing systematic per channel, shared by the whole field (µm)
                      "breathing_systematic_sd_um": breathing_sd,
+                     # 1-sigma error of the sml@fs offset per channel, shared by the whole field (µm)
+                     "measure_offset_sd_um": offset_sd,
                      # stage repeatability (1 sigma, µm) and where it came from; its per-channel effect on the
                      # best focus (in the band) is surfaces.stage_sd_um
                      "stage_repeatability_um": stage_rep, "stage_repeatability_source": stage_src,

@@ -29,7 +29,8 @@ def register(sub):
     p.add_argument("--measure", choices=["auto", "sml", "bandpass", "sml@fs"], default="auto",
                    help="focus measure for best focus: band-pass energy at fs (contrast at fs), "
                         "sum-modified-Laplacian, sml@fs: the SML moved to where the band-pass at fs peaks, or "
-                        "auto: sml@fs where the pixels resolve fs, the SML alone at --effort quick (default)")
+                        "auto: sml@fs where the pixels resolve fs, its offset from a strip of tiles through the middle at "
+                        "--effort quick (default)")
     p.add_argument("--chart", choices=["auto", "esfr", "focus-measure"], default="auto",
                    help="how best focus is measured: slanted edges (ISO 12233 e-SFR), texture tiles (focus "
                         "measure), or auto: from the chart the middle frame shows (default)")

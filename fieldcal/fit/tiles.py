@@ -126,6 +126,21 @@ def stage_sd_um(table, repeatability_um: float) -> dict[str, float]:
     return out
 
 
+def measure_offset_sd_um(table) -> dict[str, float]:
+    """Per channel, the sd of the ``"sml@fs"`` offset's error (µm), shared by every tile of the channel.
+
+    The offset moving each SML best focus to the band-pass at fs is one pooled number per channel
+    (:func:`fieldcal.measure.throughfocus.apply_measure_offset`; at quick effort measured on a strip of tiles,
+    :mod:`fieldcal.measure.fs_strip`): its error is one draw for the whole field, a band term no fit of the
+    tiles can see. A channel that borrowed the others' offset carries it in its tiles' sds already (0 here).
+    """
+    from fieldcal.measure.throughfocus import offset_sd_um
+    out = {}
+    for c, rec in (getattr(table, "skew", None) or {}).items():
+        out[str(c)] = 0.0 if (not isinstance(rec, dict) or "offset_from" in rec) else offset_sd_um(rec)
+    return out
+
+
 def breathing_systematic_sd_um(table) -> dict[str, float]:
     """Per channel, the sd of the best-focus error the SML's breathing correction leaves (µm).
 

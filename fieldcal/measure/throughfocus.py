@@ -504,20 +504,35 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit]) -> tuple[lis
     noise, the band-pass at fs the paper's definition of best focus. Where the through-focus curves are
     symmetric the two peak together and the offset's evidence weight is ~0; spherical aberration skews the
     curves and moves them apart by the same amount over a channel (docs/measurement.md "Asymmetric curves").
-    The offset is :func:`pooled_mean` of the per-tile differences (sd from both fits' sds); each tile's
-    variance adds ``w sd^2 + w (1 - w) mean^2`` (the offset's uncertainty and whether it applies at all).
+    The offset is :func:`pooled_mean` of the per-tile differences (sd from both fits' sds); its error
+    (:func:`offset_sd_um`) is shared by the channel's tiles and is not added to theirs (:func:`shift_by_offset`).
     """
-    from dataclasses import replace as _replace
     both = [(a, b) for a, b in zip(main, ref) if a.status == STATUS_OK and b.status == STATUS_OK]
     d = np.array([b.z_best_um - a.z_best_um for a, b in both])
     sd = np.array([math.hypot(a.z_sigma_um, b.z_sigma_um) for a, b in both])
     mean, se, weight = pooled_mean(d, sd)
     info = {"offset_um": mean, "offset_sd_um": se, "offset_weight": weight, "n_tiles": len(both)}
-    var_add = weight * se * se + weight * (1.0 - weight) * mean * mean
-    out = [f if f.status != STATUS_OK else
-           _replace(f, z_best_um=f.z_best_um + weight * mean, z_sigma_um=math.sqrt(f.z_sigma_um ** 2 + var_add))
-           for f in main]
-    return out, info
+    return shift_by_offset(main, info), info
+
+
+def shift_by_offset(main: list[CurveFit], info: dict) -> list[CurveFit]:
+    """``main``'s accepted best foci moved by ``weight x offset`` of an :func:`apply_measure_offset` record
+    (measured on these tiles or on others: quick effort's strip, :mod:`fieldcal.measure.fs_strip`).
+
+    The tiles' sds are left as they are: the offset's error (:func:`offset_sd_um`) is one draw shared by every
+    tile of the channel, which a fit that took it as each tile's own noise would average away; it joins the
+    band as a field-wide term (``calibration.measure_offset_sd_um``, docs/fitting.md).
+    """
+    from dataclasses import replace as _replace
+    shift = float(info.get("offset_weight", 0.0)) * float(info.get("offset_um", 0.0))
+    return [f if f.status != STATUS_OK else _replace(f, z_best_um=f.z_best_um + shift) for f in main]
+
+
+def offset_sd_um(info: dict) -> float:
+    """1-sigma error of an applied ``weight x offset`` (µm): ``sqrt(w sd^2 + w (1 - w) mean^2)``, the offset's
+    own uncertainty and whether it applies at all (evidence weight w)."""
+    mean, se, weight = (float(info.get(k, 0.0)) for k in ("offset_um", "offset_sd_um", "offset_weight"))
+    return math.sqrt(max(weight * se * se + weight * (1.0 - weight) * mean * mean, 0.0))
 
 
 def _model_eval(model: str, u: np.ndarray, p: np.ndarray, free_p: np.ndarray):

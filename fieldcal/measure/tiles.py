@@ -25,11 +25,12 @@ import numpy as np
 from ..errors import ParameterError
 from ..optics import MTFCriterion
 from ..progress import progress, status
-from . import focus
+from . import focus, fs_strip
 from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
 from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
                        lateral_colour_scales, register_step, registration_plane)
-from .throughfocus import CurveFit, CurveRules, analyse_curves, apply_measure_offset, apply_pooled_skew
+from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_offset, apply_pooled_skew,
+                          shift_by_offset)
 
 # The SML window sum follows the image as m^2 (an image magnified by m has second derivatives / m^2 over a
 # window of m^2 pixels). On 12 simulated breathing lenses (F/2.5-F/3.9, exit pupils 20-50 mm) the exponent
@@ -50,7 +51,7 @@ EFFORTS = {
     # (binning halves the SML's top frequency and so doubles its curves' width: on a 240 px frame a quarter of
     # the tiles then failed the peak-at-edge test, the centre among them); directional: z_tan/z_sag; cell size.
     "quick": {"tile_div": 8, "geo_ds": 8, "geo_min_px": 128, "geo_all": False, "bp_all": False, "focus_bin": 2,
-              "bin_min_px": 512, "directional": False, "cell": 4, "auto_at_fs": False},
+              "bin_min_px": 512, "directional": False, "cell": 4, "bp_strip": True},
     "standard": {"tile_div": 12, "geo_ds": 4, "geo_min_px": 256, "geo_all": False, "bp_all": True, "focus_bin": 1,
                  "directional": False, "cell": 4},
     "thorough": {"tile_div": 16, "geo_ds": 2, "geo_min_px": 256, "geo_all": True, "bp_all": True, "focus_bin": 1,
@@ -186,12 +187,13 @@ def _check_params(stack, fs_cyc_per_mm, q, tile_px, measure):
 
 def resolve_measure(stack, fs_cyc_per_mm: float, measure: str, effort: str = "standard") -> str:
     """The focus measure ``measure="auto"`` uses: ``"sml@fs"`` when every plane resolves fs
-    (``fs x pitch x stride <= MAX_BANDPASS_CYC_PER_PX``), else the SML; at ``effort="quick"`` always the SML.
+    (``fs x pitch x stride <= MAX_BANDPASS_CYC_PER_PX``), else the SML.
 
-    Why quick keeps the SML alone: the band-pass is a full-resolution DFT of every plane of every frame, which
-    took 42 frames of 1080p RGB from 2.1 to 3.3 s (the quick target is 2 s); quick is the speed end of the
-    trade. The cost: on lenses with strong spherical aberration a quick profile reads the SML's peak, which can
-    be 2-4 µm from the fs-contrast peak (docs/measurement.md "Asymmetric curves"); use standard there.
+    At ``effort="quick"`` (``EFFORTS[...]["bp_strip"]``) the band-pass runs on the central tile row only
+    (:mod:`fieldcal.measure.fs_strip`): the full-resolution DFT of every plane of every frame took 42 frames of
+    1080p RGB from 2.1 to 3.3 s (the quick target is 2 s), and the offset is one number per channel, which
+    that row's tiles give; without it a quick profile read the SML's peak, 2-10 µm from the fs-contrast peak
+    on lenses with strong spherical aberration (docs/measurement.md "Asymmetric curves").
 
     ``"sml@fs"``: each tile's SML best focus moved by the channel's pooled offset to the band-pass at fs
     (:func:`fieldcal.measure.throughfocus.apply_measure_offset`). Why: the paper's best focus is where contrast
@@ -234,6 +236,7 @@ class _Maps:
     cell: int
     f0_cyc_per_px: float
     maps: dict[str, np.ndarray]
+    strip: fs_strip.Strip | None = None  # band-pass on this strip only (quick's sml@fs offset)
 
 
 # ------------------------------------------------------------------------------------------------ the pass
@@ -289,12 +292,14 @@ def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None
     """
     if isinstance(plane, tuple):
         plane = _normalised(*plane)
+    if m.strip is not None:  # before binning: the strip's band-pass is of the full-resolution plane
+        fs_strip.strip_bandpass_cells(plane, m.strip, m.strip.f0_cyc_per_px / scale, m.maps["bandpass"][k])
     if fbin > 1:
         plane = downsample(plane, fbin)
     c = m.cell
     m.maps["sml"][k] = focus.cell_sums(focus.sml(plane), c)
     m.maps["sum"][k] = focus.cell_sums(plane, c)
-    if "bandpass" in m.maps:
+    if "bandpass" in m.maps and m.strip is None:
         band = focus.bandpass(plane, m.f0_cyc_per_px / scale)
         m.maps["bandpass"][k] = focus.cell_sums(cv2.multiply(band, band), c)
         if "along" in m.maps:
@@ -317,7 +322,7 @@ def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None
 
 def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float, effort: str,
           centre_px: tuple[float, float] | None, z_ref_um: float | None, quiet: bool, bp_all: bool = False,
-          known_geometry: GeometryMeasurements | None = None):
+          known_geometry: GeometryMeasurements | None = None, bp_strip: tuple[float, float] | None = None):
     """The one pass over the frames in z order: cell maps of the focus measures and the per-frame geometry.
 
     Per frame, the registration plane(s) are registered to the previous frame first (main thread), so the
@@ -326,6 +331,7 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
 
     Returns (z sorted, order, maps, geometry or None, scale) with ``scale[k]`` the magnification the band-pass
     of frame k followed, relative to frame 0 (measured here, or from ``known_geometry``).
+    ``bp_strip = (centre row, height)`` (frame px): the band-pass on that strip only (:mod:`.fs_strip`).
     """
     cfg = _effort(effort)
     layouts = plane_layouts(stack.channels, stack.cfa)
@@ -340,7 +346,7 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
 
     maps: list[_Maps] = []
     with_bp = bool(bp_all or cfg["bp_all"])
-    fbin = 1 if with_bp else int(cfg["focus_bin"])
+    fbin = 1 if with_bp and bp_strip is None else int(cfg["focus_bin"])
     if fbin > 1 and min(h, w) // fbin < cfg.get("bin_min_px", 0):
         fbin = 1
     if want_focus:
@@ -349,7 +355,7 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
             lay = lay0 if fbin == 1 else PlaneLayout(lay0.name, lay0.channel_index, lay0.stride * fbin,
                                                      lay0.offset_x + lay0.stride * (fbin - 1) / 2.0,
                                                      lay0.offset_y + lay0.stride * (fbin - 1) / 2.0)
-            f0 = fs_cyc_per_mm * pitch_mm * lay.stride
+            f0 = fs_cyc_per_mm * pitch_mm * (lay.stride if bp_strip is None else lay0.stride)
             if with_bp and f0 > MAX_BANDPASS_CYC_PER_PX:
                 raise ParameterError(
                     f"fs = {fs_cyc_per_mm:g} cycles/mm is {f0:.2f} cycles per pixel of the {lay.name} "
@@ -364,7 +370,14 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
             names = ["sml", "sum", "sat"]
             if with_bp:
                 names += ["bandpass"] + (["along", "across"] if cfg["directional"] else [])
-            maps.append(_Maps(lay, cell, f0, {k: np.empty((n, hc, wc), np.float32) for k in names}))
+            strip = None
+            if with_bp and bp_strip is not None:
+                strip = fs_strip.centre_strip(ph, (bp_strip[0] - lay0.offset_y) / lay0.stride,
+                                              bp_strip[1] / lay0.stride, cell * fbin, f0)
+                names.append("bp_cover")
+            maps.append(_Maps(lay, cell, f0, {k: np.empty((n, hc, wc), np.float32) for k in names}, strip))
+            if strip is not None:
+                maps[-1].maps["bp_cover"][:] = fs_strip.coverage_cells((hc, wc), strip, float(cell * cell))
     units = {}
     if want_focus and cfg["directional"]:
         for li, m in enumerate(maps):
@@ -621,11 +634,13 @@ def _exponent_sensitivity(cc, geometry: GeometryMeasurements, channel: str, z: n
 
 
 def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per_mm: float, q: float,
-             measure: str, rules: TileRules, bp_scale: np.ndarray | None = None) -> dict[str, np.ndarray]:
+             measure: str, rules: TileRules, bp_scale: np.ndarray | None = None,
+             offset_from: dict | None = None) -> dict[str, np.ndarray]:
     """Tile tests (saturation, texture) then the batched curve fits of one channel's tiles.
 
     ``bp_scale[k]``: the magnification the band-pass filter followed in frame k (its frequency was
-    ``fs / bp_scale[k]`` at the sensor), used to give the width at ``fs`` itself.
+    ``fs / bp_scale[k]`` at the sensor), used to give the width at ``fs`` itself. ``offset_from``: the
+    ``"sml@fs"`` offset record measured on other tiles (quick's strip, :mod:`.fs_strip`), applied here.
     """
     nt = channel_curves["sml"].shape[0]
     res = {k: np.full(nt, np.nan) for k in ("z_best_um", "z_sigma_um", "width_um", "peak", "z_tan_um", "z_sag_um",
@@ -646,7 +661,16 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             # illumination and exposure of each frame (a 1 % flicker would otherwise move a broad peak by a
             # large fraction of a step); the tile mean is averaged over thousands of pixels, so it adds no noise.
             e_bp = channel_curves["bandpass"][todo] / np.square(safe_mean[todo])
-            bp = analyse_curves(z, e_bp, "otf", fs_cyc_per_mm, q, rules.curve)
+            if "bp_cover" in channel_curves:  # band-pass on a strip only (quick): its tiles give the offset
+                seen = fs_strip.inside(channel_curves["bp_cover"])
+                channel_curves["bandpass"][~seen] = np.nan
+                seen = np.flatnonzero(seen[todo])
+                bp = [CurveFit.rejected("not_measured")] * todo.size
+                fits = analyse_curves(z, e_bp[seen], "otf", fs_cyc_per_mm, q, rules.curve) if seen.size else []
+                for i, f in zip(seen, fits):
+                    bp[i] = f
+            else:
+                bp = analyse_curves(z, e_bp, "otf", fs_cyc_per_mm, q, rules.curve)
         else:  # quick effort: no band-pass on this channel, so no width
             bp = [CurveFit.rejected("not_measured")] * todo.size
         main = bp if measure == "bandpass" else analyse_curves(z, channel_curves["sml"][todo], "peak", None, q,
@@ -662,14 +686,15 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             # the SML's own best foci: the breathing sensitivity is of the SML curve (_exponent_sensitivity)
             res["z_sml_um"] = np.full(nt, np.nan)
             res["z_sml_um"][todo] = [f.z_best_um for f in main]
-            main, offset = apply_measure_offset(main, bp)
+            main, offset = (apply_measure_offset(main, bp) if offset_from is None
+                            else (shift_by_offset(main, offset_from), {**offset_from, "from": "strip"}))
             res["skew"] = {**res.get("skew", {}), **offset}
         for t, fb, fm in zip(todo, bp, main):
             stat[t] = fm.status
             if fm.status == "ok":
                 res["z_best_um"][t], res["z_sigma_um"][t], res["peak"][t] = fm.z_best_um, fm.z_sigma_um, fm.peak
                 res["stage_gain"][t] = fm.stage_gain
-            if fb.status == "ok":
+            if fb.status == "ok" and "bp_cover" not in channel_curves:  # (a strip's few widths: not a map)
                 # the curve's peak saw the sensor frequency fs / s(z0); the width scales as 1 / frequency
                 s0 = 1.0 if bp_scale is None else float(np.interp(fb.z_best_um, z, bp_scale))
                 res["width_um"][t] = fb.width_um / s0
@@ -769,7 +794,8 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         Focus measure whose curve gives ``z_best_um`` (the width always comes from the band-pass curve).
         "auto" (default): ``"sml@fs"`` (the SML moved by the channel's pooled offset to the band-pass at fs)
         where the planes resolve fs, else the SML (:func:`resolve_measure`); ``TileTable.measure`` records the
-        one used.
+        one used. At quick effort "auto" takes the offset from a strip of tiles through the middle
+        (:mod:`.fs_strip`: no widths); "sml@fs" asked for by name band-passes every tile (widths everywhere).
     rules : TileRules, optional
         Rejection thresholds.
     geometry : GeometryMeasurements, optional
@@ -780,6 +806,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     (TileTable, GeometryMeasurements)
     """
     _check_params(stack, fs_cyc_per_mm, q, tile_px, measure)
+    asked = measure
     measure = resolve_measure(stack, float(fs_cyc_per_mm), measure, effort)
     rules = rules or TileRules()
     z_sorted = np.sort(np.asarray(stack.z_um, dtype=np.float64))
@@ -788,17 +815,28 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                 or tuple(geometry.channels) != tuple(stack.channels)):
             raise ParameterError("the geometry was measured on another stack (its z positions or channels differ)",
                                  field="geometry", fix="measure the geometry on this stack (measure_geometry(stack))")
+    h, w = stack.shape
+    tile = int(tile_px) if tile_px is not None else default_tile_px((h, w), effort)
+    strip = None
+    if asked == "auto" and measure == SML_AT_FS and _effort(effort).get("bp_strip", False):
+        # quick: the offset is one number per channel; a row of tiles through the middle gives it (the grid's
+        # columns and rows: from the frame alone, as tile_centres lays them out without motion)
+        n_cols = int(math.floor(max(w - 13.0 - tile, 0.0) / tile)) + 1
+        strip_rows = fs_strip.tile_rows(n_cols, int(math.floor(max(h - 13.0 - tile, 0.0) / tile)) + 1, w, tile)
+        strip = ((h - 1) / 2.0, strip_rows * tile + 2.0 * fs_strip.slack_px(tile))
     z, order, maps, geo, bp_scale = _scan(stack, want_focus=True, want_geometry=geometry is None,
                                           fs_cyc_per_mm=float(fs_cyc_per_mm), effort=effort, centre_px=centre_px,
                                           z_ref_um=z_ref_um, quiet=quiet, bp_all=measure in ("bandpass", SML_AT_FS),
-                                          known_geometry=geometry)
+                                          known_geometry=geometry, bp_strip=strip)
     geometry = geometry or geo
-    h, w = stack.shape
-    tile = int(tile_px) if tile_px is not None else default_tile_px((h, w), effort)
     xs, ys = tile_centres(geometry, tile)
     if xs.size == 0:
         raise ParameterError(f"no {tile} px tile fits inside every frame (the image moves too much or the tile "
                              "is too large)", field="tile_px", fix="use a smaller tile_px")
+    n_grid = xs.size
+    if strip is not None:  # the strip's own tiles (rows n_grid on), split off below
+        sx, sy = np.meshgrid(np.unique(xs), fs_strip.tile_centres_y(strip[0], strip_rows, tile))
+        xs, ys = np.concatenate([xs, sx.ravel()]), np.concatenate([ys, sy.ravel()])
     per_channel: dict[str, dict[str, np.ndarray]] = {}
     for m in maps:
         curves = _tile_curves(m, geometry, xs, ys, tile, moments_of="sml" if measure in _SML_BASED else measure)
@@ -816,8 +854,17 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                                              "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um", "stage_gain")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
     skew = {}
+    offsets = {ch: None for ch in stack.channels}
+    if strip is not None:
+        xs, ys = xs[:n_grid], ys[:n_grid]
+        for ch, cc in per_channel.items():
+            on_strip = {k: v[n_grid:] for k, v in cc.items()}
+            per_channel[ch] = {k: v[:n_grid] for k, v in cc.items() if k not in ("bandpass", "bp_cover")}
+            rec = _analyse(on_strip, z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
+                           rules=rules, bp_scale=bp_scale).get("skew", {})
+            offsets[ch] = {k: rec.get(k, 0.0) for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles")}
     results = {ch: _analyse(per_channel[ch], z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
-                            rules=rules, bp_scale=bp_scale) for ch in stack.channels}
+                            rules=rules, bp_scale=bp_scale, offset_from=offsets[ch]) for ch in stack.channels}
     if measure == SML_AT_FS:
         _borrow_offsets(results)
     for ch in stack.channels:

@@ -141,7 +141,9 @@ class LensProfile:
         # the breathing systematic (per channel, measured on the stack; docs/fitting.md) is common to every
         # tile of a channel, so no fit sees it either
         breathing = (self.calibration.get("breathing_systematic_sd_um") or {}).get(channel) or 0.0
-        sys_sd = math.hypot(sys_sd, float(breathing))
+        # so is the error of the sml@fs offset (one pooled number per channel; fit/tiles.measure_offset_sd_um)
+        offset = (self.calibration.get("measure_offset_sd_um") or {}).get(channel) or 0.0
+        sys_sd = math.hypot(sys_sd, float(breathing), float(offset))
         if sys_sd <= 0.0:
             return lo, hi
         # Profiles written before the systematic was estimated from the data (docs/fitting.md "Systematic")

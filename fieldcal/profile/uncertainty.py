@@ -74,7 +74,8 @@ def _systematic_var_um2(profile, channel: str) -> float:
     cal = profile.calibration
     fixed = float(cal.get("systematic_sd_um") or 0.0)
     breathing = float((cal.get("breathing_systematic_sd_um") or {}).get(channel) or 0.0)
-    return fixed ** 2 + breathing ** 2
+    offset = float((cal.get("measure_offset_sd_um") or {}).get(channel) or 0.0)
+    return fixed ** 2 + breathing ** 2 + offset ** 2
 
 
 def _common_var_um2(profile, channel: str) -> float:

@@ -1,0 +1,108 @@
+"""Quick effort's sml@fs offset from a strip of tiles (fieldcal.measure.fs_strip), and the offset's error as a
+field-wide band term (fit.tiles.measure_offset_sd_um)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from fieldcal.measure import focus, fs_strip
+from fieldcal.measure.throughfocus import CurveFit, offset_sd_um, shift_by_offset
+
+
+def _texture(h, w, seed=0):
+    import cv2
+    rng = np.random.default_rng(seed)
+    return cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), 0.7)
+
+
+@pytest.mark.parametrize("f0", [0.12, 0.25])
+def test_strip_bandpass_equals_the_full_frame_bandpass_on_its_cells(f0):
+    """The strip, band-passed with its margin and cropped, gives the full-frame band-pass's cell energies on
+    its rows (the crop's border response stays in the margin), and 0 elsewhere."""
+    plane = _texture(160, 200)
+    cell = 4
+    strip = fs_strip.centre_strip(plane.shape[0], 79.5, 40.0, cell, f0)
+    assert strip.row0 % cell == 0 and strip.row1 - strip.row0 == 40 and strip.row0 <= 79.5 < strip.row1
+    full = focus.cell_sums(np.square(focus.bandpass(plane, f0)), cell)
+    out = np.full_like(full, -1.0)
+    fs_strip.strip_bandpass_cells(plane, strip, f0, out)
+    rows = slice(strip.row0 // cell, strip.row1 // cell)
+    np.testing.assert_allclose(out[rows], full[rows], rtol=0.02, atol=1e-3 * float(full.max()))
+    assert np.all(np.delete(out, np.r_[rows], axis=0) == 0.0)
+    # without the margin the crop's borders leak into the strip's outer cells: the margin is what removes it
+    crop = focus.cell_sums(np.square(focus.bandpass(plane[strip.row0:strip.row1], f0)), cell)
+    assert np.max(np.abs(crop[0] - full[rows][0])) > 5 * np.max(np.abs(out[rows][0] - full[rows][0]))
+
+
+def test_strip_coverage_marks_only_tiles_inside_in_every_frame():
+    cell = 4
+    strip = fs_strip.centre_strip(120, 59.5, 32.0, cell, 0.2)
+    cover = fs_strip.coverage_cells((30, 40), strip, float(cell * cell))
+    # per-pixel mean over a box of cells = fraction of the box on the strip
+    c0, c1 = strip.row0 // cell, strip.row1 // cell
+    assert np.mean(cover[c0:c1, 5:13]) / (cell * cell) == 1.0
+    assert np.mean(cover[c0 - 1:c1 - 1, 5:13]) / (cell * cell) < 1.0
+    curves = np.array([[1.0, 1.0, 1.0], [1.0, 0.97, 1.0], [1.0, np.nan, 1.0]])
+    np.testing.assert_array_equal(fs_strip.inside(curves), [True, False, False])
+
+
+def test_offset_moves_best_foci_and_its_error_is_one_field_wide_draw():
+    """The offset moves every accepted tile by w x offset and leaves the tiles' sds alone (its error is shared
+    by them all, not each tile's noise); that error is sqrt(w sd^2 + w (1 - w) mean^2)."""
+    fits = [CurveFit(10.0, 0.3, math.nan, 1.0, 0.0, "ok", 9), CurveFit.rejected("low_texture")]
+    rec = {"offset_um": -2.0, "offset_sd_um": 0.2, "offset_weight": 1.0, "n_tiles": 9}
+    out = shift_by_offset(fits, rec)
+    assert out[0].z_best_um == pytest.approx(8.0) and out[0].z_sigma_um == 0.3
+    assert out[1].status == "low_texture"
+    assert offset_sd_um(rec) == pytest.approx(0.2)
+    half = {"offset_um": 1.0, "offset_sd_um": 0.0, "offset_weight": 0.5}
+    assert shift_by_offset(fits, half)[0].z_best_um == pytest.approx(10.5)
+    assert offset_sd_um(half) == pytest.approx(0.5)  # whether it applies at all: sqrt(0.5 * 0.5 * 1)
+    assert offset_sd_um({}) == 0.0
+
+
+def test_measure_offset_sd_joins_the_profile_band_per_channel():
+    """fit.tiles.measure_offset_sd_um reads the table's skew records (a borrowed offset is in its tiles' sds
+    already: 0), and the profile's band adds it in quadrature as a field-wide term."""
+    from types import SimpleNamespace
+
+    from fieldcal.fit.tiles import measure_offset_sd_um
+    table = SimpleNamespace(skew={"R": {"offset_um": -3.0, "offset_sd_um": 0.4, "offset_weight": 1.0},
+                                  "G": {"offset_um": -3.0, "offset_sd_um": 0.4, "offset_weight": 1.0,
+                                        "offset_from": "R"},
+                                  "B": {"shift_um": 0.1}})
+    assert measure_offset_sd_um(table) == pytest.approx({"R": 0.4, "G": 0.0, "B": 0.0})
+
+
+def test_profile_band_adds_the_offset_error_in_quadrature(tmp_path):
+    from scipy.special import ndtri
+
+    from pathlib import Path
+
+    from fieldcal.profile.lens_profile import LensProfile
+    prof = LensProfile.load(Path(__file__).parent / "data" / "legacy" / "lens.json")
+    ch = prof.channels[0]
+    x, y = np.array([10.0, 50.0]), np.array([5.0, 30.0])
+    lo0, hi0 = prof.best_focus_interval_um(x, y, ch)
+    prof.calibration["measure_offset_sd_um"] = {ch: 1.5}
+    lo1, hi1 = prof.best_focus_interval_um(x, y, ch)
+    base = float(prof.calibration.get("systematic_sd_um") or 0.0)
+    br = float((prof.calibration.get("breathing_systematic_sd_um") or {}).get(ch) or 0.0)
+    zq = float(ndtri(0.95))
+    # the half-width without any systematic, then with the old ones, then with the offset's added
+    core2 = (0.5 * (hi0 - lo0)) ** 2 - (zq * math.hypot(base, br)) ** 2
+    np.testing.assert_allclose(0.5 * (hi1 - lo1), np.sqrt(core2 + (zq * math.hypot(base, br, 1.5)) ** 2),
+                               rtol=1e-6)
+    np.testing.assert_allclose(0.5 * (hi1 + lo1), 0.5 * (hi0 + lo0), atol=1e-9)
+
+
+def test_strip_rows_follow_the_tile_count_and_the_pixel_budget():
+    """One row on a 1080p frame (its 14 columns hold MIN_TILES; the budget pays for one 136 px row), more rows on
+    narrow frames, every row on a small one, never more than the grid has."""
+    assert fs_strip.tile_rows(14, 7, 1920, 136) == 1
+    assert fs_strip.tile_rows(14, 7, 1920, 136) * 1920 * 136 <= fs_strip.BUDGET_PX
+    assert fs_strip.tile_rows(3, 9, 4000, 400) == math.ceil(fs_strip.MIN_TILES / 3)   # narrow: the tile count
+    assert fs_strip.tile_rows(9, 7, 320, 32) == 7                                     # small: every row
+    ys = fs_strip.tile_centres_y(119.5, 3, 32.0)
+    np.testing.assert_allclose(ys, [87.5, 119.5, 151.5])
