@@ -71,13 +71,15 @@ def lens_set(n_random: int, seed: int, width_px: int):
 
 
 def prepare(work: Path, n_random: int, seed: int, width_px: int, scenes, effort: str, fs_px: float = 0.0,
-            step_frac: float = 0.5, min_frames_planned: int = 0) -> None:
+            step_frac: float = 0.5, min_frames_planned: int = 0, only: str = "") -> None:
     from fieldcal.calibration.pipeline import calibrate
     from fieldcal.simulate.stackgen import simulate_stack
     from fieldcal.validation.run import chart_positions_um, default_fs
 
     work.mkdir(parents=True, exist_ok=True)
     for name, spec, optics in lens_set(n_random, seed, width_px):
+        if only and not any(o in name for o in only.split(",")):
+            continue
         fs = (default_fs(spec.sensor.pixel_pitch_um) if fs_px <= 0
               else float(round(fs_px / (spec.sensor.pixel_pitch_um / 1000.0))))
         tol = min(spec.focus_tolerance_um(fs, Q, c) for c in spec.channel_names)
@@ -271,13 +273,13 @@ def main(argv=None) -> int:
     ap.add_argument("--coverage", type=float, default=0.99, help="the plans' coverage target (0: fewest frames)")
     ap.add_argument("--fs-factors", default="0.5,1,1.5", help="widths: fs as multiples of the stored fs")
     ap.add_argument("--widths-scene", default="chart", help="widths: which stored stacks (chart or slanted-edge)")
-    ap.add_argument("--only", default="", help="widths, recalibrate: only stacks whose name holds one of these (comma-separated)")
+    ap.add_argument("--only", default="", help="prepare, widths, recalibrate: only lenses/stacks whose name holds one of these (comma-separated)")
     ap.add_argument("--docs", action="store_true", help="write the table into docs/benchmarks.md")
     args = ap.parse_args(argv)
     work = Path(args.work)
     if args.stage == "prepare":
         prepare(work, args.random, args.seed, args.width, args.scenes.split(","), args.effort, args.fs_px,
-                args.step_frac, args.min_frames)
+                args.step_frac, args.min_frames, args.only)
         return 0
     if args.stage == "recalibrate":
         recalibrate(Path(args.src), work, args.effort, args.seed, args.only)
