@@ -170,19 +170,20 @@ def p_coverage_in_range(share: float, lo: float = 0.75, hi: float = 0.99, level:
 
 
 def plan_check(prof, lens: dict, confidence: float = 0.9, q: float = 0.05, step_px: int = 4,
-               fs_factor: float = 1.0) -> dict:
+               fs_factor: float = 1.0, coverage: float | None = 0.99) -> dict:
     """A ``--confidence`` stack plan from the profile against the truth: its stated expected fraction of pixels
     in tolerance (and worst-pixel probability) vs the measured fraction of pixels whose assigned frame (nearest
     the profile's best focus) is within the lens's true tolerance of the true best focus (commanded stage
     coordinates). Wave optics: the truth's sharpest position and the pupil's own tolerance (on axis). The plan
-    is drawn at ``fs_factor`` times the calibration's fs (> 1: a denser plan, a harder test)."""
+    is drawn at ``fs_factor`` times the calibration's fs (> 1: a denser plan, a harder test), with the CLI's
+    default coverage target (``coverage=None``: the confidence alone)."""
     from fieldcal.plan import StackRequest, plan_stack
     from fieldcal.plan.cover import nearest_index
     from fieldcal.simulate.truth import TruthProfile
     from fieldcal.validation.run import _grid
 
     fs = lens["fs"] * fs_factor
-    plan = plan_stack(prof, StackRequest(fs_cyc_per_mm=fs, q=q, confidence=confidence))
+    plan = plan_stack(prof, StackRequest(fs_cyc_per_mm=fs, q=q, confidence=confidence, coverage=coverage))
     w, h = prof.image_size_px
     # the wave truth's sharpest position is where MTF at the calibration's fs peaks (what the profile measured)
     truth = TruthProfile(lens["spec"], w, h, z_ref_um=prof.z_ref_um, optics=lens.get("optics", "geometric"),
@@ -216,7 +217,7 @@ def keep_profile(keep: Path, k: int, effort: str, lens: dict, prof) -> None:
     prof.save(keep / f"lens{k:02d}-{effort}.json")
 
 
-def replan(keep: Path, confidences, efforts, fs_factors=(1.0,)) -> list[dict]:
+def replan(keep: Path, confidences, efforts, fs_factors=(1.0,), coverage: float | None = 0.99) -> list[dict]:
     """Plan rows (``plan_check``) of every profile stored with ``--keep``, at each ``--confidence`` level."""
     from fieldcal.profile.lens_profile import LensProfile
     from fieldcal.simulate.lens import LensSpec
@@ -233,11 +234,11 @@ def replan(keep: Path, confidences, efforts, fs_factors=(1.0,)) -> list[dict]:
             for conf in confidences:
                 for fsf in fs_factors:
                     try:
-                        pc = plan_check(prof, lens, conf, fs_factor=fsf)
+                        pc = plan_check(prof, lens, conf, fs_factor=fsf, coverage=coverage)
                     except Exception as e:  # noqa: BLE001 - a benchmark records the refusal and goes on
                         print(f"lens {k} {eff} confidence {conf} fs x{fsf}: {e}", flush=True)
                         continue
-                    r = {"lens": k, "effort": eff, "confidence": conf, "optics": lens["optics"],
+                    r = {"lens": k, "effort": eff, "confidence": conf, "coverage": coverage, "optics": lens["optics"],
                          "asymmetric": lens["asymmetric"], "f_number": lens["f_number"], **pc}
                     rows.append(r)
                     print(json.dumps(r), flush=True)
@@ -415,6 +416,8 @@ def main(argv=None) -> int:
                          "rendering or calibration")
     ap.add_argument("--confidences", default="0.9", help="--replan: comma list of --confidence levels")
     ap.add_argument("--plan-fs-factors", default="1", help="--replan: plans at these multiples of the calibration's fs")
+    ap.add_argument("--plan-coverage", type=float, default=0.99,
+                    help="--replan: the plans' coverage target on top of --confidence (0: none, the confidence alone)")
     ap.add_argument("--jsonl", type=Path, help="append each lens's rows to this file (chunked runs)")
     ap.add_argument("--from-jsonl", type=Path, help="make the table from the rows of a --jsonl file, run nothing")
     ap.add_argument("--note", default="", help="a sentence appended to the table's caption")
@@ -435,7 +438,8 @@ def main(argv=None) -> int:
     rows = []
     if args.replan:
         rows = replan(args.replan, [float(v) for v in args.confidences.split(",")], efforts,
-                      [float(v) for v in args.plan_fs_factors.split(",")])
+                      [float(v) for v in args.plan_fs_factors.split(",")],
+                      args.plan_coverage if args.plan_coverage > 0 else None)
         if args.jsonl:
             args.jsonl.write_text("".join(json.dumps(r) + "\n" for r in rows))
         return 0

@@ -142,7 +142,7 @@ def _median_ratio(tol_fn, truth, w: int, h: int, channels, fs: float) -> float:
         truth.focus_tolerance_um(gx, gy, c, fs, Q)) for c in channels])))
 
 
-def evaluate_one(d: Path, coverage: float | None = 0.99) -> dict:
+def evaluate_one(d: Path, coverage: float | None = 0.99, confidence: float | None = None) -> dict:
     from fieldcal.optics import MTFCriterion
     from fieldcal.plan import StackRequest, plan_stack
     from fieldcal.plan.tolerance import tolerance_um
@@ -170,11 +170,12 @@ def evaluate_one(d: Path, coverage: float | None = 0.99) -> dict:
                                       prof.channels, fs)
     true_tol = {c: float(np.asarray(truth.focus_tolerance_um(0.0, 0.0, c, fs, Q))) for c in truth.channels}
     row["true_tol_um"] = min(true_tol.values())
-    plan = plan_stack(prof, StackRequest(fs_cyc_per_mm=fs, q=Q, coverage=coverage))
+    plan = plan_stack(prof, StackRequest(fs_cyc_per_mm=fs, q=Q, coverage=coverage, confidence=confidence))
     opt = plan_stack(truth, StackRequest(fs_cyc_per_mm=fs, q=Q, coverage=None))
     cov, _ = plan_coverage(np.asarray(plan.frames_um), truth, true_tol, plan.field.refocus_um)
     row.update(n=plan.n_frames, n_fewest=int(plan.stats["fewest_frames"]), n_opt=opt.n_frames,
-               stated=float(plan.stats["expected_fraction"]),
+               stated=float(plan.stats["expected_fraction"]), worst_p=float(plan.stats["probability"]),
+               effort=prof.calibration.get("effort", ""),
                measured=float(np.mean([v["coverage"] for v in cov.values()])),
                measured_min=min(v["coverage"] for v in cov.values()))
     return row
@@ -183,7 +184,8 @@ def evaluate_one(d: Path, coverage: float | None = 0.99) -> dict:
 COLS = [("case", "case", ""), ("optics", "optics", ""), ("F", "f_number", ".1f"), ("SA", "sa", ""),
         ("surface RMS (µm)", "rms_um", ".2f"), ("90% band cov.", "band_cov", ".2f"), ("true δ (µm)", "true_tol_um", ".1f"),
         ("raw δ / true", "raw_ratio", ".3f"), ("plan δ / true", "plan_ratio", ".3f"),
-        ("N / fewest / optimum", "ns", ""), ("stated", "stated", ".4f"), ("measured", "measured", ".4f"),
+        ("N / fewest / optimum", "ns", ""), ("stated", "stated", ".4f"), ("worst pixel p", "worst_p", ".4f"),
+        ("measured", "measured", ".4f"),
         ("worst channel", "measured_min", ".4f")]
 
 
@@ -271,9 +273,12 @@ def main(argv=None) -> int:
     ap.add_argument("--min-frames", type=int, default=0, help="skip lenses whose plan needs fewer frames")
     ap.add_argument("--seed", type=int, default=1300)
     ap.add_argument("--coverage", type=float, default=0.99, help="the plans' coverage target (0: fewest frames)")
+    ap.add_argument("--confidence", type=float, default=0.0,
+                    help="evaluate: plans with this --confidence (0: none); rows go to rows-cP.json")
     ap.add_argument("--fs-factors", default="0.5,1,1.5", help="widths: fs as multiples of the stored fs")
     ap.add_argument("--widths-scene", default="chart", help="widths: which stored stacks (chart or slanted-edge)")
-    ap.add_argument("--only", default="", help="prepare, widths, recalibrate: only lenses/stacks whose name holds one of these (comma-separated)")
+    ap.add_argument("--only", default="",
+                    help="prepare, widths, recalibrate: only lenses/stacks whose name holds one of these (comma list)")
     ap.add_argument("--docs", action="store_true", help="write the table into docs/benchmarks.md")
     args = ap.parse_args(argv)
     work = Path(args.work)
@@ -291,13 +296,16 @@ def main(argv=None) -> int:
         return 0
     rows = []
     for d in sorted(p.parent for p in work.glob("*/lens.json")):
-        r = evaluate_one(d, None if args.coverage <= 0 else args.coverage)
+        r = evaluate_one(d, None if args.coverage <= 0 else args.coverage,
+                         args.confidence if args.confidence > 0 else None)
         rows.append(r)
         print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}, flush=True)
-    (work / "rows.json").write_text(json.dumps(rows, indent=1))
+    name = "rows.json" if args.confidence <= 0 else f"rows-c{args.confidence:g}.json"
+    (work / name).write_text(json.dumps(rows, indent=1))
+    conf = f", --confidence {args.confidence:g}" if args.confidence > 0 else ""
     text = (f"`python benchmarks/bench_plan_coverage.py prepare --work W --random {args.random}` then "
-            f"`evaluate --work W`: {len(rows)} profiles, fs = 0.4 Nyquist, q = {Q}, coverage target "
-            f"{args.coverage}.\n\n" + table(rows) + "\n\nWidths as measured (before the plan's correction):\n\n"
+            f"`evaluate --work W`: {len(rows)} profiles, q = {Q}, coverage target "
+            f"{args.coverage}{conf}.\n\n" + table(rows) + "\n\nWidths as measured (before the plan's correction):\n\n"
             + width_summary(rows))
     print(text)
     if args.docs:
