@@ -245,6 +245,31 @@ def replan(keep: Path, confidences, efforts, fs_factors=(1.0,), coverage: float 
     return rows
 
 
+def replan_table(rows: list[dict]) -> str:
+    """One row per (effort, optics, --confidence, fs factor) of ``--replan`` rows: stated expected fraction vs
+    measured fraction of pixels within the true δ, and the smallest per-pixel probability."""
+    out = []
+    keys = sorted({(r["effort"], r["optics"] + (" + SA" if r["asymmetric"] else ""), r["confidence"],
+                    r.get("plan_fs_factor", 1.0)) for r in rows})
+    for eff, opt, conf, fsf in keys:
+        g = [r for r in rows if (r["effort"], r["optics"] + (" + SA" if r["asymmetric"] else ""), r["confidence"],
+                                 r.get("plan_fs_factor", 1.0)) == (eff, opt, conf, fsf)]
+        st = np.array([r["plan_stated"] for r in g])
+        me = np.array([r["plan_measured"] for r in g])
+        n = np.array([r["plan_frames"] for r in g])
+        out.append({"effort": eff, "optics": opt, "confidence": conf, "fs": f"{fsf:g}x", "lenses": len(g),
+                    "frames": f"{n.min()}-{n.max()}", "stated": float(st.mean()), "measured": float(me.mean()),
+                    "min_measured": float(me.min()), "max_diff": float(np.max(np.abs(st - me))),
+                    "within": f"{int(np.sum(np.abs(st - me) <= 0.02))}/{len(g)}",
+                    "worst_p": float(min(r["plan_worst"] for r in g))})
+    cols = [("effort", "effort", ""), ("optics", "optics", ""), ("--confidence", "confidence", "g"),
+            ("plan fs", "fs", ""), ("lenses", "lenses", ""), ("frames", "frames", ""),
+            ("mean stated (expected fraction)", "stated", ".4f"), ("mean measured", "measured", ".4f"),
+            ("lowest measured", "min_measured", ".4f"), ("max abs(stated − measured)", "max_diff", ".4f"),
+            ("within 2 points", "within", ""), ("smallest per-pixel probability", "worst_p", ".4f")]
+    return "\n".join(md_table(out, cols))
+
+
 def run_one(lens: dict, effort: str, seed: int = 0, plans: bool = False, keep: Path | None = None,
             k: int = 0) -> dict:
     import fieldcal
@@ -414,6 +439,7 @@ def main(argv=None) -> int:
     ap.add_argument("--replan", type=Path, default=None,
                     help="re-check --confidence plans of the profiles stored with --keep in this folder; no "
                          "rendering or calibration")
+    ap.add_argument("--replan-table", type=Path, default=None, help="print the table of a --replan --jsonl file")
     ap.add_argument("--confidences", default="0.9", help="--replan: comma list of --confidence levels")
     ap.add_argument("--plan-fs-factors", default="1", help="--replan: plans at these multiples of the calibration's fs")
     ap.add_argument("--plan-coverage", type=float, default=0.99,
@@ -442,6 +468,10 @@ def main(argv=None) -> int:
                       args.plan_coverage if args.plan_coverage > 0 else None)
         if args.jsonl:
             args.jsonl.write_text("".join(json.dumps(r) + "\n" for r in rows))
+        print(replan_table(rows))
+        return 0
+    if args.replan_table:
+        print(replan_table([json.loads(line) for line in args.replan_table.read_text().splitlines() if line.strip()]))
         return 0
     if args.from_jsonl:
         rows = [json.loads(line) for line in args.from_jsonl.read_text().splitlines() if line.strip()]
