@@ -35,7 +35,7 @@ SUB_GRID = 12         # pixels' best foci sampled on SUB_GRID x SUB_GRID points 
 BISECTION_STEPS = 7   # in log w over at most a factor SPREAD_MAX: the width to 0.5 %
 SPREAD_MAX = 4.0      # a tile whose measured width is more than this many times its pixels' is not solved for
 QUANTILES = 16        # the tile's best foci as this many equal-weight groups (SUB_GRID**2 must divide by it)
-MIN_RESPONSE = 0.5    # d ln(width read) / d ln(pixels' width) below which a tile measures its spread, not δ
+MIN_RESPONSE = 0.8    # d ln(width read) / d ln(pixels' width) below which a tile measures its spread, not δ
 
 
 def _fitted_widths(z_um, z_pix, w_um, q: float, fs_cyc_per_mm: float) -> np.ndarray:
