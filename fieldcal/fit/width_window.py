@@ -16,7 +16,8 @@ every z_p at the tile's centre. The ratio of the two fitted widths is the window
 sampling of the scan, which both share, cancels); the corrected width solves ``w_measured = b(w) w`` by
 bisection in log w (model widths grow with w; a fixed-point iteration diverges once the spread exceeds a few
 widths). Only the geometric defocus law enters, which the measured widths already assume; tiles whose model
-curve cannot be fitted keep their width, and tiles that cannot tell their pixels' width are left out of the
+curve cannot be fitted keep their width if their spread is under one width, and tiles that cannot tell their
+pixels' width are left out of the
 tolerance fit: those whose spread alone makes a curve wider than the one measured, and those whose modelled width
 responds to the pixels' width at less than half the rate (d ln w_read / d ln w < 0.5: the curve is mostly the
 spread, so any error of its model becomes a large error of δ). At 1920 x 1080 with 88 px tiles the triplet's
@@ -122,9 +123,12 @@ def window_bias(surface, tiles, z_um, tile_px: float, fs_cyc_per_mm: float, q: f
         lo, hi = np.log(w_min), np.log(wm)
         m_hi = model(wm)
         m_lo = model(w_min)
-        keep = ~np.isfinite(m_hi) | (m_hi <= wm * (1.0 + 1e-6))  # no widening (or the model curve rejected)
-        # the spread alone is wider than the measured curve, or too wide for the model to resolve the width
-        lost = ~keep & (unresolved | (np.isfinite(m_lo) & (m_lo > wm)))
+        spread = np.ptp(z_pix, axis=1)
+        # no widening; or the model curve rejected while the spread is under one width (it barely matters there)
+        keep = (np.isfinite(m_hi) & (m_hi <= wm * (1.0 + 1e-6))) | (~np.isfinite(m_hi) & (spread < wm))
+        # the spread alone is wider than the measured curve, too wide for the model to resolve the width, or
+        # so wide that the model curve cannot be fitted
+        lost = ~keep & (unresolved | ~np.isfinite(m_hi) | (np.isfinite(m_lo) & (m_lo > wm)))
         # a tighter bracket where the widening is small (b(w) rises as w falls, so w > wm / b(wm)^3 there):
         # the same bisection steps then give the width to a fraction of the widening
         b0 = np.where(keep | ~np.isfinite(m_hi), 1.0, m_hi / wm)
