@@ -218,7 +218,9 @@ def write_docs(text: str) -> None:
     block = head + "\n\n" + text.strip() + "\n"
     if head in s:
         a = s.index(head)
-        b = s.find("\n## ", a + len(head))
+        # the next section: its heading, or the marker comment some sections open with
+        ends = [e for e in (s.find("\n## ", a + len(head)), s.find("\n<!-- bench_", a + len(head))) if e >= 0]
+        b = min(ends) if ends else -1
         s = s[:a] + block + ("\n" + s[b + 1:] if b >= 0 else "")
     else:
         s = s.rstrip() + "\n\n" + block
