@@ -23,6 +23,10 @@ aberration; the truth of a wave lens is its sharpest position (``TruthProfile(op
     python benchmarks/bench_band_coverage.py --lenses 40 --scheduler local      # one Dask task per lens
     python benchmarks/bench_band_coverage.py --lenses 40 --only geometric --jsonl geo.jsonl   # the 20 geometric ones
     python benchmarks/bench_band_coverage.py --from-jsonl geo.jsonl --docs --section "band_coverage_geometric_s5=Band coverage: geometric lenses (s5)"
+    python benchmarks/bench_band_coverage.py --lenses 12 --plans --keep KEEP --jsonl rows.jsonl   # profiles kept
+    python benchmarks/bench_band_coverage.py --replan KEEP --confidences 0.9,0.99 --plan-fs-factors 1,2 \
+        --plan-coverage 0 --jsonl replan.jsonl        # --confidence plans of the kept profiles vs the truth
+    python benchmarks/bench_band_coverage.py --replan-table replan.jsonl
 
 ``--scheduler local|threads|tcp://HOST:PORT`` runs one task per lens on Dask (fieldcal.batch, docs/batch.md;
 an existing cluster's workers need this repository on the same path and a shared temporary folder); without
@@ -172,25 +176,30 @@ def p_coverage_in_range(share: float, lo: float = 0.75, hi: float = 0.99, level:
     return float(np.sum(w * ((cov >= lo) & (cov <= hi))) / np.sum(w))
 
 
-def plan_check(prof, lens: dict, confidence: float = 0.9, q: float = 0.05, step_px: int = 4) -> dict:
+def plan_check(prof, lens: dict, confidence: float = 0.9, q: float = 0.05, step_px: int = 4,
+               fs_factor: float = 1.0, coverage: float | None = 0.99) -> dict:
     """A ``--confidence`` stack plan from the profile against the truth: its stated expected fraction of pixels
     in tolerance (and worst-pixel probability) vs the measured fraction of pixels whose assigned frame (nearest
     the profile's best focus) is within the lens's true tolerance of the true best focus (commanded stage
-    coordinates). Wave optics: the truth's sharpest position and the pupil's own tolerance (on axis)."""
+    coordinates). Wave optics: the truth's sharpest position and the pupil's own tolerance (on axis). The plan
+    is drawn at ``fs_factor`` times the calibration's fs (> 1: a denser plan, a harder test), with the CLI's
+    default coverage target (``coverage=None``: the confidence alone)."""
     from fieldcal.plan import StackRequest, plan_stack
     from fieldcal.plan.cover import nearest_index
     from fieldcal.simulate.truth import TruthProfile
     from fieldcal.validation.run import _grid
 
-    plan = plan_stack(prof, StackRequest(fs_cyc_per_mm=lens["fs"], q=q, confidence=confidence))
+    fs = lens["fs"] * fs_factor
+    plan = plan_stack(prof, StackRequest(fs_cyc_per_mm=fs, q=q, confidence=confidence, coverage=coverage))
     w, h = prof.image_size_px
+    # the wave truth's sharpest position is where MTF at the calibration's fs peaks (what the profile measured)
     truth = TruthProfile(lens["spec"], w, h, z_ref_um=prof.z_ref_um, optics=lens.get("optics", "geometric"),
                          fs_cyc_per_mm=lens["fs"])
     frames = np.sort(np.asarray(plan.frames_um, dtype=np.float64))
     X, Y = _grid(w, h, step_px)
     inside = []
     for c in truth.channels:
-        tol = truth.focus_tolerance_um(X, Y, c, lens["fs"], q)
+        tol = truth.focus_tolerance_um(X, Y, c, fs, q)
         zt = (np.asarray(truth.best_focus_um(X, Y, c)) + 0.5 * lens["stage_backlash_um"]) / (1.0 + lens["stage_scale_error"])
         zt = zt + plan.field.refocus_um
         # the frame the plan assigns the pixel (nearest the profile's best focus), as the stated probability has it
@@ -198,16 +207,86 @@ def plan_check(prof, lens: dict, confidence: float = 0.9, q: float = 0.05, step_
         inside.append(np.abs(frames[nearest_index(frames, zp)] - zt) <= tol + 1e-9)
     return {"plan_stated": float(plan.stats["expected_fraction"]), "plan_worst": float(plan.stats["probability"]),
             "plan_measured": float(np.mean(np.concatenate([a.ravel() for a in inside]))),
-            "plan_frames": int(frames.size)}
+            "plan_frames": int(frames.size), "plan_fs_factor": float(fs_factor),
+            "plan_tol_source": next(iter(plan.tolerance.values()))["source"] if plan.tolerance else ""}
 
 
-def run_one(lens: dict, effort: str, seed: int = 0, plans: bool = False) -> dict:
+LENS_KEYS = ("fs", "step_um", "optics", "asymmetric", "f_number", "width_px", "stage_noise_um", "stage_backlash_um",
+             "stage_scale_error")
+
+
+def keep_profile(keep: Path, k: int, effort: str, lens: dict, prof) -> None:
+    """Store lens ``k``'s profile at ``effort`` with its spec and stage record (``--keep``), so ``--replan`` can
+    re-check plans against the truth without rendering or calibrating again."""
+    keep.mkdir(parents=True, exist_ok=True)
+    lens["spec"].save(keep / f"lens{k:02d}.spec.json")
+    (keep / f"lens{k:02d}.meta.json").write_text(json.dumps({key: lens[key] for key in LENS_KEYS}))
+    prof.save(keep / f"lens{k:02d}-{effort}.json")
+
+
+def replan(keep: Path, confidences, efforts, fs_factors=(1.0,), coverage: float | None = 0.99) -> list[dict]:
+    """Plan rows (``plan_check``) of every profile stored with ``--keep``, at each ``--confidence`` level."""
+    from fieldcal.profile.lens_profile import LensProfile
+    from fieldcal.simulate.lens import LensSpec
+
+    rows = []
+    for meta_path in sorted(keep.glob("lens*.meta.json")):
+        k = int(meta_path.name[4:6])
+        lens = {**json.loads(meta_path.read_text()), "spec": LensSpec.load(keep / f"lens{k:02d}.spec.json")}
+        for eff in efforts:
+            pp = keep / f"lens{k:02d}-{eff}.json"
+            if not pp.exists():
+                continue
+            prof = LensProfile.load(pp)
+            for conf in confidences:
+                for fsf in fs_factors:
+                    try:
+                        pc = plan_check(prof, lens, conf, fs_factor=fsf, coverage=coverage)
+                    except Exception as e:  # noqa: BLE001 - a benchmark records the refusal and goes on
+                        print(f"lens {k} {eff} confidence {conf} fs x{fsf}: {e}", flush=True)
+                        continue
+                    r = {"lens": k, "effort": eff, "confidence": conf, "coverage": coverage, "optics": lens["optics"],
+                         "asymmetric": lens["asymmetric"], "f_number": lens["f_number"], **pc}
+                    rows.append(r)
+                    print(json.dumps(r), flush=True)
+    return rows
+
+
+def replan_table(rows: list[dict]) -> str:
+    """One row per (effort, optics, --confidence, fs factor) of ``--replan`` rows: stated expected fraction vs
+    measured fraction of pixels within the true δ, and the smallest per-pixel probability."""
+    out = []
+    keys = sorted({(r["effort"], r["optics"] + (" + SA" if r["asymmetric"] else ""), r["confidence"],
+                    r.get("plan_fs_factor", 1.0)) for r in rows})
+    for eff, opt, conf, fsf in keys:
+        g = [r for r in rows if (r["effort"], r["optics"] + (" + SA" if r["asymmetric"] else ""), r["confidence"],
+                                 r.get("plan_fs_factor", 1.0)) == (eff, opt, conf, fsf)]
+        st = np.array([r["plan_stated"] for r in g])
+        me = np.array([r["plan_measured"] for r in g])
+        n = np.array([r["plan_frames"] for r in g])
+        out.append({"effort": eff, "optics": opt, "confidence": conf, "fs": f"{fsf:g}x", "lenses": len(g),
+                    "frames": f"{n.min()}-{n.max()}", "stated": float(st.mean()), "measured": float(me.mean()),
+                    "min_measured": float(me.min()), "max_diff": float(np.max(np.abs(st - me))),
+                    "within": f"{int(np.sum(np.abs(st - me) <= 0.02))}/{len(g)}",
+                    "worst_p": float(min(r["plan_worst"] for r in g))})
+    cols = [("effort", "effort", ""), ("optics", "optics", ""), ("--confidence", "confidence", "g"),
+            ("plan fs", "fs", ""), ("lenses", "lenses", ""), ("frames", "frames", ""),
+            ("mean stated (expected fraction)", "stated", ".4f"), ("mean measured", "measured", ".4f"),
+            ("lowest measured", "min_measured", ".4f"), ("max abs(stated − measured)", "max_diff", ".4f"),
+            ("within 2 points", "within", ""), ("smallest per-pixel probability", "worst_p", ".4f")]
+    return "\n".join(md_table(out, cols))
+
+
+def run_one(lens: dict, effort: str, seed: int = 0, plans: bool = False, keep: Path | None = None,
+            k: int = 0) -> dict:
     import fieldcal
 
     t0 = time.perf_counter()
     prof = fieldcal.calibrate(lens["dir"], fs_cyc_per_mm=lens["fs"], effort=effort, z_ref_um=0.0, seed=seed,
                               quiet=True)
     dt = time.perf_counter() - t0
+    if keep is not None:
+        keep_profile(keep, k, effort, lens, prof)
     after = evaluate(prof, lens)
     sc = prof.diagnostics["surface"].get("self_check", {})
     scale = prof.surfaces.band_scale
@@ -322,13 +401,13 @@ def render_table(rows, efforts, argv_text: str, note: str = "", title: str = TIT
 
 def lens_rows(job) -> list[dict]:
     """Lens ``k``: render its stack and calibrate it at each effort (one task of a --scheduler run)."""
-    k, width, optics, stage_errors, efforts, workdir, plans = job
+    k, width, optics, stage_errors, efforts, workdir, plans, keep = job
     if BENCH_DIR not in sys.path:  # on a Dask worker: this folder's modules (_common)
         sys.path.insert(0, BENCH_DIR)
     lens = simulate_lens(k, width, Path(workdir), optics, stage_errors=stage_errors)
     rows = []
     for eff in efforts:
-        r = run_one(lens, eff, plans=plans)
+        r = run_one(lens, eff, plans=plans, keep=keep, k=k)
         r.update(lens=k, effort=eff, step_um=lens["step_um"], optics=lens["optics"],
                  asymmetric=lens["asymmetric"], f_number=lens["f_number"], width_px=lens["width_px"])
         rows.append(r)
@@ -371,7 +450,16 @@ def main(argv=None) -> int:
                     help="also check a --confidence 0.9 stack plan from each profile against the truth")
     ap.add_argument("--keep", type=Path, default=None,
                     help="render the stacks into this folder and reuse those already there (re-runs of the same "
-                         "lenses skip the slow wave-optics rendering)")
+                         "lenses skip the slow wave-optics rendering); store each profile, lens spec and stage "
+                         "record there too (for --replan)")
+    ap.add_argument("--replan", type=Path, default=None,
+                    help="re-check --confidence plans of the profiles stored with --keep in this folder; no "
+                         "rendering or calibration")
+    ap.add_argument("--replan-table", type=Path, default=None, help="print the table of a --replan --jsonl file")
+    ap.add_argument("--confidences", default="0.9", help="--replan: comma list of --confidence levels")
+    ap.add_argument("--plan-fs-factors", default="1", help="--replan: plans at these multiples of the calibration's fs")
+    ap.add_argument("--plan-coverage", type=float, default=0.99,
+                    help="--replan: the plans' coverage target on top of --confidence (0: none, the confidence alone)")
     ap.add_argument("--jsonl", type=Path, help="append each lens's rows to this file (chunked runs)")
     ap.add_argument("--from-jsonl", type=Path, help="make the table from the rows of a --jsonl file, run nothing")
     ap.add_argument("--note", default="", help="a sentence appended to the table's caption")
@@ -390,6 +478,17 @@ def main(argv=None) -> int:
     skip = {"--note", "--title", "--section"}
     argv_text = " ".join(a for i, a in enumerate(raw) if a not in skip and (i == 0 or raw[i - 1] not in skip))
     rows = []
+    if args.replan:
+        rows = replan(args.replan, [float(v) for v in args.confidences.split(",")], efforts,
+                      [float(v) for v in args.plan_fs_factors.split(",")],
+                      args.plan_coverage if args.plan_coverage > 0 else None)
+        if args.jsonl:
+            args.jsonl.write_text("".join(json.dumps(r) + "\n" for r in rows))
+        print(replan_table(rows))
+        return 0
+    if args.replan_table:
+        print(replan_table([json.loads(line) for line in args.replan_table.read_text().splitlines() if line.strip()]))
+        return 0
     if args.from_jsonl:
         rows = [json.loads(line) for line in args.from_jsonl.read_text().splitlines() if line.strip()]
         rows = [r for r in rows if r["effort"] in efforts]
@@ -399,7 +498,8 @@ def main(argv=None) -> int:
         scheduler = check_scheduler(args.scheduler, args.workers) if args.scheduler else None
         with (tempfile.TemporaryDirectory(prefix="bench-bands-") if args.keep is None
               else _kept(args.keep)) as tmp:
-            jobs = [(f"lens{k:02d}", (k, args.width, args.optics, not args.no_stage_errors, efforts, tmp, args.plans))
+            jobs = [(f"lens{k:02d}", (k, args.width, args.optics, not args.no_stage_errors, efforts, tmp, args.plans,
+                                   args.keep))
                     for k in range(args.start, args.start + args.lenses)
                     if args.only is None or lens_plan(k, args.optics)[0] == args.only]
             if scheduler is None:

@@ -71,13 +71,15 @@ def lens_set(n_random: int, seed: int, width_px: int):
 
 
 def prepare(work: Path, n_random: int, seed: int, width_px: int, scenes, effort: str, fs_px: float = 0.0,
-            step_frac: float = 0.5, min_frames_planned: int = 0) -> None:
+            step_frac: float = 0.5, min_frames_planned: int = 0, only: str = "") -> None:
     from fieldcal.calibration.pipeline import calibrate
     from fieldcal.simulate.stackgen import simulate_stack
     from fieldcal.validation.run import chart_positions_um, default_fs
 
     work.mkdir(parents=True, exist_ok=True)
     for name, spec, optics in lens_set(n_random, seed, width_px):
+        if only and not any(o in name for o in only.split(",")):
+            continue
         fs = (default_fs(spec.sensor.pixel_pitch_um) if fs_px <= 0
               else float(round(fs_px / (spec.sensor.pixel_pitch_um / 1000.0))))
         tol = min(spec.focus_tolerance_um(fs, Q, c) for c in spec.channel_names)
@@ -108,13 +110,39 @@ def prepare(work: Path, n_random: int, seed: int, width_px: int, scenes, effort:
                   f"{prof.calibration.get('measurement')}", flush=True)
 
 
+def recalibrate(src: Path, work: Path, effort: str, seed: int, only: str = "") -> None:
+    """Calibrate the stacks stored by ``prepare`` in ``src`` again with this code into ``work`` (the stack, spec
+    and meta are linked, not copied): the same renders, today's measurement and fit."""
+    from fieldcal.calibration.pipeline import calibrate
+
+    for d in sorted(p.parent for p in src.glob("*/meta.json")):
+        if only and not any(o in d.name for o in only.split(",")):
+            continue
+        out = work / d.name
+        if (out / "lens.json").exists():
+            continue
+        out.mkdir(parents=True, exist_ok=True)
+        for name in ("stack", "spec.json", "meta.json"):
+            if not (out / name).exists():
+                (out / name).symlink_to((d / name).resolve())
+        meta = json.loads((d / "meta.json").read_text())
+        t0 = time.perf_counter()
+        try:
+            prof = calibrate(d / "stack", effort=effort, fs_cyc_per_mm=float(meta["fs"]), q=Q, seed=seed, quiet=True)
+        except Exception as e:  # noqa: BLE001 - a benchmark records the failure and goes on
+            print(f"{d.name}: calibration failed: {e}", flush=True)
+            continue
+        prof.save(out / "lens.json")
+        print(f"{d.name}: {time.perf_counter() - t0:.0f} s", flush=True)
+
+
 def _median_ratio(tol_fn, truth, w: int, h: int, channels, fs: float) -> float:
     gx, gy = np.meshgrid(np.linspace(0.05, 0.95, 15) * (w - 1), np.linspace(0.05, 0.95, 9) * (h - 1))
     return float(np.median(np.concatenate([np.ravel(tol_fn(gx, gy, c)) / np.ravel(
         truth.focus_tolerance_um(gx, gy, c, fs, Q)) for c in channels])))
 
 
-def evaluate_one(d: Path, coverage: float | None = 0.99) -> dict:
+def evaluate_one(d: Path, coverage: float | None = 0.99, confidence: float | None = None) -> dict:
     from fieldcal.optics import MTFCriterion
     from fieldcal.plan import StackRequest, plan_stack
     from fieldcal.plan.tolerance import tolerance_um
@@ -142,11 +170,12 @@ def evaluate_one(d: Path, coverage: float | None = 0.99) -> dict:
                                       prof.channels, fs)
     true_tol = {c: float(np.asarray(truth.focus_tolerance_um(0.0, 0.0, c, fs, Q))) for c in truth.channels}
     row["true_tol_um"] = min(true_tol.values())
-    plan = plan_stack(prof, StackRequest(fs_cyc_per_mm=fs, q=Q, coverage=coverage))
+    plan = plan_stack(prof, StackRequest(fs_cyc_per_mm=fs, q=Q, coverage=coverage, confidence=confidence))
     opt = plan_stack(truth, StackRequest(fs_cyc_per_mm=fs, q=Q, coverage=None))
     cov, _ = plan_coverage(np.asarray(plan.frames_um), truth, true_tol, plan.field.refocus_um)
     row.update(n=plan.n_frames, n_fewest=int(plan.stats["fewest_frames"]), n_opt=opt.n_frames,
-               stated=float(plan.stats["expected_fraction"]),
+               stated=float(plan.stats["expected_fraction"]), worst_p=float(plan.stats["probability"]),
+               effort=prof.calibration.get("effort", ""),
                measured=float(np.mean([v["coverage"] for v in cov.values()])),
                measured_min=min(v["coverage"] for v in cov.values()))
     return row
@@ -155,7 +184,8 @@ def evaluate_one(d: Path, coverage: float | None = 0.99) -> dict:
 COLS = [("case", "case", ""), ("optics", "optics", ""), ("F", "f_number", ".1f"), ("SA", "sa", ""),
         ("surface RMS (µm)", "rms_um", ".2f"), ("90% band cov.", "band_cov", ".2f"), ("true δ (µm)", "true_tol_um", ".1f"),
         ("raw δ / true", "raw_ratio", ".3f"), ("plan δ / true", "plan_ratio", ".3f"),
-        ("N / fewest / optimum", "ns", ""), ("stated", "stated", ".4f"), ("measured", "measured", ".4f"),
+        ("N / fewest / optimum", "ns", ""), ("stated", "stated", ".4f"), ("worst pixel p", "worst_p", ".4f"),
+        ("measured", "measured", ".4f"),
         ("worst channel", "measured_min", ".4f")]
 
 
@@ -188,7 +218,9 @@ def write_docs(text: str) -> None:
     block = head + "\n\n" + text.strip() + "\n"
     if head in s:
         a = s.index(head)
-        b = s.find("\n## ", a + len(head))
+        # the next section: its heading, or the marker comment some sections open with
+        ends = [e for e in (s.find("\n## ", a + len(head)), s.find("\n<!-- bench_", a + len(head))) if e >= 0]
+        b = min(ends) if ends else -1
         s = s[:a] + block + ("\n" + s[b + 1:] if b >= 0 else "")
     else:
         s = s.rstrip() + "\n\n" + block
@@ -231,7 +263,8 @@ def widths(work: Path, fs_factors, scene: str, effort: str, seed: int, only: str
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("stage", choices=("prepare", "evaluate", "widths"))
+    ap.add_argument("stage", choices=("prepare", "recalibrate", "evaluate", "widths"))
+    ap.add_argument("--from", dest="src", default=None, help="recalibrate: the prepared folder whose stacks to use")
     ap.add_argument("--work", default="/tmp/plancov", help="folder of the cached stacks and profiles")
     ap.add_argument("--random", type=int, default=6, help="random lenses besides the triplet")
     ap.add_argument("--width", type=int, default=480, help="render width (px)")
@@ -242,15 +275,21 @@ def main(argv=None) -> int:
     ap.add_argument("--min-frames", type=int, default=0, help="skip lenses whose plan needs fewer frames")
     ap.add_argument("--seed", type=int, default=1300)
     ap.add_argument("--coverage", type=float, default=0.99, help="the plans' coverage target (0: fewest frames)")
+    ap.add_argument("--confidence", type=float, default=0.0,
+                    help="evaluate: plans with this --confidence (0: none); rows go to rows-cP.json")
     ap.add_argument("--fs-factors", default="0.5,1,1.5", help="widths: fs as multiples of the stored fs")
     ap.add_argument("--widths-scene", default="chart", help="widths: which stored stacks (chart or slanted-edge)")
-    ap.add_argument("--only", default="", help="widths: only stacks whose name holds one of these (comma-separated)")
+    ap.add_argument("--only", default="",
+                    help="prepare, widths, recalibrate: only lenses/stacks whose name holds one of these (comma list)")
     ap.add_argument("--docs", action="store_true", help="write the table into docs/benchmarks.md")
     args = ap.parse_args(argv)
     work = Path(args.work)
     if args.stage == "prepare":
         prepare(work, args.random, args.seed, args.width, args.scenes.split(","), args.effort, args.fs_px,
-                args.step_frac, args.min_frames)
+                args.step_frac, args.min_frames, args.only)
+        return 0
+    if args.stage == "recalibrate":
+        recalibrate(Path(args.src), work, args.effort, args.seed, args.only)
         return 0
     if args.stage == "widths":
         rows = widths(work, [float(v) for v in args.fs_factors.split(",")], args.widths_scene, args.effort, args.seed,
@@ -259,13 +298,16 @@ def main(argv=None) -> int:
         return 0
     rows = []
     for d in sorted(p.parent for p in work.glob("*/lens.json")):
-        r = evaluate_one(d, None if args.coverage <= 0 else args.coverage)
+        r = evaluate_one(d, None if args.coverage <= 0 else args.coverage,
+                         args.confidence if args.confidence > 0 else None)
         rows.append(r)
         print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}, flush=True)
-    (work / "rows.json").write_text(json.dumps(rows, indent=1))
+    name = "rows.json" if args.confidence <= 0 else f"rows-c{args.confidence:g}.json"
+    (work / name).write_text(json.dumps(rows, indent=1))
+    conf = f", --confidence {args.confidence:g}" if args.confidence > 0 else ""
     text = (f"`python benchmarks/bench_plan_coverage.py prepare --work W --random {args.random}` then "
-            f"`evaluate --work W`: {len(rows)} profiles, fs = 0.4 Nyquist, q = {Q}, coverage target "
-            f"{args.coverage}.\n\n" + table(rows) + "\n\nWidths as measured (before the plan's correction):\n\n"
+            f"`evaluate --work W`: {len(rows)} profiles, q = {Q}, coverage target "
+            f"{args.coverage}{conf}.\n\n" + table(rows) + "\n\nWidths as measured (before the plan's correction):\n\n"
             + width_summary(rows))
     print(text)
     if args.docs:

@@ -153,6 +153,7 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     from fieldcal.fit.selfcheck import field_wide_coverage
     from fieldcal.fit.stage import fit_stage_errors
     from fieldcal.fit.tolerance import fit_tolerance
+    from fieldcal.fit.width_window import correct_widths
     from fieldcal.fit.tiles import (breathing_systematic_sd_um, colour_rows, fit_tile_surfaces, geometry_columns,
                                     measure_offset_sd_um, systematic_record)
 
@@ -211,8 +212,11 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     gmap, absd = _geometry_map(stack, geometry_maps, float(geo_c.z_ref_um), quiet)
     tol, tol_note = None, None
     try:
-        tol = fit_tolerance(tiles, geometry, MTFCriterion(fs_cyc_per_mm, q), centre_px=centre,
+        # each tile's width without the spread of best focus inside it (fit/width_window.py)
+        tiles_w, window_note = correct_widths(surf, tiles, table.z_um, float(table.tile_px), fs_cyc_per_mm, q)
+        tol = fit_tolerance(tiles_w, geometry, MTFCriterion(fs_cyc_per_mm, q), centre_px=centre,
                             source=str(stack.path))
+        tol.diagnostics["width_window"] = window_note
     except FieldcalError as e:  # planning falls back to the defocus model and says so
         tol_note = f"no measured tolerance model: {e.what}"
     hasher.join()
