@@ -410,9 +410,10 @@ def test_tiles_across_a_steep_surface_are_placed_where_they_measure(models_dir):
 
 
 def test_breathing_sensitivity_predicts_the_shift_of_another_window_exponent(colour, monkeypatch):
-    """z_dgamma_um is d z_best / d(SML window exponent): measuring with the exponent 0.5 higher moves each
-    tile's best focus by 0.5 z_dgamma (the bias is linear in it); a telecentric stack has none."""
-    import fieldcal.measure.tiles as tiles_mod
+    """z_dgamma_um is d z_best / d(exponent of a residual gain m^k on the SML): measuring with the SML's
+    breathing exponent 0.5 higher moves each tile's best focus by 0.5 z_dgamma (the bias is linear in it); a
+    telecentric stack has none."""
+    from fieldcal.measure import focus as focus_mod
 
     spec, stack = colour
     fs = fs_for(spec)
@@ -420,7 +421,13 @@ def test_breathing_sensitivity_predicts_the_shift_of_another_window_exponent(col
     sens = table.z_dgamma_um
     ok = table.ok & np.isfinite(sens)
     assert ok.sum() > 0.8 * table.ok.sum() and np.median(np.abs(sens[ok])) > 0.01
-    monkeypatch.setattr(tiles_mod, "SML_WINDOW_EXPONENT", tiles_mod.SML_WINDOW_EXPONENT + 0.5)
+    plain = focus_mod.sml_dilation
+
+    def gamma_plus_half(plane):  # gamma = 2 dilation / sml: adding sml / 4 raises it by 0.5
+        s, d = plain(plane)
+        return s, d + np.float32(0.25) * s
+
+    monkeypatch.setattr(focus_mod, "sml_dilation", gamma_plus_half)
     moved, _ = measure_stack(stack, fs_cyc_per_mm=fs, measure="sml", quiet=True)
     both = ok & moved.ok
     np.testing.assert_allclose(moved.z_best_um[both] - table.z_best_um[both], 0.5 * sens[both],

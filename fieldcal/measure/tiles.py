@@ -31,14 +31,17 @@ from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
                        lateral_colour_scales, register_step, registration_plane)
 from .throughfocus import CurveFit, CurveRules, analyse_curves, apply_measure_offset, apply_pooled_skew
 
-# The SML window sum follows the image as m^2 (an image magnified by m has second derivatives / m^2 over a
-# window of m^2 pixels). On 12 simulated breathing lenses (F/2.5-F/3.9, exit pupils 20-50 mm) the exponent
-# that removes each one's bias of the fitted surface averaged 1.99 with sd 0.61: texture and optics make the
-# true scaling differ from lens to lens. That sd times each tile's sensitivity dz/d(exponent), measured on
-# the stack itself, is the breathing systematic of the band (docs/fitting.md "Breathing systematic").
-SML_WINDOW_EXPONENT = 2.0
+# Focus breathing: the image of a scene patch is magnified by m(z) through the scan. The SML is taken with a
+# Gaussian-derivative kernel whose width follows m (focus.sml_scaled), and its per-pixel mean over a tile that
+# grows with the image, times m^2, is then the same for a fixed scene patch whatever its spectrum (the 3-tap
+# kernel's response made the right exponent depend on the texture: 1.99 +- 0.61 over 12 simulated lenses). What
+# remains is physics no measure of the frame can remove: the in-focus PSF (diffraction, residual blur, pixel
+# aperture) stays fixed at the sensor while the scene grows, so relative to the scene it shrinks as 1/m. Its
+# effect is a gain ~ m^k on the curve, k = d ln SML / d ln(1 / in-focus width), carried as an exponent sd times
+# each tile's sensitivity dz/d(exponent) measured on the stack: the breathing systematic of the band
+# (docs/fitting.md "Breathing systematic").
 MIN_TILE_PX = 32
-SML_WINDOW_EXPONENT_SD = 0.61
+SML_SCALE_RESIDUAL_SD = 0.61
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
 
 EFFORTS = {
@@ -111,8 +114,9 @@ class TileTable:
     image_size_px: tuple[int, int] = (0, 0)
     pixel_pitch_um: float = math.nan
     curves: dict[str, np.ndarray] = field(default_factory=dict)
-    # d z_best / d (SML window exponent) per row (µm per unit exponent; 0 without breathing, NaN when the
-    # best focus is not the SML's or the row is rejected): the breathing systematic's sensitivity
+    # d z_best / d (exponent of a residual gain m^k on the SML curve) per row (µm per unit exponent; 0 without
+    # breathing, NaN when the best focus is not the SML's or the row is rejected): the breathing systematic's
+    # sensitivity
     z_dgamma_um: np.ndarray | None = None
     # best-focus sd per unit of independent per-frame stage-position noise (dimensionless; NaN when rejected):
     # the stage-repeatability term of the band (docs/fitting.md "Stage errors")
@@ -292,7 +296,11 @@ def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None
     if fbin > 1:
         plane = downsample(plane, fbin)
     c = m.cell
-    m.maps["sml"][k] = focus.cell_sums(focus.sml(plane), c)
+    # the SML and its dilation term, whose ratio is the SML's breathing exponent in each tile (_tile_curves)
+    sml, dilation = focus.sml_dilation(plane)
+    m.maps["sml"][k] = focus.cell_sums(sml, c)
+    m.maps["sml_dilation"][k] = focus.cell_sums(dilation, c)
+    del sml, dilation
     m.maps["sum"][k] = focus.cell_sums(plane, c)
     if "bandpass" in m.maps:
         band = focus.bandpass(plane, m.f0_cyc_per_px / scale)
@@ -361,7 +369,7 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
             cell = max(2, cfg["cell"] // lay0.stride)
             ph, pw = plane_shape((h, w), lay0)
             hc, wc = focus.cell_grid((ph // fbin, pw // fbin), cell)
-            names = ["sml", "sum", "sat"]
+            names = ["sml", "sml_dilation", "sum", "sat"]
             if with_bp:
                 names += ["bandpass"] + (["along", "across"] if cfg["directional"] else [])
             maps.append(_Maps(lay, cell, f0, {k: np.empty((n, hc, wc), np.float32) for k in names}))
@@ -528,11 +536,16 @@ def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: n
                                                  bx0, by0, bx1, by1) / area
                 out["my"][:, k] = focus.box_sums(focus.integral(e * ycell[:, None].astype(np.float32)),
                                                  bx0, by0, bx1, by1) / area
-        # The window grows with the image (area ~ m^2) so it keeps the same scene content; the SML's second
-        # derivatives of an image magnified by m fall as 1/m^2, so its per-pixel mean trends as m^-2 through the
-        # scan and pulls every peak towards smaller m (-0.47 µm on the triplet's breathing, measured on a flat
-        # lens). The window *sum* (mean x m^2 in reference pixels) is invariant: use that.
-        mk = float(geometry.magnification[k, geometry.channel_index(lay.name)]) ** SML_WINDOW_EXPONENT
+        # The window grows with the image (area ~ m^2) so it keeps the same scene content; the SML's mean over it
+        # then scales as m^-gamma, gamma = 2 mean(dilation term) / mean(SML) measured here, in this tile and frame
+        # (focus.sml_dilation: 2 for a continuous second derivative, 1-2 for the 3-tap one, set by the texture's
+        # spectrum and the blur). Multiplying by m^gamma puts every frame at the reference frame's scale.
+        s_mean = out["sml"][:, k]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gamma = np.where(s_mean > 0, 2.0 * out["sml_dilation"][:, k] / s_mean, 2.0)
+        # pi f cot(pi f) is in [0, 1], so gamma in [0, 2] up to the sign statistics of the L1 means: a guard only
+        gamma = np.clip(np.nan_to_num(gamma, nan=2.0), 0.0, 3.0)
+        mk = float(geometry.magnification[k, geometry.channel_index(lay.name)]) ** gamma
         out["sml"][:, k] *= mk
         if moments_of == "sml":  # its first moments share the normalisation (they are divided by it later)
             out["mx"][:, k] *= mk
@@ -600,8 +613,8 @@ def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurement
 
 def _exponent_sensitivity(cc, geometry: GeometryMeasurements, channel: str, z: np.ndarray, res: dict,
                           measure: str, q: float, rules: TileRules) -> np.ndarray:
-    """d z_best / d(SML window exponent) of each accepted tile (µm per unit exponent), by refitting its SML
-    curve with the window sum scaled by m^_DGAMMA more. 0 when the image does not breathe."""
+    """d z_best / d(exponent of a residual gain m^k on the SML curve) of each accepted tile (µm per unit
+    exponent), by refitting its SML curve scaled by m^_DGAMMA. 0 when the image does not breathe."""
     out = np.full(res["z_best_um"].size, np.nan)
     if measure not in _SML_BASED:
         return out
