@@ -240,20 +240,17 @@ def _patch_mean(a: np.ndarray, m: float, half_px: float = 60.0) -> float:
 
 
 def _normalised_sml(frame: np.ndarray, m: float, half_px: float = 60.0) -> tuple[float, float]:
-    """(SML patch mean x m^gamma with gamma measured on the frame (calibration's normalisation), x m^2 (the old
-    constant one))."""
-    s, d = focus.sml_dilation(frame)
-    ms, md = _patch_mean(s, m, half_px), _patch_mean(d, m, half_px)
-    return ms * m ** (2.0 * md / ms), ms * m * m
+    """(SML patch mean with the frame's scale term (calibration's), 3-tap SML patch mean x m^2 (the old
+    constant normalisation))."""
+    return _patch_mean(focus.sml(frame, m), m, half_px), _patch_mean(focus.sml(frame), m, half_px) * m * m
 
 
 @pytest.mark.parametrize("beta", [0.0, 1.0, 2.0])
 @pytest.mark.parametrize("sigma_px", [0.3, 0.7, 1.5])
-def test_sml_dilation_exponent_predicts_how_the_sml_scales(beta, sigma_px):
-    """The SML's scaling exponent measured on one frame (2 mean(dilation term) / mean(SML)) predicts how its mean
-    over a fixed scene patch changes when the image is magnified by 0.98 and 1.02: the normalised value's
-    d ln / d ln m is within 0.15 of 0 (measured <= 0.125, the sharpest textures), where the constant exponent
-    2 leaves 0.15-1.2 on the sharper ones, set by the texture's spectrum and blur."""
+def test_scaled_sml_is_invariant_to_magnification_whatever_the_spectrum(beta, sigma_px):
+    """The SML with the frame's scale term, averaged over a fixed scene patch, is the same for the image
+    magnified by 0.98 and 1.02: its d ln / d ln m is within 0.15 of 0 (measured <= 0.13, the sharpest
+    textures), where the 3-tap SML x m^2 leaves 0.15-1.2 on the sharper ones, set by the spectrum and blur."""
     img = _texture(256, beta, seed=3, sigma_px=sigma_px)
     ms = (0.98, 1.02)
     vals = np.array([_normalised_sml(_magnified(img, m), m) for m in ms])
@@ -263,25 +260,27 @@ def test_sml_dilation_exponent_predicts_how_the_sml_scales(beta, sigma_px):
         assert abs(slope[1]) > 0.15 and abs(slope[1]) > 2 * abs(slope[0])
 
 
-def test_sml_dilation_kernel_is_the_central_difference_of_the_derivative():
-    """Its response is -2 pi f sin(2 pi f) within 3 % of the 3-tap SML's up to 0.4 cycles/px; zero at DC."""
-    k = focus._dilation_kernel().astype(np.float64)
-    n = np.arange(k.size) - k.size // 2
+def test_sml_scale_kernel_is_the_central_difference_of_the_derivative():
+    """K1's response is -2 pi f sin(2 pi f) within 3 % of the 3-tap SML's up to 0.4 cycles/px, K2's
+    -4 pi^2 f^2 cos(2 pi f) within 10 % (a second-order term); both zero at DC."""
+    k1, k2 = focus._scale_kernels()
+    n = np.arange(k1.size) - k1.size // 2
     f = np.linspace(0.02, 0.4, 20)
-    resp = np.array([np.sum(k * np.cos(2 * np.pi * x * n)) for x in f])
-    exact = -2 * np.pi * f * np.sin(2 * np.pi * f)
-    assert abs(k.sum()) < 1e-6
-    assert np.max(np.abs(resp - exact) / (4 * np.sin(np.pi * f) ** 2)) < 0.03
+    resp = lambda k: np.array([np.sum(k * np.cos(2 * np.pi * x * n)) for x in f])  # noqa: E731
+    l3 = 4 * np.sin(np.pi * f) ** 2
+    assert abs(k1.sum()) < 1e-9 and abs(k2.sum()) < 1e-9
+    assert np.max(np.abs(resp(k1) + 2 * np.pi * f * np.sin(2 * np.pi * f)) / l3) < 0.03
+    assert np.max(np.abs(resp(k2) + 4 * np.pi ** 2 * f ** 2 * np.cos(2 * np.pi * f)) / l3) < 0.1
 
 
 @pytest.mark.parametrize("beta", [0.0, 2.0])
-def test_breathing_does_not_bias_the_normalised_sml_peak(beta):
+def test_breathing_does_not_bias_the_scaled_sml_peak(beta):
     """Controlled through-focus stack: a texture blurred by a Gaussian of sd sqrt(s0^2 + (b dz)^2) about z0 in the
     scene's own coordinates, then magnified by m(z) = 1 + (z - z_ref) / 2 mm (-3 to +7 %: breathing made
     strong so the old bias stands out of the fit's noise). Every frame is the same scene content at another
-    scale, so a measure normalised for scale exactly peaks at z0 (closed form). The SML x m^gamma (gamma
-    measured per frame) does, within 0.0015 step (measured 0.001-0.003 µm); the SML x m^2 (the old
-    normalisation) is off by 0.028-0.030 µm, over 5x that."""
+    scale, so a measure normalised for scale exactly peaks at z0 (closed form). The SML with the frame's scale
+    terms does, within 0.0015 step (measured 0.0002-0.004 µm); the 3-tap SML x m^2 (the old normalisation) is
+    off by 0.028-0.030 µm, over 5x that."""
     from fieldcal.measure.throughfocus import analyse_curves
 
     n, step, z0, z_ref = 224, 8.0, 3.0, -40.0  # m = 1 + (z - z_ref) / 2 mm

@@ -357,11 +357,14 @@ def test_focus_breathing_does_not_bias_band_pass_best_focus_or_width():
     ok = th.ok & np.isfinite(th.z_tan_um) & np.isfinite(th.z_sag_um)
     assert ok.sum() >= 30
     assert abs(np.mean(th.z_tan_um[ok]) - 3.3) < 0.5 and abs(np.mean(th.z_sag_um[ok]) - 3.3) < 0.5
-    # widths as without any breathing (frequency followed, then referred back to fs at the peak)
+    # widths as without any breathing (frequency followed, then referred back to fs at the peak), to 1.5 %: the
+    # PSF stays at the sensor's scale (the renderer since session 6), so the followed frequency fs m(z0)/m(z)
+    # meets the defocus blur at a frequency that drifts 7.5 % over this scan and skews the curve's flanks
+    # (1.1 % here; ~0.1 % at a real lens's breathing; with the PSF magnified with the scene it held to 0.8 %)
     _, still = _flat_lens_stack(math.inf, z)
     ref = measure_tiles(still, fs_cyc_per_mm=fs, measure="bandpass", quiet=True)
     w_breath, w_still = np.median(table.width_um[table.ok]), np.median(ref.width_um[ref.ok])
-    assert w_breath == pytest.approx(w_still, rel=0.008)
+    assert w_breath == pytest.approx(w_still, rel=0.015)
     assert abs(np.mean(ref.z_best_um[ref.ok]) - 3.3) < 0.1
 
 
@@ -421,13 +424,10 @@ def test_breathing_sensitivity_predicts_the_shift_of_another_window_exponent(col
     sens = table.z_dgamma_um
     ok = table.ok & np.isfinite(sens)
     assert ok.sum() > 0.8 * table.ok.sum() and np.median(np.abs(sens[ok])) > 0.01
-    plain = focus_mod.sml_dilation
-
-    def gamma_plus_half(plane):  # gamma = 2 dilation / sml: adding sml / 4 raises it by 0.5
-        s, d = plain(plane)
-        return s, d + np.float32(0.25) * s
-
-    monkeypatch.setattr(focus_mod, "sml_dilation", gamma_plus_half)
+    plain = focus_mod.sml
+    # x scale^0.5: the exponent 0.5 higher (the scan's scale is relative to frame 0, the sensitivity's to the
+    # reference frame: a constant factor, no effect on best focus)
+    monkeypatch.setattr(focus_mod, "sml", lambda plane, scale=1.0: plain(plane, scale) * np.float32(scale ** 0.5))
     moved, _ = measure_stack(stack, fs_cyc_per_mm=fs, measure="sml", quiet=True)
     both = ok & moved.ok
     np.testing.assert_allclose(moved.z_best_um[both] - table.z_best_um[both], 0.5 * sens[both],

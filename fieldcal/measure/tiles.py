@@ -31,17 +31,17 @@ from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
                        lateral_colour_scales, register_step, registration_plane)
 from .throughfocus import CurveFit, CurveRules, analyse_curves, apply_measure_offset, apply_pooled_skew
 
-# Focus breathing: the image of a scene patch is magnified by m(z) through the scan. The SML is taken with a
-# Gaussian-derivative kernel whose width follows m (focus.sml_scaled), and its per-pixel mean over a tile that
-# grows with the image, times m^2, is then the same for a fixed scene patch whatever its spectrum (the 3-tap
-# kernel's response made the right exponent depend on the texture: 1.99 +- 0.61 over 12 simulated lenses). What
-# remains is physics no measure of the frame can remove: the in-focus PSF (diffraction, residual blur, pixel
-# aperture) stays fixed at the sensor while the scene grows, so relative to the scene it shrinks as 1/m. Its
-# effect is a gain ~ m^k on the curve, k = d ln SML / d ln(1 / in-focus width), carried as an exponent sd times
-# each tile's sensitivity dz/d(exponent) measured on the stack: the breathing systematic of the band
+# Focus breathing: the image of a scene patch is magnified by m(z) through the scan. The 3-tap SML's mean over a
+# patch that follows the image scales as m^-gamma with gamma 0.8-2 set by the texture's spectrum and the blur
+# (a constant 2 left an exponent error of sd 0.61 across simulated lenses); each frame's SML is therefore taken
+# with a first-order scale term in its kernel (focus.sml(plane, scale)), which removes that for any spectrum.
+# What remains is physics no measure of the frame can remove: the in-focus PSF (diffraction, residual blur,
+# pixel aperture) stays fixed at the sensor while the scene grows, so relative to the scene it shrinks as 1/m,
+# a gain ~ m^k on the curve; and the error of the scale term. Both are carried as an exponent sd times each
+# tile's sensitivity dz/d(exponent) measured on the stack: the breathing systematic of the band
 # (docs/fitting.md "Breathing systematic").
 MIN_TILE_PX = 32
-SML_SCALE_RESIDUAL_SD = 0.61
+SML_SCALE_RESIDUAL_SD = 0.1
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
 
 EFFORTS = {
@@ -289,18 +289,15 @@ def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None
     """Fill frame ``k`` of every cell map of one plane (runs in a worker thread: OpenCV releases the GIL).
 
     ``plane``: the normalised float32 plane, or ``(raw, black, gain)`` to normalise here. ``scale``: the
-    image's magnification in this frame, so the band-pass follows the scene.
+    image's magnification in this frame (relative to frame 0), so the band-pass and the SML follow the scene.
     """
     if isinstance(plane, tuple):
         plane = _normalised(*plane)
     if fbin > 1:
         plane = downsample(plane, fbin)
     c = m.cell
-    # the SML and its dilation term, whose ratio is the SML's breathing exponent in each tile (_tile_curves)
-    sml, dilation = focus.sml_dilation(plane)
-    m.maps["sml"][k] = focus.cell_sums(sml, c)
-    m.maps["sml_dilation"][k] = focus.cell_sums(dilation, c)
-    del sml, dilation
+    # the SML at frame 0's scale: its mean over a tile that follows the image is then invariant to breathing
+    m.maps["sml"][k] = focus.cell_sums(focus.sml(plane, scale), c)
     m.maps["sum"][k] = focus.cell_sums(plane, c)
     if "bandpass" in m.maps:
         band = focus.bandpass(plane, m.f0_cyc_per_px / scale)
@@ -369,7 +366,7 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
             cell = max(2, cfg["cell"] // lay0.stride)
             ph, pw = plane_shape((h, w), lay0)
             hc, wc = focus.cell_grid((ph // fbin, pw // fbin), cell)
-            names = ["sml", "sml_dilation", "sum", "sat"]
+            names = ["sml", "sum", "sat"]
             if with_bp:
                 names += ["bandpass"] + (["along", "across"] if cfg["directional"] else [])
             maps.append(_Maps(lay, cell, f0, {k: np.empty((n, hc, wc), np.float32) for k in names}))
@@ -536,20 +533,8 @@ def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: n
                                                  bx0, by0, bx1, by1) / area
                 out["my"][:, k] = focus.box_sums(focus.integral(e * ycell[:, None].astype(np.float32)),
                                                  bx0, by0, bx1, by1) / area
-        # The window grows with the image (area ~ m^2) so it keeps the same scene content; the SML's mean over it
-        # then scales as m^-gamma, gamma = 2 mean(dilation term) / mean(SML) measured here, in this tile and frame
-        # (focus.sml_dilation: 2 for a continuous second derivative, 1-2 for the 3-tap one, set by the texture's
-        # spectrum and the blur). Multiplying by m^gamma puts every frame at the reference frame's scale.
-        s_mean = out["sml"][:, k]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            gamma = np.where(s_mean > 0, 2.0 * out["sml_dilation"][:, k] / s_mean, 2.0)
-        # pi f cot(pi f) is in [0, 1], so gamma in [0, 2] up to the sign statistics of the L1 means: a guard only
-        gamma = np.clip(np.nan_to_num(gamma, nan=2.0), 0.0, 3.0)
-        mk = float(geometry.magnification[k, geometry.channel_index(lay.name)]) ** gamma
-        out["sml"][:, k] *= mk
-        if moments_of == "sml":  # its first moments share the normalisation (they are divided by it later)
-            out["mx"][:, k] *= mk
-            out["my"][:, k] *= mk
+        # The window grows with the image (area ~ m^2) and keeps the same scene content; the SML maps were taken
+        # with the frame's scale term (_focus_maps, focus.sml), so their per-pixel mean over it needs nothing more.
         out["sat"][:, k] *= c * c  # sat cells hold fractions, not sums: back to a fraction of the tile
         # mean of the squared cell means: with "sum" it gives the texture contrast between cells (cell
         # averaging keeps sensor noise out of it)
