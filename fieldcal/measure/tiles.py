@@ -618,6 +618,61 @@ def _exponent_sensitivity(cc, geometry: GeometryMeasurements, channel: str, z: n
     return out
 
 
+@dataclass(frozen=True)
+class _ScaleAxis:
+    """The focus axis on which a breathing lens's curves are symmetric, and the way back to z.
+
+    With the image scale ``m(z) = 1 + b (z - z_r)`` (b = 1 / the exit pupil's distance) the geometric blur
+    disc at the sensor is ``|z - z0| / N``; a measure taken at the scene's scale (the SML with its scale term,
+    the band-pass that follows the image) sees it divided by m(z), and ``|z - z0| / m(z)`` is proportional to
+    ``|y - y0|`` with ``y = z_r + (z - z_r) / m(z)`` (the sensor's distance from the exit pupil, inverted).
+    In z the curve's flanks are therefore skewed, by ~b x its width squared (2.5 µm on an F/6.7 lens with a
+    16 mm exit pupil at 320 px, where the curves span ~200 µm); in y it is symmetric, so curves are fitted in
+    y and their positions mapped back. ``b`` is the least-squares slope of the measured m(z) (linear to ~1e-4
+    over a scan); b = 0 (telecentric) is the identity.
+    """
+
+    z_ref_um: float
+    b_per_um: float
+
+    def y(self, z):
+        return self.z_ref_um + (np.asarray(z, dtype=np.float64) - self.z_ref_um) / (
+            1.0 + self.b_per_um * (np.asarray(z, dtype=np.float64) - self.z_ref_um))
+
+    def z(self, y):
+        d = np.asarray(y, dtype=np.float64) - self.z_ref_um
+        return self.z_ref_um + d / (1.0 - self.b_per_um * d)
+
+    def dz_dy(self, y):
+        return 1.0 / np.square(1.0 - self.b_per_um * (np.asarray(y, dtype=np.float64) - self.z_ref_um))
+
+
+def _scale_axis(geometry: GeometryMeasurements, channel: str) -> _ScaleAxis:
+    """:class:`_ScaleAxis` of one channel from the measured magnification (relative to the reference frame)."""
+    ci = geometry.channel_index(channel)
+    z = np.asarray(geometry.z_um, dtype=np.float64)
+    m = geometry.magnification[:, ci] / geometry.magnification[geometry.ref_index, ci]
+    dz = z - geometry.z_ref_um
+    ok = np.isfinite(m)
+    den = float(np.sum(dz[ok] ** 2))
+    b = float(np.sum((m[ok] - 1.0) * dz[ok]) / den) if den > 0 else 0.0
+    if not math.isfinite(b) or abs(b) < 1e-12:
+        b = 0.0
+    return _ScaleAxis(geometry.z_ref_um, b)
+
+
+def _to_z(res: dict, axis: _ScaleAxis) -> None:
+    """Map one channel's results from the axis y back to z, in place (positions; sds and widths by dz/dy)."""
+    if axis.b_per_um == 0.0:
+        return
+    gain = axis.dz_dy(res["z_best_um"])
+    res["z_sigma_um"] = res["z_sigma_um"] * gain
+    res["width_um"] = res["width_um"] * gain
+    for key in ("z_best_um", "z_tan_um", "z_sag_um", "z_sml_um"):
+        if key in res:
+            res[key] = axis.z(res[key])
+
+
 def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per_mm: float, q: float,
              measure: str, rules: TileRules, bp_scale: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Tile tests (saturation, texture) then the batched curve fits of one channel's tiles.
@@ -814,8 +869,10 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                                              "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um", "stage_gain")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
     skew = {}
-    results = {ch: _analyse(per_channel[ch], z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
-                            rules=rules, bp_scale=bp_scale) for ch in stack.channels}
+    # curves are fitted on each channel's scale axis (symmetric under breathing), positions mapped back to z
+    axes = {ch: _scale_axis(geometry, ch) for ch in stack.channels}
+    results = {ch: _analyse(per_channel[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
+                            measure=measure, rules=rules, bp_scale=bp_scale) for ch in stack.channels}
     if measure == SML_AT_FS:
         _borrow_offsets(results)
     for ch in stack.channels:
@@ -824,7 +881,9 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         cols["channel"].append(np.full(xs.size, ch))
         if "skew" in res:
             skew[ch] = {k: (v if isinstance(v, (bool, str)) else float(v)) for k, v in res["skew"].items()}
-        cols["z_dgamma_um"].append(_exponent_sensitivity(cc, geometry, ch, z, res, measure, q, rules))
+        sens = _exponent_sensitivity(cc, geometry, ch, axes[ch].y(z), res, measure, q, rules)
+        cols["z_dgamma_um"].append(sens * axes[ch].dz_dy(res["z_best_um"]))
+        _to_z(res, axes[ch])
         xw, yw = _weighted_positions(cc, geometry, ch, "sml" if measure in _SML_BASED else measure, tile, z,
                                      res["z_best_um"])
         ok = res["status"] == "ok"  # rejected tiles keep their geometric centre
