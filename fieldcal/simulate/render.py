@@ -458,18 +458,24 @@ class Renderer:
         if self._wave is not None:
             img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff, z_um, ch)
         else:
-            # The sensor image is the magnified scene convolved with the PSF at the sensor. The blur is applied
-            # in scene pixels before the warp (the levels are of the fixed scene), so it uses the sensor PSF
-            # shrunk by the warp's scale a: the defocus disc by 1/a here, the in-focus factors (diffraction,
-            # residual blur) by _at_sensor_scale. Blurring with the sensor PSF itself, then magnifying by a,
-            # widened the in-focus PSF by a through the scan and moved the sharpest position by -0.2 µm on
-            # breathing lenses (docs/simulator.md "Geometry").
-            a = float(aff[0, 0])
-            img = self.blur_map(ch, self._defocus_at(z_um, ch, aff) / np.float32(a))
-            img = self._warp(self._at_sensor_scale(img, ch, a), aff, z_um, ch)
+            img = self._warp(self.sensor_blur(ch, self._defocus_at(z_um, ch, aff), aff), aff, z_um, ch)
         img = np.multiply(img, self._exposed_illum(), dtype=np.float32)
         np.maximum(img, 0.0, out=img)  # band-limited resampling and OTF ringing can dip below zero
         return img
+
+    def sensor_blur(self, channel: str, defocus_um: np.ndarray, affine: np.ndarray) -> np.ndarray:
+        """The scene channel blurred, in scene pixels, so that the warp ``affine`` then gives the magnified scene
+        convolved with the PSF at the sensor (defocus map in µm, where each scene pixel lands).
+
+        The blur is applied before the warp (the levels are of the fixed scene), so it uses the sensor PSF
+        shrunk by the warp's scale a: the defocus disc by 1/a here, the in-focus factors (diffraction, residual
+        blur) by :meth:`_at_sensor_scale`. Blurring with the sensor PSF itself, then magnifying by a, widened
+        the in-focus PSF by a through the scan and moved the sharpest position by -0.2 µm on breathing lenses
+        (docs/simulator.md "Geometry").
+        """
+        a = float(affine[0, 0])
+        img = self.blur_map(channel, defocus_um / np.float32(a))
+        return self._at_sensor_scale(img, channel, a)
 
     def _at_sensor_scale(self, img: np.ndarray, channel: str, a: float) -> np.ndarray:
         """``img`` (blurred in scene pixels with the in-focus factors D(f) of the sensor OTF) with D(f / a)
