@@ -122,7 +122,7 @@ def evaluate(prof, lens: dict, level: float = 0.9) -> dict:
     truth = TruthProfile(lens["spec"], w, h, z_ref_um=prof.z_ref_um, optics=lens.get("optics", "geometric"),
                          fs_cyc_per_mm=lens["fs"])
     X, Y = _grid(w, h, SURFACE_GRID_PX)
-    cov, sq, hw, ae = [], [], [], []
+    cov, sq, hw, ae, mean_err = [], [], [], [], []
     for c in truth.channels:
         zt = np.asarray(truth.best_focus_um(X, Y, c), dtype=np.float64)
         # the scan moves up: the carriage lags by half the backlash, so the commanded position of a true z
@@ -131,13 +131,15 @@ def evaluate(prof, lens: dict, level: float = 0.9) -> dict:
         lo, hi = (np.asarray(a, dtype=np.float64) for a in prof.best_focus_interval_um(X, Y, c, level=level))
         cov.append(float(np.mean((zt >= lo - 1e-9) & (zt <= hi + 1e-9))))
         sq.append(float(np.mean((zp - zt) ** 2)))
+        mean_err.append(float(np.mean(zp - zt)))  # the channel's piston error
         hw.append(float(np.mean(0.5 * (hi - lo))))
         # error over half-width, point by point: 1 = on the band's edge; its 90th percentile is ~1 when honest
         ae.append(np.abs(zp - zt).ravel() / np.maximum(0.5 * (hi - lo).ravel(), 1e-9))
     rms = float(np.sqrt(np.mean(sq)))
     q = np.concatenate(ae)
     return {"coverage": float(np.mean(cov)), "rms_um": rms, "hw_um": float(np.mean(hw)),
-            "err_hw_p90": float(np.quantile(q, 0.9)), "err_hw_median": float(np.median(q))}
+            "err_hw_p90": float(np.quantile(q, 0.9)), "err_hw_median": float(np.median(q)),
+            "piston_um": mean_err}
 
 
 def field_wide_share(prof, hw_um: float, level: float = 0.9) -> float:
@@ -307,7 +309,11 @@ def run_one(lens: dict, effort: str, seed: int = 0, plans: bool = False, keep: P
             "sc_hi": (sc.get("coverage_range") or [float("nan")] * 2)[1],
             "sc_share": sc.get("field_wide_share", float("nan")),
             "sc_median": sc.get("coverage_median", float("nan")),
-            "time_s": dt, "fit_s": prof.diagnostics["timing_s"]["fit"], "model": prof.surfaces.model.name}
+            "time_s": dt, "fit_s": prof.diagnostics["timing_s"]["fit"], "model": prof.surfaces.model.name,
+            # per channel: the signed mean error and the breathing systematic's sd (focus breathing diagnosis)
+            "piston_um": after["piston_um"], "exit_pupil_mm": float(lens["spec"].exit_pupil_mm),
+            "breathing_sd_um": [float((prof.calibration.get("breathing_systematic_sd_um") or {}).get(c, 0.0))
+                                for c in prof.channels]}
 
 
 def summarise(rows, efforts):

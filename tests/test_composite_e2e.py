@@ -91,7 +91,9 @@ def test_dff_and_hybrid_track_the_true_surface(sim):
     p_or = psnr(sim["oracle"], truth, w)
     # With its own modified Laplacian (before DFF used calibration's) this stack gave RMS 0.590 / 0.545 µm,
     # textureless-quadrant max 2.96 / 1.83 µm and PSNR oracle +1.10 / +1.09 dB (dff / hybrid): pinned here.
-    for method, rms_max, flat_max in (("dff", 0.62, 3.0), ("hybrid", 0.58, 2.2)):
+    # Since the renderer applies the sensor PSF to the magnified scene (session 6; this lens's 2 mm exit pupil
+    # makes that matter): RMS 0.571 / 0.549 µm, max 3.03 / 2.00 µm, PSNR oracle +1.07 / +1.07 dB.
+    for method, rms_max, flat_max in (("dff", 0.62, 3.1), ("hybrid", 0.58, 2.2)):
         res = composite_stack(st, sim["prof"], method, quiet=True)
         err = res.focus_map_um - sim["zb"]
         assert np.sqrt(np.mean(err ** 2)) < rms_max, method  # frames are 4 µm apart

@@ -361,11 +361,14 @@ def test_focus_breathing_does_not_bias_band_pass_best_focus_or_width():
     ok = th.ok & np.isfinite(th.z_tan_um) & np.isfinite(th.z_sag_um)
     assert ok.sum() >= 30
     assert abs(np.mean(th.z_tan_um[ok]) - 3.3) < 0.5 and abs(np.mean(th.z_sag_um[ok]) - 3.3) < 0.5
-    # widths as without any breathing (frequency followed, then referred back to fs at the peak)
+    # widths as without any breathing (frequency followed, then referred back to fs at the peak), to 1.5 %: the
+    # PSF stays at the sensor's scale (the renderer since session 6), so the followed frequency fs m(z0)/m(z)
+    # meets the defocus blur at a frequency that drifts 7.5 % over this scan and skews the curve's flanks
+    # (1.1 % here; ~0.1 % at a real lens's breathing; with the PSF magnified with the scene it held to 0.8 %)
     _, still = _flat_lens_stack(math.inf, z)
     ref = measure_tiles(still, fs_cyc_per_mm=fs, measure="bandpass", quiet=True)
     w_breath, w_still = np.median(table.width_um[table.ok]), np.median(ref.width_um[ref.ok])
-    assert w_breath == pytest.approx(w_still, rel=0.008)
+    assert w_breath == pytest.approx(w_still, rel=0.015)
     assert abs(np.mean(ref.z_best_um[ref.ok]) - 3.3) < 0.1
 
 
@@ -414,9 +417,10 @@ def test_tiles_across_a_steep_surface_are_placed_where_they_measure(models_dir):
 
 
 def test_breathing_sensitivity_predicts_the_shift_of_another_window_exponent(colour, monkeypatch):
-    """z_dgamma_um is d z_best / d(SML window exponent): measuring with the exponent 0.5 higher moves each
-    tile's best focus by 0.5 z_dgamma (the bias is linear in it); a telecentric stack has none."""
-    import fieldcal.measure.tiles as tiles_mod
+    """z_dgamma_um is d z_best / d(exponent of a residual gain m^k on the SML): measuring with the SML's
+    breathing exponent 0.5 higher moves each tile's best focus by 0.5 z_dgamma (the bias is linear in it); a
+    telecentric stack has none."""
+    from fieldcal.measure import focus as focus_mod
 
     spec, stack = colour
     fs = fs_for(spec)
@@ -424,7 +428,10 @@ def test_breathing_sensitivity_predicts_the_shift_of_another_window_exponent(col
     sens = table.z_dgamma_um
     ok = table.ok & np.isfinite(sens)
     assert ok.sum() > 0.8 * table.ok.sum() and np.median(np.abs(sens[ok])) > 0.01
-    monkeypatch.setattr(tiles_mod, "SML_WINDOW_EXPONENT", tiles_mod.SML_WINDOW_EXPONENT + 0.5)
+    plain = focus_mod.sml
+    # x scale^0.5: the exponent 0.5 higher (the scan's scale is relative to frame 0, the sensitivity's to the
+    # reference frame: a constant factor, no effect on best focus)
+    monkeypatch.setattr(focus_mod, "sml", lambda plane, scale=1.0: plain(plane, scale) * np.float32(scale ** 0.5))
     moved, _ = measure_stack(stack, fs_cyc_per_mm=fs, measure="sml", quiet=True)
     both = ok & moved.ok
     np.testing.assert_allclose(moved.z_best_um[both] - table.z_best_um[both], 0.5 * sens[both],

@@ -111,9 +111,6 @@ def test_blur_diameter_grows_as_defocus_over_f_number(f_number):
         assert b_fit == pytest.approx(b_true, rel=0.05), (dz, b_fit, b_true)
 
 
-@pytest.mark.xfail(strict=True, reason="known renderer defect (session 6): the disc breathes with the image, "
-                   "m(z)|dz|/N; the fix (blur with |dz|/(N m(z)) before the warp) moves the texture path's breathing "
-                   "baselines (5 tests), so it is merged with the texture path's breathing work (docs/simulator.md)")
 def test_blur_disc_on_the_sensor_does_not_breathe():
     # A defocus cone's disc on the sensor is |dz| / N however much the image has grown (exit pupil 2 mm: the image
     # is 10 % larger at +200 µm than at -200 µm); the renderer blurs before it magnifies, so it must blur less
@@ -381,3 +378,29 @@ def test_warp_has_no_phase_dependent_blur(phase):
         out = scale_shift(img, 1.0 + 1e-3, phase, 0.0)
         ref = np.cos(2 * np.pi * f * (x - phase) / (1.0 + 1e-3))
         assert np.abs(out - ref)[16:-16, 16:-16].max() < 0.01, f
+
+
+def test_breathing_magnifies_the_scene_not_the_sensor_psf():
+    """The sensor image is the magnified scene convolved with the PSF at the sensor: stripes of scene frequency
+    f, magnified by a = m(z), reach the sensor at f / a, and their contrast there is the lens's OTF at f / a
+    (closed form, with and without defocus). Blurring first and magnifying after gave OTF(f) with the whole
+    PSF widened by a: here (a = 1.05, F/8, residual blur 3 µm) 0.03 off, 10 % of the contrast."""
+    w, h, pitch, cycles = 128, 64, 5.0, 40  # 0.31 cycles/px of the scene
+    spec = make_spec(w=w, h=h, pitch_um=pitch, f_number=8.0, residual_blur_um=3.0, exit_pupil_mm=2.0,
+                     channels=[{"name": "Y", "wavelength_nm": 550.0, "focus_offset_um": 100.0}])
+    r = Renderer(spec, stripes(w, h, cycles, lo=0.3, hi=0.7))
+    c = (w - 1) / 2.0
+    p = np.arange(24, w - 24)
+    for dz in (0.0, -20.0, 25.0):
+        z = 100.0 + dz
+        a = float(spec.magnification(z))
+        assert abs(a - (1.0 + z / 2000.0)) < 1e-12
+        row = r.render_float(z)[:, :, 0].mean(axis=0)[24:w - 24] / r.exposure
+        arg = 2 * np.pi * cycles * (c + (p - c) / a) / w  # where each sensor column's scene point was
+        basis = np.stack([np.ones_like(arg), np.cos(arg), np.sin(arg)], axis=1)
+        got = float(np.hypot(*np.linalg.lstsq(basis, row, rcond=None)[0][1:])) / 0.2
+        f_sensor = cycles / w / a / (pitch * 1e-3)
+        want = abs(float(spec.otf(f_sensor, dz, "Y")))
+        old = abs(float(spec.otf(f_sensor * a, dz * a, "Y")))  # the PSF magnified with the scene
+        assert got == pytest.approx(want, abs=0.004), (dz, got, want, old)
+        assert abs(old - want) > 0.015

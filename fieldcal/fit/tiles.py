@@ -144,12 +144,13 @@ def measure_offset_sd_um(table) -> dict[str, float]:
 def breathing_systematic_sd_um(table) -> dict[str, float]:
     """Per channel, the sd of the best-focus error the SML's breathing correction leaves (µm).
 
-    The window sum of the SML follows the image as m^gamma with gamma = 2 in theory; across simulated lenses
-    the gamma that removes each one's bias scatters by ``SML_WINDOW_EXPONENT_SD`` around 2. Every tile of a
-    channel shares that error, scaled by its own sensitivity dz/dgamma (measured on this stack): the RMS of
-    those sensitivities times the sd is a systematic no fit can see. Zero without breathing (telecentric).
+    The scale-following SML is invariant to the scene's magnification; what breathing leaves is a gain m^k on
+    the curve from the in-focus PSF, fixed at the sensor while the scene grows (``SML_SCALE_RESIDUAL_SD`` is
+    the sd of k). Every tile of a channel shares that error, scaled by its own sensitivity dz/dk (measured on
+    this stack): the RMS of those sensitivities times the sd is a systematic no fit can see. Zero without
+    breathing (telecentric).
     """
-    from fieldcal.measure.tiles import SML_WINDOW_EXPONENT_SD
+    from fieldcal.measure.tiles import SML_SCALE_RESIDUAL_SD
 
     out = {}
     sens = getattr(table, "z_dgamma_um", None)
@@ -159,7 +160,7 @@ def breathing_systematic_sd_um(table) -> dict[str, float]:
             continue
         v = np.asarray(sens, dtype=np.float64)[(np.asarray(table.channel) == c) & table.ok]
         v = v[np.isfinite(v)]
-        out[c] = float(SML_WINDOW_EXPONENT_SD * np.sqrt(np.mean(v * v))) if v.size else 0.0
+        out[c] = float(SML_SCALE_RESIDUAL_SD * np.sqrt(np.mean(v * v))) if v.size else 0.0
     return out
 
 

@@ -32,14 +32,19 @@ from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
 from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_offset, apply_pooled_skew,
                           shift_by_offset)
 
-# The SML window sum follows the image as m^2 (an image magnified by m has second derivatives / m^2 over a
-# window of m^2 pixels). On 12 simulated breathing lenses (F/2.5-F/3.9, exit pupils 20-50 mm) the exponent
-# that removes each one's bias of the fitted surface averaged 1.99 with sd 0.61: texture and optics make the
-# true scaling differ from lens to lens. That sd times each tile's sensitivity dz/d(exponent), measured on
-# the stack itself, is the breathing systematic of the band (docs/fitting.md "Breathing systematic").
-SML_WINDOW_EXPONENT = 2.0
+# Focus breathing: the image of a scene patch is magnified by m(z) through the scan. The 3-tap SML's mean over a
+# patch that follows the image scales as m^-gamma with gamma 0.8-2 set by the texture's spectrum and the blur
+# (a constant 2 left an exponent error of sd 0.61 across simulated lenses); each frame's SML is therefore taken
+# with a scale term in its kernel (focus.sml(plane, scale)), which removes that for any spectrum, and the
+# curves are fitted on the scale axis where the blur seen at the scene's scale is symmetric (_ScaleAxis).
+# What remains is carried as an exponent sd times each tile's sensitivity dz/d(exponent) measured on the
+# stack: the breathing systematic of the band (docs/fitting.md "Breathing systematic"). 0.45 (was 0.61): the
+# remaining per-channel errors of the 14 breathing lenses of the band-coverage benchmark (s6) amount to an RMS
+# exponent of 0.31-0.33, against 0.03-0.13 on the closed-form textures (tests/test_measure_maps.py); at 0.3
+# the bands were too narrow on average (mean coverage 0.83, the end-to-end test in tests/test_calibrate.py
+# 0.79), because part of those errors is not breathing-shaped; 0.45 gives 0.87-0.88 there.
 MIN_TILE_PX = 32
-SML_WINDOW_EXPONENT_SD = 0.61
+SML_SCALE_RESIDUAL_SD = 0.45
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
 
 EFFORTS = {
@@ -112,8 +117,9 @@ class TileTable:
     image_size_px: tuple[int, int] = (0, 0)
     pixel_pitch_um: float = math.nan
     curves: dict[str, np.ndarray] = field(default_factory=dict)
-    # d z_best / d (SML window exponent) per row (µm per unit exponent; 0 without breathing, NaN when the
-    # best focus is not the SML's or the row is rejected): the breathing systematic's sensitivity
+    # d z_best / d (exponent of a residual gain m^k on the SML curve) per row (µm per unit exponent; 0 without
+    # breathing, NaN when the best focus is not the SML's or the row is rejected): the breathing systematic's
+    # sensitivity
     z_dgamma_um: np.ndarray | None = None
     # best-focus sd per unit of independent per-frame stage-position noise (dimensionless; NaN when rejected):
     # the stage-repeatability term of the band (docs/fitting.md "Stage errors")
@@ -288,7 +294,7 @@ def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None
     """Fill frame ``k`` of every cell map of one plane (runs in a worker thread: OpenCV releases the GIL).
 
     ``plane``: the normalised float32 plane, or ``(raw, black, gain)`` to normalise here. ``scale``: the
-    image's magnification in this frame, so the band-pass follows the scene.
+    image's magnification in this frame (relative to frame 0), so the band-pass and the SML follow the scene.
     """
     if isinstance(plane, tuple):
         plane = _normalised(*plane)
@@ -297,7 +303,8 @@ def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None
     if fbin > 1:
         plane = downsample(plane, fbin)
     c = m.cell
-    m.maps["sml"][k] = focus.cell_sums(focus.sml(plane), c)
+    # the SML at frame 0's scale: its mean over a tile that follows the image is then invariant to breathing
+    m.maps["sml"][k] = focus.cell_sums(focus.sml(plane, scale), c)
     m.maps["sum"][k] = focus.cell_sums(plane, c)
     if "bandpass" in m.maps and m.strip is None:
         band = focus.bandpass(plane, m.f0_cyc_per_px / scale)
@@ -541,15 +548,8 @@ def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: n
                                                  bx0, by0, bx1, by1) / area
                 out["my"][:, k] = focus.box_sums(focus.integral(e * ycell[:, None].astype(np.float32)),
                                                  bx0, by0, bx1, by1) / area
-        # The window grows with the image (area ~ m^2) so it keeps the same scene content; the SML's second
-        # derivatives of an image magnified by m fall as 1/m^2, so its per-pixel mean trends as m^-2 through the
-        # scan and pulls every peak towards smaller m (-0.47 µm on the triplet's breathing, measured on a flat
-        # lens). The window *sum* (mean x m^2 in reference pixels) is invariant: use that.
-        mk = float(geometry.magnification[k, geometry.channel_index(lay.name)]) ** SML_WINDOW_EXPONENT
-        out["sml"][:, k] *= mk
-        if moments_of == "sml":  # its first moments share the normalisation (they are divided by it later)
-            out["mx"][:, k] *= mk
-            out["my"][:, k] *= mk
+        # The window grows with the image (area ~ m^2) and keeps the same scene content; the SML maps were taken
+        # with the frame's scale term (_focus_maps, focus.sml), so their per-pixel mean over it needs nothing more.
         out["sat"][:, k] *= c * c  # sat cells hold fractions, not sums: back to a fraction of the tile
         # mean of the squared cell means: with "sum" it gives the texture contrast between cells (cell
         # averaging keeps sensor noise out of it)
@@ -613,8 +613,8 @@ def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurement
 
 def _exponent_sensitivity(cc, geometry: GeometryMeasurements, channel: str, z: np.ndarray, res: dict,
                           measure: str, q: float, rules: TileRules) -> np.ndarray:
-    """d z_best / d(SML window exponent) of each accepted tile (µm per unit exponent), by refitting its SML
-    curve with the window sum scaled by m^_DGAMMA more. 0 when the image does not breathe."""
+    """d z_best / d(exponent of a residual gain m^k on the SML curve) of each accepted tile (µm per unit
+    exponent), by refitting its SML curve scaled by m^_DGAMMA. 0 when the image does not breathe."""
     out = np.full(res["z_best_um"].size, np.nan)
     if measure not in _SML_BASED:
         return out
@@ -631,6 +631,61 @@ def _exponent_sensitivity(cc, geometry: GeometryMeasurements, channel: str, z: n
         if f.status == "ok":
             out[t] = (f.z_best_um - base[t]) / _DGAMMA
     return out
+
+
+@dataclass(frozen=True)
+class _ScaleAxis:
+    """The focus axis on which a breathing lens's curves are symmetric, and the way back to z.
+
+    With the image scale ``m(z) = 1 + b (z - z_r)`` (b = 1 / the exit pupil's distance) the geometric blur
+    disc at the sensor is ``|z - z0| / N``; a measure taken at the scene's scale (the SML with its scale term,
+    the band-pass that follows the image) sees it divided by m(z), and ``|z - z0| / m(z)`` is proportional to
+    ``|y - y0|`` with ``y = z_r + (z - z_r) / m(z)`` (the sensor's distance from the exit pupil, inverted).
+    In z the curve's flanks are therefore skewed, by ~b x its width squared (2.5 µm on an F/6.7 lens with a
+    16 mm exit pupil at 320 px, where the curves span ~200 µm); in y it is symmetric, so curves are fitted in
+    y and their positions mapped back. ``b`` is the least-squares slope of the measured m(z) (linear to ~1e-4
+    over a scan); b = 0 (telecentric) is the identity.
+    """
+
+    z_ref_um: float
+    b_per_um: float
+
+    def y(self, z):
+        return self.z_ref_um + (np.asarray(z, dtype=np.float64) - self.z_ref_um) / (
+            1.0 + self.b_per_um * (np.asarray(z, dtype=np.float64) - self.z_ref_um))
+
+    def z(self, y):
+        d = np.asarray(y, dtype=np.float64) - self.z_ref_um
+        return self.z_ref_um + d / (1.0 - self.b_per_um * d)
+
+    def dz_dy(self, y):
+        return 1.0 / np.square(1.0 - self.b_per_um * (np.asarray(y, dtype=np.float64) - self.z_ref_um))
+
+
+def _scale_axis(geometry: GeometryMeasurements, channel: str) -> _ScaleAxis:
+    """:class:`_ScaleAxis` of one channel from the measured magnification (relative to the reference frame)."""
+    ci = geometry.channel_index(channel)
+    z = np.asarray(geometry.z_um, dtype=np.float64)
+    m = geometry.magnification[:, ci] / geometry.magnification[geometry.ref_index, ci]
+    dz = z - geometry.z_ref_um
+    ok = np.isfinite(m)
+    den = float(np.sum(dz[ok] ** 2))
+    b = float(np.sum((m[ok] - 1.0) * dz[ok]) / den) if den > 0 else 0.0
+    if not math.isfinite(b) or abs(b) < 1e-12:
+        b = 0.0
+    return _ScaleAxis(geometry.z_ref_um, b)
+
+
+def _to_z(res: dict, axis: _ScaleAxis) -> None:
+    """Map one channel's results from the axis y back to z, in place (positions; sds and widths by dz/dy)."""
+    if axis.b_per_um == 0.0:
+        return
+    gain = axis.dz_dy(res["z_best_um"])
+    res["z_sigma_um"] = res["z_sigma_um"] * gain
+    res["width_um"] = res["width_um"] * gain
+    for key in ("z_best_um", "z_tan_um", "z_sag_um", "z_sml_um"):
+        if key in res:
+            res[key] = axis.z(res[key])
 
 
 def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per_mm: float, q: float,
@@ -854,17 +909,20 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                                              "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um", "stage_gain")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
     skew = {}
+    # curves are fitted on each channel's scale axis (symmetric under breathing), positions mapped back to z
+    axes = {ch: _scale_axis(geometry, ch) for ch in stack.channels}
     offsets = {ch: None for ch in stack.channels}
     if strip is not None:
         xs, ys = xs[:n_grid], ys[:n_grid]
         for ch, cc in per_channel.items():
             on_strip = {k: v[n_grid:] for k, v in cc.items()}
             per_channel[ch] = {k: v[:n_grid] for k, v in cc.items() if k not in ("bandpass", "bp_cover")}
-            rec = _analyse(on_strip, z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
+            rec = _analyse(on_strip, axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
                            rules=rules, bp_scale=bp_scale).get("skew", {})
             offsets[ch] = {k: rec.get(k, 0.0) for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles")}
-    results = {ch: _analyse(per_channel[ch], z, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
-                            rules=rules, bp_scale=bp_scale, offset_from=offsets[ch]) for ch in stack.channels}
+    results = {ch: _analyse(per_channel[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
+                            measure=measure, rules=rules, bp_scale=bp_scale, offset_from=offsets[ch])
+               for ch in stack.channels}
     if measure == SML_AT_FS:
         _borrow_offsets(results)
     for ch in stack.channels:
@@ -873,7 +931,9 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         cols["channel"].append(np.full(xs.size, ch))
         if "skew" in res:
             skew[ch] = {k: (v if isinstance(v, (bool, str)) else float(v)) for k, v in res["skew"].items()}
-        cols["z_dgamma_um"].append(_exponent_sensitivity(cc, geometry, ch, z, res, measure, q, rules))
+        sens = _exponent_sensitivity(cc, geometry, ch, axes[ch].y(z), res, measure, q, rules)
+        cols["z_dgamma_um"].append(sens * axes[ch].dz_dy(res["z_best_um"]))
+        _to_z(res, axes[ch])
         xw, yw = _weighted_positions(cc, geometry, ch, "sml" if measure in _SML_BASED else measure, tile, z,
                                      res["z_best_um"])
         ok = res["status"] == "ok"  # rejected tiles keep their geometric centre

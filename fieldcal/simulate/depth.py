@@ -198,7 +198,7 @@ class DepthRenderer:
         out = np.empty((rend.height_px, rend.width_px, len(rend.channels)), dtype=np.float32)
         for ci, ch in enumerate(rend.channels):
             aff = rend._affine(z_um, ch, True)
-            img = rend._warp(rend._geometric_blur(ch, z_um - depth_um, aff), aff)  # astigmatism: the ellipse
+            img = rend._warp(rend.sensor_blur(ch, z_um - depth_um, aff), aff)  # astigmatism: the ellipse
             np.multiply(img, rend._illum * np.float32(rend.exposure), out=out[:, :, ci])
         return np.maximum(out, 0.0, out=out)
 

@@ -624,10 +624,48 @@ class Renderer:
         if self._wave is not None:
             img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff, z_um, ch)
         else:
-            img = self._warp(self._geometric_blur(ch, z_um, aff), aff, z_um, ch)
+            img = self._warp(self.sensor_blur(ch, z_um, aff), aff, z_um, ch)
         img = np.multiply(img, self._exposed_illum(), dtype=np.float32)
         np.maximum(img, 0.0, out=img)  # band-limited resampling and OTF ringing can dip below zero
         return img
+
+    def sensor_blur(self, channel: str, z_um: float, affine: np.ndarray) -> np.ndarray:
+        """The scene channel blurred, in scene pixels, so that the warp ``affine`` then gives the magnified scene
+        convolved with the PSF at the sensor (stage position z in µm; the defocus of each scene pixel is taken where
+        it lands, and an astigmatic lens's ellipse is shrunk on both axes).
+
+        The blur is applied before the warp (the levels are of the fixed scene), so it uses the sensor PSF
+        shrunk by the warp's scale a: the defocus disc by 1/a here, the in-focus factors (diffraction, residual
+        blur) by :meth:`_at_sensor_scale`. Blurring with the sensor PSF itself, then magnifying by a, widened
+        the in-focus PSF by a through the scan and moved the sharpest position by -0.2 µm on breathing lenses
+        (docs/simulator.md "Geometry").
+        """
+        a = float(affine[0, 0])
+        img = self._geometric_blur(channel, z_um, affine, scale=1.0 / a)
+        return self._at_sensor_scale(img, channel, a)
+
+    def _at_sensor_scale(self, img: np.ndarray, channel: str, a: float) -> np.ndarray:
+        """``img`` (blurred in scene pixels with the in-focus factors D(f) of the sensor OTF) with D(f / a)
+        instead: the sensor's in-focus PSF seen in scene pixels of a frame the warp magnifies by a.
+
+        D is the OTF at zero defocus (diffraction x residual blur); where D(f) < 1e-3 the content is gone and the
+        ratio is left at 1. A no-op at a = 1 (telecentric, no lateral colour).
+        """
+        if abs(a - 1.0) < 1e-12:
+            return img
+        h, w = img.shape
+        pad = 16  # mirror: the ratio's kernel is a few px (D / D at a ~ 1 +- 1e-2)
+        hp = fft.next_fast_len(h + 2 * pad, real=True)
+        wp = fft.next_fast_len(w + 2 * pad, real=True)
+        padded = np.pad(img, ((pad, hp - h - pad), (pad, wp - w - pad)), mode="symmetric")
+        shape = (hp, wp)
+        f_mm = np.arange(int(0.75 / _TABLE_STEP) + 2, dtype=np.float64) * (_TABLE_STEP / (self.pitch_um * 1e-3))
+        d_here = np.asarray(self.spec.otf(f_mm, 0.0, channel), dtype=np.float64)
+        d_sensor = np.asarray(self.spec.otf(f_mm / a, 0.0, channel), dtype=np.float64)
+        ratio = np.where(np.abs(d_here) > 1e-3, d_sensor / np.where(np.abs(d_here) > 1e-3, d_here, 1.0), 1.0)
+        out = fft.irfft2(fft.rfft2(padded, workers=1) * ratio.astype(np.float32)[self._radial(shape)], s=shape,
+                         workers=1)
+        return np.ascontiguousarray(out[pad:pad + h, pad:pad + w], dtype=np.float32)
 
     def _exposed_illum(self) -> np.ndarray:
         """Relative illumination times the exposure (float32 H x W), kept while the exposure is unchanged."""

@@ -268,7 +268,8 @@ class TruthProfile:
         return cache[key]
 
     def defocus_otf(self, f_cyc_per_mm, defocus_um, channel: str):
-        """The simulated lens's own signed OTF (defocus disc x diffraction x residual blur)."""
+        """The simulated lens's own signed OTF (defocus disc x diffraction x residual blur) at the sensor: the
+        renderer applies it to the magnified scene (docs/simulator.md "Geometry"), so frames and truth agree."""
         return self.spec.otf(f_cyc_per_mm, defocus_um, channel)
 
     def defocus_mtf(self, f_cyc_per_mm, defocus_um, channel: str):
