@@ -105,10 +105,13 @@ def test_lens_without_astigmatism_renders_as_the_isotropic_path():
     assert not a._wedges
     for z in (-60.0, 0.0, 25.0):
         assert np.array_equal(a.render(z), b.render(z))
-        # the former pipeline spelled out: disc of |dz| by level interpolation, warp, illumination
+        # the isotropic pipeline spelled out: the sensor's disc |dz| shrunk by the warp's scale s (blurred in scene
+        # pixels by level interpolation), the in-focus factors at the sensor's scale, warp, illumination
         for ci, ch in enumerate(a.channels):
             aff = a._affine(z, ch)
-            want = a._warp(a.blur_map(ch, a._defocus_at(z, ch, aff)), aff, z, ch) * a._exposed_illum()
+            s = float(aff[0, 0])
+            blurred = a._at_sensor_scale(a.blur_map(ch, a._defocus_at(z, ch, aff) * np.float32(1.0 / s)), ch, s)
+            want = a._warp(blurred, aff, z, ch) * a._exposed_illum()
             assert np.array_equal(a.render_float(z)[:, :, ci], np.maximum(want, 0.0))
     assert np.array_equal(a.truth(), b.truth())
 
