@@ -209,8 +209,8 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     gmap, absd = _geometry_map(stack, geometry_maps, float(geo_c.z_ref_um), quiet)
     tol, tol_note = None, None
     try:
-        tol = fit_tolerance(tiles, geometry, MTFCriterion(fs_cyc_per_mm, q), centre_px=centre,
-                            source=str(stack.path))
+        # about the sensor centre: a decentred width field is the model's linear terms (fit/tolerance.py)
+        tol = fit_tolerance(tiles, geometry, MTFCriterion(fs_cyc_per_mm, q), source=str(stack.path))
     except FieldcalError as e:  # planning falls back to the defocus model and says so
         tol_note = f"no measured tolerance model: {e.what}"
     hasher.join()

@@ -358,7 +358,7 @@ class LensProfile:
         if cov is None:
             return np.zeros(shape)
         xb, yb = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
-        J = np.stack([tol._rho2(xb, yb) ** k for k in range(order)], axis=-1)
+        J = tol.design(xb, yb, order)
         ratio = (np.asarray(tol.tolerance_um(xb, yb, ch, crit.fs_cyc_per_mm, crit.q), dtype=np.float64)
                  / np.asarray(tol.width_cal_um(xb, yb, ch), dtype=np.float64))
         return ratio * np.sqrt(np.maximum(np.einsum("...i,ij,...j->...", J, cov, J), 0.0))
