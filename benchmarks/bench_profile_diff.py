@@ -17,6 +17,12 @@ Writes a table into docs/benchmarks.md between ``<!-- bench_profile_diff:start -
 
     python benchmarks/bench_profile_diff.py --trials 3      # smoke run
     python benchmarks/bench_profile_diff.py --docs          # 20 trials (the lead)
+
+Split between two processes (each its own trials and rows file, one table at the end):
+
+    python benchmarks/bench_profile_diff.py --trials 10 --size 320x180 --effort standard --keep K --rows r0.json &
+    python benchmarks/bench_profile_diff.py --start 10 --trials 20 --size 320x180 --effort standard --keep K --rows r1.json
+    python benchmarks/bench_profile_diff.py --trials 20 --size 320x180 --effort standard --merge r0.json r1.json --docs
 """
 
 from __future__ import annotations
