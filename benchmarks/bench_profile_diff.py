@@ -272,7 +272,8 @@ def section(rows: list[dict], args, wall: float) -> str:
         f"* breathing changed by 0.1 % of magnification over the scan **flagged in "
         f"{100 * s['breathing_flagged']:.0f} %** (smallest |z| {s['breathing_min_z']:.1f}; target 100 %)",
         (f"* median time: calibrate {s['time_calibrate_s']:.1f} s, diff {s['time_diff_s']:.1f} s"
-         + (" (profiles reused from `--keep`: the calibration time is not measured)" if args.keep else "")),
+         + (" (with `--keep`: a profile already in the directory is reused and its calibration time not measured)"
+            if args.keep else "")),
         "",
         *md_table(rows, cols),
     ])
