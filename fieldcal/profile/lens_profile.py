@@ -340,8 +340,8 @@ class LensProfile:
         return np.full(np.broadcast(x, y).shape, t)
 
     def focus_tolerance_sd_um(self, x, y, channel: str, fs_cyc_per_mm: float, q: float):
-        """Standard error (µm) of :meth:`focus_tolerance_um` from the width fit (its coefficients' covariance
-        with the tiles' residual sd, tiles independent); 0 where the tolerance comes from the defocus model.
+        """Standard error (µm) of :meth:`focus_tolerance_um` from the width fit (its coefficients' HC3
+        covariance from the tiles' residuals, tiles independent); 0 where the tolerance comes from the defocus model.
 
         Only the fit's own scatter: a bias common to every tile of the measurement (docs/planning.md "Measured
         tolerance") is not in it."""
