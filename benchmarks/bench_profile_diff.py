@@ -17,12 +17,19 @@ Writes a table into docs/benchmarks.md between ``<!-- bench_profile_diff:start -
 
     python benchmarks/bench_profile_diff.py --trials 3      # smoke run
     python benchmarks/bench_profile_diff.py --docs          # 20 trials (the lead)
+
+Split between two processes (each its own trials and rows file, one table at the end):
+
+    python benchmarks/bench_profile_diff.py --trials 10 --size 320x180 --effort standard --keep K --rows r0.json &
+    python benchmarks/bench_profile_diff.py --start 10 --trials 20 --size 320x180 --effort standard --keep K --rows r1.json
+    python benchmarks/bench_profile_diff.py --trials 20 --size 320x180 --effort standard --merge r0.json r1.json --docs
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import sys
 import tempfile
@@ -139,12 +146,12 @@ def trial(k: int, workdir: Path, level: float = 0.95, changes=True, n_null: int 
 
 
 def run(trials: int, level: float = 0.95, changes: bool = True, quiet: bool = False, on_row=None, size=SIZE,
-        effort: str = "quick", keep: str | None = None) -> list[dict]:
+        effort: str = "quick", keep: str | None = None, start: int = 0) -> list[dict]:
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-profile-diff-") as tmp:
         work = Path(keep) if keep else Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        for k in range(trials):
+        for k in range(start, trials):
             try:
                 rows.append(trial(k, work, level, changes, size=size, effort=effort))
             except Exception as e:   # a calibration that fails is reported, not a reason to lose the others
@@ -189,21 +196,40 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="x".join(map(str, SIZE)), help="render size WxH (default 256x144)")
     ap.add_argument("--effort", default="quick", help="calibration effort (default quick)")
     ap.add_argument("--keep", metavar="DIR", help="keep the profiles in DIR (and reuse those already there)")
+    ap.add_argument("--start", type=int, default=0,
+                    help="first trial (to split the trials between processes; each with its own --rows)")
+    ap.add_argument("--rows", metavar="JSON", help="also write the rows (and the wall time) to this file")
+    ap.add_argument("--merge", metavar="JSON", nargs="+",
+                    help="write the table from the --rows files of split runs instead of running trials")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
+    args.size_px = tuple(int(v) for v in args.size.lower().split("x"))
 
-    def report(rows):
+    def report(rows, wall=None):
         if not rows:
             return ""
-        text = section(rows, args, time.perf_counter() - t0)
+        wall = time.perf_counter() - t0 if wall is None else wall
+        text = section(rows, args, wall)
+        if args.rows:
+            Path(args.rows).write_text(json.dumps({"wall_s": wall, "rows": rows}, default=_json_safe))
         if args.docs and rows:   # after every trial: an interrupted run leaves its trials so far
             write_docs_section(section_name(args), text)
         return text
 
-    args.size_px = tuple(int(v) for v in args.size.lower().split("x"))
-    rows = run(args.trials, args.level, on_row=report, size=args.size_px, effort=args.effort, keep=args.keep)
+    if args.merge:   # split runs ran side by side: the wall clock is the longest one's
+        parts = [json.loads(Path(f).read_text()) for f in args.merge]
+        rows = sorted((r for part in parts for r in part["rows"]), key=lambda r: r["trial"])
+        print(report(rows, max(part["wall_s"] for part in parts)))
+        return 0
+    rows = run(args.trials, args.level, on_row=report, size=args.size_px, effort=args.effort, keep=args.keep,
+               start=args.start)
     print(report(rows))
     return 0
+
+
+def _json_safe(v):
+    """numpy scalars in the rows (bool_, float64) as plain Python values."""
+    return v.item() if hasattr(v, "item") else str(v)
 
 
 def section_name(args) -> str:
@@ -246,7 +272,8 @@ def section(rows: list[dict], args, wall: float) -> str:
         f"* breathing changed by 0.1 % of magnification over the scan **flagged in "
         f"{100 * s['breathing_flagged']:.0f} %** (smallest |z| {s['breathing_min_z']:.1f}; target 100 %)",
         (f"* median time: calibrate {s['time_calibrate_s']:.1f} s, diff {s['time_diff_s']:.1f} s"
-         + (" (profiles reused from `--keep`: the calibration time is not measured)" if args.keep else "")),
+         + (" (with `--keep`: a profile already in the directory is reused and its calibration time not measured)"
+            if args.keep else "")),
         "",
         *md_table(rows, cols),
     ])

@@ -212,10 +212,10 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     gmap, absd = _geometry_map(stack, geometry_maps, float(geo_c.z_ref_um), quiet)
     tol, tol_note = None, None
     try:
-        # each tile's width without the spread of best focus inside it (fit/width_window.py)
+        # each tile's width without the spread of best focus inside it (fit/width_window.py); the model is about
+        # the sensor centre: a decentred width field is its linear terms (fit/tolerance.py)
         tiles_w, window_note = correct_widths(surf, tiles, table.z_um, float(table.tile_px), fs_cyc_per_mm, q)
-        tol = fit_tolerance(tiles_w, geometry, MTFCriterion(fs_cyc_per_mm, q), centre_px=centre,
-                            source=str(stack.path))
+        tol = fit_tolerance(tiles_w, geometry, MTFCriterion(fs_cyc_per_mm, q), source=str(stack.path))
         tol.diagnostics["width_window"] = window_note
     except FieldcalError as e:  # planning falls back to the defocus model and says so
         tol_note = f"no measured tolerance model: {e.what}"

@@ -2,9 +2,15 @@
 
 Input: per-tile through-focus half-widths ``width_um`` measured at the calibration's MTF criterion (fs_cal, q_cal),
 an :class:`fieldcal.optics.MTFCriterion` (saved as ``fs_cal_cyc_per_mm`` and ``q_cal``).
-Per channel, a smooth model in the normalised radius, ``w_c(rho) = w_c0 [+ w_c1 rho^2]`` (the rho^2 term
+Per channel, a smooth model in the normalised radius about the sensor centre,
+``w_c = w_c0 [+ w_c1 rho^2 [+ w_cx x + w_cy y]]`` (x, y, rho in units of the half-diagonal; each richer model
 kept only if it lowers BIC), fitted robustly (SciPy ``least_squares`` with a soft-L1 loss: a few tiles with
-a misjudged width do not drag the field).
+a misjudged width do not drag the field). The linear terms are a decentred rho^2 field:
+``c1 |r - d|^2 = c1 rho^2 - 2 c1 d . r + c1 |d|^2``, so the optical centre of the widths is fitted as linear
+coefficients whose uncertainty the coefficient covariance carries. Why not centre the model on the surface's
+optical centre: that is a MAP nuisance parameter of another model, often poorly determined (on the simulated
+centred triplet at 320x180 it landed up to 46 px off the frame centre, differently in two scans of one lens),
+and a width field fitted about it was taken as exact, so ``profile diff`` flagged the two scans' tolerances.
 
 Conversion to other (fs, q) assumes the measured curve keeps its shape in defocus:
 
@@ -30,6 +36,8 @@ from .data import FitError, ImageGeometry, TileData
 
 TOLERANCE_FIT_FORMAT = "fieldcal-tolerance-fit/1"
 SHAPES = ("defocus-disc", "gaussian")
+#: the width models by number of coefficients: constant, + rho^2, + decentring (x, y)
+MODEL_TERMS = {1: "w0", 2: "w0 + w1 rho^2", 4: "w0 + w1 rho^2 + wx x + wy y"}
 
 
 def shape_factor(q: float, shape: str = "defocus-disc") -> float:
@@ -58,14 +66,23 @@ class ToleranceFit:
         r = self.geometry.half_diagonal_px
         return ((np.asarray(x_px, float) - self.centre_px[0]) ** 2 + (np.asarray(y_px, float) - self.centre_px[1]) ** 2) / r ** 2
 
+    def design(self, x_px, y_px, n_coef: int) -> np.ndarray:
+        """(..., n_coef) design of the width model with ``n_coef`` coefficients (1, 2 or 4) at pixels."""
+        x, y = np.broadcast_arrays(np.asarray(x_px, float), np.asarray(y_px, float))
+        r = self.geometry.half_diagonal_px
+        terms = [np.ones_like(x), self._rho2(x, y), (x - self.centre_px[0]) / r, (y - self.centre_px[1]) / r]
+        if n_coef not in MODEL_TERMS:
+            raise ParameterError(f"a width model has {n_coef} coefficients", field="tolerance.coef_um",
+                                 fix=f"give {', '.join(map(str, MODEL_TERMS))} coefficients per channel")
+        return np.stack(terms[:n_coef], axis=-1)
+
     def width_cal_um(self, x_px, y_px, channel: str):
         """Fitted half-width (µm) at the calibration's (fs, q)."""
         if channel not in self.coef_um:
             raise ParameterError(f"no tolerance model for channel '{channel}'", field="channel",
                                  fix=f"use one of {', '.join(self.coef_um)}")
-        c = self.coef_um[channel]
-        r2 = self._rho2(x_px, y_px)
-        w = c[0] + (c[1] * r2 if len(c) > 1 else 0.0 * r2)
+        c = np.asarray(self.coef_um[channel], dtype=np.float64)
+        w = self.design(x_px, y_px, c.size) @ c
         return np.maximum(w, 1e-3 * c[0] if c[0] > 0 else 1e-6)  # a width is positive
 
     def tolerance_um(self, x_px, y_px, channel: str, fs_cyc_per_mm: float, q: float):
@@ -103,7 +120,7 @@ def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCr
     """Fit the per-channel width model from tiles whose ``width_um`` was measured at ``calibrated_at``."""
     shape_factor(calibrated_at.q, shape)  # validates the shape
     centre = centre_px if centre_px is not None else geometry.centre_px
-    R = geometry.half_diagonal_px
+    probe = ToleranceFit(geometry, (float(centre[0]), float(centre[1])), calibrated_at, shape, {})
     coef, rsd, diag = {}, {}, {}
     for c in tiles.channels:
         m = (tiles.channel == c) & np.isfinite(tiles.width_um)
@@ -111,22 +128,22 @@ def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCr
             raise FitError(f"channel {c} has {int(m.sum())} tiles with a measured width; need {min_tiles}",
                            path=source, field="width_um", fix="measure through-focus widths on more tiles")
         w = tiles.width_um[m]
-        r2 = ((tiles.x_px[m] - centre[0]) ** 2 + (tiles.y_px[m] - centre[1]) ** 2) / R ** 2
         med = float(np.median(w))
         f_scale = max(1.4826 * float(np.median(np.abs(w - med))), 1e-3 * med)
         cands = []
-        for order in (0, 1):
-            if m.sum() < order + 3:
+        for n_coef in MODEL_TERMS:
+            if m.sum() < n_coef + 2:
                 continue
-            A = np.stack([r2 ** k for k in range(order + 1)], axis=1)
-            res = optimize.least_squares(lambda p: (A @ p - w) / f_scale, np.r_[med, np.zeros(order)],
+            A = probe.design(tiles.x_px[m], tiles.y_px[m], n_coef)
+            res = optimize.least_squares(lambda p: (A @ p - w) / f_scale, np.r_[med, np.zeros(n_coef - 1)],
                                          loss="soft_l1")
             rss = float(np.sum(res.fun ** 2))
             n = w.size
-            bic = n * math.log(max(rss / n, 1e-300)) + (order + 1) * math.log(n)
-            cands.append((bic, order, res.x, float(np.std(A @ res.x - w))))
-        bic, order, x, sd = min(cands, key=lambda t: t[0])
+            bic = n * math.log(max(rss / n, 1e-300)) + n_coef * math.log(n)
+            cands.append((bic, n_coef, res.x, float(np.std(A @ res.x - w))))
+        bic, n_coef, x, sd = min(cands, key=lambda t: t[0])
         coef[c] = [float(v) for v in x]
         rsd[c] = sd
-        diag[c] = {"n_tiles": int(m.sum()), "order": order, "bic": {int(o): b for b, o, *_ in cands}}
+        diag[c] = {"n_tiles": int(m.sum()), "order": min(n_coef - 1, 1), "model": MODEL_TERMS[n_coef],
+                   "bic": {int(k): b for b, k, *_ in cands}}
     return ToleranceFit(geometry, (float(centre[0]), float(centre[1])), calibrated_at, shape, coef, rsd, diag)

@@ -251,6 +251,9 @@ def analyse_curves(z_um, values, model: str = "peak", fs_cyc_per_mm: float | Non
               else [_LOCAL] * len(pres))
         for (t, pre), fit, corr in zip(pres, fits, sa):
             out[t] = _finish(z, V[t], pre, fit, step, model, x_q, rules, corr)
+        if model == "otf":  # the width from a fit that does not depend on where the samples fall
+            from .otf_width import tapered_widths
+            out = tapered_widths(z, V, pres, fits, step, x_q, out)
     return out  # type: ignore[return-value]
 
 
@@ -559,12 +562,14 @@ def _model_eval(model: str, u: np.ndarray, p: np.ndarray, free_p: np.ndarray):
     return f, J
 
 
-def _fit_batch(z, V, pres, step, model, n_iter: int = 100, p_init: list | None = None):
+def _fit_batch(z, V, pres, step, model, n_iter: int = 100, p_init: list | None = None,
+               weights: list | None = None):
     """Batched Levenberg-Marquardt over the windows of ``pres``; a :class:`_Fit` or None for each.
 
     Coordinates are normalised (u in steps from the sampled maximum, values / the maximum); the covariance
     is ``(J^T J)^-1`` scaled by the residual variance. ``p_init``: starting parameters per window (normalised
-    coordinates), instead of the guesses from the data.
+    coordinates), instead of the guesses from the data. ``weights``: per window, a weight per sample of the
+    window on the residuals (default 1).
     """
     T = len(pres)
     nmax = max(p.hi - p.lo + 1 for _, p in pres)
@@ -581,7 +586,7 @@ def _fit_batch(z, V, pres, step, model, n_iter: int = 100, p_init: list | None =
         u[j, :k] = (z[pre.lo:pre.hi + 1] - z[pre.i_max]) / step
         u[j, k:] = u[j, k - 1]
         y[j, :k] = V[t, pre.lo:pre.hi + 1] / sc
-        w[j, :k] = 1.0
+        w[j, :k] = 1.0 if weights is None else weights[j]
         hw = _half_width_units(V[t], pre.i_max, pre.floor, pre.height, step, z)
         a0, b0 = pre.height / sc, max(pre.floor / sc, 0.0)
         if p_init is not None:

@@ -342,8 +342,8 @@ class LensProfile:
         return np.full(np.broadcast(x, y).shape, t)
 
     def focus_tolerance_sd_um(self, x, y, channel: str, fs_cyc_per_mm: float, q: float):
-        """Standard error (µm) of :meth:`focus_tolerance_um` from the width fit (its coefficients' covariance
-        with the tiles' residual sd, tiles independent); 0 where the tolerance comes from the defocus model.
+        """Standard error (µm) of :meth:`focus_tolerance_um` from the width fit (its coefficients' HC3
+        covariance from the tiles' residuals, tiles independent); 0 where the tolerance comes from the defocus model.
 
         Only the fit's own scatter: a bias common to every tile of the measurement (docs/planning.md "Measured
         tolerance") is not in it."""
@@ -360,7 +360,7 @@ class LensProfile:
         if cov is None:
             return np.zeros(shape)
         xb, yb = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
-        J = np.stack([tol._rho2(xb, yb) ** k for k in range(order)], axis=-1)
+        J = tol.design(xb, yb, order)
         ratio = (np.asarray(tol.tolerance_um(xb, yb, ch, crit.fs_cyc_per_mm, crit.q), dtype=np.float64)
                  / np.asarray(tol.width_cal_um(xb, yb, ch), dtype=np.float64))
         return ratio * np.sqrt(np.maximum(np.einsum("...i,ij,...j->...", J, cov, J), 0.0))

@@ -1,0 +1,87 @@
+"""The width (tolerance) model about the sensor centre with decentring as linear terms, and its covariance
+(fit/tolerance.py, profile/uncertainty._tolerance_coef_cov), against closed-form width fields."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from fieldcal.fit.data import ImageGeometry, TileData
+from fieldcal.fit.tolerance import ToleranceFit, fit_tolerance
+from fieldcal.optics import MTFCriterion
+from fieldcal.profile.uncertainty import _tolerance_coef_cov
+
+GEOM = ImageGeometry(320, 180, 19.6)
+CRIT = MTFCriterion(16.0, 0.05)
+GX, GY = np.meshgrid(np.linspace(16, 304, 10), np.linspace(16, 164, 6))
+X, Y = GX.ravel(), GY.ravel()
+R = GEOM.half_diagonal_px
+CX, CY = GEOM.centre_px
+
+
+def tiles_with(width_um):
+    n = X.size
+    return TileData.from_arrays(np.full(n, "G"), X, Y, np.zeros(n), np.ones(n), width_um=width_um)
+
+
+def field(d_px=(0.0, 0.0), c0=25.0, c1=3.0):
+    return c0 + c1 * ((X - CX - d_px[0]) ** 2 + (Y - CY - d_px[1]) ** 2) / R ** 2
+
+
+def profile_of(fit, tiles):
+    return SimpleNamespace(tolerance_fit=fit, tiles={"channel": tiles.channel, "x_px": tiles.x_px,
+                                                      "y_px": tiles.y_px, "width_um": tiles.width_um})
+
+
+def test_a_decentred_width_field_is_recovered_exactly_about_the_sensor_centre():
+    d = (40.0, -25.0)
+    t = fit_tolerance(tiles_with(field(d)), GEOM, CRIT)
+    assert len(t.coef_um["G"]) == 4 and t.centre_px == GEOM.centre_px
+    # everywhere on the frame, corners included (beyond the tiles)
+    px, py = np.meshgrid(np.linspace(0, 319, 7), np.linspace(0, 179, 5))
+    truth = 25.0 + 3.0 * ((px - CX - d[0]) ** 2 + (py - CY - d[1]) ** 2) / R ** 2
+    np.testing.assert_allclose(t.width_cal_um(px, py, "G"), truth, rtol=1e-5)
+    # the decentring is -2 c1 d / R in the linear terms
+    np.testing.assert_allclose(t.coef_um["G"][2:], [-2 * 3.0 * d[0] / R, -2 * 3.0 * d[1] / R], rtol=1e-4)
+
+
+def test_a_centred_field_keeps_the_radial_model():
+    rng = np.random.default_rng(0)
+    t = fit_tolerance(tiles_with(field() + 0.05 * rng.standard_normal(X.size)), GEOM, CRIT)
+    assert len(t.coef_um["G"]) == 2
+    assert t.diagnostics["G"]["model"] == "w0 + w1 rho^2"
+    assert ToleranceFit.from_dict(t.to_dict()).width_cal_um(10.0, 20.0, "G") == pytest.approx(
+        t.width_cal_um(10.0, 20.0, "G"))
+
+
+def _z_scores(cov_fn, n_draws=300):
+    """z of the fitted width at the frame's corner and centre over noisy draws whose scatter grows with rho."""
+    rng = np.random.default_rng(7)
+    rho2 = ((X - CX) ** 2 + (Y - CY) ** 2) / R ** 2
+    sd = 0.15 + 0.9 * rho2          # the corners' widths scatter 4-6x the centre's (measured fields: 1.5x)
+    pts = (np.array([0.0, CX]), np.array([0.0, CY]))
+    truth = 25.0 + 3.0 * ((pts[0] - CX) ** 2 + (pts[1] - CY) ** 2) / R ** 2
+    z = []
+    for _ in range(n_draws):
+        tiles = tiles_with(field() + sd * rng.standard_normal(X.size))
+        t = fit_tolerance(tiles, GEOM, CRIT)
+        n = len(t.coef_um["G"])
+        J = t.design(*pts, n)
+        cov = cov_fn(profile_of(t, tiles), t, n)
+        z.append((t.width_cal_um(*pts, "G") - truth) / np.sqrt(np.einsum("ij,jk,ik->i", J, cov, J)))
+    return np.std(np.array(z), axis=0)
+
+
+def test_width_uncertainty_is_honest_when_the_scatter_grows_over_the_field():
+    zsd = _z_scores(lambda p, t, n: _tolerance_coef_cov(p, "G", n))
+    assert np.all((zsd > 0.85) & (zsd < 1.2)), zsd
+
+
+def test_one_pooled_residual_sd_would_understate_the_corner():
+    # the form before: sd^2 (A^T A)^-1 with one pooled sd; the same check fails at the corner
+    def pooled(p, t, n):
+        A = t.design(X, Y, n)
+        s2 = t.residual_sd_um["G"] ** 2 * X.size / (X.size - n)
+        return s2 * np.linalg.pinv(A.T @ A)
+    zsd = _z_scores(pooled)
+    assert zsd[0] > 1.2, zsd
