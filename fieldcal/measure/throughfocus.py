@@ -64,6 +64,10 @@ class CurveRules:
         average it with the symmetric model by the evidence for skew, so an asymmetric curve (spherical
         aberration) gives its sharpest position, not its centre (docs/measurement.md "Asymmetric curves").
         False: the symmetric model alone (the behaviour before).
+    tapered_width : bool
+        The ``"otf"`` width from the smoothly weighted refit (:mod:`.otf_width`, independent of the scan's
+        sampling phase). False: the main fit's width (3-4x cheaper; for noise-free model curves whose sampling
+        error cancels in a ratio, as in :mod:`fieldcal.fit.width_window`).
     core_frac : float
         The local peak uses the contiguous run of points above this fraction of the height (above the floor).
     """
@@ -76,6 +80,7 @@ class CurveRules:
     window_frac: float = 0.15
     min_window: int = 6
     skew: bool = True
+    tapered_width: bool = True
     core_frac: float = 0.3
 
 
@@ -251,7 +256,7 @@ def analyse_curves(z_um, values, model: str = "peak", fs_cyc_per_mm: float | Non
               else [_LOCAL] * len(pres))
         for (t, pre), fit, corr in zip(pres, fits, sa):
             out[t] = _finish(z, V[t], pre, fit, step, model, x_q, rules, corr)
-        if model == "otf":  # the width from a fit that does not depend on where the samples fall
+        if model == "otf" and rules.tapered_width:  # the width from a fit that does not depend on where the samples fall
             from .otf_width import tapered_widths
             out = tapered_widths(z, V, pres, fits, step, x_q, out)
     return out  # type: ignore[return-value]
