@@ -368,17 +368,22 @@ def test_wave_frames_do_not_depend_on_render_order():
     assert np.array_equal(a.render(-10.0), b.render(-10.0))
 
 
+def _sa_channel(pitch_um: float, fs: float, f_number: float, w040_waves: float):
+    """G of a 32 px lens with spherical aberration only: its optics, its on-axis terms and the fs-contrast peak."""
+    spec = make_spec(w=32, h=32, pitch_um=pitch_um, f_number=f_number,
+                     aberrations={"unit": "waves", "reference_wavelength_nm": LAM_NM, "spherical": [w040_waves]})
+    opt = ChannelOptics(spec, "G")
+    terms = terms_at(spec, "G", 0.0, 0.0)
+    return opt, terms, opt.best_focus_shift_um(terms, fs)
+
+
 def test_pixel_kernels_keep_the_fs_contrast_peak_of_a_flat_topped_spherical_aberration_curve():
     """Large pixels, low fs, W040 = 0.75 waves: contrast at fs changes by only ~1 % over +-10 µm about its peak,
     so a kernel whose MTF steps when its window grows with defocus moves the rendered peak by microns (the
     8 lambda N window did: 3.6 µm). The kernels' orientation-averaged MTF at fs, divided by the pixel
     aperture, follows the optical MTF smoothly and peaks where the truth says."""
     pitch, fs, n = 15.0, 13.0, 2.85
-    spec = make_spec(w=32, h=32, pitch_um=pitch, f_number=n,
-                     aberrations={"unit": "waves", "reference_wavelength_nm": LAM_NM, "spherical": [0.75]})
-    opt = ChannelOptics(spec, "G")
-    terms = terms_at(spec, "G", 0.0, 0.0)
-    z0 = opt.best_focus_shift_um(terms, fs)
+    opt, terms, z0 = _sa_channel(pitch, fs, n, 0.75)
     f = fs * pitch * 1e-3  # cycles/px
     ang = np.arange(24) * np.pi / 24
 
@@ -402,11 +407,7 @@ def test_truth_sharpest_position_is_the_smooth_peak_not_the_noisy_argmax():
     sampling noise: the sharpest position is the peak of the smooth curve. Fits over other windows and orders
     agree with it to 0.15 µm (the argmax had wandered 0.6 µm from them)."""
     pitch, fs, n = 15.0, 13.0, 2.1
-    spec = make_spec(w=32, h=32, pitch_um=pitch, f_number=n,
-                     aberrations={"unit": "waves", "reference_wavelength_nm": LAM_NM, "spherical": [0.8]})
-    opt = ChannelOptics(spec, "G")
-    terms = terms_at(spec, "G", 0.0, 0.0)
-    z0 = opt.best_focus_shift_um(terms, fs)
+    opt, terms, z0 = _sa_channel(pitch, fs, n, 0.8)
     dof = 1000.0 * n / (math.pi * fs)
     for half, deg in ((0.3, 2), (0.7, 4), (1.0, 4)):
         d = z0 + dof * np.linspace(-half, half, 21)

@@ -35,9 +35,8 @@ import numpy as np
 from ..errors import ParameterError
 from ..progress import progress
 from .dff import frame_planes, map_in_order
+from .fusion import _BORDER, _level_shapes  # the same pyramid as the fusion's (levels, border)
 from .source import image_size, z_positions
-
-_BORDER = cv2.BORDER_REFLECT101
 
 #: Finest pyramid levels selected per coefficient: the two octaves above a quarter of the sampling frequency,
 #: where a blend of two frames loses most; coarser levels follow the depth map (no halo wider than level 1's
@@ -147,9 +146,7 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     if len(order) > 255:
         raise ParameterError(f"{len(order)} frames: the choice is held in 8 bits", field="frames",
                              fix="composite at most 255 frames at a time")
-    shapes = [(h, w)]
-    for _ in range(levels - 1):
-        shapes.append(((shapes[-1][0] + 1) // 2, (shapes[-1][1] + 1) // 2))
+    shapes = _level_shapes(h, w, levels - 1)  # the fine levels' own sizes
     kd = _level_index(depth_index, shapes)
     reach = np.float32(reach_frames)
 
