@@ -229,6 +229,7 @@ class Stack:
         self.dtype: np.dtype = headers[0].dtype
         self.black_level, self.white_level = _levels(meta, self.dtype)
         self._sha256_cache: dict[int, str] = {}
+        self._verifying = None  # a concurrent.futures.Future while start_verify's thread runs
 
     # -- opening -------------------------------------------------------------------------------------------
 
@@ -421,6 +422,41 @@ class Stack:
                              path=self.json_path, field=f"frames[{bad[0].index}].sha256",
                              fix="restore or re-capture those frames; if you edited them on purpose, pass "
                                  "--no-verify (Stack.open(verify=False)) to use them as they are")
+
+    def start_verify(self) -> None:
+        """Begin :meth:`verify` in a background thread and return at once; :meth:`finish_verify` waits for it
+        and raises what it found.
+
+        For a caller with work that does not depend on the hashes: ``fieldcal calibrate`` imports its modules
+        and looks at the middle frame (single-threaded, ~0.5 s) while the frames hash (hashlib and file reads
+        release the GIL), then calls :meth:`finish_verify` before it measures anything. Calling it again while
+        a verification runs does nothing.
+        """
+        if self._verifying is not None:
+            return
+        from concurrent.futures import Future
+        import threading
+        done: Future = Future()
+
+        def run():
+            try:
+                self.verify()
+            except BaseException as exc:  # handed to finish_verify's caller, in its thread
+                done.set_exception(exc)
+            else:
+                done.set_result(None)
+
+        self._verifying = done
+        threading.Thread(target=run, name="fieldcal-verify", daemon=True).start()
+
+    def finish_verify(self) -> None:
+        """Wait for the verification :meth:`start_verify` began (nothing to do if none) and raise its
+        :class:`StackError` if a frame differs from its recorded ``sha256``."""
+        done = self._verifying
+        if done is None:
+            return
+        done.result()  # raises the verification's StackError; kept, so a second call raises it again
+        self._verifying = None
 
     def verify_checksums(self) -> list[FrameInfo]:
         """Frames whose file no longer matches its ``sha256`` (missing files included; no sha256 = skipped)."""
