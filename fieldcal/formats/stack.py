@@ -400,8 +400,10 @@ class Stack:
         except OSError:
             pass
 
-    def verify(self) -> None:
+    def verify(self, *, threads: int | None = None) -> None:
         """Refuse the stack if a frame file no longer matches the ``sha256`` its entry records.
+
+        ``threads``: how many frames hash at once (default: up to 4, one per core).
 
         Raises
         ------
@@ -409,11 +411,12 @@ class Stack:
             Naming the frames that differ and the fix (re-capture, or ``--no-verify`` to use them anyway).
         """
         todo = [i for i, info in enumerate(self.frames) if info.sha256 is not None]
-        if len(todo) > 1:
+        threads = min(4, os.cpu_count() or 1) if threads is None else max(1, int(threads))
+        if len(todo) > 1 and threads > 1:
             # hashlib releases the GIL on large blocks: the frames hash in parallel (0.33 -> ~0.17 s for 42
             # 1080p frames on 2 cores); errors surface in frame order, as in the serial loop
             from concurrent.futures import ThreadPoolExecutor
-            with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+            with ThreadPoolExecutor(max_workers=threads) as pool:
                 list(pool.map(self._try_hash, todo))
         bad = [self.frames[i] for i in todo if self.frame_sha256(i) != str(self.frames[i].sha256).lower()]
         if bad:
@@ -430,7 +433,8 @@ class Stack:
         For a caller with work that does not depend on the hashes: ``fieldcal calibrate`` imports its modules
         and looks at the middle frame (single-threaded, ~0.5 s) while the frames hash (hashlib and file reads
         release the GIL), then calls :meth:`finish_verify` before it measures anything. Calling it again while
-        a verification runs does nothing.
+        a verification runs does nothing. One thread hashes: the caller's own work keeps a core to itself (on
+        two cores, two hashing threads beside it would slow it by a third).
         """
         if self._verifying is not None:
             return
@@ -440,7 +444,7 @@ class Stack:
 
         def run():
             try:
-                self.verify()
+                self.verify(threads=1)
             except BaseException as exc:  # handed to finish_verify's caller, in its thread
                 done.set_exception(exc)
             else:
