@@ -168,7 +168,7 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     finish_verify = getattr(stack, "finish_verify", lambda: None)
     try:
         kind = chart_measurement(stack, chart)
-    except FieldcalError:
+    except Exception:
         finish_verify()  # a frame changed since it was written says more than what failed to read in it
         raise
     finish_verify()  # a verification still running (Stack.start_verify) refuses a changed stack before measuring
