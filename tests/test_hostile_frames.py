@@ -46,6 +46,22 @@ def test_calibrate_refuses_an_altered_frame(w, capsys, how):
     assert changed(before, snapshot(w)) == set()
 
 
+def test_library_calibrate_of_a_path_refuses_an_altered_frame_before_measuring(w, monkeypatch):
+    """fieldcal.calibrate(path) hashes in the background (Stack.start_verify) and refuses before the frame pass."""
+    from fieldcal.calibration import pipeline
+    import fieldcal.measure as measure
+
+    alter(w / "S" / "frames" / "0007.tiff", "flip-pixel")
+
+    def no_pass(*a, **k):
+        raise AssertionError("measured a stack that failed its checksums")
+
+    monkeypatch.setattr(measure, "measure_stack", no_pass)
+    monkeypatch.setattr(measure, "measure_geometry", no_pass)
+    with pytest.raises(StackError, match=r"sha256 differs.*0007\.tiff"):
+        pipeline.calibrate(w / "S", fs_cyc_per_mm=float(FS), effort="quick", quiet=True)
+
+
 def test_calibrate_refuses_swapped_frames(w, capsys):
     a, b = w / "S" / "frames" / "0003.tiff", w / "S" / "frames" / "0004.tiff"
     tmp = a.read_bytes()

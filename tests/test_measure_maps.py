@@ -348,3 +348,25 @@ def test_breathing_sml_is_a_function_of_the_scale_axis():
         still.append(_patch_mean(focus.sml(disc(base, k_px * m0 * abs(yk - ax.y(z0)))), 1.0, 50.0))
     ratio = np.log(np.array(breathing) / np.array(still))
     assert np.max(np.abs(ratio)) < 0.006  # measured 0.003: the SML scale term's residual, m^-0.05 here
+
+
+def test_box_sampler_gives_box_sums_to_the_bit():
+    """One set of boxes over many integral images (a tile table's maps of one frame) is box_sums, bit for bit,
+    including boxes that reach past the map's borders."""
+    rng = np.random.default_rng(3)
+    for shape in [(27, 48), (3, 4)]:
+        cells = rng.random(shape).astype(np.float32)
+        ii = focus.integral(cells)
+        x0 = rng.uniform(-3, shape[1] + 3, 64)
+        y0 = rng.uniform(-3, shape[0] + 3, 64)
+        x1, y1 = x0 + rng.uniform(0, 20, 64), y0 + rng.uniform(0, 20, 64)
+        sampler = focus.BoxSampler(ii.shape, x0, y0, x1, y1)
+        assert np.array_equal(sampler(ii), focus.box_sums(ii, x0, y0, x1, y1))
+        # a box of whole cells sums them exactly (closed form)
+        ix0, iy0 = np.floor(np.clip(x0, 0, None)).astype(int), np.floor(np.clip(y0, 0, None)).astype(int)
+        whole = focus.BoxSampler(ii.shape, ix0, iy0, ix0 + 1, iy0 + 1)(ii)
+        ok = (ix0 < shape[1]) & (iy0 < shape[0])
+        assert np.allclose(whole[ok], cells[iy0[ok], ix0[ok]], rtol=1e-6)
+        assert ok.any()
+        with pytest.raises(ValueError):
+            sampler(focus.integral(cells[:-1]))

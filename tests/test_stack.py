@@ -652,3 +652,26 @@ def test_property_bad_pitch_always_named(pitch):
 
 def test_errors_are_fieldcal_errors():
     assert issubclass(StackError, FieldcalError)
+
+
+def test_background_verification_refuses_what_verify_refuses(tmp_path):
+    rng = np.random.default_rng(1)
+    w = StackWriter.create(tmp_path / "s", pixel_pitch_um=1.0, channels=["Y"])
+    infos = [w.add_frame(random_image(rng, np.uint8, 1), float(k)) for k in range(5)]
+    s = Stack.open(tmp_path / "s", verify=False)
+    s.start_verify()
+    s.start_verify()  # a second start while one runs does nothing
+    s.finish_verify()
+    s.finish_verify()  # nothing pending: nothing to do
+    assert all(s.frame_sha256(i) == str(infos[i].sha256).lower() for i in range(5))  # the hashes are kept
+    data = bytearray(infos[2].path.read_bytes())
+    data[-1] ^= 0x01
+    infos[2].path.write_bytes(bytes(data))
+    s = Stack.open(tmp_path / "s", verify=False)
+    s.start_verify()
+    assert s.read(0).shape[:2] == s.shape  # reading goes on while the frames hash
+    for _ in range(2):  # the refusal is kept until the caller sees it, and after
+        with pytest.raises(StackError, match=r"sha256 differs.*frames\[2\]"):
+            s.finish_verify()
+    with pytest.raises(StackError, match="sha256 differs"):  # the same verdict as verifying at open
+        Stack.open(tmp_path / "s")

@@ -147,6 +147,9 @@ def calibrate(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, effort: st
 def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, seed, quiet,
                stage_repeatability_um, chart, geometry_maps) -> LensProfile:
     from fieldcal.formats.stack import Stack
+    if not isinstance(stack, Stack):
+        stack = Stack.open(stack, verify=False)
+        stack.start_verify()  # the frames hash beside the imports and the chart check below (Stack.start_verify)
     from fieldcal.measure import measure_geometry, measure_stack
     from fieldcal.fit import ImageGeometry
     from fieldcal.fit.geometry import GeometryData, fit_geometry
@@ -157,14 +160,18 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     from fieldcal.fit.tiles import (breathing_systematic_sd_um, colour_rows, fit_tile_surfaces, geometry_columns,
                                     measure_offset_sd_um, systematic_record)
 
-    if not isinstance(stack, Stack):
-        stack = Stack.open(stack)
     _check(fs_cyc_per_mm, q, effort, stack.pixel_pitch_um)
     if chart not in CHARTS:
         raise ParameterError(f"unknown chart measurement {chart!r}", field="chart",
                              fix=f"use one of {', '.join(CHARTS)}")
     stack.require_frames(MIN_FRAMES, "calibration (a through-focus curve needs points on both sides of its peak)")
-    kind = chart_measurement(stack, chart)
+    finish_verify = getattr(stack, "finish_verify", lambda: None)
+    try:
+        kind = chart_measurement(stack, chart)
+    except Exception:
+        finish_verify()  # a frame changed since it was written says more than what failed to read in it
+        raise
+    finish_verify()  # a verification still running (Stack.start_verify) refuses a changed stack before measuring
     stage_rep, stage_src = stage_repeatability(stack, stage_repeatability_um)
     t0 = time.perf_counter()
     digest: dict = {}

@@ -50,7 +50,6 @@ def register(sub):
 
 
 def run(args) -> int:
-    from fieldcal.calibration.pipeline import calibrate
     from fieldcal.formats.atomic import check_output
     from fieldcal.formats.stack import Stack
 
@@ -67,7 +66,12 @@ def run(args) -> int:
         from fieldcal.report.calibration_report import REPORT_FILES
         check_output(args.report, inputs=[stack_dir], overwrite=args.overwrite, kind="dir",
                      files=REPORT_FILES, field="--report")
-    stack = Stack.open(stack_dir, verify=not args.no_verify)
+    stack = Stack.open(stack_dir, verify=False)
+    if not args.no_verify:
+        # the frames hash on the second core while the pipeline's modules import and the chart is checked;
+        # calibrate waits for it before measuring (Stack.start_verify)
+        stack.start_verify()
+    from fieldcal.calibration.pipeline import calibrate
     profile = calibrate(stack, fs_cyc_per_mm=args.fs, q=args.q, effort=args.effort, z_ref_um=args.z_ref_um,
                         tile_px=args.tile_px, measure=args.measure, seed=args.seed, quiet=args.quiet,
                         chart=args.chart, geometry_maps=args.geometry_maps,

@@ -247,3 +247,33 @@ def box_sums(ii: np.ndarray, x0, y0, x1, y1) -> np.ndarray:
     """
     x0, y0, x1, y1 = (np.asarray(v, dtype=np.float64) for v in (x0, y0, x1, y1))
     return _bilinear(ii, x1, y1) - _bilinear(ii, x0, y1) - _bilinear(ii, x1, y0) + _bilinear(ii, x0, y0)
+
+
+class BoxSampler:
+    """:func:`box_sums` over one set of boxes for many integral images of one shape: the corners' cells and
+    bilinear weights are found once (a tile table sums ~8 maps per frame over the same boxes), and each image
+    then costs four gathers. The same arithmetic as :func:`box_sums`, so the same numbers to the bit."""
+
+    def __init__(self, shape: tuple[int, int], x0, y0, x1, y1):
+        h, w = shape
+        x0, y0, x1, y1 = (np.asarray(v, dtype=np.float64).ravel() for v in (x0, y0, x1, y1))
+        self.n = x0.size
+        # the four corners of every box, in box_sums' order: (x1, y1), (x0, y1), (x1, y0), (x0, y0)
+        x = np.clip(np.concatenate([x1, x0, x1, x0]), 0.0, w - 1.0)
+        y = np.clip(np.concatenate([y1, y1, y0, y0]), 0.0, h - 1.0)
+        xi = np.minimum(np.floor(x).astype(np.intp), w - 2)
+        yi = np.minimum(np.floor(y).astype(np.intp), h - 2)
+        self.fx, self.fy = x - xi, y - yi
+        self.gx, self.gy = 1 - self.fx, 1 - self.fy
+        self.i00 = yi * w + xi  # flat indices of the 2 x 2 cells around each corner
+        self.i01, self.i10, self.i11 = self.i00 + 1, self.i00 + w, self.i00 + w + 1
+        self.shape = (h, w)
+
+    def __call__(self, ii: np.ndarray) -> np.ndarray:
+        if ii.shape != self.shape:
+            raise ValueError(f"integral image of shape {ii.shape}, sampler made for {self.shape}")
+        f = ii.ravel()
+        v = (f[self.i00] * self.gx + f[self.i01] * self.fx) * self.gy + (f[self.i10] * self.gx
+                                                                          + f[self.i11] * self.fx) * self.fy
+        n = self.n
+        return v[:n] - v[n:2 * n] - v[2 * n:3 * n] + v[3 * n:]

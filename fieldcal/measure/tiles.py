@@ -539,22 +539,21 @@ def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: n
         area = (bx1 - bx0) * (by1 - by0) * c * c  # plane pixels
         out["area"][:, k] = area
         out["cx"][:, k], out["cy"][:, k] = xk, yk
+        boxes = focus.BoxSampler((hc + 1, wc + 1), bx0, by0, bx1, by1)  # every map of this frame: the same boxes
         for name, stackmap in m.maps.items():
-            s = focus.box_sums(focus.integral(stackmap[k]), bx0, by0, bx1, by1)
+            s = boxes(focus.integral(stackmap[k]))
             out[name][:, k] = s / area
             if name == moments_of:
                 e = stackmap[k]
-                out["mx"][:, k] = focus.box_sums(focus.integral(e * xcell[None, :].astype(np.float32)),
-                                                 bx0, by0, bx1, by1) / area
-                out["my"][:, k] = focus.box_sums(focus.integral(e * ycell[:, None].astype(np.float32)),
-                                                 bx0, by0, bx1, by1) / area
+                out["mx"][:, k] = boxes(focus.integral(e * xcell[None, :].astype(np.float32))) / area
+                out["my"][:, k] = boxes(focus.integral(e * ycell[:, None].astype(np.float32))) / area
         # The window grows with the image (area ~ m^2) and keeps the same scene content; the SML maps were taken
         # with the frame's scale term (_focus_maps, focus.sml), so their per-pixel mean over it needs nothing more.
         out["sat"][:, k] *= c * c  # sat cells hold fractions, not sums: back to a fraction of the tile
         # mean of the squared cell means: with "sum" it gives the texture contrast between cells (cell
         # averaging keeps sensor noise out of it)
         cm = m.maps["sum"][k] * np.float32(1.0 / (c * c))
-        out["sum2"][:, k] = focus.box_sums(focus.integral(cm * cm), bx0, by0, bx1, by1) * (c * c) / area
+        out["sum2"][:, k] = boxes(focus.integral(cm * cm)) * (c * c) / area
     return out
 
 
