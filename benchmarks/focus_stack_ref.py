@@ -21,8 +21,11 @@ metrics:
 7. colour reassignment: each output pixel takes the colour of the frame whose grey value at that pixel is the
    closest to the merged grey (the first such frame), so every output pixel's colour is one a frame recorded.
 
-focus-stack also aligns the frames itself; here they come registered (fieldcal's registration), so the
-comparison is of the merge alone. Not in the package: a benchmark's yardstick.
+Defaults as its ``main.cc`` (``--consistency=2``, ``--denoise=1.0``). Not reproduced: its own alignment (with
+contrast and white-balance matching between frames; here the frames come registered by fieldcal, so the
+comparison is of the merge alone), its merging in batches of 8 frames (all frames in one batch here), and its
+JPEG output (quality 95 by default: its block artefacts would add high-frequency energy of their own). Not in
+the package: a benchmark's yardstick.
 """
 
 from __future__ import annotations
