@@ -6,7 +6,9 @@ frames are imported with ``fieldcal import`` (the pitch is not in their EXIF; 1.
 step: only the order matters for depth from focus), composited without a profile in the geometry of the first
 frame (align_image_stack's reference), and compared with ``align_image_stack -m -a`` + ``enfuse --hard-mask``
 (contrast weight only) on the same JPEGs when those tools are installed (``apt-get install enfuse hugin-tools``),
-on all frames and on the first 7.
+on all frames and on the first 7; and with focus-stack's merge (:mod:`focus_stack_ref`, a re-implementation from
+its sources: it cannot be built here) on fieldcal's own registered frames, with its wavelet merge's grey before
+the colour reassignment as a row of its own.
 
 Sharpness is the mean squared Laplacian (OpenCV ``Laplacian``, ksize 3, on grey 0-255) with a 96 px border left
 out: align_image_stack's frames carry black borders up to ~40 px wide, whose edges would otherwise count as
@@ -39,6 +41,7 @@ import tifffile
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import flag_slowdowns, slowdown_note  # noqa: E402
+from focus_stack_ref import focus_stack  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 # ../shared beside the checkout, or FIELDCAL_SHARED (the folder holding data/), or --stack
@@ -196,16 +199,23 @@ def main() -> None:
     from fieldcal.formats.stack import Stack
 
     rows = {f"a single frame (the sharpest by msl, {jpegs[sharpest].name})": (single[sharpest], None)}
-    ours = enf = None
+    ours = enf = fs_ref = None
     t_enf = None
     have_enfuse = bool(shutil.which("enfuse") and shutil.which("align_image_stack"))
     for n in (len(jpegs), 7):
         img = tifffile.imread(work / f"fieldcal{n}.tiff")
         held, _ = register_stack(Stack.open(work / f"pcb{n}", verify=False), z_ref_um=0.0, quiet=True)
-        rows[f"fieldcal, {n} frames"] = (img, [held.read(i) for i in range(n)])
+        regd = [held.read(i) for i in range(n)]
+        rows[f"fieldcal, {n} frames"] = (img, regd)
         del held
+        # focus-stack's merge on the same registered frames (benchmarks/focus_stack_ref.py), and its wavelet
+        # merge's grey before the colour reassignment
+        fs_img, fs_info = focus_stack(regd)
+        rows[f"focus-stack (reference re-implementation), {n} frames"] = (fs_img, regd)
+        rows[f"focus-stack's wavelet merge before colour reassignment (grey), {n} frames"] = (
+            np.repeat(fs_info["grey"][..., None], 3, axis=2), regd)
         if ours is None:
-            ours = img
+            ours, fs_ref = img, fs_img
         if have_enfuse:
             t0 = time.perf_counter()
             subprocess.run(["align_image_stack", "-m", "-a", str(work / f"al{n}_"), *map(str, jpegs[:n])],
@@ -256,21 +266,23 @@ def main() -> None:
     # ... and the left edge, where frames magnified less than the reference hold no pixels (no streaks)
     for (fx, fy) in ((0.576, 0.273), (0.303, 0.651), (0.703, 0.313), (0.508, 0.417), (0.0, 0.45)):
         x, y = int(fx * w), int(fy * h)
-        row = [ours[y:y + size, x:x + size, :3]]
+        gap = np.full((size, 4, 3), 255, np.uint8)
+        row = [fs_ref[y:y + size, x:x + size], gap, ours[y:y + size, x:x + size, :3]]
         if enf is not None:
-            row = [enf[y:y + size, x:x + size], np.full((size, 4, 3), 255, np.uint8)] + row
+            row = [enf[y:y + size, x:x + size], gap] + row
         crops.append(cv2.resize(np.concatenate(row, axis=1), None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST))
     # the docs' figure only with --write; otherwise beside the run, kept for a look
     out = (REPO / "docs" / "img" if a.write else Path(tempfile.gettempdir())) / "real-pcb-crops.png"
     cv2.imwrite(str(out), np.concatenate(crops, axis=0)[..., ::-1])
-    print(f"crops ({'enfuse | fieldcal' if enf is not None else 'fieldcal'}, five regions, 2x): {out}")
+    print(f"crops ({'enfuse | ' if enf is not None else ''}focus-stack reference | fieldcal, five regions, 2x): {out}")
     if a.write:
         doc = REPO / "docs" / "benchmarks.md"
         text = doc.read_text(encoding="utf-8")
         b, e = "<!-- bench_real_stack:begin -->", "<!-- bench_real_stack:end -->"
         block = "\n".join([b, "Real circuit-board stack (`python benchmarks/bench_real_stack.py --write`; crops: "
                               "[img/real-pcb-crops.png](img/real-pcb-crops.png), left enfuse (10 frames, brought onto fieldcal's "
-                              "geometry), right fieldcal (10 frames); the last row is the left edge):", "",
+                              "geometry), middle the focus-stack reference on fieldcal's registered frames, right "
+                              "fieldcal (10 frames); the last row is the left edge):", "",
                            *lines, e])
         if b in text:
             text = text[:text.index(b)] + block + text[text.index(e) + len(e):]
