@@ -128,6 +128,7 @@ def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCr
     centre = centre_px if centre_px is not None else geometry.centre_px
     probe = ToleranceFit(geometry, (float(centre[0]), float(centre[1])), calibrated_at, shape, {})
     coef, rsd, diag = {}, {}, {}
+    fit_terms = []
     for c in tiles.channels:
         m = (tiles.channel == c) & np.isfinite(tiles.width_um)
         if m.sum() < min_tiles:
@@ -152,8 +153,10 @@ def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCr
         rsd[c] = sd
         diag[c] = {"n_tiles": int(m.sum()), "order": min(n_coef - 1, 1), "model": MODEL_TERMS[n_coef],
                    "bic": {int(k): b for b, k, *_ in cands}}
-        diag[c]["_bic_best"] = bic
-    per_channel_bic = sum(diag[c].pop("_bic_best") for c in tiles.channels)
+        # the fit's log-likelihood term and size, for the BIC of all channels' data together (shared_channels)
+        fit_terms.append((bic - n_coef * math.log(m.sum()), n_coef, int(m.sum())))
+    n_all = sum(n for *_, n in fit_terms)
+    per_channel_bic = sum(ll + k * math.log(n_all) for ll, k, _ in fit_terms)
     if shared_channels and len(tiles.channels) > 1:
         shared = _shared_model(tiles, probe)
         if shared is not None:
@@ -171,7 +174,8 @@ def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCr
 def _shared_model(tiles: TileData, probe: ToleranceFit):
     """(BIC, coefficients, residual sd per channel, diagnostics) of the best width model shared by every
     channel, or None. Each channel keeps its own noise scale (the soft-L1 scale and the BIC's variance are per
-    channel, as in the per-channel fits), so its BIC compares with the sum of the per-channel fits' BICs: the
+    channel, as in the per-channel fits), so its BIC compares with the per-channel fits' on all channels' data
+    together (their log-likelihood terms summed, every coefficient penalised by ln of the total count): the
     same data, only the coefficients are shared."""
     parts = []
     for c in tiles.channels:
