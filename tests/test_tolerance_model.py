@@ -85,3 +85,33 @@ def test_one_pooled_residual_sd_would_understate_the_corner():
         return s2 * np.linalg.pinv(A.T @ A)
     zsd = _z_scores(pooled)
     assert zsd[0] > 1.2, zsd
+
+
+def _three_channels(widths_um, sd_um, seed):
+    rng = np.random.default_rng(seed)
+    n = X.size
+    ch = np.repeat(np.array(["R", "G", "B"]), n)
+    w = np.concatenate([np.full(n, wc) + sd_um * rng.standard_normal(n) for wc in widths_um])
+    return TileData.from_arrays(ch, np.tile(X, 3), np.tile(Y, 3), np.zeros(3 * n), np.ones(3 * n), width_um=w)
+
+
+def test_channels_share_one_width_when_the_data_do_not_tell_them_apart():
+    # one δ for every channel (the defocus law's blur rate 1/N) and 10 % tile noise: one model, whose error is
+    # the pooled mean's (about sd / sqrt(3 n)), not one channel's
+    errs = []
+    for seed in range(8):
+        t = fit_tolerance(_three_channels((20.0, 20.0, 20.0), 2.0, seed), GEOM, CRIT, shared_channels=True)
+        assert t.diagnostics["channels"]["shared"]
+        assert t.coef_um["R"] == t.coef_um["G"] == t.coef_um["B"]
+        errs.append(t.coef_um["G"][0] - 20.0)
+    assert np.sqrt(np.mean(np.square(errs))) < 2.5 * 2.0 / np.sqrt(3 * X.size)
+    # without the option every channel keeps its own model (the texture path's default)
+    t = fit_tolerance(_three_channels((20.0, 20.0, 20.0), 2.0, 0), GEOM, CRIT)
+    assert "channels" not in t.diagnostics and t.coef_um["R"] != t.coef_um["G"]
+
+
+def test_channels_keep_their_own_width_when_they_differ():
+    # an aberration that makes R's δ 15 % wider: well beyond the noise, so the per-channel models stay
+    t = fit_tolerance(_three_channels((23.0, 20.0, 20.0), 1.0, 3), GEOM, CRIT, shared_channels=True)
+    assert not t.diagnostics["channels"]["shared"]
+    assert t.coef_um["R"][0] == pytest.approx(23.0, abs=0.5) and t.coef_um["G"][0] == pytest.approx(20.0, abs=0.5)

@@ -222,7 +222,10 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
         # each tile's width without the spread of best focus inside it (fit/width_window.py); the model is about
         # the sensor centre: a decentred width field is its linear terms (fit/tolerance.py)
         tiles_w, window_note = correct_widths(surf, tiles, table.z_um, float(table.tile_px), fs_cyc_per_mm, q)
-        tol = fit_tolerance(tiles_w, geometry, MTFCriterion(fs_cyc_per_mm, q), source=str(stack.path))
+        # slanted-edge widths are the defocus law's own (one blur rate, 1/N, at every wavelength): one model for
+        # all channels where the data do not need one each (fit/tolerance.py)
+        tol = fit_tolerance(tiles_w, geometry, MTFCriterion(fs_cyc_per_mm, q), source=str(stack.path),
+                            shared_channels=kind.kind == "esfr")
         tol.diagnostics["width_window"] = window_note
     except FieldcalError as e:  # planning falls back to the defocus model and says so
         tol_note = f"no measured tolerance model: {e.what}"

@@ -116,12 +116,19 @@ class ToleranceFit:
 
 def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCriterion,
                   centre_px: tuple[float, float] | None = None, shape: str = "defocus-disc",
-                  min_tiles: int = 4, source: str | None = None) -> ToleranceFit:
-    """Fit the per-channel width model from tiles whose ``width_um`` was measured at ``calibrated_at``."""
+                  min_tiles: int = 4, source: str | None = None, shared_channels: bool = False) -> ToleranceFit:
+    """Fit the per-channel width model from tiles whose ``width_um`` was measured at ``calibrated_at``.
+
+    ``shared_channels``: also try one width model for every channel (:func:`_shared_model`) and keep it when
+    its BIC beats the per-channel models'. For widths that measure the defocus law itself (slanted-edge
+    MTF(fs) through focus): its blur rate is the aperture's, 1/N, at every wavelength, so the channels' δ
+    differ only where an aberration makes them, and the data say whether they do.
+    """
     shape_factor(calibrated_at.q, shape)  # validates the shape
     centre = centre_px if centre_px is not None else geometry.centre_px
     probe = ToleranceFit(geometry, (float(centre[0]), float(centre[1])), calibrated_at, shape, {})
     coef, rsd, diag = {}, {}, {}
+    fit_terms = []
     for c in tiles.channels:
         m = (tiles.channel == c) & np.isfinite(tiles.width_um)
         if m.sum() < min_tiles:
@@ -146,4 +153,53 @@ def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCr
         rsd[c] = sd
         diag[c] = {"n_tiles": int(m.sum()), "order": min(n_coef - 1, 1), "model": MODEL_TERMS[n_coef],
                    "bic": {int(k): b for b, k, *_ in cands}}
+        # the fit's log-likelihood term and size, for the BIC of all channels' data together (shared_channels)
+        fit_terms.append((bic - n_coef * math.log(m.sum()), n_coef, int(m.sum())))
+    n_all = sum(n for *_, n in fit_terms)
+    per_channel_bic = sum(ll + k * math.log(n_all) for ll, k, _ in fit_terms)
+    if shared_channels and len(tiles.channels) > 1:
+        shared = _shared_model(tiles, probe)
+        if shared is not None:
+            s_bic, s_coef, s_sd, s_diag = shared
+            diag["channels"] = {"rule": "one width model for every channel when its BIC is lower (the defocus "
+                                        "law's blur rate is the aperture's at every wavelength)",
+                                "bic_shared": s_bic, "bic_per_channel": per_channel_bic,
+                                "shared": bool(s_bic < per_channel_bic), **s_diag}
+            if s_bic < per_channel_bic:
+                coef = {c: list(s_coef) for c in tiles.channels}
+                rsd = {c: s_sd[c] for c in tiles.channels}
     return ToleranceFit(geometry, (float(centre[0]), float(centre[1])), calibrated_at, shape, coef, rsd, diag)
+
+
+def _shared_model(tiles: TileData, probe: ToleranceFit):
+    """(BIC, coefficients, residual sd per channel, diagnostics) of the best width model shared by every
+    channel, or None. Each channel keeps its own noise scale (the soft-L1 scale and the BIC's variance are per
+    channel, as in the per-channel fits), so its BIC compares with the per-channel fits' on all channels' data
+    together (their log-likelihood terms summed, every coefficient penalised by ln of the total count): the
+    same data, only the coefficients are shared."""
+    parts = []
+    for c in tiles.channels:
+        m = (tiles.channel == c) & np.isfinite(tiles.width_um)
+        w = tiles.width_um[m]
+        med = float(np.median(w))
+        parts.append((c, m, w, max(1.4826 * float(np.median(np.abs(w - med))), 1e-3 * med)))
+    n_tot = sum(w.size for _, _, w, _ in parts)
+    med_all = float(np.median(np.concatenate([w for _, _, w, _ in parts])))
+    best = None
+    for n_coef in MODEL_TERMS:
+        if min(w.size for _, _, w, _ in parts) < n_coef + 2:
+            continue
+        designs = [probe.design(tiles.x_px[m], tiles.y_px[m], n_coef) for _, m, _, _ in parts]
+
+        def scaled(p):
+            return np.concatenate([(A @ p - w) / fs for A, (_, _, w, fs) in zip(designs, parts)])
+
+        res = optimize.least_squares(scaled, np.r_[med_all, np.zeros(n_coef - 1)], loss="soft_l1")
+        bic, sd = n_coef * math.log(n_tot), {}
+        for A, (c, _, w, fs) in zip(designs, parts):
+            r = (A @ res.x - w) / fs
+            bic += w.size * math.log(max(float(np.sum(r * r)) / w.size, 1e-300))
+            sd[c] = float(np.std(A @ res.x - w))
+        if best is None or bic < best[0]:
+            best = (bic, [float(v) for v in res.x], sd, {"shared_model": MODEL_TERMS[n_coef]})
+    return best
