@@ -65,14 +65,41 @@ def strip_bandpass_cells(plane: np.ndarray, strip: Strip, f0_cyc_per_px: float,
                          out: np.ndarray) -> None:
     """Cell sums of the squared band-pass (at ``f0_cyc_per_px`` of this unbinned plane) over the strip,
     written into the strip's rows of ``out`` (a cell map of the whole plane); other cells are set to 0."""
-    m = margin_px(f0_cyc_per_px)
+    strip_bands_cells(plane, strip, [f0_cyc_per_px], [out])
+
+
+def strip_bands_cells(plane: np.ndarray, strip: Strip, f0s_cyc_per_px, outs) -> None:
+    """:func:`strip_bandpass_cells` at several frequencies (one forward DFT of the strip, one inverse per
+    frequency), each into its own cell map of ``outs``."""
+    m = margin_px(min(f0s_cyc_per_px))
     lo, hi = max(strip.row0 - m, 0), min(strip.row1 + m, plane.shape[0])
-    band = focus.bandpass(plane[lo:hi], f0_cyc_per_px)
-    band = band[strip.row0 - lo:strip.row1 - lo]
-    cells = focus.cell_sums(band * band, strip.cell_px)
-    out[...] = 0.0
     c0 = strip.row0 // strip.cell_px
-    out[c0:c0 + cells.shape[0], :cells.shape[1]] = cells[:, :out.shape[1]]
+    for band, out in zip(focus.bandpass_many(plane[lo:hi], f0s_cyc_per_px), outs):
+        band = band[strip.row0 - lo:strip.row1 - lo]
+        cells = focus.cell_sums(band * band, strip.cell_px)
+        out[...] = 0.0
+        out[c0:c0 + cells.shape[0], :cells.shape[1]] = cells[:, :out.shape[1]]
+
+
+# The band-pass measure is not a single frequency: its log-Gabor ring weights the band energy by G(f)^2, a
+# Gaussian in ln f of sd |ln(sigma_ratio)| / sqrt(2) about f0. Where the sharpest position depends on frequency
+# (spherical aberration: dz/dln f of 0.3-10 µm on the benchmark lenses, 0 within noise without it) the measure
+# peaks at its *effective* frequency, which the image's spectrum and the lens's MTF tilt inside that band and
+# which no measurement here pins down: its 1-sigma spread in ln f is the band's own, BAND_LOG_SD, and the error
+# of the peak is |dz/dln f| times that (a per-channel term shared by the field, :func:`frequency_sd_um`).
+BAND_LOG_SD = abs(math.log(focus.LOG_GABOR_SIGMA_RATIO)) / math.sqrt(2.0)
+# The two extra frequencies the slope dz/dln f is measured at: one log-Gabor sigma either side of fs (the ring's
+# own half-widths in ln f, so the three bands overlap and see the same texture).
+SLOPE_FACTORS = (focus.LOG_GABOR_SIGMA_RATIO, 1.0 / focus.LOG_GABOR_SIGMA_RATIO)
+
+
+def frequency_sd_um(slope_um: float, slope_sd_um: float) -> float:
+    """1-sigma error (µm) of a band-pass peak taken as the sharpest position at fs, given the measured slope
+    ``dz/dln f`` of the sharpest position with frequency (and its sd): ``BAND_LOG_SD x sqrt(slope^2 + sd^2)``
+    (the slope's own uncertainty counts as much as its value: a slope measured as 0 +- sd may be +-sd)."""
+    if not (math.isfinite(slope_um) and math.isfinite(slope_sd_um)):
+        return 0.0
+    return BAND_LOG_SD * math.hypot(slope_um, slope_sd_um)
 
 
 def coverage_cells(shape: tuple[int, int], strip: Strip, per_cell: float) -> np.ndarray:
