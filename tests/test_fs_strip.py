@@ -106,3 +106,81 @@ def test_strip_rows_follow_the_tile_count_and_the_pixel_budget():
     assert fs_strip.tile_rows(9, 7, 320, 32) == 7                                     # small: every row
     ys = fs_strip.tile_centres_y(119.5, 3, 32.0)
     np.testing.assert_allclose(ys, [87.5, 119.5, 151.5])
+
+
+def test_bandpass_many_equals_bandpass_at_each_frequency():
+    plane = _texture(90, 128, seed=3)
+    f0s = [0.1, 0.16, 0.25]
+    for one, f0 in zip(focus.bandpass_many(plane, f0s), f0s):
+        np.testing.assert_allclose(one, focus.bandpass(plane, f0), rtol=1e-5, atol=1e-6)
+
+
+def _sa_stack(w040_um: float, n: int = 160, pitch_um: float = 5.0, f_number: float = 4.0, seed: int = 0):
+    """A mono chart stack through focus whose every frame is the texture times the geometric OTF of defocus and
+    primary spherical aberration (fieldcal.measure.spherical.sa_otf): a closed form of how the sharpest position
+    moves with frequency."""
+    import cv2
+
+    from fieldcal.formats.frames import ArrayStack
+    from fieldcal.measure import spherical
+
+    z = np.arange(-300.0, 301.0, 25.0)
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.random((n, n)).astype(np.float32), (0, 0), 0.7).astype(np.float64)
+    spec = np.fft.fft2(tex - tex.mean())
+    f = np.hypot(*np.meshgrid(np.fft.fftfreq(n), np.fft.fftfreq(n), indexing="ij")) / pitch_um  # cycles/µm
+    frames = []
+    for dz in z:
+        o, _, _ = spherical.sa_otf(np.pi * f * dz / f_number, 16.0 * np.pi * f * f_number * w040_um)
+        frames.append(np.clip(np.real(np.fft.ifft2(spec * o)) + tex.mean(), 0.0, 1.0)[:, :, None])
+    return ArrayStack(frames, z, ["Y"], pixel_pitch_um=pitch_um)
+
+
+def _sharpest_um(f_cyc_per_um: float, w040_um: float, f_number: float = 4.0) -> float:
+    from fieldcal.measure import spherical
+    dz = np.linspace(-300.0, 300.0, 6001)
+    o, _, _ = spherical.sa_otf(np.pi * f_cyc_per_um * dz / f_number, 16.0 * np.pi * f_cyc_per_um * f_number * w040_um)
+    return float(dz[np.argmax(o * o)])
+
+
+@pytest.mark.parametrize("w040_um", [0.0, 0.6])
+def test_band_pass_peak_error_from_the_measured_frequency_slope(w040_um):
+    """The band-pass weights a band of frequencies about fs; with spherical aberration the sharpest position moves
+    with frequency, so its peak is that of the band's effective frequency. The slope dz/dln f measured either side
+    of fs matches the closed form (peaks of the SA OTF at those frequencies), and the measure's band term
+    (fit.tiles.measure_offset_sd_um) is BAND_LOG_SD x |slope| (with the slope's sd); without spherical aberration
+    the slope is 0 within its sd and the term is small. Before, the band had no such term: a band-pass profile of
+    a spherical-aberration lens stated 0 for it."""
+    from fieldcal.fit.tiles import measure_offset_sd_um
+    from fieldcal.measure.tiles import measure_stack
+
+    fs = 30.0  # cycles/mm: 0.15 cycles/px
+    table, _ = measure_stack(_sa_stack(w040_um), fs_cyc_per_mm=fs, measure="bandpass", quiet=True)
+    rec = table.skew["Y"]
+    slope, sd = rec["freq_slope_um"], rec["freq_slope_sd_um"]
+    assert rec["freq_n_tiles"] >= 10 and sd > 0
+    lo, hi = (_sharpest_um(fs * 1e-3 * r, w040_um) for r in fs_strip.SLOPE_FACTORS)
+    expect = (hi - lo) / math.log(fs_strip.SLOPE_FACTORS[1] / fs_strip.SLOPE_FACTORS[0])
+    band = measure_offset_sd_um(table)["Y"]
+    assert band == pytest.approx(fs_strip.BAND_LOG_SD * math.hypot(slope, sd), rel=1e-9)
+    if w040_um == 0.0:
+        assert expect == 0.0 and abs(slope) < 3.0 * sd and band < 0.05
+    else:
+        assert abs(expect) > 1.0                                   # the closed form: the peak moves with f
+        assert abs(slope) > 2.0 * sd and np.sign(slope) == np.sign(expect)
+        assert abs(slope - expect) < 3.0 * sd + 0.25 * abs(expect)
+        assert band > 0.15
+
+
+def test_measure_offset_sd_adds_the_band_frequency_term_in_quadrature():
+    from types import SimpleNamespace
+
+    from fieldcal.fit.tiles import measure_offset_sd_um
+    table = SimpleNamespace(skew={"R": {"offset_um": -3.0, "offset_sd_um": 0.4, "offset_weight": 1.0,
+                                        "freq_slope_um": 2.0, "freq_slope_sd_um": 0.5},
+                                  "G": {"shift_um": 0.1, "freq_slope_um": -1.0, "freq_slope_sd_um": 0.0}})
+    out = measure_offset_sd_um(table)
+    assert out["R"] == pytest.approx(math.hypot(0.4, fs_strip.BAND_LOG_SD * math.hypot(2.0, 0.5)))
+    assert out["G"] == pytest.approx(fs_strip.BAND_LOG_SD * 1.0)
+    # the band's ln-f spread is the log-Gabor energy response's: |ln sigma_ratio| / sqrt(2)
+    assert fs_strip.BAND_LOG_SD == pytest.approx(abs(math.log(focus.LOG_GABOR_SIGMA_RATIO)) / math.sqrt(2.0))
