@@ -184,3 +184,26 @@ def test_measure_offset_sd_adds_the_band_frequency_term_in_quadrature():
     assert out["G"] == pytest.approx(fs_strip.BAND_LOG_SD * 1.0)
     # the band's ln-f spread is the log-Gabor energy response's: |ln sigma_ratio| / sqrt(2)
     assert fs_strip.BAND_LOG_SD == pytest.approx(abs(math.log(focus.LOG_GABOR_SIGMA_RATIO)) / math.sqrt(2.0))
+
+
+def test_offset_zone_jackknife_sees_an_offset_that_varies_over_the_field():
+    """Delete-a-zone jackknife of the pooled offset: with equal sds and zones of equal count it is the sd of the
+    zone means over sqrt(K) (closed form); an offset that changes with field radius gets that, where the pooled
+    mean's own sd (scatter / sqrt(n)) is smaller; independent tile noise gives about the pooled sd."""
+    from fieldcal.measure.throughfocus import OFFSET_ZONES, pooled_mean, zone_jackknife_sd
+
+    k, per = OFFSET_ZONES, 12
+    radius = np.repeat(np.arange(k, dtype=float), per) + np.tile(np.linspace(0.0, 0.5, per), k)
+    zone_means = np.array([-3.0, -2.6, -2.5, -2.2, -1.7])[:k]
+    d = np.repeat(zone_means, per)
+    sd = np.full(d.size, 0.3)
+    jk = zone_jackknife_sd(d, sd, radius)
+    assert jk == pytest.approx(np.std(zone_means, ddof=1) / math.sqrt(k), rel=1e-9)
+    assert jk > 1.5 * pooled_mean(d, sd)[1]
+    rng = np.random.default_rng(5)
+    ratios = []
+    for _ in range(200):
+        e = rng.normal(0.0, 0.3, 60)
+        ratios.append(zone_jackknife_sd(e, np.full(60, 0.3), rng.random(60)) / pooled_mean(e, np.full(60, 0.3))[1])
+    assert 0.8 < float(np.sqrt(np.mean(np.square(ratios)))) < 1.2
+    assert zone_jackknife_sd(d[:5], sd[:5], radius[:5]) == 0.0   # too few tiles for the zones

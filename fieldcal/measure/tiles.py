@@ -761,7 +761,11 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             # the SML's own best foci: the breathing sensitivity is of the SML curve (_exponent_sensitivity)
             res["z_sml_um"] = np.full(nt, np.nan)
             res["z_sml_um"][todo] = [f.z_best_um for f in main]
-            main, offset = (apply_measure_offset(main, bp) if offset_from is None
+            # the tiles' distance from the middle of the tiles (the frame's centre, strip or grid alike), for the
+            # offset's zone jackknife
+            cx, cy = (np.mean(channel_curves[k][todo], axis=1) for k in ("cx", "cy"))
+            radius = np.hypot(cx - np.mean(cx), cy - np.mean(cy))
+            main, offset = (apply_measure_offset(main, bp, radius) if offset_from is None
                             else (shift_by_offset(main, offset_from), {**offset_from, "from": "strip"}))
             res["skew"] = {**res.get("skew", {}), **offset}
         for t, fb, fm in zip(todo, bp, main):
@@ -984,7 +988,8 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                 slopes[ch] = _frequency_slope(on_strip, axes[ch].y(z), float(fs_cyc_per_mm), float(q), rules)
             rec = _analyse(on_strip, axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
                            rules=rules, bp_scale=bp_scale).get("skew", {})
-            offsets[ch] = {k: rec.get(k, 0.0) for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles")}
+            offsets[ch] = {k: rec.get(k, 0.0) for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles",
+                                                         "offset_zone_sd_um")}
     for ch, cc in per_channel.items():
         if "bp_lo" in cc:  # the band-pass everywhere (standard): the grid's tiles inside the slope strip
             slopes[ch] = _frequency_slope(cc, axes[ch].y(z), float(fs_cyc_per_mm), float(q), rules)
