@@ -147,29 +147,32 @@ def _sharpest_um(f_cyc_per_um: float, w040_um: float, f_number: float = 4.0) -> 
 def test_band_pass_peak_error_from_the_measured_frequency_slope(w040_um):
     """The band-pass weights a band of frequencies about fs; with spherical aberration the sharpest position moves
     with frequency, so its peak is that of the band's effective frequency. The slope dz/dln f measured either side
-    of fs matches the closed form (peaks of the SA OTF at those frequencies), and the measure's band term
-    (fit.tiles.measure_offset_sd_um) is BAND_LOG_SD x |slope| (with the slope's sd); without spherical aberration
-    the slope is 0 within its sd and the term is small. Before, the band had no such term: a band-pass profile of
-    a spherical-aberration lens stated 0 for it."""
+    of fs matches the closed form (peaks of the SA OTF at those frequencies), the effective frequency lies inside
+    the band, and the measure's band term (fit.tiles.measure_offset_sd_um) is |ln(f_eff / fs)| x |slope| (with
+    the slope's sd); without spherical aberration the slope is 0 within its sd and the term is ~0. Before, the
+    band had no such term: a band-pass profile stated 0 for it."""
     from fieldcal.fit.tiles import measure_offset_sd_um
     from fieldcal.measure.tiles import measure_stack
 
     fs = 30.0  # cycles/mm: 0.15 cycles/px
     table, _ = measure_stack(_sa_stack(w040_um), fs_cyc_per_mm=fs, measure="bandpass", quiet=True)
     rec = table.skew["Y"]
-    slope, sd = rec["freq_slope_um"], rec["freq_slope_sd_um"]
+    slope, sd, shift = rec["freq_slope_um"], rec["freq_slope_sd_um"], rec["freq_shift_ln"]
     assert rec["freq_n_tiles"] >= 10 and sd > 0
+    # the effective frequency: inside the ring's own sd in ln f, and off fs (the band's energy and the curves'
+    # sharpness change with f)
+    assert 1e-3 < abs(shift) < math.sqrt(fs_strip.BAND_LOG_VAR)
     lo, hi = (_sharpest_um(fs * 1e-3 * r, w040_um) for r in fs_strip.SLOPE_FACTORS)
     expect = (hi - lo) / math.log(fs_strip.SLOPE_FACTORS[1] / fs_strip.SLOPE_FACTORS[0])
     band = measure_offset_sd_um(table)["Y"]
-    assert band == pytest.approx(fs_strip.BAND_LOG_SD * math.hypot(slope, sd), rel=1e-9)
+    assert band == pytest.approx(abs(shift) * math.hypot(slope, sd), rel=1e-9)
     if w040_um == 0.0:
-        assert expect == 0.0 and abs(slope) < 3.0 * sd and band < 0.05
+        assert expect == 0.0 and abs(slope) < 3.0 * sd and band < 0.02
     else:
         assert abs(expect) > 1.0                                   # the closed form: the peak moves with f
         assert abs(slope) > 2.0 * sd and np.sign(slope) == np.sign(expect)
         assert abs(slope - expect) < 3.0 * sd + 0.25 * abs(expect)
-        assert band > 0.15
+        assert band > 0.01
 
 
 def test_measure_offset_sd_adds_the_band_frequency_term_in_quadrature():
@@ -177,13 +180,17 @@ def test_measure_offset_sd_adds_the_band_frequency_term_in_quadrature():
 
     from fieldcal.fit.tiles import measure_offset_sd_um
     table = SimpleNamespace(skew={"R": {"offset_um": -3.0, "offset_sd_um": 0.4, "offset_weight": 1.0,
-                                        "freq_slope_um": 2.0, "freq_slope_sd_um": 0.5},
-                                  "G": {"shift_um": 0.1, "freq_slope_um": -1.0, "freq_slope_sd_um": 0.0}})
+                                        "freq_slope_um": 2.0, "freq_slope_sd_um": 0.5, "freq_shift_ln": -0.03},
+                                  "G": {"shift_um": 0.1, "freq_slope_um": -10.0, "freq_slope_sd_um": 0.0,
+                                        "freq_shift_ln": 0.02}})
     out = measure_offset_sd_um(table)
-    assert out["R"] == pytest.approx(math.hypot(0.4, fs_strip.BAND_LOG_SD * math.hypot(2.0, 0.5)))
-    assert out["G"] == pytest.approx(fs_strip.BAND_LOG_SD * 1.0)
-    # the band's ln-f spread is the log-Gabor energy response's: |ln sigma_ratio| / sqrt(2)
-    assert fs_strip.BAND_LOG_SD == pytest.approx(abs(math.log(focus.LOG_GABOR_SIGMA_RATIO)) / math.sqrt(2.0))
+    assert out["R"] == pytest.approx(math.hypot(0.4, 0.03 * math.hypot(2.0, 0.5)))
+    assert out["G"] == pytest.approx(0.2)
+    # the ring's ln-f variance is the log-Gabor energy response's: ln(sigma_ratio)^2 / 2; a band energy x
+    # sharpness going as f^t moves the measure's effective frequency by that variance x t
+    assert fs_strip.BAND_LOG_VAR == pytest.approx(math.log(focus.LOG_GABOR_SIGMA_RATIO) ** 2 / 2.0)
+    assert fs_strip.effective_shift_ln(-1.0, -1.0) == pytest.approx(fs_strip.BAND_LOG_VAR * 1.0)
+    assert fs_strip.effective_shift_ln(math.nan, 0.0) == 0.0
 
 
 def test_offset_zone_jackknife_sees_an_offset_that_varies_over_the_field():

@@ -138,9 +138,9 @@ def measure_offset_sd_um(table) -> dict[str, float]:
 
     With it, in quadrature, the error of taking the band-pass's peak for the sharpest position at fs: the
     band-pass weights a band of frequencies about fs, and where the sharpest position moves with frequency
-    (spherical aberration) its peak sits at the band's effective frequency, which the image's spectrum sets:
-    ``|dz/dln f| x BAND_LOG_SD`` with the slope measured on this stack either side of fs
-    (:func:`fieldcal.measure.fs_strip.frequency_sd_um`; 0 within its sd on a lens without spherical aberration).
+    (spherical aberration) its peak sits at the band's effective frequency, which the image's spectrum and the
+    curves' sharpness set: ``|dz/dln f| x |ln(f_eff / fs)|``, both measured on this stack either side of fs
+    (:func:`fieldcal.measure.fs_strip.frequency_sd_um`; ~0 on a lens without spherical aberration).
     """
     from fieldcal.measure.fs_strip import frequency_sd_um
     from fieldcal.measure.throughfocus import offset_sd_um
@@ -151,8 +151,9 @@ def measure_offset_sd_um(table) -> dict[str, float]:
             continue
         own = 0.0 if "offset_from" in rec else offset_sd_um(rec)
         # the band-pass's own peak is that of its band, not of fs alone: where the sharpest position moves with
-        # frequency (spherical aberration), by |dz/dln f| x the band's spread in ln f (fs_strip.frequency_sd_um)
-        freq = frequency_sd_um(float(rec.get("freq_slope_um", 0.0)), float(rec.get("freq_slope_sd_um", 0.0)))
+        # frequency (spherical aberration), by |dz/dln f| x ln(f_eff / fs) (fs_strip.frequency_sd_um)
+        freq = frequency_sd_um(float(rec.get("freq_slope_um", 0.0)), float(rec.get("freq_slope_sd_um", 0.0)),
+                               float(rec.get("freq_shift_ln", 0.0)))
         out[str(c)] = math.hypot(own, freq)
     return out
 

@@ -82,24 +82,38 @@ def strip_bands_cells(plane: np.ndarray, strip: Strip, f0s_cyc_per_px, outs) -> 
 
 
 # The band-pass measure is not a single frequency: its log-Gabor ring weights the band energy by G(f)^2, a
-# Gaussian in ln f of sd |ln(sigma_ratio)| / sqrt(2) about f0. Where the sharpest position depends on frequency
-# (spherical aberration: dz/dln f of 0.3-10 µm on the benchmark lenses, 0 within noise without it) the measure
-# peaks at its *effective* frequency, which the image's spectrum and the lens's MTF tilt inside that band and
-# which no measurement here pins down: its 1-sigma spread in ln f is the band's own, BAND_LOG_SD, and the error
-# of the peak is |dz/dln f| times that (a per-channel term shared by the field, :func:`frequency_sd_um`).
-BAND_LOG_SD = abs(math.log(focus.LOG_GABOR_SIGMA_RATIO)) / math.sqrt(2.0)
+# Gaussian in ln f of variance BAND_LOG_VAR = ln(sigma_ratio)^2 / 2 about f0. Where the sharpest position depends
+# on frequency (spherical aberration: dz/dln f of 0.3-10 µm on the benchmark lenses, 0 within noise without it)
+# the measure's peak is a weighted mean of the peaks of the frequencies in its band, weighted by G^2 times the
+# band energy at the peak times the curve's sharpness (curvature ~ 1 / width^2): for a local power law of that
+# product, f^t, the weights are a Gaussian in ln f centred at ln f0 + BAND_LOG_VAR t (:func:`effective_shift_ln`),
+# and the peak is off the sharpest position at fs by dz/dln f times that shift.
+BAND_LOG_VAR = math.log(focus.LOG_GABOR_SIGMA_RATIO) ** 2 / 2.0
 # The two extra frequencies the slope dz/dln f is measured at: one log-Gabor sigma either side of fs (the ring's
 # own half-widths in ln f, so the three bands overlap and see the same texture).
 SLOPE_FACTORS = (focus.LOG_GABOR_SIGMA_RATIO, 1.0 / focus.LOG_GABOR_SIGMA_RATIO)
 
 
-def frequency_sd_um(slope_um: float, slope_sd_um: float) -> float:
-    """1-sigma error (µm) of a band-pass peak taken as the sharpest position at fs, given the measured slope
-    ``dz/dln f`` of the sharpest position with frequency (and its sd): ``BAND_LOG_SD x sqrt(slope^2 + sd^2)``
-    (the slope's own uncertainty counts as much as its value: a slope measured as 0 +- sd may be +-sd)."""
-    if not (math.isfinite(slope_um) and math.isfinite(slope_sd_um)):
+def effective_shift_ln(energy_tilt: float, width_tilt: float) -> float:
+    """ln(f_eff / f0) of the band-pass measure's peak: ``BAND_LOG_VAR x (energy_tilt - 2 width_tilt)``.
+
+    ``energy_tilt`` = d ln E_peak / d ln f (the band energy at the curves' peaks, measured by the two side bands:
+    texture spectrum x MTF^2 there), ``width_tilt`` = d ln(width) / d ln f of the through-focus curves (their
+    sharpness, the curvature at the peak, goes as width^-2). Both from the same stack (:func:`frequency_sd_um`).
+    """
+    if not (math.isfinite(energy_tilt) and math.isfinite(width_tilt)):
         return 0.0
-    return BAND_LOG_SD * math.hypot(slope_um, slope_sd_um)
+    return BAND_LOG_VAR * (energy_tilt - 2.0 * width_tilt)
+
+
+def frequency_sd_um(slope_um: float, slope_sd_um: float, shift_ln: float) -> float:
+    """1-sigma error (µm) of a band-pass peak taken as the sharpest position at fs: the measure peaks at its
+    effective frequency, ``shift_ln`` (:func:`effective_shift_ln`) off fs in ln f, and the sharpest position
+    moves by ``slope_um`` (dz/dln f, sd ``slope_sd_um``) per unit ln f there. Not subtracted: the local power law
+    it rests on is approximate; its size is the error, ``|shift_ln| x sqrt(slope^2 + sd^2)``."""
+    if not all(math.isfinite(v) for v in (slope_um, slope_sd_um, shift_ln)):
+        return 0.0
+    return abs(shift_ln) * math.hypot(slope_um, slope_sd_um)
 
 
 def coverage_cells(shape: tuple[int, int], strip: Strip, per_cell: float) -> np.ndarray:

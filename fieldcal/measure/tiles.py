@@ -799,7 +799,9 @@ def _frequency_slope(cc: dict[str, np.ndarray], z: np.ndarray, fs_cyc_per_mm: fl
     best foci, pooled (:func:`fieldcal.measure.throughfocus.pooled_mean`, Birge-inflated by its scatter), over
     the ln f between them is ``dz/dln f`` (µm). Spherical aberration makes it non-zero (the sharpest position
     of a low frequency lies nearer the minimum-RMS-spot focus); a lens without it gives 0 within its sd.
-    Returns ``{"freq_slope_um", "freq_slope_sd_um", "freq_n_tiles"}`` (an empty dict with < 2 tiles).
+    With it the measure's effective frequency ``freq_shift_ln`` = ln(f_eff / fs)
+    (:func:`fieldcal.measure.fs_strip.effective_shift_ln`, from the same fits' peak heights and widths).
+    Returns ``{"freq_slope_um", "freq_slope_sd_um", "freq_n_tiles", "freq_shift_ln"}`` ({} with < 2 tiles).
     """
     seen = fs_strip.inside(cc["slope_cover"])
     mean = cc["sum"]
@@ -821,7 +823,15 @@ def _frequency_slope(cc: dict[str, np.ndarray], z: np.ndarray, fs_cyc_per_mm: fl
     sd = np.array([math.hypot(a.z_sigma_um, b.z_sigma_um) for a, b in both])
     m, se, _ = pooled_mean(d, sd)
     dlnf = math.log(fs_strip.SLOPE_FACTORS[1] / fs_strip.SLOPE_FACTORS[0])
-    return {"freq_slope_um": m / dlnf, "freq_slope_sd_um": se / dlnf, "freq_n_tiles": float(len(both))}
+    # the measure's effective frequency: how the band energy at the peak and the curves' widths change with f
+    with np.errstate(all="ignore"):
+        e_tilt = np.log(np.array([b.peak / a.peak for a, b in both])) / dlnf
+        w_tilt = np.log(np.array([b.width_um / a.width_um for a, b in both])) / dlnf
+    e_tilt, w_tilt = e_tilt[np.isfinite(e_tilt)], w_tilt[np.isfinite(w_tilt)]
+    shift = fs_strip.effective_shift_ln(float(np.median(e_tilt)) if e_tilt.size else math.nan,
+                                        float(np.median(w_tilt)) if w_tilt.size else math.nan)
+    return {"freq_slope_um": m / dlnf, "freq_slope_sd_um": se / dlnf, "freq_n_tiles": float(len(both)),
+            "freq_shift_ln": shift}
 
 
 def _borrow_offsets(results: dict[str, dict]) -> None:
@@ -943,7 +953,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         # quick: the offset is one number per channel; the strip's tiles give it
         strip = middle
     if measure in ("bandpass", SML_AT_FS):
-        # the sharpest position's change with frequency, one number per channel as well (fs_strip.BAND_LOG_SD)
+        # the sharpest position's change with frequency, one number per channel as well (fs_strip.frequency_sd_um)
         slope_strip = middle
     z, order, maps, geo, bp_scale = _scan(stack, want_focus=True, want_geometry=geometry is None,
                                           fs_cyc_per_mm=float(fs_cyc_per_mm), effort=effort, centre_px=centre_px,
