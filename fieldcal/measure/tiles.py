@@ -763,8 +763,10 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             res["z_sml_um"][todo] = [f.z_best_um for f in main]
             # the tiles' distance from the middle of the tiles (the frame's centre, strip or grid alike), for the
             # offset's zone jackknife
-            cx, cy = (np.mean(channel_curves[k][todo], axis=1) for k in ("cx", "cy"))
-            radius = np.hypot(cx - np.mean(cx), cy - np.mean(cy))
+            radius = None
+            if "cx" in channel_curves and "cy" in channel_curves:
+                cx, cy = (np.mean(channel_curves[k][todo], axis=1) for k in ("cx", "cy"))
+                radius = np.hypot(cx - np.mean(cx), cy - np.mean(cy))
             main, offset = (apply_measure_offset(main, bp, radius) if offset_from is None
                             else (shift_by_offset(main, offset_from), {**offset_from, "from": "strip"}))
             res["skew"] = {**res.get("skew", {}), **offset}
