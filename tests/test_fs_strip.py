@@ -214,3 +214,17 @@ def test_offset_zone_jackknife_sees_an_offset_that_varies_over_the_field():
         ratios.append(zone_jackknife_sd(e, np.full(60, 0.3), rng.random(60)) / pooled_mean(e, np.full(60, 0.3))[1])
     assert 0.8 < float(np.sqrt(np.mean(np.square(ratios)))) < 1.2
     assert zone_jackknife_sd(d[:5], sd[:5], radius[:5]) == 0.0   # too few tiles for the zones
+
+
+def test_strip_frames_keep_the_strip_rows_and_read_as_full_maps():
+    """The side bands are stored as the strip's rows only; a frame reads back as the full cell map that
+    strip_bands_cells wrote (zeros off the strip)."""
+    plane = _texture(120, 96, seed=7)
+    strip = fs_strip.centre_strip(plane.shape[0], 59.5, 24.0, 4, 0.2)
+    full = [np.empty((30, 24), np.float32) for _ in range(2)]
+    fs_strip.strip_bands_cells(plane, strip, [0.16, 0.25], full)
+    frames = [fs_strip.StripFrames(3, (30, 24), strip) for _ in range(2)]
+    for f, m in zip(frames, full):
+        f.write(1, m)
+        np.testing.assert_array_equal(f[1], m)
+        assert not f[0].any() and f.rows.shape[1] == (strip.row1 - strip.row0) // 4

@@ -116,6 +116,30 @@ def frequency_sd_um(slope_um: float, slope_sd_um: float, shift_ln: float) -> flo
     return abs(shift_ln) * math.hypot(slope_um, slope_sd_um)
 
 
+class StripFrames:
+    """Per-frame cell maps that are zero outside a strip's rows, stored as those rows only (n x rows x wc).
+
+    Indexing a frame gives the full (hc, wc) map, as a frame of a full cell-map array would (what the tile sums
+    read); :meth:`write` keeps the strip's rows of a full map. On 42 x 1080p RGB at standard effort a full
+    float32 array per extra band was ~22 MB per plane; the strip is a few percent of it.
+    """
+
+    def __init__(self, n_frames: int, shape: tuple[int, int], strip: Strip):
+        hc, wc = shape
+        self.shape = (int(n_frames), int(hc), int(wc))
+        self.r0 = min(strip.row0 // strip.cell_px, hc)
+        self.r1 = min(strip.row1 // strip.cell_px, hc)
+        self.rows = np.zeros((int(n_frames), self.r1 - self.r0, int(wc)), dtype=np.float32)
+
+    def write(self, k: int, full: np.ndarray) -> None:
+        self.rows[k] = full[self.r0:self.r1]
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        out = np.zeros(self.shape[1:], dtype=np.float32)
+        out[self.r0:self.r1] = self.rows[k]
+        return out
+
+
 def coverage_cells(shape: tuple[int, int], strip: Strip, per_cell: float) -> np.ndarray:
     """A cell map (float32) of ``per_cell`` on the strip's cells and 0 elsewhere. With ``per_cell`` = the
     pixels per cell, its per-pixel mean over a tile is the fraction of the tile the band-pass saw (tiles follow

@@ -299,16 +299,22 @@ def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None
     """
     if isinstance(plane, tuple):
         plane = _normalised(*plane)
+    side = None
+    if m.slope is not None:  # the band-pass either side of fs on the slope strip (kept as its rows only)
+        side = [np.empty(m.maps["bp_lo"].shape[1:], np.float32) for _ in range(2)]
     if m.strip is not None:  # before binning: the strip's band-pass is of the full-resolution plane
         f0 = m.strip.f0_cyc_per_px / scale
-        if m.slope is not None:  # the same strip: one DFT for the three frequencies
-            fs_strip.strip_bands_cells(plane, m.strip, [f0, f0 * fs_strip.SLOPE_FACTORS[0], f0 * fs_strip.SLOPE_FACTORS[1]],
-                                       [m.maps["bandpass"][k], m.maps["bp_lo"][k], m.maps["bp_hi"][k]])
+        if side is not None:  # the same strip: one DFT for the three frequencies
+            fs_strip.strip_bands_cells(plane, m.strip, [f0] + [f0 * r for r in fs_strip.SLOPE_FACTORS],
+                                       [m.maps["bandpass"][k]] + side)
         else:
             fs_strip.strip_bandpass_cells(plane, m.strip, f0, m.maps["bandpass"][k])
-    elif m.slope is not None:
-        f_lo, f_hi = (m.slope.f0_cyc_per_px * r / scale for r in fs_strip.SLOPE_FACTORS)
-        fs_strip.strip_bands_cells(plane, m.slope, [f_lo, f_hi], [m.maps["bp_lo"][k], m.maps["bp_hi"][k]])
+    elif side is not None:
+        fs_strip.strip_bands_cells(plane, m.slope, [m.slope.f0_cyc_per_px * r / scale for r in fs_strip.SLOPE_FACTORS],
+                                   side)
+    if side is not None:
+        m.maps["bp_lo"].write(k, side[0])
+        m.maps["bp_hi"].write(k, side[1])
     if fbin > 1:
         plane = downsample(plane, fbin)
     c = m.cell
@@ -399,12 +405,14 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
                 slope = (strip if bp_strip == slope_strip and strip is not None else
                          fs_strip.centre_strip(ph, (slope_strip[0] - lay0.offset_y) / lay0.stride,
                                                slope_strip[1] / lay0.stride, cell * fbin, f0))
-                names += ["bp_lo", "bp_hi", "slope_cover"]
             maps.append(_Maps(lay, cell, f0, {k: np.empty((n, hc, wc), np.float32) for k in names}, strip, slope))
             if strip is not None:
                 maps[-1].maps["bp_cover"][:] = fs_strip.coverage_cells((hc, wc), strip, float(cell * cell))
-            if slope is not None:
-                maps[-1].maps["slope_cover"][:] = fs_strip.coverage_cells((hc, wc), slope, float(cell * cell))
+            if slope is not None:  # the strip's rows only, and one coverage map for every frame
+                maps[-1].maps.update(
+                    bp_lo=fs_strip.StripFrames(n, (hc, wc), slope), bp_hi=fs_strip.StripFrames(n, (hc, wc), slope),
+                    slope_cover=np.broadcast_to(fs_strip.coverage_cells((hc, wc), slope, float(cell * cell)),
+                                                (n, hc, wc)))
     units = {}
     if want_focus and cfg["directional"]:
         for li, m in enumerate(maps):
