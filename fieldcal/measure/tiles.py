@@ -963,8 +963,11 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         # quick: the offset is one number per channel; the strip's tiles give it
         strip = middle
     if measure in ("bandpass", SML_AT_FS):
-        # the sharpest position's change with frequency, one number per channel as well (fs_strip.frequency_sd_um)
-        slope_strip = middle
+        # the sharpest position's change with frequency, one number per channel as well (fs_strip.frequency_sd_um):
+        # the strip's tiles when quick has one (its DFT is shared), else the fewest rows that hold MIN_TILES (its
+        # term is |ln(f_eff/fs)| ~ 0.02-0.03 x the slope: the slope's sd matters little, the cost does)
+        rows = min(int(math.ceil(fs_strip.MIN_TILES / max(n_cols, 1))), strip_rows)
+        slope_strip = middle if strip is not None else ((h - 1) / 2.0, rows * tile + 2.0 * fs_strip.slack_px(tile))
     z, order, maps, geo, bp_scale = _scan(stack, want_focus=True, want_geometry=geometry is None,
                                           fs_cyc_per_mm=float(fs_cyc_per_mm), effort=effort, centre_px=centre_px,
                                           z_ref_um=z_ref_um, quiet=quiet, bp_all=measure in ("bandpass", SML_AT_FS),
