@@ -143,7 +143,7 @@ def _sharpest_um(f_cyc_per_um: float, w040_um: float, f_number: float = 4.0) -> 
     return float(dz[np.argmax(o * o)])
 
 
-@pytest.mark.parametrize("w040_um", [0.0, 0.6])
+@pytest.mark.parametrize("w040_um", [0.0, 1.0])
 def test_band_pass_peak_error_from_the_measured_frequency_slope(w040_um):
     """The band-pass weights a band of frequencies about fs; with spherical aberration the sharpest position moves
     with frequency, so its peak is that of the band's effective frequency. The slope dz/dln f measured either side
@@ -158,7 +158,7 @@ def test_band_pass_peak_error_from_the_measured_frequency_slope(w040_um):
     table, _ = measure_stack(_sa_stack(w040_um), fs_cyc_per_mm=fs, measure="bandpass", quiet=True)
     rec = table.skew["Y"]
     slope, sd, shift = rec["freq_slope_um"], rec["freq_slope_sd_um"], rec["freq_shift_ln"]
-    assert rec["freq_n_tiles"] >= 10 and sd > 0
+    assert rec["freq_n_tiles"] >= 6 and sd > 0
     # the effective frequency: inside the ring's own sd in ln f, and off fs (the band's energy and the curves'
     # sharpness change with f)
     assert 1e-3 < abs(shift) < math.sqrt(fs_strip.BAND_LOG_VAR)
