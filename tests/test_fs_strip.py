@@ -106,3 +106,125 @@ def test_strip_rows_follow_the_tile_count_and_the_pixel_budget():
     assert fs_strip.tile_rows(9, 7, 320, 32) == 7                                     # small: every row
     ys = fs_strip.tile_centres_y(119.5, 3, 32.0)
     np.testing.assert_allclose(ys, [87.5, 119.5, 151.5])
+
+
+def test_bandpass_many_equals_bandpass_at_each_frequency():
+    plane = _texture(90, 128, seed=3)
+    f0s = [0.1, 0.16, 0.25]
+    for one, f0 in zip(focus.bandpass_many(plane, f0s), f0s):
+        np.testing.assert_allclose(one, focus.bandpass(plane, f0), rtol=1e-5, atol=1e-6)
+
+
+def _sa_stack(w040_um: float, n: int = 160, pitch_um: float = 5.0, f_number: float = 4.0, seed: int = 0):
+    """A mono chart stack through focus whose every frame is the texture times the geometric OTF of defocus and
+    primary spherical aberration (fieldcal.measure.spherical.sa_otf): a closed form of how the sharpest position
+    moves with frequency."""
+    import cv2
+
+    from fieldcal.formats.frames import ArrayStack
+    from fieldcal.measure import spherical
+
+    z = np.arange(-300.0, 301.0, 25.0)
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.random((n, n)).astype(np.float32), (0, 0), 0.7).astype(np.float64)
+    spec = np.fft.fft2(tex - tex.mean())
+    f = np.hypot(*np.meshgrid(np.fft.fftfreq(n), np.fft.fftfreq(n), indexing="ij")) / pitch_um  # cycles/µm
+    frames = []
+    for dz in z:
+        o, _, _ = spherical.sa_otf(np.pi * f * dz / f_number, 16.0 * np.pi * f * f_number * w040_um)
+        frames.append(np.clip(np.real(np.fft.ifft2(spec * o)) + tex.mean(), 0.0, 1.0)[:, :, None])
+    return ArrayStack(frames, z, ["Y"], pixel_pitch_um=pitch_um)
+
+
+def _sharpest_um(f_cyc_per_um: float, w040_um: float, f_number: float = 4.0) -> float:
+    from fieldcal.measure import spherical
+    dz = np.linspace(-300.0, 300.0, 6001)
+    o, _, _ = spherical.sa_otf(np.pi * f_cyc_per_um * dz / f_number, 16.0 * np.pi * f_cyc_per_um * f_number * w040_um)
+    return float(dz[np.argmax(o * o)])
+
+
+@pytest.mark.parametrize("w040_um", [0.0, 1.0])
+def test_band_pass_peak_error_from_the_measured_frequency_slope(w040_um):
+    """The band-pass weights a band of frequencies about fs; with spherical aberration the sharpest position moves
+    with frequency, so its peak is that of the band's effective frequency. The slope dz/dln f measured either side
+    of fs matches the closed form (peaks of the SA OTF at those frequencies), the effective frequency lies inside
+    the band, and the measure's band term (fit.tiles.measure_offset_sd_um) is |ln(f_eff / fs)| x |slope| (with
+    the slope's sd); without spherical aberration the slope is 0 within its sd and the term is ~0. Before, the
+    band had no such term: a band-pass profile stated 0 for it."""
+    from fieldcal.fit.tiles import measure_offset_sd_um
+    from fieldcal.measure.tiles import measure_stack
+
+    fs = 30.0  # cycles/mm: 0.15 cycles/px
+    table, _ = measure_stack(_sa_stack(w040_um), fs_cyc_per_mm=fs, measure="bandpass", quiet=True)
+    rec = table.skew["Y"]
+    slope, sd, shift = rec["freq_slope_um"], rec["freq_slope_sd_um"], rec["freq_shift_ln"]
+    assert rec["freq_n_tiles"] >= 6 and sd > 0
+    # the effective frequency: inside the ring's own sd in ln f, and off fs (the band's energy and the curves'
+    # sharpness change with f)
+    assert 1e-3 < abs(shift) < math.sqrt(fs_strip.BAND_LOG_VAR)
+    lo, hi = (_sharpest_um(fs * 1e-3 * r, w040_um) for r in fs_strip.SLOPE_FACTORS)
+    expect = (hi - lo) / math.log(fs_strip.SLOPE_FACTORS[1] / fs_strip.SLOPE_FACTORS[0])
+    band = measure_offset_sd_um(table)["Y"]
+    assert band == pytest.approx(abs(shift) * math.hypot(slope, sd), rel=1e-9)
+    if w040_um == 0.0:
+        assert expect == 0.0 and abs(slope) < 3.0 * sd and band < 0.02
+    else:
+        assert abs(expect) > 1.0                                   # the closed form: the peak moves with f
+        assert abs(slope) > 2.0 * sd and np.sign(slope) == np.sign(expect)
+        assert abs(slope - expect) < 3.0 * sd + 0.25 * abs(expect)
+        assert band > 0.01
+
+
+def test_measure_offset_sd_adds_the_band_frequency_term_in_quadrature():
+    from types import SimpleNamespace
+
+    from fieldcal.fit.tiles import measure_offset_sd_um
+    table = SimpleNamespace(skew={"R": {"offset_um": -3.0, "offset_sd_um": 0.4, "offset_weight": 1.0,
+                                        "freq_slope_um": 2.0, "freq_slope_sd_um": 0.5, "freq_shift_ln": -0.03},
+                                  "G": {"shift_um": 0.1, "freq_slope_um": -10.0, "freq_slope_sd_um": 0.0,
+                                        "freq_shift_ln": 0.02}})
+    out = measure_offset_sd_um(table)
+    assert out["R"] == pytest.approx(math.hypot(0.4, 0.03 * math.hypot(2.0, 0.5)))
+    assert out["G"] == pytest.approx(0.2)
+    # the ring's ln-f variance is the log-Gabor energy response's: ln(sigma_ratio)^2 / 2; a band energy x
+    # sharpness going as f^t moves the measure's effective frequency by that variance x t
+    assert fs_strip.BAND_LOG_VAR == pytest.approx(math.log(focus.LOG_GABOR_SIGMA_RATIO) ** 2 / 2.0)
+    assert fs_strip.effective_shift_ln(-1.0, -1.0) == pytest.approx(fs_strip.BAND_LOG_VAR * 1.0)
+    assert fs_strip.effective_shift_ln(math.nan, 0.0) == 0.0
+
+
+def test_offset_zone_jackknife_sees_an_offset_that_varies_over_the_field():
+    """Delete-a-zone jackknife of the pooled offset: with equal sds and zones of equal count it is the sd of the
+    zone means over sqrt(K) (closed form); an offset that changes with field radius gets that, where the pooled
+    mean's own sd (scatter / sqrt(n)) is smaller; independent tile noise gives about the pooled sd."""
+    from fieldcal.measure.throughfocus import OFFSET_ZONES, pooled_mean, zone_jackknife_sd
+
+    k, per = OFFSET_ZONES, 12
+    radius = np.repeat(np.arange(k, dtype=float), per) + np.tile(np.linspace(0.0, 0.5, per), k)
+    zone_means = np.array([-3.0, -2.6, -2.5, -2.2, -1.7])[:k]
+    d = np.repeat(zone_means, per)
+    sd = np.full(d.size, 0.3)
+    jk = zone_jackknife_sd(d, sd, radius)
+    assert jk == pytest.approx(np.std(zone_means, ddof=1) / math.sqrt(k), rel=1e-9)
+    assert jk > 1.5 * pooled_mean(d, sd)[1]
+    rng = np.random.default_rng(5)
+    ratios = []
+    for _ in range(200):
+        e = rng.normal(0.0, 0.3, 60)
+        ratios.append(zone_jackknife_sd(e, np.full(60, 0.3), rng.random(60)) / pooled_mean(e, np.full(60, 0.3))[1])
+    assert 0.8 < float(np.sqrt(np.mean(np.square(ratios)))) < 1.2
+    assert zone_jackknife_sd(d[:5], sd[:5], radius[:5]) == 0.0   # too few tiles for the zones
+
+
+def test_strip_frames_keep_the_strip_rows_and_read_as_full_maps():
+    """The side bands are stored as the strip's rows only; a frame reads back as the full cell map that
+    strip_bands_cells wrote (zeros off the strip)."""
+    plane = _texture(120, 96, seed=7)
+    strip = fs_strip.centre_strip(plane.shape[0], 59.5, 24.0, 4, 0.2)
+    full = [np.empty((30, 24), np.float32) for _ in range(2)]
+    fs_strip.strip_bands_cells(plane, strip, [0.16, 0.25], full)
+    frames = [fs_strip.StripFrames(3, (30, 24), strip) for _ in range(2)]
+    for f, m in zip(frames, full):
+        f.write(1, m)
+        np.testing.assert_array_equal(f[1], m)
+        assert not f[0].any() and f.rows.shape[1] == (strip.row1 - strip.row0) // 4

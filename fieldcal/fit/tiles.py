@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import math
+
 import numpy as np
 
 # Effective window of a measured tile relative to a uniform square of side tile_px: the measured best focus is
@@ -133,11 +135,26 @@ def measure_offset_sd_um(table) -> dict[str, float]:
     (:func:`fieldcal.measure.throughfocus.apply_measure_offset`; at quick effort measured on a strip of tiles,
     :mod:`fieldcal.measure.fs_strip`): its error is one draw for the whole field, a band term no fit of the
     tiles can see. A channel that borrowed the others' offset carries it in its tiles' sds already (0 here).
+
+    With it, in quadrature, the error of taking the band-pass's peak for the sharpest position at fs: the
+    band-pass weights a band of frequencies about fs, and where the sharpest position moves with frequency
+    (spherical aberration) its peak sits at the band's effective frequency, which the image's spectrum and the
+    curves' sharpness set: ``|dz/dln f| x |ln(f_eff / fs)|``, both measured on this stack either side of fs
+    (:func:`fieldcal.measure.fs_strip.frequency_sd_um`; ~0 on a lens without spherical aberration).
     """
+    from fieldcal.measure.fs_strip import frequency_sd_um
     from fieldcal.measure.throughfocus import offset_sd_um
     out = {}
     for c, rec in (getattr(table, "skew", None) or {}).items():
-        out[str(c)] = 0.0 if (not isinstance(rec, dict) or "offset_from" in rec) else offset_sd_um(rec)
+        if not isinstance(rec, dict):
+            out[str(c)] = 0.0
+            continue
+        own = 0.0 if "offset_from" in rec else offset_sd_um(rec)
+        # the band-pass's own peak is that of its band, not of fs alone: where the sharpest position moves with
+        # frequency (spherical aberration), by |dz/dln f| x ln(f_eff / fs) (fs_strip.frequency_sd_um)
+        freq = frequency_sd_um(float(rec.get("freq_slope_um", 0.0)), float(rec.get("freq_slope_sd_um", 0.0)),
+                               float(rec.get("freq_shift_ln", 0.0)))
+        out[str(c)] = math.hypot(own, freq)
     return out
 
 

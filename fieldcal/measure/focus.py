@@ -181,6 +181,22 @@ def bandpass(plane: np.ndarray, f0_cyc_per_px: float) -> np.ndarray:
     return out[:h, :w] if (hp, wp) != (h, w) else out
 
 
+def bandpass_many(plane: np.ndarray, f0s_cyc_per_px) -> list[np.ndarray]:
+    """:func:`bandpass` at several frequencies, sharing the plane's forward DFT (one inverse per frequency)."""
+    h, w = plane.shape
+    hp, wp = _even_fast_len(h), _even_fast_len(w)
+    src = np.ascontiguousarray(plane, dtype=np.float32)
+    if (hp, wp) != (h, w):
+        src = cv2.copyMakeBorder(src, 0, hp - h, 0, wp - w, cv2.BORDER_CONSTANT, value=0.0)
+    spec = cv2.dft(src)
+    out = []
+    for f0 in f0s_cyc_per_px:
+        band = cv2.idft(cv2.multiply(spec, log_gabor_ring((hp, wp), float(f0))),
+                        flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+        out.append(band[:h, :w] if (hp, wp) != (h, w) else band)
+    return out
+
+
 def directional_energy(band: np.ndarray, unit_x: np.ndarray, unit_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Band-passed gradient energy along (radial) and across (azimuthal) the unit vectors, float32 each."""
     gx = cv2.Scharr(band, cv2.CV_32F, 1, 0)

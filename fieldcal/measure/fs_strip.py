@@ -65,14 +65,79 @@ def strip_bandpass_cells(plane: np.ndarray, strip: Strip, f0_cyc_per_px: float,
                          out: np.ndarray) -> None:
     """Cell sums of the squared band-pass (at ``f0_cyc_per_px`` of this unbinned plane) over the strip,
     written into the strip's rows of ``out`` (a cell map of the whole plane); other cells are set to 0."""
-    m = margin_px(f0_cyc_per_px)
+    strip_bands_cells(plane, strip, [f0_cyc_per_px], [out])
+
+
+def strip_bands_cells(plane: np.ndarray, strip: Strip, f0s_cyc_per_px, outs) -> None:
+    """:func:`strip_bandpass_cells` at several frequencies (one forward DFT of the strip, one inverse per
+    frequency), each into its own cell map of ``outs``."""
+    m = margin_px(min(f0s_cyc_per_px))
     lo, hi = max(strip.row0 - m, 0), min(strip.row1 + m, plane.shape[0])
-    band = focus.bandpass(plane[lo:hi], f0_cyc_per_px)
-    band = band[strip.row0 - lo:strip.row1 - lo]
-    cells = focus.cell_sums(band * band, strip.cell_px)
-    out[...] = 0.0
     c0 = strip.row0 // strip.cell_px
-    out[c0:c0 + cells.shape[0], :cells.shape[1]] = cells[:, :out.shape[1]]
+    for band, out in zip(focus.bandpass_many(plane[lo:hi], f0s_cyc_per_px), outs):
+        band = band[strip.row0 - lo:strip.row1 - lo]
+        cells = focus.cell_sums(band * band, strip.cell_px)
+        out[...] = 0.0
+        out[c0:c0 + cells.shape[0], :cells.shape[1]] = cells[:, :out.shape[1]]
+
+
+# The band-pass measure is not a single frequency: its log-Gabor ring weights the band energy by G(f)^2, a
+# Gaussian in ln f of variance BAND_LOG_VAR = ln(sigma_ratio)^2 / 2 about f0. Where the sharpest position depends
+# on frequency (spherical aberration: dz/dln f of 0.3-10 µm on the benchmark lenses, 0 within noise without it)
+# the measure's peak is a weighted mean of the peaks of the frequencies in its band, weighted by G^2 times the
+# band energy at the peak times the curve's sharpness (curvature ~ 1 / width^2): for a local power law of that
+# product, f^t, the weights are a Gaussian in ln f centred at ln f0 + BAND_LOG_VAR t (:func:`effective_shift_ln`),
+# and the peak is off the sharpest position at fs by dz/dln f times that shift.
+BAND_LOG_VAR = math.log(focus.LOG_GABOR_SIGMA_RATIO) ** 2 / 2.0
+# The two extra frequencies the slope dz/dln f is measured at: one log-Gabor sigma either side of fs (the ring's
+# own half-widths in ln f, so the three bands overlap and see the same texture).
+SLOPE_FACTORS = (focus.LOG_GABOR_SIGMA_RATIO, 1.0 / focus.LOG_GABOR_SIGMA_RATIO)
+
+
+def effective_shift_ln(energy_tilt: float, width_tilt: float) -> float:
+    """ln(f_eff / f0) of the band-pass measure's peak: ``BAND_LOG_VAR x (energy_tilt - 2 width_tilt)``.
+
+    ``energy_tilt`` = d ln E_peak / d ln f (the band energy at the curves' peaks, measured by the two side bands:
+    texture spectrum x MTF^2 there), ``width_tilt`` = d ln(width) / d ln f of the through-focus curves (their
+    sharpness, the curvature at the peak, goes as width^-2). Both from the same stack (:func:`frequency_sd_um`).
+    """
+    if not (math.isfinite(energy_tilt) and math.isfinite(width_tilt)):
+        return 0.0
+    return BAND_LOG_VAR * (energy_tilt - 2.0 * width_tilt)
+
+
+def frequency_sd_um(slope_um: float, slope_sd_um: float, shift_ln: float) -> float:
+    """1-sigma error (µm) of a band-pass peak taken as the sharpest position at fs: the measure peaks at its
+    effective frequency, ``shift_ln`` (:func:`effective_shift_ln`) off fs in ln f, and the sharpest position
+    moves by ``slope_um`` (dz/dln f, sd ``slope_sd_um``) per unit ln f there. Not subtracted: the local power law
+    it rests on is approximate; its size is the error, ``|shift_ln| x sqrt(slope^2 + sd^2)``."""
+    if not all(math.isfinite(v) for v in (slope_um, slope_sd_um, shift_ln)):
+        return 0.0
+    return abs(shift_ln) * math.hypot(slope_um, slope_sd_um)
+
+
+class StripFrames:
+    """Per-frame cell maps that are zero outside a strip's rows, stored as those rows only (n x rows x wc).
+
+    Indexing a frame gives the full (hc, wc) map, as a frame of a full cell-map array would (what the tile sums
+    read); :meth:`write` keeps the strip's rows of a full map. On 42 x 1080p RGB at standard effort a full
+    float32 array per extra band was ~22 MB per plane; the strip is a few percent of it.
+    """
+
+    def __init__(self, n_frames: int, shape: tuple[int, int], strip: Strip):
+        hc, wc = shape
+        self.shape = (int(n_frames), int(hc), int(wc))
+        self.r0 = min(strip.row0 // strip.cell_px, hc)
+        self.r1 = min(strip.row1 // strip.cell_px, hc)
+        self.rows = np.zeros((int(n_frames), self.r1 - self.r0, int(wc)), dtype=np.float32)
+
+    def write(self, k: int, full: np.ndarray) -> None:
+        self.rows[k] = full[self.r0:self.r1]
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        out = np.zeros(self.shape[1:], dtype=np.float32)
+        out[self.r0:self.r1] = self.rows[k]
+        return out
 
 
 def coverage_cells(shape: tuple[int, int], strip: Strip, per_cell: float) -> np.ndarray:

@@ -505,7 +505,33 @@ def apply_pooled_skew(fits: list[CurveFit], apply: bool = True) -> tuple[list[Cu
     return out, info
 
 
-def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit]) -> tuple[list[CurveFit], dict]:
+# Zones of field radius the sml@fs offset's tiles are split into for its delete-a-zone jackknife (equal counts).
+OFFSET_ZONES = 5
+
+
+def zone_jackknife_sd(d, sd, zone_key) -> float:
+    """sd of :func:`pooled_mean` of ``d`` by a delete-a-group jackknife over :data:`OFFSET_ZONES` groups of
+    equal count along ``zone_key`` (e.g. the tiles' field radius); 0 with too few values.
+
+    Why: the pooled mean's own sd takes the per-tile values' scatter as independent noise (1/sqrt(n)). The SML's
+    offset from the band-pass at fs changes smoothly over the field (the other aberrations change the curves'
+    shapes with field height), so neighbouring tiles share their deviations and the mean of a field with another
+    balance of radii (the surface's, where the offset is applied) differs by more: leaving out a whole zone at a
+    time measures that.
+    """
+    d, sd, key = (np.asarray(a, dtype=np.float64) for a in (d, sd, zone_key))
+    ok = np.isfinite(d) & np.isfinite(sd) & (sd > 0) & np.isfinite(key)
+    d, sd, key = d[ok], sd[ok], key[ok]
+    k = OFFSET_ZONES
+    if d.size < 2 * k:
+        return 0.0
+    zone = np.minimum((np.argsort(np.argsort(key)) * k) // d.size, k - 1)
+    loo = np.array([pooled_mean(d[zone != j], sd[zone != j])[0] for j in range(k)])
+    return float(math.sqrt((k - 1) / k * np.sum((loo - loo.mean()) ** 2)))
+
+
+def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit],
+                         radius=None) -> tuple[list[CurveFit], dict]:
     """``main``'s best foci moved by the channel's pooled offset to ``ref`` (same tiles, in order).
 
     For the SML moved to the band-pass at fs (``measure="auto"``): the SML's broad band gives the lower tile
@@ -514,12 +540,18 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit]) -> tuple[lis
     curves and moves them apart by the same amount over a channel (docs/measurement.md "Asymmetric curves").
     The offset is :func:`pooled_mean` of the per-tile differences (sd from both fits' sds); its error
     (:func:`offset_sd_um`) is shared by the channel's tiles and is not added to theirs (:func:`shift_by_offset`).
+    With the tiles' field ``radius`` (same order), its sd is at least the delete-a-zone jackknife's
+    (:func:`zone_jackknife_sd`): the offset changes over the field, so its tiles are not independent draws.
     """
-    both = [(a, b) for a, b in zip(main, ref) if a.status == STATUS_OK and b.status == STATUS_OK]
-    d = np.array([b.z_best_um - a.z_best_um for a, b in both])
-    sd = np.array([math.hypot(a.z_sigma_um, b.z_sigma_um) for a, b in both])
+    keep = [i for i, (a, b) in enumerate(zip(main, ref)) if a.status == STATUS_OK and b.status == STATUS_OK]
+    d = np.array([ref[i].z_best_um - main[i].z_best_um for i in keep])
+    sd = np.array([math.hypot(main[i].z_sigma_um, ref[i].z_sigma_um) for i in keep])
     mean, se, weight = pooled_mean(d, sd)
-    info = {"offset_um": mean, "offset_sd_um": se, "offset_weight": weight, "n_tiles": len(both)}
+    info = {"offset_um": mean, "offset_sd_um": se, "offset_weight": weight, "n_tiles": len(keep)}
+    if radius is not None and len(keep):
+        # the offset varies over the field: its error as the zones of field radius tell it, when larger
+        jk = zone_jackknife_sd(d, sd, np.asarray(radius, dtype=np.float64)[keep])
+        info.update(offset_zone_sd_um=jk, offset_sd_um=max(se, jk))
     return shift_by_offset(main, info), info
 
 

@@ -30,7 +30,7 @@ from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
 from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
                        lateral_colour_scales, register_step, registration_plane)
 from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_offset, apply_pooled_skew,
-                          shift_by_offset)
+                          pooled_mean, shift_by_offset)
 
 # Focus breathing: the image of a scene patch is magnified by m(z) through the scan. The 3-tap SML's mean over a
 # patch that follows the image scales as m^-gamma with gamma 0.8-2 set by the texture's spectrum and the blur
@@ -243,6 +243,7 @@ class _Maps:
     f0_cyc_per_px: float
     maps: dict[str, np.ndarray]
     strip: fs_strip.Strip | None = None  # band-pass on this strip only (quick's sml@fs offset)
+    slope: fs_strip.Strip | None = None  # band-pass either side of fs on this strip (dz/dln f, fs_strip.SLOPE_FACTORS)
 
 
 # ------------------------------------------------------------------------------------------------ the pass
@@ -298,8 +299,22 @@ def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None
     """
     if isinstance(plane, tuple):
         plane = _normalised(*plane)
+    side = None
+    if m.slope is not None:  # the band-pass either side of fs on the slope strip (kept as its rows only)
+        side = [np.empty(m.maps["bp_lo"].shape[1:], np.float32) for _ in range(2)]
     if m.strip is not None:  # before binning: the strip's band-pass is of the full-resolution plane
-        fs_strip.strip_bandpass_cells(plane, m.strip, m.strip.f0_cyc_per_px / scale, m.maps["bandpass"][k])
+        f0 = m.strip.f0_cyc_per_px / scale
+        if side is not None:  # the same strip: one DFT for the three frequencies
+            fs_strip.strip_bands_cells(plane, m.strip, [f0] + [f0 * r for r in fs_strip.SLOPE_FACTORS],
+                                       [m.maps["bandpass"][k]] + side)
+        else:
+            fs_strip.strip_bandpass_cells(plane, m.strip, f0, m.maps["bandpass"][k])
+    elif side is not None:
+        fs_strip.strip_bands_cells(plane, m.slope, [m.slope.f0_cyc_per_px * r / scale for r in fs_strip.SLOPE_FACTORS],
+                                   side)
+    if side is not None:
+        m.maps["bp_lo"].write(k, side[0])
+        m.maps["bp_hi"].write(k, side[1])
     if fbin > 1:
         plane = downsample(plane, fbin)
     c = m.cell
@@ -329,7 +344,8 @@ def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None
 
 def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float, effort: str,
           centre_px: tuple[float, float] | None, z_ref_um: float | None, quiet: bool, bp_all: bool = False,
-          known_geometry: GeometryMeasurements | None = None, bp_strip: tuple[float, float] | None = None):
+          known_geometry: GeometryMeasurements | None = None, bp_strip: tuple[float, float] | None = None,
+          slope_strip: tuple[float, float] | None = None):
     """The one pass over the frames in z order: cell maps of the focus measures and the per-frame geometry.
 
     Per frame, the registration plane(s) are registered to the previous frame first (main thread), so the
@@ -339,6 +355,8 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
     Returns (z sorted, order, maps, geometry or None, scale) with ``scale[k]`` the magnification the band-pass
     of frame k followed, relative to frame 0 (measured here, or from ``known_geometry``).
     ``bp_strip = (centre row, height)`` (frame px): the band-pass on that strip only (:mod:`.fs_strip`).
+    ``slope_strip``: the same for the band-pass either side of fs (maps ``bp_lo``, ``bp_hi``, ``slope_cover``), from
+    which the sharpest position's change with frequency is measured (:func:`_frequency_slope`).
     """
     cfg = _effort(effort)
     layouts = plane_layouts(stack.channels, stack.cfa)
@@ -382,9 +400,19 @@ def _scan(stack, *, want_focus: bool, want_geometry: bool, fs_cyc_per_mm: float,
                 strip = fs_strip.centre_strip(ph, (bp_strip[0] - lay0.offset_y) / lay0.stride,
                                               bp_strip[1] / lay0.stride, cell * fbin, f0)
                 names.append("bp_cover")
-            maps.append(_Maps(lay, cell, f0, {k: np.empty((n, hc, wc), np.float32) for k in names}, strip))
+            slope = None
+            if with_bp and slope_strip is not None and f0 * fs_strip.SLOPE_FACTORS[1] <= MAX_BANDPASS_CYC_PER_PX:
+                slope = (strip if bp_strip == slope_strip and strip is not None else
+                         fs_strip.centre_strip(ph, (slope_strip[0] - lay0.offset_y) / lay0.stride,
+                                               slope_strip[1] / lay0.stride, cell * fbin, f0))
+            maps.append(_Maps(lay, cell, f0, {k: np.empty((n, hc, wc), np.float32) for k in names}, strip, slope))
             if strip is not None:
                 maps[-1].maps["bp_cover"][:] = fs_strip.coverage_cells((hc, wc), strip, float(cell * cell))
+            if slope is not None:  # the strip's rows only, and one coverage map for every frame
+                maps[-1].maps.update(
+                    bp_lo=fs_strip.StripFrames(n, (hc, wc), slope), bp_hi=fs_strip.StripFrames(n, (hc, wc), slope),
+                    slope_cover=np.broadcast_to(fs_strip.coverage_cells((hc, wc), slope, float(cell * cell)),
+                                                (n, hc, wc)))
     units = {}
     if want_focus and cfg["directional"]:
         for li, m in enumerate(maps):
@@ -740,7 +768,13 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             # the SML's own best foci: the breathing sensitivity is of the SML curve (_exponent_sensitivity)
             res["z_sml_um"] = np.full(nt, np.nan)
             res["z_sml_um"][todo] = [f.z_best_um for f in main]
-            main, offset = (apply_measure_offset(main, bp) if offset_from is None
+            # the tiles' distance from the middle of the tiles (the frame's centre, strip or grid alike), for the
+            # offset's zone jackknife
+            radius = None
+            if "cx" in channel_curves and "cy" in channel_curves:
+                cx, cy = (np.mean(channel_curves[k][todo], axis=1) for k in ("cx", "cy"))
+                radius = np.hypot(cx - np.mean(cx), cy - np.mean(cy))
+            main, offset = (apply_measure_offset(main, bp, radius) if offset_from is None
                             else (shift_by_offset(main, offset_from), {**offset_from, "from": "strip"}))
             res["skew"] = {**res.get("skew", {}), **offset}
         for t, fb, fm in zip(todo, bp, main):
@@ -760,6 +794,53 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
                         res[col][t] = d.z_best_um
     res["status"] = stat.astype(str)
     return res
+
+
+_SLOPE_KEYS = ("bp_lo", "bp_hi", "slope_cover")
+
+
+def _frequency_slope(cc: dict[str, np.ndarray], z: np.ndarray, fs_cyc_per_mm: float, q: float,
+                     rules: TileRules) -> dict:
+    """How the band-pass peak moves with frequency, pooled over the tiles inside the slope strip of one channel.
+
+    The band-pass curves one log-Gabor sigma below and above fs (``bp_lo``, ``bp_hi``, fs_strip.SLOPE_FACTORS)
+    are fitted as the fs curves are (skew-corrected, pooled shift applied); the per-tile difference of their
+    best foci, pooled (:func:`fieldcal.measure.throughfocus.pooled_mean`, Birge-inflated by its scatter), over
+    the ln f between them is ``dz/dln f`` (µm). Spherical aberration makes it non-zero (the sharpest position
+    of a low frequency lies nearer the minimum-RMS-spot focus); a lens without it gives 0 within its sd.
+    With it the measure's effective frequency ``freq_shift_ln`` = ln(f_eff / fs)
+    (:func:`fieldcal.measure.fs_strip.effective_shift_ln`, from the same fits' peak heights and widths).
+    Returns ``{"freq_slope_um", "freq_slope_sd_um", "freq_n_tiles", "freq_shift_ln"}`` ({} with < 2 tiles).
+    """
+    seen = fs_strip.inside(cc["slope_cover"])
+    mean = cc["sum"]
+    ok_level = np.all(mean > 0, axis=1)
+    idx = np.flatnonzero(seen & ok_level)
+    if idx.size < 2:
+        return {}
+    fits = []
+    for key, r in (("bp_lo", fs_strip.SLOPE_FACTORS[0]), ("bp_hi", fs_strip.SLOPE_FACTORS[1])):
+        e = cc[key][idx] / np.square(mean[idx])
+        f = analyse_curves(z, e, "otf", fs_cyc_per_mm * r, q, rules.curve)
+        if rules.curve.skew:
+            f = apply_pooled_skew(f, apply=True)[0]
+        fits.append(f)
+    both = [(a, b) for a, b in zip(*fits) if a.status == "ok" and b.status == "ok"]
+    if len(both) < 2:
+        return {}
+    d = np.array([b.z_best_um - a.z_best_um for a, b in both])
+    sd = np.array([math.hypot(a.z_sigma_um, b.z_sigma_um) for a, b in both])
+    m, se, _ = pooled_mean(d, sd)
+    dlnf = math.log(fs_strip.SLOPE_FACTORS[1] / fs_strip.SLOPE_FACTORS[0])
+    # the measure's effective frequency: how the band energy at the peak and the curves' widths change with f
+    with np.errstate(all="ignore"):
+        e_tilt = np.log(np.array([b.peak / a.peak for a, b in both])) / dlnf
+        w_tilt = np.log(np.array([b.width_um / a.width_um for a, b in both])) / dlnf
+    e_tilt, w_tilt = e_tilt[np.isfinite(e_tilt)], w_tilt[np.isfinite(w_tilt)]
+    shift = fs_strip.effective_shift_ln(float(np.median(e_tilt)) if e_tilt.size else math.nan,
+                                        float(np.median(w_tilt)) if w_tilt.size else math.nan)
+    return {"freq_slope_um": m / dlnf, "freq_slope_sd_um": se / dlnf, "freq_n_tiles": float(len(both)),
+            "freq_shift_ln": shift}
 
 
 def _borrow_offsets(results: dict[str, dict]) -> None:
@@ -871,17 +952,25 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                                  field="geometry", fix="measure the geometry on this stack (measure_geometry(stack))")
     h, w = stack.shape
     tile = int(tile_px) if tile_px is not None else default_tile_px((h, w), effort)
-    strip = None
+    strip = slope_strip = None
+    # a row of tiles through the middle (the grid's columns and rows: from the frame alone, as tile_centres lays
+    # them out without motion)
+    n_cols = int(math.floor(max(w - 13.0 - tile, 0.0) / tile)) + 1
+    strip_rows = fs_strip.tile_rows(n_cols, int(math.floor(max(h - 13.0 - tile, 0.0) / tile)) + 1, w, tile)
+    middle = ((h - 1) / 2.0, strip_rows * tile + 2.0 * fs_strip.slack_px(tile))
     if asked == "auto" and measure == SML_AT_FS and _effort(effort).get("bp_strip", False):
-        # quick: the offset is one number per channel; a row of tiles through the middle gives it (the grid's
-        # columns and rows: from the frame alone, as tile_centres lays them out without motion)
-        n_cols = int(math.floor(max(w - 13.0 - tile, 0.0) / tile)) + 1
-        strip_rows = fs_strip.tile_rows(n_cols, int(math.floor(max(h - 13.0 - tile, 0.0) / tile)) + 1, w, tile)
-        strip = ((h - 1) / 2.0, strip_rows * tile + 2.0 * fs_strip.slack_px(tile))
+        # quick: the offset is one number per channel; the strip's tiles give it
+        strip = middle
+    if measure in ("bandpass", SML_AT_FS):
+        # the sharpest position's change with frequency, one number per channel as well (fs_strip.frequency_sd_um):
+        # the strip's tiles when quick has one (its DFT is shared), else the fewest rows that hold MIN_TILES (its
+        # term is |ln(f_eff/fs)| ~ 0.02-0.03 x the slope: the slope's sd matters little, the cost does)
+        rows = min(int(math.ceil(fs_strip.MIN_TILES / max(n_cols, 1))), strip_rows)
+        slope_strip = middle if strip is not None else ((h - 1) / 2.0, rows * tile + 2.0 * fs_strip.slack_px(tile))
     z, order, maps, geo, bp_scale = _scan(stack, want_focus=True, want_geometry=geometry is None,
                                           fs_cyc_per_mm=float(fs_cyc_per_mm), effort=effort, centre_px=centre_px,
                                           z_ref_um=z_ref_um, quiet=quiet, bp_all=measure in ("bandpass", SML_AT_FS),
-                                          known_geometry=geometry, bp_strip=strip)
+                                          known_geometry=geometry, bp_strip=strip, slope_strip=slope_strip)
     geometry = geometry or geo
     xs, ys = tile_centres(geometry, tile)
     if xs.size == 0:
@@ -911,19 +1000,30 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     # curves are fitted on each channel's scale axis (symmetric under breathing), positions mapped back to z
     axes = {ch: _scale_axis(geometry, ch) for ch in stack.channels}
     offsets = {ch: None for ch in stack.channels}
+    slopes: dict[str, dict] = {}
     if strip is not None:
         xs, ys = xs[:n_grid], ys[:n_grid]
         for ch, cc in per_channel.items():
             on_strip = {k: v[n_grid:] for k, v in cc.items()}
-            per_channel[ch] = {k: v[:n_grid] for k, v in cc.items() if k not in ("bandpass", "bp_cover")}
+            per_channel[ch] = {k: v[:n_grid] for k, v in cc.items() if k not in ("bandpass", "bp_cover") + _SLOPE_KEYS}
+            if "bp_lo" in on_strip:
+                slopes[ch] = _frequency_slope(on_strip, axes[ch].y(z), float(fs_cyc_per_mm), float(q), rules)
             rec = _analyse(on_strip, axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
                            rules=rules, bp_scale=bp_scale).get("skew", {})
-            offsets[ch] = {k: rec.get(k, 0.0) for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles")}
+            offsets[ch] = {k: rec.get(k, 0.0) for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles",
+                                                         "offset_zone_sd_um")}
+    for ch, cc in per_channel.items():
+        if "bp_lo" in cc:  # the band-pass everywhere (standard): the grid's tiles inside the slope strip
+            slopes[ch] = _frequency_slope(cc, axes[ch].y(z), float(fs_cyc_per_mm), float(q), rules)
+            per_channel[ch] = {k: v for k, v in cc.items() if k not in _SLOPE_KEYS}
     results = {ch: _analyse(per_channel[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
                             measure=measure, rules=rules, bp_scale=bp_scale, offset_from=offsets[ch])
                for ch in stack.channels}
     if measure == SML_AT_FS:
         _borrow_offsets(results)
+    for ch, rec in slopes.items():
+        if "skew" in results[ch]:
+            results[ch]["skew"] = {**results[ch]["skew"], **rec}
     for ch in stack.channels:
         cc = per_channel[ch]
         res = results[ch]
