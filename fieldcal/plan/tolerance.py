@@ -64,9 +64,31 @@ ESFR_WIDTH = WidthBias(((1.0, 0.0),), 0.02, (0.05, 0.45),
 ESFR_SOURCE = MEASURED_SOURCE + f" from slanted edges (e-SFR), ± {ESFR_WIDTH.rel_sd:.0%} lens to lens"
 
 
-def texture_source(factor: float) -> str:
+def texture_source(factor: float, capped: float = 0.0) -> str:
+    cap = (f"; at most the defocus model's δ at the F-number ({capped:.0%} of the field's points capped)"
+           if capped > 0 else "; at most the defocus model's δ at the F-number")
     return (MEASURED_SOURCE + f" from the texture focus measure, / {factor:.3f} (its measured bias at the "
-            f"calibration's fs), ± {TEXTURE_WIDTH.rel_sd:.0%} lens to lens")
+            f"calibration's fs), ± {TEXTURE_WIDTH.rel_sd:.0%} lens to lens" + cap)
+
+
+def cap_texture_tolerance(tol_um, model_um: float) -> tuple[np.ndarray, float]:
+    """A texture profile's δ capped at the geometric defocus model's δ at the F-number, and the share capped.
+
+    Why: a texture tile's band-pass curve is a sum of MTF(f; z)² over a band of frequencies, orientations and
+    the tile's pixels. Everything that sum adds beyond one pixel's MTF(fs; z) only widens the curve: best
+    focus spread over the tile (corrected in fit/width_window.py where the tile can tell its width), tangential
+    and sagittal foci split by astigmatism inside every pixel (the orientation average of an elliptical
+    defocus disc, 4-10 % wider at T - S = 2-3 δ), and a band weighted to lower frequencies by the pixel
+    aperture and any in-focus blur the larger it is in pixels (at 1920 x 1080 the triplet's in-focus blur is 3x
+    wider in pixels than at 640 px). None of these narrows δ, and the aberration-free defocus disc bounds δ at
+    fs for the pupil the F-number describes, so a texture width above the model cannot be told from one
+    of those spreads: the model is the honest value there (wave optics puts the true δ within a few % above it,
+    so the cap costs frames, never coverage)."""
+    tol = np.asarray(tol_um, dtype=np.float64)
+    if not (math.isfinite(model_um) and model_um > 0):
+        return tol, 0.0
+    over = np.isfinite(tol) & (tol > model_um)
+    return np.where(over, model_um, tol), float(np.mean(over)) if over.size else 0.0
 
 
 def check_confidence(p) -> float | None:
@@ -113,7 +135,11 @@ def tolerance_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion) -> 
     if wb is not None:
         bias, factor = wb
         tol = tol / factor
-        measured_src = ESFR_SOURCE if bias is ESFR_WIDTH else texture_source(factor)
+        if bias is ESFR_WIDTH:
+            measured_src = ESFR_SOURCE
+        else:
+            tol, capped = cap_texture_tolerance(tol, model)
+            measured_src = texture_source(factor, capped)
     bad = ~np.isfinite(tol) | (tol <= 0)
     if bad.all():
         return np.full(shape, model), MODEL_SOURCE
