@@ -44,12 +44,12 @@ from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_o
 # the bands were too narrow on average (mean coverage 0.83, the end-to-end test in tests/test_calibrate.py
 # 0.79), because part of those errors is not breathing-shaped; 0.45 gives 0.87-0.88 there. Since session 7
 # the SML is an energy (squared second differences, focus.sml(energy=True)): the same sd is kept, now on the
-# energy's exponent (an amplitude gain m^k is m^2k on it), i.e. half the old one in amplitude terms. Checked,
-# not tuned: with the stage frames' share attributed from the true frame errors, the per-channel pistons of 7
-# breathing lenses of the benchmark give an RMS energy exponent of ~0.5; before, the same analysis gave
-# k < 0.01 on the widest-curve lens (the old term claimed 1.2 µm there) while edge tiles of narrow-curve lenses
-# were 0.6 µm off for another reason (the absolute values' phase dependence, focus.sml). The constant remains a
-# prior: one stack cannot identify k (its sensitivity varies by only 5-10 % over the field).
+# energy's exponent (an amplitude gain m^k is m^2k on it), i.e. half the old one in amplitude terms. Not
+# re-tuned, and not derived either: one stack cannot identify k (its sensitivity varies by only 5-10 % over the
+# field). Evidence (s7, docs/benchmarks.md): per-channel pistons less the stage frames' share (from the true
+# frame errors) over dz/dk give k of 0.12-1.8 on 15 channels of 8 breathing lenses (0.16 on the widest-curve
+# one, where the absolute-value SML's term claimed 1.2 µm); the pistons are not breathing-shaped enough to fit
+# k from them.
 MIN_TILE_PX = 32
 SML_SCALE_RESIDUAL_SD = 0.45
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
