@@ -42,13 +42,7 @@ from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_o
 # remaining per-channel errors of the 14 breathing lenses of the band-coverage benchmark (s6) amount to an RMS
 # exponent of 0.31-0.33, against 0.03-0.13 on the closed-form textures (tests/test_measure_maps.py); at 0.3
 # the bands were too narrow on average (mean coverage 0.83, the end-to-end test in tests/test_calibrate.py
-# 0.79), because part of those errors is not breathing-shaped; 0.45 gives 0.87-0.88 there. Since session 7 a
-# tile's SML curve is its RMS second difference (the root of the energy's mean, focus.sml(energy=True)): an
-# amplitude like the absolute values' mean, so k keeps its meaning and the sd is kept. Not re-tuned, and not
-# derived either: one stack cannot identify k (its sensitivity varies by only 5-10 % over the field). Evidence (s7, docs/benchmarks.md): per-channel pistons less the stage frames' share (from the true
-# frame errors) over dz/dk give k of 0.12-1.8 on 15 channels of 8 breathing lenses (0.16 on the widest-curve
-# one, where the absolute-value SML's term claimed 1.2 µm); the pistons are not breathing-shaped enough to fit
-# k from them.
+# 0.79), because part of those errors is not breathing-shaped; 0.45 gives 0.87-0.88 there.
 MIN_TILE_PX = 32
 SML_SCALE_RESIDUAL_SD = 0.45
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
@@ -309,9 +303,8 @@ def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None
     if fbin > 1:
         plane = downsample(plane, fbin)
     c = m.cell
-    # the SML at frame 0's scale: its mean over a tile that follows the image is then invariant to breathing; as
-    # an energy, also to the sub-pixel motion of the image across the pixel grid (focus.sml)
-    m.maps["sml"][k] = focus.cell_sums(focus.sml(plane, scale, energy=True), c)
+    # the SML at frame 0's scale: its mean over a tile that follows the image is then invariant to breathing
+    m.maps["sml"][k] = focus.cell_sums(focus.sml(plane, scale), c)
     m.maps["sum"][k] = focus.cell_sums(plane, c)
     if "bandpass" in m.maps and m.strip is None:
         band = focus.bandpass(plane, m.f0_cyc_per_px / scale)
@@ -912,13 +905,6 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                     continue
                 have[key] = (have[key] * a0 + curves[key] * a1) / (a0 + a1)
             have["area"] = a0 + a1
-    for cc in per_channel.values():
-        # The tile's RMS second difference: the energy's mean is what stays the same as the image crosses the pixel
-        # grid (focus.sml); its square root keeps the curve an amplitude, as the absolute values' was (the peak,
-        # skew and breathing models are of one: ln of it is half ln of the energy). The weighted positions take
-        # the energy, whose moments the maps hold.
-        cc["sml_energy"] = cc["sml"]
-        cc["sml"] = np.sqrt(np.maximum(cc["sml"], 0.0))
     cols: dict[str, list] = {k: [] for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um", "width_um",
                                              "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um", "stage_gain")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
@@ -948,7 +934,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         sens = _exponent_sensitivity(cc, geometry, ch, axes[ch].y(z), res, measure, q, rules)
         cols["z_dgamma_um"].append(sens * axes[ch].dz_dy(res["z_best_um"]))
         _to_z(res, axes[ch])
-        xw, yw = _weighted_positions(cc, geometry, ch, "sml_energy" if measure in _SML_BASED else measure, tile, z,
+        xw, yw = _weighted_positions(cc, geometry, ch, "sml" if measure in _SML_BASED else measure, tile, z,
                                      res["z_best_um"])
         ok = res["status"] == "ok"  # rejected tiles keep their geometric centre
         cols["x_px"].append(np.where(ok, xw, xs))
