@@ -69,6 +69,33 @@ def test_a_fully_shared_frame_error_adds_its_prior_to_the_band():
     assert sd[1] == pytest.approx(r) and sd[2] == pytest.approx(r)   # frames no tile reads keep their prior
 
 
+def test_a_shared_frame_error_is_not_hidden_by_the_block_jackknife():
+    """The same fully shared frame error with a block-jackknife covariance larger than the kriging one (errors
+    shared by regions of tiles): the jackknife cannot see a shift of every tile, so the frame's prior still adds
+    r^2 on top of it. (It used to enter inside the maximum of the two and vanish: 0.00-0.02 µm stated where the
+    frames moved the benchmark lenses' surfaces by 0.05-0.1 µm.)"""
+    from dataclasses import replace
+
+    n, r, sig, jk = 50, 0.3, 0.2, 0.25
+    rng = np.random.default_rng(1)
+    x, y = rng.uniform(-0.6, 0.6, n), rng.uniform(-0.4, 0.4, n)
+    model = SurfaceModel(("G",), 0, False, False, False, False, None)
+    target = rng.normal(0.0, sig, n)
+    C = np.zeros((n, 3))
+    C[:, 0] = -1.0
+    d = replace(_disc(model, x, y, target, np.full(n, sig ** 2), C, r), jk_cov=np.array([[jk ** 2]]))
+    bare = replace(_disc(model, x, y, target, np.full(n, sig ** 2)), jk_cov=np.array([[jk ** 2]]))
+    at = (np.array([0.0]), np.array([0.0]))
+    iid = sig ** 2 / n
+    _, extra0 = bare.predict(*at, 0)
+    _, extra = d.predict(*at, 0)
+    assert extra0[0] + iid == pytest.approx(jk ** 2, rel=1e-6)       # the jackknife's variance, nothing else
+    assert extra[0] - extra0[0] == pytest.approx(r ** 2, rel=0.02)   # the frame adds its own on top
+    # a held-out tile shares the frame with the kept ones: the check leaves it out
+    _, extra_check = d.predict(*at, 0, nuisance=False)
+    assert extra_check[0] == pytest.approx(extra0[0], rel=1e-9)
+
+
 def test_frame_errors_that_tiles_share_by_height_are_recovered():
     """A plane sampled by tiles whose best foci fall on different frames (each tile reading two neighbouring
     frames): the joint fit recovers the frame errors up to their mean and trend (degenerate with the plane's

@@ -171,13 +171,18 @@ class Discrepancy:
             kinv_y[m] = cho_solve(cf, self.target[m])
         A = X.T @ kinv_x + np.diag(prior)
         A_inv = np.linalg.inv(0.5 * (A + A.T))
+        # the surface coefficients' covariance without the frames: the frames' share of the band is the increase
+        # over it, added outside the block jackknife's maximum in predict (the jackknife cannot see it)
+        A0 = A[:p, :p] if X.shape[1] > p else A
+        bare_cov = np.linalg.inv(0.5 * (A0 + A0.T)) if X.shape[1] > p else A_inv
         beta = A_inv @ (X.T @ kinv_y)
         resid = self.target - X @ beta
         alpha = np.zeros_like(resid)
         for ci, cf in chol.items():
             m = self.ch_index == ci
             alpha[m] = cho_solve(cf, resid[m])
-        self._cache.update(chol=chol, X=X, kinv_x=kinv_x, beta=beta, beta_cov=A_inv, alpha=alpha, p=p)
+        self._cache.update(chol=chol, X=X, kinv_x=kinv_x, beta=beta, beta_cov=A_inv, bare_cov=bare_cov, alpha=alpha,
+                           p=p)
         return self._cache
 
     @property
@@ -248,12 +253,18 @@ class Discrepancy:
         alpha = self._state()["alpha"][self.ch_index == ci]
         return float(self.tau[ci] ** 2 * a * a * np.sum(np.abs(alpha)))
 
-    def predict(self, x_hat, y_hat, ci: int, with_variance: bool = True):
+    def predict(self, x_hat, y_hat, ci: int, with_variance: bool = True, nuisance: bool = True):
         """Kriging mean and the variance *beyond* the independent-tile posterior at points (normalised z).
 
         Returns ``(mean, extra_var)``: ``mean = h beta + k^T K^-1 (y - X beta)``; ``extra_var`` = kriging
         variance minus ``h iid_cov h^T`` (clipped at 0). With ``with_variance=False`` returns ``(mean, None)``,
         the same mean without the triangular solve and the covariance terms (the costly part, ~4x the mean).
+
+        The fitted stage frames (:attr:`has_stage`) add what they leave unknown to the variance *after* the block
+        jackknife's maximum: a frame's error moves every tile whose curve uses it, so most of it is one shift of
+        the whole field, which deleting a block of tiles does not change and the jackknife cannot see (inside
+        the maximum it vanished wherever the jackknife was the larger: 0.00-0.02 µm stated where the frames
+        moved the surface by 0.05-0.1 µm). ``nuisance=False`` leaves that share out (a held-out tile shares it).
         """
         st = self._state()
         x_hat = np.asarray(x_hat, float).ravel()
@@ -267,7 +278,8 @@ class Discrepancy:
             return mean, None
         # a point's best focus has no stage term (zero columns): the frames' errors enter through the fit only
         Ha = np.hstack([H, np.zeros((H.shape[0], st["beta"].size - p))])
-        var = np.einsum("mp,pq,mq->m", Ha, st["beta_cov"], Ha)
+        var = np.einsum("mp,pq,mq->m", H, st["bare_cov"], H)
+        frames = np.clip(np.einsum("mp,pq,mq->m", Ha, st["beta_cov"], Ha) - var, 0.0, None)
         if ci in st["chol"] and self.tau[ci] > 0:
             m = self.ch_index == ci
             ks = self._kernel_rows(x_hat, y_hat, ci)
@@ -279,7 +291,9 @@ class Discrepancy:
             # tiles is noise, not surface (measured: 0.15-0.4 µm sd added where the errors were 0.07-0.2 µm).
             # It counts in full from one spacing, not at all at the lower bound of half a spacing.
             local = self.gp_identified() * np.clip(self.tau[ci] ** 2 - np.sum(V * V, axis=0), 0.0, None)
-            var = local + np.einsum("mp,pq,mq->m", R, st["beta_cov"], R)
+            Rp = R[:, :p]
+            var = local + np.einsum("mp,pq,mq->m", Rp, st["bare_cov"], Rp)
+            frames = np.clip(np.einsum("mp,pq,mq->m", R, st["beta_cov"], R) - (var - local), 0.0, None)
         else:
             local = 0.0
         if self.jk_cov is not None:
@@ -287,7 +301,7 @@ class Discrepancy:
             # sees them (docs/fitting.md "Discrepancy")
             var = np.maximum(var, local + np.einsum("mp,pq,mq->m", H, self.jk_cov, H))
         iid = np.einsum("mp,pq,mq->m", H, self.iid_cov, H)
-        extra = np.clip(var - iid, 0.0, None)
+        extra = np.clip(var - iid, 0.0, None) + (frames if nuisance else 0.0)
         if self.rich_model is not None and self.misfit_scale > 0:
             Hr = self.rich_model.design(x_hat, y_hat, np.full(x_hat.size, ci), np.zeros(x_hat.size, np.int64),
                                         self.centre)

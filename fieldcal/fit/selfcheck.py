@@ -108,7 +108,8 @@ def held_out_predictions(disc: Discrepancy) -> tuple[np.ndarray, np.ndarray, np.
             if not np.any(keep & (disc.ch_index == ci)):
                 continue
             try:
-                mean, extra = sub.predict(disc.x_hat[m], disc.y_hat[m], int(ci))
+                # the frames' share moves held-out and kept tiles alike (most of it): left out, as the common mode
+                mean, extra = sub.predict(disc.x_hat[m], disc.y_hat[m], int(ci), nuisance=False)
             except (np.linalg.LinAlgError, ValueError):
                 continue
             H = sub._design(disc.x_hat[m], disc.y_hat[m], int(ci))
