@@ -393,21 +393,25 @@ def _shared_error_scores(fits: dict, rows: Rows) -> dict[str, float]:
 
 
 def _whiten_blocks(X, y, starts, sizes, rho):
-    """Whiten rows in blocks of equal correlation rho (unit variances): returns (Xw, yw, log det)."""
-    Xw = np.empty_like(X)
-    yw = np.empty_like(y)
-    logdet = 0.0
-    for k in np.unique(sizes):
-        sel = np.flatnonzero(sizes == k)
-        idx = (starts[sel][:, None] + np.arange(k)[None, :]).ravel()
-        C = (1.0 - rho) * np.eye(k) + rho * np.ones((k, k))
-        L = np.linalg.cholesky(C)
-        Li = np.linalg.inv(L)
-        Xb = X[idx].reshape(sel.size, k, -1)
-        Xw[idx] = np.einsum("ij,bjp->bip", Li, Xb).reshape(-1, X.shape[1])
-        yw[idx] = np.einsum("ij,bj->bi", Li, y[idx].reshape(sel.size, k)).ravel()
-        logdet += sel.size * 2.0 * float(np.sum(np.log(np.diag(L))))
-    return Xw, yw, logdet
+    """Whiten rows sorted into consecutive blocks of equal correlation rho (unit variances).
+
+    For a block of size k, C = (1 - rho) I + rho 11^T has the symmetric inverse square root
+    (I - J) / sqrt(1 - rho) + J / sqrt(1 + (k - 1) rho) with J = 11^T / k (the block mean and its contrasts), and
+    log det C = (k - 1) ln(1 - rho) + ln(1 + (k - 1) rho). Returns (Xw, yw, log det).
+    """
+    k = np.repeat(sizes, sizes).astype(np.float64)
+    a = 1.0 / math.sqrt(1.0 - rho)
+    c = 1.0 / np.sqrt(1.0 + (k - 1.0) * rho)
+
+    def apply(v):
+        mean = np.repeat(np.add.reduceat(v, starts, axis=0) / sizes.reshape((-1,) + (1,) * (v.ndim - 1)), sizes,
+                         axis=0)
+        kk = k.reshape((-1,) + (1,) * (v.ndim - 1))
+        cc = c.reshape(kk.shape)
+        return a * (v - mean) + cc * mean
+
+    logdet = float(np.sum((sizes - 1) * math.log(1.0 - rho) + np.log(1.0 + (sizes - 1) * rho)))
+    return apply(X), apply(y), logdet
 
 
 def _weights_from(scores: dict[str, float]) -> dict[str, float]:
