@@ -327,9 +327,16 @@ def tile_groups(x_hat: np.ndarray, y_hat: np.ndarray, ch_index: np.ndarray) -> n
     from scipy.spatial import cKDTree
 
     pts = np.column_stack([x_hat, y_hat])
+    nn = []
+    for c in np.unique(ch_index):
+        m = ch_index == c
+        if m.sum() >= 2:
+            d, _ = cKDTree(pts[m]).query(pts[m], k=2)
+            nn.append(d[:, 1])
+    nn = np.concatenate(nn) if nn else np.zeros(0)
+    nn = nn[nn > 0]
+    spacing = float(np.median(nn)) if nn.size else 0.0
     tree = cKDTree(pts)
-    d, _ = tree.query(pts, k=2)
-    spacing = float(np.median(d[:, 1][d[:, 1] > 0])) if np.any(d[:, 1] > 0) else 1.0
     pairs = np.array(sorted(tree.query_pairs(0.25 * spacing)), dtype=np.int64).reshape(-1, 2)
     pairs = pairs[ch_index[pairs[:, 0]] != ch_index[pairs[:, 1]]] if pairs.size else pairs
     g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(pts.shape[0],) * 2)
