@@ -5,7 +5,8 @@ have tangential/sagittal foci) is fitted to its MAP and scored by BIC = -2 ln L_
 wins: BIC approximates the log evidence, so it prefers the simplest model the data support and is
 consistent (picks the true model as tiles grow); it needs only the MAP of each candidate, which keeps the
 search cheap enough to be exhaustive. docs/fitting.md gives the reasons against held-out tiles and
-full evidence.
+full evidence. With several channels the fitted candidates are then rescored with a tile's channels correlated
+(:func:`_shared_error_scores`): that score chooses, and gives the model-average weights.
 """
 
 from __future__ import annotations
@@ -277,7 +278,8 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     t_total = time.perf_counter() - t0
     m = res.model
     diagnostics = {
-        "selection": "lowest BIC = -2 ln L + k ln n over all candidates",
+        "selection": ("lowest -2 ln L + k ln n with a tile's channels correlated (shared_score)" if shared
+                      else "lowest BIC = -2 ln L + k ln n over all candidates"),
         "n_rows": rows.n, "n_astig_rows": rows.n_astig, "n_tiles": len(tiles),
         "condition_number": res.condition_number, "nlopt_algorithm": "LN_BOBYQA (variable projection)",
         "nlopt_result": res.nlopt_result, "log_likelihood": res.log_likelihood,
