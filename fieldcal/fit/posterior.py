@@ -168,7 +168,8 @@ def laplace(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, n_samples: i
     return PosteriorResult(samples, "laplace", diag)
 
 
-CENTRE_GRID = 41  # points per axis of the centre's marginal (box 0.5 wide: 0.0125 = 1.8 px at 256 px)
+CENTRE_GRID = 13  # points per axis of the centre's marginal: a coarse grid over the box, then a fine one on its mass
+CENTRE_MASS_FLOOR = 1e-6  # coarse cells below this fraction of the peak density are outside the fine grid
 
 
 def _linear_fit_parts(model: SurfaceModel, rows: Rows, theta_map: np.ndarray):
@@ -195,30 +196,44 @@ def centre_marginal_draws(model: SurfaceModel, rows: Rows, theta_map: np.ndarray
     """Draws of the optical centre from its marginal posterior on a grid over the prior box.
 
     At the MAP's E-step weights and scales the coefficients enter a Gaussian, so they integrate out exactly:
-    log p(c | y) = 1/2 b^T A^-1 b - 1/2 log|A| + const (flat prior on the box). Each draw is a grid cell chosen
-    with that probability, placed uniformly within the cell.
+    log p(c | y) = 1/2 b^T A^-1 b - 1/2 log|A| + const (flat prior on the box). A coarse grid over the box finds
+    where the mass is, a fine grid over that region tabulates it; each draw is a fine cell chosen with that
+    probability, placed uniformly within the cell.
     """
     lo, hi = model.nonlinear_bounds()
     u = _linear_fit_parts(model, rows, theta_map)
     _, _, log_s, log_sa, _ = model.split(theta_map)
     w = u / model.sigma_eff(rows, log_s, log_sa) ** 2
-    g = np.linspace(lo[0], hi[0], CENTRE_GRID)
-    h = g[1] - g[0]
-    cx, cy = np.meshgrid(g, g, indexing="ij")
-    cs = np.column_stack([cx.ravel(), cy.ravel()])
-    lp = np.empty(cs.shape[0])
-    for a in range(0, cs.shape[0], chunk):
-        A, b, _ = _normal_equations(model, rows, cs[a:a + chunk], w)
-        L = np.linalg.cholesky(A)
-        v = np.linalg.solve(L, b[..., None])[..., 0]
-        lp[a:a + chunk] = 0.5 * np.sum(v * v, axis=-1) - np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
+
+    def log_density(cs):
+        lp = np.empty(cs.shape[0])
+        for a in range(0, cs.shape[0], chunk):
+            A, b, _ = _normal_equations(model, rows, cs[a:a + chunk], w)
+            L = np.linalg.cholesky(A)
+            v = np.linalg.solve(L, b[..., None])[..., 0]
+            lp[a:a + chunk] = 0.5 * np.sum(v * v, axis=-1) - np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
+        return lp
+
+    def grid(x0, x1, y0, y1):
+        gx, gy = np.linspace(x0, x1, CENTRE_GRID), np.linspace(y0, y1, CENTRE_GRID)
+        cx, cy = np.meshgrid(gx, gy, indexing="ij")
+        return np.column_stack([cx.ravel(), cy.ravel()]), gx[1] - gx[0], gy[1] - gy[0]
+
+    # coarse: the whole box; fine: the coarse cells that hold the mass, one cell of margin
+    cs, hx, hy = grid(lo[0], hi[0], lo[1], hi[1])
+    lp = log_density(cs)
+    mass = cs[lp >= lp.max() + math.log(CENTRE_MASS_FLOOR)]
+    x0, x1 = max(lo[0], mass[:, 0].min() - hx), min(hi[0], mass[:, 0].max() + hx)
+    y0, y1 = max(lo[1], mass[:, 1].min() - hy), min(hi[1], mass[:, 1].max() + hy)
+    cs, hx, hy = grid(x0, x1, y0, y1)
+    lp = log_density(cs)
     prob = np.exp(lp - lp.max())
     prob /= prob.sum()
     k = rng.choice(cs.shape[0], size=n, p=prob)
-    draws = np.clip(cs[k] + h * rng.uniform(-0.5, 0.5, size=(n, 2)), lo[:2], hi[:2])
+    draws = np.clip(cs[k] + np.array([hx, hy]) * rng.uniform(-0.5, 0.5, size=(n, 2)), lo[:2], hi[:2])
     sd = draws.std(axis=0)
-    note = {"method": f"marginal on a {CENTRE_GRID}x{CENTRE_GRID} grid over the prior box, coefficients "
-                      "integrated out", "sd": [float(v) for v in sd],
+    note = {"method": f"marginal on {CENTRE_GRID}x{CENTRE_GRID} grids (the prior box, then its mass), "
+                      "coefficients integrated out", "sd": [float(v) for v in sd],
             "at_bound_fraction": float(np.mean(np.any((cs[k] <= lo[:2]) | (cs[k] >= hi[:2]), axis=1)))}
     return draws, note
 
