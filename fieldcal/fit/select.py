@@ -435,10 +435,4 @@ def _weights_from(scores: dict[str, float]) -> dict[str, float]:
 
 def _bic_weights(table) -> dict[str, float]:
     """Approximate posterior model probabilities exp(-BIC/2), normalised over the fitted candidates."""
-    ok = [(e["name"], e["bic"]) for e in table if e.get("bic") is not None]
-    if not ok:
-        return {}
-    b0 = min(b for _, b in ok)
-    w = {n: math.exp(-0.5 * (b - b0)) for n, b in ok}
-    tot = sum(w.values())
-    return {n: v / tot for n, v in w.items()}
+    return _weights_from({e["name"]: e["bic"] for e in table if e.get("bic") is not None})
