@@ -207,9 +207,6 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         e["weight"] = weights.get(e["name"], 0.0)
     t_map = time.perf_counter() - t0
 
-    # Posterior: the chosen model by Laplace or emcee; models within a few BIC units (weight >= 1%) join as a
-    # Bayesian model average with Laplace samples, so a term the selection narrowly dropped still widens
-    # the band (docs/fitting.md "Model averaging").
     # Choice and weights with the error a tile shares between its colour channels: one texture, one set of
     # frames, so a tile's R, G and B best foci err together (correlation 0.3-0.9 on the simulated triplet, where
     # the per-tile error is 2-3x its reported sigma at the edge). BIC counts the three rows as independent, and
@@ -227,7 +224,10 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
             e["shared_score"] = shared.get(e["name"])
             e["weight"] = weights.get(e["name"], 0.0)
             e["chosen"] = e["name"] == best_name
-            e["delta_bic"] = None if e["name"] not in shared else shared[e["name"]] - shared[best_name]
+            e["delta_shared_score"] = None if e["name"] not in shared else shared[e["name"]] - shared[best_name]
+    # Posterior: the chosen model by Laplace or emcee; models within a few score units (weight >= 1%) join as a
+    # Bayesian model average with Laplace samples, so a term the selection narrowly dropped still widens
+    # the band (docs/fitting.md "Model averaging").
     lap = laplace(res.model, rows, res.theta, seed=seed)
     unusable = None
     if not _usable_member(res.model, lap):
@@ -238,10 +238,9 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
                if n in fits and not fits[n].model.decentre and n != res.model.name]
         if alt:
             unusable = res.model.name
-            b_alt, res = min(alt, key=lambda t: t[0])
+            res = min(alt, key=lambda t: t[0])[1]
             for e in table:
                 e["chosen"] = e["name"] == res.model.name
-                e["delta_bic"] = None if e["name"] not in score else score[e["name"]] - b_alt
             lap = laplace(res.model, rows, res.theta, seed=seed)
     if eff.method == "laplace":
         post = lap
