@@ -91,7 +91,7 @@ def _common_var_um2(profile, channel: str) -> float:
 
 def _field_wide_var_um2(profile, channel: str) -> float:
     """Variance (µm²) of the errors shared by the whole field of one channel (systematic and common terms)."""
-    var = _systematic_var_um2(profile, channel)
+    var = _systematic_var_um2(profile, channel) if getattr(profile, "calibration", None) is not None else 0.0
     s = getattr(profile, "surfaces", None)
     if s is not None and channel in s.channels:
         var += _common_var_um2(profile, channel)
