@@ -264,7 +264,9 @@ def tile_modes(profile, channel: str, orientation: str = "mean", reference=None)
     different positions. The covariance is the classical OLS one, ``s^2 (X'X)^-1`` with the residual variance:
     the tiles' scatter about the fit measures the repeat error of this calibration directly (noise, the
     estimator's step-dependent bias, anything the model does not hold), unlike the posterior of a model chosen
-    by evidence, whose tilt and decentre terms come and go between calibrations of one lens.
+    by evidence, whose tilt and decentre terms come and go between calibrations of one lens. The offset's
+    variance adds the profile's field-wide terms (band-pass offset, breathing, stage, common mode), which move
+    every tile together and so never show in their scatter.
     """
     tiles = profile.tiles
     col = _TILE_COLUMN.get(orientation)
