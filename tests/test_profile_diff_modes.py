@@ -207,3 +207,17 @@ def test_map_family_flags_breathing_not_a_recalibration(hostile_world):
     # d m = 0.001 / 80 µm over the 160 µm span at the corner; minus the map's own distortion change
     assert g["max_abs_diff_px"] == pytest.approx(0.002 * r_corner, rel=0.2)
     assert g["at_max_abs_diff"]["x_frac"] in (0.0, 1.0) and g["at_max_abs_diff"]["y_frac"] in (0.0, 1.0)
+
+
+def test_tile_modes_offset_carries_the_field_wide_terms():
+    """An error every tile of a channel shares (quick's band-pass offset, breathing) moves all tiles together:
+    the tiles' scatter cannot show it, so the offset mode's variance adds the profile's field-wide terms and the
+    tilt modes do not change."""
+    rng = np.random.default_rng(2)
+    p = _tiles_profile(lambda x, y: 0.5 * x, rng)
+    bare = tile_modes(p, "G")
+    p.calibration = {"measure_offset_sd_um": {"G": 0.3}, "breathing_systematic_sd_um": {"G": 0.4}}
+    m = tile_modes(p, "G")
+    assert m.cov[0, 0] == pytest.approx(bare.cov[0, 0] + 0.3 ** 2 + 0.4 ** 2)
+    np.testing.assert_allclose(m.cov[1:, 1:], bare.cov[1:, 1:])
+    np.testing.assert_allclose(m.value, bare.value)

@@ -143,11 +143,122 @@ def laplace(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, n_samples: i
     samples = np.tile(theta_map, (n_samples, 1))
     samples[:, free] = draws
     lo, hi = model.nonlinear_bounds()
-    samples[:, model.n_linear:] = np.clip(samples[:, model.n_linear:], lo, hi)
     diag = {"method": "laplace", "hessian_positive_definite": ok_pd,
             "pinned_at_bound": [n for n, p in zip(model.names, pin) if p],
             "n_samples": int(n_samples)}
+    if model.decentre:
+        # The surface is linear in its coefficients given the centre, but not jointly: one Gaussian in
+        # (coefficients, centre) moves the centre without re-fitting the coefficients, and a centre on its
+        # prior bound or weakly located has no Gaussian at all (bands of mm were seen; a threshold on the
+        # centre's sd then put a member in or out of the average on a few tenths of a µm of the data).
+        # Instead the centre's marginal posterior is computed on a grid over its prior box (the coefficients
+        # integrated out exactly, scales at the MAP), centres are drawn from it, and the coefficients from
+        # their exact conditional Gaussian at each drawn centre: the surface stays pinned where the tiles are
+        # and spreads where the model only extrapolates.
+        samples[:, model.n_linear:] = np.clip(samples[:, model.n_linear:], lo, hi)
+        scales = slice(model.n_linear + 2, None)
+        if not ok_pd or not np.all(np.isfinite(samples[:, scales])) or np.any(samples[:, scales].std(axis=0) > 1.0):
+            samples[:, scales] = theta_map[scales]          # the scales' own Gaussian broke with the centre's
+        samples[:, model.n_linear:model.n_linear + 2], grid_note = centre_marginal_draws(model, rows, theta_map,
+                                                                                        n_samples, rng)
+        samples[:, :model.n_linear] = conditional_coefficients(model, rows, theta_map, samples[:, model.n_linear:],
+                                                               rng)
+        diag["centre"] = grid_note
+    samples[:, model.n_linear:] = np.clip(samples[:, model.n_linear:], lo, hi)
     return PosteriorResult(samples, "laplace", diag)
+
+
+CENTRE_GRID = 13  # points per axis of the centre's marginal: a coarse grid over the box, then a fine one on its mass
+CENTRE_MASS_FLOOR = 1e-6  # coarse cells below this fraction of the peak density are outside the fine grid
+
+
+def _linear_fit_parts(model: SurfaceModel, rows: Rows, theta_map: np.ndarray):
+    """The MAP's Student-t E-step weights u_i and error scales: the weighted least-squares problem at any centre."""
+    beta0, centre0, log_s0, log_sa0, log_nu0 = model.split(theta_map)
+    X0 = model.design(rows.x_hat, rows.y_hat, rows.ch_index, rows.kind, centre0)
+    sig0 = model.sigma_eff(rows, log_s0, log_sa0)
+    nu = math.exp(float(log_nu0))
+    return (nu + 1.0) / (nu + ((rows.target - X0 @ beta0) / sig0) ** 2)
+
+
+def _normal_equations(model, rows, centre, w):
+    """A = X^T W X + prior precision and b = X^T W y at a batch of centres (B, 2); W = diag(w) (B, n) or (n,)."""
+    p = model.n_linear
+    X = model.design(rows.x_hat, rows.y_hat, rows.ch_index, rows.kind, centre)          # (B, n, p)
+    Xw = X * np.broadcast_to(w, X.shape[:2])[..., None]
+    A = np.einsum("bnp,bnq->bpq", Xw, X) + np.eye(p) / COEF_PRIOR_SD ** 2
+    b = np.einsum("bnp,n->bp", Xw, rows.target)
+    return A, b, Xw
+
+
+def centre_marginal_draws(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, n: int,
+                          rng: np.random.Generator, chunk: int = 128):
+    """Draws of the optical centre from its marginal posterior on a grid over the prior box.
+
+    At the MAP's E-step weights and scales the coefficients enter a Gaussian, so they integrate out exactly:
+    log p(c | y) = 1/2 b^T A^-1 b - 1/2 log|A| + const (flat prior on the box). A coarse grid over the box finds
+    where the mass is, a fine grid over that region tabulates it; each draw is a fine cell chosen with that
+    probability, placed uniformly within the cell.
+    """
+    lo, hi = model.nonlinear_bounds()
+    u = _linear_fit_parts(model, rows, theta_map)
+    _, _, log_s, log_sa, _ = model.split(theta_map)
+    w = u / model.sigma_eff(rows, log_s, log_sa) ** 2
+
+    def log_density(cs):
+        lp = np.empty(cs.shape[0])
+        for a in range(0, cs.shape[0], chunk):
+            A, b, _ = _normal_equations(model, rows, cs[a:a + chunk], w)
+            L = np.linalg.cholesky(A)
+            v = np.linalg.solve(L, b[..., None])[..., 0]
+            lp[a:a + chunk] = 0.5 * np.sum(v * v, axis=-1) - np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
+        return lp
+
+    def grid(x0, x1, y0, y1):
+        gx, gy = np.linspace(x0, x1, CENTRE_GRID), np.linspace(y0, y1, CENTRE_GRID)
+        cx, cy = np.meshgrid(gx, gy, indexing="ij")
+        return np.column_stack([cx.ravel(), cy.ravel()]), gx[1] - gx[0], gy[1] - gy[0]
+
+    # coarse: the whole box; fine: the coarse cells that hold the mass, one cell of margin
+    cs, hx, hy = grid(lo[0], hi[0], lo[1], hi[1])
+    lp = log_density(cs)
+    mass = cs[lp >= lp.max() + math.log(CENTRE_MASS_FLOOR)]
+    x0, x1 = max(lo[0], mass[:, 0].min() - hx), min(hi[0], mass[:, 0].max() + hx)
+    y0, y1 = max(lo[1], mass[:, 1].min() - hy), min(hi[1], mass[:, 1].max() + hy)
+    cs, hx, hy = grid(x0, x1, y0, y1)
+    lp = log_density(cs)
+    prob = np.exp(lp - lp.max())
+    prob /= prob.sum()
+    k = rng.choice(cs.shape[0], size=n, p=prob)
+    draws = np.clip(cs[k] + np.array([hx, hy]) * rng.uniform(-0.5, 0.5, size=(n, 2)), lo[:2], hi[:2])
+    sd = draws.std(axis=0)
+    note = {"method": f"marginal on {CENTRE_GRID}x{CENTRE_GRID} grids (the prior box, then its mass), "
+                      "coefficients integrated out", "sd": [float(v) for v in sd],
+            "at_bound_fraction": float(np.mean(np.any((cs[k] <= lo[:2]) | (cs[k] >= hi[:2]), axis=1)))}
+    return draws, note
+
+
+def conditional_coefficients(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, nl: np.ndarray,
+                             rng: np.random.Generator, chunk: int = 256) -> np.ndarray:
+    """Coefficient draws from their Gaussian conditional on each row of nonlinear parameters ``nl``.
+
+    Given the centre and the error scales the log-posterior is, at the MAP's Student-t E-step weights u_i,
+    a weighted least-squares problem: beta | nl ~ N(A^-1 X^T W y, A^-1) with W = u / (s sigma)^2 and
+    A = X^T W X + I / COEF_PRIOR_SD^2.
+    """
+    p = model.n_linear
+    u = _linear_fit_parts(model, rows, theta_map)
+    out = np.empty((nl.shape[0], p))
+    for a in range(0, nl.shape[0], chunk):
+        th = np.concatenate([np.zeros((min(chunk, nl.shape[0] - a), p)), nl[a:a + chunk]], axis=1)
+        _, centre, log_s, log_sa, _ = model.split(th)
+        A, b, _ = _normal_equations(model, rows, centre, u / model.sigma_eff(rows, log_s, log_sa) ** 2)
+        L = np.linalg.cholesky(A)
+        mean = np.linalg.solve(A, b[..., None])[..., 0]
+        z = rng.standard_normal(mean.shape)
+        # A = L L^T: L^-T z has covariance A^-1
+        out[a:a + chunk] = mean + np.linalg.solve(np.swapaxes(L, -1, -2), z[..., None])[..., 0]
+    return out
 
 
 def run_emcee(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, effort: Effort, seed: int = 0,

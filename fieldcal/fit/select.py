@@ -5,7 +5,8 @@ have tangential/sagittal foci) is fitted to its MAP and scored by BIC = -2 ln L_
 wins: BIC approximates the log evidence, so it prefers the simplest model the data support and is
 consistent (picks the true model as tiles grow); it needs only the MAP of each candidate, which keeps the
 search cheap enough to be exhaustive. docs/fitting.md gives the reasons against held-out tiles and
-full evidence.
+full evidence. With several channels the fitted candidates are then rescored with a tile's channels correlated
+(:func:`_shared_error_scores`): that score chooses, and gives the model-average weights.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from .selfcheck import predictive_check
 from .map import MAX_CONDITION, fit_map
 from .posterior import EFFORTS, MAX_SAMPLES, laplace, run_emcee
 from .result import SurfaceFit
-from .surface import Rows, SurfaceModel
+from .surface import COEF_PRIOR_SD, Rows, SurfaceModel
 
 # Tiles must span at least this much of the normalised radius, or curvature is not identifiable.
 MIN_RADIAL_SPAN = 0.15
@@ -206,23 +207,40 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         e["weight"] = weights.get(e["name"], 0.0)
     t_map = time.perf_counter() - t0
 
-    # Posterior: the chosen model by Laplace or emcee; models within a few BIC units (weight >= 1%) join as a
+    # Choice and weights with the error a tile shares between its colour channels: one texture, one set of
+    # frames, so a tile's R, G and B best foci err together (correlation 0.3-0.9 on the simulated triplet, where
+    # the per-tile error is 2-3x its reported sigma at the edge). BIC counts the three rows as independent, and
+    # on 28 tiles per channel it chose a decentre and tilt on tripled evidence, at a different centre in two
+    # calibrations of one lens (corners 35 µm apart, bands of a few µm) -- a few tenths of a µm of the data
+    # flipped the choice. Each candidate is rescored by its Gaussian likelihood with the channels of a tile
+    # correlated (the correlation fitted per candidate), so nearly equal models share the weight and their
+    # spread enters the band (docs/fitting.md "Model selection").
+    shared = _shared_error_scores(fits, rows)
+    if shared:
+        weights = _weights_from(shared)
+        best_name = min(shared, key=shared.get)
+        res = fits[best_name]
+        for e in table:
+            e["shared_score"] = shared.get(e["name"])
+            e["weight"] = weights.get(e["name"], 0.0)
+            e["chosen"] = e["name"] == best_name
+            e["delta_shared_score"] = None if e["name"] not in shared else shared[e["name"]] - shared[best_name]
+    # Posterior: the chosen model by Laplace or emcee; models within a few score units (weight >= 1%) join as a
     # Bayesian model average with Laplace samples, so a term the selection narrowly dropped still widens
     # the band (docs/fitting.md "Model averaging").
     lap = laplace(res.model, rows, res.theta, seed=seed)
-    unlocated = None
+    unusable = None
     if not _usable_member(res.model, lap):
-        # The winner's centre is not located by the data (few tiles, weak curvature): its Gaussian posterior
-        # runs to the bounds (bands of mm were seen at quick effort on 256 px images). Take the best model
-        # without a decentre instead — the same surface, an identified posterior.
-        alt = [(e["bic"], fits[e["name"]]) for e in table
-               if e.get("bic") is not None and e["name"] in fits and not fits[e["name"]].model.decentre]
+        # The winner's Hessian is not positive definite (a direction the tiles do not constrain): its Gaussian
+        # posterior runs to the bounds. Take the best-scoring other centred model, whose posterior is identified.
+        score = shared or {e["name"]: e["bic"] for e in table if e.get("bic") is not None}
+        alt = [(score[n], fits[n]) for n in score
+               if n in fits and not fits[n].model.decentre and n != res.model.name]
         if alt:
-            b_alt, res = min(alt, key=lambda t: t[0])
+            unusable = res.model.name
+            res = min(alt, key=lambda t: t[0])[1]
             for e in table:
                 e["chosen"] = e["name"] == res.model.name
-                e["delta_bic"] = None if e.get("bic") is None else e["bic"] - b_alt
-            unlocated = best[1].model.name
             lap = laplace(res.model, rows, res.theta, seed=seed)
     if eff.method == "laplace":
         post = lap
@@ -259,7 +277,8 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     t_total = time.perf_counter() - t0
     m = res.model
     diagnostics = {
-        "selection": "lowest BIC = -2 ln L + k ln n over all candidates",
+        "selection": ("lowest -2 ln L + k ln n with a tile's channels correlated (shared_score)" if shared
+                      else "lowest BIC = -2 ln L + k ln n over all candidates"),
         "n_rows": rows.n, "n_astig_rows": rows.n_astig, "n_tiles": len(tiles),
         "condition_number": res.condition_number, "nlopt_algorithm": "LN_BOBYQA (variable projection)",
         "nlopt_result": res.nlopt_result, "log_likelihood": res.log_likelihood,
@@ -268,7 +287,7 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         "student_t_nu": math.exp(float(m.split(res.theta)[4])),
         "posterior": post.diagnostics, "model_average": bma, "discrepancy": disc.diagnostics,
         "self_check": check.to_dict(),
-        "dropped_unlocated_decentre": unlocated, "time_map_s": t_map, "time_total_s": t_total,
+        "dropped_unidentified_winner": unusable, "time_map_s": t_map, "time_total_s": t_total,
     }
     if m.astig_rows:
         diagnostics["error_scale_astig"] = math.exp(float(m.split(res.theta)[3]))
@@ -287,29 +306,132 @@ def student_t_weights(model: SurfaceModel, rows: Rows, theta: np.ndarray) -> np.
     return (nu + 1.0) / (nu + ((rows.target - X @ beta) / sig) ** 2)
 
 
-# A decentre whose Laplace sd exceeds this (normalised units; the bound is 0.25) is not located by the data:
-# such a member is the same surface as its no-decentre sibling, and its Gaussian samples would run to the
-# bounds with coefficients that compensate each other (bands of mm were seen).
-MAX_MEMBER_CENTRE_SD = 0.05
-
-
 def _usable_member(model: SurfaceModel, lap) -> bool:
-    """A model-average member joins only if its Laplace posterior is proper and its centre is located."""
-    if not lap.diagnostics.get("hessian_positive_definite", False):
+    """A model-average member joins if its Laplace samples are finite and, without a decentre, its Hessian is
+    positive definite. A decentred model's coefficients are drawn conditionally on each drawn centre
+    (:func:`fieldcal.fit.posterior.laplace`), so a weakly located centre widens the band where the model
+    extrapolates instead of running the coefficients to the bounds: no threshold on the centre's sd decides
+    membership (one did, and a few tenths of a µm of the data flipped the chosen model)."""
+    if not model.decentre and not lap.diagnostics.get("hessian_positive_definite", False):
         return False
-    if model.decentre:
-        sd = lap.samples[:, model.n_linear:model.n_linear + 2].std(axis=0)
-        if not np.all(sd < MAX_MEMBER_CENTRE_SD):
-            return False
     return bool(np.all(np.isfinite(lap.samples)))
+
+
+SHARED_RHO_GRID = np.linspace(0.0, 0.95, 20)  # candidate correlations of a tile's channels (profiled out)
+
+
+def tile_groups(x_hat: np.ndarray, y_hat: np.ndarray, ch_index: np.ndarray) -> np.ndarray:
+    """Group id per row: the rows of one tile in different channels (positions within a quarter of the tile
+    spacing: lateral colour moves a tile's centre a little between channels)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pts = np.column_stack([x_hat, y_hat])
+    nn = []
+    for c in np.unique(ch_index):
+        m = ch_index == c
+        if m.sum() >= 2:
+            d, _ = cKDTree(pts[m]).query(pts[m], k=2)
+            nn.append(d[:, 1])
+    nn = np.concatenate(nn) if nn else np.zeros(0)
+    nn = nn[nn > 0]
+    spacing = float(np.median(nn)) if nn.size else 0.0
+    tree = cKDTree(pts)
+    pairs = np.array(sorted(tree.query_pairs(0.25 * spacing)), dtype=np.int64).reshape(-1, 2)
+    pairs = pairs[ch_index[pairs[:, 0]] != ch_index[pairs[:, 1]]] if pairs.size else pairs
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(pts.shape[0],) * 2)
+    return connected_components(g, directed=False)[1]
+
+
+def _shared_error_scores(fits: dict, rows: Rows) -> dict[str, float]:
+    """Per fitted candidate, -2 ln L + k ln n with a tile's channels correlated.
+
+    Focus rows only; row i's variance is (sigma_i)^2 / u_i (u_i: the Student-t weight at the best-fitting centred
+    candidate's MAP, the same for every candidate, so outliers stay out) times a common scale, and rows of one tile (:func:`tile_groups`) correlate with rho. The
+    coefficients are their generalised least-squares values at the candidate's MAP centre; the scale is
+    profiled in closed form and rho on a grid. The astigmatism rows keep their independent Student-t likelihood.
+    """
+    focus = rows.kind == 0
+    if len(np.unique(rows.ch_index[focus])) < 2:
+        return {}
+    xh, yh, ci, y = rows.x_hat[focus], rows.y_hat[focus], rows.ch_index[focus], rows.target[focus]
+    grp = tile_groups(xh, yh, ci)
+    order = np.argsort(grp, kind="stable")
+    xh, yh, ci, y, grp = xh[order], yh[order], ci[order], y[order], grp[order]
+    starts = np.flatnonzero(np.r_[True, grp[1:] != grp[:-1]])
+    sizes = np.diff(np.r_[starts, grp.size])
+    n = int(y.size)
+    # One set of row variances for every candidate (a likelihood ratio needs the same error model): the
+    # Student-t weights of the best-fitting centred candidate, the most flexible smooth surface, so a row is an
+    # outlier against the field's shape, not against a candidate that bends (or a heavy-tailed fit that drops
+    # rows it does not fit).
+    centred = [r for r in fits.values() if not r.model.decentre]
+    ref = max(centred or list(fits.values()), key=lambda r: r.log_likelihood)
+    u = student_t_weights(ref.model, rows, ref.theta)[focus][order]
+    sd = rows.sigma[focus][order] / np.sqrt(np.clip(u, 1e-6, None))
+    out = {}
+    for name, r in fits.items():
+        m = r.model
+        _, centre, *_ = m.split(r.theta)
+        X = m.design(xh, yh, ci, np.zeros(n, np.int64), centre) / sd[:, None]
+        yw0 = y / sd
+        best = None
+        for rho in SHARED_RHO_GRID:
+            Xw, yw, logdet = _whiten_blocks(X, yw0, starts, sizes, rho)
+            A = Xw.T @ Xw + np.eye(m.n_linear) / COEF_PRIOR_SD ** 2
+            b = Xw.T @ yw
+            try:
+                quad = float(yw @ yw - b @ np.linalg.solve(A, b))
+            except np.linalg.LinAlgError:
+                continue
+            if not quad > 0:
+                continue
+            # Gaussian log-likelihood with the common scale profiled: -n/2 (ln(2 pi quad / n) + 1) - logdet/2
+            ll = -0.5 * n * (math.log(2.0 * math.pi * quad / n) + 1.0) - 0.5 * logdet - float(np.sum(np.log(sd)))
+            if best is None or ll > best:
+                best = ll
+        if best is None:
+            continue
+        if rows.n_astig and m.astig_rows:
+            best += float(np.sum(m.log_likelihood(r.theta, rows)[rows.kind == 1]))
+        k = m.n_linear + (2 if m.decentre else 0)
+        out[name] = -2.0 * best + k * math.log(rows.n)
+    return out
+
+
+def _whiten_blocks(X, y, starts, sizes, rho):
+    """Whiten rows sorted into consecutive blocks of equal correlation rho (unit variances).
+
+    For a block of size k, C = (1 - rho) I + rho 11^T has the symmetric inverse square root
+    (I - J) / sqrt(1 - rho) + J / sqrt(1 + (k - 1) rho) with J = 11^T / k (the block mean and its contrasts), and
+    log det C = (k - 1) ln(1 - rho) + ln(1 + (k - 1) rho). Returns (Xw, yw, log det).
+    """
+    k = np.repeat(sizes, sizes).astype(np.float64)
+    a = 1.0 / math.sqrt(1.0 - rho)
+    c = 1.0 / np.sqrt(1.0 + (k - 1.0) * rho)
+
+    def apply(v):
+        mean = np.repeat(np.add.reduceat(v, starts, axis=0) / sizes.reshape((-1,) + (1,) * (v.ndim - 1)), sizes,
+                         axis=0)
+        kk = k.reshape((-1,) + (1,) * (v.ndim - 1))
+        cc = c.reshape(kk.shape)
+        return a * (v - mean) + cc * mean
+
+    logdet = float(np.sum((sizes - 1) * math.log(1.0 - rho) + np.log(1.0 + (sizes - 1) * rho)))
+    return apply(X), apply(y), logdet
+
+
+def _weights_from(scores: dict[str, float]) -> dict[str, float]:
+    """exp(-score / 2), normalised: approximate posterior model probabilities from BIC-like scores."""
+    if not scores:
+        return {}
+    b0 = min(scores.values())
+    w = {n: math.exp(-0.5 * (b - b0)) for n, b in scores.items()}
+    tot = sum(w.values())
+    return {n: v / tot for n, v in w.items()}
 
 
 def _bic_weights(table) -> dict[str, float]:
     """Approximate posterior model probabilities exp(-BIC/2), normalised over the fitted candidates."""
-    ok = [(e["name"], e["bic"]) for e in table if e.get("bic") is not None]
-    if not ok:
-        return {}
-    b0 = min(b for _, b in ok)
-    w = {n: math.exp(-0.5 * (b - b0)) for n, b in ok}
-    tot = sum(w.values())
-    return {n: v / tot for n, v in w.items()}
+    return _weights_from({e["name"]: e["bic"] for e in table if e.get("bic") is not None})

@@ -89,6 +89,15 @@ def _common_var_um2(profile, channel: str) -> float:
     return var
 
 
+def _field_wide_var_um2(profile, channel: str) -> float:
+    """Variance (µm²) of the errors shared by the whole field of one channel (systematic and common terms)."""
+    var = _systematic_var_um2(profile, channel) if getattr(profile, "calibration", None) is not None else 0.0
+    s = getattr(profile, "surfaces", None)
+    if s is not None and channel in s.channels:
+        var += _common_var_um2(profile, channel)
+    return var
+
+
 def correlation_length(profile) -> float:
     """Correlation length of the local term, normalised image units (1 = half the diagonal)."""
     disc = profile.surfaces.discrepancy
@@ -255,7 +264,9 @@ def tile_modes(profile, channel: str, orientation: str = "mean", reference=None)
     different positions. The covariance is the classical OLS one, ``s^2 (X'X)^-1`` with the residual variance:
     the tiles' scatter about the fit measures the repeat error of this calibration directly (noise, the
     estimator's step-dependent bias, anything the model does not hold), unlike the posterior of a model chosen
-    by evidence, whose tilt and decentre terms come and go between calibrations of one lens.
+    by evidence, whose tilt and decentre terms come and go between calibrations of one lens. The offset's
+    variance adds the profile's field-wide terms (band-pass offset, breathing, stage, common mode), which move
+    every tile together and so never show in their scatter.
     """
     tiles = profile.tiles
     col = _TILE_COLUMN.get(orientation)
@@ -280,6 +291,9 @@ def tile_modes(profile, channel: str, orientation: str = "mean", reference=None)
     s2 = float(res @ res) / dof
     u = mode_units(profile)
     cov = s2 * np.linalg.pinv(X.T @ X) * np.outer(u, u)
+    # errors every tile of the channel shares (the band-pass offset, breathing, stage, common mode) move all the
+    # tiles together: their scatter cannot show them, and the offset mode carries all of them
+    cov[0, 0] += _field_wide_var_um2(profile, channel)
     return ModeFit(coef * u, 0.5 * (cov + cov.T), dof, int(ok.sum()), float(np.sqrt(s2)))
 
 

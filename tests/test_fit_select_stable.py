@@ -1,0 +1,102 @@
+"""Stability of the surface-model choice and honesty of the band where a decentred model extrapolates
+(issue #16's profile diff, issue #14's corner bands): closed forms and invariances, small synthetic tile sets."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fieldcal.fit import fit_surfaces
+from fieldcal.fit.map import fit_map
+from fieldcal.fit.posterior import laplace
+from fieldcal.fit.select import _whiten_blocks, build_rows, tile_groups
+from fieldcal.fit.surface import CENTRE_BOUND, SurfaceModel
+from fieldcal.fit.synthetic import base_lens, synthetic_tiles
+
+
+def _lens(decentre_mm=(0.0, 0.0), tilt=(0.0, 0.0)):
+    spec = base_lens()
+    chans = tuple(replace(c, focus_offset_um=o, curvature_um=(-200.0, -20.0), astigmatism_um=0.0)
+                  for c, o in zip(spec.channels, (8.0, -4.0, -6.0)))
+    return replace(spec, channels=chans, decentre_mm=decentre_mm, tilt_um_per_mm=tilt)
+
+
+def test_equicorrelated_whitening_is_the_dense_inverse():
+    rng = np.random.default_rng(0)
+    sizes = np.array([3, 2, 3, 1, 3])
+    starts = np.r_[0, np.cumsum(sizes)[:-1]]
+    n = int(sizes.sum())
+    X, y = rng.standard_normal((n, 4)), rng.standard_normal(n)
+    for rho in (0.0, 0.5, 0.9):
+        C = np.zeros((n, n))
+        for s, k in zip(starts, sizes):
+            C[s:s + k, s:s + k] = (1.0 - rho) * np.eye(k) + rho
+        Xw, yw, logdet = _whiten_blocks(X, y, starts, sizes, rho)
+        Ci = np.linalg.inv(C)
+        np.testing.assert_allclose(Xw.T @ Xw, X.T @ Ci @ X, atol=1e-10)
+        np.testing.assert_allclose(Xw.T @ yw, X.T @ Ci @ y, atol=1e-10)
+        assert logdet == pytest.approx(np.linalg.slogdet(C)[1], abs=1e-10)
+
+
+def test_tile_groups_join_the_channels_of_one_tile():
+    gx, gy = np.meshgrid(np.linspace(-0.6, 0.6, 5), np.linspace(-0.4, 0.4, 4))
+    x, y = np.tile(gx.ravel(), 3), np.tile(gy.ravel(), 3)
+    ch = np.repeat([0, 1, 2], gx.size)
+    for shift in (0.0, 0.004):                     # identical positions, and lateral colour moving B and R apart
+        g = tile_groups(x + shift * (ch - 1), y, ch)
+        assert len(np.unique(g)) == gx.size
+        assert np.all(g[ch == 0] == g[ch == 1]) and np.all(g[ch == 1] == g[ch == 2])
+    # a tile missing in one channel still joins the other two
+    keep = ~((ch == 2) & (np.arange(x.size) % gx.size == 3))
+    g = tile_groups(x[keep], y[keep], ch[keep])
+    assert len(np.unique(g)) == gx.size
+
+
+def test_a_uniform_shift_of_a_channel_leaves_the_choice_and_the_shape():
+    """The focus offset is a free parameter per channel: shifting every tile of a channel (as quick's band-pass
+    offset does) must change only that channel's offset, never the chosen model or the surface's shape."""
+    rng = np.random.default_rng(3)
+    tiles, geom, _ = synthetic_tiles(_lens(), rng, nx=7, ny=5, sigma_um=(0.3, 1.5), underestimate=2.0,
+                                     directional=False)
+    base = fit_surfaces(tiles, geom, effort="quick", quiet=True)
+    x, y = np.array([0.0, geom.width_px - 1.0, 160.0]), np.array([0.0, geom.height_px - 1.0, 120.0])
+    for ch, dz in (("R", 0.4), ("G", -0.25)):
+        z = tiles.z_best_um + dz * (tiles.channel == ch)
+        fit = fit_surfaces(replace(tiles, z_best_um=z), geom, effort="quick", quiet=True)
+        assert fit.model.name == base.model.name
+        for c in ("R", "G", "B"):
+            d = fit.predict(x, y, c) - base.predict(x, y, c)
+            np.testing.assert_allclose(d - d[-1], 0.0, atol=0.02)       # shape unchanged
+            assert d[-1] == pytest.approx(dz if c == ch else 0.0, abs=0.05)
+
+
+def test_a_centre_on_its_bound_still_spreads_the_band_where_the_model_extrapolates():
+    """A decentred fit whose centre sits on its prior bound has no Gaussian posterior in the centre (its Hessian
+    is not positive definite there). The centre is drawn from its marginal on a grid over the box and the
+    coefficients from their conditional at each drawn centre: the surface stays pinned where the tiles are, the
+    centre's uncertainty widens the band only where the model extrapolates."""
+    spec = _lens(decentre_mm=(0.0, 1.2))          # 0.4 of the half-diagonal: beyond the 0.25 box
+    rng = np.random.default_rng(1)
+    tiles, geom, _ = synthetic_tiles(spec, rng, nx=6, ny=4, sigma_um=(0.3, 0.6), directional=False)
+    # the tiles cover only the central part of the frame: the corners are extrapolated
+    inner = (np.abs(tiles.x_px - 159.5) < 120) & (np.abs(tiles.y_px - 119.5) < 90)
+    tiles = tiles.subset(inner)
+    chans = ("R", "G", "B")
+    rows, zc, zs = build_rows(tiles, geom, chans)
+    model = SurfaceModel(chans, 2, False, True, False, False, 0)
+    res = fit_map(model, rows)
+    lap = laplace(model, rows, res.theta, seed=0)
+    c = lap.samples[:, model.n_linear:model.n_linear + 2]
+    assert np.all(np.abs(c) <= CENTRE_BOUND + 1e-12)
+    assert np.all(c.std(axis=0) > 0.0)           # the centre is not held at its MAP
+    xh, yh = geom.normalise(tiles.x_px, tiles.y_px)
+    at_tiles = zs * model.surface(lap.samples, xh, yh, 1).std(axis=0)
+    s = float(np.exp(model.split(res.theta)[2]))
+    # at the tiles: no wider than one tile's own error (the fit of ~24 tiles per channel is at least as good)
+    assert np.median(at_tiles) <= s * float(np.median(tiles.z_sigma_um))
+    cx, cy = geom.normalise(np.array([0.0, 319.0]), np.array([0.0, 239.0]))
+    at_corners = zs * model.surface(lap.samples, cx, cy, 1).std(axis=0)
+    assert np.all(at_corners > 2.0 * np.median(at_tiles))
+
