@@ -93,7 +93,13 @@ def test_dff_and_hybrid_track_the_true_surface(sim):
     # textureless-quadrant max 2.96 / 1.83 µm and PSNR oracle +1.10 / +1.09 dB (dff / hybrid): pinned here.
     # Since the renderer applies the sensor PSF to the magnified scene (session 6; this lens's 2 mm exit pupil
     # makes that matter): RMS 0.571 / 0.549 µm, max 3.03 / 2.00 µm, PSNR oracle +1.07 / +1.07 dB.
-    for method, rms_max, flat_max in (("dff", 0.62, 3.1), ("hybrid", 0.58, 2.2)):
+    # Since blur levels blend linear in diameter squared and flat blocks' noise peaks no longer reach the fit
+    # (session 7): RMS 0.578 / 0.545 µm, max 3.18 / 2.00 µm. DFF's textureless corner is extrapolated by the
+    # surface: its error is the fit's (σ 0.6-0.75 µm at that corner from the block scatter) on top of the
+    # radial bias the textured corners show too (2.4 µm), so it is held to a frame spacing, not to one noise
+    # draw; before the significance test, noise peaks there read the scene as 3-D and gave 12-40 µm.
+    spacing_um = float(Z_UM[1] - Z_UM[0])
+    for method, rms_max, flat_max in (("dff", 0.62, spacing_um), ("hybrid", 0.58, 2.2)):
         res = composite_stack(st, sim["prof"], method, quiet=True)
         err = res.focus_map_um - sim["zb"]
         assert np.sqrt(np.mean(err ** 2)) < rms_max, method  # frames are 4 µm apart
