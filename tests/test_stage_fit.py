@@ -19,6 +19,17 @@ def _disc(model, x, y, target, noise_var, stage_c=None, prior_sd=0.0):
                        1.0, 1.0, iid, stage_c=stage_c, stage_prior_sd=prior_sd)
 
 
+def _shared_frame_case(n=50, sig=0.2):
+    """Tiles that all read frame 0 only (c = -1): a stage error there is a piston of the whole surface."""
+    rng = np.random.default_rng(1)
+    x, y = rng.uniform(-0.6, 0.6, n), rng.uniform(-0.4, 0.4, n)
+    model = SurfaceModel(("G",), 0, False, False, False, False, None)
+    target = rng.normal(0.0, sig, n)
+    C = np.zeros((n, 3))
+    C[:, 0] = -1.0
+    return model, x, y, target, C
+
+
 def test_slope_weights_of_a_gaussian_curve_are_its_shift_sensitivity():
     z = np.arange(-30.0, 31.0, 1.0)
     s = 6.0
@@ -52,12 +63,7 @@ def test_a_fully_shared_frame_error_adds_its_prior_to_the_band():
     """Every tile reads one frame only (c = -1 on frame 0): the stage error is a piston the data cannot tell
     from the surface's, so the posterior variance of the surface is r^2 + sigma^2 / n (flat coefficient prior)."""
     n, r, sig = 50, 0.3, 0.2
-    rng = np.random.default_rng(1)
-    x, y = rng.uniform(-0.6, 0.6, n), rng.uniform(-0.4, 0.4, n)
-    model = SurfaceModel(("G",), 0, False, False, False, False, None)
-    target = rng.normal(0.0, sig, n)
-    C = np.zeros((n, 3))
-    C[:, 0] = -1.0
+    model, x, y, target, C = _shared_frame_case(n, sig)
     d = _disc(model, x, y, target, np.full(n, sig ** 2), C, r)
     _, extra = d.predict(np.array([0.0]), np.array([0.0]), 0)
     bare = _disc(model, x, y, target, np.full(n, sig ** 2))
@@ -77,12 +83,7 @@ def test_a_shared_frame_error_is_not_hidden_by_the_block_jackknife():
     from dataclasses import replace
 
     n, r, sig, jk = 50, 0.3, 0.2, 0.25
-    rng = np.random.default_rng(1)
-    x, y = rng.uniform(-0.6, 0.6, n), rng.uniform(-0.4, 0.4, n)
-    model = SurfaceModel(("G",), 0, False, False, False, False, None)
-    target = rng.normal(0.0, sig, n)
-    C = np.zeros((n, 3))
-    C[:, 0] = -1.0
+    model, x, y, target, C = _shared_frame_case(n, sig)
     d = replace(_disc(model, x, y, target, np.full(n, sig ** 2), C, r), jk_cov=np.array([[jk ** 2]]))
     bare = replace(_disc(model, x, y, target, np.full(n, sig ** 2)), jk_cov=np.array([[jk ** 2]]))
     at = (np.array([0.0]), np.array([0.0]))
