@@ -22,7 +22,7 @@ aberration; the truth of a wave lens is its sharpest position (``TruthProfile(op
     python benchmarks/bench_band_coverage.py --lenses 3 --efforts quick          # smoke run
     python benchmarks/bench_band_coverage.py --lenses 40 --scheduler local      # one Dask task per lens
     python benchmarks/bench_band_coverage.py --lenses 40 --only geometric --jsonl geo.jsonl   # the 20 geometric ones
-    python benchmarks/bench_band_coverage.py --from-jsonl geo.jsonl --docs --section "band_coverage_geometric_s5=Band coverage: geometric lenses (s5)"
+    python benchmarks/bench_band_coverage.py --from-jsonl geo.jsonl --docs --section geometric_s5 --title "Band coverage: geometric lenses (s5)"
     python benchmarks/bench_band_coverage.py --lenses 12 --plans --keep KEEP --jsonl rows.jsonl   # profiles kept
     python benchmarks/bench_band_coverage.py --replan KEEP --confidences 0.9,0.99 --plan-fs-factors 1,2 \
         --plan-coverage 0 --jsonl replan.jsonl        # --confidence plans of the kept profiles vs the truth
