@@ -173,7 +173,8 @@ CENTRE_MASS_FLOOR = 1e-6  # coarse cells below this fraction of the peak density
 
 
 def _linear_fit_parts(model: SurfaceModel, rows: Rows, theta_map: np.ndarray):
-    """The MAP's Student-t E-step weights u_i and error scales: the weighted least-squares problem at any centre."""
+    """The MAP's Student-t E-step weights u_i: with them the log-posterior is a weighted least-squares problem in the
+    coefficients at any centre."""
     beta0, centre0, log_s0, log_sa0, log_nu0 = model.split(theta_map)
     X0 = model.design(rows.x_hat, rows.y_hat, rows.ch_index, rows.kind, centre0)
     sig0 = model.sigma_eff(rows, log_s0, log_sa0)
@@ -188,7 +189,7 @@ def _normal_equations(model, rows, centre, w):
     Xw = X * np.broadcast_to(w, X.shape[:2])[..., None]
     A = np.einsum("bnp,bnq->bpq", Xw, X) + np.eye(p) / COEF_PRIOR_SD ** 2
     b = np.einsum("bnp,n->bp", Xw, rows.target)
-    return A, b, Xw
+    return A, b
 
 
 def centre_marginal_draws(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, n: int,
@@ -208,7 +209,7 @@ def centre_marginal_draws(model: SurfaceModel, rows: Rows, theta_map: np.ndarray
     def log_density(cs):
         lp = np.empty(cs.shape[0])
         for a in range(0, cs.shape[0], chunk):
-            A, b, _ = _normal_equations(model, rows, cs[a:a + chunk], w)
+            A, b = _normal_equations(model, rows, cs[a:a + chunk], w)
             L = np.linalg.cholesky(A)
             v = np.linalg.solve(L, b[..., None])[..., 0]
             lp[a:a + chunk] = 0.5 * np.sum(v * v, axis=-1) - np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
@@ -252,7 +253,7 @@ def conditional_coefficients(model: SurfaceModel, rows: Rows, theta_map: np.ndar
     for a in range(0, nl.shape[0], chunk):
         th = np.concatenate([np.zeros((min(chunk, nl.shape[0] - a), p)), nl[a:a + chunk]], axis=1)
         _, centre, log_s, log_sa, _ = model.split(th)
-        A, b, _ = _normal_equations(model, rows, centre, u / model.sigma_eff(rows, log_s, log_sa) ** 2)
+        A, b = _normal_equations(model, rows, centre, u / model.sigma_eff(rows, log_s, log_sa) ** 2)
         L = np.linalg.cholesky(A)
         mean = np.linalg.solve(A, b[..., None])[..., 0]
         z = rng.standard_normal(mean.shape)

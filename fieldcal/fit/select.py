@@ -414,8 +414,7 @@ def _whiten_blocks(X, y, starts, sizes, rho):
     def apply(v):
         mean = np.repeat(np.add.reduceat(v, starts, axis=0) / sizes.reshape((-1,) + (1,) * (v.ndim - 1)), sizes,
                          axis=0)
-        kk = k.reshape((-1,) + (1,) * (v.ndim - 1))
-        cc = c.reshape(kk.shape)
+        cc = c.reshape((-1,) + (1,) * (v.ndim - 1))
         return a * (v - mean) + cc * mean
 
     logdet = float(np.sum((sizes - 1) * math.log(1.0 - rho) + np.log(1.0 + (sizes - 1) * rho)))
