@@ -239,8 +239,17 @@ class ChannelOptics:
         return (ker / ker.sum()).astype(np.float32)
 
     def mtf(self, terms: WaveTerms, dz_um: float, f_cyc_per_mm: float, n_angles: int = 12) -> float:
-        """Optical MTF at f (cycles/mm), averaged over ``n_angles`` orientations (no pixel aperture)."""
+        """Optical MTF at f (cycles/mm), averaged over ``n_angles`` orientations (no pixel aperture).
+
+        A rotationally symmetric pupil (no coma, no astigmatism) has the same OTF in every orientation: it is
+        computed exactly, as the pupil's autocorrelation (:func:`fieldcal.optics.pupil.otf`). Why: the sampled
+        PSF's MTF carries ~1e-3 of discretisation error that changes with dz (the pupil's sampling and the PSF
+        window follow the defocus), and near the flat top of a low-fs curve that moved the sharpest position by
+        up to 0.5 µm (docs/simulator.md).
+        """
         f_um = f_cyc_per_mm * 1e-3
+        if terms.w131_um == 0.0 and terms.wast_um == 0.0:
+            return self._symmetric_mtf(terms, dz_um, f_um)
         spacing = self._spacing_um(f_um)
         n = 2 * int(math.ceil(self.half_extent_um(terms, dz_um) / spacing)) + 1
         p = self.psf(terms, dz_um, spacing, n, f_um)
@@ -250,6 +259,19 @@ class ChannelOptics:
         ey = np.exp(-2j * np.pi * f_cyc_per_mm * np.sin(ang)[:, None] * x[None, :])
         otf = np.einsum("ty,yx,tx->t", ey, p, ex)
         return float(np.mean(np.abs(otf)) * self.residual_otf(f_um))
+
+    def _symmetric_mtf(self, terms: WaveTerms, dz_um: float, f_um: float) -> float:
+        """|OTF| at f (cycles/µm) of the channel's band for a rotationally symmetric pupil, exact (module
+        :mod:`fieldcal.optics.pupil`): the band's OTFs add (one polychromatic PSF), then the magnitude."""
+        from fieldcal.optics import pupil
+
+        n = self.f_number
+        tot = 0.0
+        for lam_nm, w in self.band:
+            lam = lam_nm * 1e-3
+            tot += w * float(pupil.otf(f_um * lam * n, dz_um / (8.0 * n * n * lam), terms.w040_um / lam,
+                                       terms.w060_um / lam))
+        return abs(tot) * float(self.residual_otf(f_um))
 
     def best_focus_shift_um(self, terms: WaveTerms, fs_cyc_per_mm: float) -> float:
         """dz (µm from the reference surface) where the orientation-averaged MTF at fs peaks.
@@ -276,6 +298,8 @@ class ChannelOptics:
                               bounds=(zs[max(i - 1, 0)], zs[min(i + 1, len(zs) - 1)]), method="bounded",
                               options={"xatol": 0.01})
         z_b = float(res.x) if -res.fun >= vals[i] else float(zs[i])
+        if terms.w131_um == 0.0 and terms.wast_um == 0.0:
+            return z_b  # the exact MTF (:meth:`mtf`) has no sampling noise to smooth away
         return self._smooth_peak_um(terms, fs_cyc_per_mm, z_b, dof_um)
 
     def _smooth_peak_um(self, terms: WaveTerms, fs_cyc_per_mm: float, z_um: float, dof_um: float) -> float:
