@@ -397,7 +397,12 @@ def test_pixel_kernels_keep_the_fs_contrast_peak_of_a_flat_topped_spherical_aber
     dz = z0 + np.arange(-15.0, 15.1, 5.0)
     m = np.array([kernel_mtf(d) for d in dz])
     opt_m = np.array([opt.mtf(terms, float(d), fs) for d in dz])
-    np.testing.assert_allclose(m, opt_m, rtol=3e-3)  # was 0.3 % off at single defocus steps (window growth)
+    # the optical MTF is the exact pupil autocorrelation; the kernels' sampled pupil (anti-aliased edge) sits
+    # ~0.55 % above it at every dz, a scale that does not move the peak; the shape must follow it (a step of
+    # 0.3 % at single defocus steps from the window's growth was the defect)
+    ratio = m / opt_m
+    assert abs(ratio.mean() - 1.0) < 1e-2
+    np.testing.assert_allclose(ratio, ratio.mean(), rtol=3e-4)
     c = np.polyfit(dz - z0, m, 2)
     assert abs(-c[1] / (2 * c[0])) < 0.5
 

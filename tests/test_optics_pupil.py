@@ -1,0 +1,70 @@
+"""The exact OTF of a circular pupil with defocus and spherical aberration (fieldcal.optics.pupil) against
+closed forms and an independent FFT of the pupil."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import integrate
+
+from fieldcal.measure import spherical
+from fieldcal.optics import pupil
+
+
+def hopkins_defocus_otf(nu: float, w020: float) -> float:
+    """Hopkins (1955): the defocused pupil's OTF as a 1-D integral (tests/test_simulate_wave.py has the same)."""
+    if w020 == 0.0:
+        return (2.0 / np.pi) * (np.arccos(nu) - nu * np.sqrt(1.0 - nu * nu))
+    a = 8.0 * np.pi * w020 * nu
+    val, _ = integrate.quad(lambda y: np.sin(a * (np.sqrt(1.0 - y * y) - nu)), 0.0, np.sqrt(1.0 - nu * nu),
+                            limit=400, epsabs=1e-13)
+    return 4.0 / (np.pi * a) * val
+
+
+@pytest.mark.parametrize("nu", [0.02, 0.15, 0.4, 0.8])
+@pytest.mark.parametrize("w020", [0.0, 0.5, 2.0, 6.0])
+def test_defocus_is_hopkins_closed_form(nu, w020):
+    assert float(pupil.otf(nu, w020)) == pytest.approx(hopkins_defocus_otf(nu, w020), abs=1e-9)
+
+
+def test_geometric_limit_is_the_ray_otf_of_the_skew_model():
+    # nu -> 0 at fixed x = -8 pi nu W020, s = 16 pi nu W040: the geometric-optics ray OTF (measure/spherical.py);
+    # the difference is the diffraction term, O(nu)
+    for x, s in ((1.0, 2.0), (3.0, 5.0), (-2.0, 8.0)):
+        ref = float(spherical.sa_otf(x, s)[0])
+        errs = [abs(float(pupil.otf(nu, -x / (8 * math.pi * nu), s / (16 * math.pi * nu))) - ref)
+                for nu in (1e-2, 1e-3, 1e-4)]
+        assert errs[2] < 2e-4 and errs[2] < errs[1] < errs[0]
+
+
+def _fft_otf(nu: float, w020: float, w040: float, n: int = 256, pad: int = 4) -> float:
+    """Radial mean of |FFT(|FFT(P)|^2)| on the ring at nu (the pupil sampled on n x n points, hard edge)."""
+    m = n * pad
+    y, x = (np.mgrid[0:m, 0:m] - m / 2 + 0.5) / (n / 2)
+    r2 = x * x + y * y
+    p = (r2 <= 1.0) * np.exp(2j * np.pi * (w020 * r2 + w040 * r2 * r2))
+    otf = np.fft.fft2(np.abs(np.fft.fft2(p)) ** 2).real
+    otf /= otf[0, 0]
+    f = np.fft.fftfreq(m) * m / n  # shift in pupil diameters: the cut-off (nu = 1) at one diameter
+    fr = np.hypot(*np.meshgrid(f, f))
+    ring = np.abs(fr - nu) < 0.5 / n
+    return float(otf[ring].mean())
+
+
+@pytest.mark.parametrize("nu,w020,w040", [(0.15, -0.4, 0.6), (0.3, 0.2, -0.8), (0.5, -1.0, 1.2)])
+def test_spherical_aberration_against_an_fft_of_the_pupil(nu, w020, w040):
+    # the FFT's own error is its pupil edge's staircase (~3e-3 at 256 samples across)
+    assert float(pupil.otf(nu, w020, w040)) == pytest.approx(_fft_otf(nu, w020, w040), abs=4e-3)
+
+
+def test_secondary_spherical_is_the_same_integral():
+    # W060 rho^6 alone against the FFT too
+    m = 512
+    y, x = (np.mgrid[0:m, 0:m] - m / 2 + 0.5) / 64
+    r2 = x * x + y * y
+    p = (r2 <= 1.0) * np.exp(2j * np.pi * 0.7 * r2 ** 3)
+    otf = np.fft.fft2(np.abs(np.fft.fft2(p)) ** 2).real
+    otf /= otf[0, 0]
+    f = np.fft.fftfreq(m) * m / 128
+    ring = np.abs(np.hypot(*np.meshgrid(f, f)) - 0.25) < 0.5 / 128
+    assert float(pupil.otf(0.25, 0.0, 0.0, 0.7)) == pytest.approx(float(otf[ring].mean()), abs=5e-3)
