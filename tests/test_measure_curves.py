@@ -422,3 +422,48 @@ def test_a_channel_without_a_band_pass_offset_borrows_the_others():
     np.testing.assert_allclose(r["z_sigma_um"][:2] ** 2, 0.3 ** 2 + 0.25 ** 2 / 2 + 0.125)
     assert r["skew"]["offset_from"] == "G,B"
     np.testing.assert_allclose(results["G"]["z_best_um"][:2], [1.0, 2.0])
+
+
+# ------------------------------------------------- diffraction: the exact pupil OTF (optics/pupil.py), session 8
+def _wave_sa_scan(nu: float, w040_waves: float, phase: float, f_number: float = 4.0, lam_um: float = 0.55):
+    """Band-pass energy through focus of an exact (diffraction-included) pupil with W040, its sharpest position
+    and fs: |OTF|^2 at nu = fs lambda N sampled every half q = 0.05 tolerance, + a floor."""
+    from scipy.optimize import minimize_scalar
+
+    from fieldcal.optics import disc_x_at_contrast, pupil
+    fs_um = nu / (lam_um * f_number)
+    curve = lambda dz: pupil.otf(nu, np.asarray(dz) / (8 * f_number ** 2 * lam_um), w040_waves)  # noqa: E731
+    dof = f_number / (np.pi * fs_um)
+    zs = np.linspace(-16 * f_number ** 2 * w040_waves * lam_um - 3 * dof, 3 * dof, 1201)
+    i = int(np.argmax(np.abs(curve(zs))))
+    zt = minimize_scalar(lambda d: -abs(float(curve(d))), bounds=(zs[i - 1], zs[i + 1]), method="bounded",
+                         options={"xatol": 1e-7}).x
+    step = 0.5 * disc_x_at_contrast(0.95) * dof
+    z = zt + (np.arange(-14, 15) + phase) * step
+    return z, curve(z) ** 2 + 0.02, zt, step, fs_um * 1e3
+
+
+@pytest.mark.parametrize("nu,w040", [(0.2, 1.6), (0.3, 1.6), (0.3, 1.2)])
+def test_strongly_aberrated_curves_at_high_nu_take_the_diffraction_included_model(nu, w040, monkeypatch):
+    # The ray (geometric) skew model's fitted s absorbs diffraction up to ~1 wave of W040; at 1.2-1.6 waves and
+    # nu = 0.2-0.3 its peak lands 0.013-0.1 step off the exact curve's. Those curves are refitted with the exact
+    # model (spherical.wave_model): the peak is then the exact one (noise-free).
+    from fieldcal.measure import spherical
+    errs_new, errs_old = [], []
+    for phase in (0.0, 0.25, 0.5, 0.75):
+        z, e, zt, step, fs = _wave_sa_scan(nu, w040, phase)
+        errs_new.append((analyse_curve(z, e, "otf", fs, 0.05).z_best_um - zt) / step)
+        with monkeypatch.context() as m:
+            m.setattr(spherical, "WAVE_MIN_NU", 2.0)  # the old estimator: the ray model alone
+            errs_old.append((analyse_curve(z, e, "otf", fs, 0.05).z_best_um - zt) / step)
+    assert np.max(np.abs(errs_new)) < 1e-3
+    assert np.max(np.abs(errs_old)) > 0.01
+
+
+def test_ray_model_alone_finds_the_exact_peak_of_moderate_spherical_aberration():
+    # nu <= 0.06 (the benchmark's wave lenses: fs 13 cycles/mm, F/1.4-F/8) and W040 0.25-0.8 waves: the ray model
+    # (no diffraction) finds the exact curve's sharpest position to < 0.002 step, and the exact model is not used
+    for nu, w040 in ((0.02, 0.8), (0.06, 0.25), (0.06, 0.8)):
+        for phase in (0.0, 0.5):
+            z, e, zt, step, fs = _wave_sa_scan(nu, w040, phase)
+            assert abs(analyse_curve(z, e, "otf", fs, 0.05).z_best_um - zt) / step < 2e-3

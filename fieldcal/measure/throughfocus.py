@@ -33,6 +33,12 @@ STATUS_OK = "ok"
 # no evidence either way still took 1/(1 + sqrt(n)) ~ 0.27 of the noisier local estimate: tile scatter on
 # simulated lenses at coarse steps doubled (0.48 -> 0.90 µm). See docs/measurement.md "Asymmetric curves".
 SKEW_PRIOR_ODDS = 10.0
+# Wavelength (nm) of the skew model's diffraction term when the caller gives none (mid-visible); it only sets
+# nu = fs lambda N, whose effect on the peak is second order (module spherical, WAVE_MIN_NU).
+WAVELENGTH_NM = 550.0
+# Skew evidence (chi2 of s != 0) above which a curve may take the diffraction-included skew model: the skew
+# weight 1 / (1 + O sqrt(n) exp(-chi2 / 2)) passes 1/2 at chi2 = 2 ln(O sqrt(n)) ~ 10.4 for n = 16.
+WAVE_MIN_CHI2 = 2.0 * math.log(SKEW_PRIOR_ODDS * 4.0)
 REASONS = ("too_few_frames", "low_texture", "saturated", "out_of_frame", "flat", "multi_peak",
            "peak_outside_range", "peak_at_edge", "fit_failed")
 
@@ -219,12 +225,14 @@ def _precheck(z: np.ndarray, v: np.ndarray, rules: CurveRules) -> _Pre | CurveFi
 
 
 def analyse_curves(z_um, values, model: str = "peak", fs_cyc_per_mm: float | None = None, q: float = 0.05,
-                   rules: CurveRules | None = None) -> list[CurveFit]:
+                   rules: CurveRules | None = None, wavelength_nm: float = WAVELENGTH_NM) -> list[CurveFit]:
     """:func:`analyse_curve` for many curves on the same z grid (rows of ``values``), fitted together.
 
     All accepted curves are fitted at once by a batched Levenberg-Marquardt (one small normal-equation
     solve per curve per iteration, vectorised with numpy): thousands of tiles take a fraction of a second,
     where one ``scipy.optimize.least_squares`` call per curve costs milliseconds of overhead each.
+    ``wavelength_nm``: the channel's, for the diffraction term of the ``"otf"`` skew model (strongly aberrated
+    curves at high ``fs lambda N`` only, :data:`fieldcal.measure.spherical.WAVE_MIN_NU`).
     """
     rules = rules or CurveRules()
     if model not in ("peak", "otf"):
@@ -252,7 +260,8 @@ def analyse_curves(z_um, values, model: str = "peak", fs_cyc_per_mm: float | Non
     if pres:
         fits = _fit_batch(z, V, pres, step, model)
         x_q = disc_x_at_contrast(round(1.0 - q, 12)) if model == "otf" else math.nan
-        sa = (_sa_corrections(z, V, pres, fits, step) if model == "otf" and rules.skew
+        sa = (_sa_corrections(z, V, pres, fits, step, fs_cyc_per_mm * 1e-3, wavelength_nm * 1e-3)
+              if model == "otf" and rules.skew
               else [_LOCAL] * len(pres))
         for (t, pre), fit, corr in zip(pres, fits, sa):
             out[t] = _finish(z, V[t], pre, fit, step, model, x_q, rules, corr)
@@ -362,7 +371,7 @@ def _skew_correction(z, v, pre: _Pre, fit, step, model, rules: CurveRules):
 _LOCAL = "local"  # _finish: the skew correction from the local skewed peak (_skew_correction)
 
 
-def _sa_corrections(z, V, pres, fits, step) -> list:
+def _sa_corrections(z, V, pres, fits, step, fs_cyc_per_um: float = math.nan, wavelength_um: float = 0.55) -> list:
     """Skew corrections of band-pass curves from the spherical-aberration model (:mod:`.spherical`).
 
     Each curve whose symmetric ``"otf"`` fit succeeded is refitted on the same window with the skewed model
@@ -372,7 +381,9 @@ def _sa_corrections(z, V, pres, fits, step) -> list:
     it), ``w = 1 / (1 + O sqrt(n) exp(-chi2 / 2))`` with ``chi2`` the drop in the residual sum of squares over
     the skewed fit's residual variance (the evidence for s != 0; prior odds O = SKEW_PRIOR_ODDS). None where
     the skewed fit fails or has < 2 degrees of freedom; ``_LOCAL`` (the local skewed peak) where the symmetric
-    fit failed.
+    fit failed. Curves whose ray-model fit says they are strongly aberrated at a high ``nu = fs lambda N``
+    (:data:`spherical.WAVE_MIN_NU`, :data:`spherical.WAVE_MIN_W040_WAVES`) are refitted from it with the exact
+    (diffraction-included) model, whose peak they then use.
     """
     out: list = [_LOCAL if f is None else None for f in fits]
     idx = [j for j, f in enumerate(fits) if f is not None and f.n - 5 >= 2]
@@ -387,18 +398,37 @@ def _sa_corrections(z, V, pres, fits, step) -> list:
     P = np.array([sa[k].params for k in ok])
     lo = np.array([(z[sub[k][1].lo] - z[sub[k][1].i_max]) / step for k in ok])
     hi = np.array([(z[sub[k][1].hi] - z[sub[k][1].i_max]) / step for k in ok])
-    u_pk = spherical.peak_u(P[:, 0], P[:, 1], P[:, 2], P[:, 3], lo, hi)
-    # d u_pk / d params: 0 for a and b, 1 for u0; kappa and s by central differences
+    nu = spherical.wave_nu(P[:, 2], fs_cyc_per_um, step, wavelength_um)
+    c_nu = nu * np.abs(P[:, 2])  # = pi fs^2 lambda step: nu moves with the fitted kappa (1/N)
+    # evidence for the skew (chi2 of s != 0, as the weight below): a symmetric curve's noise-fitted s is no reason
+    chi2 = np.array([max(fits[idx[k]].rss - sa[k].rss, 0.0) / max(sa[k].rss / (sa[k].n - 5), 1e-30) for k in ok])
+    wave = (np.isfinite(nu) & (nu >= spherical.WAVE_MIN_NU) & (nu < 0.95) & (chi2 > WAVE_MIN_CHI2)
+            & (np.abs(spherical.w040_waves(P[:, 3], nu)) >= spherical.WAVE_MIN_W040_WAVES))
+    if wave.any():  # the ray model's fit is the exact model's start (rare: strongly aberrated, high fs lambda N)
+        r = np.flatnonzero(wave)
+        wf = _fit_batch(z, V, [sub[ok[i]] for i in r], step, "otf_sa_wave", p_init=list(P[r]), nu=c_nu[r])
+        for i, f in zip(r, wf):
+            if f is None:
+                wave[i] = False
+            else:
+                sa[ok[i]], P[i] = f, f.params
+    peak = [spherical.peak_u, lambda *q: spherical.wave_peak_u(*q, c_nu[wave])]
+    u_pk = np.empty(len(ok))
     grad = np.zeros((len(ok), 5))
-    grad[:, 1] = 1.0
-    for i in (2, 3):
-        h = 1e-4 * np.maximum(np.abs(P[:, i]), 1e-2)
-        q = [P[:, c] for c in range(4)]
-        q[i] = P[:, i] + h
-        up = spherical.peak_u(*q, lo, hi)
-        q[i] = P[:, i] - h
-        um = spherical.peak_u(*q, lo, hi)
-        grad[:, i] = (up - um) / (2.0 * h)
+    grad[:, 1] = 1.0  # d u_pk / d params: 0 for a and b, 1 for u0; kappa and s by central differences
+    for sel, fn in zip((~wave, wave), peak):
+        if not sel.any():
+            continue
+        Ps, ls, hs = P[sel], lo[sel], hi[sel]
+        u_pk[sel] = fn(Ps[:, 0], Ps[:, 1], Ps[:, 2], Ps[:, 3], ls, hs)
+        for i in (2, 3):
+            h = 1e-4 * np.maximum(np.abs(Ps[:, i]), 1e-2)
+            q = [Ps[:, c] for c in range(4)]
+            q[i] = Ps[:, i] + h
+            up = fn(*q, ls, hs)
+            q[i] = Ps[:, i] - h
+            um = fn(*q, ls, hs)
+            grad[sel, i] = (up - um) / (2.0 * h)
     for r, k in enumerate(ok):
         j, f = idx[k], sa[k]
         var = float(grad[r] @ f.cov @ grad[r])
@@ -579,6 +609,8 @@ def _model_eval(model: str, u: np.ndarray, p: np.ndarray, free_p: np.ndarray):
     """Model values (T x n) and Jacobian (T x n x P) for parameter rows p (T x P)."""
     if model == "otf_sa":
         return spherical.model(u, *(p[:, i:i + 1] for i in range(5)))
+    if model == "otf_sa_wave":  # free_p carries each curve's nu kappa = pi fs^2 lambda step (a constant)
+        return spherical.wave_model(u, *(p[:, i:i + 1] for i in range(5)), free_p)
     if model == "otf":
         a, u0, kappa, b = (p[:, i:i + 1] for i in range(4))
         du = u - u0
@@ -600,13 +632,13 @@ def _model_eval(model: str, u: np.ndarray, p: np.ndarray, free_p: np.ndarray):
 
 
 def _fit_batch(z, V, pres, step, model, n_iter: int = 100, p_init: list | None = None,
-               weights: list | None = None):
+               weights: list | None = None, nu=None):
     """Batched Levenberg-Marquardt over the windows of ``pres``; a :class:`_Fit` or None for each.
 
     Coordinates are normalised (u in steps from the sampled maximum, values / the maximum); the covariance
     is ``(J^T J)^-1`` scaled by the residual variance. ``p_init``: starting parameters per window (normalised
     coordinates), instead of the guesses from the data. ``weights``: per window, a weight per sample of the
-    window on the residuals (default 1).
+    window on the residuals (default 1). ``nu``: per window, the ``"otf_sa_wave"`` model's ``c_nu``.
     """
     T = len(pres)
     nmax = max(p.hi - p.lo + 1 for _, p in pres)
@@ -615,7 +647,7 @@ def _fit_batch(z, V, pres, step, model, n_iter: int = 100, p_init: list | None =
     w = np.zeros((T, nmax))
     scale = np.empty(T)
     p0 = []
-    free_p = np.zeros(T)
+    free_p = np.zeros(T) if nu is None else np.asarray(nu, dtype=np.float64)  # otf_sa_wave: nu per curve
     for j, (t, pre) in enumerate(pres):
         k = pre.hi - pre.lo + 1
         sc = float(V[t, pre.i_max])
@@ -681,7 +713,7 @@ def _fit_batch(z, V, pres, step, model, n_iter: int = 100, p_init: list | None =
     out = []
     for j in range(T):
         pj = p[j].copy()
-        if model != "otf_sa":  # even in the width parameter (otf_sa: in (kappa, s) jointly; its peak is too)
+        if model not in ("otf_sa", "otf_sa_wave"):  # even in the width (otf_sa*: in (kappa, s) jointly, as the peak)
             pj[2] = abs(pj[2])
         ok = ((dof[j] > 0) and bool(np.all(np.isfinite(pj))) and pj[0] > 0.0
               and abs(pj[2]) > 1e-6 and bool(np.all(np.isfinite(cov[j]))) and cond[j] < 1e13)

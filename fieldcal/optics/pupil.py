@@ -82,3 +82,20 @@ def otf(nu: float, w020_waves, w040_waves=0.0, w060_waves=0.0, n: int | None = N
     c2, c4, c6 = 2.0 * b, 4.0 * a * b, 6.0 * a * a * b + 2.0 * b ** 3
     ph = 2.0 * math.pi * (w2[..., None, None] * c2 + w4[..., None, None] * c4 + w6[..., None, None] * c6)
     return (4.0 / math.pi) * np.sum(np.cos(ph) * wt, axis=(-2, -1))
+
+
+def quadrature(nu: float, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rule of :func:`otf` at ``nu`` with n nodes per axis, flattened: ``(c2, c4, weight)`` with
+    ``OTF = sum(weight cos(2 pi (W020 c2 + W040 c4)))`` (``sum(weight)`` is the diffraction-limited MTF).
+
+    For callers that evaluate many wavefronts at one frequency (the through-focus curve fits)."""
+    g, gw = _nodes(int(n))
+    t_max = math.asin(math.sqrt(max(1.0 - nu * nu, 0.0)))
+    t = 0.5 * t_max * (g + 1.0)
+    q = np.sin(t)
+    p_hi = np.cos(t) - nu
+    p = 0.5 * p_hi[:, None] * (g[None, :] + 1.0)
+    wt = (4.0 / math.pi) * (0.5 * t_max * gw * np.cos(t) * 0.5 * p_hi)[:, None] * gw[None, :]
+    a = p * p + (q * q)[:, None] + nu * nu
+    b = 2.0 * nu * p
+    return (2.0 * b).ravel(), (4.0 * a * b).ravel(), wt.ravel()
