@@ -100,13 +100,15 @@ def peak_u(a, u0, kappa, s, u_lo, u_hi, n_grid: int = 81, n_newton: int = 8):
 # --------------------------------------------------------------------------- diffraction (wave optics)
 #: Where the ray model above stops finding the wave-optics peak. Fitted (free kappa and s) to the exact
 #: pupil-autocorrelation curves (:mod:`fieldcal.optics.pupil`, noise-free, 4 sampling phases, steps of half the
-#: q = 0.05 tolerance), its peak is within 0.005 step of the true one for W040 <= 1.2 waves at every nu = fs
-#: lambda N in 0.05-0.6, and <= 0.02 step at 1.6 waves for nu <= 0.15; beyond (1.6 waves at nu 0.2-0.3) it is off
-#: by 0.06-0.1 step, and by more at 2-3 waves: the fitted s can no longer absorb the diffraction. Curves whose ray
-#: fit lands there are refitted with the exact model (:func:`wave_model`); elsewhere the ray model stays
-#: (no extra cost on the usual lenses).
-WAVE_MIN_NU = 0.1
-WAVE_MIN_W040_WAVES = 0.15
+#: q = 0.05 tolerance), its peak is within 0.005 step of the true one for W040 <= 1.2 waves at nu = fs lambda N
+#: in 0.05-0.6 (0.013 at nu = 0.3), and <= 0.02 step at 1.6 waves for nu <= 0.15; beyond (1.6 waves at nu 0.2-0.3)
+#: it is off by 0.06-0.1 step: the fitted s can no longer absorb the diffraction, and comes out small (0.4-0.7
+#: waves for 1.6 true). Curves whose ray fit lands past these thresholds (with evidence for the skew,
+#: ``throughfocus.WAVE_MIN_CHI2``) are refitted with the exact model (:func:`wave_model`); elsewhere the ray
+#: model stays. Set where the 1080p quick calibration of the (geometric) triplet, whose band-pass curves carry a
+#: slight skew, does not cross them (0.1 / 0.15 waves: +1.1 s of profiled CPU there, for no gain).
+WAVE_MIN_NU = 0.15
+WAVE_MIN_W040_WAVES = 0.4
 
 
 def wave_nu(kappa, fs_cyc_per_um: float, step_um: float, wavelength_um: float):
@@ -178,18 +180,22 @@ def wave_model(u, a, u0, kappa, s, b, c_nu):
     return f, jac
 
 
-def wave_peak_u(a, u0, kappa, s, u_lo, u_hi, c_nu, n_grid: int = 81, n_newton: int = 8):
-    """:func:`peak_u` of the exact model (:func:`wave_model`'s ``c_nu`` per curve)."""
+def wave_peak_u(a, u0, kappa, s, u_lo, u_hi, c_nu, n_grid: int = 81, n_newton: int = 8, u_start=None):
+    """:func:`peak_u` of the exact model (:func:`wave_model`'s ``c_nu`` per curve). ``u_start``: Newton steps from
+    these peaks, no grid (the peak of slightly perturbed parameters, for the delta method)."""
     a, u0, kappa, s, u_lo, u_hi, c_nu = (np.atleast_1d(np.asarray(v, dtype=np.float64))
                                          for v in (a, u0, kappa, s, u_lo, u_hi, c_nu))
     nu = c_nu / np.abs(kappa)
-    t = np.linspace(0.0, 1.0, n_grid)
-    ug = u_lo[:, None] + (u_hi - u_lo)[:, None] * t
-    x_max = float(np.max(np.abs(kappa[:, None] * (ug - u0[:, None]))))
-    o, _, _, _ = wave_otf(kappa[:, None] * (ug - u0[:, None]), s, nu, x_max)
-    i = np.argmax(o * o, axis=-1)
     h = (u_hi - u_lo) / (n_grid - 1)
-    u = np.take_along_axis(ug, i[:, None], axis=-1)[:, 0]
+    x_max = float(np.max(np.abs(kappa) * np.maximum(np.abs(u_lo - u0), np.abs(u_hi - u0))))
+    if u_start is None:
+        ug = u_lo[:, None] + (u_hi - u_lo)[:, None] * np.linspace(0.0, 1.0, n_grid)
+        o, _, _, _ = wave_otf(kappa[:, None] * (ug - u0[:, None]), s, nu, x_max)
+        i = np.argmax(o * o, axis=-1)
+        u = np.take_along_axis(ug, i[:, None], axis=-1)[:, 0]
+    else:
+        u = np.asarray(u_start, dtype=np.float64).copy()
+        i = np.ones(u.shape, dtype=int)
     for _ in range(n_newton):
         o, ox, _, oxx = wave_otf((kappa * (u - u0))[:, None], s, nu, x_max)
         o, ox, oxx = o[:, 0], ox[:, 0], oxx[:, 0]

@@ -412,7 +412,7 @@ def _sa_corrections(z, V, pres, fits, step, fs_cyc_per_um: float = math.nan, wav
                 wave[i] = False
             else:
                 sa[ok[i]], P[i] = f, f.params
-    peak = [spherical.peak_u, lambda *q: spherical.wave_peak_u(*q, c_nu[wave])]
+    peak = [spherical.peak_u, lambda *q, u_start=None: spherical.wave_peak_u(*q, c_nu[wave], u_start=u_start)]
     u_pk = np.empty(len(ok))
     grad = np.zeros((len(ok), 5))
     grad[:, 1] = 1.0  # d u_pk / d params: 0 for a and b, 1 for u0; kappa and s by central differences
@@ -421,13 +421,14 @@ def _sa_corrections(z, V, pres, fits, step, fs_cyc_per_um: float = math.nan, wav
             continue
         Ps, ls, hs = P[sel], lo[sel], hi[sel]
         u_pk[sel] = fn(Ps[:, 0], Ps[:, 1], Ps[:, 2], Ps[:, 3], ls, hs)
+        near = {} if fn is spherical.peak_u else {"u_start": u_pk[sel]}  # the exact model: no grid again
         for i in (2, 3):
             h = 1e-4 * np.maximum(np.abs(Ps[:, i]), 1e-2)
             q = [Ps[:, c] for c in range(4)]
             q[i] = Ps[:, i] + h
-            up = fn(*q, ls, hs)
+            up = fn(*q, ls, hs, **near)
             q[i] = Ps[:, i] - h
-            um = fn(*q, ls, hs)
+            um = fn(*q, ls, hs, **near)
             grad[sel, i] = (up - um) / (2.0 * h)
     for r, k in enumerate(ok):
         j, f = idx[k], sa[k]
