@@ -228,12 +228,14 @@ def test_blurred_board_corners_are_found_and_accurate():
                                    stats=stats)
     assert stats["detected"]["2,G"] == 0            # the detector alone loses the board
     cp = board.corner_px(corr.point_id)
-    n_ref = int(np.sum((corr.z_um == 0.0) & (corr.channel == "G")))
     for c in "RGB":
         m = (corr.channel == c) & (corr.z_um == 200.0)
-        # tracking finds the corners the reference frame shows (its field edge is blurred too: 40-42 of 48; with
-        # the elliptical astigmatic PSF the reference shows two field-corner ones that B loses at z = 200)
-        assert n_ref - 2 <= m.sum() <= n_ref and m.sum() >= 40
+        # tracking finds the corners the channel's own reference frame shows (its field edge is blurred too: 42-46
+        # of 48, and which marginal markers decode there differs between channels and with small changes of the
+        # blur: G 46 and B 42 since blur levels blend linear in diameter squared, 42 each before; with the
+        # elliptical astigmatic PSF a channel may lose two field-corner ones at z = 200)
+        n_ref = int(np.sum((corr.z_um == 0.0) & (corr.channel == c)))
+        assert n_ref - 2 <= m.sum() <= n_ref and m.sum() >= 40, (c, n_ref, m.sum())
         tx, ty = spec.sensor_px(cp[m, 0], cp[m, 1], 200.0, c)
         err = np.hypot(corr.q_px[m, 0] - tx, corr.q_px[m, 1] - ty)
         assert np.median(err) < 0.04 and err.max() < 0.1, (c, np.median(err), err.max())

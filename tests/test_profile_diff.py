@@ -80,17 +80,25 @@ def test_a_profile_against_itself(prof_path):
 
 
 def test_known_changes_are_found_where_and_how_big(prof_path, tmp_path):
-    """A 4 µm piston of every surface and a breathing change of 0.1 % over the scan: both flagged, sized right."""
+    """An 8 µm piston of every surface and a breathing change of 0.1 % over the scan: both flagged, sized right.
+
+    The piston is about three times this calibration's real error: the fixture is a quick 256x144 calibration
+    whose scan stops short of 42 % of the tiles' peaks, 2.1-2.6 µm RMS off the truth with a 90 % band of
+    +-4.6 µm that holds it (0.97-1.00). 4 µm is inside that band, so an honest profile need not flag it in
+    every channel (R: max z 4.1 against 4.5); it was flagged only while the renderer's blur-level cusp made
+    the fixture's profile 5 µm off with a +-1 µm band (coverage 0.45-0.50, docs/simulator.md "Blur levels").
+    """
+    piston_um = 8.0
     a = LensProfile.load(prof_path)
-    b = LensProfile.load(_changed(prof_path, tmp_path, "piston", piston_um=4.0))
+    b = LensProfile.load(_changed(prof_path, tmp_path, "piston", piston_um=piston_um))
     doc, _ = diff_profiles(a, b, nx=8, n_null=2000)
     assert doc["significant"]
     for ch in a.channels:
         c = doc["channels"][ch]
         e = next(iter(c["orientations"].values()))
-        assert e["mean_diff_um"] == pytest.approx(-4.0, abs=1e-6)
-        assert e["components"]["offset_um"]["diff"] == pytest.approx(-4.0, abs=0.05)
-        assert c["significant"]
+        assert e["mean_diff_um"] == pytest.approx(-piston_um, abs=1e-6)
+        assert e["components"]["offset_um"]["diff"] == pytest.approx(-piston_um, abs=0.05)
+        assert c["significant"], (ch, c["max_z_score"], c["critical_z"])
     assert not doc["geometry"]["significant"]
     # breathing: m(z) - 1 = b1 t; b1 += 0.001 is 0.1 % more magnification at the scan's ends
     c = LensProfile.load(_changed(prof_path, tmp_path, "breathing", breathing=0.001))
@@ -102,7 +110,7 @@ def test_known_changes_are_found_where_and_how_big(prof_path, tmp_path):
 
 
 def test_cli_diff_show_and_exit_codes(prof_path, tmp_path, capsys):
-    b = _changed(prof_path, tmp_path, "b", piston_um=4.0)
+    b = _changed(prof_path, tmp_path, "b", piston_um=8.0)  # well outside the fixture's band (see above)
     assert main(["profile", "diff", str(prof_path), str(prof_path), "--json", "--grid", "8", "--draws", "2000"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["format"] == "fieldcal-profile-diff/1" and doc["significant"] is False
