@@ -3,7 +3,7 @@ fieldcal.simulate/optics/charts): surface error, band coverage, self-check, tole
 the renderer's own pupil-optics truth.
 
 Per lens (benchmarks/cleanroom/lens.py ``benchmark_lenses``): the truth (MTF(fs) peak and δ per grid node,
-channel and orientation), a dead-leaves and a slanted-edge stack (400x300 RGB, step ≈ 0.5 δ, 31–41 frames), each
+channel and orientation), a dead-leaves and a slanted-edge stack (320x240 RGB, step ≈ 0.5 δ, 31–41 frames), each
 calibrated at quick and standard effort with ``fieldcal.calibrate`` (fs = 80 cy/mm, q = 0.05), then evaluated.
 Renders, truths and profiles are cached under --work; a second run only evaluates.
 
@@ -92,9 +92,11 @@ def prepare(lens, work: Path, log) -> dict:
         r = Renderer(lens, charts, z_mid_um=float(z[(z.size - 1) // 2]), node_px=NODE_PX)
         rng = np.random.default_rng(zlib.crc32(lens.name.encode()))
         frames = {c: [] for c in CHARTS}
-        for zi in z:
+        for i, zi in enumerate(z):
             for c, img in r.frames(float(zi), rng).items():
                 frames[c].append(img)
+            if i % 10 == 9:
+                log(f"{lens.name}: {i + 1} frames")
         for c in CHARTS:
             write_stack(stacks[c], frames[c], list(z), pitch_um=lens.pitch_um, f_number=lens.f_number,
                         channels=list(lens.channels), black_level=Sensor().black_dn,
@@ -124,8 +126,8 @@ def chart_balance() -> dict:
     out = {}
     for name, ch in (("dead leaves", dead_leaves(L.width_px, L.height_px, seed=11)),
                      ("edge squares", edge_squares(L.width_px, L.height_px, seed=12))):
-        img = raster(ch, (0.0, 0.0), (L.height_px, L.width_px), 3)
-        out[name] = {f: orientation_balance(img, 3, f) for f in (0.24, 0.3)}
+        img = raster(ch, (0.0, 0.0), (L.height_px, L.width_px), 2)
+        out[name] = {f: orientation_balance(img, 2, f) for f in (0.24, 0.3)}
     return out
 
 
@@ -172,7 +174,7 @@ def main(argv=None) -> int:
                 rows.append(row)
                 log(f"  {L.name} {c} {e}: " + ", ".join(f"{k}={row.get(k)}" for k in
                     ("rms_step", "coverage", "self_check", "tol_ratio", "ts_rms_um", "plan_s", "plan_within")))
-    (work / "rows.json").write_text(json.dumps(rows, indent=1, default=float))
+    (work / f"rows-{args.lenses or 'all'}.json").write_text(json.dumps(rows, indent=1, default=float))
     bal = chart_balance()
     (work / "balance.json").write_text(json.dumps(bal, indent=1))
     table = "\n".join(md_table(rows, COLUMNS))
@@ -182,7 +184,7 @@ def main(argv=None) -> int:
                           for n, fb in bal.items() for f, b in [(f, fb) for f in fb])
         text = ("## fieldcal on a clean-room renderer (bench_cleanroom)\n\n"
                 f"`python benchmarks/bench_cleanroom.py --work {args.work} --docs` (fs = {FS:g} cy/mm, q = {Q}; "
-                "truth over the 9 x 7 render nodes x 3 channels; 400x300 RGB, 3 µm pixels).\n\n" + table +
+                "truth at every other render node, 8 x 6 incl. corners, x 3 channels; 320x240 RGB, 3 µm pixels).\n\n" + table +
                 f"\n\nChart spectrum share per 45° sector (0/45/90/135°; isotropic = 0.25 each): {bal_s}.\n")
         if args.notes:
             text += "\n" + Path(args.notes).read_text()

@@ -26,8 +26,8 @@ class CleanLens:
 
     name: str
     f_number: float
-    width_px: int = 400
-    height_px: int = 300
+    width_px: int = 320
+    height_px: int = 240
     pitch_um: float = 3.0
     z0_um: dict = field(default_factory=lambda: {"R": 2.0, "G": 0.0, "B": -2.5, "Y": 0.0})
     c2_um: float = 10.0
