@@ -248,7 +248,8 @@ def decomposition_summary(rows: list[dict]) -> dict:
            "rest_local_med": float(np.median(np.array(R) / np.sqrt(np.maximum(L, 1e-12)))),
            "field_share_piston": float(np.mean(V.sum(axis=1) / tot))}
     for t, a in zip(FIELD_TERMS, np.exp(res.x)):
-        out[f"ml_{t}"] = float(a)
+        # a term the profiles never state has no multiplier to speak of
+        out[f"ml_{t}"] = float(a) if np.any(V[:, FIELD_TERMS.index(t)] > 0) else float("nan")
         out[f"share_{t}"] = float(np.mean(V[:, FIELD_TERMS.index(t)] / tot))
     return out
 
@@ -514,7 +515,8 @@ def render_table(rows, efforts, argv_text: str, note: str = "", title: str = TIT
             d = decomposition_summary(g)
             if d:
                 d.update(effort=eff, optics=opt,
-                         **{f"ml_{t}_txt": f"{d[f'ml_{t}']:.2f} ({d[f'share_{t}']:.2f})" for t in FIELD_TERMS})
+                         **{f"ml_{t}_txt": (f"{d[f'ml_{t}']:.2f} ({d[f'share_{t}']:.2f})"
+                                            if math.isfinite(d[f"ml_{t}"]) else "— (0)") for t in FIELD_TERMS})
                 dec_rows.append(d)
     dec_text = ["", "Error decomposition (`decompose`: the true error on a 16 px grid per lens × channel split into "
                 "piston, tilt and rest, each against the sd the profile states for it; ML multiplier = the factor "
