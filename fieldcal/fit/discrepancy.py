@@ -153,9 +153,9 @@ class Discrepancy:
         The common-mode term then goes: it stood for "frame-level errors of the through-focus curves shared by
         the tiles", which the fitted frames now carry with their own correlation over the field. Kept beside
         them it counted those errors twice: over the 40 lenses of the band-coverage benchmark (stage noise
-        0.1-0.5 µm) the per-channel piston errors asked for 0-0.25 of its variance, and for 1.1-1.2 of the
-        fitted frames' (docs/fitting.md "Field-wide terms, term by term"). Its value is kept in the
-        diagnostics.
+        0.1-0.5 µm) the per-channel piston errors asked for 0-0.25 of its variance, and for 1.1-2.0 of the
+        fitted frames' (docs/fitting.md "Field-wide terms, term by term"). It stays where no frames are fitted
+        (no stated repeatability); its value is kept in the diagnostics.
         """
         self.stage_c, self.stage_prior_sd = np.asarray(sensitivity, float), float(prior_sd)
         self._cache.clear()
