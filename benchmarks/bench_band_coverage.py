@@ -142,6 +142,118 @@ def evaluate(prof, lens: dict, level: float = 0.9) -> dict:
             "piston_um": mean_err}
 
 
+FIELD_TERMS = ("frames", "common", "breathing", "offset")
+
+
+def stated_field_terms_um2(prof, channel: str, xh: np.ndarray, yh: np.ndarray) -> dict:
+    """Per channel, the variance (µm²) the profile states for each term that is one draw for the whole field:
+    the fitted stage frames (by difference with the band without them, grid mean) or the field-wide stage term,
+    the common mode, the breathing systematic and the sml@fs offset."""
+    s = prof.surfaces
+    d = s.discrepancy
+    cal = prof.calibration or {}
+    zs = float(s.z_scale_um)
+    ci = s.channels.index(channel)
+    frames = common = 0.0
+    if d is not None:
+        _, extra = d.predict(xh, yh, ci)
+        _, bare = d.without_nuisances().predict(xh, yh, ci)
+        frames = float(np.mean(np.clip(extra - bare, 0.0, None))) * zs * zs
+        common = (float(d.common_sd[ci]) * zs) ** 2 if d.common_sd is not None and ci < d.common_sd.size else 0.0
+    if d is None or not d.has_stage:
+        frames += float(s.stage_sd_um.get(channel, 0.0)) ** 2
+    return {"frames": frames, "common": common,
+            "breathing": float((cal.get("breathing_systematic_sd_um") or {}).get(channel) or 0.0) ** 2,
+            "offset": float((cal.get("measure_offset_sd_um") or {}).get(channel) or 0.0) ** 2}
+
+
+def decompose(prof, lens: dict, step_px: int = 16, level: float = 0.9) -> dict:
+    """The true error on a grid, per channel, split into piston (grid mean), tilt (x and y slopes per unit of
+    normalised image height) and the rest, each against the sd the profile states for it: the piston against the
+    field-wide terms (:func:`stated_field_terms_um2`) plus the posterior samples' own grid-mean spread (scaled by
+    the band scale), the tilt against the samples' slope spread, the rest against the band's remaining variance
+    at the points. Per channel lists, in µm (variances in µm²)."""
+    from scipy.special import ndtri
+    from fieldcal.simulate.truth import TruthProfile
+    from fieldcal.validation.run import _grid
+
+    w, h = prof.image_size_px
+    truth = TruthProfile(lens["spec"], w, h, z_ref_um=prof.z_ref_um, optics=lens.get("optics", "geometric"),
+                         fs_cyc_per_mm=lens["fs"])
+    X, Y = _grid(w, h, step_px)
+    s = prof.surfaces
+    xh, yh = s.geometry.normalise(X.ravel(), Y.ravel())
+    A = np.column_stack([np.ones(xh.size), xh, yh])
+    zq = float(ndtri(0.5 + 0.5 * level))
+    out = {k: [] for k in ("dec_piston_um", "dec_tilt_um", "dec_rest_um", "dec_coef_piston_var", "dec_coef_tilt_var",
+                           "dec_local_var", *(f"dec_{t}_var" for t in FIELD_TERMS))}
+    for c in s.channels:
+        zt = np.asarray(truth.best_focus_um(X, Y, c), dtype=np.float64).ravel()
+        zt = (zt + 0.5 * lens["stage_backlash_um"]) / (1.0 + lens["stage_scale_error"])
+        zp = np.asarray(prof.best_focus_um(X, Y, c), dtype=np.float64).ravel()
+        lo, hi = (np.asarray(a, dtype=np.float64).ravel() for a in prof.best_focus_interval_um(X, Y, c, level=level))
+        coef, *_ = np.linalg.lstsq(A, zp - zt, rcond=None)
+        rest = zp - zt - A @ coef
+        terms = stated_field_terms_um2(prof, c, xh, yh)
+        # the posterior samples about the MAP (coefficients, centre, model average), as the band scales them
+        zsmp, _ = s._eval(s.samples, X.ravel(), Y.ravel(), c, model=s.sample_model)
+        z0, _ = s._eval(s.theta_map, X.ravel(), Y.ravel(), c)
+        dz = (zsmp - z0) * float(s.band_scale) * float(s.z_scale_um)
+        slopes = np.linalg.lstsq(A, dz.T, rcond=None)[0]
+        coef_p = float(np.var(dz.mean(axis=1)))
+        band_var = ((hi - lo) / (2.0 * zq)) ** 2
+        out["dec_piston_um"].append(float(coef[0]))
+        out["dec_tilt_um"].append([float(coef[1]), float(coef[2])])
+        out["dec_rest_um"].append(float(np.sqrt(np.mean(rest ** 2))))
+        out["dec_coef_piston_var"].append(coef_p)
+        out["dec_coef_tilt_var"].append(float(np.mean(np.var(slopes[1:], axis=1))))
+        out["dec_local_var"].append(float(np.mean(np.clip(band_var - sum(terms.values()) - coef_p, 0.0, None))))
+        for t in FIELD_TERMS:
+            out[f"dec_{t}_var"].append(terms[t])
+    return out
+
+
+def decomposition_summary(rows: list[dict]) -> dict:
+    """Over (lens, channel) of rows with a decomposition: RMS of piston error / stated piston sd, the median of
+    |tilt error| / stated tilt sd and of rest RMS / stated local sd (0.67, 0.67 and ~1 when honest), and per
+    field-wide term the maximum-likelihood multiplier of its variance (1 = honest, < 1 overstated, > 1
+    understated; the piston errors modelled as N(0, sum_t a_t v_t + coefficient variance))."""
+    from scipy.optimize import minimize
+
+    P, V, C, T, TV, R, L = [], [], [], [], [], [], []
+    for r in rows:
+        if "dec_piston_um" not in r:
+            continue
+        for i in range(len(r["dec_piston_um"])):
+            P.append(r["dec_piston_um"][i])
+            V.append([r[f"dec_{t}_var"][i] for t in FIELD_TERMS])
+            C.append(r["dec_coef_piston_var"][i])
+            T.extend(r["dec_tilt_um"][i])
+            TV.extend([r["dec_coef_tilt_var"][i]] * 2)
+            R.append(r["dec_rest_um"][i])
+            L.append(r["dec_local_var"][i])
+    if not P:
+        return {}
+    P, V, C = np.array(P), np.array(V), np.array(C)
+    tot = V.sum(axis=1) + C
+    z = P / np.sqrt(np.maximum(tot, 1e-12))
+
+    def nll(la):
+        v = V @ np.exp(la) + C + 1e-6
+        return 0.5 * float(np.sum(np.log(v) + P * P / v))
+
+    res = minimize(nll, np.zeros(len(FIELD_TERMS)), method="L-BFGS-B", bounds=[(-6.0, 4.0)] * len(FIELD_TERMS))
+    out = {"n": int(P.size), "piston_z_rms": float(np.sqrt(np.mean(z * z))), "piston_z_med": float(np.median(abs(z))),
+           "tilt_z_med": float(np.median(np.abs(np.array(T)) / np.sqrt(np.maximum(TV, 1e-12)))),
+           "rest_local_med": float(np.median(np.array(R) / np.sqrt(np.maximum(L, 1e-12)))),
+           "field_share_piston": float(np.mean(V.sum(axis=1) / tot))}
+    for t, a in zip(FIELD_TERMS, np.exp(res.x)):
+        # a term the profiles never state has no multiplier to speak of
+        out[f"ml_{t}"] = float(a) if np.any(V[:, FIELD_TERMS.index(t)] > 0) else float("nan")
+        out[f"share_{t}"] = float(np.mean(V[:, FIELD_TERMS.index(t)] / tot))
+    return out
+
+
 def field_wide_share(prof, hw_um: float, level: float = 0.9) -> float:
     """Share of the band's variance that is common to the whole field (stage repeatability, common mode, the
     breathing and fixed systematics), per channel averaged: the part of the error one lens draws only once."""
@@ -298,7 +410,8 @@ def run_one(lens: dict, effort: str, seed: int = 0, plans: bool = False, keep: P
     # the profile's own split (fit/selfcheck.py: fitted stage frames and window exponent included) when it has one
     share = sc.get("field_wide_share", field_wide_share(prof, after["hw_um"]))
     plan = plan_check(prof, lens) if plans else {}
-    return {**plan, "field_share": share, "p_in_range": p_coverage_in_range(share),
+    dec = decompose(prof, lens)
+    return {**plan, **dec, "field_share": share, "p_in_range": p_coverage_in_range(share),
             "cov_after": after["coverage"], "cov_before": before["coverage"], "rms_um": after["rms_um"],
             "err_hw_p90": after["err_hw_p90"], "err_hw_median": after["err_hw_median"],
             "hw_um": after["hw_um"], "hw_before_um": before["hw_um"], "band_scale": scale,
@@ -388,6 +501,27 @@ def render_table(rows, efforts, argv_text: str, note: str = "", title: str = TIT
         x["sc_range"] = (f"{x['sc_lo']:.2f}-{x['sc_hi']:.2f}" if math.isfinite(x.get("sc_lo", float("nan")))
                          else "—")
     lenses = len({x["lens"] for x in rows})
+    dec_cols = [("effort", "effort", ""), ("optics", "optics", ""), ("lens × channel", "n", ""),
+                ("RMS piston / stated piston sd", "piston_z_rms", ".2f"),
+                ("median abs(piston) / sd (0.67 honest)", "piston_z_med", ".2f"),
+                ("median abs(tilt) / stated tilt sd (0.67)", "tilt_z_med", ".2f"),
+                ("median rest RMS / stated local sd (~1)", "rest_local_med", ".2f"),
+                ("field-wide share of piston variance", "field_share_piston", ".2f"),
+                *((f"ML multiplier: {t} (share)", f"ml_{t}_txt", "") for t in FIELD_TERMS)]
+    dec_rows = []
+    for eff in efforts:
+        for opt in ("geometric", "wave", "wave + SA"):
+            g = [x for x in rows if x["effort"] == eff and x["optics"] + (" + SA" if x.get("asymmetric") else "") == opt]
+            d = decomposition_summary(g)
+            if d:
+                d.update(effort=eff, optics=opt,
+                         **{f"ml_{t}_txt": (f"{d[f'ml_{t}']:.2f} ({d[f'share_{t}']:.2f})"
+                                            if math.isfinite(d[f"ml_{t}"]) else "— (0)") for t in FIELD_TERMS})
+                dec_rows.append(d)
+    dec_text = ["", "Error decomposition (`decompose`: the true error on a 16 px grid per lens × channel split into "
+                "piston, tilt and rest, each against the sd the profile states for it; ML multiplier = the factor "
+                "on a field-wide term's variance that best explains the piston errors, 1 = honest, < 1 overstated):",
+                "", *md_table(dec_rows, dec_cols)] if dec_rows else []
     return "\n".join([
         f"## {title}",
         "",
@@ -402,7 +536,7 @@ def render_table(rows, efforts, argv_text: str, note: str = "", title: str = TIT
         "that is one draw per lens (stage repeatability, common mode, systematics); *expected if honest* = the "
         "number of lenses a perfectly honest band with those shares would put in 0.75-0.99 "
         "(`p_coverage_in_range`). Machine shared (2 cores)." + (" " + note if note else ""),
-        "", *md_table(summ, cols), "", "Per lens:", "", *md_table(rows, per_lens)])
+        "", *md_table(summ, cols), *dec_text, "", "Per lens:", "", *md_table(rows, per_lens)])
 
 
 def lens_rows(job) -> list[dict]:

@@ -332,3 +332,34 @@ def test_wave_truth_tolerance_is_the_pupils_own():
     m = sorted(opt.mtf(terms, z0 + s * tol, fs) / peak for s in (-1.0, 1.0))
     assert m[0] == pytest.approx(1.0 - q, abs=2e-4) and m[1] > m[0] + 1e-4, m  # skewed: the sides differ
     assert tol != pytest.approx(TruthProfile(spec).focus_tolerance_um(10.0, 10.0, "G", fs, q), rel=1e-3)
+
+
+def test_decomposition_summary_recovers_which_field_wide_term_is_real():
+    """The benchmark's per-term check (bench_band_coverage.decomposition_summary) on pistons drawn with known
+    variances: a term stated 4x too large in variance gets a multiplier near 1/4, an honest one near 1, a term no
+    profile states none; the RMS piston / stated sd is the closed form sqrt(sum a v / sum v)."""
+    import sys
+    from pathlib import Path
+
+    bench_dir = str(Path(__file__).resolve().parents[1] / "benchmarks")
+    sys.path.insert(0, bench_dir)
+    try:
+        import bench_band_coverage as bench
+    finally:
+        sys.path.remove(bench_dir)
+    rng = np.random.default_rng(3)
+    rows = []
+    for _ in range(400):
+        v = rng.uniform(0.01, 0.1, 2)          # stated frames and breathing variances (µm²) of one lens
+        true_var = v[0] * 1.0 + v[1] * 0.25    # frames honest, breathing stated 4x its real variance
+        rows.append({"dec_piston_um": [float(rng.normal(0.0, math.sqrt(true_var)))],
+                     "dec_tilt_um": [[0.0, 0.0]], "dec_rest_um": [0.1], "dec_coef_piston_var": [0.0],
+                     "dec_coef_tilt_var": [0.01], "dec_local_var": [0.01],
+                     "dec_frames_var": [float(v[0])], "dec_common_var": [0.0], "dec_breathing_var": [float(v[1])],
+                     "dec_offset_var": [0.0]})
+    d = bench.decomposition_summary(rows)
+    assert d["n"] == 400
+    assert 0.75 < d["ml_frames"] < 1.3 and 0.05 < d["ml_breathing"] < 0.5, d
+    assert math.isnan(d["ml_common"]) and math.isnan(d["ml_offset"])
+    assert d["rest_local_med"] == pytest.approx(1.0)
+    assert 0.7 < d["piston_z_rms"] < 0.9, d    # sqrt((1 + 0.25) / 2) = 0.79 on average

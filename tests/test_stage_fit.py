@@ -75,6 +75,30 @@ def test_a_fully_shared_frame_error_adds_its_prior_to_the_band():
     assert sd[1] == pytest.approx(r) and sd[2] == pytest.approx(r)   # frames no tile reads keep their prior
 
 
+def test_fitted_frames_replace_the_common_mode_term():
+    """The common mode stood for frame-level errors shared by the tiles; once the frames are fitted it would count
+    them twice: attaching the frames sets it to 0 (the old value kept in the diagnostics), and the band at a point
+    is then the bare band plus the frames' own share, r^2 for a fully shared frame."""
+    n, r, sig, cm = 50, 0.3, 0.2, 0.1
+    model, x, y, target, C = _shared_frame_case(n, sig)
+    d = _disc(model, x, y, target, np.full(n, sig ** 2))
+    d.common_sd = np.array([cm])
+    at = (np.array([0.0]), np.array([0.0]))
+    _, with_common = d.predict(*at, 0)
+    assert with_common[0] == pytest.approx(cm ** 2, rel=1e-6)
+    d.attach_stage(C, r)
+    _, extra = d.predict(*at, 0)
+    assert d.has_stage and d.common_sd[0] == 0.0
+    assert d.diagnostics["common_mode_sd_replaced"] == [cm]
+    assert extra[0] + sig ** 2 / n == pytest.approx(r ** 2 + sig ** 2 / n, rel=0.02)
+    assert d.band_terms_um(1.0)["common_mode"].startswith("replaced")
+    # no stated repeatability: nothing is fitted and the common mode stays
+    d0 = _disc(model, x, y, target, np.full(n, sig ** 2))
+    d0.common_sd = np.array([cm])
+    d0.attach_stage(C, 0.0)
+    assert not d0.has_stage and d0.common_sd[0] == cm
+
+
 def test_a_shared_frame_error_is_not_hidden_by_the_block_jackknife():
     """The same fully shared frame error with a block-jackknife covariance larger than the kriging one (errors
     shared by regions of tiles): the jackknife cannot see a shift of every tile, so the frame's prior still adds

@@ -145,6 +145,25 @@ class Discrepancy:
         return (self.stage_c is not None and self.stage_prior_sd > 0 and self.stage_c.ndim == 2
                 and self.stage_c.shape[0] == self.target.size)
 
+    def attach_stage(self, sensitivity: np.ndarray, prior_sd: float) -> None:
+        """Fit the frames' position errors with the surface (in place): ``sensitivity`` is rows x frames (the
+        best-focus change of each focus row per unit of each frame's error), ``prior_sd`` the repeatability
+        (normalised z units).
+
+        The common-mode term then goes: it stood for "frame-level errors of the through-focus curves shared by
+        the tiles", which the fitted frames now carry with their own correlation over the field. Kept beside
+        them it counted those errors twice: over the 40 lenses of the band-coverage benchmark (stage noise
+        0.1-0.5 µm) the per-channel piston errors asked for 0-0.25 of its variance, and for 1.1-2.0 of the
+        fitted frames' (docs/fitting.md "Field-wide terms, term by term"). It stays where no frames are fitted
+        (no stated repeatability); its value is kept in the diagnostics.
+        """
+        self.stage_c, self.stage_prior_sd = np.asarray(sensitivity, float), float(prior_sd)
+        self._cache.clear()
+        if self.has_stage and self.common_sd is not None and np.any(self.common_sd > 0):
+            self.diagnostics["common_mode_sd_replaced"] = [float(v) for v in self.common_sd]
+            self.diagnostics["common_mode_sd"] = [0.0] * int(self.common_sd.size)
+            self.common_sd = np.zeros_like(self.common_sd)
+
     def without_nuisances(self) -> "Discrepancy":
         """The same posterior without the fitted stage frames (their share of the band, by difference)."""
         return replace(self, stage_c=None, stage_prior_sd=0.0, _cache={})
@@ -319,6 +338,8 @@ class Discrepancy:
                "common_mode_sd_um": {c: float(z_scale_um * v) for c, v in zip(self.model.channels,
                                                                                self.common_sd)}
                if self.common_sd is not None else None}
+        if self.diagnostics.get("common_mode_sd_replaced") is not None:
+            out["common_mode"] = "replaced by the fitted stage frames (Discrepancy.attach_stage)"
         return out
 
     # ------------------------------------------------------------------ I/O

@@ -89,8 +89,7 @@ def fit_stage_errors(surf, table, repeatability_um: float) -> dict:
         return {**rec, "method": "field-wide term: RMS per-tile gain x repeatability (no per-tile curves to fit "
                                  "the frames with)"}
     zs = float(surf.z_scale_um)
-    d.stage_c, d.stage_prior_sd = C, float(repeatability_um) / zs
-    d._cache.clear()
+    d.attach_stage(C, float(repeatability_um) / zs)  # replaces the common-mode term (Discrepancy.attach_stage)
     est, sd = d.stage_errors
     # what the frames still add to the band at the tiles, per channel (µm): the variance with them minus without
     per_channel = {}
