@@ -63,11 +63,12 @@ def _free_distance(mask_v: np.ndarray, rows: np.ndarray, xs: np.ndarray, reach: 
     offs = np.arange(2, reach + 1)
     best = float(reach)
     for sgn in (-1, 1):
-        base_c = np.clip(xi + sgn * 2, 0, W - 1)
+        # np.minimum/np.maximum: np.clip's per-call overhead was a third of this function on a texture frame
+        base_c = np.minimum(np.maximum(xi + sgn * 2, 0), W - 1)
         own = mask_v[rows, base_c]
         cols = xi[:, None] + sgn * offs[None, :]
         inside = (cols >= 0) & (cols < W)
-        vals = mask_v[rows[:, None], np.clip(cols, 0, W - 1)]
+        vals = mask_v[rows[:, None], np.minimum(np.maximum(cols, 0), W - 1)]
         change = inside & (vals != own[:, None])
         hit = change.any(axis=1)
         if hit.any():
@@ -154,8 +155,8 @@ def find_edges(img: np.ndarray, *, min_length_px: float = 12.0, max_length_px: f
             vx, vy, x0, y0 = cv2.fitLine(pts[sel].astype(np.float32), cv2.DIST_HUBER, 0, 0.01, 0.01).ravel()
             # the contour runs along the pixel centres just inside the dark side: half a pixel off the boundary
             nrm = np.array([-vy, vx], dtype=np.float64)
-            inside_dark = mask[int(np.clip(round(y0 + 2 * nrm[1]), 0, H - 1)),
-                               int(np.clip(round(x0 + 2 * nrm[0]), 0, W - 1))]
+            inside_dark = mask[min(max(int(round(y0 + 2 * nrm[1])), 0), H - 1),
+                               min(max(int(round(x0 + 2 * nrm[0])), 0), W - 1)]
             shift = 0.5 if inside_dark else -0.5
             x0, y0 = x0 - shift * nrm[0], y0 - shift * nrm[1]
             d = np.array([vx, vy], dtype=np.float64)
