@@ -51,8 +51,8 @@ def _edges_frame(angle_deg: float, rng) -> np.ndarray:
     return np.clip(np.repeat(im[:, :, None], 3, axis=2) * np.float32([0.9, 1.0, 0.8]), 0, 1)
 
 
-def _count_from_records(frame, channels):
-    records, dets = measure_frame(frame, channels=channels)
+def _count_from_records(frame, channels, cfa=None):
+    records, dets = measure_frame(frame, channels=channels, cfa=cfa)
     ok_all: dict[int, bool] = {}
     for r in records:
         ok_all[r["edge"]] = ok_all.get(r["edge"], True) and bool(r["quality"]["ok"])
@@ -75,3 +75,13 @@ def test_texture_frame_is_refused_with_the_same_count():
     assert _count_ok_edges(frame, ("R", "G", "B"), None) == _count_from_records(frame, ("R", "G", "B"))
     k = chart_kind(frame, ("R", "G", "B"))
     assert k.kind == "focus-measure" and k.edges_ok < MIN_CHART_EDGES
+
+
+def test_raw_mosaic_count_matches_measure_frame():
+    """A Bayer mosaic (one plane per colour site, e-SFR at 8 bins per plane pixel) counts the same way."""
+    rgb = _edges_frame(5.0, np.random.default_rng(4))
+    mosaic = np.empty(rgb.shape[:2], np.float32)
+    mosaic[0::2, 0::2], mosaic[0::2, 1::2] = rgb[0::2, 0::2, 0], rgb[0::2, 1::2, 1]  # RGGB
+    mosaic[1::2, 0::2], mosaic[1::2, 1::2] = rgb[1::2, 0::2, 1], rgb[1::2, 1::2, 2]
+    counts = _count_ok_edges(mosaic, ("R", "G", "B"), "RGGB")
+    assert counts == _count_from_records(mosaic, ("R", "G", "B"), "RGGB") and counts[0] > 0

@@ -77,7 +77,8 @@ def _count_ok_edges(frame: np.ndarray, channels: tuple[str, ...], cfa: str | Non
         return 0, 0
     results = esfr_regions([planes[c.roi[0]:c.roi[1], c.roi[2]:c.roi[3], :] for c in cands],
                            vertical=[c.vertical for c in cands], line_init=[c.line_init for c in cands],
-                           half_width_px=[c.half_width_px for c in cands], **({"oversample": 8} if cfa else {}))
+                           half_width_px=[c.half_width_px for c in cands],
+                           **({"oversample": 8} if cfa is not None else {}))  # as measure_frame
     return len(cands), int(sum(all(q.ok for q in res.quality) for res in results))
 
 
