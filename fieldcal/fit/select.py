@@ -1,12 +1,12 @@
 """Model selection and the top-level surface fit: ``fit_surfaces(tiles, geometry, effort=...)``.
 
 Every candidate (polynomial order in rho^2, tilt on/off, decentre on/off, astigmatism on/off when the data
-have tangential/sagittal foci) is fitted to its MAP and scored by BIC = -2 ln L_max + k ln n. The lowest BIC
-wins: BIC approximates the log evidence, so it prefers the simplest model the data support and is
-consistent (picks the true model as tiles grow); it needs only the MAP of each candidate, which keeps the
-search cheap enough to be exhaustive. docs/fitting.md gives the reasons against held-out tiles and
-full evidence. With several channels the fitted candidates are then rescored with a tile's channels correlated
-(:func:`_shared_error_scores`): that score chooses, and gives the model-average weights.
+have tangential/sagittal foci) is fitted to its MAP and scored by BIC = -2 ln L_max + k ln n; with several
+channels the fitted candidates are rescored with a tile's channels correlated (:func:`_shared_error_scores`).
+Those scores give the model-average weights. The choice is the one-standard-error rule on blocked held-out
+tiles (:func:`_block_cv_losses`, :func:`one_standard_error_choice`): the candidate with the fewest parameters
+whose held-out loss is within one standard error of the best's, among those with model-average weight >= 1 %.
+docs/fitting.md "Model selection" gives the reasons (BIC's lowest score added terms on noise draws).
 """
 
 from __future__ import annotations
