@@ -100,3 +100,45 @@ def test_a_centre_on_its_bound_still_spreads_the_band_where_the_model_extrapolat
     at_corners = zs * model.surface(lap.samples, cx, cy, 1).std(axis=0)
     assert np.all(at_corners > 2.0 * np.median(at_tiles))
 
+
+
+def test_held_out_residuals_are_those_of_a_refit_without_the_block():
+    from fieldcal.fit.select import held_out_residuals
+
+    rng = np.random.default_rng(5)
+    X, y = rng.standard_normal((30, 4)), rng.standard_normal(30)
+    ridge = np.array([1e-6, 0.5, 0.0, 2.0])
+    beta = np.linalg.solve(X.T @ X + np.diag(ridge), X.T @ y)
+    members = [np.arange(0, 7), np.arange(7, 8), np.arange(8, 30, 2), np.arange(9, 30, 2)]
+    for idx, r in zip(members, held_out_residuals(X, y - X @ beta, ridge, members)):
+        keep = np.setdiff1d(np.arange(30), idx)
+        b = np.linalg.solve(X[keep].T @ X[keep] + np.diag(ridge), X[keep].T @ y[keep])
+        np.testing.assert_allclose(r, y[idx] - X[idx] @ b, atol=1e-10)
+
+
+def test_spatial_blocks_follow_the_field_and_keep_a_tile_whole():
+    from fieldcal.fit.select import spatial_blocks
+
+    gx, gy = np.meshgrid(np.linspace(-0.8, 0.8, 9), np.linspace(-0.6, 0.6, 7))
+    x, y = np.tile(gx.ravel(), 3), np.tile(gy.ravel(), 3)      # three channels of each tile
+    b = spatial_blocks(x, y)
+    assert len(np.unique(b)) == 12                             # 4 x 3 on a 4:3 field
+    n = gx.size
+    assert np.all(b[:n] == b[n:2 * n]) and np.all(b[:n] == b[2 * n:])
+    sizes = np.bincount(b[:n])
+    assert sizes.min() >= 4 and sizes.max() <= 9
+
+
+def test_one_standard_error_rule_takes_the_simplest_within_one_se_of_the_best():
+    from fieldcal.fit.select import one_standard_error_choice
+
+    best = np.array([10.0, 12.0, 8.0, 10.0])          # sd 1.633 -> SE of the total = 2 * 1.633 = 3.27
+    se = 2.0 * np.std(best, ddof=1)
+    losses = {"rich": best, "mid": best + (se - 0.01) / 4, "simple": best + (se + 0.01) / 4}
+    k = {"rich": 5, "mid": 3, "simple": 1}
+    name, stats = one_standard_error_choice(losses, k)
+    assert name == "mid"
+    assert stats["simple"][0] == pytest.approx(se + 0.01) and stats["simple"][1] == pytest.approx(se)
+    # within the SE, fewer parameters win even against a lower loss
+    losses["simple"] = best + (se - 0.02) / 4
+    assert one_standard_error_choice(losses, k)[0] == "simple"
