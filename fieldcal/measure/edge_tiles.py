@@ -12,7 +12,9 @@ Tangential and sagittal. An edge measures the MTF across it, so a tangential edg
 and a sagittal one the sagittal focus. A row of the tile table is the *mean* surface with its T and S foci
 (``z_tan_um``, ``z_sag_um``): each tangential track is paired with the nearest sagittal track of the same
 channel (optimal one-to-one assignment, at most ``pair_px`` apart: two sides of one chart square), and the
-pair becomes one row at their midpoint, ``z_best = (z_T + z_S) / 2``. An edge near 45 degrees from the
+pair becomes one row at their midpoint, ``z_best = (z_T + z_S) / 2``, its width the mean of the two tracks'
+widths, each freed of its along-edge focus spread and astigmatic blur floor (:func:`track_width_model`,
+:func:`pair_width_um`: both tracks measure one defocus δ). An edge near 45 degrees from the
 radius (``quality.orientation_clear`` false) sees both foci and its peak is near the mean: its own row, NaN
 T/S. Lone T or S tracks are dropped when there are enough pairs (a lone T or S focus is off the mean surface
 by half the astigmatism); otherwise kept with NaN T/S.
@@ -117,13 +119,28 @@ def _usable(rec: dict) -> bool:
     return bool(q["ok"]) or str(q.get("reason", "")).startswith(_BLUR_WIDER)
 
 
+def _edge_length_px(qual: dict) -> float:
+    """Length of edge one e-SFR binned (px): its scan lines along the edge, ``rows / cos(slant)``."""
+    rows, slant = qual.get("rows"), qual.get("slant_deg")
+    if not rows or slant is None or not math.isfinite(float(slant)):
+        return math.nan
+    return float(rows) / math.cos(math.radians(float(slant)))
+
+
+def _median_length_px(recs) -> float:
+    v = [x for x in (_edge_length_px(e["quality"]) for e in recs if _usable(e)) if math.isfinite(x)]
+    return float(np.median(v)) if v else math.nan
+
+
 def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frames: int = 5) -> dict:
     """Per (track, channel): best focus at fs, its sd, peak MTF, half-widths, orientation and the position at
     the frame nearest ``z_ref_um``.
 
     Returns columns (dict of arrays): track, channel, x_px, y_px, orientation, z_best_um, z_sigma_um, peak,
     width_um, status, cos2phi (cos 2 phi of the median angle phi between the edge normal and the radius),
-    stage_gain (best-focus sd per unit of per-frame stage-position noise).
+    stage_gain (best-focus sd per unit of per-frame stage-position noise), edge_angle_deg (the edge's direction
+    from +x, y down: the axial mean of its records') and length_px (the median length of edge the e-SFR binned,
+    ``rows / cos(slant)``; NaN when the records do not say).
     """
     groups: dict[tuple[int, str], list[dict]] = {}
     for e in mtf.edges:
@@ -132,7 +149,7 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
     vals = mtf.mtf_at(fs_cy_per_px)
     index = {id(e): i for i, e in enumerate(mtf.edges)}
     out = {k: [] for k in ("track", "channel", "x_px", "y_px", "orientation", "z_best_um", "z_sigma_um", "peak",
-                           "width_um", "status", "cos2phi", "stage_gain")}
+                           "width_um", "status", "cos2phi", "stage_gain", "edge_angle_deg", "length_px")}
     for (tr, ch), recs in groups.items():
         use = [e for e in recs if _usable(e) and np.isfinite(vals[index[id(e)]])]
         near = min(recs, key=lambda e: abs(float(e["z_um"]) - z_ref_um))
@@ -167,7 +184,145 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
         phi = [float(e["quality"]["radial_angle_deg"]) for e in recs
                if e["quality"].get("radial_angle_deg") is not None and math.isfinite(e["quality"]["radial_angle_deg"])]
         out["cos2phi"].append(math.cos(math.radians(2.0 * float(np.median(phi)))) if phi else math.nan)
+        ang = np.radians([2.0 * float(e["angle_deg"]) for e in recs
+                          if e.get("angle_deg") is not None and math.isfinite(float(e["angle_deg"]))])
+        # directions are axial (theta and theta + 180 are one edge): average the doubled angle
+        out["edge_angle_deg"].append(0.5 * math.degrees(math.atan2(np.sin(ang).mean(), np.cos(ang).mean()))
+                                     if ang.size else math.nan)
+        out["length_px"].append(_median_length_px(recs))
     return {k: np.asarray(v) for k, v in out.items()}
+
+
+def along_edge_spread_um(dzdx_um_per_px, dzdy_um_per_px, edge_angle_deg, length_px):
+    """Range of best focus along the length of edge one e-SFR bins (µm): ``|grad z . e| L``.
+
+    An e-SFR averages the edge-spread function over every scan line of its region, so its MTF(fs) through focus
+    is the mean of the local curves along the edge: a linear focus gradient along it spreads their foci
+    uniformly over this range. A sagittal edge lies along the radius, so a rotationally symmetric field's
+    whole gradient is along it; a tangential edge lies across the radius and sees almost none.
+    """
+    a = np.radians(np.asarray(edge_angle_deg, dtype=np.float64))
+    g = np.asarray(dzdx_um_per_px, dtype=np.float64) * np.cos(a) + np.asarray(dzdy_um_per_px, dtype=np.float64) * np.sin(a)
+    return np.abs(g) * np.asarray(length_px, dtype=np.float64)
+
+
+# spread / δ and floor / δ at which the forward model below is tabulated; a value beyond the last valid point
+# is clipped there (at 1920x1080 the triplet's sagittal corners reach a spread of ~5 δ, its 45-degree edges a
+# floor of ~1.4 δ)
+SPREAD_GRID = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.5, 8.0)
+FLOOR_GRID = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
+
+
+@dataclass(frozen=True)
+class TrackWidthModel:
+    """How wide :func:`.esfr_focus.analyse_track` reads a track of local δ whose foci are spread along the edge
+    (``spread``) or whose blur across the edge never vanishes (``floor``, astigmatism seen off the T/S axes):
+    the ratio (width read / δ) against spread / δ and floor / δ, from :func:`track_width_model`. The two are
+    applied as a product (each is a few %, their cross term second order)."""
+
+    spread_over_width: np.ndarray
+    spread_ratio: np.ndarray
+    floor_over_width: np.ndarray
+    floor_ratio: np.ndarray
+
+    def ratio_at(self, spread_over_width, floor_over_width=0.0) -> np.ndarray:
+        s = np.clip(np.asarray(spread_over_width, dtype=np.float64), 0.0, float(self.spread_over_width[-1]))
+        f = np.clip(np.asarray(floor_over_width, dtype=np.float64), 0.0, float(self.floor_over_width[-1]))
+        return (np.interp(s, self.spread_over_width, self.spread_ratio)
+                * np.interp(f, self.floor_over_width, self.floor_ratio))
+
+    def correct(self, width_um, spread_um=0.0, floor_um=0.0, n_iter: int = 5) -> np.ndarray:
+        """δ of the local curves from a width read with ``spread_um`` of foci along the edge and a blur floor
+        ``floor_um``: the fixed point of ``δ = width / ratio(spread / δ, floor / δ)`` (the ratio varies slowly:
+        a few steps converge). NaN spread or floor (unknown) counts as none."""
+        w = np.asarray(width_um, dtype=np.float64)
+        sp = np.nan_to_num(np.asarray(spread_um, dtype=np.float64), nan=0.0)
+        fl = np.nan_to_num(np.asarray(floor_um, dtype=np.float64), nan=0.0)
+        d = w.copy()
+        for _ in range(n_iter):
+            inv = 1.0 / np.where(d > 0, d, np.inf)
+            d = w / self.ratio_at(sp * inv, fl * inv)
+        return d
+
+
+IDENTITY_WIDTHS = TrackWidthModel(np.array([0.0, 1.0]), np.array([1.0, 1.0]), np.array([0.0, 1.0]),
+                                  np.array([1.0, 1.0]))
+
+
+def track_width_model(step_um: float, width_um: float, q: float, spread_grid: tuple[float, ...] = SPREAD_GRID,
+                      floor_grid: tuple[float, ...] = FLOOR_GRID) -> TrackWidthModel:
+    """Forward model of what widens or narrows an edge track, as the measurement sees it.
+
+    The local through-focus curve is the defocus disc's, MTF(fs, z) = ``|D(x_q e(z) / δ)|``, ``D = 2 J1(x)/x``,
+    ``|D(x_q)| = 1 - q`` (the shape :mod:`fieldcal.fit.tolerance` assumes), ``e`` the blur's extent across the
+    edge in units of defocus. Two effects of the field, not of δ, change the track:
+
+    * **spread**: the e-SFR averages the curves along the edge, whose foci a focus gradient spreads uniformly
+      over ``s δ`` (:func:`along_edge_spread_um`); the mean curve is wider;
+    * **floor**: an edge whose normal makes an angle phi with the radius projects the astigmatic (elliptical)
+      defocus disc to an extent ``sqrt((z - z*)^2 + f^2)`` with ``f = |sin 2 phi| |T - S| / 2``: the blur across
+      it never vanishes, the peak is lower, and the disc's curve falls off it faster (narrower).
+
+    Each curve, sampled at the stack's step, is analysed by the very estimator of the real tracks
+    (:func:`.esfr_focus.analyse_track`: a defocus law fitted over the whole peak); its width over the width
+    read without either (same sampling: the law's own sampling error cancels) is the ratio. Two sampling
+    phases (peak on a sample, half a step off) are averaged.
+    """
+    from ..optics.defocus import disc_otf, disc_x_at_contrast
+
+    delta = float(width_um)
+    step = float(step_um)
+    if not (math.isfinite(delta) and delta > 0 and math.isfinite(step) and step > 0):
+        return IDENTITY_WIDTHS
+    xq = disc_x_at_contrast(1.0 - float(q))
+    u = (np.arange(48) + 0.5) / 48 - 0.5
+
+    def read(spread: float, floor: float) -> float:
+        half = 0.5 * spread * delta + 6.0 * delta
+        out = []
+        for phase in (0.0, 0.5):
+            z = np.arange(-half, half + step, step) + phase * step
+            e = np.hypot(z[:, None] - spread * delta * u[None, :], floor * delta)
+            v = np.mean(np.abs(disc_otf(xq * e / delta)), axis=1)
+            tk = analyse_track(z, 0.5 * v, q)
+            out.append(0.5 * (tk.tol_left_um + tk.tol_right_um) if tk.ok else math.nan)
+        return float(np.mean(out))
+
+    w0 = read(0.0, 0.0)
+    if not (math.isfinite(w0) and w0 > 0):
+        return IDENTITY_WIDTHS
+
+    def table(grid, which):
+        g = np.asarray(grid, dtype=np.float64)
+        w = np.array([w0 if v == 0 else (read(v, 0.0) if which == "spread" else read(0.0, v)) for v in g])
+        good = np.isfinite(w) & (w > 0)
+        last = int(np.flatnonzero(~good)[0]) if (~good).any() else g.size  # the valid run from 0
+        if last < 2:
+            return np.array([0.0, 1.0]), np.array([1.0, 1.0])
+        return g[:last], w[:last] / w0
+
+    s, sr = table(spread_grid, "spread")
+    f, fr = table(floor_grid, "floor")
+    return TrackWidthModel(s, sr, f, fr)
+
+
+def pair_width_um(w_tan: float, w_sag: float) -> float:
+    """The focus tolerance of a T/S pair from its two tracks' widths (each freed of its along-edge spread).
+
+    Defocus blurs an edge at the rate set by the pupil whatever the edge's orientation: astigmatism moves the
+    tangential and sagittal foci apart, it does not change how fast each curve falls off its own peak (an
+    elliptical defocus disc projects on the normal of a T edge with a half-width set by the T defocus alone).
+    So both tracks estimate one δ, and their mean is the estimate; the smaller of the two (the rule before) is
+    biased low by 0.56 of a track's scatter (the expected minimum of two normal draws).
+    """
+    v = np.array([w_tan, w_sag], dtype=np.float64)
+    v = v[np.isfinite(v) & (v > 0)]
+    return float(v.mean()) if v.size else math.nan
+
+
+def _gradient(fn, x: float, y: float, h_px: float = 2.0) -> tuple[float, float]:
+    """(dz/dx, dz/dy) in µm/px of a smooth surface callable at one point (central differences)."""
+    return ((fn(x + h_px, y) - fn(x - h_px, y)) / (2.0 * h_px), (fn(x, y + h_px) - fn(x, y - h_px)) / (2.0 * h_px))
 
 
 def _ts_from_pair(z_t: float, z_s: float, sd_t: float, sd_s: float, c_t: float, c_s: float):
@@ -219,6 +374,56 @@ def _local_surface(x, y, z, image_size_px, degree: int = 4):
     return lambda xp, yp: float(design(xp, yp) @ coef)
 
 
+def along_edge_spreads_um(tf: dict, ok: np.ndarray, channels, image_size_px) -> np.ndarray:
+    """Each track's along-edge spread of foci (µm, :func:`along_edge_spread_um`; NaN where unknown). The gradient
+    is that of a smooth surface through the channel's tracks of the track's own orientation (a sagittal
+    edge's foci along it follow the sagittal surface), or of all its tracks."""
+    spread = np.full(tf["width_um"].shape, np.nan)
+    x, y, z, orient = tf["x_px"], tf["y_px"], tf["z_best_um"], tf["orientation"]
+    for ch in channels:
+        m = (tf["channel"] == ch) & ok
+        base = _robust_surface(x[m], y[m], z[m], image_size_px)
+        surf = {o: _robust_surface(x[m & (orient == o)], y[m & (orient == o)], z[m & (orient == o)], image_size_px)
+                for o in ("tangential", "sagittal")}
+        for i in np.flatnonzero(m):
+            fn = surf.get(str(orient[i])) or base
+            if fn is None or not (math.isfinite(tf["edge_angle_deg"][i]) and math.isfinite(tf["length_px"][i])):
+                continue
+            gx, gy = _gradient(fn, float(x[i]), float(y[i]))
+            spread[i] = along_edge_spread_um(gx, gy, tf["edge_angle_deg"][i], tf["length_px"][i])
+    return spread
+
+
+def astigmatic_floor_um(cos2phi, astig_um) -> np.ndarray:
+    """The blur floor across an edge at angle phi from the radius, in defocus µm: ``|sin 2 phi| |T - S| / 2``.
+
+    The elliptical defocus disc's semi-axes grow as ``|z - z_T|`` along the radius and ``|z - z_S|`` across
+    it; projected on a normal at phi its extent is ``sqrt(c^2 (z - z_T)^2 + s^2 (z - z_S)^2)`` =
+    ``sqrt((z - z*)^2 + (c s (z_T - z_S))^2)`` (c, s = cos, sin phi). NaN angle (unknown): none."""
+    c2 = np.clip(np.nan_to_num(np.asarray(cos2phi, dtype=np.float64), nan=1.0), -1.0, 1.0)
+    return 0.5 * np.sqrt(1.0 - c2 * c2) * np.abs(np.asarray(astig_um, dtype=np.float64))
+
+
+def _robust_surface(x, y, z, image_size_px, degree: int = 4, clip: float = 3.5, n_iter: int = 3):
+    """:func:`_local_surface` refitted without the points beyond ``clip`` robust sds (1.4826 MAD) of it: a track
+    that locked onto a false peak is off by hundreds of µm (on the 1920x1080 triplet two such pairs' T - S swung
+    a plain quartic of the astigmatism to 20 δ at the corners)."""
+    x, y, z = (np.asarray(v, dtype=np.float64) for v in (x, y, z))
+    keep = np.isfinite(z)
+    fn = None
+    for _ in range(n_iter):
+        fn = _local_surface(x[keep], y[keep], z[keep], image_size_px, degree)
+        if fn is None:
+            return None
+        r = z - np.array([fn(a, b) for a, b in zip(x, y)])
+        sd = 1.4826 * float(np.median(np.abs(r[keep])))
+        new = np.isfinite(z) & (np.abs(r) <= clip * max(sd, 1e-9))
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return fn
+
+
 def edge_window_px(mtf) -> int:
     """The side of the square tile whose window correction equals an edge row's (``TileTable.tile_px``).
 
@@ -231,9 +436,7 @@ def edge_window_px(mtf) -> int:
     Laplacian of a rotationally symmetric surface: both are a square of side ``L / sqrt 2``. (The region's
     area, 18 x 32 px at 480x270, had given a 24 px tile: 7x the correction, +0.3 µm on the triplet.)
     """
-    lengths = [float(q["rows"]) / math.cos(math.radians(float(q["slant_deg"])))
-               for q in (e["quality"] for e in mtf.edges if _usable(e))
-               if q.get("rows") and q.get("slant_deg") is not None and math.isfinite(float(q["slant_deg"]))]
+    lengths = [v for v in (_edge_length_px(e["quality"]) for e in mtf.edges if _usable(e)) if math.isfinite(v)]
     return int(max(1, round(float(np.median(lengths)) / math.sqrt(2.0)))) if lengths else 1
 
 
@@ -277,6 +480,12 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
             pair_px = 1.5 * float(np.median(d.min(axis=1)))
         else:
             pair_px = 0.0
+    spread = along_edge_spreads_um(tf, ok, channels, image_size_px)
+    w_read = np.asarray(tf["width_um"], dtype=np.float64)
+    good_w = ok & np.isfinite(w_read) & (w_read > 0)
+    widths_model = track_width_model(step, float(np.median(w_read[good_w])) if good_w.any() else math.nan, q)
+    width = w_read.copy()  # each track's δ freed of its along-edge spread and astigmatic floor (below)
+    floor = np.full(w_read.shape, np.nan)
     rows = {k: [] for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um", "width_um", "peak", "status",
                             "z_tan_um", "z_sag_um", "stage_gain")}
 
@@ -292,9 +501,9 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
         pairs = _pairs(tf["x_px"][t], tf["y_px"][t], tf["x_px"][s], tf["y_px"][s], pair_px)
         local = _local_surface(tf["x_px"][m & ok], tf["y_px"][m & ok], tf["z_best_um"][m & ok], image_size_px)
         summary["ts_transfer"][ch] = "quartic in x, y of the channel's tracks" if local else "none (too few tracks)"
+        pair_rows = []
         for a, b in pairs:
             i, j = t[a], s[b]
-            wi, wj = tf["width_um"][i], tf["width_um"][j]
             xm, ym = 0.5 * (tf["x_px"][i] + tf["x_px"][j]), 0.5 * (tf["y_px"][i] + tf["y_px"][j])
             zt = zs = math.nan
             zi, zj = tf["z_best_um"][i], tf["z_best_um"][j]
@@ -309,9 +518,18 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
                 zt, zs = zt_, zs_
             else:  # the mean of two points about the midpoint: the gradient cancels in the plain mean
                 zb = 0.5 * (tf["z_best_um"][i] + tf["z_best_um"][j])
-            add(ch, xm, ym, zb, sb,
-                # the tolerance of the pair is the narrower one: the plan must hold both orientations
-                float(np.nanmin([wi, wj])) if np.isfinite([wi, wj]).any() else math.nan,
+            pair_rows.append((i, j, xm, ym, zb, sb, zt, zs))
+        # T - S over the field (a smooth surface through the pairs' astigmatism) sets each track's blur floor
+        pa = np.array([(r[2], r[3], r[6] - r[7]) for r in pair_rows if math.isfinite(r[6] - r[7])]).reshape(-1, 3)
+        astig = (_robust_surface(pa[:, 0], pa[:, 1], pa[:, 2], image_size_px)
+                 or _robust_surface(pa[:, 0], pa[:, 1], pa[:, 2], image_size_px, degree=2))
+        for i in np.flatnonzero(m & ok):
+            if astig is not None:
+                floor[i] = float(astigmatic_floor_um(tf["cos2phi"][i], astig(tf["x_px"][i], tf["y_px"][i])))
+            if math.isfinite(w_read[i]):
+                width[i] = float(widths_model.correct(w_read[i], spread[i], floor[i]))
+        for i, j, xm, ym, zb, sb, zt, zs in pair_rows:
+            add(ch, xm, ym, zb, sb, pair_width_um(width[i], width[j]),
                 0.5 * (tf["peak"][i] + tf["peak"][j]), "ok", zt, zs,
                 # both tracks saw the same frames: their stage errors add (an upper bound on the mean's)
                 0.5 * (tf["stage_gain"][i] + tf["stage_gain"][j]))
@@ -326,7 +544,7 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
                 st = "unpaired"
             n_lone += st == "ok"
             add(ch, tf["x_px"][i], tf["y_px"][i], tf["z_best_um"][i] if st == "ok" else math.nan,
-                sig[i] if st == "ok" else math.nan, tf["width_um"][i], tf["peak"][i], st,
+                sig[i] if st == "ok" else math.nan, width[i], tf["peak"][i], st,
                 gain=tf["stage_gain"][i] if st == "ok" else math.nan)
         summary["tracks"][ch] = int(m.sum())
         summary["pairs"][ch] = len(pairs)
@@ -335,6 +553,15 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
     summary["status"] = {str(a): int(b) for a, b in zip(st, n)}
     summary.update({"fs_cy_per_px": fs_px, "sigma_floor_um": SIGMA_FLOOR_STEP * step,
                     "pair_px": float(pair_px)})
+    # what each orientation's widths were freed of: median spread / width, floor / width, width read / δ
+    summary["track_widths"] = {
+        str(o): {"spread_over_width": float(np.nanmedian(spread[sel] / w_read[sel])),
+                 "floor_over_width": float(np.nanmedian(floor[sel] / w_read[sel])),
+                 "width_ratio": float(np.nanmedian(w_read[sel] / width[sel]))}
+        for o in ("tangential", "sagittal", "unclear")
+        for sel in [good_w & (tf["orientation"] == o)] if sel.any()}
+    summary["track_widths"]["model"] = {k: getattr(widths_model, k).tolist() for k in (
+        "spread_over_width", "spread_ratio", "floor_over_width", "floor_ratio")}
     table_tile_px = edge_window_px(mtf)
     summary["window_px"] = table_tile_px
     cols = {k: np.asarray(v, dtype=np.float64) if k not in ("channel", "status") else np.asarray(v, dtype=str)
