@@ -115,6 +115,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         from .register import register_stack
         stack, reg = register_stack(stack, frames, z_ref_um=z_ref_um, quiet=quiet)
         info["registration"] = reg.info()
+        info["photometric"] = stack.photometric
         geometry = None
     else:
         stack = hold_decoded(stack, frames)
