@@ -599,13 +599,16 @@ class _BackgroundCheck:
 
 
 def _write(out: Path, image: np.ndarray, stack, frames, meta: dict) -> None:
-    """The composite as TIFF/PNG/JPEG by ``out``'s extension; a JPEG gets the first used frame's EXIF."""
-    from .io import write_composite
+    """The composite as TIFF/PNG/JPEG by ``out``'s extension; a JPEG gets the first used frame's EXIF, and a TIFF
+    or JPEG the EXIF orientation most used frames have."""
+    from .io import exif_orientation, write_composite
 
-    first = None
+    first, orientation = None, 1
     infos = getattr(stack, "frames", None)
     if infos:
-        k = int(frames[0]) if frames is not None and len(frames) else 0
-        first = getattr(infos[k], "path", None)
+        used = [int(k) for k in frames] if frames is not None and len(frames) else list(range(len(infos)))
+        first = getattr(infos[used[0]], "path", None)
+        paths = [getattr(infos[k], "path", None) for k in used]
+        orientation = exif_orientation([p for p in paths if p is not None])
     write_composite(out, image, stack.channels, meta, black_level=float(stack.black_level),
-                    white_level=float(stack.white_level), exif_from=first)
+                    white_level=float(stack.white_level), exif_from=first, orientation=orientation)
