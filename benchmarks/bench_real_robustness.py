@@ -15,12 +15,14 @@ variant goes through ``fieldcal import`` + ``fieldcal composite`` (no profile), 
 * bad inputs, which must end in a FieldcalError (exit 2, a message naming the file or field), not a traceback.
 
 **How the perturbed frames are made.** Geometric perturbations are applied to the full-resolution frames
-(Lanczos-4) and the result is area-downsampled 2x (1024x768), and so are the unperturbed frames: the
-resampling the perturbation adds is then far finer than the frames' pixels, so what the benchmark measures is
-the registration and compositing, not its own interpolation blur. The frame nearest the middle of the z range
+(Lanczos-4); the central 1792x1280 is kept (every pixel shows recorded scene, not the edge pixels a warp repeats
+where the frame was left) and area-downsampled 2x (896x640), and so are the unperturbed frames: the resampling
+the perturbation adds is then far finer than the frames' pixels, so what the benchmark measures is the
+registration and compositing, not its own interpolation blur. The frame nearest the middle of the z range
 (fieldcal's reference, ``--z-ref-um`` given) is left unperturbed in geometry, so each composite is in the
-unperturbed composite's geometry (the portrait stack is rotated back exactly; the 24 MP composites are
-area-downsampled to 2048x1536 and compared with the composite of the original JPEGs).
+unperturbed composite's geometry (the portrait stack is rotated back exactly). The 24 MP cases upsample the
+central 1920x1440 of the 2048x1536 frames to 5657x4243; their composites are area-downsampled back and
+compared with the same part of the composite of the original JPEGs.
 
 **Figures.**
 
@@ -31,7 +33,10 @@ area-downsampled to 2048x1536 and compared with the composite of the original JP
   the frame and over all frames. (The real stack's own motion between frames is in ``M_k``; what is measured is
   whether the added transform is found. The unperturbed stack chooses scale and shift per frame; its own small
   roll, within that choice's 0.5 px tolerance, would otherwise count as the error of a case that fits a
-  similarity.)
+  similarity.) The scene has depth, and a scene with depth breathes by different amounts at different depths:
+  no global map fits it exactly, and which parts a frame shows (a perturbation changes that at the borders)
+  moves the best one. The reference rows give that ambiguity (:func:`model_ambiguity`: a neighbour pair fitted
+  on the top or bottom half alone against the whole frame).
 * sharpness ratio: mean squared Laplacian (:func:`bench_real_stack.msl`, 96 px border left out) of the
   composite over that of the unperturbed composite.
 * difference: PSNR (dB, grey 0-255) of the composite against the unperturbed composite, inside the border.
@@ -40,12 +45,14 @@ area-downsampled to 2048x1536 and compared with the composite of the original JP
   textured places; the mean absolute grey difference between the composite and the unperturbed composite is
   taken in 1-px rings of distance from those edges; the halo width is the largest distance (0-24 px) at which
   the ring's mean exceeds twice the mean 24-48 px from any depth edge ("far diff"), and that mean by 0.5 DN at
-  least (0: no ring does; the ring next to the edge counts as 1 px). A ghost (a doubled edge from a misregistered frame) or a halo shows as a ring of excess
-  difference next to depth edges.
+  least (0: no ring does; the ring next to the edge counts as 1 px). A ghost (a doubled edge from a
+  misregistered frame) or a halo shows as a ring of excess difference next to depth edges.
 * time: wall clock of ``fieldcal composite`` and peak RSS (``/usr/bin/time -v``), and of ``fieldcal import``.
 
 ``--write`` puts the table into docs/benchmarks.md (section ``real_robustness``). ``--cases a,b`` runs some
-cases only; ``--no-large`` leaves out the 24 MP cases (several minutes and ~2 GB of temporary files).
+cases only; ``--no-large`` leaves out the 24 MP cases (several minutes and ~8 GB of temporary files);
+``--merge A.json B.json`` makes the tables from earlier runs' ``results.json`` (``--keep DIR`` keeps them), the
+later file's row winning for a case in both.
 """
 
 from __future__ import annotations
@@ -143,6 +150,11 @@ class Case:
         return self.z_of(self.ref_index)
 
 
+CASE_NAMES = ["unperturbed", "breathing 5 %", "breathing 5 % + drift", "handheld", "flicker", "reverse order",
+              "negative z step", "JPEG", "EXIF portrait tag", "EXIF tags flipping", "portrait pixels", "16-bit TIFF",
+              "24 MP", "30 x 24 MP"]
+
+
 def shift_matrix(dx: float, dy: float) -> np.ndarray:
     return np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]])
 
@@ -169,7 +181,10 @@ def geometric(name, what, full, mats_full, **kw) -> Case:
     return c
 
 
-def make_cases(full: list[np.ndarray], large: bool) -> list[Case]:
+def make_cases(full: list[np.ndarray], large: bool, only_names: bool = False) -> list[Case]:
+    """The perturbed stacks (``only_names``: their names and descriptions only, no frames made)."""
+    if only_names:
+        return [Case(n, "") for n in CASE_NAMES[:None if large else -2]]
     rng = np.random.default_rng(SEED)
     n = len(full)
     h, w = full[0].shape[:2]
@@ -339,6 +354,29 @@ def registration_error(case: Case, maps: list[np.ndarray], base_maps: list[np.nd
     return float(np.sqrt(np.mean(e * e))), float(e.max())
 
 
+def model_ambiguity(stack_dir: Path) -> tuple[float, float]:
+    """How far a global registration of this 3-D scene is defined at all: per neighbour pair, the scale-and-shift
+    fit on the top or the bottom half alone against the whole frame's, the largest outline displacement (px);
+    the median and the maximum over the pairs. A scene with depth breathes by different amounts at different
+    depths, so which parts a frame shows moves the best global fit."""
+    from fieldcal.composite import register as R
+    from fieldcal.formats.stack import Stack
+
+    st = Stack.open(stack_dir, verify=False)
+    h, w = st.shape[:2]
+    factor = R._factor(w, h, 1024)
+    planes = [R._grey(R.read_roi(st, int(i), 0, 0, w, h), factor) for i in np.argsort(st.z_um)]
+    devs = []
+    for a, b in zip(planes[:-1], planes[1:]):
+        pair = R.PlanePair(a, b, levels=3)
+        whole = R.fit_pair(pair, model="scale-shift")
+        for part in ("top", "bottom"):
+            m = R.fit_pair(pair, model="scale-shift", init=whole, part=part)
+            if whole is not None and m is not None:
+                devs.append(R.chain_difference_px(R._to_full(m, factor)[None], R._to_full(whole, factor)[None], w, h))
+    return float(np.median(devs)), float(np.max(devs))
+
+
 def depth_edges(frames: list[np.ndarray]) -> np.ndarray:
     """Distance (px) to the nearest depth edge of the unperturbed frames (see the module docstring)."""
     energies = []
@@ -443,6 +481,28 @@ def bad_inputs(half: list[np.ndarray], work: Path, py: list[str]) -> list[dict]:
     return rows
 
 
+def report(results: list[dict], bad: list[dict], load: float | None, write: bool) -> None:
+    """Print the tables (and write them into docs/benchmarks.md with ``write``)."""
+    cols = [("case", "case", ""), ("perturbation", "what", ""), ("frames", "frames", "d"), ("model", "model", ""),
+            ("registration RMS (px)", "reg RMS (px)", ".3f"), ("max (px)", "reg max (px)", ".3f"),
+            ("sharpness / unperturbed", "sharpness ratio", ".3f"), ("PSNR vs unperturbed (dB)",
+                                                                    "PSNR vs unperturbed (dB)", ".1f"),
+            ("halo width (px)", "halo width (px)", ".0f"), ("far diff (DN)", "far diff (DN)", ".2f"),
+            ("composite (s)", "time (s)", ".2f"), ("peak RSS (MB)", "peak RSS (MB)", ".0f"),
+            ("import (s)", "import (s)", ".2f"), ("result", "status", ""),
+            ("scene's own registration ambiguity, median / max (px)", "ambiguity (px)", "")]
+    lines = md_table(results, cols)
+    if bad:
+        lines += ["", *md_table(bad, [("bad input", "input", ""), ("ends at", "ends at", ""), ("exit", "exit", "d"),
+                                      ("clean", "clean", ""), ("message", "message", "")])]
+    where = "" if load is None else f"1-minute load average at the start: {load:.1f} (2 cores shared). "
+    lines += ["", where + "Command: `python benchmarks/bench_real_robustness.py --write`."]
+    text = "\n".join(lines)
+    print(text)
+    if write:
+        write_docs_section("real_robustness", text)
+
+
 # ----------------------------------------------------------------------------------------------------- main
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -452,7 +512,20 @@ def main() -> None:
     ap.add_argument("--no-bad", action="store_true", help="leave out the bad inputs")
     ap.add_argument("--keep", type=Path, help="keep the work folder here")
     ap.add_argument("--write", action="store_true", help="put the tables into docs/benchmarks.md")
+    ap.add_argument("--merge", nargs="+", type=Path, metavar="RESULTS_JSON",
+                    help="make the tables from earlier runs' results.json instead of running")
     a = ap.parse_args()
+    if a.merge:
+        rows, bad = {}, []
+        for p in a.merge:
+            doc = json.loads(p.read_text())
+            doc = doc if isinstance(doc, dict) else {"results": doc, "bad": [], "load": None}
+            rows.update({r["case"]: r for r in doc["results"]})
+            bad = doc.get("bad") or bad
+        order = ["originals 2048"] + [c.name for c in make_cases([np.zeros((1536, 2048, 3), np.uint8)] * 10, True,
+                                                                   only_names=True)]
+        report(sorted(rows.values(), key=lambda r: order.index(r["case"])), bad, None, a.write)
+        return
     jpegs = sorted(a.stack.glob("*.JPG"))
     if len(jpegs) != 10:
         sys.exit(f"{a.stack}: expected the 10 pcb JPEG frames")
@@ -513,6 +586,7 @@ def main() -> None:
         ref_name = refs[key]
         if case.name == ref_name:
             base_stack[case.name] = (stack, case)
+            row["ambiguity (px)"] = "{:.2f} / {:.2f}".format(*model_ambiguity(stack))
             base_img[case.name] = to_compare(case, img)
         if ref_name in base_stack and case.name != ref_name:
             # the reference stack registered with the model chosen here: the real frames' own small roll or
@@ -541,24 +615,9 @@ def main() -> None:
     bad = [] if a.no_bad else bad_inputs([area_half(crop(f)) for f in full], work, py)
     for b in bad:
         print(b, flush=True)
-    cols = [("case", "case", ""), ("perturbation", "what", ""), ("frames", "frames", "d"), ("model", "model", ""),
-            ("registration RMS (px)", "reg RMS (px)", ".3f"), ("max (px)", "reg max (px)", ".3f"),
-            ("sharpness / unperturbed", "sharpness ratio", ".3f"), ("PSNR vs unperturbed (dB)",
-                                                                    "PSNR vs unperturbed (dB)", ".1f"),
-            ("halo width (px)", "halo width (px)", ".0f"), ("far diff (DN)", "far diff (DN)", ".2f"),
-            ("composite (s)", "time (s)", ".2f"), ("peak RSS (MB)", "peak RSS (MB)", ".0f"),
-            ("import (s)", "import (s)", ".2f"), ("result", "status", "")]
-    lines = md_table(results, cols)
-    if bad:
-        lines += ["", *md_table(bad, [("bad input", "input", ""), ("ends at", "ends at", ""), ("exit", "exit", "d"),
-                                      ("clean", "clean", ""), ("message", "message", "")])]
-    lines += ["", f"1-minute load average at the start: {load:.1f} (2 cores shared). Command: "
-                  "`python benchmarks/bench_real_robustness.py --write`."]
-    text = "\n".join(lines)
-    print(text)
-    (work / "results.json").write_text(json.dumps(results, indent=1, default=str))
-    if a.write:
-        write_docs_section("real_robustness", text)
+    (work / "results.json").write_text(json.dumps({"results": results, "bad": bad, "load": load}, indent=1,
+                                                  default=str))
+    report(results, bad, load, a.write)
     if not a.keep:
         shutil.rmtree(work, ignore_errors=True)
 
