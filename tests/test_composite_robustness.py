@@ -195,3 +195,17 @@ def test_a_frame_stored_turned_is_refused_plainly(tmp_path):
     _write_jpegs(tmp_path / "mixed", frames, [None] * 3)
     with pytest.raises(FieldcalError, match="turned by 90"):
         import_stack([tmp_path / "mixed"], tmp_path / "st", z_start_um=0, z_step_um=20, pixel_pitch_um=2.0)
+
+
+@pytest.mark.parametrize("where,kind", [(2, "noise"), (4, "black")])
+def test_a_frame_that_is_not_of_the_stack_is_refused_by_name(where, kind):
+    from fieldcal.errors import StackError
+
+    frames = _stack([np.eye(3)] * 5, seed=7)
+    frames[where] = (np.random.default_rng(8).random(frames[0].shape).astype(np.float32) if kind == "noise"
+                     else np.zeros_like(frames[0]))
+    with pytest.raises(StackError, match=f"frame {where} .*does not show what its neighbours"):
+        R.register_stack(ArrayStack(frames, Z, ["R", "G", "B"]), z_ref_um=Z[1], quiet=True)
+    good = _stack([np.eye(3)] * 5, seed=7)
+    corr = R.neighbour_correlations([R._grey(f, 1) for f in good], [np.eye(3)] * 5, 1)
+    assert min(corr) > 0.9
