@@ -469,6 +469,7 @@ def bad_inputs(half: list[np.ndarray], work: Path, py: list[str]) -> list[dict]:
         err = r.stderr
         traceback = "Traceback" in err
         msg = next((ln.strip() for ln in err.splitlines() if ln.startswith("fieldcal") or "error" in ln.lower()), "")
+        msg = msg.replace(str(work / "bad") + os.sep, "")
         rows.append({"input": what, "ends at": where, "exit": r.returncode,
                      "clean": "yes" if (r.returncode == 2 and not traceback) or (r.returncode == 0) else "NO",
                      "message": msg[:160].replace("|", "/")})
