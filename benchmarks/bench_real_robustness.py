@@ -244,7 +244,7 @@ def make_cases(full: list[np.ndarray], large: bool, only_names: bool = False) ->
 
     ww = half[0].shape[1]
     rot = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, ww - 1.0], [0.0, 0.0, 1.0]])  # np.rot90 (counter-clockwise)
-    c = Case("portrait pixels", "every frame's pixels rotated 90° (768x1024)", rotate_back=-1)
+    c = Case("portrait pixels", "every frame's pixels rotated 90° (640x896)", rotate_back=-1)
     c.frames, c.orig, c.A = [np.ascontiguousarray(np.rot90(f)) for f in half], list(range(n)), [rot] * n
     cases.append(c)
 
