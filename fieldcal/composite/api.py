@@ -73,8 +73,9 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         ``dff`` without a profile: register the frames to the frame at ``z_ref_um`` (default: the middle frame)
         with the simplest model the data support — scale and shift (breathing, stage axis), similarity,
         affine or homography (:func:`.register.choose_model`) — and write the output in its geometry; each
-        frame is read and warped once (:func:`.register.register_stack`). ``register=False`` takes the
-        frames as registered.
+        frame is read and warped once (:func:`.register.register_stack`), brought to the reference frame's
+        exposure and white balance (:mod:`.photometric`), and a frame that does not show what its neighbours
+        show is refused (StackError). ``register=False`` takes the frames as registered (and their levels).
     depth : {"auto", "flat", "3d"}
         ``dff`` and ``hybrid``: is the scene a surface (a chart, a flat object) or does it have depth (steps,
         things in front of a background)? ``auto`` decides from the data: when the smooth surface fitted to
