@@ -73,8 +73,9 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         ``dff`` without a profile: register the frames to the frame at ``z_ref_um`` (default: the middle frame)
         with the simplest model the data support — scale and shift (breathing, stage axis), similarity,
         affine or homography (:func:`.register.choose_model`) — and write the output in its geometry; each
-        frame is read and warped once (:func:`.register.register_stack`). ``register=False`` takes the
-        frames as registered.
+        frame is read and warped once (:func:`.register.register_stack`), brought to the reference frame's
+        exposure and white balance (:mod:`.photometric`), and a frame that does not show what its neighbours
+        show is refused (StackError). ``register=False`` takes the frames as registered (and their levels).
     depth : {"auto", "flat", "3d"}
         ``dff`` and ``hybrid``: is the scene a surface (a chart, a flat object) or does it have depth (steps,
         things in front of a background)? ``auto`` decides from the data: when the smooth surface fitted to
@@ -115,6 +116,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         from .register import register_stack
         stack, reg = register_stack(stack, frames, z_ref_um=z_ref_um, quiet=quiet)
         info["registration"] = reg.info()
+        info["photometric"] = stack.photometric
         geometry = None
     else:
         stack = hold_decoded(stack, frames)
@@ -598,13 +600,16 @@ class _BackgroundCheck:
 
 
 def _write(out: Path, image: np.ndarray, stack, frames, meta: dict) -> None:
-    """The composite as TIFF/PNG/JPEG by ``out``'s extension; a JPEG gets the first used frame's EXIF."""
-    from .io import write_composite
+    """The composite as TIFF/PNG/JPEG by ``out``'s extension; a JPEG gets the first used frame's EXIF, and a TIFF
+    or JPEG the EXIF orientation most used frames have."""
+    from .io import exif_orientation, write_composite
 
-    first = None
+    first, orientation = None, 1
     infos = getattr(stack, "frames", None)
     if infos:
-        k = int(frames[0]) if frames is not None and len(frames) else 0
-        first = getattr(infos[k], "path", None)
+        used = [int(k) for k in frames] if frames is not None and len(frames) else list(range(len(infos)))
+        first = getattr(infos[used[0]], "path", None)
+        paths = [getattr(infos[k], "path", None) for k in used]
+        orientation = exif_orientation([p for p in paths if p is not None])
     write_composite(out, image, stack.channels, meta, black_level=float(stack.black_level),
-                    white_level=float(stack.white_level), exif_from=first)
+                    white_level=float(stack.white_level), exif_from=first, orientation=orientation)

@@ -53,8 +53,32 @@ def check_composite_output(path: str | Path, *, stack: str | Path | None = None,
     return check_output(path, inputs=inputs, overwrite=overwrite, suffixes=tuple(OUTPUT_SUFFIXES))
 
 
-def write_composite_tiff(path: str | Path, image: np.ndarray, channels, metadata: dict) -> Path:
-    """Write ``image`` (H x W x C) atomically, with ``metadata`` (+ format and channels) as JSON description.
+def exif_orientation(paths) -> int:
+    """The EXIF orientation (1-8) most of the frame files ``paths`` state (1 when none does).
+
+    Frames are composited as the sensor recorded them (the readers ignore the tag), which is right even where a
+    camera looking straight down flips its tag from frame to frame; the composite carries the tag most frames
+    have, so a viewer shows it upright as it shows them.
+    """
+    from collections import Counter
+
+    from PIL import Image
+
+    tags = []
+    for p in paths:
+        try:
+            with Image.open(p) as im:
+                tags.append(int(im.getexif().get(0x0112, 1)))
+        except Exception:  # metadata only: a frame that will not say counts as upright
+            tags.append(1)
+    tags = [t if 1 <= t <= 8 else 1 for t in tags]
+    return Counter(tags).most_common(1)[0][0] if tags else 1
+
+
+def write_composite_tiff(path: str | Path, image: np.ndarray, channels, metadata: dict, *,
+                         orientation: int = 1) -> Path:
+    """Write ``image`` (H x W x C) atomically, with ``metadata`` (+ format and channels) as JSON description and
+    the TIFF Orientation tag when ``orientation`` is not 1.
 
     Returns the path. Nothing is left at ``path`` if writing fails.
     """
@@ -73,7 +97,8 @@ def write_composite_tiff(path: str | Path, image: np.ndarray, channels, metadata
     data = image if image.shape[2] > 1 else image[..., 0]
     import io
     buf = io.BytesIO()  # encode in memory, then the shared atomic write (temporary name, fsync, rename)
-    tifffile.imwrite(buf, data, photometric=photometric, description=desc, metadata=None)
+    extratags = [(274, "H", 1, int(orientation), True)] if orientation != 1 else []
+    tifffile.imwrite(buf, data, photometric=photometric, description=desc, metadata=None, extratags=extratags)
     atomic_write_bytes(path, buf.getvalue())
     return path
 
@@ -89,7 +114,7 @@ def _to_8_or_16_bit(image: np.ndarray, black: float, white: float, bits: int) ->
 
 def write_composite(path: str | Path, image: np.ndarray, channels, metadata: dict, *,
                     black_level: float = 0.0, white_level: float | None = None,
-                    exif_from: str | Path | None = None) -> Path:
+                    exif_from: str | Path | None = None, orientation: int = 1) -> Path:
     """Write a composite as TIFF, PNG or JPEG by ``path``'s extension (see the module notes), atomically.
 
     Parameters
@@ -107,11 +132,14 @@ def write_composite(path: str | Path, image: np.ndarray, channels, metadata: dic
         maximum, 1.0 for float).
     exif_from : path-like, optional
         A frame whose EXIF block is copied into a JPEG output (e.g. the first frame of a camera's stack).
+    orientation : int
+        EXIF orientation (1-8, :func:`exif_orientation`) for a TIFF's Orientation tag and a JPEG's EXIF (PNG
+        has no tag viewers honour); the pixels are written as they are.
     """
     path = check_output_path(path)
     kind = OUTPUT_SUFFIXES[path.suffix.lower()]
     if kind == "tiff":
-        return write_composite_tiff(path, image, channels, metadata)
+        return write_composite_tiff(path, image, channels, metadata, orientation=orientation)
     image = np.asarray(image)
     if image.ndim == 2:
         image = image[..., None]
@@ -143,15 +171,16 @@ def write_composite(path: str | Path, image: np.ndarray, channels, metadata: dic
             raise ParameterError("OpenCV could not encode the PNG", path=path, fix="write a .tiff")
         buf.write(_png_with_text(enc.tobytes(), "fieldcal", desc))
     else:
-        info = {}
+        exif = Image.Exif()
         if exif_from is not None:
             try:
                 with Image.open(exif_from) as src:
-                    exif = src.info.get("exif")
-                if exif:
-                    info["exif"] = exif
+                    exif = src.getexif()
             except Exception:  # EXIF is a courtesy copy; an unreadable source only loses it
                 pass
+        if orientation != 1 or 0x0112 in exif:
+            exif[0x0112] = int(orientation)
+        info = {"exif": exif.tobytes()} if len(exif) else {}
         Image.fromarray(data).save(buf, format="JPEG", quality=95, comment=desc.encode("utf-8"), **info)
     atomic_write_bytes(path, buf.getvalue())
     return path

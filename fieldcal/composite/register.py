@@ -17,6 +17,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..measure.geometry import downsample, register_step, registration_plane
+from . import photometric
 from ..progress import progress
 from .source import image_size, read_roi, z_positions
 
@@ -107,10 +108,14 @@ def _chain(zs, steps, linear: EstimatedGeometry, cs, factor: int, z_ref_um: floa
     return m, shift[:, 0], shift[:, 1]
 
 
-def _ecc_start(prev: np.ndarray, cur: np.ndarray, cs) -> tuple[float, float, float] | None:
-    """(r, tx, ty) about ``cs`` from OpenCV's ECC (affine, Gaussian-smoothed), or None when it fails.
+def _ecc_affine(prev: np.ndarray, cur: np.ndarray) -> np.ndarray | None:
+    """The affine map (3 x 3, px of these planes) taking a point of ``prev`` to ``cur``, from OpenCV's ECC
+    (Gaussian-smoothed), or None when it fails.
 
-    Only a start for :func:`register_step`: run on planes halved again (4x fewer pixels) when they are large.
+    Only a start for the Gauss-Newton fits: run on planes halved again (4x fewer pixels) when they are large,
+    from the translation phase correlation finds (Hann window): ECC alone has no pyramid and loses a handheld
+    step of more than a few px, while the correlation peak stands out under the small rotation and scale
+    change between neighbours and under their focus difference.
     """
     import cv2
 
@@ -118,20 +123,49 @@ def _ecc_start(prev: np.ndarray, cur: np.ndarray, cs) -> tuple[float, float, flo
     if f > 1:
         hh, ww = (prev.shape[0] // 2) * 2, (prev.shape[1] // 2) * 2
         prev, cur = downsample(prev[:hh, :ww], 2), downsample(cur[:hh, :ww], 2)
+    prev, cur = prev.astype(np.float32), cur.astype(np.float32)
     warp = np.eye(2, 3, dtype=np.float32)
+    try:
+        (dx, dy), response = cv2.phaseCorrelate(prev, cur, cv2.createHanningWindow(prev.shape[::-1], cv2.CV_32F))
+    except cv2.error:
+        response = 0.0
+    if response > 0.05 and abs(dx) < prev.shape[1] / 4 and abs(dy) < prev.shape[0] / 4:
+        warp[:, 2] = (dx, dy)
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
     try:
-        _, warp = cv2.findTransformECC(prev.astype(np.float32), cur.astype(np.float32), warp, cv2.MOTION_AFFINE,
-                                       crit, None, 5 if f == 1 else 3)
+        _, warp = cv2.findTransformECC(prev, cur, warp, cv2.MOTION_AFFINE, crit, None, 5 if f == 1 else 3)
     except cv2.error:
         return None
     m = np.eye(3)
     m[:2] = warp.astype(np.float64)
+    if not np.all(np.isfinite(m)):
+        return None
     m = _to_full(m, f)
+    r = 0.5 * (m[0, 0] + m[1, 1])
+    return m if 0.5 < r < 2.0 else None
+
+
+def _scale_shift_of(m: np.ndarray, cs) -> tuple[float, float, float]:
+    """(r, tx, ty) about ``cs`` of an affine map: its mean scale and the shift it gives the centre."""
     a = m[:2, :2]
     r = 0.5 * (a[0, 0] + a[1, 1])
     t = a @ np.asarray(cs, dtype=np.float64) + m[:2, 2] - np.asarray(cs, dtype=np.float64)
-    return (float(r), float(t[0]), float(t[1])) if 0.5 < r < 2.0 else None
+    return float(r), float(t[0]), float(t[1])
+
+
+def _with_scale_shift(start: np.ndarray | None, step, cs) -> np.ndarray:
+    """The scale-and-shift ``step`` (``r``, ``tx``, ``ty`` about ``cs``) as a 3 x 3 map, keeping the rotation and
+    shear of the affine ``start`` (ECC's, when there is one): the refined step sets the scale and the centre's
+    shift, ECC the roll of a handheld camera, which a start without it can leave the homography fit short of."""
+    lin = np.eye(2) * step.r
+    if start is not None:
+        r0 = 0.5 * (start[0, 0] + start[1, 1])
+        lin = start[:2, :2] * (step.r / r0)
+    c = np.asarray(cs, dtype=np.float64)
+    out = np.eye(3)
+    out[:2, :2] = lin
+    out[:2, 2] = c + np.array([step.tx, step.ty]) - lin @ c
+    return out
 
 
 def _grey(image: np.ndarray, factor: int) -> np.ndarray:
@@ -164,8 +198,7 @@ def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_sid
     ``z_ref_um`` (the output geometry) defaults to the frame at the middle of the z range. ``planes``: the
     frames' registration planes in z order (:func:`_grey` at :func:`_factor`), when already made.
     """
-    geo, _ = _scale_shift(stack, frames, z_ref_um, max_side_px, quiet, planes)
-    return geo
+    return _scale_shift(stack, frames, z_ref_um, max_side_px, quiet, planes)[0]
 
 
 def _map_threads(fn, items: list) -> list:
@@ -182,28 +215,33 @@ def _map_threads(fn, items: list) -> list:
 
 
 def _pair_steps(planes, cs, quiet: bool):
-    """Scale-and-shift steps between neighbouring planes (None where a pair fails)."""
+    """Scale-and-shift steps between neighbouring planes (None where a pair fails), and each pair's affine
+    start (:func:`_ecc_affine`, None where ECC failed), which keeps a handheld camera's roll for the richer
+    models (:func:`choose_model`)."""
     # a point at p in prev is at cs + r (p - cs) + t in cur (downsampled px, about the centre).
     # Photographs (not charts): neighbours differ in focus, so the update settles at noise level; a handheld
     # step can be several px, beyond Gauss-Newton's reach from zero: ECC (on a smoothed copy, robust to the
     # focus change) gives the start. Pairs are independent given their start, so they run on threads.
     def ecc_step(k):
-        ecc = _ecc_start(planes[k - 1], planes[k], cs)
-        return None if ecc is None else register_step(planes[k - 1], planes[k], cs, init=ecc, iterations=20,
-                                                       tol_px=1e-3)
+        start = _ecc_affine(planes[k - 1], planes[k])
+        if start is None:
+            return None, None
+        return register_step(planes[k - 1], planes[k], cs, init=_scale_shift_of(start, cs), iterations=20,
+                             tol_px=1e-3), start
 
     pairs = list(range(1, len(planes)))
-    steps = _map_threads(ecc_step, pairs)
+    done = _map_threads(ecc_step, pairs)
+    steps, starts = [d[0] for d in done], [d[1] for d in done]
     for k in progress(pairs, total=len(pairs), desc="registering", quiet=quiet, unit="pair"):
         if steps[k - 1] is None:  # no ECC start: the previous step's, else register_step's own fallbacks
             prev = steps[k - 2] if k >= 2 else None
             init = (prev.r, prev.tx, prev.ty) if prev is not None else None
             steps[k - 1] = register_step(planes[k - 1], planes[k], cs, init=init, iterations=20, tol_px=1e-3)
-    return steps
+    return steps, starts
 
 
 def _scale_shift(stack, frames, z_ref_um, max_side_px, quiet, planes):
-    """:func:`estimate_geometry` and the neighbour steps it was built from."""
+    """:func:`estimate_geometry`, the neighbour steps it was built from and each pair's affine start."""
     w, h = image_size(stack)
     order, zs, z_ref_um = _sorted_frames(stack, frames, z_ref_um)
     factor = _factor(w, h, max_side_px)
@@ -211,7 +249,7 @@ def _scale_shift(stack, frames, z_ref_um, max_side_px, quiet, planes):
     cs = ((w // factor - 1) / 2.0, (h // factor - 1) / 2.0)
     if planes is None:
         planes = [_grey(read_roi(stack, int(i), 0, 0, w, h), factor) for i in order]
-    steps = _pair_steps(planes, cs, quiet) if len(planes) > 1 else []
+    steps, starts = _pair_steps(planes, cs, quiet) if len(planes) > 1 else ([], [])
     rates_m, rates_x, rates_y = [], [], []
     for k, step in enumerate(steps, start=1):
         if step is not None:
@@ -220,11 +258,11 @@ def _scale_shift(stack, frames, z_ref_um, max_side_px, quiet, planes):
             rates_x.append(step.tx * factor / dz)
             rates_y.append(step.ty * factor / dz)
     if not rates_m:
-        return EstimatedGeometry(z_ref_um, c, 0.0, (0.0, 0.0), 0), steps
+        return EstimatedGeometry(z_ref_um, c, 0.0, (0.0, 0.0), 0), steps, starts
     linear = EstimatedGeometry(z_ref_um, c, float(np.median(rates_m)),
                                (float(np.median(rates_x)), float(np.median(rates_y))), len(rates_m))
     if len(zs) < 3:
-        return linear, steps
+        return linear, steps, starts
     m, sx, sy = _chain(zs, steps, linear, cs, factor, float(z_ref_um))
     # how far the chained positions of the image corner leave the linear model, in full-resolution px
     corner = float(np.hypot(w / 2.0, h / 2.0))
@@ -232,8 +270,8 @@ def _scale_shift(stack, frames, z_ref_um, max_side_px, quiet, planes):
     lx, ly = linear.shift_px(zs)
     dev = float(np.max(np.abs(m - lm) * corner + np.hypot(sx - lx, sy - ly)))
     if dev <= CHAIN_DEVIATION_PX:
-        return linear, steps
-    return ChainedGeometry(z_ref_um, c, zs, m, sx, sy, linear, dev), steps
+        return linear, steps, starts
+    return ChainedGeometry(z_ref_um, c, zs, m, sx, sy, linear, dev), steps, starts
 
 
 # ------------------------------------------------------------------------------- beyond scale and shift
@@ -534,7 +572,8 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
     (``z_ref_um``, default the middle frame). Each model's maps are the homographies' nearest of its kind.
     Going from simple to rich, a model is taken when what it adds moves some frame's outline by more than
     :data:`MODEL_TOLERANCE_PX` and the two halves agree on that addition within half of it; the chosen model
-    is then refitted to the images. Scale and shift keeps :func:`estimate_geometry`'s result as it is.
+    is then refitted to the images. Scale and shift keeps :func:`estimate_geometry`'s result as it is. With one
+    model in ``models`` that model is fitted, whatever the check says.
 
     Returns an :class:`EstimatedGeometry` (scale and shift) or a :class:`MatrixGeometry`.
     """
@@ -543,8 +582,9 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
     factor = _factor(w, h, max_side_px)
     if planes is None:
         planes = [_grey(read_roi(stack, int(i), 0, 0, w, h), factor) for i in order]
-    geo, steps = _scale_shift(stack, frames, z_ref_um, max_side_px, quiet, planes)
+    geo, steps, starts = _scale_shift(stack, frames, z_ref_um, max_side_px, quiet, planes)
     models = [m for m in MODELS if m in models]
+    forced = models[0] if len(models) == 1 else None  # one model given: used as it is, no check
     if len(planes) < 2 or models == ["scale-shift"]:
         return geo
     ref = int(np.argmin(np.abs(zs - z_ref_um)))
@@ -555,11 +595,11 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
         """The pair's homography from the whole frame and from each half, on the coarsest level of at least
         :data:`CHECK_SIDE_PX` (the model check needs ~0.1 px at full resolution, a fraction of the cost)."""
         step = steps[k]
-        if step is None:  # bridged with the scale-and-shift model's own step
+        if step is None and starts[k] is None:  # bridged with the scale-and-shift model's own step
             a = frame_map_matrix(geo, float(zs[k + 1])) @ np.linalg.inv(frame_map_matrix(geo, float(zs[k])))
             return None, (a, a, a)
-        s = np.array([[step.r, 0.0, cs[0] * (1 - step.r) + step.tx], [0.0, step.r, cs[1] * (1 - step.r) + step.ty],
-                      [0.0, 0.0, 1.0]])
+        # a scale-and-shift fit fails on a pair that rolls (a handheld camera): ECC's affine is the start then
+        s = starts[k] if step is None else _with_scale_shift(starts[k], step, cs)
         pp = PlanePair(planes[k], planes[k + 1], levels=3)
         check = max(k for k, lev in enumerate(pp.levels) if k == 0 or min(lev.prev.shape) >= CHECK_SIDE_PX)
         full = fit_pair(pp, model=models[-1], init=s, finest=check)
@@ -585,6 +625,7 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
         deviations[f"{model}_halves_disagree"] = disagreement
         if signal > MODEL_TOLERANCE_PX and disagreement <= 0.5 * signal:
             chosen = model
+    chosen = forced or chosen
     if chosen == "scale-shift":
         geo.model_checks = deviations
         return geo
@@ -690,12 +731,103 @@ def _grow_to_edges(mask: np.ndarray, margin: int) -> np.ndarray:
     return out
 
 
+#: Neighbouring frames, registered, correlate at least this much at a coarse scale (Gaussian sigma 2 px on the
+#: registration plane, then a quarter of its size), where focus hardly matters: 0.987-0.996 on the real circuit
+#: board (896 px, every pair), handheld or not; -0.02-0.0 against a blank frame or one of another scene.
+MIN_NEIGHBOUR_CORRELATION = 0.5
+
+
+def neighbour_correlations(planes: list[np.ndarray], maps: list[np.ndarray], factor: int) -> list[float]:
+    """Per neighbour pair (z order), the correlation of the two registration planes at a coarse scale, the later
+    one resampled onto the earlier by the registration (``maps``: reference px -> frame px, full resolution),
+    over the part both show (0 where either plane is flat)."""
+    import cv2
+
+    s = _plane_scale(factor)
+
+    def coarse(a: np.ndarray) -> np.ndarray:
+        a = cv2.GaussianBlur(np.asarray(a, np.float32), (0, 0), 2.0)
+        return cv2.resize(a, (max(1, a.shape[1] // 4), max(1, a.shape[0] // 4)), interpolation=cv2.INTER_AREA)
+
+    out = []
+    for k in range(len(planes) - 1):
+        a = planes[k]
+        pair = np.linalg.inv(s) @ maps[k + 1] @ np.linalg.inv(maps[k]) @ s  # plane k px -> plane k + 1 px
+        size = (a.shape[1], a.shape[0])
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        b = cv2.warpPerspective(np.asarray(planes[k + 1], np.float32), pair, size, flags=flags)
+        cover = cv2.warpPerspective(np.ones(a.shape, np.float32), pair, size, flags=flags)
+        ca, cb = coarse(a), coarse(b)
+        ok = coarse(cover) > 0.999
+        if ok.sum() < 16:
+            out.append(0.0)
+            continue
+        x, y = ca[ok].astype(np.float64), cb[ok].astype(np.float64)
+        x -= x.mean()
+        y -= y.mean()
+        den = float(np.sqrt(np.sum(x * x) * np.sum(y * y)))
+        out.append(float(np.sum(x * y)) / den if den > 1e-12 else 0.0)
+    return out
+
+
+def check_frames_belong(stack, order, planes: list[np.ndarray], maps: list[np.ndarray], factor: int) -> None:
+    """Refuse a stack with a frame that does not show what its neighbours show (a blank or failed exposure, a
+    frame of another scene): registered, neighbours correlate below :data:`MIN_NEIGHBOUR_CORRELATION` at a
+    coarse scale. Compositing would chain every later frame's registration through it, and its noise would be
+    taken for detail.
+
+    Raises
+    ------
+    StackError
+        Naming the frame (the one whose every neighbour pair fails, else the pair).
+    """
+    from ..errors import StackError
+
+    if len(planes) < 2:
+        return
+    corr = neighbour_correlations(planes, maps, factor)
+    bad_pair = [c < MIN_NEIGHBOUR_CORRELATION for c in corr]
+    if not any(bad_pair):
+        return
+    n = len(planes)
+    infos = getattr(stack, "frames", None)
+
+    def name(k: int) -> str:
+        i = int(order[k])
+        path = getattr(infos[i], "path", None) if infos is not None and not callable(infos) else None
+        return f"{path.name if path is not None else f'frame {i}'} (z = {float(stack.z_um[i]):g} µm)"
+
+    def file_of(k: int):
+        i = int(order[k])
+        return getattr(infos[i], "path", None) if infos is not None and not callable(infos) else None
+
+    # the frame whose every neighbour pair fails: inside the stack, both; at an end, its one pair, where the
+    # neighbour's other pair holds
+    bad = [k for k in range(1, n - 1) if bad_pair[k - 1] and bad_pair[k]]
+    if not bad and n >= 3:
+        bad = [0] if bad_pair[0] and not bad_pair[1] else [n - 1] if bad_pair[-1] and not bad_pair[-2] else []
+    if bad:
+        k = bad[0]
+        worst = min(corr[p] for p in (k - 1, k) if 0 <= p < n - 1)
+        raise StackError(f"frame {name(k)} does not show what its neighbours in z show (registered, they "
+                         f"correlate {worst:.2f} at a coarse scale; real neighbours correlate above 0.9): a blank "
+                         "or failed exposure, or a frame of another scene", path=file_of(k), field="frames",
+                         fix="remove that frame from the stack (import the others again)")
+    p = int(np.argmin(corr))
+    raise StackError(f"frames {name(p)} and {name(p + 1)} do not show the same scene (registered, they correlate "
+                     f"{corr[p]:.2f} at a coarse scale; real neighbours correlate above 0.9)", path=file_of(p + 1),
+                     field="frames", fix="check the stack is one scene shot through focus; remove the frames that "
+                                         "are not")
+
+
 def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_side_px: int = 1024,
-                   models=MODELS, quiet: bool = False):
+                   models=MODELS, photometric_correction: bool = True, quiet: bool = False):
     """Register a stack once and hold its frames warped into the reference frame's geometry.
 
     Each frame is decoded once (in parallel); its registration plane is made from that decode, the model is
-    chosen (:func:`choose_model`), and each frame is warped once with its map and held
+    chosen (:func:`choose_model`), each frame is brought to the reference frame's exposure and white balance
+    (a gain and an offset per channel, :mod:`fieldcal.composite.photometric`; ``photometric_correction=False``
+    leaves the frames' levels as they are), and each frame is warped once with its map and held
     (:class:`~fieldcal.composite.source.HeldFrames`, in memory within its budget, else a temporary file), so
     every later pass (focus volume, fusion, depth map, blending) reads registered pixels with no geometry.
 
@@ -703,7 +835,8 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
     -------
     (HeldFrames, geometry)
         The registered frames (file indices as in ``stack``; only ``frames`` are held; ``support``, a
-        :class:`FrameSupport`, says where each holds recorded pixels) and the geometry (``info()`` describes it).
+        :class:`FrameSupport`, says where each holds recorded pixels; ``photometric`` summarises the gains and
+        offsets) and the geometry (``info()`` describes it).
     """
     from .source import HeldFrames, read_frames_parallel, roi_readable
 
@@ -721,15 +854,34 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
 
     read_frames_parallel(stack, order, take)
     geo = choose_model(stack, order, z_ref_um, max_side_px, quiet, [planes[int(i)] for i in order], models)
+    maps = {int(i): frame_map_matrix(geo, float(z)) for i, z in zip(order, zs)}
+    check_frames_belong(stack, order, [planes[int(i)] for i in order], [maps[int(i)] for i in order], factor)
     storage, scale = storage_dtype(stack.dtype)
     out = HeldFrames(stack, order, storage, strict=True, scale=scale)
+    out.support = FrameSupport(geo, {int(i): float(z) for i, z in zip(order, zs)}, w, h)
     src = decoded if decoded is not None else stack
-    for i, z in zip(order, zs):
-        image = read_roi(src, int(i), 0, 0, w, h)
-        if scale == 256.0:  # 8-bit -> 16-bit fixed point, then warped in that dtype straight into its slot
+    # exposure and white-balance flicker: every frame brought to the reference frame's (composite/photometric.py),
+    # measured on the registered frames, so the reference frame goes first
+    ref = int(order[int(np.argmin(np.abs(zs - geo.z_ref_um)))])
+    black, white, cell = float(stack.black_level), float(stack.white_level), photometric.cell_px(w, h)
+    ref_cells, corr = None, {}
+    for i in [ref] + [int(i) for i in order if int(i) != ref]:
+        image = read_roi(src, i, 0, 0, w, h)
+        if scale == 256.0:  # 8-bit -> 16-bit fixed point, then warped in that dtype
             image = image.astype(np.uint16) << 8
         elif image.dtype != storage:
             image = image.astype(storage)
-        out.put(int(i), warp_frame(image, frame_map_matrix(geo, float(z))), held_units=True)
-    out.support = FrameSupport(geo, {int(i): float(z) for i, z in zip(order, zs)}, w, h)
+        warped = warp_frame(image, maps[i])
+        del image
+        if photometric_correction:
+            cells = photometric.cell_means(warped, cell, scale)
+            if i == ref:
+                ref_cells = cells
+            else:
+                corr[i] = photometric.fit_correction(cells, ref_cells, photometric.cells_inside(out.support(i), cell),
+                                                     black, white)
+                if corr[i] is not None:
+                    warped = photometric.apply_correction(warped, corr[i], scale, black)
+        out.put(i, warped, held_units=True)
+    out.photometric = photometric.summary(corr, stack.channels) if photometric_correction else None
     return out, geo

@@ -150,6 +150,7 @@ class HeldFrames:
         self.pixel_pitch_um = getattr(source, "pixel_pitch_um", None)
         self.path = getattr(source, "path", None)
         self.meta = dict(getattr(source, "meta", {}) or {})
+        self.photometric: dict | None = None  # register_stack: the exposure and colour corrections applied
         self.strict = bool(strict)
         self.scale = float(scale)
         #: ``read`` returns a new float32 array (fixed point scaled back): callers need not copy it

@@ -312,6 +312,19 @@ def _agree(frames: list[SourceFrame], attr: str, what: str, fix: str) -> None:
                              path=f.path, field="images", fix=fix)
 
 
+def _refuse_turned(frames: list[SourceFrame]) -> None:
+    """A frame stored turned by 90° against the first (its width and height swapped): software that applied
+    the EXIF orientation to some frames and not to others. Said plainly, as a size mismatch would not."""
+    first = frames[0]
+    for f in frames[1:]:
+        if (f.width, f.height) != (first.width, first.height) and (f.height, f.width) == (first.width, first.height):
+            raise StackError(f"is stored turned by 90° against {first.path.name} ({f.width}x{f.height} px against "
+                             f"{first.width}x{first.height})", path=f.path, field="images",
+                             fix="import the files as the camera wrote them, or turn every frame the same way "
+                                 "(e.g. all upright); fieldcal keeps the EXIF orientation tag and does not need "
+                                 "the frames turned")
+
+
 def _common(frames: list[SourceFrame], attr: str):
     vals = {getattr(f, attr) for f in frames if getattr(f, attr) is not None}
     return vals.pop() if len(vals) == 1 else None
@@ -409,6 +422,7 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
 
     frames = [describe(p) for p, _ in ordered]
     _agree(frames, "kind", "file type", "import frames of one kind (all raw, or all JPEG, ...)")
+    _refuse_turned(frames)
     _agree(frames, "width", "width", "all frames must have the same size; re-export them at one size")
     _agree(frames, "height", "height", "all frames must have the same size; re-export them at one size")
     _agree(frames, "n_channels", "channel count", "all frames must be colour, or all mono")
