@@ -209,3 +209,14 @@ def test_a_frame_that_is_not_of_the_stack_is_refused_by_name(where, kind):
     good = _stack([np.eye(3)] * 5, seed=7)
     corr = R.neighbour_correlations([R._grey(f, 1) for f in good], [np.eye(3)] * 5, 1)
     assert min(corr) > 0.9
+
+
+def test_a_stack_without_coarse_structure_is_not_refused_as_foreign():
+    """Every frame pure noise around one grey (a plain card): all neighbour pairs correlate ~0, so no frame is the
+    odd one out and the check must not refuse the stack (a foreign frame breaks at most two pairs)."""
+    rng = np.random.default_rng(3)
+    frames = [np.clip(0.5 + 0.01 * rng.standard_normal((96, 128, 3)), 0, 1).astype(np.float32) for _ in range(6)]
+    corr = R.neighbour_correlations([R._grey(f, 1) for f in frames], [np.eye(3)] * 6, 1)
+    assert max(corr) < R.MIN_NEIGHBOUR_CORRELATION  # every pair fails on its own
+    R.check_frames_belong(ArrayStack(frames, np.arange(6) * 10.0, ["R", "G", "B"]), np.arange(6),
+                          [R._grey(f, 1) for f in frames], [np.eye(3)] * 6, 1)
