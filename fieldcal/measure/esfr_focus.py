@@ -235,7 +235,32 @@ class TrackFocus:
         return self.tol_left_um + self.tol_right_um
 
 
-def defocus_peak(z_um, mtf_fs, *, q: float = 0.05) -> FocusPeak:
+def _model_misfit(z: np.ndarray, v: np.ndarray, sig: np.ndarray) -> bool:
+    """Whether the spherical-aberration model leaves residuals the known noise ``sig`` of MTF(fs) cannot
+    explain: its fit's chi2 beyond ``dof + 4 sqrt(2 dof)`` (~3.4 sd of a chi2; the noise of MTF^2 is 2 MTF
+    sig). Noise-free values (sig = 0) are taken as exact to 1e-6 of the peak."""
+    from .throughfocus import _fit_batch, _precheck
+
+    e = v * v
+    pre = _precheck(z, e, EDGE_CURVE_RULES)
+    if not hasattr(pre, "lo"):
+        return False
+    step = float(np.median(np.diff(z)))
+    sym = _fit_batch(z, e[None], [(0, pre)], step, "otf")[0]
+    if sym is None:
+        return False
+    p = sym.params
+    sa = _fit_batch(z, e[None], [(0, pre)], step, "otf_sa", p_init=[[p[0], p[1], p[2], 0.0, p[3]]])[0]
+    if sa is None or sa.n <= 5:
+        return False
+    w = slice(pre.lo, pre.hi + 1)
+    s = np.maximum(sig[w], 1e-6 * float(np.max(v)))
+    var_e = float(np.mean((2.0 * v[w] * s) ** 2 + 2.0 * s ** 4))
+    dof = sa.n - 5
+    return sa.rss * sa.scale ** 2 / var_e > dof + 4.0 * math.sqrt(2.0 * dof)
+
+
+def defocus_peak(z_um, mtf_fs, *, sigma=None, q: float = 0.05, n_boot: int = 16) -> FocusPeak:
     """Best focus of one MTF(fs) track: the sharpest position of the through-focus OTF of defocus and primary
     spherical aberration fitted to the samples, weighed against the symmetric law by the evidence for skew.
 
@@ -255,6 +280,11 @@ def defocus_peak(z_um, mtf_fs, *, q: float = 0.05) -> FocusPeak:
       the skewed peak's by the delta method, so the uncertainty of s is in it) with their spread. A symmetric
       curve's noise-fitted s is zero-mean, so its skewed peak is unbiased too: the weight only trades variance.
 
+    ``sigma`` (the noise of the values, when known) lets the model be tested: a curve it cannot describe within
+    that noise (:func:`_model_misfit`; no lens, e.g. a blur rate that jumps at focus) gets the maximum of the
+    smooth curve through its samples instead (:func:`through_focus_peak`, sd by a parametric bootstrap of
+    ``n_boot`` curves), which follows any shape. Without ``sigma`` the noise is the fit's own residual.
+
     The curve need only fall on both sides of its highest sample (:data:`EDGE_CURVE_RULES`): the blur rate
     comes from the sampled flanks, so a peak near a scan end is still located, with the larger sd its short
     side gives.
@@ -265,15 +295,20 @@ def defocus_peak(z_um, mtf_fs, *, q: float = 0.05) -> FocusPeak:
     """
     from .throughfocus import analyse_curve
 
-    z, v, _ = _clean(z_um, mtf_fs, None)
+    z, v, sig = _clean(z_um, mtf_fs, sigma)
     keep = np.concatenate([[True], np.diff(z) > 0])  # analyse_curve wants strictly increasing z
     z, v = z[keep], v[keep]
+    sig = None if sig is None else sig[keep]
     if z.size < 5:
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, "fewer than 5 samples")
     # fs only scales the fitted blur rate k; the width x_q / (pi fs k) is the same in µm whatever fs is given
     fit = analyse_curve(z, v ** 2, "otf", 1.0, q, EDGE_CURVE_RULES)
     if fit.status != "ok":
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, f"defocus fit: {fit.status}")
+    if sig is not None and _model_misfit(z, v, sig):  # a shape no lens model describes: the curve's own maximum
+        pk = through_focus_peak(z, v, sigma=sig, n_boot=n_boot)
+        return FocusPeak(pk.z_um, pk.sigma_um, math.nan, int(z.size), pk.ok, pk.reason, stage_gain=fit.stage_gain,
+                         law_width_um=float(fit.width_um), skew_weight=1.0)
     w = fit.skew_weight
     return FocusPeak(float(fit.z_best_um), float(fit.z_sigma_um), math.nan, int(z.size), True, "ok",
                      stage_gain=fit.stage_gain, law_width_um=float(fit.width_um),
@@ -286,7 +321,7 @@ def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
     The half-widths are the defocus law's (``FocusPeak.law_width_um``), moved towards the smoothed curve's own
     crossings (:func:`tolerance_half_widths`, measured from the same best focus) by the same evidence for skew
     that moves the best focus: a symmetric curve keeps the law's width, a clearly skewed one its measured
-    asymmetric sides. ``sigma``: the noise of the values, for the smoothed curve. Why not the
+    asymmetric sides. ``sigma``: the noise of the values (:func:`defocus_peak`). Why not the
     smoothed curve alone: the q = 5 % crossing lies within a step of the peak when the scan step is near the
     tolerance, where a smoothing spline's shape is set by its roughness penalty, not by the data — it read
     +4-7 % wide at 480x270 with 20 µm steps (step / tolerance 1.1-1.2), and a noisy magnitude's upward bias
@@ -295,7 +330,7 @@ def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
     pk = through_focus_peak(z_um, mtf_fs, sigma=sigma, n_boot=0)
     law, w = math.nan, math.nan
     if pk.ok:  # the smooth curve's maximum value is the peak the tolerance is measured down from
-        fp = defocus_peak(z_um, mtf_fs, q=q)
+        fp = defocus_peak(z_um, mtf_fs, sigma=sigma, q=q)
         pk = FocusPeak(fp.z_um, fp.sigma_um, pk.peak, pk.n_used, fp.ok, fp.reason, pk.curve if fp.ok else None,
                        fp.stage_gain)
         law, w = fp.law_width_um, (0.0 if not math.isfinite(fp.skew_weight) else fp.skew_weight)
