@@ -42,7 +42,14 @@ from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_o
 # remaining per-channel errors of the 14 breathing lenses of the band-coverage benchmark (s6) amount to an RMS
 # exponent of 0.31-0.33, against 0.03-0.13 on the closed-form textures (tests/test_measure_maps.py); at 0.3
 # the bands were too narrow on average (mean coverage 0.83, the end-to-end test in tests/test_calibrate.py
-# 0.79), because part of those errors is not breathing-shaped; 0.45 gives 0.87-0.88 there.
+# 0.79), because part of those errors is not breathing-shaped; 0.45 gives 0.87-0.88 there. Since session 7
+# the SML is an energy (squared second differences, focus.sml(energy=True)): the same sd is kept, now on the
+# energy's exponent (an amplitude gain m^k is m^2k on it), i.e. half the old one in amplitude terms. Checked,
+# not tuned: with the stage frames' share attributed from the true frame errors, the per-channel pistons of 7
+# breathing lenses of the benchmark give an RMS energy exponent of ~0.5; before, the same analysis gave
+# k < 0.01 on the widest-curve lens (the old term claimed 1.2 µm there) while edge tiles of narrow-curve lenses
+# were 0.6 µm off for another reason (the absolute values' phase dependence, focus.sml). The constant remains a
+# prior: one stack cannot identify k (its sensitivity varies by only 5-10 % over the field).
 MIN_TILE_PX = 32
 SML_SCALE_RESIDUAL_SD = 0.45
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
@@ -318,8 +325,9 @@ def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None
     if fbin > 1:
         plane = downsample(plane, fbin)
     c = m.cell
-    # the SML at frame 0's scale: its mean over a tile that follows the image is then invariant to breathing
-    m.maps["sml"][k] = focus.cell_sums(focus.sml(plane, scale), c)
+    # the SML at frame 0's scale: its mean over a tile that follows the image is then invariant to breathing; as
+    # an energy, also to the sub-pixel motion of the image across the pixel grid (focus.sml)
+    m.maps["sml"][k] = focus.cell_sums(focus.sml(plane, scale, energy=True), c)
     m.maps["sum"][k] = focus.cell_sums(plane, c)
     if "bandpass" in m.maps and m.strip is None:
         band = focus.bandpass(plane, m.f0_cyc_per_px / scale)
