@@ -42,14 +42,13 @@ from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_o
 # remaining per-channel errors of the 14 breathing lenses of the band-coverage benchmark (s6) amount to an RMS
 # exponent of 0.31-0.33, against 0.03-0.13 on the closed-form textures (tests/test_measure_maps.py); at 0.3
 # the bands were too narrow on average (mean coverage 0.83, the end-to-end test in tests/test_calibrate.py
-# 0.79), because part of those errors is not breathing-shaped; 0.45 gives 0.87-0.88 there. Since session 7
-# the SML is an energy (squared second differences, focus.sml(energy=True)): the same sd is kept, now on the
-# energy's exponent (an amplitude gain m^k is m^2k on it), i.e. half the old one in amplitude terms. Checked,
-# not tuned: with the stage frames' share attributed from the true frame errors, the per-channel pistons of 7
-# breathing lenses of the benchmark give an RMS energy exponent of ~0.5; before, the same analysis gave
-# k < 0.01 on the widest-curve lens (the old term claimed 1.2 µm there) while edge tiles of narrow-curve lenses
-# were 0.6 µm off for another reason (the absolute values' phase dependence, focus.sml). The constant remains a
-# prior: one stack cannot identify k (its sensitivity varies by only 5-10 % over the field).
+# 0.79), because part of those errors is not breathing-shaped; 0.45 gives 0.87-0.88 there. Since session 7 a
+# tile's SML curve is its RMS second difference (the root of the energy's mean, focus.sml(energy=True)): an
+# amplitude like the absolute values' mean, so k keeps its meaning and the sd is kept. Not re-tuned, and not
+# derived either: one stack cannot identify k (its sensitivity varies by only 5-10 % over the field). Evidence
+# (s7, docs/benchmarks.md): per-channel pistons less the stage frames' share (from the true frame errors) over
+# dz/dk give k of 0.12-1.8 on 15 channels of 8 breathing lenses (0.16 on the widest-curve one, where the
+# absolute-value SML's term claimed 1.2 µm); the pistons are not breathing-shaped enough to fit k from them.
 MIN_TILE_PX = 32
 SML_SCALE_RESIDUAL_SD = 0.45
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
@@ -1001,6 +1000,13 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                     continue
                 have[key] = (have[key] * a0 + curves[key] * a1) / (a0 + a1)
             have["area"] = a0 + a1
+    for cc in per_channel.values():
+        # The tile's RMS second difference: the energy's mean is what stays the same as the image crosses the pixel
+        # grid (focus.sml); its square root keeps the curve an amplitude, as the absolute values' was (the peak,
+        # skew and breathing models are of one: ln of it is half ln of the energy). The weighted positions take
+        # the energy, whose moments the maps hold.
+        cc["sml_energy"] = cc["sml"]
+        cc["sml"] = np.sqrt(np.maximum(cc["sml"], 0.0))
     cols: dict[str, list] = {k: [] for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um", "width_um",
                                              "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um", "stage_gain")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
@@ -1041,7 +1047,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         sens = _exponent_sensitivity(cc, geometry, ch, axes[ch].y(z), res, measure, q, rules)
         cols["z_dgamma_um"].append(sens * axes[ch].dz_dy(res["z_best_um"]))
         _to_z(res, axes[ch])
-        xw, yw = _weighted_positions(cc, geometry, ch, "sml" if measure in _SML_BASED else measure, tile, z,
+        xw, yw = _weighted_positions(cc, geometry, ch, "sml_energy" if measure in _SML_BASED else measure, tile, z,
                                      res["z_best_um"])
         ok = res["status"] == "ok"  # rejected tiles keep their geometric centre
         cols["x_px"].append(np.where(ok, xw, xs))
