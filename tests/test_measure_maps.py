@@ -376,7 +376,8 @@ def test_box_sampler_gives_box_sums_to_the_bit():
 def test_sml_energy_does_not_change_as_edges_cross_the_pixel_grid(sigma_px):
     """A chart of blurred squares moved by fractions of a pixel (as a breathing or drifting image moves across
     the grid through a scan): the energy of the second differences is the same at every phase (Parseval, the
-    image being band-limited), their absolute values are not (measured: 2-5 % against < 0.1 %)."""
+    image being band-limited), their absolute values are not (measured: 12 % and 6 % at 0.8 and 1.2 px blur, against
+    0.5 % and 0.02 %: the 0.8 px blur leaves 3 % contrast at Nyquist, which aliases)."""
     from scipy.special import erf
 
     s = math.sqrt(2.0) * math.hypot(sigma_px, 0.29)  # Gaussian blur and the pixel's own aperture
@@ -392,5 +393,5 @@ def test_sml_energy_does_not_change_as_edges_cross_the_pixel_grid(sigma_px):
         energy.append(float(focus.sml(img, energy=True)[16:-16, 16:-16].mean()))
         absolute.append(float(focus.sml(img)[16:-16, 16:-16].mean()))
     spread = lambda v: (max(v) - min(v)) / np.mean(v)  # noqa: E731
-    assert spread(energy) < 0.005
-    assert spread(absolute) > 0.015 and spread(absolute) > 10 * spread(energy)
+    assert spread(energy) < 0.01
+    assert spread(absolute) > 0.03 and spread(absolute) > 10 * spread(energy)
