@@ -593,7 +593,8 @@ def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: n
 
 
 def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurements, channel: str,
-                        measure_key: str, tile_px: int) -> tuple[np.ndarray, np.ndarray]:
+                        measure_key: str, tile_px: int, z: np.ndarray,
+                        z_best_um: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each tile's focus-measure-weighted centre (reference-frame px): where its best focus belongs.
 
     A tile's best focus is an average of the local best foci inside it, weighted by where its texture is; across
@@ -606,6 +607,11 @@ def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurement
     triplet (~1.5 µm of best focus per px, 20 µm steps) two scans of one lens then differed by a rho² mode of
     1.4-2.8 µm in the tiles' errors, which ``profile diff`` flagged; with the scan's sum the mode is gone
     (docs/measurement.md "Reported position"). The geometric centre instead put tiles 2.6 µm RMS off there.
+
+    The sum runs over the frames within the same distance of the tile's fitted best focus ``z_best_um`` on both
+    sides (the largest window the scan holds around it): a pixel whose curve the scan's end cuts off would
+    otherwise weigh less than its neighbours on the other side of best focus, pulling the position inwards
+    (the 256x144 triplet at 10 µm steps: surface RMS 0.67 -> 1.5 µm, 6.8 µm at the corners).
     """
     v = cc[measure_key]
     nt, n = v.shape
@@ -613,6 +619,10 @@ def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurement
     ci = geometry.channel_index(channel)
     cx, cy = geometry.centre_px
     half = 0.5 * tile_px
+    kbest = np.argmax(v, axis=1)
+    zb = np.where(np.isfinite(z_best_um), z_best_um, z[kbest])
+    reach = np.maximum(np.minimum(zb - z[0], z[-1] - zb), 0.0)
+    nearest = np.argmin(np.abs(z[None, :] - zb[:, None]), axis=1)
     sw, sx, sy = np.zeros(nt), np.zeros(nt), np.zeros(nt)
     for k in range(n):
         e = v[:, k] - floor
@@ -625,7 +635,8 @@ def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurement
         xk = np.where(bad, bx, np.clip(xk, bx - half, bx + half))
         yk = np.where(bad, by, np.clip(yk, by - half, by + half))
         m = geometry.magnification[k, ci]
-        w = np.where(bad, 0.0, e)
+        inside = (np.abs(z[k] - zb) <= reach) | (k == nearest)
+        w = np.where(bad | ~inside, 0.0, e)
         sw += w
         sx += w * (cx + (xk - cx - geometry.shift_x_px[k, ci]) / m)
         sy += w * (cy + (yk - cy - geometry.shift_y_px[k, ci]) / m)
@@ -1038,7 +1049,8 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         sens = _exponent_sensitivity(cc, geometry, ch, axes[ch].y(z), res, measure, q, rules)
         cols["z_dgamma_um"].append(sens * axes[ch].dz_dy(res["z_best_um"]))
         _to_z(res, axes[ch])
-        xw, yw = _weighted_positions(cc, geometry, ch, "sml_energy" if measure in _SML_BASED else measure, tile)
+        xw, yw = _weighted_positions(cc, geometry, ch, "sml_energy" if measure in _SML_BASED else measure, tile, z,
+                                     res["z_best_um"])
         ok = res["status"] == "ok"  # rejected tiles keep their geometric centre
         cols["x_px"].append(np.where(ok, xw, xs))
         cols["y_px"].append(np.where(ok, yw, ys))
