@@ -599,7 +599,7 @@ def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurement
 
     A tile's best focus is an average of the local best foci inside it, weighted by where its texture is; across
     a steep field-curvature gradient that is not the geometric centre. The weights are each pixel's energy above
-    the curve's floor summed over every frame of the scan: a pixel whose energy goes as ``a(u) f(z - s(u))``
+    the curve's floor summed over the scan's frames (window below): a pixel whose energy goes as ``a(u) f(z - s(u))``
     (texture strength a, local best focus s) weighs ``a(u) sum_k f(z_k - s(u))``, which is ``a(u)`` times the
     curve's area over the step wherever the curve spans more than a step, whatever s(u) and wherever the frames
     fall. Weights taken around the fitted best focus (interpolated between the two frames about it, or a kernel
