@@ -220,18 +220,16 @@ def test_coverage_with_stage_errors_and_self_check_agreement(tmp_path):
             too_far.append((k, rms, step))
         covs.append(cov)
         checks.append(prof.diagnostics["surface"]["self_check"]["coverage"])
-    # measured: coverage 0.78 / 0.82 / 0.87, self-check 0.94 / 0.97 / 0.90 (another noise draw gave 0.97 / 1.0 /
-    # 0.89 and 0.86 / 0.99 / 0.93): with three lenses the means differ by up to 0.12, so the window is 0.15; the
-    # 12-lens benchmark gives a mean |difference| of 0.08 (issue #14 asks 0.05: not met yet)
+    # measured: coverage 0.92 / 0.88 / 0.79, self-check 0.97 / 0.95 / 0.92, RMS 0.054 / 0.012 / 0.015 step (session 8;
+    # earlier draws gave means differing by up to 0.12, so the window is 0.15; the benchmark's mean |difference| is
+    # ~0.1, issue #14 asks 0.05: not met yet)
     assert 0.75 <= np.mean(covs) <= 0.98, covs
     assert abs(np.mean(checks) - np.mean(covs)) <= 0.15, (checks, covs)
-    assert all(k == 0 for k, *_ in too_far), too_far
-    if too_far:
-        # Known defect (session 6, after the renderer's sensor-PSF fix changed these stacks): on lens 0 at 256x192
-        # quick, BIC picks poly3+tilt+decentre (weight 0.94), whose extrapolation to the frame's corners (beyond
-        # the tiles) is 32 µm off at (0, 0) with a band half-width of 26 µm there: RMS 3.2 µm = 0.12 step over the
-        # whole grid. The band is nearly honest about it; the surface is not within 0.1 step.
-        pytest.xfail(f"corner extrapolation of the chosen model: {too_far}")
+    # Lens 0 (256x192, quick) was a known defect until session 8: its ring of edge tiles read low because the SML's
+    # absolute values change as the breathing image crosses the pixel grid (measure/focus.sml), and the surface
+    # carried that to the corners beyond the tiles: 3.2 µm RMS = 0.12 step. With the phase-invariant RMS second
+    # difference 1.5 µm = 0.054 step.
+    assert not too_far, too_far
 
 
 # --------------------------------------------------------------------------- wave-optics truth is kept

@@ -28,9 +28,14 @@ def calibrated(small_chart_stack):
 
 
 def _rough(prof, tau_factor=10.0):
-    """The same profile with a 10x larger discrepancy (its correlation length is already the fit's shortest)."""
+    """The same profile with a 10x larger discrepancy, at least 3x the tiles' noise sd, correlated over at most one
+    tile spacing: the kriged residual then follows the tiles' own residuals from tile to tile (a fit whose tiles
+    show little discrepancy, as since the SML became phase-invariant, would otherwise give a trivial one)."""
     d = prof.surfaces.discrepancy
-    rough = replace(d, tau=d.tau * tau_factor + 1e-3, _cache={})
+    floor = 3.0 * float(np.sqrt(np.median(d.noise_var)))
+    spacing = float(d.diagnostics.get("tile_spacing") or d.length_scale)
+    rough = replace(d, tau=np.maximum(d.tau * tau_factor, floor) + 1e-3, length_scale=min(d.length_scale, spacing),
+                    _cache={})
     out = replace(prof, surfaces=replace(prof.surfaces, discrepancy=rough))
     assert np.ptp(out.surfaces.predict_parts(np.arange(0.0, 256.0, 7.0), 70.0, "G")[1]) > 0.05  # not trivial
     return out

@@ -235,12 +235,17 @@ def test_texture_recovers_the_simulated_geometry():
 # --------------------------------------------------------------------------------- stacks, profiles, CLI
 @pytest.fixture(scope="module")
 def charuco_world(tmp_path_factory):
-    """A ChArUco stack of the distortion lens (stack.json records the board) and its calibrated profile."""
+    """A ChArUco stack of the distortion lens (stack.json records the board) and its calibrated profile.
+
+    The scan passes best focus everywhere with margin (the field's focus spans -70 µm at the corners to +11 µm,
+    R at the centre): over -120..40 µm the centre's and corners' curves did not close, and the surface fitted to
+    the board's few remaining tiles was an extrapolation (R 35-374 µm RMS), which calibrate rightly refuses once
+    the rejected tiles' brackets contradict it."""
     from fieldcal.cli import main
     root = tmp_path_factory.mktemp("charuco")
     spec = distorted_lens((320, 240))
     spec.save(root / "lens.json")
-    assert main(["simulate", str(root / "lens.json"), str(root / "S"), "--z", "-120", "40", "20", "--scene",
+    assert main(["simulate", str(root / "lens.json"), str(root / "S"), "--z", "-160", "80", "20", "--scene",
                  "charuco", "--quiet"]) == 0
     assert main(["calibrate", str(root / "S"), "--out", str(root / "p.json"), "--fs", "12", "--effort", "quick",
                  "--z-ref", "-40", "-q"]) == 0

@@ -173,8 +173,11 @@ def test_joint_uncertainty_has_the_profiles_own_bands(prof_path):
     x, y = np.meshgrid(np.linspace(0, w - 1, 6), np.linspace(0, h - 1, 4))
     e = surface_estimate(p, x.ravel(), y.ravel(), "G")
     lo, hi = p.best_focus_interval_um(x.ravel(), y.ravel(), "G", 0.9)
-    # a Gaussian band: half-width = 1.645 sd (the samples' quantiles, so within a few per cent)
-    np.testing.assert_allclose(0.5 * (hi - lo), 1.6449 * e.sd, rtol=0.08)
+    # a Gaussian band: half-width = 1.645 sd, within what the band's own shape allows: it is the quantiles of a
+    # model average's samples, a mixture of members whose surfaces differ, so not exactly Gaussian where they
+    # disagree (this fixture since session 8: top member at weight 0.72, ratios 0.94-1.09 over these points, the
+    # largest at the right edge; on main before it 0.99-1.02)
+    np.testing.assert_allclose(0.5 * (hi - lo), 1.6449 * e.sd, rtol=0.12)
     for ell in e.lengths:
         np.testing.assert_allclose(np.sqrt(np.diag(e.cov(ell))), e.sd, rtol=1e-9)
     z = 0.5 * sum(p.z_range_um)

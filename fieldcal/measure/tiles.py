@@ -42,7 +42,13 @@ from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_o
 # remaining per-channel errors of the 14 breathing lenses of the band-coverage benchmark (s6) amount to an RMS
 # exponent of 0.31-0.33, against 0.03-0.13 on the closed-form textures (tests/test_measure_maps.py); at 0.3
 # the bands were too narrow on average (mean coverage 0.83, the end-to-end test in tests/test_calibrate.py
-# 0.79), because part of those errors is not breathing-shaped; 0.45 gives 0.87-0.88 there.
+# 0.79), because part of those errors is not breathing-shaped; 0.45 gives 0.87-0.88 there. Since session 7 a
+# tile's SML curve is its RMS second difference (the root of the energy's mean, focus.sml(energy=True)): an
+# amplitude like the absolute values' mean, so k keeps its meaning and the sd is kept. Not re-tuned, and not
+# derived either: one stack cannot identify k (its sensitivity varies by only 5-10 % over the field). Evidence
+# (s7, docs/benchmarks.md): per-channel pistons less the stage frames' share (from the true frame errors) over
+# dz/dk give k of 0.12-1.8 on 15 channels of 8 breathing lenses (0.16 on the widest-curve one, where the
+# absolute-value SML's term claimed 1.2 µm); the pistons are not breathing-shaped enough to fit k from them.
 MIN_TILE_PX = 32
 SML_SCALE_RESIDUAL_SD = 0.45
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
@@ -318,8 +324,9 @@ def _focus_maps(m: _Maps, k: int, plane, fbin: int, scale: float, units) -> None
     if fbin > 1:
         plane = downsample(plane, fbin)
     c = m.cell
-    # the SML at frame 0's scale: its mean over a tile that follows the image is then invariant to breathing
-    m.maps["sml"][k] = focus.cell_sums(focus.sml(plane, scale), c)
+    # the SML at frame 0's scale: its mean over a tile that follows the image is then invariant to breathing; as
+    # an energy, also to the sub-pixel motion of the image across the pixel grid (focus.sml)
+    m.maps["sml"][k] = focus.cell_sums(focus.sml(plane, scale, energy=True), c)
     m.maps["sum"][k] = focus.cell_sums(plane, c)
     if "bandpass" in m.maps and m.strip is None:
         band = focus.bandpass(plane, m.f0_cyc_per_px / scale)
@@ -587,55 +594,57 @@ def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: n
 
 def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurements, channel: str,
                         measure_key: str, tile_px: int, z: np.ndarray,
-                        z_best_um: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Each tile's focus-measure-weighted centre (reference-frame px) at its best focus.
+                        z_best_um: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each tile's focus-measure-weighted centre (reference-frame px): where its best focus belongs.
 
-    A tile's best focus is an average of the local best foci inside it, weighted by where the texture's
-    focus energy is; across a steep field-curvature gradient that is not the geometric centre. The energy
-    above the curve's floor gives the weights, taken at the tile's fitted best focus ``z_best_um``
-    (interpolated between the two frames around it) — not at the sharpest frame: where a tile spans several
-    depths of focus only a strip of it is sharp in any one frame, and the strip sharp at the nearest frame
-    sits where the surface equals that frame's z, up to half a step away from the fitted best focus (the
-    tiles at the triplet's edge scattered by 1-3 µm at 10 µm steps from that alone).
+    A tile's best focus is an average of the local best foci inside it, weighted by where its texture is; across
+    a steep field-curvature gradient that is not the geometric centre. The weights are each pixel's energy above
+    the curve's floor summed over the scan's frames (window below): a pixel whose energy goes as ``a(u) f(z - s(u))``
+    (texture strength a, local best focus s) weighs ``a(u) sum_k f(z_k - s(u))``, which is ``a(u)`` times the
+    curve's area over the step wherever the curve spans more than a step, whatever s(u) and wherever the frames
+    fall. Weights taken around the fitted best focus (interpolated between the two frames about it, or a kernel
+    a step wide) follow the strip that is sharp there, and so where the scan's frames fall: on the 256x144
+    triplet (~1.5 µm of best focus per px, 20 µm steps) two scans of one lens then differed by a rho² mode of
+    1.4-2.8 µm in the tiles' errors, which ``profile diff`` flagged; with the scan's sum the mode is gone
+    (docs/measurement.md "Reported position"). The geometric centre instead put tiles 2.6 µm RMS off there.
+
+    The sum runs over the frames within the same distance of the tile's fitted best focus ``z_best_um`` on both
+    sides (the largest window the scan holds around it): a pixel whose curve the scan's end cuts off would
+    otherwise weigh less than its neighbours on the other side of best focus, pulling the position inwards
+    (the 256x144 triplet at 10 µm steps: surface RMS 0.67 -> 1.5 µm, 6.8 µm at the corners).
     """
     v = cc[measure_key]
     nt, n = v.shape
-    rows = np.arange(nt)
-    kbest = np.argmax(v, axis=1)
     floor = np.min(v, axis=1)
     ci = geometry.channel_index(channel)
     cx, cy = geometry.centre_px
     half = 0.5 * tile_px
-
-    def at(k):
-        """(energy above floor, centre x, centre y in reference px) of every tile in frames k (per tile)."""
-        e = v[rows, k] - floor
-        bx, by = cc["cx"][rows, k], cc["cy"][rows, k]
+    kbest = np.argmax(v, axis=1)
+    zb = np.where(np.isfinite(z_best_um), z_best_um, z[kbest])
+    reach = np.maximum(np.minimum(zb - z[0], z[-1] - zb), 0.0)
+    nearest = np.argmin(np.abs(z[None, :] - zb[:, None]), axis=1)
+    sw, sx, sy = np.zeros(nt), np.zeros(nt), np.zeros(nt)
+    for k in range(n):
+        e = v[:, k] - floor
+        bx, by = cc["cx"][:, k], cc["cy"][:, k]
         with np.errstate(divide="ignore", invalid="ignore"):
-            xk = (cc["mx"][rows, k] - floor * bx) / e
-            yk = (cc["my"][rows, k] - floor * by) / e
+            xk = (cc["mx"][:, k] - floor * bx) / e
+            yk = (cc["my"][:, k] - floor * by) / e
         bad = ~(e > 0) | ~np.isfinite(xk) | ~np.isfinite(yk)
-        # a weighted centre stays inside its tile (noise-only weights could push it anywhere)
+        # a frame's weighted centre stays inside its tile (noise-only weights could push it anywhere)
         xk = np.where(bad, bx, np.clip(xk, bx - half, bx + half))
         yk = np.where(bad, by, np.clip(yk, by - half, by + half))
         m = geometry.magnification[k, ci]
-        return (np.where(bad, 0.0, e), cx + (xk - cx - geometry.shift_x_px[k, ci]) / m,
-                cy + (yk - cy - geometry.shift_y_px[k, ci]) / m)
-
-    if z_best_um is None or n < 2:
-        _, x, y = at(kbest)
-        return x, y
-    zb = np.where(np.isfinite(z_best_um), z_best_um, z[kbest])
-    k0 = np.clip(np.searchsorted(z, zb) - 1, 0, n - 2)
-    t = np.clip((zb - z[k0]) / np.maximum(z[k0 + 1] - z[k0], 1e-12), 0.0, 1.0)
-    e0, x0, y0 = at(k0)
-    e1, x1, y1 = at(k0 + 1)
-    w0, w1 = (1.0 - t) * e0, t * e1
-    tot = w0 + w1
+        inside = (np.abs(z[k] - zb) <= reach) | (k == nearest)
+        w = np.where(bad | ~inside, 0.0, e)
+        sw += w
+        sx += w * (cx + (xk - cx - geometry.shift_x_px[k, ci]) / m)
+        sy += w * (cy + (yk - cy - geometry.shift_y_px[k, ci]) / m)
+    # no weight anywhere (a flat curve): the geometric centre, frame 0's box mapped back
+    x0 = cx + (cc["cx"][:, 0] - cx - geometry.shift_x_px[0, ci]) / geometry.magnification[0, ci]
+    y0 = cy + (cc["cy"][:, 0] - cy - geometry.shift_y_px[0, ci]) / geometry.magnification[0, ci]
     with np.errstate(divide="ignore", invalid="ignore"):
-        x = np.where(tot > 0, (w0 * x0 + w1 * x1) / tot, np.where(t < 0.5, x0, x1))
-        y = np.where(tot > 0, (w0 * y0 + w1 * y1) / tot, np.where(t < 0.5, y0, y1))
-    return x, y
+        return np.where(sw > 0, sx / sw, x0), np.where(sw > 0, sy / sw, y0)
 
 
 def _exponent_sensitivity(cc, geometry: GeometryMeasurements, channel: str, z: np.ndarray, res: dict,
@@ -993,6 +1002,13 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                     continue
                 have[key] = (have[key] * a0 + curves[key] * a1) / (a0 + a1)
             have["area"] = a0 + a1
+    for cc in per_channel.values():
+        # The tile's RMS second difference: the energy's mean is what stays the same as the image crosses the pixel
+        # grid (focus.sml); its square root keeps the curve an amplitude, as the absolute values' was (the peak,
+        # skew and breathing models are of one: ln of it is half ln of the energy). The weighted positions take
+        # the energy, whose moments the maps hold.
+        cc["sml_energy"] = cc["sml"]
+        cc["sml"] = np.sqrt(np.maximum(cc["sml"], 0.0))
     cols: dict[str, list] = {k: [] for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um", "width_um",
                                              "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um", "stage_gain")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
@@ -1033,7 +1049,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         sens = _exponent_sensitivity(cc, geometry, ch, axes[ch].y(z), res, measure, q, rules)
         cols["z_dgamma_um"].append(sens * axes[ch].dz_dy(res["z_best_um"]))
         _to_z(res, axes[ch])
-        xw, yw = _weighted_positions(cc, geometry, ch, "sml" if measure in _SML_BASED else measure, tile, z,
+        xw, yw = _weighted_positions(cc, geometry, ch, "sml_energy" if measure in _SML_BASED else measure, tile, z,
                                      res["z_best_um"])
         ok = res["status"] == "ok"  # rejected tiles keep their geometric centre
         cols["x_px"].append(np.where(ok, xw, xs))
