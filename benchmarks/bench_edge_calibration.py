@@ -17,7 +17,11 @@ Usage::
         --size 640x360 --step 10
     python benchmarks/bench_edge_calibration.py --random 10 --size 480x270 --step 20 --cache /tmp/edge-stacks
 
-Prints one line per lens and a markdown table (docs/benchmarks.md "bench_edge_calibration" with ``--docs``).
+``--decompose`` also splits each lens x channel's band against the truth, term by term (:func:`band_terms`,
+with ``bench_band_coverage.decompose`` / ``decomposition_summary`` for the piston, tilt and rest), and
+``--docs SECTION`` writes the tables into docs/benchmarks.md section ``bench_SECTION``.
+
+Prints one line per lens and a markdown table.
 """
 
 from __future__ import annotations
@@ -85,8 +89,79 @@ def honest_coverage_odds(prof, x_px: np.ndarray, y_px: np.ndarray, channel: str,
     return (float(np.mean((cov >= lo) & (cov <= hi))), float(np.mean(cov > hi)), float(np.mean(cov < lo)))
 
 
+TERMS = ("samples", "gp_local", "kriging_excess", "jackknife_excess", "misfit", "common", "window")
+
+
+def band_terms(prof, x_px: np.ndarray, y_px: np.ndarray, channel: str) -> dict[str, np.ndarray]:
+    """The variance (µm², per point) each term puts into the profile's band, as ``SurfaceFit._sample_surfaces``
+    assembles it: the posterior samples about the MAP (coefficients, centre, model average, Student-t),
+    the discrepancy GP's local variance, the kriging coefficient variance beyond the independent-row one, what
+    the block jackknife adds where it exceeds the kriging variance (the pointwise maximum), the misfit term,
+    the common mode and the tile-window systematic. Their sum is the band's variance at the points (to the
+    sampling of the band's quantiles)."""
+    from scipy.linalg import solve_triangular
+
+    s = prof.surfaces
+    d = s.discrepancy
+    ci = s._ch(channel)
+    xf, yf = np.ravel(x_px).astype(np.float64), np.ravel(y_px).astype(np.float64)
+    xh, yh = s.geometry.normalise(xf, yf)
+    zs2, c2 = float(s.z_scale_um) ** 2, float(s.band_scale) ** 2
+    z, _ = s._eval(s.samples, xf, yf, channel, model=s.sample_model)
+    z0, _ = s._eval(s.theta_map, xf, yf, channel)
+    out = {t: np.zeros(xf.size) for t in TERMS}
+    out["samples"] = c2 * zs2 * np.var(z - z0, axis=0)
+    if d is None:
+        return out
+    st = d._state()
+    p = st["p"]
+    H = d._design(xh, yh, ci)
+    Ha = np.hstack([H, np.zeros((H.shape[0], st["beta"].size - p))])
+    kc = np.einsum("mp,pq,mq->m", H, st["bare_cov"], H)
+    local = np.zeros(xf.size)
+    if ci in st["chol"] and d.tau[ci] > 0:
+        m = d.ch_index == ci
+        ks = d._kernel_rows(xh, yh, ci)
+        v = solve_triangular(st["chol"][ci][0], ks.T, lower=True)
+        r = (Ha - ks @ st["kinv_x"][m])[:, :p]
+        local = d.gp_identified() * np.clip(d.tau[ci] ** 2 - np.sum(v * v, axis=0), 0.0, None)
+        kc = np.einsum("mp,pq,mq->m", r, st["bare_cov"], r)
+    jk = np.einsum("mp,pq,mq->m", H, d.jk_cov, H) if d.jk_cov is not None else np.zeros(xf.size)
+    iid = np.einsum("mp,pq,mq->m", H, d.iid_cov, H)
+    mis = np.zeros(xf.size)
+    if d.rich_model is not None and d.misfit_scale > 0:
+        hr = d.rich_model.design(xh, yh, np.full(xh.size, ci), np.zeros(xh.size, np.int64), d.centre)
+        mis = d.misfit_scale * np.clip(np.einsum("mp,pq,mq->m", hr, d.rich_cov, hr) - iid, 0.0, None)
+    # predict(): clip(max(local + kc, local + jk) - iid, 0), split in the order local, kriging, jackknife
+    tot = np.clip(np.maximum(local + kc, local + jk) - iid, 0.0, None)
+    out["gp_local"] = np.minimum(local, tot)
+    out["kriging_excess"] = np.minimum(np.clip(kc - iid, 0.0, None), tot - out["gp_local"])
+    out["jackknife_excess"] = tot - out["gp_local"] - out["kriging_excess"]
+    out = {k: (c2 * zs2 * v if k in ("gp_local", "kriging_excess", "jackknife_excess") else v) for k, v in out.items()}
+    out["misfit"] = c2 * zs2 * mis
+    out["common"] = np.full(xf.size, zs2 * float(d.common_sd[ci]) ** 2 if d.common_sd is not None else 0.0)
+    out["window"] = zs2 * np.broadcast_to(s._window_var(xf, yf, channel), xf.shape)
+    return out
+
+
+def rows_piston(prof, truth, channel: str) -> tuple[float, float]:
+    """(inverse-variance mean of the fitted rows' error against the truth at their own positions, its sd from
+    the rows' fitted noise alone) in µm: a field-wide error of the measurement shows as the first exceeding
+    the second, before any surface is fitted."""
+    s = prof.surfaces
+    d = s.discrepancy
+    ci = s._ch(channel)
+    m = d.ch_index == ci
+    g = s.geometry
+    x = d.x_hat[m] * g.half_diagonal_px + g.centre_px[0]
+    y = d.y_hat[m] * g.half_diagonal_px + g.centre_px[1]
+    err = s.z_centre_um + s.z_scale_um * d.target[m] - np.asarray(truth.best_focus_um(x, y, channel))
+    w = 1.0 / (d.noise_var[m] * float(s.z_scale_um) ** 2)
+    return float(np.sum(w * err) / np.sum(w)), float(1.0 / np.sqrt(np.sum(w)))
+
+
 def run_lens(spec, name: str, size, step_um: float, optics: str, effort: str, seed: int, tmp: Path,
-             scene: str = "slanted-edge", frames: int = 0) -> dict:
+             scene: str = "slanted-edge", frames: int = 0, decompose_band: bool = False) -> dict:
     from fieldcal.calibration.pipeline import calibrate
     from fieldcal.plan import StackRequest, plan_stack
     from fieldcal.simulate.stackgen import simulate_stack, z_grid
@@ -109,7 +184,7 @@ def run_lens(spec, name: str, size, step_um: float, optics: str, effort: str, se
     c0 = time.process_time()
     t0 = time.perf_counter()
     prof = calibrate(st.path, effort=effort, fs_cyc_per_mm=fs, seed=seed, quiet=True)
-    row = {"lens": name, "frames": len(st), "cal_cpu_s": time.process_time() - c0,
+    row = {"lens": name, "frames": len(st), "cal_cpu_s": time.process_time() - c0, "step_um": float(step_um),
            "cal_wall_s": time.perf_counter() - t0,
            "measurement": prof.calibration.get("measurement")}
     truth = TruthProfile(spec, w, h, z_ref_um=prof.z_ref_um, optics=optics, fs_cyc_per_mm=fs)
@@ -128,6 +203,13 @@ def run_lens(spec, name: str, size, step_um: float, optics: str, effort: str, se
     sc = (prof.diagnostics.get("surface") or {}).get("self_check") or {}
     row["field_share"] = float(sc.get("field_wide_share", float("nan")))
     row.update(_ts_errors(prof, truth, w, h))
+    if decompose_band and prof.surfaces.discrepancy is not None:
+        from bench_band_coverage import decompose
+        lens = {"spec": spec, "fs": fs, "optics": optics, "stage_backlash_um": 0.0, "stage_scale_error": 0.0}
+        row.update(decompose(prof, lens))
+        terms = [band_terms(prof, gxs, gys, c) for c in prof.channels]
+        row["term_sd_um"] = {t: [float(np.sqrt(np.mean(v[t]))) for v in terms] for t in TERMS}
+        row["rows_piston"] = [rows_piston(prof, truth, c) for c in prof.channels]
     q = 0.05
     gx, gy = np.meshgrid(np.linspace(0.05, 0.95, 15) * (w - 1), np.linspace(0.05, 0.95, 9) * (h - 1))
     true_tol = true_tolerances(truth.spec, fs, q)
@@ -178,6 +260,51 @@ def summary(rows, lo: float = 0.85, hi: float = 0.95) -> str:
             f"{min(tol):.3f}-{max(tol):.3f}")
 
 
+def decomposition_table(rows) -> str:
+    """Per lens (channels averaged): the band's sd by term (grid RMS, µm), the true error's piston / tilt / rest
+    against the sd the profile states for each (``bench_band_coverage.decompose``), and the rows' own
+    field-wide error (:func:`rows_piston`); then the pooled summary (``decomposition_summary``: piston z RMS,
+    median |tilt| z, median rest / local sd, ML multiplier of the common mode) and the rows' field-wide error
+    split into the part the channels share (frame-level) and the part each channel has alone."""
+    from bench_band_coverage import decomposition_summary
+
+    dec = [r for r in rows if "term_sd_um" in r]
+    if not dec:
+        return ""
+    lines = ["| lens | coverage | worst-channel error RMS (µm) | " + " | ".join(f"{t} sd" for t in TERMS)
+             + " | piston error (µm) | piston stated sd | rows' field-wide error ± noise se (µm) | rest RMS / local sd |",
+             "|" + " --- |" * (len(TERMS) + 7)]
+    for r in dec:
+        n = len(r["dec_piston_um"])
+        ps = [math.sqrt(r["dec_coef_piston_var"][i] + sum(r[f"dec_{t}_var"][i] for t in ("frames", "common", "breathing", "offset"))) for i in range(n)]
+        cells = [r["lens"], " / ".join(f"{c:.2f}" for c in r["coverages"]), f"{r['rms_step'] * r['step_um']:.2f}"]
+        cells += [f"{np.mean(r['term_sd_um'][t]):.2f}" for t in TERMS]
+        cells += [" / ".join(f"{v:+.2f}" for v in r["dec_piston_um"]), " / ".join(f"{v:.2f}" for v in ps),
+                  " / ".join(f"{a:+.2f}±{b:.2f}" for a, b in r["rows_piston"]),
+                  " / ".join(f"{a / math.sqrt(max(b, 1e-12)):.2f}" for a, b in zip(r["dec_rest_um"], r["dec_local_var"]))]
+        lines.append("| " + " | ".join(cells) + " |")
+    sm = decomposition_summary(dec)
+    rp = np.array([v for r in dec for v in r["rows_piston"]])
+    # the rows' field-wide errors: shared by a lens's channels (the frames) or each channel's own
+    per_lens = [np.array(r["rows_piston"]) for r in dec]
+    shared = np.array([a[:, 0].mean() for a in per_lens])
+    own = np.concatenate([a[:, 0] - a[:, 0].mean() for a in per_lens])
+    se2 = np.mean(rp[:, 1] ** 2)
+    k = np.mean([len(a) for a in per_lens])
+    common = np.array([v for r in dec for v in r["term_sd_um"]["common"]])
+    excess = math.sqrt(max(np.mean(rp[:, 0] ** 2) - se2, 0.0))
+    lines += ["", (f"Pooled ({sm['n']} lens x channels): piston error / stated sd RMS {sm['piston_z_rms']:.2f} (honest 1), "
+                   f"median |piston| z {sm['piston_z_med']:.2f} (0.67), median |tilt| z {sm['tilt_z_med']:.2f} (0.67), "
+                   f"median rest RMS / local sd {sm['rest_local_med']:.2f} (~1); ML multiplier of the common mode's "
+                   f"variance {sm.get('ml_common', float('nan')):.2f} (1 honest, < 1 overstated). The rows' own field-wide "
+                   f"error (before any surface): RMS {math.sqrt(np.mean(rp[:, 0] ** 2)):.3f} µm against a noise se of "
+                   f"{math.sqrt(se2):.3f} µm, an excess of {excess:.3f} µm (stated common mode {common.mean():.3f} µm); "
+                   f"shared by a lens's channels RMS {math.sqrt(np.mean(shared ** 2)):.3f} µm (noise alone "
+                   f"{math.sqrt(se2 / k):.3f}), each channel's own RMS {math.sqrt(np.mean(own ** 2) * k / max(k - 1, 1)):.3f} µm "
+                   f"(noise alone {math.sqrt(se2):.3f}).")]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--lens", action="append", default=[], help="lens spec(s) (default models/triplet-astigmatic.json)")
@@ -190,6 +317,8 @@ def main(argv=None) -> int:
     ap.add_argument("--effort", default="standard")
     ap.add_argument("--scene", default="slanted-edge", help="slanted-edge, or chart for the texture path")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--decompose", action="store_true", help="split each band against the truth, term by term")
+    ap.add_argument("--docs", default="", help="write the tables into docs/benchmarks.md section bench_DOCS")
     ap.add_argument("--cache", default="", help="keep the rendered stacks in this folder and reuse them "
                                                  "(keyed by lens name, optics, scene, size, step and seed)")
     args = ap.parse_args(argv)
@@ -206,13 +335,21 @@ def main(argv=None) -> int:
         where.mkdir(parents=True, exist_ok=True)
         for name, spec in lenses:
             r = run_lens(spec, name, size, args.step, args.optics, args.effort, args.seed, where, args.scene,
-                        args.frames)
+                         args.frames, decompose_band=args.decompose)
             rows.append(r)
-            print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}, flush=True)
+            print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()
+                   if not k.startswith("dec_") and k != "term_sd_um"}, flush=True)
     # the whole process: rendering the stack included (an upper bound for the calibration)
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     print(table(rows))
     print(summary(rows))
+    dec = decomposition_table(rows) if args.decompose else ""
+    if dec:
+        print(dec)
+    if args.docs:
+        from _common import write_docs_section
+        cmd = "python benchmarks/bench_edge_calibration.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        write_docs_section(args.docs, "\n\n".join(x for x in (f"`{cmd}`", table(rows), summary(rows), dec) if x))
     return 0
 
 
