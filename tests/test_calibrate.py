@@ -64,7 +64,7 @@ def test_flat_lens_selects_no_curvature_and_tilted_sensor_gets_tilt_only(tmp_pat
 @pytest.mark.xfail(reason="known defect (session 8 merges, traced session 9): at 256x144 the outer tiles on steep "
                    "focus gradients read 0.7-0.9 µm above their window mean (a skewed within-tile focus spread, not "
                    "modelled by the window correction); extrapolated to the corners: R RMS 1.89 µm (0.19 step, "
-                   "max 7.1 µm), coverage 0.78", strict=False)
+                   "max 7.1 µm), coverage 0.65", strict=False)
 def test_standard_effort_accuracy_band_and_extrapolation_on_the_triplet(small_chart_stack, triplet_path):
     """The paper's triplet at 256x144: surface RMS <= 0.1 scan step, band holds the truth at >= 80 % of points,
     and is wider at the corners (outside the tile grid) than at the centre."""
