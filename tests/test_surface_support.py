@@ -105,10 +105,16 @@ def test_centre_support_flags_an_unmeasured_centre():
     assert centre_support(_Plane(-40, 0, 5), near, "G")["warning"] is None
 
 
-@pytest.mark.xfail(reason="known defect found at the session-8 merge: with the phase-invariant SML, the one-SE model "
-                   "choice and the diameter-squared blend together, this stack is neither refused nor given an "
-                   "honest extrapolated band (G centre band ends at -44 µm, truth -5.8 µm); each branch alone "
-                   "refused it or held the truth", strict=False)
+# Traced in session 9: the render decides it, not the fit: main's code on the stack rendered before the
+# disc-squared blend holds G's truth (band -313..1 µm) but not B's (-150..-21, truth -6.9); on the blended stack
+# G's band is -196..-39.5 (truth -5.8) with poly2+tilt chosen by both the one-SE rule and the shared score. The
+# fitted ChArUco tiles (a ring 86-128 px from the centre) err by -10..+6 µm against reported sds of 0.1-2 µm,
+# and the band of an extrapolation 2.7 tile spacings inwards does not carry that. The centre tiles' brackets
+# (-40..inf: with five frames the three second differences of a curve are its shape, read as noise) touch the
+# band's top by 0.5 µm, so nothing is contradicted.
+@pytest.mark.xfail(reason="known defect (session 8 merges, traced session 9): the centre is extrapolated 86 px "
+                   "from ChArUco tiles whose errors are 3-30x their stated sd; G centre band -196..-39.5 µm, truth "
+                   "-5.8 µm, and no bracket contradicts it", strict=False)
 def test_charuco_stack_with_an_unclosed_centre_is_refused_or_flagged(tmp_path):
     """The reported case: a 320x240 ChArUco stack over -100..20 um (the centre's focus, -5.8 um, one frame from
     the end): every centre tile is rejected, and the old surface put the calibrated focus at about -300 um with

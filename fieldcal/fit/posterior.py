@@ -126,16 +126,23 @@ def laplace(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, n_samples: i
     h = np.full(x0.size, 1e-4)  # normalised units: coefficients and log-scales are O(1)
     ok_pd = False
     cov = None
-    for _ in range(2):  # second pass with steps matched to the first pass's standard deviations
-        H = numerical_hessian(neg_lp, x0, h)
+    axes = np.eye(x0.size)
+    for _ in range(2):
+        # Second pass: steps of a tenth of the first pass's sd along its principal axes. Along the coordinate
+        # axes (the marginal sds) a step in one of strongly correlated coefficients (rho^0, rho^2, rho^4 over
+        # tiles that stop short of the corners) is ~1 sd of that coefficient with the others held, and the
+        # Student-t's departure from a quadratic over that step is ~4 % of entries ~1e5 times the smallest
+        # eigenvalue (~30): the triplet's poly2+tilt Hessian read -240 there (+181 by a 1-D second difference
+        # along that direction), and the best-scoring model was dropped as "unidentified".
+        H = axes @ numerical_hessian(lambda u: neg_lp(x0 + u @ axes.T), np.zeros(x0.size), h) @ axes.T
         if not np.all(np.isfinite(H)):
             break
         w, V = np.linalg.eigh(0.5 * (H + H.T))
         ok_pd = bool(w.min() > 0)
         wpos = np.maximum(w, 1e-12 * max(w.max(), 1e-300))
         cov = (V / wpos) @ V.T
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        h = np.clip(0.1 * sd, 1e-7, 1e-2)
+        axes = V
+        h = np.clip(0.1 / np.sqrt(wpos), 1e-7, 1e-2)
     if cov is None:
         cov = np.diag(np.full(x0.size, 1e-12))
     rng = np.random.default_rng(seed)
