@@ -822,16 +822,20 @@ BAND_CURVATURE_REL_SD = 0.5
 
 
 def band_frequency_terms(lo: list[CurveFit], mid: list[CurveFit], hi: list[CurveFit],
-                         half_span_ln: float) -> dict:
+                         half_span_ln: float, shared_sd_um: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict:
     """How the band-pass's peak moves with frequency, pooled over tiles: slope and curvature in ln f.
 
     ``lo``, ``mid``, ``hi``: the same tiles' band-pass fits at ``fs e^-h``, ``fs``, ``fs e^+h`` (h =
     ``half_span_ln``). Per tile the first difference ``(z_hi - z_lo) / 2h`` and the second difference
     ``(z_hi - 2 z_fs + z_lo) / h^2`` are pooled (:func:`pooled_mean`, Birge-inflated by their scatter).
 
+    ``shared_sd_um`` (lo, fs, hi): the sd of an error every tile of a band shares (its pooled skew shift,
+    :func:`apply_pooled_skew`), which the tiles' scatter cannot show: added in quadrature through the differences.
+
     Returns ``{"freq_slope_um", "freq_slope_sd_um", "freq_curv_um", "freq_curv_sd_um", "freq_n_tiles"}`` (µm per
     unit ln f and per unit ln f^2); without the fs fits (``mid`` empty) no curvature keys; {} with < 2 tiles.
     """
+    e_lo, e_fs, e_hi = (float(v) for v in shared_sd_um)
     out: dict = {}
     both = [(a, b) for a, b in zip(lo, hi) if a.status == STATUS_OK and b.status == STATUS_OK]
     if len(both) < 2:
@@ -839,6 +843,7 @@ def band_frequency_terms(lo: list[CurveFit], mid: list[CurveFit], hi: list[Curve
     d = np.array([b.z_best_um - a.z_best_um for a, b in both])
     sd = np.array([math.hypot(a.z_sigma_um, b.z_sigma_um) for a, b in both])
     m, se, _ = pooled_mean(d, sd)
+    se = math.sqrt(se * se + e_lo * e_lo + e_hi * e_hi)
     out.update(freq_slope_um=m / (2.0 * half_span_ln), freq_slope_sd_um=se / (2.0 * half_span_ln),
                freq_n_tiles=float(len(both)))
     three = [(a, c, b) for a, c, b in zip(lo, mid, hi) if STATUS_OK == a.status == b.status == c.status]
@@ -848,6 +853,7 @@ def band_frequency_terms(lo: list[CurveFit], mid: list[CurveFit], hi: list[Curve
         sd2 = np.array([math.sqrt(a.z_sigma_um ** 2 + 4.0 * c.z_sigma_um ** 2 + b.z_sigma_um ** 2)
                         for a, c, b in three])
         m2, se2, _ = pooled_mean(d2, sd2)
+        se2 = math.sqrt(se2 * se2 + e_lo * e_lo + 4.0 * e_fs * e_fs + e_hi * e_hi)
         out.update(freq_curv_um=m2 / half_span_ln ** 2, freq_curv_sd_um=se2 / half_span_ln ** 2)
     return out
 

@@ -843,10 +843,16 @@ def _frequency_slope(cc: dict[str, np.ndarray], z: np.ndarray, fs_cyc_per_mm: fl
         # skews them all, and a band whose own evidence is weaker (the broader low band, or a noisier high one)
         # would otherwise keep part of its curve's centre, which the slope and curvature then read as a frequency
         # dependence (F/8, W040 0.3 waves: the high band's weight 0.3 put d2z/dln f^2 at half its value)
-        w = max(pooled_skew_shift(f)[2] for f in fits)
+        pooled = [pooled_skew_shift(f) for f in fits]
+        w = max(p[2] for p in pooled)
         fits = [apply_pooled_skew(f, apply=True, weight=w)[0] for f in fits]
+        # each band's pooled shift is one draw shared by its tiles: its sd joins the differences' (w ~ 1 here)
+        shared = [math.sqrt(w) * p[1] for p in pooled] + [0.0] * (3 - len(pooled))
+    else:
+        shared = [0.0, 0.0, 0.0]
     half = 0.5 * math.log(fs_strip.SLOPE_FACTORS[1] / fs_strip.SLOPE_FACTORS[0])
-    rec = band_frequency_terms(fits[0], fits[2] if len(fits) > 2 else [], fits[1], half)
+    rec = band_frequency_terms(fits[0], fits[2] if len(fits) > 2 else [], fits[1], half,
+                               (shared[0], shared[2], shared[1]))
     if not rec:
         return {}
     both = [(a, b) for a, b in zip(fits[0], fits[1]) if a.status == "ok" and b.status == "ok"]
