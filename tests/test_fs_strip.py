@@ -148,10 +148,11 @@ def test_band_pass_peak_error_from_the_measured_frequency_slope(w040_um):
     """The band-pass weights a band of frequencies about fs; with spherical aberration the sharpest position moves
     with frequency, so its peak is that of the band's effective frequency. The slope dz/dln f measured either side
     of fs matches the closed form (peaks of the SA OTF at those frequencies), the effective frequency lies inside
-    the band, and the measure's band term (fit.tiles.measure_offset_sd_um) is |ln(f_eff / fs)| x |slope| (with
-    the slope's sd); without spherical aberration the slope is 0 within its sd and the term is ~0. Before, the
-    band had no such term: a band-pass profile stated 0 for it."""
-    from fieldcal.fit.tiles import measure_offset_sd_um
+    the band, and the measure's band term (fit.tiles.measure_offset_sd_um) is the sd of the correction that moves
+    the band's peak to fs (fit.tiles.band_correction_um; tests/test_band_frequency.py); without spherical
+    aberration the slope is 0 within its sd and the term is ~0. Before, the band had no such term: a band-pass
+    profile stated 0 for it."""
+    from fieldcal.fit.tiles import band_correction_um, measure_offset_sd_um
     from fieldcal.measure.tiles import measure_stack
 
     fs = 30.0  # cycles/mm: 0.15 cycles/px
@@ -165,7 +166,9 @@ def test_band_pass_peak_error_from_the_measured_frequency_slope(w040_um):
     lo, hi = (_sharpest_um(fs * 1e-3 * r, w040_um) for r in fs_strip.SLOPE_FACTORS)
     expect = (hi - lo) / math.log(fs_strip.SLOPE_FACTORS[1] / fs_strip.SLOPE_FACTORS[0])
     band = measure_offset_sd_um(table)["Y"]
-    assert band == pytest.approx(abs(shift) * math.hypot(slope, sd), rel=1e-9)
+    # the band term is the sd of the correction that moves the band's peak to fs (slope and curvature of z(ln f))
+    assert "freq_curv_um" in rec and rec["freq_curv_sd_um"] > 0
+    assert band == pytest.approx(band_correction_um(rec)[1], rel=1e-9)
     if w040_um == 0.0:
         assert expect == 0.0 and abs(slope) < 3.0 * sd and band < 0.02
     else:

@@ -36,11 +36,19 @@ def fit_tile_surfaces(table, geometry, *, channels: tuple[str, ...], effort: str
     Returns
     -------
     (SurfaceFit, TileData)
-        The fit and the accepted tiles corrected to tile-centre values.
+        The fit and the accepted tiles corrected to tile-centre values (and from the band-pass's band to fs,
+        :func:`band_corrections_um`).
     """
     from fieldcal.fit import TileData, fit_surfaces
 
     tiles = TileData.from_table(table, source=source)
+    # The band-pass peaks at the mean sharpest position of its band, not at fs's: with spherical aberration near
+    # diffraction that is 0.05-0.1 scan step, the same over a channel (measure.throughfocus.band_peak_correction_um)
+    band = band_corrections_um(table)
+    if any(band.values()):
+        shift = np.array([band.get(str(c), 0.0) for c in tiles.channel])
+        tiles = replace(tiles, z_best_um=tiles.z_best_um + shift, z_tan_um=tiles.z_tan_um + shift,
+                        z_sag_um=tiles.z_sag_um + shift)
     # A tile measures the surface averaged over its window, not at its centre: for a surface with Laplacian
     # L the difference is kappa L s^2 / 24 (s = tile side; kappa = 1 for a uniform square window), -0.33 µm
     # for the triplet at 30 px tiles — most of the error budget. One MAP of a rich model gives L at every
@@ -136,13 +144,13 @@ def measure_offset_sd_um(table) -> dict[str, float]:
     :mod:`fieldcal.measure.fs_strip`): its error is one draw for the whole field, a band term no fit of the
     tiles can see. A channel that borrowed the others' offset carries it in its tiles' sds already (0 here).
 
-    With it, in quadrature, the error of taking the band-pass's peak for the sharpest position at fs: the
+    With it, in quadrature, the error of the band-pass's peak moved to the sharpest position at fs: the
     band-pass weights a band of frequencies about fs, and where the sharpest position moves with frequency
-    (spherical aberration) its peak sits at the band's effective frequency, which the image's spectrum and the
-    curves' sharpness set: ``|dz/dln f| x |ln(f_eff / fs)|``, both measured on this stack either side of fs
-    (:func:`fieldcal.measure.fs_strip.frequency_sd_um`; ~0 on a lens without spherical aberration).
+    (spherical aberration) its peak is the band's weighted mean of them; :func:`band_correction_um` moves the
+    tiles there, and this is that correction's sd (the measured slope and curvature of z(ln f) and the
+    expansion's model error; ~0 on a lens without spherical aberration). A record without the curvature (no fs
+    band on the slope strip's tiles) is not corrected: its term is ``|dz/dln f| x |ln(f_eff / fs)|``.
     """
-    from fieldcal.measure.fs_strip import frequency_sd_um
     from fieldcal.measure.throughfocus import offset_sd_um
     out = {}
     for c, rec in (getattr(table, "skew", None) or {}).items():
@@ -150,12 +158,26 @@ def measure_offset_sd_um(table) -> dict[str, float]:
             out[str(c)] = 0.0
             continue
         own = 0.0 if "offset_from" in rec else offset_sd_um(rec)
-        # the band-pass's own peak is that of its band, not of fs alone: where the sharpest position moves with
-        # frequency (spherical aberration), by |dz/dln f| x ln(f_eff / fs) (fs_strip.frequency_sd_um)
-        freq = frequency_sd_um(float(rec.get("freq_slope_um", 0.0)), float(rec.get("freq_slope_sd_um", 0.0)),
-                               float(rec.get("freq_shift_ln", 0.0)))
-        out[str(c)] = math.hypot(own, freq)
+        # the band-pass's own peak is that of its band, not of fs alone: the error of moving it to fs
+        out[str(c)] = math.hypot(own, band_correction_um(rec)[1])
     return out
+
+
+def band_correction_um(rec: dict) -> tuple[float, float]:
+    """(correction, sd) µm of one channel's ``table.skew`` record: what moves the band-pass measure's peak (and
+    the ``"sml@fs"`` best foci, which the offset put there) to the sharpest position at fs itself
+    (:func:`fieldcal.measure.throughfocus.band_peak_correction_um` with the log-Gabor ring's ln-f variance)."""
+    from fieldcal.measure.fs_strip import BAND_LOG_VAR
+    from fieldcal.measure.throughfocus import band_peak_correction_um
+    if not isinstance(rec, dict):
+        return 0.0, 0.0
+    return band_peak_correction_um(rec, BAND_LOG_VAR)
+
+
+def band_corrections_um(table) -> dict[str, float]:
+    """Per channel, :func:`band_correction_um` of its ``table.skew`` record (none for a channel without one: a
+    table whose best focus is not the band-pass's, ``measure="sml"``, has no record of the slope)."""
+    return {str(c): band_correction_um(rec)[0] for c, rec in (getattr(table, "skew", None) or {}).items()}
 
 
 def breathing_systematic_sd_um(table) -> dict[str, float]:

@@ -514,14 +514,18 @@ def pooled_mean(d, sd) -> tuple[float, float, float]:
     return mean, se, weight
 
 
-def apply_pooled_skew(fits: list[CurveFit], apply: bool = True) -> tuple[list[CurveFit], dict]:
+def apply_pooled_skew(fits: list[CurveFit], apply: bool = True,
+                      weight: float | None = None) -> tuple[list[CurveFit], dict]:
     """Every accepted curve's best focus = its symmetric centre + the pooled skew shift (evidence-weighted);
     its variance adds the pooled shift's. Curves without a symmetric centre keep their own estimate.
 
-    ``apply=False``: the centre alone (the shift is still measured and returned, for the record).
+    ``apply=False``: the centre alone (the shift is still measured and returned, for the record). ``weight``: the
+    evidence weight to use instead of these curves' own (the side bands of :func:`band_frequency_terms` take
+    the largest of the three bands': one pupil's spherical aberration skews them all).
     """
     from dataclasses import replace as _replace
-    mean, se, weight = pooled_skew_shift(fits)
+    mean, se, own = pooled_skew_shift(fits)
+    weight = own if weight is None else float(weight)
     info = {"shift_um": mean, "sd_um": se, "weight": weight, "applied": bool(apply)}
     if not apply:
         weight = 0.0
@@ -802,3 +806,96 @@ def _half_width_units(v, i_max, floor, height, step_units_z, z):
 
 # x where D(x)^2 = 1/2, for the initial guess of the blur scale.
 _X_HALF_ENERGY = disc_x_at_contrast(math.sqrt(0.5))
+
+
+# ----------------------------------------------------------------------------- the band-pass's band, not fs
+# Relative uncertainty of the two terms of :func:`band_peak_correction_um` (the parts of the expansion it cannot
+# check on the stack): the effective-frequency shift comes from a local power law of the band energy x sharpness
+# (fs_strip.effective_shift_ln), the curvature term from a parabola in ln f through three bands; the next terms
+# (d3z/dln f^3, the peak of a sum of skewed curves not being the weighted mean of their peaks) are not measured.
+# On band-pass curves built from the exact pupil OTF (W040 0.3-1.2 waves, F/4-F/8, 470-610 nm, texture spectra
+# f^-2 and f^-3, two to three sampling phases) what the correction leaves is up to 0.6 x the first term (F/4,
+# 1.2 waves) and 0.35 x the curvature term (F/8, 0.3 waves at 610 nm): half of each is the sd
+# (tests/test_band_frequency.py checks the corrected peaks against it).
+BAND_FIRST_ORDER_REL_SD = 0.5
+BAND_CURVATURE_REL_SD = 0.5
+
+
+def band_frequency_terms(lo: list[CurveFit], mid: list[CurveFit], hi: list[CurveFit],
+                         half_span_ln: float, shared_sd_um: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict:
+    """How the band-pass's peak moves with frequency, pooled over tiles: slope and curvature in ln f.
+
+    ``lo``, ``mid``, ``hi``: the same tiles' band-pass fits at ``fs e^-h``, ``fs``, ``fs e^+h`` (h =
+    ``half_span_ln``). Per tile the first difference ``(z_hi - z_lo) / 2h`` and the second difference
+    ``(z_hi - 2 z_fs + z_lo) / h^2`` are pooled (:func:`pooled_mean`, Birge-inflated by their scatter).
+
+    ``shared_sd_um`` (lo, fs, hi): the sd of an error every tile of a band shares (its pooled skew shift,
+    :func:`apply_pooled_skew`), which the tiles' scatter cannot show: added in quadrature through the differences.
+
+    Returns ``{"freq_slope_um", "freq_slope_sd_um", "freq_curv_um", "freq_curv_sd_um", "freq_n_tiles"}`` (µm per
+    unit ln f and per unit ln f^2); without the fs fits (``mid`` empty) no curvature keys; {} with < 2 tiles.
+    """
+    e_lo, e_fs, e_hi = (float(v) for v in shared_sd_um)
+    out: dict = {}
+    both = [(a, b) for a, b in zip(lo, hi) if a.status == STATUS_OK and b.status == STATUS_OK]
+    if len(both) < 2:
+        return out
+    d = np.array([b.z_best_um - a.z_best_um for a, b in both])
+    sd = np.array([math.hypot(a.z_sigma_um, b.z_sigma_um) for a, b in both])
+    m, se, _ = pooled_mean(d, sd)
+    se = math.sqrt(se * se + e_lo * e_lo + e_hi * e_hi)
+    out.update(freq_slope_um=m / (2.0 * half_span_ln), freq_slope_sd_um=se / (2.0 * half_span_ln),
+               freq_n_tiles=float(len(both)))
+    three = [(a, c, b) for a, c, b in zip(lo, mid, hi) if STATUS_OK == a.status == b.status == c.status]
+    if len(three) >= 2:
+        d2 = np.array([b.z_best_um - 2.0 * c.z_best_um + a.z_best_um for a, c, b in three])
+        # the three bands' errors taken as independent: their overlap (they see the same texture) only lowers it
+        sd2 = np.array([math.sqrt(a.z_sigma_um ** 2 + 4.0 * c.z_sigma_um ** 2 + b.z_sigma_um ** 2)
+                        for a, c, b in three])
+        m2, se2, _ = pooled_mean(d2, sd2)
+        se2 = math.sqrt(se2 * se2 + e_lo * e_lo + 4.0 * e_fs * e_fs + e_hi * e_hi)
+        out.update(freq_curv_um=m2 / half_span_ln ** 2, freq_curv_sd_um=se2 / half_span_ln ** 2)
+    return out
+
+
+def band_peak_correction_um(rec: dict, band_log_var: float) -> tuple[float, float]:
+    """(correction, sd) in µm: what to add to a band-pass peak to get the sharpest position at fs itself.
+
+    The log-Gabor ring weights the band energy by a Gaussian in ln f of variance ``V = band_log_var``; the
+    measure's peak is, to first order in the spread of the peaks across the band, the mean of the peaks
+    ``z(ln f)`` of the frequencies in it, weighted by that Gaussian x the band energy at the peak x the curve's
+    sharpness (``f^t`` locally: a Gaussian of mean ``s = V t`` = ``freq_shift_ln``, variance V). With ``z`` a
+    parabola in ln f (slope b, curvature c at fs) that mean is ``z + b s + c (V + s^2) / 2``; the slope measured
+    between the side bands (which carry the same weighting) is ``b + c s``. So the correction is
+
+        ``-b_meas s - c (V - s^2) / 2``.
+
+    The curvature term is why: near diffraction (``fs lambda N`` ~ 0.3, F/8 at 80 cy/mm) the sharpest position
+    has a turning point in frequency with spherical aberration (W040 0.3 waves: dz/dln f ~ 5 µm but d2z/dln f^2
+    ~ 40-50 µm), and the band-pass peaks 0.05-0.1 scan step off the MTF(fs) peak where the slope alone says 0.02.
+    Each term is applied with the evidence weight of its measured coefficient (``1 / (1 + O sqrt(n) exp(-chi2 /
+    2))``, ``chi2 = (value / sd)^2``, as :func:`pooled_mean`): a lens without spherical aberration measures both
+    as 0 within their sds and keeps its band-pass peak, not a noisy correction. The sd: each term's variance (the
+    measured coefficient's sd through the formula, in quadrature with the expansion's model error,
+    :data:`BAND_FIRST_ORDER_REL_SD`, :data:`BAND_CURVATURE_REL_SD` of the term) times its weight, plus ``w (1 - w)
+    term^2`` (whether it applies at all). Without the curvature (a record from before, or too few tiles with all
+    three bands) no correction: the first-order term is the sd (as before). 0 for a record without the slope.
+    """
+    s = float(rec.get("freq_shift_ln", 0.0) or 0.0)
+    b = float(rec.get("freq_slope_um", 0.0) or 0.0)
+    b_sd = float(rec.get("freq_slope_sd_um", 0.0) or 0.0)
+    if not all(math.isfinite(v) for v in (s, b, b_sd)):
+        return 0.0, 0.0
+    c, c_sd = (float(rec.get(k, math.nan)) for k in ("freq_curv_um", "freq_curv_sd_um"))
+    if not (math.isfinite(c) and math.isfinite(c_sd)):
+        return 0.0, abs(s) * math.hypot(b, b_sd)
+    n = max(float(rec.get("freq_n_tiles", 2.0) or 2.0), 1.0)
+    k = 0.5 * (band_log_var - s * s)
+    corr, var = 0.0, 0.0
+    for term, term_sd, coef, coef_sd, rel in ((-b * s, abs(s) * b_sd, b, b_sd, BAND_FIRST_ORDER_REL_SD),
+                                              (-c * k, abs(k) * c_sd, c, c_sd, BAND_CURVATURE_REL_SD)):
+        chi2 = (coef / coef_sd) ** 2 if coef_sd > 0 else (math.inf if coef else 0.0)
+        w = 1.0 / (1.0 + SKEW_PRIOR_ODDS * math.sqrt(n) * math.exp(-0.5 * min(chi2, 1400.0)))
+        corr += w * term
+        var += w * (term_sd ** 2 + (rel * term) ** 2) + w * (1.0 - w) * term * term
+    return corr, math.sqrt(var)

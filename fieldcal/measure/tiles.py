@@ -30,7 +30,7 @@ from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
 from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
                        lateral_colour_scales, register_step, registration_plane)
 from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_offset, apply_pooled_skew,
-                          pooled_mean, shift_by_offset)
+                           band_frequency_terms, pooled_skew_shift, shift_by_offset)
 
 # Focus breathing: the image of a scene patch is magnified by m(z) through the scan. The 3-tap SML's mean over a
 # patch that follows the image scales as m^-gamma with gamma 0.8-2 set by the texture's spectrum and the blur
@@ -818,8 +818,10 @@ def _frequency_slope(cc: dict[str, np.ndarray], z: np.ndarray, fs_cyc_per_mm: fl
     the ln f between them is ``dz/dln f`` (µm). Spherical aberration makes it non-zero (the sharpest position
     of a low frequency lies nearer the minimum-RMS-spot focus); a lens without it gives 0 within its sd.
     With it the measure's effective frequency ``freq_shift_ln`` = ln(f_eff / fs)
-    (:func:`fieldcal.measure.fs_strip.effective_shift_ln`, from the same fits' peak heights and widths).
-    Returns ``{"freq_slope_um", "freq_slope_sd_um", "freq_n_tiles", "freq_shift_ln"}`` ({} with < 2 tiles).
+    (:func:`fieldcal.measure.fs_strip.effective_shift_ln`, from the same fits' peak heights and widths), and with
+    the fs band on the same tiles the curvature ``d2z/dln f^2`` (:func:`.throughfocus.band_frequency_terms`).
+    Returns ``{"freq_slope_um", "freq_slope_sd_um", "freq_curv_um", "freq_curv_sd_um", "freq_n_tiles",
+    "freq_shift_ln"}`` ({} with < 2 tiles).
     """
     seen = fs_strip.inside(cc["slope_cover"])
     mean = cc["sum"]
@@ -828,19 +830,33 @@ def _frequency_slope(cc: dict[str, np.ndarray], z: np.ndarray, fs_cyc_per_mm: fl
     if idx.size < 2:
         return {}
     fits = []
-    for key, r in (("bp_lo", fs_strip.SLOPE_FACTORS[0]), ("bp_hi", fs_strip.SLOPE_FACTORS[1])):
+    # the fs band on the same tiles too (the grid's or the strip's band-pass): the second difference across the
+    # three bands is the curvature of z(ln f), which the correction needs (throughfocus.band_peak_correction_um)
+    bands = [("bp_lo", fs_strip.SLOPE_FACTORS[0]), ("bp_hi", fs_strip.SLOPE_FACTORS[1])]
+    if "bandpass" in cc:
+        bands.append(("bandpass", 1.0))
+    for key, r in bands:
         e = cc[key][idx] / np.square(mean[idx])
-        f = analyse_curves(z, e, "otf", fs_cyc_per_mm * r, q, rules.curve)
-        if rules.curve.skew:
-            f = apply_pooled_skew(f, apply=True)[0]
-        fits.append(f)
-    both = [(a, b) for a, b in zip(*fits) if a.status == "ok" and b.status == "ok"]
-    if len(both) < 2:
+        fits.append(analyse_curves(z, e, "otf", fs_cyc_per_mm * r, q, rules.curve))
+    if rules.curve.skew:
+        # every band's pooled skew shift, with the strongest band's evidence: one pupil's spherical aberration
+        # skews them all, and a band whose own evidence is weaker (the broader low band, or a noisier high one)
+        # would otherwise keep part of its curve's centre, which the slope and curvature then read as a frequency
+        # dependence (F/8, W040 0.3 waves: the high band's weight 0.3 put d2z/dln f^2 at half its value)
+        pooled = [pooled_skew_shift(f) for f in fits]
+        w = max(p[2] for p in pooled)
+        fits = [apply_pooled_skew(f, apply=True, weight=w)[0] for f in fits]
+        # each band's pooled shift is one draw shared by its tiles: its sd joins the differences' (w ~ 1 here)
+        shared = [math.sqrt(w) * p[1] for p in pooled] + [0.0] * (3 - len(pooled))
+    else:
+        shared = [0.0, 0.0, 0.0]
+    half = 0.5 * math.log(fs_strip.SLOPE_FACTORS[1] / fs_strip.SLOPE_FACTORS[0])
+    rec = band_frequency_terms(fits[0], fits[2] if len(fits) > 2 else [], fits[1], half,
+                               (shared[0], shared[2], shared[1]))
+    if not rec:
         return {}
-    d = np.array([b.z_best_um - a.z_best_um for a, b in both])
-    sd = np.array([math.hypot(a.z_sigma_um, b.z_sigma_um) for a, b in both])
-    m, se, _ = pooled_mean(d, sd)
-    dlnf = math.log(fs_strip.SLOPE_FACTORS[1] / fs_strip.SLOPE_FACTORS[0])
+    both = [(a, b) for a, b in zip(fits[0], fits[1]) if a.status == "ok" and b.status == "ok"]
+    dlnf = 2.0 * half
     # the measure's effective frequency: how the band energy at the peak and the curves' widths change with f
     with np.errstate(all="ignore"):
         e_tilt = np.log(np.array([b.peak / a.peak for a, b in both])) / dlnf
@@ -848,8 +864,7 @@ def _frequency_slope(cc: dict[str, np.ndarray], z: np.ndarray, fs_cyc_per_mm: fl
     e_tilt, w_tilt = e_tilt[np.isfinite(e_tilt)], w_tilt[np.isfinite(w_tilt)]
     shift = fs_strip.effective_shift_ln(float(np.median(e_tilt)) if e_tilt.size else math.nan,
                                         float(np.median(w_tilt)) if w_tilt.size else math.nan)
-    return {"freq_slope_um": m / dlnf, "freq_slope_sd_um": se / dlnf, "freq_n_tiles": float(len(both)),
-            "freq_shift_ln": shift}
+    return {**rec, "freq_shift_ln": shift}
 
 
 def _borrow_offsets(results: dict[str, dict]) -> None:
