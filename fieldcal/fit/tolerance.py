@@ -139,7 +139,7 @@ def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCr
         f_scale = max(1.4826 * float(np.median(np.abs(w - med))), 1e-3 * med)
         cands = []
         for n_coef in MODEL_TERMS:
-            if m.sum() < n_coef + 2:
+            if m.sum() < n_coef + 2 or not _spanned(tiles.x_px[m], tiles.y_px[m], geometry, n_coef):
                 continue
             A = probe.design(tiles.x_px[m], tiles.y_px[m], n_coef)
             res = optimize.least_squares(lambda p: (A @ p - w) / f_scale, np.r_[med, np.zeros(n_coef - 1)],
@@ -171,6 +171,26 @@ def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCr
     return ToleranceFit(geometry, (float(centre[0]), float(centre[1])), calibrated_at, shape, coef, rsd, diag)
 
 
+#: share of the frame's width and height the widths' tiles must span for the decentring terms (wx x + wy y)
+MIN_SPAN_FOR_TILT = 0.5
+
+
+def _spanned(x_px, y_px, geometry: ImageGeometry, n_coef: int) -> bool:
+    """Whether tiles at (x_px, y_px) span the model with ``n_coef`` coefficients: the linear (decentring) terms
+    need widths across at least :data:`MIN_SPAN_FOR_TILT` of the frame in x and in y. Quick effort's widths come
+    from one strip of tiles through the middle (measure/fs_strip.py), where a tilt across the strip is not
+    measured and would be extrapolated to the corners from a few tiles' noise; the constant and rho^2 terms
+    are (the strip runs from the centre to the frame's sides)."""
+    if n_coef < 4:
+        return True
+    x = np.asarray(x_px, dtype=np.float64)
+    y = np.asarray(y_px, dtype=np.float64)
+    if x.size == 0:
+        return False
+    return bool(np.ptp(x) >= MIN_SPAN_FOR_TILT * geometry.width_px
+                and np.ptp(y) >= MIN_SPAN_FOR_TILT * geometry.height_px)
+
+
 def _shared_model(tiles: TileData, probe: ToleranceFit):
     """(BIC, coefficients, residual sd per channel, diagnostics) of the best width model shared by every
     channel, or None. Each channel keeps its own noise scale (the soft-L1 scale and the BIC's variance are per
@@ -188,6 +208,8 @@ def _shared_model(tiles: TileData, probe: ToleranceFit):
     best = None
     for n_coef in MODEL_TERMS:
         if min(w.size for _, _, w, _ in parts) < n_coef + 2:
+            continue
+        if not all(_spanned(tiles.x_px[m], tiles.y_px[m], probe.geometry, n_coef) for _, m, _, _ in parts):
             continue
         designs = [probe.design(tiles.x_px[m], tiles.y_px[m], n_coef) for _, m, _, _ in parts]
 
