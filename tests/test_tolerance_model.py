@@ -115,3 +115,18 @@ def test_channels_keep_their_own_width_when_they_differ():
     t = fit_tolerance(_three_channels((23.0, 20.0, 20.0), 1.0, 3), GEOM, CRIT, shared_channels=True)
     assert not t.diagnostics["channels"]["shared"]
     assert t.coef_um["R"][0] == pytest.approx(23.0, abs=0.5) and t.coef_um["G"][0] == pytest.approx(20.0, abs=0.5)
+
+
+def test_widths_from_one_strip_of_tiles_fit_no_tilt_across_it():
+    """Quick effort's widths come from one row of tiles through the middle (measure/fs_strip.py): a y tilt is
+    not measured there, so the fit keeps to the constant and rho^2 terms, which the strip does span; the same
+    field on the whole grid takes its decentring."""
+    d = (40.0, -25.0)
+    row = np.abs(Y - CY) < 20.0
+    n = int(row.sum())
+    strip = TileData.from_arrays(np.full(n, "G"), X[row], Y[row], np.zeros(n), np.ones(n),
+                                 width_um=field(d)[row])
+    t = fit_tolerance(strip, GEOM, CRIT)
+    assert len(t.coef_um["G"]) <= 2
+    assert 4 not in t.diagnostics["G"]["bic"]
+    assert len(fit_tolerance(tiles_with(field(d)), GEOM, CRIT).coef_um["G"]) == 4
