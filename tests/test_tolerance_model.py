@@ -130,3 +130,23 @@ def test_widths_from_one_strip_of_tiles_fit_no_tilt_across_it():
     assert len(t.coef_um["G"]) <= 2
     assert 4 not in t.diagnostics["G"]["bic"]
     assert len(fit_tolerance(tiles_with(field(d)), GEOM, CRIT).coef_um["G"]) == 4
+
+
+def test_widths_convert_to_another_fs_with_diffraction_when_the_f_number_is_known():
+    """At F/8 (fs_cal 80 cycles/mm) the 1/fs law would double δ at 40 cycles/mm; the pupil's ratio (computed
+    here from the model δ at each band end, the smaller kept) gives ~1.5; the calibration's own (fs, q) keeps
+    the measured width; a fit without an F-number (old profiles) keeps the geometric law; to_dict round-trips."""
+    from fieldcal.optics import TOLERANCE_BAND_NM, pupil_tolerance_um
+
+    cal = MTFCriterion(80.0, 0.05)
+    base = fit_tolerance(tiles_with(field(c1=0.0)), GEOM, cal)
+    phys = fit_tolerance(tiles_with(field(c1=0.0)), GEOM, cal, f_number=8.0)
+    w = float(base.width_cal_um(CX, CY, "G"))
+    assert float(phys.tolerance_um(CX, CY, "G", 80.0, 0.05)) == pytest.approx(w)
+    assert float(base.tolerance_um(CX, CY, "G", 40.0, 0.05)) == pytest.approx(2.0 * w)
+    want = min(pupil_tolerance_um(MTFCriterion(40.0, 0.05), 8.0, lam) / pupil_tolerance_um(cal, 8.0, lam)
+               for lam in TOLERANCE_BAND_NM["G"])
+    got = float(phys.tolerance_um(CX, CY, "G", 40.0, 0.05)) / w
+    assert got == pytest.approx(want, rel=1e-9) and 1.4 < got < 1.6
+    back = ToleranceFit.from_dict(phys.to_dict())
+    assert back.f_number == 8.0 and float(back.tolerance_um(CX, CY, "G", 40.0, 0.05)) == pytest.approx(got * w)

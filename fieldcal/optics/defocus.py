@@ -44,7 +44,9 @@ DEFAULT_WAVELENGTH_NM = {"R": 656.3, "G": 546.1, "B": 486.1, "Y": 546.1}
 #: µm at 440 nm and 34.0 at 610), and the δ of a band's summed MTF is at least its shortest wavelength's (each
 #: wavelength's curve stays within q of its peak out to its own δ). So the short end keeps the model below the
 #: truth wherever the planner uses it as a bound (docs/planning.md "The defocus model").
-TOLERANCE_WAVELENGTH_NM = {"R": 580.0, "G": 500.0, "B": 440.0, "Y": 450.0}
+TOLERANCE_BAND_NM = {"R": (580.0, 650.0), "G": (500.0, 580.0), "B": (440.0, 500.0), "Y": (450.0, 650.0)}
+TOLERANCE_WAVELENGTH_NM = {c: b[0] for c, b in TOLERANCE_BAND_NM.items()}
+_OTHER_BAND_NM = (450.0, 650.0)
 
 #: First zero of J1: 2 J1(x)/x falls monotonically from 1 to 0 on [0, DISC_FIRST_ZERO].
 DISC_FIRST_ZERO = float(special.jn_zeros(1, 1)[0])
@@ -59,14 +61,20 @@ def tolerance_wavelength_nm(channel: str, recorded=None) -> float:
     """Wavelength (nm) of the tolerance model for ``channel``: the stack's recorded one (``recorded``: a
     ``{channel: nm}`` mapping, e.g. a profile's ``optics["wavelength_nm"]``) when it has a finite positive value
     for the channel, else :data:`TOLERANCE_WAVELENGTH_NM` (the band's short end; 450 nm for unknown names)."""
+    return tolerance_band_nm(channel, recorded)[0]
+
+
+def tolerance_band_nm(channel: str, recorded=None) -> tuple[float, float]:
+    """(short, long) ends (nm) of ``channel``'s band for the tolerance model: the recorded wavelength at both
+    ends when the stack gives one (see :func:`tolerance_wavelength_nm`), else :data:`TOLERANCE_BAND_NM`."""
     if isinstance(recorded, dict):
         try:
             v = float(recorded.get(channel))
             if math.isfinite(v) and v > 0:
-                return v
+                return v, v
         except (TypeError, ValueError):
             pass
-    return TOLERANCE_WAVELENGTH_NM.get(channel, 450.0)
+    return TOLERANCE_BAND_NM.get(channel, _OTHER_BAND_NM)
 
 
 def disc_otf(x):
@@ -210,3 +218,17 @@ def model_tolerance_um(criterion: MTFCriterion, f_number: float, channel: str, r
     texture widths: :func:`pupil_tolerance_um` at :func:`tolerance_wavelength_nm` (the recorded wavelength, else
     the channel band's short end, which keeps it at or below the aberration-free truth)."""
     return pupil_tolerance_um(criterion, f_number, tolerance_wavelength_nm(channel, recorded_wavelength_nm))
+
+
+def model_tolerance_ratio(criterion: MTFCriterion, calibrated_at: MTFCriterion, f_number: float, channel: str,
+                          recorded_wavelength_nm=None) -> float:
+    """δ(criterion) / δ(calibrated_at) of the aberration-free pupil: how a width measured at one (fs, q)
+    converts to another. The geometric law (δ ∝ 1/fs) is its limit at low ``fs lambda N``; with diffraction δ
+    changes less with fs (at F/8, 540 nm, halving fs from 80 cycles/mm multiplies δ by ~1.5, not 2). The ratio
+    grows with wavelength where fs drops and shrinks where it rises, so it is taken at both ends of the
+    channel's band (:func:`tolerance_band_nm`) and the smaller kept: the converted width stays at or below what
+    either end gives."""
+    if criterion == calibrated_at:
+        return 1.0
+    return min(pupil_tolerance_um(criterion, f_number, lam) / pupil_tolerance_um(calibrated_at, f_number, lam)
+               for lam in tolerance_band_nm(channel, recorded_wavelength_nm))
