@@ -150,3 +150,20 @@ def test_widths_convert_to_another_fs_with_diffraction_when_the_f_number_is_know
     assert got == pytest.approx(want, rel=1e-9) and 1.4 < got < 1.6
     back = ToleranceFit.from_dict(phys.to_dict())
     assert back.f_number == 8.0 and float(back.tolerance_um(CX, CY, "G", 40.0, 0.05)) == pytest.approx(got * w)
+
+
+def test_a_quick_strip_with_few_widths_leaves_the_model_to_answer():
+    """Fewer than MIN_QUICK_WIDTHS widths in a channel (quick's strip on a large frame): no width model, so the
+    calibration records why and the profile answers with the defocus model (calibration/pipeline.py)."""
+    from fieldcal.fit.data import FitError
+    from fieldcal.fit.tolerance import MIN_QUICK_WIDTHS
+
+    few = np.abs(Y - CY) < 20.0
+    keep = np.flatnonzero(few)[:MIN_QUICK_WIDTHS - 1]
+    n = keep.size
+    tiles = TileData.from_arrays(np.full(n, "G"), X[keep], Y[keep], np.zeros(n), np.ones(n),
+                                 width_um=field()[keep])
+    with pytest.raises(FitError) as e:
+        fit_tolerance(tiles, GEOM, CRIT, min_tiles=MIN_QUICK_WIDTHS)
+    assert e.value.field == "width_um"
+    assert fit_tolerance(tiles, GEOM, CRIT).coef_um["G"]  # the default minimum (4) fits them

@@ -202,6 +202,13 @@ def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCr
                         _positive_or_none(f_number), dict(wavelength_nm) if isinstance(wavelength_nm, dict) else None)
 
 
+#: widths per channel a quick calibration needs before its tolerance model replaces the defocus model. Quick's
+#: widths come from the band-pass strip (measure/fs_strip.py, sized for 12 tiles): on a 1920x1080 triplet only
+#: 4-5 of its 14 tiles per channel kept a width (the rest had more focus spread than width,
+#: fit/width_window.py), δ's standard error was 17 %, and the plan paid for it with 48 frames where the model
+#: (and the optimum) took 38. Frames up to ~0.4 MP band-pass every tile row and keep dozens.
+MIN_QUICK_WIDTHS = 12
+
 #: share of the frame's width and height the widths' tiles must span for the decentring terms (wx x + wy y)
 MIN_SPAN_FOR_TILT = 0.5
 
