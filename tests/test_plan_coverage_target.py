@@ -135,12 +135,12 @@ class _TextureWide(SyntheticProfile):
     """A texture-calibrated profile (20 µm pixels, fs = 15 cycles/mm = 0.3 cycles/px, F/2) whose widths read
     the texture bias at the centre and ``1 + rise rho^2`` times it towards the corners, as the 1920x1080 triplet's
     do (astigmatism and the spread of best focus inside its tiles widen the band-pass curve there); the true δ
-    is the defocus model's everywhere."""
+    is the aberration-free pupil's everywhere (G at the band's short end)."""
 
     def __init__(self, rise, measurement="focus-measure", **kw):
         crit = MTFCriterion(15.0, 0.05)
-        from fieldcal.optics import focus_tolerance_um as model
-        self.model_um = model(crit, 2.0)
+        from fieldcal.optics import model_tolerance_um
+        self.model_um = model_tolerance_um(crit, 2.0, "G")
         k = TEXTURE_WIDTH.factor(0.3)
         super().__init__(97, 65, a_um=-600.0, f_number=2.0, tolerance_sd_um=0.0,
                          tolerance_fn=lambda r, fs, q: self.model_um * k * (1.0 + rise * r ** 2), **kw)
@@ -148,14 +148,16 @@ class _TextureWide(SyntheticProfile):
 
 
 def test_texture_tolerance_is_capped_at_the_defocus_model_at_the_f_number():
-    from fieldcal.optics import focus_tolerance_um as model
+    from fieldcal.optics import TOLERANCE_WAVELENGTH_NM, pupil_tolerance_um
     from fieldcal.optics.defocus import disc_x_at_contrast
 
     prof = _TextureWide(0.25)
     crit = MTFCriterion(15.0, 0.05)
-    # the model's δ in closed form: 2 J1(x)/x = 1 - q at x = pi fs δ / N
-    want = disc_x_at_contrast(0.95) * 2.0 / (math.pi * 15.0e-3)
-    assert model(crit, 2.0) == pytest.approx(want, rel=1e-9)
+    # the cap: the aberration-free pupil's δ at G's short wavelength, just above the geometric disc's at this
+    # low F-number and fs (2 J1(x)/x = 1 - q at x = pi fs δ / N; tests/test_optics_tolerance_model.py has both)
+    want = pupil_tolerance_um(crit, 2.0, TOLERANCE_WAVELENGTH_NM["G"])
+    geometric = disc_x_at_contrast(0.95) * 2.0 / (math.pi * 15.0e-3)
+    assert geometric < want < 1.03 * geometric
     x = np.linspace(0.0, 96.0, 25)
     y = np.full_like(x, 32.0)
     tol, src = tolerance_um(prof, x, y, "G", crit)

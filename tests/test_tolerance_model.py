@@ -115,3 +115,55 @@ def test_channels_keep_their_own_width_when_they_differ():
     t = fit_tolerance(_three_channels((23.0, 20.0, 20.0), 1.0, 3), GEOM, CRIT, shared_channels=True)
     assert not t.diagnostics["channels"]["shared"]
     assert t.coef_um["R"][0] == pytest.approx(23.0, abs=0.5) and t.coef_um["G"][0] == pytest.approx(20.0, abs=0.5)
+
+
+def test_widths_from_one_strip_of_tiles_fit_no_tilt_across_it():
+    """Quick effort's widths come from one row of tiles through the middle (measure/fs_strip.py): a y tilt is
+    not measured there, so the fit keeps to the constant and rho^2 terms, which the strip does span; the same
+    field on the whole grid takes its decentring."""
+    d = (40.0, -25.0)
+    row = np.abs(Y - CY) < 20.0
+    n = int(row.sum())
+    strip = TileData.from_arrays(np.full(n, "G"), X[row], Y[row], np.zeros(n), np.ones(n),
+                                 width_um=field(d)[row])
+    t = fit_tolerance(strip, GEOM, CRIT)
+    assert len(t.coef_um["G"]) <= 2
+    assert 4 not in t.diagnostics["G"]["bic"]
+    assert len(fit_tolerance(tiles_with(field(d)), GEOM, CRIT).coef_um["G"]) == 4
+
+
+def test_widths_convert_to_another_fs_with_diffraction_when_the_f_number_is_known():
+    """At F/8 (fs_cal 80 cycles/mm) the 1/fs law would double δ at 40 cycles/mm; the pupil's ratio (computed
+    here from the model δ at each band end, the smaller kept) gives ~1.5; the calibration's own (fs, q) keeps
+    the measured width; a fit without an F-number (old profiles) keeps the geometric law; to_dict round-trips."""
+    from fieldcal.optics import TOLERANCE_BAND_NM, pupil_tolerance_um
+
+    cal = MTFCriterion(80.0, 0.05)
+    base = fit_tolerance(tiles_with(field(c1=0.0)), GEOM, cal)
+    phys = fit_tolerance(tiles_with(field(c1=0.0)), GEOM, cal, f_number=8.0)
+    w = float(base.width_cal_um(CX, CY, "G"))
+    assert float(phys.tolerance_um(CX, CY, "G", 80.0, 0.05)) == pytest.approx(w)
+    assert float(base.tolerance_um(CX, CY, "G", 40.0, 0.05)) == pytest.approx(2.0 * w)
+    want = min(pupil_tolerance_um(MTFCriterion(40.0, 0.05), 8.0, lam) / pupil_tolerance_um(cal, 8.0, lam)
+               for lam in TOLERANCE_BAND_NM["G"])
+    got = float(phys.tolerance_um(CX, CY, "G", 40.0, 0.05)) / w
+    assert got == pytest.approx(want, rel=1e-9) and 1.4 < got < 1.6
+    back = ToleranceFit.from_dict(phys.to_dict())
+    assert back.f_number == 8.0 and float(back.tolerance_um(CX, CY, "G", 40.0, 0.05)) == pytest.approx(got * w)
+
+
+def test_a_quick_strip_with_few_widths_leaves_the_model_to_answer():
+    """Fewer than MIN_QUICK_WIDTHS widths in a channel (quick's strip on a large frame): no width model, so the
+    calibration records why and the profile answers with the defocus model (calibration/pipeline.py)."""
+    from fieldcal.fit.data import FitError
+    from fieldcal.fit.tolerance import MIN_QUICK_WIDTHS
+
+    few = np.abs(Y - CY) < 20.0
+    keep = np.flatnonzero(few)[:MIN_QUICK_WIDTHS - 1]
+    n = keep.size
+    tiles = TileData.from_arrays(np.full(n, "G"), X[keep], Y[keep], np.zeros(n), np.ones(n),
+                                 width_um=field()[keep])
+    with pytest.raises(FitError) as e:
+        fit_tolerance(tiles, GEOM, CRIT, min_tiles=MIN_QUICK_WIDTHS)
+    assert e.value.field == "width_um"
+    assert fit_tolerance(tiles, GEOM, CRIT).coef_um["G"]  # the default minimum (4) fits them

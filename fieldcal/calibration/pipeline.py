@@ -155,7 +155,7 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     from fieldcal.fit.geometry import GeometryData, fit_geometry
     from fieldcal.fit.selfcheck import field_wide_coverage
     from fieldcal.fit.stage import fit_stage_errors
-    from fieldcal.fit.tolerance import fit_tolerance
+    from fieldcal.fit.tolerance import MIN_QUICK_WIDTHS, fit_tolerance
     from fieldcal.fit.width_window import correct_widths
     from fieldcal.fit.tiles import (breathing_systematic_sd_um, colour_rows, fit_tile_surfaces, geometry_columns,
                                     measure_offset_sd_um, systematic_record)
@@ -231,8 +231,13 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
             tiles_w, window_note = correct_widths(surf, tiles, table.z_um, float(table.tile_px), fs_cyc_per_mm, q)
         # slanted-edge widths are the defocus law's own (one blur rate, 1/N, at every wavelength): one model for
         # all channels where the data do not need one each (fit/tolerance.py)
+        # the F-number (and any recorded wavelengths) convert the widths to another (fs, q) with diffraction
+        # (quick's texture widths come from its band-pass strip: too few of them and the model answers instead)
+        wl_rec = stack.meta.get("wavelength_nm")
         tol = fit_tolerance(tiles_w, geometry, MTFCriterion(fs_cyc_per_mm, q), source=str(stack.path),
-                            shared_channels=kind.kind == "esfr")
+                            shared_channels=kind.kind == "esfr", f_number=stack.meta.get("f_number"),
+                            wavelength_nm=wl_rec if isinstance(wl_rec, dict) else None,
+                            min_tiles=MIN_QUICK_WIDTHS if effort == "quick" and kind.kind != "esfr" else 4)
         tol.diagnostics["width_window"] = window_note
     except FieldcalError as e:  # planning falls back to the defocus model and says so
         tol_note = f"no measured tolerance model: {e.what}"

@@ -19,6 +19,13 @@ Conversion to other (fs, q) assumes the measured curve keeps its shape in defocu
 * shape "gaussian": contrast(dz) = exp(-dz^2 / 2 sigma^2 (fs)), half-width sigma sqrt(-2 ln(1 - q)).
 
 Both give  w(fs, q) = w(fs_cal, q_cal) * (g(q) / g(q_cal)) * (fs_cal / fs)  (the 1/fs geometric-defocus law).
+
+That law is the limit of low ``fs lambda N``; with diffraction δ changes less with fs (at F/8 and 80 cycles/mm
+halving fs multiplies δ by ~1.5, not 2, so the 1/fs law would put a plan at 40 cycles/mm 30 % wide of the
+truth). A fit that knows its F-number (``f_number``, set by the calibration from the stack) converts the
+"defocus-disc" shape by the aberration-free pupil's own ratio instead
+(:func:`fieldcal.optics.model_tolerance_ratio`: the smaller of its two band ends' ratios, so the converted width
+errs narrow); at the calibration's own (fs, q) the width is the measured one either way.
 """
 
 from __future__ import annotations
@@ -31,7 +38,7 @@ import numpy as np
 from scipy import optimize
 
 from ..errors import ParameterError
-from ..optics import MTFCriterion, disc_x_at_contrast, valid_q
+from ..optics import MTFCriterion, disc_x_at_contrast, model_tolerance_ratio, valid_q
 from .data import FitError, ImageGeometry, TileData
 
 TOLERANCE_FIT_FORMAT = "fieldcal-tolerance-fit/1"
@@ -61,6 +68,10 @@ class ToleranceFit:
     coef_um: dict[str, list[float]]          # w_c0 [, w_c1] in µm
     residual_sd_um: dict[str, float] = field(default_factory=dict)
     diagnostics: dict = field(default_factory=dict)
+    #: image-side F-number of the stack (None: unknown; (fs, q) then convert by the geometric law)
+    f_number: float | None = None
+    #: the stack's recorded wavelength per channel (nm), if any (else the channels' nominal bands)
+    wavelength_nm: dict | None = None
 
     def _rho2(self, x_px, y_px):
         r = self.geometry.half_diagonal_px
@@ -88,15 +99,20 @@ class ToleranceFit:
     def tolerance_um(self, x_px, y_px, channel: str, fs_cyc_per_mm: float, q: float):
         """Half-width (µm) of the defocus range where MTF(fs) stays within q of its peak."""
         crit, cal = MTFCriterion(fs_cyc_per_mm, q), self.calibrated_at
-        scale = (shape_factor(crit.q, self.shape) / shape_factor(cal.q, self.shape)
-                 * (cal.fs_cyc_per_mm / crit.fs_cyc_per_mm))
+        if self.f_number and self.shape == "defocus-disc":
+            scale = model_tolerance_ratio(crit, cal, float(self.f_number), channel, self.wavelength_nm)
+        else:
+            scale = (shape_factor(crit.q, self.shape) / shape_factor(cal.q, self.shape)
+                     * (cal.fs_cyc_per_mm / crit.fs_cyc_per_mm))
         return self.width_cal_um(x_px, y_px, channel) * scale
 
     def to_dict(self) -> dict[str, Any]:
         return {"format": TOLERANCE_FIT_FORMAT, "geometry": self.geometry.to_dict(),
                 "centre_px": list(self.centre_px), "fs_cal_cyc_per_mm": self.calibrated_at.fs_cyc_per_mm,
                 "q_cal": self.calibrated_at.q, "shape": self.shape, "coef_um": self.coef_um,
-                "residual_sd_um": self.residual_sd_um, "diagnostics": self.diagnostics}
+                "residual_sd_um": self.residual_sd_um, "diagnostics": self.diagnostics,
+                **({"f_number": float(self.f_number)} if self.f_number else {}),
+                **({"wavelength_nm": dict(self.wavelength_nm)} if self.wavelength_nm else {})}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], path=None) -> "ToleranceFit":
@@ -108,16 +124,30 @@ class ToleranceFit:
             return cls(ImageGeometry.from_dict(d["geometry"]), tuple(d["centre_px"]),
                        MTFCriterion(float(d["fs_cal_cyc_per_mm"]), float(d["q_cal"])), str(d["shape"]),
                        {c: [float(v) for v in cs] for c, cs in d["coef_um"].items()},
-                       dict(d.get("residual_sd_um", {})), dict(d.get("diagnostics", {})))
+                       dict(d.get("residual_sd_um", {})), dict(d.get("diagnostics", {})),
+                       _positive_or_none(d.get("f_number")),
+                       dict(d["wavelength_nm"]) if isinstance(d.get("wavelength_nm"), dict) else None)
         except (KeyError, TypeError, ValueError, ParameterError) as e:
             raise SpecError(f"malformed tolerance fit ({e})", path=path, field="tolerance",
                             fix="regenerate the profile") from None
 
 
+def _positive_or_none(v) -> float | None:
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) and f > 0 else None
+
+
 def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCriterion,
                   centre_px: tuple[float, float] | None = None, shape: str = "defocus-disc",
-                  min_tiles: int = 4, source: str | None = None, shared_channels: bool = False) -> ToleranceFit:
+                  min_tiles: int = 4, source: str | None = None, shared_channels: bool = False,
+                  f_number: float | None = None, wavelength_nm: dict | None = None) -> ToleranceFit:
     """Fit the per-channel width model from tiles whose ``width_um`` was measured at ``calibrated_at``.
+
+    ``f_number`` (and the stack's recorded ``wavelength_nm`` per channel, if any) let the fit convert its widths
+    to another (fs, q) with diffraction (module docstring); without them it uses the geometric law.
 
     ``shared_channels``: also try one width model for every channel (:func:`_shared_model`) and keep it when
     its BIC beats the per-channel models'. For widths that measure the defocus law itself (slanted-edge
@@ -139,7 +169,7 @@ def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCr
         f_scale = max(1.4826 * float(np.median(np.abs(w - med))), 1e-3 * med)
         cands = []
         for n_coef in MODEL_TERMS:
-            if m.sum() < n_coef + 2:
+            if m.sum() < n_coef + 2 or not _spanned(tiles.x_px[m], tiles.y_px[m], geometry, n_coef):
                 continue
             A = probe.design(tiles.x_px[m], tiles.y_px[m], n_coef)
             res = optimize.least_squares(lambda p: (A @ p - w) / f_scale, np.r_[med, np.zeros(n_coef - 1)],
@@ -168,7 +198,35 @@ def fit_tolerance(tiles: TileData, geometry: ImageGeometry, calibrated_at: MTFCr
             if s_bic < per_channel_bic:
                 coef = {c: list(s_coef) for c in tiles.channels}
                 rsd = {c: s_sd[c] for c in tiles.channels}
-    return ToleranceFit(geometry, (float(centre[0]), float(centre[1])), calibrated_at, shape, coef, rsd, diag)
+    return ToleranceFit(geometry, (float(centre[0]), float(centre[1])), calibrated_at, shape, coef, rsd, diag,
+                        _positive_or_none(f_number), dict(wavelength_nm) if isinstance(wavelength_nm, dict) else None)
+
+
+#: widths per channel a quick calibration needs before its tolerance model replaces the defocus model. Quick's
+#: widths come from the band-pass strip (measure/fs_strip.py, sized for 12 tiles): on a 1920x1080 triplet only
+#: 4-5 of its 14 tiles per channel kept a width (the rest had more focus spread than width,
+#: fit/width_window.py), δ's standard error was 17 %, and the plan paid for it with 48 frames where the model
+#: (and the optimum) took 38. Frames up to ~0.4 MP band-pass every tile row and keep dozens.
+MIN_QUICK_WIDTHS = 12
+
+#: share of the frame's width and height the widths' tiles must span for the decentring terms (wx x + wy y)
+MIN_SPAN_FOR_TILT = 0.5
+
+
+def _spanned(x_px, y_px, geometry: ImageGeometry, n_coef: int) -> bool:
+    """Whether tiles at (x_px, y_px) span the model with ``n_coef`` coefficients: the linear (decentring) terms
+    need widths across at least :data:`MIN_SPAN_FOR_TILT` of the frame in x and in y. Quick effort's widths come
+    from one strip of tiles through the middle (measure/fs_strip.py), where a tilt across the strip is not
+    measured and would be extrapolated to the corners from a few tiles' noise; the constant and rho^2 terms
+    are (the strip runs from the centre to the frame's sides)."""
+    if n_coef < 4:
+        return True
+    x = np.asarray(x_px, dtype=np.float64)
+    y = np.asarray(y_px, dtype=np.float64)
+    if x.size == 0:
+        return False
+    return bool(np.ptp(x) >= MIN_SPAN_FOR_TILT * geometry.width_px
+                and np.ptp(y) >= MIN_SPAN_FOR_TILT * geometry.height_px)
 
 
 def _shared_model(tiles: TileData, probe: ToleranceFit):
@@ -188,6 +246,8 @@ def _shared_model(tiles: TileData, probe: ToleranceFit):
     best = None
     for n_coef in MODEL_TERMS:
         if min(w.size for _, _, w, _ in parts) < n_coef + 2:
+            continue
+        if not all(_spanned(tiles.x_px[m], tiles.y_px[m], probe.geometry, n_coef) for _, m, _, _ in parts):
             continue
         designs = [probe.design(tiles.x_px[m], tiles.y_px[m], n_coef) for _, m, _, _ in parts]
 

@@ -724,6 +724,28 @@ def _to_z(res: dict, axis: _ScaleAxis) -> None:
             res[key] = axis.z(res[key])
 
 
+def _strip_widths_on_grid(width_um: np.ndarray, sx: np.ndarray, sy: np.ndarray, xs: np.ndarray, ys: np.ndarray,
+                          tile: int) -> np.ndarray:
+    """Quick effort's strip widths as a grid column: each strip tile's width goes to the grid tile of its column
+    whose centre is nearest, if within half a tile (the mean where two land on one); NaN elsewhere.
+
+    Why: quick band-passes only the strip (:mod:`.fs_strip`), whose tiles are its own, so its widths are the
+    only measured δ a quick profile can have; the tolerance fit (fit/tolerance.py) is over tile positions, and
+    half a tile moves a smooth width field by far less than the width's noise. The fit is then of what a strip
+    spans (a constant and rho^2, not a tilt across it: fit/tolerance.py ``_spanned``)."""
+    out = np.zeros(xs.size)
+    n = np.zeros(xs.size)
+    for w, x, y in zip(width_um, sx, sy):
+        if not np.isfinite(w):
+            continue
+        d = np.where(np.abs(xs - x) < 0.5, np.abs(ys - y), np.inf)
+        j = int(np.argmin(d)) if d.size else -1
+        if j >= 0 and d[j] <= 0.5 * tile:
+            out[j] += w
+            n[j] += 1
+    return np.where(n > 0, out / np.maximum(n, 1), np.nan)
+
+
 def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per_mm: float, q: float,
              measure: str, rules: TileRules, bp_scale: np.ndarray | None = None,
              offset_from: dict | None = None) -> dict[str, np.ndarray]:
@@ -791,7 +813,7 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             if fm.status == "ok":
                 res["z_best_um"][t], res["z_sigma_um"][t], res["peak"][t] = fm.z_best_um, fm.z_sigma_um, fm.peak
                 res["stage_gain"][t] = fm.stage_gain
-            if fb.status == "ok" and "bp_cover" not in channel_curves:  # (a strip's few widths: not a map)
+            if fb.status == "ok":  # (on quick's strip: its tiles' widths, put on the grid by _strip_widths_on_grid)
                 # the curve's peak saw the sensor frequency fs / s(z0); the width scales as 1 / frequency
                 s0 = 1.0 if bp_scale is None else float(np.interp(fb.z_best_um, z, bp_scale))
                 res["width_um"][t] = fb.width_um / s0
@@ -1032,6 +1054,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     axes = {ch: _scale_axis(geometry, ch) for ch in stack.channels}
     offsets = {ch: None for ch in stack.channels}
     slopes: dict[str, dict] = {}
+    strip_widths: dict[str, np.ndarray] = {}
     if strip is not None:
         xs, ys = xs[:n_grid], ys[:n_grid]
         for ch, cc in per_channel.items():
@@ -1039,8 +1062,11 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
             per_channel[ch] = {k: v[:n_grid] for k, v in cc.items() if k not in ("bandpass", "bp_cover") + _SLOPE_KEYS}
             if "bp_lo" in on_strip:
                 slopes[ch] = _frequency_slope(on_strip, axes[ch].y(z), float(fs_cyc_per_mm), float(q), rules)
-            rec = _analyse(on_strip, axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), measure=measure,
-                           rules=rules, bp_scale=bp_scale).get("skew", {})
+            res_strip = _analyse(on_strip, axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
+                                 measure=measure, rules=rules, bp_scale=bp_scale)
+            rec = res_strip.get("skew", {})
+            _to_z(res_strip, axes[ch])
+            strip_widths[ch] = _strip_widths_on_grid(res_strip["width_um"], sx.ravel(), sy.ravel(), xs, ys, tile)
             offsets[ch] = {k: rec.get(k, 0.0) for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles",
                                                          "offset_zone_sd_um")}
     for ch, cc in per_channel.items():
@@ -1069,6 +1095,8 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         ok = res["status"] == "ok"  # rejected tiles keep their geometric centre
         cols["x_px"].append(np.where(ok, xw, xs))
         cols["y_px"].append(np.where(ok, yw, ys))
+        if ch in strip_widths:  # quick: the strip's widths on their grid tiles (the grid has no band-pass)
+            res["width_um"] = np.where(ok, strip_widths[ch], np.nan)
         for key in ("z_best_um", "z_sigma_um", "width_um", "peak", "status", "z_tan_um", "z_sag_um", "stage_gain"):
             cols[key].append(res[key])
         curves_out["sml"].append(cc["sml"])

@@ -65,6 +65,7 @@ class MTFCriterion:
         return self.fs_cyc_per_mm / (1000.0 / (2.0 * float(pixel_pitch_um)))
 
     def focus_tolerance_um(self, f_number: float) -> float:
-        """δ of the geometric defocus model at this F-number (see :func:`fieldcal.optics.focus_tolerance_um`)."""
+        """δ of the geometric defocus disc at this F-number, without diffraction
+        (:func:`fieldcal.optics.focus_tolerance_um`; with it: :func:`fieldcal.optics.pupil_tolerance_um`)."""
         from .defocus import focus_tolerance_um
         return focus_tolerance_um(self, f_number)

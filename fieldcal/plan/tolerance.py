@@ -1,9 +1,12 @@
 """Focus tolerance δ (half-width of the stage range keeping MTF(fs) within q of its peak) and MTF loss.
 
 δ comes from the profile's measured through-focus width when it has one (``has_measured_tolerance``); otherwise
-from the geometric defocus model with the profile's F-number (:func:`fieldcal.optics.focus_tolerance_um`), and the
-plan says which. The MTF loss of a defocus ``dz`` at a pixel with tolerance δ uses the defocus model's shape
-rescaled so that the loss is exactly q at ``|dz| = δ`` (so measured and modelled widths give consistent losses).
+from the aberration-free pupil's through-focus MTF(fs) with diffraction at the profile's F-number and the
+channel's wavelength (:func:`fieldcal.optics.model_tolerance_um`: the recorded wavelength, else the channel band's
+short end, which keeps it at or below the truth), and the plan says which. The MTF loss of a defocus ``dz`` at a
+pixel with tolerance δ uses the geometric defocus disc's shape rescaled so that the loss is exactly q at
+``|dz| = δ`` (so measured and modelled widths give consistent losses; the shape between 0 and δ is all it
+takes from the disc).
 The MTF criterion (fs, q) arrives as a :class:`fieldcal.optics.MTFCriterion`, validated where it is built.
 """
 
@@ -16,9 +19,11 @@ import numpy as np
 from scipy import special
 
 from ..errors import ParameterError
-from ..optics import LensModel, MTFCriterion, defocus_otf, focus_tolerance_um as model_tolerance_um
+from ..optics import LensModel, MTFCriterion, defocus_otf, focus_tolerance_um as disc_tolerance_um
+from ..optics import model_tolerance_um as pupil_model_tolerance_um
 
-MODEL_SOURCE = "defocus model from the F-number (no measured through-focus width)"
+MODEL_SOURCE = ("defocus model from the F-number: the aberration-free pupil with diffraction at the channel band's "
+                "short wavelength (no measured through-focus width)")
 MEASURED_SOURCE = "measured through-focus width (profile)"
 
 
@@ -65,14 +70,14 @@ ESFR_SOURCE = MEASURED_SOURCE + f" from slanted edges (e-SFR), ± {ESFR_WIDTH.re
 
 
 def texture_source(factor: float, capped: float = 0.0) -> str:
-    cap = (f"; at most the defocus model's δ at the F-number ({capped:.0%} of the field's points capped)"
-           if capped > 0 else "; at most the defocus model's δ at the F-number")
+    cap = (f"; at most the aberration-free pupil's δ at the F-number ({capped:.0%} of the field's points capped)"
+           if capped > 0 else "; at most the aberration-free pupil's δ at the F-number")
     return (MEASURED_SOURCE + f" from the texture focus measure, / {factor:.3f} (its measured bias at the "
             f"calibration's fs), ± {TEXTURE_WIDTH.rel_sd:.0%} lens to lens" + cap)
 
 
 def cap_texture_tolerance(tol_um, model_um: float) -> tuple[np.ndarray, float]:
-    """A texture profile's δ capped at the geometric defocus model's δ at the F-number, and the share capped.
+    """A texture profile's δ capped at the aberration-free pupil's δ at the F-number, and the share capped.
 
     Why: a texture tile's band-pass curve is a sum of MTF(f; z)² over a band of frequencies, orientations and
     the tile's pixels. Everything that sum adds beyond one pixel's MTF(fs; z) only widens the curve: best
@@ -80,10 +85,13 @@ def cap_texture_tolerance(tol_um, model_um: float) -> tuple[np.ndarray, float]:
     and sagittal foci split by astigmatism inside every pixel (the orientation average of an elliptical
     defocus disc, 4-10 % wider at T - S = 2-3 δ), and a band weighted to lower frequencies by the pixel
     aperture and any in-focus blur the larger it is in pixels (at 1920 x 1080 the triplet's in-focus blur is 3x
-    wider in pixels than at 640 px). None of these narrows δ, and the aberration-free defocus disc bounds δ at
-    fs for the pupil the F-number describes, so a texture width above the model cannot be told from one
-    of those spreads: the model is the honest value there (wave optics puts the true δ within a few % above it,
-    so the cap costs frames, never coverage)."""
+    wider in pixels than at 640 px). None of these narrows δ, so a texture width above the aberration-free δ
+    cannot be told from one of those spreads, and the model is the honest value there. The model is the
+    pupil's own through-focus MTF(fs) with diffraction (:func:`fieldcal.optics.model_tolerance_um`), at the
+    short end of the channel's band: the geometric defocus disc it replaced sits 1.1-1.6x below the true δ at
+    F/2.8-F/8 and 80 cycles/mm, and capped measured widths there (sessions 8-9: 5 frames for an optimum of 3
+    at F/5.6). Aberrations can make a lens's δ wider than the model; the cap then costs frames, never
+    coverage."""
     tol = np.asarray(tol_um, dtype=np.float64)
     if not (math.isfinite(model_um) and model_um > 0):
         return tol, 0.0
@@ -121,12 +129,19 @@ def width_bias(profile) -> tuple[WidthBias, float] | None:
     return bias, bias.factor(fs_px)
 
 
+def channel_model_tolerance_um(profile: LensModel, channel: str, crit: MTFCriterion) -> float:
+    """The model δ (µm) of ``channel`` at the profile's F-number: the aberration-free pupil with diffraction at
+    the stack's recorded wavelength (``profile.optics["wavelength_nm"]``), else the channel band's short end."""
+    optics = getattr(profile, "optics", None)
+    recorded = optics.get("wavelength_nm") if isinstance(optics, dict) else None
+    return pupil_model_tolerance_um(crit, float(profile.f_number), channel, recorded)
+
+
 def tolerance_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion) -> tuple[np.ndarray, str]:
     """Per-pixel δ (µm) and where it came from. Non-finite or non-positive values fall back to the model.
 
     A calibrated profile's measured widths are divided by their measurement's bias (:func:`width_bias`)."""
     shape = np.broadcast(np.asarray(x), np.asarray(y)).shape
-    model = model_tolerance_um(crit, float(profile.f_number))
     measured = bool(profile.has_measured_tolerance)
     tol = np.asarray(profile.focus_tolerance_um(x, y, channel, crit.fs_cyc_per_mm, crit.q), dtype=np.float64)
     tol = np.broadcast_to(tol, shape).copy()
@@ -138,13 +153,13 @@ def tolerance_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion) -> 
         if bias is ESFR_WIDTH:
             measured_src = ESFR_SOURCE
         else:
-            tol, capped = cap_texture_tolerance(tol, model)
+            tol, capped = cap_texture_tolerance(tol, channel_model_tolerance_um(profile, channel, crit))
             measured_src = texture_source(factor, capped)
     bad = ~np.isfinite(tol) | (tol <= 0)
     if bad.all():
-        return np.full(shape, model), MODEL_SOURCE
+        return np.full(shape, channel_model_tolerance_um(profile, channel, crit)), MODEL_SOURCE
     if bad.any():
-        tol[bad] = model
+        tol[bad] = channel_model_tolerance_um(profile, channel, crit)
         return tol, (measured_src + "; model where not measured") if measured else MODEL_SOURCE
     return tol, measured_src if measured else MODEL_SOURCE
 
@@ -189,8 +204,8 @@ def sigma_from_halfwidth(u, level: float) -> np.ndarray:
 
 
 def mtf_loss(dz_um, tol_um, crit: MTFCriterion, f_number: float) -> np.ndarray:
-    """1 - MTF(fs, dz)/MTF(fs, 0) with the defocus model rescaled to reach q at |dz| = tol_um."""
-    tol_model = model_tolerance_um(crit, f_number)
+    """1 - MTF(fs, dz)/MTF(fs, 0) with the defocus disc's shape rescaled to reach q at |dz| = tol_um."""
+    tol_model = disc_tolerance_um(crit, f_number)
     tol = np.maximum(np.asarray(tol_um, dtype=np.float64), 1e-12)
     dz_eff = np.asarray(dz_um, dtype=np.float64) * (tol_model / tol)
     return 1.0 - np.abs(defocus_otf(crit.fs_cyc_per_mm, dz_eff, f_number))
