@@ -1,9 +1,14 @@
 """Focus tolerance δ (half-width of the stage range keeping MTF(fs) within q of its peak) and MTF loss.
 
 δ comes from the profile's measured through-focus width when it has one (``has_measured_tolerance``); otherwise
-from the aberration-free pupil's through-focus MTF(fs) with diffraction at the profile's F-number and the
-channel's wavelength (:func:`fieldcal.optics.model_tolerance_um`: the recorded wavelength, else the channel band's
-short end, which keeps it at or below the truth), and the plan says which. The MTF loss of a defocus ``dz`` at a
+from the geometric defocus disc at the profile's F-number (:func:`fieldcal.optics.focus_tolerance_um`), and the
+plan says which. Why the disc and not the pupil with diffraction (:func:`fieldcal.optics.model_tolerance_um`,
+1.08-1.5x wider at F/2-F/8 and 60-80 cycles/mm): with nothing measured, the model must not claim more depth than
+any lens of that F-number has, and a lens whose defocus blur is geometric (a large-aperture lens, or a renderer
+that draws defocus as a disc or a Gaussian) has the disc's δ; the pupil's δ would leave its pixels outside the
+tolerance (98.8 % on the 1080p triplet at quick, docs/benchmarks.md "bench_quickdelta"). The pupil model is the
+upper bound a measured texture width is capped at (:func:`cap_texture_tolerance`), where the measurement says
+how wide the lens really is. The MTF loss of a defocus ``dz`` at a
 pixel with tolerance δ uses the geometric defocus disc's shape rescaled so that the loss is exactly q at
 ``|dz| = δ`` (so measured and modelled widths give consistent losses; the shape between 0 and δ is all it
 takes from the disc).
@@ -22,8 +27,8 @@ from ..errors import ParameterError
 from ..optics import LensModel, MTFCriterion, defocus_otf, focus_tolerance_um as disc_tolerance_um
 from ..optics import model_tolerance_um as pupil_model_tolerance_um
 
-MODEL_SOURCE = ("defocus model from the F-number: the aberration-free pupil with diffraction at the channel band's "
-                "short wavelength (no measured through-focus width)")
+MODEL_SOURCE = ("defocus model from the F-number: the geometric defocus disc, a lower bound on any lens of that "
+                "F-number (no measured through-focus width)")
 MEASURED_SOURCE = "measured through-focus width (profile)"
 
 
@@ -157,9 +162,9 @@ def tolerance_um(profile: LensModel, x, y, channel: str, crit: MTFCriterion) -> 
             measured_src = texture_source(factor, capped)
     bad = ~np.isfinite(tol) | (tol <= 0)
     if bad.all():
-        return np.full(shape, channel_model_tolerance_um(profile, channel, crit)), MODEL_SOURCE
+        return np.full(shape, disc_tolerance_um(crit, float(profile.f_number))), MODEL_SOURCE
     if bad.any():
-        tol[bad] = channel_model_tolerance_um(profile, channel, crit)
+        tol[bad] = disc_tolerance_um(crit, float(profile.f_number))
         return tol, (measured_src + "; model where not measured") if measured else MODEL_SOURCE
     return tol, measured_src if measured else MODEL_SOURCE
 

@@ -38,7 +38,7 @@ from fieldcal import __version__
 from fieldcal.formats import documents
 from fieldcal.formats.atomic import atomic_write_bytes, atomic_write_text, jsonable
 from fieldcal.errors import ParameterError, SpecError
-from fieldcal.optics import MTFCriterion, default_wavelength_nm, defocus_otf, diffraction_mtf, model_tolerance_um
+from fieldcal.optics import MTFCriterion, default_wavelength_nm, defocus_otf, diffraction_mtf, focus_tolerance_um
 
 if TYPE_CHECKING:  # the fits import the fitting stack; a profile loads them only when it reads one
     from fieldcal.fit import SurfaceFit
@@ -325,9 +325,10 @@ class LensProfile:
     def focus_tolerance_um(self, x, y, channel: str, fs_cyc_per_mm: float, q: float):
         """Half-width (µm) of the defocus range in which MTF(fs) stays within q of its peak.
 
-        From the measured through-focus widths when the profile has them, else from the aberration-free pupil's
-        through-focus MTF with diffraction at the stack's F-number and the channel's wavelength (recorded, else the
-        band's short end: :func:`fieldcal.optics.model_tolerance_um`; ``has_measured_tolerance`` says which).
+        From the measured through-focus widths when the profile has them, else from the geometric defocus disc at
+        the stack's F-number (``has_measured_tolerance`` says which): with nothing measured, the lower bound on any
+        lens of that F-number (the pupil with diffraction, :func:`fieldcal.optics.model_tolerance_um`, is wider
+        and is what a measured width is capped at; docs/planning.md).
         """
         crit = MTFCriterion(fs_cyc_per_mm, q)
         x, y = _check_points(x, y)
@@ -339,7 +340,7 @@ class LensProfile:
             raise SpecError("the profile has neither measured widths nor an F-number for the defocus model",
                             path=self.source_path, field="optics.f_number",
                             fix="recalibrate from a stack whose stack.json gives f_number")
-        t = model_tolerance_um(crit, float(self.f_number), ch, self.optics.get("wavelength_nm"))
+        t = focus_tolerance_um(crit, float(self.f_number))
         return np.full(np.broadcast(x, y).shape, t)
 
     def focus_tolerance_sd_um(self, x, y, channel: str, fs_cyc_per_mm: float, q: float):
