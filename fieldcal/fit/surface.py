@@ -323,7 +323,7 @@ class SurfaceModel:
         Without building the (B, n, p) design: each row's coefficient of rho^{2k} is gathered from beta (an
         appended zero where the row has none) and the polynomial is summed by Horner's rule. Same values as the
         design product up to rounding (~1e-16 relative); at a decentre the design is rebuilt per walker at every
-        emcee step, which cost 3-5x the rest of the log-posterior (docs/fitting.md "Posterior").
+        emcee step, which cost 3-5x the rest of the log-posterior (docs/fitting.md "Posterior and effort").
         """
         nc = len(self.channels)
         mean_row = rows.kind == 0
