@@ -308,10 +308,15 @@ class SurfaceModel:
                 inv_s = np.exp(-log_s)[:, None]
                 log_s_sum = n_all * log_s
             nu = np.exp(log_nu)
-            z2 = ((y - pred) * inv_sigma * inv_s) ** 2
+            # z^2 / nu = ((y - pred) / (s sigma))^2 / nu, in place (walkers x rows: the chain's largest arrays)
+            z2 = np.subtract(y, pred, out=pred)  # pred is this call's own array
+            z2 *= inv_sigma
+            z2 *= inv_s
+            np.square(z2, out=z2)
+            z2 /= nu[:, None]
             ll = (n_all * (gammaln(0.5 * (nu + 1.0)) - gammaln(0.5 * nu) - 0.5 * np.log(nu * np.pi))
                   - log_s_sum - log_sigma_sum
-                  - 0.5 * (nu + 1.0) * np.sum(np.log1p(z2 / nu[:, None]), axis=1))
+                  - 0.5 * (nu + 1.0) * np.sum(np.log1p(z2, out=z2), axis=1))
             out[ok] = ll - 0.5 * np.sum((beta / COEF_PRIOR_SD) ** 2, axis=1)
             return out
 
@@ -347,9 +352,10 @@ class SurfaceModel:
         def pred(beta: np.ndarray, centre: np.ndarray) -> np.ndarray:
             b = np.concatenate([beta, np.zeros(beta.shape[:-1] + (1,))], axis=-1)
             r2 = (x_hat - centre[:, 0:1]) ** 2 + (y_hat - centre[:, 1:2]) ** 2
-            out = b[:, cols[k_top]]
+            out = np.take(b, cols[k_top], axis=1)
             for k in range(k_top - 1, -1, -1):
-                out = out * r2 + b[:, cols[k]]
+                out *= r2
+                out += np.take(b, cols[k], axis=1)
             if self.tilt:
                 j = self._col_tilt
                 out = out + beta[:, j:j + 1] * tx + beta[:, j + 1:j + 2] * ty
