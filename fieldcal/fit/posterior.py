@@ -46,6 +46,30 @@ ADAPT_ROUNDS = 6
 ADAPT_GAIN = 1.1
 
 
+def _emcee():
+    """emcee, imported without scipy.stats.
+
+    emcee's package import loads all its moves, and ``emcee.moves.kde`` imports ``scipy.stats.gaussian_kde``
+    inside ``try ... except ImportError`` (KDEMove is optional there): scipy.stats is 0.35-0.5 s of CPU on the
+    serial path of a standard calibration (the whole of its import, nothing else in fieldcal needs it), and no
+    move used here needs it. Here only: scipy.stats is marked unimportable while emcee loads, then unmarked, so a
+    later ``import scipy.stats`` anywhere works as usual; if it is already loaded nothing changes.
+    """
+    import sys
+
+    if "emcee" in sys.modules:
+        return sys.modules["emcee"]
+    blocked = "scipy.stats" not in sys.modules
+    if blocked:
+        sys.modules["scipy.stats"] = None  # type: ignore[assignment]  # import -> ImportError (Python's rule)
+    try:
+        import emcee
+    finally:
+        if blocked and sys.modules.get("scipy.stats", False) is None:
+            del sys.modules["scipy.stats"]
+    return emcee
+
+
 @dataclass(frozen=True)
 class Effort:
     """What an effort level changes (docs/fitting.md "Effort")."""
@@ -279,7 +303,7 @@ def run_emcee(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, effort: Ef
     (``ball_cov``), a pilot of ``pilot_steps`` differential-evolution steps gives the mean and covariance the
     independence proposal of the chain proper is fitted to, and only the chain proper is kept and judged.
     """
-    import emcee  # here: its import pulls in scipy.stats (~0.8 s), which quick effort never needs
+    emcee = _emcee()
     p = theta_map.size
     n_walkers = max(32, 2 * p + 2) if n_walkers is None else max(int(n_walkers), 2 * p + 2)
     n_walkers += n_walkers % 2
@@ -436,8 +460,7 @@ class _TProposal:
 
 
 def _tau(sampler) -> np.ndarray:
-    import emcee
-
+    emcee = _emcee()
     chain = sampler.get_chain()
     # tol=0: always return the estimate; convergence is judged by the caller's rule.
     with np.errstate(invalid="ignore", divide="ignore"):
