@@ -162,6 +162,27 @@ def test_fast_log_posterior_equals_the_reference_one():
             np.testing.assert_allclose(b[1:], a[1:], rtol=1e-11, atol=1e-9)
 
 
+def test_row_predictor_equals_the_design_product():
+    """The decentred log-posterior's gathered-coefficient predictor gives design(centre) @ beta per walker, for
+    every term layout (shared high orders, tilt, astigmatism to rho^6, rows of both kinds)."""
+    from fieldcal.fit.surface import Rows, SurfaceModel
+
+    rng = np.random.default_rng(5)
+    n, walkers = 300, 7
+    rows = Rows(rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), rng.integers(0, 3, n), rng.integers(0, 2, n),
+                rng.normal(size=n), np.ones(n))
+    for order in (1, 2, 3):
+        for tilt in (False, True):
+            for astig, astig_order in ((False, 1), (True, 1), (True, 3)):
+                for kc in (None, 1):
+                    m = SurfaceModel(("R", "G", "B"), order, tilt, True, astig, True, kc, astig_order)
+                    beta = rng.normal(size=(walkers, m.n_linear))
+                    centre = rng.uniform(-0.2, 0.2, (walkers, 2))
+                    X = m.design(rows.x_hat, rows.y_hat, rows.ch_index, rows.kind, centre)
+                    np.testing.assert_allclose(m.row_predictor(rows)(beta, centre),
+                                               np.einsum("bnp,bp->bn", X, beta), rtol=1e-12, atol=1e-12)
+
+
 def test_pruned_decentre_search_picks_what_the_exhaustive_search_picks():
     """Quick/standard fit decentred candidates only beside the best centred structures; on decentred random
     lenses that changes neither the chosen model nor the surface."""

@@ -467,3 +467,39 @@ def test_ray_model_alone_finds_the_exact_peak_of_moderate_spherical_aberration()
         for phase in (0.0, 0.5):
             z, e, zt, step, fs = _wave_sa_scan(nu, w040, phase)
             assert abs(analyse_curve(z, e, "otf", fs, 0.05).z_best_um - zt) / step < 2e-3
+
+
+def test_batched_precheck_equals_the_per_curve_one():
+    """analyse_curves' row-wise prechecks (floor, height, noise, second peak, flanks, window) give exactly what the
+    per-curve _precheck gives, on curves of every outcome: accepted, flat, double-peaked, at the edge, beyond the
+    scan, non-finite."""
+    from fieldcal.measure.throughfocus import _Pre, _precheck, _precheck_many
+
+    rng = np.random.default_rng(0)
+    z = np.arange(42) * 10.0
+    rules = CurveRules()
+    rows = []
+    for _ in range(1500):
+        v = (rng.uniform(0.5, 2) * np.exp(-((z - rng.uniform(0, 420)) / rng.uniform(5, 80)) ** 2)
+             + rng.uniform(-0.1, 0.3) + rng.normal(0, 10 ** rng.uniform(-4, -0.5), z.size))
+        if rng.random() < 0.1:
+            v = v + 0.8 * np.exp(-((z - rng.uniform(0, 420)) / 10) ** 2)
+        if rng.random() < 0.03:
+            v[5] = np.nan
+        if rng.random() < 0.05:
+            v = np.full(z.size, 1.0)
+        rows.append(v)
+    V = np.array(rows)
+    got = _precheck_many(z, V, rules)
+    seen = set()
+    for t, b in enumerate(got):
+        a = _precheck(z, V[t], rules)
+        assert type(a) is type(b)
+        if isinstance(a, _Pre):
+            assert (a.i_max, a.lo, a.hi, a.floor, a.height) == (b.i_max, b.lo, b.hi, b.floor, b.height)
+            seen.add("ok")
+        else:
+            assert a.status == b.status
+            np.testing.assert_array_equal([a.peak, a.floor], [b.peak, b.floor])
+            seen.add(a.status)
+    assert seen == {"ok", "flat", "multi_peak", "peak_at_edge", "peak_outside_range", "fit_failed"}

@@ -36,7 +36,38 @@ AUTOCORR_FACTOR = 50
 PROPOSAL_DOF = 10.0
 PROPOSAL_SCALE = 1.1
 INDEPENDENCE_WEIGHT = 0.85
-ADAPT_ROUNDS = 2  # refits of the proposal when the chain proper misses the rule at its first length
+# Refits of the proposal when the chain proper misses the rule at its first length: at least MIN_ADAPT_ROUNDS, then
+# more (up to ADAPT_ROUNDS) while each refit still raises the chain's acceptance by ADAPT_GAIN x. An independence
+# sampler's acceptance is its proposal's overlap with the posterior; on the 1080p triplet's decentred poly3 it went
+# 0.04, 0.19, 0.29, 0.35, 0.35 over rounds 0-4. Stopping at round 2 (0.29) left walkers stuck for up to 170 steps where
+# the t was still too narrow: tau 126 and a 6500-step chain (4.6 s of a 12 s calibration); from round 4, ~420 steps.
+MIN_ADAPT_ROUNDS = 2
+ADAPT_ROUNDS = 6
+ADAPT_GAIN = 1.1
+
+
+def _emcee():
+    """emcee, imported without scipy.stats.
+
+    emcee's package import loads all its moves, and ``emcee.moves.kde`` imports ``scipy.stats.gaussian_kde``
+    inside ``try ... except ImportError`` (KDEMove is optional there): scipy.stats is 0.35-0.5 s of CPU on the
+    serial path of a standard calibration (the whole of its import, nothing else in fieldcal needs it), and no
+    move used here needs it. Here only: scipy.stats is marked unimportable while emcee loads, then unmarked, so a
+    later ``import scipy.stats`` anywhere works as usual; if it is already loaded nothing changes.
+    """
+    import sys
+
+    if "emcee" in sys.modules:
+        return sys.modules["emcee"]
+    blocked = "scipy.stats" not in sys.modules
+    if blocked:
+        sys.modules["scipy.stats"] = None  # type: ignore[assignment]  # import -> ImportError (Python's rule)
+    try:
+        import emcee
+    finally:
+        if blocked and sys.modules.get("scipy.stats", False) is None:
+            del sys.modules["scipy.stats"]
+    return emcee
 
 
 @dataclass(frozen=True)
@@ -279,7 +310,7 @@ def run_emcee(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, effort: Ef
     (``ball_cov``), a pilot of ``pilot_steps`` differential-evolution steps gives the mean and covariance the
     independence proposal of the chain proper is fitted to, and only the chain proper is kept and judged.
     """
-    import emcee  # here: its import pulls in scipy.stats (~0.8 s), which quick effort never needs
+    emcee = _emcee()
     p = theta_map.size
     n_walkers = max(32, 2 * p + 2) if n_walkers is None else max(int(n_walkers), 2 * p + 2)
     n_walkers += n_walkers % 2
@@ -313,7 +344,9 @@ def run_emcee(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, effort: Ef
         pilot_acc = float(np.mean(warm.acceptance_fraction))
         # The chain proper; when it misses the rule at its first length (a proposal fitted to too short a
         # pilot, e.g. where tilt and decentre trade off), it is refitted to that chain's second half and
-        # restarted, up to ADAPT_ROUNDS times; only the last chain (one fixed proposal) is kept.
+        # restarted, MIN_ADAPT_ROUNDS times and then while the refits still raise the acceptance (up to
+        # ADAPT_ROUNDS); only the last chain (one fixed proposal) is kept.
+        acc_prev = None
         for rnd in range(ADAPT_ROUNDS + 1):
             proposal = _TProposal(half.mean(axis=0), np.cov(half.T), PROPOSAL_DOF, PROPOSAL_SCALE)
             sampler = emcee.EnsembleSampler(n_walkers, p, log_prob, vectorize=True,
@@ -323,6 +356,10 @@ def run_emcee(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, effort: Ef
             state = sampler.run_mcmc(state, effort.initial_steps, progress=False)
             if rnd == ADAPT_ROUNDS or effort.initial_steps > AUTOCORR_FACTOR * np.max(_tau(sampler)):
                 break
+            acc = float(np.mean(sampler.acceptance_fraction))
+            if rnd >= MIN_ADAPT_ROUNDS and acc < ADAPT_GAIN * acc_prev:
+                break  # the proposal has stopped improving: extend this chain
+            acc_prev = acc
             half = sampler.get_chain(discard=effort.initial_steps // 2, flat=True)
             random_state = sampler.random_state
         pilot_info = {"steps": int(effort.pilot_steps), "moves": "DEMove", "acceptance_fraction": pilot_acc,
@@ -430,8 +467,7 @@ class _TProposal:
 
 
 def _tau(sampler) -> np.ndarray:
-    import emcee
-
+    emcee = _emcee()
     chain = sampler.get_chain()
     # tol=0: always return the estimate; convergence is judged by the caller's rule.
     with np.errstate(invalid="ignore", divide="ignore"):

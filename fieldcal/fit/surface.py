@@ -283,6 +283,7 @@ class SurfaceModel:
         p = self.n_linear
         lo, hi = self.nonlinear_bounds()
         X0 = None if self.decentre else self.design(rows.x_hat, rows.y_hat, rows.ch_index, rows.kind, np.zeros(2))
+        decentred_pred = self.row_predictor(rows) if self.decentre else None
         focus = rows.kind == 0
         split_scales = self.astig_rows
         log_sigma_sum = float(np.sum(np.log(rows.sigma)))
@@ -299,11 +300,7 @@ class SurfaceModel:
                 return out
             t = theta[ok]
             beta, centre, log_s, log_sa, log_nu = self.split(t)
-            if X0 is not None:
-                pred = beta @ X0.T
-            else:
-                pred = np.einsum("bnp,bp->bn", self.design(rows.x_hat, rows.y_hat, rows.ch_index, rows.kind,
-                                                            centre), beta)
+            pred = beta @ X0.T if X0 is not None else decentred_pred(beta, centre)
             if split_scales:
                 inv_s = np.where(focus, np.exp(-log_s)[:, None], np.exp(-log_sa)[:, None])
                 log_s_sum = n_focus * log_s + (n_all - n_focus) * log_sa
@@ -311,14 +308,60 @@ class SurfaceModel:
                 inv_s = np.exp(-log_s)[:, None]
                 log_s_sum = n_all * log_s
             nu = np.exp(log_nu)
-            z2 = ((y - pred) * inv_sigma * inv_s) ** 2
+            # z^2 / nu = ((y - pred) / (s sigma))^2 / nu, in place (walkers x rows: the chain's largest arrays)
+            z2 = np.subtract(y, pred, out=pred)  # pred is this call's own array
+            z2 *= inv_sigma
+            z2 *= inv_s
+            np.square(z2, out=z2)
+            z2 /= nu[:, None]
             ll = (n_all * (gammaln(0.5 * (nu + 1.0)) - gammaln(0.5 * nu) - 0.5 * np.log(nu * np.pi))
                   - log_s_sum - log_sigma_sum
-                  - 0.5 * (nu + 1.0) * np.sum(np.log1p(z2 / nu[:, None]), axis=1))
+                  - 0.5 * (nu + 1.0) * np.sum(np.log1p(z2, out=z2), axis=1))
             out[ok] = ll - 0.5 * np.sum((beta / COEF_PRIOR_SD) ** 2, axis=1)
             return out
 
         return f
+
+    def row_predictor(self, rows: Rows):
+        """``pred(beta (B, p), centre (B, 2)) -> (B, n)``: the rows' model values, ``design(..., centre) @ beta``.
+
+        Without building the (B, n, p) design: each row's coefficient of rho^{2k} is gathered from beta (an
+        appended zero where the row has none) and the polynomial is summed by Horner's rule. Same values as the
+        design product up to rounding (~1e-16 relative); at a decentre the design is rebuilt per walker at every
+        emcee step, which cost 3-5x the rest of the log-posterior (docs/fitting.md "Posterior and effort").
+        """
+        nc = len(self.channels)
+        mean_row = rows.kind == 0
+        ci = np.asarray(rows.ch_index)
+        k_max = max(self.order, self.astig_order if self.astig else 0)
+        zero = self.n_linear                              # index of the appended zero coefficient
+        cols = np.full((k_max + 1, rows.n), zero, dtype=np.intp)
+        for k in range(self.order + 1):
+            for c in range(nc):
+                cols[k, mean_row & (ci == c)] = self._col_power(c, k)
+        if self.astig:
+            for c in range(nc):
+                for k in range(1, self.astig_order + 1):
+                    cols[k, ~mean_row & (ci == c)] = self._col_astig + c * self.astig_order + k - 1
+        used = [k for k in range(k_max + 1) if np.any(cols[k] != zero)]
+        k_top = max(used) if used else 0
+        x_hat, y_hat = rows.x_hat, rows.y_hat
+        tx = np.where(mean_row, x_hat, 0.0) if self.tilt else None
+        ty = np.where(mean_row, y_hat, 0.0) if self.tilt else None
+
+        def pred(beta: np.ndarray, centre: np.ndarray) -> np.ndarray:
+            b = np.concatenate([beta, np.zeros(beta.shape[:-1] + (1,))], axis=-1)
+            r2 = (x_hat - centre[:, 0:1]) ** 2 + (y_hat - centre[:, 1:2]) ** 2
+            out = np.take(b, cols[k_top], axis=1)
+            for k in range(k_top - 1, -1, -1):
+                out *= r2
+                out += np.take(b, cols[k], axis=1)
+            if self.tilt:
+                j = self._col_tilt
+                out = out + beta[:, j:j + 1] * tx + beta[:, j + 1:j + 2] * ty
+            return out
+
+        return pred
 
     # ------------------------------------------------------------------ prediction
     def surface(self, theta: np.ndarray, x_hat, y_hat, channel_index: int) -> np.ndarray:

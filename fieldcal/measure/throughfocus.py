@@ -224,6 +224,52 @@ def _precheck(z: np.ndarray, v: np.ndarray, rules: CurveRules) -> _Pre | CurveFi
     return _Pre(i_max, lo, hi, floor, height)
 
 
+def _precheck_many(z: np.ndarray, V: np.ndarray, rules: CurveRules) -> list[_Pre | CurveFit]:
+    """:func:`_precheck` of every row of ``V``, its arithmetic done for all rows at once (the same numbers: the
+    same operations on the same values); only the fit window is found row by row. The per-row version cost
+    ~60 µs a curve, most of the width-window correction's 11 000 model curves at 1080p standard."""
+    T, n = V.shape
+    finite = np.all(np.isfinite(V), axis=1)
+    Vf = np.where(finite[:, None], V, 0.0)
+    rows = np.arange(T)
+    floor = np.partition(Vf, n // 10, axis=1)[:, n // 10]
+    i_max = np.argmax(Vf, axis=1)
+    height = Vf[rows, i_max] - floor
+    if n >= 3:  # noise_sigma, row-wise
+        d2 = Vf[:, 2:] - 2.0 * Vf[:, 1:-1] + Vf[:, :-2]
+        sigma_n = 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=1)[:, None]), axis=1) / math.sqrt(6.0)
+    else:
+        sigma_n = np.zeros(T)
+    flat = ~((height > rules.flat_ratio * np.abs(floor)) & (height > rules.flat_snr * sigma_n) & (height > 0.0))
+    # second_peak_depth of the curve padded below the floor at both ends, row-wise
+    P = np.concatenate([(np.minimum(floor, Vf[:, 0]) - height)[:, None], Vf,
+                        (np.minimum(floor, Vf[:, -1]) - height)[:, None]], axis=1)
+    left = np.maximum.accumulate(P, axis=1)
+    right = np.maximum.accumulate(P[:, ::-1], axis=1)[:, ::-1]
+    multi = np.max(np.minimum(left[:, :-2], right[:, 2:]) - P[:, 1:-1], axis=1) >= rules.multi_peak_prominence * height
+    at_end = (i_max == 0) | (i_max == n - 1)
+    below = Vf < (floor + rules.edge_flank * height)[:, None]
+    idx = np.arange(n)[None, :]
+    flanked = np.any(below & (idx < i_max[:, None]), axis=1) & np.any(below & (idx > i_max[:, None]), axis=1)
+    out: list[_Pre | CurveFit] = []
+    for t in range(T):
+        h, f = float(height[t]), float(floor[t])
+        if not finite[t]:
+            out.append(CurveFit.rejected("fit_failed"))
+        elif flat[t]:
+            out.append(CurveFit.rejected("flat", h, f))
+        elif multi[t]:
+            out.append(CurveFit.rejected("multi_peak", h, f))
+        elif at_end[t]:
+            out.append(CurveFit.rejected("peak_outside_range", h, f))
+        elif not flanked[t]:
+            out.append(CurveFit.rejected("peak_at_edge", h, f))
+        else:
+            lo, hi = _window(V[t], int(i_max[t]), f, h, rules)
+            out.append(_Pre(int(i_max[t]), lo, hi, f, h))
+    return out
+
+
 def analyse_curves(z_um, values, model: str = "peak", fs_cyc_per_mm: float | None = None, q: float = 0.05,
                    rules: CurveRules | None = None, wavelength_nm: float = WAVELENGTH_NM) -> list[CurveFit]:
     """:func:`analyse_curve` for many curves on the same z grid (rows of ``values``), fitted together.
@@ -251,8 +297,7 @@ def analyse_curves(z_um, values, model: str = "peak", fs_cyc_per_mm: float | Non
     out: list[CurveFit | None] = [None] * T
     step = float(np.median(np.diff(z)))
     pres: list[tuple[int, _Pre]] = []
-    for t in range(T):
-        r = _precheck(z, V[t], rules)
+    for t, r in enumerate(_precheck_many(z, V, rules)):
         if isinstance(r, CurveFit):
             out[t] = r
         else:
