@@ -61,6 +61,11 @@ _MIN_PUPIL_SAMPLES = 64.0  # pupil diameter in samples, at least (MTF error ~1e-
 # step put the kernels' own fs-contrast peak 3.6 µm off the truth (the rendered tiles ~0.9 µm). At 40 lambda N
 # (~0.5 % outside) the kernels peak 0.03 µm from it; rendering costs ~1.4x the CPU (docs/simulator.md).
 _TAIL_LAMBDA_N = 40.0
+# Kernel half-width at least (px). The kernel's DFT is the exact OTF at the grid frequencies j / (K p); between
+# them its transfer function is the trigonometric interpolation of those values, off by the PSF energy folded back
+# from beyond the window, and that error steps when K does. Small-PSF lenses (F/1.6, 15 µm pixels: K = 7) had
+# steps of 1.3e-3 in MTF(fs) and a kernel peak 0.4 µm off the truth's; at K >= 13 (docs/simulator.md).
+_MIN_HALF_PX = 6
 # field nodes of the wave renderer at least, for lenses with astigmatism (orientation varies with azimuth)
 ASTIG_FIELD_GRID = (11, 7)
 _RHO_NODES = 6  # field heights at which the sharpest position is computed (interpolated between)
@@ -215,50 +220,93 @@ class ChannelOptics:
         """Pixel kernel (K x K, K odd, float32, sum 1): the PSF integrated over each pixel's square aperture,
         band-limited to the pixel grid.
 
-        The PSF is sampled ``os`` times per pixel (os odd; fine enough that the OTF is exact up to the corner
-        of the pixel grid's band, :meth:`_spacing_um`) on a K x K pixel window (``half_extent_um``); its DFT's
-        central K x K block is the optical OTF at the pixel grid's own frequencies, which is multiplied by the
-        residual Gaussian's OTF and the pixel aperture's OTF ``sinc(fx p) sinc(fy p)`` (100% fill factor) and
-        transformed back. So the kernel's transfer function is ``OTF(f) sinc(f p)`` below Nyquist,
-        with no aliased copies: the scene is itself sampled at the pixel grid (as in the geometric path), and
-        aliasing would move the sharpest position (high frequencies peak nearer the paraxial focus).
+        The kernel is built in the frequency domain on the pixel grid's own frequencies ``j / (K p)``,
+        ``|j| <= (K - 1) / 2`` (K from ``half_extent_um``): the optical OTF there times the residual Gaussian's
+        OTF and the pixel aperture's OTF ``sinc(fx p) sinc(fy p)`` (100% fill factor), transformed back. So the
+        kernel's DFT is ``OTF(f) sinc(f p)`` at those frequencies, with no aliased copies: the scene is itself
+        sampled at the pixel grid (as in the geometric path), and aliasing would move the sharpest position
+        (high frequencies peak nearer the paraxial focus).
+
+        The optical OTF is exact where it can be: a rotationally symmetric pupil (no coma, no astigmatism) takes
+        the pupil's autocorrelation (:func:`fieldcal.optics.pupil.otf_radial`) at each radius of the block, the
+        band's OTFs summed as complex values (one polychromatic PSF), as the truth (:meth:`mtf`) does. Why: the
+        sampled PSF's DFT carried ~1e-3 of discretisation error that changes with dz (pupil sampling and window
+        follow the defocus), which moved the kernels' MTF(fs) peak up to 0.56 µm from the truth's on 15 µm
+        pixels at 13 cycles/mm (docs/simulator.md). Other pupils (coma, astigmatism) take the same
+        autocorrelation in two dimensions (:func:`fieldcal.optics.pupil.otf_2d`, :meth:`_general_block`).
         """
-        f_max = math.sqrt(0.5) / pitch_um  # the corner of the band, cycles/µm
-        os_ = int(math.ceil(pitch_um / self._spacing_um(f_max)))
-        os_ += 1 - os_ % 2
-        k = 2 * int(math.ceil(self.half_extent_um(terms, dz_um) / pitch_um)) + 1
-        n = k * os_
-        spectrum = fft.fft2(fft.ifftshift(self.psf(terms, dz_um, pitch_um / os_, n, f_max)), workers=-1)
-        h = (k - 1) // 2
-        keep = np.r_[0:h + 1, n - h:n]  # frequencies j / (K p), |j| <= h: the pixel grid's band
-        f_px = fft.fftfreq(k)  # cycles/px, in the same order as keep
+        k = 2 * int(math.ceil(max(self.half_extent_um(terms, dz_um) / pitch_um, _MIN_HALF_PX))) + 1
+        f_px = fft.fftfreq(k)  # cycles/px, in the DFT's order
+        if terms.w131_um == 0.0 and terms.wast_um == 0.0:
+            block = self._symmetric_block(terms, dz_um, f_px / pitch_um)
+        else:
+            block = self._general_block(terms, dz_um, f_px / pitch_um)
         pix = np.sinc(f_px)
         res = self.residual_otf(np.hypot(f_px[:, None], f_px[None, :]) / pitch_um)
-        block = spectrum[np.ix_(keep, keep)] * (pix[:, None] * pix[None, :] * res)
+        block = block * (pix[:, None] * pix[None, :] * res)
         ker = fft.fftshift(fft.ifft2(block, workers=-1).real)
         return (ker / ker.sum()).astype(np.float32)
+
+    def _symmetric_block(self, terms: WaveTerms, dz_um: float, f_cyc_per_um: np.ndarray) -> np.ndarray:
+        """Exact polychromatic OTF of a rotationally symmetric pupil on the grid ``f x f`` (cycles/µm, 1-D
+        axis in any order), evaluated once per distinct radius."""
+        from fieldcal.optics import pupil
+
+        n = self.f_number
+        r2 = f_cyc_per_um[:, None] ** 2 + f_cyc_per_um[None, :] ** 2
+        radii, inverse = np.unique(np.round(r2, 12), return_inverse=True)
+        f = np.sqrt(radii)
+        tot = np.zeros_like(f)
+        for lam_nm, w in self.band:
+            lam = lam_nm * 1e-3
+            tot += w * pupil.otf_radial(f * lam * n, dz_um / (8.0 * n * n * lam), terms.w040_um / lam,
+                                        terms.w060_um / lam)
+        return tot[inverse.reshape(r2.shape)]
+
+    def _general_block(self, terms: WaveTerms, dz_um: float, f_cyc_per_um: np.ndarray) -> np.ndarray:
+        """Exact polychromatic (complex) OTF of any pupil on the grid ``f x f`` (cycles/µm; rows fy, columns fx;
+        a DFT-ordered axis, so ``-f`` of every point is on the grid): the pupil autocorrelation at half the
+        points, the rest by ``OTF(-f) = conj(OTF(f))``."""
+        fy, fx = np.meshgrid(f_cyc_per_um, f_cyc_per_um, indexing="ij")
+        m = f_cyc_per_um.size
+        neg = np.r_[0, m - 1:0:-1]  # index of -f along the DFT-ordered axis
+        half = (fy > 0) | ((fy == 0) & (fx >= 0))
+        tot = np.zeros(fx.shape, dtype=np.complex128)
+        tot[half] = self._general_otf(terms, dz_um, fx[half], fy[half])
+        rows, cols = np.nonzero(~half)
+        tot[rows, cols] = np.conj(tot[neg[rows], neg[cols]])
+        return tot
 
     def mtf(self, terms: WaveTerms, dz_um: float, f_cyc_per_mm: float, n_angles: int = 12) -> float:
         """Optical MTF at f (cycles/mm), averaged over ``n_angles`` orientations (no pixel aperture).
 
-        A rotationally symmetric pupil (no coma, no astigmatism) has the same OTF in every orientation: it is
-        computed exactly, as the pupil's autocorrelation (:func:`fieldcal.optics.pupil.otf`). Why: the sampled
-        PSF's MTF carries ~1e-3 of discretisation error that changes with dz (the pupil's sampling and the PSF
-        window follow the defocus), and near the flat top of a low-fs curve that moved the sharpest position by
-        up to 0.5 µm (docs/simulator.md).
+        Exact: the pupil's autocorrelation (:mod:`fieldcal.optics.pupil`), the band's OTFs summed as complex
+        values (one polychromatic PSF), then the magnitude. A rotationally symmetric pupil (no coma, no
+        astigmatism) has the same OTF in every orientation (:func:`fieldcal.optics.pupil.otf`); others are
+        averaged over the orientations (:func:`fieldcal.optics.pupil.otf_2d`). Why exact: the sampled PSF's MTF
+        carried ~1e-3 of discretisation error that changes with dz (the pupil's sampling and the PSF window
+        follow the defocus), and near the flat top of a low-fs curve that moved the sharpest position by up to
+        0.7 µm (docs/simulator.md). The pixel kernels use the same OTF (:meth:`kernel`).
         """
         f_um = f_cyc_per_mm * 1e-3
         if terms.w131_um == 0.0 and terms.wast_um == 0.0:
             return self._symmetric_mtf(terms, dz_um, f_um)
-        spacing = self._spacing_um(f_um)
-        n = 2 * int(math.ceil(self.half_extent_um(terms, dz_um) / spacing)) + 1
-        p = self.psf(terms, dz_um, spacing, n, f_um)
-        x = (np.arange(n) - n // 2) * spacing * 1e-3  # mm
         ang = np.arange(n_angles) * (np.pi / n_angles)
-        ex = np.exp(-2j * np.pi * f_cyc_per_mm * np.cos(ang)[:, None] * x[None, :])
-        ey = np.exp(-2j * np.pi * f_cyc_per_mm * np.sin(ang)[:, None] * x[None, :])
-        otf = np.einsum("ty,yx,tx->t", ey, p, ex)
-        return float(np.mean(np.abs(otf)) * self.residual_otf(f_um))
+        return float(np.mean(np.abs(self._general_otf(terms, dz_um, f_um * np.cos(ang), f_um * np.sin(ang))))
+                     * self.residual_otf(f_um))
+
+    def _general_otf(self, terms: WaveTerms, dz_um: float, fx_cyc_per_um, fy_cyc_per_um) -> np.ndarray:
+        """Exact polychromatic complex OTF of any pupil at the frequencies ``(fx, fy)`` (cycles/µm)."""
+        from fieldcal.optics import pupil
+
+        n = self.f_number
+        slope_um = 2.0 * abs(dz_um) / (8.0 * n * n) + terms.max_slope_um()
+        tot = 0.0
+        for lam_nm, w in self.band:
+            lam = lam_nm * 1e-3
+            tot = tot + w * pupil.otf_2d(np.asarray(fx_cyc_per_um) * lam * n, np.asarray(fy_cyc_per_um) * lam * n,
+                                         lambda u, v: wavefront_um(u, v, dz_um, n, terms) / lam, slope_um / lam)
+        return tot
 
     def _symmetric_mtf(self, terms: WaveTerms, dz_um: float, f_um: float) -> float:
         """|OTF| at f (cycles/µm) of the channel's band for a rotationally symmetric pupil, exact (module
@@ -278,8 +326,9 @@ class ChannelOptics:
 
         A coarse scan (step half the geometric depth ``N / (pi fs)``) over the span of the spherical
         aberration's foci plus margins finds the global maximum (a through-focus curve can have secondary maxima
-        after contrast reversal); a bounded Brent search refines it, and the peak of a quartic fit over +-half the
-        depth (:meth:`_smooth_peak_um`) removes the numerical noise of the MTF's sampling. Without spherical aberration and
+        after contrast reversal); a bounded Brent search (0.01 µm) refines it on the exact MTF (:meth:`mtf`, no
+        sampling noise to smooth away; a quartic fit was needed while it came from a sampled PSF). Without
+        spherical aberration and
         with only one of coma or astigmatism the curve is symmetric in dz (W(u, v; -dz) = -W(-u, -v; dz) up to a
         rotation, which leaves the orientation-averaged MTF unchanged), so the shift is exactly 0.
         """
@@ -297,30 +346,7 @@ class ChannelOptics:
         res = minimize_scalar(lambda z: -self.mtf(terms, float(z), fs_cyc_per_mm),
                               bounds=(zs[max(i - 1, 0)], zs[min(i + 1, len(zs) - 1)]), method="bounded",
                               options={"xatol": 0.01})
-        z_b = float(res.x) if -res.fun >= vals[i] else float(zs[i])
-        if terms.w131_um == 0.0 and terms.wast_um == 0.0:
-            return z_b  # the exact MTF (:meth:`mtf`) has no sampling noise to smooth away
-        return self._smooth_peak_um(terms, fs_cyc_per_mm, z_b, dof_um)
-
-    def _smooth_peak_um(self, terms: WaveTerms, fs_cyc_per_mm: float, z_um: float, dof_um: float) -> float:
-        """The maximum of a quartic least-squares fit to the MTF at 17 points over ``z_um +- dof_um / 2``.
-
-        Why: the computed MTF carries ~1e-4 of numerical noise (the pupil's and the PSF window's sampling change
-        with dz), while near the top of a through-focus curve at low fs it changes by only ~2e-3 over +-8 µm, so
-        the argmax of the computed values wanders: on a W040 = 0.8 wave F/2.1 lens at 13 cycles/mm the Brent
-        maximum sat 0.62 µm from the smooth curve's peak (quadratic or quartic fits over 0.3-1 DOF agreed to
-        +-0.09 µm), and a calibration that found the physical peak was scored 0.03 step off. The quartic keeps
-        the curve's skew; the fit is kept only when its peak lies inside the window.
-        """
-        u = np.linspace(-0.5, 0.5, 17) * dof_um
-        vals = np.array([self.mtf(terms, float(z_um + d), fs_cyc_per_mm) for d in u])
-        c = np.polyfit(u / dof_um, vals, 4)
-        roots = np.roots(np.polyder(c))
-        roots = roots[(np.abs(roots.imag) < 1e-9) & (np.abs(roots.real) < 0.5)].real
-        roots = roots[np.polyval(np.polyder(c, 2), roots) < 0]
-        if roots.size == 0:
-            return z_um
-        return float(z_um + roots[np.argmin(np.abs(roots))] * dof_um)
+        return float(res.x) if -res.fun >= vals[i] else float(zs[i])  # exact MTF: no sampling noise to smooth
 
 
 def rho_nodes(spec: LensSpec) -> np.ndarray:
