@@ -216,9 +216,13 @@ class ChannelOptics:
         """OTF of the residual Gaussian (``residual_blur_um``)."""
         return np.exp(-2.0 * (np.pi * self.sigma_um * np.asarray(f_cyc_per_um)) ** 2)
 
-    def kernel(self, terms: WaveTerms, dz_um: float, pitch_um: float) -> np.ndarray:
+    def kernel(self, terms: WaveTerms, dz_um: float, pitch_um: float, scale: float = 1.0) -> np.ndarray:
         """Pixel kernel (K x K, K odd, float32, sum 1): the PSF integrated over each pixel's square aperture,
         band-limited to the pixel grid.
+
+        ``scale`` = a: the kernel is for an image that is then magnified by a (the renderer blurs the scene
+        before its breathing / lateral-colour warp), so it is the sensor's pixel PSF shrunk by 1/a: transfer
+        function ``OTF(g / (a p)) sinc(g / a)`` at g cycles per (scene) pixel.
 
         The kernel is built in the frequency domain on the pixel grid's own frequencies ``j / (K p)``,
         ``|j| <= (K - 1) / 2`` (K from ``half_extent_um``): the optical OTF there times the residual Gaussian's
@@ -235,14 +239,15 @@ class ChannelOptics:
         pixels at 13 cycles/mm (docs/simulator.md). Other pupils (coma, astigmatism) take the same
         autocorrelation in two dimensions (:func:`fieldcal.optics.pupil.otf_2d`, :meth:`_general_block`).
         """
-        k = 2 * int(math.ceil(max(self.half_extent_um(terms, dz_um) / pitch_um, _MIN_HALF_PX))) + 1
+        scene_px_um = pitch_um * float(scale)  # one scene pixel, in µm at the sensor
+        k = 2 * int(math.ceil(max(self.half_extent_um(terms, dz_um) / scene_px_um, _MIN_HALF_PX))) + 1
         f_px = fft.fftfreq(k)  # cycles/px, in the DFT's order
         if terms.w131_um == 0.0 and terms.wast_um == 0.0:
-            block = self._symmetric_block(terms, dz_um, f_px / pitch_um)
+            block = self._symmetric_block(terms, dz_um, f_px / scene_px_um)
         else:
-            block = self._general_block(terms, dz_um, f_px / pitch_um)
-        pix = np.sinc(f_px)
-        res = self.residual_otf(np.hypot(f_px[:, None], f_px[None, :]) / pitch_um)
+            block = self._general_block(terms, dz_um, f_px / scene_px_um)
+        pix = np.sinc(f_px / float(scale))
+        res = self.residual_otf(np.hypot(f_px[:, None], f_px[None, :]) / scene_px_um)
         block = block * (pix[:, None] * pix[None, :] * res)
         ker = fft.fftshift(fft.ifft2(block, workers=-1).real)
         return (ker / ker.sum()).astype(np.float32)
@@ -449,13 +454,25 @@ class WaveBlur:
         d_px = self.level_floor_px * self.level_ratio ** (abs(k) - 1)
         return math.copysign(d_px * self.spec.f_number * self.pitch_um, k)
 
-    def kernel(self, channel: str, j: int, i: int, k: int) -> np.ndarray:
-        """Pixel kernel of node (j, i) at ladder level k (cached by canonical terms, mirrored per node)."""
+    def kernel(self, channel: str, j: int, i: int, k: int, breathing: bool = True) -> np.ndarray:
+        """Pixel kernel of node (j, i) at ladder level k (cached by canonical terms and scale, mirrored per node).
+
+        The renderer blurs the scene and then warps it by the image scale ``a = m(z) lc`` (breathing, lateral
+        colour), which magnifies the blur by a: the kernel is the sensor PSF shrunk by 1/a, a at the stage
+        position where this node sits at this level (``z = reference surface + dz``; ``breathing=False``: the
+        truth image, m = 1). The blend of two levels then interpolates a as it does dz. Why: the unscaled
+        kernels magnified the PSF with z, and the fs contrast peak moved by up to -0.86 µm on an F/7.5 lens
+        with its exit pupil 15 mm from the sensor (docs/simulator.md).
+        """
         terms = self._node_terms[channel, j, i]
         dz = self._centre_um(channel, j, i) + self._level_dz_um(k)
-        key = (channel, terms, round(dz, 6))
+        a = self.spec.lateral_colour_scale(channel)
+        if breathing:
+            xm, ym = self.spec.pixel_to_mm(self.node_x[i], self.node_y[j])
+            a *= float(self.spec.magnification(float(self.spec.best_focus_um(xm, ym, channel)) + dz, channel))
+        key = (channel, terms, round(dz, 6), round(a, 12))
         if key not in self._kernels:
-            self._kernels[key] = self.optics[channel].kernel(terms, dz, self.pitch_um)
+            self._kernels[key] = self.optics[channel].kernel(terms, dz, self.pitch_um, a)
         ker = self._kernels[key]
         fx, fy = self._node_flip[channel, j, i]
         return ker[::-1 if fy else 1, ::-1 if fx else 1]
@@ -490,9 +507,10 @@ class WaveBlur:
             w[coord <= nodes[0]] = 1.0
         return w
 
-    def blur(self, channel: str, defocus_um: np.ndarray) -> np.ndarray:
+    def blur(self, channel: str, defocus_um: np.ndarray, breathing: bool = True) -> np.ndarray:
         """The scene channel blurred with the wave PSF of each pixel's signed defocus (µm from the reference
-        surface, H x W) and field position: blend of (node, level) kernel images."""
+        surface, H x W) and field position: blend of (node, level) kernel images, each kernel shrunk by the
+        image scale the renderer's warp then applies (:meth:`kernel`; ``breathing=False``: lateral colour only)."""
         ci = self.spec.channel_names.index(channel)
         dz = np.asarray(defocus_um, dtype=np.float64)
         out = np.zeros((self.h, self.w), dtype=np.float32)
@@ -505,8 +523,9 @@ class WaveBlur:
         max_dz = float(np.max(np.abs(dz))) + max(abs(self._centre_um(channel, j, i)) for j in range(ny)
                                                   for i in range(nx))
         max_dz *= self.level_ratio  # the upper bracketing level
-        pad, padded = self._padded_scene(ci, int(math.ceil(self.optics[channel].half_extent_um(big, max_dz)
-                                                           / self.pitch_um)) + 2 + int(self.level_floor_px))
+        # kernels are shrunk by the warp's scale a (:meth:`kernel`): in scene pixels their radius is 1/a larger
+        half_px = max(self.optics[channel].half_extent_um(big, max_dz) / self.pitch_um, _MIN_HALF_PX) / 0.9
+        pad, padded = self._padded_scene(ci, int(math.ceil(half_px)) + 2 + int(self.level_floor_px))
         for j in range(ny):
             y0 = int(math.ceil(self.node_y[max(j - 1, 0)])); y1 = int(math.floor(self.node_y[min(j + 1, ny - 1)])) + 1
             wy = self._hat(ys[y0:y1], self.node_y, j)
@@ -536,7 +555,7 @@ class WaveBlur:
                     if not keep.any():
                         continue
                     ids, w = ids[keep], w[keep]
-                    ker = self.kernel(channel, j, i, k)
+                    ker = self.kernel(channel, j, i, k, breathing)
                     r = ker.shape[0] // 2
                     if r > pad:
                         raise ParameterError(f"a wave kernel of radius {r} px exceeds the padding {pad} px",
