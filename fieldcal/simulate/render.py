@@ -622,7 +622,7 @@ class Renderer:
         ch = self.channels[ci]
         aff = self._affine(self.spec.z_ref_um if z_um is None else z_um, ch, z_um is not None)
         if self._wave is not None:
-            img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff), z_um is not None), aff, z_um,
+            img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff), float(aff[0, 0])), aff, z_um,
                              ch)
         else:
             img = self._warp(self.sensor_blur(ch, z_um, aff), aff, z_um, ch)

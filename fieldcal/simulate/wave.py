@@ -454,25 +454,21 @@ class WaveBlur:
         d_px = self.level_floor_px * self.level_ratio ** (abs(k) - 1)
         return math.copysign(d_px * self.spec.f_number * self.pitch_um, k)
 
-    def kernel(self, channel: str, j: int, i: int, k: int, breathing: bool = True) -> np.ndarray:
-        """Pixel kernel of node (j, i) at ladder level k (cached by canonical terms and scale, mirrored per node).
+    def kernel(self, channel: str, j: int, i: int, k: int, scale: float = 1.0) -> np.ndarray:
+        """Pixel kernel of node (j, i) at ladder level k for a frame that the renderer then magnifies by
+        ``scale`` (cached by canonical terms, defocus and scale; mirrored per node).
 
-        The renderer blurs the scene and then warps it by the image scale ``a = m(z) lc`` (breathing, lateral
-        colour), which magnifies the blur by a: the kernel is the sensor PSF shrunk by 1/a, a at the stage
-        position where this node sits at this level (``z = reference surface + dz``; ``breathing=False``: the
-        truth image, m = 1). The blend of two levels then interpolates a as it does dz. Why: the unscaled
-        kernels magnified the PSF with z, and the fs contrast peak moved by up to -0.86 µm on an F/7.5 lens
-        with its exit pupil 15 mm from the sensor (docs/simulator.md).
+        The renderer blurs the scene and then warps it by the frame's image scale ``a = m(z) lc`` (breathing,
+        lateral colour), which magnifies the blur by a: the kernel is the sensor PSF shrunk by 1/a
+        (:meth:`ChannelOptics.kernel`). Why: unshrunk kernels magnified the PSF with z, which moved the fs
+        contrast peak by up to -0.86 µm on an F/7.5 lens with its exit pupil 15 mm from the sensor
+        (docs/simulator.md).
         """
         terms = self._node_terms[channel, j, i]
         dz = self._centre_um(channel, j, i) + self._level_dz_um(k)
-        a = self.spec.lateral_colour_scale(channel)
-        if breathing:
-            xm, ym = self.spec.pixel_to_mm(self.node_x[i], self.node_y[j])
-            a *= float(self.spec.magnification(float(self.spec.best_focus_um(xm, ym, channel)) + dz, channel))
-        key = (channel, terms, round(dz, 6), round(a, 12))
+        key = (channel, terms, round(dz, 6), round(float(scale), 12))
         if key not in self._kernels:
-            self._kernels[key] = self.optics[channel].kernel(terms, dz, self.pitch_um, a)
+            self._kernels[key] = self.optics[channel].kernel(terms, dz, self.pitch_um, scale)
         ker = self._kernels[key]
         fx, fy = self._node_flip[channel, j, i]
         return ker[::-1 if fy else 1, ::-1 if fx else 1]
@@ -507,10 +503,10 @@ class WaveBlur:
             w[coord <= nodes[0]] = 1.0
         return w
 
-    def blur(self, channel: str, defocus_um: np.ndarray, breathing: bool = True) -> np.ndarray:
+    def blur(self, channel: str, defocus_um: np.ndarray, scale: float = 1.0) -> np.ndarray:
         """The scene channel blurred with the wave PSF of each pixel's signed defocus (µm from the reference
-        surface, H x W) and field position: blend of (node, level) kernel images, each kernel shrunk by the
-        image scale the renderer's warp then applies (:meth:`kernel`; ``breathing=False``: lateral colour only)."""
+        surface, H x W) and field position: blend of (node, level) kernel images, the kernels shrunk by the
+        image scale ``scale`` that the renderer's warp then applies (:meth:`kernel`)."""
         ci = self.spec.channel_names.index(channel)
         dz = np.asarray(defocus_um, dtype=np.float64)
         out = np.zeros((self.h, self.w), dtype=np.float32)
@@ -524,7 +520,8 @@ class WaveBlur:
                                                   for i in range(nx))
         max_dz *= self.level_ratio  # the upper bracketing level
         # kernels are shrunk by the warp's scale a (:meth:`kernel`): in scene pixels their radius is 1/a larger
-        half_px = max(self.optics[channel].half_extent_um(big, max_dz) / self.pitch_um, _MIN_HALF_PX) / 0.9
+        half_px = max(self.optics[channel].half_extent_um(big, max_dz) / (self.pitch_um * min(scale, 1.0)),
+                      _MIN_HALF_PX)
         pad, padded = self._padded_scene(ci, int(math.ceil(half_px)) + 2 + int(self.level_floor_px))
         for j in range(ny):
             y0 = int(math.ceil(self.node_y[max(j - 1, 0)])); y1 = int(math.floor(self.node_y[min(j + 1, ny - 1)])) + 1
@@ -555,7 +552,7 @@ class WaveBlur:
                     if not keep.any():
                         continue
                     ids, w = ids[keep], w[keep]
-                    ker = self.kernel(channel, j, i, k, breathing)
+                    ker = self.kernel(channel, j, i, k, scale)
                     r = ker.shape[0] // 2
                     if r > pad:
                         raise ParameterError(f"a wave kernel of radius {r} px exceeds the padding {pad} px",
