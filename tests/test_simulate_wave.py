@@ -523,3 +523,26 @@ def test_kernel_scale_shrinks_the_psf_for_the_magnifying_warp():
             assert _kernel_mtf_at(opt, terms, dz, pitch, fs, 1.01) == pytest.approx(want, abs=2e-3)
             # unscaled, the warp would give OTF(1.01 f): measurably different at 90 cycles/mm
     assert abs(_kernel_mtf_at(opt, terms, 10.0, pitch, 90.0 * 1.01) - opt.mtf(terms, 10.0, 90.0)) > 2e-3
+
+
+def test_renderer_kernels_follow_the_frame_scale():
+    """WaveBlur caches kernels at a = 1 and 1.01 and takes the line through them for a frame's scale a: exact at
+    a = 1; within 4e-4 of the exact shrunk kernel's transfer function for |a - 1| <= 0.02 (SA, astigmatism and
+    coma, nodes mirrored or not)."""
+    from fieldcal.simulate.wave import WaveBlur
+
+    ab = {"unit": "waves", "reference_wavelength_nm": LAM_NM, "spherical": [0.3], "astigmatism": [0.5],
+          "coma": [0.3]}
+    spec = make_spec(w=48, h=40, pitch_um=4.0, f_number=2.8, mono=False, aberrations=ab)
+    wb = WaveBlur(spec, np.zeros((40, 48, 1), np.float32), 1.25, 0.5, 60.0)
+    for j, i in ((0, 0), (1, 2)):
+        terms = wb._node_terms["G", j, i]
+        fx, fy = wb._node_flip["G", j, i]
+        for k in (-3, 0, 6):
+            dz = wb._centre_um("G", j, i) + wb._level_dz_um(k)
+            for a in (0.98, 1.0, 1.02):
+                got = wb.kernel("G", j, i, k, a).astype(np.float64)
+                ref = wb.optics["G"].kernel(terms, dz, 4.0, a, size=got.shape[0]).astype(np.float64)
+                ref = ref[::-1 if fy else 1, ::-1 if fx else 1]
+                err = np.abs(np.fft.fft2(got) - np.fft.fft2(ref)).max()
+                assert err < (1e-6 if a == 1.0 else 4e-4), (j, i, k, a, err)

@@ -66,6 +66,9 @@ _TAIL_LAMBDA_N = 40.0
 # from beyond the window, and that error steps when K does. Small-PSF lenses (F/1.6, 15 µm pixels: K = 7) had
 # steps of 1.3e-3 in MTF(fs) and a kernel peak 0.4 µm off the truth's; at K >= 13 (docs/simulator.md).
 _MIN_HALF_PX = 6
+# the second image scale at which the renderer's kernels are cached (WaveBlur.kernel: a line through a = 1 and
+# 1 + this serves every frame's scale; breathing and lateral colour keep |a - 1| at a few 1e-3 to 2e-2)
+_SCALE_STEP = 0.01
 # field nodes of the wave renderer at least, for lenses with astigmatism (orientation varies with azimuth)
 ASTIG_FIELD_GRID = (11, 7)
 _RHO_NODES = 6  # field heights at which the sharpest position is computed (interpolated between)
@@ -216,13 +219,15 @@ class ChannelOptics:
         """OTF of the residual Gaussian (``residual_blur_um``)."""
         return np.exp(-2.0 * (np.pi * self.sigma_um * np.asarray(f_cyc_per_um)) ** 2)
 
-    def kernel(self, terms: WaveTerms, dz_um: float, pitch_um: float, scale: float = 1.0) -> np.ndarray:
+    def kernel(self, terms: WaveTerms, dz_um: float, pitch_um: float, scale: float = 1.0,
+               size: int | None = None) -> np.ndarray:
         """Pixel kernel (K x K, K odd, float32, sum 1): the PSF integrated over each pixel's square aperture,
         band-limited to the pixel grid.
 
         ``scale`` = a: the kernel is for an image that is then magnified by a (the renderer blurs the scene
         before its breathing / lateral-colour warp), so it is the sensor's pixel PSF shrunk by 1/a: transfer
-        function ``OTF(g / (a p)) sinc(g / a)`` at g cycles per (scene) pixel.
+        function ``OTF(g / (a p)) sinc(g / a)`` at g cycles per (scene) pixel. ``size``: K (odd), instead of
+        the window that holds the PSF.
 
         The kernel is built in the frequency domain on the pixel grid's own frequencies ``j / (K p)``,
         ``|j| <= (K - 1) / 2`` (K from ``half_extent_um``): the optical OTF there times the residual Gaussian's
@@ -240,7 +245,7 @@ class ChannelOptics:
         autocorrelation in two dimensions (:func:`fieldcal.optics.pupil.otf_2d`, :meth:`_general_block`).
         """
         scene_px_um = pitch_um * float(scale)  # one scene pixel, in µm at the sensor
-        k = 2 * int(math.ceil(max(self.half_extent_um(terms, dz_um) / scene_px_um, _MIN_HALF_PX))) + 1
+        k = size or 2 * int(math.ceil(max(self.half_extent_um(terms, dz_um) / scene_px_um, _MIN_HALF_PX))) + 1
         f_px = fft.fftfreq(k)  # cycles/px, in the DFT's order
         if terms.w131_um == 0.0 and terms.wast_um == 0.0:
             block = self._symmetric_block(terms, dz_um, f_px / scene_px_um)
@@ -456,20 +461,29 @@ class WaveBlur:
 
     def kernel(self, channel: str, j: int, i: int, k: int, scale: float = 1.0) -> np.ndarray:
         """Pixel kernel of node (j, i) at ladder level k for a frame that the renderer then magnifies by
-        ``scale`` (cached by canonical terms, defocus and scale; mirrored per node).
+        ``scale`` (mirrored per node).
 
         The renderer blurs the scene and then warps it by the frame's image scale ``a = m(z) lc`` (breathing,
         lateral colour), which magnifies the blur by a: the kernel is the sensor PSF shrunk by 1/a
         (:meth:`ChannelOptics.kernel`). Why: unshrunk kernels magnified the PSF with z, which moved the fs
         contrast peak by up to -0.86 µm on an F/7.5 lens with its exit pupil 15 mm from the sensor
-        (docs/simulator.md).
+        (docs/simulator.md). a differs from frame to frame, so the cache (keyed by the node's canonical terms
+        and the level's defocus) holds the kernels at a = 1 and ``1 + _SCALE_STEP`` and each frame takes the
+        line through them: exact at a = 1 (telecentric, no lateral colour), off by ``(a - 1)(a - 1 - step) / 2``
+        times the kernel's second derivative in a elsewhere (<= 4e-4 of transfer at |a - 1| <= 0.02, tested).
         """
         terms = self._node_terms[channel, j, i]
         dz = self._centre_um(channel, j, i) + self._level_dz_um(k)
-        key = (channel, terms, round(dz, 6), round(float(scale), 12))
+        key = (channel, terms, round(dz, 6))
         if key not in self._kernels:
-            self._kernels[key] = self.optics[channel].kernel(terms, dz, self.pitch_um, scale)
-        ker = self._kernels[key]
+            self._kernels[key] = [self.optics[channel].kernel(terms, dz, self.pitch_um), None]
+        entry = self._kernels[key]
+        ker = entry[0]
+        if scale != 1.0:
+            if entry[1] is None:  # d(kernel)/da, only for lenses whose frames are scaled
+                k2 = self.optics[channel].kernel(terms, dz, self.pitch_um, 1.0 + _SCALE_STEP, size=ker.shape[0])
+                entry[1] = ((k2.astype(np.float64) - ker) / _SCALE_STEP).astype(np.float32)
+            ker = ker + np.float32(scale - 1.0) * entry[1]
         fx, fy = self._node_flip[channel, j, i]
         return ker[::-1 if fy else 1, ::-1 if fx else 1]
 
