@@ -119,7 +119,7 @@ def test_pixel_kernel_energy_and_width():
         var = (lsf * x[core] ** 2).sum() / lsf.sum()
         if dz >= 40:
             assert var == pytest.approx(b * b / 16 + 16.0 / 12, rel=0.06)
-    # energy kept inside the kernel before renormalising (the Airy pattern's tail beyond 40 lambda N is dropped)
+    # energy of the sampled PSF inside the kernel window (the Airy tail beyond 40 lambda N is folded into the kernel)
     sp = LAM_NM * 1e-3 * N / 4
     n = 2 * int(math.ceil(opt.half_extent_um(WaveTerms(), 0.0) / sp)) + 1
     assert opt.psf(WaveTerms(), 0.0, sp, n).sum() > 0.99

@@ -3,8 +3,10 @@
 The geometric path (:mod:`fieldcal.simulate.render`) multiplies analytic OTFs (blur disc x diffraction x
 Gaussian), which makes every through-focus curve symmetric about the lens's surface. This path computes the
 PSF from the pupil: a circular pupil of the image-side F-number N, a wavefront with defocus, astigmatism,
-coma and primary spherical aberration, Fraunhofer diffraction (PSF = |FFT(pupil)|^2), summed over the
-channel's spectral band, integrated over the pixel aperture. Spherical aberration makes the through-focus
+coma and primary spherical aberration, Fraunhofer diffraction, summed over the channel's spectral band,
+integrated over the pixel aperture. Kernels and truth share one transfer function, the pupil's exact
+autocorrelation (:mod:`fieldcal.optics.pupil`); :func:`monochromatic_psf` (PSF = |FFT(pupil)|^2) remains for
+validation. Spherical aberration makes the through-focus
 curves asymmetric and moves the sharpest position off the lens's reference surface, as real lenses do.
 
 Conventions (docs/simulator.md, "Wave-optics path")
@@ -26,8 +28,9 @@ The pupil function is ``A exp(-2 pi i W / lambda)``, which with numpy's FFT sign
 
 Rendering: blur levels in signed defocus (the geometric path's ladder, centred per field node on that node's
 sharpest position) times a coarse grid of field nodes; each (node, level) kernel is a pixel-integrated
-polychromatic PSF, cached for the renderer's life; each pixel blends the images of the two levels that
-bracket its defocus and of the (up to) four nodes around it (bilinear weights).
+polychromatic PSF shrunk by the frame's image scale (the warp that follows magnifies it), cached for the
+renderer's life; each pixel blends the images of the two levels that bracket its defocus and of the (up to)
+four nodes around it (bilinear weights).
 """
 
 from __future__ import annotations
@@ -210,10 +213,6 @@ class ChannelOptics:
                                   lambda u, v: wavefront_um(u, v, dz_um, self.f_number, terms), band_cyc_per_um)
             out += w * p[lo:lo + n, lo:lo + n]
         return out
-
-    def _spacing_um(self, f_max_cyc_per_um: float) -> float:
-        """Coarsest PSF sampling whose OTF is exact up to f_max for every wavelength of the band."""
-        return 1.0 / (1.0 / (self.lam_min_um * self.f_number) + f_max_cyc_per_um)
 
     def residual_otf(self, f_cyc_per_um):
         """OTF of the residual Gaussian (``residual_blur_um``)."""
