@@ -546,3 +546,26 @@ def test_renderer_kernels_follow_the_frame_scale():
                 ref = ref[::-1 if fy else 1, ::-1 if fx else 1]
                 err = np.abs(np.fft.fft2(got) - np.fft.fft2(ref)).max()
                 assert err < (1e-6 if a == 1.0 else 4e-4), (j, i, k, a, err)
+
+
+def test_breathing_frames_blur_with_kernels_shrunk_by_the_frame_scale(monkeypatch):
+    """The renderer hands the wave blur its frame's warp scale a = m(z) (1 + lateral colour); the truth image
+    (no breathing) only the lateral colour."""
+    from fieldcal.simulate.wave import WaveBlur
+
+    spec = make_spec(w=40, h=32, pitch_um=4.0, exit_pupil_mm=12.0,
+                     channels=[{"name": "G", "wavelength_nm": LAM_NM, "lateral_colour": 0.002}])
+    seen = []
+    orig = WaveBlur.blur
+
+    def spy(self, channel, defocus_um, scale=1.0):
+        seen.append(scale)
+        return orig(self, channel, defocus_um, scale)
+
+    monkeypatch.setattr(WaveBlur, "blur", spy)
+    r = Renderer(spec, np.random.default_rng(2).uniform(0, 1, (32, 40)).astype(np.float32), optics="wave")
+    for z in (-60.0, 45.0):
+        r.render_float(z)
+        assert seen[-1] == pytest.approx(float(spec.magnification(z)) * 1.002, rel=1e-12)
+    r.truth()
+    assert seen[-1] == pytest.approx(1.002, rel=1e-12)
