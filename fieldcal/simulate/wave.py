@@ -69,6 +69,11 @@ _TAIL_LAMBDA_N = 40.0
 # from beyond the window, and that error steps when K does. Small-PSF lenses (F/1.6, 15 µm pixels: K = 7) had
 # steps of 1.3e-3 in MTF(fs) and a kernel peak 0.4 µm off the truth's; at K >= 13 (docs/simulator.md).
 _MIN_HALF_PX = 6
+# integrand evaluations of the exact 2-D OTF block (pupil.otf_2d) at most per kernel (~25 ms); beyond it the
+# sampled PSF's DFT (a 1920 x 1080 astigmatic triplet took 5.6x the CPU with the exact block everywhere; at
+# this budget every asymmetric kernel of the 320-400 px band-benchmark lenses is exact, and the triplet's
+# 1080p kernels near focus (1770 of 6612 within 400 µm))
+_EXACT_2D_BUDGET = 1.0e6
 # the second image scale at which the renderer's kernels are cached (WaveBlur.kernel: a line through a = 1 and
 # 1 + this serves every frame's scale; breathing and lateral colour keep |a - 1| at a few 1e-3 to 2e-2)
 _SCALE_STEP = 0.01
@@ -241,15 +246,19 @@ class ChannelOptics:
         sampled PSF's DFT carried ~1e-3 of discretisation error that changes with dz (pupil sampling and window
         follow the defocus), which moved the kernels' MTF(fs) peak up to 0.56 µm from the truth's on 15 µm
         pixels at 13 cycles/mm (docs/simulator.md). Other pupils (coma, astigmatism) take the same
-        autocorrelation in two dimensions (:func:`fieldcal.optics.pupil.otf_2d`, :meth:`_general_block`).
+        autocorrelation in two dimensions (:func:`fieldcal.optics.pupil.otf_2d`, :meth:`_general_block`) while
+        that costs at most ``_EXACT_2D_BUDGET`` integrand values; larger blocks (a big defocused kernel on a
+        fine pixel grid) take the DFT of a sampled PSF (:meth:`_sampled_block`), as before session 9.
         """
         scene_px_um = pitch_um * float(scale)  # one scene pixel, in µm at the sensor
         k = size or 2 * int(math.ceil(max(self.half_extent_um(terms, dz_um) / scene_px_um, _MIN_HALF_PX))) + 1
         f_px = fft.fftfreq(k)  # cycles/px, in the DFT's order
         if terms.w131_um == 0.0 and terms.wast_um == 0.0:
             block = self._symmetric_block(terms, dz_um, f_px / scene_px_um)
-        else:
+        elif self._exact_2d_cost(terms, dz_um, scene_px_um, k) <= _EXACT_2D_BUDGET:
             block = self._general_block(terms, dz_um, f_px / scene_px_um)
+        else:
+            block = self._sampled_block(terms, dz_um, scene_px_um, k)
         pix = np.sinc(f_px / float(scale))
         res = self.residual_otf(np.hypot(f_px[:, None], f_px[None, :]) / scene_px_um)
         block = block * (pix[:, None] * pix[None, :] * res)
@@ -271,6 +280,30 @@ class ChannelOptics:
             tot += w * pupil.otf_radial(f * lam * n, dz_um / (8.0 * n * n * lam), terms.w040_um / lam,
                                         terms.w060_um / lam)
         return tot[inverse.reshape(r2.shape)]
+
+    def _exact_2d_cost(self, terms: WaveTerms, dz_um: float, px_um: float, k: int) -> float:
+        """Integrand evaluations of :meth:`_general_block` on a K x K block (node rule of ``pupil.otf_2d``)."""
+        n = self.f_number
+        nu = min(math.sqrt(0.5) / px_um * self.lam_max_um * n, 1.0)
+        slope_waves = (2.0 * abs(dz_um) / (8.0 * n * n) + terms.max_slope_um()) / self.lam_min_um
+        m = 1.5 * math.pi * nu * slope_waves + 12.0
+        return (k * k / 2.0) * m * m * len(self.band)
+
+    def _sampled_block(self, terms: WaveTerms, dz_um: float, px_um: float, k: int) -> np.ndarray:
+        """The OTF at the pixel grid's frequencies (K x K, DFT order) from the DFT of a sampled PSF (any pupil):
+        the PSF sampled ``os`` times per pixel (os odd; fine enough that the OTF is exact up to the corner of the
+        band) on the K x K window, its DFT's central K x K block. Off the exact OTF by the window's truncation
+        and the sampled pupil's edge (~1e-3, changing with dz); used only where :meth:`_general_block` is too
+        slow (the kernels there span many pixels, and their peak error was <= 0.04 µm in the tests)."""
+        f_max = math.sqrt(0.5) / px_um  # the corner of the band, cycles/µm
+        spacing = 1.0 / (1.0 / (self.lam_min_um * self.f_number) + f_max)
+        os_ = int(math.ceil(px_um / spacing))
+        os_ += 1 - os_ % 2
+        n = k * os_
+        spectrum = fft.fft2(fft.ifftshift(self.psf(terms, dz_um, px_um / os_, n, f_max)), workers=-1)
+        h = (k - 1) // 2
+        keep = np.r_[0:h + 1, n - h:n]  # frequencies j / (K p), |j| <= h: the pixel grid's band
+        return spectrum[np.ix_(keep, keep)]
 
     def _general_block(self, terms: WaveTerms, dz_um: float, f_cyc_per_um: np.ndarray) -> np.ndarray:
         """Exact polychromatic (complex) OTF of any pupil on the grid ``f x f`` (cycles/µm; rows fy, columns fx;
