@@ -622,7 +622,8 @@ class Renderer:
         ch = self.channels[ci]
         aff = self._affine(self.spec.z_ref_um if z_um is None else z_um, ch, z_um is not None)
         if self._wave is not None:
-            img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff)), aff, z_um, ch)
+            img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff), float(aff[0, 0])), aff, z_um,
+                             ch)
         else:
             img = self._warp(self.sensor_blur(ch, z_um, aff), aff, z_um, ch)
         img = np.multiply(img, self._exposed_illum(), dtype=np.float32)

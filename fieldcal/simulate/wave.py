@@ -3,8 +3,10 @@
 The geometric path (:mod:`fieldcal.simulate.render`) multiplies analytic OTFs (blur disc x diffraction x
 Gaussian), which makes every through-focus curve symmetric about the lens's surface. This path computes the
 PSF from the pupil: a circular pupil of the image-side F-number N, a wavefront with defocus, astigmatism,
-coma and primary spherical aberration, Fraunhofer diffraction (PSF = |FFT(pupil)|^2), summed over the
-channel's spectral band, integrated over the pixel aperture. Spherical aberration makes the through-focus
+coma and primary spherical aberration, Fraunhofer diffraction, summed over the channel's spectral band,
+integrated over the pixel aperture. Kernels and truth share one transfer function, the pupil's exact
+autocorrelation (:mod:`fieldcal.optics.pupil`); :func:`monochromatic_psf` (PSF = |FFT(pupil)|^2) remains for
+validation. Spherical aberration makes the through-focus
 curves asymmetric and moves the sharpest position off the lens's reference surface, as real lenses do.
 
 Conventions (docs/simulator.md, "Wave-optics path")
@@ -26,8 +28,9 @@ The pupil function is ``A exp(-2 pi i W / lambda)``, which with numpy's FFT sign
 
 Rendering: blur levels in signed defocus (the geometric path's ladder, centred per field node on that node's
 sharpest position) times a coarse grid of field nodes; each (node, level) kernel is a pixel-integrated
-polychromatic PSF, cached for the renderer's life; each pixel blends the images of the two levels that
-bracket its defocus and of the (up to) four nodes around it (bilinear weights).
+polychromatic PSF shrunk by the frame's image scale (the warp that follows magnifies it), cached for the
+renderer's life; each pixel blends the images of the two levels that bracket its defocus and of the (up to)
+four nodes around it (bilinear weights).
 """
 
 from __future__ import annotations
@@ -61,6 +64,19 @@ _MIN_PUPIL_SAMPLES = 64.0  # pupil diameter in samples, at least (MTF error ~1e-
 # step put the kernels' own fs-contrast peak 3.6 µm off the truth (the rendered tiles ~0.9 µm). At 40 lambda N
 # (~0.5 % outside) the kernels peak 0.03 µm from it; rendering costs ~1.4x the CPU (docs/simulator.md).
 _TAIL_LAMBDA_N = 40.0
+# Kernel half-width at least (px). The kernel's DFT is the exact OTF at the grid frequencies j / (K p); between
+# them its transfer function is the trigonometric interpolation of those values, off by the PSF energy folded back
+# from beyond the window, and that error steps when K does. Small-PSF lenses (F/1.6, 15 µm pixels: K = 7) had
+# steps of 1.3e-3 in MTF(fs) and a kernel peak 0.4 µm off the truth's; at K >= 13 (docs/simulator.md).
+_MIN_HALF_PX = 6
+# integrand evaluations of the exact 2-D OTF block (pupil.otf_2d) at most per kernel (~25 ms); beyond it the
+# sampled PSF's DFT (a 1920 x 1080 astigmatic triplet took 5.6x the CPU with the exact block everywhere; at
+# this budget every asymmetric kernel of the 320-400 px band-benchmark lenses is exact, and the triplet's
+# 1080p kernels near focus (1770 of 6612 within 400 µm))
+_EXACT_2D_BUDGET = 1.0e6
+# the second image scale at which the renderer's kernels are cached (WaveBlur.kernel: a line through a = 1 and
+# 1 + this serves every frame's scale; breathing and lateral colour keep |a - 1| at a few 1e-3 to 2e-2)
+_SCALE_STEP = 0.01
 # field nodes of the wave renderer at least, for lenses with astigmatism (orientation varies with azimuth)
 ASTIG_FIELD_GRID = (11, 7)
 _RHO_NODES = 6  # field heights at which the sharpest position is computed (interpolated between)
@@ -203,62 +219,136 @@ class ChannelOptics:
             out += w * p[lo:lo + n, lo:lo + n]
         return out
 
-    def _spacing_um(self, f_max_cyc_per_um: float) -> float:
-        """Coarsest PSF sampling whose OTF is exact up to f_max for every wavelength of the band."""
-        return 1.0 / (1.0 / (self.lam_min_um * self.f_number) + f_max_cyc_per_um)
-
     def residual_otf(self, f_cyc_per_um):
         """OTF of the residual Gaussian (``residual_blur_um``)."""
         return np.exp(-2.0 * (np.pi * self.sigma_um * np.asarray(f_cyc_per_um)) ** 2)
 
-    def kernel(self, terms: WaveTerms, dz_um: float, pitch_um: float) -> np.ndarray:
+    def kernel(self, terms: WaveTerms, dz_um: float, pitch_um: float, scale: float = 1.0,
+               size: int | None = None) -> np.ndarray:
         """Pixel kernel (K x K, K odd, float32, sum 1): the PSF integrated over each pixel's square aperture,
         band-limited to the pixel grid.
 
-        The PSF is sampled ``os`` times per pixel (os odd; fine enough that the OTF is exact up to the corner
-        of the pixel grid's band, :meth:`_spacing_um`) on a K x K pixel window (``half_extent_um``); its DFT's
-        central K x K block is the optical OTF at the pixel grid's own frequencies, which is multiplied by the
-        residual Gaussian's OTF and the pixel aperture's OTF ``sinc(fx p) sinc(fy p)`` (100% fill factor) and
-        transformed back. So the kernel's transfer function is ``OTF(f) sinc(f p)`` below Nyquist,
-        with no aliased copies: the scene is itself sampled at the pixel grid (as in the geometric path), and
-        aliasing would move the sharpest position (high frequencies peak nearer the paraxial focus).
+        ``scale`` = a: the kernel is for an image that is then magnified by a (the renderer blurs the scene
+        before its breathing / lateral-colour warp), so it is the sensor's pixel PSF shrunk by 1/a: transfer
+        function ``OTF(g / (a p)) sinc(g / a)`` at g cycles per (scene) pixel. ``size``: K (odd), instead of
+        the window that holds the PSF.
+
+        The kernel is built in the frequency domain on the pixel grid's own frequencies ``j / (K p)``,
+        ``|j| <= (K - 1) / 2`` (K from ``half_extent_um``): the optical OTF there times the residual Gaussian's
+        OTF and the pixel aperture's OTF ``sinc(fx p) sinc(fy p)`` (100% fill factor), transformed back. So the
+        kernel's DFT is ``OTF(f) sinc(f p)`` at those frequencies, with no aliased copies: the scene is itself
+        sampled at the pixel grid (as in the geometric path), and aliasing would move the sharpest position
+        (high frequencies peak nearer the paraxial focus).
+
+        The optical OTF is exact where it can be: a rotationally symmetric pupil (no coma, no astigmatism) takes
+        the pupil's autocorrelation (:func:`fieldcal.optics.pupil.otf_radial`) at each radius of the block, the
+        band's OTFs summed as complex values (one polychromatic PSF), as the truth (:meth:`mtf`) does. Why: the
+        sampled PSF's DFT carried ~1e-3 of discretisation error that changes with dz (pupil sampling and window
+        follow the defocus), which moved the kernels' MTF(fs) peak up to 0.56 µm from the truth's on 15 µm
+        pixels at 13 cycles/mm (docs/simulator.md). Other pupils (coma, astigmatism) take the same
+        autocorrelation in two dimensions (:func:`fieldcal.optics.pupil.otf_2d`, :meth:`_general_block`) while
+        that costs at most ``_EXACT_2D_BUDGET`` integrand values; larger blocks (a big defocused kernel on a
+        fine pixel grid) take the DFT of a sampled PSF (:meth:`_sampled_block`), as before session 9.
         """
-        f_max = math.sqrt(0.5) / pitch_um  # the corner of the band, cycles/µm
-        os_ = int(math.ceil(pitch_um / self._spacing_um(f_max)))
-        os_ += 1 - os_ % 2
-        k = 2 * int(math.ceil(self.half_extent_um(terms, dz_um) / pitch_um)) + 1
-        n = k * os_
-        spectrum = fft.fft2(fft.ifftshift(self.psf(terms, dz_um, pitch_um / os_, n, f_max)), workers=-1)
-        h = (k - 1) // 2
-        keep = np.r_[0:h + 1, n - h:n]  # frequencies j / (K p), |j| <= h: the pixel grid's band
-        f_px = fft.fftfreq(k)  # cycles/px, in the same order as keep
-        pix = np.sinc(f_px)
-        res = self.residual_otf(np.hypot(f_px[:, None], f_px[None, :]) / pitch_um)
-        block = spectrum[np.ix_(keep, keep)] * (pix[:, None] * pix[None, :] * res)
+        scene_px_um = pitch_um * float(scale)  # one scene pixel, in µm at the sensor
+        k = size or 2 * int(math.ceil(max(self.half_extent_um(terms, dz_um) / scene_px_um, _MIN_HALF_PX))) + 1
+        f_px = fft.fftfreq(k)  # cycles/px, in the DFT's order
+        if terms.w131_um == 0.0 and terms.wast_um == 0.0:
+            block = self._symmetric_block(terms, dz_um, f_px / scene_px_um)
+        elif self._exact_2d_cost(terms, dz_um, scene_px_um, k) <= _EXACT_2D_BUDGET:
+            block = self._general_block(terms, dz_um, f_px / scene_px_um)
+        else:
+            block = self._sampled_block(terms, dz_um, scene_px_um, k)
+        pix = np.sinc(f_px / float(scale))
+        res = self.residual_otf(np.hypot(f_px[:, None], f_px[None, :]) / scene_px_um)
+        block = block * (pix[:, None] * pix[None, :] * res)
         ker = fft.fftshift(fft.ifft2(block, workers=-1).real)
         return (ker / ker.sum()).astype(np.float32)
+
+    def _symmetric_block(self, terms: WaveTerms, dz_um: float, f_cyc_per_um: np.ndarray) -> np.ndarray:
+        """Exact polychromatic OTF of a rotationally symmetric pupil on the grid ``f x f`` (cycles/µm, 1-D
+        axis in any order), evaluated once per distinct radius."""
+        from fieldcal.optics import pupil
+
+        n = self.f_number
+        r2 = f_cyc_per_um[:, None] ** 2 + f_cyc_per_um[None, :] ** 2
+        radii, inverse = np.unique(np.round(r2, 12), return_inverse=True)
+        f = np.sqrt(radii)
+        tot = np.zeros_like(f)
+        for lam_nm, w in self.band:
+            lam = lam_nm * 1e-3
+            tot += w * pupil.otf_radial(f * lam * n, dz_um / (8.0 * n * n * lam), terms.w040_um / lam,
+                                        terms.w060_um / lam)
+        return tot[inverse.reshape(r2.shape)]
+
+    def _exact_2d_cost(self, terms: WaveTerms, dz_um: float, px_um: float, k: int) -> float:
+        """Integrand evaluations of :meth:`_general_block` on a K x K block (node rule of ``pupil.otf_2d``)."""
+        n = self.f_number
+        nu = min(math.sqrt(0.5) / px_um * self.lam_max_um * n, 1.0)
+        slope_waves = (2.0 * abs(dz_um) / (8.0 * n * n) + terms.max_slope_um()) / self.lam_min_um
+        m = 1.5 * math.pi * nu * slope_waves + 12.0
+        return (k * k / 2.0) * m * m * len(self.band)
+
+    def _sampled_block(self, terms: WaveTerms, dz_um: float, px_um: float, k: int) -> np.ndarray:
+        """The OTF at the pixel grid's frequencies (K x K, DFT order) from the DFT of a sampled PSF (any pupil):
+        the PSF sampled ``os`` times per pixel (os odd; fine enough that the OTF is exact up to the corner of the
+        band) on the K x K window, its DFT's central K x K block. Off the exact OTF by the window's truncation
+        and the sampled pupil's edge (~1e-3, changing with dz); used only where :meth:`_general_block` is too
+        slow (the kernels there span many pixels, and their peak error was <= 0.04 µm in the tests)."""
+        f_max = math.sqrt(0.5) / px_um  # the corner of the band, cycles/µm
+        spacing = 1.0 / (1.0 / (self.lam_min_um * self.f_number) + f_max)
+        os_ = int(math.ceil(px_um / spacing))
+        os_ += 1 - os_ % 2
+        n = k * os_
+        spectrum = fft.fft2(fft.ifftshift(self.psf(terms, dz_um, px_um / os_, n, f_max)), workers=-1)
+        h = (k - 1) // 2
+        keep = np.r_[0:h + 1, n - h:n]  # frequencies j / (K p), |j| <= h: the pixel grid's band
+        return spectrum[np.ix_(keep, keep)]
+
+    def _general_block(self, terms: WaveTerms, dz_um: float, f_cyc_per_um: np.ndarray) -> np.ndarray:
+        """Exact polychromatic (complex) OTF of any pupil on the grid ``f x f`` (cycles/µm; rows fy, columns fx;
+        a DFT-ordered axis, so ``-f`` of every point is on the grid): the pupil autocorrelation at half the
+        points, the rest by ``OTF(-f) = conj(OTF(f))``."""
+        fy, fx = np.meshgrid(f_cyc_per_um, f_cyc_per_um, indexing="ij")
+        m = f_cyc_per_um.size
+        neg = np.r_[0, m - 1:0:-1]  # index of -f along the DFT-ordered axis
+        half = (fy > 0) | ((fy == 0) & (fx >= 0))
+        tot = np.zeros(fx.shape, dtype=np.complex128)
+        tot[half] = self._general_otf(terms, dz_um, fx[half], fy[half])
+        rows, cols = np.nonzero(~half)
+        tot[rows, cols] = np.conj(tot[neg[rows], neg[cols]])
+        return tot
 
     def mtf(self, terms: WaveTerms, dz_um: float, f_cyc_per_mm: float, n_angles: int = 12) -> float:
         """Optical MTF at f (cycles/mm), averaged over ``n_angles`` orientations (no pixel aperture).
 
-        A rotationally symmetric pupil (no coma, no astigmatism) has the same OTF in every orientation: it is
-        computed exactly, as the pupil's autocorrelation (:func:`fieldcal.optics.pupil.otf`). Why: the sampled
-        PSF's MTF carries ~1e-3 of discretisation error that changes with dz (the pupil's sampling and the PSF
-        window follow the defocus), and near the flat top of a low-fs curve that moved the sharpest position by
-        up to 0.5 µm (docs/simulator.md).
+        Exact: the pupil's autocorrelation (:mod:`fieldcal.optics.pupil`), the band's OTFs summed as complex
+        values (one polychromatic PSF), then the magnitude. A rotationally symmetric pupil (no coma, no
+        astigmatism) has the same OTF in every orientation (:func:`fieldcal.optics.pupil.otf`); others are
+        averaged over the orientations (:func:`fieldcal.optics.pupil.otf_2d`). Why exact: the sampled PSF's MTF
+        carried ~1e-3 of discretisation error that changes with dz (the pupil's sampling and the PSF window
+        follow the defocus), and near the flat top of a low-fs curve that moved the sharpest position by up to
+        0.7 µm (docs/simulator.md). The pixel kernels use the same OTF (:meth:`kernel`).
         """
         f_um = f_cyc_per_mm * 1e-3
         if terms.w131_um == 0.0 and terms.wast_um == 0.0:
             return self._symmetric_mtf(terms, dz_um, f_um)
-        spacing = self._spacing_um(f_um)
-        n = 2 * int(math.ceil(self.half_extent_um(terms, dz_um) / spacing)) + 1
-        p = self.psf(terms, dz_um, spacing, n, f_um)
-        x = (np.arange(n) - n // 2) * spacing * 1e-3  # mm
         ang = np.arange(n_angles) * (np.pi / n_angles)
-        ex = np.exp(-2j * np.pi * f_cyc_per_mm * np.cos(ang)[:, None] * x[None, :])
-        ey = np.exp(-2j * np.pi * f_cyc_per_mm * np.sin(ang)[:, None] * x[None, :])
-        otf = np.einsum("ty,yx,tx->t", ey, p, ex)
-        return float(np.mean(np.abs(otf)) * self.residual_otf(f_um))
+        return float(np.mean(np.abs(self._general_otf(terms, dz_um, f_um * np.cos(ang), f_um * np.sin(ang))))
+                     * self.residual_otf(f_um))
+
+    def _general_otf(self, terms: WaveTerms, dz_um: float, fx_cyc_per_um, fy_cyc_per_um) -> np.ndarray:
+        """Exact polychromatic complex OTF of any pupil at the frequencies ``(fx, fy)`` (cycles/µm)."""
+        from fieldcal.optics import pupil
+
+        n = self.f_number
+        slope_um = 2.0 * abs(dz_um) / (8.0 * n * n) + terms.max_slope_um()
+        tot = 0.0
+        for lam_nm, w in self.band:
+            lam = lam_nm * 1e-3
+            tot = tot + w * pupil.otf_2d(np.asarray(fx_cyc_per_um) * lam * n, np.asarray(fy_cyc_per_um) * lam * n,
+                                         lambda u, v: wavefront_um(u, v, dz_um, n, terms) / lam, slope_um / lam)
+        return tot
 
     def _symmetric_mtf(self, terms: WaveTerms, dz_um: float, f_um: float) -> float:
         """|OTF| at f (cycles/µm) of the channel's band for a rotationally symmetric pupil, exact (module
@@ -278,8 +368,9 @@ class ChannelOptics:
 
         A coarse scan (step half the geometric depth ``N / (pi fs)``) over the span of the spherical
         aberration's foci plus margins finds the global maximum (a through-focus curve can have secondary maxima
-        after contrast reversal); a bounded Brent search refines it, and the peak of a quartic fit over +-half the
-        depth (:meth:`_smooth_peak_um`) removes the numerical noise of the MTF's sampling. Without spherical aberration and
+        after contrast reversal); a bounded Brent search (0.01 µm) refines it on the exact MTF (:meth:`mtf`, no
+        sampling noise to smooth away; a quartic fit was needed while it came from a sampled PSF). Without
+        spherical aberration and
         with only one of coma or astigmatism the curve is symmetric in dz (W(u, v; -dz) = -W(-u, -v; dz) up to a
         rotation, which leaves the orientation-averaged MTF unchanged), so the shift is exactly 0.
         """
@@ -297,30 +388,7 @@ class ChannelOptics:
         res = minimize_scalar(lambda z: -self.mtf(terms, float(z), fs_cyc_per_mm),
                               bounds=(zs[max(i - 1, 0)], zs[min(i + 1, len(zs) - 1)]), method="bounded",
                               options={"xatol": 0.01})
-        z_b = float(res.x) if -res.fun >= vals[i] else float(zs[i])
-        if terms.w131_um == 0.0 and terms.wast_um == 0.0:
-            return z_b  # the exact MTF (:meth:`mtf`) has no sampling noise to smooth away
-        return self._smooth_peak_um(terms, fs_cyc_per_mm, z_b, dof_um)
-
-    def _smooth_peak_um(self, terms: WaveTerms, fs_cyc_per_mm: float, z_um: float, dof_um: float) -> float:
-        """The maximum of a quartic least-squares fit to the MTF at 17 points over ``z_um +- dof_um / 2``.
-
-        Why: the computed MTF carries ~1e-4 of numerical noise (the pupil's and the PSF window's sampling change
-        with dz), while near the top of a through-focus curve at low fs it changes by only ~2e-3 over +-8 µm, so
-        the argmax of the computed values wanders: on a W040 = 0.8 wave F/2.1 lens at 13 cycles/mm the Brent
-        maximum sat 0.62 µm from the smooth curve's peak (quadratic or quartic fits over 0.3-1 DOF agreed to
-        +-0.09 µm), and a calibration that found the physical peak was scored 0.03 step off. The quartic keeps
-        the curve's skew; the fit is kept only when its peak lies inside the window.
-        """
-        u = np.linspace(-0.5, 0.5, 17) * dof_um
-        vals = np.array([self.mtf(terms, float(z_um + d), fs_cyc_per_mm) for d in u])
-        c = np.polyfit(u / dof_um, vals, 4)
-        roots = np.roots(np.polyder(c))
-        roots = roots[(np.abs(roots.imag) < 1e-9) & (np.abs(roots.real) < 0.5)].real
-        roots = roots[np.polyval(np.polyder(c, 2), roots) < 0]
-        if roots.size == 0:
-            return z_um
-        return float(z_um + roots[np.argmin(np.abs(roots))] * dof_um)
+        return float(res.x) if -res.fun >= vals[i] else float(zs[i])  # exact MTF: no sampling noise to smooth
 
 
 def rho_nodes(spec: LensSpec) -> np.ndarray:
@@ -423,14 +491,31 @@ class WaveBlur:
         d_px = self.level_floor_px * self.level_ratio ** (abs(k) - 1)
         return math.copysign(d_px * self.spec.f_number * self.pitch_um, k)
 
-    def kernel(self, channel: str, j: int, i: int, k: int) -> np.ndarray:
-        """Pixel kernel of node (j, i) at ladder level k (cached by canonical terms, mirrored per node)."""
+    def kernel(self, channel: str, j: int, i: int, k: int, scale: float = 1.0) -> np.ndarray:
+        """Pixel kernel of node (j, i) at ladder level k for a frame that the renderer then magnifies by
+        ``scale`` (mirrored per node).
+
+        The renderer blurs the scene and then warps it by the frame's image scale ``a = m(z) lc`` (breathing,
+        lateral colour), which magnifies the blur by a: the kernel is the sensor PSF shrunk by 1/a
+        (:meth:`ChannelOptics.kernel`). Why: unshrunk kernels magnified the PSF with z, which moved the fs
+        contrast peak by up to -0.86 µm on an F/7.5 lens with its exit pupil 15 mm from the sensor
+        (docs/simulator.md). a differs from frame to frame, so the cache (keyed by the node's canonical terms
+        and the level's defocus) holds the kernels at a = 1 and ``1 + _SCALE_STEP`` and each frame takes the
+        line through them: exact at a = 1 (telecentric, no lateral colour), off by ``(a - 1)(a - 1 - step) / 2``
+        times the kernel's second derivative in a elsewhere (<= 4e-4 of transfer at |a - 1| <= 0.02, tested).
+        """
         terms = self._node_terms[channel, j, i]
         dz = self._centre_um(channel, j, i) + self._level_dz_um(k)
         key = (channel, terms, round(dz, 6))
         if key not in self._kernels:
-            self._kernels[key] = self.optics[channel].kernel(terms, dz, self.pitch_um)
-        ker = self._kernels[key]
+            self._kernels[key] = [self.optics[channel].kernel(terms, dz, self.pitch_um), None]
+        entry = self._kernels[key]
+        ker = entry[0]
+        if scale != 1.0:
+            if entry[1] is None:  # d(kernel)/da, only for lenses whose frames are scaled
+                k2 = self.optics[channel].kernel(terms, dz, self.pitch_um, 1.0 + _SCALE_STEP, size=ker.shape[0])
+                entry[1] = ((k2.astype(np.float64) - ker) / _SCALE_STEP).astype(np.float32)
+            ker = ker + np.float32(scale - 1.0) * entry[1]
         fx, fy = self._node_flip[channel, j, i]
         return ker[::-1 if fy else 1, ::-1 if fx else 1]
 
@@ -464,9 +549,10 @@ class WaveBlur:
             w[coord <= nodes[0]] = 1.0
         return w
 
-    def blur(self, channel: str, defocus_um: np.ndarray) -> np.ndarray:
+    def blur(self, channel: str, defocus_um: np.ndarray, scale: float = 1.0) -> np.ndarray:
         """The scene channel blurred with the wave PSF of each pixel's signed defocus (µm from the reference
-        surface, H x W) and field position: blend of (node, level) kernel images."""
+        surface, H x W) and field position: blend of (node, level) kernel images, the kernels shrunk by the
+        image scale ``scale`` that the renderer's warp then applies (:meth:`kernel`)."""
         ci = self.spec.channel_names.index(channel)
         dz = np.asarray(defocus_um, dtype=np.float64)
         out = np.zeros((self.h, self.w), dtype=np.float32)
@@ -479,8 +565,10 @@ class WaveBlur:
         max_dz = float(np.max(np.abs(dz))) + max(abs(self._centre_um(channel, j, i)) for j in range(ny)
                                                   for i in range(nx))
         max_dz *= self.level_ratio  # the upper bracketing level
-        pad, padded = self._padded_scene(ci, int(math.ceil(self.optics[channel].half_extent_um(big, max_dz)
-                                                           / self.pitch_um)) + 2 + int(self.level_floor_px))
+        # kernels are shrunk by the warp's scale a (:meth:`kernel`): in scene pixels their radius is 1/a larger
+        half_px = max(self.optics[channel].half_extent_um(big, max_dz) / (self.pitch_um * min(scale, 1.0)),
+                      _MIN_HALF_PX)
+        pad, padded = self._padded_scene(ci, int(math.ceil(half_px)) + 2 + int(self.level_floor_px))
         for j in range(ny):
             y0 = int(math.ceil(self.node_y[max(j - 1, 0)])); y1 = int(math.floor(self.node_y[min(j + 1, ny - 1)])) + 1
             wy = self._hat(ys[y0:y1], self.node_y, j)
@@ -510,7 +598,7 @@ class WaveBlur:
                     if not keep.any():
                         continue
                     ids, w = ids[keep], w[keep]
-                    ker = self.kernel(channel, j, i, k)
+                    ker = self.kernel(channel, j, i, k, scale)
                     r = ker.shape[0] // 2
                     if r > pad:
                         raise ParameterError(f"a wave kernel of radius {r} px exceeds the padding {pad} px",
