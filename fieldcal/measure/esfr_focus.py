@@ -2,11 +2,11 @@
 
 * :func:`link_tracks` — the same physical edge in successive frames (z order), matched by position and
   direction (Hungarian assignment, so two nearby edges never swap).
-* :func:`defocus_peak` — best focus of a track: the through-focus law of defocus fitted to MTF(fs)^2
-  (:mod:`.throughfocus`, model "otf": ``a D(pi fs k (z - z0))^2 + b``, the texture path's band-pass model),
-  moved towards the smoothing spline's maximum by the evidence for skew, so an aberrated (skewed) curve
-  still gives its sharpest position. Least squares on the law is unbiased however the scan samples the
-  curve; a smoothing spline's maximum is not (below).
+* :func:`defocus_peak` — best focus of a track: the through-focus OTF of defocus and spherical aberration
+  fitted to MTF(fs)^2 (:mod:`.throughfocus`, model "otf": ``a O(pi fs k (z - z0), s)^2 + b``, the texture
+  path's band-pass models), its peak with s free averaged with the symmetric (s = 0) law's centre by the
+  BIC evidence for s, so an aberrated (skewed) curve gives its sharpest position. Least squares on a model
+  is unbiased however the scan samples the curve; a smoothing spline's maximum is not (below).
 * :func:`through_focus_peak` — the maximum of a cubic smoothing spline through the samples (interpolating
   when the values are exact, ``s = n sigma^2`` for a known noise, else the noise from third differences). It
   is the smooth curve the measured tolerance is read from. Its maximum is *not* the best focus of a noisy
@@ -31,7 +31,9 @@ from .throughfocus import CurveRules
 # The texture path's curve rules, except the flank test: a texture tile's flanks must fall to half height
 # (its peak model has no fixed shape), while an MTF(fs) track follows the defocus law, whose blur rate the
 # long flank measures; a curve whose highest sample is interior is located, and its sd says how well.
-EDGE_CURVE_RULES = CurveRules(edge_flank=1.0)
+# Skew by the BIC weight alone (prior odds 1): the edge path fits the spherical-aberration model of MTF(fs)
+# itself, whose peak is unbiased on a symmetric curve as well (defocus_peak), so no prior for symmetry is needed.
+EDGE_CURVE_RULES = CurveRules(edge_flank=1.0, skew_prior_odds=1.0)
 TOLERANCE_UNREACHED = "the scan ends before MTF(fs) falls by q on one side"
 
 
@@ -233,67 +235,93 @@ class TrackFocus:
         return self.tol_left_um + self.tol_right_um
 
 
-def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0, q: float = 0.05) -> FocusPeak:
-    """Best focus of one MTF(fs) track: the through-focus law of defocus, moved to the sharpest position of a
-    skewed curve by the evidence for skew.
+def _model_misfit(z: np.ndarray, v: np.ndarray, sig: np.ndarray) -> bool:
+    """Whether the spherical-aberration model leaves residuals the known noise ``sig`` of MTF(fs) cannot
+    explain: its fit's chi2 beyond ``dof + 4 sqrt(2 dof)`` (~3.4 sd of a chi2; the noise of MTF^2 is 2 MTF
+    sig). Noise-free values (sig = 0) are taken as exact to 1e-6 of the peak."""
+    from .throughfocus import _fit_batch, _precheck
 
-    * **The law.** MTF(fs, z) = M0(fs) |D(pi fs k (z - z0))| for a disc of blur ``k |z - z0|`` (the static MTF
-      M0 — pixel, diffraction, residual aberrations — only scales it), so MTF^2 is the texture path's band-pass
-      model ``a D^2 + b`` (:func:`fieldcal.measure.throughfocus.analyse_curve`, ``b`` absorbs the noise's
-      upward bias of a magnitude), fitted over the whole peak. Least squares on the law is unbiased however
-      the scan samples the curve; a smoothing spline's maximum is not (module docstring). Its sd is the fit's
-      residual-scaled covariance.
-    * **Skew.** An aberrated curve is not symmetric: its sharpest position is the maximum of the smooth curve
-      through the samples (:func:`through_focus_peak`), which follows any shape. The best focus moves from the
-      law's centre towards it by the texture path's evidence for skew (``CurveFit.skew_weight``: the data's
-      cubic skew in ln MTF^2 over the core against the law's own, with prior odds 10 for a symmetric curve),
-      and the variance mixes both with their spread (as :func:`fieldcal.measure.throughfocus._finish`); the
-      spline's own sd is a parametric bootstrap (``n_boot``). A symmetric noisy curve so keeps the law's
-      unbiased centre (weight ~0.03), a clearly skewed one gets the spline's maximum (and, near a scan end,
-      its bias back: the price of following a shape no law describes).
+    e = v * v
+    pre = _precheck(z, e, EDGE_CURVE_RULES)
+    if not hasattr(pre, "lo"):
+        return False
+    step = float(np.median(np.diff(z)))
+    sym = _fit_batch(z, e[None], [(0, pre)], step, "otf")[0]
+    if sym is None:
+        return False
+    p = sym.params
+    sa = _fit_batch(z, e[None], [(0, pre)], step, "otf_sa", p_init=[[p[0], p[1], p[2], 0.0, p[3]]])[0]
+    if sa is None or sa.n <= 5:
+        return False
+    w = slice(pre.lo, pre.hi + 1)
+    s = np.maximum(sig[w], 1e-6 * float(np.max(v)))
+    var_e = float(np.mean((2.0 * v[w] * s) ** 2 + 2.0 * s ** 4))
+    dof = sa.n - 5
+    return sa.rss * sa.scale ** 2 / var_e > dof + 4.0 * math.sqrt(2.0 * dof)
 
-    The curve need only fall on both sides of its highest sample (:data:`EDGE_CURVE_RULES`): the law's blur
-    rate comes from the sampled flanks, so a peak near a scan end is still located, with the larger sd its
-    short side gives. ``sigma``: the noise of the values (None: from the third differences).
 
-    ``law_width_um`` is the law's tolerance, ``x_q / (pi fs k)`` with ``|D(x_q)| = 1 - q``: the half-width
-    where the *signal's* MTF(fs) falls by q (the floor ``b`` holds the noise's bias of MTF^2, which would
-    otherwise flatten the curve), from the blur rate the whole peak fixes (fs only scales k: any units).
+def defocus_peak(z_um, mtf_fs, *, sigma=None, q: float = 0.05, n_boot: int = 16) -> FocusPeak:
+    """Best focus of one MTF(fs) track: the sharpest position of the through-focus OTF of defocus and primary
+    spherical aberration fitted to the samples, weighed against the symmetric law by the evidence for skew.
+
+    * **The law.** MTF(fs, z) = M0(fs) |O(pi fs k (z - z0), s)| (:mod:`.spherical`: a disc of blur ``k |z - z0|``
+      with W040 in ``s = 16 pi fs N W040``; the static MTF M0 — pixel, diffraction, in-focus blur — only
+      scales it). An e-SFR track measures exactly this, so MTF^2 is fitted with the texture path's band-pass
+      models (:func:`fieldcal.measure.throughfocus.analyse_curve`, ``"otf"``; ``b`` absorbs the noise's upward
+      bias of a magnitude): s = 0, the symmetric law ``a D^2 + b`` whose centre is its peak, and s free, whose
+      peak (:func:`.spherical.peak_u`) is not its centre — SA puts a bright core on one side of focus, so the
+      centre of the curve lies off its maximum by up to its half-maximum asymmetry. Least squares on a model
+      of the whole peak is unbiased however the scan samples the curve; a smoothing spline's maximum is not
+      (module docstring).
+    * **Evidence.** The best focus is the two peaks averaged by the BIC weight of s != 0,
+      ``w = 1 / (1 + sqrt(n) exp(-chi2 / 2))`` with ``chi2`` the drop of the residual sum of squares over the
+      s-free fit's residual variance (the noise measured from the track itself; equal prior odds,
+      :data:`EDGE_CURVE_RULES`), and the variance mixes both (each from its fit's residual-scaled covariance,
+      the skewed peak's by the delta method, so the uncertainty of s is in it) with their spread. A symmetric
+      curve's noise-fitted s is zero-mean, so its skewed peak is unbiased too: the weight only trades variance.
+
+    ``sigma`` (the noise of the values, when known) lets the model be tested: a curve it cannot describe within
+    that noise (:func:`_model_misfit`; no lens, e.g. a blur rate that jumps at focus) gets the maximum of the
+    smooth curve through its samples instead (:func:`through_focus_peak`, sd by a parametric bootstrap of
+    ``n_boot`` curves), which follows any shape. Without ``sigma`` the noise is the fit's own residual.
+
+    The curve need only fall on both sides of its highest sample (:data:`EDGE_CURVE_RULES`): the blur rate
+    comes from the sampled flanks, so a peak near a scan end is still located, with the larger sd its short
+    side gives.
+
+    ``law_width_um`` is the symmetric law's tolerance, ``x_q / (pi fs k)`` with ``|D(x_q)| = 1 - q``: the
+    half-width where the *signal's* MTF(fs) falls by q (the floor ``b`` holds the noise's bias of MTF^2, which
+    would otherwise flatten the curve), from the blur rate the whole peak fixes (fs only scales k: any units).
     """
     from .throughfocus import analyse_curve
 
     z, v, sig = _clean(z_um, mtf_fs, sigma)
     keep = np.concatenate([[True], np.diff(z) > 0])  # analyse_curve wants strictly increasing z
     z, v = z[keep], v[keep]
+    sig = None if sig is None else sig[keep]
     if z.size < 5:
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, "fewer than 5 samples")
     # fs only scales the fitted blur rate k; the width x_q / (pi fs k) is the same in µm whatever fs is given
     fit = analyse_curve(z, v ** 2, "otf", 1.0, q, EDGE_CURVE_RULES)
     if fit.status != "ok":
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, f"defocus fit: {fit.status}")
-    if not math.isfinite(fit.z_centre_um):
-        return FocusPeak(fit.z_best_um, fit.z_sigma_um, math.nan, int(z.size), True, "ok")  # the local peak alone
-    zc, var_c, w = fit.z_centre_um, fit.z_centre_sd_um ** 2, fit.skew_weight
-    w = 0.0 if not math.isfinite(w) else w
-    sig = np.full(z.size, noise_from_differences(v)) if sig is None else sig[keep]
-    du, var_du = 0.0, 0.0
-    k = int(np.argmax(v))
-    if w > 1e-3 and 0 < k < z.size - 1:
-        du = _spline_peak(smooth_curve(z, v, sig), z, k) - zc
-        if n_boot > 1 and np.any(sig > 0):
-            var_du = float(np.var(_bootstrap_spline_peaks(z, v, sig, n_boot, seed), ddof=1))
-    zb = zc + w * du
-    var = w * (var_du + ((1.0 - w) * du) ** 2) + (1.0 - w) * (var_c + (w * du) ** 2)
-    return FocusPeak(float(zb), math.sqrt(var), math.nan, int(z.size), True, "ok", stage_gain=fit.stage_gain,
-                     law_width_um=float(fit.width_um), skew_weight=float(w))
+    if sig is not None and _model_misfit(z, v, sig):  # a shape no lens model describes: the curve's own maximum
+        pk = through_focus_peak(z, v, sigma=sig, n_boot=n_boot)
+        return FocusPeak(pk.z_um, pk.sigma_um, math.nan, int(z.size), pk.ok, pk.reason, stage_gain=fit.stage_gain,
+                         law_width_um=float(fit.width_um), skew_weight=1.0)
+    w = fit.skew_weight
+    return FocusPeak(float(fit.z_best_um), float(fit.z_sigma_um), math.nan, int(z.size), True, "ok",
+                     stage_gain=fit.stage_gain, law_width_um=float(fit.width_um),
+                     skew_weight=float(w) if math.isfinite(w) else 0.0)
 
 
 def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
     """Best focus (:func:`defocus_peak`, sub-step) and the tolerance half-widths of one edge track.
 
     The half-widths are the defocus law's (``FocusPeak.law_width_um``), moved towards the smoothed curve's own
-    crossings (:func:`tolerance_half_widths`) by the same evidence for skew that moves the best focus: a
-    symmetric curve keeps the law's width, a clearly skewed one its measured asymmetric sides. Why not the
+    crossings (:func:`tolerance_half_widths`, measured from the same best focus) by the same evidence for skew
+    that moves the best focus: a symmetric curve keeps the law's width, a clearly skewed one its measured
+    asymmetric sides. ``sigma``: the noise of the values (:func:`defocus_peak`). Why not the
     smoothed curve alone: the q = 5 % crossing lies within a step of the peak when the scan step is near the
     tolerance, where a smoothing spline's shape is set by its roughness penalty, not by the data — it read
     +4-7 % wide at 480x270 with 20 µm steps (step / tolerance 1.1-1.2), and a noisy magnitude's upward bias
