@@ -2,11 +2,11 @@
 
 * :func:`link_tracks` — the same physical edge in successive frames (z order), matched by position and
   direction (Hungarian assignment, so two nearby edges never swap).
-* :func:`defocus_peak` — best focus of a track: the through-focus OTF of defocus and spherical aberration
-  fitted to MTF(fs)^2 (:mod:`.throughfocus`, model "otf": ``a O(pi fs k (z - z0), s)^2 + b``, the texture
-  path's band-pass models), its peak with s free averaged with the symmetric (s = 0) law's centre by the
-  BIC evidence for s, so an aberrated (skewed) curve gives its sharpest position. Least squares on a model
-  is unbiased however the scan samples the curve; a smoothing spline's maximum is not (below).
+* :func:`defocus_peak` — best focus of a track: the through-focus law of defocus fitted to MTF(fs)^2
+  (:mod:`.throughfocus`, model "otf": ``a D(pi fs k (z - z0))^2 + b``, the texture path's band-pass model),
+  moved towards the smoothing spline's maximum by the evidence for skew, so an aberrated (skewed) curve
+  still gives its sharpest position. Least squares on the law is unbiased however the scan samples the
+  curve; a smoothing spline's maximum is not (below).
 * :func:`through_focus_peak` — the maximum of a cubic smoothing spline through the samples (interpolating
   when the values are exact, ``s = n sigma^2`` for a known noise, else the noise from third differences). It
   is the smooth curve the measured tolerance is read from. Its maximum is *not* the best focus of a noisy
@@ -31,9 +31,7 @@ from .throughfocus import CurveRules
 # The texture path's curve rules, except the flank test: a texture tile's flanks must fall to half height
 # (its peak model has no fixed shape), while an MTF(fs) track follows the defocus law, whose blur rate the
 # long flank measures; a curve whose highest sample is interior is located, and its sd says how well.
-# Skew by the BIC weight alone (prior odds 1): the edge path fits the spherical-aberration model of MTF(fs)
-# itself, whose peak is unbiased on a symmetric curve as well (defocus_peak), so no prior for symmetry is needed.
-EDGE_CURVE_RULES = CurveRules(edge_flank=1.0, skew_prior_odds=1.0)
+EDGE_CURVE_RULES = CurveRules(edge_flank=1.0)
 TOLERANCE_UNREACHED = "the scan ends before MTF(fs) falls by q on one side"
 
 
@@ -235,93 +233,67 @@ class TrackFocus:
         return self.tol_left_um + self.tol_right_um
 
 
-def _model_misfit(z: np.ndarray, v: np.ndarray, sig: np.ndarray) -> bool:
-    """Whether the spherical-aberration model leaves residuals the known noise ``sig`` of MTF(fs) cannot
-    explain: its fit's chi2 beyond ``dof + 4 sqrt(2 dof)`` (~3.4 sd of a chi2; the noise of MTF^2 is 2 MTF
-    sig). Noise-free values (sig = 0) are taken as exact to 1e-6 of the peak."""
-    from .throughfocus import _fit_batch, _precheck
+def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0, q: float = 0.05) -> FocusPeak:
+    """Best focus of one MTF(fs) track: the through-focus law of defocus, moved to the sharpest position of a
+    skewed curve by the evidence for skew.
 
-    e = v * v
-    pre = _precheck(z, e, EDGE_CURVE_RULES)
-    if not hasattr(pre, "lo"):
-        return False
-    step = float(np.median(np.diff(z)))
-    sym = _fit_batch(z, e[None], [(0, pre)], step, "otf")[0]
-    if sym is None:
-        return False
-    p = sym.params
-    sa = _fit_batch(z, e[None], [(0, pre)], step, "otf_sa", p_init=[[p[0], p[1], p[2], 0.0, p[3]]])[0]
-    if sa is None or sa.n <= 5:
-        return False
-    w = slice(pre.lo, pre.hi + 1)
-    s = np.maximum(sig[w], 1e-6 * float(np.max(v)))
-    var_e = float(np.mean((2.0 * v[w] * s) ** 2 + 2.0 * s ** 4))
-    dof = sa.n - 5
-    return sa.rss * sa.scale ** 2 / var_e > dof + 4.0 * math.sqrt(2.0 * dof)
+    * **The law.** MTF(fs, z) = M0(fs) |D(pi fs k (z - z0))| for a disc of blur ``k |z - z0|`` (the static MTF
+      M0 — pixel, diffraction, residual aberrations — only scales it), so MTF^2 is the texture path's band-pass
+      model ``a D^2 + b`` (:func:`fieldcal.measure.throughfocus.analyse_curve`, ``b`` absorbs the noise's
+      upward bias of a magnitude), fitted over the whole peak. Least squares on the law is unbiased however
+      the scan samples the curve; a smoothing spline's maximum is not (module docstring). Its sd is the fit's
+      residual-scaled covariance.
+    * **Skew.** An aberrated curve is not symmetric: its sharpest position is the maximum of the smooth curve
+      through the samples (:func:`through_focus_peak`), which follows any shape. The best focus moves from the
+      law's centre towards it by the texture path's evidence for skew (``CurveFit.skew_weight``: the data's
+      cubic skew in ln MTF^2 over the core against the law's own, with prior odds 10 for a symmetric curve),
+      and the variance mixes both with their spread (as :func:`fieldcal.measure.throughfocus._finish`); the
+      spline's own sd is a parametric bootstrap (``n_boot``). A symmetric noisy curve so keeps the law's
+      unbiased centre (weight ~0.03), a clearly skewed one gets the spline's maximum (and, near a scan end,
+      its bias back: the price of following a shape no law describes).
 
+    The curve need only fall on both sides of its highest sample (:data:`EDGE_CURVE_RULES`): the law's blur
+    rate comes from the sampled flanks, so a peak near a scan end is still located, with the larger sd its
+    short side gives. ``sigma``: the noise of the values (None: from the third differences).
 
-def defocus_peak(z_um, mtf_fs, *, sigma=None, q: float = 0.05, n_boot: int = 16) -> FocusPeak:
-    """Best focus of one MTF(fs) track: the sharpest position of the through-focus OTF of defocus and primary
-    spherical aberration fitted to the samples, weighed against the symmetric law by the evidence for skew.
-
-    * **The law.** MTF(fs, z) = M0(fs) |O(pi fs k (z - z0), s)| (:mod:`.spherical`: a disc of blur ``k |z - z0|``
-      with W040 in ``s = 16 pi fs N W040``; the static MTF M0 — pixel, diffraction, in-focus blur — only
-      scales it). An e-SFR track measures exactly this, so MTF^2 is fitted with the texture path's band-pass
-      models (:func:`fieldcal.measure.throughfocus.analyse_curve`, ``"otf"``; ``b`` absorbs the noise's upward
-      bias of a magnitude): s = 0, the symmetric law ``a D^2 + b`` whose centre is its peak, and s free, whose
-      peak (:func:`.spherical.peak_u`) is not its centre — SA puts a bright core on one side of focus, so the
-      centre of the curve lies off its maximum by up to its half-maximum asymmetry. Least squares on a model
-      of the whole peak is unbiased however the scan samples the curve; a smoothing spline's maximum is not
-      (module docstring).
-    * **Evidence.** The best focus is the two peaks averaged by the BIC weight of s != 0,
-      ``w = 1 / (1 + sqrt(n) exp(-chi2 / 2))`` with ``chi2`` the drop of the residual sum of squares over the
-      s-free fit's residual variance (the noise measured from the track itself; equal prior odds,
-      :data:`EDGE_CURVE_RULES`), and the variance mixes both (each from its fit's residual-scaled covariance,
-      the skewed peak's by the delta method, so the uncertainty of s is in it) with their spread. A symmetric
-      curve's noise-fitted s is zero-mean, so its skewed peak is unbiased too: the weight only trades variance.
-
-    ``sigma`` (the noise of the values, when known) lets the model be tested: a curve it cannot describe within
-    that noise (:func:`_model_misfit`; no lens, e.g. a blur rate that jumps at focus) gets the maximum of the
-    smooth curve through its samples instead (:func:`through_focus_peak`, sd by a parametric bootstrap of
-    ``n_boot`` curves), which follows any shape. Without ``sigma`` the noise is the fit's own residual.
-
-    The curve need only fall on both sides of its highest sample (:data:`EDGE_CURVE_RULES`): the blur rate
-    comes from the sampled flanks, so a peak near a scan end is still located, with the larger sd its short
-    side gives.
-
-    ``law_width_um`` is the symmetric law's tolerance, ``x_q / (pi fs k)`` with ``|D(x_q)| = 1 - q``: the
-    half-width where the *signal's* MTF(fs) falls by q (the floor ``b`` holds the noise's bias of MTF^2, which
-    would otherwise flatten the curve), from the blur rate the whole peak fixes (fs only scales k: any units).
+    ``law_width_um`` is the law's tolerance, ``x_q / (pi fs k)`` with ``|D(x_q)| = 1 - q``: the half-width
+    where the *signal's* MTF(fs) falls by q (the floor ``b`` holds the noise's bias of MTF^2, which would
+    otherwise flatten the curve), from the blur rate the whole peak fixes (fs only scales k: any units).
     """
     from .throughfocus import analyse_curve
 
     z, v, sig = _clean(z_um, mtf_fs, sigma)
     keep = np.concatenate([[True], np.diff(z) > 0])  # analyse_curve wants strictly increasing z
     z, v = z[keep], v[keep]
-    sig = None if sig is None else sig[keep]
     if z.size < 5:
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, "fewer than 5 samples")
     # fs only scales the fitted blur rate k; the width x_q / (pi fs k) is the same in µm whatever fs is given
     fit = analyse_curve(z, v ** 2, "otf", 1.0, q, EDGE_CURVE_RULES)
     if fit.status != "ok":
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, f"defocus fit: {fit.status}")
-    if sig is not None and _model_misfit(z, v, sig):  # a shape no lens model describes: the curve's own maximum
-        pk = through_focus_peak(z, v, sigma=sig, n_boot=n_boot)
-        return FocusPeak(pk.z_um, pk.sigma_um, math.nan, int(z.size), pk.ok, pk.reason, stage_gain=fit.stage_gain,
-                         law_width_um=float(fit.width_um), skew_weight=1.0)
-    w = fit.skew_weight
-    return FocusPeak(float(fit.z_best_um), float(fit.z_sigma_um), math.nan, int(z.size), True, "ok",
-                     stage_gain=fit.stage_gain, law_width_um=float(fit.width_um),
-                     skew_weight=float(w) if math.isfinite(w) else 0.0)
+    if not math.isfinite(fit.z_centre_um):
+        return FocusPeak(fit.z_best_um, fit.z_sigma_um, math.nan, int(z.size), True, "ok")  # the local peak alone
+    zc, var_c, w = fit.z_centre_um, fit.z_centre_sd_um ** 2, fit.skew_weight
+    w = 0.0 if not math.isfinite(w) else w
+    sig = np.full(z.size, noise_from_differences(v)) if sig is None else sig[keep]
+    du, var_du = 0.0, 0.0
+    k = int(np.argmax(v))
+    if w > 1e-3 and 0 < k < z.size - 1:
+        du = _spline_peak(smooth_curve(z, v, sig), z, k) - zc
+        if n_boot > 1 and np.any(sig > 0):
+            var_du = float(np.var(_bootstrap_spline_peaks(z, v, sig, n_boot, seed), ddof=1))
+    zb = zc + w * du
+    var = w * (var_du + ((1.0 - w) * du) ** 2) + (1.0 - w) * (var_c + (w * du) ** 2)
+    return FocusPeak(float(zb), math.sqrt(var), math.nan, int(z.size), True, "ok", stage_gain=fit.stage_gain,
+                     law_width_um=float(fit.width_um), skew_weight=float(w))
 
 
 def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
     """Best focus (:func:`defocus_peak`, sub-step) and the tolerance half-widths of one edge track.
 
     The half-widths are the defocus law's (``FocusPeak.law_width_um``), moved towards the smoothed curve's own
-    crossings (:func:`tolerance_half_widths`, measured from the same best focus) by the same evidence for skew
-    that moves the best focus: a symmetric curve keeps the law's width, a clearly skewed one its measured
-    asymmetric sides. ``sigma``: the noise of the values (:func:`defocus_peak`). Why not the
+    crossings (:func:`tolerance_half_widths`) by the same evidence for skew that moves the best focus: a
+    symmetric curve keeps the law's width, a clearly skewed one its measured asymmetric sides. Why not the
     smoothed curve alone: the q = 5 % crossing lies within a step of the peak when the scan step is near the
     tolerance, where a smoothing spline's shape is set by its roughness penalty, not by the data — it read
     +4-7 % wide at 480x270 with 20 µm steps (step / tolerance 1.1-1.2), and a noisy magnitude's upward bias
@@ -343,3 +315,363 @@ def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
     if pk.ok and not (math.isfinite(left) and math.isfinite(right)):
         reason = TOLERANCE_UNREACHED
     return TrackFocus(pk.z_um, pk.sigma_um, pk.peak, left, right, pk.ok and reason == "ok", reason, pk.stage_gain)
+
+
+# --------------------------------------------------------------------------- spherical aberration, pooled
+@dataclass(frozen=True)
+class TrackShape:
+    """One track's fit of the defocus + primary-SA law with the asymmetry ``s`` free (:func:`track_shape`)."""
+
+    s: float  # s = 16 pi fs N W040 (dimensionless; sign with kappa > 0)
+    var_s: float  # its residual-scaled variance
+    n: int  # samples in the fit window
+    kappa: float  # the fit's blur rate per step, pi fs k step (with c_nu, nu = c_nu / kappa)
+    ok: bool
+    noise_var: float = math.nan  # the fit's residual variance (MTF^2 over its sampled maximum)
+
+
+@dataclass(frozen=True)
+class PooledShape:
+    """The asymmetry ``s`` of a channel's through-focus MTF(fs) curves, pooled over its tracks (:func:`pool_shape`).
+
+    ``selected`` says whether the channel's data show it (BIC): if not, each track keeps the symmetric law
+    (:func:`analyse_track`). ``c_nu`` (``pi fs^2 lambda step``) is set when the exact (diffraction) OTF is the
+    model (:func:`fieldcal.measure.spherical.wave_model`), NaN for the geometric-optics one."""
+
+    s: float
+    sd: float
+    n_tracks: int
+    weight: float  # BIC weight of s != 0 over the channel's samples
+    selected: bool
+    c_nu: float = math.nan
+    # the law at the pooled s (set by :func:`with_curve`): nu = fs lambda N (NaN: geometric optics), where
+    # |O(x, s)| peaks and falls to (1 - q) of its peak, and O(x) as a cubic spline (the fits' model)
+    nu: float = math.nan
+    x_peak: float = math.nan
+    x_left: float = math.nan
+    x_right: float = math.nan
+    curve: object = None
+    dx_peak_ds: float = 0.0  # d x_peak / d s: the pooled s's share of each track's sd
+
+    def to_dict(self) -> dict:
+        return {"s": self.s, "sd": self.sd, "n_tracks": self.n_tracks, "weight": self.weight,
+                "selected": self.selected, "model": "ray" if math.isnan(self.nu) else "wave", "nu": self.nu,
+                "x_peak": self.x_peak}
+
+
+def _tabulate(s: float, nu: float):
+    """O(x, s) (at ``nu``: the exact pupil OTF; NaN: geometric optics) as a cubic spline over the x a fit window
+    reaches."""
+    from scipy.interpolate import CubicSpline
+
+    from . import spherical
+
+    x_max = 12.0 + 2.0 * abs(s)
+    xg = np.linspace(-x_max, x_max, int(40 * x_max) + 1)
+    if math.isnan(nu):
+        og = spherical.sa_otf(xg, s)[0]
+    else:
+        og = spherical.wave_otf(xg[None, :], np.array([s]), np.array([nu]))[0][0]
+    return CubicSpline(xg, og)
+
+
+def with_curve(shape: PooledShape, q: float, nu: float = math.nan) -> PooledShape:
+    """``shape`` with its law tabulated: O(x, s) at the pooled s (and ``nu``: the exact pupil OTF, one nu for
+    the channel since the F-number is the lens's) as a cubic spline over the x a fit window reaches, and its
+    :func:`model_points`. Not selected where the law has no interior peak or crossing."""
+    from dataclasses import replace
+
+    xp, xl, xr = model_points(shape.s, q, nu)
+    if not all(math.isfinite(t) for t in (xp, xl, xr)):
+        return replace(shape, selected=False)
+    h = 0.02 * max(1.0, abs(shape.s))
+    dxp = (model_points(shape.s + h, q, nu)[0] - model_points(shape.s - h, q, nu)[0]) / (2.0 * h)
+    return replace(shape, nu=float(nu), x_peak=xp, x_left=xl, x_right=xr, curve=_tabulate(shape.s, nu),
+                   dx_peak_ds=float(dxp) if math.isfinite(dxp) else 0.0)
+
+
+def _window(z: np.ndarray, v: np.ndarray):
+    """The fit window of the track's MTF^2 (the texture path's rules, :data:`EDGE_CURVE_RULES`) or None."""
+    from .throughfocus import _precheck
+
+    pre = _precheck(z, v * v, EDGE_CURVE_RULES)
+    return pre if hasattr(pre, "lo") else None
+
+
+def _increasing(z_um, mtf_fs):
+    z, v, _ = _clean(z_um, mtf_fs, None)
+    keep = np.concatenate([[True], np.diff(z) > 0])
+    return z[keep], v[keep]
+
+
+def c_nu_of(fs_cyc_per_um: float, wavelength_um: float, step_um: float) -> float:
+    """``nu kappa = pi fs^2 lambda step`` of :func:`fieldcal.measure.spherical.wave_model` (``nu = fs lambda N``)."""
+    return math.pi * fs_cyc_per_um ** 2 * wavelength_um * step_um
+
+
+def track_shape(z_um, mtf_fs, c_nu: float = math.nan) -> TrackShape:
+    """Fit MTF(fs)^2 of one track with the through-focus OTF of defocus + primary SA, ``s`` free
+    (:func:`fieldcal.measure.spherical.model`, or with ``c_nu`` the exact pupil OTF,
+    :func:`~fieldcal.measure.spherical.wave_model`; started from the symmetric law's fit): the track's evidence
+    for the lens's asymmetry, pooled over the channel by :func:`pool_shape`. One track alone determines ``s``
+    poorly: it trades against the blur rate and the centre (sd(s) ~ 1 at MTF noise 0.01)."""
+    from .throughfocus import _fit_batch
+
+    z, v = _increasing(z_um, mtf_fs)
+    bad = TrackShape(math.nan, math.nan, int(z.size), math.nan, False)
+    pre = _window(z, v) if z.size >= 6 else None
+    if pre is None:
+        return bad
+    e = v * v
+    step = float(np.median(np.diff(z)))
+    sym = _fit_batch(z, e[None], [(0, pre)], step, "otf")[0]
+    if sym is None:
+        return bad
+    p = sym.params
+    sa = _fit_batch(z, e[None], [(0, pre)], step, "otf_sa", p_init=[[p[0], p[1], p[2], 0.0, p[3]]])[0]
+    if sa is not None and math.isfinite(c_nu):
+        q0 = sa.params
+        sa = _fit_batch(z, e[None], [(0, pre)], step, "otf_sa_wave", p_init=[list(q0)],
+                        nu=[c_nu])[0]
+    if sa is None or sa.n <= 5 or sa.cov is None:
+        return bad
+    sgn = 1.0 if sa.params[2] > 0 else -1.0  # (kappa, s) and (-kappa, -s) are one curve: kappa > 0
+    s, var = sgn * float(sa.params[3]), float(sa.cov[3, 3])
+    ok = math.isfinite(s) and math.isfinite(var) and var > 0
+    return TrackShape(s, var, int(sa.n), abs(float(sa.params[2])), bool(ok), float(sa.rss) / (sa.n - 5))
+
+
+def pool_shape(shapes, c_nu: float = math.nan, clip: float = 4.0) -> PooledShape:
+    """The channel's asymmetry: the inverse-variance mean of its tracks' ``s`` (:func:`track_shape`).
+
+    Physics: W040, and so ``s = 16 pi fs N W040``, is a property of the lens that varies slowly over the field
+    (constant for primary SA), and an edge's MTF across it sees the same W040 whatever the astigmatism (the
+    cross-axis defocus cancels in the pupil's autocorrelation along the edge normal). Tracks beyond ``clip``
+    robust sds of the median are left out (a false peak, a blended shape); no track weighs more than 4x the
+    median track (an exact-looking curve's own sd is too small); the sd is scaled by the Birge ratio when the
+    tracks scatter more than their sds say (the field varies, or the model is approximate). Selection: the BIC
+    weight ``w = 1 / (1 + sqrt(n) exp(-chi2 / 2))`` of one parameter over the channel's ``n`` samples,
+    ``chi2 = (s / sd)^2``; the pooled law is used when w > 1/2."""
+    sh = [t for t in shapes if t.ok]
+    if len(sh) < 3:
+        return PooledShape(math.nan, math.nan, len(sh), 0.0, False, c_nu)
+    s = np.array([t.s for t in sh])
+    var = np.array([t.var_s for t in sh])
+    n = np.array([t.n for t in sh])
+    med = float(np.median(s))
+    mad = 1.4826 * float(np.median(np.abs(s - med)))
+    keep = np.abs(s - med) <= clip * max(mad, 1e-9)
+    s, var, n = s[keep], var[keep], n[keep]
+    var = np.maximum(var, 0.25 * float(np.median(var)))
+    w = 1.0 / var
+    mean = float(np.sum(w * s) / np.sum(w))
+    sd = math.sqrt(1.0 / float(np.sum(w)))
+    if s.size > 1:
+        sd *= math.sqrt(max(float(np.sum(w * (s - mean) ** 2)) / (s.size - 1), 1.0))
+    chi2 = (mean / sd) ** 2
+    weight = 1.0 / (1.0 + math.sqrt(float(n.sum())) * math.exp(-0.5 * min(chi2, 1400.0)))
+    return PooledShape(mean, sd, int(s.size), float(weight), bool(weight > 0.5), c_nu)
+
+
+def _otf(x, s: float, nu: float):
+    """|O(x, s)| of the pooled law: the geometric-optics integral, or the exact pupil OTF at ``nu``."""
+    from . import spherical
+
+    x = np.atleast_1d(np.asarray(x, dtype=np.float64))
+    if math.isnan(nu):
+        return np.abs(spherical.sa_otf(x, s)[0])
+    return np.abs(spherical.wave_otf(x[None, :], np.array([s]), np.array([nu]))[0][0])
+
+
+def model_points(s: float, q: float, nu: float = math.nan) -> tuple[float, float, float]:
+    """(x_peak, x_left, x_right) of ``|O(x, s)|`` (x = pi fs k (z - z0)): where it peaks, and where it falls to
+    ``(1 - q)`` of that peak on each side (first crossing outward on a fine grid, then Brent's root)."""
+    from scipy.optimize import brentq
+
+    span = 6.0 + 1.5 * abs(s)
+    xg = np.linspace(-span, span, 1201)
+    og = _otf(xg, s, nu)
+    j = int(np.argmax(og))
+    if j in (0, xg.size - 1):
+        return math.nan, math.nan, math.nan
+    from scipy.optimize import minimize_scalar
+
+    xp = float(minimize_scalar(lambda t: -float(_otf(t, s, nu)[0]), bounds=(xg[j - 1], xg[j + 1]),
+                               method="bounded", options={"xatol": 1e-9}).x)
+    thr = (1.0 - q) * float(_otf(xp, s, nu)[0])
+    out = []
+    for side in (xg[:j][::-1], xg[j + 1:]):
+        below = np.flatnonzero(_otf(side, s, nu) < thr) if side.size else []
+        if len(below) == 0:
+            out.append(math.nan)
+            continue
+        b = float(side[below[0]])
+        a = float(side[below[0] - 1]) if below[0] > 0 else xp
+        out.append(brentq(lambda t: float(_otf(t, s, nu)[0]) - thr, min(a, b), max(a, b), xtol=1e-10))
+    return xp, out[0], out[1]
+
+
+def _fixed_shape_fit(z: np.ndarray, v: np.ndarray, shape: PooledShape):
+    """Least squares of ``a O(kappa (u - u0))^2 + b`` with O the channel's tabulated law (``shape.curve``) on
+    the track's window (coordinates of :func:`fieldcal.measure.throughfocus._fit_batch`: u in steps from the
+    sampled maximum, MTF^2 over its value there): (a, u0, kappa, b), their residual-scaled covariance, the z
+    and value scale, the step and the stage gain; None when it fails."""
+    from scipy.optimize import least_squares
+
+    from .throughfocus import _fit_batch
+
+    pre = _window(z, v)
+    if pre is None:
+        return None
+    e = v * v
+    step = float(np.median(np.diff(z)))
+    sym = _fit_batch(z, e[None], [(0, pre)], step, "otf")[0]
+    if sym is None:
+        return None
+    sl = slice(pre.lo, pre.hi + 1)
+    zc, sc = float(z[pre.i_max]), float(e[pre.i_max])
+    u = (z[sl] - zc) / step
+    y = e[sl] / sc
+    a0, u00, k0, b0 = (float(x) for x in sym.params)
+    O, dO = shape.curve, shape.curve.derivative()
+
+    def ev(p):
+        du = u - p[1]
+        x = p[2] * du
+        o, do = O(x), dO(x)
+        g = 2.0 * p[0] * o * do
+        return p[0] * o * o + p[3], np.stack([o * o, -g * p[2], g * du, np.ones_like(u)], axis=-1)
+
+    # the symmetric law's centre is near the skewed law's peak, which lies x_peak / kappa from its u0
+    k0 = abs(k0)
+    p0 = [a0 / max(float(O(shape.x_peak)) ** 2, 1e-6), u00 - shape.x_peak / k0, k0, b0]
+    r = least_squares(lambda p: ev(p)[0] - y, p0, jac=lambda p: ev(p)[1], method="lm", x_scale="jac")
+    p = r.x
+    dof = u.size - 4
+    x_lim = float(O.x[-1])
+    if not (r.success and dof > 0 and np.all(np.isfinite(p)) and p[0] > 0 and p[2] > 1e-6
+            and np.all(np.abs(p[2] * (u - p[1])) < x_lim)):
+        return None
+    J = ev(p)[1]
+    cov0 = np.linalg.pinv(J.T @ J, rcond=1e-13)
+    s2 = max(float(r.fun @ r.fun) / dof, 1e-24)
+    c = -(cov0[1, :] @ J.T) * J[:, 1]  # stage gain, as throughfocus._fit_batch
+    return p, cov0 * s2, zc, sc, step, float(np.sqrt(np.sum(c * c))), float(r.fun @ r.fun)
+
+
+def shaped_track(z_um, mtf_fs, shape: PooledShape, q: float = 0.05) -> TrackFocus:
+    """Best focus and tolerance of one track under its channel's pooled asymmetry (:func:`pool_shape`).
+
+    The track is fitted with ``a O(kappa (u - u0), s)^2 + b``, s fixed at the pooled value (a, u0, kappa, b
+    free: as well conditioned as the symmetric law). Its best focus is the model's peak ``u0 + x_peak /
+    kappa`` — the sharpest position, the paper's definition — and its tolerance the model's own ``(1 - q)``
+    crossings (:func:`model_points`), as the symmetric law's width is its ``x_q / kappa``. The sd is the delta
+    method over (u0, kappa) with the fit's residual-scaled covariance, plus the pooled s's share."""
+    z, v = _increasing(z_um, mtf_fs)
+    fail = TrackFocus(math.nan, math.nan, math.nan, math.nan, math.nan, False, "defocus fit: fit_failed")
+    if z.size < 5:
+        return TrackFocus(math.nan, math.nan, math.nan, math.nan, math.nan, False, "fewer than 5 samples")
+    fit = _fixed_shape_fit(z, v, shape)
+    if fit is None:
+        return fail
+    (a, u0, kappa, _), cov, zc, sc, step, gain, _ = fit
+    xp, xl, xr = shape.x_peak, shape.x_left, shape.x_right
+    u_pk = u0 + xp / kappa
+    g = np.array([0.0, 1.0, -xp / kappa ** 2, 0.0])
+    var = float(g @ cov @ g) + (shape.dx_peak_ds / kappa * shape.sd) ** 2  # the last common to the channel
+    z_pk = zc + u_pk * step
+    if not (z[0] < z_pk < z[-1]):
+        return TrackFocus(z_pk, math.nan, math.nan, math.nan, math.nan, False, "maximum at the end of the scan")
+    peak = math.sqrt(a * sc) * abs(float(shape.curve(xp)))
+    return TrackFocus(z_pk, math.sqrt(var) * step, peak, (xp - xl) / kappa * step, (xr - xp) / kappa * step,
+                      True, "ok", gain * step)
+
+
+def profile_shape(tracks, shapes, shape: PooledShape, nu: float = math.nan, max_tracks: int = 48,
+                  n_grid: int = 9) -> PooledShape:
+    """The pooled ``s`` refined as the joint least-squares estimate: the channel's chi^2 (each track's fixed-s
+    residual sum of squares over its own noise variance, :func:`track_shape`) profiled over a grid of s about
+    the inverse-variance mean, its vertex and the sd where it rises by 1.
+
+    Why: a single track's ``s`` is a strongly nonlinear estimate (sd ~1-3 at MTF noise 0.01), and its own
+    variance shrinks with |s|, so the inverse-variance mean of such estimates overshoots (by ~30 % on
+    exact-pupil curves at nu = 0.24-0.34); the joint fit shares one s over all the tracks' samples, which is
+    what the physics says. The ``max_tracks`` tracks with the best-determined s take part (cost)."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    idx = [i for i, t in enumerate(shapes) if t.ok and t.noise_var > 0]
+    idx = sorted(idx, key=lambda i: shapes[i].var_s)[:max_tracks]
+    if len(idx) < 3:
+        return shape
+    half = max(3.0 * shape.sd, 0.3 * abs(shape.s), 0.5)
+    grid = shape.s + np.linspace(-half, half, n_grid)
+    chi2 = np.zeros(n_grid)
+    good = np.ones(len(idx), bool)
+    rss = np.full((n_grid, len(idx)), np.nan)
+    for g, sg in enumerate(grid):
+        curve = _tabulate(float(sg), nu)
+        xs = curve.x
+        xp = float(xs[int(np.argmax(np.abs(curve(xs))))])
+        ns = SimpleNamespace(curve=curve, x_peak=xp)
+        for k, i in enumerate(idx):
+            z, v = _increasing(*tracks[i])
+            fit = _fixed_shape_fit(z, v, ns)
+            if fit is None:
+                good[k] = False
+            else:
+                rss[g, k] = fit[6]
+    if good.sum() < 3:
+        return shape
+    nv = np.array([shapes[i].noise_var for i in idx])[good]
+    chi2 = np.sum(rss[:, good] / nv, axis=1)
+    j = int(np.clip(np.argmin(chi2), 1, n_grid - 2))
+    c = np.polyfit(grid[j - 1:j + 2] - grid[j], chi2[j - 1:j + 2], 2)
+    if not c[0] > 0:
+        return shape
+    s_hat = float(grid[j] - c[1] / (2.0 * c[0]))
+    if not grid[0] <= s_hat <= grid[-1]:
+        return shape
+    sd = math.sqrt(1.0 / c[0])
+    return replace(shape, s=s_hat, sd=sd)
+
+
+def analyse_tracks(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
+                   wavelength_um: float = math.nan) -> tuple[list[TrackFocus], PooledShape]:
+    """Best focus and tolerance of a channel's edge tracks (``(z_um, mtf_fs)`` pairs), with the asymmetry of
+    spherical aberration pooled over them.
+
+    Each track's asymmetry ``s`` is fitted (:func:`track_shape`) and pooled (:func:`pool_shape`); where the
+    channel's data select it, every track gets its peak and tolerance from the law with that ``s``
+    (:func:`shaped_track`), else from the symmetric law (:func:`analyse_track`, whose width on a symmetric
+    curve is what :func:`fieldcal.measure.edge_tiles.track_width_model` models). The law is the
+    geometric-optics OTF of defocus + W040 where ``nu = fs lambda N`` is low, and the exact pupil OTF (with
+    diffraction, :mod:`fieldcal.optics.pupil` via :func:`fieldcal.measure.spherical.wave_model`) from
+    :data:`fieldcal.measure.spherical.WAVE_MIN_NU` up, where the ray model's peak is off (given ``fs`` in
+    cycles/µm and the channel's wavelength)."""
+    from . import spherical
+
+    c_nu = math.nan
+    shapes = [track_shape(z, v) for z, v in tracks]
+    if math.isfinite(fs_cyc_per_um) and math.isfinite(wavelength_um) and tracks:
+        steps = [float(np.median(np.diff(np.sort(np.asarray(z, float))))) for z, _ in tracks if len(z) > 1]
+        kap = [t.kappa for t in shapes if t.ok]
+        if steps and kap:
+            cn = c_nu_of(fs_cyc_per_um, wavelength_um, float(np.median(steps)))
+            if cn / float(np.median(kap)) >= spherical.WAVE_MIN_NU:
+                c_nu = cn
+                shapes = [track_shape(z, v, c_nu) for z, v in tracks]
+    shape = pool_shape(shapes, c_nu)
+    if shape.selected:
+        kap = [t.kappa for t in shapes if t.ok]
+        nu = c_nu / float(np.median(kap)) if math.isfinite(c_nu) else math.nan
+        shape = with_curve(profile_shape(tracks, shapes, shape, nu), q, nu)
+    if not shape.selected:
+        return [analyse_track(z, v, q) for z, v in tracks], shape
+    out = []
+    for z, v in tracks:
+        tk = shaped_track(z, v, shape, q)
+        if not tk.ok and tk.reason.startswith("defocus fit"):
+            tk = analyse_track(z, v, q)  # the shaped fit failed: the symmetric law's reading
+        out.append(tk)
+    return out, shape

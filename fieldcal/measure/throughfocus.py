@@ -76,9 +76,6 @@ class CurveRules:
         error cancels in a ratio, as in :mod:`fieldcal.fit.width_window`).
     core_frac : float
         The local peak uses the contiguous run of points above this fraction of the height (above the floor).
-    skew_prior_odds : float
-        Prior odds symmetric : skewed curve in the skew correction's evidence weight (:data:`SKEW_PRIOR_ODDS`;
-        1: the BIC weight alone, as the e-SFR tracks use, :data:`fieldcal.measure.esfr_focus.EDGE_CURVE_RULES`).
     """
 
     min_frames: int = 5
@@ -91,7 +88,6 @@ class CurveRules:
     skew: bool = True
     tapered_width: bool = True
     core_frac: float = 0.3
-    skew_prior_odds: float = SKEW_PRIOR_ODDS
 
 
 @dataclass(frozen=True)
@@ -264,8 +260,7 @@ def analyse_curves(z_um, values, model: str = "peak", fs_cyc_per_mm: float | Non
     if pres:
         fits = _fit_batch(z, V, pres, step, model)
         x_q = disc_x_at_contrast(round(1.0 - q, 12)) if model == "otf" else math.nan
-        sa = (_sa_corrections(z, V, pres, fits, step, fs_cyc_per_mm * 1e-3, wavelength_nm * 1e-3,
-                              rules.skew_prior_odds)
+        sa = (_sa_corrections(z, V, pres, fits, step, fs_cyc_per_mm * 1e-3, wavelength_nm * 1e-3)
               if model == "otf" and rules.skew
               else [_LOCAL] * len(pres))
         for (t, pre), fit, corr in zip(pres, fits, sa):
@@ -345,7 +340,7 @@ def _skew_correction(z, v, pre: _Pre, fit, step, model, rules: CurveRules):
     cubic) is the same in both and cancels, so a curve the symmetric model describes gets exactly its centre.
     ``w_skew`` is the BIC weight of the extra skew parameter: the data's cubic coefficient against the
     symmetric fit's, ``w = 1 / (1 + O sqrt(n) exp(-chi2 / 2))``, ``chi2 = (c3 - c3_sym)^2 / var(c3)``, with
-    prior odds ``O = rules.skew_prior_odds`` for a symmetric curve.
+    prior odds ``O = SKEW_PRIOR_ODDS`` for a symmetric curve.
     """
     core = _core(v, pre, rules)
     if core is None:
@@ -369,15 +364,14 @@ def _skew_correction(z, v, pre: _Pre, fit, step, model, rules: CurveRules):
     if ref is None:
         return None
     chi2 = (loc.c3 - ref.c3) ** 2 / max(loc.var_c3, 1e-300)
-    w_skew = 1.0 / (1.0 + rules.skew_prior_odds * math.sqrt(u.size) * math.exp(-0.5 * min(chi2, 1400.0)))
+    w_skew = 1.0 / (1.0 + SKEW_PRIOR_ODDS * math.sqrt(u.size) * math.exp(-0.5 * min(chi2, 1400.0)))
     return loc.u0 - ref.u0, loc.var_u0, w_skew
 
 
 _LOCAL = "local"  # _finish: the skew correction from the local skewed peak (_skew_correction)
 
 
-def _sa_corrections(z, V, pres, fits, step, fs_cyc_per_um: float = math.nan, wavelength_um: float = 0.55,
-                    prior_odds: float = SKEW_PRIOR_ODDS) -> list:
+def _sa_corrections(z, V, pres, fits, step, fs_cyc_per_um: float = math.nan, wavelength_um: float = 0.55) -> list:
     """Skew corrections of band-pass curves from the spherical-aberration model (:mod:`.spherical`).
 
     Each curve whose symmetric ``"otf"`` fit succeeded is refitted on the same window with the skewed model
@@ -385,7 +379,7 @@ def _sa_corrections(z, V, pres, fits, step, fs_cyc_per_um: float = math.nan, wav
     with ``du`` = the skewed model's peak minus the symmetric centre, ``var_du`` the peak's variance (delta
     method through :func:`spherical.peak_u` with the residual-scaled covariance, so the uncertainty of s is in
     it), ``w = 1 / (1 + O sqrt(n) exp(-chi2 / 2))`` with ``chi2`` the drop in the residual sum of squares over
-    the skewed fit's residual variance (the evidence for s != 0; prior odds O = ``prior_odds``). None where
+    the skewed fit's residual variance (the evidence for s != 0; prior odds O = SKEW_PRIOR_ODDS). None where
     the skewed fit fails or has < 2 degrees of freedom; ``_LOCAL`` (the local skewed peak) where the symmetric
     fit failed. Curves whose ray-model fit says they are strongly aberrated at a high ``nu = fs lambda N``
     (:data:`spherical.WAVE_MIN_NU`, :data:`spherical.WAVE_MIN_W040_WAVES`) are refitted from it with the exact
@@ -443,7 +437,7 @@ def _sa_corrections(z, V, pres, fits, step, fs_cyc_per_um: float = math.nan, wav
             continue
         s2 = max(f.rss / (f.n - 5), 1e-30)
         chi2 = max(fits[j].rss - f.rss, 0.0) / s2
-        w = 1.0 / (1.0 + prior_odds * math.sqrt(f.n) * math.exp(-0.5 * min(chi2, 1400.0)))
+        w = 1.0 / (1.0 + SKEW_PRIOR_ODDS * math.sqrt(f.n) * math.exp(-0.5 * min(chi2, 1400.0)))
         out[j] = (float(u_pk[r] - fits[j].params[1]), var, w)
     return out
 
