@@ -351,12 +351,14 @@ class PooledShape:
     x_left: float = math.nan
     x_right: float = math.nan
     curve: object = None
-    dx_peak_ds: float = 0.0  # d x_peak / d s: the pooled s's share of each track's sd
+    # d(best focus, in steps)/ds of a track refitted at another s (the pooled s's share of each track's sd;
+    # smaller than d x_peak / ds / kappa: u0 and kappa follow the data's peak)
+    dz_ds: float = 0.0
 
     def to_dict(self) -> dict:
         return {"s": self.s, "sd": self.sd, "n_tracks": self.n_tracks, "weight": self.weight,
                 "selected": self.selected, "model": "ray" if math.isnan(self.nu) else "wave", "nu": self.nu,
-                "x_peak": self.x_peak}
+                "x_peak": self.x_peak, "dz_ds_step": self.dz_ds}
 
 
 def _tabulate(s: float, nu: float):
@@ -384,10 +386,27 @@ def with_curve(shape: PooledShape, q: float, nu: float = math.nan) -> PooledShap
     xp, xl, xr = model_points(shape.s, q, nu)
     if not all(math.isfinite(t) for t in (xp, xl, xr)):
         return replace(shape, selected=False)
-    h = 0.02 * max(1.0, abs(shape.s))
-    dxp = (model_points(shape.s + h, q, nu)[0] - model_points(shape.s - h, q, nu)[0]) / (2.0 * h)
-    return replace(shape, nu=float(nu), x_peak=xp, x_left=xl, x_right=xr, curve=_tabulate(shape.s, nu),
-                   dx_peak_ds=float(dxp) if math.isfinite(dxp) else 0.0)
+    return replace(shape, nu=float(nu), x_peak=xp, x_left=xl, x_right=xr, curve=_tabulate(shape.s, nu))
+
+
+def _peak_sensitivity(tracks, shape: PooledShape, q: float, n_tracks: int = 8) -> float:
+    """Median over up to ``n_tracks`` tracks of d(best focus in steps)/ds: each refitted at s +- the pooled sd."""
+    h = max(shape.sd, 1e-3) if math.isfinite(shape.sd) else 0.1
+    lo, hi = (with_curve(replace_s(shape, shape.s + d), q, shape.nu) for d in (-h, h))
+    if not (lo.selected and hi.selected):
+        return 0.0
+    d = []
+    for z, v in tracks[:: max(1, len(tracks) // n_tracks)][:n_tracks]:
+        a, b = shaped_track(z, v, lo, q), shaped_track(z, v, hi, q)
+        if a.ok and b.ok:
+            step = float(np.median(np.diff(np.sort(np.asarray(z, float)))))
+            d.append((b.z_best_um - a.z_best_um) / (2.0 * h * step))
+    return float(np.median(np.abs(d))) if d else 0.0
+
+
+def replace_s(shape: PooledShape, s: float) -> PooledShape:
+    from dataclasses import replace
+    return replace(shape, s=float(s), curve=None)
 
 
 def _window(z: np.ndarray, v: np.ndarray):
@@ -578,7 +597,7 @@ def shaped_track(z_um, mtf_fs, shape: PooledShape, q: float = 0.05) -> TrackFocu
     xp, xl, xr = shape.x_peak, shape.x_left, shape.x_right
     u_pk = u0 + xp / kappa
     g = np.array([0.0, 1.0, -xp / kappa ** 2, 0.0])
-    var = float(g @ cov @ g) + (shape.dx_peak_ds / kappa * shape.sd) ** 2  # the last common to the channel
+    var = float(g @ cov @ g) + (shape.dz_ds * shape.sd) ** 2  # the last common to the channel's tracks
     z_pk = zc + u_pk * step
     if not (z[0] < z_pk < z[-1]):
         return TrackFocus(z_pk, math.nan, math.nan, math.nan, math.nan, False, "maximum at the end of the scan")
@@ -666,6 +685,9 @@ def analyse_tracks(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
         kap = [t.kappa for t in shapes if t.ok]
         nu = c_nu / float(np.median(kap)) if math.isfinite(c_nu) else math.nan
         shape = with_curve(profile_shape(tracks, shapes, shape, nu), q, nu)
+        if shape.selected:
+            from dataclasses import replace
+            shape = replace(shape, dz_ds=_peak_sensitivity(tracks, shape, q))
     if not shape.selected:
         return [analyse_track(z, v, q) for z, v in tracks], shape
     out = []
