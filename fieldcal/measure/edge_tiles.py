@@ -5,8 +5,9 @@ Calibration on a slanted-edge chart (docs/measurement.md "Calibrating from slant
 * :func:`chart_kind` looks at one frame (the middle of the scan) and says whether it is a slanted-edge chart:
   enough edges that pass the e-SFR quality rules in every channel.
 * :func:`edge_table` takes the e-SFR of every edge through the stack (:func:`fieldcal.measure.measure_mtf`),
-  reads each track's MTF at fs, finds its best focus (:func:`.esfr_focus.defocus_peak`) and measured
-  half-widths, and writes one row per track and channel in the columns of a texture tile table.
+  reads each track's MTF at fs, finds its best focus and measured half-widths (:func:`.esfr_focus.analyse_tracks`:
+  a channel's tracks together, the asymmetry of spherical aberration pooled over them), and writes one row per
+  track and channel in the columns of a texture tile table.
 
 Tangential and sagittal. An edge measures the MTF across it, so a tangential edge gives the tangential focus
 and a sagittal one the sagittal focus. A row of the tile table is the *mean* surface with its T and S foci
@@ -28,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from .esfr_focus import TOLERANCE_UNREACHED, analyse_track, analyse_tracks
+from .esfr_focus import TOLERANCE_UNREACHED, analyse_track, analyse_tracks, channel_shape
 from .tiles import TileTable
 
 # A frame is a slanted-edge chart when at least this many detected edges pass the e-SFR quality rules in every
@@ -158,12 +159,23 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
         if len(use) >= min_frames:
             curves[(tr, ch)] = (np.array([float(e["z_um"]) for e in use]),
                                 np.array([vals[index[id(e)]] for e in use]))
+    from dataclasses import replace
+
+    from ..optics.defocus import default_wavelength_nm
+
     focus, shapes = {}, {}
-    for ch in sorted({k[1] for k in curves}):
+    chans = sorted({k[1] for k in curves})
+    for ch in chans:
+        shapes[ch] = channel_shape([curves[k] for k in curves if k[1] == ch], q, fs_cyc_per_um=fs_cyc_per_um,
+                                   wavelength_um=default_wavelength_nm(ch) * 1e-3)
+    # W040 is the lens's, shared by its colours (s = 16 pi fs N W040 carries no wavelength): the asymmetry is
+    # taken only where every channel shows it. A skew seen in one channel alone is not spherical aberration (on
+    # fieldcal's geometric simulator one channel of the triplet showed s = -0.5 +- 0.13, the others 0 +- 0.1)
+    if not all(v.selected for v in shapes.values()):
+        shapes = {c: replace(v, selected=False) for c, v in shapes.items()}
+    for ch in chans:
         keys = [k for k in curves if k[1] == ch]
-        from ..optics.defocus import default_wavelength_nm
-        res, shapes[ch] = analyse_tracks([curves[k] for k in keys], q, fs_cyc_per_um=fs_cyc_per_um,
-                                         wavelength_um=default_wavelength_nm(ch) * 1e-3)
+        res, _ = analyse_tracks([curves[k] for k in keys], q, shape=shapes[ch])
         focus.update(zip(keys, res))
     for (tr, ch), recs in groups.items():
         near = min(recs, key=lambda e: abs(float(e["z_um"]) - z_ref_um))

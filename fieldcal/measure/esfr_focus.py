@@ -7,6 +7,11 @@
   moved towards the smoothing spline's maximum by the evidence for skew, so an aberrated (skewed) curve
   still gives its sharpest position. Least squares on the law is unbiased however the scan samples the
   curve; a smoothing spline's maximum is not (below).
+* :func:`analyse_tracks` — a channel's tracks together: the asymmetry ``s`` of spherical aberration (W040) is a
+  property of the lens, so it is fitted jointly over the channel's tracks (:func:`track_shape`,
+  :func:`pool_shape`, :func:`profile_shape`) and, where the data select it, each track's best focus is the peak
+  of the law with that ``s`` (:func:`shaped_track`; the exact pupil OTF at high ``fs lambda N``), its tolerance
+  the law's own (1 - q) crossings; else :func:`analyse_track` (the symmetric law) per track.
 * :func:`through_focus_peak` — the maximum of a cubic smoothing spline through the samples (interpolating
   when the values are exact, ``s = n sigma^2`` for a known noise, else the noise from third differences). It
   is the smooth curve the measured tolerance is read from. Its maximum is *not* the best focus of a noisy
@@ -655,19 +660,19 @@ def profile_shape(tracks, shapes, shape: PooledShape, nu: float = math.nan, max_
     return replace(shape, s=s_hat, sd=sd)
 
 
-def analyse_tracks(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
-                   wavelength_um: float = math.nan) -> tuple[list[TrackFocus], PooledShape]:
-    """Best focus and tolerance of a channel's edge tracks (``(z_um, mtf_fs)`` pairs), with the asymmetry of
-    spherical aberration pooled over them.
+def channel_shape(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
+                  wavelength_um: float = math.nan) -> PooledShape:
+    """The pooled spherical-aberration asymmetry of a channel's edge tracks (``(z_um, mtf_fs)`` pairs), ready for
+    :func:`shaped_track` when selected.
 
-    Each track's asymmetry ``s`` is fitted (:func:`track_shape`) and pooled (:func:`pool_shape`); where the
-    channel's data select it, every track gets its peak and tolerance from the law with that ``s``
-    (:func:`shaped_track`), else from the symmetric law (:func:`analyse_track`, whose width on a symmetric
-    curve is what :func:`fieldcal.measure.edge_tiles.track_width_model` models). The law is the
-    geometric-optics OTF of defocus + W040 where ``nu = fs lambda N`` is low, and the exact pupil OTF (with
-    diffraction, :mod:`fieldcal.optics.pupil` via :func:`fieldcal.measure.spherical.wave_model`) from
-    :data:`fieldcal.measure.spherical.WAVE_MIN_NU` up, where the ray model's peak is off (given ``fs`` in
+    Each track's ``s`` is fitted (:func:`track_shape`), pooled (:func:`pool_shape`) and, if selected, refined by
+    the joint fit (:func:`profile_shape`) and tabulated (:func:`with_curve`). The law is the geometric-optics
+    OTF of defocus + W040 where ``nu = fs lambda N`` is low, and the exact pupil OTF (diffraction included,
+    :mod:`fieldcal.optics.pupil` via :func:`fieldcal.measure.spherical.wave_otf`) from
+    :data:`fieldcal.measure.spherical.WAVE_MIN_NU` up, where the ray law's peak is off (given ``fs`` in
     cycles/µm and the channel's wavelength)."""
+    from dataclasses import replace
+
     from . import spherical
 
     c_nu = math.nan
@@ -686,8 +691,20 @@ def analyse_tracks(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
         nu = c_nu / float(np.median(kap)) if math.isfinite(c_nu) else math.nan
         shape = with_curve(profile_shape(tracks, shapes, shape, nu), q, nu)
         if shape.selected:
-            from dataclasses import replace
             shape = replace(shape, dz_ds=_peak_sensitivity(tracks, shape, q))
+    return shape
+
+
+def analyse_tracks(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan, wavelength_um: float = math.nan,
+                   shape: PooledShape | None = None) -> tuple[list[TrackFocus], PooledShape]:
+    """Best focus and tolerance of a channel's edge tracks (``(z_um, mtf_fs)`` pairs), with the asymmetry of
+    spherical aberration pooled over them (:func:`channel_shape`, or the given ``shape``).
+
+    Where the channel's data select it, every track gets its peak and tolerance from the law with that ``s``
+    (:func:`shaped_track`), else from the symmetric law (:func:`analyse_track`, whose width on a symmetric
+    curve is what :func:`fieldcal.measure.edge_tiles.track_width_model` models)."""
+    if shape is None:
+        shape = channel_shape(tracks, q, fs_cyc_per_um=fs_cyc_per_um, wavelength_um=wavelength_um)
     if not shape.selected:
         return [analyse_track(z, v, q) for z, v in tracks], shape
     out = []
