@@ -608,7 +608,7 @@ def shaped_track(z_um, mtf_fs, shape: PooledShape, q: float = 0.05) -> TrackFocu
         return TrackFocus(z_pk, math.nan, math.nan, math.nan, math.nan, False, "maximum at the end of the scan")
     peak = math.sqrt(a * sc) * abs(float(shape.curve(xp)))
     return TrackFocus(z_pk, math.sqrt(var) * step, peak, (xp - xl) / kappa * step, (xr - xp) / kappa * step,
-                      True, "ok", gain * step)
+                      True, "ok", gain)  # dimensionless, as throughfocus._fit_batch
 
 
 def profile_shape(tracks, shapes, shape: PooledShape, nu: float = math.nan, max_tracks: int = 48,
