@@ -346,7 +346,7 @@ class PooledShape:
     s: float
     sd: float
     n_tracks: int
-    weight: float  # BIC weight of s != 0 over the channel's samples
+    weight: float  # BIC weight of s != 0 over the channel's samples (of the inverse-variance mean; selection)
     selected: bool
     c_nu: float = math.nan
     # the law at the pooled s (set by :func:`with_curve`): nu = fs lambda N (NaN: geometric optics), where
@@ -397,7 +397,7 @@ def with_curve(shape: PooledShape, q: float, nu: float = math.nan) -> PooledShap
 def _peak_sensitivity(tracks, shape: PooledShape, q: float, n_tracks: int = 8) -> float:
     """Median over up to ``n_tracks`` tracks of d(best focus in steps)/ds: each refitted at s +- the pooled sd."""
     h = max(shape.sd, 1e-3) if math.isfinite(shape.sd) else 0.1
-    lo, hi = (with_curve(replace_s(shape, shape.s + d), q, shape.nu) for d in (-h, h))
+    lo, hi = (with_curve(_with_s(shape, shape.s + d), q, shape.nu) for d in (-h, h))
     if not (lo.selected and hi.selected):
         return 0.0
     d = []
@@ -409,7 +409,8 @@ def _peak_sensitivity(tracks, shape: PooledShape, q: float, n_tracks: int = 8) -
     return float(np.median(np.abs(d))) if d else 0.0
 
 
-def replace_s(shape: PooledShape, s: float) -> PooledShape:
+def _with_s(shape: PooledShape, s: float) -> PooledShape:
+    """``shape`` at another s (its law not yet tabulated: :func:`with_curve`)."""
     from dataclasses import replace
     return replace(shape, s=float(s), curve=None)
 
@@ -606,7 +607,7 @@ def shaped_track(z_um, mtf_fs, shape: PooledShape, q: float = 0.05) -> TrackFocu
     z_pk = zc + u_pk * step
     if not (z[0] < z_pk < z[-1]):
         return TrackFocus(z_pk, math.nan, math.nan, math.nan, math.nan, False, "maximum at the end of the scan")
-    peak = math.sqrt(a * sc) * abs(float(shape.curve(xp)))
+    peak = math.sqrt(a * sc) * abs(float(shape.curve(xp)))  # MTF(fs) at the peak: sqrt of the MTF^2 law
     return TrackFocus(z_pk, math.sqrt(var) * step, peak, (xp - xl) / kappa * step, (xr - xp) / kappa * step,
                       True, "ok", gain)  # dimensionless, as throughfocus._fit_batch
 
