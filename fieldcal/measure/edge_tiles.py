@@ -5,8 +5,9 @@ Calibration on a slanted-edge chart (docs/measurement.md "Calibrating from slant
 * :func:`chart_kind` looks at one frame (the middle of the scan) and says whether it is a slanted-edge chart:
   enough edges that pass the e-SFR quality rules in every channel.
 * :func:`edge_table` takes the e-SFR of every edge through the stack (:func:`fieldcal.measure.measure_mtf`),
-  reads each track's MTF at fs, finds its best focus (:func:`.esfr_focus.defocus_peak`) and measured
-  half-widths, and writes one row per track and channel in the columns of a texture tile table.
+  reads each track's MTF at fs, finds its best focus and measured half-widths (:func:`.esfr_focus.analyse_tracks`:
+  a channel's tracks together, the asymmetry of spherical aberration pooled over them), and writes one row per
+  track and channel in the columns of a texture tile table.
 
 Tangential and sagittal. An edge measures the MTF across it, so a tangential edge gives the tangential focus
 and a sagittal one the sagittal focus. A row of the tile table is the *mean* surface with its T and S foci
@@ -28,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from .esfr_focus import TOLERANCE_UNREACHED, analyse_track
+from .esfr_focus import TOLERANCE_UNREACHED, analyse_track, analyse_tracks, channel_shape
 from .tiles import TileTable
 
 # A frame is a slanted-edge chart when at least this many detected edges pass the e-SFR quality rules in every
@@ -132,7 +133,8 @@ def _median_length_px(recs) -> float:
     return float(np.median(v)) if v else math.nan
 
 
-def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frames: int = 5) -> dict:
+def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frames: int = 5,
+               shapes_out: dict | None = None, fs_cyc_per_um: float = math.nan) -> dict:
     """Per (track, channel): best focus at fs, its sd, peak MTF, half-widths, orientation and the position at
     the frame nearest ``z_ref_um``.
 
@@ -150,17 +152,39 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
     index = {id(e): i for i, e in enumerate(mtf.edges)}
     out = {k: [] for k in ("track", "channel", "x_px", "y_px", "orientation", "z_best_um", "z_sigma_um", "peak",
                            "width_um", "status", "cos2phi", "stage_gain", "edge_angle_deg", "length_px")}
+    # each channel's tracks together: the asymmetry of spherical aberration is pooled over them
+    curves: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] = {}
     for (tr, ch), recs in groups.items():
         use = [e for e in recs if _usable(e) and np.isfinite(vals[index[id(e)]])]
+        if len(use) >= min_frames:
+            curves[(tr, ch)] = (np.array([float(e["z_um"]) for e in use]),
+                                np.array([vals[index[id(e)]] for e in use]))
+    from dataclasses import replace
+
+    from ..optics.defocus import default_wavelength_nm
+
+    focus, shapes = {}, {}
+    chans = sorted({k[1] for k in curves})
+    for ch in chans:
+        shapes[ch] = channel_shape([curves[k] for k in curves if k[1] == ch], q, fs_cyc_per_um=fs_cyc_per_um,
+                                   wavelength_um=default_wavelength_nm(ch) * 1e-3)
+    # W040 is the lens's, shared by its colours (s = 16 pi fs N W040 carries no wavelength): the asymmetry is
+    # taken only where every channel shows it. A skew seen in one channel alone is not spherical aberration (on
+    # fieldcal's geometric simulator one channel of the triplet showed s = -0.5 +- 0.13, the others 0 +- 0.1)
+    if not all(v.selected for v in shapes.values()):
+        shapes = {c: replace(v, selected=False) for c, v in shapes.items()}
+    for ch in chans:
+        keys = [k for k in curves if k[1] == ch]
+        res, _ = analyse_tracks([curves[k] for k in keys], q, shape=shapes[ch])
+        focus.update(zip(keys, res))
+    for (tr, ch), recs in groups.items():
         near = min(recs, key=lambda e: abs(float(e["z_um"]) - z_ref_um))
         orient = [e["orientation"] for e in recs if e["quality"].get("orientation_clear")]
         status, zb, sz, pk, w, gain = "ok", math.nan, math.nan, math.nan, math.nan, math.nan
-        if len(use) < min_frames:
+        if (tr, ch) not in focus:
             status = "few_frames"
         else:
-            z = np.array([float(e["z_um"]) for e in use])
-            v = np.array([vals[index[id(e)]] for e in use])
-            tk = analyse_track(z, v, q)
+            tk = focus[(tr, ch)]
             if not (tk.ok or tk.reason == TOLERANCE_UNREACHED):  # a peak without a measured width is a row
                 status = ("peak_at_edge" if "end of the scan" in tk.reason else
                           tk.reason.split(": ", 1)[1] if tk.reason.startswith("defocus fit: ") else "no_peak")
@@ -190,7 +214,10 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
         out["edge_angle_deg"].append(0.5 * math.degrees(math.atan2(np.sin(ang).mean(), np.cos(ang).mean()))
                                      if ang.size else math.nan)
         out["length_px"].append(_median_length_px(recs))
-    return {k: np.asarray(v) for k, v in out.items()}
+    cols = {k: np.asarray(v) for k, v in out.items()}
+    if shapes_out is not None:
+        shapes_out.update(shapes)
+    return cols
 
 
 def along_edge_spread_um(dzdx_um_per_px, dzdy_um_per_px, edge_angle_deg, length_px):
@@ -468,7 +495,8 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
     fs_px = float(fs_cyc_per_mm) * float(pixel_pitch_um) / 1000.0
     z = np.sort(np.asarray(z_um, dtype=np.float64))
     step = float(np.median(np.diff(z))) if z.size > 1 else 1.0
-    tf = track_foci(mtf, fs_px, q, z_ref_um)
+    shapes: dict = {}
+    tf = track_foci(mtf, fs_px, q, z_ref_um, shapes_out=shapes, fs_cyc_per_um=float(fs_cyc_per_mm) * 1e-3)
     sig = np.maximum(np.nan_to_num(tf["z_sigma_um"], nan=0.0), SIGMA_FLOOR_STEP * step)
     ok = tf["status"] == "ok"
     if pair_px is None:
@@ -564,6 +592,8 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
         "spread_over_width", "spread_ratio", "floor_over_width", "floor_ratio")}
     table_tile_px = edge_window_px(mtf)
     summary["window_px"] = table_tile_px
+    # the spherical-aberration asymmetry of each channel's MTF(fs) curves, pooled over its tracks
+    summary["sa_shape"] = {str(c): v.to_dict() for c, v in shapes.items()}
     cols = {k: np.asarray(v, dtype=np.float64) if k not in ("channel", "status") else np.asarray(v, dtype=str)
             for k, v in rows.items()}
     # stage_gain is a column: the band's stage-repeatability term (fit.tiles.stage_sd_um) reads it

@@ -7,6 +7,11 @@
   moved towards the smoothing spline's maximum by the evidence for skew, so an aberrated (skewed) curve
   still gives its sharpest position. Least squares on the law is unbiased however the scan samples the
   curve; a smoothing spline's maximum is not (below).
+* :func:`analyse_tracks` — a channel's tracks together: the asymmetry ``s`` of spherical aberration (W040) is a
+  property of the lens, so it is fitted jointly over the channel's tracks (:func:`track_shape`,
+  :func:`pool_shape`, :func:`profile_shape`) and, where the data select it, each track's best focus is the peak
+  of the law with that ``s`` (:func:`shaped_track`; the exact pupil OTF at high ``fs lambda N``), its tolerance
+  the law's own (1 - q) crossings; else :func:`analyse_track` (the symmetric law) per track.
 * :func:`through_focus_peak` — the maximum of a cubic smoothing spline through the samples (interpolating
   when the values are exact, ``s = n sigma^2`` for a known noise, else the noise from third differences). It
   is the smooth curve the measured tolerance is read from. Its maximum is *not* the best focus of a noisy
@@ -315,3 +320,398 @@ def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
     if pk.ok and not (math.isfinite(left) and math.isfinite(right)):
         reason = TOLERANCE_UNREACHED
     return TrackFocus(pk.z_um, pk.sigma_um, pk.peak, left, right, pk.ok and reason == "ok", reason, pk.stage_gain)
+
+
+# --------------------------------------------------------------------------- spherical aberration, pooled
+@dataclass(frozen=True)
+class TrackShape:
+    """One track's fit of the defocus + primary-SA law with the asymmetry ``s`` free (:func:`track_shape`)."""
+
+    s: float  # s = 16 pi fs N W040 (dimensionless; sign with kappa > 0)
+    var_s: float  # its residual-scaled variance
+    n: int  # samples in the fit window
+    kappa: float  # the fit's blur rate per step, pi fs k step (with c_nu, nu = c_nu / kappa)
+    ok: bool
+    noise_var: float = math.nan  # the fit's residual variance (MTF^2 over its sampled maximum)
+
+
+@dataclass(frozen=True)
+class PooledShape:
+    """The asymmetry ``s`` of a channel's through-focus MTF(fs) curves, pooled over its tracks (:func:`pool_shape`).
+
+    ``selected`` says whether the channel's data show it (BIC): if not, each track keeps the symmetric law
+    (:func:`analyse_track`). ``c_nu`` (``pi fs^2 lambda step``) is set when the exact (diffraction) OTF is the
+    model (:func:`fieldcal.measure.spherical.wave_model`), NaN for the geometric-optics one."""
+
+    s: float
+    sd: float
+    n_tracks: int
+    weight: float  # BIC weight of s != 0 over the channel's samples (of the inverse-variance mean; selection)
+    selected: bool
+    c_nu: float = math.nan
+    # the law at the pooled s (set by :func:`with_curve`): nu = fs lambda N (NaN: geometric optics), where
+    # |O(x, s)| peaks and falls to (1 - q) of its peak, and O(x) as a cubic spline (the fits' model)
+    nu: float = math.nan
+    x_peak: float = math.nan
+    x_left: float = math.nan
+    x_right: float = math.nan
+    curve: object = None
+    # d(best focus, in steps)/ds of a track refitted at another s (the pooled s's share of each track's sd;
+    # smaller than d x_peak / ds / kappa: u0 and kappa follow the data's peak)
+    dz_ds: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"s": self.s, "sd": self.sd, "n_tracks": self.n_tracks, "weight": self.weight,
+                "selected": self.selected, "model": "ray" if math.isnan(self.nu) else "wave", "nu": self.nu,
+                "x_peak": self.x_peak, "dz_ds_step": self.dz_ds}
+
+
+def _tabulate(s: float, nu: float):
+    """O(x, s) (at ``nu``: the exact pupil OTF; NaN: geometric optics) as a cubic spline over the x a fit window
+    reaches."""
+    from scipy.interpolate import CubicSpline
+
+    from . import spherical
+
+    x_max = 12.0 + 2.0 * abs(s)
+    xg = np.linspace(-x_max, x_max, int(40 * x_max) + 1)
+    if math.isnan(nu):
+        og = spherical.sa_otf(xg, s)[0]
+    else:
+        og = spherical.wave_otf(xg[None, :], np.array([s]), np.array([nu]))[0][0]
+    return CubicSpline(xg, og)
+
+
+def with_curve(shape: PooledShape, q: float, nu: float = math.nan) -> PooledShape:
+    """``shape`` with its law tabulated: O(x, s) at the pooled s (and ``nu``: the exact pupil OTF, one nu for
+    the channel since the F-number is the lens's) as a cubic spline over the x a fit window reaches, and its
+    :func:`model_points`. Not selected where the law has no interior peak or crossing."""
+    from dataclasses import replace
+
+    xp, xl, xr = model_points(shape.s, q, nu)
+    if not all(math.isfinite(t) for t in (xp, xl, xr)):
+        return replace(shape, selected=False)
+    return replace(shape, nu=float(nu), x_peak=xp, x_left=xl, x_right=xr, curve=_tabulate(shape.s, nu))
+
+
+def _peak_sensitivity(tracks, shape: PooledShape, q: float, n_tracks: int = 8) -> float:
+    """Median over up to ``n_tracks`` tracks of d(best focus in steps)/ds: each refitted at s +- the pooled sd."""
+    h = max(shape.sd, 1e-3) if math.isfinite(shape.sd) else 0.1
+    lo, hi = (with_curve(_with_s(shape, shape.s + d), q, shape.nu) for d in (-h, h))
+    if not (lo.selected and hi.selected):
+        return 0.0
+    d = []
+    for z, v in tracks[:: max(1, len(tracks) // n_tracks)][:n_tracks]:
+        a, b = shaped_track(z, v, lo, q), shaped_track(z, v, hi, q)
+        if a.ok and b.ok:
+            step = float(np.median(np.diff(np.sort(np.asarray(z, float)))))
+            d.append((b.z_best_um - a.z_best_um) / (2.0 * h * step))
+    return float(np.median(np.abs(d))) if d else 0.0
+
+
+def _with_s(shape: PooledShape, s: float) -> PooledShape:
+    """``shape`` at another s (its law not yet tabulated: :func:`with_curve`)."""
+    from dataclasses import replace
+    return replace(shape, s=float(s), curve=None)
+
+
+def _window(z: np.ndarray, v: np.ndarray):
+    """The fit window of the track's MTF^2 (the texture path's rules, :data:`EDGE_CURVE_RULES`) or None."""
+    from .throughfocus import _precheck
+
+    pre = _precheck(z, v * v, EDGE_CURVE_RULES)
+    return pre if hasattr(pre, "lo") else None
+
+
+def _increasing(z_um, mtf_fs):
+    z, v, _ = _clean(z_um, mtf_fs, None)
+    keep = np.concatenate([[True], np.diff(z) > 0])
+    return z[keep], v[keep]
+
+
+def c_nu_of(fs_cyc_per_um: float, wavelength_um: float, step_um: float) -> float:
+    """``nu kappa = pi fs^2 lambda step`` of :func:`fieldcal.measure.spherical.wave_model` (``nu = fs lambda N``)."""
+    return math.pi * fs_cyc_per_um ** 2 * wavelength_um * step_um
+
+
+def track_shape(z_um, mtf_fs, c_nu: float = math.nan) -> TrackShape:
+    """Fit MTF(fs)^2 of one track with the through-focus OTF of defocus + primary SA, ``s`` free
+    (:func:`fieldcal.measure.spherical.model`, or with ``c_nu`` the exact pupil OTF,
+    :func:`~fieldcal.measure.spherical.wave_model`; started from the symmetric law's fit): the track's evidence
+    for the lens's asymmetry, pooled over the channel by :func:`pool_shape`. One track alone determines ``s``
+    poorly: it trades against the blur rate and the centre (sd(s) ~ 1 at MTF noise 0.01)."""
+    from .throughfocus import _fit_batch
+
+    z, v = _increasing(z_um, mtf_fs)
+    bad = TrackShape(math.nan, math.nan, int(z.size), math.nan, False)
+    pre = _window(z, v) if z.size >= 6 else None
+    if pre is None:
+        return bad
+    e = v * v
+    step = float(np.median(np.diff(z)))
+    sym = _fit_batch(z, e[None], [(0, pre)], step, "otf")[0]
+    if sym is None:
+        return bad
+    p = sym.params
+    sa = _fit_batch(z, e[None], [(0, pre)], step, "otf_sa", p_init=[[p[0], p[1], p[2], 0.0, p[3]]])[0]
+    if sa is not None and math.isfinite(c_nu):
+        q0 = sa.params
+        sa = _fit_batch(z, e[None], [(0, pre)], step, "otf_sa_wave", p_init=[list(q0)],
+                        nu=[c_nu])[0]
+    if sa is None or sa.n <= 5 or sa.cov is None:
+        return bad
+    sgn = 1.0 if sa.params[2] > 0 else -1.0  # (kappa, s) and (-kappa, -s) are one curve: kappa > 0
+    s, var = sgn * float(sa.params[3]), float(sa.cov[3, 3])
+    ok = math.isfinite(s) and math.isfinite(var) and var > 0
+    return TrackShape(s, var, int(sa.n), abs(float(sa.params[2])), bool(ok), float(sa.rss) / (sa.n - 5))
+
+
+def pool_shape(shapes, c_nu: float = math.nan, clip: float = 4.0) -> PooledShape:
+    """The channel's asymmetry: the inverse-variance mean of its tracks' ``s`` (:func:`track_shape`).
+
+    Physics: W040, and so ``s = 16 pi fs N W040``, is a property of the lens that varies slowly over the field
+    (constant for primary SA), and an edge's MTF across it sees the same W040 whatever the astigmatism (the
+    cross-axis defocus cancels in the pupil's autocorrelation along the edge normal). Tracks beyond ``clip``
+    robust sds of the median are left out (a false peak, a blended shape); no track weighs more than 4x the
+    median track (an exact-looking curve's own sd is too small); the sd is scaled by the Birge ratio when the
+    tracks scatter more than their sds say (the field varies, or the model is approximate). Selection: the BIC
+    weight ``w = 1 / (1 + sqrt(n) exp(-chi2 / 2))`` of one parameter over the channel's ``n`` samples,
+    ``chi2 = (s / sd)^2``; the pooled law is used when w > 1/2."""
+    sh = [t for t in shapes if t.ok]
+    if len(sh) < 3:
+        return PooledShape(math.nan, math.nan, len(sh), 0.0, False, c_nu)
+    s = np.array([t.s for t in sh])
+    var = np.array([t.var_s for t in sh])
+    n = np.array([t.n for t in sh])
+    med = float(np.median(s))
+    mad = 1.4826 * float(np.median(np.abs(s - med)))
+    keep = np.abs(s - med) <= clip * max(mad, 1e-9)
+    s, var, n = s[keep], var[keep], n[keep]
+    var = np.maximum(var, 0.25 * float(np.median(var)))
+    w = 1.0 / var
+    mean = float(np.sum(w * s) / np.sum(w))
+    sd = math.sqrt(1.0 / float(np.sum(w)))
+    if s.size > 1:
+        sd *= math.sqrt(max(float(np.sum(w * (s - mean) ** 2)) / (s.size - 1), 1.0))
+    chi2 = (mean / sd) ** 2
+    weight = 1.0 / (1.0 + math.sqrt(float(n.sum())) * math.exp(-0.5 * min(chi2, 1400.0)))
+    return PooledShape(mean, sd, int(s.size), float(weight), bool(weight > 0.5), c_nu)
+
+
+def _otf(x, s: float, nu: float):
+    """|O(x, s)| of the pooled law: the geometric-optics integral, or the exact pupil OTF at ``nu``."""
+    from . import spherical
+
+    x = np.atleast_1d(np.asarray(x, dtype=np.float64))
+    if math.isnan(nu):
+        return np.abs(spherical.sa_otf(x, s)[0])
+    return np.abs(spherical.wave_otf(x[None, :], np.array([s]), np.array([nu]))[0][0])
+
+
+def model_points(s: float, q: float, nu: float = math.nan) -> tuple[float, float, float]:
+    """(x_peak, x_left, x_right) of ``|O(x, s)|`` (x = pi fs k (z - z0)): where it peaks, and where it falls to
+    ``(1 - q)`` of that peak on each side (first crossing outward on a fine grid, then Brent's root)."""
+    from scipy.optimize import brentq
+
+    span = 6.0 + 1.5 * abs(s)
+    xg = np.linspace(-span, span, 1201)
+    og = _otf(xg, s, nu)
+    j = int(np.argmax(og))
+    if j in (0, xg.size - 1):
+        return math.nan, math.nan, math.nan
+    from scipy.optimize import minimize_scalar
+
+    xp = float(minimize_scalar(lambda t: -float(_otf(t, s, nu)[0]), bounds=(xg[j - 1], xg[j + 1]),
+                               method="bounded", options={"xatol": 1e-9}).x)
+    thr = (1.0 - q) * float(_otf(xp, s, nu)[0])
+    out = []
+    for side in (xg[:j][::-1], xg[j + 1:]):
+        below = np.flatnonzero(_otf(side, s, nu) < thr) if side.size else []
+        if len(below) == 0:
+            out.append(math.nan)
+            continue
+        b = float(side[below[0]])
+        a = float(side[below[0] - 1]) if below[0] > 0 else xp
+        out.append(brentq(lambda t: float(_otf(t, s, nu)[0]) - thr, min(a, b), max(a, b), xtol=1e-10))
+    return xp, out[0], out[1]
+
+
+def _fixed_shape_fit(z: np.ndarray, v: np.ndarray, shape: PooledShape):
+    """Least squares of ``a O(kappa (u - u0))^2 + b`` with O the channel's tabulated law (``shape.curve``) on
+    the track's window (coordinates of :func:`fieldcal.measure.throughfocus._fit_batch`: u in steps from the
+    sampled maximum, MTF^2 over its value there): (a, u0, kappa, b), their residual-scaled covariance, the z
+    and value scale, the step and the stage gain; None when it fails."""
+    from scipy.optimize import least_squares
+
+    from .throughfocus import _fit_batch
+
+    pre = _window(z, v)
+    if pre is None:
+        return None
+    e = v * v
+    step = float(np.median(np.diff(z)))
+    sym = _fit_batch(z, e[None], [(0, pre)], step, "otf")[0]
+    if sym is None:
+        return None
+    sl = slice(pre.lo, pre.hi + 1)
+    zc, sc = float(z[pre.i_max]), float(e[pre.i_max])
+    u = (z[sl] - zc) / step
+    y = e[sl] / sc
+    a0, u00, k0, b0 = (float(x) for x in sym.params)
+    O, dO = shape.curve, shape.curve.derivative()
+
+    def ev(p):
+        du = u - p[1]
+        x = p[2] * du
+        o, do = O(x), dO(x)
+        g = 2.0 * p[0] * o * do
+        return p[0] * o * o + p[3], np.stack([o * o, -g * p[2], g * du, np.ones_like(u)], axis=-1)
+
+    # the symmetric law's centre is near the skewed law's peak, which lies x_peak / kappa from its u0
+    k0 = abs(k0)
+    p0 = [a0 / max(float(O(shape.x_peak)) ** 2, 1e-6), u00 - shape.x_peak / k0, k0, b0]
+    r = least_squares(lambda p: ev(p)[0] - y, p0, jac=lambda p: ev(p)[1], method="lm", x_scale="jac")
+    p = r.x
+    dof = u.size - 4
+    x_lim = float(O.x[-1])
+    if not (r.success and dof > 0 and np.all(np.isfinite(p)) and p[0] > 0 and p[2] > 1e-6
+            and np.all(np.abs(p[2] * (u - p[1])) < x_lim)):
+        return None
+    J = ev(p)[1]
+    cov0 = np.linalg.pinv(J.T @ J, rcond=1e-13)
+    s2 = max(float(r.fun @ r.fun) / dof, 1e-24)
+    c = -(cov0[1, :] @ J.T) * J[:, 1]  # stage gain, as throughfocus._fit_batch
+    return p, cov0 * s2, zc, sc, step, float(np.sqrt(np.sum(c * c))), float(r.fun @ r.fun)
+
+
+def shaped_track(z_um, mtf_fs, shape: PooledShape, q: float = 0.05) -> TrackFocus:
+    """Best focus and tolerance of one track under its channel's pooled asymmetry (:func:`pool_shape`).
+
+    The track is fitted with ``a O(kappa (u - u0), s)^2 + b``, s fixed at the pooled value (a, u0, kappa, b
+    free: as well conditioned as the symmetric law). Its best focus is the model's peak ``u0 + x_peak /
+    kappa`` — the sharpest position, the paper's definition — and its tolerance the model's own ``(1 - q)``
+    crossings (:func:`model_points`), as the symmetric law's width is its ``x_q / kappa``. The sd is the delta
+    method over (u0, kappa) with the fit's residual-scaled covariance, plus the pooled s's share."""
+    z, v = _increasing(z_um, mtf_fs)
+    fail = TrackFocus(math.nan, math.nan, math.nan, math.nan, math.nan, False, "defocus fit: fit_failed")
+    if z.size < 5:
+        return TrackFocus(math.nan, math.nan, math.nan, math.nan, math.nan, False, "fewer than 5 samples")
+    fit = _fixed_shape_fit(z, v, shape)
+    if fit is None:
+        return fail
+    (a, u0, kappa, _), cov, zc, sc, step, gain, _ = fit
+    xp, xl, xr = shape.x_peak, shape.x_left, shape.x_right
+    u_pk = u0 + xp / kappa
+    g = np.array([0.0, 1.0, -xp / kappa ** 2, 0.0])
+    var = float(g @ cov @ g) + (shape.dz_ds * shape.sd) ** 2  # the last common to the channel's tracks
+    z_pk = zc + u_pk * step
+    if not (z[0] < z_pk < z[-1]):
+        return TrackFocus(z_pk, math.nan, math.nan, math.nan, math.nan, False, "maximum at the end of the scan")
+    peak = math.sqrt(a * sc) * abs(float(shape.curve(xp)))  # MTF(fs) at the peak: sqrt of the MTF^2 law
+    return TrackFocus(z_pk, math.sqrt(var) * step, peak, (xp - xl) / kappa * step, (xr - xp) / kappa * step,
+                      True, "ok", gain)  # dimensionless, as throughfocus._fit_batch
+
+
+def profile_shape(tracks, shapes, shape: PooledShape, nu: float = math.nan, max_tracks: int = 48,
+                  n_grid: int = 9) -> PooledShape:
+    """The pooled ``s`` refined as the joint least-squares estimate: the channel's chi^2 (each track's fixed-s
+    residual sum of squares over its own noise variance, :func:`track_shape`) profiled over a grid of s about
+    the inverse-variance mean, its vertex and the sd where it rises by 1.
+
+    Why: a single track's ``s`` is a strongly nonlinear estimate (sd ~1-3 at MTF noise 0.01), and its own
+    variance shrinks with |s|, so the inverse-variance mean of such estimates overshoots (by ~30 % on
+    exact-pupil curves at nu = 0.24-0.34); the joint fit shares one s over all the tracks' samples, which is
+    what the physics says. The ``max_tracks`` tracks with the best-determined s take part (cost)."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    idx = [i for i, t in enumerate(shapes) if t.ok and t.noise_var > 0]
+    idx = sorted(idx, key=lambda i: shapes[i].var_s)[:max_tracks]
+    if len(idx) < 3:
+        return shape
+    half = max(3.0 * shape.sd, 0.3 * abs(shape.s), 0.5)
+    grid = shape.s + np.linspace(-half, half, n_grid)
+    chi2 = np.zeros(n_grid)
+    good = np.ones(len(idx), bool)
+    rss = np.full((n_grid, len(idx)), np.nan)
+    for g, sg in enumerate(grid):
+        curve = _tabulate(float(sg), nu)
+        xs = curve.x
+        xp = float(xs[int(np.argmax(np.abs(curve(xs))))])
+        ns = SimpleNamespace(curve=curve, x_peak=xp)
+        for k, i in enumerate(idx):
+            z, v = _increasing(*tracks[i])
+            fit = _fixed_shape_fit(z, v, ns)
+            if fit is None:
+                good[k] = False
+            else:
+                rss[g, k] = fit[6]
+    if good.sum() < 3:
+        return shape
+    nv = np.array([shapes[i].noise_var for i in idx])[good]
+    chi2 = np.sum(rss[:, good] / nv, axis=1)
+    j = int(np.clip(np.argmin(chi2), 1, n_grid - 2))
+    c = np.polyfit(grid[j - 1:j + 2] - grid[j], chi2[j - 1:j + 2], 2)
+    if not c[0] > 0:
+        return shape
+    s_hat = float(grid[j] - c[1] / (2.0 * c[0]))
+    if not grid[0] <= s_hat <= grid[-1]:
+        return shape
+    sd = math.sqrt(1.0 / c[0])
+    return replace(shape, s=s_hat, sd=sd)
+
+
+def channel_shape(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
+                  wavelength_um: float = math.nan) -> PooledShape:
+    """The pooled spherical-aberration asymmetry of a channel's edge tracks (``(z_um, mtf_fs)`` pairs), ready for
+    :func:`shaped_track` when selected.
+
+    Each track's ``s`` is fitted (:func:`track_shape`), pooled (:func:`pool_shape`) and, if selected, refined by
+    the joint fit (:func:`profile_shape`) and tabulated (:func:`with_curve`). The law is the geometric-optics
+    OTF of defocus + W040 where ``nu = fs lambda N`` is low, and the exact pupil OTF (diffraction included,
+    :mod:`fieldcal.optics.pupil` via :func:`fieldcal.measure.spherical.wave_otf`) from
+    :data:`fieldcal.measure.spherical.WAVE_MIN_NU` up, where the ray law's peak is off (given ``fs`` in
+    cycles/µm and the channel's wavelength)."""
+    from dataclasses import replace
+
+    from . import spherical
+
+    c_nu = math.nan
+    shapes = [track_shape(z, v) for z, v in tracks]
+    if math.isfinite(fs_cyc_per_um) and math.isfinite(wavelength_um) and tracks:
+        steps = [float(np.median(np.diff(np.sort(np.asarray(z, float))))) for z, _ in tracks if len(z) > 1]
+        kap = [t.kappa for t in shapes if t.ok]
+        if steps and kap:
+            cn = c_nu_of(fs_cyc_per_um, wavelength_um, float(np.median(steps)))
+            if cn / float(np.median(kap)) >= spherical.WAVE_MIN_NU:
+                c_nu = cn
+                shapes = [track_shape(z, v, c_nu) for z, v in tracks]
+    shape = pool_shape(shapes, c_nu)
+    if shape.selected:
+        kap = [t.kappa for t in shapes if t.ok]
+        nu = c_nu / float(np.median(kap)) if math.isfinite(c_nu) else math.nan
+        shape = with_curve(profile_shape(tracks, shapes, shape, nu), q, nu)
+        if shape.selected:
+            shape = replace(shape, dz_ds=_peak_sensitivity(tracks, shape, q))
+    return shape
+
+
+def analyse_tracks(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan, wavelength_um: float = math.nan,
+                   shape: PooledShape | None = None) -> tuple[list[TrackFocus], PooledShape]:
+    """Best focus and tolerance of a channel's edge tracks (``(z_um, mtf_fs)`` pairs), with the asymmetry of
+    spherical aberration pooled over them (:func:`channel_shape`, or the given ``shape``).
+
+    Where the channel's data select it, every track gets its peak and tolerance from the law with that ``s``
+    (:func:`shaped_track`), else from the symmetric law (:func:`analyse_track`, whose width on a symmetric
+    curve is what :func:`fieldcal.measure.edge_tiles.track_width_model` models)."""
+    if shape is None:
+        shape = channel_shape(tracks, q, fs_cyc_per_um=fs_cyc_per_um, wavelength_um=wavelength_um)
+    if not shape.selected:
+        return [analyse_track(z, v, q) for z, v in tracks], shape
+    out = []
+    for z, v in tracks:
+        tk = shaped_track(z, v, shape, q)
+        if not tk.ok and tk.reason.startswith("defocus fit"):
+            tk = analyse_track(z, v, q)  # the shaped fit failed: the symmetric law's reading
+        out.append(tk)
+    return out, shape
