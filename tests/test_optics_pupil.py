@@ -5,20 +5,10 @@ import math
 
 import numpy as np
 import pytest
-from scipy import integrate
 
+from hopkins_util import hopkins_otf as hopkins_defocus_otf
 from fieldcal.measure import spherical
 from fieldcal.optics import pupil
-
-
-def hopkins_defocus_otf(nu: float, w020: float) -> float:
-    """Hopkins (1955): the defocused pupil's OTF as a 1-D integral (tests/test_simulate_wave.py has the same)."""
-    if w020 == 0.0:
-        return (2.0 / np.pi) * (np.arccos(nu) - nu * np.sqrt(1.0 - nu * nu))
-    a = 8.0 * np.pi * w020 * nu
-    val, _ = integrate.quad(lambda y: np.sin(a * (np.sqrt(1.0 - y * y) - nu)), 0.0, np.sqrt(1.0 - nu * nu),
-                            limit=400, epsabs=1e-13)
-    return 4.0 / (np.pi * a) * val
 
 
 @pytest.mark.parametrize("nu", [0.02, 0.15, 0.4, 0.8])

@@ -5,8 +5,9 @@ import math
 
 import numpy as np
 import pytest
-from scipy import integrate, optimize
+from scipy import optimize
 
+from hopkins_util import hopkins_otf
 from fieldcal.errors import ParameterError
 from fieldcal.optics import (DEFAULT_WAVELENGTH_NM, TOLERANCE_WAVELENGTH_NM, MTFCriterion, focus_tolerance_um,
                              model_tolerance_um, pupil_tolerance_um, tolerance_wavelength_nm)
@@ -16,17 +17,6 @@ from scipy import special as _special
 # the disc's δ in closed form: 2 J1(x)/x = 1 - q (q = 0.05) at x = pi fs δ / N, solved here independently
 N_DISC = optimize.brentq(lambda x: 2.0 * _special.j1(x) / x - 0.95, 0.1, 3.0)
 
-
-
-def hopkins_otf(nu: float, w020: float) -> float:
-    """Hopkins (1955) defocus OTF as a 1-D integral (scipy quad; independent of fieldcal.optics.pupil's 2-D
-    Gauss-Legendre rule)."""
-    if w020 == 0.0:
-        return (2.0 / np.pi) * (np.arccos(nu) - nu * np.sqrt(1.0 - nu * nu))
-    a = 8.0 * np.pi * w020 * nu
-    val, _ = integrate.quad(lambda y: np.sin(a * (np.sqrt(1.0 - y * y) - nu)), 0.0, np.sqrt(1.0 - nu * nu),
-                            limit=400, epsabs=1e-13)
-    return 4.0 / (np.pi * a) * val
 
 
 def hopkins_delta_um(fs: float, q: float, f_number: float, wavelength_nm: float) -> float:

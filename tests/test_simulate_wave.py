@@ -8,9 +8,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from scipy import integrate, special
+from scipy import special
 from scipy.optimize import minimize_scalar
 
+from hopkins_util import hopkins_otf
 from fieldcal.errors import SpecError
 from fieldcal.simulate import Renderer
 from fieldcal.simulate.lens import LensSpec
@@ -36,21 +37,6 @@ def make_spec(w=64, h=64, pitch_um=2.0, f_number=N, aberrations=None, mono=True,
     d["aberrations"] = ab
     d.update(kw)
     return LensSpec.from_dict(d)
-
-
-def hopkins_otf(s: float, w020_waves: float) -> float:
-    """Exact OTF of a defocused circular pupil (Hopkins 1955) as a 1-D integral, s = f / cutoff.
-
-    The overlap of two unit pupils shifted by +-s has |x| <= sqrt(1 - y^2) - s; W020 rho^2 differs between
-    them by 4 W020 s x, so OTF = (4 / (pi a)) int_0^sqrt(1-s^2) sin(a (sqrt(1-y^2) - s)) dy, a = 8 pi W020 s.
-    """
-    if s >= 1.0:
-        return 0.0
-    if w020_waves == 0.0 or s == 0.0:
-        return (2.0 / np.pi) * (np.arccos(s) - s * np.sqrt(1.0 - s * s))
-    a = 8.0 * np.pi * w020_waves * s
-    val, _ = integrate.quad(lambda y: np.sin(a * (np.sqrt(1.0 - y * y) - s)), 0.0, np.sqrt(1.0 - s * s), limit=400)
-    return 4.0 / (np.pi * a) * val
 
 
 def otf_on_axis(w020_waves: float, n_p: int = 128, n_fft: int = 512, lam_nm=LAM_NM):
