@@ -434,6 +434,20 @@ def c_nu_of(fs_cyc_per_um: float, wavelength_um: float, step_um: float) -> float
     return math.pi * fs_cyc_per_um ** 2 * wavelength_um * step_um
 
 
+def _symmetric_start(z: np.ndarray, v: np.ndarray):
+    """The track's window, MTF^2, median step and the symmetric law's fit there (the start of every shaped fit);
+    None when the window or the fit fails."""
+    from .throughfocus import _fit_batch
+
+    pre = _window(z, v)
+    if pre is None:
+        return None
+    e = v * v
+    step = float(np.median(np.diff(z)))
+    sym = _fit_batch(z, e[None], [(0, pre)], step, "otf")[0]
+    return None if sym is None else (pre, e, step, sym)
+
+
 def track_shape(z_um, mtf_fs, c_nu: float = math.nan) -> TrackShape:
     """Fit MTF(fs)^2 of one track with the through-focus OTF of defocus + primary SA, ``s`` free
     (:func:`fieldcal.measure.spherical.model`, or with ``c_nu`` the exact pupil OTF,
@@ -444,14 +458,10 @@ def track_shape(z_um, mtf_fs, c_nu: float = math.nan) -> TrackShape:
 
     z, v = _increasing(z_um, mtf_fs)
     bad = TrackShape(math.nan, math.nan, int(z.size), math.nan, False)
-    pre = _window(z, v) if z.size >= 6 else None
-    if pre is None:
+    start = _symmetric_start(z, v) if z.size >= 6 else None
+    if start is None:
         return bad
-    e = v * v
-    step = float(np.median(np.diff(z)))
-    sym = _fit_batch(z, e[None], [(0, pre)], step, "otf")[0]
-    if sym is None:
-        return bad
+    pre, e, step, sym = start
     p = sym.params
     sa = _fit_batch(z, e[None], [(0, pre)], step, "otf_sa", p_init=[[p[0], p[1], p[2], 0.0, p[3]]])[0]
     if sa is not None and math.isfinite(c_nu):
@@ -543,16 +553,10 @@ def _fixed_shape_fit(z: np.ndarray, v: np.ndarray, shape: PooledShape):
     and value scale, the step and the stage gain; None when it fails."""
     from scipy.optimize import least_squares
 
-    from .throughfocus import _fit_batch
-
-    pre = _window(z, v)
-    if pre is None:
+    start = _symmetric_start(z, v)
+    if start is None:
         return None
-    e = v * v
-    step = float(np.median(np.diff(z)))
-    sym = _fit_batch(z, e[None], [(0, pre)], step, "otf")[0]
-    if sym is None:
-        return None
+    pre, e, step, sym = start
     sl = slice(pre.lo, pre.hi + 1)
     zc, sc = float(z[pre.i_max]), float(e[pre.i_max])
     u = (z[sl] - zc) / step
