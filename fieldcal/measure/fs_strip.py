@@ -99,21 +99,12 @@ def effective_shift_ln(energy_tilt: float, width_tilt: float) -> float:
 
     ``energy_tilt`` = d ln E_peak / d ln f (the band energy at the curves' peaks, measured by the two side bands:
     texture spectrum x MTF^2 there), ``width_tilt`` = d ln(width) / d ln f of the through-focus curves (their
-    sharpness, the curvature at the peak, goes as width^-2). Both from the same stack (:func:`frequency_sd_um`).
+    sharpness, the curvature at the peak, goes as width^-2). Both from the same stack; the peak is moved from
+    f_eff to fs by :func:`fieldcal.fit.tiles.band_correction_um`.
     """
     if not (math.isfinite(energy_tilt) and math.isfinite(width_tilt)):
         return 0.0
     return BAND_LOG_VAR * (energy_tilt - 2.0 * width_tilt)
-
-
-def frequency_sd_um(slope_um: float, slope_sd_um: float, shift_ln: float) -> float:
-    """1-sigma error (µm) of a band-pass peak taken as the sharpest position at fs: the measure peaks at its
-    effective frequency, ``shift_ln`` (:func:`effective_shift_ln`) off fs in ln f, and the sharpest position
-    moves by ``slope_um`` (dz/dln f, sd ``slope_sd_um``) per unit ln f there. Not subtracted: the local power law
-    it rests on is approximate; its size is the error, ``|shift_ln| x sqrt(slope^2 + sd^2)``."""
-    if not all(math.isfinite(v) for v in (slope_um, slope_sd_um, shift_ln)):
-        return 0.0
-    return abs(shift_ln) * math.hypot(slope_um, slope_sd_um)
 
 
 class StripFrames:

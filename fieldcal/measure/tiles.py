@@ -1008,7 +1008,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         # quick: the offset is one number per channel; the strip's tiles give it
         strip = middle
     if measure in ("bandpass", SML_AT_FS):
-        # the sharpest position's change with frequency, one number per channel as well (fs_strip.frequency_sd_um):
+        # the sharpest position's change with frequency, one number per channel as well (fit.tiles.band_correction_um):
         # the strip's tiles when quick has one (its DFT is shared), else the fewest rows that hold MIN_TILES (its
         # term is |ln(f_eff/fs)| ~ 0.02-0.03 x the slope: the slope's sd matters little, the cost does)
         rows = min(int(math.ceil(fs_strip.MIN_TILES / max(n_cols, 1))), strip_rows)
