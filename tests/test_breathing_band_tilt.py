@@ -82,3 +82,14 @@ def test_gain_closed_form():
     got = band_energy_gain(f, s, pitch, n, "G")
     assert np.allclose(got, want * np.array([(dmtf(f) / dmtf(f / x)) ** 2 for x in s]), rtol=1e-12)
     assert np.array_equal(band_energy_gain(f, s, pitch, float("nan"), "G"), band_energy_gain(f, s, pitch, None, "G"))
+
+
+def test_declared_factors():
+    from fieldcal.measure.breathing_mtf import declared_factors
+    assert declared_factors(None) is None
+    assert declared_factors({"f_number": 4.0}) is None  # a stack that does not say gets no correction
+    assert declared_factors({"f_number": 4.0, "sensor_mtf": {"pixel_aperture": True, "diffraction": True}}) == (True, 4.0)
+    assert declared_factors({"f_number": 4.0, "sensor_mtf": {"pixel_aperture": True}}) == (True, None)
+    assert declared_factors({"sensor_mtf": {"pixel_aperture": False, "diffraction": True}}) == (False, None)
+    # no factor at all: the gain is 1 whatever the scale
+    assert np.array_equal(band_energy_gain(13.0, np.array([0.97, 1.0, 1.03]), None, None, "G"), np.ones(3))
