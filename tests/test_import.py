@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import hashlib
 import os
 from pathlib import Path
@@ -273,8 +274,19 @@ def test_dng_stack_imports_to_the_same_mosaics_and_calibrates_the_same(bayer_tif
         assert np.array_equal(dng.read(k), tiff.read(k))
     assert len(dng.frames[0].meta["source"]["sha256"]) == 64
 
+    # a camera's files declare the sensor-fixed MTFs (pixel aperture, diffraction at f_number) that the band-pass
+    # of a breathing stack is corrected for; the simulator's stack says nothing: give it the same record, so the
+    # two calibrations see the same stack description
+    assert dng.meta["sensor_mtf"] == {"pixel_aperture": True, "diffraction": True}
+    import shutil
+    same = tmp_path / "tiff-declared"
+    shutil.copytree(tiff_dir, same)
+    doc = json.loads((same / "stack.json").read_text())
+    doc["sensor_mtf"] = dng.meta["sensor_mtf"]
+    doc["f_number"] = dng.meta["f_number"]  # the DNGs' EXIF (the diffraction factor's F-number)
+    (same / "stack.json").write_text(json.dumps(doc))
     kw = dict(fs_cyc_per_mm=8.0, effort="quick", z_ref_um=0.0, seed=0, quiet=True)
-    p_tiff = fieldcal.calibrate(tiff, **kw)
+    p_tiff = fieldcal.calibrate(Stack.open(same), **kw)
     p_dng = fieldcal.calibrate(dng, **kw)
     truth = TruthProfile(spec, 384, 216, z_ref_um=p_dng.z_ref_um)
     # inside the tile grid: at 384x216 each Bayer plane is 192x108 px (at 256x144 the planes are too small to

@@ -466,6 +466,9 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
             meta["encoding"] = "sRGB JPEG (8-bit, gamma-encoded)"
     if fnum:
         meta["f_number"] = fnum
+    # a camera's frames carry the pixel aperture and the pupil's diffraction, both fixed at the sensor: a breathing
+    # stack's band-pass curves are corrected for their change (measure/breathing_mtf.py); diffraction needs f_number
+    meta["sensor_mtf"] = {"pixel_aperture": True, "diffraction": bool(fnum)}
     if focal:
         meta["focal_length_mm"] = focal
     if obj:
