@@ -110,4 +110,6 @@ def test_astigmatic_floor_closed_form_and_correction():
 def test_pair_width_one_track():
     assert pair_width_um(4.0, math.nan) == 4.0
     assert math.isnan(pair_width_um(math.nan, math.nan))
-    assert pair_width_um(4.0, 5.0) == pytest.approx(4.5)
+    # averaged in the defocus law's curvature 1 / w^2, where a width's error is symmetric
+    assert pair_width_um(4.0, 5.0) == pytest.approx((0.5 * (4.0 ** -2 + 5.0 ** -2)) ** -0.5)
+    assert pair_width_um(4.0, 4.0) == pytest.approx(4.0)
