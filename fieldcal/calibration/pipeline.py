@@ -222,9 +222,8 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
         # each tile's width without the spread of best focus inside it (fit/width_window.py); the model is about
         # the sensor centre: a decentred width field is its linear terms (fit/tolerance.py)
         if getattr(table, "measure", "") == "esfr":
-            # an e-SFR row is a line, not a square: its e-SFR mixes focus only *along* the edge, and a pair's
-            # width is its narrower track's, the tangential edge (line across the radius) that a radial field
-            # gradient does not spread. The square model put the whole gradient in: at 1920x1080 it narrowed the
+            # an e-SFR row is a line, not a square: its e-SFR mixes focus only *along* the edge, and each track's
+            # width is freed of that spread before the pair's (measure/edge_tiles.py). The square model put the whole gradient in: at 1920x1080 it narrowed the
             # triplet's edge widths 3 % (median) and up to 34x at the corners (δ 0.97 -> 0.94 of the truth)
             tiles_w, window_note = tiles, {"rule": "none: e-SFR widths (each freed of its along-edge spread)"}
         else:
