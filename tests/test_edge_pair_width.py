@@ -110,4 +110,53 @@ def test_astigmatic_floor_closed_form_and_correction():
 def test_pair_width_one_track():
     assert pair_width_um(4.0, math.nan) == 4.0
     assert math.isnan(pair_width_um(math.nan, math.nan))
-    assert pair_width_um(4.0, 5.0) == pytest.approx(4.5)
+    # averaged in the defocus law's curvature 1 / w^2, where a width's error is symmetric
+    assert pair_width_um(4.0, 5.0) == pytest.approx((0.5 * (4.0 ** -2 + 5.0 ** -2)) ** -0.5)
+    assert pair_width_um(4.0, 4.0) == pytest.approx(4.0)
+
+
+def test_short_scan_widths_are_combined_and_fitted_in_curvature():
+    """Tracks of 9 frames at a step near δ (random-7 of bench_edge_calibration: δ 22.4 µm, step 20 µm): the
+    defocus law's width x_q / (pi fs k) is skewed (a flat, noisy track reads 2-5x wide, none as far narrow);
+    its error is symmetric in 1 / w^2. The pair (pair_width_um) and the width model (fit_tolerance with
+    residuals="curvature") both average there; the mean in µm and a fit in µm read δ wide."""
+    from fieldcal.fit.data import ImageGeometry, TileData
+    from fieldcal.fit.tolerance import fit_tolerance
+    from fieldcal.optics import MTFCriterion
+
+    delta, step, n = 22.0, 20.0, 60
+    xq = disc_x_at_contrast(1.0 - Q)
+    z = np.arange(-80.0, 80.0 + step, step)
+
+    def width(v):
+        tk = analyse_track(z, v, Q)
+        return 0.5 * (tk.tol_left_um + tk.tol_right_um) if tk.ok else math.nan
+
+    def curve(z0, rng=None):
+        v = 0.75 * np.abs(disc_otf(xq * (z - z0) / delta))
+        return v if rng is None else v + rng.normal(0.0, 0.015, z.size)
+
+    ref = width(curve(0.0))  # the estimator's own noise-free reading
+    assert ref == pytest.approx(delta, rel=0.01)
+    rng = np.random.default_rng(0)
+    tracks = []
+    for _ in range(n):
+        z0 = rng.uniform(-10.0, 10.0)
+        tracks.append((width(curve(z0, rng)), width(curve(z0, rng))))
+    wt = np.array(tracks)
+    q10, q50, q90 = np.nanquantile(wt, [0.1, 0.5, 0.9])
+    assert q90 - q50 > 1.5 * (q50 - q10)  # skewed wide
+    x, y = rng.uniform(10.0, 310.0, n), rng.uniform(10.0, 170.0, n)
+    geom = ImageGeometry(320, 180, 19.6)
+
+    def fitted(w, residuals):
+        m = np.isfinite(w)
+        tiles = TileData.from_arrays(np.full(int(m.sum()), "G"), x[m], y[m], np.zeros(int(m.sum())),
+                                     np.ones(int(m.sum())), width_um=w[m])
+        fit = fit_tolerance(tiles, geom, MTFCriterion(16.0, Q), residuals=residuals)
+        return float(fit.width_cal_um(160.0, 90.0, "G")) / ref
+
+    pairs = np.array([pair_width_um(a, b) for a, b in wt])
+    assert fitted(pairs, "curvature") == pytest.approx(1.0, abs=0.03)
+    # the µm mean of the pair and a fit in µm (session 8's rules) read wide by the skewed tail
+    assert fitted(np.nanmean(wt, axis=1), "width") > 1.06

@@ -222,11 +222,10 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
         # each tile's width without the spread of best focus inside it (fit/width_window.py); the model is about
         # the sensor centre: a decentred width field is its linear terms (fit/tolerance.py)
         if getattr(table, "measure", "") == "esfr":
-            # an e-SFR row is a line, not a square: its e-SFR mixes focus only *along* the edge, and a pair's
-            # width is its narrower track's, the tangential edge (line across the radius) that a radial field
-            # gradient does not spread. The square model put the whole gradient in: at 1920x1080 it narrowed the
+            # an e-SFR row is a line, not a square: its e-SFR mixes focus only *along* the edge, and each track's
+            # width is freed of that spread before the pair's (measure/edge_tiles.py). The square model put the whole gradient in: at 1920x1080 it narrowed the
             # triplet's edge widths 3 % (median) and up to 34x at the corners (δ 0.97 -> 0.94 of the truth)
-            tiles_w, window_note = tiles, {"rule": "none: e-SFR widths (a pair's narrower, tangential track)"}
+            tiles_w, window_note = tiles, {"rule": "none: e-SFR widths (each freed of its along-edge spread)"}
         else:
             tiles_w, window_note = correct_widths(surf, tiles, table.z_um, float(table.tile_px), fs_cyc_per_mm, q)
         # slanted-edge widths are the defocus law's own (one blur rate, 1/N, at every wavelength): one model for
@@ -236,6 +235,8 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
         wl_rec = stack.meta.get("wavelength_nm")
         tol = fit_tolerance(tiles_w, geometry, MTFCriterion(fs_cyc_per_mm, q), source=str(stack.path),
                             shared_channels=kind.kind == "esfr", f_number=stack.meta.get("f_number"),
+                            # e-SFR widths are the defocus law's: their error is symmetric in 1 / w^2
+                            residuals="curvature" if kind.kind == "esfr" else "width",
                             wavelength_nm=wl_rec if isinstance(wl_rec, dict) else None,
                             min_tiles=MIN_QUICK_WIDTHS if effort == "quick" and kind.kind != "esfr" else 4)
         tol.diagnostics["width_window"] = window_note

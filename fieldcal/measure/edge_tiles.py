@@ -339,12 +339,16 @@ def pair_width_um(w_tan: float, w_sag: float) -> float:
     Defocus blurs an edge at the rate set by the pupil whatever the edge's orientation: astigmatism moves the
     tangential and sagittal foci apart, it does not change how fast each curve falls off its own peak (an
     elliptical defocus disc projects on the normal of a T edge with a half-width set by the T defocus alone).
-    So both tracks estimate one δ, and their mean is the estimate; the smaller of the two (the rule before) is
-    biased low by 0.56 of a track's scatter (the expected minimum of two normal draws).
+    So both tracks estimate one δ; the smaller of the two (the rule before session 8) is biased low by 0.56 of a
+    track's scatter (the expected minimum of two normal draws). They are averaged where their error is
+    symmetric: each width is the defocus law's ``x_q / (pi fs k)`` and the samples fix the peak's curvature
+    ``a k^2`` (:func:`fieldcal.fit.tolerance.fit_tolerance`, ``residuals="curvature"``), so the estimate is
+    ``mean(w^-2)^(-1/2)``. The plain mean in µm took the skewed tail of one flat track into the pair: on the
+    random lenses 4 and 7 of bench_edge_calibration (7-9 frames, step ≈ δ) it read δ 2.7 and 5.0 % wide.
     """
     v = np.array([w_tan, w_sag], dtype=np.float64)
     v = v[np.isfinite(v) & (v > 0)]
-    return float(v.mean()) if v.size else math.nan
+    return float(np.mean(v ** -2.0) ** -0.5) if v.size else math.nan
 
 
 def _gradient(fn, x: float, y: float, h_px: float = 2.0) -> tuple[float, float]:
