@@ -236,3 +236,20 @@ def test_dry_run_that_leaves_the_travel_exits_2_and_moves_nothing(tmp_path, trip
     d = json.loads(capsys.readouterr().out)
     assert rc == 2 and d["fits_travel"] is False and d["motion_range_um"] == [-20.0, 100.0]
     assert not (tmp_path / "D").exists()
+
+
+def test_a_real_cameras_stack_declares_its_sensor_fixed_mtfs_and_the_simulated_one_does_not():
+    """The breathing correction of the band-pass (measure/breathing_mtf.py) divides out the pixel aperture and the
+    pupil's diffraction only where the stack says its frames carry them: a camera's do; fieldcal's simulated
+    camera renders with the geometric path, whose frames have neither."""
+    from fieldcal.capture.acquisition import _stack_header
+    from fieldcal.measure.breathing_mtf import declared_factors
+
+    plan = CapturePlan(tuple(PlannedFrame(i, z) for i, z in enumerate([0.0, 10.0])), approach="+z")
+    real = _stack_header({"kind": "pylon", "f_number": 4.0, "pixel_pitch_um": 3.45}, {}, plan)
+    assert real["sensor_mtf"] == {"pixel_aperture": True, "diffraction": True}
+    assert declared_factors(real) == (True, 4.0)
+    no_fnum = _stack_header({"kind": "pylon"}, {}, plan)
+    assert declared_factors(no_fnum) == (True, None)
+    sim = _stack_header({"kind": "sim", "f_number": 4.0}, {}, plan)
+    assert "sensor_mtf" not in sim and declared_factors(sim) is None

@@ -139,6 +139,11 @@ def _stack_header(cam: dict, stage: dict, plan: CapturePlan, lens: LensRecord = 
     if len(exps) == 1 and None not in exps:
         keys["exposure_ms"] = exps.pop()
     keys = {k: v for k, v in keys.items() if v is not None}
+    if cam.get("kind") != "sim":
+        # a real camera's frames carry the pixel aperture and the pupil's diffraction, fixed at the sensor: a
+        # breathing stack's band-pass is corrected for their change (measure/breathing_mtf.py). The simulated
+        # camera renders with the geometric path, which has neither.
+        keys["sensor_mtf"] = {"pixel_aperture": True, "diffraction": bool(keys.get("f_number"))}
     keys["capture"] = {"stage": stage, "camera": cam, "plan": plan.source, "approach": plan.approach,
                        "overshoot_um": plan.overshoot_um, "z_um": "commanded position; z_measured_um = mean of "
                                                                    "the stage's readings before and after the exposure"}

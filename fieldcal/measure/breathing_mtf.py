@@ -19,7 +19,7 @@ a camera has both, fieldcal's wave-optics renderer writes both, its geometric re
 the sensor on a scene sampled at the scene's own scale), and dividing out factors a stack does not have biases
 it the other way (-2.7 µm on the geometric renderer's 4 mm exit pupil test stack). Until the geometric renderer
 models a pixel aperture, a stack without the key gets no correction; `fieldcal import` declares a camera's
-files (formats/importer.py), the hardware capture path does not yet.
+files (formats/importer.py) and a real camera's captures (capture/acquisition.py).
 """
 from __future__ import annotations
 
