@@ -4,9 +4,9 @@ breathing and shift, which must come back as scale-and-shift, unchanged."""
 
 import numpy as np
 import pytest
-from scipy import ndimage
 
 from fieldcal.composite import register as R
+from registration_util import similarity, warped
 from fieldcal.formats.frames import ArrayStack
 
 W, H = 240, 180
@@ -19,23 +19,12 @@ def _texture(seed=0):
     return cv2.GaussianBlur(rng.random((H + 2 * MARGIN, W + 2 * MARGIN)).astype(np.float32), (0, 0), 2.0)
 
 
-def _frame(tex, ref_to_frame):
-    """Frame whose pixel q shows the reference frame's pixel ``ref_to_frame^-1 q`` (cubic spline)."""
-    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
-    inv = np.linalg.inv(ref_to_frame)
-    px, py = R._apply(inv, xx, yy)
-    return ndimage.map_coordinates(tex.astype(np.float64), [py + MARGIN, px + MARGIN], order=3,
-                                   mode="reflect").astype(np.float32)
+def _frame(img, ref_to_frame):
+    return warped(img, ref_to_frame, W, H, MARGIN)
 
 
 def _similarity(scale, angle_deg, tx, ty):
-    c = np.array([(W - 1) / 2.0, (H - 1) / 2.0])
-    a = np.radians(angle_deg)
-    lin = scale * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    m = np.eye(3)
-    m[:2, :2] = lin
-    m[:2, 2] = c + np.array([tx, ty]) - lin @ c
-    return m
+    return similarity(scale, angle_deg, tx, ty, W, H)
 
 
 def _corner_error_px(maps, truth):

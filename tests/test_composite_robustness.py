@@ -5,10 +5,10 @@ its right half in the late ones."""
 
 import numpy as np
 import pytest
-from scipy import ndimage
 
 from fieldcal.composite import photometric
 from fieldcal.composite import register as R
+from registration_util import similarity, warped
 from fieldcal.errors import FieldcalError
 from fieldcal.formats.frames import ArrayStack
 
@@ -42,21 +42,11 @@ def _focus_frame(tex, k):
 
 
 def _warped(img, ref_to_frame):
-    """Frame whose pixel q shows the (margin-padded) reference image at ``ref_to_frame^-1 q`` (cubic spline)."""
-    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
-    px, py = R._apply(np.linalg.inv(ref_to_frame), xx, yy)
-    return ndimage.map_coordinates(img.astype(np.float64), [py + MARGIN, px + MARGIN], order=3,
-                                   mode="reflect").astype(np.float32)
+    return warped(img, ref_to_frame, W, H, MARGIN)
 
 
 def _similarity(scale, angle_deg, tx, ty):
-    c = np.array([(W - 1) / 2.0, (H - 1) / 2.0])
-    a = np.radians(angle_deg)
-    lin = scale * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    m = np.eye(3)
-    m[:2, :2] = lin
-    m[:2, 2] = c + np.array([tx, ty]) - lin @ c
-    return m
+    return similarity(scale, angle_deg, tx, ty, W, H)
 
 
 def _outline_error_px(maps, truth):

@@ -69,6 +69,15 @@ def model(u, a, u0, kappa, s, b):
     return f, jac
 
 
+def _peak_step(o, ox, oxx, kappa, h):
+    """Newton step in u towards the maximum of O^2 (g = O O_x, g' = O_x^2 + O O_xx per unit x; no step where
+    g' >= 0, i.e. off a maximum), clipped to one grid interval ``h``."""
+    g, gp = o * ox, ox * ox + o * oxx
+    with np.errstate(divide="ignore", invalid="ignore"):
+        du = np.where(gp < 0, -g / gp / kappa, 0.0)
+    return np.clip(np.nan_to_num(du), -h, h)
+
+
 def peak_u(a, u0, kappa, s, u_lo, u_hi, n_grid: int = 81, n_newton: int = 8):
     """Where each curve ``a O(kappa (u - u0), s)^2`` peaks in [u_lo, u_hi] (arrays of curves, vectorised).
 
@@ -87,12 +96,7 @@ def peak_u(a, u0, kappa, s, u_lo, u_hi, n_grid: int = 81, n_newton: int = 8):
     for _ in range(n_newton):
         x = kappa * (u - u0)
         o, ox, _ = sa_otf(x, s)
-        oxx = sa_otf_dxx(x, s)
-        # maximise O^2: g = O O_x, g' = O_x^2 + O O_xx (per unit x)
-        g, gp = o * ox, ox * ox + o * oxx
-        with np.errstate(divide="ignore", invalid="ignore"):
-            du = np.where(gp < 0, -g / gp / kappa, 0.0)
-        u = u + np.clip(np.nan_to_num(du), -h, h)
+        u = u + _peak_step(o, ox, sa_otf_dxx(x, s), kappa, h)
     edge = (i == 0) | (i == n_grid - 1) | (u <= u_lo) | (u >= u_hi)
     return np.where(edge, np.nan, u)
 
@@ -198,10 +202,6 @@ def wave_peak_u(a, u0, kappa, s, u_lo, u_hi, c_nu, n_grid: int = 81, n_newton: i
         i = np.ones(u.shape, dtype=int)
     for _ in range(n_newton):
         o, ox, _, oxx = wave_otf((kappa * (u - u0))[:, None], s, nu, x_max)
-        o, ox, oxx = o[:, 0], ox[:, 0], oxx[:, 0]
-        g, gp = o * ox, ox * ox + o * oxx
-        with np.errstate(divide="ignore", invalid="ignore"):
-            du = np.where(gp < 0, -g / gp / kappa, 0.0)
-        u = u + np.clip(np.nan_to_num(du), -h, h)
+        u = u + _peak_step(o[:, 0], ox[:, 0], oxx[:, 0], kappa, h)
     edge = (i == 0) | (i == n_grid - 1) | (u <= u_lo) | (u >= u_hi)
     return np.where(edge, np.nan, u)
