@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from .esfr_focus import TOLERANCE_UNREACHED, analyse_track, analyse_tracks, channel_shape
+from .esfr_focus import TOLERANCE_UNREACHED, analyse_track, analyse_tracks, channel_shape, window_r_of
 from .tiles import TileTable
 
 # A frame is a slanted-edge chart when at least this many detected edges pass the e-SFR quality rules in every
@@ -167,7 +167,9 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
     chans = sorted({k[1] for k in curves})
     for ch in chans:
         shapes[ch] = channel_shape([curves[k] for k in curves if k[1] == ch], q, fs_cyc_per_um=fs_cyc_per_um,
-                                   wavelength_um=default_wavelength_nm(ch) * 1e-3)
+                                   wavelength_um=default_wavelength_nm(ch) * 1e-3,
+                                   window_r=window_r_of(window_half_px(
+                                       [e for k, recs in groups.items() if k[1] == ch for e in recs]), fs_cy_per_px))
     # W040 is the lens's, shared by its colours (s = 16 pi fs N W040 carries no wavelength): the asymmetry is
     # taken only where every channel shows it. A skew seen in one channel alone is not spherical aberration (on
     # fieldcal's geometric simulator one channel of the triplet showed s = -0.5 +- 0.13, the others 0 +- 0.1)
@@ -218,6 +220,15 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
     if shapes_out is not None:
         shapes_out.update(shapes)
     return cols
+
+
+def window_half_px(recs) -> float:
+    """The e-SFR window's half-length (px) over edge records: the median usable half-width across the edge
+    projected on its normal (``half_width_px cos(slant)``: the ESF's span, over which the core centres its
+    Hamming window; :func:`fieldcal.measure.esfr.esfr_regions`). NaN when the records do not say."""
+    h = [float(e["quality"]["half_width_px"]) * math.cos(math.radians(float(e["quality"].get("slant_deg") or 0.0)))
+         for e in recs if (e.get("quality") or {}).get("half_width_px")]
+    return float(np.median(h)) if h else math.nan
 
 
 def along_edge_spread_um(dzdx_um_per_px, dzdy_um_per_px, edge_angle_deg, length_px):

@@ -359,27 +359,65 @@ class PooledShape:
     # d(best focus, in steps)/ds of a track refitted at another s (the pooled s's share of each track's sd;
     # smaller than d x_peak / ds / kappa: u0 and kappa follow the data's peak)
     dz_ds: float = 0.0
+    # the e-SFR's Hamming window, r = (1 / 2h) / fs (h its half-length in px, fs in cycles/px; 0: none): the law
+    # fitted is the one the window reads (:func:`windowed_law`), its peak and crossings the lens's own
+    window_r: float = 0.0
+    # nu = fs lambda N from the channel's blur rate (NaN: unknown), also where the law is not selected
+    nu_data: float = math.nan
 
     def to_dict(self) -> dict:
         return {"s": self.s, "sd": self.sd, "n_tracks": self.n_tracks, "weight": self.weight,
                 "selected": self.selected, "model": "ray" if math.isnan(self.nu) else "wave", "nu": self.nu,
-                "x_peak": self.x_peak, "dz_ds_step": self.dz_ds}
+                "x_peak": self.x_peak, "dz_ds_step": self.dz_ds, "window_r": self.window_r}
 
 
-def _tabulate(s: float, nu: float):
-    """O(x, s) (at ``nu``: the exact pupil OTF; NaN: geometric optics) as a cubic spline over the x a fit window
-    reaches."""
-    from scipy.interpolate import CubicSpline
-
+def _law(x: np.ndarray, s: float, nu: float) -> np.ndarray:
+    """Signed O(x, s) of the law relative to its diffraction-free value at x = 0: the geometric-optics integral
+    (``nu`` NaN) or the exact pupil OTF at ``nu`` times the aberration-free MTF at ``nu`` (which
+    :func:`~fieldcal.measure.spherical.wave_otf` divides out; kept here because the window mixes frequencies)."""
     from . import spherical
+
+    x = np.asarray(x, dtype=np.float64)
+    if math.isnan(nu):
+        return spherical.sa_otf(x, s)[0]
+    o = spherical.wave_otf(x.reshape(1, -1), np.array([s]), np.array([nu]))[0][0].reshape(x.shape)
+    v = min(abs(nu), 1.0)  # the aberration-free MTF at nu = f / cut-off
+    return o * (2.0 / math.pi) * (math.acos(v) - v * math.sqrt(1.0 - v * v))
+
+
+def windowed_law(x, s: float, nu: float, r: float) -> np.ndarray:
+    """The law as the e-SFR reads it: ``(a0 O(f) + a1 (O(f + D) + O(f - D))) / (a0 + 2 a1 O(D))`` at f = fs.
+
+    Physics: the e-SFR multiplies the line-spread function by a Hamming window ``a0 + 2 a1 cos(pi d / h)``
+    (a0 = 0.54, a1 = 0.23; d from the LSF's centroid, h the half-length: :func:`fieldcal.measure.esfr.esfr_regions`)
+    before its FFT, and normalises at DC. A cosine times the LSF is the OTF shifted by +-D = 1 / (2h) in
+    frequency, so the measured MTF(fs) mixes the OTF at fs, fs + D and fs - D, over a DC value that falls as the
+    blur widens. Defocus is the law's ``x = pi f k dz``, and x, ``s = 16 pi f N W040`` and ``nu = f lambda N``
+    all scale with f, so each tap is the law at ``(1 + t) (x, s, nu)`` with ``t = 0, +-r`` (``r = D / fs``) and the
+    DC term at ``r (x, s, nu)``. A wider blur loses more of its tails to the window: the curve's flanks read high,
+    and a law fitted over them reads the tolerance wide (clean-room F/5.6-F/8 edges with h = 8 px: 5 %) and,
+    with spherical aberration (whose sharpest position moves with f), best focus off. The pixel aperture and other
+    static transfer are taken flat over fs +- D (their slope enters at second order). ``r = 0``: the law itself."""
+    x = np.asarray(x, dtype=np.float64)
+    if not r > 0:
+        return _law(x, s, nu)
+    a0, a1 = 0.54, 0.23
+
+    def at(t: float):
+        return _law(x * t, s * t, nu * t if math.isfinite(nu) else nu)
+
+    num = a0 * at(1.0) + a1 * (at(1.0 + r) + at(1.0 - r))
+    return num / (a0 + 2.0 * a1 * at(r))
+
+
+def _tabulate(s: float, nu: float, r: float = 0.0):
+    """O(x, s) (at ``nu``: the exact pupil OTF; NaN: geometric optics), as the e-SFR's window reads it (``r``,
+    :func:`windowed_law`; 0: none), as a cubic spline over the x a fit window reaches."""
+    from scipy.interpolate import CubicSpline
 
     x_max = 12.0 + 2.0 * abs(s)
     xg = np.linspace(-x_max, x_max, int(40 * x_max) + 1)
-    if math.isnan(nu):
-        og = spherical.sa_otf(xg, s)[0]
-    else:
-        og = spherical.wave_otf(xg[None, :], np.array([s]), np.array([nu]))[0][0]
-    return CubicSpline(xg, og)
+    return CubicSpline(xg, windowed_law(xg, s, nu, r))
 
 
 def with_curve(shape: PooledShape, q: float, nu: float = math.nan) -> PooledShape:
@@ -391,7 +429,8 @@ def with_curve(shape: PooledShape, q: float, nu: float = math.nan) -> PooledShap
     xp, xl, xr = model_points(shape.s, q, nu)
     if not all(math.isfinite(t) for t in (xp, xl, xr)):
         return replace(shape, selected=False)
-    return replace(shape, nu=float(nu), x_peak=xp, x_left=xl, x_right=xr, curve=_tabulate(shape.s, nu))
+    return replace(shape, nu=float(nu), x_peak=xp, x_left=xl, x_right=xr,
+                   curve=_tabulate(shape.s, nu, shape.window_r))
 
 
 def _peak_sensitivity(tracks, shape: PooledShape, q: float, n_tracks: int = 8) -> float:
@@ -639,7 +678,7 @@ def profile_shape(tracks, shapes, shape: PooledShape, nu: float = math.nan, max_
     good = np.ones(len(idx), bool)
     rss = np.full((n_grid, len(idx)), np.nan)
     for g, sg in enumerate(grid):
-        curve = _tabulate(float(sg), nu)
+        curve = _tabulate(float(sg), nu, shape.window_r)
         xs = curve.x
         xp = float(xs[int(np.argmax(np.abs(curve(xs))))])
         ns = SimpleNamespace(curve=curve, x_peak=xp)
@@ -666,7 +705,7 @@ def profile_shape(tracks, shapes, shape: PooledShape, nu: float = math.nan, max_
 
 
 def channel_shape(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
-                  wavelength_um: float = math.nan) -> PooledShape:
+                  wavelength_um: float = math.nan, window_r: float = 0.0) -> PooledShape:
     """The pooled spherical-aberration asymmetry of a channel's edge tracks (``(z_um, mtf_fs)`` pairs), ready for
     :func:`shaped_track` when selected.
 
@@ -675,22 +714,24 @@ def channel_shape(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
     OTF of defocus + W040 where ``nu = fs lambda N`` is low, and the exact pupil OTF (diffraction included,
     :mod:`fieldcal.optics.pupil` via :func:`fieldcal.measure.spherical.wave_otf`) from
     :data:`fieldcal.measure.spherical.WAVE_MIN_NU` up, where the ray law's peak is off (given ``fs`` in
-    cycles/µm and the channel's wavelength)."""
+    cycles/µm and the channel's wavelength). ``window_r``: the e-SFR window's frequency shift over fs
+    (:func:`window_r_of`), so the law fitted is the one the e-SFR reads (:func:`windowed_law`)."""
     from dataclasses import replace
 
     from . import spherical
 
-    c_nu = math.nan
+    c_nu, nu_data = math.nan, math.nan
     shapes = [track_shape(z, v) for z, v in tracks]
     if math.isfinite(fs_cyc_per_um) and math.isfinite(wavelength_um) and tracks:
         steps = [float(np.median(np.diff(np.sort(np.asarray(z, float))))) for z, _ in tracks if len(z) > 1]
         kap = [t.kappa for t in shapes if t.ok]
         if steps and kap:
             cn = c_nu_of(fs_cyc_per_um, wavelength_um, float(np.median(steps)))
-            if cn / float(np.median(kap)) >= spherical.WAVE_MIN_NU:
+            nu_data = cn / float(np.median(kap))
+            if nu_data >= spherical.WAVE_MIN_NU:
                 c_nu = cn
                 shapes = [track_shape(z, v, c_nu) for z, v in tracks]
-    shape = pool_shape(shapes, c_nu)
+    shape = replace(pool_shape(shapes, c_nu), window_r=max(float(window_r), 0.0), nu_data=float(nu_data))
     if shape.selected:
         kap = [t.kappa for t in shapes if t.ok]
         nu = c_nu / float(np.median(kap)) if math.isfinite(c_nu) else math.nan
@@ -707,11 +748,22 @@ def analyse_tracks(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan, 
 
     Where the channel's data select it, every track gets its peak and tolerance from the law with that ``s``
     (:func:`shaped_track`), else from the symmetric law (:func:`analyse_track`, whose width on a symmetric
-    curve is what :func:`fieldcal.measure.edge_tiles.track_width_model` models)."""
+    curve is what :func:`fieldcal.measure.edge_tiles.track_width_model` models), its width freed of the e-SFR
+    window's widening (:func:`window_width_ratio`)."""
+    from dataclasses import replace
+
     if shape is None:
         shape = channel_shape(tracks, q, fs_cyc_per_um=fs_cyc_per_um, wavelength_um=wavelength_um)
     if not shape.selected:
-        return [analyse_track(z, v, q) for z, v in tracks], shape
+        out = [analyse_track(z, v, q) for z, v in tracks]
+        if shape.window_r > 0:  # the symmetric law does not see the e-SFR window: its width read, corrected
+            w = [t.depth_um / 2 for t in out if t.ok and t.depth_um > 0]
+            steps = [float(np.median(np.diff(np.sort(np.asarray(z, float))))) for z, _ in tracks if len(z) > 1]
+            ratio = (window_width_ratio(float(np.median(steps)), float(np.median(w)), q, shape.window_r,
+                                        shape.nu_data) if w and steps else 1.0)
+            out = [replace(t, tol_left_um=t.tol_left_um / ratio, tol_right_um=t.tol_right_um / ratio)
+                   for t in out]
+        return out, shape
     out = []
     for z, v in tracks:
         tk = shaped_track(z, v, shape, q)
@@ -719,3 +771,42 @@ def analyse_tracks(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan, 
             tk = analyse_track(z, v, q)  # the shaped fit failed: the symmetric law's reading
         out.append(tk)
     return out, shape
+
+
+def window_r_of(window_half_px: float, fs_cy_per_px: float) -> float:
+    """``r = D / fs`` of :func:`windowed_law`: the e-SFR window's frequency shift ``D = 1 / (2 h)`` (h its
+    half-length in px) over fs (cycles/px); 0 when either is unknown."""
+    h, f = float(window_half_px), float(fs_cy_per_px)
+    return 1.0 / (2.0 * h * f) if (math.isfinite(h) and h > 0 and math.isfinite(f) and f > 0) else 0.0
+
+
+def window_width_ratio(step_um: float, width_um: float, q: float, r: float, nu: float = math.nan) -> float:
+    """How wide :func:`analyse_track` (the symmetric law) reads a symmetric track through the e-SFR window:
+    its width on the windowed law (:func:`windowed_law`, s = 0, at ``nu``; NaN: the geometric disc) over its
+    width on the law itself, both sampled at the stack's step about a peak of half-width ``width_um`` (two
+    sampling phases averaged, as :func:`fieldcal.measure.edge_tiles.track_width_model`). The read width is
+    near the windowed one, so ``width_um`` is refined once by the ratio. 1 when ``r`` is 0 or a read fails."""
+    if not (r > 0 and math.isfinite(step_um) and step_um > 0 and math.isfinite(width_um) and width_um > 0):
+        return 1.0
+    nu = nu if (math.isfinite(nu) and 0 < nu < 1) else math.nan
+    _, _, xq = model_points(0.0, q, nu)
+    if not math.isfinite(xq):
+        return 1.0
+
+    def read(delta: float, rr: float) -> float:
+        out = []
+        for phase in (0.0, 0.5):
+            z = np.arange(-6.0 * delta, 6.0 * delta + step_um, step_um) + phase * step_um
+            v = np.abs(windowed_law(xq * z / delta, 0.0, nu, rr))
+            tk = analyse_track(z, 0.5 * v, q)
+            out.append(0.5 * (tk.tol_left_um + tk.tol_right_um) if tk.ok else math.nan)
+        return float(np.mean(out))
+
+    ratio = 1.0
+    for _ in range(2):
+        delta = width_um / ratio
+        w0, w1 = read(delta, 0.0), read(delta, r)
+        if not (math.isfinite(w0) and math.isfinite(w1) and w0 > 0):
+            return 1.0
+        ratio = w1 / w0
+    return float(ratio)
