@@ -727,8 +727,10 @@ def channel_shape(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
         kap = [t.kappa for t in shapes if t.ok]
         if steps and kap:
             cn = c_nu_of(fs_cyc_per_um, wavelength_um, float(np.median(steps)))
-            nu_data = cn / float(np.median(kap))
-            if nu_data >= spherical.WAVE_MIN_NU:
+            if window_r > 0:
+                nu_data = nu_of_width(_ray_x_q(q) * float(np.median(steps)) / float(np.median(kap)), q,
+                                      fs_cyc_per_um, wavelength_um)
+            if cn / float(np.median(kap)) >= spherical.WAVE_MIN_NU:
                 c_nu = cn
                 shapes = [track_shape(z, v, c_nu) for z, v in tracks]
     shape = replace(pool_shape(shapes, c_nu), window_r=max(float(window_r), 0.0), nu_data=float(nu_data))
@@ -810,3 +812,31 @@ def window_width_ratio(step_um: float, width_um: float, q: float, r: float, nu: 
             return 1.0
         ratio = w1 / w0
     return float(ratio)
+
+
+def _ray_x_q(q: float) -> float:
+    """x where the geometric defocus law ``|O(x, 0)|`` falls to ``1 - q`` (the disc's ``x_q``)."""
+    from ..optics.defocus import disc_x_at_contrast
+    return float(disc_x_at_contrast(1.0 - float(q)))
+
+
+def nu_of_width(width_um: float, q: float, fs_cyc_per_um: float, wavelength_um: float) -> float:
+    """``nu = fs lambda N`` of the aberration-free pupil whose δ(fs, q) with diffraction is ``width_um``
+    (:func:`fieldcal.optics.defocus.pupil_tolerance_um`; Brent's root in N). The blur rate a geometric law fits to
+    a curve widened by diffraction reads N high (by 50 % at nu = 0.3); its width does not. NaN when the width is
+    below the geometric δ at any N or the inputs are not finite."""
+    from scipy.optimize import brentq
+
+    from ..optics.defocus import _pupil_tolerance_um
+
+    fs_mm, lam_nm = 1e3 * float(fs_cyc_per_um), 1e3 * float(wavelength_um)
+    if not all(math.isfinite(v) and v > 0 for v in (width_um, q, fs_mm, lam_nm)):
+        return math.nan
+
+    def excess(nu: float) -> float:
+        return _pupil_tolerance_um(fs_mm, float(q), nu / (fs_cyc_per_um * wavelength_um), lam_nm) - width_um
+
+    lo, hi = 1e-3, 0.9
+    if excess(lo) > 0 or excess(hi) < 0:
+        return math.nan
+    return float(brentq(excess, lo, hi, xtol=2e-3))
