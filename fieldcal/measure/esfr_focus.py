@@ -324,6 +324,7 @@ def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None, fit=None) -> Tra
     tolerance, where a smoothing spline's shape is set by its roughness penalty, not by the data — it read
     +4-7 % wide at 480x270 with 20 µm steps (step / tolerance 1.1-1.2), and a noisy magnitude's upward bias
     flattens it further; the law's blur rate comes from the whole peak, with the noise floor fitted apart.
+    ``fit``: the law's fit from :func:`defocus_fits` (many tracks at once), else fitted here.
     """
     pk = through_focus_peak(z_um, mtf_fs, sigma=sigma, n_boot=0)
     law, w = math.nan, math.nan

@@ -60,6 +60,7 @@ def tapered_widths(z, V, pres, fits, step: float, x_q: float, out: list) -> list
 
     ``pres``: (curve index, window) pairs of the main fit and ``fits`` its results (normalised coordinates: u in
     steps from the sampled maximum, values / the maximum). A curve whose refit fails keeps the main fit's width.
+    ``z``, ``V`` and ``step`` as :func:`fieldcal.measure.throughfocus._fit_batch` takes them (one grid, or per curve).
     """
     from .throughfocus import STATUS_OK, _fit_batch, _st, _zt
 

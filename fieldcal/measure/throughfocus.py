@@ -752,7 +752,9 @@ def _fit_batch(z, V, pres, step, model, n_iter: int = 100, p_init: list | None =
     Coordinates are normalised (u in steps from the sampled maximum, values / the maximum); the covariance
     is ``(J^T J)^-1`` scaled by the residual variance. ``p_init``: starting parameters per window (normalised
     coordinates), instead of the guesses from the data. ``weights``: per window, a weight per sample of the
-    window on the residuals (default 1). ``nu``: per window, the ``"otf_sa_wave"`` model's ``c_nu``.
+    window on the residuals (default 1). ``nu``: per window, the ``"otf_sa_wave"`` model's ``c_nu``. ``z``,
+    ``V``, ``step``: one grid (an array, a (T x n) array, a float) or each curve its own (lists and an array of
+    steps, indexed by the windows' curve numbers: :func:`analyse_curve_list`).
     """
     T = len(pres)
     nmax = max(p.hi - p.lo + 1 for _, p in pres)
