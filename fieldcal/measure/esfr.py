@@ -134,18 +134,12 @@ def _row_centroids(d: np.ndarray, centre: np.ndarray, half: np.ndarray) -> np.nd
     x = np.arange(d.shape[2], dtype=np.float64) + 0.5  # a first difference sits between two pixels
     # Hamming weights without a cosine per element: cos(a - b) = cos a cos b + sin a sin b
     ax, ac = np.pi * x[None, :] / half[:, None], np.pi * centre / half[:, None, None]
-    # the element-wise passes write into two buffers of d's size (fresh temporaries cost as much again in page
-    # faults); the same operations in the same order, so the same numbers
-    w = np.multiply(np.cos(ax)[:, None, :, None], np.cos(ac)[:, :, None, :])
-    t = np.multiply(np.sin(ax)[:, None, :, None], np.sin(ac)[:, :, None, :])
-    w += t
+    w = np.cos(ax)[:, None, :, None] * np.cos(ac)[:, :, None, :]
+    w += np.sin(ax)[:, None, :, None] * np.sin(ac)[:, :, None, :]
     w *= 0.46
     w += 0.54
     w *= d
-    np.subtract(x[None, None, :, None], centre[:, :, None, :], out=t)
-    np.abs(t, out=t)
-    w *= np.less_equal(t, half[:, None, None, None])
-    del t
+    w *= np.abs(x[None, None, :, None] - centre[:, :, None, :]) <= half[:, None, None, None]
     sx = np.einsum("brwc,wk->brck", w, np.stack([np.ones_like(x), x], axis=1))  # sum and first moment at once
     with np.errstate(invalid="ignore", divide="ignore"):
         return sx[..., 1] / sx[..., 0]
@@ -332,8 +326,7 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     last = (cs[bi, ncols] - cs[bi, ncols - k5]) / (nrows * k5)[:, None]
     sign = np.sign(last - first)
     sign[sign == 0] = 1.0
-    d = np.subtract(a[:, :, 1:], a[:, :, :-1])  # np.diff, into one buffer
-    d *= sign[:, None, None, :]
+    d = np.diff(a, axis=2) * sign[:, None, None, :]
     d *= (np.arange(W - 1)[None, :] < (ncols - 1)[:, None])[:, None, :, None]  # not across the padding
     centre, _, _ = _fit_edge(_row_centroids(d, centre0, hw), row_ok, nrows, 1)
     lost = ~np.where(row_ok[:, :, None], np.isfinite(centre), True).all(axis=(1, 2))
@@ -379,9 +372,7 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     sums = np.bincount(gid, weights=v_used, minlength=B * C * NB).reshape(B * C, NB)
     counts = np.bincount(gid, minlength=B * C * NB).reshape(B * C, NB)
     n_used = use.sum(axis=(2, 3)).ravel()
-    # per row: pixels at or beyond the white or black level; the padding (0, counted as black) taken off again
-    clip_rows = (np.count_nonzero((a >= 0.995 * white) | (a <= 0.0), axis=2)
-                 - (W - ncols)[:, None, None])  # B x R x C (rows past a region's own are not used)
+    clip_rows = (((a >= 0.995 * white) | (a <= 0.0)) & col_ok[:, None, :, None]).sum(axis=2)  # B x R x C
     clipped = ((clip_rows * row_use[:, :, None]).sum(axis=1) / (Ru * ncols)[:, None]).ravel()  # B*C
     del use
 
