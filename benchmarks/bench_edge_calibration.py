@@ -169,8 +169,6 @@ def run_lens(spec, name: str, size, step_um: float, optics: str, effort: str, se
     from fieldcal.validation.run import plan_coverage, surface_metrics, true_tolerances
 
     w, h = size
-    pitch_um = spec.sensor.pixel_pitch_um * spec.sensor.width_px / w
-    fs = round(0.25 / (pitch_um / 1000.0), 2)  # 0.25 cycles/px
     lo, hi = spec.focus_range_um()
     if frames > 1:
         step_um = (hi - lo + 100.0) / (frames - 1)
@@ -181,6 +179,10 @@ def run_lens(spec, name: str, size, step_um: float, optics: str, effort: str, se
     else:
         st = simulate_stack(spec, where, z_grid(lo - 50.0, hi + 50.0, step_um), scene=scene, seed=seed,
                             size=(w, h), progress=False, optics=optics)
+    # 0.25 cycles per pixel of the stack as rendered: its pitch keeps the sensor's field at this size (a 4:3
+    # sensor rendered 16:9 has a coarser pitch than width / w says; until session 10 the bench used the latter,
+    # and its random lenses were calibrated at 0.333 cycles/px)
+    fs = round(0.25 / (float(st.pixel_pitch_um) / 1000.0), 2)
     c0 = time.process_time()
     t0 = time.perf_counter()
     prof = calibrate(st.path, effort=effort, fs_cyc_per_mm=fs, seed=seed, quiet=True)

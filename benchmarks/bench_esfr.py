@@ -143,7 +143,8 @@ def calibration(frames: int = 41, size: tuple[int, int] = (1920, 1080)) -> dict:
     start, stop = math.floor(lo - 50.0), math.ceil(hi + 50.0)  # the focus range of the field +- 50 um
     step = round((stop - start) / (frames - 1), 6)
     w, h = size
-    fs = round(0.25 / (spec.sensor.pixel_pitch_um * spec.sensor.width_px / w / 1000.0), 2)
+    # 0.25 cycles per pixel of the stack as rendered (simulate keeps the sensor's field: LensSpec.with_sensor_size)
+    fs = round(0.25 / (spec.with_sensor_size(w, h).sensor.pixel_pitch_um / 1000.0), 2)
     env = dict(os.environ, PYTHONPATH=str(REPO), FIELDCAL_PROGRESS="0")
     with tempfile.TemporaryDirectory() as tmp:
         stack, out = f"{tmp}/edge{h}", f"{tmp}/edge{h}.json"

@@ -57,7 +57,7 @@ class EdgeQuality:
     empty_bins: int  # ESF bins with no sample (filled by interpolation)
 
     def to_dict(self) -> dict:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        return dict(vars(self))  # the fields in order (a dataclass without slots sets them in __init__)
 
 
 @dataclass
@@ -121,10 +121,11 @@ def _median_1d(x: np.ndarray) -> float:
     """np.median of a 1-D array without its wrapper's overhead (it runs once per edge and channel)."""
     n = x.size
     h = n // 2
+    p = np.partition(x, h)
     if n % 2:
-        return float(np.partition(x, h)[h])
-    p = np.partition(x, (h - 1, h))
-    return float((p[h - 1] + p[h]) / 2.0)
+        return float(p[h])
+    # the lower middle value is the largest of the h below p[h] (one selection, not two: the same values)
+    return float((p[:h].max() + p[h]) / 2.0)
 
 
 def _row_centroids(d: np.ndarray, centre: np.ndarray, half: np.ndarray) -> np.ndarray:
@@ -482,36 +483,39 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     width = np.where(rise_ok, (j_up - j_dn).astype(np.float64), np.nan) * delta
 
     rm = (nrows - 1) // 2  # the middle row
-    slope_m = slope_r[bi, rm].ravel()
-    x_m = x_edge[bi, rm].ravel()
     results = []
     mtf = mtf.reshape(B, C, -1)
     f50 = f50.reshape(B, C)
     esf_out = esf_out.reshape(B, C, NB)
+    # per-record scalars as Python floats once (float() of each NumPy scalar gives the same values, slower)
+    slope_l, x_l = slope_r[bi, rm].ravel().tolist(), x_edge[bi, rm].ravel().tolist()
+    ok_l, noise_l, step_l, contrast_l = ok.tolist(), noise.tolist(), step.tolist(), contrast.tolist()
+    clipped_l, tail_l, width_l, rms_l = clipped.tolist(), tail.tolist(), width.tolist(), edge_rms.ravel().tolist()
+    holes_l, ru_l, hw_l, nb_l = hole.sum(axis=1).tolist(), Ru.tolist(), hw.tolist(), nb.tolist()
     for b in range(B):
         qual = []
         x_mid = np.full(C, np.nan)
         angle = np.full(C, np.nan)
         for c in range(C):
             g = b * C + c
-            if not ok[g]:
+            if not ok_l[g]:
                 qual.append(EdgeQuality(False, "no edge found in the region", math.nan, math.nan, math.nan,
-                                        math.nan, math.nan, float(clipped[g]), int(Ru[b]), float(hw[b]), math.nan,
-                                        math.nan, math.nan, int(nb[b])))
+                                        math.nan, math.nan, clipped_l[g], ru_l[b], hw_l[b], math.nan,
+                                        math.nan, math.nan, nb_l[b]))
                 continue
-            noise_g = float(noise[g])
-            st, ctr = float(step[g]), float(contrast[g])
+            noise_g = noise_l[g]
+            st, ctr = step_l[g], contrast_l[g]
             snr = st / noise_g if noise_g > 0 else math.inf
-            slope = float(slope_m[g])
+            slope = slope_l[g]
             slant = math.degrees(math.atan(abs(slope)))
-            x_mid[c] = float(x_m[g])
+            x_mid[c] = x_l[g]
             angle[c] = math.degrees(math.atan2(1.0, slope)) % 180.0  # direction (dx, dy) = (slope, 1)
-            tl, er = float(tail[g]), float(edge_rms[b, c])
+            tl, er = tail_l[g], rms_l[g]
             reason = "ok"
             if not slant_range_deg[0] <= slant <= slant_range_deg[1]:
                 reason = f"slant {slant:.1f} deg outside {slant_range_deg[0]:g}-{slant_range_deg[1]:g} deg"
-            elif clipped[g] > 0.005:
-                reason = f"{100 * clipped[g]:.1f} % of the pixels clipped"
+            elif clipped_l[g] > 0.005:
+                reason = f"{100 * clipped_l[g]:.1f} % of the pixels clipped"
             elif not st > 0.02 or not ctr > 0.05:
                 reason = f"contrast too low (step {st:.3f}, Michelson {ctr:.2f})"
             elif snr < min_snr:
@@ -520,10 +524,10 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
                 reason = f"edge blur wider than the region ({100 * tl:.0f} % of the LSF in its outer tails)"
             elif not er < 1.0:
                 reason = f"edge not straight or too noisy to locate (row centroids scatter {er:.2f} px)"
-            elif Ru[b] * abs(slope) < 0.999:
+            elif ru_l[b] * abs(slope) < 0.999:
                 reason = "fewer rows than one phase cycle (bins unevenly sampled)"
-            qual.append(EdgeQuality(reason == "ok", reason, slant, ctr, st, noise_g, snr, float(clipped[g]),
-                                    int(Ru[b]), float(hw[b]), float(width[g]), tl, er, int(hole[g].sum())))
+            qual.append(EdgeQuality(reason == "ok", reason, slant, ctr, st, noise_g, snr, clipped_l[g],
+                                    ru_l[b], hw_l[b], width_l[g], tl, er, holes_l[g]))
         results.append(SfrResult(freq, mtf[b], f50[b], x_mid, np.full(C, float((nrows[b] - 1) // 2)), angle, qual,
                                  esf_out[b, :, :nbr[b * C]].copy() if keep_esf else None, delta))
     return results

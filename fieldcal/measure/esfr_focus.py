@@ -238,7 +238,8 @@ class TrackFocus:
         return self.tol_left_um + self.tol_right_um
 
 
-def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0, q: float = 0.05) -> FocusPeak:
+def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0, q: float = 0.05,
+                 fit=None) -> FocusPeak:
     """Best focus of one MTF(fs) track: the through-focus law of defocus, moved to the sharpest position of a
     skewed curve by the evidence for skew.
 
@@ -264,6 +265,7 @@ def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0, q
     ``law_width_um`` is the law's tolerance, ``x_q / (pi fs k)`` with ``|D(x_q)| = 1 - q``: the half-width
     where the *signal's* MTF(fs) falls by q (the floor ``b`` holds the noise's bias of MTF^2, which would
     otherwise flatten the curve), from the blur rate the whole peak fixes (fs only scales k: any units).
+    ``fit``: the law's fit of this track from :func:`defocus_fits` (many tracks at once), else fitted here.
     """
     from .throughfocus import analyse_curve
 
@@ -273,7 +275,8 @@ def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0, q
     if z.size < 5:
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, "fewer than 5 samples")
     # fs only scales the fitted blur rate k; the width x_q / (pi fs k) is the same in µm whatever fs is given
-    fit = analyse_curve(z, v ** 2, "otf", 1.0, q, EDGE_CURVE_RULES)
+    if fit is None:
+        fit = analyse_curve(z, v ** 2, "otf", 1.0, q, EDGE_CURVE_RULES)
     if fit.status != "ok":
         return FocusPeak(math.nan, math.nan, math.nan, int(z.size), False, f"defocus fit: {fit.status}")
     if not math.isfinite(fit.z_centre_um):
@@ -293,7 +296,25 @@ def defocus_peak(z_um, mtf_fs, *, sigma=None, n_boot: int = 16, seed: int = 0, q
                      law_width_um=float(fit.width_um), skew_weight=float(w))
 
 
-def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
+def defocus_fits(tracks, q: float = 0.05) -> list:
+    """The defocus law's fit of each ``(z_um, mtf_fs)`` track as :func:`defocus_peak` makes it, all tracks in one
+    batched call (:func:`fieldcal.measure.throughfocus.analyse_curve_list`; equal to one call per track to
+    round-off); None for a track with fewer than 5 samples."""
+    from .throughfocus import analyse_curve_list
+
+    idx, curves = [], []
+    for i, (z_um, mtf_fs) in enumerate(tracks):
+        z, v = _increasing(z_um, mtf_fs)
+        if z.size >= 5:
+            idx.append(i)
+            curves.append((z, v ** 2))
+    out: list = [None] * len(tracks)
+    for i, f in zip(idx, analyse_curve_list(curves, "otf", 1.0, q, EDGE_CURVE_RULES)):
+        out[i] = f
+    return out
+
+
+def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None, fit=None) -> TrackFocus:
     """Best focus (:func:`defocus_peak`, sub-step) and the tolerance half-widths of one edge track.
 
     The half-widths are the defocus law's (``FocusPeak.law_width_um``), moved towards the smoothed curve's own
@@ -303,11 +324,12 @@ def analyse_track(z_um, mtf_fs, q: float = 0.05, *, sigma=None) -> TrackFocus:
     tolerance, where a smoothing spline's shape is set by its roughness penalty, not by the data — it read
     +4-7 % wide at 480x270 with 20 µm steps (step / tolerance 1.1-1.2), and a noisy magnitude's upward bias
     flattens it further; the law's blur rate comes from the whole peak, with the noise floor fitted apart.
+    ``fit``: the law's fit from :func:`defocus_fits` (many tracks at once), else fitted here.
     """
     pk = through_focus_peak(z_um, mtf_fs, sigma=sigma, n_boot=0)
     law, w = math.nan, math.nan
     if pk.ok:  # the smooth curve's maximum value is the peak the tolerance is measured down from
-        fp = defocus_peak(z_um, mtf_fs, sigma=sigma, q=q)
+        fp = defocus_peak(z_um, mtf_fs, sigma=sigma, q=q, fit=fit)
         pk = FocusPeak(fp.z_um, fp.sigma_um, pk.peak, pk.n_used, fp.ok, fp.reason, pk.curve if fp.ok else None,
                        fp.stage_gain)
         law, w = fp.law_width_um, (0.0 if not math.isfinite(fp.skew_weight) else fp.skew_weight)
@@ -495,26 +517,43 @@ def track_shape(z_um, mtf_fs, c_nu: float = math.nan) -> TrackShape:
     :func:`~fieldcal.measure.spherical.wave_model`; started from the symmetric law's fit): the track's evidence
     for the lens's asymmetry, pooled over the channel by :func:`pool_shape`. One track alone determines ``s``
     poorly: it trades against the blur rate and the centre (sd(s) ~ 1 at MTF noise 0.01)."""
+    return track_shapes([(z_um, mtf_fs)], c_nu)[0]
+
+
+def track_shapes(tracks, c_nu: float = math.nan) -> list[TrackShape]:
+    """:func:`track_shape` of every ``(z_um, mtf_fs)`` track, the fits of all tracks batched (one
+    :func:`fieldcal.measure.throughfocus._fit_batch` per model, each track on its own z: the same numbers as one
+    call per track, at a fraction of the per-call overhead)."""
     from .throughfocus import _fit_batch
 
-    z, v = _increasing(z_um, mtf_fs)
-    bad = TrackShape(math.nan, math.nan, int(z.size), math.nan, False)
-    start = _symmetric_start(z, v) if z.size >= 6 else None
-    if start is None:
-        return bad
-    pre, e, step, sym = start
-    p = sym.params
-    sa = _fit_batch(z, e[None], [(0, pre)], step, "otf_sa", p_init=[[p[0], p[1], p[2], 0.0, p[3]]])[0]
-    if sa is not None and math.isfinite(c_nu):
-        q0 = sa.params
-        sa = _fit_batch(z, e[None], [(0, pre)], step, "otf_sa_wave", p_init=[list(q0)],
-                        nu=[c_nu])[0]
-    if sa is None or sa.n <= 5 or sa.cov is None:
-        return bad
-    sgn = 1.0 if sa.params[2] > 0 else -1.0  # (kappa, s) and (-kappa, -s) are one curve: kappa > 0
-    s, var = sgn * float(sa.params[3]), float(sa.cov[3, 3])
-    ok = math.isfinite(s) and math.isfinite(var) and var > 0
-    return TrackShape(s, var, int(sa.n), abs(float(sa.params[2])), bool(ok), float(sa.rss) / (sa.n - 5))
+    zs, es, steps, pres, out = [], [], [], [], []
+    for i, (z_um, mtf_fs) in enumerate(tracks):
+        z, v = _increasing(z_um, mtf_fs)
+        out.append(TrackShape(math.nan, math.nan, int(z.size), math.nan, False))
+        pre = _window(z, v) if z.size >= 6 else None  # the window of the symmetric start (_symmetric_start)
+        zs.append(z)
+        es.append(v * v)
+        steps.append(float(np.median(np.diff(z))) if pre is not None else math.nan)
+        if pre is not None:
+            pres.append((i, pre))
+    if not pres:
+        return out
+    step = np.array(steps)
+    sym = _fit_batch(zs, es, pres, step, "otf")
+    sub = [pr for pr, f in zip(pres, sym) if f is not None]
+    p0 = [[p[0], p[1], p[2], 0.0, p[3]] for p in (f.params for f in sym if f is not None)]
+    sa = _fit_batch(zs, es, sub, step, "otf_sa", p_init=p0) if sub else []
+    if math.isfinite(c_nu):  # the exact model track by track: its quadrature is chosen for the batch's largest x
+        sa = [None if f is None else _fit_batch(zs, es, [sub[k]], step, "otf_sa_wave", p_init=[list(f.params)],
+                                                nu=[c_nu])[0] for k, f in enumerate(sa)]
+    for (i, _), f in zip(sub, sa):
+        if f is None or f.n <= 5 or f.cov is None:
+            continue
+        sgn = 1.0 if f.params[2] > 0 else -1.0  # (kappa, s) and (-kappa, -s) are one curve: kappa > 0
+        s, var = sgn * float(f.params[3]), float(f.cov[3, 3])
+        ok = math.isfinite(s) and math.isfinite(var) and var > 0
+        out[i] = TrackShape(s, var, int(f.n), abs(float(f.params[2])), bool(ok), float(f.rss) / (f.n - 5))
+    return out
 
 
 def pool_shape(shapes, c_nu: float = math.nan, clip: float = 4.0) -> PooledShape:
@@ -723,7 +762,7 @@ def channel_shape(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
     from . import spherical
 
     c_nu, nu_data = math.nan, math.nan
-    shapes = [track_shape(z, v) for z, v in tracks]
+    shapes = track_shapes(tracks)
     if math.isfinite(fs_cyc_per_um) and math.isfinite(wavelength_um) and tracks:
         steps = [float(np.median(np.diff(np.sort(np.asarray(z, float))))) for z, _ in tracks if len(z) > 1]
         kap = [t.kappa for t in shapes if t.ok]
@@ -734,7 +773,7 @@ def channel_shape(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
                                       fs_cyc_per_um, wavelength_um)
             if cn / float(np.median(kap)) >= spherical.WAVE_MIN_NU:
                 c_nu = cn
-                shapes = [track_shape(z, v, c_nu) for z, v in tracks]
+                shapes = track_shapes(tracks, c_nu)
     shape = replace(pool_shape(shapes, c_nu), window_r=max(float(window_r), 0.0), nu_data=float(nu_data))
     if shape.selected:
         kap = [t.kappa for t in shapes if t.ok]
@@ -758,8 +797,8 @@ def analyse_tracks(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan, 
 
     if shape is None:
         shape = channel_shape(tracks, q, fs_cyc_per_um=fs_cyc_per_um, wavelength_um=wavelength_um)
-    if not shape.selected:
-        out = [analyse_track(z, v, q) for z, v in tracks]
+    if not shape.selected:  # the law's fits of every track in one batch (defocus_fits)
+        out = [analyse_track(z, v, q, fit=f) for (z, v), f in zip(tracks, defocus_fits(tracks, q))]
         if shape.window_r > 0:  # the symmetric law does not see the e-SFR window: its width read, corrected
             w = [t.depth_um / 2 for t in out if t.ok and t.depth_um > 0]
             steps = [float(np.median(np.diff(np.sort(np.asarray(z, float))))) for z, _ in tracks if len(z) > 1]

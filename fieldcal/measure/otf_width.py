@@ -60,21 +60,30 @@ def tapered_widths(z, V, pres, fits, step: float, x_q: float, out: list) -> list
 
     ``pres``: (curve index, window) pairs of the main fit and ``fits`` its results (normalised coordinates: u in
     steps from the sampled maximum, values / the maximum). A curve whose refit fails keeps the main fit's width.
+    ``z``, ``V`` and ``step`` as :func:`fieldcal.measure.throughfocus._fit_batch` takes them (one grid, or per curve).
     """
-    from .throughfocus import STATUS_OK, _fit_batch, _Pre
+    from .throughfocus import STATUS_OK, _fit_batch, _st, _zt
 
-    n = z.size
     idx = [j for j, ((t, _), f) in enumerate(zip(pres, fits))
            if f is not None and out[t].status == STATUS_OK and np.isfinite(out[t].width_um)]
     if not idx:
         return out
-    full = [(pres[j][0], dataclasses.replace(pres[j][1], lo=0, hi=n - 1)) for j in idx]
-    u = np.stack([(z - z[pre.i_max]) / step for _, pre in full])
+    # one z grid, or each curve its own (throughfocus.analyse_curve_list): rows padded to the longest, the
+    # padding weighted 0 (end weights) and cut off again before the fit
+    ns = np.array([_zt(z, pres[j][0]).size for j in idx])
+    n = int(ns.max())
+    full = [(pres[j][0], dataclasses.replace(pres[j][1], lo=0, hi=int(m) - 1)) for j, m in zip(idx, ns)]
+    if isinstance(z, np.ndarray):
+        u = np.stack([(z - z[pre.i_max]) / step for _, pre in full])
+        ends = end_weights(n)
+    else:
+        u = np.stack([np.pad((z[t] - z[t][pre.i_max]) / _st(step, t), (0, n - m), mode="edge")
+                      for (t, pre), m in zip(full, ns)])
+        ends = np.stack([np.pad(end_weights(int(m)), (0, n - m)) for m in ns])
     p = np.array([fits[j].params for j in idx], dtype=np.float64)
-    ends = end_weights(n)
     for _ in range(N_PASSES):
         w = taper(p[:, 2:3] * (u - p[:, 1:2])) * ends
-        new = _fit_batch(z, V, full, step, "otf", p_init=list(p), weights=list(w))
+        new = _fit_batch(z, V, full, step, "otf", p_init=list(p), weights=[w[r, :m] for r, m in enumerate(ns)])
         for r, f in enumerate(new):
             if f is not None and np.sum(w[r] > 0) >= 6:
                 p[r] = f.params
@@ -82,5 +91,5 @@ def tapered_widths(z, V, pres, fits, step: float, x_q: float, out: list) -> list
     for r, (t, _) in enumerate(full):
         kappa = abs(p[r, 2])
         if kappa > 0 and np.isfinite(kappa):
-            res[t] = dataclasses.replace(out[t], width_um=float(x_q / kappa * step))
+            res[t] = dataclasses.replace(out[t], width_um=float(x_q / kappa * _st(step, t)))
     return res
