@@ -749,12 +749,14 @@ def _strip_widths_on_grid(width_um: np.ndarray, sx: np.ndarray, sy: np.ndarray, 
 
 def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per_mm: float, q: float,
              measure: str, rules: TileRules, bp_scale: np.ndarray | None = None,
-             offset_from: dict | None = None) -> dict[str, np.ndarray]:
+             offset_from: dict | None = None, bp_skew_weight: float | None = None) -> dict[str, np.ndarray]:
     """Tile tests (saturation, texture) then the batched curve fits of one channel's tiles.
 
     ``bp_scale[k]``: the magnification the band-pass filter followed in frame k (its frequency was
     ``fs / bp_scale[k]`` at the sensor), used to give the width at ``fs`` itself. ``offset_from``: the
     ``"sml@fs"`` offset record measured on other tiles (quick's strip, :mod:`.fs_strip`), applied here.
+    ``bp_skew_weight``: the evidence weight for the band-pass curves' pooled skew shift to use instead of this
+    channel's own (:func:`_analyse_channels`: the largest over the channels).
     """
     nt = channel_curves["sml"].shape[0]
     res = {k: np.full(nt, np.nan) for k in ("z_best_um", "z_sigma_um", "width_um", "peak", "z_tan_um", "z_sag_um",
@@ -797,7 +799,12 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
         if measure == SML_AT_FS:
             bp_skew = None
             if rules.curve.skew:
-                bp, bp_skew = apply_pooled_skew(bp, apply=True)
+                # (NaN with < 2 fitted curves: nothing measured to share, nothing to redo)
+                own = pooled_skew_shift(bp)[2] if sum(f.status == "ok" for f in bp) >= 2 else math.nan
+                bp, bp_skew = apply_pooled_skew(bp, apply=True, weight=bp_skew_weight)
+                res["skew"] = {**res.get("skew", {}), "bp_shift_um": bp_skew["shift_um"],
+                               "bp_shift_sd_um": bp_skew["sd_um"], "bp_skew_weight": bp_skew["weight"],
+                               "bp_own_weight": own}
             # the SML's own best foci: the breathing sensitivity is of the SML curve (_exponent_sensitivity)
             res["z_sml_um"] = np.full(nt, np.nan)
             res["z_sml_um"][todo] = [f.z_best_um for f in main]
@@ -826,6 +833,28 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
                     if d.status == "ok":
                         res[col][t] = d.z_best_um
     res["status"] = stat.astype(str)
+    return res
+
+
+def _analyse_channels(run, channels) -> dict[str, dict]:
+    """``run(channel, bp_skew_weight)`` (:func:`_analyse`) for every channel, then again with the largest band-pass
+    skew weight for each channel whose own was smaller.
+
+    Why: one pupil's spherical aberration skews every channel's curves (in µm of wavefront it is the same
+    pupil); a channel with few band-pass tiles (its fs peak near a scan end) measures the skew as well as the
+    others but with little evidence, and kept most of its curves' centres: on an F/6.9, W040 0.8-wave lens B's
+    shift (-1.2 µm, 27 tiles) was applied at weight 0.1 while G's (60 tiles) was at 1, and B's surface sat
+    +1.6 µm off. As the side bands of one channel (:func:`_frequency_slope`) take the strongest band's evidence,
+    the channels take the strongest channel's. A symmetric lens has every weight ~0 and keeps them.
+    """
+    res = {ch: run(ch, None) for ch in channels}
+    own = {ch: float(r.get("skew", {}).get("bp_own_weight", math.nan)) for ch, r in res.items()}
+    have = [w for w in own.values() if math.isfinite(w)]
+    if have:
+        w_max = max(have)
+        for ch, w in own.items():
+            if math.isfinite(w) and w < w_max:
+                res[ch] = run(ch, w_max)
     return res
 
 
@@ -1071,25 +1100,35 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     strip_widths: dict[str, np.ndarray] = {}
     if strip is not None:
         xs, ys = xs[:n_grid], ys[:n_grid]
+        on_strips = {}
         for ch, cc in per_channel.items():
-            on_strip = {k: v[n_grid:] for k, v in cc.items()}
+            on_strips[ch] = on_strip = {k: v[n_grid:] for k, v in cc.items()}
             per_channel[ch] = {k: v[:n_grid] for k, v in cc.items() if k not in ("bandpass", "bp_cover") + _SLOPE_KEYS}
             if "bp_lo" in on_strip:
                 slopes[ch] = _frequency_slope(on_strip, axes[ch].y(z), float(fs_cyc_per_mm), float(q), rules)
-            res_strip = _analyse(on_strip, axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
-                                 measure=measure, rules=rules, bp_scale=bp_scale)
+        strip_res = _analyse_channels(
+            lambda ch, w: _analyse(on_strips[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
+                                   measure=measure, rules=rules, bp_scale=bp_scale, bp_skew_weight=w), per_channel)
+        for ch, res_strip in strip_res.items():
             rec = res_strip.get("skew", {})
             _to_z(res_strip, axes[ch])
             strip_widths[ch] = _strip_widths_on_grid(res_strip["width_um"], sx.ravel(), sy.ravel(), xs, ys, tile)
-            offsets[ch] = {k: rec.get(k, 0.0) for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles",
-                                                         "offset_zone_sd_um")}
+            offsets[ch] = {k: rec[k] for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles",
+                                               "offset_zone_sd_um", "offset_skew_sd_um", "offset_own_weight",
+                                               "bp_shift_um", "bp_shift_sd_um", "bp_skew_weight", "bp_own_weight")
+                           if k in rec}
+            for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles"):
+                offsets[ch].setdefault(k, 0.0)
     for ch, cc in per_channel.items():
         if "bp_lo" in cc:  # the band-pass everywhere (standard): the grid's tiles inside the slope strip
             slopes[ch] = _frequency_slope(cc, axes[ch].y(z), float(fs_cyc_per_mm), float(q), rules)
             per_channel[ch] = {k: v for k, v in cc.items() if k not in _SLOPE_KEYS}
-    results = {ch: _analyse(per_channel[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
-                            measure=measure, rules=rules, bp_scale=bp_scale, offset_from=offsets[ch])
-               for ch in stack.channels}
+    def grid(ch, w):
+        return _analyse(per_channel[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
+                        measure=measure, rules=rules, bp_scale=bp_scale, offset_from=offsets[ch], bp_skew_weight=w)
+    # quick's grid has no band-pass: its strip shared the weights above
+    results = (_analyse_channels(grid, stack.channels) if strip is None
+               else {ch: grid(ch, None) for ch in stack.channels})
     if measure == SML_AT_FS:
         _borrow_offsets(results)
     for ch, rec in slopes.items():
