@@ -107,6 +107,9 @@ class CurveFit:
     z_centre_sd_um: float = math.nan
     skew_shift_um: float = math.nan  # sharpest position minus the centre (local skewed peak) and its sd
     skew_shift_sd_um: float = math.nan
+    # the same shift by the other estimator (the local skewed peak where the shift came from the spherical-aberration
+    # model): their pooled difference is the skew shift's model error (:func:`pooled_skew_shift`)
+    skew_alt_um: float = math.nan
 
     @classmethod
     def rejected(cls, status: str, peak: float = math.nan, floor: float = math.nan) -> "CurveFit":
@@ -498,8 +501,12 @@ def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules, corr=_LOC
     """
     if fit is not None and not (math.isfinite(fit.var_u0) and fit.var_u0 > 0.0):
         fit = None
+    alt = math.nan
     if corr == _LOCAL or fit is None:
         corr = _skew_correction(z, v, pre, fit, step, model, rules) if rules.skew else None
+    elif corr is not None:  # the spherical-aberration model's shift: the local skewed peak's too, as a check
+        loc = _skew_correction(z, v, pre, fit, step, model, rules)
+        alt = loc[0] * step if loc is not None else math.nan
     if fit is None and corr is None:
         return CurveFit.rejected("fit_failed", pre.height, pre.floor)
     if fit is None:
@@ -515,7 +522,7 @@ def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules, corr=_LOC
     # Never extrapolate: the fitted peak must lie inside the window with a sample beyond it on each side.
     if not (z[1] <= z0 <= z[-2]) or not (z[pre.lo] < z0 < z[pre.hi]):
         return CurveFit.rejected("peak_at_edge", pre.height, pre.floor)
-    shift = (corr[0] * step, math.sqrt(corr[1]) * step) if corr is not None else (math.nan, math.nan)
+    shift = (corr[0] * step, math.sqrt(corr[1]) * step, alt) if corr is not None else (math.nan, math.nan, alt)
     if fit is None:
         return CurveFit(float(z0), float(math.sqrt(var_u) * step), math.nan, float(pre.height), float(pre.floor),
                         STATUS_OK, int(pre.hi - pre.lo + 1), w_skew, math.nan, math.nan, math.nan, *shift)
@@ -540,6 +547,23 @@ def pooled_skew_shift(fits: list[CurveFit]) -> tuple[float, float, float]:
     d = np.array([f.skew_shift_um for f in fits if f.status == STATUS_OK], dtype=np.float64)
     sd = np.array([f.skew_shift_sd_um for f in fits if f.status == STATUS_OK], dtype=np.float64)
     return pooled_mean(d, sd)
+
+
+def skew_model_sd_um(fits: list[CurveFit]) -> float:
+    """Model error (µm) of a set of curves' pooled skew shift, shared by all of them: how far the two estimators of
+    the sharpest position disagree, pooled over the curves that have both.
+
+    The shift comes from the spherical-aberration model fitted over the curve's window (:func:`_sa_corrections`);
+    the local skewed peak (a cubic in ln height over the core, :func:`_local_peak`) assumes another shape and
+    uses other points. Each would be unbiased on a curve its model describes; a real pupil is neither, and their
+    disagreement is the size of the model error that no scatter over tiles can show (every tile has the same
+    curve shape, so the error is the same in every tile). ``sqrt(max(D^2 - se^2, 0))`` with D the pooled mean of
+    the per-curve differences and se its sd (the part of D that is noise). 0 where no curve has both.
+    """
+    d = np.array([f.skew_shift_um - f.skew_alt_um for f in fits if f.status == STATUS_OK], dtype=np.float64)
+    sd = np.array([f.skew_shift_sd_um for f in fits if f.status == STATUS_OK], dtype=np.float64)
+    mean, se, _ = pooled_mean(d, sd)
+    return math.sqrt(max(mean * mean - se * se, 0.0))
 
 
 def pooled_mean(d, sd) -> tuple[float, float, float]:
@@ -570,8 +594,9 @@ def apply_pooled_skew(fits: list[CurveFit], apply: bool = True,
     """
     from dataclasses import replace as _replace
     mean, se, own = pooled_skew_shift(fits)
+    model = skew_model_sd_um(fits)
     weight = own if weight is None else float(weight)
-    info = {"shift_um": mean, "sd_um": se, "weight": weight, "applied": bool(apply)}
+    info = {"shift_um": mean, "sd_um": se, "model_sd_um": model, "weight": weight, "applied": bool(apply)}
     if not apply:
         weight = 0.0
     out = []
@@ -579,7 +604,8 @@ def apply_pooled_skew(fits: list[CurveFit], apply: bool = True,
         if f.status != STATUS_OK or not math.isfinite(f.z_centre_um):
             out.append(f)
             continue
-        var = f.z_centre_sd_um ** 2 + weight * se * se + weight * (1.0 - weight) * mean * mean
+        var = (f.z_centre_sd_um ** 2 + weight * (se * se + model * model)
+               + weight * (1.0 - weight) * mean * mean)
         out.append(_replace(f, z_best_um=f.z_centre_um + weight * mean, z_sigma_um=math.sqrt(var),
                             skew_weight=weight))
     return out, info
@@ -612,12 +638,13 @@ def zone_jackknife_sd(d, sd, zone_key) -> float:
 
 def pooled_skew_var_um2(info: dict) -> float:
     """Variance (µm²) an :func:`apply_pooled_skew` record adds to every one of its curves' best foci:
-    ``w sd^2 + w (1 - w) shift^2`` (the pooled shift's own sd, and whether it applies at all). It is one draw
-    shared by all those curves, not noise of each."""
-    w, m, se = (float(info.get(k, 0.0) or 0.0) for k in ("weight", "shift_um", "sd_um"))
-    if not all(math.isfinite(v) for v in (w, m, se)):
+    ``w (sd^2 + model^2) + w (1 - w) shift^2`` (the pooled shift's own sd, its model error
+    :func:`skew_model_sd_um`, and whether it applies at all). It is one draw shared by all those curves, not
+    noise of each."""
+    w, m, se, mod = (float(info.get(k, 0.0) or 0.0) for k in ("weight", "shift_um", "sd_um", "model_sd_um"))
+    if not all(math.isfinite(v) for v in (w, m, se, mod)):
         return 0.0
-    return max(w * se * se + w * (1.0 - w) * m * m, 0.0)
+    return max(w * (se * se + mod * mod) + w * (1.0 - w) * m * m, 0.0)
 
 
 def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,

@@ -31,7 +31,7 @@ from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
 from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
                        lateral_colour_scales, register_step, registration_plane)
 from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_offset, apply_pooled_skew,
-                           band_frequency_terms, pooled_skew_shift, shift_by_offset)
+                           band_frequency_terms, pooled_skew_shift, shift_by_offset, skew_model_sd_um)
 
 # Focus breathing: the image of a scene patch is magnified by m(z) through the scan. The 3-tap SML's mean over a
 # patch that follows the image scales as m^-gamma with gamma 0.8-2 set by the texture's spectrum and the blur
@@ -803,7 +803,8 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
                 own = pooled_skew_shift(bp)[2] if sum(f.status == "ok" for f in bp) >= 2 else math.nan
                 bp, bp_skew = apply_pooled_skew(bp, apply=True, weight=bp_skew_weight)
                 res["skew"] = {**res.get("skew", {}), "bp_shift_um": bp_skew["shift_um"],
-                               "bp_shift_sd_um": bp_skew["sd_um"], "bp_skew_weight": bp_skew["weight"],
+                               "bp_shift_sd_um": bp_skew["sd_um"], "bp_shift_model_sd_um": bp_skew["model_sd_um"],
+                               "bp_skew_weight": bp_skew["weight"],
                                "bp_own_weight": own}
             # the SML's own best foci: the breathing sensitivity is of the SML curve (_exponent_sensitivity)
             res["z_sml_um"] = np.full(nt, np.nan)
@@ -899,8 +900,10 @@ def _frequency_slope(cc: dict[str, np.ndarray], z: np.ndarray, fs_cyc_per_mm: fl
         pooled = [pooled_skew_shift(f) for f in fits]
         w = max(p[2] for p in pooled)
         fits = [apply_pooled_skew(f, apply=True, weight=w)[0] for f in fits]
-        # each band's pooled shift is one draw shared by its tiles: its sd joins the differences' (w ~ 1 here)
-        shared = [math.sqrt(w) * p[1] for p in pooled] + [0.0] * (3 - len(pooled))
+        # each band's pooled shift is one draw shared by its tiles: its sd and model error join the differences'
+        # (w ~ 1 here; throughfocus.skew_model_sd_um: the model error differs between bands of different widths)
+        model = [skew_model_sd_um(f) for f in fits]
+        shared = [math.sqrt(w * (p[1] ** 2 + m ** 2)) for p, m in zip(pooled, model)] + [0.0] * (3 - len(pooled))
     else:
         shared = [0.0, 0.0, 0.0]
     half = 0.5 * math.log(fs_strip.SLOPE_FACTORS[1] / fs_strip.SLOPE_FACTORS[0])
@@ -1115,7 +1118,8 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
             strip_widths[ch] = _strip_widths_on_grid(res_strip["width_um"], sx.ravel(), sy.ravel(), xs, ys, tile)
             offsets[ch] = {k: rec[k] for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles",
                                                "offset_zone_sd_um", "offset_skew_sd_um", "offset_own_weight",
-                                               "bp_shift_um", "bp_shift_sd_um", "bp_skew_weight", "bp_own_weight")
+                                               "bp_shift_um", "bp_shift_sd_um", "bp_shift_model_sd_um",
+                                               "bp_skew_weight", "bp_own_weight")
                            if k in rec}
             for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles"):
                 offsets[ch].setdefault(k, 0.0)
