@@ -84,3 +84,45 @@ def test_skewed_curves_are_evidence_for_the_offset():
     assert skewed["offset_weight"] == 1.0
     # applied whole, its sd is the pooled sd with the skew's shared part: no "applies or not" mixture term
     assert offset_sd_um(skewed) == pytest.approx(skewed["offset_sd_um"])
+
+
+def _shift_fits(rng, d_mean, n=40, noise=0.05):
+    """Curves whose two skew estimators differ by ``d_mean`` on average (per-curve noise ``noise``)."""
+    out = []
+    for _ in range(n):
+        s = -0.8 + rng.normal(0.0, 0.1)
+        alt = s - d_mean + rng.normal(0.0, noise)
+        out.append(CurveFit(0.0, 0.1, math.nan, 1.0, 0.0, "ok", 9, 1.0, math.nan, 0.8, 0.1, s, noise, alt))
+    return out
+
+
+def test_skew_model_error_is_the_estimators_shared_disagreement():
+    """A disagreement every curve shares is a model error (its size, less its noise); one that is only noise
+    averages to ~0 and adds nothing. It enters the variance the pooled shift gives each curve (and the offset)."""
+    from fieldcal.measure.throughfocus import skew_model_sd_um
+    rng = np.random.default_rng(6)
+    assert skew_model_sd_um(_shift_fits(rng, 0.3)) == pytest.approx(0.3, abs=0.03)
+    assert skew_model_sd_um(_shift_fits(rng, 0.0)) < 0.02
+    # no second estimate (the local peak only, or symmetric curves): nothing to compare, 0
+    plain = [CurveFit(0.0, 0.1, math.nan, 1.0, 0.0, "ok", 9, 1.0, math.nan, 0.8, 0.1, -0.8, 0.05) for _ in range(5)]
+    assert skew_model_sd_um(plain) == 0.0
+    fits, info = apply_pooled_skew(_shift_fits(rng, 0.3))
+    assert info["model_sd_um"] == pytest.approx(0.3, abs=0.03)
+    assert pooled_skew_var_um2(info) == pytest.approx(info["weight"] * (info["sd_um"] ** 2 + info["model_sd_um"] ** 2)
+                                                     + info["weight"] * (1 - info["weight"]) * info["shift_um"] ** 2)
+    assert fits[0].z_sigma_um ** 2 == pytest.approx(0.1 ** 2 + pooled_skew_var_um2(info))
+
+
+def test_channels_share_the_strongest_band_pass_skew_weight():
+    """One pupil skews every channel: a channel whose own evidence is weaker is analysed again with the strongest
+    channel's weight; channels without band-pass fits (NaN) and the strongest one are not redone."""
+    from fieldcal.measure.tiles import _analyse_channels
+    own = {"R": 0.1, "G": 1.0, "B": math.nan}
+    calls = []
+
+    def run(ch, w):
+        calls.append((ch, w))
+        return {"skew": {"bp_own_weight": own[ch], "bp_skew_weight": own[ch] if w is None else w}}
+    res = _analyse_channels(run, ["R", "G", "B"])
+    assert calls == [("R", None), ("G", None), ("B", None), ("R", 1.0)]
+    assert res["R"]["skew"]["bp_skew_weight"] == 1.0 and res["G"]["skew"]["bp_skew_weight"] == 1.0
