@@ -117,12 +117,12 @@ def test_channels_share_the_strongest_band_pass_skew_weight():
     """One pupil skews every channel: a channel whose own evidence is weaker is analysed again with the strongest
     channel's weight; channels without band-pass fits (NaN) and the strongest one are not redone."""
     from fieldcal.measure.tiles import _analyse_channels
-    own = {"R": 0.1, "G": 1.0, "B": math.nan}
+    own = {"R": 0.1, "G": 1.0, "B": math.nan, "Y": 0.8}
     calls = []
 
     def run(ch, w):
         calls.append((ch, w))
         return {"skew": {"bp_own_weight": own[ch], "bp_skew_weight": own[ch] if w is None else w}}
-    res = _analyse_channels(run, ["R", "G", "B"])
-    assert calls == [("R", None), ("G", None), ("B", None), ("R", 1.0)]
+    res = _analyse_channels(run, ["R", "G", "B", "Y"])
+    assert calls == [("R", None), ("G", None), ("B", None), ("Y", None), ("R", 1.0)]  # Y (0.8) agrees: kept
     assert res["R"]["skew"]["bp_skew_weight"] == 1.0 and res["G"]["skew"]["bp_skew_weight"] == 1.0

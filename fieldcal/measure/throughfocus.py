@@ -311,8 +311,12 @@ def analyse_curves(z_um, values, model: str = "peak", fs_cyc_per_mm: float | Non
         sa = (_sa_corrections(z, V, pres, fits, step, fs_cyc_per_mm * 1e-3, wavelength_nm * 1e-3)
               if model == "otf" and rules.skew
               else [_LOCAL] * len(pres))
+        # the second estimate of the skew shift (skew_model_sd_um) only where the pooled shift will apply: a set of
+        # curves without evidence of skew (pooled weight < 1/2) gives it ~no weight, and saves the local fits
+        shifts = [(c[0] * step, math.sqrt(c[1]) * step) for c in sa if isinstance(c, tuple)]
+        check = len(shifts) >= 2 and pooled_mean(*zip(*shifts))[2] >= 0.5
         for (t, pre), fit, corr in zip(pres, fits, sa):
-            out[t] = _finish(z, V[t], pre, fit, step, model, x_q, rules, corr)
+            out[t] = _finish(z, V[t], pre, fit, step, model, x_q, rules, corr, check)
         if model == "otf" and rules.tapered_width:  # the width from a fit that does not depend on where the samples fall
             from .otf_width import tapered_widths
             out = tapered_widths(z, V, pres, fits, step, x_q, out)
@@ -490,7 +494,7 @@ def _sa_corrections(z, V, pres, fits, step, fs_cyc_per_um: float = math.nan, wav
     return out
 
 
-def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules, corr=_LOCAL) -> CurveFit:
+def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules, corr=_LOCAL, check: bool = False) -> CurveFit:
     """The symmetric fit's centre, moved by the evidence-weighted skew correction to the sharpest position.
 
     Variance: the weighted mix of "no skew" (the symmetric fit's variance) and "skew" (the local peak's
@@ -504,7 +508,9 @@ def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules, corr=_LOC
     alt = math.nan
     if corr == _LOCAL or fit is None:
         corr = _skew_correction(z, v, pre, fit, step, model, rules) if rules.skew else None
-    elif corr is not None:  # the spherical-aberration model's shift: the local skewed peak's too, as a check
+    elif corr is not None and check:
+        # the spherical-aberration model's shift: the local skewed peak's too, as a check of its model
+        # (skew_model_sd_um)
         loc = _skew_correction(z, v, pre, fit, step, model, rules)
         alt = loc[0] * step if loc is not None else math.nan
     if fit is None and corr is None:

@@ -846,7 +846,8 @@ def _analyse_channels(run, channels) -> dict[str, dict]:
     others but with little evidence, and kept most of its curves' centres: on an F/6.9, W040 0.8-wave lens B's
     shift (-1.2 µm, 27 tiles) was applied at weight 0.1 while G's (60 tiles) was at 1, and B's surface sat
     +1.6 µm off. As the side bands of one channel (:func:`_frequency_slope`) take the strongest band's evidence,
-    the channels take the strongest channel's. A symmetric lens has every weight ~0 and keeps them.
+    the channels take the strongest channel's where they disagree on whether the curves are skewed at all (a
+    weight below 1/2 against one above). A symmetric lens has every weight ~0 and keeps them.
     """
     res = {ch: run(ch, None) for ch in channels}
     own = {ch: float(r.get("skew", {}).get("bp_own_weight", math.nan)) for ch, r in res.items()}
@@ -854,7 +855,9 @@ def _analyse_channels(run, channels) -> dict[str, dict]:
     if have:
         w_max = max(have)
         for ch, w in own.items():
-            if math.isfinite(w) and w < w_max:
+            # only where the channels disagree on whether the curves are skewed: at w >= 1/2 the mixture's sd
+            # sqrt(w (1 - w)) |shift| already covers the part (1 - w) |shift| left unapplied
+            if math.isfinite(w) and w < 0.5 <= w_max:
                 res[ch] = run(ch, w_max)
     return res
 
