@@ -584,9 +584,14 @@ def pooled_mean(d, sd) -> tuple[float, float, float]:
     mean = float(np.sum(w * d) / np.sum(w))
     birge = max(1.0, float(np.sum(w * (d - mean) ** 2)) / (d.size - 1))
     se = math.sqrt(birge / float(np.sum(w)))
-    chi2 = (mean / se) ** 2
-    weight = 1.0 / (1.0 + SKEW_PRIOR_ODDS * math.sqrt(d.size) * math.exp(-0.5 * min(chi2, 1400.0)))
-    return mean, se, weight
+    return mean, se, evidence_weight(mean, se, d.size)
+
+
+def evidence_weight(mean: float, se: float, n: int) -> float:
+    """Posterior weight of "non-zero" for a pooled value ``mean`` ± ``se`` over ``n`` values:
+    ``1 / (1 + O sqrt(n) exp(-chi2 / 2))``, ``chi2 = (mean / se)^2``, prior odds O = SKEW_PRIOR_ODDS."""
+    chi2 = (mean / se) ** 2 if se > 0 else (math.inf if mean else 0.0)
+    return 1.0 / (1.0 + SKEW_PRIOR_ODDS * math.sqrt(max(n, 1)) * math.exp(-0.5 * min(chi2, 1400.0)))
 
 
 def apply_pooled_skew(fits: list[CurveFit], apply: bool = True,
@@ -691,9 +696,10 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
         info.update(offset_zone_sd_um=jk, offset_sd_um=max(se, jk))
     if len(keep) >= 2 and ref_skew:
         se = math.sqrt(info["offset_sd_um"] ** 2 + shared2)
+        own = evidence_weight(mean, se, len(keep))  # the offset's own evidence, against its whole sd
         asym = float(ref_skew.get("weight", 0.0) or 0.0)
-        info.update(offset_sd_um=se, offset_skew_sd_um=math.sqrt(shared2), offset_own_weight=weight,
-                    offset_weight=max(weight, asym if math.isfinite(asym) else 0.0))
+        info.update(offset_sd_um=se, offset_skew_sd_um=math.sqrt(shared2), offset_own_weight=own,
+                    offset_weight=max(own, asym if math.isfinite(asym) else 0.0))
     return shift_by_offset(main, info), info
 
 
