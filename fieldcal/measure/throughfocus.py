@@ -680,7 +680,8 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
       and added to the pooled offset's sd after;
     * its evidence weight is evidence for the offset too: the SML (broad band) and the band-pass at fs peak
       together only on symmetric curves, so curves measured skewed say the offset is real even where its own
-      chi2 is weak. The offset applies with the larger of the two weights. (Before, an offset of -0.3 to -0.45
+      chi2 is weak. The offset applies with the larger of the two weights (the skew's only where it is >= 1/2:
+      the evidence favours skew). (Before, an offset of -0.3 to -0.45
       µm at 2-3 sd was applied at weight 0.09-0.5 on F/1.6-1.9 lenses whose band-pass curves were skewed at
       weight 1, and the unapplied part, 0.15-0.37 µm, was 1.5-3x the sd stated for it.)
     """
@@ -697,9 +698,12 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
     if len(keep) >= 2 and ref_skew:
         se = math.sqrt(info["offset_sd_um"] ** 2 + shared2)
         own = evidence_weight(mean, se, len(keep))  # the offset's own evidence, against its whole sd
+        # curves measured skewed (weight >= 1/2: the evidence favours it) make the offset real; below that the
+        # offset's own evidence decides, so symmetric curves keep their weight and band exactly
         asym = float(ref_skew.get("weight", 0.0) or 0.0)
+        asym = asym if math.isfinite(asym) and asym >= 0.5 else 0.0
         info.update(offset_sd_um=se, offset_skew_sd_um=math.sqrt(shared2), offset_own_weight=own,
-                    offset_weight=max(own, asym if math.isfinite(asym) else 0.0))
+                    offset_weight=max(own, asym))
     return shift_by_offset(main, info), info
 
 
