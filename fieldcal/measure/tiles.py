@@ -839,7 +839,7 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
 
 def _analyse_channels(run, channels) -> dict[str, dict]:
     """``run(channel, bp_skew_weight)`` (:func:`_analyse`) for every channel, then again with the largest band-pass
-    skew weight for each channel whose own was smaller.
+    skew weight for each channel whose own was below 1/2 where the largest is at least 1/2.
 
     Why: one pupil's spherical aberration skews every channel's curves (in µm of wavefront it is the same
     pupil); a channel with few band-pass tiles (its fs peak near a scan end) measures the skew as well as the
