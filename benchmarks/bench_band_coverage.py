@@ -585,6 +585,9 @@ def main(argv=None) -> int:
                          "odd wave)")
     ap.add_argument("--only", choices=("geometric", "wave"), default=None,
                     help="run only the lenses of this image-formation path (the same lenses as in a full run)")
+    ap.add_argument("--sa", choices=("only", "without"), default=None,
+                    help="run only the lenses with spherical aberration (asymmetric curves; with --only wave) or only "
+                         "those without")
     ap.add_argument("--no-stage-errors", action="store_true", help="a perfect stage")
     ap.add_argument("--plans", action="store_true",
                     help="also check a --confidence 0.9 stack plan from each profile against the truth")
@@ -641,7 +644,8 @@ def main(argv=None) -> int:
             jobs = [(f"lens{k:02d}", (k, args.width, args.optics, not args.no_stage_errors, efforts, tmp, args.plans,
                                    args.keep))
                     for k in range(args.start, args.start + args.lenses)
-                    if args.only is None or lens_plan(k, args.optics)[0] == args.only]
+                    if (args.only is None or lens_plan(k, args.optics)[0] == args.only)
+                    and (args.sa is None or lens_plan(k, args.optics)[1] == (args.sa == "only"))]
             if scheduler is None:
                 results = []
                 for _, job in jobs:  # each lens recorded as it finishes (a long run can be cut short)

@@ -63,8 +63,8 @@ def test_offset_moves_best_foci_and_its_error_is_one_field_wide_draw():
 
 
 def test_measure_offset_sd_joins_the_profile_band_per_channel():
-    """fit.tiles.measure_offset_sd_um reads the table's skew records (a borrowed offset is in its tiles' sds
-    already: 0), and the profile's band adds it in quadrature as a field-wide term."""
+    """fit.tiles.measure_offset_sd_um reads the table's skew records (a borrowed offset's error too: it is not in
+    its tiles' sds), and the profile's band adds it in quadrature as a field-wide term."""
     from types import SimpleNamespace
 
     from fieldcal.fit.tiles import measure_offset_sd_um
@@ -72,7 +72,7 @@ def test_measure_offset_sd_joins_the_profile_band_per_channel():
                                   "G": {"offset_um": -3.0, "offset_sd_um": 0.4, "offset_weight": 1.0,
                                         "offset_from": "R"},
                                   "B": {"shift_um": 0.1}})
-    assert measure_offset_sd_um(table) == pytest.approx({"R": 0.4, "G": 0.0, "B": 0.0})
+    assert measure_offset_sd_um(table) == pytest.approx({"R": 0.4, "G": 0.4, "B": 0.0})
 
 
 def test_profile_band_adds_the_offset_error_in_quadrature(tmp_path):

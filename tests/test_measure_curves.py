@@ -404,7 +404,11 @@ def test_sml_at_fs_takes_the_sml_to_where_contrast_at_fs_peaks(w040):
 
 def test_a_channel_without_a_band_pass_offset_borrows_the_others():
     # R's band-pass curves all failed (its fs peak near a scan end): it takes the inverse-variance mean of G's and
-    # B's offsets, with their spread across channels in its variance; G and B are untouched.
+    # B's offsets, with their spread across channels in its variance; G and B are untouched. That variance is one
+    # draw for the whole channel: a field-wide band term (fit.tiles.measure_offset_sd_um), not the tiles' sds.
+    from types import SimpleNamespace
+
+    from fieldcal.fit.tiles import measure_offset_sd_um
     from fieldcal.measure.tiles import _borrow_offsets
 
     def res(offset, sd, n, z):
@@ -419,8 +423,11 @@ def test_a_channel_without_a_band_pass_offset_borrows_the_others():
     np.testing.assert_allclose(r["z_best_um"][:2], [10.0 - 7.15, 20.0 - 7.15])
     assert np.isnan(r["z_best_um"][2])
     # spread: both weights equal -> mean of squared deviations (0.25^2) x n/(n-1) = 0.125; plus 0.25^2/2
-    np.testing.assert_allclose(r["z_sigma_um"][:2] ** 2, 0.3 ** 2 + 0.25 ** 2 / 2 + 0.125)
+    np.testing.assert_allclose(r["z_sigma_um"][:2], 0.3)
     assert r["skew"]["offset_from"] == "G,B"
+    sd = measure_offset_sd_um(SimpleNamespace(skew={c: v["skew"] for c, v in results.items()}))
+    assert sd["R"] == pytest.approx(math.sqrt(0.25 ** 2 / 2 + 0.125))
+    assert sd["G"] == pytest.approx(0.25)
     np.testing.assert_allclose(results["G"]["z_best_um"][:2], [1.0, 2.0])
 
 

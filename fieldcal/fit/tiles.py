@@ -142,7 +142,8 @@ def measure_offset_sd_um(table) -> dict[str, float]:
     The offset moving each SML best focus to the band-pass at fs is one pooled number per channel
     (:func:`fieldcal.measure.throughfocus.apply_measure_offset`; at quick effort measured on a strip of tiles,
     :mod:`fieldcal.measure.fs_strip`): its error is one draw for the whole field, a band term no fit of the
-    tiles can see. A channel that borrowed the others' offset carries it in its tiles' sds already (0 here).
+    tiles can see. A channel that borrowed the others' offset (``offset_from``) has the borrowed one's error
+    here too (its tiles' sds do not carry it: ``measure.tiles._borrow_offsets``).
 
     With it, in quadrature, the error of the band-pass's peak moved to the sharpest position at fs: the
     band-pass weights a band of frequencies about fs, and where the sharpest position moves with frequency
@@ -157,7 +158,7 @@ def measure_offset_sd_um(table) -> dict[str, float]:
         if not isinstance(rec, dict):
             out[str(c)] = 0.0
             continue
-        own = 0.0 if "offset_from" in rec else offset_sd_um(rec)
+        own = offset_sd_um(rec)
         # the band-pass's own peak is that of its band, not of fs alone: the error of moving it to fs
         out[str(c)] = math.hypot(own, band_correction_um(rec)[1])
     return out

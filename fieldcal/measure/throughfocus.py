@@ -107,6 +107,9 @@ class CurveFit:
     z_centre_sd_um: float = math.nan
     skew_shift_um: float = math.nan  # sharpest position minus the centre (local skewed peak) and its sd
     skew_shift_sd_um: float = math.nan
+    # the same shift by the other estimator (the local skewed peak where the shift came from the spherical-aberration
+    # model): their pooled difference is the skew shift's model error (:func:`pooled_skew_shift`)
+    skew_alt_um: float = math.nan
 
     @classmethod
     def rejected(cls, status: str, peak: float = math.nan, floor: float = math.nan) -> "CurveFit":
@@ -364,8 +367,13 @@ def _fit_curves(z, V, step, pres, out, model, fs_cyc_per_mm, q, rules, wavelengt
         sa = (_sa_corrections(z, V, pres, fits, step, fs_cyc_per_mm * 1e-3, wavelength_nm * 1e-3)
               if model == "otf" and rules.skew
               else [_LOCAL] * len(pres))
+        # the second estimate of the skew shift (skew_model_sd_um) only where the pooled shift will apply: a set of
+        # curves without evidence of skew (pooled weight < 1/2) gives it ~no weight, and saves the local fits
+        shifts = [(c[0] * _st(step, t), math.sqrt(c[1]) * _st(step, t))
+                  for (t, _), c in zip(pres, sa) if isinstance(c, tuple)]
+        check = len(shifts) >= 2 and pooled_mean(*zip(*shifts))[2] >= 0.5
         for (t, pre), fit, corr in zip(pres, fits, sa):
-            out[t] = _finish(_zt(z, t), V[t], pre, fit, _st(step, t), model, x_q, rules, corr)
+            out[t] = _finish(_zt(z, t), V[t], pre, fit, _st(step, t), model, x_q, rules, corr, check)
         if model == "otf" and rules.tapered_width:  # the width from a fit that does not depend on where the samples fall
             from .otf_width import tapered_widths
             out = tapered_widths(z, V, pres, fits, step, x_q, out)
@@ -551,7 +559,7 @@ def _sa_corrections(z, V, pres, fits, step, fs_cyc_per_um: float = math.nan, wav
     return out
 
 
-def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules, corr=_LOCAL) -> CurveFit:
+def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules, corr=_LOCAL, check: bool = False) -> CurveFit:
     """The symmetric fit's centre, moved by the evidence-weighted skew correction to the sharpest position.
 
     Variance: the weighted mix of "no skew" (the symmetric fit's variance) and "skew" (the local peak's
@@ -562,8 +570,14 @@ def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules, corr=_LOC
     """
     if fit is not None and not (math.isfinite(fit.var_u0) and fit.var_u0 > 0.0):
         fit = None
+    alt = math.nan
     if corr == _LOCAL or fit is None:
         corr = _skew_correction(z, v, pre, fit, step, model, rules) if rules.skew else None
+    elif corr is not None and check:
+        # the spherical-aberration model's shift: the local skewed peak's too, as a check of its model
+        # (skew_model_sd_um)
+        loc = _skew_correction(z, v, pre, fit, step, model, rules)
+        alt = loc[0] * step if loc is not None else math.nan
     if fit is None and corr is None:
         return CurveFit.rejected("fit_failed", pre.height, pre.floor)
     if fit is None:
@@ -579,7 +593,7 @@ def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules, corr=_LOC
     # Never extrapolate: the fitted peak must lie inside the window with a sample beyond it on each side.
     if not (z[1] <= z0 <= z[-2]) or not (z[pre.lo] < z0 < z[pre.hi]):
         return CurveFit.rejected("peak_at_edge", pre.height, pre.floor)
-    shift = (corr[0] * step, math.sqrt(corr[1]) * step) if corr is not None else (math.nan, math.nan)
+    shift = (corr[0] * step, math.sqrt(corr[1]) * step, alt) if corr is not None else (math.nan, math.nan, alt)
     if fit is None:
         return CurveFit(float(z0), float(math.sqrt(var_u) * step), math.nan, float(pre.height), float(pre.floor),
                         STATUS_OK, int(pre.hi - pre.lo + 1), w_skew, math.nan, math.nan, math.nan, *shift)
@@ -606,6 +620,23 @@ def pooled_skew_shift(fits: list[CurveFit]) -> tuple[float, float, float]:
     return pooled_mean(d, sd)
 
 
+def skew_model_sd_um(fits: list[CurveFit]) -> float:
+    """Model error (µm) of a set of curves' pooled skew shift, shared by all of them: how far the two estimators of
+    the sharpest position disagree, pooled over the curves that have both.
+
+    The shift comes from the spherical-aberration model fitted over the curve's window (:func:`_sa_corrections`);
+    the local skewed peak (a cubic in ln height over the core, :func:`_local_peak`) assumes another shape and
+    uses other points. Each would be unbiased on a curve its model describes; a real pupil is neither, and their
+    disagreement is the size of the model error that no scatter over tiles can show (every tile has the same
+    curve shape, so the error is the same in every tile). ``sqrt(max(D^2 - se^2, 0))`` with D the pooled mean of
+    the per-curve differences and se its sd (the part of D that is noise). 0 where no curve has both.
+    """
+    d = np.array([f.skew_shift_um - f.skew_alt_um for f in fits if f.status == STATUS_OK], dtype=np.float64)
+    sd = np.array([f.skew_shift_sd_um for f in fits if f.status == STATUS_OK], dtype=np.float64)
+    mean, se, _ = pooled_mean(d, sd)
+    return math.sqrt(max(mean * mean - se * se, 0.0))
+
+
 def pooled_mean(d, sd) -> tuple[float, float, float]:
     """(mean, sd, weight) of per-tile values ``d`` with sds ``sd`` that share one value over a channel: the
     inverse-variance mean, its sd Birge-inflated by their scatter, and the evidence weight for a non-zero mean
@@ -618,9 +649,14 @@ def pooled_mean(d, sd) -> tuple[float, float, float]:
     mean = float(np.sum(w * d) / np.sum(w))
     birge = max(1.0, float(np.sum(w * (d - mean) ** 2)) / (d.size - 1))
     se = math.sqrt(birge / float(np.sum(w)))
-    chi2 = (mean / se) ** 2
-    weight = 1.0 / (1.0 + SKEW_PRIOR_ODDS * math.sqrt(d.size) * math.exp(-0.5 * min(chi2, 1400.0)))
-    return mean, se, weight
+    return mean, se, evidence_weight(mean, se, d.size)
+
+
+def evidence_weight(mean: float, se: float, n: int) -> float:
+    """Posterior weight of "non-zero" for a pooled value ``mean`` ± ``se`` over ``n`` values:
+    ``1 / (1 + O sqrt(n) exp(-chi2 / 2))``, ``chi2 = (mean / se)^2``, prior odds O = SKEW_PRIOR_ODDS."""
+    chi2 = (mean / se) ** 2 if se > 0 else (math.inf if mean else 0.0)
+    return 1.0 / (1.0 + SKEW_PRIOR_ODDS * math.sqrt(max(n, 1)) * math.exp(-0.5 * min(chi2, 1400.0)))
 
 
 def apply_pooled_skew(fits: list[CurveFit], apply: bool = True,
@@ -634,8 +670,9 @@ def apply_pooled_skew(fits: list[CurveFit], apply: bool = True,
     """
     from dataclasses import replace as _replace
     mean, se, own = pooled_skew_shift(fits)
+    model = skew_model_sd_um(fits)
     weight = own if weight is None else float(weight)
-    info = {"shift_um": mean, "sd_um": se, "weight": weight, "applied": bool(apply)}
+    info = {"shift_um": mean, "sd_um": se, "model_sd_um": model, "weight": weight, "applied": bool(apply)}
     if not apply:
         weight = 0.0
     out = []
@@ -643,7 +680,8 @@ def apply_pooled_skew(fits: list[CurveFit], apply: bool = True,
         if f.status != STATUS_OK or not math.isfinite(f.z_centre_um):
             out.append(f)
             continue
-        var = f.z_centre_sd_um ** 2 + weight * se * se + weight * (1.0 - weight) * mean * mean
+        var = (f.z_centre_sd_um ** 2 + weight * (se * se + model * model)
+               + weight * (1.0 - weight) * mean * mean)
         out.append(_replace(f, z_best_um=f.z_centre_um + weight * mean, z_sigma_um=math.sqrt(var),
                             skew_weight=weight))
     return out, info
@@ -674,8 +712,19 @@ def zone_jackknife_sd(d, sd, zone_key) -> float:
     return float(math.sqrt((k - 1) / k * np.sum((loo - loo.mean()) ** 2)))
 
 
-def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit],
-                         radius=None) -> tuple[list[CurveFit], dict]:
+def pooled_skew_var_um2(info: dict) -> float:
+    """Variance (µm²) an :func:`apply_pooled_skew` record adds to every one of its curves' best foci:
+    ``w (sd^2 + model^2) + w (1 - w) shift^2`` (the pooled shift's own sd, its model error
+    :func:`skew_model_sd_um`, and whether it applies at all). It is one draw shared by all those curves, not
+    noise of each."""
+    w, m, se, mod = (float(info.get(k, 0.0) or 0.0) for k in ("weight", "shift_um", "sd_um", "model_sd_um"))
+    if not all(math.isfinite(v) for v in (w, m, se, mod)):
+        return 0.0
+    return max(w * (se * se + mod * mod) + w * (1.0 - w) * m * m, 0.0)
+
+
+def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
+                         ref_skew: dict | None = None) -> tuple[list[CurveFit], dict]:
     """``main``'s best foci moved by the channel's pooled offset to ``ref`` (same tiles, in order).
 
     For the SML moved to the band-pass at fs (``measure="auto"``): the SML's broad band gives the lower tile
@@ -686,16 +735,40 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit],
     (:func:`offset_sd_um`) is shared by the channel's tiles and is not added to theirs (:func:`shift_by_offset`).
     With the tiles' field ``radius`` (same order), its sd is at least the delete-a-zone jackknife's
     (:func:`zone_jackknife_sd`): the offset changes over the field, so its tiles are not independent draws.
+
+    ``ref_skew``: the :func:`apply_pooled_skew` record of ``ref`` (the band-pass curves' pooled skew shift).
+    Two things follow from it, both because one pupil's spherical aberration skews every tile the same way:
+
+    * its variance (:func:`pooled_skew_var_um2`) is one error shared by every ``ref`` best focus, so it is taken
+      out of the tiles' sds before pooling (where 1/sqrt(n) would average it away: lens 13 of the band
+      benchmark, F/6.9, B's shift applied at weight 0.1 left +1.9 µm on 27 tiles while the offset stated 0.35)
+      and added to the pooled offset's sd after;
+    * its evidence weight is evidence for the offset too: the SML (broad band) and the band-pass at fs peak
+      together only on symmetric curves, so curves measured skewed say the offset is real even where its own
+      chi2 is weak. The offset applies with the larger of the two weights (the skew's only where it is >= 1/2:
+      the evidence favours skew). (Before, an offset of -0.3 to -0.45
+      µm at 2-3 sd was applied at weight 0.09-0.5 on F/1.6-1.9 lenses whose band-pass curves were skewed at
+      weight 1, and the unapplied part, 0.15-0.37 µm, was 1.5-3x the sd stated for it.)
     """
     keep = [i for i, (a, b) in enumerate(zip(main, ref)) if a.status == STATUS_OK and b.status == STATUS_OK]
+    shared2 = pooled_skew_var_um2(ref_skew or {})
     d = np.array([ref[i].z_best_um - main[i].z_best_um for i in keep])
-    sd = np.array([math.hypot(main[i].z_sigma_um, ref[i].z_sigma_um) for i in keep])
+    sd = np.array([math.sqrt(main[i].z_sigma_um ** 2 + max(ref[i].z_sigma_um ** 2 - shared2, 0.0)) for i in keep])
     mean, se, weight = pooled_mean(d, sd)
     info = {"offset_um": mean, "offset_sd_um": se, "offset_weight": weight, "n_tiles": len(keep)}
     if radius is not None and len(keep):
         # the offset varies over the field: its error as the zones of field radius tell it, when larger
         jk = zone_jackknife_sd(d, sd, np.asarray(radius, dtype=np.float64)[keep])
         info.update(offset_zone_sd_um=jk, offset_sd_um=max(se, jk))
+    if len(keep) >= 2 and ref_skew:
+        se = math.sqrt(info["offset_sd_um"] ** 2 + shared2)
+        own = evidence_weight(mean, se, len(keep))  # the offset's own evidence, against its whole sd
+        # curves measured skewed (weight >= 1/2: the evidence favours it) make the offset real; below that the
+        # offset's own evidence decides, so symmetric curves keep their weight and band exactly
+        asym = float(ref_skew.get("weight", 0.0) or 0.0)
+        asym = asym if math.isfinite(asym) and asym >= 0.5 else 0.0
+        info.update(offset_sd_um=se, offset_skew_sd_um=math.sqrt(shared2), offset_own_weight=own,
+                    offset_weight=max(own, asym))
     return shift_by_offset(main, info), info
 
 

@@ -31,7 +31,7 @@ from .bayer import PlaneLayout, extract_plane, plane_layouts, plane_shape
 from .geometry import (GeometryMeasurements, StepFit, compose_steps, downsample,
                        lateral_colour_scales, register_step, registration_plane)
 from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_offset, apply_pooled_skew,
-                           band_frequency_terms, pooled_skew_shift, shift_by_offset)
+                           band_frequency_terms, pooled_skew_shift, shift_by_offset, skew_model_sd_um)
 
 # Focus breathing: the image of a scene patch is magnified by m(z) through the scan. The 3-tap SML's mean over a
 # patch that follows the image scales as m^-gamma with gamma 0.8-2 set by the texture's spectrum and the blur
@@ -749,12 +749,14 @@ def _strip_widths_on_grid(width_um: np.ndarray, sx: np.ndarray, sy: np.ndarray, 
 
 def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per_mm: float, q: float,
              measure: str, rules: TileRules, bp_scale: np.ndarray | None = None,
-             offset_from: dict | None = None) -> dict[str, np.ndarray]:
+             offset_from: dict | None = None, bp_skew_weight: float | None = None) -> dict[str, np.ndarray]:
     """Tile tests (saturation, texture) then the batched curve fits of one channel's tiles.
 
     ``bp_scale[k]``: the magnification the band-pass filter followed in frame k (its frequency was
     ``fs / bp_scale[k]`` at the sensor), used to give the width at ``fs`` itself. ``offset_from``: the
     ``"sml@fs"`` offset record measured on other tiles (quick's strip, :mod:`.fs_strip`), applied here.
+    ``bp_skew_weight``: the evidence weight for the band-pass curves' pooled skew shift to use instead of this
+    channel's own (:func:`_analyse_channels`: the largest over the channels).
     """
     nt = channel_curves["sml"].shape[0]
     res = {k: np.full(nt, np.nan) for k in ("z_best_um", "z_sigma_um", "width_um", "peak", "z_tan_um", "z_sag_um",
@@ -795,8 +797,15 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             # centre and the shift is only recorded (docs/measurement.md "Asymmetric curves").
             main, res["skew"] = apply_pooled_skew(main, apply=measure == "bandpass")
         if measure == SML_AT_FS:
+            bp_skew = None
             if rules.curve.skew:
-                bp = apply_pooled_skew(bp, apply=True)[0]
+                # (NaN with < 2 fitted curves: nothing measured to share, nothing to redo)
+                own = pooled_skew_shift(bp)[2] if sum(f.status == "ok" for f in bp) >= 2 else math.nan
+                bp, bp_skew = apply_pooled_skew(bp, apply=True, weight=bp_skew_weight)
+                res["skew"] = {**res.get("skew", {}), "bp_shift_um": bp_skew["shift_um"],
+                               "bp_shift_sd_um": bp_skew["sd_um"], "bp_shift_model_sd_um": bp_skew["model_sd_um"],
+                               "bp_skew_weight": bp_skew["weight"],
+                               "bp_own_weight": own}
             # the SML's own best foci: the breathing sensitivity is of the SML curve (_exponent_sensitivity)
             res["z_sml_um"] = np.full(nt, np.nan)
             res["z_sml_um"][todo] = [f.z_best_um for f in main]
@@ -806,7 +815,7 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             if "cx" in channel_curves and "cy" in channel_curves:
                 cx, cy = (np.mean(channel_curves[k][todo], axis=1) for k in ("cx", "cy"))
                 radius = np.hypot(cx - np.mean(cx), cy - np.mean(cy))
-            main, offset = (apply_measure_offset(main, bp, radius) if offset_from is None
+            main, offset = (apply_measure_offset(main, bp, radius, bp_skew) if offset_from is None
                             else (shift_by_offset(main, offset_from), {**offset_from, "from": "strip"}))
             res["skew"] = {**res.get("skew", {}), **offset}
         for t, fb, fm in zip(todo, bp, main):
@@ -825,6 +834,31 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
                     if d.status == "ok":
                         res[col][t] = d.z_best_um
     res["status"] = stat.astype(str)
+    return res
+
+
+def _analyse_channels(run, channels) -> dict[str, dict]:
+    """``run(channel, bp_skew_weight)`` (:func:`_analyse`) for every channel, then again with the largest band-pass
+    skew weight for each channel whose own was below 1/2 where the largest is at least 1/2.
+
+    Why: one pupil's spherical aberration skews every channel's curves (in µm of wavefront it is the same
+    pupil); a channel with few band-pass tiles (its fs peak near a scan end) measures the skew as well as the
+    others but with little evidence, and kept most of its curves' centres: on an F/6.9, W040 0.8-wave lens B's
+    shift (-1.2 µm, 27 tiles) was applied at weight 0.1 while G's (60 tiles) was at 1, and B's surface sat
+    +1.6 µm off. As the side bands of one channel (:func:`_frequency_slope`) take the strongest band's evidence,
+    the channels take the strongest channel's where they disagree on whether the curves are skewed at all (a
+    weight below 1/2 against one above). A symmetric lens has every weight ~0 and keeps them.
+    """
+    res = {ch: run(ch, None) for ch in channels}
+    own = {ch: float(r.get("skew", {}).get("bp_own_weight", math.nan)) for ch, r in res.items()}
+    have = [w for w in own.values() if math.isfinite(w)]
+    if have:
+        w_max = max(have)
+        for ch, w in own.items():
+            # only where the channels disagree on whether the curves are skewed: at w >= 1/2 the mixture's sd
+            # sqrt(w (1 - w)) |shift| already covers the part (1 - w) |shift| left unapplied
+            if math.isfinite(w) and w < 0.5 <= w_max:
+                res[ch] = run(ch, w_max)
     return res
 
 
@@ -869,8 +903,10 @@ def _frequency_slope(cc: dict[str, np.ndarray], z: np.ndarray, fs_cyc_per_mm: fl
         pooled = [pooled_skew_shift(f) for f in fits]
         w = max(p[2] for p in pooled)
         fits = [apply_pooled_skew(f, apply=True, weight=w)[0] for f in fits]
-        # each band's pooled shift is one draw shared by its tiles: its sd joins the differences' (w ~ 1 here)
-        shared = [math.sqrt(w) * p[1] for p in pooled] + [0.0] * (3 - len(pooled))
+        # each band's pooled shift is one draw shared by its tiles: its sd and model error join the differences'
+        # (w ~ 1 here; throughfocus.skew_model_sd_um: the model error differs between bands of different widths)
+        model = [skew_model_sd_um(f) for f in fits]
+        shared = [math.sqrt(w * (p[1] ** 2 + m ** 2)) for p, m in zip(pooled, model)] + [0.0] * (3 - len(pooled))
     else:
         shared = [0.0, 0.0, 0.0]
     half = 0.5 * math.log(fs_strip.SLOPE_FACTORS[1] / fs_strip.SLOPE_FACTORS[0])
@@ -899,7 +935,10 @@ def _borrow_offsets(results: dict[str, dict]) -> None:
     channel (in µm of wavefront, and the geometric peak does not depend on the wavelength); on a W040 = 0.8
     wave F/6.9 lens G and B measured -7.4 and -6.9 µm while R, keeping its SML, sat 8 µm off. The borrowed
     offset is the inverse-variance mean of the others' (evidence-weighted as there); its variance is theirs
-    plus their spread across channels (the chromatic part), and joins each tile's.
+    plus their spread across channels (the chromatic part). That error is one draw for the whole channel: it
+    joins the band as a field-wide term (``fit.tiles.measure_offset_sd_um``), not each tile's sd, where the
+    surface fit would average it away over the tiles (lens 13 of the band benchmark: R borrowed -7.3 ± 1.1 µm
+    and its piston, +0.84 µm, was 1.5x the whole field-wide sd it stated).
     """
     have = {c: r["skew"] for c, r in results.items()
             if r.get("skew", {}).get("n_tiles", 0) >= 2 and r["skew"].get("offset_weight", 0.0) > 0.0}
@@ -914,12 +953,10 @@ def _borrow_offsets(results: dict[str, dict]) -> None:
     spread2 = float(np.sum(iv * (m - mean) ** 2) / np.sum(iv)) * (m.size / max(m.size - 1, 1))
     var = 1.0 / float(np.sum(iv)) + spread2
     weight = float(np.min(w))
-    add = weight * var + weight * (1.0 - weight) * mean * mean
     for c in lack:
         r = results[c]
         ok = r["status"] == "ok"
         r["z_best_um"] = np.where(ok, r["z_best_um"] + weight * mean, r["z_best_um"])
-        r["z_sigma_um"] = np.where(ok, np.sqrt(r["z_sigma_um"] ** 2 + add), r["z_sigma_um"])
         r["skew"] = {**r["skew"], "offset_um": mean, "offset_sd_um": math.sqrt(var), "offset_weight": weight,
                      "offset_from": ",".join(have)}
 
@@ -1069,25 +1106,36 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     strip_widths: dict[str, np.ndarray] = {}
     if strip is not None:
         xs, ys = xs[:n_grid], ys[:n_grid]
+        on_strips = {}
         for ch, cc in per_channel.items():
-            on_strip = {k: v[n_grid:] for k, v in cc.items()}
+            on_strips[ch] = on_strip = {k: v[n_grid:] for k, v in cc.items()}
             per_channel[ch] = {k: v[:n_grid] for k, v in cc.items() if k not in ("bandpass", "bp_cover") + _SLOPE_KEYS}
             if "bp_lo" in on_strip:
                 slopes[ch] = _frequency_slope(on_strip, axes[ch].y(z), float(fs_cyc_per_mm), float(q), rules)
-            res_strip = _analyse(on_strip, axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
-                                 measure=measure, rules=rules, bp_scale=bp_scale)
+        strip_res = _analyse_channels(
+            lambda ch, w: _analyse(on_strips[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
+                                   measure=measure, rules=rules, bp_scale=bp_scale, bp_skew_weight=w), per_channel)
+        for ch, res_strip in strip_res.items():
             rec = res_strip.get("skew", {})
             _to_z(res_strip, axes[ch])
             strip_widths[ch] = _strip_widths_on_grid(res_strip["width_um"], sx.ravel(), sy.ravel(), xs, ys, tile)
-            offsets[ch] = {k: rec.get(k, 0.0) for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles",
-                                                         "offset_zone_sd_um")}
+            offsets[ch] = {k: rec[k] for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles",
+                                               "offset_zone_sd_um", "offset_skew_sd_um", "offset_own_weight",
+                                               "bp_shift_um", "bp_shift_sd_um", "bp_shift_model_sd_um",
+                                               "bp_skew_weight", "bp_own_weight")
+                           if k in rec}
+            for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles"):
+                offsets[ch].setdefault(k, 0.0)
     for ch, cc in per_channel.items():
         if "bp_lo" in cc:  # the band-pass everywhere (standard): the grid's tiles inside the slope strip
             slopes[ch] = _frequency_slope(cc, axes[ch].y(z), float(fs_cyc_per_mm), float(q), rules)
             per_channel[ch] = {k: v for k, v in cc.items() if k not in _SLOPE_KEYS}
-    results = {ch: _analyse(per_channel[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
-                            measure=measure, rules=rules, bp_scale=bp_scale, offset_from=offsets[ch])
-               for ch in stack.channels}
+    def grid(ch, w):
+        return _analyse(per_channel[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
+                        measure=measure, rules=rules, bp_scale=bp_scale, offset_from=offsets[ch], bp_skew_weight=w)
+    # quick's grid has no band-pass: its strip shared the weights above
+    results = (_analyse_channels(grid, stack.channels) if strip is None
+               else {ch: grid(ch, None) for ch in stack.channels})
     if measure == SML_AT_FS:
         _borrow_offsets(results)
     for ch, rec in slopes.items():
