@@ -371,7 +371,9 @@ def _fit_curves(z, V, step, pres, out, model, fs_cyc_per_mm, q, rules, wavelengt
         # curves without evidence of skew (pooled weight < 1/2) gives it ~no weight, and saves the local fits
         shifts = [(c[0] * _st(step, t), math.sqrt(c[1]) * _st(step, t))
                   for (t, _), c in zip(pres, sa) if isinstance(c, tuple)]
-        check = len(shifts) >= 2 and pooled_mean(*zip(*shifts))[2] >= 0.5
+        # one grid = one channel's tiles, pooled later; curves on their own grids (edge tracks,
+        # analyse_curve_list) are each fitted as if alone
+        check = not isinstance(z, list) and len(shifts) >= 2 and pooled_mean(*zip(*shifts))[2] >= 0.5
         for (t, pre), fit, corr in zip(pres, fits, sa):
             out[t] = _finish(_zt(z, t), V[t], pre, fit, _st(step, t), model, x_q, rules, corr, check)
         if model == "otf" and rules.tapered_width:  # the width from a fit that does not depend on where the samples fall
