@@ -184,22 +184,27 @@ def breathing_systematic_sd_um(table) -> dict[str, float]:
     """Per channel, the sd of the best-focus error the SML's breathing correction leaves (µm).
 
     The scale-following SML is invariant to the scene's magnification; what breathing leaves is a gain m^k on
-    the curve from the in-focus PSF, fixed at the sensor while the scene grows (``SML_SCALE_RESIDUAL_SD`` is
-    the sd of k). Every tile of a channel shares that error, scaled by its own sensitivity dz/dk (measured on
-    this stack): the RMS of those sensitivities times the sd is a systematic no fit can see. Zero without
-    breathing (telecentric).
+    the curve from the MTFs fixed at the sensor while the scene grows (pixel aperture, diffraction). The
+    measurement divides out the k of the factors the stack declares and records the sd of what is left
+    (``table.sml_gain[c]["k_sd"]``, :mod:`fieldcal.measure.sml_gain`: the dilated operator's own, plus a
+    camera's k where the stack does not say); a table without that record (older) takes
+    ``SML_SCALE_RESIDUAL_SD``. Every tile of a channel shares that error, scaled by its own sensitivity dz/dk
+    (measured on this stack): the RMS of those sensitivities times the sd is a systematic no fit can see. Zero
+    without breathing (telecentric).
     """
     from fieldcal.measure.tiles import SML_SCALE_RESIDUAL_SD
 
     out = {}
     sens = getattr(table, "z_dgamma_um", None)
+    gains = getattr(table, "sml_gain", None) or {}
     for c in dict.fromkeys(np.asarray(table.channel).tolist()):
         if sens is None:
             out[c] = 0.0
             continue
         v = np.asarray(sens, dtype=np.float64)[(np.asarray(table.channel) == c) & table.ok]
         v = v[np.isfinite(v)]
-        out[c] = float(SML_SCALE_RESIDUAL_SD * np.sqrt(np.mean(v * v))) if v.size else 0.0
+        k_sd = float(gains[c]["k_sd"]) if c in gains else SML_SCALE_RESIDUAL_SD
+        out[c] = float(k_sd * np.sqrt(np.mean(v * v))) if v.size else 0.0
     return out
 
 
