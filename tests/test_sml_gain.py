@@ -110,3 +110,19 @@ def test_telecentric_stack_has_no_gain_record(breathing_stack):
     # the measured scale of a telecentric stack is 1 to ~1e-5, not exactly 1: a record, and a term ~0
     from fieldcal.fit.tiles import breathing_systematic_sd_um
     assert breathing_systematic_sd_um(table)["G"] < 0.01
+
+
+def test_simulated_stacks_say_which_sensor_fixed_mtfs_they_carry(tmp_path):
+    """The geometric path declares none (k = 0 for its SML, no band-pass correction), the wave path both."""
+    import json
+
+    from conftest import MODELS
+    from fieldcal.measure.breathing_mtf import declared_factors
+    from fieldcal.simulate.lens import LensSpec
+    from fieldcal.simulate.stackgen import simulate_stack
+
+    spec = LensSpec.load(MODELS / "triplet-uncorrected.json")
+    simulate_stack(spec, tmp_path / "g", np.array([-10.0, 0.0, 10.0]), seed=1, size=(64, 48), progress=False)
+    meta = json.loads((tmp_path / "g" / "stack.json").read_text())
+    assert meta["sensor_mtf"] == {"pixel_aperture": False, "diffraction": False}
+    assert declared_factors(meta) == (False, None)
