@@ -50,6 +50,8 @@ from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_o
 # (s7, docs/benchmarks.md): per-channel pistons less the stage frames' share (from the true frame errors) over
 # dz/dk give k of 0.12-1.8 on 15 channels of 8 breathing lenses (0.16 on the widest-curve one, where the
 # absolute-value SML's term claimed 1.2 µm); the pistons are not breathing-shaped enough to fit k from them.
+# Since session 10 the sd is the stack's own (measure.sml_gain: k bounded by the sensor-fixed MTFs the stack
+# declares, or a camera's, TileTable.sml_gain); SML_SCALE_RESIDUAL_SD is kept for tables without that record.
 MIN_TILE_PX = 32
 SML_SCALE_RESIDUAL_SD = 0.45
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
