@@ -15,7 +15,8 @@ renderer's breathing lenses at F/3-F/7 (k 0.50-0.67: the SML's energy sits near 
 
 ``W`` is measured on the stack: the 2-D power spectrum of the sharpest frame (largest SML) less that of the most
 blurred one (what remains is the in-focus texture's; the noise's power is the same in both and cancels), times
-the SML's own response ``|H(fx)|^2 + |H(fy)|^2``, ``H(f) = 4 sin^2(pi f)`` of the 3-tap second difference.
+the SML's own response ``|H(fx)|^2 + |H(fy)|^2``, ``H(f) = 4 sin^2(pi f)`` of the 3-tap second difference, on a
+:data:`WINDOW_PX` window where that frame's SML energy is largest (its in-focus zone).
 
 Which MTFs a stack's frames carry is its own to say (``stack.json`` ``"sensor_mtf"``,
 :func:`fieldcal.measure.breathing_mtf.declared_factors`): k is that of the declared factors, 0 for a stack that
@@ -58,6 +59,23 @@ def _log_mtf(fx_cyc_per_mm, fy_cyc_per_mm, pitch_um: float | None, f_number: flo
         f = np.hypot(fx_cyc_per_mm, fy_cyc_per_mm)
         out = out + np.log(np.maximum(diffraction_mtf(f, wavelength_nm, float(f_number)), 1e-300))
     return out
+
+
+#: side (plane px) of the window the spectrum is taken on: 256 px hold ~65 000 frequency bins, enough for W's
+#: mean, and cost ~1 ms where a 1080p plane's periodograms cost ~1 s of CPU per channel
+WINDOW_PX = 256
+
+
+def window(plane: np.ndarray, centre_yx: tuple[float, float], size: int = WINDOW_PX) -> np.ndarray:
+    """A ``size`` x ``size`` window of ``plane`` (float64) about ``centre_yx`` (plane px), moved inside the
+    plane (the whole plane when smaller)."""
+    a = np.asarray(plane)
+    out = []
+    for n, c in zip(a.shape[:2], centre_yx):
+        m = min(int(size), n)
+        lo = int(np.clip(round(float(c) - m / 2.0), 0, n - m))
+        out.append(slice(lo, lo + m))
+    return np.asarray(a[out[0], out[1]], dtype=np.float64)
 
 
 def sml_weights(sharp: np.ndarray, blurred: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

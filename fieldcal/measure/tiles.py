@@ -927,16 +927,26 @@ def _sml_gain_terms(stack, maps: list[_Maps], geometry: GeometryMeasurements, or
             continue
         tot = np.asarray(mp.maps["sml"], dtype=np.float64).reshape(mp.maps["sml"].shape[0], -1).sum(axis=1)
         lay = next(lay for lay in plane_layouts(stack.channels, stack.cfa) if lay.name == name)
-        seen[name] = (int(np.argmax(tot)), int(np.argmin(tot)), lay)
+        ks = int(np.argmax(tot))
+        # the window: where the sharpest frame's SML energy is largest (its in-focus zone; on a curved field a
+        # ring, whose centroid would be the defocused centre: 0.14 against the whole 1080p plane's 0.40)
+        e = np.asarray(mp.maps["sml"][ks], dtype=np.float32)
+        to_plane = mp.cell * mp.layout.stride / lay.stride  # a cell in unbinned plane px
+        n = max(1, int(round(sg.WINDOW_PX / to_plane)))
+        box = cv2.boxFilter(e, -1, (min(n, e.shape[1]), min(n, e.shape[0])), normalize=False,
+                            borderType=cv2.BORDER_CONSTANT)
+        cy, cx = np.unravel_index(int(np.argmax(box)), box.shape)
+        centre = ((cy + 0.5) * to_plane, (cx + 0.5) * to_plane)
+        seen[name] = (ks, int(np.argmin(tot)), lay, centre)
     if not seen:
         return {}
-    frames = {k: stack.read(int(order[k])) for k in {i for a, b, _ in seen.values() for i in (a, b)}}
+    frames = {k: stack.read(int(order[k])) for k in {i for a, b, *_ in seen.values() for i in (a, b)}}
     out = {}
-    for name, (ks, kb, lay) in seen.items():
+    for name, (ks, kb, lay, centre) in seen.items():
         def plane(k):
             fr = frames[k]
             mosaic = not (stack.cfa is None and fr.ndim == 3)
-            return np.asarray(extract_plane(fr, lay) if mosaic else fr[:, :, lay.channel_index], np.float64)
+            return sg.window(extract_plane(fr, lay) if mosaic else fr[:, :, lay.channel_index], centre)
         k_max = sg.gain_exponent(plane(ks), plane(kb), pitch * lay.stride, pitch if pixel else None, fnum, name)
         out[name] = {"k_max": k_max, "declared": factors is not None, "k_sd": sg.exponent_sd(k_max)}
     return out
