@@ -142,13 +142,14 @@ def evaluate(prof, lens: dict, level: float = 0.9) -> dict:
             "piston_um": mean_err}
 
 
-FIELD_TERMS = ("frames", "common", "breathing", "offset")
+FIELD_TERMS = ("frames", "common", "breathing", "offset", "window")
 
 
-def stated_field_terms_um2(prof, channel: str, xh: np.ndarray, yh: np.ndarray) -> dict:
+def stated_field_terms_um2(prof, channel: str, xh: np.ndarray, yh: np.ndarray, x_px=None, y_px=None) -> dict:
     """Per channel, the variance (µm²) the profile states for each term that is one draw for the whole field:
     the fitted stage frames (by difference with the band without them, grid mean) or the field-wide stage term,
-    the common mode, the breathing systematic and the sml@fs offset."""
+    the common mode, the breathing systematic, the sml@fs offset and (given the points in px) the tile-window
+    correction's kappa term (grid mean: one kappa for the field, times the local Laplacian)."""
     s = prof.surfaces
     d = s.discrepancy
     cal = prof.calibration or {}
@@ -162,9 +163,12 @@ def stated_field_terms_um2(prof, channel: str, xh: np.ndarray, yh: np.ndarray) -
         common = (float(d.common_sd[ci]) * zs) ** 2 if d.common_sd is not None and ci < d.common_sd.size else 0.0
     if d is None or not d.has_stage:
         frames += float(s.stage_sd_um.get(channel, 0.0)) ** 2
+    window = 0.0
+    if x_px is not None:
+        window = float(np.mean(s._window_var(np.asarray(x_px, float), np.asarray(y_px, float), channel))) * zs * zs
     return {"frames": frames, "common": common,
             "breathing": float((cal.get("breathing_systematic_sd_um") or {}).get(channel) or 0.0) ** 2,
-            "offset": float((cal.get("measure_offset_sd_um") or {}).get(channel) or 0.0) ** 2}
+            "offset": float((cal.get("measure_offset_sd_um") or {}).get(channel) or 0.0) ** 2, "window": window}
 
 
 def decompose(prof, lens: dict, step_px: int = 16, level: float = 0.9) -> dict:
@@ -194,7 +198,7 @@ def decompose(prof, lens: dict, step_px: int = 16, level: float = 0.9) -> dict:
         lo, hi = (np.asarray(a, dtype=np.float64).ravel() for a in prof.best_focus_interval_um(X, Y, c, level=level))
         coef, *_ = np.linalg.lstsq(A, zp - zt, rcond=None)
         rest = zp - zt - A @ coef
-        terms = stated_field_terms_um2(prof, c, xh, yh)
+        terms = stated_field_terms_um2(prof, c, xh, yh, X.ravel(), Y.ravel())
         # the posterior samples about the MAP (coefficients, centre, model average), as the band scales them
         zsmp, _ = s._eval(s.samples, X.ravel(), Y.ravel(), c, model=s.sample_model)
         z0, _ = s._eval(s.theta_map, X.ravel(), Y.ravel(), c)
@@ -226,7 +230,7 @@ def decomposition_summary(rows: list[dict]) -> dict:
             continue
         for i in range(len(r["dec_piston_um"])):
             P.append(r["dec_piston_um"][i])
-            V.append([r[f"dec_{t}_var"][i] for t in FIELD_TERMS])
+            V.append([r.get(f"dec_{t}_var", [0.0] * (i + 1))[i] for t in FIELD_TERMS])  # rows before a term: 0
             C.append(r["dec_coef_piston_var"][i])
             T.extend(r["dec_tilt_um"][i])
             TV.extend([r["dec_coef_tilt_var"][i]] * 2)

@@ -50,6 +50,8 @@ from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_o
 # (s7, docs/benchmarks.md): per-channel pistons less the stage frames' share (from the true frame errors) over
 # dz/dk give k of 0.12-1.8 on 15 channels of 8 breathing lenses (0.16 on the widest-curve one, where the
 # absolute-value SML's term claimed 1.2 µm); the pistons are not breathing-shaped enough to fit k from them.
+# Since session 10 the sd is the stack's own (measure.sml_gain: k bounded by the sensor-fixed MTFs the stack
+# declares, or a camera's, TileTable.sml_gain); SML_SCALE_RESIDUAL_SD is kept for tables without that record.
 MIN_TILE_PX = 32
 SML_SCALE_RESIDUAL_SD = 0.45
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
@@ -134,6 +136,10 @@ class TileTable:
     # per channel: the pooled skew correction applied to every tile's symmetric centre (shift_um, sd_um,
     # weight; throughfocus.pooled_skew_shift)
     skew: dict = field(default_factory=dict)
+    # per channel: the SML's sensor-fixed gain exponent on a breathing stack (measure.sml_gain): its in-focus
+    # bound "k_max" (of the factors the stack declares, "declared"; else of a camera's) and the sd the band
+    # carries ("k_sd"); empty without breathing or SML
+    sml_gain: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.channel.size)
@@ -164,7 +170,8 @@ class TileTable:
                                                         "width_um", "peak", "status", "z_tan_um", "z_sag_um")},
                 **({"z_dgamma_um": col(self.z_dgamma_um)} if self.z_dgamma_um is not None else {}),
                 **({"stage_gain": col(self.stage_gain)} if self.stage_gain is not None else {}),
-                **({"skew": self.skew} if self.skew else {})}
+                **({"skew": self.skew} if self.skew else {}),
+                **({"sml_gain": self.sml_gain} if self.sml_gain else {})}
 
 
 # ---------------------------------------------------------------------------------------------- helpers
@@ -926,6 +933,61 @@ def _frequency_slope(cc: dict[str, np.ndarray], z: np.ndarray, fs_cyc_per_mm: fl
     return {**rec, "freq_shift_ln": shift}
 
 
+def _sml_gain_terms(stack, maps: list[_Maps], geometry: GeometryMeasurements, order: np.ndarray,
+                    factors: tuple[bool, float | None] | None) -> dict[str, dict]:
+    """Per channel, the bound on the SML's sensor-fixed gain exponent (:mod:`.sml_gain`) from the frames of
+    largest and smallest SML: ``k_max`` of the factors ``factors`` declares, or of a camera's (pixel aperture
+    at the stack's pitch, diffraction at its F-number) when the stack does not say, and the sd the band carries.
+    Empty when the image does not breathe (the gain is then 1 in every frame)."""
+    from . import sml_gain as sg
+    meta = getattr(stack, "meta", None) or {}
+    f_number = meta.get("f_number")
+    f_number = float(f_number) if isinstance(f_number, (int, float)) and math.isfinite(f_number) else None
+    pitch = getattr(stack, "pixel_pitch_um", None)
+    if pitch is None or not math.isfinite(float(pitch)) or float(pitch) <= 0:
+        # no pitch (an in-memory stack): the pixel aperture in pixel units, no diffraction (it needs cycles/mm)
+        pitch, f_number = 1.0, None
+    pitch = float(pitch)
+    pixel, fnum = (True, f_number) if factors is None else (bool(factors[0]), factors[1])
+    if not pixel and fnum is None:  # the stack says its frames carry no sensor-fixed MTF: k is 0
+        return {lay.name: {"k_max": 0.0, "declared": True, "k_sd": sg.exponent_sd(0.0)} for lay in
+                (mp.layout for mp in maps)
+                if not np.allclose(geometry.magnification[:, geometry.channel_index(lay.name)], 1.0, rtol=0.0,
+                                   atol=1e-12)}
+    seen: dict[str, tuple[int, int, PlaneLayout]] = {}
+    for mp in maps:
+        name = mp.layout.name
+        if name in seen:  # a second G site of a mosaic: the first one's spectrum
+            continue
+        if np.allclose(geometry.magnification[:, geometry.channel_index(name)], 1.0, rtol=0.0, atol=1e-12):
+            continue
+        tot = np.asarray(mp.maps["sml"], dtype=np.float64).reshape(mp.maps["sml"].shape[0], -1).sum(axis=1)
+        lay = next(lay for lay in plane_layouts(stack.channels, stack.cfa) if lay.name == name)
+        ks = int(np.argmax(tot))
+        # the window: where the sharpest frame's SML energy is largest (its in-focus zone; on a curved field a
+        # ring, whose centroid would be the defocused centre: 0.14 against the whole 1080p plane's 0.40)
+        e = np.asarray(mp.maps["sml"][ks], dtype=np.float32)
+        to_plane = mp.cell * mp.layout.stride / lay.stride  # a cell in unbinned plane px
+        n = max(1, int(round(sg.WINDOW_PX / to_plane)))
+        box = cv2.boxFilter(e, -1, (min(n, e.shape[1]), min(n, e.shape[0])), normalize=False,
+                            borderType=cv2.BORDER_CONSTANT)
+        cy, cx = np.unravel_index(int(np.argmax(box)), box.shape)
+        centre = ((cy + 0.5) * to_plane, (cx + 0.5) * to_plane)
+        seen[name] = (ks, int(np.argmin(tot)), lay, centre)
+    if not seen:
+        return {}
+    frames = {k: stack.read(int(order[k])) for k in {i for a, b, *_ in seen.values() for i in (a, b)}}
+    out = {}
+    for name, (ks, kb, lay, centre) in seen.items():
+        def plane(k):
+            fr = frames[k]
+            mosaic = not (stack.cfa is None and fr.ndim == 3)
+            return sg.window(extract_plane(fr, lay) if mosaic else fr[:, :, lay.channel_index], centre)
+        k_max = sg.gain_exponent(plane(ks), plane(kb), pitch * lay.stride, pitch if pixel else None, fnum, name)
+        out[name] = {"k_max": k_max, "declared": factors is not None, "k_sd": sg.exponent_sd(k_max)}
+    return out
+
+
 def _borrow_offsets(results: dict[str, dict]) -> None:
     """``"sml@fs"``: a channel whose band-pass curves gave no offset (fewer than 2 tiles with both curves, e.g.
     its fs-contrast peaks at an end of the scan, where the broad band-pass curve fails the edge test and the
@@ -1095,6 +1157,9 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
             for key in band_f.keys() & cc.keys():
                 cc[key] = cc[key] * band_energy_gain(float(fs_cyc_per_mm) * band_f[key], bp_scale, pitch,
                                                      factors[1], ch)
+    # the SML's own sensor-fixed gain m^k (measure.sml_gain): bounded by the k of the factors the stack declares,
+    # or of a camera's where it does not say (carried in the band by fit.tiles.breathing_systematic_sd_um)
+    sml_gain = _sml_gain_terms(stack, maps, geometry, order, factors) if measure in _SML_BASED else {}
     cols: dict[str, list] = {k: [] for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um", "width_um",
                                              "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um", "stage_gain")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
@@ -1169,7 +1234,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                       q=float(q), measure=measure, image_size_px=(int(w), int(h)),
                       pixel_pitch_um=float(stack.pixel_pitch_um),
                       curves={k: np.concatenate(v, axis=0) for k, v in curves_out.items()},
-                      z_dgamma_um=cat["z_dgamma_um"], stage_gain=cat["stage_gain"], skew=skew)
+                      z_dgamma_um=cat["z_dgamma_um"], stage_gain=cat["stage_gain"], skew=skew, sml_gain=sml_gain)
     ok = int(table.ok.sum())
     status(f"measured {len(table)} tile curves ({ok} ok): {table.counts()}", quiet=quiet)
     return table, geometry

@@ -170,8 +170,11 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
                 lens=spec.name, chart=chart if chart is not None else _chart_record(scene_name, spec))
     if s.cfa:
         meta["cfa"] = s.cfa
-    if optics == "wave":  # its kernels carry the pixel aperture and the pupil's diffraction (measure.breathing_mtf)
-        meta["sensor_mtf"] = {"pixel_aperture": True, "diffraction": True}
+    # which MTFs are fixed at the sensor (measure.breathing_mtf, measure.sml_gain): the wave path's kernels carry
+    # the pixel aperture and the pupil's diffraction; the geometric path neither (a blur disc at the sensor on a
+    # scene sampled at its own scale), and says so rather than leave a reader to assume a camera's
+    meta["sensor_mtf"] = ({"pixel_aperture": True, "diffraction": True} if optics == "wave"
+                          else {"pixel_aperture": False, "diffraction": False})
     if stage_noise_um or stage_backlash_um or stage_scale_error:
         meta["capture"] = {"stage": {"kind": "simulated", "repeatability_um": float(stage_noise_um),
                                      "backlash_um": float(stage_backlash_um)}}
