@@ -200,6 +200,13 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     surf, tiles = fit_tile_surfaces(table, geometry, channels=tuple(stack.channels), effort=effort, seed=seed,
                                     quiet=quiet, source=str(stack.path))
     surf.stage_sd_um = stage_sd_um(table, stage_rep)
+    if kind.kind == "esfr" and edge_summary and surf.discrepancy is not None:
+        # an edge peak's field-wide error is its law's, measured on the tracks (measure.esfr_focus.law_common_mode),
+        # not a fraction of the per-edge noise (docs/measurement.md "The band's field-wide term")
+        cm = edge_summary.get("common_mode") or {}
+        surf.discrepancy.set_common_mode(
+            np.array([float((cm.get(c) or {}).get("sd_um", 0.0)) for c in surf.discrepancy.model.channels])
+            / float(surf.z_scale_um), "measured by the e-SFR peak estimator (measure.esfr_focus.law_common_mode)")
     # the frames' position errors fitted with the surface where the tiles' curves allow (replaces the field-wide
     # term above in the band; docs/fitting.md "Stage errors")
     stage_fit = fit_stage_errors(surf, table, stage_rep)
