@@ -29,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from .esfr_focus import TOLERANCE_UNREACHED, analyse_track, analyse_tracks, channel_shape, law_common_mode
+from .esfr_focus import (TOLERANCE_UNREACHED, analyse_track, analyse_tracks, channel_shape, law_common_mode,
+                         pool_frame_term)
 from .tiles import TileTable
 
 # A frame is a slanted-edge chart when at least this many detected edges pass the e-SFR quality rules in every
@@ -606,7 +607,7 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
     summary["sa_shape"] = {str(c): v.to_dict() for c, v in shapes.items()}
     # the error every peak of a channel shares (its law's), measured on its tracks: the band's field-wide term
     # (calibration.pipeline: Discrepancy.set_common_mode)
-    summary["common_mode"] = {str(c): v.to_dict() for c, v in common.items()}
+    summary["common_mode"] = {str(c): v.to_dict() for c, v in pool_frame_term(common).items()}
     cols = {k: np.asarray(v, dtype=np.float64) if k not in ("channel", "status") else np.asarray(v, dtype=str)
             for k, v in rows.items()}
     # stage_gain is a column: the band's stage-repeatability term (fit.tiles.stage_sd_um) reads it

@@ -884,3 +884,23 @@ def law_common_mode(tracks, results, shape: PooledShape) -> CommonMode:
     law = 0.5 * abs(shift)
     sh = abs(shape.dz_ds * shape.sd) * float(np.median(steps)) if math.isfinite(shape.sd) else 0.0
     return CommonMode(math.sqrt(law * law + sh * sh + frames * frames), law, sh, shift, len(d), frames)
+
+
+def pool_frame_term(common: dict) -> dict:
+    """The channels' :class:`CommonMode` with one frame term for all of them: the root mean square of their
+    jackknife estimates (:func:`frame_jackknife_sd_um`).
+
+    The frames are the stack's, so an error of a frame (its stage position, its exposure, the scene's motion)
+    reaches every channel of it; one channel's jackknife has only about as many degrees of freedom as the
+    track's window has frames, and clipped at 0 it reads nothing as often as twice the truth. The channels'
+    mean variance is the better estimate of the frames' share in each."""
+    from dataclasses import replace
+
+    if not common:
+        return dict(common)
+    f2 = float(np.mean([v.frames_um ** 2 for v in common.values()]))
+    out = {}
+    for c, v in common.items():
+        tot = math.sqrt(max(v.law_um ** 2 + v.shape_um ** 2 + f2, 0.0))
+        out[c] = replace(v, frames_um=math.sqrt(f2), sd_um=tot)
+    return out
