@@ -104,7 +104,7 @@ class Discrepancy:
         (the F statistic of the extra terms minus 1; 0 when the data do not support them).
     common_sd : ndarray or None
         Per channel, the sd of the error shared by the whole field (``COMMON_MODE_FRACTION`` of the per-tile
-        noise sd); added in quadrature at every point.
+        noise sd, or measured on the stack: :meth:`set_common_mode`); added in quadrature at every point.
     stage_c, stage_prior_sd : ndarray or None, float
         Per-frame stage position errors as nuisance coefficients (:mod:`fieldcal.fit.stage`): row i's best focus
         moves by ``stage_c[i] @ e`` with ``e ~ N(0, stage_prior_sd^2)`` per frame (normalised z units). They are
