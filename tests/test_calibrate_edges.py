@@ -59,6 +59,15 @@ def test_slanted_edge_stack_is_calibrated_from_edges(edge_stack):
     zs = np.array([np.nan if v is None else v for v in prof.tiles["z_sag_um"]], dtype=float)
     assert (np.isfinite(zt) & np.isfinite(zs)).sum() >= 3 * 12
     assert prof.tiles["measure"] == "esfr"
+    # the band's field-wide term is the one the peak estimator measured on this stack (frames, law, pooled
+    # asymmetry; measure.esfr_focus.law_common_mode), not a fraction of the per-edge noise
+    cm = prof.diagnostics["esfr"]["common_mode"]
+    d = prof.surfaces.discrepancy
+    for c, v in zip(d.model.channels, d.common_sd):
+        assert float(v) * prof.surfaces.z_scale_um == pytest.approx(cm[c]["sd_um"], abs=1e-9)
+        assert cm[c]["sd_um"] == pytest.approx(np.sqrt(cm[c]["law_um"] ** 2 + cm[c]["shape_um"] ** 2
+                                                       + cm[c]["frames_um"] ** 2))
+    assert prof.calibration["systematic"]["common_mode_source"].startswith("measured by the e-SFR")
     # the tolerance comes from the edges' widths as measured: an edge mixes focus only along itself, and a pair's
     # width is its tangential track's, which the radial field gradient does not spread; the square-tile window
     # correction of texture tiles (the whole gradient across a tile) narrowed it at the corners of this steep

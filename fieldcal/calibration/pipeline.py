@@ -203,6 +203,8 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     # the frames' position errors fitted with the surface where the tiles' curves allow (replaces the field-wide
     # term above in the band; docs/fitting.md "Stage errors")
     stage_fit = fit_stage_errors(surf, table, stage_rep)
+    if kind.kind == "esfr" and edge_summary and surf.discrepancy is not None:
+        _edge_common_mode(surf.discrepancy, edge_summary.get("common_mode") or {}, float(surf.z_scale_um))
     breathing_sd = breathing_systematic_sd_um(table)
     offset_sd = measure_offset_sd_um(table)
     sc = (surf.diagnostics or {}).get("self_check")
@@ -351,6 +353,21 @@ def chart_measurement(stack, chart: str = "auto"):
     if chart != "auto":
         return ChartKind(chart, -1, -1, z_mid)
     return chart_kind(stack.read_normalized(mid), tuple(stack.channels), getattr(stack, "cfa", None), z_mid)
+
+
+def _edge_common_mode(disc, common: dict, z_scale_um: float) -> None:
+    """The band's field-wide term of slanted-edge rows: the error the channel's peaks share, measured on its
+    tracks (:func:`fieldcal.measure.esfr_focus.law_common_mode`), not a fraction of the per-edge noise
+    (docs/measurement.md "The band's field-wide term"). Where the stage frames are fitted
+    (``Discrepancy.has_stage``) they carry the frames' share; the law's stays."""
+    def sd(c):
+        v = common.get(c) or {}
+        if disc.has_stage:
+            return math.hypot(float(v.get("law_um", 0.0)), float(v.get("shape_um", 0.0)))
+        return float(v.get("sd_um", 0.0))
+    disc.set_common_mode(np.array([sd(c) for c in disc.model.channels]) / z_scale_um,
+                         "measured by the e-SFR peak estimator (measure.esfr_focus.law_common_mode)"
+                         + ("; frames' share in the fitted stage frames" if disc.has_stage else ""))
 
 
 def measure_edges(stack, *, fs_cyc_per_mm: float, q: float, z_ref_um: float, quiet: bool = False):

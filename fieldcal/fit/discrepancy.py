@@ -104,7 +104,7 @@ class Discrepancy:
         (the F statistic of the extra terms minus 1; 0 when the data do not support them).
     common_sd : ndarray or None
         Per channel, the sd of the error shared by the whole field (``COMMON_MODE_FRACTION`` of the per-tile
-        noise sd); added in quadrature at every point.
+        noise sd, or measured on the stack: :meth:`set_common_mode`); added in quadrature at every point.
     stage_c, stage_prior_sd : ndarray or None, float
         Per-frame stage position errors as nuisance coefficients (:mod:`fieldcal.fit.stage`): row i's best focus
         moves by ``stage_c[i] @ e`` with ``e ~ N(0, stage_prior_sd^2)`` per frame (normalised z units). They are
@@ -163,6 +163,27 @@ class Discrepancy:
             self.diagnostics["common_mode_sd_replaced"] = [float(v) for v in self.common_sd]
             self.diagnostics["common_mode_sd"] = [0.0] * int(self.common_sd.size)
             self.common_sd = np.zeros_like(self.common_sd)
+
+    def set_common_mode(self, sd: np.ndarray, source: str) -> None:
+        """Replace the common-mode sd (per channel, normalised z units) by one measured on the stack (in place).
+
+        The default, ``COMMON_MODE_FRACTION`` of the per-tile noise sd, stands for frame-level errors of the
+        through-focus curves shared by the tiles. A slanted-edge peak's field-wide error is its law's, which
+        does not scale with the per-edge noise: over-stated 2x on fieldcal's renderer, several times
+        under-stated on the clean-room's spherical aberration (docs/benchmarks.md
+        "bench_edge_calibration_s10_cm"). The e-SFR peak estimator measures it on each stack
+        (:func:`fieldcal.measure.esfr_focus.law_common_mode`); the stage frames, where fitted, still replace it
+        (:meth:`attach_stage`)."""
+        sd = np.asarray(sd, dtype=np.float64)
+        if sd.shape != (len(self.model.channels),) or not np.all(np.isfinite(sd) & (sd >= 0)):
+            raise ValueError(f"common-mode sd must be one finite sd >= 0 per channel, got {sd!r}")
+        if self.common_sd is not None:
+            self.diagnostics["common_mode_sd_default"] = [float(v) for v in self.common_sd]
+        self.common_sd = sd.copy()
+        self.diagnostics["common_mode_sd"] = [float(v) for v in sd]
+        self.diagnostics["common_mode_fraction"] = None
+        self.diagnostics["common_mode_source"] = str(source)
+        self._cache.clear()
 
     def without_nuisances(self) -> "Discrepancy":
         """The same posterior without the fitted stage frames (their share of the band, by difference)."""
@@ -338,6 +359,8 @@ class Discrepancy:
                "common_mode_sd_um": {c: float(z_scale_um * v) for c, v in zip(self.model.channels,
                                                                                self.common_sd)}
                if self.common_sd is not None else None}
+        if self.diagnostics.get("common_mode_source"):
+            out["common_mode_source"] = self.diagnostics["common_mode_source"]
         if self.diagnostics.get("common_mode_sd_replaced") is not None:
             out["common_mode"] = "replaced by the fitted stage frames (Discrepancy.attach_stage)"
         return out

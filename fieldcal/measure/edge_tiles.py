@@ -29,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from .esfr_focus import TOLERANCE_UNREACHED, analyse_track, analyse_tracks, channel_shape, window_r_of
+from .esfr_focus import (TOLERANCE_UNREACHED, analyse_track, analyse_tracks, channel_shape, law_common_mode,
+                         pool_frame_term, window_r_of)
 from .tiles import TileTable
 
 # A frame is a slanted-edge chart when at least this many detected edges pass the e-SFR quality rules in every
@@ -134,7 +135,8 @@ def _median_length_px(recs) -> float:
 
 
 def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frames: int = 5,
-               shapes_out: dict | None = None, fs_cyc_per_um: float = math.nan) -> dict:
+               shapes_out: dict | None = None, fs_cyc_per_um: float = math.nan,
+               common_out: dict | None = None) -> dict:
     """Per (track, channel): best focus at fs, its sd, peak MTF, half-widths, orientation and the position at
     the frame nearest ``z_ref_um``.
 
@@ -142,7 +144,8 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
     width_um, status, cos2phi (cos 2 phi of the median angle phi between the edge normal and the radius),
     stage_gain (best-focus sd per unit of per-frame stage-position noise), edge_angle_deg (the edge's direction
     from +x, y down: the axial mean of its records') and length_px (the median length of edge the e-SFR binned,
-    ``rows / cos(slant)``; NaN when the records do not say).
+    ``rows / cos(slant)``; NaN when the records do not say). ``common_out`` (a dict) receives each channel's
+    field-wide peak error (:func:`.esfr_focus.law_common_mode`), ``shapes_out`` its pooled asymmetry.
     """
     groups: dict[tuple[int, str], list[dict]] = {}
     for e in mtf.edges:
@@ -179,6 +182,8 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
         keys = [k for k in curves if k[1] == ch]
         res, _ = analyse_tracks([curves[k] for k in keys], q, shape=shapes[ch])
         focus.update(zip(keys, res))
+        if common_out is not None:
+            common_out[ch] = law_common_mode([curves[k] for k in keys], res, shapes[ch])
     for (tr, ch), recs in groups.items():
         near = min(recs, key=lambda e: abs(float(e["z_um"]) - z_ref_um))
         orient = [e["orientation"] for e in recs if e["quality"].get("orientation_clear")]
@@ -511,7 +516,9 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
     z = np.sort(np.asarray(z_um, dtype=np.float64))
     step = float(np.median(np.diff(z))) if z.size > 1 else 1.0
     shapes: dict = {}
-    tf = track_foci(mtf, fs_px, q, z_ref_um, shapes_out=shapes, fs_cyc_per_um=float(fs_cyc_per_mm) * 1e-3)
+    common: dict = {}
+    tf = track_foci(mtf, fs_px, q, z_ref_um, shapes_out=shapes, fs_cyc_per_um=float(fs_cyc_per_mm) * 1e-3,
+                    common_out=common)
     sig = np.maximum(np.nan_to_num(tf["z_sigma_um"], nan=0.0), SIGMA_FLOOR_STEP * step)
     ok = tf["status"] == "ok"
     if pair_px is None:
@@ -609,6 +616,9 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
     summary["window_px"] = table_tile_px
     # the spherical-aberration asymmetry of each channel's MTF(fs) curves, pooled over its tracks
     summary["sa_shape"] = {str(c): v.to_dict() for c, v in shapes.items()}
+    # the error every peak of a channel shares (its law's), measured on its tracks: the band's field-wide term
+    # (calibration.pipeline: Discrepancy.set_common_mode)
+    summary["common_mode"] = {str(c): v.to_dict() for c, v in pool_frame_term(common).items()}
     cols = {k: np.asarray(v, dtype=np.float64) if k not in ("channel", "status") else np.asarray(v, dtype=str)
             for k, v in rows.items()}
     # stage_gain is a column: the band's stage-repeatability term (fit.tiles.stage_sd_um) reads it

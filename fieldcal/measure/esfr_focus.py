@@ -675,7 +675,8 @@ def shaped_track(z_um, mtf_fs, shape: PooledShape, q: float = 0.05) -> TrackFocu
     free: as well conditioned as the symmetric law). Its best focus is the model's peak ``u0 + x_peak /
     kappa`` — the sharpest position, the paper's definition — and its tolerance the model's own ``(1 - q)``
     crossings (:func:`model_points`), as the symmetric law's width is its ``x_q / kappa``. The sd is the delta
-    method over (u0, kappa) with the fit's residual-scaled covariance, plus the pooled s's share."""
+    method over (u0, kappa) with the fit's residual-scaled covariance; the pooled s's share is common to the
+    channel's tracks and goes to the field-wide term (:func:`law_common_mode`)."""
     z, v = _increasing(z_um, mtf_fs)
     fail = TrackFocus(math.nan, math.nan, math.nan, math.nan, math.nan, False, "defocus fit: fit_failed")
     if z.size < 5:
@@ -687,7 +688,9 @@ def shaped_track(z_um, mtf_fs, shape: PooledShape, q: float = 0.05) -> TrackFocu
     xp, xl, xr = shape.x_peak, shape.x_left, shape.x_right
     u_pk = u0 + xp / kappa
     g = np.array([0.0, 1.0, -xp / kappa ** 2, 0.0])
-    var = float(g @ cov @ g) + (shape.dz_ds * shape.sd) ** 2  # the last common to the channel's tracks
+    # the pooled s's error moves every track of the channel alike: a field-wide term (law_common_mode), not
+    # the track's own noise
+    var = float(g @ cov @ g)
     z_pk = zc + u_pk * step
     if not (z[0] < z_pk < z[-1]):
         return TrackFocus(z_pk, math.nan, math.nan, math.nan, math.nan, False, "maximum at the end of the scan")
@@ -881,3 +884,185 @@ def nu_of_width(width_um: float, q: float, fs_cyc_per_um: float, wavelength_um: 
     if excess(lo) > 0 or excess(hi) < 0:
         return math.nan
     return float(brentq(excess, lo, hi, xtol=2e-3))
+
+
+# --------------------------------------------------------------------------- field-wide error of the peaks
+@dataclass(frozen=True)
+class CommonMode:
+    """The error a channel's edge peaks share whatever the edge (1 sigma, µm), measured on its tracks
+    (:func:`law_common_mode`): no fit of a surface over the field can see it, so the band adds it at every
+    point (:meth:`fieldcal.fit.discrepancy.Discrepancy.set_common_mode`)."""
+
+    sd_um: float  # the total: the three terms below in quadrature
+    law_um: float  # half the channel's median difference of the shaped and the symmetric law's peaks
+    shape_um: float  # the pooled asymmetry's own sd moved to the peak: dz/ds x sd(s)
+    shift_um: float  # the median (shaped - symmetric) peak itself (signed; 0 under the symmetric law)
+    n_tracks: int
+    frames_um: float = 0.0  # the frames' shared error: delete-one-frame jackknife of the channel's mean peak
+
+    def to_dict(self) -> dict:
+        return {"sd_um": self.sd_um, "law_um": self.law_um, "shape_um": self.shape_um, "shift_um": self.shift_um,
+                "frames_um": self.frames_um, "n_tracks": self.n_tracks}
+
+
+def _leverages(z: np.ndarray, pre, params: np.ndarray, step: float) -> np.ndarray:
+    """Leverage ``h_kk`` of each sample of a symmetric-law fit's window (``J (J^T J)^-1 J^T``, the fit's own
+    coordinates: :func:`fieldcal.measure.throughfocus._fit_batch`)."""
+    from .throughfocus import _model_eval
+
+    u = (z[pre.lo:pre.hi + 1] - z[pre.i_max]) / step
+    _, J = _model_eval("otf", u[None, :], np.asarray(params, float)[None, :], np.zeros(1))
+    J = J[0]
+    h = np.einsum("ij,jk,ik->i", J, np.linalg.pinv(J.T @ J), J)
+    return np.clip(h, 0.0, 1.0)
+
+
+def frame_jackknife_sd_um(tracks, max_jump_steps: float = 5.0) -> tuple[float, int]:
+    """(sd µm, tracks used) of the error the frames share: a delete-one-frame jackknife of the channel's mean
+    symmetric-law centre, less what the tracks' independent noise gives it.
+
+    Deleting frame k moves track i's centre by ``D_ik`` (the law refitted with that sample's weight 0: one
+    batched fit of every track and deletion), times ``1 - h_ik`` (Hinkley's weighted jackknife: a sample of
+    leverage h moves a least-squares fit by 1 / (1 - h) times its influence when deleted; unweighted, the
+    jackknife read a frame-level error 1.7x too large on defocus-law tracks, tests/test_edge_common_mode.py). The channel mean moves by ``I_k = mean_i D_ik``; the jackknife
+    variance of the mean is ``(K-1)/K sum_k (I_k - mean I)^2``. Independent noise of the tracks adds
+    ``(K-1)/K sum_k sum_i D_ik^2 / N^2`` to it (the cross terms vanish in expectation); what is left is the
+    covariance of different tracks' responses to one frame: an error of that frame seen by every edge (the
+    renderer's or the scene's frame-level error, a stage step, flicker the normalisation left, the law's misfit
+    at the sampling phase the field's peaks share). A refit that jumps by more than ``max_jump_steps`` (a lost
+    peak) is left out."""
+    from .throughfocus import _fit_batch
+
+    groups: dict[tuple, list[np.ndarray]] = {}
+    for z, v in tracks:
+        z, v = _increasing(z, v)
+        if z.size >= 6:
+            groups.setdefault(tuple(np.round(z, 6)), []).append(v)
+    if not groups:
+        return 0.0, 0
+    z_all = np.unique(np.concatenate([np.asarray(k) for k in groups]))
+    rows = []
+    for key, vs in groups.items():
+        z = np.asarray(key)
+        step = float(np.median(np.diff(z)))
+        pres, wts, owner, drop, E = [], [], [], [], []
+        for v in vs:
+            pre = _window(z, v)
+            if pre is None:
+                continue
+            t = len(E)
+            E.append(v * v)
+            k = pre.hi - pre.lo + 1
+            for j in range(-1, k):
+                w = np.ones(k)
+                if j >= 0:
+                    w[j] = 0.0
+                pres.append((t, pre))
+                wts.append(w)
+                owner.append(t)
+                drop.append(pre.lo + j if j >= 0 else -1)
+        if not E:
+            continue
+        fits = _fit_batch(z, np.asarray(E), pres, step, "otf", weights=wts)
+        zc = np.array([z[p.i_max] + f.params[1] * step if f is not None else np.nan for (_, p), f in zip(pres, fits)])
+        owner_a, drop_a = np.asarray(owner), np.asarray(drop)
+        base = np.full(len(E), np.nan)
+        lev: dict[int, np.ndarray] = {}
+        for i in np.flatnonzero(drop_a < 0):
+            if fits[i] is None:
+                continue
+            base[owner_a[i]] = zc[i]
+            lev[int(owner_a[i])] = _leverages(z, pres[i][1], fits[i].params, step)
+        D = np.zeros((len(E), z_all.size))
+        col = np.searchsorted(z_all, z)
+        for i in np.flatnonzero(drop_a >= 0):
+            d = zc[i] - base[owner_a[i]]
+            if math.isfinite(d) and abs(d) <= max_jump_steps * step:
+                # Hinkley's weighted jackknife: a deleted sample's effect is 1 / (1 - h) times its influence
+                D[owner_a[i], col[drop_a[i]]] = d * (1.0 - lev[int(owner_a[i])][drop_a[i] - pres[i][1].lo])
+        rows.append(D[np.isfinite(base)])
+    D = np.concatenate(rows) if rows else np.zeros((0, z_all.size))
+    n, K = D.shape
+    if n < 3 or K < 3:
+        return 0.0, n
+    c = (K - 1) / K
+    mean_k = D.mean(axis=0)
+    v_jk = c * float(np.sum((mean_k - mean_k.mean()) ** 2))
+    v_noise = c * float(np.sum(D * D)) / n ** 2
+    return math.sqrt(max(v_jk - v_noise, 0.0)), n
+
+
+def symmetric_centre_um(z_um, mtf_fs) -> float:
+    """The symmetric defocus law's centre of one track (µm; the fit every shaped fit starts from,
+    :func:`_symmetric_start`), NaN where it fails."""
+    z, v = _increasing(z_um, mtf_fs)
+    start = _symmetric_start(z, v) if z.size >= 5 else None
+    if start is None:
+        return math.nan
+    pre, _, step, sym = start
+    return float(z[pre.i_max] + float(sym.params[1]) * step)
+
+
+def law_common_mode(tracks, results, shape: PooledShape) -> CommonMode:
+    """The field-wide error of a channel's track peaks, measured on the tracks themselves.
+
+    Every track's peak is read through one law from the same frames, so an error of the law or of a frame
+    moves them all alike, and a surface fit takes it for the surface. Three parts are measured on the stack:
+
+    * **the frames**: :func:`frame_jackknife_sd_um`, what the tracks' peaks share of each frame's error;
+
+    * **the law**: where the channel's curves select spherical aberration's asymmetric law
+      (:func:`shaped_track`), the peak it reads lies ``Delta`` from the symmetric law's centre
+      (:func:`symmetric_centre_um`; ``Delta`` the median over the tracks: the same for every track up to its
+      noise). Both laws fit the same samples and estimate the same sharpest position, and a real lens's curve
+      need follow neither exactly (higher-order aberration, the wavelength mix, the pupil's apodisation). Two
+      estimates of one quantity, neither known to be right: their spread about their mean, ``|Delta| / 2``, is
+      the sd of the law's error. Under the symmetric law ``Delta`` is 0 by construction, and its own error
+      on a symmetric curve is the sampling's, which the field's different phases average (docs/measurement.md
+      "The band's field-wide term").
+    * **the pooled asymmetry**: ``s`` is one number for the channel; its sd moves every peak by
+      ``dz/ds x sd(s)`` (``shape.dz_ds``, in steps).
+
+    Parameters
+    ----------
+    tracks : sequence of (z_um, mtf_fs) arrays, the channel's tracks.
+    results : the :class:`TrackFocus` of each (:func:`analyse_tracks`), same order.
+    shape : the channel's :class:`PooledShape`, as used for ``results``.
+    """
+    frames, n_fr = frame_jackknife_sd_um(tracks)
+    if not shape.selected:
+        return CommonMode(frames, 0.0, 0.0, 0.0, n_fr, frames)
+    d, steps = [], []
+    for (z, v), tk in zip(tracks, results):
+        if not (tk.ok or tk.reason == TOLERANCE_UNREACHED) or not math.isfinite(tk.z_best_um):
+            continue
+        zs = symmetric_centre_um(z, v)
+        if math.isfinite(zs):
+            d.append(tk.z_best_um - zs)
+            steps.append(float(np.median(np.diff(np.sort(np.asarray(z, float))))))
+    if not d:
+        return CommonMode(frames, 0.0, 0.0, 0.0, n_fr, frames)
+    shift = float(np.median(d))
+    law = 0.5 * abs(shift)
+    sh = abs(shape.dz_ds * shape.sd) * float(np.median(steps)) if math.isfinite(shape.sd) else 0.0
+    return CommonMode(math.sqrt(law * law + sh * sh + frames * frames), law, sh, shift, len(d), frames)
+
+
+def pool_frame_term(common: dict) -> dict:
+    """The channels' :class:`CommonMode` with one frame term for all of them: the root mean square of their
+    jackknife estimates (:func:`frame_jackknife_sd_um`).
+
+    The frames are the stack's, so an error of a frame (its stage position, its exposure, the scene's motion)
+    reaches every channel of it; one channel's jackknife has only about as many degrees of freedom as the
+    track's window has frames, and clipped at 0 it reads nothing as often as twice the truth. The channels'
+    mean variance is the better estimate of the frames' share in each."""
+    from dataclasses import replace
+
+    if not common:
+        return dict(common)
+    f2 = float(np.mean([v.frames_um ** 2 for v in common.values()]))
+    out = {}
+    for c, v in common.items():
+        tot = math.sqrt(max(v.law_um ** 2 + v.shape_um ** 2 + f2, 0.0))
+        out[c] = replace(v, frames_um=math.sqrt(f2), sd_um=tot)
+    return out
