@@ -231,8 +231,8 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
             e["chosen"] = e["name"] == best_name
             e["delta_shared_score"] = None if e["name"] not in shared else shared[e["name"]] - shared[best_name]
     # The choice: the simplest candidate whose blocked held-out predictive loss is not significantly worse than
-    # the best's (paired test, :func:`paired_test_choice`). The scores above stay the model-average weights. Why not the lowest score: the
-    # tiles' errors are heavy-tailed (~t4) and spatially correlated, so a BIC likelihood ratio overstates the
+    # the best's (paired test, :func:`paired_test_choice`). The scores above stay the model-average weights.
+    # Why not the lowest score: the tiles' errors are heavy-tailed (~t4) and spatially correlated, so a BIC likelihood ratio overstates the
     # evidence, and with ~10 richer candidates one of them beats the simplest by a unit or two of noise: a
     # flat lens picked curvature in 4 of 20 seeds, an astigmatic one rho^4/rho^6 astigmatism terms, by
     # 0.7-1.4 (docs/fitting.md "Model selection").
