@@ -5,8 +5,9 @@ Over seeds, three G-only lenses at the flat-lens test's setting (320x240, quick,
 ``--curv-um`` µm at the corner, rho = 1). Each stack is rendered and measured once; the tiles handed to
 :func:`fieldcal.fit.fit_surfaces` are cached (``--cache``), so the selection alone can be re-run on them.
 
-Prints per lens the chosen models and the rates: spurious terms (flat), tilt found with the right values
-(tilted), curvature found (curved).
+Prints per seed the chosen model and the paired held-out test of the simplest compared candidate (its loss
+above the best's and the test's margin, :func:`fieldcal.fit.select.paired_test_choice`), and per lens the rates:
+spurious terms (flat), tilt found with the right values (tilted), curvature found (curved).
 
 Example::
 
@@ -94,7 +95,12 @@ def main(argv=None):
                 good = hit and not m.tilt and not m.decentre
             ok += good
             found += hit
-            print(f"{name} seed {s}: {m.name} {'ok' if good else 'WRONG'}", flush=True)
+            # the simplest compared candidate's held-out loss above the best, and the paired test's margin
+            cv = [e for e in f.candidates if e.get("cv_margin") is not None]
+            simplest = min(cv, key=lambda e: e["n_params"]) if cv else None
+            why = (f" (simplest compared {simplest['name']}: {simplest['cv_delta']:.1f} above the best, "
+                   f"margin {simplest['cv_margin']:.1f})") if simplest else ""
+            print(f"{name} seed {s}: {m.name} {'ok' if good else 'WRONG'}{why}", flush=True)
         what = {"flat": "spurious terms", "tilted": "tilt found within 1.5 µm/mm",
                 "curved": "curvature found"}[name]
         print(f"== {name}: {ok}/{a.seeds} exactly the lens's terms; {what} {found}/{a.seeds}; picks {dict(picks)}",

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -129,16 +130,54 @@ def test_spatial_blocks_follow_the_field_and_keep_a_tile_whole():
     assert sizes.min() >= 4 and sizes.max() <= 9
 
 
-def test_one_standard_error_rule_takes_the_simplest_within_one_se_of_the_best():
-    from fieldcal.fit.select import one_standard_error_choice
+def test_paired_test_keeps_the_simplest_model_not_significantly_worse_than_the_best():
+    from scipy.stats import t as student_t
 
-    best = np.array([10.0, 12.0, 8.0, 10.0])          # sd 1.633 -> SE of the total = 2 * 1.633 = 3.27
-    se = 2.0 * np.std(best, ddof=1)
-    losses = {"rich": best, "mid": best + (se - 0.01) / 4, "simple": best + (se + 0.01) / 4}
+    from fieldcal.fit.select import paired_test_choice
+
+    rng = np.random.default_rng(3)
+    best = rng.uniform(10.0, 30.0, 10)                 # 10 blocks of 12 rows
+    rows = np.full(10, 12)
+    noise = rng.standard_normal(10)
+    # a richer model's gain with this spread: SE of the total difference, Nadeau-Bengio inflated (1 + 10/9)
+    se = math.sqrt(10 * np.var(noise, ddof=1) * (1.0 + 10 * 12 / 108))
+    margin = student_t.ppf(0.95, 9) * se
+    shift = lambda total: noise - noise.mean() + total / 10.0
+    losses = {"rich": best, "mid": best + shift(margin - 0.01), "simple": best + shift(margin + 0.01)}
     k = {"rich": 5, "mid": 3, "simple": 1}
-    name, stats = one_standard_error_choice(losses, k)
+    name, stats = paired_test_choice(losses, k, rows)
     assert name == "mid"
-    assert stats["simple"][0] == pytest.approx(se + 0.01) and stats["simple"][1] == pytest.approx(se)
-    # within the SE, fewer parameters win even against a lower loss
-    losses["simple"] = best + (se - 0.02) / 4
-    assert one_standard_error_choice(losses, k)[0] == "simple"
+    assert stats["simple"][0] == pytest.approx(margin + 0.01)
+    assert stats["simple"][1] == pytest.approx(se) and stats["simple"][2] == pytest.approx(margin)
+    assert stats["rich"] == (0.0, 0.0, 0.0)
+    # the same total gain spread evenly over the blocks (a consistent difference) is significant
+    losses["mid"] = best + (margin - 0.01) / 10.0
+    assert paired_test_choice(losses, k, rows)[0] == "rich"
+    # one block: no test is possible, nothing is shown worse, so the simplest is kept
+    assert paired_test_choice({n: v[:1] for n, v in losses.items()}, k, rows[:1])[0] == "simple"
+
+
+def _decentred_rho4(amp_um: float):
+    spec = base_lens(("G",))
+    return replace(spec, channels=(replace(spec.channels[0], curvature_um=(-60.0, amp_um)),),
+                   decentre_mm=(0.6, -0.36))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_decentred_rho4_surface_gets_a_decentre_and_a_flat_one_no_terms(seed):
+    """The choice over seeds: a real decentred rho^4 (10 µm at rho = 1, centre 0.7 mm off) is chosen decentred
+    and followed; a flat lens gets no term at all."""
+    from fieldcal.fit.synthetic import surface_rms_error_um, synthetic_tiles
+
+    rng = np.random.default_rng(seed)
+    tiles, geom, truth = synthetic_tiles(_decentred_rho4(10.0), rng, nx=9, ny=7, directional=False)
+    f = fit_surfaces(tiles, geom, effort="quick", quiet=True)
+    assert f.model.decentre and f.model.order >= 1
+    assert surface_rms_error_um(f, truth) < 1.0          # tile noise 0.5-4.5 µm, 63 tiles
+    for s in (seed, seed + 3):
+        rng = np.random.default_rng(100 + s)
+        tiles, geom, _ = synthetic_tiles(base_lens(("G",)), rng, nx=9, ny=7, directional=False)
+        m = fit_surfaces(tiles, geom, effort="quick", quiet=True).model
+        assert m.order == 0 and not m.tilt and not m.decentre, m.name
+
+
