@@ -246,7 +246,8 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
             for lev in range(levels):
                 count[lev] += near[lev]
 
-    for _ in map_in_order(gather, items):
+    for _ in progress(map_in_order(gather, items), total=len(items), desc="fine detail, gathering", quiet=quiet,
+                      unit="frame"):
         pass
     for lev in range(levels):
         sel, n = select[lev], count[lev]
