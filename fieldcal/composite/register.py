@@ -599,7 +599,7 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
         step = steps[k]
         if step is None and starts[k] is None:  # bridged with the scale-and-shift model's own step
             a = frame_map_matrix(geo, float(zs[k + 1])) @ np.linalg.inv(frame_map_matrix(geo, float(zs[k])))
-            return None, (a, a, a)
+            return False, (a, a, a)
         # a scale-and-shift fit fails on a pair that rolls (a handheld camera): ECC's affine is the start then
         s = starts[k] if step is None else _with_scale_shift(starts[k], step, cs)
         pp = PlanePair(planes[k], planes[k + 1], levels=3)
@@ -607,10 +607,12 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
         full = fit_pair(pp, model=models[-1], init=s, finest=check)
         start = full if full is not None else s
         halves = [fit_pair(pp, model=models[-1], init=start, part=part, finest=check) for part in ("top", "bottom")]
-        return pp, tuple(_to_full(m if m is not None else s, factor) for m in (start, *halves))
+        # the pair's pyramid is not kept for the refit: 60 pairs' pyramids, gradients and splines would hold
+        # ~0.5 GB at once (memory growing with the frames); the refit builds each again, a few ms
+        return True, tuple(_to_full(m if m is not None else s, factor) for m in (start, *halves))
 
     done = _map_threads(looks_of, list(range(len(steps))), "choosing the model", quiet)
-    pairs_planes = [pp for pp, _ in done]
+    fitted = [ok for ok, _ in done]
     looks = {look: [v[j] for _, v in done] for j, look in enumerate(("all", "top", "bottom"))}
     chains = {(m, look): chain_to_reference([_project(p, m, w, h) for p in pairs], ref)
               for m in models for look, pairs in looks.items()}
@@ -635,8 +637,8 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
     def refit(k):  # the chosen model, refitted on the full planes from the check's fit
         p = looks["all"][k]
         init = np.linalg.inv(s_plane) @ _project(p, chosen, w, h) @ s_plane  # in plane px
-        pair, pairs_planes[k] = pairs_planes[k], None  # its full-size gradients and splines go with it (~20 MB)
-        fit = None if pair is None else fit_pair(pair, model=chosen, init=init)
+        fit = None if not fitted[k] else fit_pair(PlanePair(planes[k], planes[k + 1], levels=3), model=chosen,
+                                                  init=init)
         return _to_full(fit, factor) if fit is not None else _project(p, chosen, w, h)
 
     maps = chain_to_reference(_map_threads(refit, list(range(len(steps))), f"fitting {chosen}", quiet), ref)
