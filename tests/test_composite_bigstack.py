@@ -183,3 +183,15 @@ def test_cli_refuses_a_composite_beyond_max_memory_with_exit_4_and_the_flag(tmp_
     assert code == EXIT_ENVIRONMENT and not out.exists()
     assert "--max-memory" in err and "fix:" in err and "Traceback" not in err
     assert main(["composite", str(tmp_path / "st"), "--out", str(out), "--max-memory", "lots", "--quiet"]) == 2
+
+
+def test_available_memory_check_counts_only_what_the_images_add(monkeypatch):
+    """The memory available now excludes the interpreter the process already holds: a small composite passes
+    with a little more than its images' part free, and is refused with less."""
+    images = memory.estimate_peak_bytes(2048, 1536, 3) - memory.BASE_BYTES
+    monkeypatch.setattr(memory, "available_memory_bytes", lambda: int(images * memory.HEADROOM) + 1)
+    memory.check_memory(2048, 1536, 3, 10)
+    monkeypatch.setattr(memory, "available_memory_bytes", lambda: int(images * 0.9))
+    with pytest.raises(ResourceError) as e:
+        memory.check_memory(2048, 1536, 3, 10)
+    assert "available now" in str(e.value)

@@ -87,7 +87,8 @@ def parse_memory_bytes(value, field: str = "max_memory") -> int | None:
 def check_memory(width: int, height: int, channels: int, n_frames: int, *, max_memory_bytes: int | None = None,
                  where=None) -> dict:
     """Refuse a composite whose estimated peak (:func:`estimate_peak_bytes`, with :data:`HEADROOM`) exceeds
-    ``max_memory_bytes`` (default: :func:`available_memory_bytes`). Returns what was checked (for metadata).
+    ``max_memory_bytes`` (the whole process's), or whose images' part (the estimate less :data:`BASE_BYTES`,
+    which the process already holds) exceeds :func:`available_memory_bytes`. Returns what was checked.
 
     Raises
     ------
@@ -95,20 +96,23 @@ def check_memory(width: int, height: int, channels: int, n_frames: int, *, max_m
         Naming the need, the limit and what to do.
     """
     need = estimate_peak_bytes(width, height, channels)
-    limit = max_memory_bytes if max_memory_bytes is not None else available_memory_bytes()
-    info = {"estimated_peak_bytes": need, "limit_bytes": limit,
-            "limit_from": "max_memory" if max_memory_bytes is not None else "available"}
-    if limit is None or need * HEADROOM <= limit:
+    given = max_memory_bytes is not None
+    limit = max_memory_bytes if given else available_memory_bytes()
+    info = {"estimated_peak_bytes": need, "limit_bytes": limit, "limit_from": "max_memory" if given else "available"}
+    # a limit given is the whole process's; the memory available now excludes what the process already holds
+    # (the interpreter and libraries, BASE_BYTES): only the images' part must fit in it
+    base = 0 if given else BASE_BYTES
+    if limit is None or (need - base) * HEADROOM <= limit:
         return info
     # what fits: the largest image of this aspect ratio and channels within the limit
-    room = max(0.0, limit / HEADROOM - BASE_BYTES)
+    room = max(0.0, limit / HEADROOM - (BASE_BYTES - base))
     scale = min(1.0, (room / max(BYTES_PER_SAMPLE * width * height * channels, 1.0)) ** 0.5)
     fits = f"{int(width * scale)}x{int(height * scale)}" if scale > 0.05 else "no image of this size"
     source = "the limit given (max_memory)" if max_memory_bytes is not None else "the memory available now"
     raise ResourceError(
         f"compositing {n_frames} frames of {width}x{height} px x {channels} channel(s) by depth from focus needs "
-        f"about {need * HEADROOM / GB:.1f} GB of memory at its peak (whatever the number of frames); "
-        f"{source} is {limit / GB:.1f} GB. Frames of up to about {fits} px would fit",
+        f"about {(need - base) * HEADROOM / GB:.1f} GB {'more ' if base else ''}of memory at its peak (whatever "
+        f"the number of frames); {source} is {limit / GB:.1f} GB. Frames of up to about {fits} px would fit",
         path=where, field="max_memory",
         fix="free memory (close other programs) and run again; or composite frames downscaled or cropped to that "
             "size; or, with a profile, use the profile method (it streams in bands); --max-memory SIZE sets the "
