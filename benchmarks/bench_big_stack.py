@@ -110,7 +110,8 @@ def make_case(name: str) -> BigCase:
     else:
         raise SystemExit(f"unknown case {name!r}")
     n = 10 * reps
-    kref = reps * REF + reps // 2
+    kref_content = reps * REF + reps // 2  # a middle copy of original frame REF, in focus order
+    kref = n - 1 - kref_content if "reversed" in name else kref_content  # its file index
     up = upsampling(size, 0.5 * breath + 0.004)
     w, h = size
     centre = ((w - 1) / 2, (h - 1) / 2)
@@ -118,15 +119,20 @@ def make_case(name: str) -> BigCase:
                 reverse_names="reversed" in name)
     step = Z_STEP_UM / reps
     c.z = (-step * kref, step)
+    # reversed: the files are named far-to-near and --z gives z ascending over the names, so file j holds frame
+    # n - 1 - j of the focus order; the lists are kept in file order, and the reference (z = 0, file kref) is
+    # the unperturbed frame
     for k in range(n):
-        if k == kref:
+        if k == kref_content:
             a = up
         else:
-            s = 1.0 + breath * (k - kref) / (n - 1) + (rng.uniform(-0.001, 0.001) if jitter and not breath else 0.0)
+            s = 1.0 + breath * (k - kref_content) / (n - 1) + (rng.uniform(-0.001, 0.001) if jitter and not breath else 0.0)
             t = rng.uniform(-jitter, jitter, 2) if jitter else (0.0, 0.0)
             a = similarity(s, shift=t, centre=centre) @ up
         c.orig.append(k // reps)
         c.A.append(a)
+    if c.reverse_names:
+        c.orig, c.A = c.orig[::-1], c.A[::-1]
     return c
 
 
@@ -143,8 +149,7 @@ def write_frames(case: BigCase, full: list[np.ndarray], jpegs: list[Path], folde
     for k in range(n):
         img = cv2.warpAffine(full[case.orig[k]], case.A[k][:2], case.size, flags=cv2.INTER_CUBIC,
                              borderMode=cv2.BORDER_REPLICATE)
-        j = n - 1 - k if case.reverse_names else k  # reversed: file 0 is the farthest frame
-        name = folder / f"frame_{j:03d}"
+        name = folder / f"frame_{k:03d}"  # file order (reversed cases: their lists are in file order already)
         if case.fmt == "tiff16":
             # 8-bit frames to 16 bits with the sub-DN values of a bicubic warp done again in float
             img = cv2.warpAffine(full[case.orig[k]].astype(np.float32) * 257.0, case.A[k][:2], case.size,
