@@ -195,3 +195,20 @@ def test_available_memory_check_counts_only_what_the_images_add(monkeypatch):
     with pytest.raises(ResourceError) as e:
         memory.check_memory(2048, 1536, 3, 10)
     assert "available now" in str(e.value)
+
+
+def test_fine_detail_takes_a_frame_beyond_the_255th():
+    """A 300-frame stack (a deep macro stack on a rail): the sharp frame is number 280; the per-coefficient choice
+    is held in 16 bits, so it is that frame's detail that is taken (8 bits would wrap it to frame 24)."""
+    import cv2
+
+    from fieldcal.composite.detail import fine_detail
+
+    rng = np.random.default_rng(7)
+    sharp = rng.random((32, 32, 1)).astype(np.float32)
+    soft = cv2.GaussianBlur(sharp, (0, 0), 2.0)[..., None]
+    n, k = 300, 280
+    frames = [sharp if j == k else soft for j in range(n)]
+    st = ArrayStack(frames, np.arange(n) * 5.0, ["Y"])
+    out, info = fine_detail(st, soft, np.full((32, 32), float(k), np.float32), quiet=True)
+    assert np.abs(out - sharp).mean() < 0.3 * np.abs(soft - sharp).mean()
