@@ -219,7 +219,7 @@ def report(rows: list[dict], write: bool) -> None:
             r["cpu per MP"] = r["cpu (s)"] / (r["frames"] * w * h / 1e6)
     cols = [("case", "case", ""), ("frames", "frames", "d"), ("size (px)", "size", ""), ("format", "fmt", ""),
             ("import (s)", "import (s)", ".1f"), ("composite wall (s)", "wall (s)", ".1f"),
-            ("CPU (s)", "cpu (s)", ".1f"), ("peak RSS (MB)", "rss (MB)", ".0f"),
+            ("CPU (s)", "cpu (s)", ".1f"), ("peak RSS (MiB)", "rss (MB)", ".0f"),
             ("CPU s per frame-MP", "cpu per MP", ".3f"), ("model", "model", ""),
             ("registration RMS (px)", "reg RMS (px)", ".3f"), ("max (px)", "reg max (px)", ".3f"),
             ("sharpness / original", "sharpness ratio", ".3f"), ("PSNR vs original (dB)", "psnr", ".1f"),

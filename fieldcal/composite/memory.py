@@ -23,9 +23,9 @@ from ..errors import ParameterError, ResourceError
 
 #: Peak resident memory of ``fieldcal composite`` without a profile (depth from focus, a scene with depth: the
 #: most memory of its paths) per pixel and channel, and what the process holds before any image (interpreter,
-#: NumPy, OpenCV, SciPy). Measured with ``/usr/bin/time -v`` (benchmarks/bench_big_stack.py) on RGB JPEG
-#: stacks: 2048x1536 10 frames 665 MB, 4000x3000 10 frames 2.1 GB, 6000x4000 60 frames 3.9 GB; the line through
-#: them, rounded up.
+#: NumPy, OpenCV, SciPy). Measured with ``/usr/bin/time -v`` (benchmarks/bench_big_stack.py) on RGB stacks:
+#: 2048x1536 7-10 frames 633-659 MiB, 4000x3000 10-30 frames (JPEG, 16-bit TIFF) 1990-2079 MiB, 6000x4000 60
+#: frames 3933 MiB; the estimate is above each (868, 2185, 3970 MiB).
 BYTES_PER_SAMPLE = 52.0
 BASE_BYTES = 400 * 2 ** 20
 #: Headroom on top of the estimate: other processes' memory changes while a composite runs for minutes.
