@@ -3,7 +3,7 @@
 Compositing streams the frames: every pass (registration, focus volume, fusion, depth map, blending, fine
 detail) holds a few frames' float32 planes and a few full-size maps, never the stack, so its peak memory grows
 with the image's pixels and channels, not with the number of frames (measured, docs/benchmarks.md section
-``bench_big_stack``: 10 or 60 frames of 24 MP peak within a few % of each other). The registered frames go to an
+``bench_big_stack``: 10 and 30 frames of 12 MP peak within 5 % of each other). The registered frames go to an
 unlinked temporary file (:class:`fieldcal.composite.source.HeldFrames`) beyond a small budget: that takes disk,
 ``frames x pixels x channels x 2`` bytes (8-bit frames are held as 16-bit fixed point), and the page cache,
 which the kernel gives back under pressure.
