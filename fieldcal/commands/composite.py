@@ -7,7 +7,7 @@ from . import add_parser
 
 # the API fields composite_to_file's errors name, where the flag is spelt differently
 FIELD_FLAGS = {"fs_cyc_per_mm": "--fs", "breathing": "--breathing", "zone_px": "--zone-px",
-               "camera_noise": "--camera-noise"}
+               "camera_noise": "--camera-noise", "max_memory": "--max-memory"}
 
 EXAMPLE = ("fieldcal composite STACK --profile lens.json --out image.tiff\n"
            "  fieldcal composite STACK --out image.tiff                      (no profile: depth from focus)\n"
@@ -63,6 +63,9 @@ def register(sub):
     p.add_argument("--depth", choices=["auto", "flat", "3d"], default="auto",
                    help="dff/hybrid: a flat scene (best focus from a smooth surface) or one with depth (per pixel, "
                         "edge-aware); auto decides from how well a surface fits the measured depths (default)")
+    p.add_argument("--max-memory", metavar="SIZE",
+                   help="without a profile (dff, hybrid): the memory the composite may take, e.g. 8G (default: "
+                        "the memory available now); a composite that would need more is refused before any work")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("--no-verify", action="store_true",
                    help="use frames whose content no longer matches the sha256 stack.json records")
@@ -80,7 +83,8 @@ def run(args) -> int:
                             lateral_colour=args.lateral_colour, depth=args.depth, overwrite=args.overwrite,
                             verify=not args.no_verify, quiet=args.quiet,
                             breathing=args.breathing or "auto", zone_px=args.zone_px,
-                            camera_noise=tuple(args.camera_noise) if args.camera_noise else None)
+                            camera_noise=tuple(args.camera_noise) if args.camera_noise else None,
+                            max_memory=args.max_memory)
     if "sweep" in res.metadata:
         info = res.metadata["sweep"]
         gains = {c: round(v.get("noise_gain", float("nan")), 2) for c, v in info.get("channels", {}).items()

@@ -47,7 +47,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
                     q: float = 0.05, min_band: float = 0.25, lateral_colour: bool = False,
                     block_px: int | None = None, tile: int = DEFAULT_TILE_PX, focus_offset_um: float = 0.0,
                     register: bool = True, z_ref_um: float | None = None, depth: str = "auto",
-                    fine_detail: bool = True, quiet: bool = False) -> CompositeResult:
+                    fine_detail: bool = True, max_memory=None, quiet: bool = False) -> CompositeResult:
     """All-in-focus composite of a stack.
 
     Parameters
@@ -88,6 +88,10 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         A scene with depth composited without the Wiener filter (no profile, or no F-number): the two finest
         pyramid levels per coefficient from the sharpest frame near the depth map's choice
         (:mod:`fieldcal.composite.detail`). ``False`` keeps the depth map's blend there.
+    max_memory : int or str, optional
+        ``dff`` and ``hybrid``: the memory the composite may take (bytes, or ``"8G"``); default the memory
+        available now. A composite whose measured peak (:func:`fieldcal.composite.memory.estimate_peak_bytes`:
+        it grows with the pixels, not the frames) exceeds it is refused before any work (ResourceError).
     """
     if depth not in DEPTH_MODES:
         raise ParameterError(f"unknown depth mode {depth!r}", field="depth", fix=f"use one of {', '.join(DEPTH_MODES)}")
@@ -100,7 +104,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     if method == "profile":
         # JPEG/PNG frames decode whole per read: decoded once here instead of once per band
         check_profile_matches(stack, profile)
-        src = hold_decoded(stack, select_frames(stack, frames))
+        src = hold_decoded(stack, select_frames(stack, frames), quiet=quiet)
         return composite_profile(src, profile, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm, q=q,
                                  min_band=min_band, lateral_colour=lateral_colour, tile=tile,
                                  focus_offset_um=focus_offset_um, quiet=quiet)
@@ -111,6 +115,10 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     channels = tuple(stack.channels)
     geometry = profile
     info: dict = {"frames_used": int(len(frames))}
+    # before minutes of work: the out-of-memory killer would end it without a word (composite/memory.py)
+    from .memory import check_memory, parse_memory_bytes
+    check_memory(w, h, len(channels), len(frames), max_memory_bytes=parse_memory_bytes(max_memory),
+                 where=getattr(stack, "path", None))
     if profile is None and register and len(frames) > 1:
         # each frame decoded once and warped once into the reference geometry; every pass below reads those
         from .register import register_stack
@@ -451,7 +459,7 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
                       register: bool = True, lateral_colour: bool = False, depth: str = "auto",
                       overwrite: bool = False, verify: bool = True, quiet: bool = False,
                       breathing: str | None = "auto", zone_px: int | None = None,
-                      camera_noise: tuple[float, float] | None = None) -> CompositeOutput:
+                      camera_noise: tuple[float, float] | None = None, max_memory=None) -> CompositeOutput:
     """Composite a stack folder (or restore a captured sweep image) into a TIFF with its metadata.
 
     Parameters
@@ -472,7 +480,7 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         Emulate a focal sweep of this half-range (µm) and deconvolve it (``deconvolve``, ``rl_iterations``).
     fs_cyc_per_mm, q : float, optional
         The focus tolerance that sets the seam width (default: the plan's, else Nyquist/4 and 0.05).
-    z_ref_um, register, lateral_colour, depth, quiet
+    z_ref_um, register, lateral_colour, depth, max_memory, quiet
         See :func:`composite_stack`.
     overwrite : bool
         Replace an existing output file (never an input: the stack, its frames, the profile, the plan).
@@ -556,7 +564,8 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
             return CompositeOutput(out, meta["method"], meta)
         res = composite_stack(st, prof, method, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm,
                               q=0.05 if q is None else q, lateral_colour=lateral_colour, focus_offset_um=offset,
-                              register=register, z_ref_um=z_ref_um, depth=depth, quiet=quiet)
+                              register=register, z_ref_um=z_ref_um, depth=depth, max_memory=max_memory,
+                              quiet=quiet)
         z_ref = float(prof.z_ref_um) if prof is not None else res.info.get("registration", {}).get("z_ref_um")
         meta.update({"method": res.method, "z_ref_um": z_ref, "lateral_colour_corrected": bool(lateral_colour),
                      **res.info})

@@ -150,9 +150,12 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     z_all = z_positions(stack)
     idx = np.arange(len(z_all)) if frames is None else np.asarray(frames, dtype=int)
     order = idx[np.argsort(z_all[idx], kind="stable")]
-    if len(order) > 255:
-        raise ParameterError(f"{len(order)} frames: the choice is held in 8 bits", field="frames",
-                             fix="composite at most 255 frames at a time")
+    # the chosen frame per coefficient: 8 bits up to 255 frames, 16 beyond (a deep macro stack on a rail can
+    # have hundreds; OpenCV's median filter takes 16-bit input up to 5 px)
+    choice_dtype = np.uint8 if len(order) <= 255 else np.uint16
+    if choice_dtype == np.uint16 and consistency_px > 5:
+        raise ParameterError(f"a consistency filter of {consistency_px} px on {len(order)} frames",
+                             field="consistency_px", fix="use a filter of at most 5 px with more than 255 frames")
     shapes = _level_shapes(h, w, levels - 1)  # the fine levels' own sizes
     kd = _level_index(depth_index, shapes)
     reach = np.float32(reach_frames)
@@ -192,7 +195,7 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
         return m
 
     best = [np.full(s, -2.0, np.float32) for s in shapes]
-    choice = [np.zeros(s, np.uint8) for s in shapes]
+    choice = [np.zeros(s, choice_dtype) for s in shapes]
     noise = [np.inf] * levels
     items = list(enumerate(order))
     for k, sal in progress(zip(range(len(items)), map_in_order(salience, items)), total=len(items),
@@ -215,7 +218,7 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     del best
     if consistency_px > 1:
         choice = [cv2.medianBlur(c, int(consistency_px)) for c in choice]
-    nearest = [np.clip(np.rint(d), 0, len(order) - 1).astype(np.uint8) for d in kd]
+    nearest = [np.clip(np.rint(d), 0, len(order) - 1).astype(choice_dtype) for d in kd]
     info = {"fine_levels": levels, "reach_frames": float(reach_frames),
             "coefficients_off_depth_map": [round(float(np.mean(c != n)), 4) for c, n in zip(choice, nearest)]}
     info["coefficients_averaged"] = [round(float(np.mean(sel < 0.5)), 4) for sel in select]
@@ -246,7 +249,8 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
             for lev in range(levels):
                 count[lev] += near[lev]
 
-    for _ in map_in_order(gather, items):
+    for _ in progress(map_in_order(gather, items), total=len(items), desc="fine detail, gathering", quiet=quiet,
+                      unit="frame"):
         pass
     for lev in range(levels):
         sel, n = select[lev], count[lev]

@@ -201,17 +201,19 @@ def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_sid
     return _scale_shift(stack, frames, z_ref_um, max_side_px, quiet, planes)[0]
 
 
-def _map_threads(fn, items: list) -> list:
-    """``[fn(x) for x in items]`` on the compositing threads: OpenCV and SciPy's resampling release the GIL."""
+def _map_threads(fn, items: list, desc: str = "", quiet: bool = True, unit: str = "pair") -> list:
+    """``[fn(x) for x in items]`` on the compositing threads: OpenCV and SciPy's resampling release the GIL.
+    With ``desc`` and not ``quiet``, a progress bar counts the results as they come (a 60-frame stack of 24 MP
+    spends minutes here)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from .source import default_workers
 
     workers = default_workers()
     if workers == 1 or len(items) < 2:
-        return [fn(x) for x in items]
+        return list(progress(map(fn, items), total=len(items), desc=desc, quiet=quiet or not desc, unit=unit))
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        return list(pool.map(fn, items))
+        return list(progress(pool.map(fn, items), total=len(items), desc=desc, quiet=quiet or not desc, unit=unit))
 
 
 def _pair_steps(planes, cs, quiet: bool):
@@ -230,9 +232,9 @@ def _pair_steps(planes, cs, quiet: bool):
                              tol_px=1e-3), start
 
     pairs = list(range(1, len(planes)))
-    done = _map_threads(ecc_step, pairs)
+    done = _map_threads(ecc_step, pairs, "registering", quiet)
     steps, starts = [d[0] for d in done], [d[1] for d in done]
-    for k in progress(pairs, total=len(pairs), desc="registering", quiet=quiet, unit="pair"):
+    for k in pairs:
         if steps[k - 1] is None:  # no ECC start: the previous step's, else register_step's own fallbacks
             prev = steps[k - 2] if k >= 2 else None
             init = (prev.r, prev.tx, prev.ty) if prev is not None else None
@@ -597,7 +599,7 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
         step = steps[k]
         if step is None and starts[k] is None:  # bridged with the scale-and-shift model's own step
             a = frame_map_matrix(geo, float(zs[k + 1])) @ np.linalg.inv(frame_map_matrix(geo, float(zs[k])))
-            return None, (a, a, a)
+            return False, (a, a, a)
         # a scale-and-shift fit fails on a pair that rolls (a handheld camera): ECC's affine is the start then
         s = starts[k] if step is None else _with_scale_shift(starts[k], step, cs)
         pp = PlanePair(planes[k], planes[k + 1], levels=3)
@@ -605,10 +607,12 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
         full = fit_pair(pp, model=models[-1], init=s, finest=check)
         start = full if full is not None else s
         halves = [fit_pair(pp, model=models[-1], init=start, part=part, finest=check) for part in ("top", "bottom")]
-        return pp, tuple(_to_full(m if m is not None else s, factor) for m in (start, *halves))
+        # the pair's pyramid is not kept for the refit: 60 pairs' pyramids, gradients and splines would hold
+        # ~0.5 GB at once (memory growing with the frames); the refit builds each again, a few ms
+        return True, tuple(_to_full(m if m is not None else s, factor) for m in (start, *halves))
 
-    done = _map_threads(looks_of, list(range(len(steps))))
-    pairs_planes = [pp for pp, _ in done]
+    done = _map_threads(looks_of, list(range(len(steps))), "choosing the model", quiet)
+    fitted = [ok for ok, _ in done]
     looks = {look: [v[j] for _, v in done] for j, look in enumerate(("all", "top", "bottom"))}
     chains = {(m, look): chain_to_reference([_project(p, m, w, h) for p in pairs], ref)
               for m in models for look, pairs in looks.items()}
@@ -633,10 +637,11 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
     def refit(k):  # the chosen model, refitted on the full planes from the check's fit
         p = looks["all"][k]
         init = np.linalg.inv(s_plane) @ _project(p, chosen, w, h) @ s_plane  # in plane px
-        fit = None if pairs_planes[k] is None else fit_pair(pairs_planes[k], model=chosen, init=init)
+        fit = None if not fitted[k] else fit_pair(PlanePair(planes[k], planes[k + 1], levels=3), model=chosen,
+                                                  init=init)
         return _to_full(fit, factor) if fit is not None else _project(p, chosen, w, h)
 
-    maps = chain_to_reference(_map_threads(refit, list(range(len(steps)))), ref)
+    maps = chain_to_reference(_map_threads(refit, list(range(len(steps))), f"fitting {chosen}", quiet), ref)
     # maps[k] takes a reference px to frame k's: the output (reference geometry) samples frame k there
     return MatrixGeometry(z_ref_um, zs, maps, chosen, geo, deviations)
 
@@ -688,7 +693,8 @@ class FrameSupport:
 
     Outside it :func:`warp_frame` repeats the frame's edge pixels, which makes streaks with a strong focus
     measure: the compositing passes never choose a frame there (another frame, at least the reference, covers
-    every pixel). Masks are made on first use (a nearest-neighbour warp of the frame's rectangle) and kept.
+    every pixel). Masks are made on first use (a nearest-neighbour warp of the frame's rectangle) and kept as
+    bits (each call unpacks a new bool array).
     """
 
     def __init__(self, geometry, z_by_index: dict[int, float], width: int, height: int,
@@ -715,8 +721,12 @@ class FrameSupport:
             # the frame's own border band (within the margin of its edge) stays usable where it maps onto the
             # output's own border band: that is recorded, not repeated
             inside = cover.astype(bool)
-            self._masks[i] = None if inside[m:h - m, m:w - m].all() else _grow_to_edges(inside, m)
-        return self._masks.get(i)
+            # held as bits (8x smaller: 60 masks of a 24 MP stack would hold 1.4 GB as bools)
+            self._masks[i] = None if inside[m:h - m, m:w - m].all() else np.packbits(_grow_to_edges(inside, m))
+        bits = self._masks.get(i)
+        if bits is None:
+            return None
+        return np.unpackbits(bits, count=self.width * self.height).view(bool).reshape(self.height, self.width)
 
 
 def _grow_to_edges(mask: np.ndarray, margin: int) -> np.ndarray:
@@ -843,12 +853,20 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
         :class:`FrameSupport`, says where each holds recorded pixels; ``photometric`` summarises the gains and
         offsets) and the geometry (``info()`` describes it).
     """
-    from .source import HeldFrames, read_frames_parallel, roi_readable
+    from .memory import check_temp_space
+    from .source import MEMORY_BUDGET_BYTES, HeldFrames, read_frames_parallel, roi_readable
 
     w, h = image_size(stack)
     order, zs, z_ref_um = _sorted_frames(stack, frames, z_ref_um)
     factor = _factor(w, h, max_side_px)
     keep = not all(roi_readable(stack, int(i)) for i in order)  # decoding again would cost a full decode
+    storage, scale = storage_dtype(stack.dtype)
+    # both temporary files (decoded, registered) checked up front, not after minutes of reading
+    held = [len(order) * h * w * len(stack.channels) * np.dtype(d).itemsize
+            for d, used in ((stack.dtype, keep), (storage, True)) if used]
+    if sum(b for b in held if b > MEMORY_BUDGET_BYTES):
+        check_temp_space(sum(b for b in held if b > MEMORY_BUDGET_BYTES),
+                         f"{len(order)} frames of {w}x{h} px, decoded and registered,")
     decoded = HeldFrames(stack, order, stack.dtype) if keep else None
     planes = {}
 
@@ -857,11 +875,10 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
         if decoded is not None:
             decoded.put(i, image)
 
-    read_frames_parallel(stack, order, take)
+    read_frames_parallel(stack, order, take, desc="reading", quiet=quiet)
     geo = choose_model(stack, order, z_ref_um, max_side_px, quiet, [planes[int(i)] for i in order], models)
     maps = {int(i): frame_map_matrix(geo, float(z)) for i, z in zip(order, zs)}
     check_frames_belong(stack, order, [planes[int(i)] for i in order], [maps[int(i)] for i in order], factor)
-    storage, scale = storage_dtype(stack.dtype)
     out = HeldFrames(stack, order, storage, strict=True, scale=scale)
     out.support = FrameSupport(geo, {int(i): float(z) for i, z in zip(order, zs)}, w, h)
     src = decoded if decoded is not None else stack
@@ -870,7 +887,8 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
     ref = int(order[int(np.argmin(np.abs(zs - geo.z_ref_um)))])
     black, white, cell = float(stack.black_level), float(stack.white_level), photometric.cell_px(w, h)
     ref_cells, corr = None, {}
-    for i in [ref] + [int(i) for i in order if int(i) != ref]:
+    for i in progress([ref] + [int(i) for i in order if int(i) != ref], total=len(order), desc="warping",
+                      quiet=quiet, unit="frame"):
         image = read_roi(src, i, 0, 0, w, h)
         if scale == 256.0:  # 8-bit -> 16-bit fixed point, then warped in that dtype
             image = image.astype(np.uint16) << 8

@@ -163,6 +163,9 @@ class HeldFrames:
         budget = MEMORY_BUDGET_BYTES if budget_bytes is None else budget_bytes
         self.in_memory = len(self.slot) * self.frame_bytes <= budget
         self.data = np.empty((len(self.slot), *self.frame_shape), dtype=self.storage) if self.in_memory else None
+        if not self.in_memory:
+            from .memory import check_temp_space
+            check_temp_space(len(self.slot) * self.frame_bytes, f"{len(self.slot)} frames held for compositing")
         # unlinked at once: nothing is left behind, whatever happens
         self._file = None if self.in_memory else tempfile.TemporaryFile(prefix="fieldcal-frames-")
 
@@ -188,8 +191,20 @@ class HeldFrames:
         if self.in_memory:
             self.data[k] = image
         else:
-            import os
-            os.pwrite(self._file.fileno(), memoryview(image).cast("B"), k * self.frame_bytes)
+            import errno
+            try:
+                os.pwrite(self._file.fileno(), memoryview(image).cast("B"), k * self.frame_bytes)
+            except OSError as e:
+                if e.errno not in (errno.ENOSPC, errno.EDQUOT):
+                    raise
+                import tempfile
+
+                from ..errors import ResourceError
+                raise ResourceError(f"the temporary disk filled while holding frames for compositing "
+                                    f"({len(self.slot) * self.frame_bytes / 1e9:.1f} GB in all)",
+                                    path=tempfile.gettempdir(), field="TMPDIR",
+                                    fix="free space there, or set the environment variable TMPDIR to a folder on "
+                                        "a disk with that much free") from None
 
     def _rows(self, k: int, y0: int, y1: int) -> np.ndarray:
         """Rows ``y0:y1`` of held frame ``k`` (a view in memory, a new array from the file)."""
@@ -240,16 +255,23 @@ def default_workers() -> int:
     return max(1, min(4, n))
 
 
-def read_frames_parallel(stack, indices, consume, workers: int | None = None) -> None:
+def read_frames_parallel(stack, indices, consume, workers: int | None = None, *, desc: str = "",
+                         quiet: bool = True) -> None:
     """Decode frames ``indices`` on a few threads (decoders release the GIL) and pass each, in order, to
-    ``consume(i, image)`` in this thread; at most ``2 * workers`` frames are in flight."""
+    ``consume(i, image)`` in this thread; at most ``2 * workers`` frames are in flight. With ``desc`` and not
+    ``quiet``, a progress bar counts the frames."""
     from concurrent.futures import ThreadPoolExecutor
 
+    from ..progress import progress
+
     indices = [int(i) for i in indices]
+    bar = iter(progress(range(len(indices)), total=len(indices), desc=desc, quiet=quiet or not desc, unit="frame"))
     workers = default_workers() if workers is None else max(1, int(workers))
     if workers == 1 or len(indices) < 2:
         for i in indices:
             consume(i, read_roi(stack, i, 0, 0, *image_size(stack)))
+            next(bar, None)
+        next(bar, None)  # closes the bar
         return
     w, h = image_size(stack)
     with ThreadPoolExecutor(max_workers=workers) as pool:
@@ -261,9 +283,11 @@ def read_frames_parallel(stack, indices, consume, workers: int | None = None) ->
             if nxt < len(indices):
                 pending.append(pool.submit(read_roi, stack, indices[nxt], 0, 0, w, h))
             consume(i, image)
+            next(bar, None)
+    next(bar, None)
 
 
-def hold_decoded(stack, indices):
+def hold_decoded(stack, indices, quiet: bool = True):
     """``stack`` itself when its frames are read by region cheaply (:func:`roi_readable`), else the frames
     ``indices`` decoded once (in parallel) and held (:class:`HeldFrames`): compositing's passes then re-read
     memory instead of decoding every JPEG/PNG frame once per pass and per band."""
@@ -271,5 +295,5 @@ def hold_decoded(stack, indices):
     if all(roi_readable(stack, i) for i in indices):
         return stack
     held = HeldFrames(stack, indices, stack.dtype)
-    read_frames_parallel(stack, indices, held.put)
+    read_frames_parallel(stack, indices, held.put, desc="reading", quiet=quiet)
     return held

@@ -1,0 +1,135 @@
+"""Memory and temporary disk a composite from depth from focus needs, checked before the work starts.
+
+Compositing streams the frames: every pass (registration, focus volume, fusion, depth map, blending, fine
+detail) holds a few frames' float32 planes and a few full-size maps, never the stack, so its peak memory grows
+with the image's pixels and channels, not with the number of frames (measured, docs/benchmarks.md section
+``bench_big_stack``: 10 and 30 frames of 12 MP peak within 5 % of each other). The registered frames go to an
+unlinked temporary file (:class:`fieldcal.composite.source.HeldFrames`) beyond a small budget: that takes disk,
+``frames x pixels x channels x 2`` bytes (8-bit frames are held as 16-bit fixed point), and the page cache,
+which the kernel gives back under pressure.
+
+:func:`check_memory` refuses, with a :class:`~fieldcal.errors.ResourceError` saying what to do, a composite whose
+measured peak would not fit the memory available (or ``max_memory_bytes``): the kernel's out-of-memory killer
+would otherwise end it minutes in, with no message. :func:`check_temp_space` does the same for the temporary file.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+
+from ..errors import ParameterError, ResourceError
+
+#: Peak resident memory of ``fieldcal composite`` without a profile (depth from focus, a scene with depth: the
+#: most memory of its paths) per pixel and channel, and what the process holds before any image (interpreter,
+#: NumPy, OpenCV, SciPy). Measured with ``/usr/bin/time -v`` (benchmarks/bench_big_stack.py) on RGB stacks:
+#: 2048x1536 7-10 frames 633-659 MiB, 4000x3000 10-30 frames (JPEG, 16-bit TIFF) 1990-2079 MiB, 6000x4000 60
+#: frames 3933 MiB; the estimate is above each (868, 2185, 3970 MiB).
+BYTES_PER_SAMPLE = 52.0
+BASE_BYTES = 400 * 2 ** 20
+#: Headroom on top of the estimate: other processes' memory changes while a composite runs for minutes.
+HEADROOM = 1.1
+
+GB = 1e9
+
+
+def estimate_peak_bytes(width: int, height: int, channels: int) -> int:
+    """Estimated peak resident memory (bytes) of a composite by depth from focus of ``width x height`` frames
+    with ``channels`` channels, any number of frames (:data:`BYTES_PER_SAMPLE`, :data:`BASE_BYTES`)."""
+    return int(BASE_BYTES + BYTES_PER_SAMPLE * int(width) * int(height) * int(channels))
+
+
+def available_memory_bytes() -> int | None:
+    """Memory this process may still take (bytes): the kernel's ``MemAvailable`` (free memory plus the page cache
+    it can drop), capped by a cgroup v2 limit (a container's ``memory.max`` less its ``memory.current``); None
+    where neither can be read (not Linux)."""
+    avail = None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    avail = int(line.split()[1]) * 1024
+                    break
+    except (OSError, ValueError, IndexError):
+        avail = None
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            used = int(Path("/sys/fs/cgroup/memory.current").read_text().strip())
+            room = max(0, int(limit) - used)
+            avail = room if avail is None else min(avail, room)
+    except (OSError, ValueError):
+        pass
+    return avail
+
+
+def parse_memory_bytes(value, field: str = "max_memory") -> int | None:
+    """A memory size from a number of bytes, or a string with a unit (``"8G"``, ``"512M"``, ``"8 GB"``;
+    powers of 1024 for K/M/G/T, as ``free -h`` shows them); None stays None."""
+    if value is None:
+        return None
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        n = float(value)
+    else:
+        text = str(value).strip().upper().removesuffix("IB").removesuffix("B").strip()
+        mult = {"K": 2 ** 10, "M": 2 ** 20, "G": 2 ** 30, "T": 2 ** 40}.get(text[-1:], 1) if text else 1
+        try:
+            n = float(text[:-1] if mult != 1 else text) * mult
+        except ValueError:
+            n = float("nan")
+    if not (n == n and n > 0):
+        raise ParameterError(f"memory limit {value!r} is not a size", field=field,
+                             fix="give a size such as 8G, 512M or a number of bytes")
+    return int(n)
+
+
+def check_memory(width: int, height: int, channels: int, n_frames: int, *, max_memory_bytes: int | None = None,
+                 where=None) -> dict:
+    """Refuse a composite whose estimated peak (:func:`estimate_peak_bytes`, with :data:`HEADROOM`) exceeds
+    ``max_memory_bytes`` (the whole process's), or whose images' part (the estimate less :data:`BASE_BYTES`,
+    which the process already holds) exceeds :func:`available_memory_bytes`. Returns what was checked.
+
+    Raises
+    ------
+    ResourceError
+        Naming the need, the limit and what to do.
+    """
+    need = estimate_peak_bytes(width, height, channels)
+    given = max_memory_bytes is not None
+    limit = max_memory_bytes if given else available_memory_bytes()
+    info = {"estimated_peak_bytes": need, "limit_bytes": limit, "limit_from": "max_memory" if given else "available"}
+    # a limit given is the whole process's; the memory available now excludes what the process already holds
+    # (the interpreter and libraries, BASE_BYTES): only the images' part must fit in it
+    base = 0 if given else BASE_BYTES
+    if limit is None or (need - base) * HEADROOM <= limit:
+        return info
+    # what fits: the largest image of this aspect ratio and channels within the limit
+    room = max(0.0, limit / HEADROOM - (BASE_BYTES - base))
+    scale = min(1.0, (room / max(BYTES_PER_SAMPLE * width * height * channels, 1.0)) ** 0.5)
+    fits = f"{int(width * scale)}x{int(height * scale)}" if scale > 0.05 else "no image of this size"
+    source = "the limit given (max_memory)" if max_memory_bytes is not None else "the memory available now"
+    raise ResourceError(
+        f"compositing {n_frames} frames of {width}x{height} px x {channels} channel(s) by depth from focus needs "
+        f"about {(need - base) * HEADROOM / GB:.1f} GB {'more ' if base else ''}of memory at its peak (whatever "
+        f"the number of frames); {source} is {limit / GB:.1f} GB. Frames of up to about {fits} px would fit",
+        path=where, field="max_memory",
+        fix="free memory (close other programs) and run again; or composite frames downscaled or cropped to that "
+            "size; or, with a profile, use the profile method (it streams in bands); --max-memory SIZE sets the "
+            "limit when you know more can be used (e.g. swap)")
+
+
+def check_temp_space(nbytes: int, what: str) -> None:
+    """Refuse to start when the temporary folder (``TMPDIR``, :func:`tempfile.gettempdir`) has less than
+    ``nbytes`` free for ``what``: the work would stop with 'disk full' minutes in."""
+    folder = tempfile.gettempdir()
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return
+    if free < nbytes:
+        raise ResourceError(f"{what} need {nbytes / GB:.1f} GB of temporary disk space; {folder} has "
+                            f"{free / GB:.1f} GB free", path=folder, field="TMPDIR",
+                            fix=f"free space there, or set the environment variable TMPDIR to a folder on a disk "
+                                f"with {nbytes / GB:.0f} GB free (e.g. TMPDIR=/data/tmp fieldcal composite ...)")
+
