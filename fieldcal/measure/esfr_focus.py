@@ -894,7 +894,7 @@ class CommonMode:
     point (:meth:`fieldcal.fit.discrepancy.Discrepancy.set_common_mode`)."""
 
     sd_um: float  # the total: the three terms below in quadrature
-    law_um: float  # half the channel's median difference of the shaped and the symmetric law's peaks
+    law_um: float  # the law's own error: 0 (the shaped - symmetric gap is recorded as shift_um, not an error)
     shape_um: float  # the pooled asymmetry's own sd moved to the peak: dz/ds x sd(s)
     shift_um: float  # the median (shaped - symmetric) peak itself (signed; 0 under the symmetric law)
     n_tracks: int
@@ -1011,7 +1011,8 @@ def law_common_mode(tracks, results, shape: PooledShape) -> CommonMode:
 
     * **the frames**: :func:`frame_jackknife_sd_um`, what the tracks' peaks share of each frame's error;
 
-    * **the law**: where the channel's curves select spherical aberration's asymmetric law
+    * **the law** (recorded, **not added** since the session-10 merge, see the comment in the code): where the
+      channel's curves select spherical aberration's asymmetric law
       (:func:`shaped_track`), the peak it reads lies ``Delta`` from the symmetric law's centre
       (:func:`symmetric_centre_um`; ``Delta`` the median over the tracks: the same for every track up to its
       noise). Both laws fit the same samples and estimate the same sharpest position, and a real lens's curve
@@ -1043,7 +1044,11 @@ def law_common_mode(tracks, results, shape: PooledShape) -> CommonMode:
     if not d:
         return CommonMode(frames, 0.0, 0.0, 0.0, n_fr, frames)
     shift = float(np.median(d))
-    law = 0.5 * abs(shift)
+    # Not an error: under spherical aberration the symmetric law's centre is not an estimate of the sharpest
+    # position, so the gap to it is the asymmetry the shaped law corrects, not the shaped law's error. Carried as
+    # |shift| / 2 it made the clean-room renderer's SA edge bands 4-13x their errors once the e-SFR window was
+    # modelled (sa08 half-width / RMS 12.6, coverage 1.00). Recorded (shift_um), not added.
+    law = 0.0
     sh = abs(shape.dz_ds * shape.sd) * float(np.median(steps)) if math.isfinite(shape.sd) else 0.0
     return CommonMode(math.sqrt(law * law + sh * sh + frames * frames), law, sh, shift, len(d), frames)
 
