@@ -71,7 +71,10 @@ def test_flat_lens_selects_no_curvature_and_tilted_sensor_gets_tilt_only(tmp_pat
 @pytest.mark.xfail(reason="known defect (session 8 merges, traced session 9): at 256x144 the outer tiles on steep "
                    "focus gradients read 0.5-0.9 µm above their window mean at 16 and 32 px tiles alike (not the "
                    "within-tile spread), and the first surface's Laplacian doubles it; extrapolated to the corners: "
-                   "R RMS 1.89 µm (0.19 step, max 7.1 µm), coverage 0.53-0.68", strict=False)
+                   "R RMS 1.89 µm (0.19 step, max 7.1 µm), coverage 0.53-0.68. Session 10 (branch s10-corners, not "
+                   "merged): two causes, the renderer blending blur levels before the breathing warp (fixed there: "
+                   "R RMS 1.38 µm, coverage 0.96) and the tile peak's non-tangent-plane part (corrected there, but it "
+                   "overshoots inner tiles by 0.14-0.20 µm)", strict=False)
 def test_standard_effort_accuracy_band_and_extrapolation_on_the_triplet(small_chart_stack, triplet_path):
     """The paper's triplet at 256x144: surface RMS <= 0.1 scan step, band holds the truth at >= 80 % of points,
     and is wider at the corners (outside the tile grid) than at the centre."""
