@@ -542,7 +542,8 @@ def paired_test_choice(losses: dict[str, np.ndarray], n_params: dict[str, int], 
 
     Returns (name, {name: (D, SE of D, margin)}).
     """
-    from scipy.stats import t as student_t
+    # the t quantile from scipy.special: scipy.stats costs ~0.6 s to import, a quarter of a quick calibration
+    from scipy.special import stdtrit
 
     tot = {n: float(v.sum()) for n, v in losses.items()}
     best = min(tot, key=tot.get)
@@ -551,7 +552,7 @@ def paired_test_choice(losses: dict[str, np.ndarray], n_params: dict[str, int], 
     n_test = float(block_rows.mean()) if block_rows.size else 0.0
     n_train = float(block_rows.sum()) - n_test
     inflate = 1.0 + k * n_test / n_train if n_train > 0 else math.inf
-    quantile = float(student_t.ppf(1.0 - level, k - 1)) if k > 1 else math.inf
+    quantile = float(stdtrit(k - 1, 1.0 - level)) if k > 1 else math.inf
     stats = {}
     for n, v in losses.items():
         d = v - losses[best]
