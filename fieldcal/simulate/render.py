@@ -507,6 +507,19 @@ class Renderer:
         self._check_blur(float(self.diameter_px(np.max(np.abs(d)))))
         return np.asarray(d, dtype=np.float64)
 
+    def _signed_defocus_sensor(self, z_um: float | None, channel: str) -> np.ndarray:
+        """Wave optics, warp first: signed defocus (µm from the reference surface) at every sensor pixel.
+
+        ``z_um=None``: each pixel at its own sharpest position (the truth image)."""
+        xm, ym = self.spec.pixel_to_mm(self._xs, self._ys)
+        if z_um is None:
+            d = self._wave.best_focus_shift_um(channel, self.spec.rho(xm, ym))
+        else:
+            d = z_um - self.spec.best_focus_um(xm, ym, channel)
+        d = np.broadcast_to(d, (self.height_px, self.width_px))
+        self._check_blur(float(self.diameter_px(np.max(np.abs(d)))))
+        return np.asarray(d, dtype=np.float64)
+
     def _coarse_axis(self, n: int) -> tuple[np.ndarray, int]:
         """Coarse sample positions (px) along an axis of n pixels, and the number of canvas pixels: sample j
         sits at ``(j + 0.5) s - 0.5 - s`` so that ``cv2.resize`` by s (bilinear between sample centres) covers
@@ -621,7 +634,10 @@ class Renderer:
         """One channel of :meth:`_linear`: blurred, warped, vignetted and exposed, float32 H x W, >= 0."""
         ch = self.channels[ci]
         aff = self._affine(self.spec.z_ref_um if z_um is None else z_um, ch, z_um is not None)
-        if self._wave is not None:
+        if self._wave is not None and self._wave.warp_first:
+            img = self._wave.blur(ch, self._signed_defocus_sensor(z_um, ch), 1.0,
+                                  scene=self._warp(self.scene[:, :, ci], aff, z_um, ch))
+        elif self._wave is not None:
             img = self._warp(self._wave.blur(ch, self._signed_defocus_at(z_um, ch, aff), float(aff[0, 0])), aff, z_um,
                              ch)
         else:

@@ -448,6 +448,9 @@ class WaveBlur:
         self.level_floor_px = level_floor_px
         self.fs_cyc_per_mm = float(fs_cyc_per_mm)
         self.field_grid = (nx, ny)
+        # the renderer warps the scene to the sensor and then blurs it (True), or blurs and then warps the blurred
+        # image (False, up to session 10): docs/simulator.md "Warp, then blur"
+        self.warp_first = True
         s = spec.sensor
         self.h, self.w, self.pitch_um = s.height_px, s.width_px, s.pixel_pitch_um
         self.node_x = np.linspace(0.0, self.w - 1.0, nx)
@@ -523,8 +526,10 @@ class WaveBlur:
         xm, ym = self.spec.pixel_to_mm(self.node_x[i], self.node_y[j])
         return float(self.best_focus_shift_um(channel, self.spec.rho(xm, ym)))
 
-    def _padded_scene(self, ci: int, pad: int) -> tuple[int, np.ndarray]:
+    def _padded_scene(self, ci: int, pad: int, scene: np.ndarray | None = None) -> tuple[int, np.ndarray]:
         pad = int(16 * 1.5 ** max(0, math.ceil(math.log(max(pad, 1) / 16) / math.log(1.5))))
+        if scene is not None:  # a frame's own (warped) scene: not cached
+            return pad, np.pad(np.asarray(scene, dtype=np.float32), pad, mode="symmetric")
         if ci not in self._padded or self._padded[ci][0] < pad:
             self._padded[ci] = (pad, np.pad(self.scene[:, :, ci], pad, mode="symmetric"))
         return self._padded[ci]
@@ -549,10 +554,15 @@ class WaveBlur:
             w[coord <= nodes[0]] = 1.0
         return w
 
-    def blur(self, channel: str, defocus_um: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    def blur(self, channel: str, defocus_um: np.ndarray, scale: float = 1.0,
+             scene: np.ndarray | None = None) -> np.ndarray:
         """The scene channel blurred with the wave PSF of each pixel's signed defocus (µm from the reference
         surface, H x W) and field position: blend of (node, level) kernel images, the kernels shrunk by the
-        image scale ``scale`` that the renderer's warp then applies (:meth:`kernel`)."""
+        image scale ``scale`` that the renderer's warp then applies (:meth:`kernel`).
+
+        ``scene``: blur this H x W image instead of the renderer's scene channel; the renderer passes the scene
+        already warped to the sensor (``scale`` 1), so every sensor pixel blends the levels of its own defocus
+        (docs/simulator.md "Warp, then blur")."""
         ci = self.spec.channel_names.index(channel)
         dz = np.asarray(defocus_um, dtype=np.float64)
         out = np.zeros((self.h, self.w), dtype=np.float32)
@@ -568,7 +578,7 @@ class WaveBlur:
         # kernels are shrunk by the warp's scale a (:meth:`kernel`): in scene pixels their radius is 1/a larger
         half_px = max(self.optics[channel].half_extent_um(big, max_dz) / (self.pitch_um * min(scale, 1.0)),
                       _MIN_HALF_PX)
-        pad, padded = self._padded_scene(ci, int(math.ceil(half_px)) + 2 + int(self.level_floor_px))
+        pad, padded = self._padded_scene(ci, int(math.ceil(half_px)) + 2 + int(self.level_floor_px), scene)
         for j in range(ny):
             y0 = int(math.ceil(self.node_y[max(j - 1, 0)])); y1 = int(math.floor(self.node_y[min(j + 1, ny - 1)])) + 1
             wy = self._hat(ys[y0:y1], self.node_y, j)
