@@ -18,7 +18,8 @@ and each pixel blends each wedge's levels at its own diameter along that wedge's
 (:mod:`fieldcal.simulate.astigmatism`). Channels without astigmatism render as before.
 
 With ``optics="wave"`` the blur is :class:`fieldcal.simulate.wave.WaveBlur` instead (PSFs from the pupil function;
-docs/simulator.md); everything below is shared.
+docs/simulator.md), applied after the geometry below (the scene is warped to the sensor first, so each sensor
+pixel takes the PSF of its own defocus); the rest is shared.
 
 Then geometry (focus breathing, stage-axis shift, lateral colour: one scale + shift per channel,
 :func:`fieldcal.simulate.bandwarp.scale_shift_fast`), relative illumination and the sensor: photon and read

@@ -28,9 +28,9 @@ The pupil function is ``A exp(-2 pi i W / lambda)``, which with numpy's FFT sign
 
 Rendering: blur levels in signed defocus (the geometric path's ladder, centred per field node on that node's
 sharpest position) times a coarse grid of field nodes; each (node, level) kernel is a pixel-integrated
-polychromatic PSF shrunk by the frame's image scale (the warp that follows magnifies it), cached for the
-renderer's life; each pixel blends the images of the two levels that bracket its defocus and of the (up to)
-four nodes around it (bilinear weights).
+polychromatic PSF, cached for the renderer's life; the renderer warps the scene to the sensor first (breathing,
+lateral colour), and each sensor pixel blends the images of the two levels that bracket its own defocus and of
+the (up to) four nodes around it (bilinear weights).
 """
 
 from __future__ import annotations
