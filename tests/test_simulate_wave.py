@@ -534,9 +534,11 @@ def test_renderer_kernels_follow_the_frame_scale():
                 assert err < (1e-6 if a == 1.0 else 4e-4), (j, i, k, a, err)
 
 
-def test_breathing_frames_blur_with_kernels_shrunk_by_the_frame_scale(monkeypatch):
-    """The renderer hands the wave blur its frame's warp scale a = m(z) (1 + lateral colour); the truth image
-    (no breathing) only the lateral colour."""
+def test_breathing_frames_warp_the_scene_then_blur_at_the_sensor(monkeypatch):
+    """The renderer warps the scene by its frame's scale a = m(z) (1 + lateral colour) and hands the wave blur that
+    warped scene with scale 1 (the sensor's own kernels, each sensor pixel at its own defocus); the truth image
+    (no breathing) is warped by the lateral colour only (docs/simulator.md "warp, then blur")."""
+    from fieldcal.simulate.warp import scale_shift
     from fieldcal.simulate.wave import WaveBlur
 
     spec = make_spec(w=40, h=32, pitch_um=4.0, exit_pupil_mm=12.0,
@@ -544,17 +546,21 @@ def test_breathing_frames_blur_with_kernels_shrunk_by_the_frame_scale(monkeypatc
     seen = []
     orig = WaveBlur.blur
 
-    def spy(self, channel, defocus_um, scale=1.0):
-        seen.append(scale)
-        return orig(self, channel, defocus_um, scale)
+    def spy(self, channel, defocus_um, scale=1.0, scene=None):
+        seen.append((scale, scene))
+        return orig(self, channel, defocus_um, scale, scene)
 
     monkeypatch.setattr(WaveBlur, "blur", spy)
     r = Renderer(spec, np.random.default_rng(2).uniform(0, 1, (32, 40)).astype(np.float32), optics="wave")
-    for z in (-60.0, 45.0):
-        r.render_float(z)
-        assert seen[-1] == pytest.approx(float(spec.magnification(z)) * 1.002, rel=1e-12)
-    r.truth()
-    assert seen[-1] == pytest.approx(1.002, rel=1e-12)
+    cx, cy = r.centre_px
+    for z, a in ((-60.0, float(spec.magnification(-60.0)) * 1.002), (45.0, float(spec.magnification(45.0)) * 1.002),
+                 (None, 1.002)):
+        r.render_float(z) if z is not None else r.truth()
+        scale, scene = seen[-1]
+        assert scale == 1.0
+        sx, sy = (float(v) for v in spec.shift_px(z)) if z is not None else (0.0, 0.0)
+        np.testing.assert_allclose(scene, scale_shift(r.scene[:, :, 0], a, cx - a * cx + sx, cy - a * cy + sy),
+                                   atol=1e-6)
 
 
 def test_breathing_stripes_have_the_sensor_otf_at_the_sensor_frequency():
