@@ -639,19 +639,56 @@ def skew_model_sd_um(fits: list[CurveFit]) -> float:
     return math.sqrt(max(mean * mean - se * se, 0.0))
 
 
-def pooled_mean(d, sd) -> tuple[float, float, float]:
+# Huber's tuning constant (95 % efficiency on normal data) and the least count for the robust pooled mean; below
+# it the MAD scale is too coarse and :func:`pooled_mean` is the plain inverse-variance mean.
+HUBER_C = 1.345
+ROBUST_MIN_N = 6
+
+
+def pooled_mean(d, sd, robust: bool = True) -> tuple[float, float, float]:
     """(mean, sd, weight) of per-tile values ``d`` with sds ``sd`` that share one value over a channel: the
-    inverse-variance mean, its sd Birge-inflated by their scatter, and the evidence weight for a non-zero mean
-    ``1 / (1 + O sqrt(N) exp(-chi2 / 2))``, ``chi2 = (mean / sd)^2``, prior odds O = SKEW_PRIOR_ODDS."""
+    inverse-variance Huber M-estimate of the mean, its sd from the same fit with the standardised residuals'
+    robust scale (never below the stated sds: Birge-style), and the evidence weight for a non-zero mean
+    ``1 / (1 + O sqrt(N) exp(-chi2 / 2))``, ``chi2 = (mean / sd)^2``, prior odds O = SKEW_PRIOR_ODDS.
+
+    Why robust: a tile's sd is a delta-method or curve-fit sd, and on a few tiles it is far too small (a skewed
+    fit whose peak barely moves with its parameters). With plain inverse-variance weights such a tile outweighs
+    the rest: on an F/6.9 lens (W040 0.8 waves) one band-pass tile at +2.7 ± 0.5 µm among 58 at -1.1 ± 1.9 µm
+    pulled the pooled skew shift to -0.3 µm (its evidence weight to 0.02), so the curves kept their centres
+    1.4 µm above the sharpest position; and outlying tiles inflated the Birge ratio of the sml@fs offset. The
+    Huber weights ``min(1, c / |r / s|)`` (r = (d - mean) / sd, s = max(1, 1.4826 MAD(r)), c = :data:`HUBER_C`)
+    leave normal data as they are (95 % efficiency) and bound any one tile's pull. The sd is the M-estimator's
+    sandwich ``s^2 sum(w psi^2) / (sum(w psi'))^2 x n / (n - 1)`` (``psi`` Huber's, of r / s), at least
+    ``1 / sum(w)``: on outlier-free data it is the Birge-inflated sd as before. ``robust=False``: the plain
+    inverse-variance mean, Birge-inflated.
+    """
     d, sd = np.asarray(d, dtype=np.float64), np.asarray(sd, dtype=np.float64)
     ok = np.isfinite(d) & np.isfinite(sd) & (sd > 0)
     if ok.sum() < 2:
         return 0.0, 0.0, 0.0
-    d, w = d[ok], 1.0 / sd[ok] ** 2
+    d, sd = d[ok], sd[ok]
+    w = 1.0 / sd ** 2
     mean = float(np.sum(w * d) / np.sum(w))
-    birge = max(1.0, float(np.sum(w * (d - mean) ** 2)) / (d.size - 1))
-    se = math.sqrt(birge / float(np.sum(w)))
-    return mean, se, evidence_weight(mean, se, d.size)
+    n = d.size
+    if n < ROBUST_MIN_N or not robust:
+        birge = max(1.0, float(np.sum(w * (d - mean) ** 2)) / (n - 1))
+        se = math.sqrt(birge / float(np.sum(w)))
+        return mean, se, evidence_weight(mean, se, n)
+    scale = max(1.0, 1.4826 * float(np.median(np.abs(d - np.median(d)) / sd)))
+    for _ in range(50):
+        u = (d - mean) / (sd * scale)
+        h = np.minimum(1.0, HUBER_C / np.maximum(np.abs(u), 1e-12))
+        new = float(np.sum(h * w * d) / np.sum(h * w))
+        if abs(new - mean) <= 1e-10 * (1.0 + abs(mean)):
+            mean = new
+            break
+        mean = new
+    u = (d - mean) / (sd * scale)
+    psi = np.clip(u, -HUBER_C, HUBER_C)
+    inside = float(np.sum(w * (np.abs(u) < HUBER_C)))
+    sandwich = scale ** 2 * float(np.sum(w * psi ** 2)) / max(inside, 1e-300) ** 2 * n / (n - 1)
+    se = math.sqrt(max(sandwich, 1.0 / float(np.sum(w))))
+    return mean, se, evidence_weight(mean, se, n)
 
 
 def evidence_weight(mean: float, se: float, n: int) -> float:
@@ -710,7 +747,8 @@ def zone_jackknife_sd(d, sd, zone_key) -> float:
     if d.size < 2 * k:
         return 0.0
     zone = np.minimum((np.argsort(np.argsort(key)) * k) // d.size, k - 1)
-    loo = np.array([pooled_mean(d[zone != j], sd[zone != j])[0] for j in range(k)])
+    # the plain mean: the jackknife measures how the field's zones move it (structure), not outlying tiles
+    loo = np.array([pooled_mean(d[zone != j], sd[zone != j], robust=False)[0] for j in range(k)])
     return float(math.sqrt((k - 1) / k * np.sum((loo - loo.mean()) ** 2)))
 
 
@@ -753,6 +791,9 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
       weight 1, and the unapplied part, 0.15-0.37 µm, was 1.5-3x the sd stated for it.)
     """
     keep = [i for i, (a, b) in enumerate(zip(main, ref)) if a.status == STATUS_OK and b.status == STATUS_OK]
+    lifted = None
+    if ref_skew and len(keep) >= 2:
+        ref, ref_skew, lifted = _skew_from_offset(main, ref, ref_skew, keep)
     shared2 = pooled_skew_var_um2(ref_skew or {})
     d = np.array([ref[i].z_best_um - main[i].z_best_um for i in keep])
     sd = np.array([math.sqrt(main[i].z_sigma_um ** 2 + max(ref[i].z_sigma_um ** 2 - shared2, 0.0)) for i in keep])
@@ -771,7 +812,34 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
         asym = asym if math.isfinite(asym) and asym >= 0.5 else 0.0
         info.update(offset_sd_um=se, offset_skew_sd_um=math.sqrt(shared2), offset_own_weight=own,
                     offset_weight=max(own, asym))
+    if lifted is not None:
+        # the band-pass skew now applied (measure.tiles records it under these keys before the offset's)
+        info.update(bp_skew_weight=ref_skew["weight"], bp_skew_from_offset_weight=lifted)
     return shift_by_offset(main, info), info
+
+
+def _skew_from_offset(main: list[CurveFit], ref: list[CurveFit], ref_skew: dict, keep: list[int]):
+    """(ref, ref_skew, w_offset or None): ``ref``'s pooled skew shift applied with the evidence weight of the
+    offset between ``ref``'s symmetric *centres* and ``main``'s best foci where that is the larger (>= 1/2).
+
+    Why: for a pupil with defocus alone the MTF at every frequency is symmetric about one focus, so the SML (a
+    broad band) and the band-pass at fs peak together and every through-focus curve is symmetric. An SML that
+    peaks apart from the band-pass's centres (the evidence weight of their pooled difference, as
+    :func:`pooled_mean`) is evidence that the pupil is aberrated and the band-pass curves are skewed, whatever
+    their own skew test says: on an F/6.9 lens (W040 0.8 waves, 54 µm steps) the offset was 6.3 µm at 17 sd while
+    the band-pass curves' own skew evidence was 0.02-0.3 (the skew is a small part of a wide curve), so they kept
+    their centres, 1.4-1.8 µm above the sharpest position, with a band of 0.5 µm. The converse (skew is evidence
+    for the offset) is applied below in :func:`apply_measure_offset`. None when the own weight is already the
+    larger.
+    """
+    w_now = float(ref_skew.get("weight", 0.0) or 0.0)
+    d = [ref[i].z_centre_um - main[i].z_best_um for i in keep]
+    sd = [math.hypot(ref[i].z_centre_sd_um, main[i].z_sigma_um) for i in keep]
+    w_off = pooled_mean(d, sd)[2]  # (curves without a symmetric centre: NaN, left out)
+    if not (w_off >= 0.5 and w_off > w_now):
+        return ref, ref_skew, None
+    out, info = apply_pooled_skew(ref, apply=bool(ref_skew.get("applied", True)), weight=w_off)
+    return out, info, w_off
 
 
 def shift_by_offset(main: list[CurveFit], info: dict) -> list[CurveFit]:
