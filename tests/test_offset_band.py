@@ -126,3 +126,68 @@ def test_channels_share_the_strongest_band_pass_skew_weight():
     res = _analyse_channels(run, ["R", "G", "B", "Y"])
     assert calls == [("R", None), ("G", None), ("B", None), ("Y", None), ("R", 1.0)]  # Y (0.8) agrees: kept
     assert res["R"]["skew"]["bp_skew_weight"] == 1.0 and res["G"]["skew"]["bp_skew_weight"] == 1.0
+
+
+def test_pooled_mean_is_not_taken_over_by_one_tile_with_an_understated_sd():
+    """Per-tile sds are curve-fit / delta-method sds, and a few are far too small: one tile at +2.7 ± 0.5 among 58
+    at -1.1 ± 1.9 (the F/6.9 lens of the band benchmark) moved the inverse-variance mean by half its distance to
+    that tile. The Huber M-estimate stays within its stated sd of the true value, and on normal data it is the
+    inverse-variance mean with the Birge-inflated sd (closed form) to within a few per cent of that sd."""
+    from fieldcal.measure.throughfocus import pooled_mean
+    rng = np.random.default_rng(11)
+    hits, n_draw, err_plain, err_robust = 0, 300, [], []
+    for _ in range(n_draw):
+        sd = np.r_[np.full(58, 1.9), 0.5]
+        d = np.r_[-1.1 + rng.normal(0.0, 1.9, 58), 2.7]
+        w = 1.0 / sd ** 2
+        err_plain.append(float(np.sum(w * d) / np.sum(w)) + 1.1)
+        mean, se, _ = pooled_mean(d, sd)
+        err_robust.append(mean + 1.1)
+        hits += abs(mean + 1.1) <= 1.645 * se
+    # the plain mean's bias is (2.7 + 1.1) x 14.4 / (58 + 14.4) = 0.76, three times its noise (1.9 / sqrt(58));
+    # the Huber weight (1.345 / 7.6) leaves the tile ~2.6 tiles' pull: bias ~0.16, RMS error ~0.3
+    assert float(np.mean(err_plain)) == pytest.approx(3.8 * 14.44 / 72.44, abs=0.05)
+    assert float(np.sqrt(np.mean(np.square(err_robust)))) < 0.5 * float(np.mean(err_plain))
+    assert hits / n_draw >= 0.85
+    diffs, ratios = [], []
+    for _ in range(40):
+        sd = rng.uniform(1.0, 3.0, 60)
+        d = -1.0 + sd * rng.normal(0.0, 1.0, 60)
+        w = 1.0 / sd ** 2
+        m = float(np.sum(w * d) / np.sum(w))
+        se = math.sqrt(max(1.0, float(np.sum(w * (d - m) ** 2)) / 59) / float(np.sum(w)))
+        mean, sd_robust, _ = pooled_mean(d, sd)
+        diffs.append((mean - m) / se)
+        ratios.append(sd_robust / se)
+    # 95 % efficiency: the two means differ by ~sqrt(1 / 0.95 - 1) = 0.23 of the sd
+    assert float(np.sqrt(np.mean(np.square(diffs)))) < 0.35
+    # the sandwich sd: the Birge sd within the noise of a variance estimated tile by tile (weights 1-9)
+    assert 0.9 < float(np.median(ratios)) < 1.15 and float(np.max(ratios)) < 1.5
+
+
+def test_an_sml_to_centre_offset_is_evidence_that_the_band_pass_curves_are_skewed():
+    """Defocus alone peaks every frequency together: an SML peaking 6 µm from the band-pass curves' centres (at
+    many sd) says the pupil is aberrated, so the band-pass skew shift applies whole even where its own evidence is
+    weak (the curves' sharpest positions, not their centres); a lens whose SML and centres agree keeps the
+    curves' own weight."""
+    rng = np.random.default_rng(12)
+    z_true = rng.uniform(-20.0, 20.0, N_TILES)
+
+    def bp_fits(skew_sd):  # centres 0.8 above the sharpest position; each tile's shift very noisy
+        c = z_true - SKEW_UM + rng.normal(0.0, CENTRE_SD, N_TILES)
+        s = SKEW_UM + rng.normal(0.0, skew_sd, N_TILES)
+        return [CurveFit(float(ci), CENTRE_SD, math.nan, 1.0, 0.0, "ok", 9, 1.0, math.nan, float(ci), CENTRE_SD,
+                         float(si), skew_sd) for ci, si in zip(c, s)]
+    bp, skew = apply_pooled_skew(bp_fits(6.0))
+    assert skew["weight"] < 0.5   # too noisy to say skewed on its own
+    out, info = apply_measure_offset(_sml(rng, z_true), bp, ref_skew=skew)   # SML 1 µm off the sharpest
+    assert info["bp_skew_weight"] > 0.99 and info["offset_weight"] > 0.99
+    err = float(np.mean([f.z_best_um for f in out]) - np.mean(z_true))
+    # the whole pooled shift is applied: the error is its noise, within the stated offset sd
+    assert abs(err) <= 1.645 * offset_sd_um(info)
+    assert abs(err) < 0.5 * abs(SKEW_UM) + 1.645 * offset_sd_um(info)
+    # SML peaking where the centres are: no offset, no lifted skew weight
+    sml_at_centres = [CurveFit(float(f.z_centre_um + rng.normal(0.0, SML_SD)), SML_SD, math.nan, 1.0, 0.0, "ok", 9)
+                      for f in bp]
+    _, sym = apply_measure_offset(sml_at_centres, bp, ref_skew=skew)
+    assert "bp_skew_from_offset_weight" not in sym

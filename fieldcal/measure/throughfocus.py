@@ -659,7 +659,9 @@ def pooled_mean(d, sd, robust: bool = True) -> tuple[float, float, float]:
     Huber weights ``min(1, c / |r / s|)`` (r = (d - mean) / sd, s = max(1, 1.4826 MAD(r)), c = :data:`HUBER_C`)
     leave normal data as they are (95 % efficiency) and bound any one tile's pull. The sd is the M-estimator's
     sandwich ``s^2 sum(w psi^2) / (sum(w psi'))^2 x n / (n - 1)`` (``psi`` Huber's, of r / s), at least
-    ``1 / sum(w)``: on outlier-free data it is the Birge-inflated sd as before. ``robust=False``: the plain
+    ``1 / sum(w)``: it takes the spread from the values themselves, as the Birge ratio does, but tile by tile, so
+    a heavy tile whose sd is too small widens it (the premise: the stated sds are not all right); on normal data
+    with right sds it is the Birge-inflated sd within its noise. ``robust=False``: the plain
     inverse-variance mean, Birge-inflated.
     """
     d, sd = np.asarray(d, dtype=np.float64), np.asarray(sd, dtype=np.float64)
@@ -685,8 +687,8 @@ def pooled_mean(d, sd, robust: bool = True) -> tuple[float, float, float]:
         mean = new
     u = (d - mean) / (sd * scale)
     psi = np.clip(u, -HUBER_C, HUBER_C)
-    inside = float(np.sum(w * (np.abs(u) < HUBER_C)))
-    sandwich = scale ** 2 * float(np.sum(w * psi ** 2)) / max(inside, 1e-300) ** 2 * n / (n - 1)
+    inside = max(float(np.sum(w * (np.abs(u) < HUBER_C))), float(np.min(w)))
+    sandwich = scale ** 2 * float(np.sum(w * psi ** 2)) / inside ** 2 * n / (n - 1)
     se = math.sqrt(max(sandwich, 1.0 / float(np.sum(w))))
     return mean, se, evidence_weight(mean, se, n)
 
