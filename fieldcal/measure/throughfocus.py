@@ -791,6 +791,9 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
       the evidence favours skew). (Before, an offset of -0.3 to -0.45
       µm at 2-3 sd was applied at weight 0.09-0.5 on F/1.6-1.9 lenses whose band-pass curves were skewed at
       weight 1, and the unapplied part, 0.15-0.37 µm, was 1.5-3x the sd stated for it.)
+    * the converse (:func:`_skew_from_offset`): an offset between the SML and the band-pass curves' centres is
+      evidence that those curves are skewed, so the band-pass skew shift applies with that evidence where it is
+      the larger (>= 1/2), before the offset is pooled.
     """
     keep = [i for i, (a, b) in enumerate(zip(main, ref)) if a.status == STATUS_OK and b.status == STATUS_OK]
     lifted = None
