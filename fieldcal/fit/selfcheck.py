@@ -321,14 +321,15 @@ def _draw_errors(m: dict, chol: np.ndarray, n: int, rng: np.random.Generator) ->
     return tested, rest
 
 
-def _inside(m: dict, tested: np.ndarray, rest: np.ndarray, kappa: float) -> np.ndarray:
-    """Fraction of points inside the band, per draw, when the tested part is off by ``kappa``."""
-    e = kappa * tested + rest
+def _inside(m: dict, tested: np.ndarray, rest: np.ndarray, kappa) -> np.ndarray:
+    """Fraction of points inside the band, per draw, when the tested part is off by ``kappa`` (one, or one per
+    draw)."""
+    e = np.reshape(kappa, (-1, 1)) * tested + rest
     return np.mean((e >= m["dlo"]) & (e <= m["dhi"]), axis=1)
 
 
 def coverage_estimate(profile, log_kappa: float = 0.0, log_kappa_sd: float = 0.0, n_draws: int = N_DRAWS,
-                      seed: int = SEED) -> dict:
+                      seed: int = SEED, kappa_mode: str = "posterior") -> dict:
     """The truth coverage of the profile's band, as the profile's own error model predicts it.
 
     A parametric bootstrap: each draw is one lens's error field (:func:`_channel_error_model`: the posterior
@@ -350,7 +351,9 @@ def coverage_estimate(profile, log_kappa: float = 0.0, log_kappa_sd: float = 0.0
     k_lo, k_hi = (math.exp(log_kappa + sgn * z90 * log_kappa_sd) for sgn in (-1.0, 1.0))
     # the coverage distribution at the held-out estimate of kappa (without evidence, 1: the band as built); its
     # uncertainty enters the warning only, as the expectation at the ends of kappa's 90 % interval
-    kappa = math.exp(log_kappa)
+    kappa = {"plugin": math.exp(log_kappa), "one": 1.0,
+             "posterior": np.exp(log_kappa + log_kappa_sd * np.random.default_rng(seed + 1).standard_normal(n_draws))
+             }[kappa_mode]
     cov, at_lo, at_hi, shares = [], [], [], []
     chol = {}
     for ch in s.channels:
