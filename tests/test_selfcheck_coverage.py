@@ -127,3 +127,24 @@ def test_warning_only_on_evidence():
     assert "wide" in SelfCheck(**base, log_kappa=math.log(0.4), log_kappa_sd=0.1).warning
     assert SelfCheck(**base, log_kappa=math.log(1.1), log_kappa_sd=0.1).warning is None
     assert WARN_RANGE == (0.8, 0.97)
+
+
+def test_report_states_the_estimate_its_range_and_warns_on_evidence_only():
+    from fieldcal.fit.result import SurfaceFit
+    from fieldcal.fit.selfcheck import ESTIMATES
+    from fieldcal.report.calibration_report import self_check_summary
+
+    class P:
+        def __init__(self, sc):
+            self.surfaces = SurfaceFit.__new__(SurfaceFit)
+            self.surfaces.band_scale = 1.0
+            self.diagnostics = {"surface": {"self_check": sc}}
+
+    sc = {"status": "ok", "n_tiles": 60, "n_blocks": 12, "level": 0.9, "coverage_unscaled": 0.9, "band_scale": 1.0,
+          "tile_coverage": 0.9, "coverage": 0.62, "coverage_range": [0.2, 1.0], "field_wide_share": 0.8,
+          "kappa_90": [0.3, 1.4], "estimates": ESTIMATES, "warning": None}
+    line, warn = self_check_summary(P(sc))
+    # a low expected coverage with a wide range is no evidence against the band: no warning
+    assert "62 %" in line and "20-100 %" in line and warn is None
+    line, warn = self_check_summary(P({**sc, "warning": "too narrow"}))
+    assert warn == "too narrow"

@@ -17,9 +17,16 @@ Procedure (all in normalised z units, focus rows of the chosen model):
    short to be surface (``(1 - Discrepancy.gp_identified()) tau^2``: a nugget, which the band leaves out). The band scale ``c`` maximises this likelihood with
    a weak log-normal prior on c (sd 1 in ln c: where the tile noise dominates, c stays near 1), c in [1, 8]:
    c > 1 means the surface model misses structure between tiles. (c < 1 is not allowed: see SCALE_BOUNDS.)
-3. Self-check: for each block, c is re-estimated *without* that block and its tiles are tested against
-   their 90 % predictive interval: the fraction inside is the cross-validated coverage of the calibrated
-   band, stored in the profile (``diagnostics.surface.self_check``) and reported; outside 0.8-0.97 warns.
+3. Held-out tile coverage: for each block, c is re-estimated *without* that block and its tiles are tested
+   against their 90 % predictive interval (``tile_coverage``). It reads ~0.9 on every lens (c is fitted to make
+   it so, and a tile's interval is mostly its own noise): it is not the band's truth coverage.
+4. kappa: the held-out surface error's sd over the scaled band's (tile noise deconvolved), with its posterior
+   sd (:func:`kappa_posterior`); < 1 is allowed here (band too wide).
+5. Self-check (:func:`coverage_estimate`, run by ``calibrate`` on the finished profile): the band's truth
+   coverage over a grid of the image as the profile's own joint error model predicts it (a parametric
+   bootstrap, field-wide terms one draw per lens), its tested part scaled by kappa's posterior: expectation
+   (``coverage``), median, 5-95 % range; it warns only when kappa's evidence puts the expectation outside
+   0.8-0.97 (docs/fitting.md "Self-checked coverage").
 
 The scale multiplies the non-common part of the surface band (:class:`fieldcal.fit.result.SurfaceFit`).
 """
