@@ -75,6 +75,20 @@ def test_coverage_estimate_matches_monte_carlo_of_the_error_model(fitted, kappa)
     assert (rec["coverage"] > 0.93) == (kappa < 1.0) and (rec["coverage"] < 0.85) == (kappa > 1.0)
 
 
+def test_kappa_enters_only_on_evidence(fitted):
+    """Where the held-out tiles cannot tell kappa from 1 (its 90 % interval holds 1: a flat likelihood below 1
+    leaves the prior's lower half), the estimate is the band as built, kappa = 1; where they can, kappa's
+    posterior is integrated, against the same draws at the posterior's own kappa."""
+    as_built = coverage_estimate(fitted, 0.0, 0.0, kappa_mode="one")
+    no_evidence = coverage_estimate(fitted, math.log(0.5), 0.6)        # 90 % interval 0.19-1.34
+    assert no_evidence["coverage"] == as_built["coverage"] and not no_evidence["kappa_evidence"]
+    assert coverage_estimate(fitted, math.log(0.5), 0.6, kappa_mode="posterior")["coverage"] > as_built["coverage"]
+    narrow = coverage_estimate(fitted, math.log(2.0), 0.2)             # 90 % interval 1.44-2.78: evidence
+    assert narrow["kappa_evidence"]
+    assert narrow["coverage"] == coverage_estimate(fitted, math.log(2.0), 0.2, kappa_mode="posterior")["coverage"]
+    assert narrow["coverage"] < as_built["coverage"] - 0.1
+
+
 def test_one_field_wide_draw_spreads_one_lens_coverage(fitted):
     """A field-wide term (one draw per lens) widens the range a lens's coverage falls in, not its mean: against
     the closed form for independent points plus one shared draw."""
