@@ -162,3 +162,30 @@ def test_report_states_the_estimate_its_range_and_warns_on_evidence_only():
     assert "62 %" in line and "20-100 %" in line and warn is None
     line, warn = self_check_summary(P({**sc, "warning": "too narrow"}))
     assert warn == "too narrow"
+
+
+def test_benchmark_summary_counts_against_known_rows():
+    """benchmarks/bench_selfcheck.py's per-group figures on rows whose answers are known by hand."""
+    import sys
+    from pathlib import Path
+    bench_dir = str(Path(__file__).resolve().parents[1] / "benchmarks")
+    sys.path.insert(0, bench_dir)
+    try:
+        import bench_selfcheck as bench
+    finally:
+        sys.path.remove(bench_dir)
+
+    def row(measured, sc, lo, hi, group="own: wave"):
+        return {"group": group, "effort": "quick", "lens": "x", "measured": measured, "self_check": sc, "lo": lo,
+                "hi": hi, "sd": 0.1, "abs_dev": 0.08, "evidence": False, "warning": False}
+
+    rows = [row(0.80, 0.90, 0.70, 1.0), row(1.00, 0.92, 0.60, 0.99), row(0.60, 0.88, 0.65, 1.0),
+            row(0.95, 0.90, 0.50, 1.0, group="own: geometric")]
+    s = {r["group"]: r for r in bench.summary(rows, compare=False)}
+    wave = s["own: wave"]
+    assert wave["n"] == 3 and wave["sc"] == pytest.approx(0.9) and wave["meas"] == pytest.approx(0.8)
+    assert wave["abs"] == pytest.approx((0.10 + 0.08 + 0.28) / 3)
+    assert wave["inside"] == "1/3" and wave["within"] == "0/3"      # 1.00 > 0.99 + tolerance; 0.60 < 0.65
+    # the mean difference in its standard errors: sqrt(3 x 0.01) / 3
+    assert wave["diff"] == f"{0.1:+.3f} ({0.1 / (math.sqrt(0.03) / 3):+.1f})"
+    assert s["own: all"]["n"] == 4 and s["own: geometric"]["within"] == "1/1"
