@@ -137,6 +137,7 @@ def main(argv=None) -> int:
     ap.add_argument("--compare", action="store_true",
                     help="also the held-out tiles' coverage and the estimate with kappa's posterior always integrated")
     ap.add_argument("--note", default="", help="a sentence after the command")
+    ap.add_argument("--notes", type=Path, default=None, help="a markdown file appended to the section (the reading)")
     ap.add_argument("--docs", action="store_true", help="write the section into docs/benchmarks.md")
     args = ap.parse_args(argv)
     if (args.jsonl is None) != (args.keep is None):
@@ -149,9 +150,12 @@ def main(argv=None) -> int:
     if not rows:
         ap.error("nothing to read: give --jsonl/--keep and/or --cleanroom")
     raw = list(argv if argv is not None else sys.argv[1:])
+    skip = {"--note", "--notes"}   # the caption's own options
     command = "python benchmarks/bench_selfcheck.py " + " ".join(
-        a for i, a in enumerate(raw) if a != "--note" and (i == 0 or raw[i - 1] != "--note"))
+        a for i, a in enumerate(raw) if a not in skip and (i == 0 or raw[i - 1] not in skip))
     text = render(rows, args.compare, command.strip(), args.note)
+    if args.notes:
+        text += "\n\n" + args.notes.read_text().strip()
     print(text)
     if args.docs:
         write_docs_section("selfcheck_s11", text)
