@@ -343,15 +343,8 @@ def test_decomposition_summary_recovers_which_field_wide_term_is_real():
     """The benchmark's per-term check (bench_band_coverage.decomposition_summary) on pistons drawn with known
     variances: a term stated 4x too large in variance gets a multiplier near 1/4, an honest one near 1, a term no
     profile states none; the RMS piston / stated sd is the closed form sqrt(sum a v / sum v)."""
-    import sys
-    from pathlib import Path
-
-    bench_dir = str(Path(__file__).resolve().parents[1] / "benchmarks")
-    sys.path.insert(0, bench_dir)
-    try:
-        import bench_band_coverage as bench
-    finally:
-        sys.path.remove(bench_dir)
+    from bench_util import import_bench
+    bench = import_bench("bench_band_coverage")
     rng = np.random.default_rng(3)
     rows = []
     for _ in range(400):

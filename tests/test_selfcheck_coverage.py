@@ -166,14 +166,8 @@ def test_report_states_the_estimate_its_range_and_warns_on_evidence_only():
 
 def test_benchmark_summary_counts_against_known_rows():
     """benchmarks/bench_selfcheck.py's per-group figures on rows whose answers are known by hand."""
-    import sys
-    from pathlib import Path
-    bench_dir = str(Path(__file__).resolve().parents[1] / "benchmarks")
-    sys.path.insert(0, bench_dir)
-    try:
-        import bench_selfcheck as bench
-    finally:
-        sys.path.remove(bench_dir)
+    from bench_util import import_bench
+    bench = import_bench("bench_selfcheck")
 
     def row(measured, sc, lo, hi, group="own: wave"):
         return {"group": group, "effort": "quick", "lens": "x", "measured": measured, "self_check": sc, "lo": lo,
