@@ -162,6 +162,11 @@ def test_report_states_the_estimate_its_range_and_warns_on_evidence_only():
     assert "62 %" in line and "20-100 %" in line and warn is None
     line, warn = self_check_summary(P({**sc, "warning": "too narrow"}))
     assert warn == "too narrow"
+    # how far one lens's coverage falls from the expectation, and whether the held-out kappa was used
+    line, _ = self_check_summary(P({**sc, "coverage_abs_dev": 0.087, "kappa_evidence": False}))
+    assert "on average 9 points from the expectation" in line and "taken as built" in line
+    line, _ = self_check_summary(P({**sc, "kappa_evidence": True}))
+    assert "evidence, used" in line
 
 
 def test_benchmark_summary_counts_against_known_rows():

@@ -274,10 +274,15 @@ def self_check_summary(profile) -> tuple[str, str | None]:
     if sc.get("estimates", TILE_ESTIMATES) != TILE_ESTIMATES and sc.get("coverage_range"):
         lo_c, hi_c = sc["coverage_range"]
         k5, k95 = sc.get("kappa_90") or (float("nan"), float("nan"))
+        dev = sc.get("coverage_abs_dev")
+        # whether the held-out tiles' kappa entered the estimate, or the band was taken as built (no evidence)
+        used = ("" if sc.get("kappa_evidence") is None else
+                ": evidence, used" if sc["kappa_evidence"] else ": no evidence against the band, taken as built")
         line = (f"expected truth coverage of the {100 * sc.get('level', 0.9):.0f} % band {100 * cov:.0f} % of the "
-                f"field (one lens: {100 * lo_c:.0f}-{100 * hi_c:.0f} %, 5-95 %; "
-                f"{100 * sc.get('field_wide_share', 0.0):.0f} % of the band's variance is one draw for the field); "
-                f"errors between tiles {k5:.2f}-{k95:.2f} x the band's (90 %); " + tiles)
+                f"field (one lens: {100 * lo_c:.0f}-{100 * hi_c:.0f} %, 5-95 %"
+                + (f", on average {100 * dev:.0f} points from the expectation" if dev is not None else "")
+                + f"; {100 * sc.get('field_wide_share', 0.0):.0f} % of the band's variance is one draw for the field); "
+                f"errors between tiles {k5:.2f}-{k95:.2f} x the band's (90 %{used}); " + tiles)
         return line, sc.get("warning")
     lo, hi = WARN_RANGE
     warn = None
