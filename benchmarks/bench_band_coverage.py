@@ -420,6 +420,9 @@ def run_one(lens: dict, effort: str, seed: int = 0, plans: bool = False, keep: P
             "err_hw_p90": after["err_hw_p90"], "err_hw_median": after["err_hw_median"],
             "hw_um": after["hw_um"], "hw_before_um": before["hw_um"], "band_scale": scale,
             "self_check": sc.get("coverage", float("nan")), "check_s": sc.get("time_s", float("nan")),
+            # the held-out tiles' own coverage (the self-check's headline before session 11) and kappa
+            "tile_check": sc.get("tile_coverage", sc.get("coverage", float("nan"))),
+            "kappa": sc.get("kappa", float("nan")), "log_kappa_sd": sc.get("log_kappa_sd", float("nan")),
             # the range the profile states for its truth coverage, given its field-wide share (fit/selfcheck.py)
             "sc_expected": sc.get("coverage_expected", float("nan")),
             "sc_lo": (sc.get("coverage_range") or [float("nan")] * 2)[0],

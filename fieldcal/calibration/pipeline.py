@@ -153,7 +153,6 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     from fieldcal.measure import measure_geometry, measure_stack
     from fieldcal.fit import ImageGeometry
     from fieldcal.fit.geometry import GeometryData, fit_geometry
-    from fieldcal.fit.selfcheck import field_wide_coverage
     from fieldcal.fit.stage import fit_stage_errors
     from fieldcal.fit.tolerance import MIN_QUICK_WIDTHS, fit_tolerance
     from fieldcal.fit.width_window import correct_widths
@@ -207,11 +206,6 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
         _edge_common_mode(surf.discrepancy, edge_summary.get("common_mode") or {}, float(surf.z_scale_um))
     breathing_sd = breathing_systematic_sd_um(table)
     offset_sd = measure_offset_sd_um(table)
-    sc = (surf.diagnostics or {}).get("self_check")
-    if isinstance(sc, dict) and sc.get("status") == "ok":
-        # the held-out tiles cannot see errors shared by the whole field: say what range they leave
-        sc.update(field_wide_coverage(surf, {c: math.hypot(breathing_sd.get(c, 0.0), offset_sd.get(c, 0.0))
-                                             for c in set(breathing_sd) | set(offset_sd)}))
     t_fit = time.perf_counter() - t0 - t_measure
     centre = surf.optical_centre_px()
     geo_c = geo_meas.recentred(tuple(float(v) for v in centre))
@@ -303,10 +297,29 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
         tiles=table.to_dict(), geometry_measurements=cols, geometry_map=gmap,
         absolute_distortion=absd,
     )
+    _self_check_coverage(profile)
     _check_surface_support(profile, table, stack, (float(z[0]), float(z[-1])), quiet)
     status(f"calibrated {len(stack)} frames in {t_total:.1f} s from {kind.kind}: model {surf.model.name}, "
            f"{n_ok} {'edge rows' if kind.kind == 'esfr' else 'tiles'} used", quiet=quiet)
     return profile
+
+
+def _self_check_coverage(profile) -> None:
+    """The self-check's estimate of the band's truth coverage (fit/selfcheck.py ``coverage_estimate``), from the
+    finished profile's own error model and the held-out tiles' kappa; warns when the evidence puts it outside
+    0.8-0.97 (docs/fitting.md "Self-checked coverage")."""
+    from fieldcal.fit.selfcheck import coverage_estimate
+
+    sc = (profile.surfaces.diagnostics or {}).get("self_check")
+    if not (isinstance(sc, dict) and sc.get("status") == "ok"):
+        return
+    t0 = time.perf_counter()
+    fit_warning = sc.get("warning")  # the tile-level one, already shown by the surface fit
+    sc["tile_coverage"] = sc.get("tile_coverage", sc.get("coverage"))
+    sc.update(coverage_estimate(profile, math.log(float(sc.get("kappa") or 1.0)), float(sc.get("log_kappa_sd") or 0.0)))
+    sc["time_s"] = round(float(sc.get("time_s") or 0.0) + time.perf_counter() - t0, 4)
+    if sc.get("warning") and not fit_warning:
+        warn(sc["warning"])
 
 
 def _check_surface_support(profile, table, stack, z_range_um, quiet: bool) -> None:

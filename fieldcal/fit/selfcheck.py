@@ -17,9 +17,17 @@ Procedure (all in normalised z units, focus rows of the chosen model):
    short to be surface (``(1 - Discrepancy.gp_identified()) tau^2``: a nugget, which the band leaves out). The band scale ``c`` maximises this likelihood with
    a weak log-normal prior on c (sd 1 in ln c: where the tile noise dominates, c stays near 1), c in [1, 8]:
    c > 1 means the surface model misses structure between tiles. (c < 1 is not allowed: see SCALE_BOUNDS.)
-3. Self-check: for each block, c is re-estimated *without* that block and its tiles are tested against
-   their 90 % predictive interval: the fraction inside is the cross-validated coverage of the calibrated
-   band, stored in the profile (``diagnostics.surface.self_check``) and reported; outside 0.8-0.97 warns.
+3. Held-out tile coverage: for each block, c is re-estimated *without* that block and its tiles are tested
+   against their 90 % predictive interval (``tile_coverage``). It reads ~0.9 on every lens (c is fitted to make
+   it so, and a tile's interval is mostly its own noise): it is not the band's truth coverage.
+4. kappa: the held-out surface error's sd over the scaled band's (tile noise deconvolved), with its posterior
+   sd (:func:`kappa_posterior`); < 1 is allowed here (band too wide).
+5. Self-check (:func:`coverage_estimate`, run by ``calibrate`` on the finished profile): the band's truth
+   coverage over a grid of the image as the profile's own joint error model predicts it (a parametric
+   bootstrap, field-wide terms one draw per lens), its tested part scaled by kappa's posterior where that
+   excludes 1 (else the band as built): expectation
+   (``coverage``), median, 5-95 % range; it warns only when kappa's evidence puts the expectation outside
+   0.8-0.97 (docs/fitting.md "Self-checked coverage").
 
 The scale multiplies the non-common part of the surface band (:class:`fieldcal.fit.result.SurfaceFit`).
 """
@@ -34,7 +42,7 @@ import numpy as np
 from scipy import optimize
 from scipy.special import ndtr, ndtri  # not scipy.stats: its import alone is ~0.35 s of a quick calibration
 
-from .discrepancy import JK_BLOCKS, Discrepancy
+from .discrepancy import JK_BLOCKS, Discrepancy, matern32
 
 LEVEL = 0.9
 # The scale only widens. A held-out tile's predictive variance is mostly its own noise (REML fitted the noise
@@ -42,6 +50,8 @@ LEVEL = 0.9
 # at only 0.74 the check asked for c = 0.62 (coverage 0.74 -> 0.66). c > 1 (held-out blocks predicted worse
 # than noise + band allow) is what the check sees reliably: structure the surface model misses.
 SCALE_BOUNDS = (1.0, 8.0)
+# kappa (what the held-out tiles say the band's field-varying part should be multiplied by) is estimated both ways
+KAPPA_BOUNDS = (0.05, 20.0)
 LOG_SCALE_PRIOR_SD = 1.0
 WARN_RANGE = (0.8, 0.97)
 MIN_BLOCKS = 4
@@ -54,6 +64,8 @@ SEES = "structure between tiles that the band's field-varying terms miss, edge b
 CANNOT_SEE = ("errors shared by every tile of a channel: the fitted stage frames' unidentified part, the breathing "
               "systematic, the sml@fs offset and any bias of the peak estimator; the surface beyond the last tiles "
               "(corners); these are stated as field_wide_share and coverage_range instead")
+
+TILE_ESTIMATES = "the fraction of held-out tiles inside their 90 % predictive interval (their own noise included)"
 
 
 @dataclass
@@ -68,25 +80,46 @@ class SelfCheck:
     z_rms: float               # RMS of the standardised held-out residuals at the final scale
     time_s: float
     status: str = "ok"
+    # ln of the ratio kappa = (held-out surface error sd) / (band's field-varying sd at the final scale): its
+    # posterior mean and sd (tile noise deconvolved, block-jackknife spread, shrunk to 0 = honest by the prior)
+    log_kappa: float = 0.0
+    log_kappa_sd: float = LOG_SCALE_PRIOR_SD
+
+    @property
+    def kappa_90(self) -> tuple[float, float]:
+        """90 % interval of kappa (the held-out tiles' evidence on the band's field-varying part)."""
+        z = float(ndtri(0.95))
+        return math.exp(self.log_kappa - z * self.log_kappa_sd), math.exp(self.log_kappa + z * self.log_kappa_sd)
 
     @property
     def warning(self) -> str | None:
-        if self.status != "ok":
+        """A warning when the evidence puts the field-varying band off by more than a factor that alone would
+        move a 90 % band's coverage out of WARN_RANGE (calibrate then restates it as truth coverage)."""
+        if self.status != "ok" or not math.isfinite(self.log_kappa):
             return None
+        zq = float(ndtri(0.5 + 0.5 * LEVEL))
         lo, hi = WARN_RANGE
-        if not (lo <= self.coverage <= hi):
-            side = "narrow" if self.coverage < lo else "wide"
-            return (f"held-out tile check: {100 * self.coverage:.0f} % of left-out tiles fall in their 90 % "
-                    f"band (expected {100 * lo:.0f}-{100 * hi:.0f} %): the credible bands may be too {side} "
-                    "for this lens; use a finer tile grid / more frames, or treat the bands with care")
+        k_narrow, k_wide = zq / float(ndtri(0.5 + 0.5 * lo)), zq / float(ndtri(0.5 + 0.5 * hi))
+        k5, k95 = self.kappa_90
+        if k5 > k_narrow or k95 < k_wide:
+            side = "narrow" if k5 > k_narrow else "wide"
+            return (f"held-out tile check: the surface errors between tiles are {k5:.2f}-{k95:.2f} x what the band "
+                    f"allows (90 % interval; the band would cover {100 * lo:.0f}-{100 * hi:.0f} % at "
+                    f"{k_wide:.2f}-{k_narrow:.2f} x): the credible bands are too {side} for this lens; use a finer "
+                    "tile grid / more frames, or treat the bands with care")
         return None
 
     def to_dict(self) -> dict:
+        # ``coverage`` is the held-out tiles' own until calibrate replaces it with the truth-coverage estimate
+        # (coverage_estimate; ``estimates`` says which); ``tile_coverage`` keeps this one
         return {"method": "leave-blocks-out predictive check (docs/fitting.md 'Self-checked coverage')",
-                "level": LEVEL, "coverage": float(self.coverage), "coverage_unscaled": float(self.coverage_unscaled),
+                "level": LEVEL, "coverage": float(self.coverage), "tile_coverage": float(self.coverage),
+                "estimates": TILE_ESTIMATES, "coverage_unscaled": float(self.coverage_unscaled),
                 "band_scale": float(self.band_scale), "n_tiles": int(self.n_tiles), "n_blocks": int(self.n_blocks),
                 "z_rms": float(self.z_rms), "time_s": round(float(self.time_s), 4), "status": self.status,
-                "warning": self.warning, "sees": SEES, "cannot_see": CANNOT_SEE}
+                "warning": self.warning, "sees": SEES, "cannot_see": CANNOT_SEE,
+                "kappa": float(math.exp(self.log_kappa)), "log_kappa_sd": float(self.log_kappa_sd),
+                "kappa_90": [float(v) for v in self.kappa_90]}
 
 
 def block_labels(x_hat: np.ndarray, y_hat: np.ndarray, blocks=JK_BLOCKS) -> np.ndarray:
@@ -146,6 +179,34 @@ def _fit_scale(r: np.ndarray, v: np.ndarray, nv: np.ndarray) -> float:
     return float(math.exp(res.x))
 
 
+_LOG_KAPPA_GRID = np.linspace(math.log(KAPPA_BOUNDS[0]), math.log(KAPPA_BOUNDS[1]), 121)
+
+
+def _log_kappa_grid_posterior(r: np.ndarray, v: np.ndarray, nv: np.ndarray) -> tuple[float, float]:
+    """(mean, sd) of ln(kappa) on a grid: likelihood of ``r ~ N(0, kappa^2 v + nv)`` times the log-normal prior
+    of sd LOG_SCALE_PRIOR_SD about 1 (a grid, not a Laplace step: where tile noise dominates the likelihood is
+    flat towards kappa = 0 and the maximum sits on the bound)."""
+    lk = _LOG_KAPPA_GRID
+    tot = np.exp(2.0 * lk)[:, None] * v[None, :] + nv[None, :]
+    lp = -0.5 * np.sum(np.log(tot) + r[None, :] ** 2 / tot, axis=1) - 0.5 * (lk / LOG_SCALE_PRIOR_SD) ** 2
+    w = np.exp(lp - lp.max())
+    w /= w.sum()
+    mean = float(np.sum(w * lk))
+    return mean, float(math.sqrt(max(float(np.sum(w * (lk - mean) ** 2)), 0.0)))
+
+
+def kappa_posterior(r: np.ndarray, v: np.ndarray, nv: np.ndarray, lab: np.ndarray) -> tuple[float, float]:
+    """(mean, sd) of ln(kappa), kappa = the held-out surface error's sd over the band's sd ``sqrt(v)`` (tile noise
+    ``nv`` deconvolved). The grid posterior treats the tiles as independent; those of a block share their
+    prediction's error, so the sd is at least the delete-a-block jackknife's of the posterior mean."""
+    mean, sd = _log_kappa_grid_posterior(r, v, nv)
+    blocks = np.unique(lab)
+    if blocks.size > 1:
+        jk = np.array([_log_kappa_grid_posterior(r[lab != k], v[lab != k], nv[lab != k])[0] for k in blocks])
+        sd = max(sd, math.sqrt((blocks.size - 1) / blocks.size * float(np.sum((jk - jk.mean()) ** 2))))
+    return mean, sd
+
+
 def predictive_check(disc: Discrepancy | None) -> SelfCheck:
     """Leave-blocks-out check of a fitted discrepancy's band; see the module docstring."""
     t0 = time.perf_counter()
@@ -167,8 +228,9 @@ def predictive_check(disc: Discrepancy | None) -> SelfCheck:
         inside[m] = np.abs(r[m]) <= zq * np.sqrt(ck * ck * v[m] + nv[m])
     unscaled = float(np.mean(np.abs(r) <= zq * np.sqrt(v + nv)))
     z_rms = float(np.sqrt(np.mean(r * r / (c * c * v + nv))))
+    lk, lk_sd = kappa_posterior(r, v * c * c, nv, lab)
     return SelfCheck(c, float(inside.mean()), unscaled, int(r.size), int(blocks.size), z_rms,
-                     time.perf_counter() - t0)
+                     time.perf_counter() - t0, log_kappa=lk, log_kappa_sd=lk_sd)
 
 
 # Above this share of the band's variance in one field-wide draw the truth coverage of one lens is near 0 or 1
@@ -206,51 +268,148 @@ def coverage_given_shared(field_var: np.ndarray, shared_var: float, level: float
     return {"expected": mean, **qs, "field_wide_share": share}
 
 
-def field_wide_coverage(surf, shared_extra_sd_um: dict | None = None, level: float = LEVEL) -> dict:
-    """What the held-out check cannot see, as a range: the truth coverage this band gives on one lens, given the
-    share of its variance that is one draw for the whole field (common mode, stage, breathing and other
-    systematics, ``shared_extra_sd_um`` per channel in µm), on a regular grid over the whole image (corners
-    included, where the field part is largest), channels pooled.
+N_DRAWS = 400     # parametric-bootstrap draws of the whole field's error (one per simulated lens)
+SEED = 20251124
+ESTIMATES = ("the fraction of a 16 x 12 grid over the image (channels pooled) where the true best-focus surface "
+             "lies inside the profile's band: expectation, median and 5-95 % range over the profile's own joint "
+             "error model (parametric bootstrap: field-wide draws, correlated coefficient and discrepancy errors), "
+             "its field-varying part scaled by kappa, the ratio the held-out tiles measure (tile noise deconvolved), "
+             "where their evidence excludes kappa = 1")
 
-    Returns the record merged into ``diagnostics.surface.self_check``: ``coverage_expected``, the 5-95 %
-    range ``coverage_range`` and ``field_wide_share``; a warning when the share is above
-    ``FIELD_WIDE_WARN_SHARE`` (one lens's coverage is then near 0 or 1, not near the level).
+
+def _channel_error_model(profile, ch: str, x: np.ndarray, y: np.ndarray, n_rows: int = 0) -> dict:
+    """One channel's band at points split by how its errors are shared (µm): what the held-out tiles test
+    (``coef`` deviations of the posterior samples, ``local`` sd with its Matérn correlation ``corr``) and what
+    they cannot (``shared`` sd: one draw for the field; ``rank1`` sds: one draw each, varying over the field),
+    with the band's own bounds about the surface (``dlo``, ``dhi``)."""
+    from fieldcal.profile.uncertainty import _systematic_var_um2  # the band's field-wide terms, as it adds them
+
+    s = profile.surfaces
+    ci = s.channels.index(ch)
+    zs = float(s.z_scale_um)
+    value = np.asarray(profile.best_focus_um(x, y, ch), float)
+    lo, hi = profile.best_focus_interval_um(x, y, ch, level=LEVEL)
+    xh, yh = s.geometry.normalise(x, y)
+    # as many posterior samples as draws (a fixed subset: deterministic, and 5x cheaper than all of them)
+    rows = s.samples[:: max(1, s.samples.shape[0] // n_rows)][:n_rows] if n_rows else s.samples
+    samples = s.sample_model.surface(rows, xh, yh, ci)
+    d = s.discrepancy
+    sys_var = _systematic_var_um2(profile, ch)
+    if d is None:  # the band is the samples' spread alone (plus the systematics)
+        return {"dlo": lo - value, "dhi": hi - value, "coef": zs * (samples - samples.mean(axis=0)),
+                "local": np.zeros(x.size), "length": 1.0, "shared": math.sqrt(sys_var), "rank1": []}
+    c = float(s.band_scale)
+    z0 = s.model.surface(s.theta_map, xh, yh, ci)
+    _, extra = d.predict(xh, yh, ci)
+    _, bare = d.without_nuisances().predict(xh, yh, ci)
+    common = float(d.common_sd[ci]) ** 2 if d.common_sd is not None and ci < d.common_sd.size else 0.0
+    stage = 0.0 if d.has_stage else (float(s.stage_sd_um.get(ch, 0.0)) / zs) ** 2
+    # the samples are a model average: their mean is the band's centre, off the chosen model's surface (value);
+    # the errors (kappa scales them) are about that centre
+    coef = zs * c * (samples - z0)
+    off = coef.mean(axis=0)
+    return {"dlo": lo - value - off, "dhi": hi - value - off, "coef": coef - off,
+            "local": zs * c * np.sqrt(np.clip(bare - common, 0.0, None)),
+            "length": float(d.length_scale),
+            "shared": math.sqrt((common + stage) * zs * zs + sys_var),
+            # the fitted stage frames' unknown part and the tile-window exponent: one draw each for the field
+            "rank1": [zs * c * np.sqrt(np.clip(extra - bare, 0.0, None)),
+                      zs * np.sqrt(np.broadcast_to(s._window_var(x, y, ch), x.shape))]}
+
+
+def _draw_errors(m: dict, chol: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` draws of one channel's field error at the points (µm), as (the part the held-out tiles test, the
+    rest): the truth is ``kappa * tested + rest`` about the surface. ``chol`` is the Cholesky factor of the
+    discrepancy's correlation at the points."""
+    npt = m["dlo"].size
+    coef = m["coef"][rng.integers(0, m["coef"].shape[0], n)]
+    tested = coef + (rng.standard_normal((n, npt)) @ chol.T) * m["local"]
+    rest = m["shared"] * rng.standard_normal((n, 1))
+    for sd in m["rank1"]:
+        rest = rest + sd[None, :] * rng.standard_normal((n, 1))
+    return tested, rest
+
+
+def _inside(m: dict, tested: np.ndarray, rest: np.ndarray, kappa) -> np.ndarray:
+    """Fraction of points inside the band, per draw, when the tested part is off by ``kappa`` (one, or one per
+    draw)."""
+    e = np.reshape(kappa, (-1, 1)) * tested + rest
+    return np.mean((e >= m["dlo"]) & (e <= m["dhi"]), axis=1)
+
+
+def coverage_estimate(profile, log_kappa: float = 0.0, log_kappa_sd: float = 0.0, n_draws: int = N_DRAWS,
+                      seed: int = SEED, kappa_mode: str = "evidence") -> dict:
+    """The truth coverage of the profile's band, as the profile's own error model predicts it.
+
+    A parametric bootstrap: each draw is one lens's error field (:func:`_channel_error_model`: the posterior
+    samples' correlated surfaces, the discrepancy as a Matérn field, every field-wide term as one draw per
+    channel), with the part the held-out tiles test multiplied by ``kappa ~ logN(log_kappa, log_kappa_sd)`` when
+    kappa's 90 % interval excludes 1 (``kappa_mode="evidence"``; otherwise kappa = 1, the band as built); its
+    coverage is the fraction of grid points (channels pooled) inside the band. With kappa = 1 the expectation
+    is the band's level; one lens's coverage spreads about it as much as its field-wide and smooth errors allow.
+
+    Returns the record merged into ``diagnostics.surface.self_check`` (keys ``coverage`` and below; docs/fitting.md
+    "Self-checked coverage").
     """
-    d = getattr(surf, "discrepancy", None)
-    if d is None or d.target.size == 0:
-        return {}
-    zs = float(surf.z_scale_um)
-    c = float(getattr(surf, "band_scale", 1.0))
-    g = surf.geometry
+    s = profile.surfaces
+    g = s.geometry
     gx, gy = np.meshgrid((np.arange(GRID[0]) + 0.5) * g.width_px / GRID[0] - 0.5,
                          (np.arange(GRID[1]) + 0.5) * g.height_px / GRID[1] - 0.5)
-    xh, yh = g.normalise(gx.ravel(), gy.ravel())
-    fvar, svar = [], []
-    for ci, ch in enumerate(d.model.channels):
-        if not np.any(d.ch_index == ci):
-            continue
-        _, extra = d.predict(xh, yh, ci)
-        _, bare = d.without_nuisances().predict(xh, yh, ci)
-        H = d._design(xh, yh, ci)
-        iid = np.einsum("mp,pq,mq->m", H, d.iid_cov, H)
-        common = float(d.common_sd[ci]) ** 2 if d.common_sd is not None and ci < d.common_sd.size else 0.0
-        # fitted stage frames: one draw for the field, their share by difference
-        nuisance = float(np.mean(np.clip(extra - bare, 0.0, None)))
-        stage = 0.0 if d.has_stage else (float((getattr(surf, "stage_sd_um", None) or {}).get(ch, 0.0)) / zs) ** 2
-        fvar.append((c * c * np.clip(bare - common, 0.0, None) + iid) * zs * zs)
-        extra_sd = float((shared_extra_sd_um or {}).get(ch, 0.0))
-        svar.append((common + stage + nuisance) * zs * zs + extra_sd ** 2)
-    # channels pooled: each channel's points with its own shared variance, averaged over the shared draws
-    parts = [coverage_given_shared(f, s, level) for f, s in zip(fvar, svar)]
-    if not parts:
-        return {}
-    avg = lambda k: float(np.mean([p[k] for p in parts]))  # noqa: E731
-    rec = {"coverage_expected": avg("expected"), "coverage_range": [avg("p05"), avg("p95")],
-           "coverage_median": avg("p50"), "field_wide_share": avg("field_wide_share")}
+    x, y = gx.ravel(), gy.ravel()
+    rng = np.random.default_rng(seed)
+    z90 = float(ndtri(0.95))
+    k_lo, k_hi = (math.exp(log_kappa + sgn * z90 * log_kappa_sd) for sgn in (-1.0, 1.0))
+    draws = np.exp(log_kappa + log_kappa_sd * np.random.default_rng(seed + 1).standard_normal(n_draws))
+    # "evidence": kappa's posterior only where its 90 % interval excludes 1, else the band as built (kappa = 1).
+    # Where tile noise dominates, the likelihood is flat below kappa ~ 1, so the posterior's mass below 1 is the
+    # prior's lower half, not evidence: integrated anyway ("posterior") it put every benchmark lens's kappa below
+    # 1 (ln kappa -0.03..-0.95) and the expectation 0.03-0.11 above the measured coverage on the clean-room
+    # renderer, while the lenses with the lowest kappa were not the better-covered ones (docs/benchmarks.md
+    # "Self-check as a coverage estimator (s11)")
+    evident = not (k_lo <= 1.0 <= k_hi)
+    kappa = {"plugin": math.exp(log_kappa), "one": 1.0, "posterior": draws,
+             "evidence": draws if evident else 1.0}[kappa_mode]
+    cov, at_lo, at_hi, shares = [], [], [], []
+    chol = {}
+    for ch in s.channels:
+        m = _channel_error_model(profile, ch, x, y, n_draws)
+        if m["length"] not in chol:  # one factor for all channels: one grid, one length scale
+            xh, yh = g.normalise(x, y)
+            dist = np.hypot(xh[:, None] - xh[None, :], yh[:, None] - yh[None, :])
+            chol[m["length"]] = np.linalg.cholesky(matern32(dist / max(m["length"], 1e-6)) + 1e-8 * np.eye(x.size))
+        tested, rest = _draw_errors(m, chol[m["length"]], n_draws, rng)
+        # the same draws at each kappa: the differences are kappa's alone
+        cov.append(_inside(m, tested, rest, kappa))
+        at_lo.append(_inside(m, tested, rest, k_lo).mean())
+        at_hi.append(_inside(m, tested, rest, k_hi).mean())
+        shared = m["shared"] ** 2 + sum(sd ** 2 for sd in m["rank1"])
+        total = shared + m["coef"].var(axis=0) + m["local"] ** 2
+        shares.append(float(np.mean(shared / np.maximum(total, 1e-30))))
+    pooled = np.mean(cov, axis=0)
+    q05, q50, q95 = (float(v) for v in np.quantile(pooled, [0.05, 0.5, 0.95]))
+    rec = {"coverage": float(pooled.mean()), "coverage_expected": float(pooled.mean()), "coverage_median": q50,
+           "coverage_range": [q05, q95], "coverage_sd": float(pooled.std()),
+           # how far one lens's coverage falls from the expectation on average, were the band exactly honest:
+           # the least |self-check - measured| any check from this stack can promise
+           "coverage_abs_dev": float(np.mean(np.abs(pooled - pooled.mean()))),
+           # the expectation at the 5 % and 95 % points of kappa: what the held-out evidence allows
+           "coverage_expected_kappa_90": [float(np.mean(at_hi)), float(np.mean(at_lo))],
+           "field_wide_share": float(np.mean(shares)), "estimates": ESTIMATES, "n_draws": int(n_draws),
+           # whether kappa's posterior entered the draws (its 90 % interval excludes 1) or kappa = 1
+           "kappa_evidence": bool(kappa_mode != "one" and (evident or kappa_mode != "evidence")),
+           "grid": list(GRID)}
+    lo, hi = WARN_RANGE
+    low, high = rec["coverage_expected_kappa_90"]
+    rec["warning"] = None
+    if high < lo or low > hi:
+        side = "narrow" if high < lo else "wide"
+        rec["warning"] = (f"self-check: the held-out tiles put this band's expected truth coverage at "
+                          f"{100 * low:.0f}-{100 * high:.0f} % (90 % interval), outside {100 * lo:.0f}-"
+                          f"{100 * hi:.0f} %: the credible bands are too {side} for this lens; use a finer tile "
+                          "grid / more frames, or treat the bands with care")
     if rec["field_wide_share"] > FIELD_WIDE_WARN_SHARE:
         rec["field_wide_warning"] = (
             f"{100 * rec['field_wide_share']:.0f} % of the band's variance is one draw for the whole field "
             "(stage, breathing, common mode): on this lens the band will hold the truth at between "
-            f"{100 * rec['coverage_range'][0]:.0f} % and {100 * rec['coverage_range'][1]:.0f} % of the field "
-            f"(5-95 %), not at {100 * level:.0f} % everywhere")
+            f"{100 * q05:.0f} % and {100 * q95:.0f} % of the field (5-95 %), not at {100 * LEVEL:.0f} % everywhere")
     return rec

@@ -131,7 +131,11 @@ def profile_summary(profile) -> dict[str, Any]:
                         "z_ref_um": profile.z_ref_um},
         "surface_model": profile.surfaces.model.name,
         "self_check": {"coverage": sc.get("coverage"), "level": sc.get("level"), "status": sc.get("status"),
-                       "band_scale": sc.get("band_scale"), "warning": sc.get("warning")} if sc else None,
+                       "band_scale": sc.get("band_scale"), "warning": sc.get("warning"),
+                       # session 11 on: coverage is the band's estimated truth coverage, with its 5-95 % range
+                       "coverage_range": sc.get("coverage_range"), "tile_coverage": sc.get("tile_coverage"),
+                       "coverage_abs_dev": sc.get("coverage_abs_dev"),
+                       "estimates": sc.get("estimates")} if sc else None,
         # calibrate's warning when the calibrated focus (the optical centre) is far from every fitted tile
         "centre_support_warning": (((profile.diagnostics or {}).get("surface_support") or {}).get("centre")
                                    or {}).get("warning"),
@@ -164,7 +168,15 @@ def format_summary(s: dict[str, Any]) -> str:
          f"µm (step {_f(cal['z_step_um'], 'g')}), z_ref {cal['z_ref_um']:g} µm; tiles {cal['tile_px']} px",
          f"surface  {s['surface_model']}"]
     sc = s.get("self_check")
-    if sc and sc.get("coverage") is not None:
+    if sc and sc.get("coverage") is not None and sc.get("coverage_range") and sc.get("tile_coverage") is not None:
+        lo_c, hi_c = sc["coverage_range"]
+        dev = sc.get("coverage_abs_dev")
+        L.append(f"self-check  expected truth coverage of the {100 * (sc.get('level') or 0.9):.0f}% band "
+                 f"{100 * sc['coverage']:.0f}% (one lens: {100 * lo_c:.0f}-{100 * hi_c:.0f}%, 5-95%"
+                 + (f", on average {100 * dev:.0f} points off" if dev is not None else "") + "); "
+                 f"{100 * sc['tile_coverage']:.0f}% of held-out tiles inside theirs (band scale "
+                 f"{_f(sc.get('band_scale'), '.2f')})" + (f"; warning: {sc['warning']}" if sc.get("warning") else ""))
+    elif sc and sc.get("coverage") is not None:
         L.append(f"self-check  {100 * sc['coverage']:.0f}% of held-out tiles inside the "
                  f"{100 * (sc.get('level') or 0.9):.0f}% band (band scale {_f(sc.get('band_scale'), '.2f')})"
                  + (f"; warning: {sc['warning']}" if sc.get("warning") else ""))

@@ -251,9 +251,12 @@ def uncertainty_budget(profile: LensProfile, level: float = 0.9) -> list[dict]:
 
 
 def self_check_summary(profile) -> tuple[str, str | None]:
-    """One line on the profile's held-out-tile self-check (docs/fitting.md "Self-checked coverage") and its
-    warning (None when the coverage is in 0.8-0.97, or when an old profile has no self-check)."""
-    from fieldcal.fit.selfcheck import WARN_RANGE
+    """One line on the profile's self-check (docs/fitting.md "Self-checked coverage") and its warning.
+
+    Profiles from session 11 on state the band's estimated truth coverage (``estimates`` says what ``coverage`` is)
+    and warn on the held-out evidence; older ones state the held-out tiles' coverage and warn outside 0.8-0.97
+    (None when in range, or when an old profile has no self-check)."""
+    from fieldcal.fit.selfcheck import TILE_ESTIMATES, WARN_RANGE
 
     surfaces = getattr(profile, "surfaces", None)  # a LensProfile, or anything shaped like one (tests)
     if surfaces is None or not hasattr(surfaces, "band_scale"):
@@ -264,16 +267,29 @@ def self_check_summary(profile) -> tuple[str, str | None]:
     cov = sc.get("coverage")
     if sc.get("status") != "ok" or cov is None or not np.isfinite(cov):
         return f"self-check not run: {sc.get('status')}", None
-    line = (f"{100 * cov:.0f} % of {sc.get('n_tiles')} left-out tiles ({sc.get('n_blocks')} spatial blocks, each "
-            f"predicted from the others) fell inside their predicted {100 * sc.get('level', 0.9):.0f} % band "
-            f"(before the band scale: {100 * sc.get('coverage_unscaled', float('nan')):.0f} %; band scale "
-            f"{sc.get('band_scale', 1.0):.2f})")
+    tiles = (f"{100 * sc.get('tile_coverage', cov):.0f} % of {sc.get('n_tiles')} left-out tiles ({sc.get('n_blocks')} "
+             f"spatial blocks, each predicted from the others) fell inside their predicted "
+             f"{100 * sc.get('level', 0.9):.0f} % band (before the band scale: "
+             f"{100 * sc.get('coverage_unscaled', float('nan')):.0f} %; band scale {sc.get('band_scale', 1.0):.2f})")
+    if sc.get("estimates", TILE_ESTIMATES) != TILE_ESTIMATES and sc.get("coverage_range"):
+        lo_c, hi_c = sc["coverage_range"]
+        k5, k95 = sc.get("kappa_90") or (float("nan"), float("nan"))
+        dev = sc.get("coverage_abs_dev")
+        # whether the held-out tiles' kappa entered the estimate, or the band was taken as built (no evidence)
+        used = ("" if sc.get("kappa_evidence") is None else
+                ": evidence, used" if sc["kappa_evidence"] else ": no evidence against the band, taken as built")
+        line = (f"expected truth coverage of the {100 * sc.get('level', 0.9):.0f} % band {100 * cov:.0f} % of the "
+                f"field (one lens: {100 * lo_c:.0f}-{100 * hi_c:.0f} %, 5-95 %"
+                + (f", on average {100 * dev:.0f} points from the expectation" if dev is not None else "")
+                + f"; {100 * sc.get('field_wide_share', 0.0):.0f} % of the band's variance is one draw for the field); "
+                f"errors between tiles {k5:.2f}-{k95:.2f} x the band's (90 %{used}); " + tiles)
+        return line, sc.get("warning")
     lo, hi = WARN_RANGE
     warn = None
     if not (lo <= cov <= hi):
         warn = sc.get("warning") or (f"self-checked coverage {cov:.2f} is outside {lo}-{hi}: the credible bands "
                                      "may not hold for this lens")
-    return line, warn
+    return tiles, warn
 
 
 def write_report(profile: LensModel, out_dir: str | Path, *, fs: float | None = None,
