@@ -147,6 +147,39 @@ def test_link_tracks_follows_drift_and_never_swaps():
     assert len(set(tr.tolist())) == 2
 
 
+
+def test_link_tracks_keeps_an_edge_whose_midpoint_slides_along_it():
+    """The detection's position is the midpoint of the scan lines the e-SFR used, which slides along the edge
+    as the blur changes: one edge (40 px long, 3 deg from vertical) whose midpoint moves 6-12 px along it between
+    frames (0.3 px across) is one track, while a collinear neighbour 50 px further along the line (the next
+    square's side) and a parallel edge 8 px across stay their own tracks."""
+    rng = np.random.default_rng(3)
+    th = np.radians(93.0)
+    ux, uy = np.cos(th), np.sin(th)            # along the edge
+    nx, ny = -uy, ux                           # across it
+    frames, xs, ys, angs, zs, lens, truth = [], [], [], [], [], [], []
+    slide = np.cumsum(rng.choice([-1.0, 1.0], 9) * rng.uniform(6.0, 12.0, 9))
+    slide -= slide.mean()
+    for f in range(9):
+        for k, (a0, n0) in enumerate(((0.0, 0.0), (50.0, 0.0), (0.0, 8.0))):
+            a = a0 + (np.clip(slide[f], -14.0, 14.0) if k == 0 else rng.uniform(-1.0, 1.0))
+            n = n0 + rng.normal(0.0, 0.3)
+            frames.append(f)
+            xs.append(200.0 + a * ux + n * nx)
+            ys.append(150.0 + a * uy + n * ny)
+            angs.append(93.0 + rng.normal(0.0, 0.3))
+            zs.append(10.0 * f)
+            lens.append(40.0)
+            truth.append(k)
+    args = (np.array(frames), np.array(xs), np.array(ys), np.array(angs), np.array(zs))
+    tr = link_tracks(*args, max_shift_px=6.0, length_px=np.array(lens))
+    truth = np.array(truth)
+    for k in range(3):
+        assert len(set(tr[truth == k].tolist())) == 1, k   # each edge one track ...
+    assert len(set(tr.tolist())) == 3                      # ... and never two edges in one
+    # with the single 6 px radius (no lengths) the sliding edge breaks into fragments
+    assert len(set(link_tracks(*args, max_shift_px=6.0)[truth == 0].tolist())) > 1
+
 def test_end_to_end_through_focus_from_rendered_edges():
     """Slanted-edge frames rendered with a defocus disc growing with |z - z0|: e-SFR per frame, tracks, peak."""
     from fieldcal.measure.mtf import measure_mtf

@@ -41,14 +41,25 @@ TOLERANCE_UNREACHED = "the scan ends before MTF(fs) falls by q on one side"
 
 
 def link_tracks(frame: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, angle_deg: np.ndarray, z_um: np.ndarray,
-                *, max_shift_px: float = 6.0, max_turn_deg: float = 4.0) -> np.ndarray:
-    """Track id of each detection: detections of consecutive frames (in z order) within ``max_shift_px`` and
-    ``max_turn_deg`` are the same edge (optimal one-to-one assignment). A track may skip frames where the edge
-    was not found (it is matched against its last position)."""
+                *, max_shift_px: float = 6.0, max_turn_deg: float = 4.0, length_px: np.ndarray | None = None) -> np.ndarray:
+    """Track id of each detection: detections of consecutive frames (in z order) within ``max_shift_px`` across
+    the edge and ``max_turn_deg`` in direction whose segments overlap by at least half the shorter one (along
+    the edge within ``max(max_shift_px, max(L1, L2) / 2)``) are the same edge (optimal one-to-one assignment). A track may skip frames where the edge was not found (it
+    is matched against its last position).
+
+    Why two distances: a detection's position is the midpoint of the scan lines the e-SFR used, and which lines
+    are usable changes with the blur, so the midpoint slides *along* the edge from frame to frame while the
+    line itself moves only by the lens's breathing. With one radius of 6 px the 1920 x 1080 triplet's edges
+    (46 scan lines) broke into two tracks wherever the midpoint slid 6-11 px: 62 junctions in G, each 0.05-0.8
+    px across the edge, 1 frame apart (docs/measurement.md "Edge tracks"). ``length_px`` (each detection's
+    edge length; None: the single radius ``max_shift_px``) sets the along-edge allowance. Two distinct
+    collinear edges (the next segment of a split side, the next square's side) do not overlap: their midpoints
+    are at least ``(L1 + L2) / 2`` apart, beyond the allowance."""
     from scipy.optimize import linear_sum_assignment
 
     frame = np.asarray(frame)
     x, y, ang, z = (np.asarray(v, dtype=np.float64) for v in (x_px, y_px, angle_deg, z_um))
+    length = np.zeros(x.size) if length_px is None else np.nan_to_num(np.asarray(length_px, np.float64))
     track = np.full(frame.size, -1, dtype=np.int64)
     frames = sorted(set(frame.tolist()), key=lambda f: (float(np.mean(z[frame == f])), f))
     last: list[int] = []  # detection index of each track's latest member
@@ -56,9 +67,14 @@ def link_tracks(frame: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, angle_deg
         idx = np.flatnonzero(frame == f)
         if last:
             L = np.asarray(last)
-            dist = np.hypot(x[idx, None] - x[None, L], y[idx, None] - y[None, L])
+            dx, dy = x[idx, None] - x[None, L], y[idx, None] - y[None, L]
+            th = np.radians(ang[None, L])
+            along = np.abs(dx * np.cos(th) + dy * np.sin(th))
+            across = np.abs(-dx * np.sin(th) + dy * np.cos(th))
+            allow = np.maximum(max_shift_px, 0.5 * np.maximum(length[idx, None], length[None, L]))
             turn = np.abs((ang[idx, None] - ang[None, L] + 90.0) % 180.0 - 90.0)
-            cost = np.where((dist <= max_shift_px) & (turn <= max_turn_deg), dist, 1e9)
+            ok = (across <= max_shift_px) & (along <= allow) & (turn <= max_turn_deg)
+            cost = np.where(ok, np.hypot(across, along * (max_shift_px / allow)), 1e9)
             ri, ci = linear_sum_assignment(cost)
             for r, c in zip(ri, ci):
                 if cost[r, c] < 1e9:
