@@ -33,7 +33,6 @@ from typing import Any
 import nlopt
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
-from scipy.special import fdtrc as fdist_sf
 
 from .surface import COEF_PRIOR_SD, Rows, SurfaceModel
 
@@ -47,11 +46,6 @@ ELL_MIN_SPACINGS = 0.5
 # up to rho^(2 RICH_ORDER), tilt); needs this many rows beyond its parameters.
 RICH_ORDER = 3
 MIN_RICH_DOF = 5
-# The misfit term is added only where the F test rejects the chosen model at this level (one-sided, the level
-# of the model choice's paired test, fit/select.py). Its excess max(F - 1, 0) is positive half the time when
-# the chosen model is right (E = 0.18 k phi at k = 9), so added unconditionally it widened every band by a
-# misfit that is not there (session 11: own-simulator edge bands 1.00 wherever F was 1.4-1.8, p 0.10-0.19).
-MISFIT_ALPHA = 0.05
 # Common-mode tile error: a fraction of the per-tile noise shared by the whole field (frame-level errors of the
 # through-focus curves, shared by neighbouring tiles and the colour channels), which no fit can see in its
 # residuals. Measured on 16 random lenses x 2 efforts + the triplet: the surface error beyond the independent-
@@ -527,7 +521,7 @@ def fit_discrepancy(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, weig
                        jk_cov, diag, rich, rich_cov, misfit_scale, common)
 
 
-def misfit_term(model: SurfaceModel, centre, xh, yh, ci, y, w, iid_cov, alpha: float = MISFIT_ALPHA):
+def misfit_term(model: SurfaceModel, centre, xh, yh, ci, y, w, iid_cov):
     """F test of the chosen model against the richest linear surface with the same centre.
 
     Both are weighted least-squares fits with the MAP's weights ``w`` (``u_i / (s sigma_i)^2``). For nested
@@ -537,12 +531,6 @@ def misfit_term(model: SurfaceModel, centre, xh, yh, ci, y, w, iid_cov, alpha: f
     variance ``h_r C_r h_r^T - h C_c h^T`` sums (weighted) to ``k`` over the tiles, scaling it by
     ``max(F - 1, 0) phi`` adds, on average over the tiles, exactly that misfit — shaped like the extra terms
     (largest where the two models can differ most: the corners).
-
-    Added only if the F test rejects the chosen model at ``alpha`` (p-value from F(k, n - p_r)): when the model
-    is right, ``F - 1`` is noise of sd ~sqrt(2/k) and its positive part still adds ``E max(F - 1, 0) k phi``
-    (0.18 k phi at k = 9, a sixth of the tiles' noise variance spread over the field) — a misfit that is not
-    there. The model choice (:mod:`fieldcal.fit.select`) keeps a model unless a richer one is better at the
-    one-sided 5 % level; the misfit term follows the same rule. ``alpha = 1`` restores the unconditional term.
 
     Returns ``(rich_model or None, rich_cov or None, scale, diagnostics)``.
     """
@@ -567,14 +555,10 @@ def misfit_term(model: SurfaceModel, centre, xh, yh, ci, y, w, iid_cov, alpha: f
     beta_c = iid_cov @ ((Xc.T * w) @ y)
     rss_r = float(np.sum(w * (y - Xr @ beta_r) ** 2))
     rss_c = float(np.sum(w * (y - Xc @ beta_c) ** 2))
-    dof = n - Xr.shape[1]
-    phi = rss_r / dof
+    phi = rss_r / (n - Xr.shape[1])
     F = max(rss_c - rss_r, 0.0) / k / max(phi, 1e-300)
-    p_value = float(fdist_sf(k, dof, F))
-    # a pre-test: no misfit is added unless the data reject the chosen model (MISFIT_ALPHA, comment there)
-    scale = max(F - 1.0, 0.0) * phi if p_value < alpha else 0.0
+    scale = max(F - 1.0, 0.0) * phi
     return rich, cov_r, scale, {"status": "ok", "rich_model": rich.name, "k": int(k), "F": float(F),
-                                "dof": int(dof), "p_value": p_value, "alpha": float(alpha),
                                 "birge_ratio": float(phi), "scale": float(scale)}
 
 
