@@ -794,13 +794,60 @@ def channel_shape(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
                 c_nu = cn
                 shapes = track_shapes(tracks, c_nu)
     shape = replace(pool_shape(shapes, c_nu), window_r=max(float(window_r), 0.0), nu_data=float(nu_data))
+    kap = [t.kappa for t in shapes if t.ok]
+    nu = c_nu / float(np.median(kap)) if math.isfinite(c_nu) and kap else math.nan
     if shape.selected:
-        kap = [t.kappa for t in shapes if t.ok]
-        nu = c_nu / float(np.median(kap)) if math.isfinite(c_nu) else math.nan
         shape = with_curve(profile_shape(tracks, shapes, shape, nu), q, nu)
         if shape.selected:
             shape = replace(shape, dz_ds=_peak_sensitivity(tracks, shape, q))
+            return shape
+    if math.isfinite(shape.sd) and shape.sd > 0:
+        # the symmetric law takes s = 0 as known: how far its reading falls from the sharpest position for the
+        # s the data allow (unmodelled_asymmetry_sd_um: the asymmetry's share of the field-wide term)
+        shape = replace(shape, dz_ds=symmetric_reading_sensitivity(tracks, shape.sd, nu, shape.window_r))
     return shape
+
+
+def symmetric_reading_sensitivity(tracks, h: float, nu: float = math.nan, window_r: float = 0.0,
+                                  n_tracks: int = 8) -> float:
+    """|d(symmetric law's reading - sharpest position)/ds| in steps, about s = 0: a forward model.
+
+    For up to ``n_tracks`` of the channel's tracks, the law with asymmetry ``+-h`` (as the e-SFR's window reads
+    it, :func:`windowed_law`; ``nu``: the exact pupil OTF, NaN the ray law) is sampled at the track's own
+    frames with the track's own fitted centre and blur rate, read by the symmetric law
+    (:func:`symmetric_centre_um`) and compared with that law's sharpest position (:func:`model_points`). The
+    symmetric fit follows most of the peak's move (its centre tracks the data), so this is far smaller than
+    the peak's own d x_peak / ds / kappa (0.07 against 1.5 steps per unit s at a one-step tolerance), and it
+    depends on where the frames fall: hence the track's own samples. Median of the absolute slopes."""
+    if not (math.isfinite(h) and h > 0):
+        return 0.0
+    peaks = {}
+    for sgn in (-1.0, 1.0):
+        xp = model_points(sgn * h, 0.05, nu)[0]
+        if not math.isfinite(xp):
+            return 0.0
+        peaks[sgn] = xp
+    d = []
+    for z, v in tracks[:: max(1, len(tracks) // n_tracks)][:n_tracks]:
+        z, v = _increasing(z, v)
+        start = _symmetric_start(z, v) if z.size >= 5 else None
+        if start is None:
+            continue
+        pre, _, step, sym = start
+        a = math.sqrt(max(float(sym.params[0]) * sym.scale, 1e-12))
+        zc = float(z[pre.i_max] + float(sym.params[1]) * step)
+        k_um = abs(float(sym.params[2])) / step  # x per µm
+        if not k_um > 0:
+            continue
+        e = []
+        for sgn in (-1.0, 1.0):
+            # the law placed so that its sharpest position is the track's centre: the reading's offset from it
+            x = k_um * (z - zc) + peaks[sgn]
+            zs = symmetric_centre_um(z, a * np.abs(windowed_law(x, sgn * h, nu, window_r)))
+            e.append(zs - zc)
+        if all(math.isfinite(t) for t in e):
+            d.append((e[1] - e[0]) / (2.0 * h * step))
+    return float(np.median(np.abs(d))) if d else 0.0
 
 
 def analyse_tracks(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan, wavelength_um: float = math.nan,
@@ -1019,6 +1066,28 @@ def symmetric_centre_um(z_um, mtf_fs) -> float:
     return float(z[pre.i_max] + float(sym.params[1]) * step)
 
 
+def unmodelled_asymmetry_sd_um(tracks, shape: PooledShape) -> float:
+    """The field-wide error (1 sigma, µm) the symmetric law leaves when it is used although the channel's curves
+    are known to be symmetric only to within the pooled asymmetry's sd: ``|dz/ds| x sd(s)``.
+
+    Every track of the channel is read with ``s = 0``; the pooled fit (:func:`pool_shape`) bounds the
+    asymmetry to ``+- sd``, and the sharpest position of a curve with asymmetry ``s`` lies ``dz/ds x s`` from the
+    symmetric law's reading (``shape.dz_ds``, probed about ``s = 0`` on the channel's own tracks:
+    :func:`channel_shape`) — the same for every track: a field-wide error that no fit of the surface sees, and
+    no frame jackknife either (it is not noise). Where the pooled law *is* selected the peak is read at ``s``
+    and the same ``dz/ds x sd`` is its share (``shape_um`` of :func:`law_common_mode`): one rule for both.
+    The estimate ``s`` itself is not added: a channel whose ``s`` is significant but is read symmetric (the
+    law is used only where every channel selects it) showed s = 1.3 +- 0.36 on fieldcal's geometric renderer,
+    which has no spherical aberration, with its symmetric peaks right to 0.1 µm (``|dz/ds| s`` = 0.64 µm): an
+    asymmetry of the curve that the primary-SA law misreads as a move of the peak."""
+    if shape.selected or not (math.isfinite(shape.sd) and shape.sd > 0 and math.isfinite(shape.dz_ds)):
+        return 0.0
+    steps = [float(np.median(np.diff(np.sort(np.asarray(z, float))))) for z, _ in tracks if len(z) > 1]
+    if not steps:
+        return 0.0
+    return abs(shape.dz_ds) * shape.sd * float(np.median(steps))
+
+
 def law_common_mode(tracks, results, shape: PooledShape) -> CommonMode:
     """The field-wide error of a channel's track peaks, measured on the tracks themselves.
 
@@ -1048,7 +1117,8 @@ def law_common_mode(tracks, results, shape: PooledShape) -> CommonMode:
     """
     frames, n_fr = frame_jackknife_sd_um(tracks)
     if not shape.selected:
-        return CommonMode(frames, 0.0, 0.0, 0.0, n_fr, frames)
+        sh = unmodelled_asymmetry_sd_um(tracks, shape)
+        return CommonMode(math.hypot(sh, frames), 0.0, sh, 0.0, n_fr, frames)
     d, steps = [], []
     for (z, v), tk in zip(tracks, results):
         if not (tk.ok or tk.reason == TOLERANCE_UNREACHED) or not math.isfinite(tk.z_best_um):
