@@ -115,9 +115,9 @@ def test_unmodelled_asymmetry_term_is_what_the_symmetric_law_misses():
     rng = np.random.default_rng(11)
     noisy, _ = _sa_tracks(rng, 0.0, 0.01)
     shape = ef.channel_shape(noisy, 0.05)
-    assert not shape.selected and shape.sd > 0 and shape.dz_ds > 0
+    assert not shape.selected and shape.sd > 0 and shape.sym_dz_ds > 0
     stated = ef.unmodelled_asymmetry_sd_um(noisy, shape)
-    assert stated == pytest.approx(shape.dz_ds * shape.sd)  # 1 step = 1 unit
+    assert stated == pytest.approx(shape.sym_dz_ds * shape.sd)  # 1 step = 1 unit
     res, _ = ef.analyse_tracks(noisy, 0.05, shape=shape)
     cm = ef.law_common_mode(noisy, res, shape)
     assert cm.shape_um == pytest.approx(stated) and cm.sd_um >= stated
@@ -126,7 +126,7 @@ def test_unmodelled_asymmetry_term_is_what_the_symmetric_law_misses():
         # read as that channel is, by the symmetric law (noise-free curves would also give the skew test's
         # spline full weight: analyse_track; on the noisy channel its median weight is ~0.04)
         err = float(np.mean([ef.symmetric_centre_um(z, v) - t for (z, v), t in zip(clean, truth)]))
-        assert 0.6 <= abs(err) / (shape.dz_ds * s_true) <= 1.5, (err, shape.dz_ds * s_true)
+        assert 0.6 <= abs(err) / (shape.sym_dz_ds * s_true) <= 1.5, (err, shape.sym_dz_ds * s_true)
     # a clearly asymmetric channel selects the law and reads each peak at its s: this term is not added
     tracks, _ = _sa_tracks(rng, 3.0, 0.004)
     shape = ef.channel_shape(tracks, 0.05)

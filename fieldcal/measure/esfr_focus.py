@@ -397,6 +397,9 @@ class PooledShape:
     # d(best focus, in steps)/ds of a track refitted at another s (the pooled s's share of each track's sd;
     # smaller than d x_peak / ds / kappa: u0 and kappa follow the data's peak)
     dz_ds: float = 0.0
+    # d(symmetric law's reading - sharpest position, in steps)/ds about s = 0, for a channel read with s = 0
+    # (symmetric_reading_sensitivity; unmodelled_asymmetry_sd_um)
+    sym_dz_ds: float = 0.0
     # the e-SFR's Hamming window, r = (1 / 2h) / fs (h its half-length in px, fs in cycles/px; 0: none): the law
     # fitted is the one the window reads (:func:`windowed_law`), its peak and crossings the lens's own
     window_r: float = 0.0
@@ -406,7 +409,8 @@ class PooledShape:
     def to_dict(self) -> dict:
         return {"s": self.s, "sd": self.sd, "n_tracks": self.n_tracks, "weight": self.weight,
                 "selected": self.selected, "model": "ray" if math.isnan(self.nu) else "wave", "nu": self.nu,
-                "x_peak": self.x_peak, "dz_ds_step": self.dz_ds, "window_r": self.window_r}
+                "x_peak": self.x_peak, "dz_ds_step": self.dz_ds,
+                "symmetric_dz_ds_step": self.sym_dz_ds, "window_r": self.window_r}
 
 
 def _law(x: np.ndarray, s: float, nu: float) -> np.ndarray:
@@ -796,15 +800,14 @@ def channel_shape(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
     shape = replace(pool_shape(shapes, c_nu), window_r=max(float(window_r), 0.0), nu_data=float(nu_data))
     kap = [t.kappa for t in shapes if t.ok]
     nu = c_nu / float(np.median(kap)) if math.isfinite(c_nu) and kap else math.nan
+    if math.isfinite(shape.sd) and shape.sd > 0:
+        # should the channel be read with s = 0 (not selected here, or not in every channel: track_foci), how far
+        # that reading falls from the sharpest position per unit of s (unmodelled_asymmetry_sd_um)
+        shape = replace(shape, sym_dz_ds=symmetric_reading_sensitivity(tracks, shape.sd, nu, shape.window_r))
     if shape.selected:
         shape = with_curve(profile_shape(tracks, shapes, shape, nu), q, nu)
         if shape.selected:
             shape = replace(shape, dz_ds=_peak_sensitivity(tracks, shape, q))
-            return shape
-    if math.isfinite(shape.sd) and shape.sd > 0:
-        # the symmetric law takes s = 0 as known: how far its reading falls from the sharpest position for the
-        # s the data allow (unmodelled_asymmetry_sd_um: the asymmetry's share of the field-wide term)
-        shape = replace(shape, dz_ds=symmetric_reading_sensitivity(tracks, shape.sd, nu, shape.window_r))
     return shape
 
 
@@ -1072,20 +1075,20 @@ def unmodelled_asymmetry_sd_um(tracks, shape: PooledShape) -> float:
 
     Every track of the channel is read with ``s = 0``; the pooled fit (:func:`pool_shape`) bounds the
     asymmetry to ``+- sd``, and the sharpest position of a curve with asymmetry ``s`` lies ``dz/ds x s`` from the
-    symmetric law's reading (``shape.dz_ds``, probed about ``s = 0`` on the channel's own tracks:
-    :func:`channel_shape`) — the same for every track: a field-wide error that no fit of the surface sees, and
+    symmetric law's reading (``shape.sym_dz_ds``, probed about ``s = 0`` on the channel's own tracks:
+    :func:`symmetric_reading_sensitivity`) — the same for every track: a field-wide error that no fit of the surface sees, and
     no frame jackknife either (it is not noise). Where the pooled law *is* selected the peak is read at ``s``
     and the same ``dz/ds x sd`` is its share (``shape_um`` of :func:`law_common_mode`): one rule for both.
     The estimate ``s`` itself is not added: a channel whose ``s`` is significant but is read symmetric (the
     law is used only where every channel selects it) showed s = 1.3 +- 0.36 on fieldcal's geometric renderer,
     which has no spherical aberration, with its symmetric peaks right to 0.1 µm (``|dz/ds| s`` = 0.64 µm): an
     asymmetry of the curve that the primary-SA law misreads as a move of the peak."""
-    if shape.selected or not (math.isfinite(shape.sd) and shape.sd > 0 and math.isfinite(shape.dz_ds)):
+    if shape.selected or not (math.isfinite(shape.sd) and shape.sd > 0 and math.isfinite(shape.sym_dz_ds)):
         return 0.0
     steps = [float(np.median(np.diff(np.sort(np.asarray(z, float))))) for z, _ in tracks if len(z) > 1]
     if not steps:
         return 0.0
-    return abs(shape.dz_ds) * shape.sd * float(np.median(steps))
+    return abs(shape.sym_dz_ds) * shape.sd * float(np.median(steps))
 
 
 def law_common_mode(tracks, results, shape: PooledShape) -> CommonMode:
