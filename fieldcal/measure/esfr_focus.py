@@ -41,11 +41,12 @@ TOLERANCE_UNREACHED = "the scan ends before MTF(fs) falls by q on one side"
 
 
 def link_tracks(frame: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, angle_deg: np.ndarray, z_um: np.ndarray,
-                *, max_shift_px: float = 6.0, max_turn_deg: float = 4.0, length_px: np.ndarray | None = None) -> np.ndarray:
+                *, max_shift_px: float = 6.0, max_turn_deg: float = 4.0,
+                length_px: np.ndarray | None = None) -> np.ndarray:
     """Track id of each detection: detections of consecutive frames (in z order) within ``max_shift_px`` across
     the edge and ``max_turn_deg`` in direction whose segments overlap by at least half the shorter one (along
-    the edge within ``max(max_shift_px, max(L1, L2) / 2)``) are the same edge (optimal one-to-one assignment). A track may skip frames where the edge was not found (it
-    is matched against its last position).
+    the edge within ``max(max_shift_px, max(L1, L2) / 2)``) are the same edge (optimal one-to-one assignment).
+    A track may skip frames where the edge was not found (it is matched against its last position).
 
     Why two distances: a detection's position is the midpoint of the scan lines the e-SFR used, and which lines
     are usable changes with the blur, so the midpoint slides *along* the edge from frame to frame while the
@@ -820,7 +821,7 @@ def symmetric_reading_sensitivity(tracks, h: float, nu: float = math.nan, window
     frames with the track's own fitted centre and blur rate, read by the symmetric law
     (:func:`symmetric_centre_um`) and compared with that law's sharpest position (:func:`model_points`). The
     symmetric fit follows most of the peak's move (its centre tracks the data), so this is far smaller than
-    the peak's own d x_peak / ds / kappa (0.07 against 1.5 steps per unit s at a one-step tolerance), and it
+    the peak's own d x_peak / ds / kappa (0.036 against 1.05 steps per unit s at a one-step tolerance), and it
     depends on where the frames fall: hence the track's own samples. Median of the absolute slopes."""
     if not (math.isfinite(h) and h > 0):
         return 0.0
@@ -1076,9 +1077,10 @@ def unmodelled_asymmetry_sd_um(tracks, shape: PooledShape) -> float:
     Every track of the channel is read with ``s = 0``; the pooled fit (:func:`pool_shape`) bounds the
     asymmetry to ``+- sd``, and the sharpest position of a curve with asymmetry ``s`` lies ``dz/ds x s`` from the
     symmetric law's reading (``shape.sym_dz_ds``, probed about ``s = 0`` on the channel's own tracks:
-    :func:`symmetric_reading_sensitivity`) — the same for every track: a field-wide error that no fit of the surface sees, and
-    no frame jackknife either (it is not noise). Where the pooled law *is* selected the peak is read at ``s``
-    and the same ``dz/ds x sd`` is its share (``shape_um`` of :func:`law_common_mode`): one rule for both.
+    :func:`symmetric_reading_sensitivity`) — the same for every track: a field-wide error that no fit of the
+    surface sees, and no frame jackknife either (it is not noise). Where the pooled law *is* selected the peak is
+    read at ``s`` and the same ``dz/ds x sd`` is its share (``shape_um`` of :func:`law_common_mode`): one rule
+    for both.
     The estimate ``s`` itself is not added: a channel whose ``s`` is significant but is read symmetric (the
     law is used only where every channel selects it) showed s = 1.3 +- 0.36 on fieldcal's geometric renderer,
     which has no spherical aberration, with its symmetric peaks right to 0.1 µm (``|dz/ds| s`` = 0.64 µm): an
