@@ -88,3 +88,46 @@ def test_symmetric_law_has_no_law_term():
     cm = ef.law_common_mode(tracks, res, shape)
     assert cm.law_um == 0.0 and cm.shape_um == 0.0
     assert cm.sd_um == pytest.approx(cm.frames_um)
+
+
+def _sa_tracks(rng, s_true: float, noise: float, n_tracks: int = 40):
+    """Tracks of the defocus + primary-SA law (the ray integral, ``esfr_focus._law``) with asymmetry
+    ``s_true``, 13 frames one step apart, tolerance about one step, many sampling phases; the true sharpest
+    position of each is its ``z0`` moved by the law's own peak."""
+    from fieldcal.optics.defocus import disc_x_at_contrast
+
+    z = np.arange(13, dtype=np.float64)
+    k = disc_x_at_contrast(0.95)  # x per step: the q = 5 % half-width is one step at s = 0
+    z0 = np.linspace(5.0, 7.0, n_tracks)
+    x_peak = ef.model_points(s_true, 0.05)[0] if s_true != 0 else 0.0
+    tracks = [(z, 0.6 * np.abs(ef._law(k * (z - z0[i]), s_true, math.nan)) + noise * rng.standard_normal(z.size))
+              for i in range(n_tracks)]
+    return tracks, z0 + x_peak / k
+
+
+def test_unmodelled_asymmetry_term_is_what_the_symmetric_law_misses():
+    """A channel whose asymmetry is too small to select the shaped law (the BIC keeps the symmetric one) is read
+    with s = 0, so every peak is off by dz/ds x s; the term states |dz/ds| x sd(s). The sensitivity dz/ds,
+    probed on the noisy channel's own tracks, must be the true one: noise-free curves with an asymmetry of
+    one to two sd(s), read by the symmetric law, miss their true sharpest positions (the law's own peak) by
+    dz/ds x s (ratio 0.6-1.5); the peak itself moves 20x more (the symmetric fit follows most of it). Where the
+    law is selected the term is 0 (the peaks are read at s)."""
+    rng = np.random.default_rng(11)
+    noisy, _ = _sa_tracks(rng, 0.0, 0.01)
+    shape = ef.channel_shape(noisy, 0.05)
+    assert not shape.selected and shape.sd > 0 and shape.sym_dz_ds > 0
+    stated = ef.unmodelled_asymmetry_sd_um(noisy, shape)
+    assert stated == pytest.approx(shape.sym_dz_ds * shape.sd)  # 1 step = 1 unit
+    res, _ = ef.analyse_tracks(noisy, 0.05, shape=shape)
+    cm = ef.law_common_mode(noisy, res, shape)
+    assert cm.shape_um == pytest.approx(stated) and cm.sd_um >= stated
+    for s_true in (shape.sd, 2.0 * shape.sd):
+        clean, truth = _sa_tracks(rng, s_true, 0.0)
+        # read as that channel is, by the symmetric law (noise-free curves would also give the skew test's
+        # spline full weight: analyse_track; on the noisy channel its median weight is ~0.04)
+        err = float(np.mean([ef.symmetric_centre_um(z, v) - t for (z, v), t in zip(clean, truth)]))
+        assert 0.6 <= abs(err) / (shape.sym_dz_ds * s_true) <= 1.5, (err, shape.sym_dz_ds * s_true)
+    # a clearly asymmetric channel selects the law and reads each peak at its s: this term is not added
+    tracks, _ = _sa_tracks(rng, 3.0, 0.004)
+    shape = ef.channel_shape(tracks, 0.05)
+    assert shape.selected and ef.unmodelled_asymmetry_sd_um(tracks, shape) == 0.0

@@ -147,6 +147,39 @@ def test_link_tracks_follows_drift_and_never_swaps():
     assert len(set(tr.tolist())) == 2
 
 
+
+def test_link_tracks_keeps_an_edge_whose_midpoint_slides_along_it():
+    """The detection's position is the midpoint of the scan lines the e-SFR used, which slides along the edge
+    as the blur changes: one edge (40 px long, 3 deg from vertical) whose midpoint moves 6-12 px along it between
+    frames (0.3 px across) is one track, while a collinear neighbour 50 px further along the line (the next
+    square's side) and a parallel edge 8 px across stay their own tracks."""
+    rng = np.random.default_rng(3)
+    th = np.radians(93.0)
+    ux, uy = np.cos(th), np.sin(th)            # along the edge
+    nx, ny = -uy, ux                           # across it
+    frames, xs, ys, angs, zs, lens, truth = [], [], [], [], [], [], []
+    slide = np.cumsum(rng.choice([-1.0, 1.0], 9) * rng.uniform(6.0, 12.0, 9))
+    slide -= slide.mean()
+    for f in range(9):
+        for k, (a0, n0) in enumerate(((0.0, 0.0), (50.0, 0.0), (0.0, 8.0))):
+            a = a0 + (np.clip(slide[f], -14.0, 14.0) if k == 0 else rng.uniform(-1.0, 1.0))
+            n = n0 + rng.normal(0.0, 0.3)
+            frames.append(f)
+            xs.append(200.0 + a * ux + n * nx)
+            ys.append(150.0 + a * uy + n * ny)
+            angs.append(93.0 + rng.normal(0.0, 0.3))
+            zs.append(10.0 * f)
+            lens.append(40.0)
+            truth.append(k)
+    args = (np.array(frames), np.array(xs), np.array(ys), np.array(angs), np.array(zs))
+    tr = link_tracks(*args, max_shift_px=6.0, length_px=np.array(lens))
+    truth = np.array(truth)
+    for k in range(3):
+        assert len(set(tr[truth == k].tolist())) == 1, k   # each edge one track ...
+    assert len(set(tr.tolist())) == 3                      # ... and never two edges in one
+    # with the single 6 px radius (no lengths) the sliding edge breaks into fragments
+    assert len(set(link_tracks(*args, max_shift_px=6.0)[truth == 0].tolist())) > 1
+
 def test_end_to_end_through_focus_from_rendered_edges():
     """Slanted-edge frames rendered with a defocus disc growing with |z - z0|: e-SFR per frame, tracks, peak."""
     from fieldcal.measure.mtf import measure_mtf
@@ -251,3 +284,33 @@ def test_symmetric_channel_keeps_the_symmetric_width():
     assert np.all(np.isfinite(new)) and np.all(np.isfinite(old))
     assert abs(np.mean(new) / np.mean(old) - 1.0) < 0.005
     assert np.max(np.abs(new / old - 1.0)) < 0.005 or not shape.selected
+
+
+def test_track_position_is_where_its_peak_was_measured_in_the_reference_frame():
+    """A track's records slide along the edge (the usable scan lines change with blur) while the frame breathes
+    (m(z), s(z) about the centre): the row's position is the MTF(fs)^2-weighted mean of the records at >= half
+    the highest MTF, each mapped back into the reference frame — the closed form of the generating positions."""
+    from fieldcal.measure.edge_tiles import peak_position_px
+    from fieldcal.measure.geometry import GeometryMeasurements
+
+    z = np.arange(-40.0, 41.0, 10.0)
+    m = 1.0 + 2e-4 * z                                  # 1.6 % breathing over the scan
+    sx, sy = 0.01 * z, -0.02 * z
+    geo = GeometryMeasurements(z, ("G",), m[:, None], np.zeros((z.size, 1)), sx[:, None], sy[:, None],
+                               np.zeros((z.size, 1)), int(np.argmin(np.abs(z - 20.0))), (500.0, 300.0), (1000, 600))
+    along = np.array([0.0, 0.0, 2.0, 4.0, 8.0, 12.0, 14.0, 16.0, 16.0])   # the midpoint's slide (px, reference)
+    ref = np.column_stack([900.0 + 0.05 * along, 500.0 + along])          # a sagittal-ish edge, reference px
+    mtf = np.exp(-0.5 * ((z + 10.0) / 15.0) ** 2)                           # peak at z = -10, MTF(fs) in (0, 1]
+    recs = []
+    for k in range(z.size):
+        x = 500.0 + m[k] * (ref[k, 0] - 500.0) + sx[k]
+        y = 300.0 + m[k] * (ref[k, 1] - 300.0) + sy[k]
+        recs.append({"z_um": z[k], "x_px": x, "y_px": y, "channel": "G"})
+    use = mtf >= 0.5 * mtf.max()
+    w = mtf[use] ** 2 / np.sum(mtf[use] ** 2)
+    x, y = peak_position_px(recs, mtf, geo, z_ref_um=20.0)
+    assert abs(x - w @ ref[use, 0]) < 1e-9 and abs(y - w @ ref[use, 1]) < 1e-9
+    # the record nearest z_ref (the old position) is 9 px along the edge from where the peak was read
+    assert abs(recs[6]["y_px"] - y) > 5.0
+    # without the breathing the position falls back to the z_ref record's
+    assert peak_position_px(recs, mtf, None, z_ref_um=20.0) == (recs[6]["x_px"], recs[6]["y_px"])

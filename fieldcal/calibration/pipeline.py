@@ -181,7 +181,7 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     if kind.kind == "esfr":  # the texture pass measures only the geometry (magnification, shift vs z): no focus maps
         geo_meas = measure_geometry(stack, effort=effort, z_ref_um=z_ref_um, quiet=quiet)
         table, edge_summary = measure_edges(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
-                                            z_ref_um=float(geo_meas.z_ref_um), quiet=quiet)
+                                            z_ref_um=float(geo_meas.z_ref_um), geometry=geo_meas, quiet=quiet)
     else:
         table, geo_meas = measure_stack(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), tile_px=tile_px,
                                         effort=effort, measure=measure, z_ref_um=z_ref_um, quiet=quiet)
@@ -383,8 +383,9 @@ def _edge_common_mode(disc, common: dict, z_scale_um: float) -> None:
                          + ("; frames' share in the fitted stage frames" if disc.has_stage else ""))
 
 
-def measure_edges(stack, *, fs_cyc_per_mm: float, q: float, z_ref_um: float, quiet: bool = False):
-    """Slanted-edge best foci through the stack as a tile table (:func:`fieldcal.measure.edge_tiles.edge_table`);
+def measure_edges(stack, *, fs_cyc_per_mm: float, q: float, z_ref_um: float, geometry=None, quiet: bool = False):
+    """Slanted-edge best foci through the stack as a tile table (:func:`fieldcal.measure.edge_tiles.edge_table`;
+    ``geometry`` the stack's breathing, which places each track where its peak was measured);
     refuses when a channel has too few edges for a surface."""
     from fieldcal.fit.data import MIN_TILES_PER_CHANNEL
     from fieldcal.measure.edge_tiles import edge_table
@@ -395,7 +396,7 @@ def measure_edges(stack, *, fs_cyc_per_mm: float, q: float, z_ref_um: float, qui
     h, w = stack.shape
     table, summary = edge_table(res, fs_cyc_per_mm=fs_cyc_per_mm, q=q, pixel_pitch_um=float(stack.pixel_pitch_um),
                                 z_um=stack.z_um, image_size_px=(w, h), z_ref_um=z_ref_um,
-                                channels=tuple(stack.channels))
+                                channels=tuple(stack.channels), geometry=geometry)
     n = {c: int((table.ok & (table.channel == c)).sum()) for c in stack.channels}
     few = {c: v for c, v in n.items() if v < MIN_TILES_PER_CHANNEL}
     if few:

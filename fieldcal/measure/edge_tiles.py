@@ -134,11 +134,47 @@ def _median_length_px(recs) -> float:
     return float(np.median(v)) if v else math.nan
 
 
+def peak_position_px(recs, vals, geometry=None, z_ref_um: float = math.nan, half: float = 0.5):
+    """Where a track's best focus was measured, in the reference frame's pixels: the mean position of the
+    records that set its peak (MTF(fs) at least ``half`` of the track's highest, weighted by MTF(fs)^2, the
+    quantity the peak's law is fitted to), each mapped from its own frame into the reference frame with the
+    measured breathing (``geometry``, :class:`fieldcal.measure.geometry.GeometryMeasurements`: ``p_ref = c +
+    (p - c - s(z)) / m(z)``).
+
+    Why: a record's position is the midpoint of the scan lines its e-SFR used, and which lines are usable
+    changes with the blur, so along one edge track the midpoint slides by up to half the edge's length. The
+    peak is the focus *there*, and along a sagittal edge (on the radius) the field's whole gradient lies along
+    the edge (0.1-0.5 µm/px radially on the 1920 x 1080 triplet's G): the record nearest ``z_ref`` sat up to 16 px
+    from where the peak was read there (p90 4.5 px), and breathing moves a record up to 12 px at the corners. Without ``geometry`` (or when no record has a finite MTF) the record nearest ``z_ref_um``
+    is returned (the reference frame's own position, no breathing to undo).
+    """
+    v = np.array([float(x) for x in vals], dtype=np.float64)
+    near = min(recs, key=lambda e: abs(float(e["z_um"]) - z_ref_um))
+    good = np.isfinite(v) & (v > 0)
+    if geometry is None or not good.any():
+        return float(near["x_px"]), float(near["y_px"])
+    gz = np.asarray(geometry.z_um, dtype=np.float64)
+    ch = str(recs[0]["channel"])
+    c = geometry.channels.index(ch) if ch in geometry.channels else 0
+    cx, cy = geometry.centre_px
+    use = good & (v >= half * v[good].max())
+    xs, ys, ws = [], [], []
+    for e, val in zip((r for r, u in zip(recs, use) if u), v[use]):
+        k = int(np.argmin(np.abs(gz - float(e["z_um"]))))
+        m = float(geometry.magnification[k, c])
+        xs.append(cx + (float(e["x_px"]) - cx - float(geometry.shift_x_px[k, c])) / m)
+        ys.append(cy + (float(e["y_px"]) - cy - float(geometry.shift_y_px[k, c])) / m)
+        ws.append(val * val)
+    w = np.asarray(ws) / np.sum(ws)
+    return float(np.dot(w, xs)), float(np.dot(w, ys))
+
+
 def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frames: int = 5,
                shapes_out: dict | None = None, fs_cyc_per_um: float = math.nan,
-               common_out: dict | None = None) -> dict:
-    """Per (track, channel): best focus at fs, its sd, peak MTF, half-widths, orientation and the position at
-    the frame nearest ``z_ref_um``.
+               common_out: dict | None = None, geometry=None) -> dict:
+    """Per (track, channel): best focus at fs, its sd, peak MTF, half-widths, orientation and the position
+    where the peak was measured in the reference frame (:func:`peak_position_px`; with ``geometry`` None the
+    position at the frame nearest ``z_ref_um``).
 
     Returns columns (dict of arrays): track, channel, x_px, y_px, orientation, z_best_um, z_sigma_um, peak,
     width_um, status, cos2phi (cos 2 phi of the median angle phi between the edge normal and the radius),
@@ -185,7 +221,8 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
         if common_out is not None:
             common_out[ch] = law_common_mode([curves[k] for k in keys], res, shapes[ch])
     for (tr, ch), recs in groups.items():
-        near = min(recs, key=lambda e: abs(float(e["z_um"]) - z_ref_um))
+        xp, yp = peak_position_px(recs, [vals[index[id(e)]] if _usable(e) else math.nan for e in recs],
+                                  geometry, z_ref_um)
         orient = [e["orientation"] for e in recs if e["quality"].get("orientation_clear")]
         status, zb, sz, pk, w, gain = "ok", math.nan, math.nan, math.nan, math.nan, math.nan
         if (tr, ch) not in focus:
@@ -202,8 +239,8 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
                     w = 0.5 * (left + right)
         out["track"].append(tr)
         out["channel"].append(ch)
-        out["x_px"].append(float(near["x_px"]))
-        out["y_px"].append(float(near["y_px"]))
+        out["x_px"].append(xp)
+        out["y_px"].append(yp)
         # near 45 deg from the radius (or near the centre) an edge sees both foci: "unclear", a mean-surface row
         out["orientation"].append(max(set(orient), key=orient.count) if orient else "unclear")
         out["z_best_um"].append(zb)
@@ -489,7 +526,7 @@ def edge_window_px(mtf) -> int:
 
 def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_um, image_size_px,
                z_ref_um: float, channels: tuple[str, ...], pair_px: float | None = None,
-               min_pairs_per_channel: int = 12) -> tuple[TileTable, dict]:
+               min_pairs_per_channel: int = 12, geometry=None) -> tuple[TileTable, dict]:
     """A :class:`TileTable` of slanted-edge measurements (one row per T/S pair, or per track) and a summary.
 
     Parameters
@@ -502,6 +539,9 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
     z_ref_um : positions are taken in the frame nearest this z (the reference geometry of the table).
     pair_px : largest T-S distance of a pair (default 1.5x the median distance between neighbouring tracks).
     min_pairs_per_channel : fewer pairs than this in a channel and its unpaired tracks are kept too.
+    geometry : GeometryMeasurements, optional
+        The stack's breathing (magnification, shift vs z about the reference frame): each track's position is
+        then where its peak was measured (:func:`peak_position_px`), else its record nearest ``z_ref_um``.
 
     Returns
     -------
@@ -518,7 +558,7 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
     shapes: dict = {}
     common: dict = {}
     tf = track_foci(mtf, fs_px, q, z_ref_um, shapes_out=shapes, fs_cyc_per_um=float(fs_cyc_per_mm) * 1e-3,
-                    common_out=common)
+                    common_out=common, geometry=geometry)
     sig = np.maximum(np.nan_to_num(tf["z_sigma_um"], nan=0.0), SIGMA_FLOOR_STEP * step)
     ok = tf["status"] == "ok"
     if pair_px is None:

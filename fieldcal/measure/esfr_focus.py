@@ -41,14 +41,26 @@ TOLERANCE_UNREACHED = "the scan ends before MTF(fs) falls by q on one side"
 
 
 def link_tracks(frame: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, angle_deg: np.ndarray, z_um: np.ndarray,
-                *, max_shift_px: float = 6.0, max_turn_deg: float = 4.0) -> np.ndarray:
-    """Track id of each detection: detections of consecutive frames (in z order) within ``max_shift_px`` and
-    ``max_turn_deg`` are the same edge (optimal one-to-one assignment). A track may skip frames where the edge
-    was not found (it is matched against its last position)."""
+                *, max_shift_px: float = 6.0, max_turn_deg: float = 4.0,
+                length_px: np.ndarray | None = None) -> np.ndarray:
+    """Track id of each detection: detections of consecutive frames (in z order) within ``max_shift_px`` across
+    the edge and ``max_turn_deg`` in direction whose segments overlap by at least half the shorter one (along
+    the edge within ``max(max_shift_px, max(L1, L2) / 2)``) are the same edge (optimal one-to-one assignment).
+    A track may skip frames where the edge was not found (it is matched against its last position).
+
+    Why two distances: a detection's position is the midpoint of the scan lines the e-SFR used, and which lines
+    are usable changes with the blur, so the midpoint slides *along* the edge from frame to frame while the
+    line itself moves only by the lens's breathing. With one radius of 6 px the 1920 x 1080 triplet's edges
+    (46 scan lines) broke into two tracks wherever the midpoint slid 6-11 px: 62 junctions in G, each 0.05-0.8
+    px across the edge, 1 frame apart (docs/measurement.md "Edge tracks"). ``length_px`` (each detection's
+    edge length; None: the single radius ``max_shift_px``) sets the along-edge allowance. Two distinct
+    collinear edges (the next segment of a split side, the next square's side) do not overlap: their midpoints
+    are at least ``(L1 + L2) / 2`` apart, beyond the allowance."""
     from scipy.optimize import linear_sum_assignment
 
     frame = np.asarray(frame)
     x, y, ang, z = (np.asarray(v, dtype=np.float64) for v in (x_px, y_px, angle_deg, z_um))
+    length = np.zeros(x.size) if length_px is None else np.nan_to_num(np.asarray(length_px, np.float64))
     track = np.full(frame.size, -1, dtype=np.int64)
     frames = sorted(set(frame.tolist()), key=lambda f: (float(np.mean(z[frame == f])), f))
     last: list[int] = []  # detection index of each track's latest member
@@ -56,9 +68,14 @@ def link_tracks(frame: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, angle_deg
         idx = np.flatnonzero(frame == f)
         if last:
             L = np.asarray(last)
-            dist = np.hypot(x[idx, None] - x[None, L], y[idx, None] - y[None, L])
+            dx, dy = x[idx, None] - x[None, L], y[idx, None] - y[None, L]
+            th = np.radians(ang[None, L])
+            along = np.abs(dx * np.cos(th) + dy * np.sin(th))
+            across = np.abs(-dx * np.sin(th) + dy * np.cos(th))
+            allow = np.maximum(max_shift_px, 0.5 * np.maximum(length[idx, None], length[None, L]))
             turn = np.abs((ang[idx, None] - ang[None, L] + 90.0) % 180.0 - 90.0)
-            cost = np.where((dist <= max_shift_px) & (turn <= max_turn_deg), dist, 1e9)
+            ok = (across <= max_shift_px) & (along <= allow) & (turn <= max_turn_deg)
+            cost = np.where(ok, np.hypot(across, along * (max_shift_px / allow)), 1e9)
             ri, ci = linear_sum_assignment(cost)
             for r, c in zip(ri, ci):
                 if cost[r, c] < 1e9:
@@ -381,6 +398,9 @@ class PooledShape:
     # d(best focus, in steps)/ds of a track refitted at another s (the pooled s's share of each track's sd;
     # smaller than d x_peak / ds / kappa: u0 and kappa follow the data's peak)
     dz_ds: float = 0.0
+    # d(symmetric law's reading - sharpest position, in steps)/ds about s = 0, for a channel read with s = 0
+    # (symmetric_reading_sensitivity; unmodelled_asymmetry_sd_um)
+    sym_dz_ds: float = 0.0
     # the e-SFR's Hamming window, r = (1 / 2h) / fs (h its half-length in px, fs in cycles/px; 0: none): the law
     # fitted is the one the window reads (:func:`windowed_law`), its peak and crossings the lens's own
     window_r: float = 0.0
@@ -390,7 +410,8 @@ class PooledShape:
     def to_dict(self) -> dict:
         return {"s": self.s, "sd": self.sd, "n_tracks": self.n_tracks, "weight": self.weight,
                 "selected": self.selected, "model": "ray" if math.isnan(self.nu) else "wave", "nu": self.nu,
-                "x_peak": self.x_peak, "dz_ds_step": self.dz_ds, "window_r": self.window_r}
+                "x_peak": self.x_peak, "dz_ds_step": self.dz_ds,
+                "symmetric_dz_ds_step": self.sym_dz_ds, "window_r": self.window_r}
 
 
 def _law(x: np.ndarray, s: float, nu: float) -> np.ndarray:
@@ -778,13 +799,59 @@ def channel_shape(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
                 c_nu = cn
                 shapes = track_shapes(tracks, c_nu)
     shape = replace(pool_shape(shapes, c_nu), window_r=max(float(window_r), 0.0), nu_data=float(nu_data))
+    kap = [t.kappa for t in shapes if t.ok]
+    nu = c_nu / float(np.median(kap)) if math.isfinite(c_nu) and kap else math.nan
+    if math.isfinite(shape.sd) and shape.sd > 0:
+        # should the channel be read with s = 0 (not selected here, or not in every channel: track_foci), how far
+        # that reading falls from the sharpest position per unit of s (unmodelled_asymmetry_sd_um)
+        shape = replace(shape, sym_dz_ds=symmetric_reading_sensitivity(tracks, shape.sd, nu, shape.window_r))
     if shape.selected:
-        kap = [t.kappa for t in shapes if t.ok]
-        nu = c_nu / float(np.median(kap)) if math.isfinite(c_nu) else math.nan
         shape = with_curve(profile_shape(tracks, shapes, shape, nu), q, nu)
         if shape.selected:
             shape = replace(shape, dz_ds=_peak_sensitivity(tracks, shape, q))
     return shape
+
+
+def symmetric_reading_sensitivity(tracks, h: float, nu: float = math.nan, window_r: float = 0.0,
+                                  n_tracks: int = 8) -> float:
+    """|d(symmetric law's reading - sharpest position)/ds| in steps, about s = 0: a forward model.
+
+    For up to ``n_tracks`` of the channel's tracks, the law with asymmetry ``+-h`` (as the e-SFR's window reads
+    it, :func:`windowed_law`; ``nu``: the exact pupil OTF, NaN the ray law) is sampled at the track's own
+    frames with the track's own fitted centre and blur rate, read by the symmetric law
+    (:func:`symmetric_centre_um`) and compared with that law's sharpest position (:func:`model_points`). The
+    symmetric fit follows most of the peak's move (its centre tracks the data), so this is far smaller than
+    the peak's own d x_peak / ds / kappa (0.036 against 1.05 steps per unit s at a one-step tolerance), and it
+    depends on where the frames fall: hence the track's own samples. Median of the absolute slopes."""
+    if not (math.isfinite(h) and h > 0):
+        return 0.0
+    peaks = {}
+    for sgn in (-1.0, 1.0):
+        xp = model_points(sgn * h, 0.05, nu)[0]
+        if not math.isfinite(xp):
+            return 0.0
+        peaks[sgn] = xp
+    d = []
+    for z, v in tracks[:: max(1, len(tracks) // n_tracks)][:n_tracks]:
+        z, v = _increasing(z, v)
+        start = _symmetric_start(z, v) if z.size >= 5 else None
+        if start is None:
+            continue
+        pre, _, step, sym = start
+        a = math.sqrt(max(float(sym.params[0]) * sym.scale, 1e-12))
+        zc = float(z[pre.i_max] + float(sym.params[1]) * step)
+        k_um = abs(float(sym.params[2])) / step  # x per µm
+        if not k_um > 0:
+            continue
+        e = []
+        for sgn in (-1.0, 1.0):
+            # the law placed so that its sharpest position is the track's centre: the reading's offset from it
+            x = k_um * (z - zc) + peaks[sgn]
+            zs = symmetric_centre_um(z, a * np.abs(windowed_law(x, sgn * h, nu, window_r)))
+            e.append(zs - zc)
+        if all(math.isfinite(t) for t in e):
+            d.append((e[1] - e[0]) / (2.0 * h * step))
+    return float(np.median(np.abs(d))) if d else 0.0
 
 
 def analyse_tracks(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan, wavelength_um: float = math.nan,
@@ -1003,6 +1070,29 @@ def symmetric_centre_um(z_um, mtf_fs) -> float:
     return float(z[pre.i_max] + float(sym.params[1]) * step)
 
 
+def unmodelled_asymmetry_sd_um(tracks, shape: PooledShape) -> float:
+    """The field-wide error (1 sigma, µm) the symmetric law leaves when it is used although the channel's curves
+    are known to be symmetric only to within the pooled asymmetry's sd: ``|dz/ds| x sd(s)``.
+
+    Every track of the channel is read with ``s = 0``; the pooled fit (:func:`pool_shape`) bounds the
+    asymmetry to ``+- sd``, and the sharpest position of a curve with asymmetry ``s`` lies ``dz/ds x s`` from the
+    symmetric law's reading (``shape.sym_dz_ds``, probed about ``s = 0`` on the channel's own tracks:
+    :func:`symmetric_reading_sensitivity`) — the same for every track: a field-wide error that no fit of the
+    surface sees, and no frame jackknife either (it is not noise). Where the pooled law *is* selected the peak is
+    read at ``s`` and the same ``dz/ds x sd`` is its share (``shape_um`` of :func:`law_common_mode`): one rule
+    for both.
+    The estimate ``s`` itself is not added: a channel whose ``s`` is significant but is read symmetric (the
+    law is used only where every channel selects it) showed s = 1.3 +- 0.36 on fieldcal's geometric renderer,
+    which has no spherical aberration, with its symmetric peaks right to 0.1 µm (``|dz/ds| s`` = 0.64 µm): an
+    asymmetry of the curve that the primary-SA law misreads as a move of the peak."""
+    if shape.selected or not (math.isfinite(shape.sd) and shape.sd > 0 and math.isfinite(shape.sym_dz_ds)):
+        return 0.0
+    steps = [float(np.median(np.diff(np.sort(np.asarray(z, float))))) for z, _ in tracks if len(z) > 1]
+    if not steps:
+        return 0.0
+    return abs(shape.sym_dz_ds) * shape.sd * float(np.median(steps))
+
+
 def law_common_mode(tracks, results, shape: PooledShape) -> CommonMode:
     """The field-wide error of a channel's track peaks, measured on the tracks themselves.
 
@@ -1032,7 +1122,8 @@ def law_common_mode(tracks, results, shape: PooledShape) -> CommonMode:
     """
     frames, n_fr = frame_jackknife_sd_um(tracks)
     if not shape.selected:
-        return CommonMode(frames, 0.0, 0.0, 0.0, n_fr, frames)
+        sh = unmodelled_asymmetry_sd_um(tracks, shape)
+        return CommonMode(math.hypot(sh, frames), 0.0, sh, 0.0, n_fr, frames)
     d, steps = [], []
     for (z, v), tk in zip(tracks, results):
         if not (tk.ok or tk.reason == TOLERANCE_UNREACHED) or not math.isfinite(tk.z_best_um):

@@ -194,7 +194,7 @@ def measure_frame(frame: np.ndarray, *, channels=("Y",), cfa: str | None = None,
                             "orientation": orient, "mtf": m, "mtf50_cy_per_px": f50s[k] / stride,
                             "quality": qd})
             if det is None:
-                det = (xf, yf, ang)
+                det = (xf, yf, ang, stride * float(cand.length_px))
         detections.append(det)
     return records, detections
 
@@ -342,7 +342,8 @@ def measure_mtf(source, *, channels=None, cfa: str | None = None, centre_px=None
             prov["centre_px"] = [(w - 1) / 2.0, (h - 1) / 2.0]
     if dets:
         tr = link_tracks(np.asarray(det_frame), np.array([d[0] for d in dets]), np.array([d[1] for d in dets]),
-                         np.array([d[2] for d in dets]), np.asarray(det_z), max_shift_px=max_shift_px)
+                         np.array([d[2] for d in dets]), np.asarray(det_z), max_shift_px=max_shift_px,
+                         length_px=np.array([d[3] for d in dets]))
         for r in records:
             r["track"] = int(tr[r.pop("_det")])
     return MtfResult(grid, records, prov)
