@@ -47,7 +47,8 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
                     q: float = 0.05, min_band: float = 0.25, lateral_colour: bool = False,
                     block_px: int | None = None, tile: int = DEFAULT_TILE_PX, focus_offset_um: float = 0.0,
                     register: bool = True, z_ref_um: float | None = None, depth: str = "auto",
-                    fine_detail: bool = True, max_memory=None, quiet: bool = False) -> CompositeResult:
+                    fine_detail: bool = True, measured_defocus: bool = True, max_memory=None,
+                    quiet: bool = False) -> CompositeResult:
     """All-in-focus composite of a stack.
 
     Parameters
@@ -88,6 +89,12 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         A scene with depth composited without the Wiener filter (no profile, or no F-number): the two finest
         pyramid levels per coefficient from the sharpest frame near the depth map's choice
         (:mod:`fieldcal.composite.detail`). ``False`` keeps the depth map's blend there.
+    measured_defocus : bool
+        A scene with depth and registered frames but no lens model with an F-number: measure the blur disc's
+        growth per frame step from the stack (:mod:`fieldcal.composite.defocus_rate`) and, where that measurement
+        is reliable, combine the frames by the multi-frame Wiener filter of that disc's OTF as with a profile;
+        where it is not (too little texture, frames that barely change focus, a blur that does not grow
+        linearly) the frames are chosen as without it, and ``info["defocus_rate"]["reason"]`` says why.
     max_memory : int or str, optional
         ``dff`` and ``hybrid``: the memory the composite may take (bytes, or ``"8G"``); default the memory
         available now. A composite whose measured peak (:func:`fieldcal.composite.memory.estimate_peak_bytes`:
@@ -147,12 +154,12 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
                  "blocks_off_surface": {"by_a_spacing": round(off_spacing, 4), "by_half_a_width": round(off_width, 4)},
                  "pixels_off_surface": round(off_pixels, 4),
                  "scene": "3d" if has_depth else "flat"})
-    fallback = None
+    fallback = dmap = None
     if method == "dff":
         zb = dff_focus_map(surfaces, w, h)
         info["surface_degree"] = {c: s.degree for c, s in zip(channels, surfaces)}
         if has_depth:
-            zb, fallback = _per_pixel_focus(stack, geometry, frames, zb, quiet)
+            zb, fallback, dmap = _per_pixel_focus(stack, geometry, frames, zb, quiet)
     else:
         zb = profile_focus_map(profile, w, h, channels, lateral_colour) + np.float32(focus_offset_um)
         corr = hybrid_corrections(vol, profile, w, h, channels, lateral_colour=lateral_colour,
@@ -165,16 +172,20 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
             # the data where they differ from the profile by more than its band allows, the profile elsewhere; the
             # profile uncorrected, as the low-order correction would be fitted to the scene's own depth (steps pull
             # it up to its limit off the profile where the scene does lie on it: -0.5 dB, bench_depth_scenes)
-            per_pixel, fallback = _per_pixel_focus(stack, geometry, frames, zb, quiet)
+            per_pixel, fallback, dmap = _per_pixel_focus(stack, geometry, frames, zb, quiet)
             limit = np.array([lim for _, lim in corr], dtype=np.float32)
             off = np.abs(per_pixel - zb) > limit
             zb = np.where(off, per_pixel, zb).astype(np.float32)
             info["pixels_from_data"] = round(float(off.mean()), 4)
-    wiener = has_depth and profile is not None and bool(getattr(profile, "f_number", None))
+    defocus = profile if profile is not None and getattr(profile, "f_number", None) else None
+    if has_depth and defocus is None and measured_defocus and dmap is not None and geometry is None:
+        # no lens model: the defocus per frame step measured on the registered frames (composite/defocus_rate.py)
+        defocus = _measured_defocus(stack, frames, dmap, info, quiet)
+    wiener = has_depth and defocus is not None
     if wiener:
         # a nearer object's blur disc kept off the pixels beside it (composite/depth_wiener.py)
         from .depth_wiener import occlusion_focus_um
-        zb = occlusion_focus_um(zb, 2.0 * float(profile.f_number) * float(profile.pixel_pitch_um))
+        zb = occlusion_focus_um(zb, 2.0 * float(defocus.f_number) * float(defocus.pixel_pitch_um))
     kernel = blend_kernel(stack, profile, frames, fs_cyc_per_mm, q, min_band)
     img = composite_with_map(stack, zb, kernel, geometry, frames, lateral_colour=lateral_colour, tile=tile,
                              quiet=quiet)
@@ -182,7 +193,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         # the frames around each pixel's depth combined by the lens's defocus OTF, not one frame chosen
         from .depth_wiener import wiener_composite
         from .stack_profile import to_input_dtype
-        combined, info["wiener"] = wiener_composite(stack, zb, profile, frames, img, geometry=geometry,
+        combined, info["wiener"] = wiener_composite(stack, zb, defocus, frames, img, geometry=geometry,
                                                     lateral_colour=lateral_colour, quiet=quiet)
         img = to_input_dtype(combined, img.dtype, float(stack.white_level))
     if has_depth and fallback is not None and not wiener:
@@ -231,11 +242,32 @@ def surface_misfit_fractions(vol, surfaces, spacing_um: float) -> tuple[float, f
     return float(np.mean(r >= spacing_um)), float(np.mean(r > max(spacing_um, 0.5 * fwhm)))
 
 
-def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool) -> np.ndarray:
+def _measured_defocus(stack, frames, dmap, info: dict, quiet: bool):
+    """The defocus model measured from registered frames and their depth map (a
+    :class:`~fieldcal.composite.defocus_rate.MeasuredDefocus`), or None where the measurement is unreliable;
+    ``info["defocus_rate"]`` records it either way, and a fallback is said on stderr."""
+    import sys
+
+    from .defocus_rate import MeasuredDefocus, estimate_defocus_rate
+
+    z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
+    kd = np.interp(dmap.z_um, z_sorted, np.arange(len(z_sorted), dtype=np.float64))
+    est = estimate_defocus_rate(stack, frames, kd, dmap.confidence)
+    info["defocus_rate"] = est.info()
+    if not est.reliable:
+        if not quiet:
+            print(f"fieldcal composite: defocus not measured reliably ({est.reason}); frames chosen per pixel, "
+                  "not combined", file=sys.stderr)
+        return None
+    pitch = getattr(stack, "pixel_pitch_um", None)
+    return MeasuredDefocus(est, float(pitch) if pitch else 1.0)
+
+
+def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool):
     """Best focus per pixel for a scene with depth: the edge-aware depth map of the stack, plus each channel's
     offset from the others as the smooth map ``zb_smooth`` has it (chromatic focus is the lens's, not the scene's).
     Also returns the multi-scale fusion and a per-pixel weight (0 where the depth map has no texture to go on,
-    1 where it is confident) for the final image.
+    1 where it is confident) for the final image, and the depth map (:class:`.fusion.DepthMap`).
     """
     from .fusion import depth_map, fuse_pyramid
 
@@ -254,7 +286,7 @@ def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool
     index = np.interp(dm.z_um, fusion.z_um, np.arange(len(fusion.z_um), dtype=np.float64))
     weight *= (np.abs(index - fusion.depth_index) <= 1.0).astype(np.float32)
     weight = cv2.GaussianBlur(weight, (0, 0), 2.0)
-    return (dm.z_um[..., None] + offsets).astype(np.float32), (guide, weight)
+    return (dm.z_um[..., None] + offsets).astype(np.float32), (guide, weight), dm
 
 
 # ------------------------------------------------------------------------------------------------ plans
