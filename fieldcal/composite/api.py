@@ -196,14 +196,15 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         combined, info["wiener"] = wiener_composite(stack, zb, defocus, frames, img, geometry=geometry,
                                                     lateral_colour=lateral_colour, quiet=quiet)
         img = to_input_dtype(combined, img.dtype, float(stack.white_level))
-    if has_depth and fallback is not None and not wiener:
+    if has_depth and fallback is not None and (not wiener or defocus is not profile):
         # where the depth map is unsure (little texture), the multi-scale fusion's pixels: it needs no depth
         from .stack_profile import to_input_dtype
         fused, weight = fallback
         mixed = weight[..., None] * img.astype(np.float32) + (1.0 - weight[..., None]) * fused
         img = to_input_dtype(mixed, img.dtype, float(stack.white_level))
         info["pixels_from_fusion"] = round(float(np.mean(1.0 - weight)), 4)
-    if has_depth and not wiener and fine_detail:
+    measured = wiener and defocus is not profile
+    if has_depth and (not wiener or measured) and fine_detail:
         # the finest octaves per coefficient from the sharpest frame near the depth map's choice
         # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost
         from .detail import fine_detail as add_fine_detail
@@ -211,7 +212,8 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
         kd = np.interp(zb.mean(axis=2), z_sorted, np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32)
         sharp, info["fine_detail"] = add_fine_detail(stack, img, kd, frames, geometry=geometry,
-                                                     support=getattr(stack, "support", None), quiet=quiet)
+                                                     support=getattr(stack, "support", None), keep_base=measured,
+                                                     quiet=quiet)
         img = to_input_dtype(sharp, img.dtype, float(stack.white_level))
     return CompositeResult(img, method, zb, info)
 
@@ -491,7 +493,8 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
                       register: bool = True, lateral_colour: bool = False, depth: str = "auto",
                       overwrite: bool = False, verify: bool = True, quiet: bool = False,
                       breathing: str | None = "auto", zone_px: int | None = None,
-                      camera_noise: tuple[float, float] | None = None, max_memory=None) -> CompositeOutput:
+                      camera_noise: tuple[float, float] | None = None, max_memory=None,
+                      measured_defocus: bool = True) -> CompositeOutput:
     """Composite a stack folder (or restore a captured sweep image) into a TIFF with its metadata.
 
     Parameters
@@ -512,7 +515,7 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         Emulate a focal sweep of this half-range (µm) and deconvolve it (``deconvolve``, ``rl_iterations``).
     fs_cyc_per_mm, q : float, optional
         The focus tolerance that sets the seam width (default: the plan's, else Nyquist/4 and 0.05).
-    z_ref_um, register, lateral_colour, depth, max_memory, quiet
+    z_ref_um, register, lateral_colour, depth, max_memory, measured_defocus, quiet
         See :func:`composite_stack`.
     overwrite : bool
         Replace an existing output file (never an input: the stack, its frames, the profile, the plan).
@@ -597,7 +600,7 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         res = composite_stack(st, prof, method, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm,
                               q=0.05 if q is None else q, lateral_colour=lateral_colour, focus_offset_um=offset,
                               register=register, z_ref_um=z_ref_um, depth=depth, max_memory=max_memory,
-                              quiet=quiet)
+                              measured_defocus=measured_defocus, quiet=quiet)
         z_ref = float(prof.z_ref_um) if prof is not None else res.info.get("registration", {}).get("z_ref_um")
         meta.update({"method": res.method, "z_ref_um": z_ref, "lateral_colour_corrected": bool(lateral_colour),
                      **res.info})
