@@ -41,6 +41,11 @@ DEPTH_PIXEL_FRACTION = 0.01
 #: Scenes with depth: a pixel takes the depth map's composite in full where its confidence reaches this fraction
 #: (second) of the given percentile (first) of the image's confidences, the multi-scale fusion where it has none.
 FUSION_CONFIDENCE = (75.0, 0.5)
+#: A defocus measured from the stack (no lens model): the Wiener combination's depth labels this many frame steps
+#: apart (or :data:`~.depth_wiener.LABEL_DISC_PX` of disc, if more); the per-pixel depth map's sub-frame peak is
+#: good to a tenth or two of a step, so finer labels add work (one inverse FFT per label, channel and tile), not
+#: accuracy.
+LABEL_FRAMES = 0.125
 
 
 def composite_stack(stack, profile=None, method: str | None = None, *, frames=None, fs_cyc_per_mm=None,
@@ -182,10 +187,18 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         # no lens model: the defocus per frame step measured on the registered frames (composite/defocus_rate.py)
         defocus = _measured_defocus(stack, frames, dmap, info, quiet)
     wiener = has_depth and defocus is not None
+    measured = wiener and defocus is not profile
     if wiener:
         # a nearer object's blur disc kept off the pixels beside it (composite/depth_wiener.py)
         from .depth_wiener import occlusion_focus_um
-        zb = occlusion_focus_um(zb, 2.0 * float(defocus.f_number) * float(defocus.pixel_pitch_um))
+        um_per_px = 2.0 * float(defocus.f_number) * float(defocus.pixel_pitch_um)
+        if measured:
+            # one depth map plus each channel's smooth offset (_per_pixel_focus): the cones of their mean, the
+            # offsets kept (a third of the work; a measured disc is the same in every channel)
+            mean = zb.mean(axis=2)
+            zb = (zb - mean[..., None]) + occlusion_focus_um(mean, um_per_px)[..., None]
+        else:
+            zb = occlusion_focus_um(zb, um_per_px)
     kernel = blend_kernel(stack, profile, frames, fs_cyc_per_mm, q, min_band)
     img = composite_with_map(stack, zb, kernel, geometry, frames, lateral_colour=lateral_colour, tile=tile,
                              quiet=quiet)
@@ -193,8 +206,10 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         # the frames around each pixel's depth combined by the lens's defocus OTF, not one frame chosen
         from .depth_wiener import wiener_composite
         from .stack_profile import to_input_dtype
+        # with a measured defocus, labels a quarter of a frame step apart: the depth map is known no better
+        label_um = LABEL_FRAMES * spacing if measured else None
         combined, info["wiener"] = wiener_composite(stack, zb, defocus, frames, img, geometry=geometry,
-                                                    lateral_colour=lateral_colour, quiet=quiet)
+                                                    lateral_colour=lateral_colour, label_um=label_um, quiet=quiet)
         img = to_input_dtype(combined, img.dtype, float(stack.white_level))
     if has_depth and fallback is not None and (not wiener or defocus is not profile):
         # where the depth map is unsure (little texture), the multi-scale fusion's pixels: it needs no depth
@@ -203,7 +218,6 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         mixed = weight[..., None] * img.astype(np.float32) + (1.0 - weight[..., None]) * fused
         img = to_input_dtype(mixed, img.dtype, float(stack.white_level))
         info["pixels_from_fusion"] = round(float(np.mean(1.0 - weight)), 4)
-    measured = wiener and defocus is not profile
     if has_depth and (not wiener or measured) and fine_detail:
         # the finest octaves per coefficient from the sharpest frame near the depth map's choice
         # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost

@@ -109,7 +109,7 @@ def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fn, sigma: f
 
 def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray, *, geometry=None,
                      lateral_colour: bool = False, reach_disc_px: float = REACH_DISC_PX,
-                     noise_sigma=None, quiet: bool = False) -> tuple[np.ndarray, dict]:
+                     noise_sigma=None, label_um: float | None = None, quiet: bool = False) -> tuple[np.ndarray, dict]:
     """All-in-focus image of a scene with depth from a best-focus map and the lens's defocus OTF.
 
     Parameters
@@ -131,6 +131,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     noise_sigma : sequence of float, optional
         Pixel noise (frame units) per channel, e.g. from the camera's noise model
         (:func:`fieldcal.composite.sweep.sensor_noise_sigma`); default: estimated from the frames.
+    label_um : float, optional
+        Spacing of the depth labels (µm); default :data:`LABEL_DISC_PX` of blur-disc diameter. A coarser one
+        where the depth map is known no better (a defocus measured from the stack: a fraction of a frame step).
 
     Returns
     -------
@@ -157,7 +160,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     zs = z_all[order].astype(np.float64)
     reach = reach_disc_px * px_um
     pad = int(np.ceil(0.5 * reach_disc_px)) + 16
-    labels, step = _labels(zb, LABEL_DISC_PX * px_um)
+    labels, step = _labels(zb, max(LABEL_DISC_PX * px_um, float(label_um or 0.0)))
     n_lab = len(labels)
 
     planes_cache: dict[int, list[np.ndarray]] = {}
@@ -211,8 +214,16 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     f_table = np.arange(n_table) * f_step
     f_index = np.rint(f_grid / f_step).astype(np.int32)
 
+    otf_cache: dict[tuple[float, str], np.ndarray] = {}
+    cache_max = max(8, int(128e6 // (4 * f_grid.size)))  # the same (frame, label) pairs recur in every tile
+
     def otf(dz_um: float, ch: str) -> np.ndarray:
-        return np.asarray(model.defocus_otf(f_table, dz_um, ch), dtype=np.float32)[f_index]
+        key = (round(float(dz_um), 9), ch)
+        if key not in otf_cache:
+            if len(otf_cache) >= cache_max:
+                otf_cache.clear()
+            otf_cache[key] = np.asarray(model.defocus_otf(f_table, dz_um, ch), dtype=np.float32)[f_index]
+        return otf_cache[key]
 
     h0s = [otf(0.0, ch) for ch in channels]
     nsrs = [(np.float32(sigma[c] ** 2) / (a_sig[c] * np.maximum(f_grid, fmin) ** (-beta[c]))).astype(np.float32)
