@@ -206,10 +206,13 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         # the frames around each pixel's depth combined by the lens's defocus OTF, not one frame chosen
         from .depth_wiener import wiener_composite
         from .stack_profile import to_input_dtype
-        # with a measured defocus, labels a quarter of a frame step apart: the depth map is known no better
+        # with a measured defocus, labels LABEL_FRAMES of a frame step apart (the depth map is known no better)
         label_um = LABEL_FRAMES * spacing if measured else None
+        # ... and filtered only where it will be used: the fusion takes the pixels the depth map is unsure of
+        needed = fallback[1] >= np.float32(1.0 / 256.0) if measured and fallback is not None else None
         combined, info["wiener"] = wiener_composite(stack, zb, defocus, frames, img, geometry=geometry,
-                                                    lateral_colour=lateral_colour, label_um=label_um, quiet=quiet)
+                                                    lateral_colour=lateral_colour, label_um=label_um,
+                                                    needed=needed, quiet=quiet)
         img = to_input_dtype(combined, img.dtype, float(stack.white_level))
     if has_depth and fallback is not None and (not wiener or defocus is not profile):
         # where the depth map is unsure (little texture), the multi-scale fusion's pixels: it needs no depth

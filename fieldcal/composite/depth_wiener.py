@@ -109,7 +109,8 @@ def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fn, sigma: f
 
 def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray, *, geometry=None,
                      lateral_colour: bool = False, reach_disc_px: float = REACH_DISC_PX,
-                     noise_sigma=None, label_um: float | None = None, quiet: bool = False) -> tuple[np.ndarray, dict]:
+                     noise_sigma=None, label_um: float | None = None, needed: np.ndarray | None = None,
+                     quiet: bool = False) -> tuple[np.ndarray, dict]:
     """All-in-focus image of a scene with depth from a best-focus map and the lens's defocus OTF.
 
     Parameters
@@ -134,6 +135,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     label_um : float, optional
         Spacing of the depth labels (µm); default :data:`LABEL_DISC_PX` of blur-disc diameter. A coarser one
         where the depth map is known no better (a defocus measured from the stack: a fraction of a frame step).
+    needed : H x W bool array, optional
+        Where the combination will be used (default everywhere); elsewhere the output is ``reference``'s and no
+        label is filtered for those pixels alone.
 
     Returns
     -------
@@ -254,8 +258,11 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         bx0, by0, bx1, by1 = max(0, x0 - margin), max(0, y0 - margin), min(w, x1 + margin), min(h, y1 + margin)
         top, left = margin - (y0 - by0), margin - (x0 - bx0)  # mirrored rows/columns above/left of the block
         used = set()
+        need = None if needed is None else needed[y0:y1, x0:x1]
+        if need is not None and not need.any():
+            continue
         for c in range(len(channels)):
-            present = np.unique(lower[c][y0:y1, x0:x1])
+            present = np.unique(lower[c][y0:y1, x0:x1] if need is None else lower[c][y0:y1, x0:x1][need])
             used |= {(c, int(l)) for l in present} | {(c, int(min(l + 1, n_lab - 1))) for l in present}
         labels_used = sorted({l for _, l in used})
         spectra: dict[int, list[np.ndarray]] = {}
@@ -290,6 +297,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                 dst[m] += (1.0 - fr[m]) * img[m]
                 m = l0 == l - 1
                 dst[m] += fr[m] * img[m]
+    if needed is not None:
+        np.copyto(out, np.asarray(reference, dtype=np.float32), where=~np.asarray(needed, bool)[..., None])
     info = {"noise_sigma": [round(s, 3) for s in sigma], "tiles": len(tiles), "filters": n_filters,
             "label_um": round(step, 3), "frames_per_label": round(float(np.mean(n_frames_used)), 2)
             if n_frames_used else 0.0}
