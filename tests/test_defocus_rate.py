@@ -117,3 +117,31 @@ def test_composite_without_profile_combines_with_the_measured_defocus():
     assert res.info["defocus_rate"]["reliable"] is True
     assert res.info["defocus_rate"]["disc_px_per_step"] == pytest.approx(2.0, rel=0.1)
     assert res.info["wiener"]["filters"] > 0
+
+
+def test_depth_error_measured_from_the_blur_on_either_side():
+    # the depth map's error comes back from the blur towards the two neighbouring frames: ~0 with the true depth,
+    # the offset with a depth map a quarter of a step off
+    st, depth = disc_stack(2.0)
+    exact = estimate_defocus_rate(st, np.arange(len(st)), depth, np.ones_like(depth))
+    assert exact.depth_sd_steps < 0.08
+    off = estimate_defocus_rate(st, np.arange(len(st)), depth + np.float32(0.25), np.ones_like(depth))
+    assert off.depth_sd_steps == pytest.approx(0.25, abs=0.08)
+
+
+def test_otf_moments_average_over_the_depth_error():
+    st, depth = disc_stack(2.0)
+    est = estimate_defocus_rate(st, np.arange(len(st)), depth, np.ones_like(depth))
+    f = np.linspace(0.0, 250.0, 11)  # cycles/mm at 2 µm pixels: up to 0.5 cycles/px
+    sure = MeasuredDefocus(est, pixel_pitch_um=2.0)
+    m1, m2 = sure.defocus_otf_moments(f, 30.0)
+    assert np.allclose(m1, sure.defocus_otf(f, 30.0)) and np.allclose(m2, m1 ** 2)
+    # a Gaussian error of 0.3 steps: the quadrature against a dense Riemann sum of the same average
+    unsure = MeasuredDefocus(est, pixel_pitch_um=2.0, depth_sd_steps=0.3)
+    m1, m2 = unsure.defocus_otf_moments(f, 30.0)
+    e = np.linspace(-6, 6, 2401) * 0.3 * est.spacing_um
+    wts = np.exp(-0.5 * (e / (0.3 * est.spacing_um)) ** 2)
+    wts /= wts.sum()
+    h = np.array([sure.defocus_otf(f, 30.0 + v) for v in e])
+    assert np.allclose(m1, wts @ h, atol=2e-3) and np.allclose(m2, wts @ (h * h), atol=2e-3)
+    assert np.all(m2 >= m1 ** 2 - 1e-9)  # the mean square is at least the squared mean: the filter backs off

@@ -279,7 +279,8 @@ def _measured_defocus(stack, frames, dmap, info: dict, quiet: bool):
                   "not combined", file=sys.stderr)
         return None
     pitch = getattr(stack, "pixel_pitch_um", None)
-    return MeasuredDefocus(est, float(pitch) if pitch else 1.0)
+    # the depth map's own scatter (in frame steps) makes the filter robust to it (composite/defocus_rate.py)
+    return MeasuredDefocus(est, float(pitch) if pitch else 1.0, est.depth_sd_steps)
 
 
 def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool):

@@ -56,6 +56,8 @@ MAX_REL_SD = 0.15
 MAX_LINEARITY = 0.35
 #: Largest disc (px) searched for.
 MAX_DISC_PX = 40.0
+#: Nodes of the Gauss-Hermite quadrature over the depth's error (:meth:`MeasuredDefocus.defocus_otf_moments`).
+GAUSS_HERMITE_NODES = 9
 
 
 @dataclass(frozen=True)
@@ -75,6 +77,7 @@ class DefocusRate:
     n_pairs: int = 0
     spacing_um: float = 1.0
     noise_sigma: float = 0.0
+    depth_sd_steps: float = 0.0
     reliable: bool = False
     reason: str = ""
 
@@ -87,6 +90,7 @@ class DefocusRate:
         return {"disc_px_per_step": round(self.disc_px_per_step, 3), "sd_px_per_step": round(self.sd_px_per_step, 3),
                 "by_distance": {str(k): {"disc_px_per_step": round(v[0], 3), "pairs": int(v[1])}
                                 for k, v in self.by_distance.items()},
+                "depth_sd_steps": round(self.depth_sd_steps, 3),
                 "patches": self.n_patches, "pairs": self.n_pairs, "reliable": self.reliable,
                 "reason": self.reason}
 
@@ -103,6 +107,7 @@ class MeasuredDefocus:
 
     rate: DefocusRate
     pixel_pitch_um: float = 1.0
+    depth_sd_steps: float = 0.0
 
     @property
     def f_number(self) -> float:
@@ -113,16 +118,30 @@ class MeasuredDefocus:
         rho = np.asarray(f_cyc_per_mm, dtype=np.float64) * self.pixel_pitch_um * 1e-3  # cycles/px
         return disc_otf(rho, abs(float(dz_um)) / self.rate.um_per_disc_px)
 
+    def defocus_otf_moments(self, f_cyc_per_mm, dz_um: float, channel=None) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and mean square of the disc OTF when the defocus is ``dz_um`` plus a Gaussian error of
+        ``depth_sd_steps`` frame steps (the depth map's, :attr:`DefocusRate.depth_sd_steps`): Gauss-Hermite
+        quadrature over the error."""
+        sd_um = max(float(self.depth_sd_steps), 0.0) * self.rate.spacing_um
+        if sd_um <= 0:
+            h = self.defocus_otf(f_cyc_per_mm, dz_um)
+            return h, h * h
+        t, wts = np.polynomial.hermite_e.hermegauss(GAUSS_HERMITE_NODES)
+        wts = wts / wts.sum()
+        m1 = m2 = 0.0
+        for ti, wi in zip(t, wts):
+            h = self.defocus_otf(f_cyc_per_mm, float(dz_um) + sd_um * float(ti))
+            m1 = m1 + wi * h
+            m2 = m2 + wi * h * h
+        return m1, m2
+
 
 def disc_otf(rho_cyc_per_px, diameter_px) -> np.ndarray:
     """OTF of a uniform disc of ``diameter_px`` at radial frequencies ``rho`` (cycles/px): ``2 J1(x)/x``, ``x = pi D rho``
-    (broadcasts)."""
-    from scipy.special import j1
+    (broadcasts; :func:`fieldcal.optics.defocus.disc_otf`)."""
+    from ..optics.defocus import disc_otf as jinc
 
-    x = np.pi * np.asarray(diameter_px, dtype=np.float64) * np.asarray(rho_cyc_per_px, dtype=np.float64)
-    small = np.abs(x) < 1e-6
-    safe = np.where(small, 1.0, x)
-    return np.where(small, 1.0 - x * x / 8.0, 2.0 * j1(safe) / safe)
+    return jinc(np.pi * np.asarray(diameter_px, dtype=np.float64) * np.asarray(rho_cyc_per_px, dtype=np.float64))
 
 
 def _select_patches(kd: np.ndarray, confidence: np.ndarray, n_frames: int, patch: int) -> list[tuple[int, int, int, float]]:
@@ -222,6 +241,18 @@ def fit_disc_px(sharp: np.ndarray, blurred: np.ndarray, noise_sigma: float, *, w
     return float(grid[i] + 0.1 * np.clip(shift, -0.5, 0.5))
 
 
+def _depth_error_steps(sides, rate: float) -> float:
+    """The depth map's error (frame steps) at the patches: each patch's depth from the blur towards its two
+    neighbouring frames, ``k_b = k - (D+^2 - D-^2) / (4 r^2)`` (geometric defocus:
+    ``D+-^2 = r^2 ((k +- 1 - k_b)^2 - (k - k_b)^2)``), against the depth map's; the robust RMS of the
+    differences (their median, which is a bias, and 1.4826 MAD about it). The fits' own noise only adds to it."""
+    if len(sides) < 3 or not rate > 0:
+        return 0.0
+    e = np.array([k - (dp * dp - dm * dm) / (4.0 * rate * rate) - kb for dm, dp, kb, k in sides])
+    med = float(np.median(e))
+    return float(np.hypot(med, 1.4826 * np.median(np.abs(e - med))))
+
+
 def estimate_defocus_rate(stack, frames, depth_index: np.ndarray, confidence: np.ndarray, *,
                           noise_sigma: float | None = None, patch_px: int | None = None) -> DefocusRate:
     """Measure the blur disc's growth per frame step from registered frames and their depth map.
@@ -275,7 +306,9 @@ def estimate_defocus_rate(stack, frames, depth_index: np.ndarray, confidence: np
     window = np.outer(hann, hann)
     bins = _radial_bins(patch_px, patch_px // 2)
     rates: dict[int, list[float]] = {1: [], 2: []}
+    sides: list[tuple[float, float, float, int]] = []  # (disc to k - 1, disc to k + 1, depth map's k_b, k)
     for p, (_, _, k, kb) in enumerate(patches):
+        side = {}
         for j in range(max(0, k - 2), min(len(order), k + 3)):
             if j == k:
                 continue
@@ -285,10 +318,15 @@ def estimate_defocus_rate(stack, frames, depth_index: np.ndarray, confidence: np
             disc = fit_disc_px(grey[(p, k)], grey[(p, j)], noise_sigma, window=window, bins=bins)
             if np.isfinite(disc):
                 rates[abs(j - k)].append(disc / d)
+                side[j - k] = disc
+        if -1 in side and 1 in side:
+            sides.append((side[-1], side[1], kb, k))
     allr = np.array(rates[1] + rates[2])
     by = {d: (float(np.median(r)) if r else float("nan"), len(r)) for d, r in rates.items()}
     common = dict(by_distance=by, n_patches=len(patches), n_pairs=int(allr.size), spacing_um=spacing,
                   noise_sigma=float(noise_sigma))
+    if allr.size:
+        common["depth_sd_steps"] = _depth_error_steps(sides, float(np.median(allr)))
     if allr.size < MIN_PAIRS:
         return DefocusRate(float("nan"), float("nan"), **common,
                            reason=f"too little texture: {allr.size} patch pairs, fewer than {MIN_PAIRS}")

@@ -221,15 +221,26 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     otf_cache: dict[tuple[float, str], np.ndarray] = {}
     cache_max = max(8, int(128e6 // (4 * f_grid.size)))  # the same (frame, label) pairs recur in every tile
 
-    def otf(dz_um: float, ch: str) -> np.ndarray:
+    # a model whose defocus is known only within an error (a depth measured from the stack itself) gives the
+    # OTF's mean and mean square over that error: the Wiener filter of a random OTF (mean in the numerator, mean
+    # square in the denominator) never inverts more blur than the depth is sure of
+    moments = getattr(model, "defocus_otf_moments", None)
+
+    def otf(dz_um: float, ch: str) -> tuple[np.ndarray, np.ndarray]:
+        """The frame's OTF at defocus ``dz_um`` on the grid: its mean and its mean square."""
         key = (round(float(dz_um), 9), ch)
         if key not in otf_cache:
             if len(otf_cache) >= cache_max:
                 otf_cache.clear()
-            otf_cache[key] = np.asarray(model.defocus_otf(f_table, dz_um, ch), dtype=np.float32)[f_index]
+            if moments is None:
+                m1 = np.asarray(model.defocus_otf(f_table, dz_um, ch), dtype=np.float32)[f_index]
+                otf_cache[key] = (m1, m1 * m1)
+            else:
+                m1, m2 = moments(f_table, dz_um, ch)
+                otf_cache[key] = (np.asarray(m1, np.float32)[f_index], np.asarray(m2, np.float32)[f_index])
         return otf_cache[key]
 
-    h0s = [otf(0.0, ch) for ch in channels]
+    h0s = [np.asarray(model.defocus_otf(f_table, 0.0, ch), dtype=np.float32)[f_index] for ch in channels]
     nsrs = [(np.float32(sigma[c] ** 2) / (a_sig[c] * np.maximum(f_grid, fmin) ** (-beta[c]))).astype(np.float32)
             for c in range(len(channels))]
     maps = {}
@@ -284,9 +295,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                 num = np.zeros(f_grid.shape, np.complex64)
                 den = nsrs[c].copy()
                 for k in near:
-                    hk = otf(float(zs[k] - zl), ch)
+                    hk, hk2 = otf(float(zs[k] - zl), ch)
                     num += hk * spectra[k][c]
-                    den += hk * hk
+                    den += hk2
                 x = num * (h0s[c] / den)
                 x[0, 0] = np.mean([spectra[k][c][0, 0] for k in near])  # keep the mean
                 img = fft.irfft2(x, s=(nb_y, nb_x), workers=-1)[margin:margin + y1 - y0, margin:margin + x1 - x0]
