@@ -225,7 +225,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     f_index = np.rint(f_grid / f_step).astype(np.int32)
 
     otf_cache: dict[tuple[float, str], np.ndarray] = {}
-    cache_max = max(8, int(128e6 // (8 * f_grid.size)))  # two float32 tables per entry  # the same (frame, label) pairs recur in every tile
+    # the same (frame, label) pairs recur in every tile; two float32 tables per entry
+    cache_max = max(8, int(128e6 // (8 * f_grid.size)))
 
     # a model whose defocus is known only within an error (a depth measured from the stack itself) gives the
     # OTF's mean and mean square over that error: the Wiener filter of a random OTF (mean in the numerator, mean
@@ -235,16 +236,18 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     def otf(dz_um: float, ch: str) -> tuple[np.ndarray, np.ndarray]:
         """The frame's OTF at defocus ``dz_um`` on the grid: its mean and its mean square."""
         key = (round(float(dz_um), 9), ch)
-        if key not in otf_cache:
-            if len(otf_cache) >= cache_max:
-                otf_cache.clear()
+        hit = otf_cache.get(key)  # tiles run on threads: the entry is held here, whatever another thread clears
+        if hit is None:
             if moments is None:
                 m1 = np.asarray(model.defocus_otf(f_table, dz_um, ch), dtype=np.float32)[f_index]
-                otf_cache[key] = (m1, m1 * m1)
+                hit = (m1, m1 * m1)
             else:
                 m1, m2 = moments(f_table, dz_um, ch)
-                otf_cache[key] = (np.asarray(m1, np.float32)[f_index], np.asarray(m2, np.float32)[f_index])
-        return otf_cache[key]
+                hit = (np.asarray(m1, np.float32)[f_index], np.asarray(m2, np.float32)[f_index])
+            if len(otf_cache) >= cache_max:
+                otf_cache.clear()
+            otf_cache[key] = hit
+        return hit
 
     h0s = [np.asarray(model.defocus_otf(f_table, 0.0, ch), dtype=np.float32)[f_index] for ch in channels]
     nsrs = [(np.float32(sigma[c] ** 2) / (a_sig[c] * np.maximum(f_grid, fmin) ** (-beta[c]))).astype(np.float32)
@@ -268,16 +271,19 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         return out
 
     out = np.zeros((h, w, len(channels)), np.float32)
-    n_frames_used, n_filters = [], 0
-    tiles = [(x0, y0) for y0 in range(0, h, core) for x0 in range(0, w, core)]
-    for x0, y0 in progress(tiles, total=len(tiles), desc="Wiener by depth", quiet=quiet, unit="tile"):
+
+    def tile(origin: tuple[int, int]) -> tuple[int, list[int]]:
+        """Filter one tile into ``out`` (tiles' cores never overlap, so threads may run them concurrently);
+        returns the number of filters and the frames each label used."""
+        x0, y0 = origin
+        n_filters, n_frames_used = 0, []
         x1, y1 = min(w, x0 + core), min(h, y0 + core)
         bx0, by0, bx1, by1 = max(0, x0 - margin), max(0, y0 - margin), min(w, x1 + margin), min(h, y1 + margin)
         top, left = margin - (y0 - by0), margin - (x0 - bx0)  # mirrored rows/columns above/left of the block
         used = set()
         need = None if needed is None else needed[y0:y1, x0:x1]
         if need is not None and not need.any():
-            continue
+            return 0, []
         for c in range(len(channels)):
             present = np.unique(lower[c][y0:y1, x0:x1] if need is None else lower[c][y0:y1, x0:x1][need])
             used |= {(c, int(l)) for l in present} | {(c, int(min(l + 1, n_lab - 1))) for l in present}
@@ -314,6 +320,16 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                 dst[m] += (1.0 - fr[m]) * img[m]
                 m = l0 == l - 1
                 dst[m] += fr[m] * img[m]
+        return n_filters, n_frames_used
+
+    from .dff import map_in_order
+
+    tiles = [(x0, y0) for y0 in range(0, h, core) for x0 in range(0, w, core)]
+    n_frames_used, n_filters = [], 0
+    for nf, used_frames in progress(map_in_order(tile, tiles), total=len(tiles), desc="Wiener by depth",
+                                    quiet=quiet, unit="tile"):
+        n_filters += nf
+        n_frames_used += used_frames
     if needed is not None:
         np.copyto(out, np.asarray(reference, dtype=np.float32), where=~np.asarray(needed, bool)[..., None])
     info = {"noise_sigma": [round(s, 3) for s in sigma], "tiles": len(tiles), "filters": n_filters,
