@@ -222,7 +222,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     n_table = 4096
     f_step = float(f_grid.max()) * (1 + 1e-9) / (n_table - 1)
     f_table = np.arange(n_table) * f_step
-    f_index = np.rint(f_grid / f_step).astype(np.int32)
+    f_index = np.rint(f_grid / f_step).astype(np.intp)  # np.take with native indices: no cast per gather
 
     # a model whose defocus is known only within an error (a depth measured from the stack itself) gives the
     # OTF's mean and mean square over that error: the Wiener filter of a random OTF (mean in the numerator, mean
@@ -327,7 +327,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                 n_filters += 1
                 x = None
                 for g, k in zip(gains(l, c, near), near):
-                    term = g[f_index] * spectra[k][c]
+                    term = np.take(g, f_index) * spectra[k][c]
                     x = term if x is None else np.add(x, term, out=x)
                 x[0, 0] = np.mean([spectra[k][c][0, 0] for k in near])  # keep the mean
                 # irfft2 is a complex inverse along the columns, then a real one along the rows: the second only
