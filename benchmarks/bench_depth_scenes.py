@@ -29,6 +29,7 @@ table into docs/benchmarks.md).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import shutil
 import subprocess
 import sys
@@ -58,8 +59,13 @@ MARK_BEGIN = "<!-- bench_depth_scenes:begin -->"
 MARK_END = "<!-- bench_depth_scenes:end -->"
 
 
-def run_layout(layout: str, w: int, h: int, seed: int = 1, step: float = 1.5) -> dict:
+def run_layout(layout: str, w: int, h: int, seed: int = 1, step: float = 1.5, noise: float = 1.0) -> dict:
     spec = LensSpec.load(REPO / "models" / "triplet-uncorrected.json").with_sensor_size(w, h)
+    if noise != 1.0:
+        # `noise` times the sensor's noise at every level: shot noise through the full well, read noise directly
+        sens = spec.sensor
+        spec = dataclasses.replace(spec, sensor=dataclasses.replace(
+            sens, full_well_e=sens.full_well_e / noise ** 2, read_noise_e=sens.read_noise_e * noise))
     fs = 0.25 / (spec.sensor.pixel_pitch_um * 1e-3)
     tol = min(spec.focus_tolerance_um(fs, 0.05, c) for c in spec.channel_names)
     scene = depth_scene(layout, w, h, 6 * tol, seed=seed)
@@ -106,7 +112,13 @@ def run_layout(layout: str, w: int, h: int, seed: int = 1, step: float = 1.5) ->
         registered.append(im)
     reg = ArrayStack(registered, st.z_um, spec.channel_names, black_level=spec.sensor.black_level_dn,
                      white_level=spec.sensor.white_level_dn)
-    out["dff, no profile"] = composite_stack(reg, None, method="dff", register=False, quiet=True).image
+    free = composite_stack(reg, None, method="dff", register=False, quiet=True)
+    out["dff, no profile"] = free.image
+    # the defocus measured from the frames (composite/defocus_rate.py) against the lens's: a disc of |dz| / N
+    out["rate"] = (free.info.get("defocus_rate", {}), step * tol / (spec.f_number * spec.sensor.pixel_pitch_um),
+                   "wiener" in free.info)
+    out["dff, no profile, defocus none"] = composite_stack(reg, None, method="dff", register=False,
+                                                           measured_defocus=False, quiet=True).image
     out["dff, no profile, no fine detail"] = composite_stack(reg, None, method="dff", register=False,
                                                              fine_detail=False, quiet=True).image
     to8 = 255.0 / float(spec.sensor.white_level_dn)
@@ -125,7 +137,7 @@ def run_layout(layout: str, w: int, h: int, seed: int = 1, step: float = 1.5) ->
         shutil.rmtree(d, ignore_errors=True)
     rows = {}
     for k in ("oracle", "oracle wiener", "dff", "hybrid", "smooth surface", "dff, no profile",
-              "dff, no profile, no fine detail", "focus-stack", "enfuse"):
+              "dff, no profile, defocus none", "dff, no profile, no fine detail", "focus-stack", "enfuse"):
         if k in out:
             rows[k] = (psnr(out[k]), halo(out[k]))
     out["rows"] = rows
@@ -136,24 +148,33 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--step", type=float, default=1.5, help="frame spacing in focus tolerances")
+    ap.add_argument("--noise", type=float, default=1.0, help="the sensor's noise times this (default 1)")
+    ap.add_argument("--layouts", default=",".join(LAYOUTS), help="comma-separated layouts (default all)")
+    ap.add_argument("--tag", default="", help="write into the section bench_depth_scenes:TAG (default: by step)")
     ap.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
     a = ap.parse_args()
     w, h = (int(v) for v in a.size.lower().split("x"))
+    opts = (f" --noise {a.noise:g}" if a.noise != 1.0 else "") + (f" --tag {a.tag}" if a.tag else "")
     lines = [f"Scenes with depth ({w}x{h} px colour, paper triplet, one frame per {a.step:g} tolerances, depth 6 "
-             f"tolerances; `python benchmarks/bench_depth_scenes.py --size {w}x{h} --step {a.step:g} --write`):", "",
+             f"tolerances, sensor noise x{a.noise:g}; `python benchmarks/bench_depth_scenes.py --size {w}x{h} "
+             f"--step {a.step:g}{opts} --write`):", "",
              "| layout | frames | found | oracle dB | oracle + Wiener dB | dff dB | hybrid dB | smooth surface dB |"
              " enfuse dB | dff − enfuse | dff − oracle | dff − oracle + W | hybrid − enfuse | hybrid − oracle |"
              " hybrid − oracle + W | halo px (oracle / dff / hybrid / enfuse) | dff s |",
              "|" + " --- |" * 17]
-    free = ["", "Without a profile (the same frames registered by the truth's geometry, no F-number: no Wiener "
-                "filter), fieldcal's depth-map blend with and without the per-coefficient fine detail "
-                "(`fieldcal/composite/detail.py`), and focus-stack's merge (`benchmarks/focus_stack_ref.py`, "
-                "8-bit frames: 8-bit rounding alone would cost nothing visible here, the truth rounded to 8 bits "
-                "scores ~59 dB):", "",
-            "| layout | no profile dB | no fine detail dB | focus-stack dB | no profile − enfuse | no profile − oracle | "
-            "no profile − focus-stack | halo px (no profile / no fine detail / focus-stack) |", "|" + " --- |" * 8]
-    for layout in LAYOUTS:
-        r = run_layout(layout, w, h, step=a.step)
+    free = ["", "Without a profile (the same frames registered by the truth's geometry, no F-number): the blur "
+                "disc's growth per frame measured from the frames (`fieldcal/composite/defocus_rate.py`) against "
+                "the lens's (|dz| / N), fieldcal's default (the measured defocus's Wiener combination where it is "
+                "reliable), `--defocus none` (the depth map's blend and the per-coefficient fine detail of "
+                "`fieldcal/composite/detail.py`), that without the fine detail, and focus-stack's merge "
+                "(`benchmarks/focus_stack_ref.py`, 8-bit frames: 8-bit rounding alone would cost nothing visible "
+                "here, the truth rounded to 8 bits scores ~59 dB):", "",
+            "| layout | disc px/frame measured (true) | Wiener | no profile dB | defocus none dB | no fine detail dB | "
+            "focus-stack dB | no profile − enfuse | no profile − oracle | no profile − oracle + W | "
+            "no profile − defocus none | no profile − focus-stack | "
+            "halo px (no profile / defocus none / focus-stack) |", "|" + " --- |" * 13]
+    for layout in a.layouts.split(","):
+        r = run_layout(layout, w, h, step=a.step, noise=a.noise)
         R = r["rows"]
         enf = R.get("enfuse", (float("nan"), -1))
         o, ow, d, hy = R["oracle"], R["oracle wiener"], R["dff"], R["hybrid"]
@@ -163,15 +184,21 @@ def main() -> None:
                      f"{hy[0] - ow[0]:+.2f} | {o[1]} / {d[1]} / {hy[1]} / {enf[1]} | {r['t_depth_s']:.1f} |")
         print(lines[-1], flush=True)
         npf, nfd, fst = R["dff, no profile"], R["dff, no profile, no fine detail"], R["focus-stack"]
-        free.append(f"| {layout} | {npf[0]:.2f} | {nfd[0]:.2f} | {fst[0]:.2f} | {npf[0] - enf[0]:+.2f} | "
-                    f"{npf[0] - o[0]:+.2f} | {npf[0] - fst[0]:+.2f} | {npf[1]} / {nfd[1]} / {fst[1]} |")
+        non = R["dff, no profile, defocus none"]
+        est, true_rate, used = r["rate"]
+        measured = (f"{est['disc_px_per_step']:.2f} ± {est['sd_px_per_step']:.2f}" if est.get("reliable")
+                    else f"unreliable: {est.get('reason', 'not measured')}")
+        free.append(f"| {layout} | {measured} ({true_rate:.2f}) | {'yes' if used else 'no'} | {npf[0]:.2f} | "
+                    f"{non[0]:.2f} | {nfd[0]:.2f} | {fst[0]:.2f} | {npf[0] - enf[0]:+.2f} | {npf[0] - o[0]:+.2f} | "
+                    f"{npf[0] - ow[0]:+.2f} | {npf[0] - non[0]:+.2f} | {npf[0] - fst[0]:+.2f} | "
+                    f"{npf[1]} / {non[1]} / {fst[1]} |")
         print(free[-1], flush=True)
     lines += free
     if a.write:
         doc = REPO / "docs" / "benchmarks.md"
         text = doc.read_text(encoding="utf-8")
         # one block per frame spacing; the default spacing's block keeps the original markers
-        tag = "" if a.step == 1.5 else f":step{a.step:g}"
+        tag = f":{a.tag}" if a.tag else ("" if a.step == 1.5 else f":step{a.step:g}")
         begin, end = MARK_BEGIN.replace(":begin", tag + ":begin"), MARK_END.replace(":end", tag + ":end")
         block = "\n".join([begin, *lines, end])
         if begin in text:

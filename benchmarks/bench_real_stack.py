@@ -154,7 +154,49 @@ def flat_noise(img: np.ndarray, frames: list[np.ndarray], share: float = 0.3) ->
     return sigma(img), float(np.median([sigma(as_written(f)) for f in frames]))
 
 
-def time_composite(py, stack: Path, out: Path, n: int) -> dict:
+def depth_edges(frames: list[np.ndarray], window_px: int = 31, jump_frames: int = 2) -> np.ndarray:
+    """Pixels near a depth edge, from the frames alone: the sharpest frame per pixel (finest-octave energy over
+    ``window_px``, median-filtered), and where it changes by ``jump_frames`` or more within 9 px. The band is as
+    wide as the window: it holds the edge's own pixels and those a halo or ringing would reach."""
+    e = np.stack([cv2.blur(finest_octave_energy(grey(f)), (window_px, window_px)) for f in frames])
+    k = cv2.medianBlur(np.argmax(e, axis=0).astype(np.uint8), 5)
+    box = np.ones((9, 9), np.uint8)
+    return (cv2.dilate(k, box).astype(int) - cv2.erode(k, box).astype(int)) >= jump_frames
+
+
+def overshoot(img: np.ndarray, frames: list[np.ndarray], where: np.ndarray) -> tuple[float, float]:
+    """Ringing: how far the composite's grey leaves the range every frame records at that place (each frame's
+    3 x 3 minimum and maximum, the least and most over the frames), RMS (DN) and the share of pixels more than
+    2 DN outside, over ``where``. Choosing and blending frames stays inside; a deconvolution's overshoot, a
+    sharpening halo or amplified noise leaves it. (A blurred object's spill onto the background stays inside:
+    the crops show that.)"""
+    box = np.ones((3, 3), np.uint8)
+    lo = hi = None
+    for f in frames:
+        g = grey(f)
+        a, b = cv2.erode(g, box), cv2.dilate(g, box)
+        lo = a if lo is None else np.minimum(lo, a)
+        hi = b if hi is None else np.maximum(hi, b)
+    g = grey(img)
+    out = np.maximum(np.maximum(g - hi, lo - g), 0.0)
+    sl = (slice(BORDER, -BORDER), slice(BORDER, -BORDER))
+    m = where[sl]
+    o = out[sl][m]
+    return float(np.sqrt(np.mean(o.astype(np.float64) ** 2))) if o.size else float("nan"), \
+        float(np.mean(o > 2.0)) if o.size else float("nan")
+
+
+def save_palette_png(path: Path, rgb: np.ndarray) -> None:
+    """An 8-bit RGB figure as a 256-colour PNG (median cut, no dither): the real frames' sensor and JPEG noise makes a
+    lossless one of these crops ~1 MB; the palette moves a pixel by ~2 DN on average (measured on the s11 crops:
+    mean 1.8, 99th percentile 11) and keeps the figure under 0.5 MB."""
+    from PIL import Image
+
+    Image.fromarray(np.ascontiguousarray(rgb, dtype=np.uint8)).quantize(
+        256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(path, optimize=True)
+
+
+def time_composite(py, stack: Path, out: Path, n: int, extra=()) -> dict:
     """Wall, CPU (user + system of the child) and peak RSS of one ``fieldcal composite`` process."""
     load = os.getloadavg()[0]
     code = ("import resource, subprocess, sys, time; t = time.perf_counter(); "
@@ -162,9 +204,9 @@ def time_composite(py, stack: Path, out: Path, n: int) -> dict:
             "u = resource.getrusage(resource.RUSAGE_CHILDREN); "
             "print(w, u.ru_utime + u.ru_stime, u.ru_maxrss / 1024)")
     r = subprocess.run([sys.executable, "-c", code, *py, "composite", str(stack), "--out", str(out), "--z-ref-um",
-                        "0", "--quiet"], check=True, capture_output=True, text=True)
+                        "0", "--quiet", *extra], check=True, capture_output=True, text=True)
     wall, cpu, rss = (float(v) for v in r.stdout.split()[-3:])
-    return {"run": "fieldcal composite", "frames": n, "wall (s)": f"{wall:.2f}", "CPU (s)": f"{cpu:.2f}",
+    return {"run": " ".join(["fieldcal composite", *extra]), "frames": n, "wall (s)": f"{wall:.2f}", "CPU (s)": f"{cpu:.2f}",
             "peak RSS (MB)": f"{rss:.0f}", "load at start": f"{load:.1f}"}
 
 
@@ -175,6 +217,8 @@ def main() -> None:
                          "checkout, or $FIELDCAL_SHARED/data/real-stacks/pcb-depthmap)")
     ap.add_argument("--write", action="store_true",
                     help="put the table into docs/benchmarks.md and the crops into docs/img/real-pcb-crops.png")
+    ap.add_argument("--tag", default="", help="write into the section bench_real_stack:TAG and the crops into "
+                                              "docs/img/real-pcb-crops-TAG.png (default: the untagged ones)")
     a = ap.parse_args()
     STACK = a.stack
     if not STACK.is_dir():
@@ -191,6 +235,8 @@ def main() -> None:
         subprocess.run([*py, "import", str(src), "--out", str(work / f"pcb{n}"), "--z", "0", "50",
                         "--pixel-pitch-um", "1.12", "--quiet"], check=True)
         timing.append(time_composite(py, work / f"pcb{n}", work / f"fieldcal{n}.tiff", n))
+        # the frames chosen per pixel, not combined by the measured defocus's Wiener filter
+        timing.append(time_composite(py, work / f"pcb{n}", work / f"none{n}.tiff", n, ("--defocus", "none")))
     t_fc = timing[0]["wall (s)"]
     single = [cv2.imread(str(p))[..., ::-1] for p in jpegs]
     sharpest = int(np.argmax([msl(f) for f in single]))
@@ -199,7 +245,8 @@ def main() -> None:
     from fieldcal.formats.stack import Stack
 
     rows = {f"a single frame (the sharpest by msl, {jpegs[sharpest].name})": (single[sharpest], None)}
-    ours = enf = fs_ref = None
+    ours = enf = fs_ref = none = None
+    edges = None
     t_enf = None
     have_enfuse = bool(shutil.which("enfuse") and shutil.which("align_image_stack"))
     for n in (len(jpegs), 7):
@@ -207,6 +254,10 @@ def main() -> None:
         held, _ = register_stack(Stack.open(work / f"pcb{n}", verify=False), z_ref_um=0.0, quiet=True)
         regd = [held.read(i) for i in range(n)]
         rows[f"fieldcal, {n} frames"] = (img, regd)
+        rows[f"fieldcal --defocus none, {n} frames"] = (tifffile.imread(work / f"none{n}.tiff"), regd)
+        if edges is None:
+            edges = depth_edges(regd)
+            none = rows[f"fieldcal --defocus none, {n} frames"][0]
         del held
         # focus-stack's merge on the same registered frames (benchmarks/focus_stack_ref.py), and its wavelet
         # merge's grey before the colour reassignment
@@ -232,12 +283,16 @@ def main() -> None:
                 enf = e
     lines = ["| composite | mean squared Laplacian | Tenengrad | noise (grey DN) | noise where no frame has texture: "
              "composite / its frames at its bit depth (DN) | finest octave: energy / most its frames hold at each place | of it "
-             "beyond every frame |", "| --- | --- | --- | --- | --- | --- | --- |"]
+             "beyond every frame | outside the frames' range at depth edges: RMS DN / > 2 DN | elsewhere |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for k, (img, frames) in rows.items():
         share = ("", "") if frames is None else tuple(f"{100 * v:.1f} %" for v in frame_detail_share(img, frames))
         flat = "" if frames is None else "{:.3f} / {:.3f}".format(*flat_noise(img, frames))
+        ring = ("", "") if frames is None or frames[0].shape[:2] != edges.shape else tuple(
+            "{:.2f} / {:.2f} %".format(a, 100 * b) for a, b in (overshoot(img, frames, edges),
+                                                                 overshoot(img, frames, ~edges)))
         lines.append(f"| {k} | {msl(img):.0f} | {tenengrad(img):.0f} | {noise_dn(img):.3f} | {flat} | {share[0]} | "
-                     f"{share[1]} |")
+                     f"{share[1]} | {ring[0]} | {ring[1]} |")
     lines += ["", "| composite | " + " | ".join(f"{a:g}-{b:g}" for a, b in zip(BANDS[:-1], BANDS[1:])) + " |",
               "|" + " --- |" * len(BANDS)]
     for k, (img, _) in rows.items():
@@ -256,7 +311,8 @@ def main() -> None:
         lines += ["", slowdown_note(flags)]
     print(f"fieldcal composite (registration included): {t_fc} s")
     print("\n".join(lines))
-    # crops side by side (same geometry: the first frame's), shown at 2x: depth edges of the switch against the
+    # crops side by side (same geometry: the first frame's), at 1x (a page shows a wider figure scaled down, and
+    # zooming in does the 2x): depth edges of the switch against the
     # board and its pads, the silkscreen, fine dust on the switch body
     h, w = ours.shape[:2]
     if enf is not None:
@@ -267,27 +323,38 @@ def main() -> None:
     for (fx, fy) in ((0.576, 0.273), (0.303, 0.651), (0.703, 0.313), (0.508, 0.417), (0.0, 0.45)):
         x, y = int(fx * w), int(fy * h)
         gap = np.full((size, 4, 3), 255, np.uint8)
-        row = [fs_ref[y:y + size, x:x + size], gap, ours[y:y + size, x:x + size, :3]]
+        row = [fs_ref[y:y + size, x:x + size], gap, none[y:y + size, x:x + size, :3], gap,
+               ours[y:y + size, x:x + size, :3]]
         if enf is not None:
             row = [enf[y:y + size, x:x + size], gap] + row
-        crops.append(cv2.resize(np.concatenate(row, axis=1), None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST))
+        crops.append(np.concatenate(row, axis=1))
     # the docs' figure only with --write; otherwise beside the run, kept for a look
-    out = (REPO / "docs" / "img" if a.write else Path(tempfile.gettempdir())) / "real-pcb-crops.png"
-    cv2.imwrite(str(out), np.concatenate(crops, axis=0)[..., ::-1])
-    print(f"crops ({'enfuse | ' if enf is not None else ''}focus-stack reference | fieldcal, five regions, 2x): {out}")
+    name = f"real-pcb-crops-{a.tag}.png" if a.tag else "real-pcb-crops.png"
+    out = (REPO / "docs" / "img" if a.write else Path(tempfile.gettempdir())) / name
+    save_palette_png(out, np.concatenate(crops, axis=0))
+    print(f"crops ({'enfuse | ' if enf is not None else ''}focus-stack reference | fieldcal --defocus none | fieldcal, five regions, 1x, 256 colours): {out}")
     if a.write:
         doc = REPO / "docs" / "benchmarks.md"
         text = doc.read_text(encoding="utf-8")
-        b, e = "<!-- bench_real_stack:begin -->", "<!-- bench_real_stack:end -->"
-        block = "\n".join([b, "Real circuit-board stack (`python benchmarks/bench_real_stack.py --write`; crops: "
-                              "[img/real-pcb-crops.png](img/real-pcb-crops.png), left enfuse (10 frames, brought onto fieldcal's "
-                              "geometry), middle the focus-stack reference on fieldcal's registered frames, right "
-                              "fieldcal (10 frames); the last row is the left edge):", "",
+        tag = f":{a.tag}" if a.tag else ""
+        b, e = f"<!-- bench_real_stack{tag}:begin -->", f"<!-- bench_real_stack{tag}:end -->"
+        cmd = "python benchmarks/bench_real_stack.py" + (f" --tag {a.tag}" if a.tag else "") + " --write"
+        block = "\n".join([b, f"Real circuit-board stack (`{cmd}`; crops: "
+                              f"[img/{name}](img/{name}), left to right enfuse (10 frames, brought onto fieldcal's "
+                              "geometry), the focus-stack reference on fieldcal's registered frames, fieldcal "
+                              "`--defocus none` and fieldcal (10 frames); the last row is the left edge). Depth "
+                              "edges: where the sharpest frame (finest-octave energy over 31 px) changes by 2 frames "
+                              "or more within 9 px of fieldcal's registered frames:", "",
                            *lines, e])
         if b in text:
             text = text[:text.index(b)] + block + text[text.index(e) + len(e):]
         else:
-            text = text.rstrip() + "\n\n## A real stack with depth\n\n" + block + "\n"
+            base_end = "<!-- bench_real_stack:end -->"
+            if base_end in text:
+                i = text.index(base_end) + len(base_end)
+                text = text[:i] + "\n\n" + block + text[i:]
+            else:
+                text = text.rstrip() + "\n\n## A real stack with depth\n\n" + block + "\n"
         doc.write_text(text, encoding="utf-8")
     shutil.rmtree(work, ignore_errors=True)
 

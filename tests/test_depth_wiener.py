@@ -112,3 +112,23 @@ def test_tiles_agree_with_one_whole_image_filter(flat_world, monkeypatch):
     sigma = float(np.mean(info_w["noise_sigma"]))
     d = np.abs(whole.astype(np.float64) - tiled)
     assert np.sqrt(np.mean(d ** 2)) < 0.005 * sigma and d.max() < 0.02 * sigma, (d.max(), sigma)
+
+
+def test_needed_pixels_get_the_full_filter_and_the_rest_the_reference(flat_world, monkeypatch):
+    """Filtering only where the combination is needed (each label inverted on the rows its needed pixels use)
+    gives those pixels the same values as filtering everywhere, and every other pixel the reference's."""
+    import fieldcal.composite.depth_wiener as dw
+
+    spec, r, z, prof, zb = flat_world
+    st = _stack(spec, r, z, True)
+    frames = np.arange(len(st))
+    blend = composite_with_map(st, zb, blend_kernel(st, prof, frames), prof, frames, quiet=True)
+    monkeypatch.setattr(dw, "TILE_PX", 40)
+    full, _ = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
+    h, w = zb.shape[:2]
+    yy, xx = np.mgrid[:h, :w]
+    needed = ((xx + 2 * yy) % 7 < 3) & (yy % 11 < 6)  # scattered pixels in every tile, whole rows without any
+    part, info = wiener_composite(st, zb, prof, frames, blend, geometry=prof, needed=needed, quiet=True)
+    sigma = float(np.mean(info["noise_sigma"]))
+    assert np.abs(part[needed].astype(np.float64) - full[needed]).max() < 1e-3 * sigma
+    assert np.array_equal(part[~needed], np.asarray(blend, np.float32)[~needed])

@@ -63,6 +63,10 @@ def register(sub):
     p.add_argument("--depth", choices=["auto", "flat", "3d"], default="auto",
                    help="dff/hybrid: a flat scene (best focus from a smooth surface) or one with depth (per pixel, "
                         "edge-aware); auto decides from how well a surface fits the measured depths (default)")
+    p.add_argument("--defocus", choices=["measured", "none"], default="measured",
+                   help="a scene with depth and no profile with an F-number: measure the blur's growth per frame "
+                        "from the stack and combine the frames by its Wiener filter where that is reliable "
+                        "(default), or choose frames per pixel (none)")
     p.add_argument("--max-memory", metavar="SIZE",
                    help="without a profile (dff, hybrid): the memory the composite may take, e.g. 8G (default: "
                         "the memory available now); a composite that would need more is refused before any work")
@@ -84,7 +88,7 @@ def run(args) -> int:
                             verify=not args.no_verify, quiet=args.quiet,
                             breathing=args.breathing or "auto", zone_px=args.zone_px,
                             camera_noise=tuple(args.camera_noise) if args.camera_noise else None,
-                            max_memory=args.max_memory)
+                            max_memory=args.max_memory, measured_defocus=args.defocus == "measured")
     if "sweep" in res.metadata:
         info = res.metadata["sweep"]
         gains = {c: round(v.get("noise_gain", float("nan")), 2) for c, v in info.get("channels", {}).items()

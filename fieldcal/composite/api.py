@@ -41,13 +41,19 @@ DEPTH_PIXEL_FRACTION = 0.01
 #: Scenes with depth: a pixel takes the depth map's composite in full where its confidence reaches this fraction
 #: (second) of the given percentile (first) of the image's confidences, the multi-scale fusion where it has none.
 FUSION_CONFIDENCE = (75.0, 0.5)
+#: A defocus measured from the stack (no lens model): the Wiener combination's depth labels this many frame steps
+#: apart (or :data:`~.depth_wiener.LABEL_DISC_PX` of disc, if more); the per-pixel depth map's sub-frame peak is
+#: good to a tenth or two of a step, so finer labels add work (one inverse FFT per label, channel and tile), not
+#: accuracy.
+LABEL_FRAMES = 0.125
 
 
 def composite_stack(stack, profile=None, method: str | None = None, *, frames=None, fs_cyc_per_mm=None,
                     q: float = 0.05, min_band: float = 0.25, lateral_colour: bool = False,
                     block_px: int | None = None, tile: int = DEFAULT_TILE_PX, focus_offset_um: float = 0.0,
                     register: bool = True, z_ref_um: float | None = None, depth: str = "auto",
-                    fine_detail: bool = True, max_memory=None, quiet: bool = False) -> CompositeResult:
+                    fine_detail: bool = True, measured_defocus: bool = True, max_memory=None,
+                    quiet: bool = False) -> CompositeResult:
     """All-in-focus composite of a stack.
 
     Parameters
@@ -88,6 +94,12 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         A scene with depth composited without the Wiener filter (no profile, or no F-number): the two finest
         pyramid levels per coefficient from the sharpest frame near the depth map's choice
         (:mod:`fieldcal.composite.detail`). ``False`` keeps the depth map's blend there.
+    measured_defocus : bool
+        A scene with depth and registered frames but no lens model with an F-number: measure the blur disc's
+        growth per frame step from the stack (:mod:`fieldcal.composite.defocus_rate`) and, where that measurement
+        is reliable, combine the frames by the multi-frame Wiener filter of that disc's OTF as with a profile;
+        where it is not (too little texture, frames that barely change focus, a blur that does not grow
+        linearly) the frames are chosen as without it, and ``info["defocus_rate"]["reason"]`` says why.
     max_memory : int or str, optional
         ``dff`` and ``hybrid``: the memory the composite may take (bytes, or ``"8G"``); default the memory
         available now. A composite whose measured peak (:func:`fieldcal.composite.memory.estimate_peak_bytes`:
@@ -147,12 +159,12 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
                  "blocks_off_surface": {"by_a_spacing": round(off_spacing, 4), "by_half_a_width": round(off_width, 4)},
                  "pixels_off_surface": round(off_pixels, 4),
                  "scene": "3d" if has_depth else "flat"})
-    fallback = None
+    fallback = dmap = None
     if method == "dff":
         zb = dff_focus_map(surfaces, w, h)
         info["surface_degree"] = {c: s.degree for c, s in zip(channels, surfaces)}
         if has_depth:
-            zb, fallback = _per_pixel_focus(stack, geometry, frames, zb, quiet)
+            zb, fallback, dmap = _per_pixel_focus(stack, geometry, frames, zb, quiet)
     else:
         zb = profile_focus_map(profile, w, h, channels, lateral_colour) + np.float32(focus_offset_um)
         corr = hybrid_corrections(vol, profile, w, h, channels, lateral_colour=lateral_colour,
@@ -165,16 +177,28 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
             # the data where they differ from the profile by more than its band allows, the profile elsewhere; the
             # profile uncorrected, as the low-order correction would be fitted to the scene's own depth (steps pull
             # it up to its limit off the profile where the scene does lie on it: -0.5 dB, bench_depth_scenes)
-            per_pixel, fallback = _per_pixel_focus(stack, geometry, frames, zb, quiet)
+            per_pixel, fallback, dmap = _per_pixel_focus(stack, geometry, frames, zb, quiet)
             limit = np.array([lim for _, lim in corr], dtype=np.float32)
             off = np.abs(per_pixel - zb) > limit
             zb = np.where(off, per_pixel, zb).astype(np.float32)
             info["pixels_from_data"] = round(float(off.mean()), 4)
-    wiener = has_depth and profile is not None and bool(getattr(profile, "f_number", None))
+    defocus = profile if profile is not None and getattr(profile, "f_number", None) else None
+    if has_depth and defocus is None and measured_defocus and dmap is not None and geometry is None:
+        # no lens model: the defocus per frame step measured on the registered frames (composite/defocus_rate.py)
+        defocus = _measured_defocus(stack, frames, dmap, info, quiet)
+    wiener = has_depth and defocus is not None
+    measured = wiener and defocus is not profile
     if wiener:
         # a nearer object's blur disc kept off the pixels beside it (composite/depth_wiener.py)
         from .depth_wiener import occlusion_focus_um
-        zb = occlusion_focus_um(zb, 2.0 * float(profile.f_number) * float(profile.pixel_pitch_um))
+        um_per_px = 2.0 * float(defocus.f_number) * float(defocus.pixel_pitch_um)
+        if measured:
+            # one depth map plus each channel's smooth offset (_per_pixel_focus): the cones of their mean, the
+            # offsets kept (a third of the work; a measured disc is the same in every channel)
+            mean = zb.mean(axis=2)
+            zb = (zb - mean[..., None]) + occlusion_focus_um(mean, um_per_px)[..., None]
+        else:
+            zb = occlusion_focus_um(zb, um_per_px)
     kernel = blend_kernel(stack, profile, frames, fs_cyc_per_mm, q, min_band)
     img = composite_with_map(stack, zb, kernel, geometry, frames, lateral_colour=lateral_colour, tile=tile,
                              quiet=quiet)
@@ -182,17 +206,22 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         # the frames around each pixel's depth combined by the lens's defocus OTF, not one frame chosen
         from .depth_wiener import wiener_composite
         from .stack_profile import to_input_dtype
-        combined, info["wiener"] = wiener_composite(stack, zb, profile, frames, img, geometry=geometry,
-                                                    lateral_colour=lateral_colour, quiet=quiet)
+        # with a measured defocus, labels LABEL_FRAMES of a frame step apart (the depth map is known no better)
+        label_um = LABEL_FRAMES * spacing if measured else None
+        # ... and filtered only where it will be used: the fusion takes the pixels the depth map is unsure of
+        needed = fallback[1] >= np.float32(1.0 / 256.0) if measured and fallback is not None else None
+        combined, info["wiener"] = wiener_composite(stack, zb, defocus, frames, img, geometry=geometry,
+                                                    lateral_colour=lateral_colour, label_um=label_um,
+                                                    needed=needed, quiet=quiet)
         img = to_input_dtype(combined, img.dtype, float(stack.white_level))
-    if has_depth and fallback is not None and not wiener:
+    if has_depth and fallback is not None and (not wiener or defocus is not profile):
         # where the depth map is unsure (little texture), the multi-scale fusion's pixels: it needs no depth
         from .stack_profile import to_input_dtype
         fused, weight = fallback
         mixed = weight[..., None] * img.astype(np.float32) + (1.0 - weight[..., None]) * fused
         img = to_input_dtype(mixed, img.dtype, float(stack.white_level))
         info["pixels_from_fusion"] = round(float(np.mean(1.0 - weight)), 4)
-    if has_depth and not wiener and fine_detail:
+    if has_depth and (not wiener or measured) and fine_detail:
         # the finest octaves per coefficient from the sharpest frame near the depth map's choice
         # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost
         from .detail import fine_detail as add_fine_detail
@@ -200,7 +229,8 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
         kd = np.interp(zb.mean(axis=2), z_sorted, np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32)
         sharp, info["fine_detail"] = add_fine_detail(stack, img, kd, frames, geometry=geometry,
-                                                     support=getattr(stack, "support", None), quiet=quiet)
+                                                     support=getattr(stack, "support", None), keep_base=measured,
+                                                     quiet=quiet)
         img = to_input_dtype(sharp, img.dtype, float(stack.white_level))
     return CompositeResult(img, method, zb, info)
 
@@ -231,11 +261,33 @@ def surface_misfit_fractions(vol, surfaces, spacing_um: float) -> tuple[float, f
     return float(np.mean(r >= spacing_um)), float(np.mean(r > max(spacing_um, 0.5 * fwhm)))
 
 
-def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool) -> np.ndarray:
+def _measured_defocus(stack, frames, dmap, info: dict, quiet: bool):
+    """The defocus model measured from registered frames and their depth map (a
+    :class:`~fieldcal.composite.defocus_rate.MeasuredDefocus`), or None where the measurement is unreliable;
+    ``info["defocus_rate"]`` records it either way, and a fallback is said on stderr."""
+    import sys
+
+    from .defocus_rate import MeasuredDefocus, estimate_defocus_rate
+
+    z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
+    kd = np.interp(dmap.z_um, z_sorted, np.arange(len(z_sorted), dtype=np.float64))
+    est = estimate_defocus_rate(stack, frames, kd, dmap.confidence)
+    info["defocus_rate"] = est.info()
+    if not est.reliable:
+        if not quiet:
+            print(f"fieldcal composite: defocus not measured reliably ({est.reason}); frames chosen per pixel, "
+                  "not combined", file=sys.stderr)
+        return None
+    pitch = getattr(stack, "pixel_pitch_um", None)
+    # the depth map's own scatter (in frame steps) makes the filter robust to it (composite/defocus_rate.py)
+    return MeasuredDefocus(est, float(pitch) if pitch else 1.0, est.depth_sd_steps)
+
+
+def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool):
     """Best focus per pixel for a scene with depth: the edge-aware depth map of the stack, plus each channel's
     offset from the others as the smooth map ``zb_smooth`` has it (chromatic focus is the lens's, not the scene's).
     Also returns the multi-scale fusion and a per-pixel weight (0 where the depth map has no texture to go on,
-    1 where it is confident) for the final image.
+    1 where it is confident) for the final image, and the depth map (:class:`.fusion.DepthMap`).
     """
     from .fusion import depth_map, fuse_pyramid
 
@@ -254,7 +306,7 @@ def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool
     index = np.interp(dm.z_um, fusion.z_um, np.arange(len(fusion.z_um), dtype=np.float64))
     weight *= (np.abs(index - fusion.depth_index) <= 1.0).astype(np.float32)
     weight = cv2.GaussianBlur(weight, (0, 0), 2.0)
-    return (dm.z_um[..., None] + offsets).astype(np.float32), (guide, weight)
+    return (dm.z_um[..., None] + offsets).astype(np.float32), (guide, weight), dm
 
 
 # ------------------------------------------------------------------------------------------------ plans
@@ -459,7 +511,8 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
                       register: bool = True, lateral_colour: bool = False, depth: str = "auto",
                       overwrite: bool = False, verify: bool = True, quiet: bool = False,
                       breathing: str | None = "auto", zone_px: int | None = None,
-                      camera_noise: tuple[float, float] | None = None, max_memory=None) -> CompositeOutput:
+                      camera_noise: tuple[float, float] | None = None, max_memory=None,
+                      measured_defocus: bool = True) -> CompositeOutput:
     """Composite a stack folder (or restore a captured sweep image) into a TIFF with its metadata.
 
     Parameters
@@ -480,7 +533,7 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         Emulate a focal sweep of this half-range (µm) and deconvolve it (``deconvolve``, ``rl_iterations``).
     fs_cyc_per_mm, q : float, optional
         The focus tolerance that sets the seam width (default: the plan's, else Nyquist/4 and 0.05).
-    z_ref_um, register, lateral_colour, depth, max_memory, quiet
+    z_ref_um, register, lateral_colour, depth, max_memory, measured_defocus, quiet
         See :func:`composite_stack`.
     overwrite : bool
         Replace an existing output file (never an input: the stack, its frames, the profile, the plan).
@@ -565,7 +618,7 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         res = composite_stack(st, prof, method, frames=frames, fs_cyc_per_mm=fs_cyc_per_mm,
                               q=0.05 if q is None else q, lateral_colour=lateral_colour, focus_offset_um=offset,
                               register=register, z_ref_um=z_ref_um, depth=depth, max_memory=max_memory,
-                              quiet=quiet)
+                              measured_defocus=measured_defocus, quiet=quiet)
         z_ref = float(prof.z_ref_um) if prof is not None else res.info.get("registration", {}).get("z_ref_um")
         meta.update({"method": res.method, "z_ref_um": z_ref, "lateral_colour_corrected": bool(lateral_colour),
                      **res.info})

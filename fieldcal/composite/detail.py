@@ -93,7 +93,7 @@ def _level_index(depth_index: np.ndarray, shapes: list[tuple[int, int]]) -> list
 def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *, geometry=None, levels: int = FINE_LEVELS,
                 reach_frames: float = REACH_FRAMES, window_px: float = WINDOW_PX,
                 consistency_px: int = CONSISTENCY_PX, significance: float | None = SIGNIFICANCE, support=None,
-                quiet: bool = False) -> tuple[np.ndarray, dict]:
+                keep_base: bool = False, quiet: bool = False) -> tuple[np.ndarray, dict]:
     """Replace the finest pyramid levels of a depth-map composite by per-coefficient selection near its depth.
 
     Parameters
@@ -113,6 +113,10 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     support : callable, optional
         ``support(i)``: an ``H x W`` bool mask of where frame ``i`` holds recorded pixels (registered frames
         repeat their edge beyond it); a frame is never chosen outside it.
+    keep_base : bool
+        Keep the base's own fine levels where a frame is sharp (a multi-frame Wiener composite, which already
+        holds more than any one frame there) and average the frames within reach only where no frame is: a
+        noise gate, no frame chosen.
     quiet : bool
         No progress bar.
 
@@ -240,7 +244,8 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
         for ci, plane in enumerate(planes_of(i)):
             for lev, lap in enumerate(_fine_levels(plane, levels)):
                 # each frame writes only where it was chosen: the threads' writes never overlap
-                np.copyto(gathered[lev][ci], lap, where=chosen[lev])
+                if not keep_base:
+                    np.copyto(gathered[lev][ci], lap, where=chosen[lev])
                 lap *= near[lev]
                 laps.append((lev, ci, lap))
         with lock:  # the averages are shared by every frame within reach
@@ -252,6 +257,10 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     for _ in progress(map_in_order(gather, items), total=len(items), desc="fine detail, gathering", quiet=quiet,
                       unit="frame"):
         pass
+    if keep_base:
+        for ci in range(len(channels)):
+            for lev, lap in enumerate(_fine_levels(np.ascontiguousarray(base[..., ci], dtype=np.float32), levels)):
+                gathered[lev][ci] = lap
     for lev in range(levels):
         sel, n = select[lev], count[lev]
         sel[n == 0] = 1.0  # nothing recorded within reach: the chosen frame

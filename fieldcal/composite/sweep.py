@@ -38,16 +38,20 @@ class SweepResult:
     info: dict = field(default_factory=dict)
 
 
-def estimate_noise_sigma(channel_image: np.ndarray) -> float:
+def estimate_noise_sigma(channel_image: np.ndarray, max_samples: int | None = None) -> float:
     """Pixel noise std (image units): Immerkaer's (1996) Laplacian-difference operator, robust MAD.
 
     The 3x3 operator cancels smooth image content up to second order; its L2 norm is 6, so the median
-    absolute response / 0.6745 / 6 is the noise std where texture is sparse.
+    absolute response / 0.6745 / 6 is the noise std where texture is sparse. ``max_samples``: the median over
+    about that many responses spread evenly over the image (its standard error ~1.25 / sqrt(n) relative: 0.1 %
+    at a million), not all of them.
     """
     import cv2
     k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
-    r = cv2.filter2D(np.asarray(channel_image, dtype=np.float32), -1, k, borderType=cv2.BORDER_REFLECT)
-    return float(np.median(np.abs(r[1:-1, 1:-1])) / 0.6745 / 6.0)
+    r = np.abs(cv2.filter2D(np.asarray(channel_image, dtype=np.float32), -1, k, borderType=cv2.BORDER_REFLECT)[1:-1, 1:-1])
+    if max_samples is not None and r.size > max_samples:
+        r = r.ravel()[::int(np.ceil(r.size / max_samples))]
+    return float(np.median(r) / 0.6745 / 6.0)
 
 
 def sensor_noise_sigma(image: np.ndarray, gain_dn_per_e: float, read_noise_e: float,
