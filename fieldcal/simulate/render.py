@@ -499,20 +499,16 @@ class Renderer:
         ``z_um=None``: each pixel at its own sharpest position (the truth image).
         """
         xd, yd = self._landing(z_um, channel, affine)
-        xm, ym = self.spec.pixel_to_mm(xd, yd)
-        if z_um is None:
-            d = self._wave.best_focus_shift_um(channel, self.spec.rho(xm, ym))
-        else:
-            d = z_um - self.spec.best_focus_um(xm, ym, channel)
-        d = np.broadcast_to(d, (self.height_px, self.width_px))
-        self._check_blur(float(self.diameter_px(np.max(np.abs(d)))))
-        return np.asarray(d, dtype=np.float64)
+        return self._signed_defocus_mm(*self.spec.pixel_to_mm(xd, yd), z_um, channel)
 
     def _signed_defocus_sensor(self, z_um: float | None, channel: str) -> np.ndarray:
         """Wave optics, warp first: signed defocus (µm from the reference surface) at every sensor pixel.
 
         ``z_um=None``: each pixel at its own sharpest position (the truth image)."""
-        xm, ym = self.spec.pixel_to_mm(self._xs, self._ys)
+        return self._signed_defocus_mm(*self.spec.pixel_to_mm(self._xs, self._ys), z_um, channel)
+
+    def _signed_defocus_mm(self, xm: np.ndarray, ym: np.ndarray, z_um: float | None, channel: str) -> np.ndarray:
+        """Signed defocus (µm) at field points (mm), broadcast to the frame; refuses blur beyond the kernel bank."""
         if z_um is None:
             d = self._wave.best_focus_shift_um(channel, self.spec.rho(xm, ym))
         else:
