@@ -153,8 +153,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     -------
     (image, info)
         Float32 ``H x W x C`` (``H x W x P`` with ``mix``) in the frames' units, and the noise level per channel
-        (plane), the number of tiles and of label filters applied (tiles x labels x channels), the labels' spacing (µm) and the mean number of
-        frames per label.
+        (plane), the number of tiles and of label filters applied (tiles x labels x channels), the labels'
+        spacing (µm) and the mean number of frames per label.
     """
     from scipy import fft
 
