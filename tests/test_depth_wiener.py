@@ -132,3 +132,21 @@ def test_needed_pixels_get_the_full_filter_and_the_rest_the_reference(flat_world
     sigma = float(np.mean(info["noise_sigma"]))
     assert np.abs(part[needed].astype(np.float64) - full[needed]).max() < 1e-3 * sigma
     assert np.array_equal(part[~needed], np.asarray(blend, np.float32)[~needed])
+
+
+def test_mixed_planes_are_the_channels_filter_when_the_mix_picks_channels(flat_world):
+    """``mix`` filters weighted sums of the channels with each plane's heaviest channel's OTF and depth: rows
+    that pick single channels (permuted) give those channels' filtered images, and a row that does not match
+    the channels is refused."""
+    spec, r, z, prof, zb = flat_world
+    st = _stack(spec, r, z, True)
+    frames = np.arange(len(st))
+    blend = composite_with_map(st, zb, blend_kernel(st, prof, frames), prof, frames, quiet=True)
+    full, info = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
+    perm = [2, 0, 1]
+    planes, info_p = wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=np.eye(3)[perm], quiet=True)
+    assert planes.shape == full.shape and info_p["filters"] == info["filters"]
+    sigma = float(np.mean(info["noise_sigma"]))
+    assert np.abs(planes.astype(np.float64) - full[..., perm]).max() < 1e-3 * sigma
+    with pytest.raises(ParameterError, match="plane weights"):
+        wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=np.ones((1, 2)), quiet=True)

@@ -46,6 +46,11 @@ FUSION_CONFIDENCE = (75.0, 0.5)
 #: good to a tenth or two of a step, so finer labels add work (one inverse FFT per label, channel and tile), not
 #: accuracy.
 LABEL_FRAMES = 0.125
+#: A measured defocus (the same disc in every channel) on RGB: the Wiener combination in YCbCr (JPEG's, Rec. 601
+#: full range), luma on labels :data:`LABEL_FRAMES` apart and chroma, whose fine detail is weaker, on labels this
+#: many frame steps apart (fewer filters); None filters R, G and B on the luma's labels.
+CHROMA_LABEL_FRAMES: float | None = 1.0
+YCBCR = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
 
 
 def composite_stack(stack, profile=None, method: str | None = None, *, frames=None, fs_cyc_per_mm=None,
@@ -210,9 +215,18 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         label_um = LABEL_FRAMES * spacing if measured else None
         # ... and filtered only where it will be used: the fusion takes the pixels the depth map is unsure of
         needed = fallback[1] >= np.float32(1.0 / 256.0) if measured and fallback is not None else None
-        combined, info["wiener"] = wiener_composite(stack, zb, defocus, frames, img, geometry=geometry,
-                                                    lateral_colour=lateral_colour, label_um=label_um,
-                                                    needed=needed, quiet=quiet)
+        if measured and CHROMA_LABEL_FRAMES and channels == ("R", "G", "B"):
+            # luma and chroma apart, the chroma on coarser labels (CHROMA_LABEL_FRAMES)
+            ycc = [wiener_composite(stack, zb, defocus, frames, img, geometry=geometry, lateral_colour=lateral_colour,
+                                    label_um=lab, needed=needed, mix=rows, quiet=quiet)
+                   for rows, lab in ((YCBCR[:1], label_um), (YCBCR[1:], CHROMA_LABEL_FRAMES * spacing))]
+            combined = np.concatenate([p for p, _ in ycc], axis=2) @ np.linalg.inv(YCBCR).T.astype(np.float32)
+            info["wiener"] = {**ycc[0][1], "filters": ycc[0][1]["filters"] + ycc[1][1]["filters"],
+                              "chroma": ycc[1][1]}
+        else:
+            combined, info["wiener"] = wiener_composite(stack, zb, defocus, frames, img, geometry=geometry,
+                                                        lateral_colour=lateral_colour, label_um=label_um,
+                                                        needed=needed, quiet=quiet)
         img = to_input_dtype(combined, img.dtype, float(stack.white_level))
     if has_depth and fallback is not None and (not wiener or defocus is not profile):
         # where the depth map is unsure (little texture), the multi-scale fusion's pixels: it needs no depth

@@ -115,7 +115,7 @@ def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fn, sigma: f
 def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray, *, geometry=None,
                      lateral_colour: bool = False, reach_disc_px: float = REACH_DISC_PX,
                      noise_sigma=None, label_um: float | None = None, needed: np.ndarray | None = None,
-                     quiet: bool = False) -> tuple[np.ndarray, dict]:
+                     mix: np.ndarray | None = None, quiet: bool = False) -> tuple[np.ndarray, dict]:
     """All-in-focus image of a scene with depth from a best-focus map and the lens's defocus OTF.
 
     Parameters
@@ -143,13 +143,18 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     needed : H x W bool array, optional
         Where the combination will be used (default everywhere); elsewhere the output is ``reference``'s and no
         label is filtered for those pixels alone.
+    mix : P x C array, optional
+        Filter these weighted sums of the channels instead (e.g. YCbCr's rows, or some of them), for a model whose
+        OTF is the same in every channel (a measured defocus): each plane's OTF is its heaviest channel's, its
+        depth the channels' weighted by the absolute weights, and ``reference``, ``needed`` and the output are
+        in the planes (the caller mixes them back).
 
     Returns
     -------
     (image, info)
-        Float32 ``H x W x C`` in the frames' units, and the noise level per channel, the number of tiles and
-        of label filters applied (tiles x labels x channels), the labels' spacing (µm) and the mean number of
-        frames per label.
+        Float32 ``H x W x C`` (``H x W x P`` with ``mix``) in the frames' units, and the noise level per channel
+        (plane), the number of tiles and of label filters applied (tiles x labels x channels), the labels'
+        spacing (µm) and the mean number of frames per label.
     """
     from scipy import fft
 
@@ -161,6 +166,26 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                              fix="calibrate with the F-number recorded, or composite without the Wiener step")
     w, h = image_size(stack)
     channels = tuple(stack.channels)
+    if mix is not None:
+        mix = np.atleast_2d(np.asarray(mix, dtype=np.float64))
+        if mix.shape[1] != len(channels) or not np.all(np.isfinite(mix)) or np.any(np.abs(mix).sum(axis=1) == 0):
+            raise ParameterError(f"plane weights {mix.tolist()} do not match the channels {channels}", field="mix",
+                                 fix="give one row of weights per plane, one weight per channel, not all zero")
+        m32 = mix.astype(np.float32)
+        reference = np.asarray(reference, dtype=np.float32) @ m32.T
+        depth_w = np.abs(m32) / np.abs(m32).sum(axis=1, keepdims=True)
+        zb = np.asarray(zb, dtype=np.float32) @ depth_w.T
+        # each plane's OTFs are looked up as its heaviest channel's (the same in every channel)
+        fch = tuple(channels[int(np.argmax(np.abs(row)))] for row in mix)
+    else:
+        fch = channels
+
+    def mixed(planes: list[np.ndarray]) -> list[np.ndarray]:
+        """The filtered planes from the channels' planes: the channels, or their weighted sums."""
+        if mix is None:
+            return planes
+        return [sum(np.float32(m) * p for m, p in zip(row, planes)) for row in mix]
+
     pitch = float(model.pixel_pitch_um)
     px_um = float(n_f) * pitch  # defocus that widens the blur disc's diameter by 1 px
     z_all = z_positions(stack)
@@ -185,22 +210,24 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     # estimate; far from focus a frame is smooth)
     probe = np.unique(np.linspace(0, len(order) - 1, min(len(order), 6)).round().astype(int))
     if noise_sigma is None:
-        sigma = [min(estimate_noise_sigma(planes(k)[c], max_samples=NOISE_SAMPLES) for k in probe)
-                 for c in range(len(channels))]
+        sigma = [min(estimate_noise_sigma(mixed(planes(k))[c], max_samples=NOISE_SAMPLES) for k in probe)
+                 for c in range(len(fch))]
     else:
         sigma = [float(v) for v in np.broadcast_to(np.asarray(noise_sigma, dtype=np.float64), (len(channels),))]
+        if mix is not None:  # independent noise per channel
+            sigma = [float(np.sqrt(np.sum(row ** 2 * np.square(sigma)))) for row in mix]
     planes_cache.clear()
     a_sig, beta = [], []
-    for c, ch in enumerate(channels):
+    for c, ch in enumerate(fch):
         a_c, b_c, shape = _power_law(reference[..., c], pad, pitch, lambda t, ch=ch: model.defocus_otf(t, 0.0, ch),
                                      max(sigma[c], 1e-6))
         a_sig.append(a_c)
         beta.append(b_c)
-    mean = [float(np.mean(reference[..., c])) for c in range(len(channels))]
+    mean = [float(np.mean(reference[..., c])) for c in range(len(fch))]
 
     # per channel: label index below each pixel and the fraction towards the next
     lower, frac = [], []
-    for c in range(len(channels)):
+    for c in range(len(fch)):
         t = (zb[..., c].astype(np.float64) - labels[0]) / step
         l0 = np.clip(np.floor(t), 0, n_lab - 2).astype(np.int32)
         lower.append(l0)
@@ -237,9 +264,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         m1, m2 = moments(f_table, dz_um, ch)
         return np.asarray(m1, np.float64), np.asarray(m2, np.float64)
 
-    h0s = [np.asarray(model.defocus_otf(f_table, 0.0, ch), dtype=np.float64) for ch in channels]
+    h0s = [np.asarray(model.defocus_otf(f_table, 0.0, ch), dtype=np.float64) for ch in fch]
     # the noise-to-signal ratio is radial too (a power law of |f|)
-    nsrs = [sigma[c] ** 2 / (a_sig[c] * np.maximum(f_table, fmin) ** (-beta[c])) for c in range(len(channels))]
+    nsrs = [sigma[c] ** 2 / (a_sig[c] * np.maximum(f_table, fmin) ** (-beta[c])) for c in range(len(fch))]
     gain_cache: dict[tuple[int, int], list[np.ndarray]] = {}
 
     def gains(l: int, c: int, near: np.ndarray) -> list[np.ndarray]:
@@ -248,7 +275,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         compute one, with the same result), gathered onto a tile's grid through ``f_index``."""
         hit = gain_cache.get((l, c))
         if hit is None:
-            ms = [otf(float(zs[k] - labels[l]), channels[c]) for k in near]
+            ms = [otf(float(zs[k] - labels[l]), fch[c]) for k in near]
             scale = h0s[c] / (nsrs[c] + sum(m2 for _, m2 in ms))
             hit = [(m1 * scale).astype(np.float32) for m1, _ in ms]
             gain_cache[(l, c)] = hit
@@ -266,13 +293,13 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             for j, c in enumerate(fm.channels):
                 planes[c] = part[..., j]
         out = []
-        for c, p in enumerate(planes):
+        for c, p in enumerate(mixed(planes)):
             p = p - np.float32(mean[c])
             p = np.pad(p, ((top, nb_y - p.shape[0] - top), (left, nb_x - p.shape[1] - left)), mode="symmetric")
             out.append(fft.rfft2(p, workers=-1).astype(np.complex64))
         return out
 
-    out = np.zeros((h, w, len(channels)), np.float32)
+    out = np.zeros((h, w, len(fch)), np.float32)
 
     def tile(origin: tuple[int, int]) -> tuple[int, list[int]]:
         """Filter one tile into ``out`` (tiles' cores never overlap, so threads may run them concurrently);
@@ -288,7 +315,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         # per channel, the tile's pixels (the needed ones) grouped by their lower label: each label's filter is
         # then written only where it is used, and inverted only on the rows that hold those pixels
         groups, used = [], set()
-        for c in range(len(channels)):
+        for c in range(len(fch)):
             l0 = lower[c][y0:y1, x0:x1].ravel()
             pix = np.arange(l0.size, dtype=np.int32) if need is None else np.flatnonzero(need.ravel()).astype(np.int32)
             pix = pix[np.argsort(l0[pix], kind="stable")]
@@ -303,7 +330,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         labels_used = sorted({l for _, l in used})
         tw = x1 - x0
         row_mark = np.zeros(y1 - y0, bool)
-        acc = np.zeros((len(channels), (y1 - y0) * tw), np.float32)
+        acc = np.zeros((len(fch), (y1 - y0) * tw), np.float32)
         spectra: dict[int, list[np.ndarray]] = {}
         for l in labels_used:
             zl = labels[l]
@@ -316,7 +343,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                 if k not in spectra:
                     spectra[k] = block(int(k), bx0, by0, bx1, by1, top, left)
             n_frames_used.append(len(near))
-            for c, ch in enumerate(channels):
+            for c, ch in enumerate(fch):
                 if (c, l) not in used:
                     continue
                 pix, rr, cc, w_lo, w_hi, bounds = groups[c]
@@ -344,7 +371,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                     v += np.float32(mean[c])
                     v *= wgt[sl]
                     acc[c, pix[sl]] += v
-        for c in range(len(channels)):
+        for c in range(len(fch)):
             out[y0:y1, x0:x1, c] = acc[c].reshape(y1 - y0, tw)
         return n_filters, n_frames_used
 
@@ -361,4 +388,6 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     info = {"noise_sigma": [round(s, 3) for s in sigma], "tiles": len(tiles), "filters": n_filters,
             "label_um": round(step, 3), "frames_per_label": round(float(np.mean(n_frames_used)), 2)
             if n_frames_used else 0.0}
+    if mix is not None:
+        info["planes"] = [[round(float(m), 4) for m in row] for row in mix]
     return out, info
