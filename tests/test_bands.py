@@ -361,38 +361,3 @@ def test_decomposition_summary_recovers_which_field_wide_term_is_real():
     assert math.isnan(d["ml_common"]) and math.isnan(d["ml_offset"])
     assert d["rest_local_med"] == pytest.approx(1.0)
     assert 0.7 < d["piston_z_rms"] < 0.9, d    # sqrt((1 + 0.25) / 2) = 0.79 on average
-
-
-# ------------------------------------------------------------------------------- block covariance (CR2)
-def _poly_design():
-    x, y = np.meshgrid(np.linspace(-0.8, 0.8, 12), np.linspace(-0.6, 0.6, 9))
-    x, y = x.ravel(), y.ravel()
-    r2 = x * x + y * y
-    return np.column_stack([np.ones_like(x), r2, r2 ** 2, r2 ** 3, x, y]), x, y
-
-
-def test_block_covariance_is_unbiased_for_independent_tiles_and_sees_block_errors():
-    """With independent tile noise the leverage-corrected block covariance averages to sigma^2 A^-1 (times the
-    few-blocks t inflation) on every coefficient, the high-leverage rho^6 term included, where the
-    delete-one-block jackknife overstated it; with an error shared by each block it grows by the shared part."""
-    from scipy.special import ndtri, stdtrit
-
-    from fieldcal.fit.discrepancy import block_jackknife_cov
-
-    X, x, y = _poly_design()
-    w = np.ones(x.size)
-    true = np.diag(0.01 * np.linalg.inv(X.T @ X))
-    rng = np.random.default_rng(1)
-    beta = np.array([1.0, 0.5, 0.2, 0.1, 0.0, 0.0])
-    acc, acc_shared = [], []
-    for _ in range(200):
-        cov, B = block_jackknife_cov(X, X @ beta + 0.1 * rng.standard_normal(x.size), w, x, y)
-        acc.append(np.diag(cov))
-        # the same noise plus one shift per quadrant of the field (shared by every tile in it)
-        shift = 0.1 * rng.standard_normal(4)[(x > 0).astype(int) * 2 + (y > 0).astype(int)]
-        acc_shared.append(np.diag(block_jackknife_cov(X, X @ beta + 0.1 * rng.standard_normal(x.size) + shift,
-                                                      w, x, y)[0]))
-    infl = (float(stdtrit(B - 1, 0.95)) / float(ndtri(0.95))) ** 2
-    ratio = np.mean(acc, axis=0) / (infl * true)
-    np.testing.assert_allclose(ratio, 1.0, atol=0.15)
-    assert np.all(np.mean(acc_shared, axis=0) > 1.5 * np.mean(acc, axis=0))
