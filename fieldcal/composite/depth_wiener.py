@@ -197,32 +197,31 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     labels, step = _labels(zb, max(LABEL_DISC_PX * px_um, float(label_um or 0.0)))
     n_lab = len(labels)
 
-    planes_cache: dict[int, list[np.ndarray]] = {}
+    from .dff import map_in_order
 
-    def planes(k: int) -> list[np.ndarray]:
-        if k not in planes_cache:
-            i = int(order[k])
-            planes_cache[k] = frame_planes(stack, geometry, float(zs[k]), i, channels, w, h,
-                                           lateral_colour=lateral_colour)
-        return planes_cache[k]
+    def probe_sigma(k: int) -> list[float]:
+        """Frame k's (z order) noise per filtered plane."""
+        planes = frame_planes(stack, geometry, float(zs[k]), int(order[k]), channels, w, h,
+                              lateral_colour=lateral_colour)
+        return [estimate_noise_sigma(p, max_samples=NOISE_SAMPLES) for p in mixed(planes)]
 
     # noise per channel: the least of a few frames spread over the stack (texture only ever inflates the
-    # estimate; far from focus a frame is smooth)
+    # estimate; far from focus a frame is smooth); the frames read and measured on the compositor's threads
     probe = np.unique(np.linspace(0, len(order) - 1, min(len(order), 6)).round().astype(int))
     if noise_sigma is None:
-        sigma = [min(estimate_noise_sigma(mixed(planes(k))[c], max_samples=NOISE_SAMPLES) for k in probe)
-                 for c in range(len(fch))]
+        per_frame = list(map_in_order(probe_sigma, [int(k) for k in probe]))
+        sigma = [min(s[c] for s in per_frame) for c in range(len(fch))]
     else:
         sigma = [float(v) for v in np.broadcast_to(np.asarray(noise_sigma, dtype=np.float64), (len(channels),))]
         if mix is not None:  # independent noise per channel
             sigma = [float(np.sqrt(np.sum(row ** 2 * np.square(sigma)))) for row in mix]
-    planes_cache.clear()
-    a_sig, beta = [], []
-    for c, ch in enumerate(fch):
-        a_c, b_c, shape = _power_law(reference[..., c], pad, pitch, lambda t, ch=ch: model.defocus_otf(t, 0.0, ch),
-                                     max(sigma[c], 1e-6))
-        a_sig.append(a_c)
-        beta.append(b_c)
+    # the signal's power law per plane, planes on threads (the fit is NumPy work that releases the GIL)
+    fits = list(map_in_order(lambda c: _power_law(reference[..., c], pad, pitch,
+                                                  lambda t, ch=fch[c]: model.defocus_otf(t, 0.0, ch),
+                                                  max(sigma[c], 1e-6)), list(range(len(fch)))))
+    a_sig = [a for a, _, _ in fits]
+    beta = [b for _, b, _ in fits]
+    shape = fits[-1][2]
     mean = [float(np.mean(reference[..., c])) for c in range(len(fch))]
 
     # per channel: label index below each pixel and the fraction towards the next
@@ -374,8 +373,6 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         for c in range(len(fch)):
             out[y0:y1, x0:x1, c] = acc[c].reshape(y1 - y0, tw)
         return n_filters, n_frames_used
-
-    from .dff import map_in_order
 
     tiles = [(x0, y0) for y0 in range(0, h, core) for x0 in range(0, w, core)]
     n_frames_used, n_filters = [], 0
