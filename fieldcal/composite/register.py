@@ -889,8 +889,8 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
     corr = {}
 
     def warp(i: int, ref_cells=None):
-        """Frame i read, warped into the reference geometry and (with ``ref_cells``) brought to the reference's
-        levels; its correction (None where not fitted) and its cell means."""
+        """Frame i read, warped into the reference geometry, (with ``ref_cells``) brought to the reference's
+        levels and held in ``out``; its correction (None where not fitted) and its cell means."""
         image = read_roi(src, i, 0, 0, w, h)
         if scale == 256.0:  # 8-bit -> 16-bit fixed point, then warped in that dtype
             image = image.astype(np.uint16) << 8
@@ -906,21 +906,17 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
                                                  black, white)
                 if fix is not None:
                     warped = photometric.apply_correction(warped, fix, scale, black)
-        return warped, fix, cells
+        out.put(i, warped, held_units=True)  # its own slot (memory or file offset): safe from any thread
+        return fix, cells
 
     from .dff import map_in_order
 
-    warped, _, ref_cells = warp(ref)
-    out.put(ref, warped, held_units=True)
-    del warped
+    _, ref_cells = warp(ref)
     others = [int(i) for i in order if int(i) != ref]
-    # the other frames on the compositor's threads (each depends only on the reference's cells), held in order
+    # the other frames on the compositor's threads (each depends only on the reference's cells)
     done = map_in_order(lambda i: warp(i, ref_cells), others)
-    for i, (warped, fix, _) in progress(zip(others, done), total=len(others), desc="warping", quiet=quiet,
-                                        unit="frame"):
+    for i, (fix, _) in progress(zip(others, done), total=len(others), desc="warping", quiet=quiet, unit="frame"):
         if photometric_correction:
             corr[i] = fix
-        out.put(i, warped, held_units=True)
-        del warped
     out.photometric = photometric.summary(corr, stack.channels) if photometric_correction else None
     return out, geo
