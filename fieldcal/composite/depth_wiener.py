@@ -76,13 +76,18 @@ def occlusion_focus_um(zb: np.ndarray, um_per_px: float) -> np.ndarray:
     diag = np.array([[1, 0, 1], [0, 1, 0], [1, 0, 1]], np.uint8)
     c1, c2 = np.float32(um_per_px), np.float32(um_per_px * np.sqrt(2.0))
     out = z.copy()
+    # three buffers reused across the iterations (a fresh 12 MB array each step costs its page faults again)
+    nxt, other, grew = np.empty_like(out), np.empty_like(out), np.empty(out.shape, bool)
     for _ in range(max(z.shape)):
-        nxt = np.maximum(cv2.dilate(out, cross, borderType=cv2.BORDER_REPLICATE) - c1,
-                         cv2.dilate(out, diag, borderType=cv2.BORDER_REPLICATE) - c2)
+        cv2.dilate(out, cross, dst=nxt, borderType=cv2.BORDER_REPLICATE)
+        np.subtract(nxt, c1, out=nxt)
+        cv2.dilate(out, diag, dst=other, borderType=cv2.BORDER_REPLICATE)
+        np.subtract(other, c2, out=other)
+        np.maximum(nxt, other, out=nxt)
         np.maximum(nxt, out, out=nxt)
-        if not np.any(nxt > out):
+        if not np.greater(nxt, out, out=grew).any():
             break
-        out = nxt
+        out, nxt = nxt, out
     return out
 
 
