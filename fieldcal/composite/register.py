@@ -854,7 +854,7 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
         offsets) and the geometry (``info()`` describes it).
     """
     from .memory import check_temp_space
-    from .source import MEMORY_BUDGET_BYTES, HeldFrames, read_frames_parallel, roi_readable
+    from .source import MEMORY_BUDGET_BYTES, HeldFrames, default_workers, read_frames_parallel, roi_readable
 
     w, h = image_size(stack)
     order, zs, z_ref_um = _sorted_frames(stack, frames, z_ref_um)
@@ -914,7 +914,7 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
     _, ref_cells = warp(ref)
     others = [int(i) for i in order if int(i) != ref]
     # the other frames on the compositor's threads (each depends only on the reference's cells)
-    done = map_in_order(lambda i: warp(i, ref_cells), others)
+    done = map_in_order(lambda i: warp(i, ref_cells), others, ahead=default_workers())  # a frame per thread
     for i, (fix, _) in progress(zip(others, done), total=len(others), desc="warping", quiet=quiet, unit="frame"):
         if photometric_correction:
             corr[i] = fix
