@@ -305,20 +305,28 @@ def estimate_defocus_rate(stack, frames, depth_index: np.ndarray, confidence: np
     hann = np.hanning(patch_px)
     window = np.outer(hann, hann)
     bins = _radial_bins(patch_px, patch_px // 2)
-    rates: dict[int, list[float]] = {1: [], 2: []}
-    sides: list[tuple[float, float, float, int]] = []  # (disc to k - 1, disc to k + 1, depth map's k_b, k)
-    for p, (_, _, k, kb) in enumerate(patches):
+    def patch_discs(p: int) -> dict[int, float]:
+        """Patch p's blur disc (px) from its frame k to each neighbour j, by ``j - k`` (finite ones only)."""
+        _, _, k, _ = patches[p]
         side = {}
         for j in range(max(0, k - 2), min(len(order), k + 3)):
-            if j == k:
-                continue
+            if j != k:
+                disc = fit_disc_px(grey[(p, k)], grey[(p, j)], noise_sigma, window=window, bins=bins)
+                if np.isfinite(disc):
+                    side[j - k] = disc
+        return side
+
+    from .dff import map_in_order
+
+    rates: dict[int, list[float]] = {1: [], 2: []}
+    sides: list[tuple[float, float, float, int]] = []  # (disc to k - 1, disc to k + 1, depth map's k_b, k)
+    # patches fitted on the compositor's threads (FFTs and NumPy release the GIL), gathered in patch order
+    for (_, _, k, kb), side in zip(patches, map_in_order(patch_discs, list(range(len(patches))))):
+        for dj in sorted(side):
             # blur variances add (a disc of diameter D has D^2/16 per axis): the disc from frame k to frame j
             # has D^2 = r^2 (|j - k_b|^2 - |k - k_b|^2), whatever blur the two share (in-focus aberrations)
-            d = np.sqrt((j - kb) ** 2 - (k - kb) ** 2)
-            disc = fit_disc_px(grey[(p, k)], grey[(p, j)], noise_sigma, window=window, bins=bins)
-            if np.isfinite(disc):
-                rates[abs(j - k)].append(disc / d)
-                side[j - k] = disc
+            d = np.sqrt((k + dj - kb) ** 2 - (k - kb) ** 2)
+            rates[abs(dj)].append(side[dj] / d)
         if -1 in side and 1 in side:
             sides.append((side[-1], side[1], kb, k))
     allr = np.array(rates[1] + rates[2])

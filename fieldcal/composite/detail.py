@@ -257,23 +257,25 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     for _ in progress(map_in_order(gather, items), total=len(items), desc="fine detail, gathering", quiet=quiet,
                       unit="frame"):
         pass
-    if keep_base:
-        for ci in range(len(channels)):
-            for lev, lap in enumerate(_fine_levels(np.ascontiguousarray(base[..., ci], dtype=np.float32), levels)):
-                gathered[lev][ci] = lap
     for lev in range(levels):
         sel, n = select[lev], count[lev]
         sel[n == 0] = 1.0  # nothing recorded within reach: the chosen frame
         np.maximum(n, np.float32(1.0), out=n)
-        for g, t in zip(gathered[lev], total[lev]):  # g = sel g + (1 - sel) mean, in place
-            t /= n
-            g -= t
-            g *= sel
-            g += t
-    del total, count
     out = np.empty((h, w, len(channels)), np.float32)
-    for ci in range(len(channels)):
+
+    def finish(ci: int) -> None:
+        """Channel ci's fine levels mixed (g = sel g + (1 - sel) mean, in place) and the image rebuilt on the
+        base's coarse part: channels touch only their own planes, so they run on the compositor's threads."""
         cur = np.ascontiguousarray(base[..., ci], dtype=np.float32)
+        if keep_base:
+            for lev, lap in enumerate(_fine_levels(cur, levels)):
+                gathered[lev][ci] = lap
+        for lev in range(levels):
+            g, t = gathered[lev][ci], total[lev][ci]
+            t /= count[lev]
+            g -= t
+            g *= select[lev]
+            g += t
         for _ in range(levels):  # the base's coarse part: its Gaussian level below the fine ones
             cur = cv2.pyrDown(cur, borderType=_BORDER)
         for lev in range(levels - 1, -1, -1):
@@ -281,4 +283,7 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
             cur = cv2.pyrUp(cur, dstsize=(ww, hh), borderType=_BORDER)
             cur += gathered[lev][ci]
         out[..., ci] = cur
+
+    for _ in map_in_order(finish, list(range(len(channels)))):
+        pass
     return out, info

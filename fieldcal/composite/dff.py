@@ -51,9 +51,10 @@ def frame_planes(stack, geometry, z_um: float, i: int, channels, width: int, hei
     return planes
 
 
-def map_in_order(fn, items, workers: int | None = None):
+def map_in_order(fn, items, workers: int | None = None, ahead: int | None = None):
     """``fn(item)`` for each item on ``workers`` threads (default: the compositor's), results yielded in order,
-    at most ``2 * workers`` in flight (OpenCV and NumPy release the GIL)."""
+    at most ``ahead`` in flight (default ``2 * workers``; ``workers`` for items whose results are whole frames,
+    where each one in flight is memory at the peak). OpenCV and NumPy release the GIL."""
     from concurrent.futures import ThreadPoolExecutor
 
     from .stream import default_workers
@@ -63,13 +64,14 @@ def map_in_order(fn, items, workers: int | None = None):
     if workers == 1 or len(items) < 2:
         yield from map(fn, items)
         return
+    ahead = 2 * workers if ahead is None else max(1, int(ahead))
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fieldcal-frames") as pool:
-        pending = [pool.submit(fn, it) for it in items[:2 * workers]]
+        pending = [pool.submit(fn, it) for it in items[:ahead]]
         for k in range(len(items)):
             result = pending[k].result()
             pending[k] = None
-            if k + 2 * workers < len(items):
-                pending.append(pool.submit(fn, items[k + 2 * workers]))
+            if k + ahead < len(items):
+                pending.append(pool.submit(fn, items[k + ahead]))
             yield result
 
 

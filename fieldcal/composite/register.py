@@ -854,7 +854,7 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
         offsets) and the geometry (``info()`` describes it).
     """
     from .memory import check_temp_space
-    from .source import MEMORY_BUDGET_BYTES, HeldFrames, read_frames_parallel, roi_readable
+    from .source import MEMORY_BUDGET_BYTES, HeldFrames, default_workers, read_frames_parallel, roi_readable
 
     w, h = image_size(stack)
     order, zs, z_ref_um = _sorted_frames(stack, frames, z_ref_um)
@@ -886,9 +886,11 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
     # measured on the registered frames, so the reference frame goes first
     ref = int(order[int(np.argmin(np.abs(zs - geo.z_ref_um)))])
     black, white, cell = float(stack.black_level), float(stack.white_level), photometric.cell_px(w, h)
-    ref_cells, corr = None, {}
-    for i in progress([ref] + [int(i) for i in order if int(i) != ref], total=len(order), desc="warping",
-                      quiet=quiet, unit="frame"):
+    corr = {}
+
+    def warp(i: int, ref_cells=None):
+        """Frame i read, warped into the reference geometry, (with ``ref_cells``) brought to the reference's
+        levels and held in ``out``; its correction (None where not fitted) and its cell means."""
         image = read_roi(src, i, 0, 0, w, h)
         if scale == 256.0:  # 8-bit -> 16-bit fixed point, then warped in that dtype
             image = image.astype(np.uint16) << 8
@@ -896,15 +898,25 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
             image = image.astype(storage)
         warped = warp_frame(image, maps[i])
         del image
+        fix = cells = None
         if photometric_correction:
             cells = photometric.cell_means(warped, cell, scale)
-            if i == ref:
-                ref_cells = cells
-            else:
-                corr[i] = photometric.fit_correction(cells, ref_cells, photometric.cells_inside(out.support(i), cell),
-                                                     black, white)
-                if corr[i] is not None:
-                    warped = photometric.apply_correction(warped, corr[i], scale, black)
-        out.put(i, warped, held_units=True)
+            if ref_cells is not None:
+                fix = photometric.fit_correction(cells, ref_cells, photometric.cells_inside(out.support(i), cell),
+                                                 black, white)
+                if fix is not None:
+                    warped = photometric.apply_correction(warped, fix, scale, black)
+        out.put(i, warped, held_units=True)  # its own slot (memory or file offset): safe from any thread
+        return fix, cells
+
+    from .dff import map_in_order
+
+    _, ref_cells = warp(ref)
+    others = [int(i) for i in order if int(i) != ref]
+    # the other frames on the compositor's threads (each depends only on the reference's cells)
+    done = map_in_order(lambda i: warp(i, ref_cells), others, ahead=default_workers())  # a frame per thread
+    for i, (fix, _) in progress(zip(others, done), total=len(others), desc="warping", quiet=quiet, unit="frame"):
+        if photometric_correction:
+            corr[i] = fix
     out.photometric = photometric.summary(corr, stack.channels) if photometric_correction else None
     return out, geo
