@@ -207,3 +207,25 @@ def test_pruned_decentre_search_picks_what_the_exhaustive_search_picks():
         x, y = field_points(geom, 7)
         for c in spec.channel_names:
             np.testing.assert_allclose(pruned.predict(x, y, c), full.predict(x, y, c), atol=0.05)
+
+
+def test_directional_rows_that_identify_no_astigmatism_fall_back_to_the_mean_surface():
+    """T/S pairs all at the optical centre (rho = 0: an astigmatism term in rho^2 has no column) made every
+    candidate's design singular, and a stack with sound mean-surface rows was refused; the mean surface is
+    fitted from the focus rows alone, as with too few pairs."""
+    spec = base_lens(("G",))
+    tiles, geom, truth = synthetic_tiles(spec, np.random.default_rng(3), nx=7, ny=5, directional=False)
+    n = len(tiles)
+    cx, cy = (geom.width_px - 1) / 2.0, (geom.height_px - 1) / 2.0
+    k = 8
+    x = np.concatenate([tiles.x_px, np.full(k, cx)])
+    y = np.concatenate([tiles.y_px, np.full(k, cy)])
+    z0 = float(truth.best_focus_um(np.array([cx]), np.array([cy]), "G")[0])
+    zb = np.concatenate([tiles.z_best_um, np.full(k, z0)])
+    sd = np.concatenate([tiles.z_sigma_um, np.full(k, float(np.median(tiles.z_sigma_um)))])
+    zt = np.concatenate([np.full(n, np.nan), np.full(k, z0)])
+    both = TileData.from_arrays(["G"] * (n + k), x, y, zb, sd, z_tan_um=zt, z_sag_um=zt.copy())
+    f = fit_surfaces(both, geom, effort="quick", quiet=True)
+    assert not f.model.astig
+    xg, yg = field_points(f.geometry, 7)
+    assert np.sqrt(np.mean((f.predict(xg, yg, "G") - truth.best_focus_um(xg, yg, "G")) ** 2)) < 1.5

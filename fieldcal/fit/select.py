@@ -197,6 +197,16 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
                 table.append({"name": m.name, "terms": m.terms, "n_params": m.n_params, "bic": None,
                               "status": f"not fitted: its centred structure is not among the best "
                                         f"{eff.decentre_top} by held-out loss (effort {effort}; thorough fits every candidate)"})
+    if best is None and astig_rows:
+        # the directional foci cannot identify any astigmatism term (e.g. a few T/S pairs in one part of the
+        # field, their design singular with every structure): fit the mean surface from the focus rows alone,
+        # as with too few pairs, rather than refuse a stack whose mean-surface rows are sound
+        keep = rows.kind == 0
+        rows = Rows(*(getattr(rows, f)[keep] for f in ("x_hat", "y_hat", "ch_index", "kind", "target", "sigma")))
+        astig_rows = False
+        fits.clear()
+        for m in candidate_models(channels, eff.max_order, False):
+            consider(m)
     if best is not None and astig_rows:
         consider(replace(best[1].model, astig=False))
         if rows.n_astig >= MIN_ASTIG_POLY_ROWS:  # e.g. slanted-edge T/S pairs: can follow a T - S peaked in the field
