@@ -217,9 +217,14 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         needed = fallback[1] >= np.float32(1.0 / 256.0) if measured and fallback is not None else None
         if measured and CHROMA_LABEL_FRAMES and channels == ("R", "G", "B"):
             # luma and chroma apart, the chroma on coarser labels (CHROMA_LABEL_FRAMES)
+            from .depth_wiener import probe_plane_sigma
+
+            # the noise of all three planes from one read of the probe frames, not one per call
+            sig = probe_plane_sigma(stack, frames, geometry=geometry, lateral_colour=lateral_colour, mix=YCBCR)
             ycc = [wiener_composite(stack, zb, defocus, frames, img, geometry=geometry, lateral_colour=lateral_colour,
-                                    label_um=lab, needed=needed, mix=rows, quiet=quiet)
-                   for rows, lab in ((YCBCR[:1], label_um), (YCBCR[1:], CHROMA_LABEL_FRAMES * spacing))]
+                                    label_um=lab, needed=needed, mix=rows, plane_sigma=ps, quiet=quiet)
+                   for rows, lab, ps in ((YCBCR[:1], label_um, sig[:1]),
+                                         (YCBCR[1:], CHROMA_LABEL_FRAMES * spacing, sig[1:]))]
             combined = np.concatenate([p for p, _ in ycc], axis=2) @ np.linalg.inv(YCBCR).T.astype(np.float32)
             info["wiener"] = {**ycc[0][1], "filters": ycc[0][1]["filters"] + ycc[1][1]["filters"],
                               "chroma": ycc[1][1]}
