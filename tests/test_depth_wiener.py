@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fieldcal.composite.depth_wiener import occlusion_focus_um, wiener_composite
+from fieldcal.composite.depth_wiener import occlusion_focus_um, probe_plane_sigma, wiener_composite
 from fieldcal.composite.source import ArrayStack
 from fieldcal.composite.stack_profile import blend_kernel, composite_with_map
 from fieldcal.errors import ParameterError
@@ -150,3 +150,36 @@ def test_mixed_planes_are_the_channels_filter_when_the_mix_picks_channels(flat_w
     assert np.abs(planes.astype(np.float64) - full[..., perm]).max() < 1e-3 * sigma
     with pytest.raises(ParameterError, match="plane weights"):
         wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=np.ones((1, 2)), quiet=True)
+
+
+def test_probe_plane_sigma_measures_known_noise_per_mixed_plane():
+    """Flat frames with independent Gaussian noise of known sigma per channel: each plane's estimate is that
+    sigma, and a weighted sum's is sqrt(sum w^2 sigma^2) (independent channels)."""
+    rng = np.random.default_rng(3)
+    sig = np.array([2.0, 5.0, 3.0])
+    frames = [(100.0 + rng.normal(0.0, 1.0, (96, 128, 3)) * sig).astype(np.float32) for _ in range(4)]
+    st = ArrayStack(frames, [0.0, 10.0, 20.0, 30.0], ["R", "G", "B"])
+    mix = np.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8], [0.5, -0.5, 0.0]])
+    got = probe_plane_sigma(st, np.arange(4), mix=mix)
+    want = np.sqrt((mix ** 2) @ sig ** 2)
+    # the least over the probe frames sits a little below the truth
+    assert np.allclose(got, want, rtol=0.08), (got, want)
+    assert np.allclose(probe_plane_sigma(st, np.arange(4)), sig, rtol=0.08)
+
+
+def test_a_shared_noise_probe_gives_each_call_its_own_probe_result(flat_world):
+    """The luma and chroma calls given their planes' levels from one probe of all three planes filter exactly as
+    when each probes its own; a wrong number of levels is refused."""
+    spec, r, z, prof, zb = flat_world
+    st = _stack(spec, r, z, True)
+    frames = np.arange(len(st))
+    blend = composite_with_map(st, zb, blend_kernel(st, prof, frames), prof, frames, quiet=True)
+    ycc = np.array([[0.299, 0.587, 0.114], [-0.1687, -0.3313, 0.5], [0.5, -0.4187, -0.0813]])
+    sig = probe_plane_sigma(st, frames, geometry=prof, mix=ycc)
+    for rows, ps in ((ycc[:1], sig[:1]), (ycc[1:], sig[1:])):
+        own, info_own = wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=rows, quiet=True)
+        shared, info = wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=rows, plane_sigma=ps,
+                                        quiet=True)
+        assert np.array_equal(own, shared) and info["noise_sigma"] == info_own["noise_sigma"]
+    with pytest.raises(ParameterError, match="plane noise levels"):
+        wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=ycc[1:], plane_sigma=sig, quiet=True)

@@ -193,6 +193,18 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         defocus = _measured_defocus(stack, frames, dmap, info, quiet)
     wiener = has_depth and defocus is not None
     measured = wiener and defocus is not profile
+    ycc_split = measured and CHROMA_LABEL_FRAMES and channels == ("R", "G", "B")
+    if ycc_split:
+        # the Wiener filter's noise probe needs only the frames: it reads and measures them on its own thread
+        # while the cone dilation below (serial) and the blend run, and the luma and chroma calls share it
+        from concurrent.futures import ThreadPoolExecutor
+
+        from .depth_wiener import probe_plane_sigma
+
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fieldcal-probe")
+        noise_probe = pool.submit(probe_plane_sigma, stack, frames, geometry=geometry,
+                                  lateral_colour=lateral_colour, mix=YCBCR)
+        pool.shutdown(wait=False)  # the probe runs on; its result is taken below
     if wiener:
         # a nearer object's blur disc kept off the pixels beside it (composite/depth_wiener.py)
         from .depth_wiener import occlusion_focus_um
@@ -215,11 +227,14 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         label_um = LABEL_FRAMES * spacing if measured else None
         # ... and filtered only where it will be used: the fusion takes the pixels the depth map is unsure of
         needed = fallback[1] >= np.float32(1.0 / 256.0) if measured and fallback is not None else None
-        if measured and CHROMA_LABEL_FRAMES and channels == ("R", "G", "B"):
-            # luma and chroma apart, the chroma on coarser labels (CHROMA_LABEL_FRAMES)
+        if ycc_split:
+            # luma and chroma apart, the chroma on coarser labels (CHROMA_LABEL_FRAMES); the noise of all three
+            # planes from one read of the probe frames, not one per call
+            sig = noise_probe.result()
             ycc = [wiener_composite(stack, zb, defocus, frames, img, geometry=geometry, lateral_colour=lateral_colour,
-                                    label_um=lab, needed=needed, mix=rows, quiet=quiet)
-                   for rows, lab in ((YCBCR[:1], label_um), (YCBCR[1:], CHROMA_LABEL_FRAMES * spacing))]
+                                    label_um=lab, needed=needed, mix=rows, plane_sigma=ps, quiet=quiet)
+                   for rows, lab, ps in ((YCBCR[:1], label_um, sig[:1]),
+                                         (YCBCR[1:], CHROMA_LABEL_FRAMES * spacing, sig[1:]))]
             combined = np.concatenate([p for p, _ in ycc], axis=2) @ np.linalg.inv(YCBCR).T.astype(np.float32)
             info["wiener"] = {**ycc[0][1], "filters": ycc[0][1]["filters"] + ycc[1][1]["filters"],
                               "chroma": ycc[1][1]}

@@ -117,10 +117,44 @@ def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fn, sigma: f
     return a, beta, shape
 
 
+def probe_plane_sigma(stack, frames, *, geometry=None, lateral_colour: bool = False,
+                      mix: np.ndarray | None = None) -> list[float]:
+    """Pixel noise (frame units) per channel, or per weighted sum of the channels (``mix``'s rows, P x C).
+
+    The least of Immerkaer's estimate over up to six frames spread over the stack's z order: texture only ever
+    inflates the estimate, and far from focus a frame is smooth. The frames are read and measured on the
+    compositor's threads, one frame (three whole planes) per thread in flight.
+    """
+    from .dff import map_in_order
+    from .source import default_workers
+    from .sweep import estimate_noise_sigma
+
+    w, h = image_size(stack)
+    channels = tuple(stack.channels)
+    rows = None if mix is None else np.atleast_2d(np.asarray(mix, dtype=np.float64))
+    z_all = z_positions(stack)
+    idx = np.asarray(frames, dtype=int)
+    order = idx[np.argsort(z_all[idx], kind="stable")]
+    zs = z_all[order].astype(np.float64)
+
+    def probe_sigma(k: int) -> list[float]:
+        """Frame k's (z order) noise per plane."""
+        planes = frame_planes(stack, geometry, float(zs[k]), int(order[k]), channels, w, h,
+                              lateral_colour=lateral_colour)
+        if rows is not None:
+            planes = [sum(np.float32(m) * p for m, p in zip(row, planes)) for row in rows]
+        return [estimate_noise_sigma(p, max_samples=NOISE_SAMPLES) for p in planes]
+
+    probe = np.unique(np.linspace(0, len(order) - 1, min(len(order), 6)).round().astype(int))
+    per_frame = list(map_in_order(probe_sigma, [int(k) for k in probe], ahead=default_workers()))
+    return [min(s[c] for s in per_frame) for c in range(len(per_frame[0]))]
+
+
 def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray, *, geometry=None,
                      lateral_colour: bool = False, reach_disc_px: float = REACH_DISC_PX,
                      noise_sigma=None, label_um: float | None = None, needed: np.ndarray | None = None,
-                     mix: np.ndarray | None = None, quiet: bool = False) -> tuple[np.ndarray, dict]:
+                     mix: np.ndarray | None = None, plane_sigma=None,
+                     quiet: bool = False) -> tuple[np.ndarray, dict]:
     """All-in-focus image of a scene with depth from a best-focus map and the lens's defocus OTF.
 
     Parameters
@@ -153,6 +187,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         OTF is the same in every channel (a measured defocus): each plane's OTF is its heaviest channel's, its
         depth the channels' weighted by the absolute weights, and ``reference``, ``needed`` and the output are
         in the planes (the caller mixes them back).
+    plane_sigma : sequence of float, optional
+        Pixel noise per filtered plane as :func:`probe_plane_sigma` measures it with the same ``mix`` (calls
+        filtering planes of one mix apart then read the probe frames once); overrides ``noise_sigma``.
 
     Returns
     -------
@@ -162,8 +199,6 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         spacing (µm) and the mean number of frames per label.
     """
     from scipy import fft
-
-    from .sweep import estimate_noise_sigma
 
     n_f = getattr(model, "f_number", None)
     if not n_f:
@@ -204,21 +239,13 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
 
     from .dff import map_in_order
 
-    def probe_sigma(k: int) -> list[float]:
-        """Frame k's (z order) noise per filtered plane."""
-        planes = frame_planes(stack, geometry, float(zs[k]), int(order[k]), channels, w, h,
-                              lateral_colour=lateral_colour)
-        return [estimate_noise_sigma(p, max_samples=NOISE_SAMPLES) for p in mixed(planes)]
-
-    # noise per channel: the least of a few frames spread over the stack (texture only ever inflates the
-    # estimate; far from focus a frame is smooth); the frames read and measured on the compositor's threads
-    probe = np.unique(np.linspace(0, len(order) - 1, min(len(order), 6)).round().astype(int))
-    if noise_sigma is None:
-        from .source import default_workers
-
-        # one frame per thread in flight: each is three whole planes
-        per_frame = list(map_in_order(probe_sigma, [int(k) for k in probe], ahead=default_workers()))
-        sigma = [min(s[c] for s in per_frame) for c in range(len(fch))]
+    if plane_sigma is not None:
+        sigma = [float(v) for v in plane_sigma]
+        if len(sigma) != len(fch):
+            raise ParameterError(f"{len(sigma)} plane noise levels for {len(fch)} planes", field="plane_sigma",
+                                 fix="give one noise level per filtered plane (probe_plane_sigma with the same mix)")
+    elif noise_sigma is None:
+        sigma = probe_plane_sigma(stack, frames, geometry=geometry, lateral_colour=lateral_colour, mix=mix)
     else:
         sigma = [float(v) for v in np.broadcast_to(np.asarray(noise_sigma, dtype=np.float64), (len(channels),))]
         if mix is not None:  # independent noise per channel

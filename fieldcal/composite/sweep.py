@@ -98,11 +98,14 @@ def _signal_spectrum_model(power: np.ndarray, f: np.ndarray, hs2: np.ndarray, no
         raise ParameterError("the sweep's integrated PSF passes almost nothing (MTF below 0.1 at every frequency): "
                              "alpha is too large to deconvolve", field="sweep_alpha_um",
                              fix="use a smaller alpha (see the sweep trade table in docs/benchmarks.md)")
-    px = np.maximum(power[ok] - noise_power, 1e-30) / hs2[ok]
+    lp = np.log(np.maximum(power[ok] - noise_power, 1e-30) / hs2[ok])
     lf = np.log(f[ok])
-    beta, loga = np.polyfit(lf, np.log(px), 1)
-    beta = float(np.clip(-beta, 1.0, 4.0))
-    loga = float(np.mean(np.log(px) + beta * lf))
+    # the least-squares line in closed form (np.polyfit's Vandermonde + SVD cost ~0.15 s per million points,
+    # on the compositor's serial path)
+    lf_c = lf - lf.mean()
+    slope = float(np.dot(lf_c, lp - lp.mean()) / max(float(np.dot(lf_c, lf_c)), 1e-300))
+    beta = float(np.clip(-slope, 1.0, 4.0))
+    loga = float(np.mean(lp + beta * lf))
     return float(np.exp(loga)), beta
 
 
