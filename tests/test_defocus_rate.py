@@ -97,6 +97,10 @@ def test_falls_back_without_depth_structure():
     est = estimate_defocus_rate(st, np.arange(6), np.full((SIZE, SIZE), 2.0, np.float32),
                                 np.ones((SIZE, SIZE), np.float32))
     assert not est.reliable and "too little texture" in est.reason
+    # the composite's metadata is written as JSON: a rate not measured must not be NaN there
+    import json
+    info = json.loads(json.dumps(est.info(), allow_nan=False))
+    assert info["disc_px_per_step"] is None and info["reliable"] is False
 
 
 def test_composite_without_profile_falls_back_and_says_so():

@@ -87,10 +87,14 @@ class DefocusRate:
         return self.spacing_um / self.disc_px_per_step
 
     def info(self) -> dict:
-        return {"disc_px_per_step": round(self.disc_px_per_step, 3), "sd_px_per_step": round(self.sd_px_per_step, 3),
-                "by_distance": {str(k): {"disc_px_per_step": round(v[0], 3), "pairs": int(v[1])}
+        """A JSON-ready summary (a rate not measured is None: the composite's metadata is written as JSON)."""
+        def num(v: float) -> float | None:
+            return round(float(v), 3) if np.isfinite(v) else None
+
+        return {"disc_px_per_step": num(self.disc_px_per_step), "sd_px_per_step": num(self.sd_px_per_step),
+                "by_distance": {str(k): {"disc_px_per_step": num(v[0]), "pairs": int(v[1])}
                                 for k, v in self.by_distance.items()},
-                "depth_sd_steps": round(self.depth_sd_steps, 3),
+                "depth_sd_steps": num(self.depth_sd_steps),
                 "patches": self.n_patches, "pairs": self.n_pairs, "reliable": self.reliable,
                 "reason": self.reason}
 
