@@ -117,6 +117,13 @@ def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fn, sigma: f
     return a, beta, shape
 
 
+def _mixed(planes: list[np.ndarray], rows: np.ndarray | None) -> list[np.ndarray]:
+    """The filtered planes from the channels' planes: the channels, or their weighted sums (``rows``, P x C)."""
+    if rows is None:
+        return planes
+    return [sum(np.float32(m) * p for m, p in zip(row, planes)) for row in rows]
+
+
 def probe_plane_sigma(stack, frames, *, geometry=None, lateral_colour: bool = False,
                       mix: np.ndarray | None = None) -> list[float]:
     """Pixel noise (frame units) per channel, or per weighted sum of the channels (``mix``'s rows, P x C).
@@ -141,9 +148,7 @@ def probe_plane_sigma(stack, frames, *, geometry=None, lateral_colour: bool = Fa
         """Frame k's (z order) noise per plane."""
         planes = frame_planes(stack, geometry, float(zs[k]), int(order[k]), channels, w, h,
                               lateral_colour=lateral_colour)
-        if rows is not None:
-            planes = [sum(np.float32(m) * p for m, p in zip(row, planes)) for row in rows]
-        return [estimate_noise_sigma(p, max_samples=NOISE_SAMPLES) for p in planes]
+        return [estimate_noise_sigma(p, max_samples=NOISE_SAMPLES) for p in _mixed(planes, rows)]
 
     probe = np.unique(np.linspace(0, len(order) - 1, min(len(order), 6)).round().astype(int))
     per_frame = list(map_in_order(probe_sigma, [int(k) for k in probe], ahead=default_workers()))
@@ -219,12 +224,6 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         fch = tuple(channels[int(np.argmax(np.abs(row)))] for row in mix)
     else:
         fch = channels
-
-    def mixed(planes: list[np.ndarray]) -> list[np.ndarray]:
-        """The filtered planes from the channels' planes: the channels, or their weighted sums."""
-        if mix is None:
-            return planes
-        return [sum(np.float32(m) * p for m, p in zip(row, planes)) for row in mix]
 
     pitch = float(model.pixel_pitch_um)
     px_um = float(n_f) * pitch  # defocus that widens the blur disc's diameter by 1 px
@@ -328,7 +327,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             for j, c in enumerate(fm.channels):
                 planes[c] = part[..., j]
         out = []
-        for c, p in enumerate(mixed(planes)):
+        for c, p in enumerate(_mixed(planes, mix)):
             p = p - np.float32(mean[c])
             p = np.pad(p, ((top, nb_y - p.shape[0] - top), (left, nb_x - p.shape[1] - left)), mode="symmetric")
             out.append(fft.rfft2(p, workers=-1).astype(np.complex64))
