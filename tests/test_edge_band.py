@@ -8,9 +8,6 @@ benchmark's per-term split (``bench_edge_calibration.band_terms``) must add up t
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -23,13 +20,8 @@ WINDOW = (0.80, 0.97)         # pooled 90 % coverage of an honest band over thre
 
 
 def _bench():
-    bench_dir = str(Path(__file__).resolve().parents[1] / "benchmarks")
-    sys.path.insert(0, bench_dir)
-    try:
-        import bench_edge_calibration as bench
-    finally:
-        sys.path.remove(bench_dir)
-    return bench
+    from bench_util import import_bench
+    return import_bench("bench_edge_calibration")
 
 
 @pytest.fixture(scope="module")

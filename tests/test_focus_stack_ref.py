@@ -3,24 +3,15 @@ exactly, its merge takes each region from the frame in focus there, and its colo
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
 def ref():
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    try:
-        import focus_stack_ref
-    finally:
-        sys.path.remove(str(REPO / "benchmarks"))
-    return focus_stack_ref
+    from bench_util import import_bench
+    return import_bench("focus_stack_ref")
 
 
 def test_the_complex_wavelet_inverts_exactly(ref):

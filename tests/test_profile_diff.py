@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import copy
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,8 +14,6 @@ from fieldcal.formats import documents
 from fieldcal.profile import LensProfile
 from fieldcal.profile.diff import diff_profiles, max_z_test
 from fieldcal.profile.show import format_summary, profile_summary
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def test_max_z_critical_value_matches_closed_forms():
@@ -154,11 +150,8 @@ def test_show_numbers_come_from_the_profile(prof_path):
 def test_two_calibrations_of_one_lens(tmp_path):
     """The benchmark's trials, two of them: the same lens is not flagged; a tilt of 3 µm/mm and 0.1 % of
     breathing are (benchmarks/bench_profile_diff.py runs 20, with a tilt of 3 µm at the corner too)."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    try:
-        import bench_profile_diff as bench
-    finally:
-        sys.path.remove(str(REPO / "benchmarks"))
+    from bench_util import import_bench
+    bench = import_bench("bench_profile_diff")
     for k in (0, 1):
         row = bench.trial(k, tmp_path, changes=("tilt_mm", "breathing"), n_null=2000)
         assert not row["null_significant"], row

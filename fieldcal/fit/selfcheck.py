@@ -277,7 +277,7 @@ ESTIMATES = ("the fraction of a 16 x 12 grid over the image (channels pooled) wh
              "where their evidence excludes kappa = 1")
 
 
-def _channel_error_model(profile, ch: str, x: np.ndarray, y: np.ndarray, n_rows: int = 0) -> dict:
+def _channel_error_model(profile, ch: str, x: np.ndarray, y: np.ndarray, n_rows: int) -> dict:
     """One channel's band at points split by how its errors are shared (µm): what the held-out tiles test
     (``coef`` deviations of the posterior samples, ``local`` sd with its Matérn correlation ``corr``) and what
     they cannot (``shared`` sd: one draw for the field; ``rank1`` sds: one draw each, varying over the field),
@@ -291,7 +291,7 @@ def _channel_error_model(profile, ch: str, x: np.ndarray, y: np.ndarray, n_rows:
     lo, hi = profile.best_focus_interval_um(x, y, ch, level=LEVEL)
     xh, yh = s.geometry.normalise(x, y)
     # as many posterior samples as draws (a fixed subset: deterministic, and 5x cheaper than all of them)
-    rows = s.samples[:: max(1, s.samples.shape[0] // n_rows)][:n_rows] if n_rows else s.samples
+    rows = s.samples[:: max(1, s.samples.shape[0] // n_rows)][:n_rows]
     samples = s.sample_model.surface(rows, xh, yh, ci)
     d = s.discrepancy
     sys_var = _systematic_var_um2(profile, ch)
@@ -344,7 +344,8 @@ def coverage_estimate(profile, log_kappa: float = 0.0, log_kappa_sd: float = 0.0
     A parametric bootstrap: each draw is one lens's error field (:func:`_channel_error_model`: the posterior
     samples' correlated surfaces, the discrepancy as a Matérn field, every field-wide term as one draw per
     channel), with the part the held-out tiles test multiplied by ``kappa ~ logN(log_kappa, log_kappa_sd)`` when
-    kappa's 90 % interval excludes 1 (``kappa_mode="evidence"``; otherwise kappa = 1, the band as built); its
+    kappa's 90 % interval excludes 1 (``kappa_mode="evidence"``; otherwise kappa = 1, the band as built;
+    ``"posterior"`` always draws kappa, ``"one"`` never: the benchmark's comparisons); its
     coverage is the fraction of grid points (channels pooled) inside the band. With kappa = 1 the expectation
     is the band's level; one lens's coverage spreads about it as much as its field-wide and smooth errors allow.
 
@@ -367,8 +368,7 @@ def coverage_estimate(profile, log_kappa: float = 0.0, log_kappa_sd: float = 0.0
     # renderer, while the lenses with the lowest kappa were not the better-covered ones (docs/benchmarks.md
     # "Self-check as a coverage estimator (s11)")
     evident = not (k_lo <= 1.0 <= k_hi)
-    kappa = {"plugin": math.exp(log_kappa), "one": 1.0, "posterior": draws,
-             "evidence": draws if evident else 1.0}[kappa_mode]
+    kappa = {"one": 1.0, "posterior": draws, "evidence": draws if evident else 1.0}[kappa_mode]
     cov, at_lo, at_hi, shares = [], [], [], []
     chol = {}
     for ch in s.channels:

@@ -155,15 +155,14 @@ def peak_position_px(recs, vals, geometry=None, z_ref_um: float = math.nan, half
         return float(near["x_px"]), float(near["y_px"])
     gz = np.asarray(geometry.z_um, dtype=np.float64)
     ch = str(recs[0]["channel"])
-    c = geometry.channels.index(ch) if ch in geometry.channels else 0
-    cx, cy = geometry.centre_px
+    ch = ch if ch in geometry.channels else geometry.channels[0]
     use = good & (v >= half * v[good].max())
     xs, ys, ws = [], [], []
     for e, val in zip((r for r, u in zip(recs, use) if u), v[use]):
         k = int(np.argmin(np.abs(gz - float(e["z_um"]))))
-        m = float(geometry.magnification[k, c])
-        xs.append(cx + (float(e["x_px"]) - cx - float(geometry.shift_x_px[k, c])) / m)
-        ys.append(cy + (float(e["y_px"]) - cy - float(geometry.shift_y_px[k, c])) / m)
+        xr, yr = geometry.unmap_points(k, ch, float(e["x_px"]), float(e["y_px"]))
+        xs.append(float(xr))
+        ys.append(float(yr))
         ws.append(val * val)
     w = np.asarray(ws) / np.sum(ws)
     return float(np.dot(w, xs)), float(np.dot(w, ys))

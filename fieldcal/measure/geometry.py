@@ -84,6 +84,15 @@ class GeometryMeasurements:
         return (cx + m * (np.asarray(x_px, dtype=np.float64) - cx) + self.shift_x_px[k, c],
                 cy + m * (np.asarray(y_px, dtype=np.float64) - cy) + self.shift_y_px[k, c])
 
+    def unmap_points(self, k: int, channel: str, x_px, y_px):
+        """Where points (x, y) of frame row ``k`` of channel ``channel`` lie in the reference frame (the inverse
+        of :meth:`map_points`)."""
+        c = self.channel_index(channel)
+        cx, cy = self.centre_px
+        m = self.magnification[k, c]
+        return (cx + (np.asarray(x_px, dtype=np.float64) - cx - self.shift_x_px[k, c]) / m,
+                cy + (np.asarray(y_px, dtype=np.float64) - cy - self.shift_y_px[k, c]) / m)
+
     def recentred(self, centre_px: tuple[float, float]) -> "GeometryMeasurements":
         """The same geometry with magnification about another centre (shifts change, scales do not)."""
         (cx, cy), (nx, ny) = self.centre_px, centre_px
