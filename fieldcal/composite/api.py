@@ -370,8 +370,9 @@ def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool
     guide = fusion.image
     dm = depth_map(stack, geometry, frames, guide=guide, quiet=quiet)
     offsets = zb_smooth - zb_smooth.mean(axis=2, keepdims=True)
-    # Trust in the depth map: its confidence against that of the image's well-textured pixels, and agreement
-    # with the frame the fusion took its detail from, an independent choice. Where the two disagree (low-contrast
+    # Trust in the depth map: its confidence against that of the image's well-textured pixels, and no
+    # contradiction from the frame the fusion took its detail from, an independent choice of the depth of
+    # something within its reach (fusion_contradicts). Where the map is unsure or contradicted (low-contrast
     # texture, compression noise) the fusion's pixels are kept: they need no depth.
     conf = dm.confidence
     ref = float(np.percentile(conf, FUSION_CONFIDENCE[0])) if conf.size else 0.0
