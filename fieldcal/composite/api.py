@@ -41,6 +41,11 @@ DEPTH_PIXEL_FRACTION = 0.01
 #: Scenes with depth: a pixel takes the depth map's composite in full where its confidence reaches this fraction
 #: (second) of the given percentile (first) of the image's confidences, the multi-scale fusion where it has none.
 FUSION_CONFIDENCE = (75.0, 0.5)
+#: ... and where the fusion's own frame choice does not contradict the depth map: it lies within this many frame
+#: steps of the depths the map gives within the choice's reach (:func:`fusion_contradicts`). One step: the map's
+#: sub-frame peak is good to a tenth or two of a step (its measured error σ_k 0.03-0.13 step), the fusion's choice
+#: is a whole frame.
+FUSION_AGREEMENT_FRAMES = 1.0
 #: A defocus measured from the stack (no lens model): the Wiener combination's depth labels this many frame steps
 #: apart (or :data:`~.depth_wiener.LABEL_DISC_PX` of disc, if more); the per-pixel depth map's sub-frame peak is
 #: good to a tenth or two of a step, so finer labels add work (one inverse FFT per label, channel and tile), not
@@ -312,6 +317,45 @@ def _measured_defocus(stack, frames, dmap, info: dict, quiet: bool):
     return MeasuredDefocus(est, float(pitch) if pitch else 1.0, est.depth_sd_steps)
 
 
+def fusion_contradicts(index: np.ndarray, fused_index: np.ndarray, reach_px: float,
+                       tolerance_frames: float = FUSION_AGREEMENT_FRAMES) -> np.ndarray:
+    """Where the fusion's frame choice contradicts the depth map (H x W bool): no pixel within ``reach_px`` (a
+    square of that half-width) has a depth within ``tolerance_frames`` of it (both maps in frame indices, z
+    order; the fusion's choice a whole frame).
+
+    The fusion's choice (:attr:`.fusion.FusionResult.depth_index`) is the most salient frame of a coarse pyramid
+    level over a window, median-filtered: it is the depth of *something* within ``reach_px``
+    (:func:`.fusion.index_reach_px`), not necessarily of the pixel itself. Over a stretch of one depth it is an
+    independent measurement of that depth; beside a depth edge or over a structure narrower than the reach (a
+    thin bar, a wire: they take the surroundings' frame, or lend theirs to them) it is either side's, and only a
+    choice that is no depth the map finds nearby is a contradiction. The pixel-wise test ``|index - fused| > 1``
+    flagged 64 % of the simulated thin bars' pixels, whose depth the map had right (docs/compositing.md, step 6).
+    """
+    import cv2
+
+    ix = np.asarray(index, dtype=np.float32)
+    choice = np.rint(np.asarray(fused_index, dtype=np.float32)).astype(np.int32)
+    r = max(int(np.ceil(reach_px)), 0)
+    kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)  # square: separable in OpenCV
+    tol = np.float32(tolerance_frames)
+    h, w = ix.shape
+    out = np.zeros(ix.shape, bool)
+    for k in range(int(choice.min()), int(choice.max()) + 1):
+        # one dilation per frame the fusion chose, "is depth k (+- tol) within reach?", over the rows and columns
+        # around the pixels that chose it
+        at_k = choice == k
+        rows, cols = np.flatnonzero(at_k.any(axis=1)), np.flatnonzero(at_k.any(axis=0))
+        if rows.size == 0:
+            continue
+        y0, y1 = max(int(rows[0]) - r, 0), min(int(rows[-1]) + r + 1, h)
+        x0, x1 = max(int(cols[0]) - r, 0), min(int(cols[-1]) + r + 1, w)
+        near = (np.abs(ix[y0:y1, x0:x1] - np.float32(k)) <= tol).view(np.uint8)
+        if r:
+            near = cv2.dilate(near, kernel, borderType=cv2.BORDER_REPLICATE)
+        out[y0:y1, x0:x1] |= at_k[y0:y1, x0:x1] & (near == 0)
+    return out
+
+
 def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool):
     """Best focus per pixel for a scene with depth: the edge-aware depth map of the stack, plus each channel's
     offset from the others as the smooth map ``zb_smooth`` has it (chromatic focus is the lens's, not the scene's).
@@ -326,14 +370,15 @@ def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool
     guide = fusion.image
     dm = depth_map(stack, geometry, frames, guide=guide, quiet=quiet)
     offsets = zb_smooth - zb_smooth.mean(axis=2, keepdims=True)
-    # Trust in the depth map: its confidence against that of the image's well-textured pixels, and agreement
-    # (within a frame) with the frame the fusion took its detail from, an independent choice. Where the two
-    # disagree (low-contrast texture, compression noise) the fusion's pixels are kept: they need no depth.
+    # Trust in the depth map: its confidence against that of the image's well-textured pixels, and no
+    # contradiction from the frame the fusion took its detail from, an independent choice of the depth of
+    # something within its reach (fusion_contradicts). Where the map is unsure or contradicted (low-contrast
+    # texture, compression noise) the fusion's pixels are kept: they need no depth.
     conf = dm.confidence
     ref = float(np.percentile(conf, FUSION_CONFIDENCE[0])) if conf.size else 0.0
     weight = np.clip(conf / max(FUSION_CONFIDENCE[1] * ref, 1e-12), 0.0, 1.0).astype(np.float32)
-    index = np.interp(dm.z_um, fusion.z_um, np.arange(len(fusion.z_um), dtype=np.float64))
-    weight *= (np.abs(index - fusion.depth_index) <= 1.0).astype(np.float32)
+    index = np.interp(dm.z_um, fusion.z_um, np.arange(len(fusion.z_um), dtype=np.float64)).astype(np.float32)
+    weight *= ~fusion_contradicts(index, fusion.depth_index, fusion.index_reach_px)
     weight = cv2.GaussianBlur(weight, (0, 0), 2.0)
     return (dm.z_um[..., None] + offsets).astype(np.float32), (guide, weight), dm
 

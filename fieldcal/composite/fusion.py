@@ -50,11 +50,26 @@ class FusionResult:
     depth_index: np.ndarray
     z_um: np.ndarray
     levels: int
+    #: How far (full-resolution px) what lies beside a pixel can decide its ``depth_index``: the chosen level's
+    #: salience window (two sigmas) and the median's half-width, at that level's scale (:func:`index_reach_px`).
+    index_reach_px: float = 0.0
 
 
 def default_levels(width: int, height: int) -> int:
     """Band-pass levels down to a base of ~16 px on the short side (at most 8)."""
     return int(np.clip(np.floor(np.log2(max(min(width, height), 2) / 16.0)), 1, 8))
+
+
+#: The median filter (px at the index level) that cleans :attr:`FusionResult.depth_index` of single-coefficient noise.
+INDEX_MEDIAN_PX = 5
+
+
+def index_reach_px(window_px: float, index_level: int) -> float:
+    """The radius (full-resolution px) over which the scene decides a pixel's fused frame choice
+    (:attr:`FusionResult.depth_index`): the salience window's two sigmas (``window_px / 2`` each) plus the median's
+    half-width, at level ``index_level``'s scale (``2 ** index_level`` px). A structure narrower than that (a thin
+    bar, a wire) is not resolved by the choice: it takes the frame of what surrounds it, or lends its own to it."""
+    return float(2 ** int(index_level)) * (max(float(window_px), 1.0) + (INDEX_MEDIAN_PX - 1) // 2)
 
 
 def _level_shapes(h: int, w: int, levels: int) -> list[tuple[int, int]]:
@@ -262,7 +277,7 @@ def fuse_pyramid(stack, geometry=None, frames=None, *, levels: int | None = None
     fused = np.empty((h, w, len(channels)), dtype=np.float32)
     for c, sel in enumerate(sels):
         fused[..., c] = sel.collapse(len(order))
-    return FusionResult(fused, depth, z_all[order], n_levels)
+    return FusionResult(fused, depth, z_all[order], n_levels, index_reach_px(2.0 * sigma, index_level))
 
 
 def _depth_index(best_idx: list[np.ndarray], best_sal: list[np.ndarray], w: int, h: int) -> np.ndarray:
@@ -274,7 +289,7 @@ def _depth_index(best_idx: list[np.ndarray], best_sal: list[np.ndarray], w: int,
         more = s > sal  # strict: the first channel wins ties, as argmax does
         np.copyto(choice, idx, where=more)
         np.copyto(sal, s, where=more)
-    d = cv2.medianBlur(choice.astype(np.uint8) if choice.max() < 256 else choice.astype(np.float32), 5)
+    d = cv2.medianBlur(choice.astype(np.uint8) if choice.max() < 256 else choice.astype(np.float32), INDEX_MEDIAN_PX)
     return cv2.resize(d.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
 
 
