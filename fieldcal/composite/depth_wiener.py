@@ -111,22 +111,35 @@ def _labels(zb: np.ndarray, step_um: float) -> tuple[np.ndarray, float]:
     return lo + step * np.arange(n), step
 
 
-def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fn, sigma: float):
-    """``(A, beta, shape)`` of ``P(f) = A f^-beta`` (power per pixel, f in cycles/mm) fitted to the reference
-    image's spectrum (in-focus OTF divided out), and the padded FFT shape it was fitted on."""
+def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fns, sigmas) -> tuple[list, list, tuple]:
+    """Per plane ``c`` of ``reference`` (``H x W x P``): ``A_c, beta_c`` of ``P(f) = A f^-beta`` (power per pixel, f
+    in cycles/mm) fitted to the plane's spectrum (its in-focus OTF ``h0_fns[c]`` divided out, noise ``sigmas[c]``),
+    and the padded FFT shape fitted on. One plane at a time (a whole image's spectrum each), on one float32
+    frequency grid for all: float32 spectra, as the frames are (the fit is a line through ~10^6 log powers)."""
     from scipy import fft
 
     from ..optics.sweep import radial_on_grid, rfft_radial_grid
     from .sweep import _pad, _signal_spectrum_model
 
-    img = np.asarray(reference, dtype=np.float64)
-    padded, shape = _pad(img - img.mean(), pad)
-    f = rfft_radial_grid(shape, pitch_um)
-    power = np.abs(fft.rfft2(padded, workers=-1)) ** 2 / (shape[0] * shape[1])
-    h0 = radial_on_grid(h0_fn, f)
-    fmin = 4.0 / (max(shape) * pitch_um * 1e-3)
-    a, beta = _signal_spectrum_model(power, f, h0 * h0, sigma * sigma, fmin)
-    return a, beta, shape
+    a_sig, beta, f, shape = [], [], None, None
+    for c in range(reference.shape[2]):
+        img = np.asarray(reference[..., c], dtype=np.float32)
+        padded, shape = _pad(img - np.float32(img.mean(dtype=np.float64)), pad)
+        if f is None:
+            f = rfft_radial_grid(shape, pitch_um, np.float32)
+            fmin = 4.0 / (max(shape) * pitch_um * 1e-3)
+        spec = fft.rfft2(padded, workers=-1)
+        del padded
+        power = np.multiply(spec.real, spec.real)
+        power += np.square(spec.imag)
+        del spec
+        power *= np.float32(1.0 / (shape[0] * shape[1]))
+        h0 = radial_on_grid(h0_fns[c], f).astype(np.float32)
+        a, b = _signal_spectrum_model(power, f, np.multiply(h0, h0, out=h0), float(sigmas[c]) ** 2, fmin)
+        a_sig.append(a)
+        beta.append(b)
+        del power, h0
+    return a_sig, beta, shape
 
 
 def _mixed(planes: list[np.ndarray], rows: np.ndarray | None) -> list[np.ndarray]:
@@ -249,6 +262,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     n_lab = len(labels)
 
     from .dff import map_in_order
+    from .source import default_workers
 
     if plane_sigma is not None:
         sigma = [float(v) for v in plane_sigma]
@@ -261,14 +275,10 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         sigma = [float(v) for v in np.broadcast_to(np.asarray(noise_sigma, dtype=np.float64), (len(channels),))]
         if mix is not None:  # independent noise per channel
             sigma = [float(np.sqrt(np.sum(row ** 2 * np.square(sigma)))) for row in mix]
-    # the signal's power law per plane, one plane at a time: each fit holds whole-image float64 spectra (two at
-    # once on threads raised the composite's peak by ~200 MB for ~0.1 s)
-    a_sig, beta = [], []
-    for c, ch in enumerate(fch):
-        a_c, b_c, shape = _power_law(reference[..., c], pad, pitch, lambda t, ch=ch: model.defocus_otf(t, 0.0, ch),
-                                     max(sigma[c], 1e-6))
-        a_sig.append(a_c)
-        beta.append(b_c)
+    # the signal's power law per plane, one plane at a time: each fit holds a whole image's spectrum (two at once
+    # on threads raised the composite's peak by ~200 MB for ~0.1 s)
+    a_sig, beta, shape = _power_law(reference, pad, pitch, [lambda t, ch=ch: model.defocus_otf(t, 0.0, ch)
+                                                            for ch in fch], [max(s, 1e-6) for s in sigma])
     mean = [float(np.mean(reference[..., c])) for c in range(len(fch))]
 
     # per channel: label index below each pixel and the fraction towards the next
@@ -328,6 +338,10 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         return hit
 
     maps = {}
+    tiles = [(x0, y0) for y0 in range(0, h, core) for x0 in range(0, w, core)]
+    # tiles run on the compositor's threads, a core each: FFTs split over threads as well would only add their
+    # hand-overs (~15 % more CPU for the same transforms, measured on two cores)
+    fft_workers = 1 if len(tiles) > 1 and default_workers() > 1 else -1
 
     def block(k: int, bx0: int, by0: int, bx1: int, by1: int, top: int, left: int) -> list[np.ndarray]:
         """Frame k (z order) over the block, mirror-padded to the FFT size, mean removed, rfft2 per channel."""
@@ -342,7 +356,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         for c, p in enumerate(_mixed(planes, mix)):
             p = p - np.float32(mean[c])
             p = np.pad(p, ((top, nb_y - p.shape[0] - top), (left, nb_x - p.shape[1] - left)), mode="symmetric")
-            out.append(fft.rfft2(p, workers=-1).astype(np.complex64))
+            out.append(fft.rfft2(p, workers=fft_workers).astype(np.complex64, copy=False))
         return out
 
     out = np.zeros((h, w, len(fch)), np.float32)
@@ -410,8 +424,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                     row_mark[rr[sl]] = True
                 rows = np.flatnonzero(row_mark)
                 row_at = (np.cumsum(row_mark) - 1).astype(np.int32)
-                col = fft.ifft(x, axis=0, workers=-1)[margin + rows]
-                img = fft.irfft(col, n=nb_x, axis=1, workers=-1).ravel()
+                col = fft.ifft(x, axis=0, workers=fft_workers)[margin + rows]
+                img = fft.irfft(col, n=nb_x, axis=1, workers=fft_workers).ravel()
                 for sl, wgt in here:
                     v = img[row_at[rr[sl]] * nb_x + (cc[sl] + margin)]
                     v += np.float32(mean[c])
@@ -421,7 +435,6 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             out[y0:y1, x0:x1, c] = acc[c].reshape(y1 - y0, tw)
         return n_filters, n_frames_used
 
-    tiles = [(x0, y0) for y0 in range(0, h, core) for x0 in range(0, w, core)]
     n_frames_used, n_filters = [], 0
     for nf, used_frames in progress(map_in_order(tile, tiles), total=len(tiles), desc="Wiener by depth",
                                     quiet=quiet, unit="tile"):

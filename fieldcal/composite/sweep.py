@@ -98,8 +98,9 @@ def _signal_spectrum_model(power: np.ndarray, f: np.ndarray, hs2: np.ndarray, no
         raise ParameterError("the sweep's integrated PSF passes almost nothing (MTF below 0.1 at every frequency): "
                              "alpha is too large to deconvolve", field="sweep_alpha_um",
                              fix="use a smaller alpha (see the sweep trade table in docs/benchmarks.md)")
-    lp = np.log(np.maximum(power[ok] - noise_power, 1e-30) / hs2[ok])
-    lf = np.log(f[ok])
+    # the selected samples in float64 (float32 spectra: the least-squares sums below over ~10^6 points)
+    lp = np.log(np.maximum(np.asarray(power[ok], np.float64) - noise_power, 1e-30) / np.asarray(hs2[ok], np.float64))
+    lf = np.log(np.asarray(f[ok], np.float64))
     # the least-squares line in closed form (np.polyfit's Vandermonde + SVD cost ~0.15 s per million points,
     # on the compositor's serial path)
     lf_c = lf - lf.mean()
