@@ -146,7 +146,16 @@ def _mixed(planes: list[np.ndarray], rows: np.ndarray | None) -> list[np.ndarray
     """The filtered planes from the channels' planes: the channels, or their weighted sums (``rows``, P x C)."""
     if rows is None:
         return planes
-    return [sum(np.float32(m) * p for m, p in zip(row, planes)) for row in rows]
+    out, tmp = [], None
+    for row in rows:
+        # sum_c m_c p_c in the channels' order, each product rounded to float32 as written out in full, with one
+        # scratch plane for the products instead of a fresh array per product and per partial sum
+        acc = np.multiply(planes[0], np.float32(row[0]))
+        for m, p in zip(row[1:], planes[1:]):
+            tmp = np.multiply(p, np.float32(m), out=tmp if tmp is not None and tmp.shape == p.shape else None)
+            acc += tmp
+        out.append(acc)
+    return out
 
 
 def probe_plane_sigma(stack, frames, *, geometry=None, lateral_colour: bool = False,

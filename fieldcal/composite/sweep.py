@@ -48,10 +48,12 @@ def estimate_noise_sigma(channel_image: np.ndarray, max_samples: int | None = No
     """
     import cv2
     k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
-    r = np.abs(cv2.filter2D(np.asarray(channel_image, dtype=np.float32), -1, k, borderType=cv2.BORDER_REFLECT)[1:-1, 1:-1])
+    r = cv2.filter2D(np.asarray(channel_image, dtype=np.float32), -1, k, borderType=cv2.BORDER_REFLECT)[1:-1, 1:-1]
     if max_samples is not None and r.size > max_samples:
-        r = r.ravel()[::int(np.ceil(r.size / max_samples))]
-    return float(np.median(r) / 0.6745 / 6.0)
+        # every step-th response of the interior in row-major order, gathered without copying the interior first
+        flat = np.arange(0, r.size, int(np.ceil(r.size / max_samples)))
+        r = r[flat // r.shape[1], flat % r.shape[1]]
+    return float(np.median(np.abs(r, out=r if r.flags.owndata else None)) / 0.6745 / 6.0)
 
 
 def sensor_noise_sigma(image: np.ndarray, gain_dn_per_e: float, read_noise_e: float,
