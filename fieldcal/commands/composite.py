@@ -79,6 +79,9 @@ def register(sub):
 
 def run(args) -> int:
     from ..composite.api import composite_to_file
+    from ..composite.memory import tune_allocator
+
+    tune_allocator()  # planes reused from the heap, not mapped and zeroed afresh (composite/memory.py)
 
     res = composite_to_file(args.stack, args.out, profile=args.profile, method=args.method, plan=args.plan,
                             sweep_alpha_um=args.sweep_alpha_um, deconvolve=args.deconvolve,
