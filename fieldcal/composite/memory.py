@@ -169,3 +169,17 @@ def tune_allocator() -> bool:
     return all(mallopt(param, value) == 1 for param, value in ((m_arena_max, MALLOC_ARENAS),
                                                                 (m_mmap_threshold, MALLOC_MMAP_THRESHOLD_BYTES),
                                                                 (m_trim_threshold, MALLOC_TRIM_THRESHOLD_BYTES)))
+
+
+def single_threaded_blas() -> None:
+    """BLAS (NumPy's and SciPy's OpenBLAS) on one thread for the rest of the process.
+
+    Compositing's matrix products are thin (a whole image's pixels by 3 channels, 3 x 3 solves): memory-bound,
+    no faster on several threads, and after each one OpenBLAS's threads spin waiting for more (~2 % of the CPU of
+    ``fieldcal composite`` on the real 7-frame board) while the compositor's own threads have both cores busy.
+    SciPy's BLAS is loaded first: a limit reaches only the libraries loaded when it is set.
+    """
+    import scipy.linalg  # noqa: F401  (loads SciPy's OpenBLAS)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
