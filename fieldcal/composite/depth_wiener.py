@@ -399,7 +399,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         labels_used = sorted({l for _, l in used})
         tw = x1 - x0
         row_mark = np.zeros(y1 - y0, bool)
-        acc = np.zeros((len(fch), (y1 - y0) * tw), np.float32)
+        # each plane's sums in its pixels' label order: a label's two groups are slices there (no scattered
+        # read-modify-write per filter), put in place once per tile
+        acc = [np.zeros(len(g[0]), np.float32) for g in groups]
         spectra: dict[int, list[np.ndarray]] = {}
         for l in labels_used:
             zl = labels[l]
@@ -439,9 +441,11 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                     v = img[row_at[rr[sl]] * nb_x + (cc[sl] + margin)]
                     v += np.float32(mean[c])
                     v *= wgt[sl]
-                    acc[c, pix[sl]] += v
+                    acc[c][sl] += v
         for c in range(len(fch)):
-            out[y0:y1, x0:x1, c] = acc[c].reshape(y1 - y0, tw)
+            plane = np.zeros((y1 - y0) * tw, np.float32)
+            plane[groups[c][0]] = acc[c]
+            out[y0:y1, x0:x1, c] = plane.reshape(y1 - y0, tw)
         return n_filters, n_frames_used
 
     n_frames_used, n_filters = [], 0
