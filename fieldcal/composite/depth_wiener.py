@@ -21,7 +21,6 @@ taken from a frame in which that object's blur disc does not reach it.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from ..errors import ParameterError
@@ -78,10 +77,11 @@ def occlusion_focus_um(zb: np.ndarray, um_per_px: float) -> np.ndarray:
         return out
     # The envelope of the cones is the grey dilation by the octagonal cone, what a 3x3 step (edge neighbours less
     # c, diagonal ones less c sqrt 2) repeated until nothing changes converges to: z(q) less the cost of the
-    # cheapest chain of such steps from q. Such a chain takes at most two step directions, in any order, so the dilation is the same as four 1-D cone
-    # dilations in turn (rows, columns, both diagonals), and each of those is a few doublings: shifts by 1, 2, 4,
-    # ... px at c (or c sqrt 2) per px, up to the farthest shift that can still raise a pixel (the map's range over
-    # the cost per px). ~90 passes over the map instead of ~8 per cone radius (px) of the repeated 3x3 step.
+    # cheapest chain of such steps from q. Such a chain takes at most two step directions, in any order, so the
+    # dilation is the same as four 1-D cone dilations in turn (rows, columns, both diagonals), and each of those is
+    # a few doublings: shifts by 1, 2, 4, ... px at c (or c sqrt 2) per px, up to the farthest shift that can still
+    # raise a pixel (the map's range over the cost per px). ~90 passes over the map instead of ~8 per cone radius
+    # (px) of the repeated 3x3 step.
     span = float(out.max()) - float(out.min())
     buf = np.empty(out.size, np.float32)
     h, w = out.shape
