@@ -150,8 +150,8 @@ def tune_allocator() -> bool:
     CPU of ``fieldcal composite`` on the 7-frame 2048 x 1536 circuit board went to that), and every thread that
     allocates gets its own arena, which keeps its own free memory. Two arenas, planes from the heap (blocks below
     :data:`MALLOC_MMAP_THRESHOLD_BYTES`) and freed heap kept up to :data:`MALLOC_TRIM_THRESHOLD_BYTES`: half the
-    page faults, and a peak resident memory ~10 % lower, not higher (docs/benchmarks.md
-    ``bench_composite_speed_s13``). Settings of the process as a whole: the ``fieldcal composite`` command sets
+    page faults, and a peak resident memory 5-13 % lower on the real board (7 and 10 frames), not higher
+    (docs/benchmarks.md ``bench_composite_speed_s13``). Settings of the process as a whole: the ``fieldcal composite`` command sets
     them; a program calling the library decides for itself.
     """
     import ctypes
