@@ -4,7 +4,8 @@
 measure). A phase's CPU is the whole process's (``time.process_time``: every thread); ``main-thread`` is
 ``time.thread_time`` of the caller's thread. Work done on the main thread while the compositor's threads wait
 is what keeps one of two cores idle: a phase whose main-thread share is near 100 % is serial. Wall figures
-need a quiet machine; the main-thread share does not.
+need a quiet machine; the main-thread share does not. The process is set up as ``fieldcal composite`` sets it
+(glibc's allocator, BLAS threads: :mod:`fieldcal.composite.memory`), where the checkout measured has those.
 """
 from __future__ import annotations
 
@@ -40,7 +41,12 @@ def main(argv: list[str]) -> None:
     if len(argv) not in (2, 3):
         sys.exit(__doc__)
     import fieldcal.composite.api as api
+    from fieldcal.composite import memory
 
+    # the process as `fieldcal composite` sets it up (commands/composite.py), where this checkout has it
+    for setup in ("tune_allocator", "single_threaded_blas"):
+        if hasattr(memory, setup):
+            getattr(memory, setup)()
     rows: list = []
     for module, name in PHASES:
         _timed(module, name, rows)

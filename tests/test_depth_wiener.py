@@ -40,6 +40,40 @@ def test_occlusion_focus_is_the_upper_envelope_of_blur_cones():
         occlusion_focus_um(z, 0.0)
 
 
+def _occlusion_by_3x3_steps(z: np.ndarray, c: float) -> np.ndarray:
+    """The definition: a 3x3 step (edge neighbours less c, diagonal ones less c sqrt 2) repeated until nothing
+    changes, in float64 (the reference the doubling shifts must reach)."""
+    out = z.astype(np.float64)
+    while True:
+        p = np.pad(out, 1, mode="edge")
+        nxt = out.copy()
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                cost = c * np.hypot(dy, dx)
+                nxt = np.maximum(nxt, p[1 + dy:1 + dy + out.shape[0], 1 + dx:1 + dx + out.shape[1]] - cost)
+        if np.array_equal(nxt, out):
+            return out
+        out = nxt
+
+
+def test_occlusion_focus_reaches_the_repeated_3x3_steps_limit():
+    """Far spikes (cones wider than the image's short side), knight-move offsets and ties: the same map as the
+    3x3 step repeated to convergence, and around a lone spike the octagonal distance's closed form
+    ``D - c (max(|dx|, |dy|) + (sqrt 2 - 1) min(|dx|, |dy|))``."""
+    rng = np.random.default_rng(3)
+    for shape, c in (((37, 53), 0.7), ((64, 9), 2.5), ((1, 30), 1.0), ((30, 1), 1.0)):
+        z = (rng.random(shape) * 3.0).astype(np.float32)
+        z.flat[rng.choice(z.size, 4, replace=False)] += np.float32(60.0)
+        assert np.allclose(occlusion_focus_um(z, c), _occlusion_by_3x3_steps(z, c), atol=1e-3)
+    d, c = 50.0, 1.3
+    z = np.zeros((41, 57), np.float32)
+    z[13, 40] = d
+    yy, xx = np.mgrid[0:41, 0:57]
+    ay, ax = np.abs(yy - 13), np.abs(xx - 40)
+    dist = np.maximum(ay, ax) + (np.sqrt(2.0) - 1.0) * np.minimum(ay, ax)
+    assert np.allclose(occlusion_focus_um(z, c), np.maximum(0.0, d - c * dist), atol=1e-4)
+
+
 @pytest.fixture(scope="module")
 def flat_world():
     spec = LensSpec.load(Path(__file__).resolve().parents[1] / "models" / "triplet-uncorrected.json").with_sensor_size(W, H)

@@ -72,3 +72,37 @@ def test_measurement_needs_a_pixel_pitch():
     with pytest.raises(ParameterError) as e:
         measure_stack(ArrayStack(frames, np.arange(7.0) * 10, ["Y"]), fs_cyc_per_mm=40.0, quiet=True)
     assert e.value.field == "pixel_pitch_um"
+
+
+@pytest.mark.parametrize("storage, scale, budget", [(np.uint16, 256.0, None), (np.uint16, 256.0, 0),
+                                                    (np.uint16, 1.0, None), (np.float32, 1.0, 0)])
+def test_held_frames_planes_are_what_read_returns(storage, scale, budget):
+    """frame_planes on held frames (read, scaled and split in one pass) gives each channel exactly as
+    ``HeldFrames.read`` does, from memory or the temporary file, over several bands; frames not held fall back."""
+    from fieldcal.composite.dff import frame_planes
+    from fieldcal.composite.source import HeldFrames
+
+    rng = np.random.default_rng(5)
+    h, w = 1100, 1000  # more than one band of rows (dff.BAND_BYTES)
+    frames = [(rng.random((h, w, 3)) * 255).astype(np.uint8) for _ in range(2)]
+    st = ArrayStack(frames, [0.0, 10.0], ["R", "G", "B"])
+    held = HeldFrames(st, [1], storage, scale=scale, budget_bytes=budget)
+    held.put(1, frames[1])
+    assert held.in_memory == (budget is None)
+    ref = held.read(1)
+    got = frame_planes(held, None, 10.0, 1, ("R", "G", "B"), w, h)
+    assert all(np.array_equal(got[c], ref[..., c].astype(np.float32)) for c in range(3))
+    assert np.array_equal(frame_planes(held, None, 0.0, 0, ("R", "G", "B"), w, h)[2], frames[0][..., 2])
+
+
+def test_composite_allocator_settings_take():
+    """glibc accepts each malloc setting the composite command makes (a wrong parameter code is refused)."""
+    import platform
+    import subprocess
+    import sys
+
+    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
+        pytest.skip("glibc only")
+    out = subprocess.run([sys.executable, "-c", "from fieldcal.composite.memory import tune_allocator; "
+                          "print(tune_allocator())"], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "True"

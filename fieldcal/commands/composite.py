@@ -79,6 +79,10 @@ def register(sub):
 
 def run(args) -> int:
     from ..composite.api import composite_to_file
+    from ..composite.memory import single_threaded_blas, tune_allocator
+
+    tune_allocator()  # planes reused from the heap, not mapped and zeroed afresh (composite/memory.py)
+    single_threaded_blas()
 
     res = composite_to_file(args.stack, args.out, profile=args.profile, method=args.method, plan=args.plan,
                             sweep_alpha_um=args.sweep_alpha_um, deconvolve=args.deconvolve,

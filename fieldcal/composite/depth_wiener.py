@@ -21,7 +21,6 @@ taken from a frame in which that object's blur disc does not reach it.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from ..errors import ParameterError
@@ -55,9 +54,10 @@ def occlusion_focus_um(zb: np.ndarray, um_per_px: float) -> np.ndarray:
     A scene point nearer the lens focuses further along the stage (larger ``z``). In a frame at ``z`` a nearer
     point ``q`` spreads over a disc of radius ``|z - zb(q)| / (2 N pitch)`` px, so pixel ``p`` is free of it
     when ``z >= zb(q) - c |p - q|`` with ``c = 2 N pitch`` (``um_per_px``). The upper envelope of these cones is a
-    grey dilation by a cone, computed by repeated 3x3 dilations with the octagonal distance (edge neighbours
-    ``c``, diagonal ``c sqrt 2``; within 8 % of Euclidean) until nothing changes. Smooth best-focus changes (field
-    curvature: far less than ``c`` per pixel) are left as they are.
+    grey dilation by a cone with the octagonal distance (edge neighbours ``c``, diagonal ``c sqrt 2``; within 8 %
+    of Euclidean): what repeated 3x3 dilations give once nothing changes, computed as four 1-D cone dilations by
+    doubling shifts. Smooth best-focus changes (field curvature: far less than ``c`` per pixel) are left as they
+    are.
 
     Parameters
     ----------
@@ -72,22 +72,34 @@ def occlusion_focus_um(zb: np.ndarray, um_per_px: float) -> np.ndarray:
     z = np.asarray(zb, dtype=np.float32)
     if z.ndim == 3:
         return np.stack([occlusion_focus_um(z[..., c], um_per_px) for c in range(z.shape[2])], axis=-1)
-    cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)
-    diag = np.array([[1, 0, 1], [0, 1, 0], [1, 0, 1]], np.uint8)
-    c1, c2 = np.float32(um_per_px), np.float32(um_per_px * np.sqrt(2.0))
     out = z.copy()
-    # three buffers reused across the iterations (a fresh 12 MB array each step costs its page faults again)
-    nxt, other, grew = np.empty_like(out), np.empty_like(out), np.empty(out.shape, bool)
-    for _ in range(max(z.shape)):
-        cv2.dilate(out, cross, dst=nxt, borderType=cv2.BORDER_REPLICATE)
-        np.subtract(nxt, c1, out=nxt)
-        cv2.dilate(out, diag, dst=other, borderType=cv2.BORDER_REPLICATE)
-        np.subtract(other, c2, out=other)
-        np.maximum(nxt, other, out=nxt)
-        np.maximum(nxt, out, out=nxt)
-        if not np.greater(nxt, out, out=grew).any():
-            break
-        out, nxt = nxt, out
+    if out.size == 0:
+        return out
+    # The envelope of the cones is the grey dilation by the octagonal cone, what a 3x3 step (edge neighbours less
+    # c, diagonal ones less c sqrt 2) repeated until nothing changes converges to: z(q) less the cost of the
+    # cheapest chain of such steps from q. Such a chain takes at most two step directions, in any order, so the
+    # dilation is the same as four 1-D cone dilations in turn (rows, columns, both diagonals), and each of those is
+    # a few doublings: shifts by 1, 2, 4, ... px at c (or c sqrt 2) per px, up to the farthest shift that can still
+    # raise a pixel (the map's range over the cost per px). ~90 passes over the map instead of ~8 per cone radius
+    # (px) of the repeated 3x3 step.
+    span = float(out.max()) - float(out.min())
+    buf = np.empty(out.size, np.float32)
+    h, w = out.shape
+    for (dy, dx), per_px in (((0, 1), float(um_per_px)), ((1, 0), float(um_per_px)),
+                             ((1, 1), float(um_per_px) * np.sqrt(2.0)), ((1, -1), float(um_per_px) * np.sqrt(2.0))):
+        s = 1
+        while s * per_px < span and s < max(h, w):
+            sy, sx = s * dy, s * dx
+            if sy >= h or abs(sx) >= w:
+                break
+            cost = np.float32(s * per_px)
+            # pixel p from p - s d (then from p + s d): views of the same shape, the destination written in place
+            a = out[sy:, max(sx, 0):w + min(sx, 0)]
+            b = out[:h - sy, max(-sx, 0):w + min(-sx, 0)]
+            for dst, src in ((a, b), (b, a)):
+                t = np.subtract(src, cost, out=buf[:src.size].reshape(src.shape))
+                np.maximum(dst, t, out=dst)
+            s *= 2
     return out
 
 
@@ -99,29 +111,51 @@ def _labels(zb: np.ndarray, step_um: float) -> tuple[np.ndarray, float]:
     return lo + step * np.arange(n), step
 
 
-def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fn, sigma: float):
-    """``(A, beta, shape)`` of ``P(f) = A f^-beta`` (power per pixel, f in cycles/mm) fitted to the reference
-    image's spectrum (in-focus OTF divided out), and the padded FFT shape it was fitted on."""
+def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fns, sigmas) -> tuple[list, list, tuple]:
+    """Per plane ``c`` of ``reference`` (``H x W x P``): ``A_c, beta_c`` of ``P(f) = A f^-beta`` (power per pixel, f
+    in cycles/mm) fitted to the plane's spectrum (its in-focus OTF ``h0_fns[c]`` divided out, noise ``sigmas[c]``),
+    and the padded FFT shape fitted on. One plane at a time (a whole image's spectrum each), on one float32
+    frequency grid for all: float32 spectra, as the frames are (the fit is a line through ~10^6 log powers)."""
     from scipy import fft
 
     from ..optics.sweep import radial_on_grid, rfft_radial_grid
     from .sweep import _pad, _signal_spectrum_model
 
-    img = np.asarray(reference, dtype=np.float64)
-    padded, shape = _pad(img - img.mean(), pad)
-    f = rfft_radial_grid(shape, pitch_um)
-    power = np.abs(fft.rfft2(padded, workers=-1)) ** 2 / (shape[0] * shape[1])
-    h0 = radial_on_grid(h0_fn, f)
-    fmin = 4.0 / (max(shape) * pitch_um * 1e-3)
-    a, beta = _signal_spectrum_model(power, f, h0 * h0, sigma * sigma, fmin)
-    return a, beta, shape
+    a_sig, beta, f, shape = [], [], None, None
+    for c in range(reference.shape[2]):
+        img = np.asarray(reference[..., c], dtype=np.float32)
+        padded, shape = _pad(img - np.float32(img.mean(dtype=np.float64)), pad)
+        if f is None:
+            f = rfft_radial_grid(shape, pitch_um, np.float32)
+            fmin = 4.0 / (max(shape) * pitch_um * 1e-3)
+        spec = fft.rfft2(padded, workers=-1)
+        del padded
+        power = np.multiply(spec.real, spec.real)
+        power += np.square(spec.imag)
+        del spec
+        power *= np.float32(1.0 / (shape[0] * shape[1]))
+        h0 = radial_on_grid(h0_fns[c], f).astype(np.float32)
+        a, b = _signal_spectrum_model(power, f, np.multiply(h0, h0, out=h0), float(sigmas[c]) ** 2, fmin)
+        a_sig.append(a)
+        beta.append(b)
+        del power, h0
+    return a_sig, beta, shape
 
 
 def _mixed(planes: list[np.ndarray], rows: np.ndarray | None) -> list[np.ndarray]:
     """The filtered planes from the channels' planes: the channels, or their weighted sums (``rows``, P x C)."""
     if rows is None:
         return planes
-    return [sum(np.float32(m) * p for m, p in zip(row, planes)) for row in rows]
+    out, tmp = [], None
+    for row in rows:
+        # sum_c m_c p_c in the channels' order, each product rounded to float32 as written out in full, with one
+        # scratch plane for the products instead of a fresh array per product and per partial sum
+        acc = np.multiply(planes[0], np.float32(row[0]))
+        for m, p in zip(row[1:], planes[1:]):
+            tmp = np.multiply(p, np.float32(m), out=tmp if tmp is not None and tmp.shape == p.shape else None)
+            acc += tmp
+        out.append(acc)
+    return out
 
 
 def probe_plane_sigma(stack, frames, *, geometry=None, lateral_colour: bool = False,
@@ -237,6 +271,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     n_lab = len(labels)
 
     from .dff import map_in_order
+    from .source import default_workers
 
     if plane_sigma is not None:
         sigma = [float(v) for v in plane_sigma]
@@ -249,14 +284,10 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         sigma = [float(v) for v in np.broadcast_to(np.asarray(noise_sigma, dtype=np.float64), (len(channels),))]
         if mix is not None:  # independent noise per channel
             sigma = [float(np.sqrt(np.sum(row ** 2 * np.square(sigma)))) for row in mix]
-    # the signal's power law per plane, one plane at a time: each fit holds whole-image float64 spectra (two at
-    # once on threads raised the composite's peak by ~200 MB for ~0.1 s)
-    a_sig, beta = [], []
-    for c, ch in enumerate(fch):
-        a_c, b_c, shape = _power_law(reference[..., c], pad, pitch, lambda t, ch=ch: model.defocus_otf(t, 0.0, ch),
-                                     max(sigma[c], 1e-6))
-        a_sig.append(a_c)
-        beta.append(b_c)
+    # the signal's power law per plane, one plane at a time: each fit holds a whole image's spectrum (two at once
+    # on threads raised the composite's peak by ~200 MB for ~0.1 s)
+    a_sig, beta, shape = _power_law(reference, pad, pitch, [lambda t, ch=ch: model.defocus_otf(t, 0.0, ch)
+                                                            for ch in fch], [max(s, 1e-6) for s in sigma])
     mean = [float(np.mean(reference[..., c])) for c in range(len(fch))]
 
     # per channel: label index below each pixel and the fraction towards the next
@@ -316,6 +347,10 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         return hit
 
     maps = {}
+    tiles = [(x0, y0) for y0 in range(0, h, core) for x0 in range(0, w, core)]
+    # tiles run on the compositor's threads, a core each: FFTs split over threads as well would only add their
+    # hand-overs (~15 % more CPU for the same transforms, measured on two cores)
+    fft_workers = 1 if len(tiles) > 1 and default_workers() > 1 else -1
 
     def block(k: int, bx0: int, by0: int, bx1: int, by1: int, top: int, left: int) -> list[np.ndarray]:
         """Frame k (z order) over the block, mirror-padded to the FFT size, mean removed, rfft2 per channel."""
@@ -330,7 +365,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         for c, p in enumerate(_mixed(planes, mix)):
             p = p - np.float32(mean[c])
             p = np.pad(p, ((top, nb_y - p.shape[0] - top), (left, nb_x - p.shape[1] - left)), mode="symmetric")
-            out.append(fft.rfft2(p, workers=-1).astype(np.complex64))
+            out.append(fft.rfft2(p, workers=fft_workers).astype(np.complex64, copy=False))
         return out
 
     out = np.zeros((h, w, len(fch)), np.float32)
@@ -364,7 +399,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         labels_used = sorted({l for _, l in used})
         tw = x1 - x0
         row_mark = np.zeros(y1 - y0, bool)
-        acc = np.zeros((len(fch), (y1 - y0) * tw), np.float32)
+        # each plane's sums in its pixels' label order: a label's two groups are slices there (no scattered
+        # read-modify-write per filter), put in place once per tile
+        acc = [np.zeros(len(g[0]), np.float32) for g in groups]
         spectra: dict[int, list[np.ndarray]] = {}
         for l in labels_used:
             zl = labels[l]
@@ -398,18 +435,19 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                     row_mark[rr[sl]] = True
                 rows = np.flatnonzero(row_mark)
                 row_at = (np.cumsum(row_mark) - 1).astype(np.int32)
-                col = fft.ifft(x, axis=0, workers=-1)[margin + rows]
-                img = fft.irfft(col, n=nb_x, axis=1, workers=-1).ravel()
+                col = fft.ifft(x, axis=0, workers=fft_workers)[margin + rows]
+                img = fft.irfft(col, n=nb_x, axis=1, workers=fft_workers).ravel()
                 for sl, wgt in here:
                     v = img[row_at[rr[sl]] * nb_x + (cc[sl] + margin)]
                     v += np.float32(mean[c])
                     v *= wgt[sl]
-                    acc[c, pix[sl]] += v
+                    acc[c][sl] += v
         for c in range(len(fch)):
-            out[y0:y1, x0:x1, c] = acc[c].reshape(y1 - y0, tw)
+            plane = np.zeros((y1 - y0) * tw, np.float32)
+            plane[groups[c][0]] = acc[c]
+            out[y0:y1, x0:x1, c] = plane.reshape(y1 - y0, tw)
         return n_filters, n_frames_used
 
-    tiles = [(x0, y0) for y0 in range(0, h, core) for x0 in range(0, w, core)]
     n_frames_used, n_filters = [], 0
     for nf, used_frames in progress(map_in_order(tile, tiles), total=len(tiles), desc="Wiener by depth",
                                     quiet=quiet, unit="tile"):

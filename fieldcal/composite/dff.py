@@ -42,9 +42,13 @@ def frame_planes(stack, geometry, z_um: float, i: int, channels, width: int, hei
     """
     planes = out if out is not None else [np.empty((height, width), np.float32) for _ in channels]
     rows = max(16, BAND_BYTES // max(1, width * len(channels) * 4))
+    held = getattr(stack, "read_rows_into", None)  # held frames: read, scaled and split in one pass
     for fmap in frame_maps(geometry, float(z_um), channels, lateral_colour):
         for y0 in range(0, height, rows):
             y1 = min(height, y0 + rows)
+            if fmap.is_identity and held is not None and held(int(i), y0, y1, list(fmap.channels),
+                                                              [planes[c][y0:y1] for c in fmap.channels]):
+                continue
             part = warp_region(stack, int(i), fmap, 0, y0, width, y1)
             for j, c in enumerate(fmap.channels):
                 planes[c][y0:y1] = part[..., j]

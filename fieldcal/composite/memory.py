@@ -133,3 +133,53 @@ def check_temp_space(nbytes: int, what: str) -> None:
                             fix=f"free space there, or set the environment variable TMPDIR to a folder on a disk "
                                 f"with {nbytes / GB:.0f} GB free (e.g. TMPDIR=/data/tmp fieldcal composite ...)")
 
+
+
+#: glibc's allocator for a compositing process (:func:`tune_allocator`): at most this many arenas, blocks up to
+#: this size taken from the heap rather than mapped afresh, and freed heap kept up to this much.
+MALLOC_ARENAS = 2
+MALLOC_MMAP_THRESHOLD_BYTES = 32 * 2 ** 20
+MALLOC_TRIM_THRESHOLD_BYTES = 256 * 2 ** 20
+
+
+def tune_allocator() -> bool:
+    """Set glibc's ``malloc`` for compositing (Linux only; call before any thread starts): False where it cannot.
+
+    Compositing makes and drops full-size planes (12 MB at 2048 x 1536) thousands of times. By default glibc maps
+    each one afresh and gives it back on free, so the kernel zeroes its pages again on first touch (a tenth of the
+    CPU of ``fieldcal composite`` on the 7-frame 2048 x 1536 circuit board went to that), and every thread that
+    allocates gets its own arena, which keeps its own free memory. Two arenas, planes from the heap (blocks below
+    :data:`MALLOC_MMAP_THRESHOLD_BYTES`) and freed heap kept up to :data:`MALLOC_TRIM_THRESHOLD_BYTES`: half the
+    page faults, and a peak resident memory 5-13 % lower on the real board (7 and 10 frames), not higher
+    (docs/benchmarks.md ``bench_composite_speed_s13``). Settings of the process as a whole: the ``fieldcal composite`` command sets
+    them; a program calling the library decides for itself.
+    """
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None)
+        mallopt = libc.mallopt  # glibc's; musl has none
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    m_trim_threshold, m_mmap_threshold, m_arena_max = -1, -3, -8
+    return all(mallopt(param, value) == 1 for param, value in ((m_arena_max, MALLOC_ARENAS),
+                                                                (m_mmap_threshold, MALLOC_MMAP_THRESHOLD_BYTES),
+                                                                (m_trim_threshold, MALLOC_TRIM_THRESHOLD_BYTES)))
+
+
+def single_threaded_blas() -> None:
+    """BLAS (NumPy's and SciPy's OpenBLAS) on one thread for the rest of the process.
+
+    Compositing's matrix products are thin (a whole image's pixels by 3 channels, 3 x 3 solves): memory-bound,
+    no faster on several threads, and after each one OpenBLAS's threads spin waiting for more (~2 % of the CPU of
+    ``fieldcal composite`` on the real 7-frame board) while the compositor's own threads have both cores busy.
+    SciPy's BLAS is loaded first: a limit reaches only the libraries loaded when it is set.
+    """
+    import scipy.linalg  # noqa: F401  (loads SciPy's OpenBLAS)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")

@@ -172,9 +172,22 @@ def _grey(image: np.ndarray, factor: int) -> np.ndarray:
     """The registration plane of a frame (``H x W x C``): grey, downsampled, lightly blurred, normalised."""
     import cv2
 
-    a = np.asarray(image, dtype=np.float32)
-    # the channels' mean; cv2.transform is ~10x faster than ndarray.mean over a short last axis
-    grey = a[..., 0] if a.shape[2] == 1 else cv2.transform(a, np.full((1, a.shape[2]), 1.0 / a.shape[2], np.float32))
+    image = np.asarray(image)
+    h, w, n_ch = image.shape
+    if n_ch == 1:
+        grey = np.asarray(image[..., 0], dtype=np.float32)
+    else:
+        # the channels' mean (cv2.transform: ~10x faster than ndarray.mean over a short last axis), in bands of
+        # rows through one float32 buffer: not a whole float32 frame's fresh pages per frame
+        weights = np.full((1, n_ch), 1.0 / n_ch, np.float32)
+        grey = np.empty((h, w), np.float32)
+        rows = max(1, (4 << 20) // max(1, w * n_ch * 4))
+        buf = np.empty((min(rows, h), w, n_ch), np.float32)
+        for y0 in range(0, h, rows):
+            y1 = min(h, y0 + rows)
+            band = buf[:y1 - y0]
+            np.copyto(band, image[y0:y1], casting="unsafe")
+            cv2.transform(band, weights, dst=grey[y0:y1])
     g = registration_plane(grey, factor)
     return (g - g.mean()) / max(float(g.std()), 1e-12)
 
@@ -854,7 +867,7 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
         offsets) and the geometry (``info()`` describes it).
     """
     from .memory import check_temp_space
-    from .source import MEMORY_BUDGET_BYTES, HeldFrames, default_workers, read_frames_parallel, roi_readable
+    from .source import MEMORY_BUDGET_BYTES, HeldFrames, default_workers, roi_readable
 
     w, h = image_size(stack)
     order, zs, z_ref_um = _sorted_frames(stack, frames, z_ref_um)
@@ -870,12 +883,21 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
     decoded = HeldFrames(stack, order, stack.dtype) if keep else None
     planes = {}
 
-    def take(i, image):
-        planes[i] = _grey(image, factor)
-        if decoded is not None:
-            decoded.put(i, image)
+    def load(i: int):
+        """Frame i decoded and its registration plane, on a compositor's thread (both release the GIL)."""
+        image = read_roi(stack, i, 0, 0, w, h)
+        return image, _grey(image, factor)
 
-    read_frames_parallel(stack, order, take, desc="reading", quiet=quiet)
+    from .dff import map_in_order
+
+    # at most two frames per thread in flight, as read_frames_parallel keeps
+    loaded = map_in_order(load, [int(i) for i in order], ahead=2 * default_workers())
+    for i, (image, plane) in progress(zip(order, loaded), total=len(order), desc="reading", quiet=quiet,
+                                      unit="frame"):
+        planes[int(i)] = plane
+        if decoded is not None:
+            decoded.put(int(i), image)
+        del image
     geo = choose_model(stack, order, z_ref_um, max_side_px, quiet, [planes[int(i)] for i in order], models)
     maps = {int(i): frame_map_matrix(geo, float(z)) for i, z in zip(order, zs)}
     check_frames_belong(stack, order, [planes[int(i)] for i in order], [maps[int(i)] for i in order], factor)
@@ -892,8 +914,8 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
         """Frame i read, warped into the reference geometry, (with ``ref_cells``) brought to the reference's
         levels and held in ``out``; its correction (None where not fitted) and its cell means."""
         image = read_roi(src, i, 0, 0, w, h)
-        if scale == 256.0:  # 8-bit -> 16-bit fixed point, then warped in that dtype
-            image = image.astype(np.uint16) << 8
+        if scale == 256.0:  # 8-bit -> 16-bit fixed point (one pass), then warped in that dtype
+            image = np.left_shift(image, 8, dtype=np.uint16)
         elif image.dtype != storage:
             image = image.astype(storage)
         warped = warp_frame(image, maps[i])

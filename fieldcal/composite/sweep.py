@@ -48,10 +48,12 @@ def estimate_noise_sigma(channel_image: np.ndarray, max_samples: int | None = No
     """
     import cv2
     k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
-    r = np.abs(cv2.filter2D(np.asarray(channel_image, dtype=np.float32), -1, k, borderType=cv2.BORDER_REFLECT)[1:-1, 1:-1])
+    r = cv2.filter2D(np.asarray(channel_image, dtype=np.float32), -1, k, borderType=cv2.BORDER_REFLECT)[1:-1, 1:-1]
     if max_samples is not None and r.size > max_samples:
-        r = r.ravel()[::int(np.ceil(r.size / max_samples))]
-    return float(np.median(r) / 0.6745 / 6.0)
+        # every step-th response of the interior in row-major order, gathered without copying the interior first
+        flat = np.arange(0, r.size, int(np.ceil(r.size / max_samples)))
+        r = r[flat // r.shape[1], flat % r.shape[1]]
+    return float(np.median(np.abs(r, out=r if r.flags.owndata else None)) / 0.6745 / 6.0)
 
 
 def sensor_noise_sigma(image: np.ndarray, gain_dn_per_e: float, read_noise_e: float,
@@ -98,8 +100,9 @@ def _signal_spectrum_model(power: np.ndarray, f: np.ndarray, hs2: np.ndarray, no
         raise ParameterError("the sweep's integrated PSF passes almost nothing (MTF below 0.1 at every frequency): "
                              "alpha is too large to deconvolve", field="sweep_alpha_um",
                              fix="use a smaller alpha (see the sweep trade table in docs/benchmarks.md)")
-    lp = np.log(np.maximum(power[ok] - noise_power, 1e-30) / hs2[ok])
-    lf = np.log(f[ok])
+    # the selected samples in float64 (float32 spectra: the least-squares sums below over ~10^6 points)
+    lp = np.log(np.maximum(np.asarray(power[ok], np.float64) - noise_power, 1e-30) / np.asarray(hs2[ok], np.float64))
+    lf = np.log(np.asarray(f[ok], np.float64))
     # the least-squares line in closed form (np.polyfit's Vandermonde + SVD cost ~0.15 s per million points,
     # on the compositor's serial path)
     lf_c = lf - lf.mean()
