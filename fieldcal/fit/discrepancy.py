@@ -351,6 +351,32 @@ class Discrepancy:
             extra = extra + float(self.common_sd[ci]) ** 2
         return mean, extra
 
+    def frames_mean_var(self, x_hat, y_hat, ci: int) -> float:
+        """Variance (normalised z²) the fitted stage frames add to the *mean* of the surface over the points.
+
+        :meth:`predict`'s frames share is pointwise: ``R C R^T - R_p C_0 R_p^T`` with ``R = h - k^T K^-1 X`` (the
+        surface coefficients' and the frames' columns) and ``C``, ``C_0`` the posterior covariances with and
+        without the frames. A frame's error moves only the tiles whose curves use it, so where the tiles peak
+        at different frames (field curvature over several scan steps) much of that share changes over the
+        field and is not one shift of the whole field: the field mean's share is the same form at the mean row
+        ``R̄``, at most the pointwise mean (the difference of the two covariances is positive semi-definite).
+        Recalibrated with the recorded frame positions redrawn from the stated repeatability, 8 benchmark stacks'
+        surfaces moved pointwise by about what the frames state, their field mean by less (docs/benchmarks.md
+        "bench_band_coverage_s13"). 0 without fitted frames.
+        """
+        if not self.has_stage:
+            return 0.0
+        st = self._state()
+        x_hat = np.asarray(x_hat, float).ravel()
+        y_hat = np.asarray(y_hat, float).ravel()
+        p = st["p"]
+        H = self._design(x_hat, y_hat, ci)
+        R = np.hstack([H, np.zeros((H.shape[0], st["beta"].size - p))])
+        if self._has_gp(ci):
+            R = R - self._kernel_rows(x_hat, y_hat, ci) @ st["kinv_x"][self.ch_index == ci]
+        r = R.mean(axis=0)
+        return max(float(r @ st["beta_cov"] @ r - r[:p] @ st["bare_cov"] @ r[:p]), 0.0)
+
     def band_terms_um(self, z_scale_um: float) -> dict[str, Any]:
         """The data-estimated band terms in µm, for the profile's record."""
         out = {"misfit_scale": float(self.misfit_scale),
