@@ -84,9 +84,10 @@ class SurfaceFit:
         ci = self._ch(channel)
         return getattr(model or self.model, fn)(theta, xh, yh, ci), x.shape
 
-    def _kriged(self, xh, yh, ci):
-        """(mean, extra variance) of the discrepancy-aware posterior, normalised units."""
-        return self.discrepancy.predict(xh, yh, ci)
+    def _kriged(self, xh, yh, ci, covered=None):
+        """(mean, extra variance) of the discrepancy-aware posterior, normalised units (``covered``: what the
+        samples already add beyond the chosen model's posterior, :meth:`Discrepancy.predict`)."""
+        return self.discrepancy.predict(xh, yh, ci, covered=covered)
 
     def _window_var(self, x_px, y_px, channel):
         """Variance (normalised z) of the tile-window correction's systematic: (sd_kappa L s^2 / 24)^2."""
@@ -148,7 +149,14 @@ class SurfaceFit:
                 z0, _ = self._eval(self.theta_map, xf[sl], yf[sl], channel)
                 xh, yh = self.geometry.normalise(xf[sl], yf[sl])
                 ci = self._ch(channel)
-                mean, extra = self._kriged(xh, yh, ci)
+                # what the samples (a model average) add beyond the chosen model's own posterior (iid_cov: the
+                # coefficients' covariance the samples carry): the misfit term does not count it again
+                covered = None
+                if len((self.diagnostics.get("model_average") or {}).get("members") or []) > 1:
+                    H = self.discrepancy._design(xh, yh, ci)
+                    own = np.einsum("mp,pq,mq->m", H, self.discrepancy.iid_cov, H)
+                    covered = np.clip(np.mean((z - z0) ** 2, axis=0) - own, 0.0, None)
+                mean, extra = self._kriged(xh, yh, ci, covered=covered)
                 # the leave-tiles-out scale applies to what varies between tiles, not to the common mode
                 cs = self.discrepancy.common_sd
                 common = float(cs[ci]) ** 2 if cs is not None and ci < cs.size else 0.0
