@@ -89,6 +89,18 @@ class SurfaceFit:
         samples already add beyond the chosen model's posterior, :meth:`Discrepancy.predict`)."""
         return self.discrepancy.predict(xh, yh, ci, covered=covered)
 
+    def model_average_covered(self, z, xh, yh, ci):
+        """Per point, the variance (normalised z²) of the posterior samples ``z`` (samples x points) beyond the
+        chosen model's own posterior (``Discrepancy.iid_cov``): what a model average's other members already state,
+        which the misfit term does not count again (:meth:`Discrepancy.predict`; the self-check's error model uses
+        it too). None without a model average (one member)."""
+        if self.discrepancy is None or len((self.diagnostics.get("model_average") or {}).get("members") or []) < 2:
+            return None
+        H = self.discrepancy._design(xh, yh, ci)
+        own = np.einsum("mp,pq,mq->m", H, self.discrepancy.iid_cov, H)
+        # the spread about the samples' own mean: the average's offset from z0 moves the band, it does not widen it
+        return np.clip(np.var(np.asarray(z), axis=0) - own, 0.0, None)
+
     def _window_var(self, x_px, y_px, channel):
         """Variance (normalised z) of the tile-window correction's systematic: (sd_kappa L s^2 / 24)^2."""
         if not self.tile_px or self.tile_correction_sd <= 0:
@@ -151,12 +163,7 @@ class SurfaceFit:
                 ci = self._ch(channel)
                 # what the samples (a model average) add beyond the chosen model's own posterior (iid_cov: the
                 # coefficients' covariance the samples carry): the misfit term does not count it again
-                covered = None
-                if len((self.diagnostics.get("model_average") or {}).get("members") or []) > 1:
-                    H = self.discrepancy._design(xh, yh, ci)
-                    own = np.einsum("mp,pq,mq->m", H, self.discrepancy.iid_cov, H)
-                    covered = np.clip(np.mean((z - z0) ** 2, axis=0) - own, 0.0, None)
-                mean, extra = self._kriged(xh, yh, ci, covered=covered)
+                mean, extra = self._kriged(xh, yh, ci, covered=self.model_average_covered(z, xh, yh, ci))
                 # the leave-tiles-out scale applies to what varies between tiles, not to the common mode
                 cs = self.discrepancy.common_sd
                 common = float(cs[ci]) ** 2 if cs is not None and ci < cs.size else 0.0
