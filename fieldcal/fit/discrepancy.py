@@ -131,6 +131,9 @@ class Discrepancy:
     common_sd: np.ndarray | None = None         # per channel: common-mode sd (normalised z units)
     stage_c: np.ndarray | None = None           # rows x frames: best-focus change per frame position error
     stage_prior_sd: float = 0.0                 # the stage's repeatability (normalised z units)
+    # the misfit term adds only what a model average does not state (predict's ``covered``); False for profiles
+    # written before (session 13), which keep their bands
+    misfit_beyond_average: bool = False
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ------------------------------------------------------------------ linear algebra (cached)
@@ -416,7 +419,8 @@ class Discrepancy:
                 "misfit_scale": float(self.misfit_scale),
                 "common_sd": None if self.common_sd is None else [float(v) for v in self.common_sd],
                 **({"stage_c": np.round(self.stage_c, 6).tolist(), "stage_prior_sd": float(self.stage_prior_sd)}
-                   if self.has_stage else {})}
+                   if self.has_stage else {}),
+                **({"misfit_beyond_average": True} if self.misfit_beyond_average else {})}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], model: SurfaceModel) -> "Discrepancy":
@@ -430,7 +434,8 @@ class Discrepancy:
                    a("rich_cov") if d.get("rich_cov") is not None else None,
                    float(d.get("misfit_scale", 0.0)),
                    a("common_sd") if d.get("common_sd") is not None else None,
-                   a("stage_c") if d.get("stage_c") is not None else None, float(d.get("stage_prior_sd", 0.0)))
+                   a("stage_c") if d.get("stage_c") is not None else None, float(d.get("stage_prior_sd", 0.0)),
+                   bool(d.get("misfit_beyond_average", False)))
 
 
 def _cov(x, y, tau, ell, noise_var) -> np.ndarray:
@@ -555,7 +560,7 @@ def fit_discrepancy(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, weig
     diag["common_mode_fraction"] = COMMON_MODE_FRACTION
     diag["common_mode_sd"] = [float(v) for v in common]
     return Discrepancy(model, centre, xh, yh, ci.astype(np.int64), y, noise_var, tau, ell, s, iid_cov,
-                       jk_cov, diag, rich, rich_cov, misfit_scale, common)
+                       jk_cov, diag, rich, rich_cov, misfit_scale, common, misfit_beyond_average=True)
 
 
 def misfit_term(model: SurfaceModel, centre, xh, yh, ci, y, w, iid_cov):

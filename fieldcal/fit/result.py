@@ -93,8 +93,9 @@ class SurfaceFit:
         """Per point, the variance (normalised z²) of the posterior samples ``z`` (samples x points) beyond the
         chosen model's own posterior (``Discrepancy.iid_cov``): what a model average's other members already state,
         which the misfit term does not count again (:meth:`Discrepancy.predict`; the self-check's error model uses
-        it too). None without a model average (one member)."""
-        if self.discrepancy is None or len((self.diagnostics.get("model_average") or {}).get("members") or []) < 2:
+        it too). None without a model average (one member), and for profiles written before (their bands kept)."""
+        if (self.discrepancy is None or not self.discrepancy.misfit_beyond_average
+                or len((self.diagnostics.get("model_average") or {}).get("members") or []) < 2):
             return None
         H = self.discrepancy._design(xh, yh, ci)
         own = np.einsum("mp,pq,mq->m", H, self.discrepancy.iid_cov, H)
