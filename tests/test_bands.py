@@ -394,3 +394,24 @@ def test_misfit_term_adds_only_what_a_model_average_does_not_already_state():
 def _with_misfit_scale(d, scale):
     from dataclasses import replace
     return replace(d, misfit_scale=scale, _cache={})
+
+
+def test_profiles_written_before_keep_the_summed_misfit():
+    """A new fit marks its discrepancy (misfit beyond the model average); a profile written before has no mark and
+    keeps the band it had (the misfit added in full), through a round trip."""
+    from fieldcal.fit.discrepancy import Discrepancy
+    rng = np.random.default_rng(4)
+    fit = fit_surfaces(*synthetic_tiles(random_lens(rng, channels=("G",)), rng, nx=9, ny=7, sigma_um=(0.5, 1.0),
+                                        directional=False)[:2], effort="quick", seed=0, quiet=True)
+    d = fit.discrepancy
+    assert d.misfit_beyond_average
+    assert Discrepancy.from_dict(d.to_dict(), d.model).misfit_beyond_average
+    old = d.to_dict()
+    old.pop("misfit_beyond_average")
+    assert not Discrepancy.from_dict(old, d.model).misfit_beyond_average
+    z = np.random.default_rng(0).normal(size=(50, 3))
+    xh, yh = np.zeros(3), np.zeros(3)
+    fit.diagnostics["model_average"] = {"members": [{"name": "a"}, {"name": "b"}]}
+    assert fit.model_average_covered(z, xh, yh, 0) is not None
+    fit.discrepancy = Discrepancy.from_dict(old, d.model)
+    assert fit.model_average_covered(z, xh, yh, 0) is None
