@@ -145,11 +145,17 @@ def evaluate(prof, lens: dict, level: float = 0.9) -> dict:
 FIELD_TERMS = ("frames", "common", "breathing", "offset", "window")
 
 
-def stated_field_terms_um2(prof, channel: str, xh: np.ndarray, yh: np.ndarray, x_px=None, y_px=None) -> dict:
+def stated_field_terms_um2(prof, channel: str, xh: np.ndarray, yh: np.ndarray, x_px=None, y_px=None,
+                           piston: bool = False) -> dict:
     """Per channel, the variance (µm²) the profile states for each term that is one draw for the whole field:
     the fitted stage frames (by difference with the band without them, grid mean) or the field-wide stage term,
     the common mode, the breathing systematic, the sml@fs offset and (given the points in px) the tile-window
-    correction's kappa term (grid mean: one kappa for the field, times the local Laplacian)."""
+    correction's kappa term (grid mean: one kappa for the field, times the local Laplacian).
+
+    ``piston=True``: each term's variance of the *grid mean* instead (what it states for the error's piston):
+    the fitted frames' :meth:`Discrepancy.frames_mean_var` (a frame moves only the tiles that use it, so part of
+    their pointwise share changes over the field) and the window term with the grid-mean Laplacian (one kappa
+    times a Laplacian that changes sign over the field); the constant terms are the same either way."""
     s = prof.surfaces
     d = s.discrepancy
     cal = prof.calibration or {}
@@ -160,12 +166,20 @@ def stated_field_terms_um2(prof, channel: str, xh: np.ndarray, yh: np.ndarray, x
         _, extra = d.predict(xh, yh, ci)
         _, bare = d.without_nuisances().predict(xh, yh, ci)
         frames = float(np.mean(np.clip(extra - bare, 0.0, None))) * zs * zs
+        if piston and d.has_stage:
+            frames = float(d.frames_mean_var(xh, yh, ci)) * zs * zs
         common = (float(d.common_sd[ci]) * zs) ** 2 if d.common_sd is not None and ci < d.common_sd.size else 0.0
     if d is None or not d.has_stage:
         frames += float(s.stage_sd_um.get(channel, 0.0)) ** 2
     window = 0.0
     if x_px is not None:
         window = float(np.mean(s._window_var(np.asarray(x_px, float), np.asarray(y_px, float), channel))) * zs * zs
+        if piston and s.tile_px and s.tile_correction_sd > 0:
+            h = 0.5 * s.tile_px
+            xp, yp = np.asarray(x_px, float), np.asarray(y_px, float)
+            f = lambda dx, dy: s._eval(s.theta_map, xp + dx, yp + dy, channel)[0]
+            lap = float(np.mean(f(h, 0) + f(-h, 0) + f(0, h) + f(0, -h) - 4.0 * f(0, 0))) / (h * h)
+            window = (s.tile_correction_sd * lap * s.tile_px ** 2 / 24.0 * zs) ** 2
     return {"frames": frames, "common": common,
             "breathing": float((cal.get("breathing_systematic_sd_um") or {}).get(channel) or 0.0) ** 2,
             "offset": float((cal.get("measure_offset_sd_um") or {}).get(channel) or 0.0) ** 2, "window": window}
@@ -174,7 +188,7 @@ def stated_field_terms_um2(prof, channel: str, xh: np.ndarray, yh: np.ndarray, x
 def decompose(prof, lens: dict, step_px: int = 16, level: float = 0.9) -> dict:
     """The true error on a grid, per channel, split into piston (grid mean), tilt (x and y slopes per unit of
     normalised image height) and the rest, each against the sd the profile states for it: the piston against the
-    field-wide terms (:func:`stated_field_terms_um2`) plus the posterior samples' own grid-mean spread (scaled by
+    field-wide terms' variance of the grid mean (:func:`stated_field_terms_um2` with ``piston=True``) plus the posterior samples' own grid-mean spread (scaled by
     the band scale), the tilt against the samples' slope spread, the rest (piston and tilt taken out) against the
     band's remaining variance at the points (less the field-wide terms and the samples' own piston-and-tilt plane).
     Per channel lists, in µm (variances in µm²)."""
@@ -200,6 +214,8 @@ def decompose(prof, lens: dict, step_px: int = 16, level: float = 0.9) -> dict:
         coef, *_ = np.linalg.lstsq(A, zp - zt, rcond=None)
         rest = zp - zt - A @ coef
         terms = stated_field_terms_um2(prof, c, xh, yh, X.ravel(), Y.ravel())
+        # what each term states for the piston (the grid mean): the ML multipliers compare the pistons with it
+        terms_p = stated_field_terms_um2(prof, c, xh, yh, X.ravel(), Y.ravel(), piston=True)
         # the posterior samples about the MAP (coefficients, centre, model average), as the band scales them
         zsmp, _ = s._eval(s.samples, X.ravel(), Y.ravel(), c, model=s.sample_model)
         z0, _ = s._eval(s.theta_map, X.ravel(), Y.ravel(), c)
@@ -218,7 +234,7 @@ def decompose(prof, lens: dict, step_px: int = 16, level: float = 0.9) -> dict:
         out["dec_coef_tilt_var"].append(float(np.mean(np.var(slopes[1:], axis=1))))
         out["dec_local_var"].append(float(np.mean(np.clip(band_var - sum(terms.values()) - plane_var, 0.0, None))))
         for t in FIELD_TERMS:
-            out[f"dec_{t}_var"].append(terms[t])
+            out[f"dec_{t}_var"].append(terms_p[t])
     return out
 
 

@@ -132,6 +132,9 @@ def band_terms(prof, x_px: np.ndarray, y_px: np.ndarray, channel: str) -> dict[s
     if d.rich_model is not None and d.misfit_scale > 0:
         hr = d.rich_model.design(xh, yh, np.full(xh.size, ci), np.zeros(xh.size, np.int64), d.centre)
         mis = d.misfit_scale * np.clip(np.einsum("mp,pq,mq->m", hr, d.rich_cov, hr) - iid, 0.0, None)
+        covered = s.model_average_covered(z, xh, yh, ci)  # what the model average states already (predict)
+        if covered is not None:
+            mis = np.clip(mis - covered, 0.0, None)
     # predict(): clip(max(local + kc, local + jk) - iid, 0), split in the order local, kriging, jackknife
     tot = np.clip(np.maximum(local + kc, local + jk) - iid, 0.0, None)
     out["gp_local"] = np.minimum(local, tot)

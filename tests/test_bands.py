@@ -361,3 +361,57 @@ def test_decomposition_summary_recovers_which_field_wide_term_is_real():
     assert math.isnan(d["ml_common"]) and math.isnan(d["ml_offset"])
     assert d["rest_local_med"] == pytest.approx(1.0)
     assert 0.7 < d["piston_z_rms"] < 0.9, d    # sqrt((1 + 0.25) / 2) = 0.79 on average
+
+
+def test_misfit_term_adds_only_what_a_model_average_does_not_already_state():
+    """The misfit term (F test of the chosen surface against the richest) and a model average's other members
+    both widen the band for "the chosen surface may be too simple": ``Discrepancy.predict(covered=v)`` adds the
+    misfit variance only beyond v, closed form ``extra(v) = extra(None) - min(misfit, v)`` pointwise."""
+    from fieldcal.fit.discrepancy import Discrepancy, misfit_term
+    from fieldcal.fit.surface import SurfaceModel
+    rng = np.random.default_rng(5)
+    gx, gy = np.meshgrid(np.linspace(-0.8, 0.8, 9), np.linspace(-0.6, 0.6, 7))
+    xh, yh = gx.ravel(), gy.ravel()
+    ci = np.zeros(xh.size, np.int64)
+    flat = SurfaceModel(("G",), 0, False, False, False, False, 0)
+    X = flat.design(xh, yh, ci, np.zeros(xh.size, np.int64), np.zeros(2))
+    cov = np.linalg.inv(X.T @ X)
+    y = 4.0 * (xh ** 2 + yh ** 2) ** 2 + rng.standard_normal(xh.size)
+    rich, rcov, scale, diag = misfit_term(flat, np.zeros(2), xh, yh, ci, y, np.ones(xh.size), cov)
+    assert scale > 1.0
+    d = Discrepancy(flat, np.zeros(2), xh, yh, ci, y, np.ones(xh.size), np.array([0.0]), 1.0, 1.0, cov,
+                    rich_model=rich, rich_cov=rcov, misfit_scale=scale)
+    px, py = np.linspace(-1.0, 1.0, 9), np.linspace(-0.7, 0.7, 9)
+    _, base = d.predict(px, py, 0)
+    _, no_misfit = _with_misfit_scale(d, 0.0).predict(px, py, 0)
+    misfit = base - no_misfit
+    assert np.all(misfit > 0)
+    for v in (np.zeros(px.size), 0.5 * misfit, 10.0 * misfit, np.linspace(0.0, 2.0, px.size) * misfit):
+        _, extra = d.predict(px, py, 0, covered=v)
+        np.testing.assert_allclose(extra, base - np.minimum(misfit, v), rtol=1e-9, atol=1e-12)
+
+
+def _with_misfit_scale(d, scale):
+    from dataclasses import replace
+    return replace(d, misfit_scale=scale, _cache={})
+
+
+def test_profiles_written_before_keep_the_summed_misfit():
+    """A new fit marks its discrepancy (misfit beyond the model average); a profile written before has no mark and
+    keeps the band it had (the misfit added in full), through a round trip."""
+    from fieldcal.fit.discrepancy import Discrepancy
+    rng = np.random.default_rng(4)
+    fit = fit_surfaces(*synthetic_tiles(random_lens(rng, channels=("G",)), rng, nx=9, ny=7, sigma_um=(0.5, 1.0),
+                                        directional=False)[:2], effort="quick", seed=0, quiet=True)
+    d = fit.discrepancy
+    assert d.misfit_beyond_average
+    assert Discrepancy.from_dict(d.to_dict(), d.model).misfit_beyond_average
+    old = d.to_dict()
+    old.pop("misfit_beyond_average")
+    assert not Discrepancy.from_dict(old, d.model).misfit_beyond_average
+    z = np.random.default_rng(0).normal(size=(50, 3))
+    xh, yh = np.zeros(3), np.zeros(3)
+    fit.diagnostics["model_average"] = {"members": [{"name": "a"}, {"name": "b"}]}
+    assert fit.model_average_covered(z, xh, yh, 0) is not None
+    fit.discrepancy = Discrepancy.from_dict(old, d.model)
+    assert fit.model_average_covered(z, xh, yh, 0) is None

@@ -177,3 +177,33 @@ def test_coverage_given_shared_matches_closed_forms_and_monte_carlo():
     assert half["p05"] == pytest.approx(np.quantile(draws, 0.05), abs=0.03)
     assert half["p95"] == pytest.approx(np.quantile(draws, 0.95), abs=0.01)
 
+
+
+def test_frames_field_mean_share_is_the_piston_not_the_pointwise_mean():
+    """Two cases with closed forms. (a) Every tile reads frame 0 (c = -1): the frames' error is one piston, so
+    the field mean's share equals the pointwise share, r^2. (b) Each tile reads two frames with weights that
+    change over the field (c = -(1/2 + x), -(1/2 - x): tiles that peak at different frames), on a piston + tilt
+    surface: the tiles move by -(e0 + e1) / 2 - x (e0 - e1), which the fit cannot tell from its piston and tilt,
+    so the pointwise share is r^2 / 2 + 2 r^2 x^2 while the field mean over symmetric points has r^2 / 2 only:
+    the mean of the pointwise shares (what the benchmark's decomposition used to charge to the piston) is larger
+    by 2 r^2 mean(x^2)."""
+    n, r, sig = 60, 0.3, 0.02
+    model, x, y, target, C = _shared_frame_case(n, sig)
+    d = _disc(model, x, y, target, np.full(n, sig ** 2), C, r)
+    px, py = np.linspace(-0.5, 0.5, 11), np.zeros(11)
+    _, extra = d.predict(px, py, 0)
+    assert d.frames_mean_var(px, py, 0) == pytest.approx(r ** 2, rel=0.02)
+    assert d.frames_mean_var(px, py, 0) == pytest.approx(float(np.mean(extra)), rel=0.02)
+
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(-0.6, 0.6, n), rng.uniform(-0.4, 0.4, n)
+    model1 = SurfaceModel(("G",), 0, True, False, False, False, None)
+    C = np.column_stack([-(0.5 + x), -(0.5 - x)])
+    d = _disc(model1, x, y, rng.normal(0.0, sig, n), np.full(n, sig ** 2), C, r)
+    px, py = np.linspace(-0.6, 0.6, 13), np.zeros(13)
+    _, extra = d.predict(px, py, 0)
+    _, bare = d.without_nuisances().predict(px, py, 0)
+    assert np.allclose(extra - bare, r ** 2 / 2 + 2 * r ** 2 * px ** 2, rtol=0.03)
+    assert d.frames_mean_var(px, py, 0) == pytest.approx(r ** 2 / 2, rel=0.03)
+    assert float(np.mean(extra - bare)) > 1.4 * d.frames_mean_var(px, py, 0)
+    assert _disc(model1, x, y, rng.normal(0.0, sig, n), np.full(n, sig ** 2)).frames_mean_var(px, py, 0) == 0.0

@@ -131,6 +131,9 @@ class Discrepancy:
     common_sd: np.ndarray | None = None         # per channel: common-mode sd (normalised z units)
     stage_c: np.ndarray | None = None           # rows x frames: best-focus change per frame position error
     stage_prior_sd: float = 0.0                 # the stage's repeatability (normalised z units)
+    # the misfit term adds only what a model average does not state (predict's ``covered``); False for profiles
+    # written before (session 13), which keep their bands
+    misfit_beyond_average: bool = False
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ------------------------------------------------------------------ linear algebra (cached)
@@ -293,7 +296,8 @@ class Discrepancy:
         alpha = self._state()["alpha"][self.ch_index == ci]
         return float(self.tau[ci] ** 2 * a * a * np.sum(np.abs(alpha)))
 
-    def predict(self, x_hat, y_hat, ci: int, with_variance: bool = True, nuisance: bool = True):
+    def predict(self, x_hat, y_hat, ci: int, with_variance: bool = True, nuisance: bool = True,
+                covered=None):
         """Kriging mean and the variance *beyond* the independent-tile posterior at points (normalised z).
 
         Returns ``(mean, extra_var)``: ``mean = h beta + k^T K^-1 (y - X beta)``; ``extra_var`` = kriging
@@ -305,6 +309,13 @@ class Discrepancy:
         the whole field, which deleting a block of tiles does not change and the jackknife cannot see (inside
         the maximum it vanished wherever the jackknife was the larger: 0.00-0.02 µm stated where the frames
         moved the surface by 0.05-0.1 µm). ``nuisance=False`` leaves that share out (a held-out tile shares it).
+
+        ``covered``: per point, the variance (normalised z²) the caller's posterior samples already add beyond the
+        chosen model's own posterior (a model average's other members, :meth:`SurfaceFit._sample_surfaces`): the
+        misfit term adds only what it states beyond that. Both say "the chosen surface may be too simple" from
+        the same tiles (the misfit by the F test against the richest surface, the average by the candidates'
+        scores), so their sum counted that doubt twice: on flat (poly1) random lenses with a 0.01 µm rest error
+        the two together stated 0.14-0.23 µm of local sd.
         """
         st = self._state()
         x_hat = np.asarray(x_hat, float).ravel()
@@ -346,10 +357,39 @@ class Discrepancy:
             Hr = self.rich_model.design(x_hat, y_hat, np.full(x_hat.size, ci), np.zeros(x_hat.size, np.int64),
                                         self.centre)
             diff = np.einsum("mp,pq,mq->m", Hr, self.rich_cov, Hr) - iid
-            extra = extra + self.misfit_scale * np.clip(diff, 0.0, None)
+            misfit = self.misfit_scale * np.clip(diff, 0.0, None)
+            if covered is not None:
+                misfit = np.clip(misfit - np.asarray(covered, float), 0.0, None)
+            extra = extra + misfit
         if self.common_sd is not None and ci < self.common_sd.size:
             extra = extra + float(self.common_sd[ci]) ** 2
         return mean, extra
+
+    def frames_mean_var(self, x_hat, y_hat, ci: int) -> float:
+        """Variance (normalised z²) the fitted stage frames add to the *mean* of the surface over the points.
+
+        :meth:`predict`'s frames share is pointwise: ``R C R^T - R_p C_0 R_p^T`` with ``R = h - k^T K^-1 X`` (the
+        surface coefficients' and the frames' columns) and ``C``, ``C_0`` the posterior covariances with and
+        without the frames. A frame's error moves only the tiles whose curves use it, so where the tiles peak
+        at different frames (field curvature over several scan steps) much of that share changes over the
+        field and is not one shift of the whole field: the field mean's share is the same form at the mean row
+        ``R̄``, at most the pointwise mean (the difference of the two covariances is positive semi-definite).
+        Recalibrated with the recorded frame positions redrawn from the stated repeatability, 8 benchmark stacks'
+        surfaces moved pointwise by about what the frames state, their field mean by less (docs/benchmarks.md
+        "bench_band_coverage_s13"). 0 without fitted frames.
+        """
+        if not self.has_stage:
+            return 0.0
+        st = self._state()
+        x_hat = np.asarray(x_hat, float).ravel()
+        y_hat = np.asarray(y_hat, float).ravel()
+        p = st["p"]
+        H = self._design(x_hat, y_hat, ci)
+        R = np.hstack([H, np.zeros((H.shape[0], st["beta"].size - p))])
+        if self._has_gp(ci):
+            R = R - self._kernel_rows(x_hat, y_hat, ci) @ st["kinv_x"][self.ch_index == ci]
+        r = R.mean(axis=0)
+        return max(float(r @ st["beta_cov"] @ r - r[:p] @ st["bare_cov"] @ r[:p]), 0.0)
 
     def band_terms_um(self, z_scale_um: float) -> dict[str, Any]:
         """The data-estimated band terms in µm, for the profile's record."""
@@ -379,7 +419,8 @@ class Discrepancy:
                 "misfit_scale": float(self.misfit_scale),
                 "common_sd": None if self.common_sd is None else [float(v) for v in self.common_sd],
                 **({"stage_c": np.round(self.stage_c, 6).tolist(), "stage_prior_sd": float(self.stage_prior_sd)}
-                   if self.has_stage else {})}
+                   if self.has_stage else {}),
+                **({"misfit_beyond_average": True} if self.misfit_beyond_average else {})}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], model: SurfaceModel) -> "Discrepancy":
@@ -393,7 +434,8 @@ class Discrepancy:
                    a("rich_cov") if d.get("rich_cov") is not None else None,
                    float(d.get("misfit_scale", 0.0)),
                    a("common_sd") if d.get("common_sd") is not None else None,
-                   a("stage_c") if d.get("stage_c") is not None else None, float(d.get("stage_prior_sd", 0.0)))
+                   a("stage_c") if d.get("stage_c") is not None else None, float(d.get("stage_prior_sd", 0.0)),
+                   bool(d.get("misfit_beyond_average", False)))
 
 
 def _cov(x, y, tau, ell, noise_var) -> np.ndarray:
@@ -518,7 +560,7 @@ def fit_discrepancy(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, weig
     diag["common_mode_fraction"] = COMMON_MODE_FRACTION
     diag["common_mode_sd"] = [float(v) for v in common]
     return Discrepancy(model, centre, xh, yh, ci.astype(np.int64), y, noise_var, tau, ell, s, iid_cov,
-                       jk_cov, diag, rich, rich_cov, misfit_scale, common)
+                       jk_cov, diag, rich, rich_cov, misfit_scale, common, misfit_beyond_average=True)
 
 
 def misfit_term(model: SurfaceModel, centre, xh, yh, ci, y, w, iid_cov):

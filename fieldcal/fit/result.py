@@ -84,9 +84,23 @@ class SurfaceFit:
         ci = self._ch(channel)
         return getattr(model or self.model, fn)(theta, xh, yh, ci), x.shape
 
-    def _kriged(self, xh, yh, ci):
-        """(mean, extra variance) of the discrepancy-aware posterior, normalised units."""
-        return self.discrepancy.predict(xh, yh, ci)
+    def _kriged(self, xh, yh, ci, covered=None):
+        """(mean, extra variance) of the discrepancy-aware posterior, normalised units (``covered``: what the
+        samples already add beyond the chosen model's posterior, :meth:`Discrepancy.predict`)."""
+        return self.discrepancy.predict(xh, yh, ci, covered=covered)
+
+    def model_average_covered(self, z, xh, yh, ci):
+        """Per point, the variance (normalised z²) of the posterior samples ``z`` (samples x points) beyond the
+        chosen model's own posterior (``Discrepancy.iid_cov``): what a model average's other members already state,
+        which the misfit term does not count again (:meth:`Discrepancy.predict`; the self-check's error model uses
+        it too). None without a model average (one member), and for profiles written before (their bands kept)."""
+        if (self.discrepancy is None or not self.discrepancy.misfit_beyond_average
+                or len((self.diagnostics.get("model_average") or {}).get("members") or []) < 2):
+            return None
+        H = self.discrepancy._design(xh, yh, ci)
+        own = np.einsum("mp,pq,mq->m", H, self.discrepancy.iid_cov, H)
+        # the spread about the samples' own mean: the average's offset from z0 moves the band, it does not widen it
+        return np.clip(np.var(np.asarray(z), axis=0) - own, 0.0, None)
 
     def _window_var(self, x_px, y_px, channel):
         """Variance (normalised z) of the tile-window correction's systematic: (sd_kappa L s^2 / 24)^2."""
@@ -148,7 +162,9 @@ class SurfaceFit:
                 z0, _ = self._eval(self.theta_map, xf[sl], yf[sl], channel)
                 xh, yh = self.geometry.normalise(xf[sl], yf[sl])
                 ci = self._ch(channel)
-                mean, extra = self._kriged(xh, yh, ci)
+                # what the samples (a model average) add beyond the chosen model's own posterior (iid_cov: the
+                # coefficients' covariance the samples carry): the misfit term does not count it again
+                mean, extra = self._kriged(xh, yh, ci, covered=self.model_average_covered(z, xh, yh, ci))
                 # the leave-tiles-out scale applies to what varies between tiles, not to the common mode
                 cs = self.discrepancy.common_sd
                 common = float(cs[ci]) ** 2 if cs is not None and ci < cs.size else 0.0

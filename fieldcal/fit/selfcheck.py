@@ -300,8 +300,10 @@ def _channel_error_model(profile, ch: str, x: np.ndarray, y: np.ndarray, n_rows:
                 "local": np.zeros(x.size), "length": 1.0, "shared": math.sqrt(sys_var), "rank1": []}
     c = float(s.band_scale)
     z0 = s.model.surface(s.theta_map, xh, yh, ci)
-    _, extra = d.predict(xh, yh, ci)
-    _, bare = d.without_nuisances().predict(xh, yh, ci)
+    # the misfit beyond what the model average states, as the band has it (SurfaceFit.model_average_covered)
+    covered = s.model_average_covered(s.sample_model.surface(s.samples, xh, yh, ci), xh, yh, ci)
+    _, extra = d.predict(xh, yh, ci, covered=covered)
+    _, bare = d.without_nuisances().predict(xh, yh, ci, covered=covered)
     common = float(d.common_sd[ci]) ** 2 if d.common_sd is not None and ci < d.common_sd.size else 0.0
     stage = 0.0 if d.has_stage else (float(s.stage_sd_um.get(ch, 0.0)) / zs) ** 2
     # the samples are a model average: their mean is the band's centre, off the chosen model's surface (value);
