@@ -199,16 +199,11 @@ def _enfuse(world, tmp_path):
 
     import tifffile
 
-    from fieldcal.composite.warp import frame_maps, warp_region
-
     if not shutil.which("enfuse"):
         return None
-    st, prof = world["st"], world["prof"]
-    names = []
-    for i in range(len(st)):
-        im = np.zeros((H, W, 3), np.float32)
-        for fm in frame_maps(prof, float(st.z_um[i]), st.channels):
-            im[..., list(fm.channels)] = warp_region(st, i, fm, 0, 0, W, H)
+    reg, names = _registered(world), []
+    for i in range(len(reg)):
+        im = reg.read(i)
         names.append(str(tmp_path / f"f{i:02d}.tif"))
         tifffile.imwrite(names[-1], np.clip(np.rint(im), 0, 65535).astype(np.uint16))
     subprocess.run(["enfuse", "--exposure-weight=0", "--saturation-weight=0", "--contrast-weight=1", "--hard-mask",
