@@ -150,11 +150,13 @@ def main() -> None:
     ap.add_argument("--step", type=float, default=1.5, help="frame spacing in focus tolerances")
     ap.add_argument("--noise", type=float, default=1.0, help="the sensor's noise times this (default 1)")
     ap.add_argument("--layouts", default=",".join(LAYOUTS), help="comma-separated layouts (default all)")
+    ap.add_argument("--seed", type=int, default=1, help="the scene's and the renderer's seed (default 1)")
     ap.add_argument("--tag", default="", help="write into the section bench_depth_scenes:TAG (default: by step)")
     ap.add_argument("--write", action="store_true", help="write the table into docs/benchmarks.md")
     a = ap.parse_args()
     w, h = (int(v) for v in a.size.lower().split("x"))
-    opts = (f" --noise {a.noise:g}" if a.noise != 1.0 else "") + (f" --tag {a.tag}" if a.tag else "")
+    opts = ((f" --noise {a.noise:g}" if a.noise != 1.0 else "") + (f" --seed {a.seed}" if a.seed != 1 else "")
+            + (f" --tag {a.tag}" if a.tag else ""))
     lines = [f"Scenes with depth ({w}x{h} px colour, paper triplet, one frame per {a.step:g} tolerances, depth 6 "
              f"tolerances, sensor noise x{a.noise:g}; `python benchmarks/bench_depth_scenes.py --size {w}x{h} "
              f"--step {a.step:g}{opts} --write`):", "",
@@ -174,7 +176,7 @@ def main() -> None:
             "no profile − defocus none | no profile − focus-stack | "
             "halo px (no profile / defocus none / focus-stack) |", "|" + " --- |" * 13]
     for layout in a.layouts.split(","):
-        r = run_layout(layout, w, h, step=a.step, noise=a.noise)
+        r = run_layout(layout, w, h, seed=a.seed, step=a.step, noise=a.noise)
         R = r["rows"]
         enf = R.get("enfuse", (float("nan"), -1))
         o, ow, d, hy = R["oracle"], R["oracle wiener"], R["dff"], R["hybrid"]
