@@ -93,6 +93,13 @@ def _stack(spec, r, z, noise):
                       black_level=spec.sensor.black_level_dn, white_level=spec.sensor.white_level_dn)
 
 
+def _stack_and_blend(spec, r, z, prof, zb, noise):
+    """The flat world's stack, all its frames and the depth map's blend of them (the Wiener filter's reference)."""
+    st = _stack(spec, r, z, noise)
+    frames = np.arange(len(st))
+    return st, frames, composite_with_map(st, zb, blend_kernel(st, prof, frames), prof, frames, quiet=True)
+
+
 @pytest.mark.parametrize("noise", [False, True])
 def test_wiener_combination_beats_the_nearest_frame(flat_world, noise):
     """Every frame is the in-focus image through a known OTF: noise-free, the combination (sum H_k Y_k H_0 /
@@ -100,9 +107,7 @@ def test_wiener_combination_beats_the_nearest_frame(flat_world, noise):
     the renderer interpolates between blur levels and each frame is warped back from its own breathing, neither
     of which is a pure OTF); with the camera's noise it also averages the frames' noise (> 1 dB)."""
     spec, r, z, prof, zb = flat_world
-    st = _stack(spec, r, z, noise)
-    frames = np.arange(len(st))
-    blend = composite_with_map(st, zb, blend_kernel(st, prof, frames), prof, frames, quiet=True)
+    st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, noise)
     out, info = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
     truth = r.truth().astype(np.float64)
     m = 8
@@ -135,9 +140,7 @@ def test_tiles_agree_with_one_whole_image_filter(flat_world, monkeypatch):
     import fieldcal.composite.depth_wiener as dw
 
     spec, r, z, prof, zb = flat_world
-    st = _stack(spec, r, z, True)
-    frames = np.arange(len(st))
-    blend = composite_with_map(st, zb, blend_kernel(st, prof, frames), prof, frames, quiet=True)
+    st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)
     monkeypatch.setattr(dw, "TILE_PX", 4096)
     whole, info_w = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
     monkeypatch.setattr(dw, "TILE_PX", 40)
@@ -154,9 +157,7 @@ def test_needed_pixels_get_the_full_filter_and_the_rest_the_reference(flat_world
     import fieldcal.composite.depth_wiener as dw
 
     spec, r, z, prof, zb = flat_world
-    st = _stack(spec, r, z, True)
-    frames = np.arange(len(st))
-    blend = composite_with_map(st, zb, blend_kernel(st, prof, frames), prof, frames, quiet=True)
+    st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)
     monkeypatch.setattr(dw, "TILE_PX", 40)
     full, _ = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
     h, w = zb.shape[:2]
@@ -173,9 +174,7 @@ def test_mixed_planes_are_the_channels_filter_when_the_mix_picks_channels(flat_w
     that pick single channels (permuted) give those channels' filtered images, and a row that does not match
     the channels is refused."""
     spec, r, z, prof, zb = flat_world
-    st = _stack(spec, r, z, True)
-    frames = np.arange(len(st))
-    blend = composite_with_map(st, zb, blend_kernel(st, prof, frames), prof, frames, quiet=True)
+    st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)
     full, info = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
     perm = [2, 0, 1]
     planes, info_p = wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=np.eye(3)[perm], quiet=True)
@@ -205,9 +204,7 @@ def test_a_shared_noise_probe_gives_each_call_its_own_probe_result(flat_world):
     """The luma and chroma calls given their planes' levels from one probe of all three planes filter exactly as
     when each probes its own; a wrong number of levels is refused."""
     spec, r, z, prof, zb = flat_world
-    st = _stack(spec, r, z, True)
-    frames = np.arange(len(st))
-    blend = composite_with_map(st, zb, blend_kernel(st, prof, frames), prof, frames, quiet=True)
+    st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)
     ycc = np.array([[0.299, 0.587, 0.114], [-0.1687, -0.3313, 0.5], [0.5, -0.4187, -0.0813]])
     sig = probe_plane_sigma(st, frames, geometry=prof, mix=ycc)
     for rows, ps in ((ycc[:1], sig[:1]), (ycc[1:], sig[1:])):
