@@ -134,7 +134,6 @@ def check_temp_space(nbytes: int, what: str) -> None:
                                 f"with {nbytes / GB:.0f} GB free (e.g. TMPDIR=/data/tmp fieldcal composite ...)")
 
 
-
 #: glibc's allocator for a compositing process (:func:`tune_allocator`): at most this many arenas, blocks up to
 #: this size taken from the heap rather than mapped afresh, and freed heap kept up to this much.
 MALLOC_ARENAS = 2
@@ -151,8 +150,8 @@ def tune_allocator() -> bool:
     allocates gets its own arena, which keeps its own free memory. Two arenas, planes from the heap (blocks below
     :data:`MALLOC_MMAP_THRESHOLD_BYTES`) and freed heap kept up to :data:`MALLOC_TRIM_THRESHOLD_BYTES`: half the
     page faults, and a peak resident memory 5-13 % lower on the real board (7 and 10 frames), not higher
-    (docs/benchmarks.md ``bench_composite_speed_s13``). Settings of the process as a whole: the ``fieldcal composite`` command sets
-    them; a program calling the library decides for itself.
+    (docs/benchmarks.md ``bench_composite_speed_s13``). Settings of the process as a whole: the ``fieldcal
+    composite`` command sets them; a program calling the library decides for itself.
     """
     import ctypes
     import sys
