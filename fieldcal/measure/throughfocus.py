@@ -676,11 +676,14 @@ def pooled_skew(fits: list[CurveFit], repeatability_um: float = 0.0):
 def frames_response(a, resps) -> np.ndarray | None:
     """``sum_i a_i resp_i``: a pooled value's response to the frames' position errors (per frame, µm per µm),
     from its values' responses ``resps`` (arrays on one z grid; None: not known, counted as 0) and the pooling's
-    linear weights ``a`` (:func:`pooled_coefficients`). None when no value has one."""
+    linear weights ``a`` (:func:`pooled_coefficients`). None when no value has one, or when the values' curves
+    are not on one z grid (curves on their own grids, :func:`analyse_curve_list`, share no frames by index)."""
     out = None
     for ai, r in zip(a, resps):
         if r is None or not ai:
             continue
+        if out is not None and r.shape != out.shape:
+            return None
         out = ai * r if out is None else out + ai * r
     return out
 
