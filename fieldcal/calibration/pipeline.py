@@ -151,6 +151,7 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
         stack = Stack.open(stack, verify=False)
         stack.start_verify()  # the frames hash beside the imports and the chart check below (Stack.start_verify)
     from fieldcal.measure import measure_geometry, measure_stack
+    from fieldcal.measure.tiles import TileRules
     from fieldcal.fit import ImageGeometry
     from fieldcal.fit.geometry import GeometryData, fit_geometry
     from fieldcal.fit.stage import fit_stage_errors
@@ -183,8 +184,10 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
         table, edge_summary = measure_edges(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
                                             z_ref_um=float(geo_meas.z_ref_um), geometry=geo_meas, quiet=quiet)
     else:
+        # the stage's repeatability: its frame errors enter every tile's curve at once (the pooled skew and offset)
         table, geo_meas = measure_stack(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), tile_px=tile_px,
-                                        effort=effort, measure=measure, z_ref_um=z_ref_um, quiet=quiet)
+                                        effort=effort, measure=measure, z_ref_um=z_ref_um, quiet=quiet,
+                                        rules=TileRules(stage_repeatability_um=stage_rep))
         _require_tiles(table, stack, kind)
     measure = table.measure  # "auto" resolved (measure.tiles.resolve_measure); "esfr" on edges
     t_measure = time.perf_counter() - t0

@@ -21,7 +21,7 @@ beyond the ends of the scan (no extrapolation), or the fit fails; see :class:`Cu
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -110,6 +110,13 @@ class CurveFit:
     # the same shift by the other estimator (the local skewed peak where the shift came from the spherical-aberration
     # model): their pooled difference is the skew shift's model error (:func:`pooled_skew_shift`)
     skew_alt_um: float = math.nan
+    # Frame responses (per frame of the curve's z grid, µm per µm; None where not known): how the symmetric
+    # centre, the skew shift and the best focus move when frame k was taken e_k away from where it is recorded.
+    # Every tile's curve is sampled at the same frames, so a pooled value's frame error is the coherent sum of
+    # its tiles' responses (:func:`frames_var_um2`), which pooling over tiles does not average.
+    centre_resp: np.ndarray | None = field(default=None, compare=False, repr=False)
+    skew_resp: np.ndarray | None = field(default=None, compare=False, repr=False)
+    best_resp: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @classmethod
     def rejected(cls, status: str, peak: float = math.nan, floor: float = math.nan) -> "CurveFit":
@@ -557,7 +564,12 @@ def _sa_corrections(z, V, pres, fits, step, fs_cyc_per_um: float = math.nan, wav
         s2 = max(f.rss / (f.n - 5), 1e-30)
         chi2 = max(fits[j].rss - f.rss, 0.0) / s2
         w = 1.0 / (1.0 + SKEW_PRIOR_ODDS * math.sqrt(f.n) * math.exp(-0.5 * min(chi2, 1400.0)))
-        out[j] = (float(u_pk[r] - fits[j].params[1]), var, w)
+        # the shift's frame response over the window: the skewed model's peak's (its gradient through the fit's
+        # d params / d e) less the centre's; a common offset of every frame moves both alike (sum 0)
+        k_win = sub[k][1].hi - sub[k][1].lo + 1
+        resp = (grad[r] @ f.sens[:, :k_win] - fits[j].sens[1, :k_win]
+                if f.sens is not None and fits[j].sens is not None else None)
+        out[j] = (float(u_pk[r] - fits[j].params[1]), var, w, resp)
     return out
 
 
@@ -582,12 +594,22 @@ def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules, corr=_LOC
         alt = loc[0] * step if loc is not None else math.nan
     if fit is None and corr is None:
         return CurveFit.rejected("fit_failed", pre.height, pre.floor)
+    # frame responses on the full grid (zeros outside the window): the centre's from the fit, the shift's from
+    # the spherical-aberration model's (_sa_corrections; the local skewed peak's is not derived: None)
+    k_win = pre.hi - pre.lo + 1
+    c_resp = s_resp = None
+    if fit is not None and fit.sens is not None:
+        c_resp = np.zeros(z.size)
+        c_resp[pre.lo:pre.hi + 1] = fit.sens[1, :k_win]
+    if corr is not None and len(corr) > 3 and corr[3] is not None:
+        s_resp = np.zeros(z.size)
+        s_resp[pre.lo:pre.hi + 1] = corr[3]
     if fit is None:
         u_mean, var_u, w_skew = corr[0], corr[1], 1.0
     elif corr is None:
         u_mean, var_u, w_skew = float(fit.params[1]), fit.var_u0, (0.0 if rules.skew else math.nan)
     else:
-        du, var_du, w_skew = corr
+        du, var_du, w_skew = corr[:3]
         u_s = float(fit.params[1])
         u_mean = u_s + w_skew * du
         var_u = (w_skew * (var_du + (u_s + du - u_mean) ** 2) + (1.0 - w_skew) * (fit.var_u0 + (u_s - u_mean) ** 2))
@@ -600,13 +622,15 @@ def _finish(z, v, pre: _Pre, fit, step, model, x_q, rules: CurveRules, corr=_LOC
         return CurveFit(float(z0), float(math.sqrt(var_u) * step), math.nan, float(pre.height), float(pre.floor),
                         STATUS_OK, int(pre.hi - pre.lo + 1), w_skew, math.nan, math.nan, math.nan, *shift)
     width = x_q / fit.params[2] * step if model == "otf" else math.nan
+    best = (c_resp if corr is None or not w_skew > 0 else
+            (c_resp + w_skew * s_resp if c_resp is not None and s_resp is not None else None))
     return CurveFit(float(z0), float(math.sqrt(var_u) * step), float(width), float(fit.params[0] * fit.scale),
                     float(fit.params[-1] * fit.scale), STATUS_OK, int(pre.hi - pre.lo + 1), w_skew,
                     fit.stage_gain, float(z[pre.i_max] + fit.params[1] * step), float(math.sqrt(fit.var_u0) * step),
-                    *shift)
+                    *shift, c_resp, s_resp, best)
 
 
-def pooled_skew_shift(fits: list[CurveFit]) -> tuple[float, float, float]:
+def pooled_skew_shift(fits: list[CurveFit], repeatability_um: float = 0.0) -> tuple[float, float, float]:
     """(shift, sd, weight): the skew correction shared by a set of curves (the tiles of one channel).
 
     Why pool: a lens's spherical aberration skews every tile's curve the same way, while a tile that spans a
@@ -616,10 +640,63 @@ def pooled_skew_shift(fits: list[CurveFit]) -> tuple[float, float, float]:
     Birge-inflated by their scatter) is applied to every tile, with the evidence weight
     ``1 / (1 + O sqrt(N) exp(-chi2 / 2))``, ``chi2 = (mean / sd)^2``: a lens whose curves are skewed the same
     way everywhere gets its sharpest positions; scattered, sign-changing shifts average out.
+
+    ``repeatability_um``: the stage's; the sd (and so the evidence) takes the frames' share of the pooled shift
+    (:func:`pooled_skew`), one draw for every curve that pooling over tiles does not average.
     """
-    d = np.array([f.skew_shift_um for f in fits if f.status == STATUS_OK], dtype=np.float64)
-    sd = np.array([f.skew_shift_sd_um for f in fits if f.status == STATUS_OK], dtype=np.float64)
-    return pooled_mean(d, sd)
+    return pooled_skew(fits, repeatability_um)[:3]
+
+
+def pooled_skew(fits: list[CurveFit], repeatability_um: float = 0.0):
+    """(shift, sd, weight, frame response, frames' sd): :func:`pooled_skew_shift` with the pooled shift's
+    response to the frames' position errors (per frame, µm per µm: the tiles' skew-shift responses
+    :attr:`CurveFit.skew_resp` summed with the pooling's own weights, :func:`pooled_coefficients`) and the sd
+    that puts in it at the stage's repeatability (:func:`frames_var_um2`), which is in ``sd``.
+
+    Why frame by frame: every tile's curve is sampled at the same frames, so one pattern of position errors
+    makes every tile's curve look skewed the same way, which the pooled shift keeps in full and its evidence,
+    which takes the tiles as independent, read as a real skew (random lens 14 of the band benchmark, symmetric
+    curves, repeatability 0.48 µm: -0.44 µm at weight 1; with the true frame positions -0.06 µm at 0.02). A
+    bound on that share (each tile's whole stage gain, session 13's trial) also swamped real small skews;
+    the coherent sum is the share itself: a real skew that the frames cannot make reads as evidence, a
+    frame pattern does not.
+    """
+    ok = [f for f in fits if f.status == STATUS_OK]
+    d = np.array([f.skew_shift_um for f in ok], dtype=np.float64)
+    sd = np.array([f.skew_shift_sd_um for f in ok], dtype=np.float64)
+    mean, se, weight, a = _pooled(d, sd)
+    resp = frames_response(a, [f.skew_resp for f in ok])
+    v = frames_var_um2(resp, repeatability_um)
+    if v > 0 and se > 0:
+        se = math.sqrt(se * se + v)
+        weight = evidence_weight(mean, se, int(np.count_nonzero(a)))
+    return mean, se, weight, resp, math.sqrt(v)
+
+
+def frames_response(a, resps) -> np.ndarray | None:
+    """``sum_i a_i resp_i``: a pooled value's response to the frames' position errors (per frame, µm per µm),
+    from its values' responses ``resps`` (arrays on one z grid; None: not known, counted as 0) and the pooling's
+    linear weights ``a`` (:func:`pooled_coefficients`). None when no value has one, or when the values' curves
+    are not on one z grid (curves on their own grids, :func:`analyse_curve_list`, share no frames by index)."""
+    out = None
+    for ai, r in zip(a, resps):
+        if r is None or not ai:
+            continue
+        if out is not None and r.shape != out.shape:
+            return None
+        out = ai * r if out is None else out + ai * r
+    return out
+
+
+def frames_var_um2(resp, repeatability_um: float) -> float:
+    """Variance (µm²) of a value whose frame response is ``resp`` (:func:`frames_response`) when each frame's
+    position has an independent error of sd ``repeatability_um``: ``r^2 |resp|^2``. (A common offset or a
+    scale error of every frame is the stage's own zero and scale, which the profile is relative to: fit/stage.py.)"""
+    r = float(repeatability_um or 0.0)
+    if resp is None or not (r > 0 and math.isfinite(r)):
+        return 0.0
+    v = r * r * float(np.sum(np.square(resp)))
+    return v if math.isfinite(v) else 0.0
 
 
 def skew_model_sd_um(fits: list[CurveFit]) -> float:
@@ -664,10 +741,23 @@ def pooled_mean(d, sd, robust: bool = True) -> tuple[float, float, float]:
     with right sds it is the Birge-inflated sd within its noise. ``robust=False``: the plain
     inverse-variance mean, Birge-inflated.
     """
+    return _pooled(d, sd, robust)[:3]
+
+
+def pooled_coefficients(d, sd, robust: bool = True) -> np.ndarray:
+    """The linear weights ``a`` (summing to 1, one per value of ``d``; 0 for values left out) with which
+    :func:`pooled_mean`'s mean is ``sum a_i d_i`` at its solution (the Huber weights held fixed): what a common
+    change of every value's estimator moves the pooled mean by (:func:`frames_var_um2`)."""
+    return _pooled(d, sd, robust)[3]
+
+
+def _pooled(d, sd, robust: bool = True) -> tuple[float, float, float, np.ndarray]:
+    """:func:`pooled_mean` and :func:`pooled_coefficients` together."""
     d, sd = np.asarray(d, dtype=np.float64), np.asarray(sd, dtype=np.float64)
     ok = np.isfinite(d) & np.isfinite(sd) & (sd > 0)
+    a = np.zeros(d.shape)
     if ok.sum() < 2:
-        return 0.0, 0.0, 0.0
+        return 0.0, 0.0, 0.0, a
     d, sd = d[ok], sd[ok]
     w = 1.0 / sd ** 2
     mean = float(np.sum(w * d) / np.sum(w))
@@ -675,7 +765,8 @@ def pooled_mean(d, sd, robust: bool = True) -> tuple[float, float, float]:
     if n < ROBUST_MIN_N or not robust:
         birge = max(1.0, float(np.sum(w * (d - mean) ** 2)) / (n - 1))
         se = math.sqrt(birge / float(np.sum(w)))
-        return mean, se, evidence_weight(mean, se, n)
+        a[ok] = w / np.sum(w)
+        return mean, se, evidence_weight(mean, se, n), a
     scale = max(1.0, 1.4826 * float(np.median(np.abs(d - np.median(d)) / sd)))
     for _ in range(50):
         u = (d - mean) / (sd * scale)
@@ -686,11 +777,13 @@ def pooled_mean(d, sd, robust: bool = True) -> tuple[float, float, float]:
             break
         mean = new
     u = (d - mean) / (sd * scale)
+    h = np.minimum(1.0, HUBER_C / np.maximum(np.abs(u), 1e-12))
+    a[ok] = h * w / np.sum(h * w)
     psi = np.clip(u, -HUBER_C, HUBER_C)
     inside = max(float(np.sum(w * (np.abs(u) < HUBER_C))), float(np.min(w)))
     sandwich = scale ** 2 * float(np.sum(w * psi ** 2)) / inside ** 2 * n / (n - 1)
     se = math.sqrt(max(sandwich, 1.0 / float(np.sum(w))))
-    return mean, se, evidence_weight(mean, se, n)
+    return mean, se, evidence_weight(mean, se, n), a
 
 
 def evidence_weight(mean: float, se: float, n: int) -> float:
@@ -700,20 +793,23 @@ def evidence_weight(mean: float, se: float, n: int) -> float:
     return 1.0 / (1.0 + SKEW_PRIOR_ODDS * math.sqrt(max(n, 1)) * math.exp(-0.5 * min(chi2, 1400.0)))
 
 
-def apply_pooled_skew(fits: list[CurveFit], apply: bool = True,
-                      weight: float | None = None) -> tuple[list[CurveFit], dict]:
+def apply_pooled_skew(fits: list[CurveFit], apply: bool = True, weight: float | None = None,
+                      repeatability_um: float = 0.0) -> tuple[list[CurveFit], dict]:
     """Every accepted curve's best focus = its symmetric centre + the pooled skew shift (evidence-weighted);
     its variance adds the pooled shift's. Curves without a symmetric centre keep their own estimate.
 
     ``apply=False``: the centre alone (the shift is still measured and returned, for the record). ``weight``: the
     evidence weight to use instead of these curves' own (the side bands of :func:`band_frequency_terms` take
-    the largest of the three bands': one pupil's spherical aberration skews them all).
+    the largest of the three bands': one pupil's spherical aberration skews them all). ``repeatability_um``: the
+    stage's, whose frame errors move every curve's skew at once (:func:`pooled_skew`: in the shift's sd and
+    evidence; ``frames_sd_um`` in the record).
     """
     from dataclasses import replace as _replace
-    mean, se, own = pooled_skew_shift(fits)
+    mean, se, own, resp, frames_sd = pooled_skew(fits, repeatability_um)
     model = skew_model_sd_um(fits)
     weight = own if weight is None else float(weight)
-    info = {"shift_um": mean, "sd_um": se, "model_sd_um": model, "weight": weight, "applied": bool(apply)}
+    info = {"shift_um": mean, "sd_um": se, "model_sd_um": model, "weight": weight, "applied": bool(apply),
+            "frames_sd_um": frames_sd, "_frame_resp": resp}
     if not apply:
         weight = 0.0
     out = []
@@ -723,8 +819,11 @@ def apply_pooled_skew(fits: list[CurveFit], apply: bool = True,
             continue
         var = (f.z_centre_sd_um ** 2 + weight * (se * se + model * model)
                + weight * (1.0 - weight) * mean * mean)
+        best = f.centre_resp
+        if best is not None and weight and resp is not None:
+            best = best + weight * resp
         out.append(_replace(f, z_best_um=f.z_centre_um + weight * mean, z_sigma_um=math.sqrt(var),
-                            skew_weight=weight))
+                            skew_weight=weight, best_resp=best))
     return out, info
 
 
@@ -754,19 +853,23 @@ def zone_jackknife_sd(d, sd, zone_key) -> float:
     return float(math.sqrt((k - 1) / k * np.sum((loo - loo.mean()) ** 2)))
 
 
-def pooled_skew_var_um2(info: dict) -> float:
+def pooled_skew_var_um2(info: dict, frames: bool = True) -> float:
     """Variance (µm²) an :func:`apply_pooled_skew` record adds to every one of its curves' best foci:
     ``w (sd^2 + model^2) + w (1 - w) shift^2`` (the pooled shift's own sd, its model error
     :func:`skew_model_sd_um`, and whether it applies at all). It is one draw shared by all those curves, not
-    noise of each."""
+    noise of each. ``frames=False``: without the frames' share of the sd (``frames_sd_um``), for a caller that
+    carries the frames' response itself (:func:`apply_measure_offset`)."""
     w, m, se, mod = (float(info.get(k, 0.0) or 0.0) for k in ("weight", "shift_um", "sd_um", "model_sd_um"))
-    if not all(math.isfinite(v) for v in (w, m, se, mod)):
+    fr = float(info.get("frames_sd_um", 0.0) or 0.0)
+    if not all(math.isfinite(v) for v in (w, m, se, mod, fr)):
         return 0.0
+    if not frames:
+        se = math.sqrt(max(se * se - fr * fr, 0.0))
     return max(w * (se * se + mod * mod) + w * (1.0 - w) * m * m, 0.0)
 
 
 def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
-                         ref_skew: dict | None = None) -> tuple[list[CurveFit], dict]:
+                         ref_skew: dict | None = None, repeatability_um: float = 0.0) -> tuple[list[CurveFit], dict]:
     """``main``'s best foci moved by the channel's pooled offset to ``ref`` (same tiles, in order).
 
     For the SML moved to the band-pass at fs (``measure="auto"``): the SML's broad band gives the lower tile
@@ -794,22 +897,37 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
     * the converse (:func:`_skew_from_offset`): an offset between the SML and the band-pass curves' centres is
       evidence that those curves are skewed, so the band-pass skew shift applies with that evidence where it is
       the larger (>= 1/2), before the offset is pooled.
+
+    ``repeatability_um``: the stage's. The two measures weigh the frames differently (other bands, windows and
+    shapes), so one pattern of frame errors moves them apart in every tile at once; the pooled offset's frame
+    response (the tiles' best-focus responses :attr:`CurveFit.best_resp`, the band-pass skew shift's included,
+    summed with the pooling's weights) puts ``r^2 |resp|^2`` in its sd and evidence (``offset_frames_sd_um``;
+    :func:`pooled_skew`), in place of the skew shift's own frames' share, which it contains.
     """
     keep = [i for i, (a, b) in enumerate(zip(main, ref)) if a.status == STATUS_OK and b.status == STATUS_OK]
     lifted = None
     if ref_skew and len(keep) >= 2:
-        ref, ref_skew, lifted = _skew_from_offset(main, ref, ref_skew, keep)
+        ref, ref_skew, lifted = _skew_from_offset(main, ref, ref_skew, keep, repeatability_um)
     shared2 = pooled_skew_var_um2(ref_skew or {})
     d = np.array([ref[i].z_best_um - main[i].z_best_um for i in keep])
     sd = np.array([math.sqrt(main[i].z_sigma_um ** 2 + max(ref[i].z_sigma_um ** 2 - shared2, 0.0)) for i in keep])
-    mean, se, weight = pooled_mean(d, sd)
+    mean, se, weight, a = _pooled(d, sd)
+    resp = frames_response(a, [_diff_resp(ref[i].best_resp, main[i].best_resp) for i in keep])
+    frames2 = frames_var_um2(resp, repeatability_um)
     info = {"offset_um": mean, "offset_sd_um": se, "offset_weight": weight, "n_tiles": len(keep)}
     if radius is not None and len(keep):
         # the offset varies over the field: its error as the zones of field radius tell it, when larger
         jk = zone_jackknife_sd(d, sd, np.asarray(radius, dtype=np.float64)[keep])
         info.update(offset_zone_sd_um=jk, offset_sd_um=max(se, jk))
+    if frames2 > 0 and len(keep) >= 2:
+        # one pattern of frame errors moves the two measures apart in every tile at once (pooled_skew)
+        info.update(offset_frames_sd_um=math.sqrt(frames2), _frame_resp=resp)
+        if not ref_skew:
+            info.update(offset_sd_um=math.sqrt(info["offset_sd_um"] ** 2 + frames2),
+                        offset_weight=evidence_weight(mean, math.sqrt(se * se + frames2), len(keep)))
     if len(keep) >= 2 and ref_skew:
-        se = math.sqrt(info["offset_sd_um"] ** 2 + shared2)
+        # the skew shift's frames' share is in the offset's own frame response (with its sign): not twice
+        se = math.sqrt(info["offset_sd_um"] ** 2 + pooled_skew_var_um2(ref_skew, frames=False) + frames2)
         own = evidence_weight(mean, se, len(keep))  # the offset's own evidence, against its whole sd
         # curves measured skewed (weight >= 1/2: the evidence favours it) make the offset real; below that the
         # offset's own evidence decides, so symmetric curves keep their weight and band exactly
@@ -823,7 +941,13 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
     return shift_by_offset(main, info), info
 
 
-def _skew_from_offset(main: list[CurveFit], ref: list[CurveFit], ref_skew: dict, keep: list[int]):
+def _diff_resp(a, b):
+    """Frame response of a difference of two estimates (None where either is not known)."""
+    return None if a is None or b is None else a - b
+
+
+def _skew_from_offset(main: list[CurveFit], ref: list[CurveFit], ref_skew: dict, keep: list[int],
+                      repeatability_um: float = 0.0):
     """(ref, ref_skew, w_offset or None): ``ref``'s pooled skew shift applied with the evidence weight of the
     offset between ``ref``'s symmetric *centres* and ``main``'s best foci where that is the larger (>= 1/2).
 
@@ -840,10 +964,16 @@ def _skew_from_offset(main: list[CurveFit], ref: list[CurveFit], ref_skew: dict,
     w_now = float(ref_skew.get("weight", 0.0) or 0.0)
     d = [ref[i].z_centre_um - main[i].z_best_um for i in keep]
     sd = [math.hypot(ref[i].z_centre_sd_um, main[i].z_sigma_um) for i in keep]
-    w_off = pooled_mean(d, sd)[2]  # (curves without a symmetric centre: NaN, left out)
+    mean, se, w_off, a = _pooled(d, sd)  # (curves without a symmetric centre: NaN, left out)
+    # the frames move the centres and the other measure apart in every tile at once (apply_measure_offset)
+    frames2 = frames_var_um2(frames_response(a, [_diff_resp(ref[i].centre_resp, main[i].best_resp) for i in keep]),
+                             repeatability_um)
+    if frames2 > 0 and se > 0:
+        w_off = evidence_weight(mean, math.sqrt(se * se + frames2), int(np.count_nonzero(a)))
     if not (w_off >= 0.5 and w_off > w_now):
         return ref, ref_skew, None
-    out, info = apply_pooled_skew(ref, apply=bool(ref_skew.get("applied", True)), weight=w_off)
+    out, info = apply_pooled_skew(ref, apply=bool(ref_skew.get("applied", True)), weight=w_off,
+                                  repeatability_um=repeatability_um)
     return out, info, w_off
 
 
@@ -856,8 +986,14 @@ def shift_by_offset(main: list[CurveFit], info: dict) -> list[CurveFit]:
     band as a field-wide term (``calibration.measure_offset_sd_um``, docs/fitting.md).
     """
     from dataclasses import replace as _replace
-    shift = float(info.get("offset_weight", 0.0)) * float(info.get("offset_um", 0.0))
-    return [f if f.status != STATUS_OK else _replace(f, z_best_um=f.z_best_um + shift) for f in main]
+    w = float(info.get("offset_weight", 0.0))
+    shift = w * float(info.get("offset_um", 0.0))
+    resp = info.get("_frame_resp")  # the offset's frame response moves the best foci's too
+    return [f if f.status != STATUS_OK else
+            _replace(f, z_best_um=f.z_best_um + shift,
+                     best_resp=(f.best_resp + w * resp if f.best_resp is not None and resp is not None and w
+                                else f.best_resp))
+            for f in main]
 
 
 def offset_sd_um(info: dict) -> float:
@@ -977,7 +1113,11 @@ def _fit_batch(z, V, pres, step, model, n_iter: int = 100, p_init: list | None =
         # -J[k, u0] e_k, and u0 by c_k e_k with c_k = -(cov J^T)[u0, k] J[k, u0] (sum c_k = -1: a common
         # offset of every frame moves the peak by the same amount). sqrt(sum c_k^2) turns independent
         # per-frame position noise into best-focus noise.
-        c = -np.einsum("tp,tnp->tn", cov[:, 1, :], Jw) * Jw[:, :, 1]
+        # The same response for every parameter (P x n per curve): d params / d e_k = -(cov J^T)[:, k] J[k, u0]
+        # (:attr:`_Fit.sens`); row u0 is c. Functions of the parameters (a skewed model's peak) take their
+        # gradient through it, so every estimator's frame response is that of its own fit (CurveFit.centre_resp).
+        sens = np.einsum("tpq,tnq->tpn", cov, Jw) * (-Jw[:, None, :, 1])
+        c = sens[:, 1, :]
         gain = np.sqrt(np.sum(c * c, axis=1))
     n_par = (P - (1.0 - free_p)) if model == "peak" else np.full(T, float(P))
     dof = w.sum(axis=1) - n_par
@@ -996,7 +1136,7 @@ def _fit_batch(z, V, pres, step, model, n_iter: int = 100, p_init: list | None =
         # an exact (noise-free) fit has zero residual: floor the variance at float precision, not zero
         s2 = max(cost[j] / dof[j], 1e-24)
         out.append(_Fit(pj, float(cov[j][1, 1] * s2), float(scale[j]), float(cost[j]), int(w[j].sum()),
-                        float(gain[j]), cov[j] * s2))
+                        float(gain[j]), cov[j] * s2, sens[j]))
     if model == "peak" and p_init is None:
         _refit_gaussian_limit(z, V, pres, step, p, free_p, out)
     return out
@@ -1041,6 +1181,9 @@ class _Fit:
     n: int
     stage_gain: float
     cov: np.ndarray | None = None  # residual-scaled parameter covariance
+    # d params / d e_k (P x window points, u per u): how each parameter moves when the frame at window point k
+    # was taken e_k away from where it is recorded (the model's slope there times the fit's gain, cov J^T)
+    sens: np.ndarray | None = None
 
 
 def _solve_spd(A: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -17,7 +17,7 @@ import contextlib
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -94,6 +94,10 @@ class TileRules:
     dark_min: float = 0.01
     texture_min: float = 0.03
     curve: CurveRules = field(default_factory=CurveRules)
+    # the stage's 1-sigma repeatability (µm; None: the stack's stage record, :func:`measure_stack`): every tile's curve
+    # is sampled at the same frames, so the frames' errors enter the pooled skew shift and sml@fs offset coherently
+    # (throughfocus.pooled_skew, apply_measure_offset: in their sd and evidence)
+    stage_repeatability_um: float | None = None
 
 
 @dataclass
@@ -802,16 +806,18 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             # One skew correction for the channel, applied where the curve is contrast at fs (the paper's best
             # focus is where it peaks); an SML's peak is not that point on a skewed lens, so the SML keeps its
             # centre and the shift is only recorded (docs/measurement.md "Asymmetric curves").
-            main, res["skew"] = apply_pooled_skew(main, apply=measure == "bandpass")
+            main, res["skew"] = apply_pooled_skew(main, apply=measure == "bandpass",
+                                                  repeatability_um=rules.stage_repeatability_um)
         if measure == SML_AT_FS:
             bp_skew = None
             if rules.curve.skew:
                 # (NaN with < 2 fitted curves: nothing measured to share, nothing to redo)
-                own = pooled_skew_shift(bp)[2] if sum(f.status == "ok" for f in bp) >= 2 else math.nan
-                bp, bp_skew = apply_pooled_skew(bp, apply=True, weight=bp_skew_weight)
+                rep_um = rules.stage_repeatability_um
+                own = pooled_skew_shift(bp, rep_um)[2] if sum(f.status == "ok" for f in bp) >= 2 else math.nan
+                bp, bp_skew = apply_pooled_skew(bp, apply=True, weight=bp_skew_weight, repeatability_um=rep_um)
                 res["skew"] = {**res.get("skew", {}), "bp_shift_um": bp_skew["shift_um"],
                                "bp_shift_sd_um": bp_skew["sd_um"], "bp_shift_model_sd_um": bp_skew["model_sd_um"],
-                               "bp_skew_weight": bp_skew["weight"],
+                               "bp_skew_weight": bp_skew["weight"], "bp_shift_frames_sd_um": bp_skew["frames_sd_um"],
                                "bp_own_weight": own}
             # the SML's own best foci: the breathing sensitivity is of the SML curve (_exponent_sensitivity)
             res["z_sml_um"] = np.full(nt, np.nan)
@@ -822,7 +828,8 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             if "cx" in channel_curves and "cy" in channel_curves:
                 cx, cy = (np.mean(channel_curves[k][todo], axis=1) for k in ("cx", "cy"))
                 radius = np.hypot(cx - np.mean(cx), cy - np.mean(cy))
-            main, offset = (apply_measure_offset(main, bp, radius, bp_skew) if offset_from is None
+            main, offset = (apply_measure_offset(main, bp, radius, bp_skew, rules.stage_repeatability_um)
+                            if offset_from is None
                             else (shift_by_offset(main, offset_from), {**offset_from, "from": "strip"}))
             res["skew"] = {**res.get("skew", {}), **offset}
         for t, fb, fm in zip(todo, bp, main):
@@ -907,9 +914,10 @@ def _frequency_slope(cc: dict[str, np.ndarray], z: np.ndarray, fs_cyc_per_mm: fl
         # skews them all, and a band whose own evidence is weaker (the broader low band, or a noisier high one)
         # would otherwise keep part of its curve's centre, which the slope and curvature then read as a frequency
         # dependence (F/8, W040 0.3 waves: the high band's weight 0.3 put d2z/dln f^2 at half its value)
-        pooled = [pooled_skew_shift(f) for f in fits]
+        rep_um = rules.stage_repeatability_um
+        pooled = [pooled_skew_shift(f, rep_um) for f in fits]
         w = max(p[2] for p in pooled)
-        fits = [apply_pooled_skew(f, apply=True, weight=w)[0] for f in fits]
+        fits = [apply_pooled_skew(f, apply=True, weight=w, repeatability_um=rep_um)[0] for f in fits]
         # each band's pooled shift is one draw shared by its tiles: its sd and model error join the differences'
         # (w ~ 1 here; throughfocus.skew_model_sd_um: the model error differs between bands of different widths)
         model = [skew_model_sd_um(f) for f in fits]
@@ -1090,6 +1098,9 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     asked = measure
     measure = resolve_measure(stack, float(fs_cyc_per_mm), measure, effort)
     rules = rules or TileRules()
+    if rules.stage_repeatability_um is None:
+        from fieldcal.calibration.pipeline import stage_repeatability  # the stage record's one reader
+        rules = replace(rules, stage_repeatability_um=stage_repeatability(stack, None)[0])
     z_sorted = np.sort(np.asarray(stack.z_um, dtype=np.float64))
     if geometry is not None:
         if (geometry.z_um.size != z_sorted.size or not np.allclose(geometry.z_um, z_sorted)
@@ -1187,7 +1198,8 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
             offsets[ch] = {k: rec[k] for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles",
                                                "offset_zone_sd_um", "offset_skew_sd_um", "offset_own_weight",
                                                "bp_shift_um", "bp_shift_sd_um", "bp_shift_model_sd_um",
-                                               "bp_skew_weight", "bp_own_weight")
+                                               "bp_skew_weight", "bp_own_weight", "offset_frames_sd_um",
+                                               "bp_shift_frames_sd_um")
                            if k in rec}
             for k in ("offset_um", "offset_sd_um", "offset_weight", "n_tiles"):
                 offsets[ch].setdefault(k, 0.0)
@@ -1211,7 +1223,9 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         res = results[ch]
         cols["channel"].append(np.full(xs.size, ch))
         if "skew" in res:
-            skew[ch] = {k: (v if isinstance(v, (bool, str)) else float(v)) for k, v in res["skew"].items()}
+            # ("_" keys: arrays for the measurement's own use, e.g. the frame responses; not the record's)
+            skew[ch] = {k: (v if isinstance(v, (bool, str)) else float(v)) for k, v in res["skew"].items()
+                        if not k.startswith("_")}
         sens = _exponent_sensitivity(cc, geometry, ch, axes[ch].y(z), res, measure, q, rules)
         cols["z_dgamma_um"].append(sens * axes[ch].dz_dy(res["z_best_um"]))
         _to_z(res, axes[ch])
