@@ -165,7 +165,8 @@ def _spline_taps(q: np.ndarray, n: int):
 
     f = np.floor(q)
     t = q - f
-    idx = np.clip(f.astype(np.intp)[:, None] + np.arange(-1, 3), 0, n - 1)
+    # (a diverged step's positions may be huge or NaN: clipped before the cast, their weights stay NaN)
+    idx = np.clip(np.clip(np.nan_to_num(f), -2.0, n + 1.0).astype(np.intp)[:, None] + np.arange(-1, 3), 0, n - 1)
     t2, t3 = t * t, t * t * t
     w = np.stack([(1.0 - t) ** 3 / 6.0, (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0,
                   (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0, t3 / 6.0], axis=1)
