@@ -165,6 +165,27 @@ def test_register_step_recovers_scale_and_shift(r, tx, ty):
     assert np.all(np.sqrt(np.diag(s.cov)) > 0)
 
 
+@pytest.mark.parametrize("r,tx,ty", [(1.0, 0.0, 0.0), (1.03, 4.3, -6.7), (0.97, -2.25, 0.5)])
+def test_cubic_on_grid_is_map_coordinates_on_a_product_grid(r, tx, ty):
+    # register_step's separable resampling: the cubic B-spline at a scaled and shifted product grid, points beyond
+    # the plane included (clamped, mode "nearest"), equals SciPy's 16-tap evaluation at every point
+    from scipy import ndimage
+
+    from fieldcal.measure.geometry import _cubic_on_grid
+
+    rng = np.random.default_rng(3)
+    coeffs = ndimage.spline_filter(rng.random((61, 83)), order=3)
+    ys, xs = np.arange(0, 61, 2, dtype=np.float64), np.arange(0, 83, 3, dtype=np.float64)
+    qy, qx = 30.0 + r * (ys - 30.0) + ty, 41.0 + r * (xs - 41.0) + tx
+    yy, xx = np.meshgrid(qy, qx, indexing="ij")
+    ref = ndimage.map_coordinates(coeffs, [yy.ravel(), xx.ravel()], order=3, prefilter=False, mode="nearest")
+    got = _cubic_on_grid(coeffs, qy, qx)
+    assert got.shape == ref.shape
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+    # the 4-tap support reaches beyond the plane at its edges, in x and in y: the clamping is exercised
+    assert (xx.min() < 1 or xx.max() > 81) and (yy.min() < 1 or yy.max() > 59)
+
+
 def test_compose_steps_about_the_reference_frame():
     # constant steps: m_k = r^(k - ref), shifts accumulate; uncertainty grows away from the reference
     r, t = 1.001, (0.2, -0.1)

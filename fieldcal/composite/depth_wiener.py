@@ -294,7 +294,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     lower, frac = [], []
     for c in range(len(fch)):
         t = (zb[..., c].astype(np.float64) - labels[0]) / step
-        l0 = np.clip(np.floor(t), 0, n_lab - 2).astype(np.int32)
+        # int16 (at most MAX_LABELS labels): the tiles' stable sorts by label are then radix sorts
+        l0 = np.clip(np.floor(t), 0, n_lab - 2).astype(np.int16)
         lower.append(l0)
         frac.append(np.clip(t - l0, 0.0, 1.0).astype(np.float32))
 
@@ -389,7 +390,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             pix = np.arange(l0.size, dtype=np.int32) if need is None else np.flatnonzero(need.ravel()).astype(np.int32)
             pix = pix[np.argsort(l0[pix], kind="stable")]
             lab = l0[pix]
-            present = np.unique(lab)
+            # the labels present: the starts of the sorted runs (np.unique would sort them again)
+            present = lab[np.flatnonzero(np.diff(lab, prepend=lab[:1] - 1))] if lab.size else lab
             bounds = dict(zip(present.tolist(), zip(np.searchsorted(lab, present, side="left").tolist(),
                                                     np.searchsorted(lab, present, side="right").tolist())))
             fr = frac[c][y0:y1, x0:x1].ravel()[pix]

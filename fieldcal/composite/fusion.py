@@ -108,19 +108,18 @@ class _ChannelSelection:
         for lev in range(self.levels):
             hh, ww = self.shapes[lev]
             down = cv2.pyrDown(cur, dst=self.gauss[lev], borderType=_BORDER)
-            lap = cv2.pyrUp(down, dst=self.lap[lev], dstsize=(ww, hh), borderType=_BORDER)
+            # the first frame's coefficients and saliences are written straight into the running selection
+            lap = cv2.pyrUp(down, dst=self.best[lev] if k == 0 else self.lap[lev], dstsize=(ww, hh),
+                            borderType=_BORDER)
             np.subtract(cur, lap, out=lap)
-            sal = self._sal[:hh * ww].reshape(hh, ww)
+            sal = self.best_sal[lev] if k == 0 else self._sal[:hh * ww].reshape(hh, ww)
             np.multiply(lap, lap, out=sal)
             sal = cv2.GaussianBlur(sal, (0, 0), self.sigma, dst=sal, borderType=_BORDER)
             if support is not None:
                 if support.shape != (hh, ww):
                     support = cv2.resize(support.view(np.uint8), (ww, hh), interpolation=cv2.INTER_NEAREST) > 0
                 sal[~support] = -1.0
-            if k == 0:
-                np.copyto(self.best[lev], lap)
-                np.copyto(self.best_sal[lev], sal)
-            else:
+            if k != 0:
                 take = np.greater(sal, self.best_sal[lev], out=self._take[:hh * ww].reshape(hh, ww))
                 np.copyto(self.best[lev], lap, where=take)
                 np.maximum(self.best_sal[lev], sal, out=self.best_sal[lev])

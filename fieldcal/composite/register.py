@@ -918,7 +918,8 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
             image = np.left_shift(image, 8, dtype=np.uint16)
         elif image.dtype != storage:
             image = image.astype(storage)
-        warped = warp_frame(image, maps[i])
+        # the reference frame's map is the identity (exactly): the bicubic warp would give back its samples
+        warped = image if np.array_equal(maps[i], np.eye(3)) else warp_frame(image, maps[i])
         del image
         fix = cells = None
         if photometric_correction:

@@ -158,13 +158,37 @@ def registration_plane(plane: np.ndarray, factor: int, blur_px: float = REGISTRA
     return cv2.GaussianBlur(small, (0, 0), blur_px) if blur_px > 0 else small
 
 
+def _spline_taps(q: np.ndarray, n: int):
+    """The cubic B-spline's weights at positions ``q`` (px) on a line of ``n`` coefficients: a sparse
+    ``len(q) x n`` matrix, four taps a row, indices beyond the line clamped to its ends (``mode="nearest"``)."""
+    from scipy import sparse
+
+    f = np.floor(q)
+    t = q - f
+    # (a diverged step's positions may be huge or NaN: clipped before the cast, their weights stay NaN)
+    idx = np.clip(np.clip(np.nan_to_num(f), -2.0, n + 1.0).astype(np.intp)[:, None] + np.arange(-1, 3), 0, n - 1)
+    t2, t3 = t * t, t * t * t
+    w = np.stack([(1.0 - t) ** 3 / 6.0, (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0,
+                  (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0, t3 / 6.0], axis=1)
+    return sparse.csr_matrix((w.ravel(), (np.repeat(np.arange(len(q)), 4), idx.ravel())), shape=(len(q), n))
+
+
+def _cubic_on_grid(coeffs: np.ndarray, qy: np.ndarray, qx: np.ndarray) -> np.ndarray:
+    """``ndimage.map_coordinates(coeffs, [Y, X], order=3, prefilter=False, mode="nearest")`` at the product grid
+    ``Y, X = meshgrid(qy, qx, indexing="ij")``, raveled (row-major): the B-spline is a product of 1-D splines, so
+    one pass along the rows and one along the columns (two sparse products, 4 taps each) give the same numbers
+    (to float64 rounding) at ~2x less cost than 16 taps per point."""
+    along_x = (_spline_taps(qx, coeffs.shape[1]) @ coeffs.T).T  # H x len(qx)
+    return np.asarray(_spline_taps(qy, coeffs.shape[0]) @ along_x).ravel()
+
+
 def register_step(prev: np.ndarray, cur: np.ndarray, centre_xy: tuple[float, float],
                   init: tuple[float, float, float] | None = None, subsample: int = 2,
                   iterations: int = 8, tol_px: float = 1e-5) -> StepFit | None:
     """Scale ratio and translation of ``cur`` relative to ``prev`` (same plane grid, px of that grid).
 
     Model: a point at p in ``prev`` is at ``c + r (p - c) + t`` in ``cur``. Solved by Gauss-Newton on the
-    three parameters with ``cur`` resampled by cubic B-splines (``scipy.ndimage.map_coordinates``): OpenCV's
+    three parameters with ``cur`` resampled by cubic B-splines (separable, :func:`_cubic_on_grid`): OpenCV's
     warps quantise sub-pixel positions to 1/32 px and bilinear resampling smooths by a phase-dependent
     amount, which biased ``cv2.findTransformECC`` by ~10 % of a small scale change in our tests. ECC (affine)
     gives the start when ``init`` (e.g. the previous step) does not converge. ``cov`` is the Gauss-Newton
@@ -182,11 +206,19 @@ def register_step(prev: np.ndarray, cur: np.ndarray, centre_xy: tuple[float, flo
     if min(h, w) < 4 * b + 8:
         return None
     c = np.asarray(centre_xy, dtype=np.float64)
-    ys, xs = np.mgrid[b:h - b:subsample, b:w - b:subsample].astype(np.float64)
+    # the samples form a product grid (rows ``yg`` x columns ``xg``), and a scale-and-shift maps it to another
+    # product grid: the cubic B-spline resampling below is separable (:func:`_cubic_on_grid`)
+    yg = np.arange(b, h - b, subsample, dtype=np.float64)
+    xg = np.arange(b, w - b, subsample, dtype=np.float64)
+    ys, xs = np.meshgrid(yg, xg, indexing="ij")
     xs, ys = xs.ravel(), ys.ravel()
-    gy, gx = np.gradient(prev.astype(np.float64))
-    gx = gx[b:h - b:subsample, b:w - b:subsample].ravel()
-    gy = gy[b:h - b:subsample, b:w - b:subsample].ravel()
+    # central differences at the samples only (np.gradient's interior, the same numbers: the samples are >= b px
+    # from the edge), not over the whole plane
+    rows, cols = slice(b, h - b, subsample), slice(b, w - b, subsample)
+    gx = ((prev[rows, b + 1:w - b + 1:subsample].astype(np.float64)
+           - prev[rows, b - 1:w - b - 1:subsample].astype(np.float64)) / 2.0).ravel()
+    gy = ((prev[b + 1:h - b + 1:subsample, cols].astype(np.float64)
+           - prev[b - 1:h - b - 1:subsample, cols].astype(np.float64)) / 2.0).ravel()
     lev = max(float(np.hypot(w, h)) / 2.0, 1.0)  # normalised lever arm: a well-conditioned system
     J = np.stack([(gx * (xs - c[0]) + gy * (ys - c[1])) / lev, gx, gy], axis=1)
     # einsum, not J.T @ J: a multi-threaded BLAS spins its threads after every such product, which cost ~40 %
@@ -201,9 +233,7 @@ def register_step(prev: np.ndarray, cur: np.ndarray, centre_xy: tuple[float, flo
         res = None
         for _ in range(iterations):
             rr = 1.0 + theta[0] / lev
-            back = ndimage.map_coordinates(coeffs, [c[1] + rr * (ys - c[1]) + theta[2],
-                                                    c[0] + rr * (xs - c[0]) + theta[1]],
-                                           order=3, prefilter=False, mode="nearest")
+            back = _cubic_on_grid(coeffs, c[1] + rr * (yg - c[1]) + theta[2], c[0] + rr * (xg - c[0]) + theta[1])
             res = back - target
             d = np.linalg.solve(H, np.einsum("ni,n->i", J, res))
             theta = theta - d
