@@ -45,9 +45,6 @@ from fieldcal.optics.defocus import default_wavelength_nm, diffraction_mtf
 #: dilation on textures whose spectrum is not stationary): 0.03-0.13 measured on the closed-form textures of
 #: tests/test_measure_maps.py (docs/fitting.md "Breathing systematic"); 0.1 is that range's middle.
 SCALE_KERNEL_SD = 0.1
-#: the part of k_max the defocus model of :func:`exponent_vs_defocus` may misstate (a geometric blur disc for the
-#: defocus OTF; near the diffraction limit the true OTF falls more slowly within the depth of focus)
-DEFOCUS_MODEL_FRACTION = 0.25
 _EPS = 1e-3  # relative frequency step of the numerical log-slope
 
 
@@ -124,60 +121,6 @@ def gain_exponent(sharp: np.ndarray, blurred: np.ndarray, plane_pitch_um: float,
     g = (hi - lo) / (2.0 * _EPS)
     # a mean over the signed weights: bounded by the log-slopes' own range (0 to the steepest in the band)
     return float(np.clip(-np.sum(w * g) / tot, 0.0, float(np.max(-g))))
-
-
-def exponent_vs_defocus(sharp: np.ndarray, blurred: np.ndarray, plane_pitch_um: float, pitch_um: float | None,
-                        f_number: float | None, channel: str, lens_f_number: float, dz_um,
-                        n_bins: int = 96) -> np.ndarray:
-    """k of the SML at each defocus ``dz_um`` (µm on the curves' axis): ``-<f . grad ln M>`` over the in-focus
-    energy density ``W`` (:func:`sml_weights`) times the square of the defocus's own OTF factor ``T(f, dz)``,
-    the aberration-free pupil's OTF at ``W020 = dz / (8 N^2)`` over its in-focus OTF
-    (:func:`fieldcal.optics.pupil.otf_radial`; ``N = lens_f_number``, the channel's default wavelength).
-
-    At ``dz = 0`` it is :func:`gain_exponent`. Away from focus the blur takes the high frequencies, where the
-    sensor-fixed MTFs fall steeply, and k falls towards the low frequencies' (~0): the gain on a tile's SML curve
-    in frame j is ``m_j^k(z_j - z0)``, which moves its fitted peak by between 0 and ``k(0) dz/dk``. The wave OTF,
-    not the geometric blur disc: within the depth of focus of a slow lens (F/6.7, ~±50 µm) the disc keeps the
-    high frequencies that the pupil's defocus already takes, and overstated k there (lens 39 of the band
-    benchmark: -0.27 µm with the disc, docs/benchmarks.md ``bench_piston_s14``). ``W`` is binned in |f| (the
-    defocus factor is radial), ``n_bins`` bins up to the plane's Nyquist corner.
-    """
-    from fieldcal.optics.pupil import otf_radial
-
-    dz = np.abs(np.atleast_1d(np.asarray(dz_um, dtype=np.float64)))
-    if pitch_um is None and (f_number is None or not math.isfinite(float(f_number)) or float(f_number) <= 0):
-        return np.zeros(dz.shape)
-    fx, fy, w = sml_weights(sharp, blurred)
-    to_mm = 1e3 / float(plane_pitch_um)
-    lam = default_wavelength_nm(channel)
-    hi = _log_mtf(fx * to_mm * (1 + _EPS), fy * to_mm * (1 + _EPS), pitch_um, f_number, lam)
-    lo = _log_mtf(fx * to_mm * (1 - _EPS), fy * to_mm * (1 - _EPS), pitch_um, f_number, lam)
-    g = ((hi - lo) / (2.0 * _EPS)) + np.zeros_like(w)
-    f_mm = np.hypot(fx * to_mm, fy * to_mm) + np.zeros_like(w)
-    n_lens = float(lens_f_number)
-    fc = 1.0 / (lam * 1e-6 * n_lens)  # the pupil's cutoff (cycles/mm)
-    nu = np.clip(f_mm / fc, 0.0, 1.0).ravel()
-    edges = np.linspace(0.0, float(nu.max()) + 1e-12, int(n_bins) + 1)
-    idx = np.clip(np.digitize(nu, edges) - 1, 0, int(n_bins) - 1)
-    sw = np.bincount(idx, weights=w.ravel(), minlength=n_bins)
-    swg = np.bincount(idx, weights=(w * g).ravel(), minlength=n_bins)
-    centre = 0.5 * (edges[1:] + edges[:-1])
-    focus = otf_radial(centre, 0.0)
-    g_max = float(np.max(-g)) if g.size else 0.0
-    out = np.zeros(dz.shape)
-    for i, d in enumerate(dz):
-        w020 = d / (8.0 * n_lens * n_lens) / (lam * 1e-3)  # waves
-        with np.errstate(invalid="ignore", divide="ignore"):
-            t = np.where(focus > 1e-6, otf_radial(centre, w020) / focus, 0.0)
-        tot = float(np.sum(sw * t * t))
-        out[i] = float(np.clip(-np.sum(swg * t * t) / tot, 0.0, g_max)) if tot > 0 else 0.0
-    return out
-
-
-def corrected_exponent_sd(k_max: float) -> float:
-    """sd of the exponent left once k(dz) (:func:`exponent_vs_defocus`) is divided out: the dilated operator's
-    own (:data:`SCALE_KERNEL_SD`) and the defocus model's, taken as :data:`DEFOCUS_MODEL_FRACTION` of k_max."""
-    return math.sqrt(SCALE_KERNEL_SD ** 2 + (DEFOCUS_MODEL_FRACTION * float(k_max)) ** 2)
 
 
 def exponent_sd(k_max: float) -> float:

@@ -54,7 +54,6 @@ from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_o
 # declares, or a camera's, TileTable.sml_gain); SML_SCALE_RESIDUAL_SD is kept for tables without that record.
 MIN_TILE_PX = 32
 SML_SCALE_RESIDUAL_SD = 0.45
-K_DZ_POINTS = 48  # defocus samples of the SML's gain exponent k(dz) (interpolated; k is smooth in dz)
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
 
 EFFORTS = {
@@ -757,17 +756,14 @@ def _strip_widths_on_grid(width_um: np.ndarray, sx: np.ndarray, sy: np.ndarray, 
 
 def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per_mm: float, q: float,
              measure: str, rules: TileRules, bp_scale: np.ndarray | None = None,
-             offset_from: dict | None = None, bp_skew_weight: float | None = None,
-             sml_k: tuple | None = None, sml_m: np.ndarray | None = None) -> dict[str, np.ndarray]:
+             offset_from: dict | None = None, bp_skew_weight: float | None = None) -> dict[str, np.ndarray]:
     """Tile tests (saturation, texture) then the batched curve fits of one channel's tiles.
 
     ``bp_scale[k]``: the magnification the band-pass filter followed in frame k (its frequency was
     ``fs / bp_scale[k]`` at the sensor), used to give the width at ``fs`` itself. ``offset_from``: the
     ``"sml@fs"`` offset record measured on other tiles (quick's strip, :mod:`.fs_strip`), applied here.
     ``bp_skew_weight``: the evidence weight for the band-pass curves' pooled skew shift to use instead of this
-    channel's own (:func:`_analyse_channels`: the largest over the channels). ``sml_k``, ``sml_m``: the SML's
-    sensor-fixed gain exponent vs defocus ``(grid, k)`` and each frame's image scale, divided out of the SML
-    curves (:func:`_sml_gain_corrected`).
+    channel's own (:func:`_analyse_channels`: the largest over the channels).
     """
     nt = channel_curves["sml"].shape[0]
     res = {k: np.full(nt, np.nan) for k in ("z_best_um", "z_sigma_um", "width_um", "peak", "z_tan_um", "z_sag_um",
@@ -802,8 +798,6 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             bp = [CurveFit.rejected("not_measured")] * todo.size
         main = bp if measure == "bandpass" else analyse_curves(z, channel_curves["sml"][todo], "peak", None, q,
                                                                 rules.curve)
-        if measure != "bandpass" and sml_k is not None and sml_m is not None:
-            main = _sml_gain_corrected(z, channel_curves["sml"][todo], main, sml_k, sml_m, q, rules)
         if rules.curve.skew:
             # One skew correction for the channel, applied where the curve is contrast at fs (the paper's best
             # focus is where it peaks); an SML's peak is not that point on a skewed lens, so the SML keeps its
@@ -848,27 +842,6 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
                         res[col][t] = d.z_best_um
     res["status"] = stat.astype(str)
     return res
-
-
-def _sml_gain_corrected(y: np.ndarray, curves: np.ndarray, fits: list, table: tuple, m: np.ndarray, q: float,
-                        rules: TileRules) -> list:
-    """The SML curves refitted with the sensor-fixed gain divided out: frame j of a tile whose first fit peaks at
-    ``y0`` carries ``m_j^k(|y_j - y0|)`` (:func:`.sml_gain.exponent_vs_defocus`; ``m`` the frame's image scale
-    relative to the reference frame, ``k`` even in the defocus, so the reference does not move the peak).
-
-    Why: the scale-following SML sees the same scene frequencies in every frame, hence the sensor-fixed MTFs
-    (pixel aperture, diffraction) at ``u / m``: on a breathing lens whose exit pupil is in front of the sensor
-    (m grows with z) that gain rises with z and pulls every tile's peak up, one sign for the whole field
-    (+0.008 step, positive on 87 % of the wave renderer's breathing lens x channels; 1e-4 µm without breathing
-    on closed-form stacks). The first fit's peak is within a fraction of the curve's width of the second's, where
-    k changes little, so one pass is enough."""
-    grid, kv = table
-    y = np.asarray(y, dtype=np.float64)
-    y0 = np.array([f.z_best_um if f.status == "ok" and math.isfinite(f.z_best_um) else y[int(np.argmax(c))]
-                   for f, c in zip(fits, curves)])
-    k = np.interp(np.abs(y[None, :] - y0[:, None]), grid, kv)
-    scale = np.power(np.where(m > 0, m, 1.0)[None, :], k)
-    return analyse_curves(y, curves / scale, "peak", None, q, rules.curve)
 
 
 def _analyse_channels(run, channels) -> dict[str, dict]:
@@ -961,16 +934,11 @@ def _frequency_slope(cc: dict[str, np.ndarray], z: np.ndarray, fs_cyc_per_mm: fl
 
 
 def _sml_gain_terms(stack, maps: list[_Maps], geometry: GeometryMeasurements, order: np.ndarray,
-                    factors: tuple[bool, float | None] | None, tables: dict | None = None) -> dict[str, dict]:
+                    factors: tuple[bool, float | None] | None) -> dict[str, dict]:
     """Per channel, the bound on the SML's sensor-fixed gain exponent (:mod:`.sml_gain`) from the frames of
     largest and smallest SML: ``k_max`` of the factors ``factors`` declares, or of a camera's (pixel aperture
     at the stack's pitch, diffraction at its F-number) when the stack does not say, and the sd the band carries.
-    Empty when the image does not breathe (the gain is then 1 in every frame).
-
-    ``tables``: filled, for each channel whose stack *declares* its sensor-fixed MTFs (and states its F-number,
-    the defocus blur's scale), with ``(dz grid, k(dz))`` (:func:`.sml_gain.exponent_vs_defocus`), which
-    :func:`_analyse` divides out of the SML curves; the record then says ``corrected`` and its ``k_sd`` is the
-    residual's (:func:`.sml_gain.corrected_exponent_sd`)."""
+    Empty when the image does not breathe (the gain is then 1 in every frame)."""
     from . import sml_gain as sg
     meta = getattr(stack, "meta", None) or {}
     f_number = meta.get("f_number")
@@ -1017,15 +985,6 @@ def _sml_gain_terms(stack, maps: list[_Maps], geometry: GeometryMeasurements, or
             return sg.window(extract_plane(fr, lay) if mosaic else fr[:, :, lay.channel_index], centre)
         k_max = sg.gain_exponent(plane(ks), plane(kb), pitch * lay.stride, pitch if pixel else None, fnum, name)
         out[name] = {"k_max": k_max, "declared": factors is not None, "k_sd": sg.exponent_sd(k_max)}
-        if tables is not None and factors is not None and k_max > 0 and f_number is not None and f_number > 0:
-            # declared factors: the gain is known physics, so it is divided out (k at each tile's own defocus,
-            # _analyse) and the band keeps only the operator's own residual and the defocus model's
-            span = float(np.ptp(np.asarray(geometry.z_um, dtype=np.float64)))
-            grid = np.linspace(0.0, max(span, 1e-6), K_DZ_POINTS)
-            k_dz = sg.exponent_vs_defocus(plane(ks), plane(kb), pitch * lay.stride, pitch if pixel else None, fnum,
-                                          name, f_number, grid)
-            tables[name] = (grid, k_dz)
-            out[name].update(corrected=True, k_sd=sg.corrected_exponent_sd(k_max))
     return out
 
 
@@ -1200,15 +1159,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                                                      factors[1], ch)
     # the SML's own sensor-fixed gain m^k (measure.sml_gain): bounded by the k of the factors the stack declares,
     # or of a camera's where it does not say (carried in the band by fit.tiles.breathing_systematic_sd_um)
-    k_tables: dict = {}
-    sml_gain = _sml_gain_terms(stack, maps, geometry, order, factors, k_tables) if measure in _SML_BASED else {}
-
-    def gain_kw(ch):
-        if ch not in k_tables:
-            return {}
-        ci = geometry.channel_index(ch)
-        return {"sml_k": k_tables[ch],
-                "sml_m": geometry.magnification[:, ci] / geometry.magnification[geometry.ref_index, ci]}
+    sml_gain = _sml_gain_terms(stack, maps, geometry, order, factors) if measure in _SML_BASED else {}
     cols: dict[str, list] = {k: [] for k in ("channel", "x_px", "y_px", "z_best_um", "z_sigma_um", "width_um",
                                              "peak", "status", "z_tan_um", "z_sag_um", "z_dgamma_um", "stage_gain")}
     curves_out: dict[str, list] = {"sml": [], "bandpass": []}
@@ -1228,8 +1179,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
                 slopes[ch] = _frequency_slope(on_strip, axes[ch].y(z), float(fs_cyc_per_mm), float(q), rules)
         strip_res = _analyse_channels(
             lambda ch, w: _analyse(on_strips[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
-                                   measure=measure, rules=rules, bp_scale=bp_scale, bp_skew_weight=w,
-                                   **gain_kw(ch)), per_channel)
+                                   measure=measure, rules=rules, bp_scale=bp_scale, bp_skew_weight=w), per_channel)
         for ch, res_strip in strip_res.items():
             rec = res_strip.get("skew", {})
             _to_z(res_strip, axes[ch])
@@ -1247,8 +1197,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
             per_channel[ch] = {k: v for k, v in cc.items() if k not in _SLOPE_KEYS}
     def grid(ch, w):
         return _analyse(per_channel[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
-                        measure=measure, rules=rules, bp_scale=bp_scale, offset_from=offsets[ch], bp_skew_weight=w,
-                        **gain_kw(ch))
+                        measure=measure, rules=rules, bp_scale=bp_scale, offset_from=offsets[ch], bp_skew_weight=w)
     # quick's grid has no band-pass: its strip shared the weights above
     results = (_analyse_channels(grid, stack.channels) if strip is None
                else {ch: grid(ch, None) for ch in stack.channels})
