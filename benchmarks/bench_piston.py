@@ -19,7 +19,9 @@ lens x channels. This benchmark separates its causes with controlled stacks:
 
     python benchmarks/bench_piston.py --closed-form --calibrate --jsonl cf.jsonl     # ~2 min
     python benchmarks/bench_piston.py --lenses 0,2,4 --jsonl sim.jsonl               # geometric lenses render fast
-    python benchmarks/bench_piston.py --from-jsonl cf.jsonl,sim.jsonl --docs --notes notes.md
+    python benchmarks/bench_piston.py --curvature 6:0,6:1,6:2,6:-1,2:1,2:2 --jsonl curv.jsonl
+    python benchmarks/bench_piston.py --stage-seeds 8:0.4:1,8:0.4:2,8:0.4:3 --jsonl seeds.jsonl
+    python benchmarks/bench_piston.py --from-jsonl cf.jsonl,sim.jsonl,curv.jsonl,seeds.jsonl --docs --notes notes.md
 """
 
 from __future__ import annotations
@@ -182,6 +184,104 @@ def simulator_case(k: int, effect: str, work: Path, width: int = 320, effort: st
             "render_cpu_s": t1 - t0, "calibrate_cpu_s": time.process_time() - t1}
 
 
+def curvature_case(k: int, scale: float, work: Path, width: int = 320) -> dict:
+    """Lens k's G channel (geometric path, telecentric, no astigmatism, no stage or sensor noise) with its
+    field-curvature terms scaled by ``scale``: the sml@fs offset (band-pass minus SML on the same tiles), and
+    for each measure alone the tile-window factor kappa (least squares of the raw tile minus the true value at
+    the tile's reported position against ``L s^2 / 24``, the window mean the fit removes) and the measures'
+    position difference along the focus gradient (the two energy-weighted tile centroids differ)."""
+    import bench_band_coverage as B
+
+    from fieldcal.fit.synthetic import random_lens
+    from fieldcal.formats.stack import Stack
+    from fieldcal.measure.tiles import measure_stack
+    from fieldcal.simulate.stackgen import simulate_stack
+    from fieldcal.simulate.truth import TruthProfile
+    from fieldcal.validation.run import chart_positions_um, default_fs
+
+    rng = np.random.default_rng(9100 + k)
+    spec = random_lens(rng, channels=("G",), optics=True)
+    rng2 = np.random.default_rng(9100 + 7919 * (k + 1))
+    spec = replace(spec, f_number=float(math.exp(rng2.uniform(*B.LOG_F_RANGE))), exit_pupil_mm=math.inf,
+                   stage_axis_tilt_mrad=(0.0, 0.0))
+    spec = replace(spec, channels=tuple(replace(c, curvature_um=tuple(scale * v for v in c.curvature_um),
+                                                astigmatism_um=0.0) for c in spec.channels))
+    h = int(round(width * 3 / 4))
+    spec = spec.with_sensor_size(width, h)
+    fs = default_fs(spec.sensor.pixel_pitch_um)
+    tol = min(spec.focus_tolerance_um(fs, 0.05, c) for c in spec.channel_names)
+    z = chart_positions_um(spec, tol, 0.5, 2.0)
+    d = work / f"curv-lens{k}-x{scale:g}"
+    if not (d / "stack.json").exists():
+        simulate_stack(spec, d, z, scene="chart", seed=k, progress=False, noise=False)
+    st = Stack.open(d)
+    truth = TruthProfile(spec, width, h, z_ref_um=0.0)
+    row = {"kind": "curvature", "lens": k, "scale": scale, "f_number": spec.f_number, "step_um": float(z[1] - z[0])}
+    t, _ = measure_stack(st, fs_cyc_per_mm=fs, effort="standard", quiet=True, z_ref_um=0.0)
+    row["offset_um"] = float(t.skew["G"]["offset_um"])
+    row["offset_weight"] = float(t.skew["G"]["offset_weight"])
+    pos = {}
+    for meas in ("sml", "bandpass"):
+        t, _ = measure_stack(st, fs_cyc_per_mm=fs, effort="standard", quiet=True, measure=meas, z_ref_um=0.0)
+        ok = np.asarray(t.ok, dtype=bool)
+        x, y = t.x_px, t.y_px
+        half = 0.5 * float(t.tile_px)
+        f = lambda dx, dy: np.asarray(truth.best_focus_um(x + dx, y + dy, "G"), dtype=np.float64)
+        lap = (f(half, 0) + f(-half, 0) + f(0, half) + f(0, -half) - 4.0 * f(0, 0)) / half ** 2
+        corr = lap * float(t.tile_px) ** 2 / 24.0
+        raw = np.asarray(t.z_best_um) - f(0, 0)
+        row[f"{meas}_kappa"] = float(np.sum(raw[ok] * corr[ok]) / np.sum(corr[ok] ** 2))
+        row[f"{meas}_resid_um"] = float(np.mean(raw[ok] - corr[ok]))
+        row["window_um"] = float(np.mean(corr[ok]))
+        gx = (f(1.0, 0) - f(-1.0, 0)) / 2.0
+        gy = (f(0, 1.0) - f(0, -1.0)) / 2.0
+        pos[meas] = (x, y, np.asarray(t.z_best_um), ok, gx, gy)
+    xs, ys, zs, oks, gx, gy = pos["sml"]
+    xb, yb, zb, okb, _, _ = pos["bandpass"]
+    both = oks & okb
+    row["bp_minus_sml_um"] = float(np.mean(zb[both] - zs[both]))
+    row["position_term_um"] = float(np.mean(gx[both] * (xb[both] - xs[both]) + gy[both] * (yb[both] - ys[both])))
+    row["position_diff_px"] = float(np.mean(np.hypot(xb[both] - xs[both], yb[both] - ys[both])))
+    return row
+
+
+def stage_seed_case(k: int, repeatability_um: float, seed: int, work: Path, width: int = 320) -> list[dict]:
+    """Lens k's G channel (geometric, telecentric, noise-free) rendered with chart/stage seed ``seed``, once with a
+    perfect stage and once with stage position noise of sd ``repeatability_um`` (no backlash or scale error),
+    each calibrated with ``measure="sml"`` and ``"auto"`` (sml@fs): the pistons and the offset's weight."""
+    import bench_band_coverage as B
+
+    import fieldcal
+    from fieldcal.fit.synthetic import random_lens
+    from fieldcal.simulate.stackgen import simulate_stack
+    from fieldcal.validation.run import chart_positions_um, default_fs
+
+    rng = np.random.default_rng(9100 + k)
+    spec = random_lens(rng, channels=("G",), optics=True)
+    rng2 = np.random.default_rng(9100 + 7919 * (k + 1))
+    spec = replace(spec, f_number=float(math.exp(rng2.uniform(*B.LOG_F_RANGE))), exit_pupil_mm=math.inf)
+    spec = spec.with_sensor_size(width, int(round(width * 3 / 4)))
+    fs = default_fs(spec.sensor.pixel_pitch_um)
+    tol = min(spec.focus_tolerance_um(fs, 0.05, c) for c in spec.channel_names)
+    z = chart_positions_um(spec, tol, 0.5, 2.0)
+    out = []
+    for r in (0.0, float(repeatability_um)):
+        d = work / f"seed-lens{k}-s{seed}-r{r:g}"
+        if not (d / "stack.json").exists():
+            simulate_stack(spec, d, z, scene="chart", seed=seed, progress=False, noise=False, stage_noise_um=r)
+        for meas in ("sml", "auto"):
+            prof = fieldcal.calibrate(d, fs_cyc_per_mm=fs, effort="standard", z_ref_um=0.0, quiet=True, measure=meas)
+            ev = B.evaluate(prof, {"spec": spec, "fs": fs, "optics": "geometric", "stage_backlash_um": 0.0,
+                                   "stage_scale_error": 0.0})
+            sk = ((prof.diagnostics.get("curve_skew") or {}).get("channels") or {}).get("G") or {}
+            out.append({"kind": "stage_seed", "lens": k, "seed": seed, "repeatability_um": r, "measure": meas,
+                        "step_um": float(z[1] - z[0]), "piston_um": float(ev["piston_um"][0]),
+                        "offset_um": float(sk.get("offset_um") or 0.0),
+                        "offset_weight": float(sk.get("offset_weight") or 0.0),
+                        "bp_skew_weight": float(sk.get("bp_skew_weight") or 0.0)})
+    return out
+
+
 # ----------------------------------------------------------------------------------------------- tables
 def render(rows: list[dict], argv_text: str, notes: str = "") -> str:
     out = [f"### {TITLE}", "", f"`python benchmarks/bench_piston.py {argv_text}`", ""]
@@ -242,6 +342,39 @@ def render(rows: list[dict], argv_text: str, notes: str = "") -> str:
                                                   ("piston per channel (µm)", "piston", ""),
                                                   ("offset weight", "w", ""), ("coverage", "cov", ".2f")])
         out.append("")
+    cv = [r for r in rows if r["kind"] == "curvature"]
+    if cv:
+        out += ["**The sml@fs offset on a curved field** (`--curvature`: the lens's G channel, geometric path, "
+                "telecentric, no astigmatism, no stage or sensor noise, its curvature terms scaled; *offset* = the "
+                "pooled band-pass minus SML on the same tiles that `sml@fs` would apply; *window* = the mean "
+                "`L s²/24` the fit removes; *kappa* = raw tile minus true value at the tile's reported position "
+                "regressed on the window term, each measure alone at its own energy-weighted positions; "
+                "*position term* = the mean of ∇z · (band-pass centroid − SML centroid)):", ""]
+        out += md_table(cv, [("lens", "lens", ""), ("curvature x", "scale", "g"), ("F", "f_number", ".1f"),
+                             ("step (µm)", "step_um", ".1f"), ("offset (µm)", "offset_um", "+.3f"),
+                             ("weight", "offset_weight", ".2f"), ("window (µm)", "window_um", "+.3f"),
+                             ("kappa SML", "sml_kappa", ".2f"), ("kappa band-pass", "bandpass_kappa", ".2f"),
+                             ("band-pass − SML, own positions (µm)", "bp_minus_sml_um", "+.3f"),
+                             ("position term (µm)", "position_term_um", "+.3f"),
+                             ("centroid distance (px)", "position_diff_px", ".2f")])
+        out.append("")
+    ss = [r for r in rows if r["kind"] == "stage_seed"]
+    if ss:
+        out += ["**Stage position noise alone** (`--stage-seeds`: the lens's G channel, geometric, telecentric, no "
+                "sensor noise, no backlash or scale error; each seed draws the chart and the frames' position "
+                "errors; piston per calibration, `measure=sml` against the default `auto` = sml@fs):", ""]
+        tab = []
+        for key in sorted({(r["lens"], r["repeatability_um"], r["measure"]) for r in ss}):
+            rs = [r for r in ss if (r["lens"], r["repeatability_um"], r["measure"]) == key]
+            p = np.array([r["piston_um"] for r in rs])
+            tab.append({"lens": key[0], "r": key[1], "measure": key[2], "n": len(rs),
+                        "pistons": " ".join(f"{v:+.3f}" for v in p), "mean": float(p.mean()),
+                        "pos": float(np.mean(p > 0)),
+                        "offset": " ".join(f"{r['offset_um']:+.2f}@{r['offset_weight']:.2f}" for r in rs)})
+        out += md_table(tab, [("lens", "lens", ""), ("position noise sd (µm)", "r", "g"), ("measure", "measure", ""),
+                              ("seeds", "n", ""), ("pistons (µm)", "pistons", ""), ("mean (µm)", "mean", "+.3f"),
+                              ("positive", "pos", ".2f"), ("sml@fs offset @ weight", "offset", "")])
+        out.append("")
     if notes:
         out += [notes.rstrip(), ""]
     return "\n".join(out)
@@ -253,6 +386,12 @@ def main(argv=None) -> int:
     ap.add_argument("--calibrate", action="store_true", help="with --closed-form: also fieldcal.calibrate the base")
     ap.add_argument("--lenses", default="", help="comma list of band-benchmark lens indices (our simulator)")
     ap.add_argument("--effects", default=",".join(EFFECTS), help=f"comma list of {', '.join(EFFECTS)}")
+    ap.add_argument("--curvature", default="",
+                    help="LENS:SCALE,... curvature-scaled noise-free telecentric stacks of band-benchmark lenses (the "
+                         "sml@fs offset and each measure's tile-window factor)")
+    ap.add_argument("--stage-seeds", default="",
+                    help="LENS:SD:SEED,... noise-free telecentric stacks with stage position noise of sd SD (µm) and "
+                         "without, calibrated with sml and sml@fs")
     ap.add_argument("--work", type=Path, default=None, help="folder for the simulator's stacks (kept; default: temp)")
     ap.add_argument("--jsonl", type=Path, default=None, help="append each row to this file")
     ap.add_argument("--from-jsonl", default="", help="comma list of --jsonl files: make the tables, run nothing")
@@ -281,7 +420,7 @@ def main(argv=None) -> int:
                 record(closed_form_case(name, opts, off))
             if args.calibrate:
                 record(closed_form_calibrate())
-        if args.lenses:
+        if args.lenses or args.curvature or args.stage_seeds:
             import contextlib
             import tempfile
             with (tempfile.TemporaryDirectory(prefix="bench-piston-") if args.work is None
@@ -290,6 +429,13 @@ def main(argv=None) -> int:
                 for k in [int(v) for v in args.lenses.split(",") if v.strip()]:
                     for e in [e for e in args.effects.split(",") if e]:
                         record(simulator_case(k, e, Path(tmp)))
+                for item in [v for v in args.stage_seeds.split(",") if v.strip()]:
+                    k, r, sd = item.split(":")
+                    for row in stage_seed_case(int(k), float(r), int(sd), Path(tmp)):
+                        record(row)
+                for item in [v for v in args.curvature.split(",") if v.strip()]:
+                    k, _, sc = item.partition(":")
+                    record(curvature_case(int(k), float(sc or 1.0), Path(tmp)))
     raw = list(argv if argv is not None else sys.argv[1:])
     skip = {"--notes", "--jsonl"}
     argv_text = " ".join(a for i, a in enumerate(raw) if a not in skip and (i == 0 or raw[i - 1] not in skip))
