@@ -226,7 +226,9 @@ def curvature_case(k: int, scale: float, work: Path, width: int = 320) -> dict:
         ok = np.asarray(t.ok, dtype=bool)
         x, y = t.x_px, t.y_px
         half = 0.5 * float(t.tile_px)
-        f = lambda dx, dy: np.asarray(truth.best_focus_um(x + dx, y + dy, "G"), dtype=np.float64)
+        def f(dx, dy, x=x, y=y):
+            return np.asarray(truth.best_focus_um(x + dx, y + dy, "G"), dtype=np.float64)
+
         lap = (f(half, 0) + f(-half, 0) + f(0, half) + f(0, -half) - 4.0 * f(0, 0)) / half ** 2
         corr = lap * float(t.tile_px) ** 2 / 24.0
         raw = np.asarray(t.z_best_um) - f(0, 0)
