@@ -156,6 +156,7 @@ VARIANTS = {
     "every2": "frames 0, 2, 4, 6, 8 (JPEG): twice the focus step",
     "three": "frames 2, 5, 8 (JPEG): three frames, three times the step",
     "reversed": "the 10 JPEGs named far-to-near (z ascending away from the camera's first frame)",
+    "reversed_near": "as reversed, composited with --z-ref-um 450: the near frame's geometry, as all10",
     "png": "the 10 frames decoded and written as 8-bit PNG",
     "tiff16": "the 10 frames decoded and written as 16-bit RGB TIFF (x 257)",
     "half": "1/2 area downscale (1024x768, PNG): a smaller sensor",
@@ -166,7 +167,7 @@ VARIANTS = {
     "noise": "sensor-like noise sigma = sqrt(4 + I/8) DN added to every frame (PNG)",
 }
 #: variants compared with another one's composite (same frames before the change)
-BASE = {"exposure": "png", "handheld": "png", "noise": "png", "tiff16": "png"}
+BASE = {"reversed_near": "all10", "exposure": "png", "handheld": "png", "noise": "png", "tiff16": "png"}
 
 
 def build(name: str, jpegs: list[Path], dest: Path) -> tuple[list[Path], float]:
@@ -181,7 +182,7 @@ def build(name: str, jpegs: list[Path], dest: Path) -> tuple[list[Path], float]:
             p.symlink_to(jpegs[i])
             out.append(p)
         return out, PITCH_UM
-    if name == "reversed":
+    if name in ("reversed", "reversed_near"):
         out = []
         for j, p0 in enumerate(reversed(jpegs)):
             p = dest / f"rev_{j:03d}.JPG"
@@ -236,7 +237,11 @@ def read_rgb8(path: Path) -> np.ndarray:
     return (img.astype(np.float64) / 257.0 + 0.5).astype(np.uint8) if img.dtype == np.uint16 else img
 
 
-def fieldcal_run(py, frames: list[Path], pitch: float, work: Path) -> dict:
+#: the reference (--z-ref-um) when not 0
+Z_REF_UM = {"reversed_near": 450.0}
+
+
+def fieldcal_run(py, frames: list[Path], pitch: float, work: Path, z_ref_um: float = 0.0) -> dict:
     """import + composite in an empty cwd with their own TMPDIR; both must stay empty."""
     cwd, tmp = work / "cwd", work / "tmp"
     cwd.mkdir()
@@ -248,7 +253,8 @@ def fieldcal_run(py, frames: list[Path], pitch: float, work: Path) -> dict:
                      "--pixel-pitch-um", f"{pitch:g}", "--quiet"], cwd, env)
     if r.returncode:
         return {"error": f"import exit {r.returncode}: {r.stderr.strip()[-300:]}"}
-    r, wc, cc = run([*py, "composite", str(stack), "--out", str(out), "--z-ref-um", "0", "--quiet"], cwd, env)
+    r, wc, cc = run([*py, "composite", str(stack), "--out", str(out), "--z-ref-um", f"{z_ref_um:g}", "--quiet"],
+                    cwd, env)
     if r.returncode:
         return {"error": f"composite exit {r.returncode}: {r.stderr.strip()[-300:]}"}
     stray = [str(p) for p in (*cwd.iterdir(), *tmp.iterdir())]
@@ -278,12 +284,12 @@ def enfuse_run(frames: list[Path], work: Path) -> dict:
             "wall": time.perf_counter() - t0, "cpu": cpu}
 
 
-def registered(stack: Path) -> list[np.ndarray]:
+def registered(stack: Path, z_ref_um: float = 0.0) -> list[np.ndarray]:
     from fieldcal.composite.register import register_stack
     from fieldcal.formats.stack import Stack
 
     st = Stack.open(stack, verify=False)
-    held, _ = register_stack(st, z_ref_um=0.0, quiet=True)
+    held, _ = register_stack(st, z_ref_um=z_ref_um, quiet=True)
     out = []
     for i in range(len(st.frames)):
         f = held.read(i)
@@ -325,7 +331,7 @@ def overshoot_scaled(img, frames, where):
 def bad_inputs(py, jpegs: list[Path], work: Path) -> list[dict]:
     rows = []
     d = work / "bad_mixed"
-    d.mkdir()
+    d.mkdir(parents=True)
     for k, p in enumerate(jpegs[:4]):
         img = cv2.imread(str(p))
         if k == 2:
@@ -395,6 +401,36 @@ def crop_rows(name: str, res: dict, size: int, places) -> list[np.ndarray]:
     return rows
 
 
+def variant_row(name: str, res: dict, results: dict) -> dict:
+    """The figures of one variant's composites (fieldcal, enfuse, focus-stack)."""
+    row = {"variant": name, "what": VARIANTS[name], "frames": res["frames"]}
+    for tool in ("fieldcal", "enfuse", "focus_stack"):
+        img = res.get(tool)
+        if isinstance(img, dict):
+            if "error" in img:
+                row[tool] = {"error": img["error"]}
+                continue
+            frames_for = res.get("regd") if tool == "fieldcal" else img.get("frames")
+            img = img["image"]
+        else:
+            frames_for = res.get("regd")
+        if img is None:
+            continue
+        row[tool] = figures(img, frames_for)
+        base = BASE.get(name)
+        if base in results:
+            b = results[base].get(tool)
+            b = b.get("image") if isinstance(b, dict) else b
+            if b is not None:
+                row[tool]["psnr_vs_" + base] = psnr(img, b)
+    fc = res["fieldcal"]
+    row["fieldcal_wall"], row["fieldcal_cpu"] = fc.get("wall"), fc.get("cpu")
+    row["stray"] = fc.get("stray")
+    row["enfuse_wall"], row["enfuse_cpu"] = res["enfuse"].get("wall"), res["enfuse"].get("cpu")
+    row["load"] = res["load"]
+    return row
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--stack", type=Path, default=DEFAULT_STACK)
@@ -403,6 +439,7 @@ def main() -> None:
     ap.add_argument("--no-bad", action="store_true", help="leave the bad inputs out")
     ap.add_argument("--write", action="store_true")
     ap.add_argument("--keep", type=Path, help="keep frames, stacks and composites in this folder")
+    ap.add_argument("--reuse", action="store_true", help="with --keep: take the composites an earlier run left there")
     ap.add_argument("--json", type=Path, help="write the figures to this JSON file too")
     a = ap.parse_args()
     if not a.stack.is_dir():
@@ -413,55 +450,42 @@ def main() -> None:
     py = [sys.executable, "-m", "fieldcal"]
     names = [n for n in a.variants.split(",") if n]
     results: dict[str, dict] = {}
+    table = []
     for name in names:
         vw = work / name
-        if vw.exists():
-            shutil.rmtree(vw)
-        frames, pitch = build(name, jpegs, vw / "frames")
-        res = {"frames": len(frames), "load": os.getloadavg()[0]}
-        res["fieldcal"] = fieldcal_run(py, frames, pitch, vw)
-        res["enfuse"] = enfuse_run(frames, vw)
+        if a.reuse and (vw / "fieldcal.tiff").exists() and (vw / "enfuse.tif").exists():
+            # an earlier run's composites (--keep): figures only
+            frames = sorted((vw / "frames").iterdir())
+            res = {"frames": len(frames), "load": float("nan"),
+                   "fieldcal": {"image": read_rgb8(vw / "fieldcal.tiff"), **json.loads((vw / "times.json").read_text())},
+                   "enfuse": {"image": read_rgb8(vw / "enfuse.tif"),
+                              "frames": [read_rgb8(p) for p in sorted(vw.glob("al_*.tif"))],
+                              **json.loads((vw / "times_enfuse.json").read_text())}}
+            res["load"] = res["fieldcal"].pop("load", float("nan"))
+        else:
+            if vw.exists():
+                shutil.rmtree(vw)
+            frames, pitch = build(name, jpegs, vw / "frames")
+            res = {"frames": len(frames), "load": os.getloadavg()[0]}
+            res["fieldcal"] = fieldcal_run(py, frames, pitch, vw, Z_REF_UM.get(name, 0.0))
+            res["enfuse"] = enfuse_run(frames, vw)
+            for tool, fn in (("fieldcal", "times.json"), ("enfuse", "times_enfuse.json")):
+                keep = {k: v for k, v in res[tool].items() if k in ("wall", "cpu", "stray", "error")}
+                (vw / fn).write_text(json.dumps({**keep, "load": res["load"]}))
         if "image" in res["fieldcal"]:
-            regd = registered(vw / "stack")
+            regd = registered(vw / "stack", Z_REF_UM.get(name, 0.0))
             res["regd"] = regd
             if not a.no_focus_stack:
                 res["focus_stack"], _ = focus_stack(regd)
         results[name] = res
-        fc, en = res["fieldcal"], res["enfuse"]
+        table.append(variant_row(name, res, results))
+        res.pop("regd", None)
+        res["enfuse"].pop("frames", None)
+
         def said(d):
             return "ERR " + d["error"] if "error" in d else "%.1f s" % d["wall"]
 
-        print(f"{name}: fieldcal {said(fc)}; enfuse {said(en)}", flush=True)
-    # figures
-    table = []
-    for name in names:
-        res = results[name]
-        row = {"variant": name, "what": VARIANTS[name], "frames": res["frames"]}
-        for tool in ("fieldcal", "enfuse", "focus_stack"):
-            img = res.get(tool)
-            if isinstance(img, dict):
-                if "error" in img:
-                    row[tool] = {"error": img["error"]}
-                    continue
-                frames_for = res.get("regd") if tool == "fieldcal" else img.get("frames")
-                img = img["image"]
-            else:
-                frames_for = res.get("regd")
-            if img is None:
-                continue
-            row[tool] = figures(img, frames_for)
-            base = BASE.get(name)
-            if base in results:
-                b = results[base].get(tool)
-                b = b.get("image") if isinstance(b, dict) else b
-                if b is not None:
-                    row[tool]["psnr_vs_" + base] = psnr(img, b)
-        fc = res["fieldcal"]
-        row["fieldcal_wall"], row["fieldcal_cpu"] = fc.get("wall"), fc.get("cpu")
-        row["stray"] = fc.get("stray")
-        row["enfuse_wall"], row["enfuse_cpu"] = res["enfuse"].get("wall"), res["enfuse"].get("cpu")
-        row["load"] = res["load"]
-        table.append(row)
+        print(f"{name}: fieldcal {said(res['fieldcal'])}; enfuse {said(res['enfuse'])}", flush=True)
     lines = ["| variant | frames | msl: fieldcal / enfuse / focus-stack | Tenengrad | band 0.05-0.4 | power 0.4-0.71 | "
              "fieldcal / enfuse (msl, Ten., band) | ringing at depth edges RMS DN (> 2 DN): fieldcal / enfuse / "
              "focus-stack | PSNR vs unchanged (dB): fieldcal / enfuse / focus-stack | fieldcal wall / CPU (s) | "
@@ -486,12 +510,15 @@ def main() -> None:
         ring = " / ".join(f"{g(row, t, 'ring_rms', '.2f')} ({g(row, t, 'ring_share', '.1%')})" for t in tools)
         base = BASE.get(row["variant"])
         ps = " / ".join(g(row, t, f"psnr_vs_{base}", ".1f") for t in tools) if base else "—"
-        fw = "—" if row["fieldcal_wall"] is None else f"{row['fieldcal_wall']:.1f} / {row['fieldcal_cpu']:.1f}"
-        ew = "—" if row["enfuse_wall"] is None else f"{row['enfuse_wall']:.1f} / {row['enfuse_cpu']:.1f}"
+        def num(v, fmt=".1f"):
+            return "—" if v is None or not np.isfinite(v) else format(v, fmt)
+
+        fw = f"{num(row['fieldcal_wall'])} / {num(row['fieldcal_cpu'])}"
+        ew = f"{num(row['enfuse_wall'])} / {num(row['enfuse_cpu'])}"
         lines.append(f"| {row['variant']}: {row['what']} | {row['frames']} | "
                      + " | ".join(" / ".join(g(row, t, k, f) for t in tools)
                                   for k, f in (("msl", ".0f"), ("ten", ".0f"), ("band", ".1f"), ("hi", ".3f")))
-                     + f" | {', '.join(ratio)} | {ring} | {ps} | {fw} | {ew} | {row['load']:.1f} |")
+                     + f" | {', '.join(ratio)} | {ring} | {ps} | {fw} | {ew} | {num(row['load'])} |")
     stray = [f"{r['variant']}: {r['stray']}" for r in table if r.get("stray")]
     errors = [f"{r['variant']}: {t}: {r[t]['error']}" for r in table for t in ("fieldcal", "enfuse", "focus_stack")
               if isinstance(r.get(t), dict) and "error" in r[t]]
