@@ -159,23 +159,3 @@ def test_noise_estimate_from_a_sample_of_the_responses():
     img = np.random.default_rng(5).normal(100.0, 3.0, (1000, 2000)).astype(np.float32)
     assert estimate_noise_sigma(img, max_samples=1 << 16) == pytest.approx(3.0, rel=0.02)
     assert estimate_noise_sigma(img) == pytest.approx(3.0, rel=0.02)
-
-
-@pytest.mark.parametrize("rate", [20.0, 24.0])
-def test_coarse_steps_measured_on_patches_that_resolve_the_disc(rate):
-    # a coarse focus step: the disc two steps away (40-48 px) is wider than the default 32-px patch can resolve
-    # (its fits came out short: 20 px per step read 16.1 and passed; 24 read 14.7 at two steps against 23.1 at
-    # one and fell back as 'not linear'). The patches grow to resolve it, or the two-step pairs are left out.
-    st, depth = disc_stack(rate)
-    est = estimate_defocus_rate(st, np.arange(len(st)), depth, np.ones_like(depth))
-    assert est.reliable, est.reason
-    assert est.disc_px_per_step == pytest.approx(rate, rel=0.06)
-    assert est.patch_px > 32
-
-
-def test_a_disc_beyond_every_patch_is_not_measured():
-    # 30 px per step on a 192-px image: even the largest patch (a quarter of the side, 48 px) cannot resolve the
-    # one-step disc; the estimate says so instead of returning a rate read short
-    st, depth = disc_stack(30.0)
-    est = estimate_defocus_rate(st, np.arange(len(st)), depth, np.ones_like(depth))
-    assert not est.reliable and "more than patches" in est.reason

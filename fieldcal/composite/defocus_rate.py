@@ -54,18 +54,8 @@ MIN_RATE_PX = 0.3
 MAX_REL_SD = 0.15
 #: The rates measured at one and at two frames' distance differ by more than this fraction: not geometric.
 MAX_LINEARITY = 0.35
-#: Largest disc (px) searched for (at least; a larger patch searches up to its own size).
+#: Largest disc (px) searched for.
 MAX_DISC_PX = 40.0
-#: A patch measures a disc up to this fraction of its side: the Hann window's half-height width is half the patch,
-#: and a wider disc spreads each point over more than the window sees, so the fit comes out short (on 1/f texture
-#: ~20 % at half the patch, ~40 % at the whole patch) and fits past the search's end drop out, leaving the
-#: shorter ones: a disc of two coarse steps read 30-60 % short, the rates at one and two steps' distance
-#: disagreed, and the stack lost its Wiener combination (tests/test_defocus_rate.py). Pairs whose expected disc
-#: (the rate at one step's distance times the distance) exceeds it are not used ...
-MAX_DISC_FRACTION = 0.5
-#: ... and when the two-step disc exceeds it, the patches are enlarged once so that it is this fraction of them
-#: (at most a quarter of the image's shorter side).
-TARGET_DISC_FRACTION = 1.0 / 3.0
 #: Nodes of the Gauss-Hermite quadrature over the depth's error (:meth:`MeasuredDefocus.defocus_otf_moments`).
 GAUSS_HERMITE_NODES = 9
 
@@ -76,7 +66,7 @@ class DefocusRate:
 
     ``disc_px_per_step`` the diameter's growth (px per frame step), ``sd_px_per_step`` its standard error;
     ``by_distance`` the median rate and number of pairs at 1 and 2 frames' distance; ``n_patches`` and
-    ``n_pairs`` what it rests on (``patch_px`` the patches' side); ``spacing_um`` the frames' median spacing (µm as the stack records it);
+    ``n_pairs`` what it rests on; ``spacing_um`` the frames' median spacing (µm as the stack records it);
     ``reliable`` whether compositing may use it, ``reason`` why not.
     """
 
@@ -90,7 +80,6 @@ class DefocusRate:
     depth_sd_steps: float = 0.0
     reliable: bool = False
     reason: str = ""
-    patch_px: int = 0
 
     @property
     def um_per_disc_px(self) -> float:
@@ -106,8 +95,7 @@ class DefocusRate:
                 "by_distance": {str(k): {"disc_px_per_step": num(v[0]), "pairs": int(v[1])}
                                 for k, v in self.by_distance.items()},
                 "depth_sd_steps": num(self.depth_sd_steps),
-                "patches": self.n_patches, "patch_px": self.patch_px, "pairs": self.n_pairs,
-                "reliable": self.reliable,
+                "patches": self.n_patches, "pairs": self.n_pairs, "reliable": self.reliable,
                 "reason": self.reason}
 
 
@@ -219,7 +207,7 @@ def _grey(a: np.ndarray) -> np.ndarray:
 
 
 def fit_disc_px(sharp: np.ndarray, blurred: np.ndarray, noise_sigma: float, *, window=None,
-                bins=None, max_disc_px: float = MAX_DISC_PX) -> float:
+                bins=None) -> float:
     """Diameter (px) of the uniform disc that best takes ``sharp`` to ``blurred`` (two grey patches of the same
     square size; least squares on radial frequency bins where ``sharp`` is well above its noise). NaN when no bin
     qualifies or the best disc lies at the search's end."""
@@ -245,7 +233,7 @@ def fit_disc_px(sharp: np.ndarray, blurred: np.ndarray, noise_sigma: float, *, w
     use[0] = False  # the lowest bin holds the window's own leakage of the patch's gradients
     if use.sum() < 3:
         return float("nan")
-    grid = np.arange(0.0, max_disc_px + 1e-9, 0.1)
+    grid = np.arange(0.0, MAX_DISC_PX + 1e-9, 0.1)
     hd = disc_otf(centres[use][None, :], grid[:, None])
     sse = -2.0 * hd @ cross[use] + (hd * hd) @ (power[use] - noise[use])
     i = int(np.argmin(sse))
@@ -267,58 +255,6 @@ def _depth_error_steps(sides, rate: float) -> float:
     e = np.array([k - (dp * dp - dm * dm) / (4.0 * rate * rate) - kb for dm, dp, kb, k in sides])
     med = float(np.median(e))
     return float(np.hypot(med, 1.4826 * np.median(np.abs(e - med))))
-
-
-def _measure(stack, order, kd, confidence, patch_px: int, noise_sigma):
-    """Each usable patch pair's rate by distance (1, 2 frames), the one-step discs on both sides of each patch, the
-    number of patches and the noise sigma used, on patches of ``patch_px``."""
-    patches = _select_patches(kd, np.asarray(confidence, dtype=np.float32), len(order), patch_px)
-    # read each patch from its frame and its neighbours out to 2 frames
-    need: dict[int, list[int]] = {}
-    for p, (_, _, k, _) in enumerate(patches):
-        for j in range(max(0, k - 2), min(len(order), k + 3)):
-            need.setdefault(j, []).append(p)
-    grey: dict[tuple[int, int], np.ndarray] = {}
-    for j, ps in need.items():
-        for p in ps:
-            x0, y0 = patches[p][:2]
-            grey[(p, j)] = _grey(read_roi(stack, int(order[j]), x0, y0, x0 + patch_px, y0 + patch_px))
-    if noise_sigma is None:
-        from .sweep import estimate_noise_sigma
-        sig = [estimate_noise_sigma(g) for g in grey.values()]
-        noise_sigma = float(np.percentile(sig, 10)) if sig else 0.0
-    hann = np.hanning(patch_px)
-    window = np.outer(hann, hann)
-    bins = _radial_bins(patch_px, patch_px // 2)
-    # the search reaches a quarter beyond the largest disc the patch measures (MAX_DISC_FRACTION)
-    max_disc = max(MAX_DISC_PX, 1.25 * MAX_DISC_FRACTION * patch_px)
-
-    def patch_discs(p: int) -> dict[int, float]:
-        """Patch p's blur disc (px) from its frame k to each neighbour j, by ``j - k`` (finite ones only)."""
-        _, _, k, _ = patches[p]
-        side = {}
-        for j in range(max(0, k - 2), min(len(order), k + 3)):
-            if j != k:
-                disc = fit_disc_px(grey[(p, k)], grey[(p, j)], noise_sigma, window=window, bins=bins,
-                                   max_disc_px=max_disc)
-                if np.isfinite(disc):
-                    side[j - k] = disc
-        return side
-
-    from .dff import map_in_order
-
-    rates: dict[int, list[float]] = {1: [], 2: []}
-    sides: list[tuple[float, float, float, int]] = []  # (disc to k - 1, disc to k + 1, depth map's k_b, k)
-    # patches fitted on the compositor's threads (FFTs and NumPy release the GIL), gathered in patch order
-    for (_, _, k, kb), side in zip(patches, map_in_order(patch_discs, list(range(len(patches))))):
-        for dj in sorted(side):
-            # blur variances add (a disc of diameter D has D^2/16 per axis): the disc from frame k to frame j
-            # has D^2 = r^2 (|j - k_b|^2 - |k - k_b|^2), whatever blur the two share (in-focus aberrations)
-            d = np.sqrt((k + dj - kb) ** 2 - (k - kb) ** 2)
-            rates[abs(dj)].append(side[dj] / d)
-        if -1 in side and 1 in side:
-            sides.append((side[-1], side[1], kb, k))
-    return rates, sides, len(patches), float(noise_sigma)
 
 
 def estimate_defocus_rate(stack, frames, depth_index: np.ndarray, confidence: np.ndarray, *,
@@ -355,33 +291,54 @@ def estimate_defocus_rate(stack, frames, depth_index: np.ndarray, confidence: np
         return DefocusRate(float("nan"), float("nan"), reason="frames at one stage position")
     if patch_px is None:
         patch_px = int(np.clip(16 * round(min(w, h) / 128), *PATCH_PX))
-        rates, sides, n_patches, noise_sigma_used = _measure(stack, order, kd, confidence, patch_px, noise_sigma)
-        # a coarse step (or a large sensor): the two-step disc beyond what the patch resolves; larger patches once
-        one = float(np.median(rates[1])) if len(rates[1]) >= MIN_PAIRS // 2 else float("nan")
-        if np.isfinite(one) and 2.0 * one > MAX_DISC_FRACTION * patch_px and \
-                (larger := int(min(16 * np.ceil(2.0 * one / TARGET_DISC_FRACTION / 16.0),
-                                   16 * (min(w, h) // 64)))) > patch_px:
-            patch_px = larger
-            rates, sides, n_patches, noise_sigma_used = _measure(stack, order, kd, confidence, patch_px,
-                                                                 noise_sigma_used)
-    else:
-        rates, sides, n_patches, noise_sigma_used = _measure(stack, order, kd, confidence, patch_px, noise_sigma)
-    noise_sigma = noise_sigma_used
-    # pairs whose disc the patch cannot resolve left out (their fits come out short: MAX_DISC_FRACTION)
-    one = float(np.median(rates[1])) if len(rates[1]) >= MIN_PAIRS // 2 else float("nan")
-    dropped = [d for d in (1, 2) if np.isfinite(one) and d * one > MAX_DISC_FRACTION * patch_px]
-    for d in dropped:
-        rates[d] = []
+    patches = _select_patches(kd, np.asarray(confidence, dtype=np.float32), len(order), patch_px)
+    # read each patch from its frame and its neighbours out to 2 frames
+    need: dict[int, list[int]] = {}
+    for p, (_, _, k, _) in enumerate(patches):
+        for j in range(max(0, k - 2), min(len(order), k + 3)):
+            need.setdefault(j, []).append(p)
+    grey: dict[tuple[int, int], np.ndarray] = {}
+    for j, ps in need.items():
+        for p in ps:
+            x0, y0 = patches[p][:2]
+            grey[(p, j)] = _grey(read_roi(stack, int(order[j]), x0, y0, x0 + patch_px, y0 + patch_px))
+    if noise_sigma is None:
+        from .sweep import estimate_noise_sigma
+        sig = [estimate_noise_sigma(g) for g in grey.values()]
+        noise_sigma = float(np.percentile(sig, 10)) if sig else 0.0
+    hann = np.hanning(patch_px)
+    window = np.outer(hann, hann)
+    bins = _radial_bins(patch_px, patch_px // 2)
+    def patch_discs(p: int) -> dict[int, float]:
+        """Patch p's blur disc (px) from its frame k to each neighbour j, by ``j - k`` (finite ones only)."""
+        _, _, k, _ = patches[p]
+        side = {}
+        for j in range(max(0, k - 2), min(len(order), k + 3)):
+            if j != k:
+                disc = fit_disc_px(grey[(p, k)], grey[(p, j)], noise_sigma, window=window, bins=bins)
+                if np.isfinite(disc):
+                    side[j - k] = disc
+        return side
+
+    from .dff import map_in_order
+
+    rates: dict[int, list[float]] = {1: [], 2: []}
+    sides: list[tuple[float, float, float, int]] = []  # (disc to k - 1, disc to k + 1, depth map's k_b, k)
+    # patches fitted on the compositor's threads (FFTs and NumPy release the GIL), gathered in patch order
+    for (_, _, k, kb), side in zip(patches, map_in_order(patch_discs, list(range(len(patches))))):
+        for dj in sorted(side):
+            # blur variances add (a disc of diameter D has D^2/16 per axis): the disc from frame k to frame j
+            # has D^2 = r^2 (|j - k_b|^2 - |k - k_b|^2), whatever blur the two share (in-focus aberrations)
+            d = np.sqrt((k + dj - kb) ** 2 - (k - kb) ** 2)
+            rates[abs(dj)].append(side[dj] / d)
+        if -1 in side and 1 in side:
+            sides.append((side[-1], side[1], kb, k))
     allr = np.array(rates[1] + rates[2])
     by = {d: (float(np.median(r)) if r else float("nan"), len(r)) for d, r in rates.items()}
-    common = dict(by_distance=by, n_patches=n_patches, n_pairs=int(allr.size), spacing_um=spacing,
-                  noise_sigma=float(noise_sigma), patch_px=int(patch_px))
+    common = dict(by_distance=by, n_patches=len(patches), n_pairs=int(allr.size), spacing_um=spacing,
+                  noise_sigma=float(noise_sigma))
     if allr.size:
         common["depth_sd_steps"] = _depth_error_steps(sides, float(np.median(allr)))
-    if 1 in dropped:
-        return DefocusRate(float("nan"), float("nan"), **common,
-                           reason=f"the blur grows by {one:.1f} px per frame, more than patches of {patch_px} px "
-                                  "measure")
     if allr.size < MIN_PAIRS:
         return DefocusRate(float("nan"), float("nan"), **common,
                            reason=f"too little texture: {allr.size} patch pairs, fewer than {MIN_PAIRS}")
