@@ -328,6 +328,12 @@ def overshoot_scaled(img, frames, where):
 
 
 # ---------------------------------------------------------------- bad inputs
+def said(stderr: str) -> str:
+    """The error's first line and its fix, as one line."""
+    lines = [v.strip() for v in stderr.strip().splitlines() if v.strip()]
+    return " / ".join(lines[:1] + [v for v in lines[1:] if v.startswith("fix:")])[:220]
+
+
 def bad_inputs(py, jpegs: list[Path], work: Path) -> list[dict]:
     rows = []
     d = work / "bad_mixed"
@@ -342,8 +348,7 @@ def bad_inputs(py, jpegs: list[Path], work: Path) -> list[dict]:
     r, _, _ = run([*py, "import", str(d), "--out", str(work / "bad_mixed_stack"), "--z", "0", "50",
                    "--pixel-pitch-um", "1.12", "--quiet"], cwd, dict(os.environ))
     rows.append({"case": "one frame of half the size (PNG)", "step": "import", "exit": r.returncode,
-                 "clean": "Traceback" not in r.stderr, "message": r.stderr.strip().splitlines()[-1][:160]
-                 if r.stderr.strip() else "", "wrote": (work / "bad_mixed_stack").exists()})
+                 "clean": "Traceback" not in r.stderr, "message": said(r.stderr), "wrote": (work / "bad_mixed_stack").exists()})
     # a frame swapped for one of another size after import
     d2 = work / "bad_swap"
     d2.mkdir()
@@ -358,7 +363,7 @@ def bad_inputs(py, jpegs: list[Path], work: Path) -> list[dict]:
                   cwd, dict(os.environ))
     rows.append({"case": "a frame replaced by one of half the size after import", "step": "composite",
                  "exit": r.returncode, "clean": "Traceback" not in r.stderr,
-                 "message": r.stderr.strip().splitlines()[-1][:160] if r.stderr.strip() else "",
+                 "message": said(r.stderr),
                  "wrote": (work / "bad_swap.tiff").exists()})
     # mixed file types
     d3 = work / "bad_types"
@@ -370,7 +375,7 @@ def bad_inputs(py, jpegs: list[Path], work: Path) -> list[dict]:
                    "--pixel-pitch-um", "1.12", "--quiet"], cwd, dict(os.environ))
     rows.append({"case": "PNG and JPEG frames mixed", "step": "import", "exit": r.returncode,
                  "clean": "Traceback" not in r.stderr,
-                 "message": r.stderr.strip().splitlines()[-1][:160] if r.stderr.strip() else "",
+                 "message": said(r.stderr),
                  "wrote": (work / "bad_types_stack").exists()})
     rows.append({"case": "(nothing written in the working folder)", "step": "", "exit": "",
                  "clean": not any(cwd.iterdir()), "message": "", "wrote": ""})
@@ -537,7 +542,8 @@ def main() -> None:
     # crops: per variant one row (two places), enfuse | focus-stack | fieldcal
     places = ((0.576, 0.273), (0.303, 0.651))
     img_dir = REPO / "docs" / "img" if a.write else work
-    groups = [names[i:i + 7] for i in range(0, len(names), 7)]
+    per = -(-len(names) // 2)  # two figures, each under 300 KB
+    groups = [names[i:i + per] for i in range(0, len(names), per)]
     crop_files = []
     for gi, grp in enumerate(groups):
         rows = []
