@@ -26,7 +26,8 @@ Figures (grey, a border of 96/2048 of the width left out: align_image_stack's bl
 * for the exposure, handheld and noise variants, the PSNR of each tool's composite against the same tool's
   composite of the unchanged frames (an exposure step, a ghost or a seam shows as a loss).
 
-``--variants a,b`` runs some variants only; ``--write`` puts the table into docs/benchmarks.md (section
+``--variants a,b`` runs some variants only; ``--keep DIR --reuse`` takes the composites an earlier ``--keep DIR``
+run left there (figures only); ``--write`` puts the table into docs/benchmarks.md (section
 ``bench_real_variants_s14``) and the crops into ``docs/img/real-variants-s14-*.png``; ``--keep DIR`` keeps the
 frames, stacks and composites. Bad inputs (mixed sizes; a frame swapped for another size after import) must end
 in a clear error (exit 2, no traceback).
@@ -55,6 +56,13 @@ from focus_stack_ref import focus_stack  # noqa: E402
 
 PITCH_UM = 1.12
 SECTION = "real_variants_s14"
+
+
+def checkout_env(**extra) -> dict:
+    """The environment of a ``python -m fieldcal`` child: this checkout's package first (the children run in other
+    working folders, where a relative PYTHONPATH would find an installed copy instead)."""
+    path = os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)
+    return dict(os.environ, PYTHONPATH=path, **extra)
 
 
 # ---------------------------------------------------------------- figures (border scaled with the image)
@@ -225,7 +233,8 @@ def run(cmd: list[str], cwd: Path, env: dict) -> tuple[subprocess.CompletedProce
     r0 = os.times()
     r = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
     r1 = os.times()
-    return r, time.perf_counter() - t0, (r1.children_user - r0.children_user) + (r1.children_system - r0.children_system)
+    cpu = (r1.children_user - r0.children_user) + (r1.children_system - r0.children_system)
+    return r, time.perf_counter() - t0, cpu
 
 
 def snapshot(d: Path) -> dict:
@@ -246,7 +255,7 @@ def fieldcal_run(py, frames: list[Path], pitch: float, work: Path, z_ref_um: flo
     cwd, tmp = work / "cwd", work / "tmp"
     cwd.mkdir()
     tmp.mkdir()
-    env = dict(os.environ, TMPDIR=str(tmp))
+    env = checkout_env(TMPDIR=str(tmp))
     src_before = snapshot(frames[0].parent)
     stack, out = work / "stack", work / "fieldcal.tiff"
     r, wi, ci = run([*py, "import", *map(str, frames), "--out", str(stack), "--z", "0", "50",
@@ -336,6 +345,7 @@ def said(stderr: str) -> str:
 
 def bad_inputs(py, jpegs: list[Path], work: Path) -> list[dict]:
     rows = []
+    shutil.rmtree(work, ignore_errors=True)  # an earlier run's (--keep)
     d = work / "bad_mixed"
     d.mkdir(parents=True)
     for k, p in enumerate(jpegs[:4]):
@@ -346,9 +356,10 @@ def bad_inputs(py, jpegs: list[Path], work: Path) -> list[dict]:
     cwd = work / "bad_cwd"
     cwd.mkdir()
     r, _, _ = run([*py, "import", str(d), "--out", str(work / "bad_mixed_stack"), "--z", "0", "50",
-                   "--pixel-pitch-um", "1.12", "--quiet"], cwd, dict(os.environ))
+                   "--pixel-pitch-um", "1.12", "--quiet"], cwd, checkout_env())
     rows.append({"case": "one frame of half the size (PNG)", "step": "import", "exit": r.returncode,
-                 "clean": "Traceback" not in r.stderr, "message": said(r.stderr), "wrote": (work / "bad_mixed_stack").exists()})
+                 "clean": "Traceback" not in r.stderr, "message": said(r.stderr),
+                 "wrote": (work / "bad_mixed_stack").exists()})
     # a frame swapped for one of another size after import
     d2 = work / "bad_swap"
     d2.mkdir()
@@ -356,11 +367,11 @@ def bad_inputs(py, jpegs: list[Path], work: Path) -> list[dict]:
         cv2.imwrite(str(d2 / f"f{k}.png"), cv2.imread(str(p)))
     st = work / "bad_swap_stack"
     subprocess.run([*py, "import", str(d2), "--out", str(st), "--z", "0", "50", "--pixel-pitch-um", "1.12",
-                    "--quiet"], check=True)
+                    "--quiet"], check=True, env=checkout_env())
     f2 = sorted((st / "frames").iterdir())[2]
     cv2.imwrite(str(f2.with_suffix(".png")), area(cv2.imread(str(f2)), 2))
     r, _, _ = run([*py, "composite", str(st), "--out", str(work / "bad_swap.tiff"), "--z-ref-um", "0", "--quiet"],
-                  cwd, dict(os.environ))
+                  cwd, checkout_env())
     rows.append({"case": "a frame replaced by one of half the size after import", "step": "composite",
                  "exit": r.returncode, "clean": "Traceback" not in r.stderr,
                  "message": said(r.stderr),
@@ -372,7 +383,7 @@ def bad_inputs(py, jpegs: list[Path], work: Path) -> list[dict]:
         img = cv2.imread(str(p))
         cv2.imwrite(str(d3 / (f"f{k}.png" if k != 1 else f"f{k}.jpg")), img)
     r, _, _ = run([*py, "import", str(d3), "--out", str(work / "bad_types_stack"), "--z", "0", "50",
-                   "--pixel-pitch-um", "1.12", "--quiet"], cwd, dict(os.environ))
+                   "--pixel-pitch-um", "1.12", "--quiet"], cwd, checkout_env())
     rows.append({"case": "PNG and JPEG frames mixed", "step": "import", "exit": r.returncode,
                  "clean": "Traceback" not in r.stderr,
                  "message": said(r.stderr),
@@ -462,7 +473,8 @@ def main() -> None:
             # an earlier run's composites (--keep): figures only
             frames = sorted((vw / "frames").iterdir())
             res = {"frames": len(frames), "load": float("nan"),
-                   "fieldcal": {"image": read_rgb8(vw / "fieldcal.tiff"), **json.loads((vw / "times.json").read_text())},
+                   "fieldcal": {"image": read_rgb8(vw / "fieldcal.tiff"),
+                                **json.loads((vw / "times.json").read_text())},
                    "enfuse": {"image": read_rgb8(vw / "enfuse.tif"),
                               "frames": [read_rgb8(p) for p in sorted(vw.glob("al_*.tif"))],
                               **json.loads((vw / "times_enfuse.json").read_text())}}
