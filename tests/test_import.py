@@ -318,3 +318,18 @@ def test_real_jpeg_stack_imports_with_its_exif(tmp_path):
     assert len(stack) == 10 and stack.shape == (1536, 2048) and stack.channels == ("R", "G", "B")
     assert stack.meta["f_number"] == pytest.approx(1.8)
     assert [Path(f.meta["source"]["file"]).stem for f in stack.frames] == [f"pcb_{k:03d}" for k in range(10)]
+
+
+def test_quiet_import_of_frames_without_exif_prints_nothing(tmp_path):
+    # PNG frames carry no EXIF; exifread's warning about that reached stderr once per frame under --quiet (through
+    # Python's last-resort log handler: a process of its own, as a user runs it, since pytest installs handlers)
+    import subprocess
+    import sys
+
+    _write_png(tmp_path / "shots", ["a.png", "b.png", "c.png"], _frames(3, seed=4))
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    r = subprocess.run([sys.executable, "-m", "fieldcal", "import", str(tmp_path / "shots"), "--out",
+                        str(tmp_path / "stack"), "--z", "0", "10", "--pixel-pitch-um", "2", "--quiet"],
+                       capture_output=True, text=True, env=env)
+    assert r.returncode == 0 and r.stdout == "" and r.stderr == ""
+    assert len(Stack.open(tmp_path / "stack").frames) == 3

@@ -120,14 +120,25 @@ def _ratio(value) -> float | None:
 
 
 def _exif(path: Path) -> dict:
-    """EXIF tags as exifread reads them (any TIFF-based raw, JPEG, TIFF, PNG eXIf); {} when there are none."""
+    """EXIF tags as exifread reads them (any TIFF-based raw, JPEG, TIFF, PNG eXIf); {} when there are none.
+
+    exifread logs a file without EXIF as a warning, which Python's last-resort handler printed on stderr once per
+    frame ("PNG file does not have exif data.", also under ``--quiet``): a frame without EXIF is normal here (the
+    importer asks for what it needs, e.g. ``--pixel-pitch-um``), so its warnings are held back while it reads."""
+    import logging
+
     import exifread
 
+    log = logging.getLogger("exifread")
+    level = log.level
+    log.setLevel(logging.ERROR)
     try:
         with open(path, "rb") as f:
             return exifread.process_file(f, details=False, strict=False)
     except Exception:  # exifread raises many types on odd files; metadata is optional
         return {}
+    finally:
+        log.setLevel(level)
 
 
 def _exif_fields(tags: dict) -> dict:
