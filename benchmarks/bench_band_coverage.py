@@ -67,17 +67,17 @@ def lens_plan(k: int, optics: str = "mixed") -> tuple[str, bool, int]:
     return path, path == "wave" and (k // 2) % 2 == 0, 5 if k % 4 == 3 else 4
 
 
-def simulate_lens(k: int, width_px: int, workdir: Path, optics: str = "mixed", seed: int = 9100,
-                  stage_errors: bool = True, variety: bool = True):
-    """Render lens ``k``'s chart stack with stage errors; returns a dict describing it.
+def lens_setup(k: int, width_px: int, optics: str = "mixed", seed: int = 9100, stage_errors: bool = True,
+               variety: bool = True, telecentric: bool = False) -> dict:
+    """Lens ``k``'s spec, scan and stage errors, drawn as :func:`simulate_lens` renders them (not rendered).
 
     The lens is ``random_lens(optics=True)`` (same surfaces as before for a given k) with its F-number redrawn
     log-uniform in F/1.4-F/8 and, on the asymmetric wave-optics lenses, W040 = 0.25-0.8 waves; every 4th lens
     is rendered 1.25x wider than ``width_px`` (``variety=False``: random_lens's own F/2-F/4, all at ``width_px``).
+    ``telecentric``: the exit pupil at infinity (no breathing; bench_piston's one-effect-at-a-time cases).
     """
     from fieldcal.fit.synthetic import random_lens
     from fieldcal.simulate.aberrations import Aberrations
-    from fieldcal.simulate.stackgen import simulate_stack
     from fieldcal.validation.run import chart_positions_um, default_fs
 
     path, spherical, wf = lens_plan(k, optics)
@@ -91,6 +91,8 @@ def simulate_lens(k: int, width_px: int, workdir: Path, optics: str = "mixed", s
         wf = 4
     if spherical:
         spec = replace(spec, aberrations=Aberrations(spherical=(float(rng2.uniform(*SA_WAVES)),)))
+    if telecentric:
+        spec = replace(spec, exit_pupil_mm=math.inf)
     w = int(round(width_px * wf / 4))
     spec = spec.with_sensor_size(w, int(round(w * 3 / 4)))
     fs = default_fs(spec.sensor.pixel_pitch_um)
@@ -100,6 +102,17 @@ def simulate_lens(k: int, width_px: int, workdir: Path, optics: str = "mixed", s
              "stage_scale_error": float(rng.uniform(-2e-4, 2e-4))}
     if not stage_errors:
         stage = {key: 0.0 for key in stage}
+    return {"path": path, "spherical": spherical, "spec": spec, "fs": fs, "z": z, "stage": stage, "width_px": w}
+
+
+def simulate_lens(k: int, width_px: int, workdir: Path, optics: str = "mixed", seed: int = 9100,
+                  stage_errors: bool = True, variety: bool = True):
+    """Render lens ``k``'s chart stack (:func:`lens_setup`) with stage errors; returns a dict describing it."""
+    from fieldcal.simulate.stackgen import simulate_stack
+
+    L = lens_setup(k, width_px, optics, seed, stage_errors, variety)
+    path, spherical, spec, fs, z, stage, w = (L[key] for key in ("path", "spherical", "spec", "fs", "z", "stage",
+                                                                 "width_px"))
     kw = dict(stage)
     if path != "geometric":
         if "optics" not in inspect.signature(simulate_stack).parameters:

@@ -141,30 +141,11 @@ def simulator_case(k: int, effect: str, work: Path, width: int = 320, effort: st
     import bench_band_coverage as B
 
     import fieldcal
-    from fieldcal.fit.synthetic import random_lens
-    from fieldcal.simulate.aberrations import Aberrations
     from fieldcal.simulate.stackgen import simulate_stack
-    from fieldcal.validation.run import chart_positions_um, default_fs
 
     parts = set(effect.split("+")) - {"none"}
-    path, spherical, wf = B.lens_plan(k)
-    rng = np.random.default_rng(9100 + k)
-    spec = random_lens(rng, channels=("R", "G", "B") if k % 4 else ("Y",), optics=True)
-    rng2 = np.random.default_rng(9100 + 7919 * (k + 1))
-    spec = replace(spec, f_number=float(math.exp(rng2.uniform(*B.LOG_F_RANGE))))
-    if spherical:
-        spec = replace(spec, aberrations=Aberrations(spherical=(float(rng2.uniform(*B.SA_WAVES)),)))
-    if "telecentric" in parts:
-        spec = replace(spec, exit_pupil_mm=math.inf)
-    w = int(round(width * wf / 4))
-    spec = spec.with_sensor_size(w, int(round(w * 3 / 4)))
-    fs = default_fs(spec.sensor.pixel_pitch_um)
-    tol = min(spec.focus_tolerance_um(fs, 0.05, c) for c in spec.channel_names)
-    z = chart_positions_um(spec, tol, 0.5, 2.0)
-    stage = {"stage_noise_um": float(rng.uniform(0.1, 0.5)), "stage_backlash_um": float(rng.uniform(0.0, 3.0)),
-             "stage_scale_error": float(rng.uniform(-2e-4, 2e-4))}
-    if "stage" not in parts:
-        stage = {key: 0.0 for key in stage}
+    L = B.lens_setup(k, width, stage_errors="stage" in parts, telecentric="telecentric" in parts)
+    path, spherical, spec, fs, z, stage = (L[key] for key in ("path", "spherical", "spec", "fs", "z", "stage"))
     d = work / f"lens{k}-{effect}"
     t0 = time.process_time()
     if not (d / "stack.json").exists():
