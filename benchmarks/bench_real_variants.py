@@ -173,7 +173,13 @@ VARIANTS = {
     "exposure": "frames 2, 6: +0.3 EV; 4, 8: -0.3 EV (linear light, clipped; PNG)",
     "handheld": "frames 1-9 shifted <= 3 px, rolled <= 0.2 deg, breathing 0.5 % (PNG)",
     "noise": "sensor-like noise sigma = sqrt(4 + I/8) DN added to every frame (PNG)",
+    # coarse steps whose disc (~15-22 px per step) the 64-px patches barely resolve (bench_ring_s14): the Wiener
+    # step with a rate read short rang beside depth edges, so these must fall back to choosing frames (or not ring)
+    "every2_60": "frames 0, 2, 4, 6, 8 at 0.6 area downscale (PNG): ~15 px of disc per step",
+    "every2_80": "frames 0, 2, 4, 6, 8 at 0.8 area downscale (PNG): ~20 px of disc per step",
 }
+#: the coarse-step variants' downscale
+SCALED_EVERY2 = {"every2_60": 0.6, "every2_80": 0.8}
 #: variants compared with another one's composite (same frames before the change)
 BASE = {"reversed_near": "all10", "exposure": "png", "handheld": "png", "noise": "png", "tiff16": "png"}
 
@@ -203,6 +209,11 @@ def build(name: str, jpegs: list[Path], dest: Path) -> tuple[list[Path], float]:
         frames, pitch = [area(f, 2) for f in frames], 2 * PITCH_UM
     elif name == "quarter":
         frames, pitch = [area(f, 4) for f in frames], 4 * PITCH_UM
+    elif name in SCALED_EVERY2:
+        f_ = SCALED_EVERY2[name]
+        frames = [cv2.resize(f, (round(f.shape[1] * f_), round(f.shape[0] * f_)), interpolation=cv2.INTER_AREA)
+                  for f in frames[0:10:2]]
+        pitch = PITCH_UM / f_
     elif name == "crop":
         h, w = frames[0].shape[:2]
         frames = [f[h // 4:h // 4 + h // 2, w // 4:w // 4 + w // 2] for f in frames]

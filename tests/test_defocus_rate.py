@@ -159,3 +159,19 @@ def test_noise_estimate_from_a_sample_of_the_responses():
     img = np.random.default_rng(5).normal(100.0, 3.0, (1000, 2000)).astype(np.float32)
     assert estimate_noise_sigma(img, max_samples=1 << 16) == pytest.approx(3.0, rel=0.02)
     assert estimate_noise_sigma(img) == pytest.approx(3.0, rel=0.02)
+
+
+def test_discs_wider_than_the_patches_resolve_are_refused():
+    # 192-px frames are measured on 32-px patches, whose Hann window is 16 px wide at half maximum: a disc growing
+    # by 6 px per frame (12 px two frames apart) is resolved and measured right; one growing by 10 px (20 px two
+    # frames apart) is not resolved, whatever the fit says, and the stack falls back to choosing frames (on real
+    # bokeh such discs read short and the Wiener step with them rang beside depth edges, bench_ring_s14)
+    st, depth = disc_stack(6.0)
+    est = estimate_defocus_rate(st, np.arange(len(st)), depth, np.ones_like(depth))
+    assert est.reliable, est.reason
+    assert est.disc_px_per_step == pytest.approx(6.0, rel=0.06)
+    st, depth = disc_stack(10.0)
+    est = estimate_defocus_rate(st, np.arange(len(st)), depth, np.ones_like(depth))
+    assert not est.reliable
+    assert "patches resolve" in est.reason
+    assert est.info()["reliable"] is False

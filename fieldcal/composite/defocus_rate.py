@@ -19,8 +19,9 @@ frame ``k`` of a pixel in focus at frame ``k_b`` (sub-frame), ``r`` px per frame
 
 The estimate is **unreliable** (and compositing falls back to choosing frames, saying why) when too few patches
 pass (:data:`MIN_PAIRS`: too little texture), the disc barely grows (:data:`MIN_RATE_PX`: frames that do not change
-focus), the uncertainty is above :data:`MAX_REL_SD` of the rate, or the rates at one and two frames' distance
-disagree by more than :data:`MAX_LINEARITY` (the blur does not grow as geometric defocus does).
+focus), the disc two frames apart is wider than the patches resolve (:data:`MAX_DISC_PATCH_FRACTION`: read short,
+and a Wiener step with it rings beside depth edges on real bokeh), the uncertainty is above :data:`MAX_REL_SD` of
+the rate, or the rates at one and two frames' distance disagree by more than :data:`MAX_LINEARITY` (the blur does not grow as geometric defocus does).
 
 The frames' in-focus blur (aberrations, diffraction, demosaicing) is common to every frame, so the relative blur
 is what the Wiener combination needs: its target is the image as the sharpest frame records it.
@@ -54,6 +55,14 @@ MIN_RATE_PX = 0.3
 MAX_REL_SD = 0.15
 #: The rates measured at one and at two frames' distance differ by more than this fraction: not geometric.
 MAX_LINEARITY = 0.35
+#: The disc two frames apart wider than this fraction of the patch: not resolved. A Hann-windowed patch sees a
+#: disc through a window whose full width at half maximum is half the patch; wider discs are fitted on its tails.
+#: On the real board (64-px patches) every other frame, downscaled 0.6-1.0 (15-25 px per step), read its
+#: two-step disc 20-40 % short against the one-step one, the rate 12-20 % short, and passed below 0.9 of full
+#: size; the Wiener step with it rang in the defocused board beside depth edges, which choosing frames does not
+#: (docs/benchmarks.md, bench_ring_s14). An ideal disc is still read right a little beyond this; the check
+#: cannot tell the two apart, and choosing frames is the safe side.
+MAX_DISC_PATCH_FRACTION = 0.5
 #: Largest disc (px) searched for.
 MAX_DISC_PX = 40.0
 #: Nodes of the Gauss-Hermite quadrature over the depth's error (:meth:`MeasuredDefocus.defocus_otf_moments`).
@@ -344,9 +353,15 @@ def estimate_defocus_rate(stack, frames, depth_index: np.ndarray, confidence: np
                            reason=f"too little texture: {allr.size} patch pairs, fewer than {MIN_PAIRS}")
     rate = float(np.median(allr))
     sd = float(1.4826 * np.median(np.abs(allr - rate)) * 1.2533 / np.sqrt(allr.size))
+    # the one-step discs are the better resolved: a rate read short at two steps is not taken for the true one
+    resolved = max(rate, by[1][0]) if by[1][1] >= MIN_PAIRS // 2 else rate
     reason = ""
     if rate < MIN_RATE_PX:
         reason = f"the blur disc grows by {rate:.2f} px per frame, less than {MIN_RATE_PX}: frames barely change focus"
+    elif 2.0 * resolved > MAX_DISC_PATCH_FRACTION * patch_px:
+        reason = (f"the blur disc grows by {resolved:.1f} px per frame: the disc two frames apart ({2 * resolved:.0f} px) "
+                  f"is wider than the {patch_px}-px patches resolve ({MAX_DISC_PATCH_FRACTION * patch_px:.0f} px), "
+                  "so it is read short and its Wiener step would ring")
     elif sd > MAX_REL_SD * rate:
         reason = f"uncertain: {rate:.2f} +- {sd:.2f} px per frame"
     elif by[1][1] >= MIN_PAIRS // 2 and by[2][1] >= MIN_PAIRS // 2 and \
