@@ -40,3 +40,16 @@ def test_offset_is_zero_on_a_symmetric_curved_field(curvature):
     t0, _ = measure_stack(st, fs_cyc_per_mm=FS, effort="standard", quiet=True, rules=TileRules(offset_geometry=False))
     assert t0.skew["Y"]["offset_um"] == pytest.approx(raw, abs=1e-9)
     assert "offset_geometry_n" not in t0.skew["Y"]
+
+
+def test_the_correction_on_a_subset_of_tiles(monkeypatch):
+    """Large grids measure the quadrants of OFFSET_GEOMETRY_TILES tiles spread over the grid (8 curve fits each):
+    the offset is then pooled over those tiles alone and is still corrected (here 14 of the 24 tiles)."""
+    import fieldcal.measure.tiles as tiles_mod
+    monkeypatch.setattr(tiles_mod, "OFFSET_GEOMETRY_TILES", 14)
+    z = (np.arange(N_FRAMES) - (N_FRAMES - 1) / 2.0 + 0.37) * STEP_UM
+    st = ArrayStack([curved_frame(float(v), 6e-4) for v in z], z, ["Y"], pixel_pitch_um=PITCH_UM)
+    t, _ = measure_stack(st, fs_cyc_per_mm=FS, effort="standard", quiet=True)
+    rec = t.skew["Y"]
+    assert rec["offset_geometry_n"] == 14 and rec["n_tiles"] >= 20
+    assert rec["offset_raw_um"] > 0.025 and abs(rec["offset_um"]) < 0.4 * rec["offset_raw_um"], rec

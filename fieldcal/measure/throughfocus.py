@@ -902,8 +902,9 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
     ``geo``: ``(part, var_q)`` per tile (same order; ``measure.tiles._offset_geometry``): the part of each tile's
     difference that the field's shape makes (the measures' centroids and window responses differ), taken out
     before pooling; the tile's sd becomes that of the window-extrapolated difference ``(4 D_q - D) / 3``,
-    ``sqrt((sd^2 + 16 var_q) / 9)``. Tiles whose part is not measured (NaN) are left out where at least half
-    have one; otherwise nothing is taken out (``offset_geometry_n`` records how many tiles had it).
+    ``sqrt((sd^2 + 16 var_q) / 9)``. Tiles whose part is not measured (NaN: a failed quadrant, or a tile beyond
+    the ``measure.tiles.OFFSET_GEOMETRY_TILES`` measured) are left out where 12 tiles or half of them have one;
+    otherwise nothing is taken out (``offset_geometry_n`` records how many tiles had it).
 
     ``repeatability_um``: the stage's. The two measures weigh the frames differently (other bands, windows and
     shapes), so one pattern of frame errors moves them apart in every tile at once; the pooled offset's frame
@@ -924,7 +925,7 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
         var_q = np.asarray(geo[1], dtype=np.float64)[keep]
         have = np.isfinite(part) & np.isfinite(var_q)
         geo_info = {"offset_geometry_n": int(have.sum())}
-        if have.sum() >= max(2, 0.5 * len(keep)):
+        if have.sum() >= max(2.0, min(0.5 * len(keep), 12.0)):
             geo_info["offset_raw_um"] = _pooled(d, sd)[0]
             d = np.where(have, d - part, np.nan)
             sd = np.sqrt((sd * sd + 16.0 * var_q) / 9.0)

@@ -53,6 +53,9 @@ from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_o
 # Since session 10 the sd is the stack's own (measure.sml_gain: k bounded by the sensor-fixed MTFs the stack
 # declares, or a camera's, TileTable.sml_gain); SML_SCALE_RESIDUAL_SD is kept for tables without that record.
 MIN_TILE_PX = 32
+# sml@fs: the tiles (spread over the grid) whose quadrants refer the offset to one point and one window
+# (_offset_geometry); the offset is one number per channel, and each such tile costs 8 more curve fits
+OFFSET_GEOMETRY_TILES = 96
 SML_SCALE_RESIDUAL_SD = 0.45
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
 
@@ -798,7 +801,8 @@ def _surface_gradient(x: np.ndarray, y: np.ndarray, z_um: np.ndarray, sd_um: np.
 
 
 def _offset_geometry(cc: dict, cq: dict, geometry: GeometryMeasurements, channel: str, axis: _ScaleAxis,
-                     z: np.ndarray, tile_px: int, fs_cyc_per_mm: float, q: float, rules: TileRules):
+                     z: np.ndarray, tile_px: int, fs_cyc_per_mm: float, q: float, rules: TileRules,
+                     sub: np.ndarray | None = None):
     """(geo, var_q) per tile, on the curves' axis: the part of the tile's band-pass minus SML best focus that the
     field's shape makes, and the variance of its quadrants' mean difference (NaN where not measured).
 
@@ -823,6 +827,11 @@ def _offset_geometry(cc: dict, cq: dict, geometry: GeometryMeasurements, channel
     nan = np.full(nt, np.nan)
     if "bandpass" not in cc or cq is None or "mx:bandpass" not in cc:
         return nan, nan
+    if sub is not None:  # the quadrants of these tiles only (``cq`` holds theirs): NaN elsewhere
+        geo, var_q = np.full(nt, np.nan), np.full(nt, np.nan)
+        geo[sub], var_q[sub] = _offset_geometry({k: v[sub] for k, v in cc.items()}, cq, geometry, channel, axis, z,
+                                                tile_px, fs_cyc_per_mm, q, rules)
+        return geo, var_q
     y = axis.y(z)
 
     def fits(c):
@@ -1278,8 +1287,10 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     per_channel = pooled_curves(xs, ys, tile)
     quads: dict[str, dict[str, np.ndarray]] = {}
     if geo_offset:
-        qx = np.concatenate([xs + fx * tile for fx, _ in _QUADRANTS])
-        qy = np.concatenate([ys + fy * tile for _, fy in _QUADRANTS])
+        # (at most OFFSET_GEOMETRY_TILES tiles spread over the grid: the quadrants cost 8 curve fits a tile)
+        geo_sub = np.unique(np.round(np.linspace(0, xs.size - 1, min(xs.size, OFFSET_GEOMETRY_TILES))).astype(int))
+        qx = np.concatenate([xs[geo_sub] + fx * tile for fx, _ in _QUADRANTS])
+        qy = np.concatenate([ys[geo_sub] + fy * tile for _, fy in _QUADRANTS])
         quads = {ch: {k: v for k, v in cc.items() if k not in _SLOPE_KEYS}
                  for ch, cc in pooled_curves(qx, qy, 0.5 * tile).items()}
     # the band-passes followed the image: the sensor-fixed MTFs the stack declares (pixel aperture, diffraction)
@@ -1333,7 +1344,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
             slopes[ch] = _frequency_slope(cc, axes[ch].y(z), float(fs_cyc_per_mm), float(q), rules)
             per_channel[ch] = {k: v for k, v in cc.items() if k not in _SLOPE_KEYS}
     geo = {ch: (_offset_geometry(per_channel[ch], quads[ch], geometry, ch, axes[ch], z, tile, float(fs_cyc_per_mm),
-                                 float(q), rules) if ch in quads else None) for ch in stack.channels}
+                                 float(q), rules, geo_sub) if ch in quads else None) for ch in stack.channels}
 
     def grid(ch, w):
         return _analyse(per_channel[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
