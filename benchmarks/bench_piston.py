@@ -201,11 +201,6 @@ def curvature_case(k: int, scale: float, work: Path, width: int = 320) -> dict:
     t, _ = measure_stack(st, fs_cyc_per_mm=fs, effort="standard", quiet=True, z_ref_um=0.0)
     row["offset_um"] = float(t.skew["G"]["offset_um"])
     row["offset_weight"] = float(t.skew["G"]["offset_weight"])
-    # (s14-offset) the raw pooled difference and the part the field's shape made, where the offset is referred
-    # to one point and one window (measure.tiles._offset_geometry)
-    for key in ("offset_raw_um", "offset_geometry_um"):
-        row[key] = float(t.skew["G"].get(key, math.nan))
-    auto = t
     pos = {}
     for meas in ("sml", "bandpass"):
         t, _ = measure_stack(st, fs_cyc_per_mm=fs, effort="standard", quiet=True, measure=meas, z_ref_um=0.0)
@@ -224,15 +219,6 @@ def curvature_case(k: int, scale: float, work: Path, width: int = 320) -> dict:
         gx = (f(1.0, 0) - f(-1.0, 0)) / 2.0
         gy = (f(0, 1.0) - f(0, -1.0)) / 2.0
         pos[meas] = (x, y, np.asarray(t.z_best_um), ok, gx, gy)
-    # the default's tile piston: mean of the tiles' best foci minus the truth at their positions less the window
-    # term the fit removes (what a surface fit's piston reads, kappa = 1)
-    ok = np.asarray(auto.ok, dtype=bool)
-    x, y = auto.x_px, auto.y_px
-    half = 0.5 * float(auto.tile_px)
-    f0 = np.asarray(truth.best_focus_um(x, y, "G"), dtype=np.float64)
-    lap = (sum(np.asarray(truth.best_focus_um(x + dx, y + dy, "G"), dtype=np.float64)
-               for dx, dy in ((half, 0), (-half, 0), (0, half), (0, -half))) - 4.0 * f0) / half ** 2
-    row["auto_piston_um"] = float(np.mean((np.asarray(auto.z_best_um) - f0 - lap * float(auto.tile_px) ** 2 / 24.0)[ok]))
     xs, ys, zs, oks, gx, gy = pos["sml"]
     xb, yb, zb, okb, _, _ = pos["bandpass"]
     both = oks & okb

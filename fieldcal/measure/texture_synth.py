@@ -50,34 +50,3 @@ def sinusoid_frame(z_um: float, *, width: int = 256, height: int = 192, pitch_um
     if noise:
         img = img + (rng if rng is not None else np.random.default_rng(seed + 1)).normal(0.0, noise, img.shape)
     return np.clip(np.round(img * 65535.0), 0, 65535).astype(np.uint16)[..., None]
-
-
-def curved_frame(z_um: float, curvature_um_per_px2: float, *, width: int = 224, height: int = 160,
-                 pitch_um: float = 6.0, f_number: float = 4.0, n_components: int = 200, u_max: float = 0.45,
-                 contrast: float = 0.08, seed: int = 5) -> np.ndarray:
-    """One 16-bit frame (H x W x 1) of the sinusoid texture on a CURVED best-focus field
-    ``z0(x, y) = c (x^2 + y^2)`` (µm; x, y in px from the frame's centre), no breathing, no pixel aperture.
-
-    Each pixel takes every component through the disc OTF of its *own* defocus ``|z - z0(x, y)|`` (the locally
-    flat field: what a lens whose best focus varies slowly over a blur disc gives), so the best focus of every
-    point is known in closed form, symmetric through focus (no aberration), and a tile's reading differs from
-    ``z0`` at its centre only by how the estimator weighs the tile's points (its centroid and window response).
-    """
-    g = np.random.default_rng(seed)
-    u = u_max * np.sqrt(g.uniform(0.0004, 1.0, n_components))
-    ang = g.uniform(0.0, math.pi, n_components)
-    ph = g.uniform(0.0, 2.0 * math.pi, n_components)
-    amp = u ** -0.5
-    amp = contrast * amp / math.sqrt(0.5 * float(np.sum(amp * amp)))
-    fx, fy = u * np.cos(ang), u * np.sin(ang)
-    xs = np.arange(width, dtype=np.float64) - (width - 1) / 2.0
-    ys = np.arange(height, dtype=np.float64) - (height - 1) / 2.0
-    a = 2.0 * math.pi * fx[:, None] * xs[None, :]  # (n, W)
-    img = np.empty((height, width))
-    for r, yv in enumerate(ys):
-        d_px = np.abs(z_um - curvature_um_per_px2 * (xs * xs + yv * yv)) / f_number / pitch_um  # (W,)
-        x = math.pi * d_px[None, :] * u[:, None]
-        otf = np.where(x > 1e-9, 2.0 * j1(x) / np.maximum(x, 1e-300), 1.0)
-        img[r] = 0.5 + np.sum(amp[:, None] * otf * np.cos(a + 2.0 * math.pi * fy[:, None] * yv + ph[:, None]), axis=0)
-    return np.clip(np.round(img * 65535.0), 0, 65535).astype(np.uint16)[..., None]
-

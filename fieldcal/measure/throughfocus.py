@@ -869,8 +869,7 @@ def pooled_skew_var_um2(info: dict, frames: bool = True) -> float:
 
 
 def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
-                         ref_skew: dict | None = None, repeatability_um: float = 0.0,
-                         geo: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[list[CurveFit], dict]:
+                         ref_skew: dict | None = None, repeatability_um: float = 0.0) -> tuple[list[CurveFit], dict]:
     """``main``'s best foci moved by the channel's pooled offset to ``ref`` (same tiles, in order).
 
     For the SML moved to the band-pass at fs (``measure="auto"``): the SML's broad band gives the lower tile
@@ -899,13 +898,6 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
       evidence that those curves are skewed, so the band-pass skew shift applies with that evidence where it is
       the larger (>= 1/2), before the offset is pooled.
 
-    ``geo``: ``(part, var_q)`` per tile (same order; ``measure.tiles._offset_geometry``): the part of each tile's
-    difference that the field's shape makes (the measures' centroids and window responses differ), taken out
-    before pooling; the tile's sd becomes that of the window-extrapolated difference ``(4 D_q - D) / 3``,
-    ``sqrt((sd^2 + 16 var_q) / 9)``. Tiles whose part is not measured (NaN: a failed quadrant, or a tile beyond
-    the ``measure.tiles.OFFSET_GEOMETRY_TILES`` measured) are left out where 12 tiles or half of them have one;
-    otherwise nothing is taken out (``offset_geometry_n`` records how many tiles had it).
-
     ``repeatability_um``: the stage's. The two measures weigh the frames differently (other bands, windows and
     shapes), so one pattern of frame errors moves them apart in every tile at once; the pooled offset's frame
     response (the tiles' best-focus responses :attr:`CurveFit.best_resp`, the band-pass skew shift's included,
@@ -919,21 +911,10 @@ def apply_measure_offset(main: list[CurveFit], ref: list[CurveFit], radius=None,
     shared2 = pooled_skew_var_um2(ref_skew or {})
     d = np.array([ref[i].z_best_um - main[i].z_best_um for i in keep])
     sd = np.array([math.sqrt(main[i].z_sigma_um ** 2 + max(ref[i].z_sigma_um ** 2 - shared2, 0.0)) for i in keep])
-    geo_info = {}
-    if geo is not None and len(keep):
-        part = np.asarray(geo[0], dtype=np.float64)[keep]
-        var_q = np.asarray(geo[1], dtype=np.float64)[keep]
-        have = np.isfinite(part) & np.isfinite(var_q)
-        geo_info = {"offset_geometry_n": int(have.sum())}
-        if have.sum() >= max(2.0, min(0.5 * len(keep), 12.0)):
-            geo_info["offset_raw_um"] = _pooled(d, sd)[0]
-            d = np.where(have, d - part, np.nan)
-            sd = np.sqrt((sd * sd + 16.0 * var_q) / 9.0)
-            geo_info["offset_geometry_um"] = float(np.average(part[have], weights=1.0 / sd[have] ** 2))
     mean, se, weight, a = _pooled(d, sd)
     resp = frames_response(a, [_diff_resp(ref[i].best_resp, main[i].best_resp) for i in keep])
     frames2 = frames_var_um2(resp, repeatability_um)
-    info = {"offset_um": mean, "offset_sd_um": se, "offset_weight": weight, "n_tiles": len(keep), **geo_info}
+    info = {"offset_um": mean, "offset_sd_um": se, "offset_weight": weight, "n_tiles": len(keep)}
     if radius is not None and len(keep):
         # the offset varies over the field: its error as the zones of field radius tell it, when larger
         jk = zone_jackknife_sd(d, sd, np.asarray(radius, dtype=np.float64)[keep])

@@ -53,9 +53,6 @@ from .throughfocus import (CurveFit, CurveRules, analyse_curves, apply_measure_o
 # Since session 10 the sd is the stack's own (measure.sml_gain: k bounded by the sensor-fixed MTFs the stack
 # declares, or a camera's, TileTable.sml_gain); SML_SCALE_RESIDUAL_SD is kept for tables without that record.
 MIN_TILE_PX = 32
-# sml@fs: the tiles (spread over the grid) whose quadrants refer the offset to one point and one window
-# (_offset_geometry); the offset is one number per channel, and each such tile costs 8 more curve fits
-OFFSET_GEOMETRY_TILES = 96
 SML_SCALE_RESIDUAL_SD = 0.45
 _DGAMMA = 0.5  # exponent step of the sensitivity (one-sided difference; the bias is linear in it)
 
@@ -101,9 +98,6 @@ class TileRules:
     # is sampled at the same frames, so the frames' errors enter the pooled skew shift and sml@fs offset coherently
     # (throughfocus.pooled_skew, apply_measure_offset: in their sd and evidence)
     stage_repeatability_um: float | None = None
-    # sml@fs: refer each tile's band-pass and SML best foci to one point and one window before pooling the offset
-    # (_offset_geometry; False: the raw differences, as before session 14's s14-offset)
-    offset_geometry: bool = True
 
 
 @dataclass
@@ -568,28 +562,18 @@ def tile_centres(geometry: GeometryMeasurements, tile_px: int, margin_px: float 
     return xs.ravel(), ys.ravel()
 
 
-def _moment_keys(name: str, first: bool) -> tuple[str, str]:
-    """Keys of a map's first moments in :func:`_tile_curves`' output."""
-    return ("mx", "my") if first else (f"mx:{name}", f"my:{name}")
-
-
-def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: np.ndarray, tile_px: float,
-                 moments_of: str | tuple[str, ...] = "sml"):
+def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: np.ndarray, tile_px: int,
+                 moments_of: str = "sml"):
     """Per-pixel mean of every map over each tile in each frame: dict name -> (n_tiles, n_frames).
 
-    Also ``"mx", "my"``: first moments (full-frame px, frame k's geometry) of the ``moments_of`` map (the first
-    one if several: the others' under ``"mx:NAME", "my:NAME"``), and ``"cx", "cy"``: the box centres, so the
-    measure-weighted position of each tile can be found later.
+    Also ``"mx", "my"``: first moments (full-frame px, frame k's geometry) of the ``moments_of`` map, and
+    ``"cx", "cy"``: the box centres, so the measure-weighted position of each tile can be found later.
     """
     lay = m.layout
     n = geometry.z_um.size
-    names = (moments_of,) if isinstance(moments_of, str) else tuple(moments_of)
-    names = tuple(nm for i, nm in enumerate(names) if i == 0 or nm in m.maps)
-    mkeys = {nm: _moment_keys(nm, i == 0) for i, nm in enumerate(names)}
-    out = {k: np.empty((xs.size, n)) for k in list(m.maps) + ["sum2", "area", "cx", "cy"]
-           + [k for ks in mkeys.values() for k in ks]}
+    out = {k: np.empty((xs.size, n)) for k in list(m.maps) + ["sum2", "area", "mx", "my", "cx", "cy"]}
     c = m.cell
-    hc, wc = m.maps[names[0]].shape[1:]
+    hc, wc = m.maps[moments_of].shape[1:]
     # cell centres in full-frame px
     xcell, ycell = lay.to_full(np.arange(wc) * c + (c - 1) / 2.0, np.arange(hc) * c + (c - 1) / 2.0)
     for k in range(n):
@@ -606,11 +590,10 @@ def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: n
         for name, stackmap in m.maps.items():
             s = boxes(focus.integral(stackmap[k]))
             out[name][:, k] = s / area
-            if name in mkeys:
+            if name == moments_of:
                 e = stackmap[k]
-                kx, ky = mkeys[name]
-                out[kx][:, k] = boxes(focus.integral(e * xcell[None, :].astype(np.float32))) / area
-                out[ky][:, k] = boxes(focus.integral(e * ycell[:, None].astype(np.float32))) / area
+                out["mx"][:, k] = boxes(focus.integral(e * xcell[None, :].astype(np.float32))) / area
+                out["my"][:, k] = boxes(focus.integral(e * ycell[:, None].astype(np.float32))) / area
         # The window grows with the image (area ~ m^2) and keeps the same scene content; the SML maps were taken
         # with the frame's scale term (_focus_maps, focus.sml), so their per-pixel mean over it needs nothing more.
         out["sat"][:, k] *= c * c  # sat cells hold fractions, not sums: back to a fraction of the tile
@@ -622,8 +605,8 @@ def _tile_curves(m: _Maps, geometry: GeometryMeasurements, xs: np.ndarray, ys: n
 
 
 def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurements, channel: str,
-                        measure_key: str, tile_px: float, z: np.ndarray,
-                        z_best_um: np.ndarray, moments: tuple[str, str] = ("mx", "my")) -> tuple[np.ndarray, np.ndarray]:
+                        measure_key: str, tile_px: int, z: np.ndarray,
+                        z_best_um: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each tile's focus-measure-weighted centre (reference-frame px): where its best focus belongs.
 
     A tile's best focus is an average of the local best foci inside it, weighted by where its texture is; across
@@ -657,8 +640,8 @@ def _weighted_positions(cc: dict[str, np.ndarray], geometry: GeometryMeasurement
         e = v[:, k] - floor
         bx, by = cc["cx"][:, k], cc["cy"][:, k]
         with np.errstate(divide="ignore", invalid="ignore"):
-            xk = (cc[moments[0]][:, k] - floor * bx) / e
-            yk = (cc[moments[1]][:, k] - floor * by) / e
+            xk = (cc["mx"][:, k] - floor * bx) / e
+            yk = (cc["my"][:, k] - floor * by) / e
         bad = ~(e > 0) | ~np.isfinite(xk) | ~np.isfinite(yk)
         # a frame's weighted centre stays inside its tile (noise-only weights could push it anywhere)
         xk = np.where(bad, bx, np.clip(xk, bx - half, bx + half))
@@ -775,110 +758,9 @@ def _strip_widths_on_grid(width_um: np.ndarray, sx: np.ndarray, sy: np.ndarray, 
     return np.where(n > 0, out / np.maximum(n, 1), np.nan)
 
 
-_QUADRANTS = ((-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25))  # of the tile side, x then y
-
-
-def _surface_gradient(x: np.ndarray, y: np.ndarray, z_um: np.ndarray, sd_um: np.ndarray):
-    """``grad(x, y) -> (dz/dx, dz/dy)`` (µm/px) of a weighted polynomial fitted to the tiles' best foci (degree 4
-    with >= 45 tiles, else 2 with >= 12; None with fewer): the focus surface's local gradient."""
-    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z_um) & np.isfinite(sd_um) & (sd_um > 0)
-    deg = 4 if ok.sum() >= 45 else 2 if ok.sum() >= 12 else 0
-    if not deg:
-        return None
-    x0, y0 = float(np.mean(x[ok])), float(np.mean(y[ok]))
-    r = float(max(np.ptp(x[ok]), np.ptp(y[ok]), 1.0))
-    pw = [(i, j) for i in range(deg + 1) for j in range(deg + 1 - i)]
-    u, v = (x[ok] - x0) / r, (y[ok] - y0) / r
-    a = np.stack([u ** i * v ** j for i, j in pw], axis=1) / sd_um[ok, None]
-    c = np.linalg.lstsq(a, z_um[ok] / sd_um[ok], rcond=None)[0]
-
-    def grad(xx, yy):
-        uu, vv = (np.asarray(xx) - x0) / r, (np.asarray(yy) - y0) / r
-        gx = sum(ci * i * uu ** max(i - 1, 0) * vv ** j for ci, (i, j) in zip(c, pw) if i)
-        gy = sum(ci * j * uu ** i * vv ** max(j - 1, 0) for ci, (i, j) in zip(c, pw) if j)
-        return np.asarray(gx, dtype=np.float64) / r + 0.0 * uu, np.asarray(gy, dtype=np.float64) / r + 0.0 * uu
-    return grad
-
-
-def _offset_geometry(cc: dict, cq: dict, geometry: GeometryMeasurements, channel: str, axis: _ScaleAxis,
-                     z: np.ndarray, tile_px: int, fs_cyc_per_mm: float, q: float, rules: TileRules,
-                     sub: np.ndarray | None = None):
-    """(geo, var_q) per tile, on the curves' axis: the part of the tile's band-pass minus SML best focus that the
-    field's shape makes, and the variance of its quadrants' mean difference (NaN where not measured).
-
-    Why: the ``sml@fs`` offset should compare the two measures at one point with one window, but a tile's two
-    best foci belong to different points and windows. Each is its texture's energy-weighted average of the
-    local best foci, and the two measures weigh the tile's points differently: on a curved field of a
-    symmetric lens their centroids differ by 1-2 px along the focus gradient (+0.37 µm on lens 6 of the band
-    benchmark) and their responses to the window term ``L s^2 / 24`` differ (raw minus true over it: SML
-    1.04-1.06, band-pass 1.2-1.4), so the pooled offset was +0.21 µm where it should be 0 (docs/benchmarks.md
-    ``bench_piston_s14``). Both are corrected, neither alone (the position alone gave -0.16 µm):
-
-    * position: each measure's own centroid (:func:`_weighted_positions`, the band-pass's moments too), the
-      difference taken along the local gradient of a polynomial fitted to the SML tiles;
-    * window: the tile's four quadrants (half side) measured the same way; a window response ``kappa L s^2/24``
-      falls to a quarter there whatever kappa is, so the position-corrected difference extrapolated to a zero
-      window is ``(4 D_quadrants - D_tile) / 3`` (Richardson), and ``geo = D_raw - that``.
-
-    A field-wide offset (spherical aberration) is the same in the tile and its quadrants and is kept; constants
-    added to every tile's best focus (the pooled skew shift) cancel in ``geo``.
-    """
-    nt = cc["sml"].shape[0]
-    nan = np.full(nt, np.nan)
-    if "bandpass" not in cc or cq is None or "mx:bandpass" not in cc:
-        return nan, nan
-    if sub is not None:  # the quadrants of these tiles only (``cq`` holds theirs): NaN elsewhere
-        geo, var_q = np.full(nt, np.nan), np.full(nt, np.nan)
-        geo[sub], var_q[sub] = _offset_geometry({k: v[sub] for k, v in cc.items()}, cq, geometry, channel, axis, z,
-                                                tile_px, fs_cyc_per_mm, q, rules)
-        return geo, var_q
-    y = axis.y(z)
-
-    def fits(c):
-        mean = c["sum"]
-        safe = np.where(mean > 0, mean, 1.0)
-        sm = analyse_curves(y, c["sml"], "peak", None, q, rules.curve)
-        bp = analyse_curves(y, c["bandpass"] / np.square(safe), "otf", fs_cyc_per_mm, q, rules.curve)
-        out = {}
-        for key, fl in (("s", sm), ("b", bp)):
-            zb = np.array([f.z_best_um if f.status == "ok" else np.nan for f in fl])
-            sd = np.array([f.z_sigma_um if f.status == "ok" else np.nan for f in fl])
-            out[key] = axis.z(zb)
-            out[key + "_sd"] = sd * axis.dz_dy(zb)
-        return out
-
-    def positions(c, f, side):
-        xs_, ys_ = _weighted_positions(c, geometry, channel, "sml_energy", side, z, f["s"])
-        xb_, yb_ = _weighted_positions(c, geometry, channel, "bandpass", side, z, f["b"],
-                                       moments=("mx:bandpass", "my:bandpass"))
-        return xs_, ys_, xb_, yb_
-
-    ft, fq = fits(cc), fits(cq)
-    xs_, ys_, xb_, yb_ = positions(cc, ft, tile_px)
-    grad = _surface_gradient(xs_, ys_, ft["s"], ft["s_sd"])
-    if grad is None:
-        return nan, nan
-
-    def corrected(f, p):
-        xs1, ys1, xb1, yb1 = p
-        gx, gy = grad(0.5 * (xs1 + xb1), 0.5 * (ys1 + yb1))
-        return f["b"] - f["s"] - (gx * (xb1 - xs1) + gy * (yb1 - ys1))
-
-    d_tile = corrected(ft, (xs_, ys_, xb_, yb_))
-    dq = corrected(fq, positions(cq, fq, 0.5 * tile_px)).reshape(len(_QUADRANTS), nt)
-    vq = (np.square(fq["s_sd"]) + np.square(fq["b_sd"])).reshape(len(_QUADRANTS), nt)
-    d_q = np.mean(dq, axis=0)  # NaN unless all four quadrants have both measures
-    var_q = np.sum(vq, axis=0) / len(_QUADRANTS) ** 2
-    geo = (ft["b"] - ft["s"]) - (4.0 * d_q - d_tile) / 3.0
-    # on the curves' axis (the offset is pooled there; ~1 apart from breathing)
-    gain = axis.dz_dy(axis.y(ft["s"]))
-    return geo / gain, var_q / np.square(gain)
-
-
 def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per_mm: float, q: float,
              measure: str, rules: TileRules, bp_scale: np.ndarray | None = None,
-             offset_from: dict | None = None, bp_skew_weight: float | None = None,
-             offset_geo: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+             offset_from: dict | None = None, bp_skew_weight: float | None = None) -> dict[str, np.ndarray]:
     """Tile tests (saturation, texture) then the batched curve fits of one channel's tiles.
 
     ``bp_scale[k]``: the magnification the band-pass filter followed in frame k (its frequency was
@@ -946,8 +828,7 @@ def _analyse(channel_curves: dict[str, np.ndarray], z: np.ndarray, *, fs_cyc_per
             if "cx" in channel_curves and "cy" in channel_curves:
                 cx, cy = (np.mean(channel_curves[k][todo], axis=1) for k in ("cx", "cy"))
                 radius = np.hypot(cx - np.mean(cx), cy - np.mean(cy))
-            geo = None if offset_geo is None else (offset_geo[0][todo], offset_geo[1][todo])
-            main, offset = (apply_measure_offset(main, bp, radius, bp_skew, rules.stage_repeatability_um, geo=geo)
+            main, offset = (apply_measure_offset(main, bp, radius, bp_skew, rules.stage_repeatability_um)
                             if offset_from is None
                             else (shift_by_offset(main, offset_from), {**offset_from, "from": "strip"}))
             res["skew"] = {**res.get("skew", {}), **offset}
@@ -1256,43 +1137,26 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     if strip is not None:  # the strip's own tiles (rows n_grid on), split off below
         sx, sy = np.meshgrid(np.unique(xs), fs_strip.tile_centres_y(strip[0], strip_rows, tile))
         xs, ys = np.concatenate([xs, sx.ravel()]), np.concatenate([ys, sy.ravel()])
-    # sml@fs with the band-pass on every tile: the band-pass's own centroids and each tile's quadrants, so the
-    # offset compares the two measures at one point with one window (_offset_geometry)
-    geo_offset = measure == SML_AT_FS and strip is None and rules.offset_geometry
-    moments = ("sml", "bandpass") if geo_offset else "sml" if measure in _SML_BASED else measure
-
-    def pooled_curves(px, py, side):
-        out: dict[str, dict[str, np.ndarray]] = {}
-        for m in maps:
-            curves = _tile_curves(m, geometry, px, py, side, moments_of=moments)
-            have = out.get(m.layout.name)
-            if have is None:
-                out[m.layout.name] = curves
-            else:  # a second G site of a mosaic: pool by pixel count
-                a0, a1 = have["area"], curves["area"]
-                for key in curves:
-                    if key == "area":
-                        continue
-                    have[key] = (have[key] * a0 + curves[key] * a1) / (a0 + a1)
-                have["area"] = a0 + a1
-        for cc in out.values():
-            # The tile's RMS second difference: the energy's mean is what stays the same as the image crosses the
-            # pixel grid (focus.sml); its square root keeps the curve an amplitude, as the absolute values' was (the
-            # peak, skew and breathing models are of one: ln of it is half ln of the energy). The weighted positions
-            # take the energy, whose moments the maps hold.
-            cc["sml_energy"] = cc["sml"]
-            cc["sml"] = np.sqrt(np.maximum(cc["sml"], 0.0))
-        return out
-
-    per_channel = pooled_curves(xs, ys, tile)
-    quads: dict[str, dict[str, np.ndarray]] = {}
-    if geo_offset:
-        # (at most OFFSET_GEOMETRY_TILES tiles spread over the grid: the quadrants cost 8 curve fits a tile)
-        geo_sub = np.unique(np.round(np.linspace(0, xs.size - 1, min(xs.size, OFFSET_GEOMETRY_TILES))).astype(int))
-        qx = np.concatenate([xs[geo_sub] + fx * tile for fx, _ in _QUADRANTS])
-        qy = np.concatenate([ys[geo_sub] + fy * tile for _, fy in _QUADRANTS])
-        quads = {ch: {k: v for k, v in cc.items() if k not in _SLOPE_KEYS}
-                 for ch, cc in pooled_curves(qx, qy, 0.5 * tile).items()}
+    per_channel: dict[str, dict[str, np.ndarray]] = {}
+    for m in maps:
+        curves = _tile_curves(m, geometry, xs, ys, tile, moments_of="sml" if measure in _SML_BASED else measure)
+        have = per_channel.get(m.layout.name)
+        if have is None:
+            per_channel[m.layout.name] = curves
+        else:  # a second G site of a mosaic: pool by pixel count
+            a0, a1 = have["area"], curves["area"]
+            for key in curves:
+                if key == "area":
+                    continue
+                have[key] = (have[key] * a0 + curves[key] * a1) / (a0 + a1)
+            have["area"] = a0 + a1
+    for cc in per_channel.values():
+        # The tile's RMS second difference: the energy's mean is what stays the same as the image crosses the pixel
+        # grid (focus.sml); its square root keeps the curve an amplitude, as the absolute values' was (the peak,
+        # skew and breathing models are of one: ln of it is half ln of the energy). The weighted positions take
+        # the energy, whose moments the maps hold.
+        cc["sml_energy"] = cc["sml"]
+        cc["sml"] = np.sqrt(np.maximum(cc["sml"], 0.0))
     # the band-passes followed the image: the sensor-fixed MTFs the stack declares (pixel aperture, diffraction)
     # put back at the band's own sensor frequency in every frame (breathing_mtf: +2 µm at F/7.5, exit pupil 15 mm)
     band_f = {"bandpass": 1.0, "along": 1.0, "across": 1.0, "bp_lo": fs_strip.SLOPE_FACTORS[0],
@@ -1300,7 +1164,7 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
     factors = declared_factors(getattr(stack, "meta", None))
     if factors is not None and bp_scale is not None and not np.allclose(bp_scale, 1.0, rtol=0.0, atol=1e-12):
         pitch = float(stack.pixel_pitch_um) if factors[0] else None
-        for ch, cc in list(per_channel.items()) + list(quads.items()):
+        for ch, cc in per_channel.items():
             for key in band_f.keys() & cc.keys():
                 cc[key] = cc[key] * band_energy_gain(float(fs_cyc_per_mm) * band_f[key], bp_scale, pitch,
                                                      factors[1], ch)
@@ -1343,13 +1207,9 @@ def measure_stack(stack, *, fs_cyc_per_mm: float = 80.0, q: float = 0.05, tile_p
         if "bp_lo" in cc:  # the band-pass everywhere (standard): the grid's tiles inside the slope strip
             slopes[ch] = _frequency_slope(cc, axes[ch].y(z), float(fs_cyc_per_mm), float(q), rules)
             per_channel[ch] = {k: v for k, v in cc.items() if k not in _SLOPE_KEYS}
-    geo = {ch: (_offset_geometry(per_channel[ch], quads[ch], geometry, ch, axes[ch], z, tile, float(fs_cyc_per_mm),
-                                 float(q), rules, geo_sub) if ch in quads else None) for ch in stack.channels}
-
     def grid(ch, w):
         return _analyse(per_channel[ch], axes[ch].y(z), fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
-                        measure=measure, rules=rules, bp_scale=bp_scale, offset_from=offsets[ch], bp_skew_weight=w,
-                        offset_geo=geo[ch])
+                        measure=measure, rules=rules, bp_scale=bp_scale, offset_from=offsets[ch], bp_skew_weight=w)
     # quick's grid has no band-pass: its strip shared the weights above
     results = (_analyse_channels(grid, stack.channels) if strip is None
                else {ch: grid(ch, None) for ch in stack.channels})
