@@ -21,7 +21,8 @@ The estimate is **unreliable** (and compositing falls back to choosing frames, s
 pass (:data:`MIN_PAIRS`: too little texture), the disc barely grows (:data:`MIN_RATE_PX`: frames that do not change
 focus), the disc two frames apart is wider than the patches resolve (:data:`MAX_DISC_PATCH_FRACTION`: read short,
 and a Wiener step with it rings beside depth edges on real bokeh), the uncertainty is above :data:`MAX_REL_SD` of
-the rate, or the rates at one and two frames' distance disagree by more than :data:`MAX_LINEARITY` (the blur does not grow as geometric defocus does).
+the rate, or the rates at one and two frames' distance disagree by more than :data:`MAX_LINEARITY` (the blur does
+not grow as geometric defocus does).
 
 The frames' in-focus blur (aberrations, diffraction, demosaicing) is common to every frame, so the relative blur
 is what the Wiener combination needs: its target is the image as the sharpest frame records it.

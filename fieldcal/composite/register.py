@@ -635,8 +635,9 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
     done = _map_threads(looks_of, list(range(len(steps))), "choosing the model", quiet)
     fitted = [ok for ok, _ in done]
     looks = {look: [v[j] for _, v in done] for j, look in enumerate(("all", "top", "bottom"))}
-    chains = {(m, look): chain_to_reference([_project(p, m, w, h) for p in pairs], ref)
-              for m in models for look, pairs in looks.items()}
+    # each pair's map projected once per model: chained to the reference, and compared pair by pair below
+    projected = {(m, look): [_project(p, m, w, h) for p in pairs] for m in models for look, pairs in looks.items()}
+    chains = {key: chain_to_reference(maps, ref) for key, maps in projected.items()}
     # A richer model is kept when what it adds to the simpler one moves the outline by more than the tolerance,
     # and the frame's two halves, fitted apart, see the same addition (within half of it): a camera that
     # rolls or tilts moves both halves alike; a scene with depth (parallax) or blur changes pull them apart.
@@ -651,9 +652,8 @@ def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px:
                  for look in looks}
         signal = float(np.max(np.hypot(*np.moveaxis(extra["all"], -1, 0))))
         disagreement = float(np.max(np.hypot(*np.moveaxis(extra["top"] - extra["bottom"], -1, 0))))
-        per_pair = {look: outline_displacements([_project(p, model, w, h) for p in pairs],
-                                                [_project(p, chosen, w, h) for p in pairs], w, h)
-                    for look, pairs in looks.items()}
+        per_pair = {look: outline_displacements(projected[(model, look)], projected[(chosen, look)], w, h)
+                    for look in looks}
         pair_signal = _rms_outline(per_pair["all"])
         pair_disagreement = _rms_outline(per_pair["top"] - per_pair["bottom"])
         deviations[f"{model}_over_{chosen}"] = signal
