@@ -138,13 +138,10 @@ def to_zref(img, prof, z_um, channels, dtype, white):
     """Map an image in the geometry of the frame at z into the geometry of z_ref (true lens geometry)."""
     from fieldcal.composite import ArrayStack
     from fieldcal.composite.stack_profile import to_input_dtype
-    from fieldcal.composite.warp import frame_maps, warp_region
+    from fieldcal.composite.warp import warp_frame_by_profile
     s = ArrayStack([img.astype(np.float32)], [float(z_um)], channels)
     h, w = img.shape[:2]
-    out = np.empty((h, w, len(channels)), np.float32)
-    for fm in frame_maps(prof, float(z_um), channels):
-        out[..., list(fm.channels)] = warp_region(s, 0, fm, 0, 0, w, h)
-    return to_input_dtype(out, dtype, white)
+    return to_input_dtype(warp_frame_by_profile(s, 0, prof, w, h), dtype, white)
 
 
 def save_crops(path: Path, panels: list[tuple[str, np.ndarray]], white: float, crop: int) -> None:

@@ -46,7 +46,7 @@ sys.path.insert(0, str(REPO))
 from fieldcal.composite.api import composite_stack  # noqa: E402
 from fieldcal.composite.depth_wiener import occlusion_focus_um, wiener_composite  # noqa: E402
 from fieldcal.composite.stack_profile import blend_kernel, composite_with_map  # noqa: E402
-from fieldcal.composite.warp import frame_maps, warp_region  # noqa: E402
+from fieldcal.composite.warp import warp_frame_by_profile  # noqa: E402
 from fieldcal.formats.frames import ArrayStack  # noqa: E402
 from fieldcal.simulate.depth import LAYOUTS, DepthRenderer, depth_scene, halo_width_px  # noqa: E402
 from fieldcal.simulate.lens import LensSpec  # noqa: E402
@@ -104,12 +104,7 @@ def run_layout(layout: str, w: int, h: int, seed: int = 1, step: float = 1.5, no
     out["smooth surface"] = composite_stack(st, prof, method="dff", depth="flat", quiet=True).image
     # the frames registered by the truth's geometry: enfuse's input, and dff's without a profile (no F-number, so
     # no Wiener filter: the depth map's blend plus the per-coefficient fine detail of composite/detail.py)
-    registered = []
-    for i in range(len(st)):
-        im = np.zeros((h, w, 3), np.float32)
-        for fm in frame_maps(prof, float(st.z_um[i]), st.channels):
-            im[..., list(fm.channels)] = warp_region(st, i, fm, 0, 0, w, h)
-        registered.append(im)
+    registered = [warp_frame_by_profile(st, i, prof, w, h) for i in range(len(st))]
     reg = ArrayStack(registered, st.z_um, spec.channel_names, black_level=spec.sensor.black_level_dn,
                      white_level=spec.sensor.white_level_dn)
     free = composite_stack(reg, None, method="dff", register=False, quiet=True)

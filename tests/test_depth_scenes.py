@@ -275,15 +275,10 @@ def test_depth_confidence_is_bounded_beside_strong_edges_on_flat_ground():
 
 def _registered(world) -> ArrayStack:
     """The world's frames warped into the reference geometry by the truth (a stack as registration leaves it)."""
-    from fieldcal.composite.warp import frame_maps, warp_region
+    from fieldcal.composite.warp import warp_frame_by_profile
 
     st, prof = world["st"], world["prof"]
-    reg = []
-    for i in range(len(st)):
-        im = np.zeros((H, W, 3), np.float32)
-        for fm in frame_maps(prof, float(st.z_um[i]), st.channels):
-            im[..., list(fm.channels)] = warp_region(st, i, fm, 0, 0, W, H)
-        reg.append(im)
+    reg = [warp_frame_by_profile(st, i, prof, W, H) for i in range(len(st))]
     return ArrayStack(reg, st.z_um, st.channels, black_level=st.black_level, white_level=st.white_level)
 
 

@@ -214,6 +214,15 @@ def warp_region(stack, i: int, fmap: FrameMap, x0: int, y0: int, x1: int, y1: in
     return warp_from(src, sx0, sy0, fmap.matrix, x0, y0, x1, y1, interpolation, fmap.residual)
 
 
+def warp_frame_by_profile(stack, i: int, profile, width: int, height: int) -> np.ndarray:
+    """Frame ``i`` of ``stack`` whole, every channel, in the z_ref geometry of ``profile``: (height, width, C)
+    float32 (:func:`frame_maps` and :func:`warp_region`; a stack as registration by the profile leaves it)."""
+    out = np.zeros((height, width, len(stack.channels)), np.float32)
+    for fm in frame_maps(profile, float(stack.z_um[i]), stack.channels):
+        out[..., list(fm.channels)] = warp_region(stack, i, fm, 0, 0, width, height)
+    return out
+
+
 def warp_from(src: np.ndarray, sx0: int, sy0: int, matrix: np.ndarray, x0: int, y0: int, x1: int, y1: int,
               interpolation: str = "cv2", residual: ResidualGrid | None = None) -> np.ndarray:
     """Warp output box ``[y0:y1, x0:x1]`` from ``src``, a region of the frame whose top-left pixel is
