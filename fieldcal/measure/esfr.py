@@ -64,8 +64,9 @@ class EdgeQuality:
 class SfrResult:
     """e-SFR of one edge, per channel (arrays have a leading channel axis).
 
-    ``x_mid``/``y_mid`` are the edge point at the middle row in ROI pixel coordinates (x = column, y = row of
-    the ROI as given, i.e. before any transposition), ``angle_deg`` the edge direction from the ROI's +x axis
+    ``x_mid``/``y_mid`` are the edge point at the middle of the rows the e-SFR binned (after phase trimming;
+    the point whose MTF it measured) in ROI pixel coordinates (x = column, y = row of the ROI as given, i.e.
+    before any transposition), ``angle_deg`` the edge direction from the ROI's +x axis
     in [0, 180) (y down).
     """
 
@@ -496,13 +497,23 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     rise_ok = (hi_s > lo_s) & up.any(axis=1) & dn.any(axis=1)
     width = np.where(rise_ok, (j_up - j_dn).astype(np.float64), np.nan) * delta
 
-    rm = (nrows - 1) // 2  # the middle row
+    rm = (nrows - 1) // 2  # the middle row (the slope is read there)
+    # Where the e-SFR measured: the middle of the rows it binned (phase trimming keeps r0 .. r1 - 1, which for
+    # an even count of kept rows or an odd trim sits half a row off the region's middle row). Every kept row
+    # weighs alike in the ESF, so its MTF is the mean of the local ones along those rows: on a field whose focus
+    # changes along the edge (a sagittal edge lies along the radius, 0.1-0.5 µm/px) the peak belongs there, not
+    # to the region's middle row (docs/benchmarks.md bench_edge_bias_s15: half a row at 0.4 µm/px, -0.12 µm).
+    y_used = r0 + (Ru - 1) / 2.0
+    ylo = np.clip(np.floor(y_used).astype(np.int64), 0, np.maximum(nrows - 1, 0))
+    yhi = np.minimum(ylo + 1, np.maximum(nrows - 1, 0))
+    fy = (y_used - ylo)[:, None]
+    x_used = x_edge[bi, ylo] * (1.0 - fy) + x_edge[bi, yhi] * fy  # B x C (the fitted line between two rows)
     results = []
     mtf = mtf.reshape(B, C, -1)
     f50 = f50.reshape(B, C)
     esf_out = esf_out.reshape(B, C, NB)
     # per-record scalars as Python floats once (float() of each NumPy scalar gives the same values, slower)
-    slope_l, x_l = slope_r[bi, rm].ravel().tolist(), x_edge[bi, rm].ravel().tolist()
+    slope_l, x_l = slope_r[bi, rm].ravel().tolist(), x_used.ravel().tolist()
     ok_l, noise_l, step_l, contrast_l = ok.tolist(), noise.tolist(), step.tolist(), contrast.tolist()
     clipped_l, tail_l, width_l, rms_l = clipped.tolist(), tail.tolist(), width.tolist(), edge_rms.ravel().tolist()
     holes_l, ru_l, hw_l, nb_l = hole.sum(axis=1).tolist(), Ru.tolist(), hw.tolist(), nb.tolist()
@@ -542,7 +553,7 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
                 reason = "fewer rows than one phase cycle (bins unevenly sampled)"
             qual.append(EdgeQuality(reason == "ok", reason, slant, ctr, st, noise_g, snr, clipped_l[g],
                                     ru_l[b], hw_l[b], width_l[g], tl, er, holes_l[g]))
-        results.append(SfrResult(freq, mtf[b], f50[b], x_mid, np.full(C, float((nrows[b] - 1) // 2)), angle, qual,
+        results.append(SfrResult(freq, mtf[b], f50[b], x_mid, np.full(C, float(y_used[b])), angle, qual,
                                  esf_out[b, :, :nbr[b * C]].copy() if keep_esf else None, delta))
     return results
 
