@@ -45,6 +45,8 @@ CASES = (
     ("noise sd 0.006 (SNR 100)", {"noise_sd": 0.006}, 0.0),
     ("noise sd 0.006, scan 5.3 steps off", {"noise_sd": 0.006}, 5.3),
     ("noise sd 0.012 (SNR 50)", {"noise_sd": 0.012}, 0.0),
+    ("noise sd 0.012, scan 5.3 steps off (peak near the scan's upper end)", {"noise_sd": 0.012}, 5.3),
+    ("noise sd 0.012, scan 5.3 steps off the other way", {"noise_sd": 0.012}, -5.3),
     ("gradient 0.4 µm/px along the edge", {"gradient_um_per_px": 0.4}, 0.0),
     ("curvature 0.0026 µm/px² along the edge (sym-f4)", {"curvature_um_per_px2": 0.0026}, 0.0),
     ("curvature 0.026 µm/px² along the edge (10x)", {"curvature_um_per_px2": 0.026}, 0.0),
