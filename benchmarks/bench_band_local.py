@@ -253,6 +253,62 @@ def summary_tables(rows: list[dict], window=WINDOW) -> str:
     return "\n".join(t1) + "\n\n" + "\n".join(t2) + "\n"
 
 
+SYNTHETIC_VARIANTS = ("as built", "no common mode", "no jackknife", "no misfit", "chosen model only",
+                      "chosen model only, no misfit", "chosen model only, none of the three")
+
+
+def _variant(fit, name: str):
+    """A copy of a SurfaceFit with band terms taken out (the surface itself unchanged)."""
+    import copy
+
+    f = copy.copy(fit)
+    d = fit.discrepancy
+    none = "none of the three" in name
+    f.discrepancy = replace(d, _cache={},
+                            common_sd=np.zeros_like(d.common_sd) if ("common" in name or none) and
+                            d.common_sd is not None else d.common_sd,
+                            jk_cov=None if ("jackknife" in name or none) else d.jk_cov,
+                            misfit_scale=0.0 if ("misfit" in name or none) else d.misfit_scale)
+    ma = fit.diagnostics.get("model_average") or {}
+    members = ma.get("members") or []
+    if "chosen" in name and len(members) > 1:
+        # the chosen model's own posterior: the first member's share of the samples (select.fit_surfaces)
+        from fieldcal.fit.posterior import MAX_SAMPLES
+        f.samples = fit.samples[:max(2, int(round(MAX_SAMPLES * members[0]["weight"])))]
+        f.diagnostics = {**fit.diagnostics, "model_average": {**ma, "members": members[:1]}}
+    return f
+
+
+def synthetic(n: int, effort: str = "quick", window=WINDOW) -> str:
+    """Lenses whose surface the model family holds (``synthetic_tiles``: polynomial truth, white tile noise), one
+    channel, 9 x 7 tiles: per-lens coverage of the band as built and with terms taken out."""
+    from fieldcal.fit import fit_surfaces
+    from fieldcal.fit.synthetic import field_points, random_lens, synthetic_tiles
+
+    res = {v: [] for v in SYNTHETIC_VARIANTS}
+    for k in range(n):
+        rng = np.random.default_rng(500 + k)
+        tiles, geom, truth = synthetic_tiles(random_lens(rng, channels=("G",)), rng, nx=9, ny=7,
+                                             sigma_um=(0.5, 1.0), directional=False)
+        fit = fit_surfaces(tiles, geom, effort=effort, seed=0, quiet=True)
+        x, y = field_points(fit.geometry, 15)
+        z = truth.best_focus_um(x, y, "G")
+        rms = float(np.sqrt(np.mean((fit.predict(x, y, "G") - z) ** 2)))
+        for v in SYNTHETIC_VARIANTS:
+            lo, hi = _variant(fit, v).interval(x, y, "G", 0.9)
+            res[v].append((float(np.mean((z >= lo) & (z <= hi))), float(np.mean(0.5 * (hi - lo))) / rms))
+    out = []
+    for v, a in res.items():
+        a = np.array(a)
+        cls = [_window_class(c, window) for c in a[:, 0]]
+        out.append({"variant": v, "n": len(a), "mean": float(a[:, 0].mean()),
+                    "counts": f"{cls.count('in')} / {cls.count('below')} / {cls.count('above')}",
+                    "hw": float(np.median(a[:, 1]))})
+    return "\n".join(_table(out, [("variant", "band", "s"), ("n", "lenses", "d"), ("mean", "mean coverage", ".3f"),
+                                  ("counts", f"in {window[0]}-{window[1]} / below / above", "s"),
+                                  ("hw", "median half-width / RMS error", ".2f")])) + "\n"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--keep", type=Path, help="a bench_band_coverage.py --keep folder (profiles, meta, specs)")
@@ -264,7 +320,17 @@ def main(argv=None) -> int:
     ap.add_argument("--docs", action="store_true", help="write the tables into docs/benchmarks.md")
     ap.add_argument("--section", default=None, help="with --docs: the section's key (bench_band_local_KEY)")
     ap.add_argument("--note", default="", help="text put under the heading")
+    ap.add_argument("--synthetic", type=int, default=0,
+                    help="instead: this many synthetic lenses the surface model holds (known truth), band terms "
+                         "taken out one by one")
     args = ap.parse_args(argv)
+    if args.synthetic:
+        text = synthetic(args.synthetic)
+        print(text)
+        if args.docs:
+            write_docs_section(f"{NAME}_{args.section}_synthetic" if args.section else f"{NAME}_synthetic",
+                               f"### Synthetic lenses the surface model holds\n\n{text}")
+        return 0
     if args.from_jsonl:
         if not args.from_jsonl.exists():
             ap.error(f"no such file: {args.from_jsonl}")
