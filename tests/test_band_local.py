@@ -57,3 +57,17 @@ def test_local_what_ifs_recover_a_known_overstatement():
     tight = np.full(n, (0.5 * r) ** 2)
     w2 = bench.local_what_ifs(e, f + tight, tight, plane)
     assert w2["oracle_narrow"] == w2["stated"] < w2["oracle"]
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the minimal rows leave other columns empty
+def test_band_coverage_summary_sums_the_own_model_probabilities():
+    """bench_band_coverage's summary: the expected number of lenses in the window under each profile's own error
+    model is the sum of the rows' probabilities (older rows without the key print a dash)."""
+    cov = import_bench("bench_band_coverage")
+    rows = [{"lens": k, "effort": "quick", "optics": "geometric", "cov_after": c, "cov_before": c, "rms_um": 0.1,
+             "step_um": 10.0, "hw_um": 0.2, "p_in_range": 0.5, "field_share": 0.7, "p_in_model": p}
+            for k, (c, p) in enumerate([(0.9, 0.8), (1.0, 0.3), (0.6, 0.45)])]
+    (s,) = cov.summarise(rows, ["quick"])
+    assert s["expected_in_model"] == "1.6" and s["expected_in"] == "1.5" and s["in_075_099"] == "1/3"
+    (old,) = cov.summarise([{k: v for k, v in r.items() if k != "p_in_model"} for r in rows], ["quick"])
+    assert old["expected_in_model"] == "—"
