@@ -449,7 +449,12 @@ def run_one(lens: dict, effort: str, seed: int = 0, plans: bool = False, keep: P
     share = sc.get("field_wide_share", field_wide_share(prof, after["hw_um"]))
     plan = plan_check(prof, lens) if plans else {}
     dec = decompose(prof, lens)
+    # how often an exactly honest band puts this lens in the window, under the profile's own joint error model
+    # (the self-check's bootstrap at kappa = 1: field-wide terms, correlated coefficients; bench_band_local.py)
+    from fieldcal.fit.selfcheck import coverage_draws
+    pooled, _, _ = coverage_draws(prof, 1.0)
     return {**plan, **dec, "field_share": share, "p_in_range": p_coverage_in_range(share),
+            "p_in_model": float(np.mean((pooled >= 0.75) & (pooled <= 0.99))),
             "cov_after": after["coverage"], "cov_before": before["coverage"], "rms_um": after["rms_um"],
             "err_hw_p90": after["err_hw_p90"], "err_hw_median": after["err_hw_median"],
             "hw_um": after["hw_um"], "hw_before_um": before["hw_um"], "band_scale": scale,
@@ -493,7 +498,9 @@ def summarise(rows, efforts):
                         "rms_step_max": float(np.max(a("rms_um") / a("step_um"))),
                         "asym_rms_step_max": (f"{max(x['rms_um'] / x['step_um'] for x in asym):.3f} ({len(asym)})"
                                               if asym else "—"),
-                        "expected_in": f"{np.nansum(a('p_in_range')):.1f}", "share": float(np.nanmedian(a("field_share"))),
+                        "expected_in": f"{np.nansum(a('p_in_range')):.1f}",
+                        "expected_in_model": (f"{np.nansum(a('p_in_model')):.1f}" if np.isfinite(a('p_in_model')).any()
+                                              else "—"), "share": float(np.nanmedian(a("field_share"))),
                         "plan": (f"{np.nanmean(a('plan_stated')):.3f} / {np.nanmean(a('plan_measured')):.3f} "
                                  f"(max diff {np.nanmax(np.abs(a('plan_stated') - a('plan_measured'))):.3f})"
                                  if np.isfinite(a("plan_stated")).any() else "—"),
@@ -518,7 +525,9 @@ def render_table(rows, efforts, argv_text: str, note: str = "", title: str = TIT
     cols = [("effort", "effort", ""), ("optics", "optics", ""), ("lenses", "lenses", ""),
             ("mean coverage before", "cov_before", ".3f"), ("mean coverage after", "cov_after", ".3f"),
             ("min", "cov_min", ".2f"), ("max", "cov_max", ".2f"), ("lenses in 0.75-0.99", "in_075_099", ""),
-            ("expected if honest", "expected_in", ""), ("median field-wide share", "share", ".2f"),
+            ("expected if honest", "expected_in", ""),
+            ("expected if honest, own error model", "expected_in_model", ""),
+            ("median field-wide share", "share", ".2f"),
             ("mean RMS / step", "rms_step", ".4f"), ("max RMS / step", "rms_step_max", ".3f"),
             ("max RMS / step, asymmetric (n)", "asym_rms_step_max", ""),
             ("mean half-width / RMS", "hw_rms", ".2f"), ("median p90 of error / half-width", "err_hw_p90", ".2f"),
@@ -576,7 +585,9 @@ def render_table(rows, efforts, argv_text: str, note: str = "", title: str = TIT
         "for an honest band (> 1 too narrow, < 1 too wide); *field-wide share* = the part of the band's variance "
         "that is one draw per lens (stage repeatability, common mode, systematics); *expected if honest* = the "
         "number of lenses a perfectly honest band with those shares would put in 0.75-0.99 "
-        "(`p_coverage_in_range`). Machine shared (2 cores)." + (" " + note if note else ""),
+        "(`p_coverage_in_range`); *own error model* = the same from the self-check's bootstrap of each profile "
+        "(`selfcheck.coverage_draws` at kappa 1: correlated coefficient errors too, not the share alone). "
+        "Machine shared (2 cores)." + (" " + note if note else ""),
         "", *md_table(summ, cols), *dec_text, "", "Per lens:", "", *md_table(rows, per_lens)])
 
 

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from fieldcal.fit import fit_surfaces
-from fieldcal.fit.selfcheck import (GRID, LEVEL, SelfCheck, WARN_RANGE, coverage_estimate, coverage_given_shared,
+from fieldcal.fit.selfcheck import (GRID, LEVEL, SelfCheck, WARN_RANGE, coverage_draws, coverage_estimate,
+                                    coverage_given_shared,
                                     kappa_posterior)
 from fieldcal.fit.synthetic import random_lens, synthetic_tiles
 
@@ -73,6 +74,21 @@ def test_coverage_estimate_matches_monte_carlo_of_the_error_model(fitted, kappa)
         assert abs(truth.mean() - LEVEL) < 0.04
     # a band too wide covers more, one too narrow less
     assert (rec["coverage"] > 0.93) == (kappa < 1.0) and (rec["coverage"] < 0.85) == (kappa > 1.0)
+
+
+def test_coverage_draws_give_how_often_an_honest_band_lands_in_a_window(fitted):
+    """coverage_draws (the per-lens coverage an exactly honest band gives under the profile's own error model)
+    against the independent Monte Carlo: the same distribution, so the same chance of landing in 0.75-0.99
+    (bench_band_local's count of lenses an honest band can put in the issue's window), and the same draws as
+    coverage_estimate's expectation."""
+    truth = _monte_carlo(fitted, 1.0)
+    pooled, (at_one,), shares = coverage_draws(fitted, 1.0, n_draws=1500, extra_kappas=(1.0,))
+    inside = lambda c: float(np.mean((c >= 0.75) & (c <= 0.99)))
+    assert inside(pooled) == pytest.approx(inside(truth), abs=0.06), (inside(pooled), inside(truth))
+    assert float(np.mean(pooled > 0.99)) == pytest.approx(float(np.mean(truth > 0.99)), abs=0.06)
+    assert at_one == pytest.approx(float(pooled.mean()), abs=1e-12) and len(shares) == 1
+    assert coverage_estimate(fitted, 0.0, 0.0, n_draws=1500, kappa_mode="one")["coverage"] == pytest.approx(
+        float(pooled.mean()), abs=1e-12)
 
 
 def test_kappa_enters_only_on_evidence(fitted):

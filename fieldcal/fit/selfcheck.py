@@ -339,6 +339,42 @@ def _inside(m: dict, tested: np.ndarray, rest: np.ndarray, kappa) -> np.ndarray:
     return np.mean((e >= m["dlo"]) & (e <= m["dhi"]), axis=1)
 
 
+def coverage_draws(profile, kappa=1.0, n_draws: int = N_DRAWS, seed: int = SEED,
+                   extra_kappas=()) -> tuple[np.ndarray, list[float], list[float]]:
+    """One lens's truth coverage for ``n_draws`` error fields drawn from the profile's own joint error model
+    (the parametric bootstrap of :func:`coverage_estimate`): per draw, the fraction of the self-check's grid
+    (channels pooled) inside the band, the part the held-out tiles test scaled by ``kappa`` (one value, or one
+    per draw).
+
+    Returns ``(pooled, extra, shares)``: the per-draw coverage (``n_draws``,), the mean coverage at each of
+    ``extra_kappas`` on the same draws, and each channel's field-wide share of the band's variance. With
+    ``kappa = 1`` the draws are what an exactly honest band gives one lens: how far from the level its coverage
+    falls, and how often it lands inside a window such as 0.75-0.99 (``benchmarks/bench_band_local.py``).
+    """
+    s = profile.surfaces
+    g = s.geometry
+    gx, gy = np.meshgrid((np.arange(GRID[0]) + 0.5) * g.width_px / GRID[0] - 0.5,
+                         (np.arange(GRID[1]) + 0.5) * g.height_px / GRID[1] - 0.5)
+    x, y = gx.ravel(), gy.ravel()
+    rng = np.random.default_rng(seed)
+    cov, extra, shares = [], [[] for _ in extra_kappas], []
+    chol = {}
+    for ch in s.channels:
+        m = _channel_error_model(profile, ch, x, y, n_draws)
+        if m["length"] not in chol:  # one factor for all channels: one grid, one length scale
+            xh, yh = g.normalise(x, y)
+            dist = np.hypot(xh[:, None] - xh[None, :], yh[:, None] - yh[None, :])
+            chol[m["length"]] = np.linalg.cholesky(matern32(dist / max(m["length"], 1e-6)) + 1e-8 * np.eye(x.size))
+        tested, rest = _draw_errors(m, chol[m["length"]], n_draws, rng)
+        cov.append(_inside(m, tested, rest, kappa))
+        for j, k in enumerate(extra_kappas):
+            extra[j].append(_inside(m, tested, rest, k).mean())
+        shared = m["shared"] ** 2 + sum(sd ** 2 for sd in m["rank1"])
+        total = shared + m["coef"].var(axis=0) + m["local"] ** 2
+        shares.append(float(np.mean(shared / np.maximum(total, 1e-30))))
+    return np.mean(cov, axis=0), [float(np.mean(e)) for e in extra], shares
+
+
 def coverage_estimate(profile, log_kappa: float = 0.0, log_kappa_sd: float = 0.0, n_draws: int = N_DRAWS,
                       seed: int = SEED, kappa_mode: str = "evidence") -> dict:
     """The truth coverage of the profile's band, as the profile's own error model predicts it.
@@ -354,12 +390,6 @@ def coverage_estimate(profile, log_kappa: float = 0.0, log_kappa_sd: float = 0.0
     Returns the record merged into ``diagnostics.surface.self_check`` (keys ``coverage`` and below; docs/fitting.md
     "Self-checked coverage").
     """
-    s = profile.surfaces
-    g = s.geometry
-    gx, gy = np.meshgrid((np.arange(GRID[0]) + 0.5) * g.width_px / GRID[0] - 0.5,
-                         (np.arange(GRID[1]) + 0.5) * g.height_px / GRID[1] - 0.5)
-    x, y = gx.ravel(), gy.ravel()
-    rng = np.random.default_rng(seed)
     z90 = float(ndtri(0.95))
     k_lo, k_hi = (math.exp(log_kappa + sgn * z90 * log_kappa_sd) for sgn in (-1.0, 1.0))
     draws = np.exp(log_kappa + log_kappa_sd * np.random.default_rng(seed + 1).standard_normal(n_draws))
@@ -371,23 +401,8 @@ def coverage_estimate(profile, log_kappa: float = 0.0, log_kappa_sd: float = 0.0
     # "Self-check as a coverage estimator (s11)")
     evident = not (k_lo <= 1.0 <= k_hi)
     kappa = {"one": 1.0, "posterior": draws, "evidence": draws if evident else 1.0}[kappa_mode]
-    cov, at_lo, at_hi, shares = [], [], [], []
-    chol = {}
-    for ch in s.channels:
-        m = _channel_error_model(profile, ch, x, y, n_draws)
-        if m["length"] not in chol:  # one factor for all channels: one grid, one length scale
-            xh, yh = g.normalise(x, y)
-            dist = np.hypot(xh[:, None] - xh[None, :], yh[:, None] - yh[None, :])
-            chol[m["length"]] = np.linalg.cholesky(matern32(dist / max(m["length"], 1e-6)) + 1e-8 * np.eye(x.size))
-        tested, rest = _draw_errors(m, chol[m["length"]], n_draws, rng)
-        # the same draws at each kappa: the differences are kappa's alone
-        cov.append(_inside(m, tested, rest, kappa))
-        at_lo.append(_inside(m, tested, rest, k_lo).mean())
-        at_hi.append(_inside(m, tested, rest, k_hi).mean())
-        shared = m["shared"] ** 2 + sum(sd ** 2 for sd in m["rank1"])
-        total = shared + m["coef"].var(axis=0) + m["local"] ** 2
-        shares.append(float(np.mean(shared / np.maximum(total, 1e-30))))
-    pooled = np.mean(cov, axis=0)
+    # the same draws at each kappa: the differences are kappa's alone
+    pooled, (at_lo, at_hi), shares = coverage_draws(profile, kappa, n_draws, seed, extra_kappas=(k_lo, k_hi))
     q05, q50, q95 = (float(v) for v in np.quantile(pooled, [0.05, 0.5, 0.95]))
     rec = {"coverage": float(pooled.mean()), "coverage_expected": float(pooled.mean()), "coverage_median": q50,
            "coverage_range": [q05, q95], "coverage_sd": float(pooled.std()),
@@ -395,7 +410,7 @@ def coverage_estimate(profile, log_kappa: float = 0.0, log_kappa_sd: float = 0.0
            # the least |self-check - measured| any check from this stack can promise
            "coverage_abs_dev": float(np.mean(np.abs(pooled - pooled.mean()))),
            # the expectation at the 5 % and 95 % points of kappa: what the held-out evidence allows
-           "coverage_expected_kappa_90": [float(np.mean(at_hi)), float(np.mean(at_lo))],
+           "coverage_expected_kappa_90": [at_hi, at_lo],
            "field_wide_share": float(np.mean(shares)), "estimates": ESTIMATES, "n_draws": int(n_draws),
            # whether kappa's posterior entered the draws (its 90 % interval excludes 1) or kappa = 1
            "kappa_evidence": bool(kappa_mode != "one" and (evident or kappa_mode != "evidence")),
