@@ -55,6 +55,11 @@ LABEL_FRAMES = 0.125
 #: full range), luma on labels :data:`LABEL_FRAMES` apart and chroma, whose fine detail is weaker, on labels this
 #: many frame steps apart (fewer filters); None filters R, G and B on the luma's labels.
 CHROMA_LABEL_FRAMES: float | None = 1.0
+#: ... and the chroma combined on planes binned this many px (the combination's change added to the blend's
+#: chroma, upsampled): the frames' colour detail is coarser than their luma's (a Bayer sensor samples R and B at
+#: twice the pixel pitch, and JPEG's 4:2:0 halves the chroma again), so the chroma filters keep the combination
+#: below half the sampling frequency and the blend's chroma above it, at a quarter of the work. 1: no binning.
+CHROMA_BIN_PX = 2
 YCBCR = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
 
 
@@ -193,23 +198,20 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
             zb = np.where(off, per_pixel, zb).astype(np.float32)
             info["pixels_from_data"] = round(float(off.mean()), 4)
     defocus = profile if profile is not None and getattr(profile, "f_number", None) else None
+    noise_probe = None
     if has_depth and defocus is None and measured_defocus and dmap is not None and geometry is None:
+        if CHROMA_LABEL_FRAMES and channels == ("R", "G", "B"):
+            # the YCbCr Wiener step's noise probe needs only the frames: it reads and measures them on its own
+            # thread while the defocus is measured (mostly serial), the cones dilated (serial) and the frames
+            # blended, and the luma and chroma calls share it (unused if the defocus is not measured reliably)
+            noise_probe = _background(_probe_ycc, stack, frames, lateral_colour)
         # no lens model: the defocus per frame step measured on the registered frames (composite/defocus_rate.py)
         defocus = _measured_defocus(stack, frames, dmap, info, quiet)
     wiener = has_depth and defocus is not None
     measured = wiener and defocus is not profile
     ycc_split = measured and CHROMA_LABEL_FRAMES and channels == ("R", "G", "B")
-    if ycc_split:
-        # the Wiener filter's noise probe needs only the frames: it reads and measures them on its own thread
-        # while the cone dilation below (serial) and the blend run, and the luma and chroma calls share it
-        from concurrent.futures import ThreadPoolExecutor
-
-        from .depth_wiener import probe_plane_sigma
-
-        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fieldcal-probe")
-        noise_probe = pool.submit(probe_plane_sigma, stack, frames, geometry=geometry,
-                                  lateral_colour=lateral_colour, mix=YCBCR)
-        pool.shutdown(wait=False)  # the probe runs on; its result is taken below
+    if ycc_split and noise_probe is None:
+        noise_probe = _background(_probe_ycc, stack, frames, lateral_colour)
     if wiener:
         # a nearer object's blur disc kept off the pixels beside it (composite/depth_wiener.py)
         from .depth_wiener import occlusion_focus_um
@@ -221,6 +223,64 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
             zb = (zb - mean[..., None]) + occlusion_focus_um(mean, um_per_px)[..., None]
         else:
             zb = occlusion_focus_um(zb, um_per_px)
+    detail = None
+    if has_depth and (not wiener or measured) and fine_detail:
+        # the finest octaves per coefficient from the sharpest frame near the depth map's choice
+        # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost. Its
+        # two passes over the frames need only the final depth map, not the image it adds to: they run on their
+        # own threads beside the blend and the Wiener step (whose serial stretches would leave a core idle), and
+        # take the image when it is done
+        from concurrent.futures import Future
+
+        from .detail import fine_detail as add_fine_detail
+        z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
+        kd = np.interp(zb.mean(axis=2), z_sorted, np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32)
+        base_image: Future = Future()
+        detail = _background(add_fine_detail, stack, base_image.result, kd, frames, geometry=geometry,
+                             support=getattr(stack, "support", None), keep_base=measured, quiet=True)
+    try:
+        img = _depth_composite(stack, profile, frames, zb, defocus, fallback, info, geometry=geometry,
+                               has_depth=has_depth, wiener=wiener, measured=measured, ycc_split=ycc_split,
+                               noise_probe=noise_probe, spacing=spacing, lateral_colour=lateral_colour,
+                               fs_cyc_per_mm=fs_cyc_per_mm, q=q, min_band=min_band, tile=tile, quiet=quiet)
+    except BaseException as exc:
+        if detail is not None:
+            base_image.set_exception(exc)  # the fine-detail thread stops at its wait
+        raise
+    if detail is not None:
+        from .stack_profile import to_input_dtype
+        base_image.set_result(img)
+        sharp, info["fine_detail"] = detail.result()
+        img = to_input_dtype(sharp, img.dtype, float(stack.white_level))
+    return CompositeResult(img, method, zb, info)
+
+
+def _background(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` started on a thread of its own; its :class:`~concurrent.futures.Future`."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fieldcal-background")
+    try:
+        return pool.submit(fn, *args, **kwargs)
+    finally:
+        pool.shutdown(wait=False)  # the call runs on; its result is taken from the future
+
+
+def _probe_ycc(stack, frames, lateral_colour: bool) -> list[float]:
+    """The frames' noise in the YCbCr planes the measured-defocus Wiener step filters."""
+    from .depth_wiener import probe_plane_sigma
+
+    return probe_plane_sigma(stack, frames, geometry=None, lateral_colour=lateral_colour, mix=YCBCR,
+                             bins=[1, CHROMA_BIN_PX, CHROMA_BIN_PX])
+
+
+def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, *, geometry, has_depth: bool,
+                     wiener: bool, measured: bool, ycc_split: bool, noise_probe, spacing: float,
+                     lateral_colour: bool, fs_cyc_per_mm, q, min_band, tile, quiet: bool) -> np.ndarray:
+    """The blend along the best-focus map ``zb``, combined by the Wiener filter where there is a defocus model and
+    mixed with the multi-scale fusion where the depth map is unsure (scenes with depth): the image that fine
+    detail is added to."""
+    channels = tuple(stack.channels)
     kernel = blend_kernel(stack, profile, frames, fs_cyc_per_mm, q, min_band)
     img = composite_with_map(stack, zb, kernel, geometry, frames, lateral_colour=lateral_colour, tile=tile,
                              quiet=quiet)
@@ -237,9 +297,9 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
             # planes from one read of the probe frames, not one per call
             sig = noise_probe.result()
             ycc = [wiener_composite(stack, zb, defocus, frames, img, geometry=geometry, lateral_colour=lateral_colour,
-                                    label_um=lab, needed=needed, mix=rows, plane_sigma=ps, quiet=quiet)
-                   for rows, lab, ps in ((YCBCR[:1], label_um, sig[:1]),
-                                         (YCBCR[1:], CHROMA_LABEL_FRAMES * spacing, sig[1:]))]
+                                    label_um=lab, needed=needed, mix=rows, plane_sigma=ps, bin_px=b, quiet=quiet)
+                   for rows, lab, ps, b in ((YCBCR[:1], label_um, sig[:1], 1),
+                                            (YCBCR[1:], CHROMA_LABEL_FRAMES * spacing, sig[1:], CHROMA_BIN_PX))]
             combined = np.concatenate([p for p, _ in ycc], axis=2) @ np.linalg.inv(YCBCR).T.astype(np.float32)
             info["wiener"] = {**ycc[0][1], "filters": ycc[0][1]["filters"] + ycc[1][1]["filters"],
                               "chroma": ycc[1][1]}
@@ -255,18 +315,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         mixed = weight[..., None] * img.astype(np.float32) + (1.0 - weight[..., None]) * fused
         img = to_input_dtype(mixed, img.dtype, float(stack.white_level))
         info["pixels_from_fusion"] = round(float(np.mean(1.0 - weight)), 4)
-    if has_depth and (not wiener or measured) and fine_detail:
-        # the finest octaves per coefficient from the sharpest frame near the depth map's choice
-        # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost
-        from .detail import fine_detail as add_fine_detail
-        from .stack_profile import to_input_dtype
-        z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
-        kd = np.interp(zb.mean(axis=2), z_sorted, np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32)
-        sharp, info["fine_detail"] = add_fine_detail(stack, img, kd, frames, geometry=geometry,
-                                                     support=getattr(stack, "support", None), keep_base=measured,
-                                                     quiet=quiet)
-        img = to_input_dtype(sharp, img.dtype, float(stack.white_level))
-    return CompositeResult(img, method, zb, info)
+    return img
 
 
 def surface_misfit_fractions(vol, surfaces, spacing_um: float) -> tuple[float, float]:
