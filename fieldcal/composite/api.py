@@ -55,11 +55,6 @@ LABEL_FRAMES = 0.125
 #: full range), luma on labels :data:`LABEL_FRAMES` apart and chroma, whose fine detail is weaker, on labels this
 #: many frame steps apart (fewer filters); None filters R, G and B on the luma's labels.
 CHROMA_LABEL_FRAMES: float | None = 1.0
-#: ... and the chroma combined on planes binned this many px (the combination's change added to the blend's
-#: chroma, upsampled): the frames' colour detail is coarser than their luma's (a Bayer sensor samples R and B at
-#: twice the pixel pitch, and JPEG's 4:2:0 halves the chroma again), so the chroma filters keep the combination
-#: below half the sampling frequency and the blend's chroma above it, at a quarter of the work. 1: no binning.
-CHROMA_BIN_PX = 2
 YCBCR = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
 
 
@@ -270,8 +265,7 @@ def _probe_ycc(stack, frames, lateral_colour: bool) -> list[float]:
     """The frames' noise in the YCbCr planes the measured-defocus Wiener step filters."""
     from .depth_wiener import probe_plane_sigma
 
-    return probe_plane_sigma(stack, frames, geometry=None, lateral_colour=lateral_colour, mix=YCBCR,
-                             bins=[1, CHROMA_BIN_PX, CHROMA_BIN_PX])
+    return probe_plane_sigma(stack, frames, geometry=None, lateral_colour=lateral_colour, mix=YCBCR)
 
 
 def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, *, geometry, has_depth: bool,
@@ -297,9 +291,9 @@ def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, 
             # planes from one read of the probe frames, not one per call
             sig = noise_probe.result()
             ycc = [wiener_composite(stack, zb, defocus, frames, img, geometry=geometry, lateral_colour=lateral_colour,
-                                    label_um=lab, needed=needed, mix=rows, plane_sigma=ps, bin_px=b, quiet=quiet)
-                   for rows, lab, ps, b in ((YCBCR[:1], label_um, sig[:1], 1),
-                                            (YCBCR[1:], CHROMA_LABEL_FRAMES * spacing, sig[1:], CHROMA_BIN_PX))]
+                                    label_um=lab, needed=needed, mix=rows, plane_sigma=ps, quiet=quiet)
+                   for rows, lab, ps in ((YCBCR[:1], label_um, sig[:1]),
+                                         (YCBCR[1:], CHROMA_LABEL_FRAMES * spacing, sig[1:]))]
             combined = np.concatenate([p for p, _ in ycc], axis=2) @ np.linalg.inv(YCBCR).T.astype(np.float32)
             info["wiener"] = {**ycc[0][1], "filters": ycc[0][1]["filters"] + ycc[1][1]["filters"],
                               "chroma": ycc[1][1]}

@@ -158,36 +158,13 @@ def _mixed(planes: list[np.ndarray], rows: np.ndarray | None) -> list[np.ndarray
     return out
 
 
-def bin_mean(a: np.ndarray, b: int) -> np.ndarray:
-    """``a`` (``H x W`` or ``H x W x C``) averaged over ``b x b`` blocks, ``ceil(H / b) x ceil(W / b)``: the last
-    row and column of blocks take the edge pixels repeated where the size is not a multiple of ``b``."""
-    b = int(b)
-    a = np.asarray(a)
-    if b == 1:
-        return a
-    h, w = a.shape[:2]
-    hb, wb = -(-h // b), -(-w // b)
-    if (hb * b, wb * b) != (h, w):
-        pad = ((0, hb * b - h), (0, wb * b - w)) + ((0, 0),) * (a.ndim - 2)
-        a = np.pad(a, pad, mode="edge")
-    out = np.array(a[0::b, 0::b], dtype=np.float32)  # b^2 strided sums: a reduction over the block axes of a
-    for dy in range(b):                                # reshaped view takes NumPy's slow buffered path
-        for dx in range(b):
-            if dy or dx:
-                out += a[dy::b, dx::b]
-    out *= np.float32(1.0 / (b * b))
-    return out
-
-
 def probe_plane_sigma(stack, frames, *, geometry=None, lateral_colour: bool = False,
-                      mix: np.ndarray | None = None, bins=None) -> list[float]:
+                      mix: np.ndarray | None = None) -> list[float]:
     """Pixel noise (frame units) per channel, or per weighted sum of the channels (``mix``'s rows, P x C).
 
     The least of Immerkaer's estimate over up to six frames spread over the stack's z order: texture only ever
     inflates the estimate, and far from focus a frame is smooth. The frames are read and measured on the
-    compositor's threads, one frame (three whole planes) per thread in flight. ``bins``: per plane, the noise
-    of the plane averaged over ``b x b`` blocks (:func:`bin_mean`), as :func:`wiener_composite` with ``bin_px``
-    filters it (measured, not ``sigma / b``: a JPEG's chroma noise is correlated over 2 x 2 px).
+    compositor's threads, one frame (three whole planes) per thread in flight.
     """
     from .dff import map_in_order
     from .source import default_workers
@@ -205,9 +182,7 @@ def probe_plane_sigma(stack, frames, *, geometry=None, lateral_colour: bool = Fa
         """Frame k's (z order) noise per plane."""
         planes = frame_planes(stack, geometry, float(zs[k]), int(order[k]), channels, w, h,
                               lateral_colour=lateral_colour)
-        mixed = _mixed(planes, rows)
-        return [estimate_noise_sigma(bin_mean(p, b), max_samples=NOISE_SAMPLES)
-                for p, b in zip(mixed, bins or [1] * len(mixed))]
+        return [estimate_noise_sigma(p, max_samples=NOISE_SAMPLES) for p in _mixed(planes, rows)]
 
     probe = np.unique(np.linspace(0, len(order) - 1, min(len(order), 6)).round().astype(int))
     per_frame = list(map_in_order(probe_sigma, [int(k) for k in probe], ahead=default_workers()))
@@ -217,7 +192,7 @@ def probe_plane_sigma(stack, frames, *, geometry=None, lateral_colour: bool = Fa
 def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray, *, geometry=None,
                      lateral_colour: bool = False, reach_disc_px: float = REACH_DISC_PX,
                      noise_sigma=None, label_um: float | None = None, needed: np.ndarray | None = None,
-                     mix: np.ndarray | None = None, plane_sigma=None, bin_px: int = 1,
+                     mix: np.ndarray | None = None, plane_sigma=None,
                      quiet: bool = False) -> tuple[np.ndarray, dict]:
     """All-in-focus image of a scene with depth from a best-focus map and the lens's defocus OTF.
 
@@ -254,13 +229,6 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     plane_sigma : sequence of float, optional
         Pixel noise per filtered plane as :func:`probe_plane_sigma` measures it with the same ``mix`` (calls
         filtering planes of one mix apart then read the probe frames once); overrides ``noise_sigma``.
-        With ``bin_px``, the noise of the binned planes (``probe_plane_sigma(..., bins=...)``).
-    bin_px : int
-        Filter the planes averaged over ``bin_px x bin_px`` blocks (:func:`bin_mean`; the OTFs on that grid's
-        frequencies) and add the combination's change to ``reference``, upsampled (bilinear): the combination
-        for the frequencies below ``1 / (2 bin_px)`` cycles/px, ``reference``'s above them, at ``1 / bin_px^2``
-        of the filters' work. For planes with little detail there (colour difference planes: a Bayer sensor
-        samples R and B at half the pitch, and JPEG's 4:2:0 halves the chroma again).
 
     Returns
     -------
@@ -291,27 +259,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     else:
         fch = channels
 
-    bin_px = int(bin_px)
-    if bin_px < 1:
-        raise ParameterError(f"bin_px = {bin_px}", field="bin_px", fix="give 1 (no binning) or more")
-    full = None
-    if bin_px > 1:
-        # the planes averaged over bin_px x bin_px blocks: the grid below is the binned one; the output is
-        # reference + the combination's change, upsampled
-        reference = np.asarray(reference, dtype=np.float32)
-        if reference.ndim == 2:
-            reference = reference[..., None]
-        full = (w, h, reference, None if needed is None else np.asarray(needed, bool))
-        reference = bin_mean(reference, bin_px)
-        zb = bin_mean(np.asarray(zb, dtype=np.float32), bin_px)
-        if zb.ndim == 2:
-            zb = zb[..., None]
-        if needed is not None:
-            needed = bin_mean(np.asarray(needed, np.float32), bin_px) > 0
-        h, w = reference.shape[:2]
     pitch = float(model.pixel_pitch_um)
-    px_um = float(n_f) * pitch  # defocus that widens the blur disc's diameter by 1 px (of the frames)
-    grid_pitch = pitch * bin_px  # the filtered planes' pixel pitch
+    px_um = float(n_f) * pitch  # defocus that widens the blur disc's diameter by 1 px
     z_all = z_positions(stack)
     idx = np.asarray(frames, dtype=int)
     order = idx[np.argsort(z_all[idx], kind="stable")]
@@ -330,16 +279,14 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             raise ParameterError(f"{len(sigma)} plane noise levels for {len(fch)} planes", field="plane_sigma",
                                  fix="give one noise level per filtered plane (probe_plane_sigma with the same mix)")
     elif noise_sigma is None:
-        sigma = probe_plane_sigma(stack, frames, geometry=geometry, lateral_colour=lateral_colour, mix=mix,
-                                  bins=[bin_px] * len(fch))
+        sigma = probe_plane_sigma(stack, frames, geometry=geometry, lateral_colour=lateral_colour, mix=mix)
     else:
         sigma = [float(v) for v in np.broadcast_to(np.asarray(noise_sigma, dtype=np.float64), (len(channels),))]
         if mix is not None:  # independent noise per channel
             sigma = [float(np.sqrt(np.sum(row ** 2 * np.square(sigma)))) for row in mix]
-        sigma = [v / bin_px for v in sigma]  # independent noise per pixel, averaged over bin_px^2 pixels
     # the signal's power law per plane, one plane at a time: each fit holds a whole image's spectrum (two at once
     # on threads raised the composite's peak by ~200 MB for ~0.1 s)
-    a_sig, beta, shape = _power_law(reference, pad, grid_pitch, [lambda t, ch=ch: model.defocus_otf(t, 0.0, ch)
+    a_sig, beta, shape = _power_law(reference, pad, pitch, [lambda t, ch=ch: model.defocus_otf(t, 0.0, ch)
                                                             for ch in fch], [max(s, 1e-6) for s in sigma])
     mean = [float(np.mean(reference[..., c])) for c in range(len(fch))]
 
@@ -362,8 +309,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     margin = pad + TILE_MARGIN_PX
     nb_y = fft.next_fast_len(min(core, h) + 2 * margin, real=True)
     nb_x = fft.next_fast_len(min(core, w) + 2 * margin, real=True)
-    f_grid = rfft_radial_grid((nb_y, nb_x), grid_pitch)
-    fmin = 4.0 / (max(shape) * grid_pitch * 1e-3)  # the power law as fitted on the whole image
+    f_grid = rfft_radial_grid((nb_y, nb_x), pitch)
+    fmin = 4.0 / (max(shape) * pitch * 1e-3)  # the power law as fitted on the whole image
     # OTFs are radial: each one is a 1-D table gathered onto the grid through one index
     n_table = 4096
     f_step = float(f_grid.max()) * (1 + 1e-9) / (n_table - 1)
@@ -412,12 +359,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             maps[k] = frame_maps(geometry, float(zs[k]), channels, lateral_colour)
         planes = [None] * len(channels)
         for fm in maps[k]:
-            if full is None:
-                part = warp_region(stack, int(order[k]), fm, bx0, by0, bx1, by1)
-            else:  # the frame's pixels under the binned block, binned
-                b = bin_px
-                part = bin_mean(warp_region(stack, int(order[k]), fm, bx0 * b, by0 * b, min(full[0], bx1 * b),
-                                            min(full[1], by1 * b)), b)
+            part = warp_region(stack, int(order[k]), fm, bx0, by0, bx1, by1)
             for j, c in enumerate(fm.channels):
                 planes[c] = part[..., j]
         out = []
@@ -515,21 +457,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         n_frames_used += used_frames
     if needed is not None:
         np.copyto(out, np.asarray(reference, dtype=np.float32), where=~np.asarray(needed, bool)[..., None])
-    if full is not None:
-        import cv2
-
-        w_full, h_full, ref_full, need_full = full
-        out -= reference  # the combination's change, upsampled onto the reference
-        up = np.empty((h_full, w_full, out.shape[2]), np.float32)
-        for c in range(out.shape[2]):
-            up[..., c] = cv2.resize(out[..., c], (w_full, h_full), interpolation=cv2.INTER_LINEAR)
-        up += ref_full
-        if need_full is not None:
-            np.copyto(up, ref_full, where=~need_full[..., None])
-        out = up
     info = {"noise_sigma": [round(s, 3) for s in sigma], "tiles": len(tiles), "filters": n_filters,
             "label_um": round(step, 3), "frames_per_label": round(float(np.mean(n_frames_used)), 2)
-            if n_frames_used else 0.0, "bin_px": bin_px}
+            if n_frames_used else 0.0}
     if mix is not None:
         info["planes"] = [[round(float(m), 4) for m in row] for row in mix]
     return out, info
