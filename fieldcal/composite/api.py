@@ -169,7 +169,14 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
                  "blocks_off_surface": {"by_a_spacing": round(off_spacing, 4), "by_half_a_width": round(off_width, 4)},
                  "pixels_off_surface": round(off_pixels, 4),
                  "scene": "3d" if has_depth else "flat"})
-    fallback = dmap = None
+    fallback = dmap = noise_probe = None
+    if (has_depth and measured_defocus and geometry is None and not getattr(profile, "f_number", None)
+            and CHROMA_LABEL_FRAMES and channels == ("R", "G", "B")):
+        # the YCbCr Wiener step of a measured defocus (below) needs the frames' noise, and only the frames: it is
+        # measured on a thread of its own while the depth map's serial stretches, the defocus measurement (mostly
+        # serial), the cones (serial) and the blend run; the luma and chroma calls share it (unused where the
+        # defocus is not measured reliably)
+        noise_probe = _background(_probe_ycc, stack, frames, lateral_colour)
     if method == "dff":
         zb = dff_focus_map(surfaces, w, h)
         info["surface_degree"] = {c: s.degree for c, s in zip(channels, surfaces)}
@@ -193,13 +200,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
             zb = np.where(off, per_pixel, zb).astype(np.float32)
             info["pixels_from_data"] = round(float(off.mean()), 4)
     defocus = profile if profile is not None and getattr(profile, "f_number", None) else None
-    noise_probe = None
     if has_depth and defocus is None and measured_defocus and dmap is not None and geometry is None:
-        if CHROMA_LABEL_FRAMES and channels == ("R", "G", "B"):
-            # the YCbCr Wiener step's noise probe needs only the frames: it reads and measures them on its own
-            # thread while the defocus is measured (mostly serial), the cones dilated (serial) and the frames
-            # blended, and the luma and chroma calls share it (unused if the defocus is not measured reliably)
-            noise_probe = _background(_probe_ycc, stack, frames, lateral_colour)
         # no lens model: the defocus per frame step measured on the registered frames (composite/defocus_rate.py)
         defocus = _measured_defocus(stack, frames, dmap, info, quiet)
     wiener = has_depth and defocus is not None
