@@ -405,7 +405,8 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
     1. Per frame (warped to the output geometry): the modified Laplacian of the luminance, squared, Gaussian-
        smoothed over ``window_px``.
     2. Each frame's focus map is guided-filtered (He et al. 2013; :class:`_GuidedFilter`, OpenCV ``ximgproc``'s
-       filter with the guide's statistics computed once) with ``guide``, an
+       filter with the guide's statistics computed once; for radii over 5 px its coefficients on planes
+       subsampled by :func:`guided_subsample`, He and Sun's fast guided filter, 2015) with ``guide``, an
        all-in-focus image of the same scene (e.g. :func:`fuse_pyramid`'s), so the aggregation follows the
        scene's edges: a sharp foreground edge does not lend its focus energy to the blurred background beside
        it (no halo), yet textureless stretches inherit the depth of the object they belong to.
