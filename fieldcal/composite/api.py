@@ -233,7 +233,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         kd = np.interp(zb.mean(axis=2), z_sorted, np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32)
         base_image: Future = Future()
         detail = _background(add_fine_detail, stack, base_image.result, kd, frames, geometry=geometry,
-                             support=getattr(stack, "support", None), keep_base=measured, quiet=True)
+                             support=getattr(stack, "support", None), keep_base=measured, quiet=quiet)
     try:
         img = _depth_composite(stack, profile, frames, zb, defocus, fallback, info, geometry=geometry,
                                has_depth=has_depth, wiener=wiener, measured=measured, ycc_split=ycc_split,
