@@ -149,24 +149,3 @@ def test_composite_stack_adds_fine_detail_to_a_scene_with_depth_without_a_lens_m
     # the blend's seams are narrow, so here it already holds the nearer frame; the step must not cost anything
     assert err[0] <= 1.02 * err[1]
 
-
-@pytest.mark.parametrize("keep_base", [False, True])
-def test_a_base_given_later_gives_the_same_image_and_a_wrong_one_is_refused(keep_base):
-    """The composite may be handed over when the two passes over the frames are done (a callable, as
-    composite_stack does while its Wiener step runs): the same image as given up front; a callable returning a
-    composite of another size is refused by name, not broadcast."""
-    truth = _texture()
-    frames = [_blur(truth, 1.2 * abs(k - 2)) for k in range(5)]
-    kd = np.full((H, W), 2.3, np.float32)
-    blend = (0.7 * frames[2] + 0.3 * frames[3])[..., None]
-    calls = []
-
-    def later():
-        calls.append(1)
-        return blend
-
-    now, info_now = fine_detail(_stack(frames), blend, kd, keep_base=keep_base, quiet=True)
-    late, info_late = fine_detail(_stack(frames), later, kd, keep_base=keep_base, quiet=True)
-    assert calls == [1] and np.array_equal(now, late) and info_now == info_late
-    with pytest.raises(FieldcalError, match="composite"):
-        fine_detail(_stack(frames), lambda: blend[:-1], kd, quiet=True)

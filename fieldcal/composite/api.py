@@ -219,34 +219,22 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
             zb = (zb - mean[..., None]) + occlusion_focus_um(mean, um_per_px)[..., None]
         else:
             zb = occlusion_focus_um(zb, um_per_px)
-    detail = None
+    img = _depth_composite(stack, profile, frames, zb, defocus, fallback, info, geometry=geometry,
+                           has_depth=has_depth, wiener=wiener, measured=measured, ycc_split=ycc_split,
+                           noise_probe=noise_probe, spacing=spacing, lateral_colour=lateral_colour,
+                           fs_cyc_per_mm=fs_cyc_per_mm, q=q, min_band=min_band, tile=tile, quiet=quiet)
     if has_depth and (not wiener or measured) and fine_detail:
         # the finest octaves per coefficient from the sharpest frame near the depth map's choice
-        # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost. Its
-        # two passes over the frames need only the final depth map, not the image it adds to: they run on their
-        # own threads beside the blend and the Wiener step (whose serial stretches would leave a core idle), and
-        # take the image when it is done
-        from concurrent.futures import Future
-
+        # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost. (Run
+        # beside the blend and Wiener step on threads of its own it cost 7 % more CPU, page faults, and 5 % more
+        # wall on two cores: bench_composite_speed_s15.)
         from .detail import fine_detail as add_fine_detail
+        from .stack_profile import to_input_dtype
         z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
         kd = np.interp(zb.mean(axis=2), z_sorted, np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32)
-        base_image: Future = Future()
-        detail = _background(add_fine_detail, stack, base_image.result, kd, frames, geometry=geometry,
-                             support=getattr(stack, "support", None), keep_base=measured, quiet=quiet)
-    try:
-        img = _depth_composite(stack, profile, frames, zb, defocus, fallback, info, geometry=geometry,
-                               has_depth=has_depth, wiener=wiener, measured=measured, ycc_split=ycc_split,
-                               noise_probe=noise_probe, spacing=spacing, lateral_colour=lateral_colour,
-                               fs_cyc_per_mm=fs_cyc_per_mm, q=q, min_band=min_band, tile=tile, quiet=quiet)
-    except BaseException as exc:
-        if detail is not None:
-            base_image.set_exception(exc)  # the fine-detail thread stops at its wait
-        raise
-    if detail is not None:
-        from .stack_profile import to_input_dtype
-        base_image.set_result(img)
-        sharp, info["fine_detail"] = detail.result()
+        sharp, info["fine_detail"] = add_fine_detail(stack, img, kd, frames, geometry=geometry,
+                                                     support=getattr(stack, "support", None), keep_base=measured,
+                                                     quiet=quiet)
         img = to_input_dtype(sharp, img.dtype, float(stack.white_level))
     return CompositeResult(img, method, zb, info)
 

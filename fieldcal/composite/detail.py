@@ -101,10 +101,8 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     stack : FrameSource
         The frames: registered to the output geometry (e.g. :func:`fieldcal.composite.register.register_stack`'s),
         or warped to it by ``geometry`` (a lens profile; ``None``: taken as registered).
-    base : H x W x C array, or a callable returning it
-        The depth-map composite (any dtype; its coarse levels are kept). A callable is called only after both
-        passes over the frames, which need only ``depth_index``: the caller may compute the composite meanwhile
-        (and its call may block until it is done).
+    base : H x W x C array
+        The depth-map composite (any dtype; its coarse levels are kept).
     depth_index : H x W array
         The depth map as a frame position in z order (0 = the lowest frame of ``frames``; sub-frame values).
     frames : array of int, optional
@@ -142,17 +140,10 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     """
     w, h = image_size(stack)
     channels = tuple(stack.channels)
-
-    def check(base_shape: tuple) -> None:
-        if base_shape[:2] != (h, w) or np.shape(depth_index) != (h, w):
-            raise ParameterError(f"composite {base_shape[:2]} or depth map {np.shape(depth_index)} is not the "
-                                 f"stack's {h}x{w}", field="base", fix="give the composite and depth map of this stack")
-
-    if not callable(base):
-        base = np.asarray(base)
-        check(base.shape)
-    else:
-        check((h, w))  # the depth map now, the composite when it comes
+    base = np.asarray(base)
+    if base.shape[:2] != (h, w) or np.shape(depth_index) != (h, w):
+        raise ParameterError(f"composite {base.shape[:2]} or depth map {np.shape(depth_index)} is not the stack's "
+                             f"{h}x{w}", field="base", fix="give the composite and depth map of this stack")
     levels = int(levels)
     if levels < 1 or (min(w, h) >> levels) < 2:
         raise ParameterError(f"{levels} fine levels do not fit a {w}x{h} image", field="levels",
@@ -236,7 +227,7 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
             "coefficients_off_depth_map": [round(float(np.mean(c != n)), 4) for c, n in zip(choice, nearest)]}
     info["coefficients_averaged"] = [round(float(np.mean(sel < 0.5)), 4) for sel in select]
     # channel-first: each channel's plane contiguous, so the per-frame copies and sums run at full speed
-    # (with keep_base the base's own fine levels, made when it comes: nothing held meanwhile)
+    # (with keep_base, the base's own fine levels: made after the gathering pass, not held through it)
     gathered = None if keep_base else [np.zeros((len(channels), *s), np.float32) for s in shapes]
     total = [np.zeros((len(channels), *s), np.float32) for s in shapes]
     count = [np.zeros(s, np.float32) for s in shapes]
@@ -271,9 +262,6 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
         sel, n = select[lev], count[lev]
         sel[n == 0] = 1.0  # nothing recorded within reach: the chosen frame
         np.maximum(n, np.float32(1.0), out=n)
-    if callable(base):
-        base = np.asarray(base())
-        check(base.shape)
     if keep_base:
         gathered = [np.empty((len(channels), *s), np.float32) for s in shapes]
     out = np.empty((h, w, len(channels)), np.float32)
