@@ -148,3 +148,4 @@ def test_composite_stack_adds_fine_detail_to_a_scene_with_depth_without_a_lens_m
     err = [np.sqrt(np.mean((r.image[..., 0].astype(np.float64) - truth)[inner] ** 2)) for r in (with_detail, without)]
     # the blend's seams are narrow, so here it already holds the nearer frame; the step must not cost anything
     assert err[0] <= 1.02 * err[1]
+

@@ -69,3 +69,29 @@ def test_weighted_lstsq_matches_lapack():
     sw = np.sqrt(rng.uniform(0, 1, 400))
     ref = np.linalg.lstsq(a * sw[:, None], z * sw, rcond=None)[0]
     np.testing.assert_allclose(_weighted_lstsq(a, z, sw), ref, rtol=1e-8, atol=1e-10)
+
+
+def test_subsampled_guided_filter_keeps_the_filter_and_the_guides_edges():
+    """He and Sun's fast guided filter (coefficients on planes subsampled by s, applied to the full guide): on a
+    smooth input it is the exact filter to a small fraction of the input's range, and across a step of the guide
+    it keeps the step as sharp as the exact filter does (the edge comes from the full-resolution guide), where a
+    plain box of the same width would spread it over its whole width."""
+    rng = np.random.default_rng(4)
+    h, w = 240, 320
+    guide = cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), 6)
+    guide = (guide - guide.min()) / np.ptp(guide)
+    guide[:, w // 2:] += 1.0  # a step edge of the guide
+    guide /= guide.max()
+    src = (2.0 * guide + 0.3 * cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), 8)).astype(np.float32)
+    r = 12
+    s = 3
+    exact = _GuidedFilter(guide, r, 1e-3)(src)
+    fast = _GuidedFilter(guide, r, 1e-3, subsample=s)(src)
+    inner = (slice(2 * r, -2 * r), slice(2 * r, -2 * r))
+    assert np.abs(fast - exact)[inner].max() < 0.02 * float(np.ptp(src))
+    # the step: the exact and the fast filters' rise over 2 px equals the source's; a box of 2r + 1 px does not
+    rows = slice(2 * r, -2 * r)
+    rise = lambda img: float(np.median(img[rows, w // 2 + 1] - img[rows, w // 2 - 2]))  # noqa: E731
+    box = cv2.blur(src, (2 * r + 1, 2 * r + 1))
+    assert abs(rise(fast) - rise(src)) < 0.1 * rise(src) and abs(rise(exact) - rise(src)) < 0.1 * rise(src)
+    assert rise(box) < 0.3 * rise(src)

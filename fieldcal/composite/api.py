@@ -169,7 +169,14 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
                  "blocks_off_surface": {"by_a_spacing": round(off_spacing, 4), "by_half_a_width": round(off_width, 4)},
                  "pixels_off_surface": round(off_pixels, 4),
                  "scene": "3d" if has_depth else "flat"})
-    fallback = dmap = None
+    fallback = dmap = noise_probe = None
+    if (has_depth and measured_defocus and geometry is None and not getattr(profile, "f_number", None)
+            and CHROMA_LABEL_FRAMES and channels == ("R", "G", "B")):
+        # the YCbCr Wiener step of a measured defocus (below) needs the frames' noise, and only the frames: it is
+        # measured on a thread of its own while the depth map's serial stretches, the defocus measurement (mostly
+        # serial), the cones (serial) and the blend run; the luma and chroma calls share it (unused where the
+        # defocus is not measured reliably)
+        noise_probe = _background(_probe_ycc, stack, frames, lateral_colour)
     if method == "dff":
         zb = dff_focus_map(surfaces, w, h)
         info["surface_degree"] = {c: s.degree for c, s in zip(channels, surfaces)}
@@ -199,17 +206,8 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     wiener = has_depth and defocus is not None
     measured = wiener and defocus is not profile
     ycc_split = measured and CHROMA_LABEL_FRAMES and channels == ("R", "G", "B")
-    if ycc_split:
-        # the Wiener filter's noise probe needs only the frames: it reads and measures them on its own thread
-        # while the cone dilation below (serial) and the blend run, and the luma and chroma calls share it
-        from concurrent.futures import ThreadPoolExecutor
-
-        from .depth_wiener import probe_plane_sigma
-
-        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fieldcal-probe")
-        noise_probe = pool.submit(probe_plane_sigma, stack, frames, geometry=geometry,
-                                  lateral_colour=lateral_colour, mix=YCBCR)
-        pool.shutdown(wait=False)  # the probe runs on; its result is taken below
+    if ycc_split and noise_probe is None:
+        noise_probe = _background(_probe_ycc, stack, frames, lateral_colour)
     if wiener:
         # a nearer object's blur disc kept off the pixels beside it (composite/depth_wiener.py)
         from .depth_wiener import occlusion_focus_um
@@ -221,6 +219,51 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
             zb = (zb - mean[..., None]) + occlusion_focus_um(mean, um_per_px)[..., None]
         else:
             zb = occlusion_focus_um(zb, um_per_px)
+    img = _depth_composite(stack, profile, frames, zb, defocus, fallback, info, geometry=geometry,
+                           has_depth=has_depth, wiener=wiener, measured=measured, ycc_split=ycc_split,
+                           noise_probe=noise_probe, spacing=spacing, lateral_colour=lateral_colour,
+                           fs_cyc_per_mm=fs_cyc_per_mm, q=q, min_band=min_band, tile=tile, quiet=quiet)
+    if has_depth and (not wiener or measured) and fine_detail:
+        # the finest octaves per coefficient from the sharpest frame near the depth map's choice
+        # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost. (Run
+        # beside the blend and Wiener step on threads of its own it cost 7 % more CPU, page faults, and 5 % more
+        # wall on two cores: bench_composite_speed_s15.)
+        from .detail import fine_detail as add_fine_detail
+        from .stack_profile import to_input_dtype
+        z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
+        kd = np.interp(zb.mean(axis=2), z_sorted, np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32)
+        sharp, info["fine_detail"] = add_fine_detail(stack, img, kd, frames, geometry=geometry,
+                                                     support=getattr(stack, "support", None), keep_base=measured,
+                                                     quiet=quiet)
+        img = to_input_dtype(sharp, img.dtype, float(stack.white_level))
+    return CompositeResult(img, method, zb, info)
+
+
+def _background(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` started on a thread of its own; its :class:`~concurrent.futures.Future`."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fieldcal-background")
+    try:
+        return pool.submit(fn, *args, **kwargs)
+    finally:
+        pool.shutdown(wait=False)  # the call runs on; its result is taken from the future
+
+
+def _probe_ycc(stack, frames, lateral_colour: bool) -> list[float]:
+    """The frames' noise in the YCbCr planes the measured-defocus Wiener step filters."""
+    from .depth_wiener import probe_plane_sigma
+
+    return probe_plane_sigma(stack, frames, geometry=None, lateral_colour=lateral_colour, mix=YCBCR)
+
+
+def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, *, geometry, has_depth: bool,
+                     wiener: bool, measured: bool, ycc_split: bool, noise_probe, spacing: float,
+                     lateral_colour: bool, fs_cyc_per_mm, q, min_band, tile, quiet: bool) -> np.ndarray:
+    """The blend along the best-focus map ``zb``, combined by the Wiener filter where there is a defocus model and
+    mixed with the multi-scale fusion where the depth map is unsure (scenes with depth): the image that fine
+    detail is added to."""
+    channels = tuple(stack.channels)
     kernel = blend_kernel(stack, profile, frames, fs_cyc_per_mm, q, min_band)
     img = composite_with_map(stack, zb, kernel, geometry, frames, lateral_colour=lateral_colour, tile=tile,
                              quiet=quiet)
@@ -255,18 +298,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         mixed = weight[..., None] * img.astype(np.float32) + (1.0 - weight[..., None]) * fused
         img = to_input_dtype(mixed, img.dtype, float(stack.white_level))
         info["pixels_from_fusion"] = round(float(np.mean(1.0 - weight)), 4)
-    if has_depth and (not wiener or measured) and fine_detail:
-        # the finest octaves per coefficient from the sharpest frame near the depth map's choice
-        # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost
-        from .detail import fine_detail as add_fine_detail
-        from .stack_profile import to_input_dtype
-        z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
-        kd = np.interp(zb.mean(axis=2), z_sorted, np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32)
-        sharp, info["fine_detail"] = add_fine_detail(stack, img, kd, frames, geometry=geometry,
-                                                     support=getattr(stack, "support", None), keep_base=measured,
-                                                     quiet=quiet)
-        img = to_input_dtype(sharp, img.dtype, float(stack.white_level))
-    return CompositeResult(img, method, zb, info)
+    return img
 
 
 def surface_misfit_fractions(vol, surfaces, spacing_um: float) -> tuple[float, float]:

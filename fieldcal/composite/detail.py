@@ -227,7 +227,8 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
             "coefficients_off_depth_map": [round(float(np.mean(c != n)), 4) for c, n in zip(choice, nearest)]}
     info["coefficients_averaged"] = [round(float(np.mean(sel < 0.5)), 4) for sel in select]
     # channel-first: each channel's plane contiguous, so the per-frame copies and sums run at full speed
-    gathered = [np.zeros((len(channels), *s), np.float32) for s in shapes]
+    # (with keep_base, the base's own fine levels: made after the gathering pass, not held through it)
+    gathered = None if keep_base else [np.zeros((len(channels), *s), np.float32) for s in shapes]
     total = [np.zeros((len(channels), *s), np.float32) for s in shapes]
     count = [np.zeros(s, np.float32) for s in shapes]
     lock = threading.Lock()
@@ -261,6 +262,8 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
         sel, n = select[lev], count[lev]
         sel[n == 0] = 1.0  # nothing recorded within reach: the chosen frame
         np.maximum(n, np.float32(1.0), out=n)
+    if keep_base:
+        gathered = [np.empty((len(channels), *s), np.float32) for s in shapes]
     out = np.empty((h, w, len(channels)), np.float32)
 
     def finish(ci: int) -> None:
