@@ -176,7 +176,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         # measured on a thread of its own while the depth map's serial stretches, the defocus measurement (mostly
         # serial), the cones (serial) and the blend run; the luma and chroma calls share it (unused where the
         # defocus is not measured reliably)
-        noise_probe = _background(_probe_ycc, stack, frames, lateral_colour)
+        noise_probe = _background(_probe_ycc, stack, frames, geometry, lateral_colour)
     if method == "dff":
         zb = dff_focus_map(surfaces, w, h)
         info["surface_degree"] = {c: s.degree for c, s in zip(channels, surfaces)}
@@ -206,8 +206,8 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     wiener = has_depth and defocus is not None
     measured = wiener and defocus is not profile
     ycc_split = measured and CHROMA_LABEL_FRAMES and channels == ("R", "G", "B")
-    if ycc_split and noise_probe is None:
-        noise_probe = _background(_probe_ycc, stack, frames, lateral_colour)
+    if ycc_split and noise_probe is None:  # (with a geometry: the frames warped to it, as the Wiener step reads them)
+        noise_probe = _background(_probe_ycc, stack, frames, geometry, lateral_colour)
     if wiener:
         # a nearer object's blur disc kept off the pixels beside it (composite/depth_wiener.py)
         from .depth_wiener import occlusion_focus_um
@@ -250,11 +250,11 @@ def _background(fn, *args, **kwargs):
         pool.shutdown(wait=False)  # the call runs on; its result is taken from the future
 
 
-def _probe_ycc(stack, frames, lateral_colour: bool) -> list[float]:
-    """The frames' noise in the YCbCr planes the measured-defocus Wiener step filters."""
+def _probe_ycc(stack, frames, geometry, lateral_colour: bool) -> list[float]:
+    """The frames' noise in the YCbCr planes the measured-defocus Wiener step filters (in ``geometry``)."""
     from .depth_wiener import probe_plane_sigma
 
-    return probe_plane_sigma(stack, frames, geometry=None, lateral_colour=lateral_colour, mix=YCBCR)
+    return probe_plane_sigma(stack, frames, geometry=geometry, lateral_colour=lateral_colour, mix=YCBCR)
 
 
 def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, *, geometry, has_depth: bool,
