@@ -263,7 +263,6 @@ def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, 
     """The blend along the best-focus map ``zb``, combined by the Wiener filter where there is a defocus model and
     mixed with the multi-scale fusion where the depth map is unsure (scenes with depth): the image that fine
     detail is added to."""
-    channels = tuple(stack.channels)
     kernel = blend_kernel(stack, profile, frames, fs_cyc_per_mm, q, min_band)
     img = composite_with_map(stack, zb, kernel, geometry, frames, lateral_colour=lateral_colour, tile=tile,
                              quiet=quiet)
