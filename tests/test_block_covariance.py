@@ -7,8 +7,8 @@ many draws, divided by its small-sample inflation (t_{0.95, B-1} / z_{0.95})^2, 
 the middle and the corners of the field — with independent noise (what the kriging variance also states) and
 with an error shared by every row of a block (what the block covariance is there to see).
 
-The delete-one-block jackknife it replaced (session 16) read 1.23-1.41x the exact variance with independent
-noise and 1.27-1.44x with block-shared errors (its (I - H_gg)^-1 where CR2 takes (I - H_gg)^-1/2): it fails the
+The delete-one-block jackknife it replaced (session 16) read 1.22-1.48x the exact variance with independent
+noise and 1.28-1.42x with block-shared errors (its (I - H_gg)^-1 where CR2 takes (I - H_gg)^-1/2): it fails the
 upper bound below at every point.
 """
 
