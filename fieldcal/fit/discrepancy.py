@@ -97,7 +97,8 @@ class Discrepancy:
         Covariance of the coefficients the *independent-tile* posterior has (the MAP's own weights); the band
         adds only the variance beyond it, so samples that already carry it are not counted twice.
     jk_cov : ndarray or None
-        Block-jackknife covariance of the coefficients (errors shared by regions of tiles).
+        Block covariance of the coefficients (errors shared by regions of tiles; :func:`block_jackknife_cov`,
+        leverage-corrected since session 16).
     rich_model, rich_cov, misfit_scale : SurfaceModel, ndarray, float
         Misfit term ``misfit_scale * (h_r rich_cov h_r^T - h iid_cov h^T)``: the variance the richest linear
         surface adds over the chosen one, scaled by how much more than noise the two disagree on the tiles
