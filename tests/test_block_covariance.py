@@ -58,6 +58,28 @@ def test_block_covariance_matches_the_exact_covariance(block_sd):
     assert np.all(ratio < 1.15), ratio
 
 
+def test_the_jackknife_the_texture_path_keeps_is_the_delete_one_block_one():
+    """``leverage_corrected=False`` is the delete-one-block jackknife: the blocks' refits, their spread times
+    (B - 1) / B, t-inflated — and on this layout it reads more than the exact variance at the corner blocks."""
+    rng = np.random.default_rng(5)
+    x, y = (a.ravel() for a in np.meshgrid(np.linspace(-0.82, 0.82, 18), np.linspace(-0.44, 0.44, 10)))
+    X = _design(x, y)
+    w = np.full(x.size, 4.0)
+    yv = X @ np.array([1.0, -2.0, 0.5, 0.1, 0.3, -0.2]) + 0.5 * rng.standard_normal(x.size)
+    lab = block_labels(x, y)
+    A = (X.T * w) @ X + np.eye(X.shape[1]) / COEF_PRIOR_SD ** 2
+    est = np.array([np.linalg.solve(A - (X[lab == k].T * w[lab == k]) @ X[lab == k],
+                                    (X.T * w) @ yv - (X[lab == k].T * w[lab == k]) @ yv[lab == k])
+                    for k in np.unique(lab)])
+    d = est - est.mean(axis=0)
+    infl = (float(stdtrit(11, 0.95)) / float(ndtri(0.95))) ** 2
+    jk, blocks = block_jackknife_cov(X, yv, w, x, y, leverage_corrected=False)
+    assert blocks == 12
+    np.testing.assert_allclose(jk, infl * 11 / 12 * d.T @ d, rtol=1e-8)
+    cr2, _ = block_jackknife_cov(X, yv, w, x, y)
+    assert not np.allclose(jk, cr2)
+
+
 def test_block_covariance_needs_enough_blocks():
     x = np.linspace(-0.5, 0.5, 20)
     y = np.zeros(20)                     # one row of blocks: 4 of them, fewer than MIN_JK_BLOCKS

@@ -446,7 +446,7 @@ def _cov(x, y, tau, ell, noise_var) -> np.ndarray:
 
 
 def fit_discrepancy(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, weights: np.ndarray,
-                    max_eval: int = 300) -> Discrepancy:
+                    max_eval: int = 300, leverage_corrected: bool = False) -> Discrepancy:
     """Fit the discrepancy hyperparameters (REML, nlopt LN_BOBYQA) for the chosen model at its MAP.
 
     Parameters
@@ -459,6 +459,9 @@ def fit_discrepancy(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, weig
         The model's MAP (gives the centre, the error scale and the Student-t dof).
     weights : ndarray
         Student-t weights ``u_i`` of the rows at the MAP (1 for a Gaussian row, << 1 for an outlier).
+    leverage_corrected : bool
+        The block covariance without the delete-one-block jackknife's leverage bias
+        (:func:`block_jackknife_cov`); slanted-edge rows use it (session 16), texture tiles keep the jackknife.
     """
     beta_map, centre, log_s, _, _ = model.split(np.asarray(theta_map, float))
     centre = np.asarray(centre, float)
@@ -551,8 +554,10 @@ def fit_discrepancy(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, weig
     diag = {"kernel": "matern32", "length_scale": ell, "tau": [float(t) for t in tau], "noise_scale": s,
             "tile_spacing": spacing, "n_rows_hyper": int(sel.sum()), "nlopt_result": res,
             "neg_reml": float(neg_reml(v))}
-    jk_cov, n_blocks = block_jackknife_cov(X, y, W * s_map ** 2 / s ** 2, xh, yh)
+    jk_cov, n_blocks = block_jackknife_cov(X, y, W * s_map ** 2 / s ** 2, xh, yh,
+                                           leverage_corrected=leverage_corrected)
     diag["jackknife_blocks"] = n_blocks
+    diag["block_covariance"] = "CR2 (leverage-corrected)" if leverage_corrected else "delete-one-block jackknife"
     rich, rich_cov, misfit_scale, diag["misfit"] = misfit_term(model, centre, xh, yh, ci, y, W, iid_cov)
     noise_var = s * s * base_var
     # per-tile noise sd of each channel: the median of the fitted white-noise variances (outliers excluded)
@@ -609,7 +614,7 @@ JK_BLOCKS = (4, 3)  # blocks across x and y of the tile layout
 MIN_JK_BLOCKS = 6
 
 
-def block_jackknife_cov(X, y, w, x_hat, y_hat, blocks=JK_BLOCKS):
+def block_jackknife_cov(X, y, w, x_hat, y_hat, blocks=JK_BLOCKS, leverage_corrected: bool = True):
     """Block covariance of the weighted least-squares coefficients: errors shared by regions of tiles.
 
     Tiles are grouped into ``blocks`` rectangles of the tile layout; errors may be correlated in any way
@@ -626,6 +631,11 @@ def block_jackknife_cov(X, y, w, x_hat, y_hat, blocks=JK_BLOCKS):
     and up to 1.5x at the corners (edge layouts of docs/benchmarks.md "bench_edge_band_s16";
     tests/test_edge_band.py); with errors shared by a block it still reads them. Inflated by
     (t_{0.95, B-1} / z_{0.95})^2 for the few blocks, as before. Returns ``(cov or None, B)``.
+
+    ``leverage_corrected=False`` gives the delete-one-block jackknife, which the texture path keeps: on 20
+    random texture lenses (quick) CR2 moved 2 geometric lenses across the edges of their coverage window
+    (0.78 -> 0.74, 0.99 -> 1.00) and the wave ones not at all; its bands are judged on the 40-lens band-coverage
+    benchmark, not run for this change (docs/benchmarks.md "bench_edge_band_s16").
     """
     from scipy.special import ndtri, stdtrit
 
@@ -639,6 +649,8 @@ def block_jackknife_cov(X, y, w, x_hat, y_hat, blocks=JK_BLOCKS):
         return None, int(ids.size)
     p = X.shape[1]
     prior = np.eye(p) / COEF_PRIOR_SD ** 2
+    if not leverage_corrected:
+        return _delete_block_jackknife(X, y, w, lab, ids, prior)
     A = (X.T * w) @ X + prior
     try:
         A_inv = np.linalg.inv(0.5 * (A + A.T))
@@ -663,3 +675,31 @@ def block_jackknife_cov(X, y, w, x_hat, y_hat, blocks=JK_BLOCKS):
         return None, B
     infl = (float(stdtrit(B - 1, 0.95)) / float(ndtri(0.95))) ** 2
     return infl * (A_inv @ meat @ A_inv), B
+
+
+def _delete_block_jackknife(X, y, w, lab, ids, prior):
+    """The delete-one-block jackknife covariance (t-inflated), ``(cov or None, B)``: see
+    :func:`block_jackknife_cov`."""
+    from scipy.special import ndtri, stdtrit
+
+    Xw = X.T * w
+    A = Xw @ X + prior
+    b = Xw @ y
+    est = []
+    for k in ids:
+        m = lab == k
+        Xm = X[m]
+        Ak = A - (Xm.T * w[m]) @ Xm
+        bk = b - (Xm.T * w[m]) @ y[m]
+        try:
+            est.append(np.linalg.solve(Ak, bk))
+        except np.linalg.LinAlgError:
+            continue
+    B = len(est)
+    if B < MIN_JK_BLOCKS:
+        return None, B
+    E = np.array(est)
+    d = E - E.mean(axis=0)
+    cov = (B - 1) / B * (d.T @ d)
+    infl = (float(stdtrit(B - 1, 0.95)) / float(ndtri(0.95))) ** 2
+    return infl * cov, B
