@@ -629,7 +629,7 @@ def block_jackknife_cov(X, y, w, x_hat, y_hat, blocks=JK_BLOCKS, leverage_correc
     leverage up to 1.4 of 5-11 coefficients on 12 blocks). With independent noise of the stated variance its
     expectation is A^-1 (to the prior's share: 0.94-1.02x the exact covariance at the centre, middle and corners
     of an 18 x 10 edge layout with a poly3 + tilt surface) where the jackknife's was 1.22-1.48x; with an error
-    shared by every row of a block 0.88-1.05x against 1.28-1.42x (tests/test_block_covariance.py). Inflated by
+    shared by every row of a block 0.87-1.05x against 1.28-1.42x (tests/test_block_covariance.py). Inflated by
     (t_{0.95, B-1} / z_{0.95})^2 for the few blocks, as before. Returns ``(cov or None, B)``.
 
     ``leverage_corrected=False`` gives the delete-one-block jackknife, which the texture path keeps: on 20
