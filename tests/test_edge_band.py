@@ -94,3 +94,10 @@ def test_rows_piston_is_the_rows_mean_error(edge_calibration):
         assert mu == pytest.approx(float(np.sum(w * err) / np.sum(w)), abs=1e-9)
         assert se == pytest.approx(float(prof.surfaces.z_scale_um / np.sqrt(np.sum(w))), rel=1e-9)
         assert 0.0 < se < 1.0
+
+
+def test_edge_rows_use_the_leverage_corrected_block_covariance(edge_calibration):
+    """Slanted-edge rows take the block covariance without the jackknife's leverage bias (session 16); the
+    texture path keeps the delete-one-block jackknife (fit_tile_surfaces: table.measure == "esfr")."""
+    prof = edge_calibration[0]
+    assert prof.surfaces.discrepancy.diagnostics["block_covariance"].startswith("CR2")

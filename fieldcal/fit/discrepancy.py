@@ -97,7 +97,8 @@ class Discrepancy:
         Covariance of the coefficients the *independent-tile* posterior has (the MAP's own weights); the band
         adds only the variance beyond it, so samples that already carry it are not counted twice.
     jk_cov : ndarray or None
-        Block-jackknife covariance of the coefficients (errors shared by regions of tiles).
+        Block covariance of the coefficients (errors shared by regions of tiles; :func:`block_jackknife_cov`,
+        leverage-corrected for slanted-edge rows since session 16).
     rich_model, rich_cov, misfit_scale : SurfaceModel, ndarray, float
         Misfit term ``misfit_scale * (h_r rich_cov h_r^T - h iid_cov h^T)``: the variance the richest linear
         surface adds over the chosen one, scaled by how much more than noise the two disagree on the tiles
@@ -445,7 +446,7 @@ def _cov(x, y, tau, ell, noise_var) -> np.ndarray:
 
 
 def fit_discrepancy(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, weights: np.ndarray,
-                    max_eval: int = 300) -> Discrepancy:
+                    max_eval: int = 300, leverage_corrected: bool = False) -> Discrepancy:
     """Fit the discrepancy hyperparameters (REML, nlopt LN_BOBYQA) for the chosen model at its MAP.
 
     Parameters
@@ -458,6 +459,9 @@ def fit_discrepancy(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, weig
         The model's MAP (gives the centre, the error scale and the Student-t dof).
     weights : ndarray
         Student-t weights ``u_i`` of the rows at the MAP (1 for a Gaussian row, << 1 for an outlier).
+    leverage_corrected : bool
+        The block covariance without the delete-one-block jackknife's leverage bias
+        (:func:`block_jackknife_cov`); slanted-edge rows use it (session 16), texture tiles keep the jackknife.
     """
     beta_map, centre, log_s, _, _ = model.split(np.asarray(theta_map, float))
     centre = np.asarray(centre, float)
@@ -550,8 +554,10 @@ def fit_discrepancy(model: SurfaceModel, rows: Rows, theta_map: np.ndarray, weig
     diag = {"kernel": "matern32", "length_scale": ell, "tau": [float(t) for t in tau], "noise_scale": s,
             "tile_spacing": spacing, "n_rows_hyper": int(sel.sum()), "nlopt_result": res,
             "neg_reml": float(neg_reml(v))}
-    jk_cov, n_blocks = block_jackknife_cov(X, y, W * s_map ** 2 / s ** 2, xh, yh)
+    jk_cov, n_blocks = block_jackknife_cov(X, y, W * s_map ** 2 / s ** 2, xh, yh,
+                                           leverage_corrected=leverage_corrected)
     diag["jackknife_blocks"] = n_blocks
+    diag["block_covariance"] = "CR2 (leverage-corrected)" if leverage_corrected else "delete-one-block jackknife"
     rich, rich_cov, misfit_scale, diag["misfit"] = misfit_term(model, centre, xh, yh, ci, y, W, iid_cov)
     noise_var = s * s * base_var
     # per-tile noise sd of each channel: the median of the fitted white-noise variances (outliers excluded)
@@ -608,11 +614,28 @@ JK_BLOCKS = (4, 3)  # blocks across x and y of the tile layout
 MIN_JK_BLOCKS = 6
 
 
-def block_jackknife_cov(X, y, w, x_hat, y_hat, blocks=JK_BLOCKS):
-    """Delete-one-block jackknife covariance of the weighted least-squares coefficients.
+def block_jackknife_cov(X, y, w, x_hat, y_hat, blocks=JK_BLOCKS, leverage_corrected: bool = True):
+    """Block covariance of the weighted least-squares coefficients: errors shared by regions of tiles.
 
     Tiles are grouped into ``blocks`` rectangles of the tile layout; errors may be correlated in any way
-    within a block. Inflated by (t_{0.95, B-1} / z_{0.95})^2 for the few blocks. Returns ``(cov or None, B)``.
+    within a block. Each block's residuals ``e_g`` are taken through ``(I - H_gg)^(-1/2)`` (``H_gg`` the block's
+    leverage in the weighted fit, the prior included) before the cluster sum (Bell & McCaffrey's "CR2"):
+
+        Cov = A^-1 [sum_g X_g' W_g^(1/2) (I - H_gg)^(-1/2) W_g^(1/2) e_g e_g' ...] A^-1,  A = X'WX + prior.
+
+    Why not the delete-one-block jackknife it replaces: deleting block g moves the fit by ``(I - H_gg)^-1``
+    times the block's residuals, so the jackknife is the same sum with ``(I - H_gg)^-1``, biased up wherever a
+    block carries much of the fit (the layout's corner blocks carry the rho^4 - rho^6 terms there: block
+    leverage up to 1.4 of 5-11 coefficients on 12 blocks). With independent noise of the stated variance its
+    expectation is A^-1 (to the prior's share: 0.94-1.02x the exact covariance at the centre, middle and corners
+    of an 18 x 10 edge layout with a poly3 + tilt surface) where the jackknife's was 1.22-1.48x; with an error
+    shared by every row of a block 0.87-1.05x against 1.28-1.42x (tests/test_block_covariance.py). Inflated by
+    (t_{0.95, B-1} / z_{0.95})^2 for the few blocks, as before. Returns ``(cov or None, B)``.
+
+    ``leverage_corrected=False`` gives the delete-one-block jackknife, which the texture path keeps: on 20
+    random texture lenses (quick) CR2 moved 2 geometric lenses across the edges of their coverage window
+    (0.78 -> 0.74, 0.99 -> 1.00) and the wave ones not at all; its bands are judged on the 40-lens band-coverage
+    benchmark, not run for this change (docs/benchmarks.md "bench_edge_band_s16").
     """
     from scipy.special import ndtri, stdtrit
 
@@ -626,6 +649,39 @@ def block_jackknife_cov(X, y, w, x_hat, y_hat, blocks=JK_BLOCKS):
         return None, int(ids.size)
     p = X.shape[1]
     prior = np.eye(p) / COEF_PRIOR_SD ** 2
+    if not leverage_corrected:
+        return _delete_block_jackknife(X, y, w, lab, ids, prior)
+    A = (X.T * w) @ X + prior
+    try:
+        A_inv = np.linalg.inv(0.5 * (A + A.T))
+    except np.linalg.LinAlgError:
+        return None, int(ids.size)
+    resid = y - X @ (A_inv @ ((X.T * w) @ y))
+    meat = np.zeros((p, p))
+    B = 0
+    for k in ids:
+        m = lab == k
+        sw = np.sqrt(w[m])
+        Z = X[m] * sw[:, None]                     # W_g^(1/2) X_g
+        H = Z @ A_inv @ Z.T                        # the block's leverage (eigenvalues in [0, 1) with the prior)
+        ev, U = np.linalg.eigh(0.5 * (H + H.T))
+        if not np.all(np.isfinite(ev)):
+            continue
+        ev = np.clip(ev, 0.0, 1.0 - 1e-6)
+        u = Z.T @ (U @ ((U.T @ (sw * resid[m])) / np.sqrt(1.0 - ev)))
+        meat += np.outer(u, u)
+        B += 1
+    if B < MIN_JK_BLOCKS:
+        return None, B
+    infl = (float(stdtrit(B - 1, 0.95)) / float(ndtri(0.95))) ** 2
+    return infl * (A_inv @ meat @ A_inv), B
+
+
+def _delete_block_jackknife(X, y, w, lab, ids, prior):
+    """The delete-one-block jackknife covariance (t-inflated), ``(cov or None, B)``: see
+    :func:`block_jackknife_cov`."""
+    from scipy.special import ndtri, stdtrit
+
     Xw = X.T * w
     A = Xw @ X + prior
     b = Xw @ y

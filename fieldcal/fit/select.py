@@ -113,7 +113,7 @@ def _decentred_siblings(cands: list[SurfaceModel], scores: dict[str, float], top
 
 def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standard", seed: int = 0,
                  channels: tuple[str, ...] | None = None, quiet: bool = False,
-                 source: str | None = None) -> SurfaceFit:
+                 source: str | None = None, leverage_corrected: bool = False) -> SurfaceFit:
     """Fit per-channel best-focus surfaces with model selection and a posterior.
 
     Parameters
@@ -131,6 +131,9 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         Channel order (default: order of first appearance in ``tiles``).
     source : str, optional
         File name for error messages.
+    leverage_corrected : bool
+        The band's block covariance without the jackknife's leverage bias (slanted-edge rows;
+        :func:`fieldcal.fit.discrepancy.block_jackknife_cov`).
 
     Returns
     -------
@@ -316,7 +319,8 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     samples = np.concatenate(parts)
     bma = {"members": [{"name": m.name, "weight": w / wsum} for m, _, w, _ in members],
            "sample_model": union.name, "dropped_unidentified": dropped}
-    disc = fit_discrepancy(res.model, rows, res.theta, student_t_weights(res.model, rows, res.theta))
+    disc = fit_discrepancy(res.model, rows, res.theta, student_t_weights(res.model, rows, res.theta),
+                           leverage_corrected=leverage_corrected)
     check = predictive_check(disc)
     if check.warning:
         warn(check.warning)

@@ -62,8 +62,9 @@ def fit_tile_surfaces(table, geometry, *, channels: tuple[str, ...], effort: str
     correction = TILE_WINDOW_KAPPA * tile_average_correction_um(first, tiles, float(table.tile_px))
     tiles = replace(tiles, z_best_um=tiles.z_best_um - correction,
                     z_tan_um=tiles.z_tan_um - correction, z_sag_um=tiles.z_sag_um - correction)
+    # slanted-edge rows: the band's block covariance without the jackknife's leverage bias (session 16)
     surf = fit_surfaces(tiles, geometry, effort=effort, seed=seed, channels=channels, quiet=quiet,
-                        source=source)
+                        source=source, leverage_corrected=getattr(table, "measure", "") == "esfr")
     surf.tile_px = float(table.tile_px)
     surf.tile_correction_sd = TILE_WINDOW_KAPPA_SD * TILE_WINDOW_KAPPA
     return surf, tiles
