@@ -316,19 +316,36 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     f_step = float(f_grid.max()) * (1 + 1e-9) / (n_table - 1)
     f_table = np.arange(n_table) * f_step
     f_index = np.rint(f_grid / f_step).astype(np.intp)  # np.take with native indices: no cast per gather
+    # |f| is the same on rows i and nb_y - i (fftfreq's negative half mirrors the positive one exactly): a gain
+    # is gathered on the rows 0 .. nb_y // 2 only and read backwards for the others (half the gathers)
+    half = nb_y // 2 + 1
+    mirror = slice(nb_y - half, 0, -1)
+    f_half = f_index[:half]
+    if not np.array_equal(f_index[half:], f_half[mirror]):  # never with fftfreq's grid; kept exact regardless
+        half, mirror, f_half = nb_y, slice(0, 0), f_index
 
     # a model whose defocus is known only within an error (a depth measured from the stack itself) gives the
     # OTF's mean and mean square over that error: the Wiener filter of a random OTF (mean in the numerator, mean
     # square in the denominator) never inverts more blur than the depth is sure of
     moments = getattr(model, "defocus_otf_moments", None)
 
+    otf_cache: dict[tuple[float, str], tuple[np.ndarray, np.ndarray]] = {}
+
     def otf(dz_um: float, ch: str) -> tuple[np.ndarray, np.ndarray]:
-        """The frame's OTF at defocus ``dz_um`` on the 1-D table: its mean and its mean square."""
+        """The frame's OTF at defocus ``dz_um`` on the 1-D table: its mean and its mean square. Kept per
+        (defocus, channel): labels a whole number of label steps from different frames meet the same defocus
+        (on the real board 18 distinct ones of 176 asked for; each a few Bessel tables over the depth's error)."""
+        hit = otf_cache.get((dz_um, ch))
+        if hit is not None:
+            return hit
         if moments is None:
             m1 = np.asarray(model.defocus_otf(f_table, dz_um, ch), dtype=np.float64)
-            return m1, m1 * m1
-        m1, m2 = moments(f_table, dz_um, ch)
-        return np.asarray(m1, np.float64), np.asarray(m2, np.float64)
+            hit = m1, m1 * m1
+        else:
+            m1, m2 = moments(f_table, dz_um, ch)
+            hit = np.asarray(m1, np.float64), np.asarray(m2, np.float64)
+        otf_cache[(dz_um, ch)] = hit
+        return hit
 
     h0s = [np.asarray(model.defocus_otf(f_table, 0.0, ch), dtype=np.float64) for ch in fch]
     # the noise-to-signal ratio is radial too (a power law of |f|)
@@ -405,6 +422,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         # read-modify-write per filter), put in place once per tile
         acc = [np.zeros(len(g[0]), np.float32) for g in groups]
         spectra: dict[int, list[np.ndarray]] = {}
+        scratch = None  # the second and later frames' products, one buffer per tile
         for l in labels_used:
             zl = labels[l]
             near = np.flatnonzero(np.abs(zs - zl) <= reach)
@@ -427,8 +445,17 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                 n_filters += 1
                 x = None
                 for g, k in zip(gains(l, c, near), near):
-                    term = np.take(g, f_index) * spectra[k][c]
-                    x = term if x is None else np.add(x, term, out=x)
+                    # the gain on the rows 0 .. nb_y // 2, read backwards for the mirrored rows: the same
+                    # products as the whole grid's gather times the spectrum
+                    gh, y = np.take(g, f_half), spectra[k][c]
+                    if x is None:
+                        term = x = np.empty(y.shape, np.complex64)
+                    else:
+                        term = scratch = scratch if scratch is not None else np.empty(y.shape, np.complex64)
+                    np.multiply(gh, y[:half], out=term[:half])
+                    np.multiply(gh[mirror], y[half:], out=term[half:])
+                    if term is not x:
+                        np.add(x, term, out=x)
                 x[0, 0] = np.mean([spectra[k][c][0, 0] for k in near])  # keep the mean
                 # irfft2 is a complex inverse along the columns, then a real one along the rows: the second only
                 # on the rows this label's pixels are in (the same numbers as the whole inverse)
