@@ -293,11 +293,18 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     # per channel: label index below each pixel and the fraction towards the next
     lower, frac = [], []
     for c in range(len(fch)):
-        t = (zb[..., c].astype(np.float64) - labels[0]) / step
+        # in place on one float64 plane (the same numbers as the expression written out: the label below is
+        # integral, so subtracting it as float64 or as its int16 is the same)
+        t = zb[..., c].astype(np.float64)
+        t -= labels[0]
+        t /= step
+        below = np.floor(t)
+        np.clip(below, 0, n_lab - 2, out=below)
         # int16 (at most MAX_LABELS labels): the tiles' stable sorts by label are then radix sorts
-        l0 = np.clip(np.floor(t), 0, n_lab - 2).astype(np.int16)
-        lower.append(l0)
-        frac.append(np.clip(t - l0, 0.0, 1.0).astype(np.float32))
+        lower.append(below.astype(np.int16))
+        t -= below
+        frac.append(np.clip(t, 0.0, 1.0, out=t).astype(np.float32))
+        del t, below
 
     from ..optics.sweep import rfft_radial_grid
     from .warp import frame_maps, warp_region
