@@ -137,9 +137,9 @@ def check_temp_space(nbytes: int, what: str) -> None:
 #: glibc's allocator for a compositing process (:func:`tune_allocator`): at most this many arenas, blocks up to
 #: this size taken from the heap rather than mapped afresh, and freed heap kept up to this much. One arena: a
 #: second one (the threads') lives in 64 MB heaps that glibc unmaps when they empty and maps again on the next
-#: plane, each time faulted and zeroed afresh; with one, the 7-frame board faulted 290 k instead of 370 k pages
-#: (4 kB) and peaked 700-720 instead of 735-810 MiB, user time the same (docs/benchmarks.md
-#: ``bench_composite_speed_s16``).
+#: plane, each time faulted and zeroed afresh; with one (and NumPy's huge pages off), the 7-frame board faulted
+#: 268-291 k instead of 341-408 k pages (4 kB) and peaked 686-703 instead of 718-789 MiB, user time the same
+#: (docs/benchmarks.md ``bench_composite_speed_s16``).
 MALLOC_ARENAS = 1
 MALLOC_MMAP_THRESHOLD_BYTES = 32 * 2 ** 20
 MALLOC_TRIM_THRESHOLD_BYTES = 256 * 2 ** 20
@@ -184,7 +184,7 @@ def no_huge_pages() -> bool:
     A huge page is zeroed whole (2 MB) on its first touch, and the kernel zeroes it again each time the allocator
     has given the memory back. On the 7-frame 2048 x 1536 board (``fieldcal composite``, no profile) the kernel's
     ``clear_page_erms`` under huge-page faults took 10 % of the process's CPU; without them the system time fell from
-    1.9-2.1 s to 1.1-1.2 s and the user time stayed the same, 11.0-11.2 s: the planes are streamed through once or
+    1.9-2.1 s to 1.1-1.2 s and the user time stayed the same, 10.9-11.2 s: the planes are streamed through once or
     twice each, so the fewer TLB misses of huge pages buy nothing back (docs/benchmarks.md
     ``bench_composite_speed_s16``). The same as ``NUMPY_MADVISE_HUGEPAGE=0`` in the environment before NumPy loads.
     """
