@@ -22,6 +22,10 @@ def test_masked_copy_is_numpys_masked_copy():
     idx = np.zeros((37, 53), np.int16)
     masked_copy(idx, 7, mask)
     assert np.array_equal(idx, np.where(mask, 7, 0))
+    small = np.zeros((37, 53), np.uint8)
+    want = small.copy()
+    np.copyto(want, np.int64(300), where=mask, casting="unsafe")  # a NumPy scalar wraps, as an unsafe cast does
+    assert np.array_equal(masked_copy(small, np.int64(300), mask), want)
     big = np.zeros((37, 106), np.float32)
     view = big[:, ::2]
     masked_copy(view, np.ones((37, 53), np.float32), mask)

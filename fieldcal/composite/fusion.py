@@ -42,9 +42,9 @@ _CV_TYPES = frozenset(np.dtype(t) for t in (np.uint8, np.int8, np.uint16, np.int
 
 def masked_copy(dst: np.ndarray, src, mask: np.ndarray) -> np.ndarray:
     """``np.copyto(dst, src, where=mask)`` (a scalar ``src`` cast as ``casting="unsafe"`` does), through OpenCV's
-    masked copy where it applies: the same values (a copy), but NumPy's masked loop takes ~15x longer on a
-    2048 x 1536 plane whose mask is scattered (the per-frame selections of the fusion, the depth map's peak and the
-    fine detail: ~0.5 s of a composite). OpenCV's applies to a C-contiguous ``H x W`` or ``H x W x C`` (C <= 4)
+    masked copy where it applies: the same values (a copy), but NumPy's masked loop took 16x longer (20.6 against
+    1.25 ms) on a 2048 x 1536 float32 plane with a scattered mask, as the per-frame selections of the fusion, the
+    depth map's peak and the fine detail have (docs/benchmarks.md ``bench_composite_speed_s16``). OpenCV's applies to a C-contiguous ``H x W`` or ``H x W x C`` (C <= 4)
     ``dst`` of a type it holds, an ``H x W`` C-contiguous bool ``mask`` and a ``src`` of ``dst``'s shape and type
     (or a scalar); anything else goes to ``np.copyto`` (an ``H x W`` mask applying to every channel). Returns
     ``dst``."""
@@ -52,7 +52,7 @@ def masked_copy(dst: np.ndarray, src, mask: np.ndarray) -> np.ndarray:
             and mask.flags.c_contiguous and mask.shape == dst.shape[:2]
             and (dst.ndim == 2 or (dst.ndim == 3 and dst.shape[2] <= 4))):
         if np.ndim(src) == 0:
-            src = np.full(dst.shape, src, dst.dtype)
+            src = np.full(dst.shape, src, dst.dtype)  # cast as np.copyto casts a scalar
         if (isinstance(src, np.ndarray) and src.shape == dst.shape and src.dtype == dst.dtype
                 and src.flags.c_contiguous):
             got = cv2.copyTo(src, mask.view(np.uint8), dst)
