@@ -43,8 +43,9 @@ _CV_TYPES = frozenset(np.dtype(t) for t in (np.uint8, np.int8, np.uint16, np.int
 def masked_copy(dst: np.ndarray, src, mask: np.ndarray) -> np.ndarray:
     """``np.copyto(dst, src, where=mask)`` (a scalar ``src`` cast as ``casting="unsafe"`` does), through OpenCV's
     masked copy where it applies: the same values (a copy), but NumPy's masked loop took 16x longer (20.6 against
-    1.25 ms) on a 2048 x 1536 float32 plane with a scattered mask, as the per-frame selections of the fusion, the
-    depth map's peak and the fine detail have (docs/benchmarks.md ``bench_composite_speed_s16``). OpenCV's applies to a C-contiguous ``H x W`` or ``H x W x C`` (C <= 4)
+    1.25 ms) on a 2048 x 1536 float32 plane with a random mask, and twice as long (0.25 against 0.12 s) over the
+    188 masked copies of the per-frame selections (the fusion's, the depth map's peak, the fine detail's) of the
+    7-frame board (docs/benchmarks.md ``bench_composite_speed_s16``). OpenCV's applies to a C-contiguous ``H x W`` or ``H x W x C`` (C <= 4)
     ``dst`` of a type it holds, an ``H x W`` C-contiguous bool ``mask`` and a ``src`` of ``dst``'s shape and type
     (or a scalar); anything else goes to ``np.copyto`` (an ``H x W`` mask applying to every channel). Returns
     ``dst``."""
