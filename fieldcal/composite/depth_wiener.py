@@ -412,13 +412,14 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         for c in range(len(fch)):
             l0 = lower[c][y0:y1, x0:x1].ravel()
             pix = np.arange(l0.size, dtype=np.int32) if need is None else np.flatnonzero(need.ravel()).astype(np.int32)
-            pix = pix[np.argsort(l0[pix], kind="stable")]
-            lab = l0[pix]
+            # np.take, not fancy indexing: the same elements, ~30 % faster gathers
+            pix = np.take(pix, np.argsort(np.take(l0, pix), kind="stable"))
+            lab = np.take(l0, pix)
             # the labels present: the starts of the sorted runs (np.unique would sort them again)
             present = lab[np.flatnonzero(np.diff(lab, prepend=lab[:1] - 1))] if lab.size else lab
             bounds = dict(zip(present.tolist(), zip(np.searchsorted(lab, present, side="left").tolist(),
                                                     np.searchsorted(lab, present, side="right").tolist())))
-            fr = frac[c][y0:y1, x0:x1].ravel()[pix]
+            fr = np.take(frac[c][y0:y1, x0:x1].ravel(), pix)
             # per pixel in that order: its row, its column and its weights for the label below and above it
             groups.append((pix, pix // (x1 - x0), pix % (x1 - x0), 1.0 - fr, fr, bounds))
             used |= {(c, int(l)) for l in present} | {(c, int(min(l + 1, n_lab - 1))) for l in present}
@@ -474,7 +475,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                 col = fft.ifft(x, axis=0, workers=fft_workers)[margin + rows]
                 img = fft.irfft(col, n=nb_x, axis=1, workers=fft_workers).ravel()
                 for sl, wgt in here:
-                    v = img[row_at[rr[sl]] * nb_x + (cc[sl] + margin)]
+                    v = np.take(img, np.take(row_at, rr[sl]) * nb_x + (cc[sl] + margin))
                     v += np.float32(mean[c])
                     v *= wgt[sl]
                     acc[c][sl] += v
