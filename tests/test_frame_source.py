@@ -106,3 +106,15 @@ def test_composite_allocator_settings_take():
     out = subprocess.run([sys.executable, "-c", "from fieldcal.composite.memory import tune_allocator; "
                           "print(tune_allocator())"], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "True"
+
+
+def test_composite_turns_numpy_huge_pages_off():
+    """tune_allocator leaves NumPy no longer asking for transparent huge pages (the switch reads back off)."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np; from fieldcal.composite.memory import no_huge_pages, tune_allocator; "
+            "core = getattr(np, '_core', None) or np.core; s = core.multiarray._set_madvise_hugepage; "
+            "s(True); tune_allocator(); print(s(False)); s(True); print(no_huge_pages(), no_huge_pages())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "True", "False"]

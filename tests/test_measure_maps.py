@@ -182,6 +182,8 @@ def test_cubic_on_grid_is_map_coordinates_on_a_product_grid(r, tx, ty):
     got = _cubic_on_grid(coeffs, qy, qx)
     assert got.shape == ref.shape
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+    # the transposed coefficients given made contiguous once: the same numbers
+    assert np.array_equal(_cubic_on_grid(coeffs, qy, qx, np.ascontiguousarray(coeffs.T)), got)
     # the 4-tap support reaches beyond the plane at its edges, in x and in y: the clamping is exercised
     assert (xx.min() < 1 or xx.max() > 81) and (yy.min() < 1 or yy.max() > 59)
 

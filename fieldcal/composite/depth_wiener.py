@@ -293,11 +293,18 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     # per channel: label index below each pixel and the fraction towards the next
     lower, frac = [], []
     for c in range(len(fch)):
-        t = (zb[..., c].astype(np.float64) - labels[0]) / step
+        # in place on one float64 plane (the same numbers as the expression written out: the label below is
+        # integral, so subtracting it as float64 or as its int16 is the same)
+        t = zb[..., c].astype(np.float64)
+        t -= labels[0]
+        t /= step
+        below = np.floor(t)
+        np.clip(below, 0, n_lab - 2, out=below)
         # int16 (at most MAX_LABELS labels): the tiles' stable sorts by label are then radix sorts
-        l0 = np.clip(np.floor(t), 0, n_lab - 2).astype(np.int16)
-        lower.append(l0)
-        frac.append(np.clip(t - l0, 0.0, 1.0).astype(np.float32))
+        lower.append(below.astype(np.int16))
+        t -= below
+        frac.append(np.clip(t, 0.0, 1.0, out=t).astype(np.float32))
+        del t, below
 
     from ..optics.sweep import rfft_radial_grid
     from .warp import frame_maps, warp_region
@@ -316,19 +323,36 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     f_step = float(f_grid.max()) * (1 + 1e-9) / (n_table - 1)
     f_table = np.arange(n_table) * f_step
     f_index = np.rint(f_grid / f_step).astype(np.intp)  # np.take with native indices: no cast per gather
+    # |f| is the same on rows i and nb_y - i (fftfreq's negative half mirrors the positive one exactly): a gain
+    # is gathered on the rows 0 .. nb_y // 2 only and read backwards for the others (half the gathers)
+    half = nb_y // 2 + 1
+    mirror = slice(nb_y - half, 0, -1)
+    f_half = f_index[:half]
+    if not np.array_equal(f_index[half:], f_half[mirror]):  # never with fftfreq's grid; kept exact regardless
+        half, mirror, f_half = nb_y, slice(0, 0), f_index
 
     # a model whose defocus is known only within an error (a depth measured from the stack itself) gives the
     # OTF's mean and mean square over that error: the Wiener filter of a random OTF (mean in the numerator, mean
     # square in the denominator) never inverts more blur than the depth is sure of
     moments = getattr(model, "defocus_otf_moments", None)
 
+    otf_cache: dict[tuple[float, str], tuple[np.ndarray, np.ndarray]] = {}
+
     def otf(dz_um: float, ch: str) -> tuple[np.ndarray, np.ndarray]:
-        """The frame's OTF at defocus ``dz_um`` on the 1-D table: its mean and its mean square."""
+        """The frame's OTF at defocus ``dz_um`` on the 1-D table: its mean and its mean square. Kept per
+        (defocus, channel): labels a whole number of label steps from different frames meet the same defocus
+        (on the real board 18 distinct ones of 176 asked for; each a few Bessel tables over the depth's error)."""
+        hit = otf_cache.get((dz_um, ch))
+        if hit is not None:
+            return hit
         if moments is None:
             m1 = np.asarray(model.defocus_otf(f_table, dz_um, ch), dtype=np.float64)
-            return m1, m1 * m1
-        m1, m2 = moments(f_table, dz_um, ch)
-        return np.asarray(m1, np.float64), np.asarray(m2, np.float64)
+            hit = m1, m1 * m1
+        else:
+            m1, m2 = moments(f_table, dz_um, ch)
+            hit = np.asarray(m1, np.float64), np.asarray(m2, np.float64)
+        otf_cache[(dz_um, ch)] = hit
+        return hit
 
     h0s = [np.asarray(model.defocus_otf(f_table, 0.0, ch), dtype=np.float64) for ch in fch]
     # the noise-to-signal ratio is radial too (a power law of |f|)
@@ -388,13 +412,14 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         for c in range(len(fch)):
             l0 = lower[c][y0:y1, x0:x1].ravel()
             pix = np.arange(l0.size, dtype=np.int32) if need is None else np.flatnonzero(need.ravel()).astype(np.int32)
-            pix = pix[np.argsort(l0[pix], kind="stable")]
-            lab = l0[pix]
+            # np.take, not fancy indexing: the same elements, ~30 % faster gathers
+            pix = np.take(pix, np.argsort(np.take(l0, pix), kind="stable"))
+            lab = np.take(l0, pix)
             # the labels present: the starts of the sorted runs (np.unique would sort them again)
             present = lab[np.flatnonzero(np.diff(lab, prepend=lab[:1] - 1))] if lab.size else lab
             bounds = dict(zip(present.tolist(), zip(np.searchsorted(lab, present, side="left").tolist(),
                                                     np.searchsorted(lab, present, side="right").tolist())))
-            fr = frac[c][y0:y1, x0:x1].ravel()[pix]
+            fr = np.take(frac[c][y0:y1, x0:x1].ravel(), pix)
             # per pixel in that order: its row, its column and its weights for the label below and above it
             groups.append((pix, pix // (x1 - x0), pix % (x1 - x0), 1.0 - fr, fr, bounds))
             used |= {(c, int(l)) for l in present} | {(c, int(min(l + 1, n_lab - 1))) for l in present}
@@ -405,6 +430,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         # read-modify-write per filter), put in place once per tile
         acc = [np.zeros(len(g[0]), np.float32) for g in groups]
         spectra: dict[int, list[np.ndarray]] = {}
+        scratch = None  # the second and later frames' products, one buffer per tile
         for l in labels_used:
             zl = labels[l]
             near = np.flatnonzero(np.abs(zs - zl) <= reach)
@@ -427,8 +453,17 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                 n_filters += 1
                 x = None
                 for g, k in zip(gains(l, c, near), near):
-                    term = np.take(g, f_index) * spectra[k][c]
-                    x = term if x is None else np.add(x, term, out=x)
+                    # the gain on the rows 0 .. nb_y // 2, read backwards for the mirrored rows: the same
+                    # products as the whole grid's gather times the spectrum
+                    gh, y = np.take(g, f_half), spectra[k][c]
+                    if x is None:
+                        term = x = np.empty(y.shape, np.complex64)
+                    else:
+                        term = scratch = scratch if scratch is not None else np.empty(y.shape, np.complex64)
+                    np.multiply(gh, y[:half], out=term[:half])
+                    np.multiply(gh[mirror], y[half:], out=term[half:])
+                    if term is not x:
+                        np.add(x, term, out=x)
                 x[0, 0] = np.mean([spectra[k][c][0, 0] for k in near])  # keep the mean
                 # irfft2 is a complex inverse along the columns, then a real one along the rows: the second only
                 # on the rows this label's pixels are in (the same numbers as the whole inverse)
@@ -440,7 +475,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                 col = fft.ifft(x, axis=0, workers=fft_workers)[margin + rows]
                 img = fft.irfft(col, n=nb_x, axis=1, workers=fft_workers).ravel()
                 for sl, wgt in here:
-                    v = img[row_at[rr[sl]] * nb_x + (cc[sl] + margin)]
+                    v = np.take(img, np.take(row_at, rr[sl]) * nb_x + (cc[sl] + margin))
                     v += np.float32(mean[c])
                     v *= wgt[sl]
                     acc[c][sl] += v

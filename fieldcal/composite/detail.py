@@ -36,7 +36,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..progress import progress
 from .dff import frame_planes, map_in_order
-from .fusion import _BORDER, _level_shapes  # the same pyramid as the fusion's (levels, border)
+from .fusion import _BORDER, _level_shapes, masked_copy  # the same pyramid as the fusion's (levels, border)
 from .source import image_size, z_positions
 
 #: Finest pyramid levels selected per coefficient: the two octaves above a quarter of the sampling frequency,
@@ -206,8 +206,8 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
                            desc="fine detail", quiet=quiet, unit="frame"):
         for lev, (e, typical) in enumerate(sal):
             take = e > best[lev]
-            np.copyto(best[lev], e, where=take)
-            np.copyto(choice[lev], k, where=take, casting="unsafe")
+            masked_copy(best[lev], e, take)
+            masked_copy(choice[lev], k, take)
             noise[lev] = min(noise[lev], typical)
     # Where even the best frame's energy is what noise alone puts there (the typical energy of the most
     # defocused frame, mostly noise), no frame is sharp: the frames within reach are averaged (their noise
@@ -246,7 +246,7 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
             for lev, lap in enumerate(_fine_levels(plane, levels)):
                 # each frame writes only where it was chosen: the threads' writes never overlap
                 if not keep_base:
-                    np.copyto(gathered[lev][ci], lap, where=chosen[lev])
+                    masked_copy(gathered[lev][ci], lap, chosen[lev])
                 lap *= near[lev]
                 laps.append((lev, ci, lap))
         with lock:  # the averages are shared by every frame within reach

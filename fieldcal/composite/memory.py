@@ -135,8 +135,12 @@ def check_temp_space(nbytes: int, what: str) -> None:
 
 
 #: glibc's allocator for a compositing process (:func:`tune_allocator`): at most this many arenas, blocks up to
-#: this size taken from the heap rather than mapped afresh, and freed heap kept up to this much.
-MALLOC_ARENAS = 2
+#: this size taken from the heap rather than mapped afresh, and freed heap kept up to this much. One arena: a
+#: second one (the threads') lives in 64 MB heaps that glibc unmaps when they empty and maps again on the next
+#: plane, each time faulted and zeroed afresh; with one (and NumPy's huge pages off), the 7-frame board faulted
+#: 268-291 k instead of 341-408 k pages (4 kB) and peaked 686-703 instead of 718-789 MiB, user time the same
+#: (docs/benchmarks.md ``bench_composite_speed_s16``).
+MALLOC_ARENAS = 1
 MALLOC_MMAP_THRESHOLD_BYTES = 32 * 2 ** 20
 MALLOC_TRIM_THRESHOLD_BYTES = 256 * 2 ** 20
 
@@ -147,15 +151,18 @@ def tune_allocator() -> bool:
     Compositing makes and drops full-size planes (12 MB at 2048 x 1536) thousands of times. By default glibc maps
     each one afresh and gives it back on free, so the kernel zeroes its pages again on first touch (a tenth of the
     CPU of ``fieldcal composite`` on the 7-frame 2048 x 1536 circuit board went to that), and every thread that
-    allocates gets its own arena, which keeps its own free memory. Two arenas, planes from the heap (blocks below
-    :data:`MALLOC_MMAP_THRESHOLD_BYTES`) and freed heap kept up to :data:`MALLOC_TRIM_THRESHOLD_BYTES`: half the
-    page faults, and a peak resident memory 5-13 % lower on the real board (7 and 10 frames), not higher
-    (docs/benchmarks.md ``bench_composite_speed_s13``). Settings of the process as a whole: the ``fieldcal
-    composite`` command sets them; a program calling the library decides for itself.
+    allocates gets its own arena, which keeps its own free memory. One arena (:data:`MALLOC_ARENAS`), planes from
+    the heap (blocks below :data:`MALLOC_MMAP_THRESHOLD_BYTES`) and freed heap kept up to
+    :data:`MALLOC_TRIM_THRESHOLD_BYTES`: half the page faults, and a peak resident memory 5-13 % lower on the real
+    board (7 and 10 frames), not higher (docs/benchmarks.md ``bench_composite_speed_s13``).
+
+    NumPy's transparent huge pages are turned off too (:func:`no_huge_pages`). Settings of the process as a whole:
+    the ``fieldcal composite`` command sets them; a program calling the library decides for itself.
     """
     import ctypes
     import sys
 
+    no_huge_pages()
     if not sys.platform.startswith("linux"):
         return False
     try:
@@ -168,6 +175,26 @@ def tune_allocator() -> bool:
     return all(mallopt(param, value) == 1 for param, value in ((m_arena_max, MALLOC_ARENAS),
                                                                 (m_mmap_threshold, MALLOC_MMAP_THRESHOLD_BYTES),
                                                                 (m_trim_threshold, MALLOC_TRIM_THRESHOLD_BYTES)))
+
+
+def no_huge_pages() -> bool:
+    """Stop NumPy asking the kernel for transparent huge pages for its large arrays (``madvise(MADV_HUGEPAGE)`` on
+    every array of 4 MB or more, NumPy's default); returns whether NumPy had been asking.
+
+    A huge page is zeroed whole (2 MB) on its first touch, and the kernel zeroes it again each time the allocator
+    has given the memory back. On the 7-frame 2048 x 1536 board (``fieldcal composite``, no profile) the kernel's
+    ``clear_page_erms`` under huge-page faults took 10 % of the process's CPU; without them the system time fell from
+    1.9-2.1 s to 1.1-1.2 s and the user time stayed the same, 10.9-11.2 s: the planes are streamed through once or
+    twice each, so the fewer TLB misses of huge pages buy nothing back (docs/benchmarks.md
+    ``bench_composite_speed_s16``). The same as ``NUMPY_MADVISE_HUGEPAGE=0`` in the environment before NumPy loads.
+    """
+    import numpy as np
+
+    core = getattr(np, "_core", None) or getattr(np, "core", None)
+    setter = getattr(getattr(core, "multiarray", None), "_set_madvise_hugepage", None)
+    if setter is None:  # a NumPy without the switch (it has had it since 1.20)
+        return False
+    return bool(setter(False))
 
 
 def single_threaded_blas() -> None:

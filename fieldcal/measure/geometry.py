@@ -173,12 +173,17 @@ def _spline_taps(q: np.ndarray, n: int):
     return sparse.csr_matrix((w.ravel(), (np.repeat(np.arange(len(q)), 4), idx.ravel())), shape=(len(q), n))
 
 
-def _cubic_on_grid(coeffs: np.ndarray, qy: np.ndarray, qx: np.ndarray) -> np.ndarray:
+def _cubic_on_grid(coeffs: np.ndarray, qy: np.ndarray, qx: np.ndarray,
+                   coeffs_t: np.ndarray | None = None) -> np.ndarray:
     """``ndimage.map_coordinates(coeffs, [Y, X], order=3, prefilter=False, mode="nearest")`` at the product grid
     ``Y, X = meshgrid(qy, qx, indexing="ij")``, raveled (row-major): the B-spline is a product of 1-D splines, so
     one pass along the rows and one along the columns (two sparse products, 4 taps each) give the same numbers
-    (to float64 rounding) at ~2x less cost than 16 taps per point."""
-    along_x = (_spline_taps(qx, coeffs.shape[1]) @ coeffs.T).T  # H x len(qx)
+    (to float64 rounding) at ~2x less cost than 16 taps per point. ``coeffs_t``: ``coeffs.T`` made contiguous,
+    for a caller resampling the same coefficients many times (SciPy's sparse product copies a transposed
+    operand into row order on every call: a whole plane per Gauss-Newton iteration); the same numbers."""
+    if coeffs_t is None:
+        coeffs_t = coeffs.T
+    along_x = (_spline_taps(qx, coeffs.shape[1]) @ coeffs_t).T  # H x len(qx)
     return np.asarray(_spline_taps(qy, coeffs.shape[0]) @ along_x).ravel()
 
 
@@ -228,12 +233,14 @@ def register_step(prev: np.ndarray, cur: np.ndarray, centre_xy: tuple[float, flo
         return None
     target = prev[b:h - b:subsample, b:w - b:subsample].astype(np.float64).ravel()
     coeffs = ndimage.spline_filter(cur.astype(np.float64), order=3)
+    coeffs_t = np.ascontiguousarray(coeffs.T)  # once, not copied by every iteration's sparse product
 
     def solve(theta):
         res = None
         for _ in range(iterations):
             rr = 1.0 + theta[0] / lev
-            back = _cubic_on_grid(coeffs, c[1] + rr * (yg - c[1]) + theta[2], c[0] + rr * (xg - c[0]) + theta[1])
+            back = _cubic_on_grid(coeffs, c[1] + rr * (yg - c[1]) + theta[2], c[0] + rr * (xg - c[0]) + theta[1],
+                                  coeffs_t)
             res = back - target
             d = np.linalg.solve(H, np.einsum("ni,n->i", J, res))
             theta = theta - d
