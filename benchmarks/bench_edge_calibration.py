@@ -54,38 +54,15 @@ def _ts_errors(profile, truth, w: int, h: int) -> dict[str, float]:
 
 def honest_coverage_odds(prof, x_px: np.ndarray, y_px: np.ndarray, channel: str, lo: float = 0.85,
                          hi: float = 0.95, seed: int = 0, n_draws: int = 500) -> tuple[float, float, float]:
-    """P(field coverage in [lo, hi]), P(above), P(below) of the profile's 90 % band if the band were exactly
-    honest: the truth drawn from the profile's own error model — the posterior surface samples (coefficients,
-    centre, model average; scaled by the self-check's band scale), one field-wide draw of the common-mode and
-    stage terms, and the local discrepancy as a Gaussian field with the fit's Matérn 3/2 kernel at its fitted
-    length — and the band's coverage of each draw counted on the grid. Field-correlated errors make one
+    """P(field coverage in [lo, hi]), P(above), P(below) of the profile's 90 % band on one channel if the band were
+    exactly honest: the truth drawn from the profile's own joint error model (``selfcheck.coverage_draws`` at
+    kappa = 1 on these points) and the band's coverage of each draw counted. Field-correlated errors make one
     calibration cover nearly all or much less than 90 % however honest the band: this is the count the target
     can be judged against (``bench_band_coverage.p_coverage_in_range`` counts the field-wide share alone)."""
-    from fieldcal.fit.discrepancy import matern32
+    from fieldcal.fit.selfcheck import coverage_draws
 
-    s = prof.surfaces
-    d = s.discrepancy
-    xf, yf = np.ravel(x_px).astype(np.float64), np.ravel(y_px).astype(np.float64)
-    z, _ = s._eval(s.samples[:n_draws], xf, yf, channel, model=s.sample_model)
-    z0, _ = s._eval(s.theta_map, xf, yf, channel)
-    c = float(s.band_scale)
-    draws = s.z_scale_um * c * (z - z0[None, :])
-    rng = np.random.default_rng(seed)
-    if d is not None:
-        ci = s._ch(channel)
-        xh, yh = s.geometry.normalise(xf, yf)
-        _, extra = s._kriged(xh, yh, ci)
-        common = float(d.common_sd[ci]) ** 2 if d.common_sd is not None and ci < d.common_sd.size else 0.0
-        stage = 0.0 if d.has_stage else float(s.stage_sd_um.get(channel, 0.0)) / s.z_scale_um
-        local = s.z_scale_um * np.sqrt(c * c * np.clip(extra - common, 0.0, None) + s._window_var(xf, yf, channel))
-        corr = matern32(np.hypot(xh[:, None] - xh[None, :], yh[:, None] - yh[None, :]) / d.length_scale)
-        chol = np.linalg.cholesky(local[:, None] * local[None, :] * corr + 1e-9 * np.eye(xf.size))
-        n = draws.shape[0]
-        draws = (draws + s.z_scale_um * math.sqrt(common + stage ** 2) * rng.standard_normal((n, 1))
-                 + (chol @ rng.standard_normal((xf.size, n))).T)
-    blo, bhi = (np.ravel(a) for a in prof.best_focus_interval_um(xf, yf, channel))
-    zmap = np.ravel(prof.best_focus_um(xf, yf, channel))
-    cov = np.mean((zmap + draws >= blo) & (zmap + draws <= bhi), axis=1)
+    cov, _, _ = coverage_draws(prof, kappa=1.0, n_draws=n_draws, seed=seed, points_px=(x_px, y_px),
+                               channels=(channel,))
     return (float(np.mean((cov >= lo) & (cov <= hi))), float(np.mean(cov > hi)), float(np.mean(cov < lo)))
 
 

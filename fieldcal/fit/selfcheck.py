@@ -340,7 +340,7 @@ def _inside(m: dict, tested: np.ndarray, rest: np.ndarray, kappa) -> np.ndarray:
 
 
 def coverage_draws(profile, kappa=1.0, n_draws: int = N_DRAWS, seed: int = SEED,
-                   extra_kappas=()) -> tuple[np.ndarray, list[float], list[float]]:
+                   extra_kappas=(), points_px=None, channels=None) -> tuple[np.ndarray, list[float], list[float]]:
     """One lens's truth coverage for ``n_draws`` error fields drawn from the profile's own joint error model
     (the parametric bootstrap of :func:`coverage_estimate`): per draw, the fraction of the self-check's grid
     (channels pooled) inside the band, the part the held-out tiles test scaled by ``kappa`` (one value, or one
@@ -350,16 +350,21 @@ def coverage_draws(profile, kappa=1.0, n_draws: int = N_DRAWS, seed: int = SEED,
     ``extra_kappas`` on the same draws, and each channel's field-wide share of the band's variance. With
     ``kappa = 1`` the draws are what an exactly honest band gives one lens: how far from the level its coverage
     falls, and how often it lands inside a window such as 0.75-0.99 (``benchmarks/bench_band_local.py``).
+    ``points_px`` (``(x, y)`` arrays, px) replaces the self-check's grid and ``channels`` the profile's channels
+    (one channel: that channel's coverage per draw, as ``benchmarks/bench_edge_calibration.py`` counts it).
     """
     s = profile.surfaces
     g = s.geometry
-    gx, gy = np.meshgrid((np.arange(GRID[0]) + 0.5) * g.width_px / GRID[0] - 0.5,
-                         (np.arange(GRID[1]) + 0.5) * g.height_px / GRID[1] - 0.5)
-    x, y = gx.ravel(), gy.ravel()
+    if points_px is None:
+        gx, gy = np.meshgrid((np.arange(GRID[0]) + 0.5) * g.width_px / GRID[0] - 0.5,
+                             (np.arange(GRID[1]) + 0.5) * g.height_px / GRID[1] - 0.5)
+        x, y = gx.ravel(), gy.ravel()
+    else:
+        x, y = (np.ravel(np.asarray(a, dtype=np.float64)) for a in points_px)
     rng = np.random.default_rng(seed)
     cov, extra, shares = [], [[] for _ in extra_kappas], []
     chol = {}
-    for ch in s.channels:
+    for ch in (s.channels if channels is None else channels):
         m = _channel_error_model(profile, ch, x, y, n_draws)
         if m["length"] not in chol:  # one factor for all channels: one grid, one length scale
             xh, yh = g.normalise(x, y)
