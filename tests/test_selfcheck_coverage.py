@@ -91,6 +91,28 @@ def test_coverage_draws_give_how_often_an_honest_band_lands_in_a_window(fitted):
         float(pooled.mean()), abs=1e-12)
 
 
+def test_coverage_draws_on_given_points_and_channels(fitted):
+    """The self-check grid passed explicitly gives the default draws exactly; a band on points near the tiles
+    (where the error model is tight) and on the corners gives coverages that still hold the truth at the level
+    on average (an honest band on any point set); one channel named is that channel's coverage."""
+    g = fitted.surfaces.geometry
+    gx, gy = np.meshgrid((np.arange(GRID[0]) + 0.5) * g.width_px / GRID[0] - 0.5,
+                         (np.arange(GRID[1]) + 0.5) * g.height_px / GRID[1] - 0.5)
+    default, _, _ = coverage_draws(fitted, 1.0, n_draws=300)
+    given, _, _ = coverage_draws(fitted, 1.0, n_draws=300, points_px=(gx, gy), channels=fitted.surfaces.channels)
+    np.testing.assert_array_equal(default, given)
+    ch = fitted.surfaces.channels[0]
+    xs = np.array([0.0, g.width_px - 1.0, 0.5 * g.width_px, 0.0, g.width_px - 1.0])
+    ys = np.array([0.0, g.height_px - 1.0, 0.5 * g.height_px, g.height_px - 1.0, 0.0])
+    one, _, shares = coverage_draws(fitted, 1.0, n_draws=2000, points_px=(xs, ys), channels=(ch,))
+    assert one.shape == (2000,) and len(shares) == 1
+    np.testing.assert_allclose(one * xs.size, np.round(one * xs.size), atol=1e-9)  # counted on these 5 points
+    assert abs(float(one.mean()) - LEVEL) < 0.04
+    # kappa > 1: the truth is further from the surface than the band says, so the same points cover less
+    less, _, _ = coverage_draws(fitted, 2.0, n_draws=2000, points_px=(xs, ys), channels=(ch,))
+    assert float(less.mean()) < float(one.mean()) - 0.05
+
+
 def test_kappa_enters_only_on_evidence(fitted):
     """Where the held-out tiles cannot tell kappa from 1 (its 90 % interval holds 1: a flat likelihood below 1
     leaves the prior's lower half), the estimate is the band as built, kappa = 1; where they can, kappa's
