@@ -1,0 +1,105 @@
+"""Hostile input, session 16 audit: gaps found by attacking every command with tiny inputs.
+
+Each test is the regression test of one defect the audit found (it failed before the fix). Inputs are tiny
+(64x48 images, a 96x64 simulated stack of 5 frames) so the file runs in seconds. Every case asserts the
+documented exit status, a what/where/fix message without a traceback, and that no input byte changed.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from fieldcal.errors import EXIT_BAD_INPUT
+
+from hostile_safety_util import LENS, assert_clean_failure, changed, no_temp_files, run_cli, snapshot
+
+
+@pytest.fixture(scope="module")
+def tiny_world(tmp_path_factory):
+    """J/img0-3.png and .jpg (64x48 RGB noise) and S, a 96x64 simulated stack of 5 frames."""
+    from fieldcal.cli import main
+
+    root = tmp_path_factory.mktemp("audit-world")
+    (root / "J").mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(4):
+        im = (rng.random((48, 64, 3)) * 255).astype(np.uint8)
+        cv2.imwrite(str(root / "J" / f"img{k}.png"), im)
+        cv2.imwrite(str(root / "J" / f"img{k}.jpg"), im)
+    assert main(["simulate", str(LENS), str(root / "S"), "--z", "-100", "100", "50", "--size", "96x64",
+                 "--quiet"]) == 0
+    return root
+
+
+@pytest.fixture
+def t(tiny_world, tmp_path):
+    import shutil
+
+    dst = tmp_path / "t"
+    shutil.copytree(tiny_world, dst, symlinks=True)
+    return dst
+
+
+def refused(root: Path, argv, capsys, *needles, code=EXIT_BAD_INPUT) -> str:
+    before = snapshot(root)
+    rc, err = run_cli(argv, capsys)
+    assert_clean_failure(rc, err, code, *needles)
+    assert changed(before, snapshot(root)) == set(), "a refused command changed files"
+    return err
+
+
+# ------------------------------------------------------------------------------------ fieldcal mtf
+
+
+def test_mtf_refuses_out_over_its_input_image(t, capsys):
+    """Before: `mtf img.png --out img.png` replaced the measured image with the JSON (the input was lost)."""
+    refused(t, ["mtf", t / "J" / "img0.png", "--out", t / "J" / "img0.png"], capsys, "--out", "input", "img0.png")
+
+
+@pytest.mark.parametrize("flag,target", [("--out", "S/m.json"), ("--plots", "S/frames")])
+def test_mtf_refuses_outputs_inside_the_stack(t, capsys, flag, target):
+    """Before: the JSON and the plots were written into the stack folder measured."""
+    argv = ["mtf", t / "S", "--out", t / "m.json", "--quiet"]
+    if flag == "--out":
+        argv[3] = t / target
+    else:
+        argv += ["--plots", t / target]
+    refused(t, argv, capsys, flag, "inside the input")
+
+
+def test_mtf_needs_overwrite_to_replace_an_output(t, capsys):
+    """Before: an existing --out (and --plots pictures) were replaced silently; mtf had no --overwrite."""
+    img, out, plots = t / "J" / "img0.png", t / "m.json", t / "plots"
+    rc, err = run_cli(["mtf", img, "--out", out, "--plots", plots, "--quiet"], capsys)
+    assert rc == 0, err
+    refused(t, ["mtf", img, "--out", out, "--quiet"], capsys, "exists", "--overwrite")
+    refused(t, ["mtf", img, "--out", t / "m2.json", "--plots", plots, "--quiet"], capsys, "--plots", "exists")
+    rc, err = run_cli(["mtf", img, "--out", out, "--plots", plots, "--overwrite", "--quiet"], capsys)
+    assert rc == 0, err
+
+
+def test_mtf_plots_never_write_through_a_planted_temporary_name(t, capsys):
+    """Before: the plots went through the fixed temporary name .mtf50_field.png.tmp.png, following a link
+    planted there (a file outside the output folder was overwritten)."""
+    victim = t / "victim.txt"
+    victim.write_text("precious")
+    plots = t / "plots"
+    plots.mkdir()
+    (plots / ".mtf50_field.png.tmp.png").symlink_to(victim)
+    rc, err = run_cli(["mtf", t / "J" / "img0.png", "--out", t / "m.json", "--plots", plots, "--quiet"], capsys)
+    assert rc == 0, err
+    assert victim.read_text() == "precious"
+    assert (plots / "mtf50_field.png").is_file() and not (plots / "mtf50_field.png").is_symlink()
+    assert cv2.imread(str(plots / "mtf50_field.png")) is not None
+
+
+@pytest.mark.parametrize("centre", ["nan,nan", "inf,3", "1e400,2"])
+def test_mtf_refuses_a_non_finite_centre(t, capsys, centre):
+    """Before: --centre nan,nan was taken, and every edge's tangential/sagittal split was silently wrong."""
+    refused(t, ["mtf", t / "J" / "img0.png", "--out", t / "m.json", "--centre", centre], capsys, "--centre",
+            "finite")
