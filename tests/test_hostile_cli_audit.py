@@ -103,3 +103,24 @@ def test_mtf_refuses_a_non_finite_centre(t, capsys, centre):
     """Before: --centre nan,nan was taken, and every edge's tangential/sagittal split was silently wrong."""
     refused(t, ["mtf", t / "J" / "img0.png", "--out", t / "m.json", "--centre", centre], capsys, "--centre",
             "finite")
+
+
+# ----------------------------------------------------------------- outputs over a linked stack's frames
+
+
+@pytest.mark.parametrize("link", ["symlink", "hard"])
+@pytest.mark.parametrize("command", ["composite", "mtf"])
+def test_no_output_over_the_camera_file_a_linked_frame_is(t, capsys, link, command):
+    """Before: after `import --link symlink`, `composite STACK --out <a camera file> --overwrite` replaced the
+    camera file the stack's frame links to (the stack folder was protected, the data it points to was not)."""
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    rc, err = run_cli(["import", *jpgs, "--out", t / "I", "--z", "0", "20", "--pixel-pitch-um", "5", "--link", link,
+                       "--quiet"], capsys)
+    assert rc == 0, err
+    victim = jpgs[1]
+    argv = [command, t / "I", "--out", victim, "--overwrite", "--quiet"]
+    refused(t, argv, capsys, "--out", victim.name, "input")
+    # a fresh output beside them is still fine
+    out = t / ("c.jpg" if command == "composite" else "m.json")
+    rc, err = run_cli([command, t / "I", "--out", out, "--quiet"], capsys)
+    assert rc == 0, err

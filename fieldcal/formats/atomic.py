@@ -79,6 +79,63 @@ def _refuse_if_input(path: Path, inputs: Iterable[Path | str], field: str | None
                               fix=_FIX_ELSEWHERE)
 
 
+#: Most entries of a folder input looked at for links out of it (a stack holds frames, not a disk).
+_LINK_SCAN_LIMIT = 20000
+
+
+def _file_id(path: str | os.PathLike) -> tuple[int, int] | None:
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return (st.st_dev, st.st_ino) if stat.S_ISREG(st.st_mode) else None
+
+
+def _linked_inputs(inputs: dict[Path, object]) -> tuple[dict[Path, str], set[tuple[int, int]]]:
+    """What the inputs hold through links, which an output must not replace either.
+
+    Returns the real files that symbolic links inside folder inputs lead to (a stack made by ``fieldcal import
+    --link symlink`` keeps its frames' data outside its folder), each named for messages as the link that leads
+    there, and the (device, inode) of input files that have other hard links (``--link hard``: the camera file
+    and the frame are one file under two names)."""
+    targets: dict[Path, str] = {}
+    ids: set[tuple[int, int]] = set()
+    seen = 0
+    for root, name in inputs.items():
+        if not root.is_dir():
+            fid = _file_id(root)
+            if fid is not None:
+                ids.add(fid)
+            continue
+        for dirpath, dirnames, filenames in os.walk(root, followlinks=False):
+            for n in dirnames + filenames:
+                seen += 1
+                if seen > _LINK_SCAN_LIMIT:
+                    return targets, ids
+                p = Path(dirpath) / n
+                try:
+                    st = os.lstat(p)
+                except OSError:
+                    continue
+                if stat.S_ISLNK(st.st_mode):
+                    real = _resolved(p)
+                    if not _within(real, root):
+                        targets.setdefault(real, f"{real} (the file {name}/{p.relative_to(root)} links to)")
+                        fid = _file_id(real)
+                        if fid is not None:
+                            ids.add(fid)
+                elif stat.S_ISREG(st.st_mode) and st.st_nlink > 1:
+                    ids.add((st.st_dev, st.st_ino))
+    return targets, ids
+
+
+def _refuse_if_same_file(path: Path, ids: set[tuple[int, int]], field: str | None) -> None:
+    fid = _file_id(path) if ids else None
+    if fid is not None and fid in ids:
+        raise OutputError("is the same file as one of the inputs (a hard or symbolic link to it)", path=path,
+                          field=field, fix=_FIX_ELSEWHERE)
+
+
 # -------------------------------------------------------------------------------------------- path checks
 
 
@@ -159,7 +216,11 @@ def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike 
     if not str(path).strip():
         raise OutputError("is empty", field=field, fix="give an output path")
     given = {_resolved(i): i for i in inputs if i is not None and str(i) != ""}
+    linked, ids = _linked_inputs(given)
+    for real, name in linked.items():
+        given.setdefault(real, name)
     _refuse_if_input(p, given, field, given)
+    _refuse_if_same_file(p, ids, field)
     if replaces_folder:
         for root, inp in given.items():
             if _within(root, _resolved(p)):
@@ -182,6 +243,7 @@ def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike 
             raise OutputError("is a file, not a folder", path=p, field=field, fix="give a folder name")
         for name in files:
             _refuse_if_input(p / name, given, field, given)
+            _refuse_if_same_file(p / name, ids, field)
             _check_file_target(p / name, overwrite, field)
     else:  # pragma: no cover - programming error
         raise ValueError(kind)
