@@ -35,8 +35,8 @@ from typing import Sequence
 import numpy as np
 
 from fieldcal.errors import ParameterError, StackError
-from fieldcal.formats.atomic import (atomic_write_bytes, atomic_write_text, check_replaceable_folder,
-                                     replace_folder)
+from fieldcal.formats.atomic import (atomic_write_bytes, atomic_write_text, check_output,
+                                     check_replaceable_folder, replace_folder)
 from fieldcal.formats.imageio import ImageFileError, encode, probe
 
 #: File name endings read through LibRaw (rawpy). Many raw formats are TIFF inside, so the ending decides.
@@ -354,15 +354,11 @@ def _positive(value, name: str) -> float | None:
     return v
 
 
-def _check_out(out: Path, sources: list[Path], overwrite: bool) -> None:
-    resolved = out.resolve()
-    for s in sources:
-        try:
-            s.resolve().relative_to(resolved)
-        except ValueError:
-            continue
-        raise ParameterError("lies inside the output folder; importing would overwrite an input", path=s,
-                             field="out", fix="choose an output folder that holds none of the images")
+def _check_out(out: Path, sources: list[Path], overwrite: bool, z_csv=None) -> None:
+    """The shared output checks (never over or into an input or through a file; the inputs stay protected),
+    then the stack folder's own: new, empty, or a stack replaced only with ``overwrite``."""
+    check_output(out, inputs=[*sources, z_csv], overwrite=overwrite, kind="dir", replaces_folder=True,
+                 field="out")
     check_replaceable_folder(out, "stack.json", overwrite, "a stack", error=ParameterError)
 
 
@@ -429,7 +425,7 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     zs = [z for _, z in ordered]
     if len(set(zs)) != len(zs):
         raise ParameterError("two frames have the same z_um", field="z_csv", fix="give every frame its own position")
-    _check_out(out, [p for p, _ in ordered], overwrite)
+    _check_out(out, [p for p, _ in ordered], overwrite, z_csv)
 
     frames = [describe(p) for p, _ in ordered]
     _agree(frames, "kind", "file type", "import frames of one kind (all raw, or all JPEG, ...)")
