@@ -124,3 +124,66 @@ def test_no_output_over_the_camera_file_a_linked_frame_is(t, capsys, link, comma
     out = t / ("c.jpg" if command == "composite" else "m.json")
     rc, err = run_cli([command, t / "I", "--out", out, "--quiet"], capsys)
     assert rc == 0, err
+
+
+# --------------------------------------------------------------------------------- fieldcal import
+
+
+def _import(t, images, *extra):
+    return ["import", *images, "--out", t / "I", "--z", "0", "20", "--pixel-pitch-um", "5", *extra]
+
+
+def test_import_names_out_when_its_parent_is_a_file(t, capsys):
+    """Before: 'fieldcal import ... --out notes.txt/I' said '<abs path>/notes.txt: File exists' with the fix
+    'choose another name (or add --overwrite)', which does not help, and named no option."""
+    (t / "notes.txt").write_text("mine")
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    argv = ["import", *jpgs, "--out", t / "notes.txt" / "I", "--z", "0", "20", "--pixel-pitch-um", "5"]
+    err = refused(t, argv, capsys, "--out", "notes.txt", "is a file")
+    assert "--overwrite" not in err.split("fix:")[1]
+
+
+def test_import_refuses_out_equal_to_its_z_csv(t, capsys):
+    """The --z-csv file is an input too: an --out over it is refused like an --out over an image."""
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    csv = t / "z.csv"
+    csv.write_text("".join(f"{p.name},{10 * k}\n" for k, p in enumerate(jpgs)))
+    refused(t, ["import", *jpgs, "--out", csv, "--z-csv", csv, "--pixel-pitch-um", "5", "--overwrite"], capsys,
+            "--out", "input")
+
+
+def _truncate_jpeg_data(p: Path) -> None:
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])  # header whole, entropy-coded data cut
+
+
+def _damage_deflate_tiff(p: Path) -> None:
+    import tifffile
+
+    rng = np.random.default_rng(2)
+    tifffile.imwrite(p, (rng.random((48, 64, 3)) * 65535).astype(np.uint16), photometric="rgb",
+                     compression="zlib")
+    data = bytearray(p.read_bytes())
+    data[300:340] = b"\0" * 40  # inside the deflate stream; the header still declares a whole image
+    p.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("damage", ["jpeg", "tiff"])
+def test_import_decodes_frames_and_refuses_damaged_data(t, capsys, damage):
+    """Before: import probed only the headers, so a JPEG cut in its data (or a TIFF with a damaged deflate
+    stream) became a 'valid' stack that failed later in calibrate or composite."""
+    import tifffile
+
+    if damage == "jpeg":
+        frames = sorted((t / "J").glob("*.jpg"))
+        _truncate_jpeg_data(frames[2])
+    else:
+        rng = np.random.default_rng(1)
+        frames = [t / f"f{k}.tiff" for k in range(3)]
+        for p in frames:
+            tifffile.imwrite(p, (rng.random((48, 64, 3)) * 65535).astype(np.uint16), photometric="rgb",
+                             compression="zlib")
+        _damage_deflate_tiff(frames[2])
+    refused(t, _import(t, frames), capsys, frames[2].name, "decoded", "IMAGE")
+    assert not (t / "I").exists()
+    assert not [p for p in t.iterdir() if p.name.startswith(".I.")]  # no staging folder left beside it

@@ -7,7 +7,8 @@ What :func:`import_stack` does, in order, before anything is written:
 2. reads what each file says about the camera: size, channels, sample type, make and model, f-number, focal
    length, exposure, pixel pitch (EXIF ``FocalPlaneXResolution``) and, for raw files, the CFA pattern and
    the black and white levels (LibRaw through rawpy);
-3. refuses a set that mixes sizes, cameras, sample types or CFA patterns, and a pixel pitch that is neither in
+3. decodes every TIFF, PNG and JPEG file once (a whole header over truncated data is refused here);
+4. refuses a set that mixes sizes, cameras, sample types or CFA patterns, and a pixel pitch that is neither in
    the files nor given.
 
 Then it builds the stack in a hidden folder beside ``out`` and renames it into place, so ``out`` either does
@@ -37,7 +38,7 @@ import numpy as np
 from fieldcal.errors import ParameterError, StackError
 from fieldcal.formats.atomic import (atomic_write_bytes, atomic_write_text, check_output,
                                      check_replaceable_folder, replace_folder)
-from fieldcal.formats.imageio import ImageFileError, encode, probe
+from fieldcal.formats.imageio import ImageFileError, encode, probe, read_image
 
 #: File name endings read through LibRaw (rawpy). Many raw formats are TIFF inside, so the ending decides.
 RAW_SUFFIXES = frozenset({".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf",
@@ -230,6 +231,9 @@ def describe(path: str | os.PathLike) -> SourceFrame:
                            white_level=raw["white"], extra={"black_levels": blacks}, **meta)
     try:
         header = probe(path)
+        # decoded once, as calibrate will: a file whose header is whole but whose data is truncated or damaged
+        # (a copy interrupted, a card pulled) is refused now, not after it was copied into a "valid" stack
+        read_image(path, header=header)
     except ImageFileError as exc:
         raise StackError(exc.what, path=path, field="images", fix=exc.fix) from None
     if exif_width and header.width != int(exif_width) and meta.get("pixel_pitch_um"):
