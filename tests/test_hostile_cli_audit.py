@@ -196,5 +196,5 @@ def test_import_decodes_frames_and_refuses_damaged_data(t, capsys, damage):
 def test_composite_refuses_a_non_finite_z_ref(t, capsys, z):
     """Before: --z-ref-um inf ran the whole registration and failed at the end with 'c.tiff: cannot be stored
     as JSON', naming the output instead of the option."""
-    refused(t, ["composite", t / "S", "--out", t / "c.tiff", "--z-ref-um", z, "--quiet"], capsys, "--z-ref-um",
+    refused(t, ["composite", t / "S", "--out", t / "c.tiff", f"--z-ref-um={z}", "--quiet"], capsys, "--z-ref-um",
             "finite")
