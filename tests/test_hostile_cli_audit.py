@@ -198,3 +198,39 @@ def test_composite_refuses_a_non_finite_z_ref(t, capsys, z):
     as JSON', naming the output instead of the option."""
     refused(t, ["composite", t / "S", "--out", t / "c.tiff", f"--z-ref-um={z}", "--quiet"], capsys, "--z-ref-um",
             "finite")
+
+
+# ---------------------------------------------------------------------------------- fieldcal plan
+
+
+@pytest.fixture(scope="module")
+def tiny_profile(tmp_path_factory):
+    """lens.json from a 256x144 chart stack (quick effort): enough for planning."""
+    from fieldcal.cli import main
+
+    root = tmp_path_factory.mktemp("audit-profile")
+    assert main(["simulate", str(LENS), str(root / "S"), "--z", "-360", "50", "20", "--size", "256x144",
+                 "--quiet"]) == 0
+    assert main(["calibrate", str(root / "S"), "--out", str(root / "lens.json"), "--fs", "16", "--effort", "quick",
+                 "-q"]) == 0
+    return root
+
+
+def test_a_refused_sweep_plan_leaves_no_masks_file(tiny_profile, tmp_path, capsys, monkeypatch):
+    """Before: the masks sidecar was written before the plan document was validated, so a plan the schema
+    refused (here --alpha-um 1e9: stop_um beyond 1e9 µm) left an orphan out.masks.npz behind."""
+    from fieldcal.plan import sweep_plan
+
+    monkeypatch.setattr(sweep_plan, "_check", lambda r: None)  # reach the writer with the bound lifted
+    out = tmp_path / "sw.json"
+    rc, err = run_cli(["plan", "sweep", tiny_profile / "lens.json", "--alpha-um", "1e9", "--pixel-exposure-ms", "16",
+                       "--out", out], capsys)
+    assert rc == EXIT_BAD_INPUT and "Traceback" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [], "a refused plan left files"
+
+
+def test_sweep_plan_refuses_an_alpha_beyond_any_stage(tiny_profile, tmp_path, capsys):
+    """Before: --alpha-um 1e9 failed as 'sw.json: field stop_um' with the fix 'make the plan again'."""
+    refused(tmp_path, ["plan", "sweep", tiny_profile / "lens.json", "--alpha-um", "1e9", "--pixel-exposure-ms", "16",
+                       "--out", tmp_path / "sw.json"], capsys, "--alpha-um")
+    assert list(tmp_path.iterdir()) == []
