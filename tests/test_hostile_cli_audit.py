@@ -234,3 +234,16 @@ def test_sweep_plan_refuses_an_alpha_beyond_any_stage(tiny_profile, tmp_path, ca
     refused(tmp_path, ["plan", "sweep", tiny_profile / "lens.json", "--alpha-um", "1e9", "--pixel-exposure-ms", "16",
                        "--out", tmp_path / "sw.json"], capsys, "--alpha-um")
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------------ fieldcal simulate
+
+
+def test_simulate_refuses_a_scene_image_cut_short(t, capsys):
+    """Before: a JPEG scene cut in its data was decoded by OpenCV as a half-grey picture (libjpeg printed
+    'Premature end of JPEG file') and a stack of that was written with exit 0."""
+    scene = t / "J" / "img2.jpg"
+    _truncate_jpeg_data(scene)
+    refused(t, ["simulate", LENS, t / "SX", "--z", "-100", "100", "50", "--size", "64x48", "--scene", scene,
+                "--quiet"], capsys, "--scene", "img2.jpg", "decoded")
+    assert "Premature end" not in capsys.readouterr().err
