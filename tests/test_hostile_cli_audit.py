@@ -247,3 +247,24 @@ def test_simulate_refuses_a_scene_image_cut_short(t, capsys):
     refused(t, ["simulate", LENS, t / "SX", "--z", "-100", "100", "50", "--size", "64x48", "--scene", scene,
                 "--quiet"], capsys, "--scene", "img2.jpg", "decoded")
     assert "Premature end" not in capsys.readouterr().err
+
+
+def test_a_damaged_tiff_prints_only_fieldcals_message(t):
+    """Before: tifffile's own warning ('<tifffile.TiffPages @N> invalid offset to first page N') was printed on
+    stderr by Python's last-resort log handler before fieldcal's what/where/fix message."""
+    frames = [t / "a.tiff", t / "b.tiff"]
+    rng = np.random.default_rng(1)
+    for p in frames:
+        cv2.imwrite(str(p), (rng.random((48, 64, 3)) * 65535).astype(np.uint16))  # OpenCV puts the IFD last
+    data = frames[1].read_bytes()
+    frames[1].write_bytes(data[: len(data) // 2])
+    import subprocess
+    import sys
+
+    # in a process of its own: pytest's log capture would swallow the warning the last-resort handler prints
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    r = subprocess.run([sys.executable, "-m", "fieldcal", *map(str, _import(t, frames))], capture_output=True,
+                       text=True, env=env, timeout=120)
+    assert_clean_failure(r.returncode, r.stderr, EXIT_BAD_INPUT, "b.tiff", "TIFF")
+    assert r.stderr.strip().startswith("fieldcal import: error:"), r.stderr
+    assert "tifffile" not in r.stderr, r.stderr
