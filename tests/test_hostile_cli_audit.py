@@ -268,3 +268,22 @@ def test_a_damaged_tiff_prints_only_fieldcals_message(t):
     assert_clean_failure(r.returncode, r.stderr, EXIT_BAD_INPUT, "b.tiff", "TIFF")
     assert r.stderr.strip().startswith("fieldcal import: error:"), r.stderr
     assert "tifffile" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("command", ["import", "mtf"])
+def test_a_float_frame_with_nan_is_refused_where_it_enters(t, capsys, command):
+    """Before: `import` built a stack of float TIFFs one of which was all NaN (calibrate and composite refused
+    it later), and `mtf nan.tiff` wrote an empty result with exit 0."""
+    import tifffile
+
+    rng = np.random.default_rng(3)
+    frames = [t / f"f{k}.tiff" for k in range(3)]
+    for p in frames:
+        tifffile.imwrite(p, rng.random((48, 64, 3)).astype(np.float32), photometric="rgb")
+    bad = frames[1]
+    img = rng.random((48, 64, 3)).astype(np.float32)
+    img[5, 7, 1] = np.nan
+    img[9, 9, 0] = np.inf
+    tifffile.imwrite(bad, img, photometric="rgb")
+    argv = _import(t, frames) if command == "import" else ["mtf", bad, "--out", t / "m.json", "--quiet"]
+    refused(t, argv, capsys, bad.name, "2 NaN/Inf")

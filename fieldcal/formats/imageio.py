@@ -384,6 +384,20 @@ def read_image(path: str | Path, roi: tuple[int, int, int, int] | None = None,
     return np.ascontiguousarray(image)
 
 
+def check_finite(image: np.ndarray) -> None:
+    """Refuse a float frame holding NaN or infinite pixels (no measurement or blend is defined on them).
+
+    Raises
+    ------
+    ImageFileError
+        Naming how many pixels are not finite.
+    """
+    if image.dtype.kind == "f" and not np.isfinite(image).all():
+        bad = int(np.count_nonzero(~np.isfinite(image)))
+        raise ImageFileError(f"holds {bad} NaN/Inf pixel(s)",
+                             "replace non-finite pixels (e.g. with 0 or the saturation value) and export again")
+
+
 def _read_tiff(path: Path, header: ImageHeader, roi) -> tuple[np.ndarray, bool]:
     """Memory-map uncompressed pages (an ROI read copies only the ROI), else decode the one page.
 

@@ -38,7 +38,7 @@ import numpy as np
 from fieldcal.errors import ParameterError, StackError
 from fieldcal.formats.atomic import (atomic_write_bytes, atomic_write_text, check_output,
                                      check_replaceable_folder, replace_folder)
-from fieldcal.formats.imageio import ImageFileError, encode, probe, read_image
+from fieldcal.formats.imageio import ImageFileError, check_finite, encode, probe, read_image
 
 #: File name endings read through LibRaw (rawpy). Many raw formats are TIFF inside, so the ending decides.
 RAW_SUFFIXES = frozenset({".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf",
@@ -233,7 +233,7 @@ def describe(path: str | os.PathLike) -> SourceFrame:
         header = probe(path)
         # decoded once, as calibrate will: a file whose header is whole but whose data is truncated or damaged
         # (a copy interrupted, a card pulled) is refused now, not after it was copied into a "valid" stack
-        read_image(path, header=header)
+        check_finite(read_image(path, header=header))
     except ImageFileError as exc:
         raise StackError(exc.what, path=path, field="images", fix=exc.fix) from None
     if exif_width and header.width != int(exif_width) and meta.get("pixel_pitch_um"):

@@ -200,9 +200,10 @@ def measure_frame(frame: np.ndarray, *, channels=("Y",), cfa: str | None = None,
 
 
 def _read_single(path: Path) -> tuple[np.ndarray, tuple[str, ...]]:
-    from ..formats.imageio import ImageFileError, read_image
+    from ..formats.imageio import ImageFileError, check_finite, read_image
     try:
         img = read_image(path)
+        check_finite(img)
     except FileNotFoundError:
         raise ParameterError("not found", path=path, fix="give an image file or a stack folder") from None
     except ImageFileError as exc:
