@@ -287,3 +287,16 @@ def test_a_float_frame_with_nan_is_refused_where_it_enters(t, capsys, command):
     tifffile.imwrite(bad, img, photometric="rgb")
     argv = _import(t, frames) if command == "import" else ["mtf", bad, "--out", t / "m.json", "--quiet"]
     refused(t, argv, capsys, bad.name, "2 NaN/Inf")
+
+
+# --------------------------------------------------------------------------------- fieldcal batch
+
+
+@pytest.mark.parametrize("second", ["S", "S/stack.json", "J/../S", "Slink"])
+def test_batch_refuses_one_stack_given_twice(t, capsys, second):
+    """Before: `batch calibrate S S` (or S and a link to it) calibrated it twice as units S and S-2, and the
+    fleet's statistics counted one unit as two (its spread shrank towards that unit)."""
+    pytest.importorskip("dask.distributed")
+    (t / "Slink").symlink_to(t / "S")
+    refused(t, ["batch", "calibrate", t / "S", f"{t}/{second}", "--out", t / "B", "--scheduler", "threads",
+                "--workers", "1", "--fs", "4", "--effort", "quick", "-q"], capsys, "STACK", "twice")
