@@ -300,3 +300,42 @@ def test_batch_refuses_one_stack_given_twice(t, capsys, second):
     (t / "Slink").symlink_to(t / "S")
     refused(t, ["batch", "calibrate", t / "S", f"{t}/{second}", "--out", t / "B", "--scheduler", "threads",
                 "--workers", "1", "--fs", "4", "--effort", "quick", "-q"], capsys, "STACK", "twice")
+
+
+# ------------------------------------------------------------------ a replaced stack folder, killed
+
+
+_KILL_AT_RENAME = r"""
+import os, signal, sys
+real_rename = os.rename
+def rename(src, dst, *a, **k):
+    r = real_rename(src, dst, *a, **k)
+    os.kill(os.getpid(), signal.SIGKILL)  # right after the first rename of the folder swap
+    return r
+os.rename = rename
+from fieldcal.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.skipif(not os.uname().sysname == "Linux", reason="the one-step swap is Linux's renameat2")
+def test_import_overwrite_killed_mid_swap_leaves_a_stack_under_the_name(t):
+    """Before: `import --overwrite` moved the old stack aside (rename 1) and then the new one into place
+    (rename 2); killed between them, the folder the user named was gone (the old stack hidden as
+    .NAME.old-*). Now the two folders are swapped in one step where the OS can."""
+    import json
+    import signal
+    import subprocess
+    import sys
+
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "FIELDCAL_PROGRESS": "0"}
+    base = [sys.executable, "-c", _KILL_AT_RENAME, "import", *map(str, jpgs), "--out", str(t / "I"),
+            "--pixel-pitch-um", "5", "--quiet"]
+    subprocess.run([sys.executable, "-m", "fieldcal", *base[3:], "--z", "0", "20"], env=env, check=True,
+                   timeout=120)
+    r = subprocess.run([*base, "--z", "0", "30", "--overwrite"], env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode in (0, -signal.SIGKILL), r.stderr
+    meta = json.loads((t / "I" / "stack.json").read_text())  # a whole stack under the name, old or new
+    assert [f["z_um"] for f in meta["frames"]] in ([0, 20, 40, 60], [0, 30, 60, 90])

@@ -388,10 +388,37 @@ def jsonable(v):
     return v
 
 
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where the kernel, the C library
+    or the file system cannot, so the caller falls back to two renames."""
+    import errno
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):  # glibc < 2.28 or another C library
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    fn.restype = ctypes.c_int
+    at_fdcwd, rename_exchange = -100, 2
+    if fn(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.EPERM):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
 def replace_folder(staging: str | Path, out: str | Path) -> None:
     """Rename a finished folder ``staging`` to ``out`` (same parent). An empty ``out`` is removed first; an
-    existing one (the caller has checked it may be replaced) is moved aside under an unpredictable name and
-    deleted only after the new folder took its name, so ``out`` is always either the old or the new folder."""
+    existing one (the caller has checked it may be replaced) is swapped with ``staging`` in one step where the
+    OS can (Linux ``renameat2``), else moved aside under an unpredictable name first; it is deleted only after
+    the new folder took its name, so ``out`` is always either the old or the new folder (after a crash in the
+    fallback's two renames, the old one under its hidden name)."""
     import shutil
     import tempfile
 
@@ -400,6 +427,10 @@ def replace_folder(staging: str | Path, out: str | Path) -> None:
     if out.exists():
         if out.is_dir() and not out.is_symlink() and not any(out.iterdir()):
             out.rmdir()
+        elif out.is_dir() and not out.is_symlink() and _exchange(staging, out):
+            fsync_dir(out.resolve().parent)
+            shutil.rmtree(staging, ignore_errors=True)  # the old folder, under the staging name now
+            return
         else:
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.resolve().parent))
             old.rmdir()
