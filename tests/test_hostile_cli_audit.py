@@ -339,3 +339,36 @@ def test_import_overwrite_killed_mid_swap_leaves_a_stack_under_the_name(t):
     assert r.returncode in (0, -signal.SIGKILL), r.stderr
     meta = json.loads((t / "I" / "stack.json").read_text())  # a whole stack under the name, old or new
     assert [f["z_um"] for f in meta["frames"]] in ([0, 20, 40, 60], [0, 30, 60, 90])
+
+
+# ---------------------------------------------------------------------------- loops of symbolic links
+
+
+def _stack_with_a_looped_frame(t: Path) -> Path:
+    import json
+
+    meta = json.loads((t / "S" / "stack.json").read_text())
+    meta["links"] = "symlink"
+    (t / "S" / "stack.json").write_text(json.dumps(meta))
+    frame = t / "S" / "frames" / "0001.tiff"
+    frame.unlink()
+    frame.symlink_to("0001.tiff")  # a link to itself
+    return t / "S"
+
+
+@pytest.mark.parametrize("case", ["out", "stack-folder", "frame-in-stack", "import-image", "mtf-image"])
+def test_a_loop_of_symbolic_links_is_bad_input_not_a_bug(t, capsys, case):
+    """Before: Path.resolve() raised RuntimeError('Symlink loop from ...') and every command exited 5 ('a bug in
+    fieldcal') for an output, input folder, frame or image that is a loop of links."""
+    loop = t / "loop.tiff"
+    loop.symlink_to("loop.tiff")
+    loopd = t / "loopd"
+    loopd.symlink_to("loopd")
+    argv = {"out": ["composite", t / "S", "--out", loop, "--overwrite", "--quiet"],
+            "stack-folder": ["composite", loopd, "--out", t / "c.tiff", "--quiet"],
+            "frame-in-stack": ["composite", t / "S", "--out", t / "c.tiff", "--quiet"],
+            "import-image": _import(t, [loop, t / "J" / "img0.png"]),
+            "mtf-image": ["mtf", loop, "--out", t / "m.json", "--quiet"]}[case]
+    if case == "frame-in-stack":
+        _stack_with_a_looped_frame(t)
+    refused(t, argv, capsys, "loop of symbolic links")

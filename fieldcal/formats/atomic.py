@@ -41,8 +41,22 @@ _FIX_ELSEWHERE = "write the output somewhere else: fieldcal never writes over or
 
 
 def _resolved(path: str | os.PathLike) -> Path:
-    """Absolute path with every existing symbolic link resolved (so a link to an input is that input)."""
-    return Path(os.path.abspath(os.path.expanduser(os.fspath(path)))).resolve(strict=False)
+    """Absolute path with every existing symbolic link resolved (so a link to an input is that input).
+
+    Raises
+    ------
+    PathError
+        The path is a loop of symbolic links (Python raises RuntimeError or OSError ELOOP for it).
+    """
+    import errno
+
+    p = Path(os.path.abspath(os.path.expanduser(os.fspath(path))))
+    try:
+        return p.resolve(strict=False)
+    except (RuntimeError, OSError) as e:
+        if isinstance(e, OSError) and e.errno != errno.ELOOP:
+            raise
+        raise from_oserror(OSError(errno.ELOOP, "is a loop of symbolic links", str(path)), path=path) from None
 
 
 def _within(path: Path, root: Path) -> bool:
@@ -118,7 +132,10 @@ def _linked_inputs(inputs: dict[Path, object]) -> tuple[dict[Path, str], set[tup
                 except OSError:
                     continue
                 if stat.S_ISLNK(st.st_mode):
-                    real = _resolved(p)
+                    try:
+                        real = _resolved(p)
+                    except OutputError:  # a loop of links leads nowhere; the input's reader refuses it
+                        continue
                     if not _within(real, root):
                         targets.setdefault(real, f"{real} (the file {name}/{p.relative_to(root)} links to)")
                         fid = _file_id(real)

@@ -93,6 +93,9 @@ def _resolve_frame_path(root: Path, file: str, where: str, json_path: Path, *, s
     except ValueError:
         raise StackError(f"{file!r} resolves outside the stack folder", path=json_path, field=where,
                          fix=fix) from None
+    except (RuntimeError, OSError):  # a loop of symbolic links (RuntimeError before Python 3.13, then ELOOP)
+        raise StackError(f"{file!r} is a loop of symbolic links", path=json_path, field=where,
+                         fix="replace the link with the frame file (or a link to it)") from None
     return full
 
 
