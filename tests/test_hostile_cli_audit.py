@@ -372,3 +372,51 @@ def test_a_loop_of_symbolic_links_is_bad_input_not_a_bug(t, capsys, case):
     if case == "frame-in-stack":
         _stack_with_a_looped_frame(t)
     refused(t, argv, capsys, "loop of symbolic links")
+
+
+# ------------------------------------------------------------------------ pipes where a file is wanted
+
+
+def _fifo(t: Path, name: str) -> Path:
+    p = t / name
+    os.mkfifo(p)
+    return p
+
+
+@pytest.mark.parametrize("case", ["mtf-image", "import-z-csv", "lens-check", "frame-in-stack"])
+def test_a_named_pipe_given_as_a_file_is_refused_not_read(t, capsys, case):
+    """Before: `mtf PIPE`, `import --z-csv PIPE` and `lens check PIPE` opened the pipe and blocked forever (no
+    writer); a frame that is a pipe was reported as 'does not exist'."""
+    import json
+    import threading
+
+    if case == "frame-in-stack":
+        frame = t / "S" / "frames" / "0001.tiff"
+        frame.unlink()
+        os.mkfifo(frame)
+        argv, needles = ["composite", t / "S", "--out", t / "c.tiff", "--quiet"], ("not a regular file", "frames[1]")
+    else:
+        pipe = _fifo(t, {"mtf-image": "p.png", "import-z-csv": "z.csv", "lens-check": "lens.csv"}[case])
+        jpgs = sorted((t / "J").glob("*.jpg"))
+        argv = {"mtf-image": ["mtf", pipe, "--out", t / "m.json", "--quiet"],
+                "import-z-csv": ["import", *jpgs, "--out", t / "I", "--z-csv", pipe, "--pixel-pitch-um", "5"],
+                "lens-check": ["lens", "check", pipe]}[case]
+        needles = ("not a regular file", pipe.name)
+    done = threading.Event()
+
+    def unblock():  # were the command to block on the pipe, open its write end so that the test ends (and fails)
+        if not done.wait(20):
+            for p in t.rglob("*"):
+                if p.is_fifo():
+                    with open(p, "wb"):
+                        pass
+
+    threading.Thread(target=unblock, daemon=True).start()
+    before = {p: p.read_bytes() for p in t.rglob("*") if p.is_file() and not p.is_fifo()}
+    try:
+        rc, err = run_cli(argv, capsys)  # (snapshot() would itself block reading the pipe)
+    finally:
+        done.set()
+    assert_clean_failure(rc, err, EXIT_BAD_INPUT, *needles)
+    assert {p: p.read_bytes() for p in t.rglob("*") if p.is_file() and not p.is_fifo()} == before
+    assert json.loads((t / "S" / "stack.json").read_text())["frames"]

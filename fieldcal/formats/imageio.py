@@ -164,7 +164,14 @@ def _tifffile_quiet():
 
 
 def sniff_kind(path: Path) -> str:
-    """Return ``"tiff"``, ``"png"`` or ``"jpeg"`` from the file's magic bytes (the extension is not trusted)."""
+    """Return ``"tiff"``, ``"png"`` or ``"jpeg"`` from the file's magic bytes (the extension is not trusted).
+
+    A path that is not a regular file (a pipe or a device would block the read, or never end) is refused."""
+    import os
+    import stat
+
+    if not stat.S_ISREG(os.stat(path).st_mode):  # FileNotFoundError passes through
+        raise ImageFileError("is not a regular file (a folder, pipe or device)", "give an image file")
     with open(path, "rb") as f:
         head = f.read(8)
     if head.startswith(_PNG_SIGNATURE):

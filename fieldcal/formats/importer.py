@@ -246,6 +246,9 @@ def describe(path: str | os.PathLike) -> SourceFrame:
 def read_z_csv(path: str | os.PathLike) -> list[tuple[str, float]]:
     """Rows ``file,z_um`` of a CSV (a header row naming the columns is optional), in file order."""
     path = Path(path)
+    if path.exists() and not path.is_file():  # a pipe would block the read
+        raise ParameterError("is not a regular file", path=path, field="z_csv",
+                             fix="give a UTF-8 CSV file of file,z_um rows")
     try:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:

@@ -509,6 +509,9 @@ def _load_frames(root: Path, meta: dict, json_path: Path, n_channels: int,
             raise StackError(f"frames[{seen_file[key]}] and frames[{i}] both use file {file!r}", path=json_path,
                              field=where, fix="give every frame its own file")
         seen_file[key] = i
+        if os.path.exists(path) and not path.is_file():
+            raise StackError(f"frame file {file!r} is not a regular file (a folder, device or pipe)", path=json_path,
+                             field=where, fix="replace it with the frame's image file")
         if not path.is_file():
             raise StackError(f"frame file {file!r} does not exist", path=json_path, field=where,
                              fix="restore the frame file, or remove its entry from stack.json")
