@@ -420,3 +420,17 @@ def test_a_named_pipe_given_as_a_file_is_refused_not_read(t, capsys, case):
     assert_clean_failure(rc, err, EXIT_BAD_INPUT, *needles)
     assert {p: p.read_bytes() for p in t.rglob("*") if p.is_file() and not p.is_fifo()} == before
     assert json.loads((t / "S" / "stack.json").read_text())["frames"]
+
+
+# ------------------------------------------------------------------------------- fieldcal capture
+
+
+@pytest.mark.parametrize("out,needles", [("notes.txt/CAP", ("--out", "notes.txt is a file")),
+                                         ("", ("--out", "empty"))])
+def test_capture_names_out_for_a_bad_folder_path(t, capsys, out, needles):
+    """Before: '--out notes.txt/CAP' said 'notes.txt/CAP: Not a directory' naming no option, and '--out ""' was
+    taken as the current folder ('.: exists and is not a capture folder')."""
+    (t / "notes.txt").write_text("mine")
+    out_arg = str(t / out) if out else ""
+    refused(t, ["capture", "--z", "-100", "100", "50", "--stage", "sim", "--camera", f"sim:{LENS},size=64x48",
+                "--out", out_arg, "--quiet"], capsys, *needles)
