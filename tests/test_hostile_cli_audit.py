@@ -434,3 +434,9 @@ def test_capture_names_out_for_a_bad_folder_path(t, capsys, out, needles):
     out_arg = str(t / out) if out else ""
     refused(t, ["capture", "--z", "-100", "100", "50", "--stage", "sim", "--camera", f"sim:{LENS},size=64x48",
                 "--out", out_arg, "--quiet"], capsys, *needles)
+
+
+def test_simulate_names_its_fs_flag(t, capsys):
+    """Before: 'simulate --optics wave --fs nan' said field 'fs_cyc_per_mm' (the library's name), not '--fs'."""
+    refused(t, ["simulate", LENS, t / "SX", "--z", "-100", "100", "50", "--size", "64x48", "--optics", "wave",
+                "--fs", "nan", "--quiet"], capsys, "field '--fs'")
