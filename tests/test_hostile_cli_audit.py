@@ -440,3 +440,26 @@ def test_simulate_names_its_fs_flag(t, capsys):
     """Before: 'simulate --optics wave --fs nan' said field 'fs_cyc_per_mm' (the library's name), not '--fs'."""
     refused(t, ["simulate", LENS, t / "SX", "--z", "-100", "100", "50", "--size", "64x48", "--optics", "wave",
                 "--fs", "nan", "--quiet"], capsys, "field '--fs'")
+
+
+# ------------------------------------------------------- --overwrite of a folder holding the user's files
+
+
+@pytest.mark.parametrize("command", ["simulate", "import"])
+def test_overwrite_never_deletes_files_put_into_a_stack_folder(t, capsys, command):
+    """Before: `simulate S --overwrite` and `import --out S --overwrite` replaced the whole folder because it held
+    a stack.json, deleting what the user had put beside the stack (notes, a report, a profile)."""
+    (t / "S" / "notes.txt").write_text("mine")
+    (t / "S" / "report").mkdir()
+    (t / "S" / "report" / "index.html").write_text("<html>")
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    argv = (["simulate", LENS, t / "S", "--z", "-100", "100", "50", "--size", "64x48", "--overwrite", "--quiet"]
+            if command == "simulate" else
+            ["import", *jpgs, "--out", t / "S", "--z", "0", "20", "--pixel-pitch-um", "5", "--overwrite"])
+    refused(t, argv, capsys, "notes.txt", "report/index.html", "never deletes")
+    # with them moved out, the stack is replaced (its own frames, truth and stack.json are fieldcal's)
+    (t / "S" / "notes.txt").unlink()
+    import shutil
+    shutil.rmtree(t / "S" / "report")
+    rc, err = run_cli(argv, capsys)
+    assert rc == 0, err

@@ -479,3 +479,52 @@ def check_replaceable_folder(out: str | Path, marker: str, overwrite: bool, what
         if not (out / marker).is_file():
             raise err(f"is not empty and holds no {marker}: fieldcal will not delete a folder that is not {what}",
                       path=out, field="out", fix="choose a new or empty folder")
+        foreign = foreign_files(out, marker)
+        if foreign:
+            more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+            raise err(f"holds files that are not part of {what} ({', '.join(foreign[:3])}{more}): replacing the "
+                      "folder would delete them, and fieldcal never deletes what it did not write", path=out,
+                      field="out", fix="move those files out of the folder, or choose a new folder")
+
+
+#: Files a folder made by fieldcal may hold beside those its marker lists (simulate's truth, capture's journal).
+_SIDE_FILES = {"stack.json": ("truth.json", "truth.tiff", "capture.journal")}
+
+
+def _listed_files(out: Path, marker: str) -> set[str]:
+    """The files the marker document says the folder holds (relative POSIX paths); empty if it is unreadable."""
+    import json
+
+    try:
+        doc = json.loads((out / marker).read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return set()
+    if not isinstance(doc, dict):
+        return set()
+    from pathlib import PurePosixPath
+
+    names = set()
+    for key, field in (("frames", "file"), ("files", "name")):  # stack.json frames; masks.json records
+        records = doc.get(key)
+        for rec in records if isinstance(records, list) else []:
+            if isinstance(rec, dict) and isinstance(rec.get(field), str):
+                names.add(PurePosixPath(rec[field].replace("\\", "/")).as_posix())  # "./frames/a" -> "frames/a"
+    return names
+
+
+def foreign_files(out: str | Path, marker: str) -> list[str]:
+    """Files (and links) inside the folder ``out`` that neither its ``marker`` document lists nor fieldcal writes
+    beside it, as relative paths: what replacing the folder would delete that fieldcal did not write. Hidden
+    temporary files of fieldcal's own writes (``.NAME.<hex>.tmp``) are not counted."""
+    out = Path(out)
+    known = {marker, *_SIDE_FILES.get(marker, ()), *_listed_files(out, marker)}
+    found = []
+    for dirpath, dirnames, filenames in os.walk(out, followlinks=False):
+        for n in filenames + [d for d in dirnames if os.path.islink(os.path.join(dirpath, d))]:
+            rel = Path(os.path.relpath(os.path.join(dirpath, n), out)).as_posix()
+            if rel in known or (n.startswith(".") and n.endswith(".tmp")):
+                continue
+            found.append(rel)
+            if len(found) > 100:
+                return sorted(found)
+    return sorted(found)
