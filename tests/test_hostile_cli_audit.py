@@ -463,3 +463,38 @@ def test_overwrite_never_deletes_files_put_into_a_stack_folder(t, capsys, comman
     shutil.rmtree(t / "S" / "report")
     rc, err = run_cli(argv, capsys)
     assert rc == 0, err
+
+
+# --------------------------------------------------------------------------- profile export, report
+
+
+@pytest.mark.parametrize("z", ["nan", "inf"])
+def test_profile_export_refuses_a_non_finite_z(tiny_profile, tmp_path, capsys, z):
+    """Before: 'profile export --z nan' failed inside the Lensfun fit: exit 5, 'internal error (ValueError:
+    Residuals are not finite in the initial point.)'."""
+    refused(tmp_path, ["profile", "export", tiny_profile / "lens.json", "--format", "lensfun", "--out",
+                       tmp_path / "x.xml", "--allow-no-distortion", "--z", z], capsys, "field '--z'", "finite")
+
+
+def test_profile_export_says_when_z_is_outside_the_scan(tiny_profile, tmp_path, capsys):
+    """A --z outside the calibrated scan is the fit's extrapolation: the export says so (the default, the
+    calibrated focus, is already clipped to the scan)."""
+    rc, err = run_cli(["profile", "export", tiny_profile / "lens.json", "--format", "lensfun", "--out",
+                       tmp_path / "x.xml", "--allow-no-distortion", "--z", "1e5"], capsys)
+    assert rc == 0, err
+    assert "outside the scan" in err and "extrapolation" in err
+
+
+def test_report_names_its_fs_flag(tiny_profile, tmp_path, capsys):
+    """Before: 'report --fs nan' named field 'fs_cyc_per_mm' (the library's name), not '--fs'."""
+    refused(tmp_path, ["report", tiny_profile / "lens.json", "--out", tmp_path / "R", "--fs", "nan"], capsys,
+            "field '--fs'")
+
+
+@pytest.mark.parametrize("flag,value", [("--fs", "-3"), ("--q", "1.5"), ("--q", "nan")])
+def test_report_checks_fs_and_q_before_writing_any_picture(tiny_profile, tmp_path, capsys, flag, value):
+    """Before: 'report --fs nan' (or a bad --q) wrote surfaces.png and bands.png, then failed at the tolerance
+    map: a half-written report."""
+    refused(tmp_path, ["report", tiny_profile / "lens.json", "--out", tmp_path / "R", f"{flag}={value}"], capsys,
+            flag)
+    assert not (tmp_path / "R").exists()
