@@ -498,3 +498,26 @@ def test_report_checks_fs_and_q_before_writing_any_picture(tiny_profile, tmp_pat
     refused(tmp_path, ["report", tiny_profile / "lens.json", "--out", tmp_path / "R", f"{flag}={value}"], capsys,
             flag)
     assert not (tmp_path / "R").exists()
+
+
+# ------------------------------------------------------------------------------------ raw (DNG) levels
+
+
+@pytest.mark.parametrize("case", ["mixed-black", "black-above-white"])
+def test_import_refuses_raw_frames_whose_levels_disagree_or_are_impossible(t, capsys, case):
+    """Before: DNG frames with black levels 64 and 5000 became one stack recording only the first frame's
+    levels (the second's black read as signal); a DNG whose black level lies above its white level failed on
+    the hidden staging folder's stack.json ('.I.import-*/stack.json: field white_level')."""
+    pytest.importorskip("pidng")
+    pytest.importorskip("rawpy")
+    from test_import import _write_dng
+
+    rng = np.random.default_rng(0)
+    levels = {"mixed-black": [(64, 4095), (5000, 65535)], "black-above-white": [(5000, 4095), (5000, 4095)]}[case]
+    frames = []
+    for k, (black, white) in enumerate(levels):
+        p = t / f"d{k}.dng"
+        _write_dng(p, (rng.random((48, 64)) * 3000 + 100).astype(np.uint16), black=black, white=white)
+        frames.append(p)
+    err = refused(t, _import(t, frames), capsys, "IMAGE", "level")
+    assert ".import-" not in err

@@ -442,6 +442,16 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     _agree(frames, "n_channels", "channel count", "all frames must be colour, or all mono")
     _agree(frames, "dtype", "sample type", "export every frame with the same bit depth")
     _agree(frames, "cfa", "CFA pattern", "import frames of one camera and one crop")
+    # a raw frame's levels say where black and clipping are: one stack records one pair, so frames must agree
+    _agree(frames, "black_level", "black level", "import frames taken with one camera setting (a black level "
+           "changes with ISO and temperature on some sensors: take the series again at one setting)")
+    _agree(frames, "white_level", "white level", "import frames taken with one camera setting")
+    first = frames[0]
+    if first.white_level is not None and first.black_level is not None and \
+            not first.white_level > first.black_level:
+        raise StackError(f"states a white level ({first.white_level:g}) not above its black level "
+                         f"({first.black_level:g})", path=first.path, field="images",
+                         fix="check the raw file (a damaged or hand-edited DNG), or convert the frames to TIFF")
     _agree(frames, "make", "camera make", "import frames from one camera")
     _agree(frames, "model", "camera model", "import frames from one camera")
     if link is not None and frames[0].kind == "raw":
