@@ -521,3 +521,15 @@ def test_import_refuses_raw_frames_whose_levels_disagree_or_are_impossible(t, ca
         frames.append(p)
     err = refused(t, _import(t, frames), capsys, "IMAGE", "level")
     assert ".import-" not in err
+
+
+# ------------------------------------------------------------------------------------ over-long names
+
+
+def test_calibrate_refuses_a_profile_name_its_sidecar_cannot_have_before_the_work(tiny_profile, tmp_path, capsys):
+    """Before: a 235-byte --out name fits the file system, its NAME.<16 hex>.samples.npz sidecar (260 bytes) does
+    not: calibrate ran the whole fit and then failed writing the sidecar."""
+    out = tmp_path / ("b" * 230 + ".json")
+    refused(tmp_path, ["calibrate", tiny_profile / "S", "--out", out, "--fs", "16", "--effort", "quick", "-q"],
+            capsys, "--out", "shorter name", "beside it")
+

@@ -170,6 +170,25 @@ def _check_parent(path: Path, field: str | None) -> None:
                           fix="choose an output path whose folders are folders")
 
 
+#: Room a profile needs below the file system's longest name for its ``NAME.<16 hex>.samples.npz`` sidecar.
+SIDECAR_NAME_ROOM = 32
+
+
+def _check_name_length(path: Path, field: str | None, room: int = 0) -> None:
+    """A name the file system cannot hold fails now, not when the finished result is renamed into place;
+    ``room``: bytes kept for a file written beside the output under a longer name."""
+    anc = _nearest_existing(path.parent if str(path.parent) else Path("."))
+    try:
+        name_max = os.pathconf(anc if anc.is_dir() else anc.parent, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        name_max = 255
+    for part in path.parts[len(anc.parts):] if path != anc else (path.name,):
+        if len(os.fsencode(part)) > name_max - room:
+            beside = f" and {room} are kept for the file written beside it" if room else ""
+            raise OutputError(f"has a name of {len(os.fsencode(part))} bytes; this file system holds at most "
+                              f"{name_max}{beside}", path=path, field=field, fix="use a shorter name")
+
+
 def _case_twin(path: Path) -> str | None:
     """The name of an existing sibling that differs from ``path``'s name only in case, if any."""
     parent = path.parent if str(path.parent) else Path(".")
@@ -204,7 +223,7 @@ def _check_file_target(path: Path, overwrite: bool, field: str | None) -> None:
 def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike | None] = (),
                  overwrite: bool = False, kind: str = "file", files: Iterable[str] = (),
                  suffixes: Iterable[str] | None = None, field: str | None = "--out",
-                 replaces_folder: bool = False) -> Path:
+                 replaces_folder: bool = False, name_room: int = 0) -> Path:
     """Refuse an output path before any work is done; returns it as a :class:`Path`.
 
     Parameters
@@ -223,6 +242,9 @@ def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike 
         Accepted extensions (lower case, with the dot) of a file output.
     replaces_folder : bool
         A folder output that is replaced as a whole: an input inside it is refused too.
+    name_room : int
+        Bytes the output's name must leave free below the file system's longest name, for a file written beside
+        it under a longer name (a profile's sidecar: :data:`SIDECAR_NAME_ROOM`).
 
     Raises
     ------
@@ -245,6 +267,7 @@ def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike 
                                   path=p, field=field, fix=_FIX_ELSEWHERE)
     protect(*given)
     _check_parent(p, field)
+    _check_name_length(p, field, name_room)
     if kind == "file":
         if suffixes is not None:
             suffixes = tuple(suffixes)
