@@ -533,3 +533,11 @@ def test_calibrate_refuses_a_profile_name_its_sidecar_cannot_have_before_the_wor
     refused(tmp_path, ["calibrate", tiny_profile / "S", "--out", out, "--fs", "16", "--effort", "quick", "-q"],
             capsys, "--out", "shorter name", "beside it")
 
+
+
+@pytest.mark.parametrize("target", ["colour-image", "stack"])
+def test_mtf_never_ignores_or_misapplies_cfa(t, capsys, target):
+    """Before: `mtf RGB.png --cfa RGGB` measured the red channel as if it were a Bayer mosaic (a silently wrong
+    MTF), and `mtf STACK --cfa RGGB` ignored the flag."""
+    src = t / "J" / "img0.png" if target == "colour-image" else t / "S"
+    refused(t, ["mtf", src, "--out", t / "m.json", "--cfa", "RGGB", "--quiet"], capsys, "field '--cfa'")

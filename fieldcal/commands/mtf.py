@@ -7,6 +7,9 @@ import math
 from ..errors import ParameterError
 from . import add_parser
 
+# library fields named for their flag even when the message names the input file
+FIELD_FLAGS = {"cfa": "--cfa"}
+
 _DESCRIPTION = """\
 Find every slanted edge (dark squares or half-planes 2-20 degrees off the pixel axes) in INPUT, an image
 file or a fieldcal-stack/1 folder, and measure its MTF by the ISO 12233 e-SFR method, per colour channel (per
