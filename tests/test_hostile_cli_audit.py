@@ -541,3 +541,17 @@ def test_mtf_never_ignores_or_misapplies_cfa(t, capsys, target):
     MTF), and `mtf STACK --cfa RGGB` ignored the flag."""
     src = t / "J" / "img0.png" if target == "colour-image" else t / "S"
     refused(t, ["mtf", src, "--out", t / "m.json", "--cfa", "RGGB", "--quiet"], capsys, "field '--cfa'")
+
+
+def test_composite_refuses_a_captured_sweep_image_with_nan(tiny_profile, tmp_path, capsys):
+    """Before: a float sweep image holding one NaN pixel was deconvolved (numpy printed a RuntimeWarning) and the
+    command failed at the end naming the output: 'c.tiff: cannot be stored as JSON'."""
+    import tifffile
+
+    img = np.random.default_rng(0).random((144, 256, 3)).astype(np.float32)
+    img[3, 3, 0] = np.nan
+    tifffile.imwrite(tmp_path / "sweep.tiff", img, photometric="rgb")
+    err = refused(tmp_path, ["composite", tmp_path / "sweep.tiff", "--out", tmp_path / "c.tiff", "--profile",
+                             tiny_profile / "lens.json", "--sweep-alpha-um", "20", "--quiet"], capsys, "sweep.tiff",
+                  "1 NaN/Inf")
+    assert "RuntimeWarning" not in err
