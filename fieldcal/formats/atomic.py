@@ -514,6 +514,9 @@ def check_replaceable_folder(out: str | Path, marker: str, overwrite: bool, what
 _SIDE_FILES = {"stack.json": ("truth.json", "truth.tiff", "capture.journal")}
 
 
+_FRAME_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")
+
+
 def _listed_files(out: Path, marker: str) -> set[str]:
     """The files the marker document says the folder holds (relative POSIX paths); empty if it is unreadable."""
     import json
@@ -547,6 +550,9 @@ def foreign_files(out: str | Path, marker: str) -> list[str]:
             rel = Path(os.path.relpath(os.path.join(dirpath, n), out)).as_posix()
             if rel in known or (n.startswith(".") and n.endswith(".tmp")):
                 continue
+            if marker == "stack.json" and rel.startswith("frames/") and rel.count("/") == 1 and \
+                    os.path.splitext(n)[1].lower() in _FRAME_SUFFIXES:
+                continue  # a frame a killed capture wrote and never committed (it takes it again on resume)
             found.append(rel)
             if len(found) > 100:
                 return sorted(found)
