@@ -555,3 +555,19 @@ def test_composite_refuses_a_captured_sweep_image_with_nan(tiny_profile, tmp_pat
                              tiny_profile / "lens.json", "--sweep-alpha-um", "20", "--quiet"], capsys, "sweep.tiff",
                   "1 NaN/Inf")
     assert "RuntimeWarning" not in err
+
+
+# ------------------------------------------------------------------------------------ fieldcal targets
+
+
+def test_targets_checks_every_chart_name_before_drawing_any(t, capsys):
+    """Before: a symbolic link at the slanted-edge chart's name was refused only when that chart was written,
+    after the texture and ChArUco charts: a half-written set without targets.json."""
+    victim = t / "victim.txt"
+    victim.write_text("precious")
+    (t / "TG").mkdir()
+    (t / "TG" / "slanted-edge_210x148mm_50dpi.png").symlink_to(victim)
+    refused(t, ["targets", "--out", t / "TG", "--dpi", "50", "--size-mm", "A5"], capsys, "symbolic link",
+            "slanted-edge_210x148mm_50dpi.png")
+    assert sorted(p.name for p in (t / "TG").iterdir()) == ["slanted-edge_210x148mm_50dpi.png"]
+    assert victim.read_text() == "precious"
