@@ -111,6 +111,17 @@ def main(argv: list[str] | None = None) -> int:
         _say(name, "error: an input is nested too deeply to read\n  fix: check the input files (JSON nested "
                    "thousands of levels deep is not a fieldcal file)")
         return EXIT_BAD_INPUT
+    except RuntimeError as e:
+        if debug:
+            raise
+        if str(e).startswith("Symlink loop from "):  # Path.resolve() before Python 3.13 (then OSError ELOOP)
+            loop = str(e)[len("Symlink loop from "):].strip("'\"")
+            err = from_oserror(OSError(errno.ELOOP, "is a loop of symbolic links", loop))
+            _say(name, f"error: {err}")
+            return err.exit_code
+        _say(name, f"internal error ({type(e).__name__}: {str(e)[:300]})\n  this is a bug in fieldcal: run the "
+                   f"same command again with --debug to see the traceback, and report it (exit {EXIT_INTERNAL})")
+        return EXIT_INTERNAL
     except Exception as e:  # a bug: short message, the traceback only with --debug
         if debug:
             raise

@@ -92,7 +92,8 @@ def test_bad_files_name_the_problem(tmp_path, capsys):
         MtfResult.load(bad)
     assert main(["mtf", str(tmp_path / "missing.png"), "--out", str(tmp_path / "o.json")]) == 2
     assert "missing.png" in capsys.readouterr().err
-    assert main(["mtf", str(tmp_path), "--out", str(tmp_path / "o.json")]) == 2  # a folder without stack.json
+    (tmp_path / "notastack").mkdir()
+    assert main(["mtf", str(tmp_path / "notastack"), "--out", str(tmp_path / "o.json")]) == 2  # no stack.json
     assert "stack.json" in capsys.readouterr().err
 
 

@@ -628,6 +628,18 @@ def _pdf_bytes(img01: np.ndarray, width_mm: float, height_mm: float, dpi: float,
     return buf.getvalue()
 
 
+def _chart_stem(kind: str, width_mm: float, height_mm: float, dpi: float, seed: int) -> str:
+    tag = f"{_fmt_num(width_mm)}x{_fmt_num(height_mm)}mm_{_fmt_num(dpi)}dpi"
+    return {"texture": f"texture_seed{seed}_{tag}", "charuco": f"charuco_{tag}"}.get(kind, f"slanted-edge_{tag}")
+
+
+def target_files(width_mm: float, height_mm: float, dpi: float, *, kinds=KINDS, seed: int = 0,
+                 formats=("png", "pdf")) -> list[str]:
+    """The names :func:`write_targets` writes in its folder (``targets.json`` last), for checking them first."""
+    return [f"{_chart_stem(k, width_mm, height_mm, dpi, seed)}.{f}" for k in kinds for f in formats] + \
+        ["targets.json"]
+
+
 def write_targets(out_dir: str | Path, width_mm: float = 297.0, height_mm: float = 210.0, dpi: float = 300.0, *,
                   kinds: tuple[str, ...] | list[str] = KINDS, seed: int = 0, formats: tuple[str, ...] = ("png", "pdf"),
                   quiet: bool = True) -> dict[str, Any]:
@@ -674,7 +686,6 @@ def write_targets(out_dir: str | Path, width_mm: float = 297.0, height_mm: float
     out.mkdir(parents=True, exist_ok=True)
     mm_per_px = MM_PER_INCH / dpi
     entries = []
-    tag = f"{_fmt_num(width_mm)}x{_fmt_num(height_mm)}mm_{_fmt_num(dpi)}dpi"
     for kind in kinds:
         params: dict[str, Any]
         if kind == "texture":
@@ -684,18 +695,18 @@ def write_targets(out_dir: str | Path, width_mm: float = 297.0, height_mm: float
             params = {**asdict(tp), "r_max_px": r_max, "model": "dead leaves, p(r) ~ r^-3",
                       "r_min_mm": tp.r_min_px * mm_per_px, "r_max_mm": r_max * mm_per_px,
                       "nyquist_cyc_per_mm": 0.5 / mm_per_px}
-            name = f"texture_seed{seed}_{tag}"
+            name = _chart_stem("texture", width_mm, height_mm, dpi, seed)
         elif kind == "charuco":
             spec = charuco_spec(w_px, h_px, dpi=dpi)
             img = charuco_image(spec)
             params = spec.to_dict()
-            name = f"charuco_{tag}"
+            name = _chart_stem("charuco", width_mm, height_mm, dpi, seed)
         else:
             se = slanted_edge_spec(w_px, h_px)
             img = slanted_edge_image(se)
             params = {k: v for k, v in se.to_dict().items()}
             params.update(side_mm=se.side_px * mm_per_px, cell_mm=se.cell_px * mm_per_px)
-            name = f"slanted-edge_{tag}"
+            name = _chart_stem("slanted-edge", width_mm, height_mm, dpi, seed)
         subject = (f"fieldcal {kind} chart; print at 100 % (no fit-to-page): {width_mm:g} x {height_mm:g} mm, "
                    f"{dpi:g} dpi")
         files = []

@@ -119,6 +119,7 @@ def run_calibrate(args) -> int:
     require_dask()  # before any work: exit 4 with the install command
     _validate_options(args)
     stacks = [Path(s).parent if Path(s).name == "stack.json" else Path(s) for s in args.stacks]
+    _refuse_repeats(stacks)
     names = unit_names(stacks)
     files = [f"{n}.json" for n in names] + list(REPORT_FILES)
     out = check_output(args.out, inputs=stacks, kind="dir", overwrite=args.overwrite, files=files)
@@ -146,6 +147,21 @@ def run_calibrate(args) -> int:
           f"{len(sig)} unit(s) differ significantly from the fleet"
           + (f" ({', '.join(s['unit'] for s in sig)})" if sig else "") + f"; report {written[0]}")
     return exit_status(results)
+
+
+def _refuse_repeats(stacks: list[Path]) -> None:
+    """One stack given twice (by two spellings of its path, or a link) would be two identical units: the fleet's
+    spread would shrink and its mean lean towards that unit."""
+    from fieldcal.errors import ParameterError
+
+    seen: dict[Path, Path] = {}
+    for s in stacks:
+        key = s.resolve()
+        if key in seen:
+            same = "" if str(seen[key]) == str(s) else f" (as {seen[key]})"
+            raise ParameterError(f"is given twice{same}: one unit would count as two in the fleet's statistics",
+                                 path=s, field="STACK", fix="give each stack once")
+        seen[key] = s
 
 
 def _debug() -> bool:

@@ -50,7 +50,7 @@ def register(sub):
 
 
 def run(args) -> int:
-    from fieldcal.formats.atomic import check_output
+    from fieldcal.formats.atomic import SIDECAR_NAME_ROOM, check_output
     from fieldcal.formats.stack import Stack
 
     stack_dir = Path(args.stack)
@@ -61,7 +61,7 @@ def run(args) -> int:
         raise ParameterError(f"the profile must be a .json file, got {out.name!r}", field="--out",
                              fix="e.g. --out lens.json")
     # every output is checked before the work: a bad --report must not fail after the profile is written
-    check_output(out, inputs=[stack_dir], overwrite=args.overwrite)
+    check_output(out, inputs=[stack_dir], overwrite=args.overwrite, name_room=SIDECAR_NAME_ROOM)
     if args.report:
         from fieldcal.report.calibration_report import REPORT_FILES
         check_output(args.report, inputs=[stack_dir], overwrite=args.overwrite, kind="dir",

@@ -97,6 +97,10 @@ def run(args) -> int:
             chart = chart_record_from_targets(args.chart)
     except ParameterError as exc:
         raise _with_flag(exc) from None
+    from ..formats.atomic import check_output
+    # the shared output checks (a path through a file, the plan or chart as --out): capture's own rules on the
+    # folder (new, or a capture folder to resume; never a folder it did not create) follow in run_capture
+    check_output(args.out, inputs=[args.plan, args.chart], kind="dir", overwrite=True, field="--out")
     try:
         r = run_capture(plan, args.stage, args.camera, args.out, options=options, dry_run=args.dry_run, lens=lens,
                         exposure_device=args.exposure_device)

@@ -93,6 +93,9 @@ def run(args) -> int:
     scene = out / "scene-stack"
     if args.overwrite and (scene / "stack.json").is_file():  # our own earlier capture: the plan changed
         import shutil
+
+        from fieldcal.formats.atomic import check_replaceable_folder
+        check_replaceable_folder(scene, "stack.json", True, "a stack")  # nothing the user put there is deleted
         shutil.rmtree(scene)
     camera = f"sim:{lens},size={w}x{h},scene=colour-leaves,seed={args.seed}"
     _step("5. capture the scene at the planned positions (simulated stage and camera)",

@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 from ..errors import ParameterError
 from . import add_parser
+
+# library fields named for their flag even when the message names the input file
+FIELD_FLAGS = {"cfa": "--cfa"}
 
 _DESCRIPTION = """\
 Find every slanted edge (dark squares or half-planes 2-20 degrees off the pixel axes) in INPUT, an image
@@ -26,6 +31,7 @@ def register(sub):
     p.add_argument("--fs", type=float, default=0.25, help="frequency of the through-focus plot, cycles/px "
                                                            "(default 0.25)")
     p.add_argument("--q", type=float, default=0.05, help="MTF loss marking the tolerance in the plot (default 0.05)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file and --plots pictures")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -38,17 +44,27 @@ def _centre(text: str | None):
     except ValueError:
         raise ParameterError(f"cannot read {text!r} as X,Y", field="--centre",
                              fix="give the optical centre in pixels, e.g. --centre 959.5,539.5") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ParameterError(f"{text!r} is not a finite position", field="--centre",
+                             fix="give the optical centre in pixels, e.g. --centre 959.5,539.5")
     return x, y
 
 
 def run(args) -> int:
+    from fieldcal.formats.atomic import check_output
     from fieldcal.measure.mtf import measure_mtf
+    from fieldcal.measure.mtf_plots import PLOT_FILES
     from ..progress import status, warn
 
     if not 0 < args.fs <= 1.0:
         raise ParameterError(f"--fs {args.fs} outside (0, 1] cycles/px", field="--fs", fix="e.g. --fs 0.25")
     if not 0 < args.q < 1:
         raise ParameterError(f"--q {args.q} outside (0, 1)", field="--q", fix="e.g. --q 0.05")
+    # before any work: never over or into the image or stack measured, never over an output without --overwrite
+    check_output(args.out, inputs=[args.input], overwrite=args.overwrite)
+    if args.plots:
+        check_output(args.plots, inputs=[args.input], overwrite=args.overwrite, kind="dir", files=PLOT_FILES,
+                     field="--plots")
     res = measure_mtf(args.input, centre_px=_centre(args.centre), cfa=args.cfa, quiet=args.quiet)
     res.save(args.out)
     n_ok = sum(1 for e in res.edges if e["quality"]["ok"])

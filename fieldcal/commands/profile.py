@@ -8,7 +8,7 @@ import sys
 
 from . import add_parser
 
-FIELD_FLAGS = {"level": "--level", "out": "--out", "n_null": "--draws"}
+FIELD_FLAGS = {"level": "--level", "out": "--out", "n_null": "--draws", "z_um": "--z"}
 
 EXIT_SIGNIFICANT = 1
 

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from . import add_parser
 
+# library fields whose flag has another name (the rest map by each option's dest)
+FIELD_FLAGS = {"fs_cyc_per_mm": "--fs"}
+
 
 def register(sub):
     p = add_parser(sub, "report", "plots and an HTML page for a lens profile (or a simulated lens's truth)",
@@ -20,6 +23,12 @@ def run(args) -> int:
     from fieldcal.formats.atomic import check_output
     from fieldcal.profile.lens_profile import profile_files
     from fieldcal.report.calibration_report import REPORT_FILES, self_check_summary, write_report
+    from fieldcal.optics import valid_fs_cyc_per_mm, valid_q
+    # before any work or write: a bad --fs/--q found while plotting left the first pictures of a report behind
+    if args.fs is not None:
+        valid_fs_cyc_per_mm(args.fs)
+    if args.q is not None:
+        valid_q(args.q)
     check_output(args.out, inputs=profile_files(args.profile), overwrite=args.overwrite, kind="dir",
                  files=REPORT_FILES)
     from fieldcal.profile.lens_profile import load_profile_or_truth

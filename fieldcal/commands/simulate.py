@@ -10,7 +10,8 @@ from ..progress import status
 from . import add_parser, parse_size
 
 # library fields whose flag has another name (the rest map by each option's dest)
-FIELD_FLAGS = {"start_um": "--z START", "stop_um": "--z STOP", "step_um": "--z STEP", "z_um": "--z"}
+FIELD_FLAGS = {"start_um": "--z START", "stop_um": "--z STOP", "step_um": "--z STEP", "z_um": "--z",
+               "fs_cyc_per_mm": "--fs", "out": "STACK"}
 
 _DESCRIPTION = """\
 Render what a camera with the simulated lens LENS (a fieldcal-lens/1 file, e.g. models/*.json) records

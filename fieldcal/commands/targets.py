@@ -51,6 +51,11 @@ def run(args) -> int:
     if args.lens:
         _check_for_lens(args.lens, width_mm, height_mm, dpi)
     kinds = KINDS if args.kind == "all" else (args.kind,)
+    from fieldcal.charts.targets import target_files
+    # every file's name checked before any chart is drawn: a link or folder at the fifth name must not leave
+    # four charts and no targets.json behind (targets rewrites its own files, so no --overwrite)
+    check_output(args.out, inputs=[args.lens], kind="dir", overwrite=True,
+                 files=target_files(width_mm, height_mm, dpi, kinds=kinds, seed=seed, formats=formats))
     manifest = write_targets(args.out, width_mm, height_mm, dpi, kinds=kinds, seed=seed, formats=formats,
                              quiet=False)
     names = {f for e in manifest["charts"][-len(kinds):] for f in e["files"]}

@@ -664,6 +664,10 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
     if fs_cyc_per_mm is not None and not (np.isfinite(fs_cyc_per_mm) and fs_cyc_per_mm > 0):
         raise ParameterError(f"fs must be > 0 cycles/mm, got {fs_cyc_per_mm}", field="fs_cyc_per_mm",
                              fix="e.g. 80")
+    if z_ref_um is not None and not (np.isfinite(z_ref_um) and abs(z_ref_um) <= 1e9):
+        raise ParameterError(f"z_ref must be a finite stage position in µm, got {z_ref_um}", field="z_ref_um",
+                             fix="give a position within the stack's z range, or leave it unset for the middle "
+                                 "frame")
     if sweep_alpha_um is not None:
         _check_sweep_args(sweep_alpha_um, deconvolve)
 

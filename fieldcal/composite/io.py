@@ -222,13 +222,14 @@ def read_composite_metadata(path: str | Path) -> dict:
 
 def read_single_image(path: str | Path) -> np.ndarray:
     """A captured image (TIFF or PNG) as H x W x C in its dtype (for captured sweep images)."""
-    from fieldcal.formats.imageio import ImageFileError, read_image
+    from fieldcal.formats.imageio import ImageFileError, check_finite, read_image
 
     path = Path(path)
     if not path.is_file():
         raise ParameterError("image not found", path=path, fix="give an existing TIFF or PNG file")
     try:
         img = read_image(path)
+        check_finite(img)
     except ImageFileError as e:
         raise FieldcalError(f"cannot read the image: {e.what}", path=path, fix=e.fix) from None
     return img if img.ndim == 3 else img[..., None]

@@ -41,8 +41,22 @@ _FIX_ELSEWHERE = "write the output somewhere else: fieldcal never writes over or
 
 
 def _resolved(path: str | os.PathLike) -> Path:
-    """Absolute path with every existing symbolic link resolved (so a link to an input is that input)."""
-    return Path(os.path.abspath(os.path.expanduser(os.fspath(path)))).resolve(strict=False)
+    """Absolute path with every existing symbolic link resolved (so a link to an input is that input).
+
+    Raises
+    ------
+    PathError
+        The path is a loop of symbolic links (Python raises RuntimeError or OSError ELOOP for it).
+    """
+    import errno
+
+    p = Path(os.path.abspath(os.path.expanduser(os.fspath(path))))
+    try:
+        return p.resolve(strict=False)
+    except (RuntimeError, OSError) as e:
+        if isinstance(e, OSError) and e.errno != errno.ELOOP:
+            raise
+        raise from_oserror(OSError(errno.ELOOP, "is a loop of symbolic links", str(path)), path=path) from None
 
 
 def _within(path: Path, root: Path) -> bool:
@@ -79,6 +93,66 @@ def _refuse_if_input(path: Path, inputs: Iterable[Path | str], field: str | None
                               fix=_FIX_ELSEWHERE)
 
 
+#: Most entries of a folder input looked at for links out of it (a stack holds frames, not a disk).
+_LINK_SCAN_LIMIT = 20000
+
+
+def _file_id(path: str | os.PathLike) -> tuple[int, int] | None:
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return (st.st_dev, st.st_ino) if stat.S_ISREG(st.st_mode) else None
+
+
+def _linked_inputs(inputs: dict[Path, object]) -> tuple[dict[Path, str], set[tuple[int, int]]]:
+    """What the inputs hold through links, which an output must not replace either.
+
+    Returns the real files that symbolic links inside folder inputs lead to (a stack made by ``fieldcal import
+    --link symlink`` keeps its frames' data outside its folder), each named for messages as the link that leads
+    there, and the (device, inode) of input files that have other hard links (``--link hard``: the camera file
+    and the frame are one file under two names)."""
+    targets: dict[Path, str] = {}
+    ids: set[tuple[int, int]] = set()
+    seen = 0
+    for root, name in inputs.items():
+        if not root.is_dir():
+            fid = _file_id(root)
+            if fid is not None:
+                ids.add(fid)
+            continue
+        for dirpath, dirnames, filenames in os.walk(root, followlinks=False):
+            for n in dirnames + filenames:
+                seen += 1
+                if seen > _LINK_SCAN_LIMIT:
+                    return targets, ids
+                p = Path(dirpath) / n
+                try:
+                    st = os.lstat(p)
+                except OSError:
+                    continue
+                if stat.S_ISLNK(st.st_mode):
+                    try:
+                        real = _resolved(p)
+                    except OutputError:  # a loop of links leads nowhere; the input's reader refuses it
+                        continue
+                    if not _within(real, root):
+                        targets.setdefault(real, f"{real} (the file {name}/{p.relative_to(root)} links to)")
+                        fid = _file_id(real)
+                        if fid is not None:
+                            ids.add(fid)
+                elif stat.S_ISREG(st.st_mode) and st.st_nlink > 1:
+                    ids.add((st.st_dev, st.st_ino))
+    return targets, ids
+
+
+def _refuse_if_same_file(path: Path, ids: set[tuple[int, int]], field: str | None) -> None:
+    fid = _file_id(path) if ids else None
+    if fid is not None and fid in ids:
+        raise OutputError("is the same file as one of the inputs (a hard or symbolic link to it)", path=path,
+                          field=field, fix=_FIX_ELSEWHERE)
+
+
 # -------------------------------------------------------------------------------------------- path checks
 
 
@@ -94,6 +168,25 @@ def _check_parent(path: Path, field: str | None) -> None:
     if os.path.lexists(anc) and not anc.is_dir():
         raise OutputError(f"{anc} is a file, so {path} cannot be created inside it", path=path, field=field,
                           fix="choose an output path whose folders are folders")
+
+
+#: Room a profile needs below the file system's longest name for its ``NAME.<16 hex>.samples.npz`` sidecar.
+SIDECAR_NAME_ROOM = 32
+
+
+def _check_name_length(path: Path, field: str | None, room: int = 0) -> None:
+    """A name the file system cannot hold fails now, not when the finished result is renamed into place;
+    ``room``: bytes kept for a file written beside the output under a longer name."""
+    anc = _nearest_existing(path.parent if str(path.parent) else Path("."))
+    try:
+        name_max = os.pathconf(anc if anc.is_dir() else anc.parent, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        name_max = 255
+    for part in path.parts[len(anc.parts):] if path != anc else (path.name,):
+        if len(os.fsencode(part)) > name_max - room:
+            beside = f" and {room} are kept for the file written beside it" if room else ""
+            raise OutputError(f"has a name of {len(os.fsencode(part))} bytes; this file system holds at most "
+                              f"{name_max}{beside}", path=path, field=field, fix="use a shorter name")
 
 
 def _case_twin(path: Path) -> str | None:
@@ -130,7 +223,7 @@ def _check_file_target(path: Path, overwrite: bool, field: str | None) -> None:
 def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike | None] = (),
                  overwrite: bool = False, kind: str = "file", files: Iterable[str] = (),
                  suffixes: Iterable[str] | None = None, field: str | None = "--out",
-                 replaces_folder: bool = False) -> Path:
+                 replaces_folder: bool = False, name_room: int = 0) -> Path:
     """Refuse an output path before any work is done; returns it as a :class:`Path`.
 
     Parameters
@@ -149,6 +242,9 @@ def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike 
         Accepted extensions (lower case, with the dot) of a file output.
     replaces_folder : bool
         A folder output that is replaced as a whole: an input inside it is refused too.
+    name_room : int
+        Bytes the output's name must leave free below the file system's longest name, for a file written beside
+        it under a longer name (a profile's sidecar: :data:`SIDECAR_NAME_ROOM`).
 
     Raises
     ------
@@ -159,7 +255,11 @@ def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike 
     if not str(path).strip():
         raise OutputError("is empty", field=field, fix="give an output path")
     given = {_resolved(i): i for i in inputs if i is not None and str(i) != ""}
+    linked, ids = _linked_inputs(given)
+    for real, name in linked.items():
+        given.setdefault(real, name)
     _refuse_if_input(p, given, field, given)
+    _refuse_if_same_file(p, ids, field)
     if replaces_folder:
         for root, inp in given.items():
             if _within(root, _resolved(p)):
@@ -167,6 +267,7 @@ def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike 
                                   path=p, field=field, fix=_FIX_ELSEWHERE)
     protect(*given)
     _check_parent(p, field)
+    _check_name_length(p, field, name_room)
     if kind == "file":
         if suffixes is not None:
             suffixes = tuple(suffixes)
@@ -182,6 +283,7 @@ def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike 
             raise OutputError("is a file, not a folder", path=p, field=field, fix="give a folder name")
         for name in files:
             _refuse_if_input(p / name, given, field, given)
+            _refuse_if_same_file(p / name, ids, field)
             _check_file_target(p / name, overwrite, field)
     else:  # pragma: no cover - programming error
         raise ValueError(kind)
@@ -326,10 +428,37 @@ def jsonable(v):
     return v
 
 
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where the kernel, the C library
+    or the file system cannot, so the caller falls back to two renames."""
+    import errno
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):  # glibc < 2.28 or another C library
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    fn.restype = ctypes.c_int
+    at_fdcwd, rename_exchange = -100, 2
+    if fn(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.EPERM):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
 def replace_folder(staging: str | Path, out: str | Path) -> None:
     """Rename a finished folder ``staging`` to ``out`` (same parent). An empty ``out`` is removed first; an
-    existing one (the caller has checked it may be replaced) is moved aside under an unpredictable name and
-    deleted only after the new folder took its name, so ``out`` is always either the old or the new folder."""
+    existing one (the caller has checked it may be replaced) is swapped with ``staging`` in one step where the
+    OS can (Linux ``renameat2``), else moved aside under an unpredictable name first; it is deleted only after
+    the new folder took its name, so ``out`` is always either the old or the new folder (after a crash in the
+    fallback's two renames, the old one under its hidden name)."""
     import shutil
     import tempfile
 
@@ -338,6 +467,10 @@ def replace_folder(staging: str | Path, out: str | Path) -> None:
     if out.exists():
         if out.is_dir() and not out.is_symlink() and not any(out.iterdir()):
             out.rmdir()
+        elif out.is_dir() and not out.is_symlink() and _exchange(staging, out):
+            fsync_dir(out.resolve().parent)
+            shutil.rmtree(staging, ignore_errors=True)  # the old folder, under the staging name now
+            return
         else:
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.resolve().parent))
             old.rmdir()
@@ -369,3 +502,58 @@ def check_replaceable_folder(out: str | Path, marker: str, overwrite: bool, what
         if not (out / marker).is_file():
             raise err(f"is not empty and holds no {marker}: fieldcal will not delete a folder that is not {what}",
                       path=out, field="out", fix="choose a new or empty folder")
+        foreign = foreign_files(out, marker)
+        if foreign:
+            more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+            raise err(f"holds files that are not part of {what} ({', '.join(foreign[:3])}{more}): replacing the "
+                      "folder would delete them, and fieldcal never deletes what it did not write", path=out,
+                      field="out", fix="move those files out of the folder, or choose a new folder")
+
+
+#: Files a folder made by fieldcal may hold beside those its marker lists (simulate's truth, capture's journal).
+_SIDE_FILES = {"stack.json": ("truth.json", "truth.tiff", "capture.journal")}
+
+
+_FRAME_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")
+
+
+def _listed_files(out: Path, marker: str) -> set[str]:
+    """The files the marker document says the folder holds (relative POSIX paths); empty if it is unreadable."""
+    import json
+
+    try:
+        doc = json.loads((out / marker).read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return set()
+    if not isinstance(doc, dict):
+        return set()
+    from pathlib import PurePosixPath
+
+    names = set()
+    for key, field in (("frames", "file"), ("files", "name")):  # stack.json frames; masks.json records
+        records = doc.get(key)
+        for rec in records if isinstance(records, list) else []:
+            if isinstance(rec, dict) and isinstance(rec.get(field), str):
+                names.add(PurePosixPath(rec[field].replace("\\", "/")).as_posix())  # "./frames/a" -> "frames/a"
+    return names
+
+
+def foreign_files(out: str | Path, marker: str) -> list[str]:
+    """Files (and links) inside the folder ``out`` that neither its ``marker`` document lists nor fieldcal writes
+    beside it, as relative paths: what replacing the folder would delete that fieldcal did not write. Hidden
+    temporary files of fieldcal's own writes (``.NAME.<hex>.tmp``) are not counted."""
+    out = Path(out)
+    known = {marker, *_SIDE_FILES.get(marker, ()), *_listed_files(out, marker)}
+    found = []
+    for dirpath, dirnames, filenames in os.walk(out, followlinks=False):
+        for n in filenames + [d for d in dirnames if os.path.islink(os.path.join(dirpath, d))]:
+            rel = Path(os.path.relpath(os.path.join(dirpath, n), out)).as_posix()
+            if rel in known or (n.startswith(".") and n.endswith(".tmp")):
+                continue
+            if marker == "stack.json" and rel.startswith("frames/") and rel.count("/") == 1 and \
+                    os.path.splitext(n)[1].lower() in _FRAME_SUFFIXES:
+                continue  # a frame a killed capture wrote and never committed (it takes it again on resume)
+            found.append(rel)
+            if len(found) > 100:
+                return sorted(found)
+    return sorted(found)

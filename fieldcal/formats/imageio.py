@@ -12,7 +12,9 @@ it into a :class:`fieldcal.errors.StackError` that also names the stack.json fie
 
 from __future__ import annotations
 
+import contextlib
 import io
+import logging
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -147,8 +149,29 @@ def _native(dtype: np.dtype) -> np.dtype:
     return np.dtype(dtype).newbyteorder("=")
 
 
+@contextlib.contextmanager
+def _tifffile_quiet():
+    """tifffile logs a damaged file's faults as warnings (Python's last-resort handler prints them on stderr, e.g.
+    "<tifffile.TiffPages @25070> invalid offset to first page") before fieldcal's own what/where/fix message;
+    while fieldcal reads, only that message is shown."""
+    log = logging.getLogger("tifffile")
+    level = log.level
+    log.setLevel(logging.ERROR + 1)
+    try:
+        yield
+    finally:
+        log.setLevel(level)
+
+
 def sniff_kind(path: Path) -> str:
-    """Return ``"tiff"``, ``"png"`` or ``"jpeg"`` from the file's magic bytes (the extension is not trusted)."""
+    """Return ``"tiff"``, ``"png"`` or ``"jpeg"`` from the file's magic bytes (the extension is not trusted).
+
+    A path that is not a regular file (a pipe or a device would block the read, or never end) is refused."""
+    import os
+    import stat
+
+    if not stat.S_ISREG(os.stat(path).st_mode):  # FileNotFoundError passes through
+        raise ImageFileError("is not a regular file (a folder, pipe or device)", "give an image file")
     with open(path, "rb") as f:
         head = f.read(8)
     if head.startswith(_PNG_SIGNATURE):
@@ -246,7 +269,7 @@ def _probe_tiff(path: Path) -> ImageHeader:
     import tifffile
 
     try:
-        with tifffile.TiffFile(path) as tf:
+        with _tifffile_quiet(), tifffile.TiffFile(path) as tf:
             if not tf.series:
                 raise ImageFileError("has an unreadable TIFF header (no image found)",
                                      "re-export the frame; the file is damaged")
@@ -303,7 +326,7 @@ def check_image_file(path: str | Path) -> None:
     import tifffile
 
     try:
-        with tifffile.TiffFile(path) as tf:
+        with _tifffile_quiet(), tifffile.TiffFile(path) as tf:
             shapes = [(tuple(sr.shape), sr.dtype) for sr in tf.series]
     except Exception:
         return  # the decoder reports a damaged file itself
@@ -368,6 +391,20 @@ def read_image(path: str | Path, roi: tuple[int, int, int, int] | None = None,
     return np.ascontiguousarray(image)
 
 
+def check_finite(image: np.ndarray) -> None:
+    """Refuse a float frame holding NaN or infinite pixels (no measurement or blend is defined on them).
+
+    Raises
+    ------
+    ImageFileError
+        Naming how many pixels are not finite.
+    """
+    if image.dtype.kind == "f" and not np.isfinite(image).all():
+        bad = int(np.count_nonzero(~np.isfinite(image)))
+        raise ImageFileError(f"holds {bad} NaN/Inf pixel(s)",
+                             "replace non-finite pixels (e.g. with 0 or the saturation value) and export again")
+
+
 def _read_tiff(path: Path, header: ImageHeader, roi) -> tuple[np.ndarray, bool]:
     """Memory-map uncompressed pages (an ROI read copies only the ROI), else decode the one page.
 
@@ -385,7 +422,8 @@ def _read_tiff(path: Path, header: ImageHeader, roi) -> tuple[np.ndarray, bool]:
             return np.array(mm), False
         finally:
             del mm  # release the mapping now, not at garbage collection
-    image = tifffile.imread(path)
+    with _tifffile_quiet():
+        image = tifffile.imread(path)
     if header.planar:
         image = np.moveaxis(image, 0, -1)
     if image.size == int(np.prod(header.shape)):

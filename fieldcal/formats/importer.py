@@ -7,7 +7,8 @@ What :func:`import_stack` does, in order, before anything is written:
 2. reads what each file says about the camera: size, channels, sample type, make and model, f-number, focal
    length, exposure, pixel pitch (EXIF ``FocalPlaneXResolution``) and, for raw files, the CFA pattern and
    the black and white levels (LibRaw through rawpy);
-3. refuses a set that mixes sizes, cameras, sample types or CFA patterns, and a pixel pitch that is neither in
+3. decodes every TIFF, PNG and JPEG file once (a whole header over truncated data is refused here);
+4. refuses a set that mixes sizes, cameras, sample types or CFA patterns, and a pixel pitch that is neither in
    the files nor given.
 
 Then it builds the stack in a hidden folder beside ``out`` and renames it into place, so ``out`` either does
@@ -35,9 +36,9 @@ from typing import Sequence
 import numpy as np
 
 from fieldcal.errors import ParameterError, StackError
-from fieldcal.formats.atomic import (atomic_write_bytes, atomic_write_text, check_replaceable_folder,
-                                     replace_folder)
-from fieldcal.formats.imageio import ImageFileError, encode, probe
+from fieldcal.formats.atomic import (atomic_write_bytes, atomic_write_text, check_output,
+                                     check_replaceable_folder, replace_folder)
+from fieldcal.formats.imageio import ImageFileError, check_finite, encode, probe, read_image
 
 #: File name endings read through LibRaw (rawpy). Many raw formats are TIFF inside, so the ending decides.
 RAW_SUFFIXES = frozenset({".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf",
@@ -230,6 +231,9 @@ def describe(path: str | os.PathLike) -> SourceFrame:
                            white_level=raw["white"], extra={"black_levels": blacks}, **meta)
     try:
         header = probe(path)
+        # decoded once, as calibrate will: a file whose header is whole but whose data is truncated or damaged
+        # (a copy interrupted, a card pulled) is refused now, not after it was copied into a "valid" stack
+        check_finite(read_image(path, header=header))
     except ImageFileError as exc:
         raise StackError(exc.what, path=path, field="images", fix=exc.fix) from None
     if exif_width and header.width != int(exif_width) and meta.get("pixel_pitch_um"):
@@ -242,6 +246,9 @@ def describe(path: str | os.PathLike) -> SourceFrame:
 def read_z_csv(path: str | os.PathLike) -> list[tuple[str, float]]:
     """Rows ``file,z_um`` of a CSV (a header row naming the columns is optional), in file order."""
     path = Path(path)
+    if path.exists() and not path.is_file():  # a pipe would block the read
+        raise ParameterError("is not a regular file", path=path, field="z_csv",
+                             fix="give a UTF-8 CSV file of file,z_um rows")
     try:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
@@ -354,15 +361,11 @@ def _positive(value, name: str) -> float | None:
     return v
 
 
-def _check_out(out: Path, sources: list[Path], overwrite: bool) -> None:
-    resolved = out.resolve()
-    for s in sources:
-        try:
-            s.resolve().relative_to(resolved)
-        except ValueError:
-            continue
-        raise ParameterError("lies inside the output folder; importing would overwrite an input", path=s,
-                             field="out", fix="choose an output folder that holds none of the images")
+def _check_out(out: Path, sources: list[Path], overwrite: bool, z_csv=None) -> None:
+    """The shared output checks (never over or into an input or through a file; the inputs stay protected),
+    then the stack folder's own: new, empty, or a stack replaced only with ``overwrite``."""
+    check_output(out, inputs=[*sources, z_csv], overwrite=overwrite, kind="dir", replaces_folder=True,
+                 field="out")
     check_replaceable_folder(out, "stack.json", overwrite, "a stack", error=ParameterError)
 
 
@@ -429,7 +432,7 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     zs = [z for _, z in ordered]
     if len(set(zs)) != len(zs):
         raise ParameterError("two frames have the same z_um", field="z_csv", fix="give every frame its own position")
-    _check_out(out, [p for p, _ in ordered], overwrite)
+    _check_out(out, [p for p, _ in ordered], overwrite, z_csv)
 
     frames = [describe(p) for p, _ in ordered]
     _agree(frames, "kind", "file type", "import frames of one kind (all raw, or all JPEG, ...)")
@@ -439,6 +442,16 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     _agree(frames, "n_channels", "channel count", "all frames must be colour, or all mono")
     _agree(frames, "dtype", "sample type", "export every frame with the same bit depth")
     _agree(frames, "cfa", "CFA pattern", "import frames of one camera and one crop")
+    # a raw frame's levels say where black and clipping are: one stack records one pair, so frames must agree
+    _agree(frames, "black_level", "black level", "import frames taken with one camera setting (a black level "
+           "changes with ISO and temperature on some sensors: take the series again at one setting)")
+    _agree(frames, "white_level", "white level", "import frames taken with one camera setting")
+    first = frames[0]
+    if first.white_level is not None and first.black_level is not None and \
+            not first.white_level > first.black_level:
+        raise StackError(f"states a white level ({first.white_level:g}) not above its black level "
+                         f"({first.black_level:g})", path=first.path, field="images",
+                         fix="check the raw file (a damaged or hand-edited DNG), or convert the frames to TIFF")
     _agree(frames, "make", "camera make", "import frames from one camera")
     _agree(frames, "model", "camera model", "import frames from one camera")
     if link is not None and frames[0].kind == "raw":

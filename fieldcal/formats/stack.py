@@ -93,6 +93,9 @@ def _resolve_frame_path(root: Path, file: str, where: str, json_path: Path, *, s
     except ValueError:
         raise StackError(f"{file!r} resolves outside the stack folder", path=json_path, field=where,
                          fix=fix) from None
+    except (RuntimeError, OSError):  # a loop of symbolic links (RuntimeError before Python 3.13, then ELOOP)
+        raise StackError(f"{file!r} is a loop of symbolic links", path=json_path, field=where,
+                         fix="replace the link with the frame file (or a link to it)") from None
     return full
 
 
@@ -506,6 +509,9 @@ def _load_frames(root: Path, meta: dict, json_path: Path, n_channels: int,
             raise StackError(f"frames[{seen_file[key]}] and frames[{i}] both use file {file!r}", path=json_path,
                              field=where, fix="give every frame its own file")
         seen_file[key] = i
+        if os.path.exists(path) and not path.is_file():
+            raise StackError(f"frame file {file!r} is not a regular file (a folder, device or pipe)", path=json_path,
+                             field=where, fix="replace it with the frame's image file")
         if not path.is_file():
             raise StackError(f"frame file {file!r} does not exist", path=json_path, field=where,
                              fix="restore the frame file, or remove its entry from stack.json")

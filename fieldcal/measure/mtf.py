@@ -200,9 +200,10 @@ def measure_frame(frame: np.ndarray, *, channels=("Y",), cfa: str | None = None,
 
 
 def _read_single(path: Path) -> tuple[np.ndarray, tuple[str, ...]]:
-    from ..formats.imageio import ImageFileError, read_image
+    from ..formats.imageio import ImageFileError, check_finite, read_image
     try:
         img = read_image(path)
+        check_finite(img)
     except FileNotFoundError:
         raise ParameterError("not found", path=path, fix="give an image file or a stack folder") from None
     except ImageFileError as exc:
@@ -256,9 +257,17 @@ def measure_mtf(source, *, channels=None, cfa: str | None = None, centre_px=None
     if isinstance(source, (str, Path)):
         p = Path(source)
         if p.is_dir():
+            if cfa is not None:  # never ignore a flag
+                raise ParameterError(f"cfa {cfa!r} is given for a stack, which records its own CFA pattern",
+                                     path=p, field="cfa", fix="drop --cfa for a stack (set 'cfa' in its "
+                                                                 "stack.json if its frames are mosaics)")
             stack = Stack.open(p)
         else:
             img, names = _read_single(p)
+            if cfa is not None and img.shape[2] != 1:
+                raise ParameterError(f"cfa {cfa!r} is given for an image with {img.shape[2]} channels; a raw "
+                                     "Bayer mosaic has one", path=p, field="cfa",
+                                     fix="drop --cfa for a demosaiced (colour) image, or give the raw mosaic")
             if cfa is not None:
                 img = img[:, :, 0]
                 names = ("R", "G", "B")

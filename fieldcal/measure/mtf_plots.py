@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -19,11 +18,12 @@ def _plt():
 
 
 def _save(fig, path: Path) -> Path:
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    os.replace(tmp, path)  # never a half-written PNG
-    _plt().close(fig)
-    return path
+    from ..formats.atomic import save_figure
+
+    try:  # the one atomic writer: unpredictable temporary name, never through a link, never over an input
+        return save_figure(fig, path, dpi=110, bbox_inches="tight")
+    finally:
+        _plt().close(fig)
 
 
 def _labels(res: MtfResult) -> list[str]:
@@ -108,10 +108,13 @@ def plot_through_focus(res: MtfResult, out: Path, fs_cy_per_px: float = 0.25, q:
     return _save(fig, Path(out))
 
 
+#: The files :func:`write_plots` may write in its folder.
+PLOT_FILES = ("mtf50_field.png", "through_focus.png")
+
+
 def write_plots(res: MtfResult, out_dir, fs_cy_per_px: float = 0.25, q: float = 0.05) -> list[Path]:
     """All plots of ``res`` into ``out_dir``: mtf50_field.png, and through_focus.png for a stack."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = Path(out_dir)  # created by the atomic writer (a path through a file is a clear error)
     paths = [plot_mtf50_field(res, out_dir / "mtf50_field.png")]
     if len({e["frame"] for e in res.edges}) > 1:
         paths.append(plot_through_focus(res, out_dir / "through_focus.png", fs_cy_per_px, q))

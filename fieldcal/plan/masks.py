@@ -180,14 +180,20 @@ def unpack(bits: np.ndarray, width: int) -> np.ndarray:
     return np.unpackbits(bits, axis=-1, count=width).astype(bool)
 
 
-def write_npz(path: str | Path, arrays: dict) -> str:
-    """Write the arrays compressed and atomically; returns the sha256 of the file."""
+def npz_bytes(arrays: dict) -> tuple[bytes, str]:
+    """The compressed .npz file of ``arrays`` in memory and its sha256."""
     import hashlib
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     data = buf.getvalue()
+    return data, hashlib.sha256(data).hexdigest()
+
+
+def write_npz(path: str | Path, arrays: dict) -> str:
+    """Write the arrays compressed and atomically; returns the sha256 of the file."""
+    data, sha = npz_bytes(arrays)
     atomic_write_bytes(path, data)
-    return hashlib.sha256(data).hexdigest()
+    return sha
 
 
 def load_npz(path: str | Path) -> dict:

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ParameterError
+from ..formats.atomic import atomic_write_bytes
 from ..optics import LensModel, valid_fs_cyc_per_mm
 from ..optics.sweep import integrated_otf
 from . import ipsf as ip
@@ -190,6 +191,9 @@ def _check(r: SweepRequest):
         if not ok:
             raise ParameterError(f"{name} = {v!r} must be a finite number > 0", field=name,
                                  fix="e.g. --alpha-um 20 --pixel-exposure-ms 16")
+    if float(r.alpha_um) > 1e6:  # a half-range beyond 1 m is no stage's sweep (plan files cap positions at 1e9 µm)
+        raise ParameterError(f"alpha_um = {r.alpha_um!r} µm is more than a stage travels (1 m)", field="alpha_um",
+                             fix="give the sweep's half-range in µm, e.g. --alpha-um 20")
     if r.direction not in ("+z", "-z"):
         raise ParameterError(f"direction {r.direction!r} unknown", field="direction", fix="use +z or -z")
     if not (math.isfinite(r.wiener_nsr) and r.wiener_nsr > 0):
@@ -268,12 +272,17 @@ def plan_sweep(profile: LensModel, request: SweepRequest) -> SweepPlan:
 
 def write_sweep_plan(plan: SweepPlan, out: str | Path, profile_info: dict | None = None,
                      extra_parameters: dict | None = None) -> dict:
-    """Write the mask sidecar (atomically) and then the plan (atomically); returns the plan document."""
-    from .planfile import write_plan
+    """Write the mask sidecar (atomically) and then the plan (atomically); returns the plan document.
+
+    The document is built and validated before either file is written, so a plan the schema refuses leaves no
+    orphan ``.masks.npz`` behind."""
+    from .planfile import validate_plan, write_plan
     out = Path(out)
     npz = out.with_name(out.stem + ".masks.npz")
-    sha = mk.write_npz(npz, plan.mask_arrays())
+    data, sha = mk.npz_bytes(plan.mask_arrays())
     doc = plan.to_dict(masks_file=npz.name, masks_sha256=sha, profile_info=profile_info)
     doc["parameters"].update(extra_parameters or {})
+    validate_plan(doc, out, check_files=False)
+    atomic_write_bytes(npz, data)
     write_plan(out, doc)
     return doc

@@ -166,10 +166,18 @@ def _in_hull(hull: np.ndarray | None, x, y) -> np.ndarray:
 def _scan_focus(profile, z_um: float | None) -> tuple[float, list[str]]:
     """The export's stage position: the calibrated focus clipped to the scan (a fit's extrapolation is no
     calibration), or the one asked for."""
-    if z_um is not None:
-        return float(z_um), []
-    z = calibrated_focus_um(profile)
     lo, hi = getattr(profile, "z_range_um", (-np.inf, np.inf))
+    if z_um is not None:
+        z = float(z_um)
+        if not math.isfinite(z):
+            raise ParameterError(f"the stage position z = {z_um!r} µm is not a finite number", field="z_um",
+                                 fix="give the stage position of the exported geometry in µm, or leave it unset "
+                                     "for the calibrated focus")
+        if not (lo <= z <= hi):
+            return z, [f"z = {z:.1f} um lies outside the scan [{lo:.1f}, {hi:.1f}] um: the exported geometry is "
+                       "the fit's extrapolation, not a calibration"]
+        return z, []
+    z = calibrated_focus_um(profile)
     if not (lo <= z <= hi):
         zc = float(np.clip(z, lo, hi))
         return zc, [f"the calibrated focus {z:.1f} um lies outside the scan [{lo:.1f}, {hi:.1f}] um: "

@@ -150,6 +150,9 @@ def load_prescription(path: str | Path) -> Prescription:
     if not path.exists():
         raise SpecError("prescription table not found", path=path,
                         fix="give the path to a CSV or JSON table, e.g. models/triplet-uncorrected.prescription.csv")
+    if not path.is_file():  # a folder, or a pipe that would block the read
+        raise SpecError("is not a regular file", path=path,
+                        fix="give the path to a CSV or JSON table, e.g. models/triplet-uncorrected.prescription.csv")
     try:
         text = path.read_text(encoding="utf-8")
     except (UnicodeDecodeError, OSError) as e:

@@ -97,6 +97,26 @@ def load_scene(scene, width_px: int, height_px: int, seed: int = 0) -> tuple[np.
     return fit_to_sensor(np.asarray(scene), width_px, height_px), "array"
 
 
+def _read_frame_layout(path: Path) -> np.ndarray | None:
+    """A scene in a layout the frame reader knows (grey/RGB(A) PNG, JPEG, TIFF), decoded by it, which refuses
+    damaged data (a JPEG cut short decodes with OpenCV's imread as a half-grey picture and a libjpeg warning).
+    None for the other layouts (palette PNG, float TIFF, ...), which the permissive readers below take."""
+    from fieldcal.formats.imageio import ImageFileError, probe, read_image
+
+    try:
+        header = probe(path)
+    except OSError:
+        return None
+    except ImageFileError as e:
+        if e.what.startswith("has an unreadable"):  # a damaged header, not merely a layout frames do not use
+            raise ParameterError(f"scene image {e.what}", path=path, field="scene", fix=e.fix) from None
+        return None
+    try:
+        return read_image(path, header=header)
+    except ImageFileError as e:
+        raise ParameterError(f"scene image {e.what}", path=path, field="scene", fix=e.fix) from None
+
+
 def _read_file(path: Path) -> np.ndarray:
     if not path.is_file():
         raise ParameterError("scene image not found", path=path, field="scene",
@@ -106,15 +126,20 @@ def _read_file(path: Path) -> np.ndarray:
         check_image_file(path)  # a tiny file may declare a gigapixel image: refuse before decoding
     except ImageFileError as e:
         raise ParameterError(f"scene image {e.what}", path=path, field="scene", fix=e.fix) from None
-    img = None
-    if path.suffix.lower() in (".tif", ".tiff"):
+    img = _read_frame_layout(path)
+    if img is None and path.suffix.lower() in (".tif", ".tiff"):
         try:
             import tifffile
             img = tifffile.imread(path)
         except Exception:  # not a TIFF tifffile understands: let OpenCV try
             img = None
     if img is None:
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # our error replaces its warnings
+        try:
+            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+        finally:
+            cv2.utils.logging.setLogLevel(level)
         if img is not None and img.ndim == 3:
             code = cv2.COLOR_BGRA2RGBA if img.shape[2] == 4 else cv2.COLOR_BGR2RGB
             img = cv2.cvtColor(img, code)

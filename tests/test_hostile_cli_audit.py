@@ -1,0 +1,573 @@
+"""Hostile input, session 16 audit: gaps found by attacking every command with tiny inputs.
+
+Each test is the regression test of one defect the audit found (it failed before the fix). Inputs are tiny
+(64x48 images, a 96x64 simulated stack of 5 frames) so the file runs in seconds. Every case asserts the
+documented exit status, a what/where/fix message without a traceback, and that no input byte changed.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from fieldcal.errors import EXIT_BAD_INPUT
+
+from hostile_safety_util import LENS, assert_clean_failure, changed, no_temp_files, run_cli, snapshot
+
+
+@pytest.fixture(scope="module")
+def tiny_world(tmp_path_factory):
+    """J/img0-3.png and .jpg (64x48 RGB noise) and S, a 96x64 simulated stack of 5 frames."""
+    from fieldcal.cli import main
+
+    root = tmp_path_factory.mktemp("audit-world")
+    (root / "J").mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(4):
+        im = (rng.random((48, 64, 3)) * 255).astype(np.uint8)
+        cv2.imwrite(str(root / "J" / f"img{k}.png"), im)
+        cv2.imwrite(str(root / "J" / f"img{k}.jpg"), im)
+    assert main(["simulate", str(LENS), str(root / "S"), "--z", "-100", "100", "50", "--size", "96x64",
+                 "--quiet"]) == 0
+    return root
+
+
+@pytest.fixture
+def t(tiny_world, tmp_path):
+    import shutil
+
+    dst = tmp_path / "t"
+    shutil.copytree(tiny_world, dst, symlinks=True)
+    return dst
+
+
+def refused(root: Path, argv, capsys, *needles, code=EXIT_BAD_INPUT) -> str:
+    before = snapshot(root)
+    rc, err = run_cli(argv, capsys)
+    assert_clean_failure(rc, err, code, *needles)
+    assert changed(before, snapshot(root)) == set(), "a refused command changed files"
+    return err
+
+
+# ------------------------------------------------------------------------------------ fieldcal mtf
+
+
+def test_mtf_refuses_out_over_its_input_image(t, capsys):
+    """Before: `mtf img.png --out img.png` replaced the measured image with the JSON (the input was lost)."""
+    refused(t, ["mtf", t / "J" / "img0.png", "--out", t / "J" / "img0.png"], capsys, "--out", "input", "img0.png")
+
+
+@pytest.mark.parametrize("flag,target", [("--out", "S/m.json"), ("--plots", "S/frames")])
+def test_mtf_refuses_outputs_inside_the_stack(t, capsys, flag, target):
+    """Before: the JSON and the plots were written into the stack folder measured."""
+    argv = ["mtf", t / "S", "--out", t / "m.json", "--quiet"]
+    if flag == "--out":
+        argv[3] = t / target
+    else:
+        argv += ["--plots", t / target]
+    refused(t, argv, capsys, flag, "inside the input")
+
+
+def test_mtf_needs_overwrite_to_replace_an_output(t, capsys):
+    """Before: an existing --out (and --plots pictures) were replaced silently; mtf had no --overwrite."""
+    img, out, plots = t / "J" / "img0.png", t / "m.json", t / "plots"
+    rc, err = run_cli(["mtf", img, "--out", out, "--plots", plots, "--quiet"], capsys)
+    assert rc == 0, err
+    refused(t, ["mtf", img, "--out", out, "--quiet"], capsys, "exists", "--overwrite")
+    refused(t, ["mtf", img, "--out", t / "m2.json", "--plots", plots, "--quiet"], capsys, "--plots", "exists")
+    rc, err = run_cli(["mtf", img, "--out", out, "--plots", plots, "--overwrite", "--quiet"], capsys)
+    assert rc == 0, err
+
+
+def test_mtf_plots_never_write_through_a_planted_temporary_name(t, capsys):
+    """Before: the plots went through the fixed temporary name .mtf50_field.png.tmp.png, following a link
+    planted there (a file outside the output folder was overwritten)."""
+    victim = t / "victim.txt"
+    victim.write_text("precious")
+    plots = t / "plots"
+    plots.mkdir()
+    (plots / ".mtf50_field.png.tmp.png").symlink_to(victim)
+    rc, err = run_cli(["mtf", t / "J" / "img0.png", "--out", t / "m.json", "--plots", plots, "--quiet"], capsys)
+    assert rc == 0, err
+    assert victim.read_text() == "precious"
+    assert (plots / "mtf50_field.png").is_file() and not (plots / "mtf50_field.png").is_symlink()
+    assert cv2.imread(str(plots / "mtf50_field.png")) is not None
+
+
+@pytest.mark.parametrize("centre", ["nan,nan", "inf,3", "1e400,2"])
+def test_mtf_refuses_a_non_finite_centre(t, capsys, centre):
+    """Before: --centre nan,nan was taken, and every edge's tangential/sagittal split was silently wrong."""
+    refused(t, ["mtf", t / "J" / "img0.png", "--out", t / "m.json", "--centre", centre], capsys, "--centre",
+            "finite")
+
+
+# ----------------------------------------------------------------- outputs over a linked stack's frames
+
+
+@pytest.mark.parametrize("link", ["symlink", "hard"])
+@pytest.mark.parametrize("command", ["composite", "mtf"])
+def test_no_output_over_the_camera_file_a_linked_frame_is(t, capsys, link, command):
+    """Before: after `import --link symlink`, `composite STACK --out <a camera file> --overwrite` replaced the
+    camera file the stack's frame links to (the stack folder was protected, the data it points to was not)."""
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    rc, err = run_cli(["import", *jpgs, "--out", t / "I", "--z", "0", "20", "--pixel-pitch-um", "5", "--link", link,
+                       "--quiet"], capsys)
+    assert rc == 0, err
+    victim = jpgs[1]
+    argv = [command, t / "I", "--out", victim, "--overwrite", "--quiet"]
+    refused(t, argv, capsys, "--out", victim.name, "input")
+    # a fresh output beside them is still fine
+    out = t / ("c.jpg" if command == "composite" else "m.json")
+    rc, err = run_cli([command, t / "I", "--out", out, "--quiet"], capsys)
+    assert rc == 0, err
+
+
+# --------------------------------------------------------------------------------- fieldcal import
+
+
+def _import(t, images, *extra):
+    return ["import", *images, "--out", t / "I", "--z", "0", "20", "--pixel-pitch-um", "5", *extra]
+
+
+def test_import_names_out_when_its_parent_is_a_file(t, capsys):
+    """Before: 'fieldcal import ... --out notes.txt/I' said '<abs path>/notes.txt: File exists' with the fix
+    'choose another name (or add --overwrite)', which does not help, and named no option."""
+    (t / "notes.txt").write_text("mine")
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    argv = ["import", *jpgs, "--out", t / "notes.txt" / "I", "--z", "0", "20", "--pixel-pitch-um", "5"]
+    err = refused(t, argv, capsys, "--out", "notes.txt", "is a file")
+    assert "--overwrite" not in err.split("fix:")[1]
+
+
+def test_import_refuses_out_equal_to_its_z_csv(t, capsys):
+    """The --z-csv file is an input too: an --out over it is refused like an --out over an image."""
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    csv = t / "z.csv"
+    csv.write_text("".join(f"{p.name},{10 * k}\n" for k, p in enumerate(jpgs)))
+    refused(t, ["import", *jpgs, "--out", csv, "--z-csv", csv, "--pixel-pitch-um", "5", "--overwrite"], capsys,
+            "--out", "input")
+
+
+def _truncate_jpeg_data(p: Path) -> None:
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])  # header whole, entropy-coded data cut
+
+
+def _damage_deflate_tiff(p: Path) -> None:
+    import tifffile
+
+    rng = np.random.default_rng(2)
+    tifffile.imwrite(p, (rng.random((48, 64, 3)) * 65535).astype(np.uint16), photometric="rgb",
+                     compression="zlib")
+    data = bytearray(p.read_bytes())
+    data[300:340] = b"\0" * 40  # inside the deflate stream; the header still declares a whole image
+    p.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("damage", ["jpeg", "tiff"])
+def test_import_decodes_frames_and_refuses_damaged_data(t, capsys, damage):
+    """Before: import probed only the headers, so a JPEG cut in its data (or a TIFF with a damaged deflate
+    stream) became a 'valid' stack that failed later in calibrate or composite."""
+    import tifffile
+
+    if damage == "jpeg":
+        frames = sorted((t / "J").glob("*.jpg"))
+        _truncate_jpeg_data(frames[2])
+    else:
+        rng = np.random.default_rng(1)
+        frames = [t / f"f{k}.tiff" for k in range(3)]
+        for p in frames:
+            tifffile.imwrite(p, (rng.random((48, 64, 3)) * 65535).astype(np.uint16), photometric="rgb",
+                             compression="zlib")
+        _damage_deflate_tiff(frames[2])
+    refused(t, _import(t, frames), capsys, frames[2].name, "decoded", "IMAGE")
+    assert not (t / "I").exists()
+    assert not [p for p in t.iterdir() if p.name.startswith(".I.")]  # no staging folder left beside it
+
+
+# ------------------------------------------------------------------------------ fieldcal composite
+
+
+@pytest.mark.parametrize("z", ["inf", "nan", "-inf"])
+def test_composite_refuses_a_non_finite_z_ref(t, capsys, z):
+    """Before: --z-ref-um inf ran the whole registration and failed at the end with 'c.tiff: cannot be stored
+    as JSON', naming the output instead of the option."""
+    refused(t, ["composite", t / "S", "--out", t / "c.tiff", f"--z-ref-um={z}", "--quiet"], capsys, "--z-ref-um",
+            "finite")
+
+
+# ---------------------------------------------------------------------------------- fieldcal plan
+
+
+@pytest.fixture(scope="module")
+def tiny_profile(tmp_path_factory):
+    """lens.json from a 256x144 chart stack (quick effort): enough for planning."""
+    from fieldcal.cli import main
+
+    root = tmp_path_factory.mktemp("audit-profile")
+    assert main(["simulate", str(LENS), str(root / "S"), "--z", "-360", "50", "20", "--size", "256x144",
+                 "--quiet"]) == 0
+    assert main(["calibrate", str(root / "S"), "--out", str(root / "lens.json"), "--fs", "16", "--effort", "quick",
+                 "-q"]) == 0
+    return root
+
+
+def test_a_refused_sweep_plan_leaves_no_masks_file(tiny_profile, tmp_path, capsys, monkeypatch):
+    """Before: the masks sidecar was written before the plan document was validated, so a plan the schema
+    refused (here --alpha-um 1e9: stop_um beyond 1e9 µm) left an orphan out.masks.npz behind."""
+    from fieldcal.plan import sweep_plan
+
+    monkeypatch.setattr(sweep_plan, "_check", lambda r: None)  # reach the writer with the bound lifted
+    out = tmp_path / "sw.json"
+    rc, err = run_cli(["plan", "sweep", tiny_profile / "lens.json", "--alpha-um", "1e9", "--pixel-exposure-ms", "16",
+                       "--out", out], capsys)
+    assert rc == EXIT_BAD_INPUT and "Traceback" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [], "a refused plan left files"
+
+
+def test_sweep_plan_refuses_an_alpha_beyond_any_stage(tiny_profile, tmp_path, capsys):
+    """Before: --alpha-um 1e9 failed as 'sw.json: field stop_um' with the fix 'make the plan again'."""
+    refused(tmp_path, ["plan", "sweep", tiny_profile / "lens.json", "--alpha-um", "1e9", "--pixel-exposure-ms", "16",
+                       "--out", tmp_path / "sw.json"], capsys, "--alpha-um")
+    assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------------ fieldcal simulate
+
+
+def test_simulate_refuses_a_scene_image_cut_short(t, capsys):
+    """Before: a JPEG scene cut in its data was decoded by OpenCV as a half-grey picture (libjpeg printed
+    'Premature end of JPEG file') and a stack of that was written with exit 0."""
+    scene = t / "J" / "img2.jpg"
+    _truncate_jpeg_data(scene)
+    refused(t, ["simulate", LENS, t / "SX", "--z", "-100", "100", "50", "--size", "64x48", "--scene", scene,
+                "--quiet"], capsys, "--scene", "img2.jpg", "decoded")
+    assert "Premature end" not in capsys.readouterr().err
+
+
+def test_a_damaged_tiff_prints_only_fieldcals_message(t):
+    """Before: tifffile's own warning ('<tifffile.TiffPages @N> invalid offset to first page N') was printed on
+    stderr by Python's last-resort log handler before fieldcal's what/where/fix message."""
+    frames = [t / "a.tiff", t / "b.tiff"]
+    rng = np.random.default_rng(1)
+    for p in frames:
+        cv2.imwrite(str(p), (rng.random((48, 64, 3)) * 65535).astype(np.uint16))  # OpenCV puts the IFD last
+    data = frames[1].read_bytes()
+    frames[1].write_bytes(data[: len(data) // 2])
+    import subprocess
+    import sys
+
+    # in a process of its own: pytest's log capture would swallow the warning the last-resort handler prints
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    r = subprocess.run([sys.executable, "-m", "fieldcal", *map(str, _import(t, frames))], capture_output=True,
+                       text=True, env=env, timeout=120)
+    assert_clean_failure(r.returncode, r.stderr, EXIT_BAD_INPUT, "b.tiff", "TIFF")
+    assert r.stderr.strip().startswith("fieldcal import: error:"), r.stderr
+    assert "tifffile" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("command", ["import", "mtf"])
+def test_a_float_frame_with_nan_is_refused_where_it_enters(t, capsys, command):
+    """Before: `import` built a stack of float TIFFs one of which was all NaN (calibrate and composite refused
+    it later), and `mtf nan.tiff` wrote an empty result with exit 0."""
+    import tifffile
+
+    rng = np.random.default_rng(3)
+    frames = [t / f"f{k}.tiff" for k in range(3)]
+    for p in frames:
+        tifffile.imwrite(p, rng.random((48, 64, 3)).astype(np.float32), photometric="rgb")
+    bad = frames[1]
+    img = rng.random((48, 64, 3)).astype(np.float32)
+    img[5, 7, 1] = np.nan
+    img[9, 9, 0] = np.inf
+    tifffile.imwrite(bad, img, photometric="rgb")
+    argv = _import(t, frames) if command == "import" else ["mtf", bad, "--out", t / "m.json", "--quiet"]
+    refused(t, argv, capsys, bad.name, "2 NaN/Inf")
+
+
+# --------------------------------------------------------------------------------- fieldcal batch
+
+
+@pytest.mark.parametrize("second", ["S", "S/stack.json", "J/../S", "Slink"])
+def test_batch_refuses_one_stack_given_twice(t, capsys, second):
+    """Before: `batch calibrate S S` (or S and a link to it) calibrated it twice as units S and S-2, and the
+    fleet's statistics counted one unit as two (its spread shrank towards that unit)."""
+    pytest.importorskip("dask.distributed")
+    (t / "Slink").symlink_to(t / "S")
+    refused(t, ["batch", "calibrate", t / "S", f"{t}/{second}", "--out", t / "B", "--scheduler", "threads",
+                "--workers", "1", "--fs", "4", "--effort", "quick", "-q"], capsys, "STACK", "twice")
+
+
+# ------------------------------------------------------------------ a replaced stack folder, killed
+
+
+_KILL_AT_RENAME = r"""
+import os, signal, sys
+real_rename = os.rename
+def rename(src, dst, *a, **k):
+    r = real_rename(src, dst, *a, **k)
+    os.kill(os.getpid(), signal.SIGKILL)  # right after the first rename of the folder swap
+    return r
+os.rename = rename
+from fieldcal.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.skipif(not os.uname().sysname == "Linux", reason="the one-step swap is Linux's renameat2")
+def test_import_overwrite_killed_mid_swap_leaves_a_stack_under_the_name(t):
+    """Before: `import --overwrite` moved the old stack aside (rename 1) and then the new one into place
+    (rename 2); killed between them, the folder the user named was gone (the old stack hidden as
+    .NAME.old-*). Now the two folders are swapped in one step where the OS can."""
+    import json
+    import signal
+    import subprocess
+    import sys
+
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "FIELDCAL_PROGRESS": "0"}
+    base = [sys.executable, "-c", _KILL_AT_RENAME, "import", *map(str, jpgs), "--out", str(t / "I"),
+            "--pixel-pitch-um", "5", "--quiet"]
+    subprocess.run([sys.executable, "-m", "fieldcal", *base[3:], "--z", "0", "20"], env=env, check=True,
+                   timeout=120)
+    r = subprocess.run([*base, "--z", "0", "30", "--overwrite"], env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode in (0, -signal.SIGKILL), r.stderr
+    meta = json.loads((t / "I" / "stack.json").read_text())  # a whole stack under the name, old or new
+    assert [f["z_um"] for f in meta["frames"]] in ([0, 20, 40, 60], [0, 30, 60, 90])
+
+
+# ---------------------------------------------------------------------------- loops of symbolic links
+
+
+def _stack_with_a_looped_frame(t: Path) -> Path:
+    import json
+
+    meta = json.loads((t / "S" / "stack.json").read_text())
+    meta["links"] = "symlink"
+    (t / "S" / "stack.json").write_text(json.dumps(meta))
+    frame = t / "S" / "frames" / "0001.tiff"
+    frame.unlink()
+    frame.symlink_to("0001.tiff")  # a link to itself
+    return t / "S"
+
+
+@pytest.mark.parametrize("case", ["out", "stack-folder", "frame-in-stack", "import-image", "mtf-image"])
+def test_a_loop_of_symbolic_links_is_bad_input_not_a_bug(t, capsys, case):
+    """Before: Path.resolve() raised RuntimeError('Symlink loop from ...') and every command exited 5 ('a bug in
+    fieldcal') for an output, input folder, frame or image that is a loop of links."""
+    loop = t / "loop.tiff"
+    loop.symlink_to("loop.tiff")
+    loopd = t / "loopd"
+    loopd.symlink_to("loopd")
+    argv = {"out": ["composite", t / "S", "--out", loop, "--overwrite", "--quiet"],
+            "stack-folder": ["composite", loopd, "--out", t / "c.tiff", "--quiet"],
+            "frame-in-stack": ["composite", t / "S", "--out", t / "c.tiff", "--quiet"],
+            "import-image": _import(t, [loop, t / "J" / "img0.png"]),
+            "mtf-image": ["mtf", loop, "--out", t / "m.json", "--quiet"]}[case]
+    if case == "frame-in-stack":
+        _stack_with_a_looped_frame(t)
+    refused(t, argv, capsys, "loop of symbolic links")
+
+
+# ------------------------------------------------------------------------ pipes where a file is wanted
+
+
+def _fifo(t: Path, name: str) -> Path:
+    p = t / name
+    os.mkfifo(p)
+    return p
+
+
+@pytest.mark.parametrize("case", ["mtf-image", "import-z-csv", "lens-check", "frame-in-stack"])
+def test_a_named_pipe_given_as_a_file_is_refused_not_read(t, capsys, case):
+    """Before: `mtf PIPE`, `import --z-csv PIPE` and `lens check PIPE` opened the pipe and blocked forever (no
+    writer); a frame that is a pipe was reported as 'does not exist'."""
+    import json
+    import threading
+
+    if case == "frame-in-stack":
+        frame = t / "S" / "frames" / "0001.tiff"
+        frame.unlink()
+        os.mkfifo(frame)
+        argv, needles = ["composite", t / "S", "--out", t / "c.tiff", "--quiet"], ("not a regular file", "frames[1]")
+    else:
+        pipe = _fifo(t, {"mtf-image": "p.png", "import-z-csv": "z.csv", "lens-check": "lens.csv"}[case])
+        jpgs = sorted((t / "J").glob("*.jpg"))
+        argv = {"mtf-image": ["mtf", pipe, "--out", t / "m.json", "--quiet"],
+                "import-z-csv": ["import", *jpgs, "--out", t / "I", "--z-csv", pipe, "--pixel-pitch-um", "5"],
+                "lens-check": ["lens", "check", pipe]}[case]
+        needles = ("not a regular file", pipe.name)
+    done = threading.Event()
+
+    def unblock():  # were the command to block on the pipe, open its write end so that the test ends (and fails)
+        if not done.wait(20):
+            for p in t.rglob("*"):
+                if p.is_fifo():
+                    with open(p, "wb"):
+                        pass
+
+    threading.Thread(target=unblock, daemon=True).start()
+    before = {p: p.read_bytes() for p in t.rglob("*") if p.is_file() and not p.is_fifo()}
+    try:
+        rc, err = run_cli(argv, capsys)  # (snapshot() would itself block reading the pipe)
+    finally:
+        done.set()
+    assert_clean_failure(rc, err, EXIT_BAD_INPUT, *needles)
+    assert {p: p.read_bytes() for p in t.rglob("*") if p.is_file() and not p.is_fifo()} == before
+    assert json.loads((t / "S" / "stack.json").read_text())["frames"]
+
+
+# ------------------------------------------------------------------------------- fieldcal capture
+
+
+@pytest.mark.parametrize("out,needles", [("notes.txt/CAP", ("--out", "notes.txt is a file")),
+                                         ("", ("--out", "empty"))])
+def test_capture_names_out_for_a_bad_folder_path(t, capsys, out, needles):
+    """Before: '--out notes.txt/CAP' said 'notes.txt/CAP: Not a directory' naming no option, and '--out ""' was
+    taken as the current folder ('.: exists and is not a capture folder')."""
+    (t / "notes.txt").write_text("mine")
+    out_arg = str(t / out) if out else ""
+    refused(t, ["capture", "--z", "-100", "100", "50", "--stage", "sim", "--camera", f"sim:{LENS},size=64x48",
+                "--out", out_arg, "--quiet"], capsys, *needles)
+
+
+def test_simulate_names_its_fs_flag(t, capsys):
+    """Before: 'simulate --optics wave --fs nan' said field 'fs_cyc_per_mm' (the library's name), not '--fs'."""
+    refused(t, ["simulate", LENS, t / "SX", "--z", "-100", "100", "50", "--size", "64x48", "--optics", "wave",
+                "--fs", "nan", "--quiet"], capsys, "field '--fs'")
+
+
+# ------------------------------------------------------- --overwrite of a folder holding the user's files
+
+
+@pytest.mark.parametrize("command", ["simulate", "import"])
+def test_overwrite_never_deletes_files_put_into_a_stack_folder(t, capsys, command):
+    """Before: `simulate S --overwrite` and `import --out S --overwrite` replaced the whole folder because it held
+    a stack.json, deleting what the user had put beside the stack (notes, a report, a profile)."""
+    (t / "S" / "notes.txt").write_text("mine")
+    (t / "S" / "report").mkdir()
+    (t / "S" / "report" / "index.html").write_text("<html>")
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    argv = (["simulate", LENS, t / "S", "--z", "-100", "100", "50", "--size", "64x48", "--overwrite", "--quiet"]
+            if command == "simulate" else
+            ["import", *jpgs, "--out", t / "S", "--z", "0", "20", "--pixel-pitch-um", "5", "--overwrite"])
+    refused(t, argv, capsys, "notes.txt", "report/index.html", "never deletes")
+    # with them moved out, the stack is replaced (its own frames, truth and stack.json are fieldcal's)
+    (t / "S" / "notes.txt").unlink()
+    import shutil
+    shutil.rmtree(t / "S" / "report")
+    rc, err = run_cli(argv, capsys)
+    assert rc == 0, err
+
+
+# --------------------------------------------------------------------------- profile export, report
+
+
+@pytest.mark.parametrize("z", ["nan", "inf"])
+def test_profile_export_refuses_a_non_finite_z(tiny_profile, tmp_path, capsys, z):
+    """Before: 'profile export --z nan' failed inside the Lensfun fit: exit 5, 'internal error (ValueError:
+    Residuals are not finite in the initial point.)'."""
+    refused(tmp_path, ["profile", "export", tiny_profile / "lens.json", "--format", "lensfun", "--out",
+                       tmp_path / "x.xml", "--allow-no-distortion", "--z", z], capsys, "field '--z'", "finite")
+
+
+def test_profile_export_says_when_z_is_outside_the_scan(tiny_profile, tmp_path, capsys):
+    """A --z outside the calibrated scan is the fit's extrapolation: the export says so (the default, the
+    calibrated focus, is already clipped to the scan)."""
+    rc, err = run_cli(["profile", "export", tiny_profile / "lens.json", "--format", "lensfun", "--out",
+                       tmp_path / "x.xml", "--allow-no-distortion", "--z", "1e5"], capsys)
+    assert rc == 0, err
+    assert "outside the scan" in err and "extrapolation" in err
+
+
+def test_report_names_its_fs_flag(tiny_profile, tmp_path, capsys):
+    """Before: 'report --fs nan' named field 'fs_cyc_per_mm' (the library's name), not '--fs'."""
+    refused(tmp_path, ["report", tiny_profile / "lens.json", "--out", tmp_path / "R", "--fs", "nan"], capsys,
+            "field '--fs'")
+
+
+@pytest.mark.parametrize("flag,value", [("--fs", "-3"), ("--q", "1.5"), ("--q", "nan")])
+def test_report_checks_fs_and_q_before_writing_any_picture(tiny_profile, tmp_path, capsys, flag, value):
+    """Before: 'report --fs nan' (or a bad --q) wrote surfaces.png and bands.png, then failed at the tolerance
+    map: a half-written report."""
+    refused(tmp_path, ["report", tiny_profile / "lens.json", "--out", tmp_path / "R", f"{flag}={value}"], capsys,
+            flag)
+    assert not (tmp_path / "R").exists()
+
+
+# ------------------------------------------------------------------------------------ raw (DNG) levels
+
+
+@pytest.mark.parametrize("case", ["mixed-black", "black-above-white"])
+def test_import_refuses_raw_frames_whose_levels_disagree_or_are_impossible(t, capsys, case):
+    """Before: DNG frames with black levels 64 and 5000 became one stack recording only the first frame's
+    levels (the second's black read as signal); a DNG whose black level lies above its white level failed on
+    the hidden staging folder's stack.json ('.I.import-*/stack.json: field white_level')."""
+    pytest.importorskip("pidng")
+    pytest.importorskip("rawpy")
+    from test_import import _write_dng
+
+    rng = np.random.default_rng(0)
+    levels = {"mixed-black": [(64, 4095), (5000, 65535)], "black-above-white": [(5000, 4095), (5000, 4095)]}[case]
+    frames = []
+    for k, (black, white) in enumerate(levels):
+        p = t / f"d{k}.dng"
+        _write_dng(p, (rng.random((48, 64)) * 3000 + 100).astype(np.uint16), black=black, white=white)
+        frames.append(p)
+    err = refused(t, _import(t, frames), capsys, "IMAGE", "level")
+    assert ".import-" not in err
+
+
+# ------------------------------------------------------------------------------------ over-long names
+
+
+def test_calibrate_refuses_a_profile_name_its_sidecar_cannot_have_before_the_work(tiny_profile, tmp_path, capsys):
+    """Before: a 235-byte --out name fits the file system, its NAME.<16 hex>.samples.npz sidecar (260 bytes) does
+    not: calibrate ran the whole fit and then failed writing the sidecar."""
+    out = tmp_path / ("b" * 230 + ".json")
+    refused(tmp_path, ["calibrate", tiny_profile / "S", "--out", out, "--fs", "16", "--effort", "quick", "-q"],
+            capsys, "--out", "shorter name", "beside it")
+
+
+
+@pytest.mark.parametrize("target", ["colour-image", "stack"])
+def test_mtf_never_ignores_or_misapplies_cfa(t, capsys, target):
+    """Before: `mtf RGB.png --cfa RGGB` measured the red channel as if it were a Bayer mosaic (a silently wrong
+    MTF), and `mtf STACK --cfa RGGB` ignored the flag."""
+    src = t / "J" / "img0.png" if target == "colour-image" else t / "S"
+    refused(t, ["mtf", src, "--out", t / "m.json", "--cfa", "RGGB", "--quiet"], capsys, "field '--cfa'")
+
+
+def test_composite_refuses_a_captured_sweep_image_with_nan(tiny_profile, tmp_path, capsys):
+    """Before: a float sweep image holding one NaN pixel was deconvolved (numpy printed a RuntimeWarning) and the
+    command failed at the end naming the output: 'c.tiff: cannot be stored as JSON'."""
+    import tifffile
+
+    img = np.random.default_rng(0).random((144, 256, 3)).astype(np.float32)
+    img[3, 3, 0] = np.nan
+    tifffile.imwrite(tmp_path / "sweep.tiff", img, photometric="rgb")
+    err = refused(tmp_path, ["composite", tmp_path / "sweep.tiff", "--out", tmp_path / "c.tiff", "--profile",
+                             tiny_profile / "lens.json", "--sweep-alpha-um", "20", "--quiet"], capsys, "sweep.tiff",
+                  "1 NaN/Inf")
+    assert "RuntimeWarning" not in err
+
+
+# ------------------------------------------------------------------------------------ fieldcal targets
+
+
+def test_targets_checks_every_chart_name_before_drawing_any(t, capsys):
+    """Before: a symbolic link at the slanted-edge chart's name was refused only when that chart was written,
+    after the texture and ChArUco charts: a half-written set without targets.json."""
+    victim = t / "victim.txt"
+    victim.write_text("precious")
+    (t / "TG").mkdir()
+    (t / "TG" / "slanted-edge_210x148mm_50dpi.png").symlink_to(victim)
+    refused(t, ["targets", "--out", t / "TG", "--dpi", "50", "--size-mm", "A5"], capsys, "symbolic link",
+            "slanted-edge_210x148mm_50dpi.png")
+    assert sorted(p.name for p in (t / "TG").iterdir()) == ["slanted-edge_210x148mm_50dpi.png"]
+    assert victim.read_text() == "precious"
