@@ -571,3 +571,21 @@ def test_targets_checks_every_chart_name_before_drawing_any(t, capsys):
             "slanted-edge_210x148mm_50dpi.png")
     assert sorted(p.name for p in (t / "TG").iterdir()) == ["slanted-edge_210x148mm_50dpi.png"]
     assert victim.read_text() == "precious"
+
+
+def test_only_capture_named_frames_of_a_journalled_folder_count_as_fieldcals(tmp_path):
+    """--overwrite may replace a folder whose unlisted files fieldcal wrote: a killed capture's uncommitted
+    frames/NNNN.tiff (capture's own name, beside its journal). A photo the user dropped into frames/, or a
+    capture-named file in a folder no capture wrote, is the user's and blocks the replacement."""
+    from fieldcal.formats.atomic import foreign_files
+
+    out = tmp_path / "S"
+    (out / "frames").mkdir(parents=True)
+    (out / "stack.json").write_text("{}")
+    for name in ("frames/0007.tiff", "frames/holiday.jpg", "frames/0008.png"):
+        (out / name).write_bytes(b"x")
+    assert foreign_files(out, "stack.json") == ["frames/0007.tiff", "frames/0008.png", "frames/holiday.jpg"]
+    (out / "capture.journal").write_text("")
+    assert foreign_files(out, "stack.json") == ["frames/0008.png", "frames/holiday.jpg"]
+    (out / "frames" / "0009.tiff").symlink_to(tmp_path / "elsewhere.tiff")
+    assert "frames/0009.tiff" in foreign_files(out, "stack.json")

@@ -20,6 +20,7 @@ import contextvars
 import io
 import math
 import os
+import re
 import secrets
 import stat
 from pathlib import Path
@@ -514,7 +515,9 @@ def check_replaceable_folder(out: str | Path, marker: str, overwrite: bool, what
 _SIDE_FILES = {"stack.json": ("truth.json", "truth.tiff", "capture.journal")}
 
 
-_FRAME_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")
+#: A frame capture wrote and never committed (killed between the frame's rename and its journal line): capture's
+#: own name pattern, in a folder that has capture's journal (fieldcal.capture.folder).
+_CAPTURE_FRAME = re.compile(r"^frames/\d{4,}\.tiff$")
 
 
 def _listed_files(out: Path, marker: str) -> set[str]:
@@ -544,14 +547,14 @@ def foreign_files(out: str | Path, marker: str) -> list[str]:
     temporary files of fieldcal's own writes (``.NAME.<hex>.tmp``) are not counted."""
     out = Path(out)
     known = {marker, *_SIDE_FILES.get(marker, ()), *_listed_files(out, marker)}
+    journal = marker == "stack.json" and (out / "capture.journal").is_file()
     found = []
     for dirpath, dirnames, filenames in os.walk(out, followlinks=False):
         for n in filenames + [d for d in dirnames if os.path.islink(os.path.join(dirpath, d))]:
             rel = Path(os.path.relpath(os.path.join(dirpath, n), out)).as_posix()
             if rel in known or (n.startswith(".") and n.endswith(".tmp")):
                 continue
-            if marker == "stack.json" and rel.startswith("frames/") and rel.count("/") == 1 and \
-                    os.path.splitext(n)[1].lower() in _FRAME_SUFFIXES:
+            if journal and _CAPTURE_FRAME.match(rel) and not os.path.islink(os.path.join(dirpath, n)):
                 continue  # a frame a killed capture wrote and never committed (it takes it again on resume)
             found.append(rel)
             if len(found) > 100:
