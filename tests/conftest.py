@@ -49,11 +49,16 @@ def hostile_world(tmp_path_factory):
     return root
 
 
+def private_copy(world: Path, tmp_path: Path, name: str) -> Path:
+    """A private copy of a session-built world for one test (links copied as links)."""
+    import shutil
+
+    dst = tmp_path / name
+    shutil.copytree(world, dst, symlinks=True)
+    return dst
+
+
 @pytest.fixture
 def w(hostile_world, tmp_path):
     """A private copy of the hostile-input world for one test."""
-    import shutil
-
-    dst = tmp_path / "w"
-    shutil.copytree(hostile_world, dst, symlinks=True)
-    return dst
+    return private_copy(hostile_world, tmp_path, "w")

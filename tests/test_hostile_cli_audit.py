@@ -38,11 +38,9 @@ def tiny_world(tmp_path_factory):
 
 @pytest.fixture
 def t(tiny_world, tmp_path):
-    import shutil
+    from conftest import private_copy
 
-    dst = tmp_path / "t"
-    shutil.copytree(tiny_world, dst, symlinks=True)
-    return dst
+    return private_copy(tiny_world, tmp_path, "t")
 
 
 def refused(root: Path, argv, capsys, *needles, code=EXIT_BAD_INPUT) -> str:
