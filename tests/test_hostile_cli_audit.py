@@ -589,3 +589,25 @@ def test_only_capture_named_frames_of_a_journalled_folder_count_as_fieldcals(tmp
     assert foreign_files(out, "stack.json") == ["frames/0008.png", "frames/holiday.jpg"]
     (out / "frames" / "0009.tiff").symlink_to(tmp_path / "elsewhere.tiff")
     assert "frames/0009.tiff" in foreign_files(out, "stack.json")
+
+
+# ------------------------------------------------------------------------- session 16 leftovers (s16-leftovers)
+
+
+@pytest.mark.parametrize("rows,needles", [
+    # a decimal comma: "12,5" (12.5 µm) splits into two columns, and was read as z = 12 without a word
+    (["img0.jpg,0", "img1.jpg,12,5", "img2.jpg,25", "img3.jpg,37,5"], ["line 2", "3 columns", "decimal point"]),
+    # the same under a header naming two columns (the header is line 1, so the bad row is line 3)
+    (["file,z_um", "img0.jpg,0", "img1.jpg,12,5", "img2.jpg,25", "img3.jpg,37"], ["line 3", "decimal point"]),
+    # quoted, the decimal comma is one field: still not a number, said as such
+    (["img0.jpg,0", 'img1.jpg,"12,5"', "img2.jpg,25", "img3.jpg,37"], ["line 2", "not a number", "decimal point"]),
+])
+def test_import_refuses_a_z_csv_row_with_a_decimal_comma(t, capsys, rows, needles):
+    """Before: `import --z-csv` read 'img1.jpg,12,5' (12.5 µm with a decimal comma) as z = 12 and imported the
+    stack; every row must have the header's column count (two without a header), and z a decimal point."""
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    csv = t / "z.csv"
+    csv.write_text("\n".join(rows) + "\n")
+    refused(t, ["import", *jpgs, "--out", t / "I", "--z-csv", csv, "--pixel-pitch-um", "5"], capsys,
+            "z.csv", *needles)
+    assert not (t / "I").exists()
