@@ -611,3 +611,22 @@ def test_import_refuses_a_z_csv_row_with_a_decimal_comma(t, capsys, rows, needle
     refused(t, ["import", *jpgs, "--out", t / "I", "--z-csv", csv, "--pixel-pitch-um", "5"], capsys,
             "z.csv", *needles)
     assert not (t / "I").exists()
+
+
+@pytest.mark.parametrize("z", ["5000", "-101", "1e8"])
+def test_composite_refuses_a_z_ref_outside_the_stack(t, capsys, z):
+    """Before: --z-ref-um far outside the frames' z range (S: -100 to 100 µm) was taken silently; the chained
+    per-frame maps then used the nearest frame while the linear model extrapolated to z_ref. The output is in a
+    frame's geometry, so a reference outside the frames is refused, naming the flag and the range."""
+    err = refused(t, ["composite", t / "S", "--out", t / "c.tiff", "--z-ref-um", z, "--quiet"], capsys,
+                  "--z-ref-um", "outside", "-100 to 100")
+    assert not (t / "c.tiff").exists() and "S" in err
+
+
+def test_composite_takes_a_z_ref_at_the_ends_of_the_stack(t, capsys):
+    """The end frames are frames of the stack: a reference there is used, and recorded."""
+    import tifffile
+
+    rc, err = run_cli(["composite", t / "S", "--out", t / "c.tiff", "--z-ref-um", "100", "--quiet"], capsys)
+    assert rc == 0, err
+    assert '"z_ref_um": 100.0' in tifffile.TiffFile(t / "c.tiff").pages[0].description

@@ -7,7 +7,7 @@ from . import add_parser
 
 # the API fields composite_to_file's errors name, where the flag is spelt differently
 FIELD_FLAGS = {"fs_cyc_per_mm": "--fs", "breathing": "--breathing", "zone_px": "--zone-px",
-               "camera_noise": "--camera-noise", "max_memory": "--max-memory"}
+               "camera_noise": "--camera-noise", "max_memory": "--max-memory", "z_ref_um": "--z-ref-um"}
 
 EXAMPLE = ("fieldcal composite STACK --profile lens.json --out image.tiff\n"
            "  fieldcal composite STACK --out image.tiff                      (no profile: depth from focus)\n"
