@@ -16,7 +16,8 @@ import pytest
 
 from fieldcal.errors import EXIT_BAD_INPUT
 
-from hostile_safety_util import LENS, assert_clean_failure, changed, no_temp_files, run_cli, snapshot
+from hostile_safety_util import (LENS, assert_clean_failure, changed, no_temp_files, only_under, run_cli,
+                                 snapshot)
 
 
 @pytest.fixture(scope="module")
@@ -630,3 +631,81 @@ def test_composite_takes_a_z_ref_at_the_ends_of_the_stack(t, capsys):
     rc, err = run_cli(["composite", t / "S", "--out", t / "c.tiff", "--z-ref-um", "100", "--quiet"], capsys)
     assert rc == 0, err
     assert '"z_ref_um": 100.0' in tifffile.TiffFile(t / "c.tiff").pages[0].description
+
+
+def _killed_import(t: Path, out: Path) -> Path:
+    """Run `fieldcal import` in a child process killed (os._exit, as SIGKILL: no cleanup runs) just before
+    its finished staging folder takes the output's name; returns the staging folder it left."""
+    import subprocess
+    import sys
+
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    code = ("import os, sys\nimport fieldcal.formats.importer as imp\n"
+            "imp.replace_folder = lambda *a, **k: os._exit(9)\n"
+            "from fieldcal.cli import main\nsys.exit(main(sys.argv[1:]))\n")
+    argv = ["import", *map(str, jpgs), "--out", str(out), "--z", "0", "20", "--pixel-pitch-um", "5", "--quiet"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    r = subprocess.run([sys.executable, "-c", code, *argv], env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 9, r.stderr
+    left = [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.import-")]
+    assert len(left) == 1 and (left[0] / "stack.json").is_file() and not out.exists()
+    return left[0]
+
+
+@pytest.mark.parametrize("command", ["import", "simulate"])
+def test_the_next_run_removes_what_a_killed_run_left(t, capsys, command):
+    """Before: an import or simulate killed mid-way left its hidden staging folder (.I.import-*, .I.partial-*)
+    beside the output, a full copy of the frames, and no later run removed it. Now the next run on the same
+    output removes the folders fieldcal provably made (its exact name for that output, a folder, only what
+    fieldcal writes there) and says so; the output is made as usual."""
+    out = t / "I"
+    left = _killed_import(t, out)
+    partial = t / ".I.partial-abcd_123"  # a simulate killed after its first frame (StackWriter's layout)
+    (partial / "frames").mkdir(parents=True)
+    (partial / "frames" / "0000.tiff").write_bytes((t / "S" / "frames").iterdir().__next__().read_bytes())
+    (partial / "stack.json").write_text('{"format": "fieldcal-stack/1", "frames": []}')
+    (t / ".I.old-zz99zz99").mkdir()  # replace_folder's fallback, killed between its renames and the delete: empty
+    if command == "import":
+        argv = _import(t, sorted((t / "J").glob("*.jpg")))
+    else:
+        argv = ["simulate", LENS, out, "--z", "-100", "100", "50", "--size", "96x64", "--quiet"]
+    rc, err = run_cli(argv, capsys)
+    assert rc == 0, err
+    assert not left.exists() and not partial.exists() and not (t / ".I.old-zz99zz99").exists()
+    assert err.count("removed") == 3 and str(left) in err
+    assert (out / "stack.json").is_file() and not [p for p in t.iterdir() if p.name.startswith(".I.")]
+
+
+def test_the_next_run_leaves_what_fieldcal_cannot_prove_it_made(t, capsys):
+    """Only fieldcal's own staging folders for THIS output, holding only what fieldcal writes, are removed:
+    a user's file inside one, a link, a folder in use by a running command, another output's folder and a
+    name that is not fieldcal's pattern are all left as they were (the first three named in a warning)."""
+    import fcntl
+
+    mine = t / ".I.import-abcd1234"
+    (mine / "frames").mkdir(parents=True)
+    (mine / "frames" / "0000_img0.jpg").write_bytes(b"frame")
+    (mine / "notes.txt").write_text("the user's notes")
+    sub = t / ".I.partial-abcd1234"
+    (sub / "frames" / "raw").mkdir(parents=True)  # a folder fieldcal never makes inside a staging folder
+    (t / "target").mkdir()
+    (t / ".I.old-abcd1234").symlink_to(t / "target", target_is_directory=True)
+    busy = t / ".I.import-busy0000"  # a run still building: its folder is locked
+    busy.mkdir()
+    other = t / ".J.import-abcd1234"  # another output's
+    other.mkdir()
+    odd = t / ".I.import-abcd12345"  # not mkdtemp's 8 characters
+    odd.mkdir()
+    before = snapshot(t)
+    fd = os.open(busy, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        rc, err = run_cli(_import(t, sorted((t / "J").glob("*.jpg"))), capsys)
+    finally:
+        os.close(fd)
+    assert rc == 0, err
+    assert changed(before, snapshot(t)) and only_under(changed(before, snapshot(t)), ["I"])
+    for p, why in ((mine, "notes.txt"), (sub, "frames/raw"), (t / ".I.old-abcd1234", "not a folder"),
+                   (busy, "in use")):
+        assert f"left {p} alone" in err and why in err, err
+    assert str(other) not in err and str(odd) not in err

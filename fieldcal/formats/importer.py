@@ -37,7 +37,8 @@ import numpy as np
 
 from fieldcal.errors import ParameterError, StackError
 from fieldcal.formats.atomic import (atomic_write_bytes, atomic_write_text, check_output,
-                                     check_replaceable_folder, replace_folder)
+                                     check_replaceable_folder, replace_folder, report_stale_staging,
+                                     staging_lock)
 from fieldcal.formats.imageio import ImageFileError, check_finite, encode, probe, read_image
 
 #: File name endings read through LibRaw (rawpy). Many raw formats are TIFF inside, so the ending decides.
@@ -542,47 +543,49 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
 
     parent = out.resolve().parent
     parent.mkdir(parents=True, exist_ok=True)
+    report_stale_staging(parent / out.name, "stack.json")  # what a killed import or simulate left beside out
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.import-", dir=parent))
     try:
-        (staging / "frames").mkdir()
-        entries = []
-        width = max(4, len(str(len(ordered) - 1)))
-        for k, ((src, z), info) in enumerate(zip(ordered, frames)):
-            stem = re.sub(r"[^A-Za-z0-9._-]+", "_", src.stem)[:80] or "frame"
-            entry: dict = {"z_um": z}
-            if info.kind == "raw":
-                mosaic, _ = _read_raw(src)
-                rel = f"frames/{k:0{width}d}_{stem}.tiff"
-                data = encode(mosaic, "tiff")
-                atomic_write_bytes(staging / rel, data)
-                entry["sha256"] = hashlib.sha256(data).hexdigest()
-                entry["source"] = {"file": src.name, "sha256": _sha256_file(src)}
-            else:
-                rel = f"frames/{k:0{width}d}_{stem}{src.suffix.lower()}"
-                dst = staging / rel
-                if link == "hard":
-                    try:
-                        os.link(src, dst)
-                    except OSError as exc:
-                        raise ParameterError(f"cannot be hard-linked into {out} ({exc.strerror})", path=src,
-                                             field="link", fix="copy instead (no --link), or put the output on "
-                                                               "the same file system") from None
-                elif link == "symlink":
-                    os.symlink(src.resolve(), dst)
+        with staging_lock(staging):  # a later run sees the folder is in use, not a leftover
+            (staging / "frames").mkdir()
+            entries = []
+            width = max(4, len(str(len(ordered) - 1)))
+            for k, ((src, z), info) in enumerate(zip(ordered, frames)):
+                stem = re.sub(r"[^A-Za-z0-9._-]+", "_", src.stem)[:80] or "frame"
+                entry: dict = {"z_um": z}
+                if info.kind == "raw":
+                    mosaic, _ = _read_raw(src)
+                    rel = f"frames/{k:0{width}d}_{stem}.tiff"
+                    data = encode(mosaic, "tiff")
+                    atomic_write_bytes(staging / rel, data)
+                    entry["sha256"] = hashlib.sha256(data).hexdigest()
+                    entry["source"] = {"file": src.name, "sha256": _sha256_file(src)}
                 else:
-                    shutil.copyfile(src, dst)
-                entry["sha256"] = _sha256_file(dst)
-                entry["source"] = {"file": src.name}
-            entry = {"file": rel, **entry}
-            if info.exposure_ms:
-                entry["exposure_ms"] = info.exposure_ms
-            if info.time:
-                entry["time"] = info.time
-            entries.append(entry)
-        meta["frames"] = entries
-        atomic_write_text(staging / STACK_JSON, json.dumps(meta, indent=2, allow_nan=False) + "\n")
-        Stack.open(staging)  # validate what was built before it takes the final name
-        replace_folder(staging, out)
+                    rel = f"frames/{k:0{width}d}_{stem}{src.suffix.lower()}"
+                    dst = staging / rel
+                    if link == "hard":
+                        try:
+                            os.link(src, dst)
+                        except OSError as exc:
+                            raise ParameterError(f"cannot be hard-linked into {out} ({exc.strerror})", path=src,
+                                                 field="link", fix="copy instead (no --link), or put the output on "
+                                                                   "the same file system") from None
+                    elif link == "symlink":
+                        os.symlink(src.resolve(), dst)
+                    else:
+                        shutil.copyfile(src, dst)
+                    entry["sha256"] = _sha256_file(dst)
+                    entry["source"] = {"file": src.name}
+                entry = {"file": rel, **entry}
+                if info.exposure_ms:
+                    entry["exposure_ms"] = info.exposure_ms
+                if info.time:
+                    entry["time"] = info.time
+                entries.append(entry)
+            meta["frames"] = entries
+            atomic_write_text(staging / STACK_JSON, json.dumps(meta, indent=2, allow_nan=False) + "\n")
+            Stack.open(staging)  # validate what was built before it takes the final name
+            replace_folder(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
