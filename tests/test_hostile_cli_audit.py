@@ -709,3 +709,21 @@ def test_the_next_run_leaves_what_fieldcal_cannot_prove_it_made(t, capsys):
                    (busy, "in use")):
         assert f"left {p} alone" in err and why in err, err
     assert str(other) not in err and str(odd) not in err
+
+
+@pytest.mark.parametrize("kind", ["sweep", "stack"])
+def test_plan_names_its_size_flag_for_a_profile(tiny_profile, tmp_path, capsys, kind):
+    """Before: `plan stack lens.json --size 96x64` (a calibrated profile) said "lens.json: field 'size': ...",
+    as if the profile file had a bad field; the size is the --size argument, and the CLI names it."""
+    argv = ["plan", kind, tiny_profile / "lens.json", "--size", "96x64", "--out", tmp_path / "p.json"]
+    argv += ["--fs", "16", "--q", "0.05"] if kind == "stack" else ["--alpha-um", "100", "--pixel-exposure-ms", "16"]
+    err = refused(tmp_path, argv, capsys, "field '--size'", "lens specs only", "lens.json")
+    assert "field 'size'" not in err and list(tmp_path.iterdir()) == []
+
+
+def test_plan_bounds_the_size_of_a_lens_spec_as_simulate_does(tmp_path, capsys):
+    """Before: `plan stack LENS --size 100000x100000` (10 Gpx) was accepted and planned for minutes; the size
+    a spec is planned at has simulate's bounds (8 px to 100 Mpx), refused at once naming --size."""
+    refused(tmp_path, ["plan", "stack", LENS, "--size", "100000x100000", "--out", tmp_path / "p.json", "--fs", "16",
+                       "--q", "0.05"], capsys, "field '--size'", "100 Mpx")
+    assert list(tmp_path.iterdir()) == []

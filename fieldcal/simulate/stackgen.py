@@ -61,7 +61,8 @@ def _check_z(z_um: Sequence[float]) -> np.ndarray:
     return z
 
 
-def _check_size(size) -> tuple[int, int] | None:
+def check_size(size, field: str = "size") -> tuple[int, int] | None:
+    """``size`` as (W, H) px: whole numbers, each at least 8, at most 100 Mpx (None stays None)."""
     if size is None:
         return None
     try:
@@ -70,7 +71,7 @@ def _check_size(size) -> tuple[int, int] | None:
     except (TypeError, ValueError):
         ok = False
     if not ok or w < 8 or h < 8 or w * h > 100_000_000:
-        raise ParameterError(f"image size {size!r} is not a pair of integers from 8 to 100 Mpx", field="size",
+        raise ParameterError(f"image size {size!r} is not a pair of integers from 8 to 100 Mpx", field=field,
                              fix="give WIDTHxHEIGHT in pixels, e.g. --size 320x180")
     return w, h
 
@@ -154,7 +155,7 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ParameterError(f"seed must be a whole number >= 0, got {seed!r}", field="seed", fix="e.g. 0")
     z_true = stage_positions_um(z, stage_noise_um, stage_backlash_um, stage_scale_error, seed)
-    wh = _check_size(size)
+    wh = check_size(size)
     if wh is not None:
         spec = spec.with_sensor_size(*wh)
     s = spec.sensor
