@@ -344,3 +344,13 @@ def test_read_z_csv_keeps_declared_columns_and_quoted_names(tmp_path):
     p.write_text("file,z_um,note\nb.png,-2,5,x\n")
     with pytest.raises(FieldcalError, match="line 2"):
         read_z_csv(p)
+
+
+def test_read_z_csv_says_when_a_row_ends_in_an_empty_column(tmp_path):
+    """A trailing comma is not a decimal comma: the message says which it is (and the row is still refused: its
+    column count is not the file's)."""
+    p = tmp_path / "z.csv"
+    p.write_text("a.png,1.5\nb.png,-2,\n")
+    with pytest.raises(FieldcalError, match="line 2.*empty column") as exc:
+        read_z_csv(p)
+    assert "decimal" not in str(exc.value)

@@ -287,7 +287,10 @@ def read_z_csv(path: str | os.PathLike) -> list[tuple[str, float]]:
         where = f"line {line}"
         if len(r) != n_columns:
             cells = ",".join(r)
-            if len(r) > n_columns:
+            if len(r) > n_columns and not any(c.strip() for c in r[n_columns:]):
+                what = f"has {len(r)} columns ({cells!r}) where the file has {n_columns}: it ends in an empty column"
+                fix = "remove the trailing comma(s), or name the extra column in a header row (file,z_um,...)"
+            elif len(r) > n_columns:
                 what = (f"has {len(r)} columns ({cells!r}) where the file has {n_columns} (file,z_um): a z written "
                         "with a decimal comma (12,5) splits into two columns and would be read as 12")
                 fix = _DECIMAL_FIX
