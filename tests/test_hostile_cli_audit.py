@@ -727,3 +727,23 @@ def test_plan_bounds_the_size_of_a_lens_spec_as_simulate_does(tmp_path, capsys):
     refused(tmp_path, ["plan", "stack", LENS, "--size", "100000x100000", "--out", tmp_path / "p.json", "--fs", "16",
                        "--q", "0.05"], capsys, "field '--size'", "100 Mpx")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_stale_mask_export_folders_are_told_apart_by_their_files(tmp_path):
+    """plan export-masks builds in .NAME.partial-*: a killed export's folder (mask files, a temporary file) is
+    fieldcal's, one that also holds another file is not, and a stack layout is not a mask export's."""
+    from fieldcal.formats.atomic import clean_stale_staging
+
+    ours = tmp_path / ".M.partial-abcd1234"
+    ours.mkdir()
+    (ours / "CFA-RGGB-slot-0000.png").write_bytes(b"png")
+    (ours / ".CFA-RGGB-slot-0001.png.0123456789abcdef.tmp").write_bytes(b"half")
+    theirs = tmp_path / ".M.partial-efgh5678"
+    theirs.mkdir()
+    (theirs / "Y-start.tif").write_bytes(b"tif")
+    (theirs / "README").write_text("mine")
+    stack = tmp_path / ".M.partial-stack000"
+    (stack / "frames").mkdir(parents=True)
+    removed, kept = clean_stale_staging(tmp_path / "M", "masks.json")
+    assert removed == [ours] and not ours.exists()
+    assert {p for p, _ in kept} == {theirs, stack} and (theirs / "README").is_file() and stack.is_dir()
