@@ -16,7 +16,8 @@ import pytest
 
 from fieldcal.errors import EXIT_BAD_INPUT
 
-from hostile_safety_util import LENS, assert_clean_failure, changed, no_temp_files, run_cli, snapshot
+from hostile_safety_util import (LENS, assert_clean_failure, changed, no_temp_files, only_under, run_cli,
+                                 snapshot)
 
 
 @pytest.fixture(scope="module")
@@ -587,3 +588,160 @@ def test_only_capture_named_frames_of_a_journalled_folder_count_as_fieldcals(tmp
     assert foreign_files(out, "stack.json") == ["frames/0008.png", "frames/holiday.jpg"]
     (out / "frames" / "0009.tiff").symlink_to(tmp_path / "elsewhere.tiff")
     assert "frames/0009.tiff" in foreign_files(out, "stack.json")
+
+
+# ------------------------------------------------------------------------- session 16 leftovers (s16-leftovers)
+
+
+@pytest.mark.parametrize("rows,needles", [
+    # a decimal comma: "12,5" (12.5 µm) splits into two columns, and was read as z = 12 without a word
+    (["img0.jpg,0", "img1.jpg,12,5", "img2.jpg,25", "img3.jpg,37,5"], ["line 2", "3 columns", "decimal point"]),
+    # the same under a header naming two columns (the header is line 1, so the bad row is line 3)
+    (["file,z_um", "img0.jpg,0", "img1.jpg,12,5", "img2.jpg,25", "img3.jpg,37"], ["line 3", "decimal point"]),
+    # quoted, the decimal comma is one field: still not a number, said as such
+    (["img0.jpg,0", 'img1.jpg,"12,5"', "img2.jpg,25", "img3.jpg,37"], ["line 2", "not a number", "decimal point"]),
+])
+def test_import_refuses_a_z_csv_row_with_a_decimal_comma(t, capsys, rows, needles):
+    """Before: `import --z-csv` read 'img1.jpg,12,5' (12.5 µm with a decimal comma) as z = 12 and imported the
+    stack; every row must have the header's column count (two without a header), and z a decimal point."""
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    csv = t / "z.csv"
+    csv.write_text("\n".join(rows) + "\n")
+    refused(t, ["import", *jpgs, "--out", t / "I", "--z-csv", csv, "--pixel-pitch-um", "5"], capsys,
+            "z.csv", *needles)
+    assert not (t / "I").exists()
+
+
+@pytest.mark.parametrize("z", ["5000", "-101", "1e8"])
+def test_composite_refuses_a_z_ref_outside_the_stack(t, capsys, z):
+    """Before: --z-ref-um far outside the frames' z range (S: -100 to 100 µm) was taken silently; the chained
+    per-frame maps then used the nearest frame while the linear model extrapolated to z_ref. The output is in a
+    frame's geometry, so a reference outside the frames is refused, naming the flag and the range."""
+    err = refused(t, ["composite", t / "S", "--out", t / "c.tiff", "--z-ref-um", z, "--quiet"], capsys,
+                  "--z-ref-um", "outside", "-100 to 100")
+    assert not (t / "c.tiff").exists() and "S" in err
+
+
+def test_composite_takes_a_z_ref_at_the_ends_of_the_stack(t, capsys):
+    """The end frames are frames of the stack: a reference there is used, and recorded."""
+    import tifffile
+
+    rc, err = run_cli(["composite", t / "S", "--out", t / "c.tiff", "--z-ref-um", "100", "--quiet"], capsys)
+    assert rc == 0, err
+    assert '"z_ref_um": 100.0' in tifffile.TiffFile(t / "c.tiff").pages[0].description
+
+
+def _killed_import(t: Path, out: Path) -> Path:
+    """Run `fieldcal import` in a child process killed (os._exit, as SIGKILL: no cleanup runs) just before
+    its finished staging folder takes the output's name; returns the staging folder it left."""
+    import subprocess
+    import sys
+
+    jpgs = sorted((t / "J").glob("*.jpg"))
+    code = ("import os, sys\nimport fieldcal.formats.importer as imp\n"
+            "imp.replace_folder = lambda *a, **k: os._exit(9)\n"
+            "from fieldcal.cli import main\nsys.exit(main(sys.argv[1:]))\n")
+    argv = ["import", *map(str, jpgs), "--out", str(out), "--z", "0", "20", "--pixel-pitch-um", "5", "--quiet"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    r = subprocess.run([sys.executable, "-c", code, *argv], env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 9, r.stderr
+    left = [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.import-")]
+    assert len(left) == 1 and (left[0] / "stack.json").is_file() and not out.exists()
+    return left[0]
+
+
+@pytest.mark.parametrize("command", ["import", "simulate"])
+def test_the_next_run_removes_what_a_killed_run_left(t, capsys, command):
+    """Before: an import or simulate killed mid-way left its hidden staging folder (.I.import-*, .I.partial-*)
+    beside the output, a full copy of the frames, and no later run removed it. Now the next run on the same
+    output removes the folders fieldcal provably made (its exact name for that output, a folder, only what
+    fieldcal writes there) and says so; the output is made as usual."""
+    out = t / "I"
+    left = _killed_import(t, out)
+    partial = t / ".I.partial-abcd_123"  # a simulate killed after its first frame (StackWriter's layout)
+    (partial / "frames").mkdir(parents=True)
+    (partial / "frames" / "0000.tiff").write_bytes((t / "S" / "frames").iterdir().__next__().read_bytes())
+    (partial / "stack.json").write_text('{"format": "fieldcal-stack/1", "frames": []}')
+    (t / ".I.old-zz99zz99").mkdir()  # replace_folder's fallback, killed between its renames and the delete: empty
+    if command == "import":
+        argv = _import(t, sorted((t / "J").glob("*.jpg")))
+    else:
+        argv = ["simulate", LENS, out, "--z", "-100", "100", "50", "--size", "96x64", "--quiet"]
+    rc, err = run_cli(argv, capsys)
+    assert rc == 0, err
+    assert not left.exists() and not partial.exists() and not (t / ".I.old-zz99zz99").exists()
+    assert err.count("removed") == 3 and str(left) in err
+    assert (out / "stack.json").is_file() and not [p for p in t.iterdir() if p.name.startswith(".I.")]
+
+
+def test_the_next_run_leaves_what_fieldcal_cannot_prove_it_made(t, capsys):
+    """Only fieldcal's own staging folders for THIS output, holding only what fieldcal writes, are removed:
+    a user's file inside one, a link, a folder in use by a running command, another output's folder and a
+    name that is not fieldcal's pattern are all left as they were (the first three named in a warning)."""
+    import fcntl
+
+    mine = t / ".I.import-abcd1234"
+    (mine / "frames").mkdir(parents=True)
+    (mine / "frames" / "0000_img0.jpg").write_bytes(b"frame")
+    (mine / "notes.txt").write_text("the user's notes")
+    sub = t / ".I.partial-abcd1234"
+    (sub / "frames" / "raw").mkdir(parents=True)  # a folder fieldcal never makes inside a staging folder
+    (t / "target").mkdir()
+    (t / ".I.old-abcd1234").symlink_to(t / "target", target_is_directory=True)
+    busy = t / ".I.import-busy0000"  # a run still building: its folder is locked
+    busy.mkdir()
+    other = t / ".J.import-abcd1234"  # another output's
+    other.mkdir()
+    odd = t / ".I.import-abcd12345"  # not mkdtemp's 8 characters
+    odd.mkdir()
+    before = snapshot(t)
+    fd = os.open(busy, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        rc, err = run_cli(_import(t, sorted((t / "J").glob("*.jpg"))), capsys)
+    finally:
+        os.close(fd)
+    assert rc == 0, err
+    assert changed(before, snapshot(t)) and only_under(changed(before, snapshot(t)), ["I"])
+    for p, why in ((mine, "notes.txt"), (sub, "frames/raw"), (t / ".I.old-abcd1234", "not a folder"),
+                   (busy, "in use")):
+        assert f"left {p} alone" in err and why in err, err
+    assert str(other) not in err and str(odd) not in err
+
+
+@pytest.mark.parametrize("kind", ["sweep", "stack"])
+def test_plan_names_its_size_flag_for_a_profile(tiny_profile, tmp_path, capsys, kind):
+    """Before: `plan stack lens.json --size 96x64` (a calibrated profile) said "lens.json: field 'size': ...",
+    as if the profile file had a bad field; the size is the --size argument, and the CLI names it."""
+    argv = ["plan", kind, tiny_profile / "lens.json", "--size", "96x64", "--out", tmp_path / "p.json"]
+    argv += ["--fs", "16", "--q", "0.05"] if kind == "stack" else ["--alpha-um", "100", "--pixel-exposure-ms", "16"]
+    err = refused(tmp_path, argv, capsys, "field '--size'", "lens specs only", "lens.json")
+    assert "field 'size'" not in err and list(tmp_path.iterdir()) == []
+
+
+def test_plan_bounds_the_size_of_a_lens_spec_as_simulate_does(tmp_path, capsys):
+    """Before: `plan stack LENS --size 100000x100000` (10 Gpx) was accepted and planned for minutes; the size
+    a spec is planned at has simulate's bounds (8 px to 100 Mpx), refused at once naming --size."""
+    refused(tmp_path, ["plan", "stack", LENS, "--size", "100000x100000", "--out", tmp_path / "p.json", "--fs", "16",
+                       "--q", "0.05"], capsys, "field '--size'", "100 Mpx")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_stale_mask_export_folders_are_told_apart_by_their_files(tmp_path):
+    """plan export-masks builds in .NAME.partial-*: a killed export's folder (mask files, a temporary file) is
+    fieldcal's, one that also holds another file is not, and a stack layout is not a mask export's."""
+    from fieldcal.formats.atomic import clean_stale_staging
+
+    ours = tmp_path / ".M.partial-abcd1234"
+    ours.mkdir()
+    (ours / "CFA-RGGB-slot-0000.png").write_bytes(b"png")
+    (ours / ".CFA-RGGB-slot-0001.png.0123456789abcdef.tmp").write_bytes(b"half")
+    theirs = tmp_path / ".M.partial-efgh5678"
+    theirs.mkdir()
+    (theirs / "Y-start.tif").write_bytes(b"tif")
+    (theirs / "README").write_text("mine")
+    stack = tmp_path / ".M.partial-stack000"
+    (stack / "frames").mkdir(parents=True)
+    removed, kept = clean_stale_staging(tmp_path / "M", "masks.json")
+    assert removed == [ours] and not ours.exists()
+    assert {p for p, _ in kept} == {theirs, stack} and (theirs / "README").is_file() and stack.is_dir()

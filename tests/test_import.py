@@ -333,3 +333,24 @@ def test_quiet_import_of_frames_without_exif_prints_nothing(tmp_path):
                        capture_output=True, text=True, env=env)
     assert r.returncode == 0 and r.stdout == "" and r.stderr == ""
     assert len(Stack.open(tmp_path / "stack").frames) == 3
+
+
+def test_read_z_csv_keeps_declared_columns_and_quoted_names(tmp_path):
+    """A header may declare more columns than file,z_um (the rest are ignored), and a quoted file name may hold a
+    comma; the row count check follows the header, so neither is mistaken for a decimal comma."""
+    p = tmp_path / "z.csv"
+    p.write_text('file,z_um,note\n"shot, 1.png",1.5,first\nb.png,-2,\n')
+    assert read_z_csv(p) == [("shot, 1.png", 1.5), ("b.png", -2.0)]
+    p.write_text("file,z_um,note\nb.png,-2,5,x\n")
+    with pytest.raises(FieldcalError, match="line 2"):
+        read_z_csv(p)
+
+
+def test_read_z_csv_says_when_a_row_ends_in_an_empty_column(tmp_path):
+    """A trailing comma is not a decimal comma: the message says which it is (and the row is still refused: its
+    column count is not the file's)."""
+    p = tmp_path / "z.csv"
+    p.write_text("a.png,1.5\nb.png,-2,\n")
+    with pytest.raises(FieldcalError, match="line 2.*empty column") as exc:
+        read_z_csv(p)
+    assert "decimal" not in str(exc.value)

@@ -7,7 +7,7 @@ from . import add_parser
 
 # the API fields composite_to_file's errors name, where the flag is spelt differently
 FIELD_FLAGS = {"fs_cyc_per_mm": "--fs", "breathing": "--breathing", "zone_px": "--zone-px",
-               "camera_noise": "--camera-noise", "max_memory": "--max-memory"}
+               "camera_noise": "--camera-noise", "max_memory": "--max-memory", "z_ref_um": "--z-ref-um"}
 
 EXAMPLE = ("fieldcal composite STACK --profile lens.json --out image.tiff\n"
            "  fieldcal composite STACK --out image.tiff                      (no profile: depth from focus)\n"
@@ -54,8 +54,9 @@ def register(sub):
                    help="frequency of the focus tolerance that sets seam width (default: plan's, or Nyquist/4)")
     p.add_argument("--q", type=float, default=None, help="allowed MTF drop of the focus tolerance (default 0.05)")
     p.add_argument("--z-ref-um", type=float, metavar="Z",
-                   help="without a profile: output in the geometry of stage position Z (default: the middle "
-                        "frame); breathing and shift are measured from the stack")
+                   help="without a profile: output in the geometry of the frame nearest stage position Z, within the "
+                        "frames' z range (default: the middle frame); breathing and shift are measured from the "
+                        "stack")
     p.add_argument("--no-register", action="store_true",
                    help="without a profile: take the frames as registered (no breathing/shift measurement)")
     p.add_argument("--lateral-colour", action="store_true",

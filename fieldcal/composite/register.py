@@ -201,7 +201,22 @@ def _sorted_frames(stack, frames, z_ref_um):
     idx = np.arange(len(z_all)) if frames is None else np.asarray(frames, dtype=int)
     order = idx[np.argsort(z_all[idx], kind="stable")]
     zs = z_all[order]
-    return order, zs, float(zs[len(zs) // 2]) if z_ref_um is None else float(z_ref_um)
+    if z_ref_um is None:
+        return order, zs, float(zs[len(zs) // 2])
+    z_ref_um = float(z_ref_um)
+    # The output geometry is a frame's: the chained per-frame maps are taken relative to the frame nearest
+    # z_ref, while the linear model would extrapolate to z_ref itself, so a reference beyond the frames would
+    # give a composite in no frame's geometry (and the two models would disagree), without a word.
+    lo, hi = float(zs[0]), float(zs[-1])
+    slack = 1e-6 * max(hi - lo, 1.0)
+    if not (np.isfinite(z_ref_um) and lo - slack <= z_ref_um <= hi + slack):
+        from ..errors import ParameterError
+        raise ParameterError(f"{z_ref_um:g} µm is outside the z range of the frames used ({lo:g} to {hi:g} µm): "
+                             "the output is in the geometry of a frame of the stack",
+                             path=getattr(stack, "path", None), field="z_ref_um",
+                             fix=f"give a stage position from {lo:g} to {hi:g} µm (e.g. {float(zs[len(zs) // 2]):g}, "
+                                 "the middle frame), or leave it unset for the middle frame")
+    return order, zs, z_ref_um
 
 
 def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_side_px: int = 1024,

@@ -560,3 +560,160 @@ def foreign_files(out: str | Path, marker: str) -> list[str]:
             if len(found) > 100:
                 return sorted(found)
     return sorted(found)
+
+
+# ------------------------------------------------------------------------ staging folders of killed commands
+
+#: The hidden folders fieldcal builds a folder output in, or moves the old one aside to, beside the output:
+#: ``.NAME.import-XXXXXXXX`` (import), ``.NAME.partial-XXXXXXXX`` (simulate, plan export-masks) and
+#: ``.NAME.old-XXXXXXXX`` (:func:`replace_folder`); ``XXXXXXXX`` is :func:`tempfile.mkdtemp`'s random part.
+STAGING_TAGS = ("import", "partial", "old")
+
+#: What fieldcal writes in such a folder besides its marker and the files the marker lists: stack frames
+#: (``StackWriter``'s ``frames/NNNN.tiff``, import's ``frames/NNNN_stem.ext``), exported mask files, and the
+#: hidden temporary files of :func:`write_bytes`.
+_STAGING_FILES = {
+    "stack.json": re.compile(r"^frames/\d{4,}(_[A-Za-z0-9._-]{1,80})?\.(tiff|tif|png|jpg|jpeg)$"),
+    "masks.json": re.compile(r"^[A-Za-z0-9_-]+-(slot-\d{4,}\.png|start\.tif|stop\.tif)$"),
+}
+_STAGING_DIRS = {"stack.json": ("frames",), "masks.json": ()}
+_TMP_NAME = re.compile(r"^\..*\.[0-9a-f]{16}\.tmp$")
+_STAGING_SCAN_LIMIT = 100000
+
+
+def _staging_pattern(out_name: str) -> re.Pattern:
+    return re.compile(rf"^\.{re.escape(out_name)}\.(?:{'|'.join(STAGING_TAGS)})-[a-z0-9_]{{8}}$")
+
+
+@contextlib.contextmanager
+def staging_lock(folder: str | Path):
+    """Hold an exclusive lock on a staging folder while a command builds in it (``flock`` on the folder): a
+    later command that finds the folder locked knows a running fieldcal owns it and leaves it alone. The kernel
+    drops the lock when the process ends, however it ends. A no-op where ``flock`` is not available."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    fd = None
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _CLOEXEC)
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        pass  # a file system without locks: the folder is still fieldcal's, only not marked as in use
+    try:
+        yield
+    finally:
+        if fd is not None:
+            os.close(fd)
+
+
+def _staging_foreign(folder: Path, marker: str) -> list[str] | None:
+    """What in the staging folder ``folder`` fieldcal does not write there (relative paths), or None when the
+    folder is too large to look through (then it is left alone)."""
+    pattern = _STAGING_FILES.get(marker)
+    dirs = _STAGING_DIRS.get(marker, ())
+    listed = _listed_files(folder, marker) if (folder / marker).is_file() else set()
+    known = {marker, *_SIDE_FILES.get(marker, ())}
+    foreign, seen = [], 0
+    for dirpath, dirnames, filenames in os.walk(folder, followlinks=False):
+        for n in dirnames + filenames:
+            seen += 1
+            if seen > _STAGING_SCAN_LIMIT:
+                return None
+            p = os.path.join(dirpath, n)
+            rel = Path(os.path.relpath(p, folder)).as_posix()
+            try:
+                st = os.lstat(p)
+            except OSError:
+                foreign.append(rel)
+                continue
+            if stat.S_ISDIR(st.st_mode):
+                if rel not in dirs:
+                    foreign.append(rel + "/")
+                    dirnames.remove(n) if n in dirnames else None
+                continue
+            is_frame = rel in listed or bool(pattern and pattern.match(rel))
+            if stat.S_ISLNK(st.st_mode):
+                # import --link symlink makes its frames links to the camera files; removing a link leaves them
+                if not is_frame:
+                    foreign.append(rel)
+            elif not stat.S_ISREG(st.st_mode) or not (rel in known or is_frame or _TMP_NAME.match(n)):
+                foreign.append(rel)
+    return sorted(foreign)
+
+
+def clean_stale_staging(out: str | Path, marker: str) -> tuple[list[Path], list[tuple[Path, str]]]:
+    """Remove the staging folders a killed fieldcal left beside the folder output ``out``; returns the removed
+    folders and those left alone, each with the reason.
+
+    A folder is removed only when fieldcal provably made it and no running command owns it: its name is
+    fieldcal's exact staging name for this output (``.NAME.TAG-XXXXXXXX``, :data:`STAGING_TAGS`), it is a
+    folder (not a link) owned by this user, it is not locked by a running command (:func:`staging_lock`), and it
+    holds nothing but what fieldcal writes there (``marker``, the files it lists, fieldcal's frame or mask
+    names, hidden temporary files; or nothing). Anything else is left, and reported.
+    """
+    import shutil
+
+    out = Path(out)
+    parent = out.parent if str(out.parent) else Path(".")
+    pattern = _staging_pattern(out.name)
+    try:
+        names = [n for n in os.listdir(parent) if pattern.match(n)]
+    except OSError:
+        return [], []
+    removed, kept = [], []
+    for n in sorted(names):
+        folder = parent / n
+        try:
+            st = os.lstat(folder)
+        except OSError:
+            continue
+        if not stat.S_ISDIR(st.st_mode):
+            kept.append((folder, "not a folder"))
+            continue
+        if hasattr(os, "getuid") and st.st_uid != os.getuid():
+            kept.append((folder, "owned by another user"))
+            continue
+        try:
+            fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _NOFOLLOW | _CLOEXEC)
+        except OSError:
+            kept.append((folder, "cannot be opened"))
+            continue
+        try:
+            try:
+                import fcntl
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except ImportError:  # pragma: no cover - Windows: no locks; the content check still applies
+                pass
+            except OSError:
+                kept.append((folder, "in use by a running fieldcal command"))
+                continue
+            foreign = _staging_foreign(folder, marker)
+            if foreign is None:
+                kept.append((folder, f"holds more than {_STAGING_SCAN_LIMIT} entries"))
+                continue
+            if foreign:
+                more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+                kept.append((folder, f"holds {', '.join(foreign[:3])}{more}, which fieldcal does not write there"))
+                continue
+            shutil.rmtree(folder, ignore_errors=True)
+            if os.path.lexists(folder):
+                kept.append((folder, "could not be removed entirely"))
+            else:
+                removed.append(folder)
+        finally:
+            os.close(fd)
+    return removed, kept
+
+
+def report_stale_staging(out: str | Path, marker: str) -> None:
+    """:func:`clean_stale_staging`, saying on stderr what it removed and what it left."""
+    from fieldcal.progress import warn
+
+    removed, kept = clean_stale_staging(out, marker)
+    for folder in removed:
+        warn(f"removed {folder}, the unfinished work of an earlier fieldcal run on {out} that was stopped")
+    for folder, why in kept:
+        warn(f"left {folder} alone: it is named like fieldcal's unfinished work on {out}, but {why}; delete it "
+             "yourself if it is not needed")

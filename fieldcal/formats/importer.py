@@ -37,7 +37,8 @@ import numpy as np
 
 from fieldcal.errors import ParameterError, StackError
 from fieldcal.formats.atomic import (atomic_write_bytes, atomic_write_text, check_output,
-                                     check_replaceable_folder, replace_folder)
+                                     check_replaceable_folder, replace_folder, report_stale_staging,
+                                     staging_lock)
 from fieldcal.formats.imageio import ImageFileError, check_finite, encode, probe, read_image
 
 #: File name endings read through LibRaw (rawpy). Many raw formats are TIFF inside, so the ending decides.
@@ -243,32 +244,71 @@ def describe(path: str | os.PathLike) -> SourceFrame:
                        **meta)
 
 
+_Z_CSV_FIX = "give a UTF-8 CSV file of file,z_um rows"
+_DECIMAL_FIX = ("write z with a decimal point (12.5, not 12,5), or quote the field (\"file name, with commas\")")
+
+
 def read_z_csv(path: str | os.PathLike) -> list[tuple[str, float]]:
-    """Rows ``file,z_um`` of a CSV (a header row naming the columns is optional), in file order."""
+    """Rows ``file,z_um`` of a CSV (a header row naming the columns is optional), in file order.
+
+    Every row must have as many columns as the header (two without one): a z written with a decimal comma
+    (``a.jpg,12,5`` for 12.5 µm) has one more and would otherwise be read as 12, so it is refused, naming the line.
+
+    Raises
+    ------
+    ParameterError
+        Naming the file and the line: a row of another column count, a z that is not a finite number (a quoted
+        ``"12,5"`` included), no rows.
+    """
+    import io
+
     path = Path(path)
     if path.exists() and not path.is_file():  # a pipe would block the read
-        raise ParameterError("is not a regular file", path=path, field="z_csv",
-                             fix="give a UTF-8 CSV file of file,z_um rows")
+        raise ParameterError("is not a regular file", path=path, field="z_csv", fix=_Z_CSV_FIX)
     try:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
-        raise ParameterError(f"cannot be read ({exc})", path=path, field="z_csv",
-                             fix="give a UTF-8 CSV file of file,z_um rows") from None
-    rows = [r for r in csv.reader(text.splitlines()) if r and any(c.strip() for c in r)]
-    if rows and rows[0][0].strip().lower() in ("file", "filename", "name"):
+        raise ParameterError(f"cannot be read ({exc})", path=path, field="z_csv", fix=_Z_CSV_FIX) from None
+    reader = csv.reader(io.StringIO(text, newline=""))
+    rows: list[tuple[int, list[str]]] = []  # (line number where the row ends, cells)
+    try:
+        for r in reader:
+            if r and any(c.strip() for c in r):
+                rows.append((reader.line_num, r))
+    except csv.Error as exc:
+        raise ParameterError(f"is not a well-formed CSV file ({exc})", path=path, field=f"line {reader.line_num}",
+                             fix=_Z_CSV_FIX + ", with any quoted field closed") from None
+    n_columns = 2
+    if rows and rows[0][1][0].strip().lower() in ("file", "filename", "name"):
+        n_columns = max(2, len(rows[0][1]))
         rows = rows[1:]
     out = []
-    for k, r in enumerate(rows, 1):
-        if len(r) < 2:
-            raise ParameterError(f"row {k} has {len(r)} column(s)", path=path, field=f"row {k}",
-                                 fix="write one 'file,z_um' pair per row")
+    for line, r in rows:
+        where = f"line {line}"
+        if len(r) != n_columns:
+            cells = ",".join(r)
+            if len(r) > n_columns and not any(c.strip() for c in r[n_columns:]):
+                what = f"has {len(r)} columns ({cells!r}) where the file has {n_columns}: it ends in an empty column"
+                fix = "remove the trailing comma(s), or name the extra column in a header row (file,z_um,...)"
+            elif len(r) > n_columns:
+                what = (f"has {len(r)} columns ({cells!r}) where the file has {n_columns} (file,z_um): a z written "
+                        "with a decimal comma (12,5) splits into two columns and would be read as 12")
+                fix = _DECIMAL_FIX
+            else:
+                what = f"has {len(r)} column(s) ({cells!r}) where the file has {n_columns} (file,z_um)"
+                fix = "write one 'file,z_um' pair per row"
+            raise ParameterError(what, path=path, field=where, fix=fix)
+        cell = r[1].strip()
         try:
-            z = float(r[1])
+            z = float(cell)
         except ValueError:
-            raise ParameterError(f"row {k}: z_um {r[1]!r} is not a number", path=path, field=f"row {k}",
+            if "," in cell:
+                raise ParameterError(f"z_um {r[1]!r} is not a number (a decimal comma)", path=path, field=where,
+                                     fix="write z with a decimal point (12.5, not 12,5)") from None
+            raise ParameterError(f"z_um {r[1]!r} is not a number", path=path, field=where,
                                  fix="give the stage position in µm") from None
         if not math.isfinite(z) or abs(z) > 1e9:
-            raise ParameterError(f"row {k}: z_um {r[1]!r} is not a finite position", path=path, field=f"row {k}",
+            raise ParameterError(f"z_um {r[1]!r} is not a finite position", path=path, field=where,
                                  fix="give the stage position in µm")
         out.append((r[0].strip(), z))
     if not out:
@@ -506,47 +546,49 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
 
     parent = out.resolve().parent
     parent.mkdir(parents=True, exist_ok=True)
+    report_stale_staging(parent / out.name, "stack.json")  # what a killed import or simulate left beside out
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.import-", dir=parent))
     try:
-        (staging / "frames").mkdir()
-        entries = []
-        width = max(4, len(str(len(ordered) - 1)))
-        for k, ((src, z), info) in enumerate(zip(ordered, frames)):
-            stem = re.sub(r"[^A-Za-z0-9._-]+", "_", src.stem)[:80] or "frame"
-            entry: dict = {"z_um": z}
-            if info.kind == "raw":
-                mosaic, _ = _read_raw(src)
-                rel = f"frames/{k:0{width}d}_{stem}.tiff"
-                data = encode(mosaic, "tiff")
-                atomic_write_bytes(staging / rel, data)
-                entry["sha256"] = hashlib.sha256(data).hexdigest()
-                entry["source"] = {"file": src.name, "sha256": _sha256_file(src)}
-            else:
-                rel = f"frames/{k:0{width}d}_{stem}{src.suffix.lower()}"
-                dst = staging / rel
-                if link == "hard":
-                    try:
-                        os.link(src, dst)
-                    except OSError as exc:
-                        raise ParameterError(f"cannot be hard-linked into {out} ({exc.strerror})", path=src,
-                                             field="link", fix="copy instead (no --link), or put the output on "
-                                                               "the same file system") from None
-                elif link == "symlink":
-                    os.symlink(src.resolve(), dst)
+        with staging_lock(staging):  # a later run sees the folder is in use, not a leftover
+            (staging / "frames").mkdir()
+            entries = []
+            width = max(4, len(str(len(ordered) - 1)))
+            for k, ((src, z), info) in enumerate(zip(ordered, frames)):
+                stem = re.sub(r"[^A-Za-z0-9._-]+", "_", src.stem)[:80] or "frame"
+                entry: dict = {"z_um": z}
+                if info.kind == "raw":
+                    mosaic, _ = _read_raw(src)
+                    rel = f"frames/{k:0{width}d}_{stem}.tiff"
+                    data = encode(mosaic, "tiff")
+                    atomic_write_bytes(staging / rel, data)
+                    entry["sha256"] = hashlib.sha256(data).hexdigest()
+                    entry["source"] = {"file": src.name, "sha256": _sha256_file(src)}
                 else:
-                    shutil.copyfile(src, dst)
-                entry["sha256"] = _sha256_file(dst)
-                entry["source"] = {"file": src.name}
-            entry = {"file": rel, **entry}
-            if info.exposure_ms:
-                entry["exposure_ms"] = info.exposure_ms
-            if info.time:
-                entry["time"] = info.time
-            entries.append(entry)
-        meta["frames"] = entries
-        atomic_write_text(staging / STACK_JSON, json.dumps(meta, indent=2, allow_nan=False) + "\n")
-        Stack.open(staging)  # validate what was built before it takes the final name
-        replace_folder(staging, out)
+                    rel = f"frames/{k:0{width}d}_{stem}{src.suffix.lower()}"
+                    dst = staging / rel
+                    if link == "hard":
+                        try:
+                            os.link(src, dst)
+                        except OSError as exc:
+                            raise ParameterError(f"cannot be hard-linked into {out} ({exc.strerror})", path=src,
+                                                 field="link", fix="copy instead (no --link), or put the output on "
+                                                                   "the same file system") from None
+                    elif link == "symlink":
+                        os.symlink(src.resolve(), dst)
+                    else:
+                        shutil.copyfile(src, dst)
+                    entry["sha256"] = _sha256_file(dst)
+                    entry["source"] = {"file": src.name}
+                entry = {"file": rel, **entry}
+                if info.exposure_ms:
+                    entry["exposure_ms"] = info.exposure_ms
+                if info.time:
+                    entry["time"] = info.time
+                entries.append(entry)
+            meta["frames"] = entries
+            atomic_write_text(staging / STACK_JSON, json.dumps(meta, indent=2, allow_nan=False) + "\n")
+            Stack.open(staging)  # validate what was built before it takes the final name
+            replace_folder(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

@@ -33,7 +33,8 @@ import numpy as np
 
 from fieldcal.errors import OutputError, ParameterError, SpecError
 from fieldcal.formats import documents
-from fieldcal.formats.atomic import atomic_write_bytes, check_output, check_replaceable_folder, replace_folder
+from fieldcal.formats.atomic import (atomic_write_bytes, check_output, check_replaceable_folder, replace_folder,
+                                     report_stale_staging, staging_lock)
 
 from . import masks as mk
 
@@ -176,38 +177,42 @@ def export_device_masks(doc: dict, arrays: dict, out: str | Path, *, fmt: str | 
     check_replaceable_folder(out, MANIFEST, overwrite, "exported masks")
     files = _files_for(fmt, planes, n_slots)
     out.parent.mkdir(parents=True, exist_ok=True)
+    report_stale_staging(out, MANIFEST)  # what a killed export left beside out
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
-        data = _encode(fmt, arrays, planes, n_slots)
-        records = []
-        for name, plane, role, k in files:
-            atomic_write_bytes(staging / name, data[name])
-            records.append({"name": name, "plane": plane, "role": role, "slot": k, "bytes": len(data[name]),
-                            "sha256": hashlib.sha256(data[name]).hexdigest()})
-        manifest = {
-            "format": MASKS_FORMAT,
-            "device": fmt,
-            "image_size_px": [int(w), int(h)],
-            "planes": planes,
-            "cfa": doc["parameters"].get("cfa"),
-            "direction": doc["direction"],
-            "pixel_exposure_ms": float(doc["pixel_exposure_ms"]),
-            "total_time_ms": float(doc["total_time_ms"]),
-            "plan": {"file": plan_file, "masks_sha256": doc["masks"].get("sha256")},
-            "files": records,
-            "total_bytes": int(sum(r["bytes"] for r in records)),
-        }
-        if fmt == "lcos":
-            manifest["lcos"] = {"slot_ms": float(dev["slot_ms"]), "n_slots": int(n_slots),
-                                "max_hold_ms": float(dev["max_hold_ms"]), "complement": bool(dev["complement"]),
-                                "encoding": "PNG greyscale, bit depth 1; 1 = open (the pixel integrates in the slot)"}
-        else:
-            manifest["pixelwise"] = {"clock_ms": float(dev["clock_ms"]),
-                                     "exposure_ticks": int(round(float(doc["pixel_exposure_ms"]) / dev["clock_ms"])),
-                                     "encoding": "TIFF uint16 register ticks, deflate + horizontal predictor; a "
-                                                 "pixel never exposed has start = stop = 0"}
-        documents.write(staging / MANIFEST, manifest, "masks")
-        replace_folder(staging, out)
+        with staging_lock(staging):  # a later run sees the folder is in use, not a leftover
+            data = _encode(fmt, arrays, planes, n_slots)
+            records = []
+            for name, plane, role, k in files:
+                atomic_write_bytes(staging / name, data[name])
+                records.append({"name": name, "plane": plane, "role": role, "slot": k, "bytes": len(data[name]),
+                                "sha256": hashlib.sha256(data[name]).hexdigest()})
+            manifest = {
+                "format": MASKS_FORMAT,
+                "device": fmt,
+                "image_size_px": [int(w), int(h)],
+                "planes": planes,
+                "cfa": doc["parameters"].get("cfa"),
+                "direction": doc["direction"],
+                "pixel_exposure_ms": float(doc["pixel_exposure_ms"]),
+                "total_time_ms": float(doc["total_time_ms"]),
+                "plan": {"file": plan_file, "masks_sha256": doc["masks"].get("sha256")},
+                "files": records,
+                "total_bytes": int(sum(r["bytes"] for r in records)),
+            }
+            if fmt == "lcos":
+                manifest["lcos"] = {"slot_ms": float(dev["slot_ms"]), "n_slots": int(n_slots),
+                                    "max_hold_ms": float(dev["max_hold_ms"]), "complement": bool(dev["complement"]),
+                                    "encoding": "PNG greyscale, bit depth 1; 1 = open (the pixel integrates in "
+                                                "the slot)"}
+            else:
+                manifest["pixelwise"] = {"clock_ms": float(dev["clock_ms"]),
+                                         "exposure_ticks": int(round(float(doc["pixel_exposure_ms"])
+                                                                     / dev["clock_ms"])),
+                                         "encoding": "TIFF uint16 register ticks, deflate + horizontal predictor; a "
+                                                     "pixel never exposed has start = stop = 0"}
+            documents.write(staging / MANIFEST, manifest, "masks")
+            replace_folder(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

@@ -16,7 +16,8 @@ from typing import Sequence
 import numpy as np
 
 from fieldcal.formats import documents
-from fieldcal.formats.atomic import atomic_write_bytes, check_replaceable_folder, replace_folder
+from fieldcal.formats.atomic import (atomic_write_bytes, check_replaceable_folder, replace_folder,
+                                     report_stale_staging, staging_lock)
 from ..errors import ParameterError, StackError
 from fieldcal.simulate.lens import LensSpec
 from ..progress import progress as _progress
@@ -60,7 +61,8 @@ def _check_z(z_um: Sequence[float]) -> np.ndarray:
     return z
 
 
-def _check_size(size) -> tuple[int, int] | None:
+def check_size(size, field: str = "size") -> tuple[int, int] | None:
+    """``size`` as (W, H) px: whole numbers, each at least 8, at most 100 Mpx (None stays None)."""
     if size is None:
         return None
     try:
@@ -69,7 +71,7 @@ def _check_size(size) -> tuple[int, int] | None:
     except (TypeError, ValueError):
         ok = False
     if not ok or w < 8 or h < 8 or w * h > 100_000_000:
-        raise ParameterError(f"image size {size!r} is not a pair of integers from 8 to 100 Mpx", field="size",
+        raise ParameterError(f"image size {size!r} is not a pair of integers from 8 to 100 Mpx", field=field,
                              fix="give WIDTHxHEIGHT in pixels, e.g. --size 320x180")
     return w, h
 
@@ -153,7 +155,7 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ParameterError(f"seed must be a whole number >= 0, got {seed!r}", field="seed", fix="e.g. 0")
     z_true = stage_positions_um(z, stage_noise_um, stage_backlash_um, stage_scale_error, seed)
-    wh = _check_size(size)
+    wh = check_size(size)
     if wh is not None:
         spec = spec.with_sensor_size(*wh)
     s = spec.sensor
@@ -181,38 +183,40 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
         meta["capture"] = {"stage": {"kind": "simulated", "repeatability_um": float(stage_noise_um),
                                      "backlash_um": float(stage_backlash_um)}}
     out.parent.mkdir(parents=True, exist_ok=True)
-    # an unpredictable, freshly made folder: nothing that exists is ever reused or deleted
+    report_stale_staging(out, "stack.json")  # what a killed simulate or import left beside out
+    # an unpredictable, freshly made folder: nothing that exists is ever reused or deleted; StackWriter.create
+    # takes it empty, and it stays locked while it is built (a later run sees it is in use, not a leftover)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-    tmp.rmdir()  # StackWriter.create makes it again, empty
     try:
-        writer = StackWriter.create(tmp, pixel_pitch_um=s.pixel_pitch_um, channels=list(spec.channel_names),
-                                    **meta)
-        renderer.prepare(z_true)  # every blur level the stack needs, once, channels in parallel
-        for zi, zt in _progress(zip(z, z_true), total=len(z), desc="simulate", quiet=not progress, unit="frame"):
-            writer.add_frame(renderer.render(float(zt), noise=noise), float(zi))
-        atomic_write_bytes(tmp / "truth.tiff", _tiff_bytes(renderer.truth()))
-        truth = {
-            "format": TRUTH_FORMAT,
-            "lens": spec.to_dict(),
-            "size_px": [s.width_px, s.height_px],
-            "pixel_pitch_um": s.pixel_pitch_um,
-            "seed": int(seed),
-            "scene": scene_name,
-            "noise": bool(noise),
-            "z_um": [float(v) for v in z],
-            **({"z_true_um": [float(v) for v in z_true],
-                "stage_errors": {"noise_um": float(stage_noise_um), "backlash_um": float(stage_backlash_um),
-                                 "scale_error": float(stage_scale_error)}}
-               if (stage_noise_um or stage_backlash_um or stage_scale_error) else {}),
-            "truth_file": "truth.tiff",
-            "truth_geometry": "z_ref_um, lateral colour included, in-focus PSF only, no noise",
-            "renderer": renderer.settings(),
-            "optics": optics,
-        }
-        if optics == "wave":
-            truth["best_focus"] = _wave_best_focus(renderer, spec)
-        documents.write(tmp / "truth.json", truth, "truth")
-        replace_folder(tmp, out)
+        with staging_lock(tmp):
+            writer = StackWriter.create(tmp, pixel_pitch_um=s.pixel_pitch_um, channels=list(spec.channel_names),
+                                        **meta)
+            renderer.prepare(z_true)  # every blur level the stack needs, once, channels in parallel
+            for zi, zt in _progress(zip(z, z_true), total=len(z), desc="simulate", quiet=not progress, unit="frame"):
+                writer.add_frame(renderer.render(float(zt), noise=noise), float(zi))
+            atomic_write_bytes(tmp / "truth.tiff", _tiff_bytes(renderer.truth()))
+            truth = {
+                "format": TRUTH_FORMAT,
+                "lens": spec.to_dict(),
+                "size_px": [s.width_px, s.height_px],
+                "pixel_pitch_um": s.pixel_pitch_um,
+                "seed": int(seed),
+                "scene": scene_name,
+                "noise": bool(noise),
+                "z_um": [float(v) for v in z],
+                **({"z_true_um": [float(v) for v in z_true],
+                    "stage_errors": {"noise_um": float(stage_noise_um), "backlash_um": float(stage_backlash_um),
+                                     "scale_error": float(stage_scale_error)}}
+                   if (stage_noise_um or stage_backlash_um or stage_scale_error) else {}),
+                "truth_file": "truth.tiff",
+                "truth_geometry": "z_ref_um, lateral colour included, in-focus PSF only, no noise",
+                "renderer": renderer.settings(),
+                "optics": optics,
+            }
+            if optics == "wave":
+                truth["best_focus"] = _wave_best_focus(renderer, spec)
+            documents.write(tmp / "truth.json", truth, "truth")
+            replace_folder(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
