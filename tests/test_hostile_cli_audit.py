@@ -631,6 +631,17 @@ def test_composite_takes_a_z_ref_at_the_ends_of_the_stack(t, capsys):
     assert '"z_ref_um": 100.0' in tifffile.TiffFile(t / "c.tiff").pages[0].description
 
 
+@pytest.mark.parametrize("extra", [["--profile", "lens.json"], ["--no-register"]])
+def test_composite_refuses_a_z_ref_it_would_ignore(w, capsys, extra):
+    """Never ignore a flag: with a profile the output is in the profile's z_ref geometry and with --no-register
+    in the frames' own, so --z-ref-um there was silently dropped (the composite's metadata even recorded the
+    profile's z_ref). Refused before any work, naming the flag."""
+    argv = ["composite", w / "S", "--out", w / "c.tiff", "--z-ref-um", "0", "--quiet",
+            *[w / a if a.endswith(".json") else a for a in extra]]
+    refused(w, argv, capsys, "--z-ref-um", extra[0].lstrip("-").replace("-", " ").split()[0])
+    assert not (w / "c.tiff").exists()
+
+
 def _killed_import(t: Path, out: Path) -> Path:
     """Run `fieldcal import` in a child process killed (os._exit, as SIGKILL: no cleanup runs) just before
     its finished staging folder takes the output's name; returns the staging folder it left."""

@@ -668,6 +668,14 @@ def composite_to_file(stack, out, *, profile=None, method: str | None = None, pl
         raise ParameterError(f"z_ref must be a finite stage position in µm, got {z_ref_um}", field="z_ref_um",
                              fix="give a position within the stack's z range, or leave it unset for the middle "
                                  "frame")
+    if z_ref_um is not None and (profile is not None or not register or sweep_alpha_um is not None):
+        # never ignore a flag: with a profile the output is in the profile's z_ref geometry, unregistered frames
+        # keep their own, and a sweep is made at the profile's z_ref
+        raise ParameterError("a reference frame position applies only to a stack composited without a profile, "
+                             "with registration: " + ("the profile's z_ref sets the output geometry"
+                                                      if profile is not None else "--no-register keeps the "
+                                                      "frames' own geometry"), field="z_ref_um",
+                             fix="drop --z-ref-um, or composite without --profile / --no-register")
     if sweep_alpha_um is not None:
         _check_sweep_args(sweep_alpha_um, deconvolve)
 
