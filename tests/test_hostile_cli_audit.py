@@ -656,33 +656,35 @@ def _killed_import(t: Path, out: Path) -> Path:
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     r = subprocess.run([sys.executable, "-c", code, *argv], env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 9, r.stderr
-    left = [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.import-")]
+    left = [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.fieldcal-import-")]
     assert len(left) == 1 and (left[0] / "stack.json").is_file() and not out.exists()
     return left[0]
 
 
 @pytest.mark.parametrize("command", ["import", "simulate"])
 def test_the_next_run_removes_what_a_killed_run_left(t, capsys, command):
-    """Before: an import or simulate killed mid-way left its hidden staging folder (.I.import-*, .I.partial-*)
-    beside the output, a full copy of the frames, and no later run removed it. Now the next run on the same
-    output removes the folders fieldcal provably made (its exact name for that output, a folder, only what
-    fieldcal writes there) and says so; the output is made as usual."""
+    """Before: an import or simulate killed mid-way left its hidden staging folder (.I.fieldcal-import-*,
+    .I.fieldcal-partial-*) beside the output, a full copy of the frames, and no later run removed it. Now the
+    next run on the same output removes the folders fieldcal provably made (its exact name for that output, a
+    folder, only what fieldcal writes there) and says so; the output is made as usual. The old output that
+    replace_folder's two-rename fallback moved aside may be the only copy after a crash: never removed, named."""
     out = t / "I"
     left = _killed_import(t, out)
-    partial = t / ".I.partial-abcd_123"  # a simulate killed after its first frame (StackWriter's layout)
+    partial = t / ".I.fieldcal-partial-abcd_123"  # a simulate killed after its first frame (StackWriter's layout)
     (partial / "frames").mkdir(parents=True)
     (partial / "frames" / "0000.tiff").write_bytes((t / "S" / "frames").iterdir().__next__().read_bytes())
     (partial / "stack.json").write_text('{"format": "fieldcal-stack/1", "frames": []}')
-    (t / ".I.old-zz99zz99").mkdir()  # replace_folder's fallback, killed between its renames and the delete: empty
+    (t / ".I.fieldcal-old-zz99zz99").mkdir()  # replace_folder's fallback, killed between its renames
     if command == "import":
         argv = _import(t, sorted((t / "J").glob("*.jpg")))
     else:
         argv = ["simulate", LENS, out, "--z", "-100", "100", "50", "--size", "96x64", "--quiet"]
     rc, err = run_cli(argv, capsys)
     assert rc == 0, err
-    assert not left.exists() and not partial.exists() and not (t / ".I.old-zz99zz99").exists()
-    assert err.count("removed") == 3 and str(left) in err
-    assert (out / "stack.json").is_file() and not [p for p in t.iterdir() if p.name.startswith(".I.")]
+    assert not left.exists() and not partial.exists() and (t / ".I.fieldcal-old-zz99zz99").is_dir()
+    assert err.count("removed") == 2 and str(left) in err and "rename it back" in err
+    assert (out / "stack.json").is_file()
+    assert [p.name for p in t.iterdir() if p.name.startswith(".I.")] == [".I.fieldcal-old-zz99zz99"]
 
 
 def test_the_next_run_leaves_what_fieldcal_cannot_prove_it_made(t, capsys):
@@ -691,19 +693,23 @@ def test_the_next_run_leaves_what_fieldcal_cannot_prove_it_made(t, capsys):
     name that is not fieldcal's pattern are all left as they were (the first three named in a warning)."""
     import fcntl
 
-    mine = t / ".I.import-abcd1234"
+    mine = t / ".I.fieldcal-import-abcd1234"
     (mine / "frames").mkdir(parents=True)
     (mine / "frames" / "0000_img0.jpg").write_bytes(b"frame")
     (mine / "notes.txt").write_text("the user's notes")
-    sub = t / ".I.partial-abcd1234"
+    sub = t / ".I.fieldcal-partial-abcd1234"
     (sub / "frames" / "raw").mkdir(parents=True)  # a folder fieldcal never makes inside a staging folder
     (t / "target").mkdir()
-    (t / ".I.old-abcd1234").symlink_to(t / "target", target_is_directory=True)
-    busy = t / ".I.import-busy0000"  # a run still building: its folder is locked
+    link = t / ".I.fieldcal-import-link0000"
+    link.symlink_to(t / "target", target_is_directory=True)
+    backup = t / ".I.old-20261125"  # the user's own dated backup of a stack: not fieldcal's name
+    (backup / "frames").mkdir(parents=True)
+    (backup / "stack.json").write_text('{"format": "fieldcal-stack/1", "frames": []}')
+    busy = t / ".I.fieldcal-import-busy0000"  # a run still building: its folder is locked
     busy.mkdir()
-    other = t / ".J.import-abcd1234"  # another output's
+    other = t / ".J.fieldcal-import-abcd1234"  # another output's
     other.mkdir()
-    odd = t / ".I.import-abcd12345"  # not mkdtemp's 8 characters
+    odd = t / ".I.fieldcal-import-abcd12345"  # not mkdtemp's 8 characters
     odd.mkdir()
     before = snapshot(t)
     fd = os.open(busy, os.O_RDONLY)
@@ -714,10 +720,10 @@ def test_the_next_run_leaves_what_fieldcal_cannot_prove_it_made(t, capsys):
         os.close(fd)
     assert rc == 0, err
     assert changed(before, snapshot(t)) and only_under(changed(before, snapshot(t)), ["I"])
-    for p, why in ((mine, "notes.txt"), (sub, "frames/raw"), (t / ".I.old-abcd1234", "not a folder"),
+    for p, why in ((mine, "notes.txt"), (sub, "frames/raw"), (link, "not a folder"),
                    (busy, "in use")):
         assert f"left {p} alone" in err and why in err, err
-    assert str(other) not in err and str(odd) not in err
+    assert str(other) not in err and str(odd) not in err and str(backup) not in err and backup.is_dir()
 
 
 @pytest.mark.parametrize("kind", ["sweep", "stack"])
@@ -739,20 +745,117 @@ def test_plan_bounds_the_size_of_a_lens_spec_as_simulate_does(tmp_path, capsys):
 
 
 def test_stale_mask_export_folders_are_told_apart_by_their_files(tmp_path):
-    """plan export-masks builds in .NAME.partial-*: a killed export's folder (mask files, a temporary file) is
+    """plan export-masks builds in .NAME.fieldcal-partial-*: a killed export's folder (mask files, a temporary file) is
     fieldcal's, one that also holds another file is not, and a stack layout is not a mask export's."""
     from fieldcal.formats.atomic import clean_stale_staging
 
-    ours = tmp_path / ".M.partial-abcd1234"
+    ours = tmp_path / ".M.fieldcal-partial-abcd1234"
     ours.mkdir()
     (ours / "CFA-RGGB-slot-0000.png").write_bytes(b"png")
     (ours / ".CFA-RGGB-slot-0001.png.0123456789abcdef.tmp").write_bytes(b"half")
-    theirs = tmp_path / ".M.partial-efgh5678"
+    theirs = tmp_path / ".M.fieldcal-partial-efgh5678"
     theirs.mkdir()
     (theirs / "Y-start.tif").write_bytes(b"tif")
     (theirs / "README").write_text("mine")
-    stack = tmp_path / ".M.partial-stack000"
+    stack = tmp_path / ".M.fieldcal-partial-stack000"
     (stack / "frames").mkdir(parents=True)
     removed, kept = clean_stale_staging(tmp_path / "M", "masks.json")
     assert removed == [ours] and not ours.exists()
     assert {p for p, _ in kept} == {theirs, stack} and (theirs / "README").is_file() and stack.is_dir()
+
+
+def _stack_folder(path: Path, extra: str | None = None) -> Path:
+    (path / "frames").mkdir(parents=True)
+    (path / "stack.json").write_text('{"format": "fieldcal-stack/1", "frames": []}')
+    if extra:
+        (path / extra).write_text("the user's")
+    return path
+
+
+def test_replace_folder_checks_the_output_again_before_the_swap(tmp_path):
+    """Review finding: the output was checked only when the command started; a folder made (or a file added to an
+    old stack) while a long import ran was swapped out and deleted at the end, even without --overwrite. With
+    the marker given, replace_folder checks again just before the swap and refuses, the new build untouched."""
+    from fieldcal.errors import OutputError
+    from fieldcal.formats.atomic import replace_folder
+
+    new = _stack_folder(tmp_path / ".S.fieldcal-import-abcd1234")
+    out = tmp_path / "S"
+    out.mkdir()
+    (out / "my_notes.txt").write_text("made while the import ran")
+    with pytest.raises(OutputError, match="not empty"):
+        replace_folder(new, out, marker="stack.json", overwrite=False, what="a stack")
+    old = _stack_folder(tmp_path / "T", extra="report.pdf")  # --overwrite of a stack the user added a file to
+    with pytest.raises(OutputError, match="report.pdf"):
+        replace_folder(new, old, marker="stack.json", overwrite=True, what="a stack")
+    assert (out / "my_notes.txt").is_file() and (old / "report.pdf").is_file() and (new / "stack.json").is_file()
+    replace_folder(new, tmp_path / "U", marker="stack.json", overwrite=False, what="a stack")  # a new name: fine
+    assert (tmp_path / "U" / "stack.json").is_file() and not new.exists()
+
+
+def test_overwrite_refuses_a_folder_a_running_capture_holds(tmp_path):
+    """Review finding: --overwrite of a stack folder that `fieldcal capture` is still writing (it holds flock on
+    the folder for its whole run) swapped it out and deleted it under the capture. Refused while locked."""
+    import fcntl
+
+    from fieldcal.errors import OutputError
+    from fieldcal.formats.atomic import check_replaceable_folder
+
+    out = _stack_folder(tmp_path / "CAP")
+    fd = os.open(out, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        with pytest.raises(OutputError, match="in use by a running fieldcal command"):
+            check_replaceable_folder(out, "stack.json", True, "a stack")
+    finally:
+        os.close(fd)
+    check_replaceable_folder(out, "stack.json", True, "a stack")  # the capture ended: replaceable
+
+
+def test_the_fallback_puts_the_old_folder_back_when_the_second_rename_fails(tmp_path, monkeypatch):
+    """Review finding: without RENAME_EXCHANGE (macOS, NFS, FUSE) the old output is moved aside first; if the new
+    folder then could not take its name, the old one stayed hidden and the user's name held nothing."""
+    import fieldcal.formats.atomic as atomic
+
+    new = _stack_folder(tmp_path / ".S.fieldcal-import-abcd1234")
+    out = _stack_folder(tmp_path / "S")
+    monkeypatch.setattr(atomic, "_exchange", lambda a, b: False)
+    real_rename = os.rename
+
+    def rename(a, b):
+        if Path(a) == new:
+            raise OSError(5, "I/O error", str(b))
+        return real_rename(a, b)
+
+    monkeypatch.setattr(atomic.os, "rename", rename)
+    with pytest.raises(OSError):
+        atomic.replace_folder(new, out)
+    assert (out / "stack.json").is_file() and not [p for p in tmp_path.iterdir() if "fieldcal-old" in p.name]
+
+
+def test_only_fieldcals_own_temporary_names_are_not_foreign(tmp_path):
+    """Review finding: any hidden *.tmp in a stack folder counted as fieldcal's, so --overwrite deleted a user's
+    `.measurements.tmp`; only write_bytes' own names (.NAME.<16 hex>.tmp) are fieldcal's."""
+    from fieldcal.formats.atomic import foreign_files
+
+    out = _stack_folder(tmp_path / "S")
+    (out / ".measurements.tmp").write_text("the user's")
+    (out / ".stack.json.0123456789abcdef.tmp").write_text("fieldcal's, interrupted")
+    assert foreign_files(out, "stack.json") == [".measurements.tmp"]
+
+
+def test_a_link_to_a_folder_inside_an_input_does_not_make_its_target_an_input(tmp_path):
+    """Review finding: a stack holding a link `up -> ..` made its whole parent an input, so every output beside
+    the stack was refused. Only files that links lead to are inputs (import --link symlink's frames)."""
+    from fieldcal.errors import OutputError
+    from fieldcal.formats.atomic import check_output
+
+    s = _stack_folder(tmp_path / "S")
+    (s / "up").symlink_to(tmp_path, target_is_directory=True)
+    camera = tmp_path / "cam" / "IMG_0001.JPG"
+    camera.parent.mkdir()
+    camera.write_bytes(b"jpeg")
+    (s / "frames" / "0000.jpg").symlink_to(camera)
+    check_output(tmp_path / "m.json", inputs=[s], overwrite=False)
+    with pytest.raises(OutputError):
+        check_output(camera, inputs=[s], overwrite=True)

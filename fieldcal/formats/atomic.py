@@ -115,18 +115,20 @@ def _linked_inputs(inputs: dict[Path, object]) -> tuple[dict[Path, str], set[tup
     and the frame are one file under two names)."""
     targets: dict[Path, str] = {}
     ids: set[tuple[int, int]] = set()
-    seen = 0
     for root, name in inputs.items():
         if not root.is_dir():
             fid = _file_id(root)
             if fid is not None:
                 ids.add(fid)
             continue
+        seen = 0  # each input its own budget: one large input does not leave the next unprotected
         for dirpath, dirnames, filenames in os.walk(root, followlinks=False):
+            if seen > _LINK_SCAN_LIMIT:
+                break
             for n in dirnames + filenames:
                 seen += 1
                 if seen > _LINK_SCAN_LIMIT:
-                    return targets, ids
+                    break
                 p = Path(dirpath) / n
                 try:
                     st = os.lstat(p)
@@ -137,11 +139,10 @@ def _linked_inputs(inputs: dict[Path, object]) -> tuple[dict[Path, str], set[tup
                         real = _resolved(p)
                     except OutputError:  # a loop of links leads nowhere; the input's reader refuses it
                         continue
-                    if not _within(real, root):
+                    fid = _file_id(real)  # files only: a link to a folder (e.g. "up -> ..") holds no frame data
+                    if fid is not None and not _within(real, root):
                         targets.setdefault(real, f"{real} (the file {name}/{p.relative_to(root)} links to)")
-                        fid = _file_id(real)
-                        if fid is not None:
-                            ids.add(fid)
+                        ids.add(fid)
                 elif stat.S_ISREG(st.st_mode) and st.st_nlink > 1:
                     ids.add((st.st_dev, st.st_ino))
     return targets, ids
@@ -454,16 +455,21 @@ def _exchange(a: Path, b: Path) -> bool:
     raise OSError(err, os.strerror(err), str(b))
 
 
-def replace_folder(staging: str | Path, out: str | Path) -> None:
+def replace_folder(staging: str | Path, out: str | Path, *, marker: str | None = None, overwrite: bool = False,
+                   what: str = "a folder", error: type | None = None) -> None:
     """Rename a finished folder ``staging`` to ``out`` (same parent). An empty ``out`` is removed first; an
-    existing one (the caller has checked it may be replaced) is swapped with ``staging`` in one step where the
-    OS can (Linux ``renameat2``), else moved aside under an unpredictable name first; it is deleted only after
-    the new folder took its name, so ``out`` is always either the old or the new folder (after a crash in the
-    fallback's two renames, the old one under its hidden name)."""
+    existing one is swapped with ``staging`` in one step where the OS can (Linux ``renameat2``), else moved
+    aside under an unpredictable name first; it is deleted only after the new folder took its name, so ``out``
+    is always either the old or the new folder (after a crash in the fallback's two renames, the old one under
+    its hidden name ``.NAME.fieldcal-old-XXXXXXXX``, which no later run deletes). With ``marker`` the checks of
+    :func:`check_replaceable_folder` run again here, just before the swap: what the output holds now may not be
+    what it held when the command started (a folder made or a file added meanwhile, a capture started)."""
     import shutil
     import tempfile
 
     staging, out = Path(staging), Path(out)
+    if marker is not None:
+        check_replaceable_folder(out, marker, overwrite, what, error=error)
     old = None
     if out.exists():
         if out.is_dir() and not out.is_symlink() and not any(out.iterdir()):
@@ -473,10 +479,15 @@ def replace_folder(staging: str | Path, out: str | Path) -> None:
             shutil.rmtree(staging, ignore_errors=True)  # the old folder, under the staging name now
             return
         else:
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.resolve().parent))
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.{OLD_TAG}-", dir=out.resolve().parent))
             old.rmdir()
             os.rename(out, old)
-    os.rename(staging, out)
+    try:
+        os.rename(staging, out)
+    except BaseException:
+        if old is not None and not os.path.lexists(out):
+            os.rename(old, out)  # the old folder back under its name: nothing lost
+        raise
     fsync_dir(out.resolve().parent)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
@@ -503,12 +514,38 @@ def check_replaceable_folder(out: str | Path, marker: str, overwrite: bool, what
         if not (out / marker).is_file():
             raise err(f"is not empty and holds no {marker}: fieldcal will not delete a folder that is not {what}",
                       path=out, field="out", fix="choose a new or empty folder")
+        if _folder_locked(out):
+            raise err("is in use by a running fieldcal command (a capture writing into it): replacing it now "
+                      "would delete its frames under it", path=out, field="out",
+                      fix="wait for that command to finish, or choose another folder")
         foreign = foreign_files(out, marker)
         if foreign:
             more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
             raise err(f"holds files that are not part of {what} ({', '.join(foreign[:3])}{more}): replacing the "
                       "folder would delete them, and fieldcal never deletes what it did not write", path=out,
                       field="out", fix="move those files out of the folder, or choose a new folder")
+
+
+def _folder_locked(folder: Path) -> bool:
+    """Whether a running command holds ``flock`` on the folder (capture holds its output folder's for the whole
+    run; builds hold their staging folder's): False where the file system has no locks."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        return False
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _NOFOLLOW | _CLOEXEC)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)  # closing drops the probe's own lock
+    return False
 
 
 #: Files a folder made by fieldcal may hold beside those its marker lists (simulate's truth, capture's journal).
@@ -552,7 +589,7 @@ def foreign_files(out: str | Path, marker: str) -> list[str]:
     for dirpath, dirnames, filenames in os.walk(out, followlinks=False):
         for n in filenames + [d for d in dirnames if os.path.islink(os.path.join(dirpath, d))]:
             rel = Path(os.path.relpath(os.path.join(dirpath, n), out)).as_posix()
-            if rel in known or (n.startswith(".") and n.endswith(".tmp")):
+            if rel in known or _TMP_NAME.match(n):
                 continue
             if journal and _CAPTURE_FRAME.match(rel) and not os.path.islink(os.path.join(dirpath, n)):
                 continue  # a frame a killed capture wrote and never committed (it takes it again on resume)
@@ -564,10 +601,22 @@ def foreign_files(out: str | Path, marker: str) -> list[str]:
 
 # ------------------------------------------------------------------------ staging folders of killed commands
 
-#: The hidden folders fieldcal builds a folder output in, or moves the old one aside to, beside the output:
-#: ``.NAME.import-XXXXXXXX`` (import), ``.NAME.partial-XXXXXXXX`` (simulate, plan export-masks) and
-#: ``.NAME.old-XXXXXXXX`` (:func:`replace_folder`); ``XXXXXXXX`` is :func:`tempfile.mkdtemp`'s random part.
-STAGING_TAGS = ("import", "partial", "old")
+#: The hidden folders fieldcal builds a folder output in, beside the output: ``.NAME.fieldcal-import-XXXXXXXX``
+#: (import) and ``.NAME.fieldcal-partial-XXXXXXXX`` (simulate, plan export-masks; :func:`make_staging`);
+#: ``XXXXXXXX`` is :func:`tempfile.mkdtemp`'s random part. The "fieldcal-" token keeps a user's own backup
+#: (``.S.old-20261125``) out of the pattern.
+STAGING_TAGS = ("fieldcal-import", "fieldcal-partial")
+#: The old folder :func:`replace_folder`'s fallback moves aside: reported by the cleaner, never deleted (after a
+#: crash between the two renames it is the only copy of the old output).
+OLD_TAG = "fieldcal-old"
+
+
+def make_staging(out: Path, tag: str) -> Path:
+    """A fresh, unpredictable hidden folder beside ``out`` to build it in (``tag`` one of :data:`STAGING_TAGS`)."""
+    import tempfile
+
+    assert tag in STAGING_TAGS
+    return Path(tempfile.mkdtemp(prefix=f".{out.name}.{tag}-", dir=out.parent))
 
 #: What fieldcal writes in such a folder besides its marker and the files the marker lists: stack frames
 #: (``StackWriter``'s ``frames/NNNN.tiff``, import's ``frames/NNNN_stem.ext``), exported mask files, and the
@@ -597,10 +646,18 @@ def staging_lock(folder: str | Path):
         return
     fd = None
     try:
-        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _CLOEXEC)
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _NOFOLLOW | _CLOEXEC)
+    except FileNotFoundError:  # removed between its making and this lock (another run's cleaner): stop here
+        from fieldcal.errors import ResourceError
+        raise ResourceError("the folder fieldcal had just made to build its output in was removed by another "
+                            "process", path=folder, fix="run the command again (one at a time on an output)")
     except OSError:
-        pass  # a file system without locks: the folder is still fieldcal's, only not marked as in use
+        pass  # cannot be opened for a lock: the folder is still fieldcal's, only not marked as in use
+    if fd is not None:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            pass  # a file system without locks: the folder is still fieldcal's, only not marked as in use
     try:
         yield
     finally:
@@ -658,11 +715,18 @@ def clean_stale_staging(out: str | Path, marker: str) -> tuple[list[Path], list[
     out = Path(out)
     parent = out.parent if str(out.parent) else Path(".")
     pattern = _staging_pattern(out.name)
+    old_pattern = re.compile(rf"^\.{re.escape(out.name)}\.{OLD_TAG}-[a-z0-9_]{{8}}$")
     try:
-        names = [n for n in os.listdir(parent) if pattern.match(n)]
+        listing = os.listdir(parent)
     except OSError:
         return [], []
+    names = [n for n in listing if pattern.match(n)]
     removed, kept = [], []
+    for n in sorted(listing):
+        if old_pattern.match(n):  # the old output a crash left aside: perhaps the only copy; never deleted
+            kept.append((parent / n, (f"it is the previous {out.name} that an interrupted replacement moved "
+                                      f"aside (if {out.name} is missing or unfinished, rename it back to "
+                                      f"{out.name})")))
     for n in sorted(names):
         folder = parent / n
         try:
@@ -696,6 +760,13 @@ def clean_stale_staging(out: str | Path, marker: str) -> tuple[list[Path], list[
             if foreign:
                 more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
                 kept.append((folder, f"holds {', '.join(foreign[:3])}{more}, which fieldcal does not write there"))
+                continue
+            try:  # the folder checked, not another renamed into its name meanwhile
+                now, held = os.lstat(folder), os.fstat(fd)
+            except OSError:
+                continue
+            if (now.st_dev, now.st_ino) != (held.st_dev, held.st_ino):
+                kept.append((folder, "changed while it was being checked"))
                 continue
             shutil.rmtree(folder, ignore_errors=True)
             if os.path.lexists(folder):

@@ -27,7 +27,6 @@ import math
 import os
 import re
 import shutil
-import tempfile
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
@@ -38,7 +37,7 @@ import numpy as np
 from fieldcal.errors import ParameterError, StackError
 from fieldcal.formats.atomic import (atomic_write_bytes, atomic_write_text, check_output,
                                      check_replaceable_folder, replace_folder, report_stale_staging,
-                                     staging_lock)
+                                     make_staging, staging_lock)
 from fieldcal.formats.imageio import ImageFileError, check_finite, encode, probe, read_image
 
 #: File name endings read through LibRaw (rawpy). Many raw formats are TIFF inside, so the ending decides.
@@ -547,7 +546,7 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     parent = out.resolve().parent
     parent.mkdir(parents=True, exist_ok=True)
     report_stale_staging(parent / out.name, "stack.json")  # what a killed import or simulate left beside out
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.import-", dir=parent))
+    staging = make_staging(parent / out.name, "fieldcal-import")
     try:
         with staging_lock(staging):  # a later run sees the folder is in use, not a leftover
             (staging / "frames").mkdir()
@@ -588,7 +587,8 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
             meta["frames"] = entries
             atomic_write_text(staging / STACK_JSON, json.dumps(meta, indent=2, allow_nan=False) + "\n")
             Stack.open(staging)  # validate what was built before it takes the final name
-            replace_folder(staging, out)
+            replace_folder(staging, out, marker="stack.json", overwrite=overwrite, what="a stack",
+                           error=ParameterError)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

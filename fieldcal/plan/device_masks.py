@@ -25,7 +25,6 @@ import math
 import os
 import re
 import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,7 +33,7 @@ import numpy as np
 from fieldcal.errors import OutputError, ParameterError, SpecError
 from fieldcal.formats import documents
 from fieldcal.formats.atomic import (atomic_write_bytes, check_output, check_replaceable_folder, replace_folder,
-                                     report_stale_staging, staging_lock)
+                                     make_staging, report_stale_staging, staging_lock)
 
 from . import masks as mk
 
@@ -178,7 +177,7 @@ def export_device_masks(doc: dict, arrays: dict, out: str | Path, *, fmt: str | 
     files = _files_for(fmt, planes, n_slots)
     out.parent.mkdir(parents=True, exist_ok=True)
     report_stale_staging(out, MANIFEST)  # what a killed export left beside out
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    staging = make_staging(out, "fieldcal-partial")
     try:
         with staging_lock(staging):  # a later run sees the folder is in use, not a leftover
             data = _encode(fmt, arrays, planes, n_slots)
@@ -212,7 +211,7 @@ def export_device_masks(doc: dict, arrays: dict, out: str | Path, *, fmt: str | 
                                          "encoding": "TIFF uint16 register ticks, deflate + horizontal predictor; a "
                                                      "pixel never exposed has start = stop = 0"}
             documents.write(staging / MANIFEST, manifest, "masks")
-            replace_folder(staging, out)
+            replace_folder(staging, out, marker=MANIFEST, overwrite=overwrite, what="exported masks")
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

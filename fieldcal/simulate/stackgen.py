@@ -9,7 +9,6 @@ from __future__ import annotations
 import io
 import math
 import shutil
-import tempfile
 from pathlib import Path
 from typing import Sequence
 
@@ -17,7 +16,7 @@ import numpy as np
 
 from fieldcal.formats import documents
 from fieldcal.formats.atomic import (atomic_write_bytes, check_replaceable_folder, replace_folder,
-                                     report_stale_staging, staging_lock)
+                                     make_staging, report_stale_staging, staging_lock)
 from ..errors import ParameterError, StackError
 from fieldcal.simulate.lens import LensSpec
 from ..progress import progress as _progress
@@ -186,7 +185,7 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     report_stale_staging(out, "stack.json")  # what a killed simulate or import left beside out
     # an unpredictable, freshly made folder: nothing that exists is ever reused or deleted; StackWriter.create
     # takes it empty, and it stays locked while it is built (a later run sees it is in use, not a leftover)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    tmp = make_staging(out, "fieldcal-partial")
     try:
         with staging_lock(tmp):
             writer = StackWriter.create(tmp, pixel_pitch_um=s.pixel_pitch_um, channels=list(spec.channel_names),
@@ -216,7 +215,7 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
             if optics == "wave":
                 truth["best_focus"] = _wave_best_focus(renderer, spec)
             documents.write(tmp / "truth.json", truth, "truth")
-            replace_folder(tmp, out)
+            replace_folder(tmp, out, marker="stack.json", overwrite=overwrite, what="a stack", error=StackError)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
