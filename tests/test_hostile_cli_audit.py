@@ -859,3 +859,22 @@ def test_a_link_to_a_folder_inside_an_input_does_not_make_its_target_an_input(tm
     check_output(tmp_path / "m.json", inputs=[s], overwrite=False)
     with pytest.raises(OutputError):
         check_output(camera, inputs=[s], overwrite=True)
+
+
+def test_overlapping_reads_leave_tifffile_logging_as_it_was():
+    """Review finding: the quiet reader saved and restored tifffile's log level per call; two reads overlapping
+    on the compositor's threads (A in, B in, A out, B out) restored the quieted level last and left tifffile
+    silenced for good. The first read in saves the level, the last out restores it."""
+    import logging
+
+    from fieldcal.formats.imageio import _tifffile_quiet
+
+    log = logging.getLogger("tifffile")
+    log.setLevel(logging.WARNING)
+    a, b = _tifffile_quiet(), _tifffile_quiet()
+    a.__enter__()
+    b.__enter__()
+    a.__exit__(None, None, None)
+    assert log.level > logging.ERROR  # B still reading: still quiet
+    b.__exit__(None, None, None)
+    assert log.level == logging.WARNING

@@ -16,6 +16,7 @@ import contextlib
 import io
 import logging
 import struct
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -149,18 +150,30 @@ def _native(dtype: np.dtype) -> np.dtype:
     return np.dtype(dtype).newbyteorder("=")
 
 
+_QUIET_LOCK = threading.Lock()
+_QUIET_DEPTH = 0
+_QUIET_LEVEL = logging.NOTSET
+
+
 @contextlib.contextmanager
 def _tifffile_quiet():
     """tifffile logs a damaged file's faults as warnings (Python's last-resort handler prints them on stderr, e.g.
     "<tifffile.TiffPages @25070> invalid offset to first page") before fieldcal's own what/where/fix message;
     while fieldcal reads, only that message is shown."""
+    global _QUIET_DEPTH, _QUIET_LEVEL
     log = logging.getLogger("tifffile")
-    level = log.level
-    log.setLevel(logging.ERROR + 1)
+    with _QUIET_LOCK:  # frames are read on several threads: the first in saves the level, the last out restores it
+        if _QUIET_DEPTH == 0:
+            _QUIET_LEVEL = log.level
+            log.setLevel(logging.ERROR + 1)
+        _QUIET_DEPTH += 1
     try:
         yield
     finally:
-        log.setLevel(level)
+        with _QUIET_LOCK:
+            _QUIET_DEPTH -= 1
+            if _QUIET_DEPTH == 0:
+                log.setLevel(_QUIET_LEVEL)
 
 
 def sniff_kind(path: Path) -> str:
