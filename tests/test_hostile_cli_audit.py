@@ -878,3 +878,20 @@ def test_overlapping_reads_leave_tifffile_logging_as_it_was():
     assert log.level > logging.ERROR  # B still reading: still quiet
     b.__exit__(None, None, None)
     assert log.level == logging.WARNING
+
+
+@pytest.mark.parametrize("command", ["simulate", "import"])
+def test_overwrite_of_the_current_folder_given_as_dot(t, capsys, monkeypatch, command):
+    """Review finding: `--out .` (the stack folder one stands in) has no name, so the staging folder was made
+    INSIDE the output ("..fieldcal-partial-*") and the swap failed ("Device or resource busy", exit 4, or the
+    build refused as foreign files of its own output). The output is taken by its absolute path."""
+    monkeypatch.chdir(t / "S")
+    if command == "simulate":
+        argv = ["simulate", LENS, ".", "--z", "-100", "100", "25", "--size", "96x64", "--quiet", "--overwrite"]
+    else:
+        argv = ["import", *sorted((t / "J").glob("*.jpg")), "--out", ".", "--z", "0", "20", "--pixel-pitch-um", "5",
+                "--quiet", "--overwrite"]
+    rc, err = run_cli(argv, capsys)
+    assert rc == 0, err
+    assert (t / "S" / "stack.json").is_file() and not [p for p in t.iterdir() if p.name.startswith(".")]
+    assert not [p for p in (t / "S").iterdir() if p.name.startswith(".")]

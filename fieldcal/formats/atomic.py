@@ -452,7 +452,7 @@ def _exchange(a: Path, b: Path) -> bool:
     err = ctypes.get_errno()
     if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.EPERM):
         return False
-    raise OSError(err, os.strerror(err), str(b))
+    raise OSError(err, os.strerror(err), str(a), None, str(b))  # both paths: either may be the one at fault
 
 
 def replace_folder(staging: str | Path, out: str | Path, *, marker: str | None = None, overwrite: bool = False,

@@ -448,7 +448,7 @@ def import_stack(images: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     """
     from fieldcal.formats.stack import FORMAT, STACK_JSON, Stack, _sha256_file
 
-    out = Path(out)
+    out = Path(os.path.abspath(out))  # "." or "x/.." has no name to stage beside; its absolute path has
     paths = _expand(images)
     if link is not None and link not in LINK_MODES:
         raise ParameterError(f"must be one of {LINK_MODES} or None, got {link!r}", field="link",

@@ -161,7 +161,7 @@ def export_device_masks(doc: dict, arrays: dict, out: str | Path, *, fmt: str | 
         The plan's file name, recorded in the manifest.
     """
     fmt = export_format(doc, fmt)
-    out = Path(out)
+    out = Path(os.path.abspath(out))  # "." has no name to stage beside; its absolute path has
     planes = [str(p) for p in doc["masks"]["planes"]]
     dev = doc["device"]
     n_slots = dev.get("n_slots")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import math
+import os
 import shutil
 from pathlib import Path
 from typing import Sequence
@@ -158,7 +159,7 @@ def simulate_stack(spec: LensSpec, out_dir, z_um: Sequence[float], scene="chart"
     if wh is not None:
         spec = spec.with_sensor_size(*wh)
     s = spec.sensor
-    out = Path(out_dir)
+    out = Path(os.path.abspath(out_dir))  # "." has no name to stage beside; its absolute path has
     check_replaceable_folder(out, "stack.json", overwrite, "a stack", error=StackError)
     image, scene_name = load_scene(scene, s.width_px, s.height_px, seed)
     renderer = Renderer(spec, image, seed=seed, level_ratio=level_ratio, level_floor_px=level_floor_px,
