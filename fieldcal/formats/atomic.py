@@ -526,26 +526,38 @@ def check_replaceable_folder(out: str | Path, marker: str, overwrite: bool, what
                       field="out", fix="move those files out of the folder, or choose a new folder")
 
 
+def _open_folder(folder: str | Path) -> int:
+    """A descriptor of the folder itself (not through a link), to lock it or to know it again."""
+    return os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _NOFOLLOW | _CLOEXEC)
+
+
+def _try_lock(fd: int) -> bool | None:
+    """Take an exclusive ``flock`` on ``fd`` without waiting: True when taken, False when a running process holds
+    it, None where the system or the file system has no such locks."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    except OSError:
+        return None
+    return True
+
+
 def _folder_locked(folder: Path) -> bool:
     """Whether a running command holds ``flock`` on the folder (capture holds its output folder's for the whole
     run; builds hold their staging folder's): False where the file system has no locks."""
     try:
-        import fcntl
-    except ImportError:  # pragma: no cover - Windows
-        return False
-    try:
-        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _NOFOLLOW | _CLOEXEC)
+        fd = _open_folder(folder)
     except OSError:
         return False
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return True
-    except OSError:
-        return False
+        return _try_lock(fd) is False
     finally:
         os.close(fd)  # closing drops the probe's own lock
-    return False
 
 
 #: Files a folder made by fieldcal may hold beside those its marker lists (simulate's truth, capture's journal).
@@ -611,13 +623,6 @@ STAGING_TAGS = ("fieldcal-import", "fieldcal-partial")
 OLD_TAG = "fieldcal-old"
 
 
-def make_staging(out: Path, tag: str) -> Path:
-    """A fresh, unpredictable hidden folder beside ``out`` to build it in (``tag`` one of :data:`STAGING_TAGS`)."""
-    import tempfile
-
-    assert tag in STAGING_TAGS
-    return Path(tempfile.mkdtemp(prefix=f".{out.name}.{tag}-", dir=out.parent))
-
 #: What fieldcal writes in such a folder besides its marker and the files the marker lists: stack frames
 #: (``StackWriter``'s ``frames/NNNN.tiff``, import's ``frames/NNNN_stem.ext``), exported mask files, and the
 #: hidden temporary files of :func:`write_bytes`.
@@ -630,6 +635,14 @@ _TMP_NAME = re.compile(r"^\..*\.[0-9a-f]{16}\.tmp$")
 _STAGING_SCAN_LIMIT = 100000
 
 
+def make_staging(out: Path, tag: str) -> Path:
+    """A fresh, unpredictable hidden folder beside ``out`` to build it in (``tag`` one of :data:`STAGING_TAGS`)."""
+    import tempfile
+
+    assert tag in STAGING_TAGS
+    return Path(tempfile.mkdtemp(prefix=f".{out.name}.{tag}-", dir=out.parent))
+
+
 def _staging_pattern(out_name: str) -> re.Pattern:
     return re.compile(rf"^\.{re.escape(out_name)}\.(?:{'|'.join(STAGING_TAGS)})-[a-z0-9_]{{8}}$")
 
@@ -639,14 +652,9 @@ def staging_lock(folder: str | Path):
     """Hold an exclusive lock on a staging folder while a command builds in it (``flock`` on the folder): a
     later command that finds the folder locked knows a running fieldcal owns it and leaves it alone. The kernel
     drops the lock when the process ends, however it ends. A no-op where ``flock`` is not available."""
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - Windows
-        yield
-        return
     fd = None
     try:
-        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _NOFOLLOW | _CLOEXEC)
+        fd = _open_folder(folder)
     except FileNotFoundError:  # removed between its making and this lock (another run's cleaner): stop here
         from fieldcal.errors import ResourceError
         raise ResourceError("the folder fieldcal had just made to build its output in was removed by another "
@@ -654,10 +662,7 @@ def staging_lock(folder: str | Path):
     except OSError:
         pass  # cannot be opened for a lock: the folder is still fieldcal's, only not marked as in use
     if fd is not None:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            pass  # a file system without locks: the folder is still fieldcal's, only not marked as in use
+        _try_lock(fd)  # without locks the folder is still fieldcal's, only not marked as in use
     try:
         yield
     finally:
@@ -740,18 +745,18 @@ def clean_stale_staging(out: str | Path, marker: str) -> tuple[list[Path], list[
             kept.append((folder, "owned by another user"))
             continue
         try:
-            fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _NOFOLLOW | _CLOEXEC)
+            fd = _open_folder(folder)
         except OSError:
             kept.append((folder, "cannot be opened"))
             continue
         try:
-            try:
-                import fcntl
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except ImportError:  # pragma: no cover - Windows: no locks; the content check still applies
-                pass
-            except OSError:
+            locked = _try_lock(fd)
+            if locked is False:
                 kept.append((folder, "in use by a running fieldcal command"))
+                continue
+            if locked is None and os.name == "posix":  # a build elsewhere (another host) could not be seen
+                kept.append((folder, "on a file system without locks, so fieldcal cannot tell whether a command "
+                                     "is still building in it"))
                 continue
             foreign = _staging_foreign(folder, marker)
             if foreign is None:
