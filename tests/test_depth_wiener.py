@@ -200,6 +200,30 @@ def test_probe_plane_sigma_measures_known_noise_per_mixed_plane():
     assert np.allclose(probe_plane_sigma(st, np.arange(4)), sig, rtol=0.08)
 
 
+
+def test_sampled_rows_noise_is_the_whole_planes_estimate_through_every_block_row():
+    """The probe's sampled-row estimate (only every s-th row filtered, the channels' responses mixed) is
+    Immerkaer's estimate of the mixed plane from all its responses, to its sampling error, also when the noise
+    differs by row within 8-px blocks (a JPEG's block edges): an odd row step visits every row of a block, where an
+    even one (every 4th row: centre rows 1 and 5 of each block) puts a loud row into half its responses, not 3 in
+    8, and reads ~8 % high here."""
+    from fieldcal.composite.depth_wiener import _mixed, _plane_noise
+    from fieldcal.composite.sweep import estimate_noise_sigma
+
+    rng = np.random.default_rng(5)
+    h, w = 400, 300
+    yy, xx = np.mgrid[0:h, 0:w]
+    row_sd = np.where(yy % 8 == 0, 6.0, 1.0)  # loud block-edge rows: 1 row in 8
+    planes = [(50.0 * np.sin(xx / 17.0 + c) + row_sd * rng.normal(0.0, 1.0, (h, w))).astype(np.float32)
+              for c in range(3)]
+    mix = np.array([[0.299, 0.587, 0.114], [0.5, -0.4187, -0.0813]])
+    want = [estimate_noise_sigma(p) for p in _mixed(planes, mix)]  # every response
+    # ~1/4 of the responses: a step of 4 rows made odd (5)
+    got = _plane_noise(planes, mix, (h - 2) * (w - 2) // 4)
+    assert np.allclose(got, want, rtol=0.03), (got, want)
+    assert _plane_noise(planes[:1], None, 10 ** 9)[0] == pytest.approx(estimate_noise_sigma(planes[0]), rel=1e-4)
+
+
 def test_a_shared_noise_probe_gives_each_call_its_own_probe_result(flat_world):
     """The luma and chroma calls given their planes' levels from one probe of all three planes filter exactly as
     when each probes its own; a wrong number of levels is refused."""

@@ -158,6 +158,33 @@ def _mixed(planes: list[np.ndarray], rows: np.ndarray | None) -> list[np.ndarray
     return out
 
 
+def _plane_noise(planes: list[np.ndarray], rows: np.ndarray | None, max_samples: int) -> list[float]:
+    """Immerkaer's noise estimate (:func:`~fieldcal.composite.sweep.estimate_noise_sigma`) of each plane, or of
+    each weighted sum of the planes (``rows``, P x C), from at most about ``max_samples`` responses: the operator
+    on every s-th interior row (s odd), all columns (an even spread, as the estimate's own sampling). The operator is separable
+    (``[1, -2, 1]`` down, then across) and linear, so a weighted sum's responses are the channels' responses
+    summed with the same weights: only the sampled rows are ever filtered or mixed (the whole planes mixed and
+    filtered cost ~5x as much CPU, for the same median to its sampling error, ~0.1 %)."""
+    from .sweep import estimate_noise_sigma, immerkaer_sigma
+
+    h, w = planes[0].shape
+    if h < 3 or w < 3:
+        return [estimate_noise_sigma(p, max_samples=max_samples) for p in _mixed(planes, rows)]
+    # an odd row step: the sampled rows run through every phase of a periodic structure (a JPEG's 8-px blocks, a
+    # mosaic's 2-px period) as the estimate's row-major sampling does, not through the same rows of each block
+    s = max(1, int(np.ceil((h - 2) * (w - 2) / max_samples))) | 1
+    resp = []
+    for p in planes:
+        d = np.multiply(p[1:h - 1:s], np.float32(-2.0))
+        d += p[0:h - 2:s]
+        d += p[2:h:s]
+        r = np.multiply(d[:, 1:w - 1], np.float32(-2.0))
+        r += d[:, 0:w - 2]
+        r += d[:, 2:w]
+        resp.append(r)
+    return [immerkaer_sigma(r) for r in _mixed(resp, rows)]
+
+
 def probe_plane_sigma(stack, frames, *, geometry=None, lateral_colour: bool = False,
                       mix: np.ndarray | None = None) -> list[float]:
     """Pixel noise (frame units) per channel, or per weighted sum of the channels (``mix``'s rows, P x C).
@@ -168,7 +195,6 @@ def probe_plane_sigma(stack, frames, *, geometry=None, lateral_colour: bool = Fa
     """
     from .dff import map_in_order
     from .source import default_workers
-    from .sweep import estimate_noise_sigma
 
     w, h = image_size(stack)
     channels = tuple(stack.channels)
@@ -182,7 +208,7 @@ def probe_plane_sigma(stack, frames, *, geometry=None, lateral_colour: bool = Fa
         """Frame k's (z order) noise per plane."""
         planes = frame_planes(stack, geometry, float(zs[k]), int(order[k]), channels, w, h,
                               lateral_colour=lateral_colour)
-        return [estimate_noise_sigma(p, max_samples=NOISE_SAMPLES) for p in _mixed(planes, rows)]
+        return _plane_noise(planes, rows, NOISE_SAMPLES)
 
     probe = np.unique(np.linspace(0, len(order) - 1, min(len(order), 6)).round().astype(int))
     per_frame = list(map_in_order(probe_sigma, [int(k) for k in probe], ahead=default_workers()))

@@ -53,7 +53,15 @@ def estimate_noise_sigma(channel_image: np.ndarray, max_samples: int | None = No
         # every step-th response of the interior in row-major order: the interior made contiguous, then a strided
         # view (10x faster than gathering by computed row and column indices, the same samples)
         r = np.ascontiguousarray(r).ravel()[::int(np.ceil(r.size / max_samples))]
-    return float(np.median(np.abs(r, out=r if r.flags.owndata else None)) / 0.6745 / 6.0)
+    return immerkaer_sigma(r)
+
+
+def immerkaer_sigma(responses: np.ndarray) -> float:
+    """Noise std from Immerkaer's 3x3 operator's responses (:func:`estimate_noise_sigma`): the median absolute
+    response / 0.6745 (a Gaussian's MAD) / 6 (the operator's L2 norm). Overwrites ``responses`` when it owns
+    its data."""
+    r = np.asarray(responses)
+    return float(np.median(np.abs(r, out=r if r.flags.owndata and r.flags.writeable else None)) / 0.6745 / 6.0)
 
 
 def sensor_noise_sigma(image: np.ndarray, gain_dn_per_e: float, read_noise_e: float,
