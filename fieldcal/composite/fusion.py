@@ -8,23 +8,21 @@ hard mask and of focus stackers, with the selection made per scale rather than o
 
 1. each frame, warped to the output geometry, is split into a Laplacian pyramid (``levels`` band-pass levels
    and a low-pass base);
-2. at each band-pass level and channel the *salience* of a frame is the local energy of its coefficients
-   (squared, Gaussian-weighted over ``window_px`` at that level's scale), and the output takes the coefficient
-   of the most salient frame. Deciding per level keeps fine detail at a depth edge from the frame where the edge
+2. at each band-pass level the *salience* of a frame is the local energy of its luminance's coefficients (the
+   channels' mean; squared, Gaussian-weighted over ``window_px`` at that level's scale), and every channel takes
+   its coefficient from the most salient frame (one choice per place: the colours come from one frame). Deciding per level keeps fine detail at a depth edge from the frame where the edge
    is sharp, while the coarse levels follow the larger object: no halo wider than the finest levels' support;
 3. the base (the coarsest, low-pass level, nearly the same in every frame) is the mean over frames, which
    averages its noise;
 4. the pyramid is collapsed.
 
-Frames stream through one at a time, one thread per channel: memory holds the running best coefficients and
-saliences (about twice one frame) and a few frames' planes, never the whole stack. The selected frame at the finest level that carries signal is kept as a
+Frames stream through one at a time (the next read while one is added): memory holds the running best
+coefficients and saliences (about twice one frame) and two frames' planes, never the whole stack. The selected frame at the finest level that carries signal is kept as a
 depth index (frame order by z) for plots and for deciding, elsewhere, whether a scene is flat.
 """
 
 from __future__ import annotations
 
-import queue
-import threading
 from dataclasses import dataclass
 
 import cv2
@@ -107,39 +105,56 @@ def _level_shapes(h: int, w: int, levels: int) -> list[tuple[int, int]]:
     return shapes
 
 
-class _ChannelSelection:
-    """Per-scale selection for one channel, frame by frame: the running best coefficients and saliences.
+class _Selection:
+    """Per-scale selection for all channels at once, frame by frame: the running best coefficients of each
+    channel, and the saliences that chose them.
 
-    All scratch (the frame's pyramid, its saliences, the selection mask) is allocated once and reused, every
+    One choice per coefficient for every channel, made on the luminance: its coefficients are the channels' mean
+    (the pyramid is linear), so a frame's salience is computed once, not once per channel, and the colours of a
+    place come from one frame (no colour fringes where channels would pick different frames on their noise; as
+    the fine detail's choice, :mod:`.detail`).
+
+    All scratch (the frame's pyramids, its saliences, the selection mask) is allocated once and reused, every
     operation writes in place: a frame costs no new full-size arrays (at 2048 x 1536 a fresh array costs as
     much in page faults as the arithmetic on it).
     """
 
-    def __init__(self, h: int, w: int, levels: int, sigma: float, index_level: int):
+    def __init__(self, h: int, w: int, n_channels: int, levels: int, sigma: float, index_level: int):
         self.shapes = _level_shapes(h, w, levels)
         self.levels, self.sigma, self.index_level = levels, sigma, index_level
-        self.gauss = [np.empty(s, np.float32) for s in self.shapes[1:]]
-        self.lap = [np.empty(s, np.float32) for s in self.shapes[:-1]]
-        self.best = [np.empty(s, np.float32) for s in self.shapes[:-1]]
+        self.gauss = [[np.empty(s, np.float32) for s in self.shapes[1:]] for _ in range(n_channels)]
+        self.lap = [[np.empty(s, np.float32) for s in self.shapes[:-1]] for _ in range(n_channels)]
+        self.best = [[np.empty(s, np.float32) for s in self.shapes[:-1]] for _ in range(n_channels)]
         self.best_sal = [np.empty(s, np.float32) for s in self.shapes[:-1]]
         self.best_idx = np.zeros(self.shapes[index_level], np.int16)
         self._sal = np.empty(h * w, np.float32)
         self._take = np.empty(h * w, bool)
-        self.base_sum = np.zeros(self.shapes[-1], np.float64)
+        self.base_sum = [np.zeros(self.shapes[-1], np.float64) for _ in range(n_channels)]
 
-    def add(self, plane: np.ndarray, k: int, support: np.ndarray | None = None) -> None:
+    def add(self, planes: list[np.ndarray], k: int, support: np.ndarray | None = None) -> None:
         """Take frame ``k``'s (in z order) coefficients where it is more salient than the frames before (never
         outside ``support``, where the frame holds recorded pixels, when given)."""
-        cur = plane
+        curs = list(planes)
+        n_ch = len(curs)
         for lev in range(self.levels):
             hh, ww = self.shapes[lev]
-            down = cv2.pyrDown(cur, dst=self.gauss[lev], borderType=_BORDER)
-            # the first frame's coefficients and saliences are written straight into the running selection
-            lap = cv2.pyrUp(down, dst=self.best[lev] if k == 0 else self.lap[lev], dstsize=(ww, hh),
-                            borderType=_BORDER)
-            np.subtract(cur, lap, out=lap)
+            laps = []
+            for c in range(n_ch):
+                down = cv2.pyrDown(curs[c], dst=self.gauss[c][lev], borderType=_BORDER)
+                # the first frame's coefficients are written straight into the running selection
+                lap = cv2.pyrUp(down, dst=self.best[c][lev] if k == 0 else self.lap[c][lev], dstsize=(ww, hh),
+                                borderType=_BORDER)
+                laps.append(np.subtract(curs[c], lap, out=lap))
+                curs[c] = down
             sal = self.best_sal[lev] if k == 0 else self._sal[:hh * ww].reshape(hh, ww)
-            np.multiply(lap, lap, out=sal)
+            if n_ch == 1:
+                np.multiply(laps[0], laps[0], out=sal)
+            else:  # the luminance's coefficients, squared
+                np.add(laps[0], laps[1], out=sal)
+                for lap in laps[2:]:
+                    sal += lap
+                sal *= np.float32(1.0 / n_ch)
+                np.multiply(sal, sal, out=sal)
             sal = cv2.GaussianBlur(sal, (0, 0), self.sigma, dst=sal, borderType=_BORDER)
             if support is not None:
                 if support.shape != (hh, ww):
@@ -147,90 +162,42 @@ class _ChannelSelection:
                 sal[~support] = -1.0
             if k != 0:
                 take = np.greater(sal, self.best_sal[lev], out=self._take[:hh * ww].reshape(hh, ww))
-                masked_copy(self.best[lev], lap, take)
+                for c in range(n_ch):
+                    masked_copy(self.best[c][lev], laps[c], take)
                 np.maximum(self.best_sal[lev], sal, out=self.best_sal[lev])
                 if lev == self.index_level:
                     masked_copy(self.best_idx, k, take)
-            cur = down
-        self.base_sum += cur
+        for c in range(n_ch):
+            self.base_sum[c] += curs[c]
 
-    def collapse(self, n_frames: int) -> np.ndarray:
-        """The fused channel: the selected pyramid over the mean base, collapsed (overwrites the coefficients)."""
-        img = (self.base_sum / n_frames).astype(np.float32)
+    def collapse(self, c: int, n_frames: int) -> np.ndarray:
+        """Channel ``c`` fused: the selected pyramid over the mean base, collapsed (overwrites the
+        coefficients)."""
+        img = (self.base_sum[c] / n_frames).astype(np.float32)
         for lev in range(self.levels - 1, -1, -1):
             hh, ww = self.shapes[lev]
             up = cv2.pyrUp(img, dstsize=(ww, hh), borderType=_BORDER)
-            img = np.add(self.best[lev], up, out=self.best[lev])
+            img = np.add(self.best[c][lev], up, out=self.best[c][lev])
         return img
 
 
-def _per_channel(selections: list[_ChannelSelection], read, n_frames: int, shape: tuple[int, int],
-                 support=None) -> None:
-    """Fuse ``n_frames`` frames with one thread per channel: ``read(k, planes)`` fills one float32 plane per
-    channel with frame ``k`` (z order) in this thread, and channel ``c``'s thread adds ``planes[c]`` to
-    ``selections[c]``.
+def _select(selection: _Selection, read, n_frames: int, n_channels: int, shape: tuple[int, int],
+            support=None) -> None:
+    """Add ``n_frames`` frames to ``selection`` in z order: ``read(k, planes)`` fills one float32 plane per channel
+    with frame ``k`` on a thread of its own, the next frame read while one is added (two sets of planes, reused);
+    OpenCV's own threads share the pyramids' and saliences' filtering. ``support(k)``, when given, is frame
+    ``k``'s mask of recorded pixels (or ``None``: everywhere)."""
+    from concurrent.futures import ThreadPoolExecutor
 
-    ``support(k)``, when given, is frame ``k``'s mask of recorded pixels (or ``None``: everywhere).
-
-    Channels are independent, so each thread keeps its own running selection and the only hand-over is a set
-    of planes; three sets circulate (one being read, two queued), which bounds memory and reuses the buffers.
-    OpenCV's own threads fill what is left of the cores; NumPy's in-place arithmetic releases the GIL.
-    """
-    n_ch = len(selections)
     h, w = shape
-    if n_ch == 1:
-        planes = [np.empty((h, w), np.float32)]
+    sets = [[np.empty((h, w), np.float32) for _ in range(n_channels)] for _ in range(2 if n_frames > 1 else 1)]
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="fieldcal-fuse-read") as pool:
+        pending = pool.submit(read, 0, sets[0])
         for k in range(n_frames):
-            read(k, planes)
-            selections[0].add(planes[0], k, support(k) if support is not None else None)
-        return
-    free: queue.Queue = queue.Queue()
-    for _ in range(3):
-        free.put([np.empty((h, w), np.float32) for _ in range(n_ch)])
-    todo = [queue.Queue() for _ in selections]
-    errors: list[BaseException] = []
-    lock = threading.Lock()
-    users: dict[int, int] = {}
-
-    def release(planes: list[np.ndarray]) -> None:
-        with lock:
-            users[id(planes)] -= 1
-            done = users[id(planes)] == 0
-        if done:
-            free.put(planes)
-
-    def work(sel: _ChannelSelection, c: int, q: queue.Queue) -> None:
-        while (item := q.get()) is not None:
-            planes, k, mask = item
-            if not errors:  # after a failure the frames are only passed on, so the reader never blocks
-                try:
-                    sel.add(planes[c], k, mask)
-                except BaseException as exc:  # re-raised in the caller's thread
-                    errors.append(exc)
-            release(planes)
-
-    threads = [threading.Thread(target=work, args=(sel, c, q), daemon=True, name=f"fieldcal-fuse-{c}")
-               for c, (sel, q) in enumerate(zip(selections, todo))]
-    for t in threads:
-        t.start()
-    try:
-        for k in range(n_frames):
-            planes = free.get()
-            if errors:
-                break
-            read(k, planes)
-            with lock:
-                users[id(planes)] = n_ch
-            mask = support(k) if support is not None else None
-            for q in todo:
-                q.put((planes, k, mask))
-    finally:
-        for q in todo:
-            q.put(None)
-        for t in threads:
-            t.join()
-    if errors:
-        raise errors[0]
+            pending.result()
+            if k + 1 < n_frames:
+                pending = pool.submit(read, k + 1, sets[(k + 1) % 2])
+            selection.add(sets[k % 2], k, support(k) if support is not None else None)
 
 
 def fuse_pyramid(stack, geometry=None, frames=None, *, levels: int | None = None, window_px: float = 5.0,
@@ -288,7 +255,7 @@ def fuse_pyramid(stack, geometry=None, frames=None, *, levels: int | None = None
     sigma = max(float(window_px), 1.0) / 2.0
     # Level 1 (half resolution) is less noise-driven than level 0 and still follows edges within 2 px.
     index_level = 1 if n_levels > 1 else 0
-    sels = [_ChannelSelection(h, w, n_levels, sigma, index_level) for _ in channels]
+    sel = _Selection(h, w, len(channels), n_levels, sigma, index_level)
     bar = iter(progress(order, total=len(order), desc="fusing", quiet=quiet, unit="frame"))
 
     def read(k: int, planes: list[np.ndarray]) -> None:
@@ -296,24 +263,18 @@ def fuse_pyramid(stack, geometry=None, frames=None, *, levels: int | None = None
         frame_planes(stack, geometry, float(z_all[i]), int(i), channels, w, h, out=planes)
 
     cover = getattr(stack, "support", None)  # registered frames: where each holds recorded pixels
-    _per_channel(sels, read, len(order), (h, w), (lambda k: cover(int(order[k]))) if cover is not None else None)
+    _select(sel, read, len(order), len(channels), (h, w),
+            (lambda k: cover(int(order[k]))) if cover is not None else None)
     next(bar, None)  # closes the progress bar
-    depth = _depth_index([s.best_idx for s in sels], [s.best_sal[index_level] for s in sels], w, h)
+    depth = _depth_index(sel.best_idx, w, h)
     fused = np.empty((h, w, len(channels)), dtype=np.float32)
-    for c, sel in enumerate(sels):
-        fused[..., c] = sel.collapse(len(order))
+    for c in range(len(channels)):
+        fused[..., c] = sel.collapse(c, len(order))
     return FusionResult(fused, depth, z_all[order], n_levels, index_reach_px(2.0 * sigma, index_level))
 
 
-def _depth_index(best_idx: list[np.ndarray], best_sal: list[np.ndarray], w: int, h: int) -> np.ndarray:
-    """Frame choice per pixel: at one level, each pixel takes the choice of its most salient channel;
-    median-filtered, upsampled (nearest) to ``w x h``."""
-    choice = best_idx[0].copy()
-    sal = best_sal[0].copy()
-    for idx, s in zip(best_idx[1:], best_sal[1:]):
-        more = s > sal  # strict: the first channel wins ties, as argmax does
-        masked_copy(choice, idx, more)
-        masked_copy(sal, s, more)
+def _depth_index(choice: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Frame choice per pixel at one level (every channel's), median-filtered, upsampled (nearest) to ``w x h``."""
     d = cv2.medianBlur(choice.astype(np.uint8) if choice.max() < 256 else choice.astype(np.float32), INDEX_MEDIAN_PX)
     return cv2.resize(d.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
 
