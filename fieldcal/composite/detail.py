@@ -23,7 +23,10 @@ also noise and the blurred ghost of a near object wherever no frame is sharp. Th
   colour fringes appear.
 
 The choice needs the final index before the coefficients are gathered, so the frames stream through twice
-(measure, then gather); memory holds the choice, the gathered levels and a few frames' planes.
+(measure, then gather); memory holds the choice, the gathered levels and a few frames' planes. Keeping the base's
+own fine levels (``keep_base``: a Wiener composite) gathers nothing by the choice, so the frames stream through
+once: each frame's channels' fine levels give both its salience (their sum: the luminance's) and its share of the
+average within reach.
 """
 
 from __future__ import annotations
@@ -167,14 +170,16 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     def planes_of(i: int) -> list[np.ndarray]:
         return frame_planes(stack, geometry, float(z_all[i]), int(i), channels, w, h)
 
-    def salience(k_i):
+    def salience(k_i, lum_levels=None):
         k, i = k_i
-        planes = planes_of(i)
-        lum = planes[0]
-        for p in planes[1:]:
-            lum += p
+        if lum_levels is None:
+            planes = planes_of(i)
+            lum = planes[0]
+            for p in planes[1:]:
+                lum += p
+            lum_levels = _fine_levels(lum, levels)
         sal = []
-        for lev, lap in enumerate(_fine_levels(lum, levels)):
+        for lev, lap in enumerate(lum_levels):
             e = np.multiply(lap, lap, out=lap)
             e = cv2.GaussianBlur(e, (0, 0), float(window_px), dst=e, borderType=_BORDER)
             step = max(1, int(np.sqrt(e.size / 50_000)))  # ~50 000 samples pin a median to ~0.5 %
@@ -198,12 +203,53 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
             m = cv2.resize(m.view(np.uint8), (ww, hh), interpolation=cv2.INTER_NEAREST) > 0
         return m
 
+    # the frames' fine levels averaged where they lie within reach of the depth map (the noise gate's average)
+    total = [np.zeros((len(channels), *s), np.float32) for s in shapes]
+    count = [np.zeros(s, np.float32) for s in shapes]
+    lock = threading.Lock()
+
+    def near_of(k: int, i) -> list[np.ndarray]:
+        near = []
+        for lev in range(levels):
+            m = np.abs(kd[lev] - np.float32(k)) <= reach
+            rec = recorded(i, lev)
+            near.append(m if rec is None else m & rec)
+        return near
+
+    def accumulate(laps: list[tuple[int, int, np.ndarray]], near: list[np.ndarray]) -> None:
+        with lock:  # the averages are shared by every frame within reach
+            for lev, ci, lap in laps:
+                total[lev][ci] += lap
+            for lev in range(levels):
+                count[lev] += near[lev]
+
+    def measure_and_average(k_i):
+        """keep_base: the salience and the average within reach from one read of the frame, the luminance's
+        levels the channels' summed (the pyramid is linear): no second pass, as no frame's coefficients are
+        gathered by the final choice."""
+        k, i = k_i
+        chan_levels = [_fine_levels(plane, levels) for plane in planes_of(i)]
+        lum_levels = []
+        for lev in range(levels):
+            lum = chan_levels[0][lev].copy()
+            for cl in chan_levels[1:]:
+                lum += cl[lev]
+            lum_levels.append(lum)
+        near = near_of(k, i)
+        laps = []
+        for ci, cl in enumerate(chan_levels):
+            for lev, lap in enumerate(cl):
+                lap *= near[lev]
+                laps.append((lev, ci, lap))
+        accumulate(laps, near)
+        return salience(k_i, lum_levels)
+
     best = [np.full(s, -2.0, np.float32) for s in shapes]
     choice = [np.zeros(s, choice_dtype) for s in shapes]
     noise = [np.inf] * levels
     items = list(enumerate(order))
-    for k, sal in progress(zip(range(len(items)), map_in_order(salience, items)), total=len(items),
-                           desc="fine detail", quiet=quiet, unit="frame"):
+    for k, sal in progress(zip(range(len(items)), map_in_order(measure_and_average if keep_base else salience, items)),
+                           total=len(items), desc="fine detail", quiet=quiet, unit="frame"):
         for lev, (e, typical) in enumerate(sal):
             take = e > best[lev]
             masked_copy(best[lev], e, take)
@@ -229,35 +275,24 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     # channel-first: each channel's plane contiguous, so the per-frame copies and sums run at full speed
     # (with keep_base, the base's own fine levels: made after the gathering pass, not held through it)
     gathered = None if keep_base else [np.zeros((len(channels), *s), np.float32) for s in shapes]
-    total = [np.zeros((len(channels), *s), np.float32) for s in shapes]
-    count = [np.zeros(s, np.float32) for s in shapes]
-    lock = threading.Lock()
 
     def gather(k_i) -> None:
         k, i = k_i
         chosen = [c == k for c in choice]
-        near = []
-        for lev in range(levels):
-            m = np.abs(kd[lev] - np.float32(k)) <= reach
-            rec = recorded(i, lev)
-            near.append(m if rec is None else m & rec)
+        near = near_of(k, i)
         laps = []
         for ci, plane in enumerate(planes_of(i)):
             for lev, lap in enumerate(_fine_levels(plane, levels)):
                 # each frame writes only where it was chosen: the threads' writes never overlap
-                if not keep_base:
-                    masked_copy(gathered[lev][ci], lap, chosen[lev])
+                masked_copy(gathered[lev][ci], lap, chosen[lev])
                 lap *= near[lev]
                 laps.append((lev, ci, lap))
-        with lock:  # the averages are shared by every frame within reach
-            for lev, ci, lap in laps:
-                total[lev][ci] += lap
-            for lev in range(levels):
-                count[lev] += near[lev]
+        accumulate(laps, near)
 
-    for _ in progress(map_in_order(gather, items), total=len(items), desc="fine detail, gathering", quiet=quiet,
-                      unit="frame"):
-        pass
+    if not keep_base:
+        for _ in progress(map_in_order(gather, items), total=len(items), desc="fine detail, gathering",
+                          quiet=quiet, unit="frame"):
+            pass
     for lev in range(levels):
         sel, n = select[lev], count[lev]
         sel[n == 0] = 1.0  # nothing recorded within reach: the chosen frame
