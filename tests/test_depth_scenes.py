@@ -150,6 +150,27 @@ def test_fusion_keeps_the_sharp_frame_everywhere():
     assert np.all(out.depth_index[8:-8, 8:40] == 0) and np.all(out.depth_index[8:-8, 56:-8] == 1)
 
 
+
+def test_fusion_takes_every_channel_from_the_frame_with_the_most_salient_luminance():
+    """One choice per coefficient for all channels, made on the luminance (the channels' mean): frame A holds a
+    strong texture in R only, frame B a weaker one in G only (a quarter of A's luminance energy). Every channel
+    comes from A, so G is A's flat G, not B's texture (a choice per channel would take B's G: colour fringes),
+    and R is A's texture; the frame index is A's throughout."""
+    rng = np.random.default_rng(4)
+    h, w = 64, 96
+    t_a = rng.normal(0.0, 1.0, (h, w)).astype(np.float32)
+    t_b = rng.normal(0.0, 1.0, (h, w)).astype(np.float32)
+    a = np.full((h, w, 3), 100.0, np.float32)
+    b = a.copy()
+    a[..., 0] += 30.0 * t_a  # luminance coefficient 10 t_a
+    b[..., 1] += 15.0 * t_b  # luminance coefficient 5 t_b: a quarter of A's energy
+    out = fuse_pyramid(ArrayStack([a, b], [0.0, 50.0], ["R", "G", "B"]), quiet=True)
+    inner = (slice(8, -8), slice(8, -8))
+    assert np.abs(out.image[..., 1] - 100.0)[inner].std() < 0.05 * 15.0  # G flat: A's, not B's texture
+    assert np.abs(out.image[..., 0] - a[..., 0])[inner].mean() < 0.05 * 30.0  # R: A's texture
+    assert np.all(out.depth_index[inner] == 0)
+
+
 def test_a_background_continues_behind_a_thin_bar(spec):
     """One uniform colour everywhere: whatever stands in front, every frame is the flat scene's (closed form).
     A background cut off at the bar's outline would show a dark line where the defocused bar is translucent."""
