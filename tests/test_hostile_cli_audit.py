@@ -895,3 +895,14 @@ def test_overwrite_of_the_current_folder_given_as_dot(t, capsys, monkeypatch, co
     assert rc == 0, err
     assert (t / "S" / "stack.json").is_file() and not [p for p in t.iterdir() if p.name.startswith(".")]
     assert not [p for p in (t / "S").iterdir() if p.name.startswith(".")]
+
+
+def test_composite_refuses_a_z_ref_away_from_a_single_frame(t, capsys):
+    """Before: a one-frame stack skipped registration and with it the range check, so `--z-ref-um 50` on a frame
+    at 0 µm was dropped without a word. One frame is its own reference: any other position is refused."""
+    from fieldcal.cli import main
+
+    assert main(["simulate", str(LENS), str(t / "one"), "--z", "0", "0", "50", "--size", "96x64", "--quiet"]) == 0
+    refused(t, ["composite", t / "one", "--out", t / "c.tiff", "--z-ref-um", "50", "--quiet"], capsys,
+            "--z-ref-um", "outside", "0 to 0")
+    assert not (t / "c.tiff").exists()

@@ -149,6 +149,11 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         info["photometric"] = stack.photometric
         geometry = None
     else:
+        if profile is None and register and z_ref_um is not None:
+            # one frame is its own reference: a position away from it is refused as for a longer stack (never
+            # ignore a flag)
+            from .register import _sorted_frames
+            _sorted_frames(stack, frames, z_ref_um)
         stack = hold_decoded(stack, frames)
     vol = focus_volume(stack, geometry, frames=frames, block_px=block_px, lateral_colour=lateral_colour,
                        quiet=quiet)
