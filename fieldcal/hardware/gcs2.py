@@ -330,6 +330,7 @@ class GCS2Stage:
                                                           "trigger_out=1")
         self.trigger_out = trigger_out
         self.name = f"gcs:{port}"
+        self._axis_bit = 1  # the axis' bit in the #5 mask; connect() reads it from SAI? ALL
 
     @classmethod
     def from_spec(cls, arg: str | None, options: dict[str, str]) -> "GCS2Stage":
@@ -380,6 +381,15 @@ class GCS2Stage:
     # ------------------------------------------------------------------ Stage protocol
     def connect(self) -> None:
         self.client.open()
+        # ``#5`` answers one bit per axis, in the order of ``SAI? ALL`` (MS249E, #5: "1=First axis in motion,
+        # 2=Second axis in motion"; pipython's IsMoving reads the same bit): find this axis' bit
+        axes = [ln.strip() for ln in self.client.query("SAI? ALL") if ln.strip()]
+        if self.axis not in axes:
+            self.client.close()
+            raise ParameterError(f"axis {self.axis!r} is not an axis of this controller (SAI? ALL: {axes})",
+                                 path=f"stage {self.name}", field="axis",
+                                 fix=f"give one of its axes, e.g. axis={axes[0] if axes else 1}")
+        self._axis_bit = 1 << axes.index(self.axis)
         if self.client.query_axes("SVO?", self.axis) != "1":
             self.client.command(f"SVO {self.axis} 1")
         if self._velocity_mm_s is not None:
@@ -407,14 +417,27 @@ class GCS2Stage:
         if self.client.query_axes("SVO?", self.axis) != "1":
             self.client.command(f"SVO {self.axis} 1")
         self.client.command(f"FRF {self.axis}")
+        # as PI's pipython (pitools.waitonreferencing): wait for #7 to answer "ready" (MS249E, #7: B0h "not
+        # ready (e.g., doing a reference move)"), read ERR? -- a reference move that failed says why here --
+        # and only then FRF?
         deadline = time.monotonic() + timeout_ms / 1000
-        while not self.is_referenced():
+        while not self._ready():
             if time.monotonic() > deadline:
                 self.stop()
                 raise DeviceFault(f"reference move not done within {timeout_ms:.0f} ms", code=0,
                                   device=self.client.device, fix="check the stage and its reference switch")
             time.sleep(self.poll_ms / 1000)
         self.client.check_error("FRF")
+        if not self.is_referenced():
+            raise DeviceFault("the reference move ended but the axis is not referenced (FRF? 0)", code=0,
+                              device=self.client.device, fix="check the stage and its reference switch")
+
+    def _ready(self) -> bool:
+        """``#7``: B1h ready, B0h busy (MS249E, #7)."""
+        lines = self.client.query("#7")
+        if lines[-1] in ("\xb1", "\xb0"):
+            return lines[-1] == "\xb1"
+        raise self.client._link_error(f"garbled reply {lines!r} (expected B1h or B0h)", "#7")
 
     def limits_um(self) -> tuple[float, float]:
         a = self._to_um(self.client.query_float("TMN?", self.axis))
@@ -472,9 +495,10 @@ class GCS2Stage:
         return self.client.query_axes("ONT?", self.axis) == "1"
 
     def _moving(self) -> bool:
+        """``#5``: a hex mask with one bit per axis (MS249E, #5); only this axis' bit counts."""
         lines = self.client.query("#5")
         try:
-            return int(lines[-1].strip(), 16) != 0
+            return bool(int(lines[-1].strip(), 16) & self._axis_bit)
         except ValueError:
             raise self.client._link_error(f"garbled reply {lines!r}", "#5") from None
 

@@ -129,7 +129,7 @@ class GCS2Emulator:
         self._delay = (n, delay_ms / 1000)
 
     def motion_error_on_next_move(self) -> None:
-        """The next MOV stops half-way with error 1024 (PI_CNTR_MOTION_ERROR) and the servo switched off."""
+        """The next MOV (or FRF) stops half-way with error 1024 (PI_CNTR_MOTION_ERROR) and the servo switched off."""
         self._motion_error_armed = True
 
     def set_referenced_at(self, pos_mm: float) -> None:
@@ -162,7 +162,8 @@ class GCS2Emulator:
             self.error = MOTION_ERROR
         if self._referencing and not self.moving():
             self._referencing = False
-            self.referenced = True
+            if not self._motion_error:  # a reference move cut short by a motion error references nothing
+                self.referenced = True
 
     def on_target(self) -> bool:
         t0, a, b, dur = self._seg
@@ -295,6 +296,9 @@ class GCS2Emulator:
                 return None
             self._referencing = True
             self._start(self.reference_mm)
+            if self._motion_error_armed:
+                self._motion_error_armed = False
+                self._motion_error = True
             return None
         if name in ("MOV", "VEL", "ACC"):
             if len(args) != 2:
