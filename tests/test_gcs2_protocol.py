@@ -92,3 +92,50 @@ def test_reference_waits_for_the_controller_to_be_ready_before_reading_frf():
             assert sent[first_frf_q - 1] == "ERR?"
         finally:
             st.close()
+
+
+def test_the_c863_emulator_takes_one_element_per_command_line():
+    # MS249E 8.2: "With the C-863.12 only a single element per command line can be addressed (e. g. axis or
+    # parameter)"; "SEP 100 1 0x32 0 1 0x14 1 is not possible"
+    emu = GCS2Emulator()
+    assert emu.handle("CTO 1 2 1 1 3 0") is None
+    assert emu.handle("ERR?") != "0\n" and 1 not in emu.cto
+    assert emu.handle("TRO 1 1 2 1") is None and emu.handle("ERR?") != "0\n" and not emu.tro
+    for cmd in ("CTO 1 2 1", "CTO 1 3 0", "TRO 1 1"):
+        assert emu.handle(cmd) is None and emu.handle("ERR?") == "0\n"
+    assert emu.cto[1] == {2: 1.0, 3: 0.0} and emu.tro[1]
+
+
+def test_the_sweep_trigger_is_configured_one_cto_parameter_per_line():
+    emu = GCS2Emulator(clock=ManualClock(tick_s=0.05))
+    with TcpServer(emu) as srv:
+        st = GCS2Stage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1, trigger_out=2)
+        st.connect()
+        try:
+            st.arm_sweep_trigger(-100.0, 100.0)  # raises DeviceFault when the controller refuses a line
+            assert emu.cto[2] == pytest.approx({2: 1.0, 3: 0.0, 1: 0.2, 8: 7.4, 9: 7.6})
+            assert emu.tro[2]
+            ctos = [c for c in emu.received if c.startswith("CTO")]
+            assert len(ctos) == 5 and all(len(c.split()) == 4 for c in ctos)
+            st.disarm_sweep_trigger()
+            assert not emu.tro[2]
+        finally:
+            st.close()
+
+
+def test_pipython_backend_arms_the_trigger_one_cto_per_line_and_reads_its_own_axis_bit():
+    pytest.importorskip("pipython")
+    from fieldcal.hardware.pipython_backend import PipythonStage
+    emu = _TwoAxisController(clock=ManualClock(tick_s=0.05))
+    with TcpServer(emu) as srv:
+        st = PipythonStage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1, trigger_out=1)
+        st.connect()
+        try:
+            st.arm_sweep_trigger(-100.0, 100.0)
+            assert emu.cto[1] == pytest.approx({2: 1.0, 3: 0.0, 1: 0.2, 8: 7.4, 9: 7.6}) and emu.tro[1]
+            emu.set_referenced_at(7.5)
+            st.move_to_um(100.0)
+            st.wait_on_target(1500)  # axis 2 keeps moving (pipython's IsMoving reads axis 1's bit)
+            assert st.position_um() == pytest.approx(100.0, abs=1e-3)
+        finally:
+            st.close()

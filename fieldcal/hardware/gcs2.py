@@ -471,6 +471,11 @@ class GCS2Stage:
         """``ACC?`` (closed-loop acceleration, mm/s²)."""
         return self.client.query_float("ACC?", self.axis) * 1000.0
 
+    def cto_settings(self, start_um: float, stop_um: float) -> list[tuple[int, str]]:
+        """(CTO parameter ID, value) for a PositionDistance trigger that pulses at ``start_um`` and ``stop_um``."""
+        a, b = self._to_mm(start_um), self._to_mm(stop_um)
+        return [(2, self.axis), (3, "0"), (1, f"{abs(b - a):.6f}"), (8, f"{a:.6f}"), (9, f"{b:.6f}")]
+
     def arm_sweep_trigger(self, start_um: float, stop_um: float) -> None:
         """With ``trigger_out``: ``CTO`` the line to pulse at ``start_um`` (and at ``stop_um``: TriggerStep is the
         whole range) while the axis moves from start to stop, then ``TRO line 1``. Without it: nothing (the
@@ -478,10 +483,11 @@ class GCS2Stage:
         if self.trigger_out is None:
             return
         n = self.trigger_out
-        a, b = self._to_mm(start_um), self._to_mm(stop_um)
         # CTO parameter IDs of the C-863.12 (MS249E, CTO): 1 TriggerStep, 2 Axis, 3 TriggerMode (0 =
-        # PositionDistance), 8 StartThreshold, 9 StopThreshold
-        self.client.command(f"CTO {n} 2 {self.axis} {n} 3 0 {n} 1 {abs(b - a):.6f} {n} 8 {a:.6f} {n} 9 {b:.6f}")
+        # PositionDistance), 8 StartThreshold, 9 StopThreshold -- one per command line (MS249E 8.2: "With the
+        # C-863.12 only a single element per command line can be addressed")
+        for pid, value in self.cto_settings(start_um, stop_um):
+            self.client.command(f"CTO {n} {pid} {value}")
         self.client.command(f"TRO {n} 1")
 
     def disarm_sweep_trigger(self) -> None:

@@ -343,7 +343,9 @@ class GCS2Emulator:
         """``CTO {line pid value}`` / ``TRO {line 0|1}`` for digital outputs 1..4 (C-863.12: CTO parameter IDs 1
         TriggerStep, 2 Axis, 3 TriggerMode, 7 Polarity, 8 StartThreshold, 9 StopThreshold, 10 TriggerPosition)."""
         width = 3 if name == "CTO" else 2
-        if not args or len(args) % width:
+        # MS249E 8.2: "With the C-863.12 only a single element per command line can be addressed (e. g. axis or
+        # parameter)". Which code the unit sets for a line with more is not in the manual: 24 here (unverified).
+        if len(args) != width:
             self._set_error(24)
             return None
         try:

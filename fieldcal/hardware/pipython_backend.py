@@ -179,8 +179,9 @@ class PipythonStage(GCS2Stage):
     def arm_sweep_trigger(self, start_um: float, stop_um: float) -> None:
         if self.trigger_out is None:
             return
-        n, a, b = self.trigger_out, self._to_mm(start_um), self._to_mm(stop_um)
-        self._call(self.dev.CTO, [n] * 5, [2, 3, 1, 8, 9], [self.axis, 0, abs(b - a), a, b])
+        n = self.trigger_out
+        for pid, value in self.cto_settings(start_um, stop_um):  # one element per line (MS249E 8.2), as gcs:
+            self._call(self.dev.CTO, n, pid, value)
         self._call(self.dev.TRO, n, True)
 
     def disarm_sweep_trigger(self) -> None:
