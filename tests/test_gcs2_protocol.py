@@ -139,3 +139,45 @@ def test_pipython_backend_arms_the_trigger_one_cto_per_line_and_reads_its_own_ax
             assert st.position_um() == pytest.approx(100.0, abs=1e-3)
         finally:
             st.close()
+
+
+def test_resync_on_a_line_that_never_goes_quiet_is_a_link_error_not_a_hang():
+    """A controller at another baud rate, or a device that is not a controller, may send without pause: the
+    resync's drain must give up (it read until the line was quiet, with no bound)."""
+    import socket
+    import threading
+    import time
+
+    from fieldcal.errors import LinkError
+    from fieldcal.hardware.gcs2 import GCS2Client
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+    stop = threading.Event()
+
+    def flood():
+        conn, _ = srv.accept()
+        conn.settimeout(0.2)
+        try:
+            while not stop.is_set():
+                conn.sendall(b"\xa5" * 256)
+                time.sleep(0.002)
+        except OSError:
+            pass
+        finally:
+            conn.close()
+
+    t = threading.Thread(target=flood, daemon=True)
+    t.start()
+    c = GCS2Client(f"socket://127.0.0.1:{srv.getsockname()[1]}", timeout_ms=50)
+    t0 = time.monotonic()
+    try:
+        with pytest.raises(LinkError, match="quiet"):
+            c.open()
+    finally:
+        stop.set()
+        c.close()
+        srv.close()
+        t.join(2)
+    assert time.monotonic() - t0 < 5.0

@@ -271,8 +271,12 @@ class GCS2Client:
         try:
             # a late reply may still be on its way: read until the line has been quiet for drain_s
             self._ser.timeout = drain_s
+            give_up = time.monotonic() + max(2.0, 10 * drain_s)  # a line that never goes quiet must not hang us
             while self._ser.read(4096):
-                pass
+                if time.monotonic() > give_up:
+                    self._ser.timeout = self.timeout_ms / 1000
+                    raise self._link_error("the line does not go quiet (a wrong baud rate, or not a GCS "
+                                           "controller?)", "*IDN?")
             self._ser.reset_input_buffer()
             self._ser.timeout = self.timeout_ms / 1000
         except (serial.SerialException, OSError) as exc:
