@@ -181,3 +181,23 @@ def test_resync_on_a_line_that_never_goes_quiet_is_a_link_error_not_a_hang():
         srv.close()
         t.join(2)
     assert time.monotonic() - t0 < 5.0
+
+
+@pytest.mark.parametrize("kind", ["gcs", "pi"])
+def test_reference_switches_the_servo_on_first_on_both_backends(kind):
+    # after a motion error the controller has switched the servo off (error 1024's text); FRF with the servo off
+    # is error 5 ("... or move attempted with servo off", pipython gcserror)
+    if kind == "pi":
+        pytest.importorskip("pipython")
+    from fieldcal.hardware.pipython_backend import PipythonStage
+    emu = GCS2Emulator(clock=ManualClock(tick_s=0.05))
+    with TcpServer(emu) as srv:
+        cls = PipythonStage if kind == "pi" else GCS2Stage
+        st = cls(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1)
+        st.connect()
+        try:
+            emu.servo = False
+            st.reference(timeout_ms=3000)
+            assert emu.referenced and emu.servo and st.is_referenced()
+        finally:
+            st.close()

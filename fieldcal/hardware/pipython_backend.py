@@ -148,6 +148,9 @@ class PipythonStage(GCS2Stage):
         return bool(self._call(self.dev.qFRF, self.axis)[self.axis])
 
     def reference(self, timeout_ms: float = 60000.0) -> None:
+        # FRF with the servo off is error 5 (as gcs:, switch it on first: a motion error switches it off)
+        if not self._call(self.dev.qSVO, self.axis)[self.axis]:
+            self._call(self.dev.SVO, self.axis, True)
         self._call(self.dev.FRF, self.axis)
         deadline = time.monotonic() + timeout_ms / 1000
         while not self.is_referenced():
