@@ -62,7 +62,13 @@ class _Param:
             raise LogicalErrorException(f"Cannot set value of 'Camera/{self._name}'. The parameter is not available.")
         if not self._cam.writable(self._name):
             raise AccessException(f"Node '{self._name}' is not writable")
+        if self._name in self._cam.enums and v not in self._cam.enums[self._name]:
+            raise GenericException(f"Feature '{self._name}' does not have the value '{v}'")
         self._cam.nodes[self._name] = v
+
+    @property
+    def Symbolics(self):
+        return tuple(self._cam.enums[self._name])
 
 
 class _Result:
@@ -93,8 +99,9 @@ class _Result:
 class FakeCamera:
     """An older Basler ace GigE as pypylon shows it: ExposureTimeAbs, auto functions left Continuous."""
 
-    def __init__(self, nodes):
+    def __init__(self, nodes, enums=None):
         object.__setattr__(self, "nodes", dict(nodes))
+        object.__setattr__(self, "enums", dict(enums or {"PixelFormat": ("Mono8", "Mono12", "Mono12Packed")}))
         object.__setattr__(self, "results", [])
         object.__setattr__(self, "used_exposure_us", [])
         object.__setattr__(self, "ticks", 0)
@@ -207,3 +214,27 @@ def test_a_failed_grab_names_pylon_error_code_and_description_and_releases_the_b
         pc.snap()
     assert "incompletely grabbed" in str(e.value) and "0xe1000014" in str(e.value)
     assert cam.results[-1].released
+
+
+def test_the_pfnc_and_the_older_gige_name_of_a_pixel_format_are_one_format(monkeypatch):
+    # Basler /pixel-format: "Set the PixelFormat parameter to one of the following values (if available): ...
+    # RGB8, BGR8" (GenICam PFNC 2.1 names); older GigE cameras name the same format RGB8Packed
+    cam = FakeCamera(_OLD_ACE_GIGE, enums={"PixelFormat": ("Mono8", "RGB8", "BGR8")})
+    _fake_pypylon(monkeypatch, cam)
+    pc = PylonCamera(None, pixel_pitch_um=3.45, pixel_format="RGB8Packed")
+    pc.connect()
+    try:
+        assert cam.nodes["PixelFormat"] == "RGB8"
+        assert pc.describe()["pixel_format"] == "RGB8" and pc.describe()["channels"] == ["R", "G", "B"]
+    finally:
+        pc.close()
+
+
+def test_a_pixel_format_the_camera_lacks_is_a_clear_error_listing_its_formats(monkeypatch):
+    from fieldcal.errors import ParameterError
+    cam = FakeCamera(_OLD_ACE_GIGE, enums={"PixelFormat": ("Mono8", "RGB8")})
+    _fake_pypylon(monkeypatch, cam)
+    pc = PylonCamera(None, pixel_pitch_um=3.45, pixel_format="Mono12")
+    with pytest.raises(ParameterError) as e:
+        pc.connect()
+    assert e.value.field == "pixel_format" and "Mono8" in str(e.value) and "fix:" in str(e.value)

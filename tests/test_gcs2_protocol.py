@@ -201,3 +201,14 @@ def test_reference_switches_the_servo_on_first_on_both_backends(kind):
             assert emu.referenced and emu.servo and st.is_referenced()
         finally:
             st.close()
+
+
+def test_an_axis_the_controller_does_not_have_is_a_clear_parameter_error():
+    from fieldcal.errors import ParameterError
+    emu = GCS2Emulator(clock=ManualClock(tick_s=0.05))
+    with TcpServer(emu) as srv:
+        st = GCS2Stage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1, axis="2")
+        with pytest.raises(ParameterError) as e:
+            st.connect()
+        assert e.value.field == "axis" and "'1'" in str(e.value) and "fix:" in str(e.value)
+        st.close()

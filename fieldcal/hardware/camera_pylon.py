@@ -26,6 +26,8 @@ from .protocols import DeviceFault, Frame
 
 _FORMATS = {"Mono8": (["Y"], 8), "Mono10": (["Y"], 10), "Mono12": (["Y"], 12), "Mono16": (["Y"], 16),
             "RGB8Packed": (["R", "G", "B"], 8), "RGB8": (["R", "G", "B"], 8)}
+# one format, two names: GenICam PFNC 2.1 (Basler /pixel-format: "RGB8") and the older GigE Vision name
+_ALIASES = {"RGB8Packed": "RGB8", "RGB8": "RGB8Packed"}
 
 
 class PylonCamera:
@@ -109,7 +111,7 @@ class PylonCamera:
                                 path=self._device, fix="check the cable and the serial number (pylon Viewer lists it)")
             self.cam = pylon.InstantCamera(tl.CreateDevice(devices[0]))
             self.cam.Open()
-            self.cam.PixelFormat.Value = self.pixel_format
+            self._set_pixel_format()
             if self.images:
                 self.cam.ImageFilename.Value = str(self.images)
                 self.cam.ImageFileMode.Value = "On"
@@ -123,6 +125,24 @@ class PylonCamera:
             self.cam.StartGrabbing(pylon.GrabStrategy_OneByOne)
         except genicam.GenericException as exc:
             raise LinkError(f"pylon: {exc}", path=self._device, fix="check the camera and its settings") from None
+
+    def _set_pixel_format(self) -> None:
+        """Set ``PixelFormat``; a format the camera names otherwise (``RGB8``/``RGB8Packed``) is taken under its
+        name, one it does not have is a ParameterError that lists the camera's formats."""
+        node = self.cam.PixelFormat
+        have = tuple(node.Symbolics)
+        name = self.pixel_format
+        if have and name not in have:
+            if _ALIASES.get(name) in have:
+                name = _ALIASES[name]
+            else:
+                self.close()
+                usable = [f for f in have if f in _FORMATS]
+                raise ParameterError(f"the camera has no pixel format {self.pixel_format!r} (it has: "
+                                     f"{', '.join(have)})", path=self._device, field="pixel_format",
+                                     fix=f"use one of {', '.join(usable) or ', '.join(_FORMATS)}")
+        node.Value = name
+        self.pixel_format = name
 
     def close(self) -> None:
         try:
