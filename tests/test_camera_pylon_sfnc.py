@@ -126,7 +126,10 @@ class FakeCamera:
 
     def ExecuteSoftwareTrigger(self):
         exp = "ExposureTime" if "ExposureTime" in self.nodes else "ExposureTimeAbs"
-        self.used_exposure_us.append(self.nodes[exp])
+        # ExposureMode Timed: "the exposure time ... is determined by the value of the camera's Exposure Time
+        # (Abs) parameter"; in TriggerWidth the trigger signal's width decides (a software trigger has none)
+        timed = self.nodes.get("ExposureMode", "Timed") == "Timed"
+        self.used_exposure_us.append(self.nodes[exp] if timed else None)
         if self.nodes.get("ExposureAuto") == "Continuous":
             self.nodes[exp] *= 1.5  # the auto function adjusts the next exposure
         object.__setattr__(self, "ticks", self.ticks + 250_000_000)
@@ -238,3 +241,16 @@ def test_a_pixel_format_the_camera_lacks_is_a_clear_error_listing_its_formats(mo
     with pytest.raises(ParameterError) as e:
         pc.connect()
     assert e.value.field == "pixel_format" and "Mono8" in str(e.value) and "fix:" in str(e.value)
+
+
+def test_the_exposure_mode_is_set_to_timed(monkeypatch):
+    cam = FakeCamera({**_OLD_ACE_GIGE, "ExposureMode": "TriggerWidth"})
+    _fake_pypylon(monkeypatch, cam)
+    pc = PylonCamera(None, pixel_pitch_um=3.75, pixel_format="Mono8")
+    pc.connect()
+    try:
+        pc.configure(exposure_ms=1.25)
+        pc.snap()
+        assert cam.nodes["ExposureMode"] == "Timed" and cam.used_exposure_us == pytest.approx([1250.0])
+    finally:
+        pc.close()

@@ -119,6 +119,11 @@ class PylonCamera:
             # a stack needs one exposure and one gain for all frames: no auto function may change them
             self._auto_off("ExposureAuto")
             self._auto_off("GainAuto")
+            # ExposureMode Timed: the exposure time node decides each frame's exposure (Basler,
+            # PLCamera.ExposureModeEnum); TriggerWidth would let the (software) trigger's width decide
+            mode = self._node("ExposureMode")
+            if mode is not None and mode.IsWritable() and mode.Value != "Timed":
+                mode.Value = "Timed"
             self.cam.TriggerSelector.Value = "FrameStart"
             self.cam.TriggerMode.Value = "On"
             self.cam.TriggerSource.Value = "Software"
