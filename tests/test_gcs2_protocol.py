@@ -212,3 +212,30 @@ def test_an_axis_the_controller_does_not_have_is_a_clear_parameter_error():
             st.connect()
         assert e.value.field == "axis" and "'1'" in str(e.value) and "fix:" in str(e.value)
         st.close()
+
+
+class _SignedZeroPaddedController(GCS2Emulator):
+    """Answers values as MS249E 8.2's example does ("1=+0000.0000"): sign, zero padding, four decimals."""
+
+    def _handle(self, cmd):
+        reply = super()._handle(cmd)
+        name = cmd.strip().split()[0].upper() if cmd.strip() else ""
+        if reply and name in ("POS?", "TMN?", "TMX?", "VEL?", "ACC?"):
+            ax, val = reply.strip().split("=")
+            return f"{ax}={float(val):+010.4f}\n"
+        return reply
+
+
+def test_values_are_parsed_in_the_manuals_signed_zero_padded_form():
+    emu = _SignedZeroPaddedController(clock=ManualClock(tick_s=0.05))
+    with TcpServer(emu) as srv:
+        st = GCS2Stage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1)
+        st.connect()
+        try:
+            assert st.client.query("POS? 1") == ["1=+0000.0000"]
+            assert st.limits_um() == pytest.approx((-7500.0, 7500.0))
+            st.reference(3000)
+            assert st.position_um() == pytest.approx(0.0, abs=0.1)
+            assert st.velocity_um_per_s() == pytest.approx(1500.0)
+        finally:
+            st.close()
