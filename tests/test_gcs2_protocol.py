@@ -239,3 +239,33 @@ def test_values_are_parsed_in_the_manuals_signed_zero_padded_form():
             assert st.velocity_um_per_s() == pytest.approx(1500.0)
         finally:
             st.close()
+
+
+class _DecimalParamController(GCS2Emulator):
+    """Echoes a parameter ID in decimal (pipython itself sends IDs in decimal: ``SPA? 1 10``)."""
+
+    def _handle(self, cmd):
+        reply = super()._handle(cmd)
+        if reply and cmd.strip().upper().startswith("SPA?"):
+            head, val = reply.strip().split("=")
+            ax, pid = head.split()
+            return f"{ax} {int(pid, 0)}={val}\n"
+        return reply
+
+
+@pytest.mark.parametrize("kind", ["gcs", "pi"])
+@pytest.mark.parametrize("controller", [GCS2Emulator, _DecimalParamController])
+def test_the_maximum_velocity_is_read_from_parameter_0xa_on_both_backends(kind, controller):
+    # MS249E VEL (p. 204): the maximum VEL is the Maximum Closed-Loop Velocity parameter, ID 0xA
+    if kind == "pi":
+        pytest.importorskip("pipython")
+    from fieldcal.hardware.pipython_backend import PipythonStage
+    emu = controller(clock=ManualClock(tick_s=0.05), max_velocity_mm_s=2.5)
+    with TcpServer(emu) as srv:
+        st = (PipythonStage if kind == "pi" else GCS2Stage)(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1)
+        st.connect()
+        try:
+            assert st.max_velocity_um_per_s() == pytest.approx(2500.0)
+            assert st.acceleration_um_per_s2() == pytest.approx(emu.acc * 1000.0)
+        finally:
+            st.close()

@@ -81,7 +81,25 @@ def error_text(code: int) -> str:
 
 SINGLE_CHAR = {"#5": b"\x05", "#7": b"\x07", "#24": b"\x18"}
 _AXIS_VALUE = re.compile(r"^\s*([A-Za-z0-9_]+)\s*=\s*(\S+)\s*$")
-_PARAM_VALUE = re.compile(r"^\s*([A-Za-z0-9_]+)\s+(0x[0-9A-Fa-f]+)\s*=\s*(\S+)\s*$")
+_PARAM_VALUE = re.compile(r"^\s*([A-Za-z0-9_]+)\s+(0x[0-9A-Fa-f]+|[0-9]+)\s*=\s*(\S+)\s*$")
+
+
+def param_value(lines: list[str], axis: str, pid: int) -> float | None:
+    """The positive finite value of ``<axis> <pid>=<value>`` in a ``SPA?`` reply, the ID hexadecimal (``0xA``, as
+    fieldcal asks) or decimal (``10``, as PI's pipython asks); None when no line has it."""
+    for line in lines:
+        m = _PARAM_VALUE.match(line)
+        if not m or m.group(1) != axis:
+            continue
+        tok = m.group(2)
+        if (int(tok, 16) if tok.lower().startswith("0x") else int(tok, 10)) != pid:
+            continue
+        try:
+            v = float(m.group(3))
+        except ValueError:
+            return None
+        return v if math.isfinite(v) and v > 0 else None
+    return None
 
 
 class GCS2Client:
@@ -460,15 +478,9 @@ class GCS2Stage:
             return self._max_velocity_mm_s * 1000.0
         cmd = f"SPA? {self.axis} 0xA"
         lines = self.client.query(cmd)  # the reply names axis and parameter: "1 0xA=2.000000"
-        for line in lines:
-            m = _PARAM_VALUE.match(line)
-            if m and m.group(1) == self.axis and int(m.group(2), 16) == 0xA:
-                try:
-                    v = float(m.group(3))
-                except ValueError:
-                    break
-                if math.isfinite(v) and v > 0:
-                    return v * 1000.0
+        v = param_value(lines, self.axis, 0xA)
+        if v is not None:
+            return v * 1000.0
         raise self.client._link_error(f"garbled reply {lines!r} (expected '{self.axis} 0xA=value')", cmd)
 
     def acceleration_um_per_s2(self) -> float:

@@ -253,7 +253,7 @@ class GCS2Emulator:
             if pid != 0xA:  # only the maximum closed-loop velocity is emulated
                 self._set_error(17)
                 return None
-            return f"{args[0]} 0xA={self.max_vel:.7f}\n"
+            return f"{args[0]} {args[1]}={self.max_vel:.7f}\n"  # the arguments as the query gave them (MS249E 8.2)
         if name in ("CTO", "TRO"):
             return self._trigger_config(name, args)
         if name in ("CTO?", "TRO?"):

@@ -22,7 +22,7 @@ import time
 from typing import Any
 
 from ..errors import LinkError, ParameterError
-from .gcs2 import GCS2_FIXES, GCS2Stage, error_text
+from .gcs2 import GCS2_FIXES, GCS2Stage, error_text, param_value
 from .protocols import DeviceFault
 
 
@@ -174,7 +174,15 @@ class PipythonStage(GCS2Stage):
     def max_velocity_um_per_s(self) -> float:
         if self._max_velocity_mm_s is not None:
             return self._max_velocity_mm_s * 1000.0
-        return float(self._call(self.dev.qSPA, self.axis, 0xA)[self.axis][0xA]) * 1000.0
+        # pipython's qSPA first asks HPA? for every parameter's type; read SPA? itself (with its ERR?) and parse
+        # it as gcs: does
+        cmd = f"SPA? {self.axis} 0xA"
+        lines = [ln.rstrip(" ") for ln in str(self._call(self.dev.read, cmd)).split("\n") if ln.strip()]
+        v = param_value(lines, self.axis, 0xA)
+        if v is None:
+            raise LinkError(f"garbled reply {lines!r} to {cmd!r} (expected '{self.axis} 0xA=value')",
+                            path=self.device, fix="give max_velocity_mm_s from the stage's data sheet")
+        return v * 1000.0
 
     def acceleration_um_per_s2(self) -> float:
         return float(self._call(self.dev.qACC, self.axis)[self.axis]) * 1000.0
