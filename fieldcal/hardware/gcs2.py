@@ -6,7 +6,10 @@ command that sets something, and after any link error a resync (drain whatever i
 
 GCS2 framing (PI's GCS2 manuals): a command is ASCII ending in LF; a reply line ends in LF, and every line of a
 multi-line reply except the last ends in a space before the LF (``"1=0.5 \\n"``, ``"2=1.0\\n"``). Single-
-character commands (``#5`` motion status, ``#7`` ready, ``#24`` stop) are one control byte with no LF.
+character commands (``#5`` motion status, ``#7`` ready, ``#24`` stop) are one control byte with no LF. ``#5``
+answers a hex mask with one bit per axis in ``SAI? ALL`` order; the C-863.12 takes one element (axis, parameter,
+trigger setting) per command line (MS249E 8.2), so nothing here sends more. docs/hardware.md, "Device protocols
+checked against the makers' documents", lists each fact with its source.
 
 Units: the controller speaks mm; :class:`GCS2Stage` speaks fieldcal µm with
 ``z_um = sign * (pos_mm - zero_mm) * 1000`` (``zero_mm`` is the controller position that fieldcal calls z = 0,

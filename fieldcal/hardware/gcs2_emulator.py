@@ -9,7 +9,9 @@ What it emulates (GCS2 syntax; details we could not check against a real C-863 a
 ``*IDN?``, ``ERR?``, ``MOV``, ``MOV?``, ``POS?``, ``ONT?``, ``SVO``, ``SVO?``, ``FRF``, ``FRF?``, ``VEL``,
 ``VEL?``, ``ACC``, ``ACC?``, ``SPA? axis 0xA`` (maximum velocity), ``CTO``, ``CTO?``, ``TRO``, ``TRO?``,
 ``TMN?``, ``TMX?``, ``CST?``, ``SAI?``, ``HLT``, ``STP``, ``HLP?`` (multi-line), and the single-byte
-``#5`` (motion status), ``#7`` (ready) and ``#24`` (stop). Errors are latched like the controller does: the
+``#5`` (motion status), ``#7`` (ready; B0h while a reference move runs) and ``#24`` (stop). As the C-863.12
+(MS249E 8.2) it takes one element per ``CTO``/``TRO`` line and lists a query's arguments in its reply as given
+(``SPA? 1 10`` -> ``1 10=...``). Errors are latched like the controller does: the
 last error code is kept until ``ERR?`` reads (and clears) it. Codes: 0 none, 1 syntax, 2 unknown command,
 5 move without reference/servo, 7 out of limits, 8 velocity out of limits, 10 stopped, 15 invalid axis,
 1024 motion error (PI_CNTR_MOTION_ERROR, as a C-863 answers ERR?; -1024 is the GCS DLL's code, not the
