@@ -72,16 +72,17 @@ class _Param:
 
 
 class _Result:
-    def __init__(self, cam, ok=True):
-        self._cam, self._ok = cam, ok
+    def __init__(self, cam, ok=True, valid=True):
+        self._cam, self._ok, self._valid = cam, ok, valid
         self.released = False
-        cam.results.append(self)
+        if valid:
+            cam.results.append(self)
         self.Array = np.full((6, 8), 100, np.uint16)
         self.BlockID = len(cam.results)
         self.TimeStamp = cam.ticks
 
     def IsValid(self):
-        return True
+        return self._valid
 
     def GrabSucceeded(self):
         return self._ok
@@ -106,6 +107,9 @@ class FakeCamera:
         object.__setattr__(self, "used_exposure_us", [])
         object.__setattr__(self, "ticks", 0)
         object.__setattr__(self, "fail_next", False)
+        object.__setattr__(self, "late_next", False)  # the next frame arrives after RetrieveResult gave up
+        object.__setattr__(self, "queue", [])         # pylon's output queue (GrabStrategy_OneByOne: FIFO)
+        object.__setattr__(self, "late", [])
 
     def __getattr__(self, name):  # pypylon: any name gives a parameter object
         return _Param(self, name)
@@ -133,11 +137,17 @@ class FakeCamera:
         if self.nodes.get("ExposureAuto") == "Continuous":
             self.nodes[exp] *= 1.5  # the auto function adjusts the next exposure
         object.__setattr__(self, "ticks", self.ticks + 250_000_000)
+        res = _Result(self, not self.fail_next)
+        object.__setattr__(self, "fail_next", False)
+        (self.late if self.late_next else self.queue).append(res)
+        object.__setattr__(self, "late_next", False)
 
     def RetrieveResult(self, timeout_ms, handling):
-        ok = not self.fail_next
-        object.__setattr__(self, "fail_next", False)
-        return _Result(self, ok)
+        if self.queue:
+            return self.queue.pop(0)
+        self.queue.extend(self.late)  # TimeoutHandling_Return: an invalid result; the late frame lands after
+        self.late.clear()
+        return _Result(self, valid=False)
 
     def GetDeviceInfo(self):
         return SimpleNamespace(GetModelName=lambda: "acA1300-30gm", GetSerialNumber=lambda: "123")
@@ -254,3 +264,15 @@ def test_the_exposure_mode_is_set_to_timed(monkeypatch):
         assert cam.nodes["ExposureMode"] == "Timed" and cam.used_exposure_us == pytest.approx([1250.0])
     finally:
         pc.close()
+
+
+def test_a_frame_that_arrives_after_its_time_out_is_not_taken_for_the_next_position(old_ace):
+    # Basler GrabStrategy: OneByOne -- "Images are processed in the order of their arrival": a frame that came
+    # late is the first in the queue at the next RetrieveResult, though it was exposed at the previous position
+    cam, pc = old_ace
+    cam.late_next = True
+    with pytest.raises(LinkError, match="no frame"):
+        pc.snap()
+    f = pc.snap()
+    assert f.frame_id == 2  # the frame of this trigger, not the late one (BlockID 1)
+    assert cam.results[0].released and cam.results[1].released

@@ -149,6 +149,19 @@ class PylonCamera:
         node.Value = name
         self.pixel_format = name
 
+    def _drop_stale_results(self, limit: int = 64) -> int:
+        """Release every result already waiting before a trigger: with GrabStrategy_OneByOne "images are processed
+        in the order of their arrival" (Basler, GrabStrategy), so a frame that arrived after its RetrieveResult
+        timed out would otherwise be taken for the next position's frame."""
+        n = 0
+        while n < limit:
+            res = self.cam.RetrieveResult(0, self._pylon.TimeoutHandling_Return)
+            if res is None or not res.IsValid():
+                break
+            res.Release()
+            n += 1
+        return n
+
     def close(self) -> None:
         try:
             if self.cam is not None:
@@ -197,6 +210,7 @@ class PylonCamera:
     def snap(self) -> Frame:
         g = self._genicam
         try:
+            stale = self._drop_stale_results()
             if not self.cam.WaitForFrameTriggerReady(int(self.timeout_ms), self._pylon.TimeoutHandling_Return):
                 raise LinkError("camera not ready for a trigger", path=self._device, fix="check the camera")
             self.cam.ExecuteSoftwareTrigger()
@@ -226,5 +240,7 @@ class PylonCamera:
         except g.GenericException as exc:
             raise LinkError(f"pylon: {exc}", path=self._device, fix="check the camera link") from None
         meta = {"timestamp_ticks": ticks, "timestamp_tick_hz": self._tick_hz}
+        if stale:
+            meta["stale_frames_dropped"] = stale
         ts_ms = ticks / self._tick_hz * 1000.0 if ticks else time.time() * 1000.0
         return Frame(image=img, frame_id=frame_id, exposure_ms=self._exposure_ms, timestamp_ms=ts_ms, meta=meta)
