@@ -269,3 +269,26 @@ def test_the_maximum_velocity_is_read_from_parameter_0xa_on_both_backends(kind, 
             assert st.acceleration_um_per_s2() == pytest.approx(emu.acc * 1000.0)
         finally:
             st.close()
+
+
+class _HpvController(GCS2Emulator):
+    """Answers HPV? in MS249E's documented shape, whose lines carry TABs ("{<PamID> <ItemID> "=" <ListType>
+    [ {TAB <PossibleValue> "=" <ValueDescription>} ] }", MS249E HPV?, p. 161)."""
+
+    LINES = ["#Possible parameter values are:", "0x3C 1=1\t0=off\t1=on", "end of help"]
+
+    def _handle(self, cmd):
+        if cmd.strip().upper() == "HPV?":
+            return " \n".join(self.LINES) + "\n"
+        return super()._handle(cmd)
+
+
+def test_a_reply_with_tabs_is_not_taken_for_line_noise():
+    emu = _HpvController(clock=ManualClock(tick_s=0.05))
+    with TcpServer(emu) as srv:
+        st = GCS2Stage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1)
+        st.connect()
+        try:
+            assert st.client.query("HPV?") == _HpvController.LINES
+        finally:
+            st.close()

@@ -210,8 +210,10 @@ class GCS2Client:
                     pass  # already reported as a link error
         if not raw.endswith(b"\n"):
             raise self._link_error(f"no reply within {timeout_ms or self.timeout_ms:.0f} ms", cmd)
-        text = raw.decode("latin-1")  # '#7' answers with byte 0xB1; everything else must be printable ASCII
-        if cmd != "#7" and any(not (32 <= ord(ch) < 127) for ch in text[:-1]):
+        # '#7' answers with byte 0xB1; everything else must be printable ASCII or TAB (MS249E HPV?: "TAB
+        # <PossibleValue> ...")
+        text = raw.decode("latin-1")
+        if cmd != "#7" and any(not (32 <= ord(ch) < 127 or ch == "\t") for ch in text[:-1]):
             raise self._link_error(f"garbled reply {raw!r}", cmd)
         self.log = (self.log + [("<", text)])[-20:]
         return text[:-1]
