@@ -902,7 +902,7 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
         offsets) and the geometry (``info()`` describes it).
     """
     from .memory import check_temp_space
-    from .source import MEMORY_BUDGET_BYTES, HeldFrames, default_workers, roi_readable
+    from .source import MEMORY_BUDGET_BYTES, HeldFrames, default_workers, end_prefetch, roi_readable, take_prefetched
 
     w, h = image_size(stack)
     order, zs, z_ref_um = _sorted_frames(stack, frames, z_ref_um)
@@ -920,7 +920,9 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
 
     def load(i: int):
         """Frame i decoded and its registration plane, on a compositor's thread (both release the GIL)."""
-        image = read_roi(stack, i, 0, 0, w, h)
+        image = take_prefetched(stack, i)  # decoded while the process was importing (fieldcal composite)
+        if image is None:
+            image = read_roi(stack, i, 0, 0, w, h)
         return image, _grey(image, factor)
 
     from .dff import map_in_order
@@ -933,6 +935,7 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
         if decoded is not None:
             decoded.put(int(i), image)
         del image
+    end_prefetch()
     geo = choose_model(stack, order, z_ref_um, max_side_px, quiet, [planes[int(i)] for i in order], models)
     maps = {int(i): frame_map_matrix(geo, float(z)) for i, z in zip(order, zs)}
     check_frames_belong(stack, order, [planes[int(i)] for i in order], [maps[int(i)] for i in order], factor)
