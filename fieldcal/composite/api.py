@@ -221,20 +221,26 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
             zb = occlusion_focus_um(zb, um_per_px)
     if fallback is not None:
         fallback = (fallback[0], fallback[1].result())  # the trust weight (_per_pixel_focus)
+    detail = has_depth and (not wiener or measured) and fine_detail
+    if detail:
+        # the fine detail's frame index per pixel, interpolated from the final map's mean (taken here: the thread
+        # reads no array the blend might share) beside the blend, not in a serial pass after it
+        z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
+        zb_mean = zb.mean(axis=2)
+        kd = _background(lambda: np.interp(zb_mean, z_sorted,
+                                           np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32))
     img = _depth_composite(stack, profile, frames, zb, defocus, fallback, info, geometry=geometry,
                            has_depth=has_depth, wiener=wiener, measured=measured, ycc_split=ycc_split,
                            noise_probe=noise_probe, spacing=spacing, lateral_colour=lateral_colour,
                            fs_cyc_per_mm=fs_cyc_per_mm, q=q, min_band=min_band, tile=tile, quiet=quiet)
-    if has_depth and (not wiener or measured) and fine_detail:
+    if detail:
         # the finest octaves per coefficient from the sharpest frame near the depth map's choice
         # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost. (Run
         # beside the blend and Wiener step on threads of its own it cost 7 % more CPU, page faults, and 5 % more
         # wall on two cores: bench_composite_speed_s15.)
         from .detail import fine_detail as add_fine_detail
         from .stack_profile import to_input_dtype
-        z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
-        kd = np.interp(zb.mean(axis=2), z_sorted, np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32)
-        sharp, info["fine_detail"] = add_fine_detail(stack, img, kd, frames, geometry=geometry,
+        sharp, info["fine_detail"] = add_fine_detail(stack, img, kd.result(), frames, geometry=geometry,
                                                      support=getattr(stack, "support", None), keep_base=measured,
                                                      quiet=quiet)
         img = to_input_dtype(sharp, img.dtype, float(stack.white_level))
