@@ -159,6 +159,15 @@ def test_model_check_on_a_coarser_level_of_larger_frames(monkeypatch):
     test_handheld_roll_scale_and_shift_is_recovered_at_the_corners()
 
 
+def test_large_frames_register_on_third_size_planes_within_a_tenth_of_a_px(monkeypatch):
+    """1920 x 1440 frames register on planes a third of their size (REGISTRATION_MIN_SIDE_PX: 640 px long) and the
+    hand's roll, breathing and drift still come back within 0.1 px at the corners (full-size px)."""
+    assert R._factor(1920, 1440) == 3 and R._factor(1279, 900) == 1
+    monkeypatch.setitem(globals(), "W", 1920)
+    monkeypatch.setitem(globals(), "H", 1440)
+    test_handheld_roll_scale_and_shift_is_recovered_at_the_corners()
+
+
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-stacks" / "pcb-depthmap"
 
 

@@ -335,6 +335,7 @@ def test_thin_bars_without_a_profile_keep_the_depth_map(thin_world):
     reg = _registered(thin_world)
     n = len(reg)
     _, (_, weight), dm = _per_pixel_focus(reg, None, np.arange(n), np.zeros((H, W, 3), np.float32), True)
+    weight = weight.result()  # made on a thread of its own
     fusion = fuse_pyramid(reg, quiet=True)
     bars = thin_world["scene"].depth_um >= thin_world["scene"].depth_um.max() - 1e-3
     frames = np.arange(n, dtype=np.float64)

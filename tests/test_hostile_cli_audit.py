@@ -895,3 +895,67 @@ def test_overwrite_of_the_current_folder_given_as_dot(t, capsys, monkeypatch, co
     assert rc == 0, err
     assert (t / "S" / "stack.json").is_file() and not [p for p in t.iterdir() if p.name.startswith(".")]
     assert not [p for p in (t / "S").iterdir() if p.name.startswith(".")]
+
+
+def test_composite_refuses_a_z_ref_away_from_a_single_frame(t, capsys):
+    """Before: a one-frame stack skipped registration and with it the range check, so `--z-ref-um 50` on a frame
+    at 0 µm was dropped without a word. One frame is its own reference: any other position is refused."""
+    from fieldcal.cli import main
+
+    assert main(["simulate", str(LENS), str(t / "one"), "--z", "0", "0", "50", "--size", "96x64", "--quiet"]) == 0
+    refused(t, ["composite", t / "one", "--out", t / "c.tiff", "--z-ref-um", "50", "--quiet"], capsys,
+            "--z-ref-um", "outside", "0 to 0")
+    assert not (t / "c.tiff").exists()
+
+
+def test_overlapping_decodes_leave_opencv_logging_as_it_was():
+    """The same pattern as tifffile's, written three times for OpenCV (PNG and JPEG frames, scene images):
+    JPEG frames decode on several threads, and a save/restore per call (A in, B in, A out, B out) left OpenCV
+    silenced for good. One context: the first in saves the level, the last out restores it."""
+    import cv2
+
+    from fieldcal.formats.imageio import cv2_quiet
+
+    before = cv2.utils.logging.getLogLevel()
+    try:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_WARNING)
+        a, b = cv2_quiet(), cv2_quiet()
+        a.__enter__()
+        b.__enter__()
+        a.__exit__(None, None, None)
+        assert cv2.utils.logging.getLogLevel() == cv2.utils.logging.LOG_LEVEL_SILENT  # B still decoding
+        b.__exit__(None, None, None)
+        assert cv2.utils.logging.getLogLevel() == cv2.utils.logging.LOG_LEVEL_WARNING
+    finally:
+        cv2.utils.logging.setLogLevel(before)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "crc"])
+def test_a_damaged_png_is_refused_without_libpng_s_own_line(t, capfd, damage):
+    """Before: a PNG with a damaged chunk made libpng print "libpng error: IDAT: CRC error" on stderr (its default
+    handler, beyond OpenCV's log level) before fieldcal's message. The chunks' CRCs are checked first (ISO/IEC
+    15948 §5.3): only fieldcal's message, naming the chunk."""
+    from fieldcal.cli import main
+
+    data = bytearray((t / "J" / "img0.png").read_bytes())
+    if damage == "truncated":
+        data = data[:len(data) // 2]
+    else:
+        data[60] ^= 0xFF  # inside the first IDAT of a 64 x 48 noise image
+    bad = t / "bad.png"
+    bad.write_bytes(bytes(data))
+    assert main(["mtf", str(bad), "--out", str(t / "m.json")]) == EXIT_BAD_INPUT
+    err = capfd.readouterr().err
+    assert "libpng" not in err and "bad.png" in err and "IDAT" in err and "Traceback" not in err
+    assert not (t / "m.json").exists()
+
+
+def test_png_chunk_check_accepts_what_opencv_and_numpy_write(tmp_path):
+    """The CRC walk must not refuse a valid PNG: 8- and 16-bit, grey and colour, as OpenCV encodes them."""
+    from fieldcal.formats.imageio import check_png_chunks
+
+    rng = np.random.default_rng(1)
+    for img in ((rng.random((31, 17)) * 255).astype(np.uint8), (rng.random((9, 40, 3)) * 65535).astype(np.uint16)):
+        ok, enc = cv2.imencode(".png", img)
+        assert ok
+        check_png_chunks(enc)

@@ -79,10 +79,26 @@ def register(sub):
 
 
 def run(args) -> int:
-    from ..composite.api import composite_to_file
+    import os
+
+    from ..composite import source
     from ..composite.memory import single_threaded_blas, tune_allocator
 
     tune_allocator()  # planes reused from the heap, not mapped and zeroed afresh (composite/memory.py)
+    if (os.path.isdir(args.stack) and args.profile is None and args.sweep_alpha_um is None and args.plan is None
+            and not args.no_register):
+        # the first frames decoded (GIL released) while the compositor's modules import on this core
+        source.prefetch_frames(args.stack)
+    try:
+        return _run(args)
+    finally:
+        source.end_prefetch()
+
+
+def _run(args) -> int:
+    from ..composite.api import composite_to_file
+    from ..composite.memory import single_threaded_blas
+
     single_threaded_blas()
 
     res = composite_to_file(args.stack, args.out, profile=args.profile, method=args.method, plan=args.plan,

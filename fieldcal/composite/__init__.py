@@ -6,12 +6,30 @@
 ``write_composite`` (TIFF, PNG or JPEG by extension) for output; ``ArrayStack`` composites frames held in memory.
 """
 
-from .api import (METHODS, CompositeOutput, PlanSelection, SweepComposite, composite_stack, composite_sweep,
-                  composite_to_file, restore_sweep_image, select_plan_frames)
-from .io import read_composite_metadata, write_composite, write_composite_tiff
-from .source import ArrayStack
-from .stack_profile import CompositeResult, composite_profile
-from .sweep import SweepResult, deconvolve_sweep, emulate_sweep
+import importlib
+
+# The names below are imported on first use (PEP 562): ``fieldcal composite`` starts decoding the first frames
+# (composite/source.py, :func:`~fieldcal.composite.source.prefetch_frames`) before the compositor's modules and
+# SciPy import, which importing this package would otherwise do first.
+_WHERE = {"METHODS": ".api", "CompositeOutput": ".api", "PlanSelection": ".api", "SweepComposite": ".api",
+          "composite_stack": ".api", "composite_sweep": ".api", "composite_to_file": ".api",
+          "restore_sweep_image": ".api", "select_plan_frames": ".api", "read_composite_metadata": ".io",
+          "write_composite": ".io", "write_composite_tiff": ".io", "ArrayStack": ".source",
+          "CompositeResult": ".stack_profile", "composite_profile": ".stack_profile", "SweepResult": ".sweep",
+          "deconvolve_sweep": ".sweep", "emulate_sweep": ".sweep"}
+
+
+def __getattr__(name: str):
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(_WHERE[name], __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(list(globals()) + list(_WHERE))
+
 
 __all__ = ["METHODS", "ArrayStack", "CompositeOutput", "CompositeResult", "PlanSelection", "SweepComposite",
            "SweepResult", "composite_profile", "composite_stack", "composite_sweep", "composite_to_file",

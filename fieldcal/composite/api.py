@@ -149,6 +149,11 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         info["photometric"] = stack.photometric
         geometry = None
     else:
+        if profile is None and register and z_ref_um is not None:
+            # one frame is its own reference: a position away from it is refused as for a longer stack (never
+            # ignore a flag)
+            from .register import _sorted_frames
+            _sorted_frames(stack, frames, z_ref_um)
         stack = hold_decoded(stack, frames)
     vol = focus_volume(stack, geometry, frames=frames, block_px=block_px, lateral_colour=lateral_colour,
                        quiet=quiet)
@@ -219,20 +224,28 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
             zb = (zb - mean[..., None]) + occlusion_focus_um(mean, um_per_px)[..., None]
         else:
             zb = occlusion_focus_um(zb, um_per_px)
+    if fallback is not None:
+        fallback = (fallback[0], fallback[1].result())  # the trust weight (_per_pixel_focus)
+    detail = has_depth and (not wiener or measured) and fine_detail
+    if detail:
+        # the fine detail's frame index per pixel, interpolated from the final map's mean (taken here: the thread
+        # reads no array the blend might share) beside the blend, not in a serial pass after it
+        z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
+        zb_mean = zb.mean(axis=2)
+        kd = _background(lambda: np.interp(zb_mean, z_sorted,
+                                           np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32))
     img = _depth_composite(stack, profile, frames, zb, defocus, fallback, info, geometry=geometry,
                            has_depth=has_depth, wiener=wiener, measured=measured, ycc_split=ycc_split,
                            noise_probe=noise_probe, spacing=spacing, lateral_colour=lateral_colour,
                            fs_cyc_per_mm=fs_cyc_per_mm, q=q, min_band=min_band, tile=tile, quiet=quiet)
-    if has_depth and (not wiener or measured) and fine_detail:
+    if detail:
         # the finest octaves per coefficient from the sharpest frame near the depth map's choice
         # (composite/detail.py): what a blend of two frames dilutes, without a far frame's noise or ghost. (Run
         # beside the blend and Wiener step on threads of its own it cost 7 % more CPU, page faults, and 5 % more
         # wall on two cores: bench_composite_speed_s15.)
         from .detail import fine_detail as add_fine_detail
         from .stack_profile import to_input_dtype
-        z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
-        kd = np.interp(zb.mean(axis=2), z_sorted, np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32)
-        sharp, info["fine_detail"] = add_fine_detail(stack, img, kd, frames, geometry=geometry,
+        sharp, info["fine_detail"] = add_fine_detail(stack, img, kd.result(), frames, geometry=geometry,
                                                      support=getattr(stack, "support", None), keep_base=measured,
                                                      quiet=quiet)
         img = to_input_dtype(sharp, img.dtype, float(stack.white_level))
@@ -391,7 +404,8 @@ def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool
     """Best focus per pixel for a scene with depth: the edge-aware depth map of the stack, plus each channel's
     offset from the others as the smooth map ``zb_smooth`` has it (chromatic focus is the lens's, not the scene's).
     Also returns the multi-scale fusion and a per-pixel weight (0 where the depth map has no texture to go on,
-    1 where it is confident) for the final image, and the depth map (:class:`.fusion.DepthMap`).
+    1 where it is confident, a :class:`~concurrent.futures.Future` of it: made on a thread) for the final image,
+    and the depth map (:class:`.fusion.DepthMap`).
     """
     from .fusion import depth_map, fuse_pyramid
 
@@ -405,13 +419,17 @@ def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool
     # contradiction from the frame the fusion took its detail from, an independent choice of the depth of
     # something within its reach (fusion_contradicts). Where the map is unsure or contradicted (low-contrast
     # texture, compression noise) the fusion's pixels are kept: they need no depth.
-    conf = dm.confidence
-    ref = float(np.percentile(conf, FUSION_CONFIDENCE[0])) if conf.size else 0.0
-    weight = np.clip(conf / max(FUSION_CONFIDENCE[1] * ref, 1e-12), 0.0, 1.0).astype(np.float32)
-    index = np.interp(dm.z_um, fusion.z_um, np.arange(len(fusion.z_um), dtype=np.float64)).astype(np.float32)
-    weight *= ~fusion_contradicts(index, fusion.depth_index, fusion.index_reach_px)
-    weight = cv2.GaussianBlur(weight, (0, 0), 2.0)
-    return (dm.z_um[..., None] + offsets).astype(np.float32), (guide, weight), dm
+    def trust():
+        conf = dm.confidence
+        ref = float(np.percentile(conf, FUSION_CONFIDENCE[0])) if conf.size else 0.0
+        weight = np.clip(conf / max(FUSION_CONFIDENCE[1] * ref, 1e-12), 0.0, 1.0).astype(np.float32)
+        index = np.interp(dm.z_um, fusion.z_um, np.arange(len(fusion.z_um), dtype=np.float64)).astype(np.float32)
+        weight *= ~fusion_contradicts(index, fusion.depth_index, fusion.index_reach_px)
+        return cv2.GaussianBlur(weight, (0, 0), 2.0)
+
+    # the weight is first needed by the blend's Wiener step: made on a thread of its own (NumPy and OpenCV release
+    # the GIL) beside the defocus measurement and the cones, which would otherwise keep a core idle (~0.2 s)
+    return (dm.z_um[..., None] + offsets).astype(np.float32), (guide, _background(trust)), dm
 
 
 # ------------------------------------------------------------------------------------------------ plans

@@ -203,9 +203,13 @@ def single_threaded_blas() -> None:
     Compositing's matrix products are thin (a whole image's pixels by 3 channels, 3 x 3 solves): memory-bound,
     no faster on several threads, and after each one OpenBLAS's threads spin waiting for more (~2 % of the CPU of
     ``fieldcal composite`` on the real 7-frame board) while the compositor's own threads have both cores busy.
-    SciPy's BLAS is loaded first: a limit reaches only the libraries loaded when it is set.
+    A limit set through threadpoolctl reaches only the libraries loaded when it is set (NumPy's); SciPy's OpenBLAS
+    loads with ``scipy.linalg``, which compositing does not import, and reads ``OPENBLAS_NUM_THREADS`` when it
+    loads, so that is set instead of importing ``scipy.linalg`` (~50 ms of start-up) only to limit it.
     """
-    import scipy.linalg  # noqa: F401  (loads SciPy's OpenBLAS)
+    import os
+
     from threadpoolctl import threadpool_limits
 
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"  # BLAS libraries loaded from now on (SciPy's, if ever)
     threadpool_limits(limits=1, user_api="blas")

@@ -192,7 +192,21 @@ def _grey(image: np.ndarray, factor: int) -> np.ndarray:
     return (g - g.mean()) / max(float(g.std()), 1e-12)
 
 
-def _factor(w: int, h: int, max_side_px: int) -> int:
+#: Registration planes are the frames area-downsampled by the coarsest whole factor that leaves at least this many
+#: px on the long side (:func:`_factor`): the scale-and-shift steps, ECC starts and model fits run on them. A
+#: 2048-px frame registers on 682-px planes (a third), a 24 MP frame on ~700-px ones, frames below 1280 px at full
+#: size. Planes of at most 1024 px (the rule before) took twice the CPU on the 2048 x 1536 board for a registration
+#: no better: 7-frame composite as sharp (mean squared Laplacian 1552 against 1551), and with known perturbations
+#: (bench_real_robustness, frames registered at half size) every registration error as small or smaller
+#: (docs/benchmarks.md ``bench_composite_speed_s17_regstart``).
+REGISTRATION_MIN_SIDE_PX = 640
+
+
+def _factor(w: int, h: int, max_side_px: int | None = None) -> int:
+    """The registration planes' downsampling factor: :data:`REGISTRATION_MIN_SIDE_PX`'s rule, or with ``max_side_px``
+    the least factor that brings the long side to at most that."""
+    if max_side_px is None:
+        return max(1, max(w, h) // REGISTRATION_MIN_SIDE_PX)
     return max(1, int(np.ceil(max(w, h) / max_side_px)))
 
 
@@ -219,7 +233,7 @@ def _sorted_frames(stack, frames, z_ref_um):
     return order, zs, z_ref_um
 
 
-def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_side_px: int = 1024,
+def estimate_geometry(stack, frames=None, z_ref_um: float | None = None, max_side_px: int | None = None,
                       quiet: bool = False, planes: list[np.ndarray] | None = None) -> EstimatedGeometry:
     """Measure focus breathing and stage-axis shift from neighbouring frames (one or two in memory).
 
@@ -600,7 +614,7 @@ def frame_map_matrix(geometry, z_um: float) -> np.ndarray:
     return out
 
 
-def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px: int = 1024,
+def choose_model(stack, frames=None, z_ref_um: float | None = None, max_side_px: int | None = None,
                  quiet: bool = False, planes: list[np.ndarray] | None = None, models=MODELS):
     """Register a stack with the simplest model of ``models`` its data support.
 
@@ -883,7 +897,7 @@ def check_frames_belong(stack, order, planes: list[np.ndarray], maps: list[np.nd
                                          "are not")
 
 
-def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_side_px: int = 1024,
+def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_side_px: int | None = None,
                    models=MODELS, photometric_correction: bool = True, quiet: bool = False):
     """Register a stack once and hold its frames warped into the reference frame's geometry.
 
@@ -902,7 +916,7 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
         offsets) and the geometry (``info()`` describes it).
     """
     from .memory import check_temp_space
-    from .source import MEMORY_BUDGET_BYTES, HeldFrames, default_workers, roi_readable
+    from .source import MEMORY_BUDGET_BYTES, HeldFrames, default_workers, end_prefetch, roi_readable, take_prefetched
 
     w, h = image_size(stack)
     order, zs, z_ref_um = _sorted_frames(stack, frames, z_ref_um)
@@ -920,7 +934,9 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
 
     def load(i: int):
         """Frame i decoded and its registration plane, on a compositor's thread (both release the GIL)."""
-        image = read_roi(stack, i, 0, 0, w, h)
+        image = take_prefetched(stack, i)  # decoded while the process was importing (fieldcal composite)
+        if image is None:
+            image = read_roi(stack, i, 0, 0, w, h)
         return image, _grey(image, factor)
 
     from .dff import map_in_order
@@ -933,6 +949,7 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
         if decoded is not None:
             decoded.put(int(i), image)
         del image
+    end_prefetch()
     geo = choose_model(stack, order, z_ref_um, max_side_px, quiet, [planes[int(i)] for i in order], models)
     maps = {int(i): frame_map_matrix(geo, float(z)) for i, z in zip(order, zs)}
     check_frames_belong(stack, order, [planes[int(i)] for i in order], [maps[int(i)] for i in order], factor)

@@ -176,6 +176,60 @@ def _tifffile_quiet():
                 log.setLevel(_QUIET_LEVEL)
 
 
+_CV2_QUIET_DEPTH = 0
+_CV2_QUIET_LEVEL = 0
+
+
+@contextlib.contextmanager
+def cv2_quiet():
+    """OpenCV's log silenced while fieldcal decodes (its own what/where/fix message replaces OpenCV's warnings).
+    Decoders run on several threads: as for tifffile, the first in saves the level and the last out restores
+    it (a save/restore per call let an overlapping call restore "silent" for good)."""
+    import cv2
+
+    global _CV2_QUIET_DEPTH, _CV2_QUIET_LEVEL
+    with _QUIET_LOCK:
+        if _CV2_QUIET_DEPTH == 0:
+            _CV2_QUIET_LEVEL = cv2.utils.logging.getLogLevel()
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+        _CV2_QUIET_DEPTH += 1
+    try:
+        yield
+    finally:
+        with _QUIET_LOCK:
+            _CV2_QUIET_DEPTH -= 1
+            if _CV2_QUIET_DEPTH == 0:
+                cv2.utils.logging.setLogLevel(_CV2_QUIET_LEVEL)
+
+
+def check_png_chunks(data) -> None:
+    """Walk a PNG's chunks and check each one's CRC (ISO/IEC 15948 §5.3) up to IEND: a damaged or truncated file
+    is refused here, by fieldcal's message, before libpng prints its own "libpng error: ..." line on stderr
+    (its default error handler writes there, beyond OpenCV's log level). ``data``: the file's bytes."""
+    import zlib
+
+    buf = memoryview(np.asarray(data, dtype=np.uint8)).cast("B")
+    if bytes(buf[:8]) != b"\x89PNG\r\n\x1a\n":
+        raise ImageFileError("is not a PNG file (no PNG signature)", "give a PNG, JPEG or TIFF image")
+    pos = 8
+    while True:
+        if pos + 8 > len(buf):
+            raise ImageFileError("is a truncated PNG (it ends before its IEND chunk)", "re-export or re-capture "
+                                 "the frame")
+        length, kind = struct.unpack(">I4s", buf[pos:pos + 8])
+        end = pos + 8 + length + 4
+        if length > 0x7FFFFFFF or end > len(buf):
+            raise ImageFileError(f"is a truncated PNG (its {kind.decode('latin-1')!r} chunk runs past the end of "
+                                 "the file)", "re-export or re-capture the frame")
+        crc = struct.unpack(">I", buf[end - 4:end])[0]
+        if zlib.crc32(buf[pos + 4:end - 4]) != crc:
+            raise ImageFileError(f"is a damaged PNG (the CRC of its {kind.decode('latin-1')!r} chunk at byte {pos} "
+                                 "does not match)", "re-export or re-capture the frame")
+        if kind == b"IEND":
+            return
+        pos = end
+
+
 def sniff_kind(path: Path) -> str:
     """Return ``"tiff"``, ``"png"`` or ``"jpeg"`` from the file's magic bytes (the extension is not trusted).
 
@@ -448,12 +502,9 @@ def _read_png(path: Path) -> np.ndarray:
     import cv2
 
     data = np.fromfile(path, dtype=np.uint8)  # imdecode: non-ASCII paths work, and we control the errors
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # our error replaces OpenCV's warning
-    try:
+    check_png_chunks(data)
+    with cv2_quiet():
         image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-    finally:
-        cv2.utils.logging.setLogLevel(level)
     if image is None:
         raise ImageFileError("cannot be decoded as PNG (damaged or truncated)",
                              "re-export or re-capture the frame")
@@ -469,12 +520,8 @@ def _read_jpeg(path: Path, header: ImageHeader) -> np.ndarray:
 
     data = np.fromfile(path, dtype=np.uint8)
     flags = (cv2.IMREAD_GRAYSCALE if header.n_channels == 1 else cv2.IMREAD_COLOR) | cv2.IMREAD_IGNORE_ORIENTATION
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-    try:
+    with cv2_quiet():
         image = cv2.imdecode(data, flags)
-    finally:
-        cv2.utils.logging.setLogLevel(level)
     if image is None:
         raise ImageFileError("cannot be decoded as JPEG (damaged or truncated)", "re-export or re-capture the frame")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB) if image.ndim == 3 else image

@@ -6,7 +6,12 @@ emulator only: replay the image files in DIR, which makes an end-to-end test wit
 with the environment variable ``PYLON_CAMEMU=1`` to get an emulated camera).
 
 Frames are software-triggered (``TriggerMode=On``, ``TriggerSource=Software``) so that each frame starts only
-after the stage is on target; the frame id is pylon's ``BlockID``.
+after the stage is on target; the frame id is pylon's ``BlockID``. ``ExposureAuto`` and ``GainAuto`` are switched
+``Off`` at connect (a stack needs one fixed exposure and gain; Basler: "Set the ExposureAuto parameter to Off" before
+setting the exposure time). The exposure node is ``ExposureTime`` (SFNC 2) or, on older cameras, ``ExposureTimeAbs``
+(both µs); pypylon returns a parameter object for *any* attribute name, so a node is looked up by its ``IsValid()``,
+never by ``hasattr``. Timestamps are camera ticks, converted with ``GevTimestampTickFrequency`` where the camera
+has it (GigE), else 1 tick = 1 ns.
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ from .protocols import DeviceFault, Frame
 
 _FORMATS = {"Mono8": (["Y"], 8), "Mono10": (["Y"], 10), "Mono12": (["Y"], 12), "Mono16": (["Y"], 16),
             "RGB8Packed": (["R", "G", "B"], 8), "RGB8": (["R", "G", "B"], 8)}
+# one format, two names: GenICam PFNC 2.1 (Basler /pixel-format: "RGB8") and the older GigE Vision name
+_ALIASES = {"RGB8Packed": "RGB8", "RGB8": "RGB8Packed"}
 
 
 class PylonCamera:
@@ -39,6 +46,7 @@ class PylonCamera:
         self.name = "pylon" + (f":{serial}" if serial else "")
         self.cam = None
         self._exposure_ms: float | None = None
+        self._tick_hz: float | None = None
         self._roi = None
 
     @classmethod
@@ -63,6 +71,29 @@ class PylonCamera:
     def _device(self) -> str:
         return f"camera {self.name}"
 
+    def _node(self, *names: str):
+        """The first of ``names`` the camera has (pypylon: ``IsValid()``), else None. ``hasattr`` cannot tell:
+        pypylon's attribute lookup returns a parameter object for any name ("GetNode always returns a parameter
+        and does not throw")."""
+        for name in names:
+            node = getattr(self.cam, name)
+            if node.IsValid():
+                return node
+        return None
+
+    def _exposure_node(self):
+        node = self._node("ExposureTime", "ExposureTimeAbs")
+        if node is None:
+            raise DeviceFault("the camera has neither ExposureTime nor ExposureTimeAbs", code=0, device=self._device,
+                              fix="use a camera with a timed exposure (ExposureMode=Timed)")
+        return node
+
+    def _auto_off(self, name: str) -> None:
+        """Switch an auto function (``ExposureAuto``, ``GainAuto``) off where the camera has it."""
+        node = self._node(name)
+        if node is not None and node.IsWritable() and node.Value != "Off":
+            node.Value = "Off"
+
     def connect(self) -> None:
         try:
             from pypylon import genicam, pylon
@@ -80,17 +111,56 @@ class PylonCamera:
                                 path=self._device, fix="check the cable and the serial number (pylon Viewer lists it)")
             self.cam = pylon.InstantCamera(tl.CreateDevice(devices[0]))
             self.cam.Open()
-            self.cam.PixelFormat.Value = self.pixel_format
+            self._set_pixel_format()
             if self.images:
                 self.cam.ImageFilename.Value = str(self.images)
                 self.cam.ImageFileMode.Value = "On"
                 self.cam.TestImageSelector.Value = "Off"
+            # a stack needs one exposure and one gain for all frames: no auto function may change them
+            self._auto_off("ExposureAuto")
+            self._auto_off("GainAuto")
+            # ExposureMode Timed: the exposure time node decides each frame's exposure (Basler,
+            # PLCamera.ExposureModeEnum); TriggerWidth would let the (software) trigger's width decide
+            mode = self._node("ExposureMode")
+            if mode is not None and mode.IsWritable() and mode.Value != "Timed":
+                mode.Value = "Timed"
             self.cam.TriggerSelector.Value = "FrameStart"
             self.cam.TriggerMode.Value = "On"
             self.cam.TriggerSource.Value = "Software"
             self.cam.StartGrabbing(pylon.GrabStrategy_OneByOne)
         except genicam.GenericException as exc:
             raise LinkError(f"pylon: {exc}", path=self._device, fix="check the camera and its settings") from None
+
+    def _set_pixel_format(self) -> None:
+        """Set ``PixelFormat``; a format the camera names otherwise (``RGB8``/``RGB8Packed``) is taken under its
+        name, one it does not have is a ParameterError that lists the camera's formats."""
+        node = self.cam.PixelFormat
+        have = tuple(node.Symbolics)
+        name = self.pixel_format
+        if have and name not in have:
+            if _ALIASES.get(name) in have:
+                name = _ALIASES[name]
+            else:
+                self.close()
+                usable = [f for f in have if f in _FORMATS]
+                raise ParameterError(f"the camera has no pixel format {self.pixel_format!r} (it has: "
+                                     f"{', '.join(have)})", path=self._device, field="pixel_format",
+                                     fix=f"use one of {', '.join(usable) or ', '.join(_FORMATS)}")
+        node.Value = name
+        self.pixel_format = name
+
+    def _drop_stale_results(self, limit: int = 64) -> int:
+        """Release every result already waiting before a trigger: with GrabStrategy_OneByOne "images are processed
+        in the order of their arrival" (Basler, GrabStrategy), so a frame that arrived after its RetrieveResult
+        timed out would otherwise be taken for the next position's frame."""
+        n = 0
+        while n < limit:
+            res = self.cam.RetrieveResult(0, self._pylon.TimeoutHandling_Return)
+            if res is None or not res.IsValid():
+                break
+            res.Release()
+            n += 1
+        return n
 
     def close(self) -> None:
         try:
@@ -119,7 +189,7 @@ class PylonCamera:
         g = self._genicam
         try:
             if exposure_ms is not None:
-                node = self.cam.ExposureTime if hasattr(self.cam, "ExposureTime") else self.cam.ExposureTimeAbs
+                node = self._exposure_node()
                 node.Value = float(exposure_ms) * 1000.0  # GenICam exposure is in µs
                 self._exposure_ms = float(node.Value) / 1000.0
             if roi is not None:
@@ -140,6 +210,7 @@ class PylonCamera:
     def snap(self) -> Frame:
         g = self._genicam
         try:
+            stale = self._drop_stale_results()
             if not self.cam.WaitForFrameTriggerReady(int(self.timeout_ms), self._pylon.TimeoutHandling_Return):
                 raise LinkError("camera not ready for a trigger", path=self._device, fix="check the camera")
             self.cam.ExecuteSoftwareTrigger()
@@ -150,16 +221,26 @@ class PylonCamera:
             raise LinkError(f"no frame within {self.timeout_ms:.0f} ms", path=self._device, fix="check the camera link")
         try:
             if not res.GrabSucceeded():
-                raise LinkError(f"grab failed: {res.GetErrorDescription()}", path=self._device,
+                raise LinkError(f"grab failed: {res.GetErrorDescription()} (pylon error code "
+                                f"{int(res.GetErrorCode()) & 0xFFFFFFFF:#010x})", path=self._device,
                                 fix="check the camera link")
             img = np.array(res.Array, copy=True)
-            frame_id, ts = int(res.BlockID), float(res.TimeStamp) / 1e6
+            frame_id, ticks = int(res.BlockID), int(res.TimeStamp)
         finally:
             res.Release()
         if img.ndim == 2:
             img = img[:, :, None]
-        if self._exposure_ms is None:
-            node = self.cam.ExposureTime if hasattr(self.cam, "ExposureTime") else self.cam.ExposureTimeAbs
-            self._exposure_ms = float(node.Value) / 1000.0
-        return Frame(image=img, frame_id=frame_id, exposure_ms=self._exposure_ms,
-                     timestamp_ms=ts or time.time() * 1000.0, meta={})
+        try:
+            if self._exposure_ms is None:
+                self._exposure_ms = float(self._exposure_node().Value) / 1000.0
+            if self._tick_hz is None:
+                # docs.baslerweb.com/timestamp: the tick frequency depends on the model; GigE cameras state it
+                freq = self._node("GevTimestampTickFrequency")
+                self._tick_hz = float(freq.Value) if freq is not None and freq.IsReadable() else 1e9
+        except g.GenericException as exc:
+            raise LinkError(f"pylon: {exc}", path=self._device, fix="check the camera link") from None
+        meta = {"timestamp_ticks": ticks, "timestamp_tick_hz": self._tick_hz}
+        if stale:
+            meta["stale_frames_dropped"] = stale
+        ts_ms = ticks / self._tick_hz * 1000.0 if ticks else time.time() * 1000.0
+        return Frame(image=img, frame_id=frame_id, exposure_ms=self._exposure_ms, timestamp_ms=ts_ms, meta=meta)

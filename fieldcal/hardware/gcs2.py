@@ -6,7 +6,10 @@ command that sets something, and after any link error a resync (drain whatever i
 
 GCS2 framing (PI's GCS2 manuals): a command is ASCII ending in LF; a reply line ends in LF, and every line of a
 multi-line reply except the last ends in a space before the LF (``"1=0.5 \\n"``, ``"2=1.0\\n"``). Single-
-character commands (``#5`` motion status, ``#7`` ready, ``#24`` stop) are one control byte with no LF.
+character commands (``#5`` motion status, ``#7`` ready, ``#24`` stop) are one control byte with no LF. ``#5``
+answers a hex mask with one bit per axis in ``SAI? ALL`` order; the C-863.12 takes one element (axis, parameter,
+trigger setting) per command line (MS249E 8.2), so nothing here sends more. docs/hardware.md, "Device protocols
+checked against the makers' documents", lists each fact with its source.
 
 Units: the controller speaks mm; :class:`GCS2Stage` speaks fieldcal µm with
 ``z_um = sign * (pos_mm - zero_mm) * 1000`` (``zero_mm`` is the controller position that fieldcal calls z = 0,
@@ -81,7 +84,25 @@ def error_text(code: int) -> str:
 
 SINGLE_CHAR = {"#5": b"\x05", "#7": b"\x07", "#24": b"\x18"}
 _AXIS_VALUE = re.compile(r"^\s*([A-Za-z0-9_]+)\s*=\s*(\S+)\s*$")
-_PARAM_VALUE = re.compile(r"^\s*([A-Za-z0-9_]+)\s+(0x[0-9A-Fa-f]+)\s*=\s*(\S+)\s*$")
+_PARAM_VALUE = re.compile(r"^\s*([A-Za-z0-9_]+)\s+(0x[0-9A-Fa-f]+|[0-9]+)\s*=\s*(\S+)\s*$")
+
+
+def param_value(lines: list[str], axis: str, pid: int) -> float | None:
+    """The positive finite value of ``<axis> <pid>=<value>`` in a ``SPA?`` reply, the ID hexadecimal (``0xA``, as
+    fieldcal asks) or decimal (``10``, as PI's pipython asks); None when no line has it."""
+    for line in lines:
+        m = _PARAM_VALUE.match(line)
+        if not m or m.group(1) != axis:
+            continue
+        tok = m.group(2)
+        if (int(tok, 16) if tok.lower().startswith("0x") else int(tok, 10)) != pid:
+            continue
+        try:
+            v = float(m.group(3))
+        except ValueError:
+            return None
+        return v if math.isfinite(v) and v > 0 else None
+    return None
 
 
 class GCS2Client:
@@ -189,8 +210,10 @@ class GCS2Client:
                     pass  # already reported as a link error
         if not raw.endswith(b"\n"):
             raise self._link_error(f"no reply within {timeout_ms or self.timeout_ms:.0f} ms", cmd)
-        text = raw.decode("latin-1")  # '#7' answers with byte 0xB1; everything else must be printable ASCII
-        if cmd != "#7" and any(not (32 <= ord(ch) < 127) for ch in text[:-1]):
+        # '#7' answers with byte 0xB1; everything else must be printable ASCII or TAB (MS249E HPV?: "TAB
+        # <PossibleValue> ...")
+        text = raw.decode("latin-1")
+        if cmd != "#7" and any(not (32 <= ord(ch) < 127 or ch == "\t") for ch in text[:-1]):
             raise self._link_error(f"garbled reply {raw!r}", cmd)
         self.log = (self.log + [("<", text)])[-20:]
         return text[:-1]
@@ -271,8 +294,12 @@ class GCS2Client:
         try:
             # a late reply may still be on its way: read until the line has been quiet for drain_s
             self._ser.timeout = drain_s
+            give_up = time.monotonic() + max(2.0, 10 * drain_s)  # a line that never goes quiet must not hang us
             while self._ser.read(4096):
-                pass
+                if time.monotonic() > give_up:
+                    self._ser.timeout = self.timeout_ms / 1000
+                    raise self._link_error("the line does not go quiet (a wrong baud rate, or not a GCS "
+                                           "controller?)", "*IDN?")
             self._ser.reset_input_buffer()
             self._ser.timeout = self.timeout_ms / 1000
         except (serial.SerialException, OSError) as exc:
@@ -330,6 +357,7 @@ class GCS2Stage:
                                                           "trigger_out=1")
         self.trigger_out = trigger_out
         self.name = f"gcs:{port}"
+        self._axis_bit = 1  # the axis' bit in the #5 mask; connect() reads it from SAI? ALL
 
     @classmethod
     def from_spec(cls, arg: str | None, options: dict[str, str]) -> "GCS2Stage":
@@ -380,6 +408,15 @@ class GCS2Stage:
     # ------------------------------------------------------------------ Stage protocol
     def connect(self) -> None:
         self.client.open()
+        # ``#5`` answers one bit per axis, in the order of ``SAI? ALL`` (MS249E, #5: "1=First axis in motion,
+        # 2=Second axis in motion"; pipython's IsMoving reads the same bit): find this axis' bit
+        axes = [ln.strip() for ln in self.client.query("SAI? ALL") if ln.strip()]
+        if self.axis not in axes:
+            self.client.close()
+            raise ParameterError(f"axis {self.axis!r} is not an axis of this controller (SAI? ALL: {axes})",
+                                 path=f"stage {self.name}", field="axis",
+                                 fix=f"give one of its axes, e.g. axis={axes[0] if axes else 1}")
+        self._axis_bit = 1 << axes.index(self.axis)
         if self.client.query_axes("SVO?", self.axis) != "1":
             self.client.command(f"SVO {self.axis} 1")
         if self._velocity_mm_s is not None:
@@ -407,14 +444,27 @@ class GCS2Stage:
         if self.client.query_axes("SVO?", self.axis) != "1":
             self.client.command(f"SVO {self.axis} 1")
         self.client.command(f"FRF {self.axis}")
+        # as PI's pipython (pitools.waitonreferencing): wait for #7 to answer "ready" (MS249E, #7: B0h "not
+        # ready (e.g., doing a reference move)"), read ERR? -- a reference move that failed says why here --
+        # and only then FRF?
         deadline = time.monotonic() + timeout_ms / 1000
-        while not self.is_referenced():
+        while not self._ready():
             if time.monotonic() > deadline:
                 self.stop()
                 raise DeviceFault(f"reference move not done within {timeout_ms:.0f} ms", code=0,
                                   device=self.client.device, fix="check the stage and its reference switch")
             time.sleep(self.poll_ms / 1000)
         self.client.check_error("FRF")
+        if not self.is_referenced():
+            raise DeviceFault("the reference move ended but the axis is not referenced (FRF? 0)", code=0,
+                              device=self.client.device, fix="check the stage and its reference switch")
+
+    def _ready(self) -> bool:
+        """``#7``: B1h ready, B0h busy (MS249E, #7)."""
+        lines = self.client.query("#7")
+        if lines[-1] in ("\xb1", "\xb0"):
+            return lines[-1] == "\xb1"
+        raise self.client._link_error(f"garbled reply {lines!r} (expected B1h or B0h)", "#7")
 
     def limits_um(self) -> tuple[float, float]:
         a = self._to_um(self.client.query_float("TMN?", self.axis))
@@ -433,20 +483,19 @@ class GCS2Stage:
             return self._max_velocity_mm_s * 1000.0
         cmd = f"SPA? {self.axis} 0xA"
         lines = self.client.query(cmd)  # the reply names axis and parameter: "1 0xA=2.000000"
-        for line in lines:
-            m = _PARAM_VALUE.match(line)
-            if m and m.group(1) == self.axis and int(m.group(2), 16) == 0xA:
-                try:
-                    v = float(m.group(3))
-                except ValueError:
-                    break
-                if math.isfinite(v) and v > 0:
-                    return v * 1000.0
+        v = param_value(lines, self.axis, 0xA)
+        if v is not None:
+            return v * 1000.0
         raise self.client._link_error(f"garbled reply {lines!r} (expected '{self.axis} 0xA=value')", cmd)
 
     def acceleration_um_per_s2(self) -> float:
         """``ACC?`` (closed-loop acceleration, mm/s²)."""
         return self.client.query_float("ACC?", self.axis) * 1000.0
+
+    def cto_settings(self, start_um: float, stop_um: float) -> list[tuple[int, str]]:
+        """(CTO parameter ID, value) for a PositionDistance trigger that pulses at ``start_um`` and ``stop_um``."""
+        a, b = self._to_mm(start_um), self._to_mm(stop_um)
+        return [(2, self.axis), (3, "0"), (1, f"{abs(b - a):.6f}"), (8, f"{a:.6f}"), (9, f"{b:.6f}")]
 
     def arm_sweep_trigger(self, start_um: float, stop_um: float) -> None:
         """With ``trigger_out``: ``CTO`` the line to pulse at ``start_um`` (and at ``stop_um``: TriggerStep is the
@@ -455,10 +504,11 @@ class GCS2Stage:
         if self.trigger_out is None:
             return
         n = self.trigger_out
-        a, b = self._to_mm(start_um), self._to_mm(stop_um)
         # CTO parameter IDs of the C-863.12 (MS249E, CTO): 1 TriggerStep, 2 Axis, 3 TriggerMode (0 =
-        # PositionDistance), 8 StartThreshold, 9 StopThreshold
-        self.client.command(f"CTO {n} 2 {self.axis} {n} 3 0 {n} 1 {abs(b - a):.6f} {n} 8 {a:.6f} {n} 9 {b:.6f}")
+        # PositionDistance), 8 StartThreshold, 9 StopThreshold -- one per command line (MS249E 8.2: "With the
+        # C-863.12 only a single element per command line can be addressed")
+        for pid, value in self.cto_settings(start_um, stop_um):
+            self.client.command(f"CTO {n} {pid} {value}")
         self.client.command(f"TRO {n} 1")
 
     def disarm_sweep_trigger(self) -> None:
@@ -472,9 +522,10 @@ class GCS2Stage:
         return self.client.query_axes("ONT?", self.axis) == "1"
 
     def _moving(self) -> bool:
+        """``#5``: a hex mask with one bit per axis (MS249E, #5); only this axis' bit counts."""
         lines = self.client.query("#5")
         try:
-            return int(lines[-1].strip(), 16) != 0
+            return bool(int(lines[-1].strip(), 16) & self._axis_bit)
         except ValueError:
             raise self.client._link_error(f"garbled reply {lines!r}", "#5") from None
 

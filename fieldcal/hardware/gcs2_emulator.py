@@ -9,7 +9,9 @@ What it emulates (GCS2 syntax; details we could not check against a real C-863 a
 ``*IDN?``, ``ERR?``, ``MOV``, ``MOV?``, ``POS?``, ``ONT?``, ``SVO``, ``SVO?``, ``FRF``, ``FRF?``, ``VEL``,
 ``VEL?``, ``ACC``, ``ACC?``, ``SPA? axis 0xA`` (maximum velocity), ``CTO``, ``CTO?``, ``TRO``, ``TRO?``,
 ``TMN?``, ``TMX?``, ``CST?``, ``SAI?``, ``HLT``, ``STP``, ``HLP?`` (multi-line), and the single-byte
-``#5`` (motion status), ``#7`` (ready) and ``#24`` (stop). Errors are latched like the controller does: the
+``#5`` (motion status), ``#7`` (ready; B0h while a reference move runs) and ``#24`` (stop). As the C-863.12
+(MS249E 8.2) it takes one element per ``CTO``/``TRO`` line and lists a query's arguments in its reply as given
+(``SPA? 1 10`` -> ``1 10=...``). Errors are latched like the controller does: the
 last error code is kept until ``ERR?`` reads (and clears) it. Codes: 0 none, 1 syntax, 2 unknown command,
 5 move without reference/servo, 7 out of limits, 8 velocity out of limits, 10 stopped, 15 invalid axis,
 1024 motion error (PI_CNTR_MOTION_ERROR, as a C-863 answers ERR?; -1024 is the GCS DLL's code, not the
@@ -129,7 +131,7 @@ class GCS2Emulator:
         self._delay = (n, delay_ms / 1000)
 
     def motion_error_on_next_move(self) -> None:
-        """The next MOV stops half-way with error 1024 (PI_CNTR_MOTION_ERROR) and the servo switched off."""
+        """The next MOV (or FRF) stops half-way with error 1024 (PI_CNTR_MOTION_ERROR) and the servo switched off."""
         self._motion_error_armed = True
 
     def set_referenced_at(self, pos_mm: float) -> None:
@@ -162,7 +164,8 @@ class GCS2Emulator:
             self.error = MOTION_ERROR
         if self._referencing and not self.moving():
             self._referencing = False
-            self.referenced = True
+            if not self._motion_error:  # a reference move cut short by a motion error references nothing
+                self.referenced = True
 
     def on_target(self) -> bool:
         t0, a, b, dur = self._seg
@@ -252,7 +255,7 @@ class GCS2Emulator:
             if pid != 0xA:  # only the maximum closed-loop velocity is emulated
                 self._set_error(17)
                 return None
-            return f"{args[0]} 0xA={self.max_vel:.7f}\n"
+            return f"{args[0]} {args[1]}={self.max_vel:.7f}\n"  # the arguments as the query gave them (MS249E 8.2)
         if name in ("CTO", "TRO"):
             return self._trigger_config(name, args)
         if name in ("CTO?", "TRO?"):
@@ -295,6 +298,9 @@ class GCS2Emulator:
                 return None
             self._referencing = True
             self._start(self.reference_mm)
+            if self._motion_error_armed:
+                self._motion_error_armed = False
+                self._motion_error = True
             return None
         if name in ("MOV", "VEL", "ACC"):
             if len(args) != 2:
@@ -339,7 +345,9 @@ class GCS2Emulator:
         """``CTO {line pid value}`` / ``TRO {line 0|1}`` for digital outputs 1..4 (C-863.12: CTO parameter IDs 1
         TriggerStep, 2 Axis, 3 TriggerMode, 7 Polarity, 8 StartThreshold, 9 StopThreshold, 10 TriggerPosition)."""
         width = 3 if name == "CTO" else 2
-        if not args or len(args) % width:
+        # MS249E 8.2: "With the C-863.12 only a single element per command line can be addressed (e. g. axis or
+        # parameter)". Which code the unit sets for a line with more is not in the manual: 24 here (unverified).
+        if len(args) != width:
             self._set_error(24)
             return None
         try:

@@ -22,7 +22,7 @@ import time
 from typing import Any
 
 from ..errors import LinkError, ParameterError
-from .gcs2 import GCS2_FIXES, GCS2Stage, error_text
+from .gcs2 import GCS2_FIXES, GCS2Stage, error_text, param_value
 from .protocols import DeviceFault
 
 
@@ -148,6 +148,9 @@ class PipythonStage(GCS2Stage):
         return bool(self._call(self.dev.qFRF, self.axis)[self.axis])
 
     def reference(self, timeout_ms: float = 60000.0) -> None:
+        # FRF with the servo off is error 5 (as gcs:, switch it on first: a motion error switches it off)
+        if not self._call(self.dev.qSVO, self.axis)[self.axis]:
+            self._call(self.dev.SVO, self.axis, True)
         self._call(self.dev.FRF, self.axis)
         deadline = time.monotonic() + timeout_ms / 1000
         while not self.is_referenced():
@@ -171,7 +174,15 @@ class PipythonStage(GCS2Stage):
     def max_velocity_um_per_s(self) -> float:
         if self._max_velocity_mm_s is not None:
             return self._max_velocity_mm_s * 1000.0
-        return float(self._call(self.dev.qSPA, self.axis, 0xA)[self.axis][0xA]) * 1000.0
+        # pipython's qSPA first asks HPA? for every parameter's type; read SPA? itself (with its ERR?) and parse
+        # it as gcs: does
+        cmd = f"SPA? {self.axis} 0xA"
+        lines = [ln.rstrip(" ") for ln in str(self._call(self.dev.read, cmd)).split("\n") if ln.strip()]
+        v = param_value(lines, self.axis, 0xA)
+        if v is None:
+            raise LinkError(f"garbled reply {lines!r} to {cmd!r} (expected '{self.axis} 0xA=value')",
+                            path=self.device, fix="give max_velocity_mm_s from the stage's data sheet")
+        return v * 1000.0
 
     def acceleration_um_per_s2(self) -> float:
         return float(self._call(self.dev.qACC, self.axis)[self.axis]) * 1000.0
@@ -179,8 +190,9 @@ class PipythonStage(GCS2Stage):
     def arm_sweep_trigger(self, start_um: float, stop_um: float) -> None:
         if self.trigger_out is None:
             return
-        n, a, b = self.trigger_out, self._to_mm(start_um), self._to_mm(stop_um)
-        self._call(self.dev.CTO, [n] * 5, [2, 3, 1, 8, 9], [self.axis, 0, abs(b - a), a, b])
+        n = self.trigger_out
+        for pid, value in self.cto_settings(start_um, stop_um):  # one element per line (MS249E 8.2), as gcs:
+            self._call(self.dev.CTO, n, pid, value)
         self._call(self.dev.TRO, n, True)
 
     def disarm_sweep_trigger(self) -> None:

@@ -134,12 +134,17 @@ def _read_file(path: Path) -> np.ndarray:
         except Exception:  # not a TIFF tifffile understands: let OpenCV try
             img = None
     if img is None:
-        level = cv2.utils.logging.getLogLevel()
-        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # our error replaces its warnings
+        from fieldcal.formats.imageio import check_png_chunks, cv2_quiet
+
         try:
+            with open(path, "rb") as f:
+                is_png = f.read(8) == b"\x89PNG\r\n\x1a\n"
+            if is_png:  # libpng's own error line would come before ours
+                check_png_chunks(np.fromfile(path, dtype=np.uint8))
+        except ImageFileError as e:
+            raise ParameterError(f"scene image {e.what}", path=path, field="scene", fix=e.fix) from None
+        with cv2_quiet():  # our error replaces its warnings
             img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
-        finally:
-            cv2.utils.logging.setLogLevel(level)
         if img is not None and img.ndim == 3:
             code = cv2.COLOR_BGRA2RGBA if img.shape[2] == 4 else cv2.COLOR_BGR2RGB
             img = cv2.cvtColor(img, code)
