@@ -16,28 +16,23 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
+from ._lazy import lazy_names
+
+#: public name -> the module it lives in (imported on first use)
 _LAZY = {
-    "Stack": ("fieldcal.formats.stack", "Stack"),
-    "StackWriter": ("fieldcal.formats.stack", "StackWriter"),
-    "LensSpec": ("fieldcal.simulate.lens", "LensSpec"),
-    "LensProfile": ("fieldcal.profile.lens_profile", "LensProfile"),
-    "TruthProfile": ("fieldcal.simulate.truth", "TruthProfile"),
-    "LensModel": ("fieldcal.optics.model", "LensModel"),
-    "MTFCriterion": ("fieldcal.optics.criterion", "MTFCriterion"),
-    "calibrate": ("fieldcal.calibration.pipeline", "calibrate"),
-    "measure_mtf": ("fieldcal.measure.mtf", "measure_mtf"),
-    "import_stack": ("fieldcal.formats.importer", "import_stack"),
-    "FieldcalError": ("fieldcal.errors", "FieldcalError"),
+    "Stack": "fieldcal.formats.stack",
+    "StackWriter": "fieldcal.formats.stack",
+    "LensSpec": "fieldcal.simulate.lens",
+    "LensProfile": "fieldcal.profile.lens_profile",
+    "TruthProfile": "fieldcal.simulate.truth",
+    "LensModel": "fieldcal.optics.model",
+    "MTFCriterion": "fieldcal.optics.criterion",
+    "calibrate": "fieldcal.calibration.pipeline",
+    "measure_mtf": "fieldcal.measure.mtf",
+    "import_stack": "fieldcal.formats.importer",
+    "FieldcalError": "fieldcal.errors",
 }
 
 __all__ = ["__version__", *_LAZY]
 
-
-def __getattr__(name):
-    if name in _LAZY:
-        import importlib
-        mod, attr = _LAZY[name]
-        value = getattr(importlib.import_module(mod), attr)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'fieldcal' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_names(__name__, _LAZY, globals())

@@ -6,6 +6,8 @@ ready (e.g., doing a reference move)") and PI's own host library pipython 2.11 (
 reads the bit of the axis' index in ``SAI? ALL``; ``pitools.waitonreferencing`` waits for ``#7`` to report
 ready, reads ``ERR?``, then ``FRF?``)."""
 
+import contextlib
+
 import pytest
 
 from fieldcal.hardware.gcs2 import GCS2Stage
@@ -13,6 +15,18 @@ from fieldcal.hardware.gcs2_emulator import GCS2Emulator, ManualClock, TcpServer
 from fieldcal.hardware.protocols import DeviceFault
 
 TIMEOUT_MS = 300
+
+
+@contextlib.contextmanager
+def _stage(emu, cls=GCS2Stage, **kw):
+    """A stage of class ``cls`` connected to ``emu`` over TCP, closed after the block."""
+    with TcpServer(emu) as srv:
+        st = cls(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1, **kw)
+        st.connect()
+        try:
+            yield st
+        finally:
+            st.close()
 
 
 class _TwoAxisController(GCS2Emulator):
@@ -34,64 +48,44 @@ class _TwoAxisController(GCS2Emulator):
 
 def test_wait_on_target_reads_only_its_own_axis_bit_of_the_motion_mask():
     emu = _TwoAxisController(clock=ManualClock(tick_s=0.05))
-    with TcpServer(emu) as srv:
-        st = GCS2Stage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1)
-        st.connect()
-        try:
-            emu.set_referenced_at(7.5)
-            st.move_to_um(100.0)
-            st.wait_on_target(1500)  # axis 2 keeps moving: the bit of axis 1 alone decides
-            assert st.on_target() and st.position_um() == pytest.approx(100.0, abs=1e-3)
-            assert "\x18" not in emu.received  # nothing was stopped (#24 would stop axis 2 as well)
-        finally:
-            st.close()
+    with _stage(emu) as st:
+        emu.set_referenced_at(7.5)
+        st.move_to_um(100.0)
+        st.wait_on_target(1500)  # axis 2 keeps moving: the bit of axis 1 alone decides
+        assert st.on_target() and st.position_um() == pytest.approx(100.0, abs=1e-3)
+        assert "\x18" not in emu.received  # nothing was stopped (#24 would stop axis 2 as well)
 
 
 def test_a_moving_axis_is_still_seen_moving_on_a_multi_axis_controller():
     emu = _TwoAxisController(clock=ManualClock(100.0))  # stands still: axis 1 stays mid-move
     emu.axis2_moving = False
-    with TcpServer(emu) as srv:
-        st = GCS2Stage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1)
-        st.connect()
-        try:
-            emu.set_referenced_at(7.5)
-            st.move_to_um(500.0)
-            with pytest.raises(DeviceFault, match="still moving"):
-                st.wait_on_target(50)
-        finally:
-            st.close()
+    with _stage(emu) as st:
+        emu.set_referenced_at(7.5)
+        st.move_to_um(500.0)
+        with pytest.raises(DeviceFault, match="still moving"):
+            st.wait_on_target(50)
 
 
 def test_a_reference_move_that_fails_reports_the_controller_error_at_once():
     emu = GCS2Emulator(clock=ManualClock(tick_s=0.05))
-    with TcpServer(emu) as srv:
-        st = GCS2Stage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1)
-        st.connect()
-        try:
-            emu.motion_error_on_next_move()
-            with pytest.raises(DeviceFault) as e:
-                st.reference(timeout_ms=2000)
-            assert e.value.code == 1024  # the controller's error, not a time-out with the error read and lost
-            assert not emu.referenced and not st.is_referenced()
-        finally:
-            st.close()
+    with _stage(emu) as st:
+        emu.motion_error_on_next_move()
+        with pytest.raises(DeviceFault) as e:
+            st.reference(timeout_ms=2000)
+        assert e.value.code == 1024  # the controller's error, not a time-out with the error read and lost
+        assert not emu.referenced and not st.is_referenced()
 
 
 def test_reference_waits_for_the_controller_to_be_ready_before_reading_frf():
     emu = GCS2Emulator(clock=ManualClock(tick_s=0.05))
-    with TcpServer(emu) as srv:
-        st = GCS2Stage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1)
-        st.connect()
-        try:
-            st.reference(timeout_ms=3000)
-            assert st.is_referenced()
-            sent = emu.received[emu.received.index("FRF 1"):]
-            # after FRF: ERR? (the command's own), then #7 until ready, ERR?, and only then FRF?
-            first_frf_q = sent.index("FRF? 1")
-            assert "\x07" in sent[:first_frf_q]
-            assert sent[first_frf_q - 1] == "ERR?"
-        finally:
-            st.close()
+    with _stage(emu) as st:
+        st.reference(timeout_ms=3000)
+        assert st.is_referenced()
+        sent = emu.received[emu.received.index("FRF 1"):]
+        # after FRF: ERR? (the command's own), then #7 until ready, ERR?, and only then FRF?
+        first_frf_q = sent.index("FRF? 1")
+        assert "\x07" in sent[:first_frf_q]
+        assert sent[first_frf_q - 1] == "ERR?"
 
 
 def test_the_c863_emulator_takes_one_element_per_command_line():
@@ -108,37 +102,27 @@ def test_the_c863_emulator_takes_one_element_per_command_line():
 
 def test_the_sweep_trigger_is_configured_one_cto_parameter_per_line():
     emu = GCS2Emulator(clock=ManualClock(tick_s=0.05))
-    with TcpServer(emu) as srv:
-        st = GCS2Stage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1, trigger_out=2)
-        st.connect()
-        try:
-            st.arm_sweep_trigger(-100.0, 100.0)  # raises DeviceFault when the controller refuses a line
-            assert emu.cto[2] == pytest.approx({2: 1.0, 3: 0.0, 1: 0.2, 8: 7.4, 9: 7.6})
-            assert emu.tro[2]
-            ctos = [c for c in emu.received if c.startswith("CTO")]
-            assert len(ctos) == 5 and all(len(c.split()) == 4 for c in ctos)
-            st.disarm_sweep_trigger()
-            assert not emu.tro[2]
-        finally:
-            st.close()
+    with _stage(emu, GCS2Stage, trigger_out=2) as st:
+        st.arm_sweep_trigger(-100.0, 100.0)  # raises DeviceFault when the controller refuses a line
+        assert emu.cto[2] == pytest.approx({2: 1.0, 3: 0.0, 1: 0.2, 8: 7.4, 9: 7.6})
+        assert emu.tro[2]
+        ctos = [c for c in emu.received if c.startswith("CTO")]
+        assert len(ctos) == 5 and all(len(c.split()) == 4 for c in ctos)
+        st.disarm_sweep_trigger()
+        assert not emu.tro[2]
 
 
 def test_pipython_backend_arms_the_trigger_one_cto_per_line_and_reads_its_own_axis_bit():
     pytest.importorskip("pipython")
     from fieldcal.hardware.pipython_backend import PipythonStage
     emu = _TwoAxisController(clock=ManualClock(tick_s=0.05))
-    with TcpServer(emu) as srv:
-        st = PipythonStage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1, trigger_out=1)
-        st.connect()
-        try:
-            st.arm_sweep_trigger(-100.0, 100.0)
-            assert emu.cto[1] == pytest.approx({2: 1.0, 3: 0.0, 1: 0.2, 8: 7.4, 9: 7.6}) and emu.tro[1]
-            emu.set_referenced_at(7.5)
-            st.move_to_um(100.0)
-            st.wait_on_target(1500)  # axis 2 keeps moving (pipython's IsMoving reads axis 1's bit)
-            assert st.position_um() == pytest.approx(100.0, abs=1e-3)
-        finally:
-            st.close()
+    with _stage(emu, PipythonStage, trigger_out=1) as st:
+        st.arm_sweep_trigger(-100.0, 100.0)
+        assert emu.cto[1] == pytest.approx({2: 1.0, 3: 0.0, 1: 0.2, 8: 7.4, 9: 7.6}) and emu.tro[1]
+        emu.set_referenced_at(7.5)
+        st.move_to_um(100.0)
+        st.wait_on_target(1500)  # axis 2 keeps moving (pipython's IsMoving reads axis 1's bit)
+        assert st.position_um() == pytest.approx(100.0, abs=1e-3)
 
 
 def test_resync_on_a_line_that_never_goes_quiet_is_a_link_error_not_a_hang():
@@ -191,16 +175,10 @@ def test_reference_switches_the_servo_on_first_on_both_backends(kind):
         pytest.importorskip("pipython")
     from fieldcal.hardware.pipython_backend import PipythonStage
     emu = GCS2Emulator(clock=ManualClock(tick_s=0.05))
-    with TcpServer(emu) as srv:
-        cls = PipythonStage if kind == "pi" else GCS2Stage
-        st = cls(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1)
-        st.connect()
-        try:
-            emu.servo = False
-            st.reference(timeout_ms=3000)
-            assert emu.referenced and emu.servo and st.is_referenced()
-        finally:
-            st.close()
+    with _stage(emu, PipythonStage if kind == "pi" else GCS2Stage) as st:
+        emu.servo = False
+        st.reference(timeout_ms=3000)
+        assert emu.referenced and emu.servo and st.is_referenced()
 
 
 def test_an_axis_the_controller_does_not_have_is_a_clear_parameter_error():
@@ -228,17 +206,12 @@ class _SignedZeroPaddedController(GCS2Emulator):
 
 def test_values_are_parsed_in_the_manuals_signed_zero_padded_form():
     emu = _SignedZeroPaddedController(clock=ManualClock(tick_s=0.05))
-    with TcpServer(emu) as srv:
-        st = GCS2Stage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1)
-        st.connect()
-        try:
-            assert st.client.query("POS? 1") == ["1=+0000.0000"]
-            assert st.limits_um() == pytest.approx((-7500.0, 7500.0))
-            st.reference(3000)
-            assert st.position_um() == pytest.approx(0.0, abs=0.1)
-            assert st.velocity_um_per_s() == pytest.approx(1500.0)
-        finally:
-            st.close()
+    with _stage(emu) as st:
+        assert st.client.query("POS? 1") == ["1=+0000.0000"]
+        assert st.limits_um() == pytest.approx((-7500.0, 7500.0))
+        st.reference(3000)
+        assert st.position_um() == pytest.approx(0.0, abs=0.1)
+        assert st.velocity_um_per_s() == pytest.approx(1500.0)
 
 
 class _DecimalParamController(GCS2Emulator):
@@ -261,14 +234,9 @@ def test_the_maximum_velocity_is_read_from_parameter_0xa_on_both_backends(kind, 
         pytest.importorskip("pipython")
     from fieldcal.hardware.pipython_backend import PipythonStage
     emu = controller(clock=ManualClock(tick_s=0.05), max_velocity_mm_s=2.5)
-    with TcpServer(emu) as srv:
-        st = (PipythonStage if kind == "pi" else GCS2Stage)(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1)
-        st.connect()
-        try:
-            assert st.max_velocity_um_per_s() == pytest.approx(2500.0)
-            assert st.acceleration_um_per_s2() == pytest.approx(emu.acc * 1000.0)
-        finally:
-            st.close()
+    with _stage(emu, PipythonStage if kind == "pi" else GCS2Stage) as st:
+        assert st.max_velocity_um_per_s() == pytest.approx(2500.0)
+        assert st.acceleration_um_per_s2() == pytest.approx(emu.acc * 1000.0)
 
 
 class _HpvController(GCS2Emulator):
@@ -285,10 +253,5 @@ class _HpvController(GCS2Emulator):
 
 def test_a_reply_with_tabs_is_not_taken_for_line_noise():
     emu = _HpvController(clock=ManualClock(tick_s=0.05))
-    with TcpServer(emu) as srv:
-        st = GCS2Stage(srv.url, timeout_ms=TIMEOUT_MS, poll_ms=1)
-        st.connect()
-        try:
-            assert st.client.query("HPV?") == _HpvController.LINES
-        finally:
-            st.close()
+    with _stage(emu) as st:
+        assert st.client.query("HPV?") == _HpvController.LINES

@@ -6,7 +6,7 @@
 ``write_composite`` (TIFF, PNG or JPEG by extension) for output; ``ArrayStack`` composites frames held in memory.
 """
 
-import importlib
+from .._lazy import lazy_names
 
 # The names below are imported on first use (PEP 562): ``fieldcal composite`` starts decoding the first frames
 # (composite/source.py, :func:`~fieldcal.composite.source.prefetch_frames`) before the compositor's modules and
@@ -18,17 +18,7 @@ _WHERE = {"METHODS": ".api", "CompositeOutput": ".api", "PlanSelection": ".api",
           "CompositeResult": ".stack_profile", "composite_profile": ".stack_profile", "SweepResult": ".sweep",
           "deconvolve_sweep": ".sweep", "emulate_sweep": ".sweep"}
 
-
-def __getattr__(name: str):
-    if name not in _WHERE:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(_WHERE[name], __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(list(globals()) + list(_WHERE))
+__getattr__, __dir__ = lazy_names(__name__, _WHERE, globals())
 
 
 __all__ = ["METHODS", "ArrayStack", "CompositeOutput", "CompositeResult", "PlanSelection", "SweepComposite",

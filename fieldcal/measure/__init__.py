@@ -4,7 +4,7 @@ Entry points: :func:`measure_stack` (both, one pass over the frames), :func:`mea
 :func:`measure_geometry`. See docs/measurement.md for the method, thresholds and measured accuracy.
 """
 
-import importlib
+from .._lazy import lazy_names
 
 # The names below are imported on first use (PEP 562): compositing imports ``fieldcal.measure.focus`` and
 # ``.geometry`` only, and the through-focus fits pull in scipy.optimize (~0.3 s of a composite's start-up).
@@ -13,17 +13,7 @@ _WHERE = {"ArrayStack": "..formats.frames", "FrameSource": "..formats.frames", "
           "analyse_curves": ".throughfocus", "TileRules": ".tiles", "TileTable": ".tiles",
           "measure_geometry": ".tiles", "measure_stack": ".tiles", "measure_tiles": ".tiles"}
 
-
-def __getattr__(name: str):
-    if name not in _WHERE:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(_WHERE[name], __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(list(globals()) + list(_WHERE))
+__getattr__, __dir__ = lazy_names(__name__, _WHERE, globals())
 
 
 __all__ = ["ArrayStack", "FrameSource", "CurveFit", "CurveRules", "GeometryMeasurements", "TileRules", "TileTable",
