@@ -121,3 +121,31 @@ def test_cli_start_imports_no_compositor_before_the_prefetch(tmp_path):
                                          env.get("PYTHONPATH", "")])
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert out.stdout.split() == ["False", "False"], out.stderr
+
+
+def test_exit_while_the_prefetch_decodes_keeps_the_exit_status(tmp_path):
+    """A process that ends (an error reported, Ctrl-C) after end_prefetch() while the prefetch thread is inside a
+    frame's decode exits with its own status, not SIGABRT (a daemon thread ended by pthread_exit inside OpenCV's
+    C++ decoder at interpreter shutdown: "terminate called without an active exception")."""
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng(0)
+    shots = tmp_path / "shots"
+    shots.mkdir()
+    base = rng.integers(0, 65535, (1080, 1920, 3), dtype=np.uint16)  # noise: a slow PNG decode (~0.1 s)
+    paths = []
+    for k in range(6):
+        p = shots / f"f{k}.png"
+        cv2.imwrite(str(p), np.roll(base, k, axis=1), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        paths.append(p)
+    folder = tmp_path / "stack"
+    import_stack(paths, folder, z_start_um=0, z_step_um=5, pixel_pitch_um=2)
+    code = ("import sys, time\nfrom fieldcal.composite import source\nsource.prefetch_frames(sys.argv[1])\n"
+            "source._PREFETCH.ready.wait()\ntime.sleep(float(sys.argv[2]))\nsource.end_prefetch()\nsys.exit(2)\n")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                         env.get("PYTHONPATH", "")])
+    codes = [subprocess.run([sys.executable, "-c", code, str(folder), str(pause)], env=env, capture_output=True,
+                            text=True, timeout=120).returncode for pause in (0.05, 0.1, 0.15, 0.2, 0.25, 0.3)]
+    assert codes == [2] * len(codes)

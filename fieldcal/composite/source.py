@@ -429,9 +429,21 @@ def take_prefetched(stack, i: int) -> np.ndarray | None:
     return image if image.ndim == 3 else image[..., None]
 
 
+#: How long :func:`end_prefetch` waits for the frame the prefetch thread is decoding (a whole frame's decode, well
+#: under a second for 24 MP; the bound only matters for a file that blocks, e.g. one replaced by a pipe)
+PREFETCH_JOIN_S = 30.0
+
+
 def end_prefetch() -> None:
-    """Drop the frames :func:`prefetch_frames` decoded that were not taken, and stop its thread's work."""
+    """Drop the frames :func:`prefetch_frames` decoded that were not taken, stop its thread's work and wait for the
+    frame it is decoding. The wait matters on the way out: a daemon thread still inside OpenCV's decoder when the
+    interpreter finalizes is ended by ``pthread_exit`` through C++ frames, and the process aborts ("terminate
+    called without an active exception", SIGABRT) instead of exiting with fieldcal's status (an error, Ctrl-C)."""
+    import threading
+
     global _PREFETCH
     pre, _PREFETCH = _PREFETCH, None
     if pre is not None:
         pre.stop()
+        if pre.thread is not threading.current_thread():
+            pre.thread.join(PREFETCH_JOIN_S)
