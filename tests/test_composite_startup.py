@@ -149,3 +149,26 @@ def test_exit_while_the_prefetch_decodes_keeps_the_exit_status(tmp_path):
     codes = [subprocess.run([sys.executable, "-c", code, str(folder), str(pause)], env=env, capture_output=True,
                             text=True, timeout=120).returncode for pause in (0.05, 0.1, 0.15, 0.2, 0.25, 0.3)]
     assert codes == [2] * len(codes)
+
+
+def test_stale_pixels_of_a_file_rewritten_in_the_same_tick_are_not_handed_over(tmp_path):
+    """Review finding (s17-review D2): the file key (path, inode, size, mtime) cannot tell a file rewritten in
+    place within one mtime tick; a frame decoded before such a rewrite back to its recorded content was handed
+    over while the stack's sha256 check (which hashes the file as it is now) passed. The decoded bytes are hashed
+    and must match the recorded sha256."""
+    folder = _jpeg_stack(tmp_path)
+    st = Stack.open(folder, verify=False)
+    k = int(st.order_by_z[0])
+    victim = st.frames[k].path
+    assert st.frames[k].sha256 is not None
+    good = victim.read_bytes()
+    bad = bytearray(good)
+    bad[len(bad) // 2] ^= 0x55  # the same size: a different content that still decodes
+    victim.write_bytes(bytes(bad))
+    stat = os.stat(victim)
+    source.prefetch_frames(folder)
+    source._PREFETCH.thread.join(10)
+    victim.write_bytes(good)  # back to the recorded content, same size, same mtime
+    os.utime(victim, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert source.take_prefetched(st, k) is None
+    assert source.take_prefetched(st, int(st.order_by_z[1])) is not None

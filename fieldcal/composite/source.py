@@ -372,14 +372,24 @@ class _Prefetch:
                 fut.set_result(None)
                 continue
             try:
+                import hashlib
+
+                # the bytes read once, hashed and decoded: the pixels handed over are provably of the content
+                # the hash names (a file rewritten in place keeping its size and mtime is not mistaken for it)
                 key = _file_key(st.frames[i].path)
-                image = st.read(i)
-                fut.set_result((key, image) if key == _file_key(st.frames[i].path) else None)
+                data = np.fromfile(st.frames[i].path, dtype=np.uint8)
+                digest = hashlib.sha256(memoryview(data)).hexdigest()
+                image = st.read(i, data=data)
+                fut.set_result((key, digest, image) if key == _file_key(st.frames[i].path) else None)
             except BaseException:
                 fut.set_result(None)
             del fut
 
-    def take(self, path):
+    def take(self, path, sha256: str | None = None):
+        """The frame decoded from ``path``, only if the file is still the one read (path, inode, size,
+        modification time) and, with ``sha256`` (the stack's recorded digest, which its verification checks the
+        file against), the bytes decoded hash to it: a file rewritten in place within the same mtime tick back to
+        its recorded content would pass the first test and the verification, with stale pixels."""
         with self.lock:
             fut = self.futures.pop(os.path.realpath(path), None)
         if fut is None:
@@ -387,8 +397,10 @@ class _Prefetch:
         got = fut.result()  # the thread is decoding it, or has
         if got is None:
             return None
-        key, image = got
-        return image if key == _file_key(path) else None
+        key, digest, image = got
+        if key != _file_key(path) or (sha256 is not None and digest != str(sha256).lower()):
+            return None
+        return image
 
     def stop(self) -> None:
         with self.lock:
@@ -421,7 +433,8 @@ def take_prefetched(stack, i: int) -> np.ndarray | None:
         return None
     pre.ready.wait()
     try:
-        image = pre.take(infos[int(i)].path)
+        info = infos[int(i)]
+        image = pre.take(info.path, getattr(info, "sha256", None))
     except (OSError, AttributeError, IndexError, TypeError):
         return None
     if image is None or image.shape[:2] != tuple(stack.shape[:2]) or image.dtype != np.dtype(stack.dtype):

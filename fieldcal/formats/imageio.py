@@ -405,7 +405,7 @@ def check_image_file(path: str | Path) -> None:
 
 
 def read_image(path: str | Path, roi: tuple[int, int, int, int] | None = None,
-               header: ImageHeader | None = None) -> np.ndarray:
+               header: ImageHeader | None = None, data: np.ndarray | None = None) -> np.ndarray:
     """Decode one frame file (or an ROI of it) into a native-order array, RGB(A) channel order.
 
     Parameters
@@ -417,6 +417,9 @@ def read_image(path: str | Path, roi: tuple[int, int, int, int] | None = None,
     header : ImageHeader, optional
         The result of :func:`probe` if known (saves re-reading the header); the decoded array is checked
         against it.
+    data : uint8 array, optional
+        The file's bytes, already read (PNG and JPEG): decoded instead of reading the file again, so that a
+        caller who hashed them knows which content the pixels are (``composite``'s start-up decoding).
 
     Returns
     -------
@@ -433,9 +436,9 @@ def read_image(path: str | Path, roi: tuple[int, int, int, int] | None = None,
         header = probe(path)
     try:
         if header.kind == "png":
-            image, cropped = _read_png(path), False
+            image, cropped = _read_png(path, data), False
         elif header.kind == "jpeg":
-            image, cropped = _read_jpeg(path, header), False
+            image, cropped = _read_jpeg(path, header, data), False
         else:
             image, cropped = _read_tiff(path, header, roi)
     except (ImageFileError, FileNotFoundError):
@@ -498,10 +501,11 @@ def _read_tiff(path: Path, header: ImageHeader, roi) -> tuple[np.ndarray, bool]:
     return image, False
 
 
-def _read_png(path: Path) -> np.ndarray:
+def _read_png(path: Path, data: np.ndarray | None = None) -> np.ndarray:
     import cv2
 
-    data = np.fromfile(path, dtype=np.uint8)  # imdecode: non-ASCII paths work, and we control the errors
+    if data is None:
+        data = np.fromfile(path, dtype=np.uint8)  # imdecode: non-ASCII paths work, and we control the errors
     check_png_chunks(data)
     with cv2_quiet():
         image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
@@ -515,10 +519,11 @@ def _read_png(path: Path) -> np.ndarray:
     return image
 
 
-def _read_jpeg(path: Path, header: ImageHeader) -> np.ndarray:
+def _read_jpeg(path: Path, header: ImageHeader, data: np.ndarray | None = None) -> np.ndarray:
     import cv2
 
-    data = np.fromfile(path, dtype=np.uint8)
+    if data is None:
+        data = np.fromfile(path, dtype=np.uint8)
     flags = (cv2.IMREAD_GRAYSCALE if header.n_channels == 1 else cv2.IMREAD_COLOR) | cv2.IMREAD_IGNORE_ORIENTATION
     with cv2_quiet():
         image = cv2.imdecode(data, flags)

@@ -316,7 +316,7 @@ class Stack:
                                  field="index", fix=f"use an index from 0 to {len(self) - 1}")
         return int(i) % len(self)
 
-    def read(self, i: int, roi=None) -> np.ndarray:
+    def read(self, i: int, roi=None, data: np.ndarray | None = None) -> np.ndarray:
         """Decode frame ``i`` (file order), or an ROI of it, touching no other frame.
 
         Parameters
@@ -325,6 +325,8 @@ class Stack:
             Index into :attr:`frames`.
         roi : (x, y, w, h) or (slice_y, slice_x), optional
             Pixel region; for a CFA stack its origin must be even.
+        data : uint8 array, optional
+            The PNG or JPEG file's bytes, already read (:func:`fieldcal.formats.imageio.read_image`).
 
         Returns
         -------
@@ -341,7 +343,7 @@ class Stack:
         box = _norm_roi(roi, *self.shape, self.cfa)
         where = f"frames[{i}].file"
         try:
-            image = read_image(info.path, box, header)
+            image = read_image(info.path, box, header, data=data)
         except FileNotFoundError:
             raise StackError(f"frame file {info.file!r} has disappeared since the stack was opened",
                              path=info.path, field=where, fix="restore the frame file or re-capture it") from None
