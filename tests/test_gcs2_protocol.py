@@ -255,3 +255,26 @@ def test_a_reply_with_tabs_is_not_taken_for_line_noise():
     emu = _HpvController(clock=ManualClock(tick_s=0.05))
     with _stage(emu) as st:
         assert st.client.query("HPV?") == _HpvController.LINES
+
+
+class _LateReferenceFlagController(GCS2Emulator):
+    """Says ready (#7) a moment before FRF? reports the axis referenced: its first two FRF? after the reference
+    move answer 0 (pipython's gcs2pitools keeps polling FRF? after ready for this)."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.late_answers = 2
+
+    def _handle(self, cmd):
+        if cmd.strip().upper() == "FRF? 1" and self.referenced and self.late_answers > 0:
+            self.late_answers -= 1
+            return "1=0\n"
+        return super()._handle(cmd)
+
+
+def test_a_reference_flag_that_lags_ready_by_a_few_polls_is_waited_for():
+    """Review finding: after #7 said ready, one FRF? reading 0 failed the reference at once."""
+    emu = _LateReferenceFlagController(clock=ManualClock(tick_s=0.05))
+    with _stage(emu) as st:
+        st.reference(timeout_ms=3000)
+        assert st.is_referenced() and emu.late_answers == 0

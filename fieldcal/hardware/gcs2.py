@@ -72,6 +72,8 @@ GCS2_FIXES = {
     -1024: _MOTION_FIX,
 }
 MOTION_ERROR = 1024
+#: After the controller says ready, how long FRF? may still read 0 before the reference move counts as failed (s).
+REFERENCE_GRACE_S = 1.0
 
 
 def error_text(code: int) -> str:
@@ -455,6 +457,13 @@ class GCS2Stage:
                                   device=self.client.device, fix="check the stage and its reference switch")
             time.sleep(self.poll_ms / 1000)
         self.client.check_error("FRF")
+        # pipython (gcs2pitools) keeps polling FRF? after ready: a controller may say ready a moment before the
+        # axis counts as referenced; a short grace, not the whole time-out, so a failed reference still ends soon
+        grace = min(deadline, time.monotonic() + REFERENCE_GRACE_S)
+        while not self.is_referenced():
+            if time.monotonic() > grace:
+                break
+            time.sleep(self.poll_ms / 1000)
         if not self.is_referenced():
             raise DeviceFault("the reference move ended but the axis is not referenced (FRF? 0)", code=0,
                               device=self.client.device, fix="check the stage and its reference switch")
