@@ -200,6 +200,26 @@ def test_probe_plane_sigma_measures_known_noise_per_mixed_plane():
     assert np.allclose(probe_plane_sigma(st, np.arange(4)), sig, rtol=0.08)
 
 
+def test_probe_noise_of_8_bit_frames_on_a_flat_background_is_at_least_their_rounding():
+    """A subject on a black background: more than half of each 8-bit frame is exactly 0, so Immerkaer's median
+    read 0 and the Wiener step filtered "without noise" (the real board put on a black canvas: noise 0.0, the
+    composite's board noisier than the board composited alone). Rounding to whole DN is noise of sd 1/sqrt(12)
+    in each channel, and a weighted sum's is sqrt(sum w^2) times it; float frames have none."""
+    rng = np.random.default_rng(4)
+    frames = []
+    for _ in range(4):
+        f = np.zeros((96, 128, 3), np.float64)
+        f[30:60, 40:80] = 120.0 + rng.normal(0.0, 0.2, (30, 40, 3))  # a quarter of the frame: the subject
+        frames.append(np.clip(np.rint(f), 0, 255).astype(np.uint8))
+    st = ArrayStack(frames, [0.0, 10.0, 20.0, 30.0], ["R", "G", "B"])
+    mix = np.array([[0.299, 0.587, 0.114], [0.5, -0.5, 0.0]])
+    q = 1.0 / np.sqrt(12.0)
+    assert np.allclose(probe_plane_sigma(st, np.arange(4)), q)
+    assert np.allclose(probe_plane_sigma(st, np.arange(4), mix=mix), q * np.sqrt((mix ** 2).sum(axis=1)))
+    st_float = ArrayStack([f.astype(np.float32) for f in frames], [0.0, 10.0, 20.0, 30.0], ["R", "G", "B"])
+    assert probe_plane_sigma(st_float, np.arange(4)) == [0.0, 0.0, 0.0]
+
+
 
 def test_sampled_rows_noise_is_the_whole_planes_estimate_through_every_block_row():
     """The probe's sampled-row estimate (only every s-th row filtered, the channels' responses mixed) is
