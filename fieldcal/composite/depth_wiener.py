@@ -114,14 +114,18 @@ def _labels(zb: np.ndarray, step_um: float) -> tuple[np.ndarray, float]:
     return lo + step * np.arange(n), step
 
 
-def _row_bands(fn, n_rows: int, min_rows: int = 64) -> list:
+#: Row bands (:func:`_row_bands`) are at least this high: below, a thread's hand-over costs more than the work.
+BAND_MIN_ROWS = 64
+
+
+def _row_bands(fn, n_rows: int) -> list:
     """``[fn(a, b), ...]`` over row bands ``a:b`` of ``n_rows`` rows, in order, one band per compositor thread
-    (:func:`.source.default_workers`; none under ``min_rows`` rows), run on those threads."""
+    (:func:`.source.default_workers`; none under :data:`BAND_MIN_ROWS` rows), run on those threads."""
     from .dff import map_in_order
     from .source import default_workers
 
     workers = default_workers()
-    n = max(1, min(workers, n_rows // max(1, int(min_rows))))
+    n = max(1, min(workers, n_rows // BAND_MIN_ROWS))
     edges = [n_rows * i // n for i in range(n + 1)]
     bands = list(zip(edges[:-1], edges[1:]))
     if n == 1:
