@@ -478,11 +478,20 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
     if guide is None:
         guide = fuse_pyramid(stack, geometry, frames, quiet=quiet).image
     g = _grey(np.asarray(guide, dtype=np.float32))
-    lo, hi = np.percentile(g, [0.5, 99.5])
-    g -= np.float32(g.min())
-    g *= np.float32(1.0 / max(float(hi - lo), 1e-12))
     r = int(radius_px) if radius_px is not None else max(2, int(round(np.hypot(w, h) / 200)))
-    gf = _GuidedFilter(g, r, eps)
+
+    def normalised_guide() -> _GuidedFilter:
+        lo, hi = np.percentile(g, [0.5, 99.5])
+        g[...] -= np.float32(g.min())
+        g[...] *= np.float32(1.0 / max(float(hi - lo), 1e-12))
+        return _GuidedFilter(g, r, eps)
+
+    # The guide's normalisation and both guided filters' statistics on a thread of their own (they were serial
+    # on this one, ~0.1 s with a core idle): the frames' focus measures start meanwhile and wait for the first
+    # filter only where they need it; the smoothing's filter is ready by the end of the frames.
+    aux = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fieldcal-depth-aux")
+    gf_ready = aux.submit(normalised_guide)
+    smooth_ready = aux.submit(lambda: _GuidedFilter(g, max(1, r // 2), 1e-2))  # after the normalisation (one thread)
     cover = getattr(stack, "support", None)  # registered frames: where each holds recorded pixels
 
     def focus(i: int) -> np.ndarray:
@@ -496,7 +505,7 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
         del planes, lum
         np.multiply(e, e, out=e)
         e = cv2.GaussianBlur(e, (0, 0), window_px, dst=e, borderType=_BORDER)
-        q = gf(e)
+        q = gf_ready.result()(e)
         # an energy is >= 0: the guided filter's undershoot beside strong edges is not focus, and negative
         # values would make the mean below (the confidence's denominator) meaningless
         q = np.maximum(q, np.float32(0.0), out=q)
@@ -505,14 +514,20 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
             q[~mask] = 0.0
         return q
 
-    track = None
-    for f in progress(map_in_order(focus, order), total=len(order), desc="depth from focus", quiet=quiet,
-                      unit="frame"):
-        if track is None:
-            track = _PeakTracker(f)
-        else:
-            track.add(f)
-    del gf
+    try:
+        track = None
+        for f in progress(map_in_order(focus, order), total=len(order), desc="depth from focus", quiet=quiet,
+                          unit="frame"):
+            if track is None:
+                track = _PeakTracker(f)
+            else:
+                track.add(f)
+        gf_ready.result()  # (an error of the normalisation raised here even without frames to wait for it)
+        del gf_ready
+        smooth = smooth_ready.result()
+    except BaseException:
+        aux.shutdown(wait=True, cancel_futures=True)
+        raise
     zs = z_all[order].astype(np.float64)
     n = len(zs)
     k = track.index
@@ -544,9 +559,11 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
     del track
     # Confidence-weighted, edge-aware smoothing: a pixel with little texture takes the depth of the confident
     # pixels of its own object (the guide's edges bound the averaging); confident pixels barely move.
-    smooth = _GuidedFilter(g, max(1, r // 2), 1e-2)
+    # the two filterings at once, one on each core (a guided filter's calls may run concurrently)
+    den_ready = aux.submit(smooth, conf)
+    aux.shutdown(wait=False)
     num = smooth(zb * conf)
-    den = smooth(conf)
+    den = den_ready.result()
     ok = den > 1e-6
     np.divide(num, den, out=zb, where=ok)
     # the guided filter is not a convex average: where the confidence nearly vanishes its ratio can leave the
