@@ -171,12 +171,16 @@ class _Selection:
         n_ch = len(curs)
         for lev in range(self.levels):
             hh, ww = self.shapes[lev]
-            laps = []
-            for c in range(n_ch):
-                down = cv2.pyrDown(curs[c], dst=self.gauss[c][lev], borderType=_BORDER)
-                # the first frame's coefficients are written straight into the running selection
-                laps.append(cv2.pyrUp(down, dst=self.best[c][lev] if k == 0 else self.lap[c][lev], dstsize=(ww, hh),
-                                      borderType=_BORDER))
+            laps = [self.best[c][lev] if k == 0 else self.lap[c][lev] for c in range(n_ch)]
+
+            def pyramid(i: int, a: int, b: int, curs=curs, laps=laps, lev=lev, hh=hh, ww=ww) -> None:
+                for c in range(a, b):  # channels a:b, each on its own (OpenCV's pyramids run on one thread)
+                    down = cv2.pyrDown(curs[c], dst=self.gauss[c][lev], borderType=_BORDER)
+                    # the first frame's coefficients are written straight into the running selection
+                    cv2.pyrUp(down, dst=laps[c], dstsize=(ww, hh), borderType=_BORDER)
+
+            n_split = min(len(self._bands(hh)), n_ch)
+            self._each_band(pyramid, [(n_ch * j // n_split, n_ch * (j + 1) // n_split) for j in range(n_split)])
             if support is not None and support.shape != (hh, ww):
                 support = cv2.resize(support.view(np.uint8), (ww, hh), interpolation=cv2.INTER_NEAREST) > 0
             raw = self._sal[:hh * ww].reshape(hh, ww)
