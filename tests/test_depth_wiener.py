@@ -245,6 +245,7 @@ def test_row_bands_on_threads_give_the_single_threads_combination(flat_world, mo
     give the one-thread result bit for bit (the fit's samples joined in row order are the same arrays), for the
     channels and for mixed planes with only some pixels needed."""
     import fieldcal.composite.depth_wiener as dw
+    from fieldcal.composite import dff
     import fieldcal.composite.source as source
 
     spec, r, z, prof, zb = flat_world
@@ -252,13 +253,13 @@ def test_row_bands_on_threads_give_the_single_threads_combination(flat_world, mo
     h, w = zb.shape[:2]
     needed = (np.mgrid[:h, :w].sum(axis=0) % 5) < 3
     ycc = np.array([[0.299, 0.587, 0.114], [-0.169, -0.331, 0.5], [0.5, -0.419, -0.081]])
-    monkeypatch.setattr(dw, "BAND_MIN_ROWS", 8)  # several bands on the small test image
+    monkeypatch.setattr(dff, "BAND_MIN_ROWS", 8)  # several bands on the small test image
     calls = [dict(), dict(mix=ycc[1:], needed=needed, noise_sigma=1.0)]
-    results, real = {}, dw._row_bands
+    results, real = {}, dw.row_bands
     for workers in (1, 3):
         monkeypatch.setattr(source, "default_workers", lambda n=workers: n)
         called = []
-        monkeypatch.setattr(dw, "_row_bands", lambda fn, n: called.append(n) or real(fn, n))
+        monkeypatch.setattr(dw, "row_bands", lambda fn, n: called.append(n) or real(fn, n))
         results[workers] = [wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True, **kw)
                             for kw in calls]
         assert called  # the banded paths ran

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..progress import progress
-from .dff import frame_planes
+from .dff import frame_planes, row_bands
 from .source import image_size, z_positions
 
 #: Widest blur disc (px) of a frame that takes part in a label's Wiener combination. Measured on the simulated
@@ -114,25 +114,6 @@ def _labels(zb: np.ndarray, step_um: float) -> tuple[np.ndarray, float]:
     return lo + step * np.arange(n), step
 
 
-#: Row bands (:func:`_row_bands`) are at least this high: below, a thread's hand-over costs more than the work.
-BAND_MIN_ROWS = 64
-
-
-def _row_bands(fn, n_rows: int) -> list:
-    """``[fn(a, b), ...]`` over row bands ``a:b`` of ``n_rows`` rows, in order, one band per compositor thread
-    (:func:`.source.default_workers`; none under :data:`BAND_MIN_ROWS` rows), run on those threads."""
-    from .dff import map_in_order
-    from .source import default_workers
-
-    workers = default_workers()
-    n = max(1, min(workers, n_rows // BAND_MIN_ROWS))
-    edges = [n_rows * i // n for i in range(n + 1)]
-    bands = list(zip(edges[:-1], edges[1:]))
-    if n == 1:
-        return [fn(0, n_rows)]
-    return list(map_in_order(lambda ab: fn(*ab), bands, workers=n))
-
-
 def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fns, sigmas) -> tuple[list, list, tuple]:
     """Per plane ``c`` of ``reference`` (``H x W x P``): ``A_c, beta_c`` of ``P(f) = A f^-beta`` (power per pixel, f
     in cycles/mm) fitted to the plane's spectrum (its in-focus OTF ``h0_fns[c]`` divided out, noise ``sigmas[c]``),
@@ -168,9 +149,9 @@ def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fns, sigmas)
             h0[...] = np.interp(f[a:b], *table)  # (as radial_on_grid(...).astype(np.float32))
             np.multiply(h0, h0, out=h0)
 
-        _row_bands(spectra, spec.shape[0])
+        row_bands(spectra, spec.shape[0])
         del spec
-        a, b = _signal_spectrum_model(power, f, hs2, float(sigmas[c]) ** 2, fmin, map_rows=_row_bands)
+        a, b = _signal_spectrum_model(power, f, hs2, float(sigmas[c]) ** 2, fmin, map_rows=row_bands)
         a_sig.append(a)
         beta.append(b)
         del power, hs2
@@ -369,7 +350,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             t -= below
             frac[c][a:b] = np.clip(t, 0.0, 1.0, out=t)
 
-    _row_bands(label_rows, h)
+    row_bands(label_rows, h)
 
     from ..optics.sweep import rfft_radial_grid
     from .warp import frame_maps, warp_region
