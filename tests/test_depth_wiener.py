@@ -246,7 +246,7 @@ def test_row_bands_on_threads_give_the_single_threads_combination(flat_world, mo
     channels and for mixed planes with only some pixels needed."""
     import fieldcal.composite.depth_wiener as dw
     from fieldcal.composite import dff
-    import fieldcal.composite.source as source
+    from fieldcal.composite import source
 
     spec, r, z, prof, zb = flat_world
     st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import cv2
 import numpy as np
@@ -152,7 +153,7 @@ class _Selection:
         """Row bands of a level ``hh`` rows high: one per worker, none under :data:`_BAND_MIN_ROWS` rows."""
         n = max(1, min(self._workers, hh // _BAND_MIN_ROWS))
         edges = [hh * i // n for i in range(n + 1)]
-        return list(zip(edges[:-1], edges[1:]))
+        return list(pairwise(edges))
 
     def _each_band(self, fn, bands: list[tuple[int, int]]) -> None:
         """``fn(i, a, b)`` for every band ``i`` (rows ``a:b``): the first on this thread, the others on the pool;
