@@ -132,9 +132,11 @@ def test_fusion_row_bands_are_the_whole_planes_selection(monkeypatch):
     assert len(np.unique(one.best_idx)) == n  # every frame chosen somewhere: the test compares real choices
 
     st = ArrayStack(frames, [0.0, 1.0, 2.0, 3.0], ["R", "G", "B"])
-    monkeypatch.setattr(fusion, "default_workers", lambda: 1)
-    ref = fusion.fuse_pyramid(st, quiet=True)
-    monkeypatch.setattr(fusion, "default_workers", lambda: 3)
-    got = fusion.fuse_pyramid(st, quiet=True)
-    np.testing.assert_array_equal(got.image, ref.image)
-    np.testing.assert_array_equal(got.depth_index, ref.depth_index)
+    for min_rows in (8, 64):  # (64: split at the finest level only, the coarser levels whole on one thread)
+        monkeypatch.setattr(fusion, "_BAND_MIN_ROWS", min_rows)
+        monkeypatch.setattr(fusion, "default_workers", lambda: 1)
+        ref = fusion.fuse_pyramid(st, quiet=True)
+        monkeypatch.setattr(fusion, "default_workers", lambda: 3)
+        got = fusion.fuse_pyramid(st, quiet=True)
+        np.testing.assert_array_equal(got.image, ref.image)
+        np.testing.assert_array_equal(got.depth_index, ref.depth_index)

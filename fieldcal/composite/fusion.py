@@ -146,8 +146,11 @@ class _Selection:
         self._pool = pool if workers > 1 else None
         self._workers = max(1, int(workers)) if pool is not None else 1
         self._halo = int(np.ceil(4.0 * sigma)) + 2
-        rows = -(-h // self._workers) + 2 * self._halo
-        self._window = [np.empty(min(rows, h) * w, np.float32) for _ in range(self._workers)]
+        size = [0] * self._workers  # each band's window with its halo, the largest over the levels
+        for hh, ww in self.shapes[:-1]:
+            for i, (a, b) in enumerate(self._bands(hh)):
+                size[i] = max(size[i], (min(hh, b + self._halo) - max(0, a - self._halo)) * ww)
+        self._window = [np.empty(n, np.float32) for n in size]
 
     def _bands(self, hh: int) -> list[tuple[int, int]]:
         """Row bands of a level ``hh`` rows high: one per worker, none under :data:`_BAND_MIN_ROWS` rows."""
