@@ -15,7 +15,8 @@ import sys
 import time
 
 PHASES = [("fieldcal.composite.register", "register_stack"), ("fieldcal.composite.api", "focus_volume"),
-          ("fieldcal.composite.api", "_per_pixel_focus"), ("fieldcal.composite.api", "_measured_defocus"),
+          ("fieldcal.composite.api", "_per_pixel_focus"),
+          ("fieldcal.composite.fusion", "fuse_pyramid"), ("fieldcal.composite.fusion", "depth_map"), ("fieldcal.composite.api", "_measured_defocus"),
           ("fieldcal.composite.depth_wiener", "occlusion_focus_um"), ("fieldcal.composite.api", "composite_with_map"),
           ("fieldcal.composite.depth_wiener", "wiener_composite"), ("fieldcal.composite.detail", "fine_detail"),
           ("fieldcal.composite.api", "_write"), ("fieldcal.composite.api", "composite_stack")]

@@ -258,3 +258,36 @@ def test_a_shared_noise_probe_gives_each_call_its_own_probe_result(flat_world):
         assert np.array_equal(own, shared) and info["noise_sigma"] == info_own["noise_sigma"]
     with pytest.raises(ParameterError, match="plane noise levels"):
         wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=ycc[1:], plane_sigma=sig, quiet=True)
+
+
+def test_row_bands_on_threads_give_the_single_threads_combination(flat_world, monkeypatch):
+    """The power-law fit's per-frequency work and the per-pixel labels, made in row bands on several threads,
+    give the one-thread result bit for bit (the fit's samples joined in row order are the same arrays), for the
+    channels and for mixed planes with only some pixels needed."""
+    import fieldcal.composite.depth_wiener as dw
+    from fieldcal.composite import dff
+    from fieldcal.composite import source
+
+    spec, r, z, prof, zb = flat_world
+    st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)
+    h, w = zb.shape[:2]
+    needed = (np.mgrid[:h, :w].sum(axis=0) % 5) < 3
+    ycc = np.array([[0.299, 0.587, 0.114], [-0.169, -0.331, 0.5], [0.5, -0.419, -0.081]])
+    monkeypatch.setattr(dff, "BAND_MIN_ROWS", 8)  # several bands on the small test image
+    calls = [dict(), dict(mix=ycc[1:], needed=needed, noise_sigma=1.0)]
+    results, real = {}, dw.row_bands
+    for workers in (1, 3):
+        monkeypatch.setattr(source, "default_workers", lambda n=workers: n)
+        called = []
+        monkeypatch.setattr(dw, "row_bands", lambda fn, n: called.append(n) or real(fn, n))
+        results[workers] = [wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True, **kw)
+                            for kw in calls]
+        assert called  # the banded paths ran
+    for (one, info_one), (many, info_many) in zip(results[1], results[3]):
+        np.testing.assert_array_equal(many, one)
+        assert info_many == info_one
+    fns = [lambda t: prof.defocus_otf(t, 0.0, "G")]
+    monkeypatch.setattr(source, "default_workers", lambda: 1)
+    ref = dw._power_law(np.asarray(blend, np.float32)[..., 1:2], 20, prof.pixel_pitch_um, fns, [1.0])
+    monkeypatch.setattr(source, "default_workers", lambda: 3)
+    assert dw._power_law(np.asarray(blend, np.float32)[..., 1:2], 20, prof.pixel_pitch_um, fns, [1.0]) == ref

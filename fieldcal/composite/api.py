@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ParameterError, SpecError, StackError
-from .dff import dff_focus_map, dff_surfaces, focus_volume, hybrid_corrections, pixel_misfit_fraction
+from .dff import dff_focus_map, dff_surfaces, focus_volume, hybrid_corrections, pixel_misfit_fraction, row_bands
 from .source import hold_decoded, image_size, z_positions
 from .stack_profile import (CompositeResult, blend_kernel, check_profile_matches, composite_profile,
                             composite_with_map, select_frames)
@@ -220,8 +220,16 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         if measured:
             # one depth map plus each channel's smooth offset (_per_pixel_focus): the cones of their mean, the
             # offsets kept (a third of the work; a measured disc is the same in every channel)
-            mean = zb.mean(axis=2)
-            zb = (zb - mean[..., None]) + occlusion_focus_um(mean, um_per_px)[..., None]
+            mean = _channel_mean(zb)
+            cones = occlusion_focus_um(mean, um_per_px)
+            zb_cones = np.empty(zb.shape, np.result_type(zb, mean, cones))
+
+            def rows(a: int, b: int, zb=zb) -> None:
+                zb_cones[a:b] = (zb[a:b] - mean[a:b, :, None]) + cones[a:b, :, None]
+
+            row_bands(rows, zb.shape[0])
+            zb = zb_cones
+            del cones, zb_cones
         else:
             zb = occlusion_focus_um(zb, um_per_px)
     if fallback is not None:
@@ -231,7 +239,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
         # the fine detail's frame index per pixel, interpolated from the final map's mean (taken here: the thread
         # reads no array the blend might share) beside the blend, not in a serial pass after it
         z_sorted = np.sort(z_positions(stack)[np.asarray(frames, dtype=int)])
-        zb_mean = zb.mean(axis=2)
+        zb_mean = _channel_mean(zb)
         kd = _background(lambda: np.interp(zb_mean, z_sorted,
                                            np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32))
     img = _depth_composite(stack, profile, frames, zb, defocus, fallback, info, geometry=geometry,
@@ -250,6 +258,18 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
                                                      quiet=quiet)
         img = to_input_dtype(sharp, img.dtype, float(stack.white_level))
     return CompositeResult(img, method, zb, info)
+
+
+def _channel_mean(zb: np.ndarray) -> np.ndarray:
+    """``zb.mean(axis=2)`` of an ``H x W x C`` map, made in row bands on the compositor's threads (each pixel's
+    mean is the same sum; the strided reduction took ~0.06-0.08 s a call with one core idle)."""
+    out = np.empty(zb.shape[:2], zb[:1, :1].mean(axis=2).dtype)
+
+    def rows(a: int, b: int) -> None:
+        out[a:b] = zb[a:b].mean(axis=2)
+
+    row_bands(rows, zb.shape[0])
+    return out
 
 
 def _background(fn, *args, **kwargs):
@@ -307,7 +327,14 @@ def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, 
         # where the depth map is unsure (little texture), the multi-scale fusion's pixels: it needs no depth
         from .stack_profile import to_input_dtype
         fused, weight = fallback
-        mixed = weight[..., None] * img.astype(np.float32) + (1.0 - weight[..., None]) * fused
+        mixed = np.empty(np.broadcast_shapes(img.shape, fused.shape),
+                         np.result_type(weight, np.float32, fused))
+
+        def rows(a: int, b: int, img=img) -> None:  # per pixel, in row bands on the compositor's threads
+            w = weight[a:b, :, None]
+            mixed[a:b] = w * img[a:b].astype(np.float32) + (1.0 - w) * fused[a:b]
+
+        row_bands(rows, mixed.shape[0])
         img = to_input_dtype(mixed, img.dtype, float(stack.white_level))
         info["pixels_from_fusion"] = round(float(np.mean(1.0 - weight)), 4)
     return img
@@ -414,7 +441,13 @@ def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool
     fusion = fuse_pyramid(stack, geometry, frames, quiet=quiet)
     guide = fusion.image
     dm = depth_map(stack, geometry, frames, guide=guide, quiet=quiet)
-    offsets = zb_smooth - zb_smooth.mean(axis=2, keepdims=True)
+    per_pixel = np.empty(zb_smooth.shape, np.float32)
+
+    def rows(a: int, b: int) -> None:  # per pixel, in row bands on the compositor's threads (was serial, ~0.07 s)
+        smooth = zb_smooth[a:b]
+        per_pixel[a:b] = dm.z_um[a:b, :, None] + (smooth - smooth.mean(axis=2, keepdims=True))
+
+    row_bands(rows, per_pixel.shape[0])
     # Trust in the depth map: its confidence against that of the image's well-textured pixels, and no
     # contradiction from the frame the fusion took its detail from, an independent choice of the depth of
     # something within its reach (fusion_contradicts). Where the map is unsure or contradicted (low-contrast
@@ -429,7 +462,7 @@ def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool
 
     # the weight is first needed by the blend's Wiener step: made on a thread of its own (NumPy and OpenCV release
     # the GIL) beside the defocus measurement and the cones, which would otherwise keep a core idle (~0.2 s)
-    return (dm.z_um[..., None] + offsets).astype(np.float32), (guide, _background(trust)), dm
+    return per_pixel, (guide, _background(trust)), dm
 
 
 # ------------------------------------------------------------------------------------------------ plans

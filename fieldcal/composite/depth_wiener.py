@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..progress import progress
-from .dff import frame_planes
+from .dff import frame_planes, row_bands
 from .source import image_size, z_positions
 
 #: Widest blur disc (px) of a frame that takes part in a label's Wiener combination. Measured on the simulated
@@ -121,9 +121,12 @@ def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fns, sigmas)
     frequency grid for all: float32 spectra, as the frames are (the fit is a line through ~10^6 log powers)."""
     from scipy import fft
 
-    from ..optics.sweep import radial_on_grid, rfft_radial_grid
+    from ..optics.sweep import radial_table, rfft_radial_grid
     from .sweep import _pad, _signal_spectrum_model
 
+    # Everything but the transform (already on every core) and the fit's few sums is per frequency: made in row
+    # bands on the compositor's threads, the same values as whole (it was serial, ~0.25 s of the board's luma
+    # and chroma calls with one core idle: bench_composite_speed_s17_overlap)
     a_sig, beta, f, shape = [], [], None, None
     for c in range(reference.shape[2]):
         img = np.asarray(reference[..., c], dtype=np.float32)
@@ -133,15 +136,25 @@ def _power_law(reference: np.ndarray, pad: int, pitch_um: float, h0_fns, sigmas)
             fmin = 4.0 / (max(shape) * pitch_um * 1e-3)
         spec = fft.rfft2(padded, workers=-1)
         del padded
-        power = np.multiply(spec.real, spec.real)
-        power += np.square(spec.imag)
+        power = np.empty(spec.shape, np.float32)
+        hs2 = np.empty(spec.shape, np.float32)
+        table = radial_table(h0_fns[c], f)
+        scale = np.float32(1.0 / (shape[0] * shape[1]))
+
+        def spectra(a: int, b: int, spec=spec, power=power, hs2=hs2, table=table, scale=scale) -> None:
+            pw = np.multiply(spec.real[a:b], spec.real[a:b], out=power[a:b])
+            pw += np.square(spec.imag[a:b])
+            pw *= scale
+            h0 = hs2[a:b]
+            h0[...] = np.interp(f[a:b], *table)  # (as radial_on_grid(...).astype(np.float32))
+            np.multiply(h0, h0, out=h0)
+
+        row_bands(spectra, spec.shape[0])
         del spec
-        power *= np.float32(1.0 / (shape[0] * shape[1]))
-        h0 = radial_on_grid(h0_fns[c], f).astype(np.float32)
-        a, b = _signal_spectrum_model(power, f, np.multiply(h0, h0, out=h0), float(sigmas[c]) ** 2, fmin)
+        a, b = _signal_spectrum_model(power, f, hs2, float(sigmas[c]) ** 2, fmin, map_rows=row_bands)
         a_sig.append(a)
         beta.append(b)
-        del power, h0
+        del power, hs2
     return a_sig, beta, shape
 
 
@@ -333,20 +346,24 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     mean = [float(np.mean(reference[..., c])) for c in range(len(fch))]
 
     # per channel: label index below each pixel and the fraction towards the next
-    lower, frac = [], []
-    for c in range(len(fch)):
-        # in place on one float64 plane (the same numbers as the expression written out: the label below is
-        # integral, so subtracting it as float64 or as its int16 is the same)
-        t = zb[..., c].astype(np.float64)
-        t -= labels[0]
-        t /= step
-        below = np.floor(t)
-        np.clip(below, 0, n_lab - 2, out=below)
-        # int16 (at most MAX_LABELS labels): the tiles' stable sorts by label are then radix sorts
-        lower.append(below.astype(np.int16))
-        t -= below
-        frac.append(np.clip(t, 0.0, 1.0, out=t).astype(np.float32))
-        del t, below
+    lower = [np.empty((h, w), np.int16) for _ in fch]
+    frac = [np.empty((h, w), np.float32) for _ in fch]
+
+    def label_rows(a: int, b: int) -> None:  # per pixel: in row bands on the compositor's threads
+        for c in range(len(fch)):
+            # in place on one float64 plane (the same numbers as the expression written out: the label below is
+            # integral, so subtracting it as float64 or as its int16 is the same)
+            t = zb[a:b, :, c].astype(np.float64)
+            t -= labels[0]
+            t /= step
+            below = np.floor(t)
+            np.clip(below, 0, n_lab - 2, out=below)
+            # int16 (at most MAX_LABELS labels): the tiles' stable sorts by label are then radix sorts
+            lower[c][a:b] = below
+            t -= below
+            frac[c][a:b] = np.clip(t, 0.0, 1.0, out=t)
+
+    row_bands(label_rows, h)
 
     from ..optics.sweep import rfft_radial_grid
     from .warp import frame_maps, warp_region
@@ -543,7 +560,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         n_filters += nf
         n_frames_used += used_frames
     if needed is not None:
-        np.copyto(out, np.asarray(reference, dtype=np.float32), where=~np.asarray(needed, bool)[..., None])
+        from .fusion import masked_copy
+
+        masked_copy(out, np.ascontiguousarray(reference, dtype=np.float32), ~np.asarray(needed, bool))
     info = {"noise_sigma": [round(s, 3) for s in sigma], "tiles": len(tiles), "filters": n_filters,
             "label_um": round(step, 3), "frames_per_label": round(float(np.mean(n_frames_used)), 2)
             if n_frames_used else 0.0}

@@ -23,14 +23,16 @@ depth index (frame order by z) for plots and for deciding, elsewhere, whether a 
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import cv2
 import numpy as np
 
 from ..errors import ParameterError
 from ..progress import progress
-from .source import image_size, z_positions
+from .source import default_workers, image_size, z_positions
 from .dff import frame_planes
 
 _BORDER = cv2.BORDER_REFLECT101
@@ -105,6 +107,11 @@ def _level_shapes(h: int, w: int, levels: int) -> list[tuple[int, int]]:
     return shapes
 
 
+#: A level's row bands (:class:`_Selection`) are at least this high: below, a thread's hand-over costs more
+#: than the band's work.
+_BAND_MIN_ROWS = 64
+
+
 class _Selection:
     """Per-scale selection for all channels at once, frame by frame: the running best coefficients of each
     channel, and the saliences that chose them.
@@ -119,7 +126,8 @@ class _Selection:
     much in page faults as the arithmetic on it).
     """
 
-    def __init__(self, h: int, w: int, n_channels: int, levels: int, sigma: float, index_level: int):
+    def __init__(self, h: int, w: int, n_channels: int, levels: int, sigma: float, index_level: int,
+                 pool=None, workers: int = 1):
         self.shapes = _level_shapes(h, w, levels)
         self.levels, self.sigma, self.index_level = levels, sigma, index_level
         self.gauss = [[np.empty(s, np.float32) for s in self.shapes[1:]] for _ in range(n_channels)]
@@ -130,6 +138,35 @@ class _Selection:
         self._sal = np.empty(h * w, np.float32)
         self._take = np.empty(h * w, bool)
         self.base_sum = [np.zeros(self.shapes[-1], np.float64) for _ in range(n_channels)]
+        # Row bands: the per-coefficient work (the coefficients, the salience, its window, the choice and the
+        # masked copies) split across ``workers`` threads (``pool`` runs all bands but the first, which the
+        # caller's thread takes). Every step is per coefficient except the window, which each band filters over
+        # its rows plus a halo of the Gaussian's support (OpenCV's kernel radius for float: 4 sigma): the same
+        # sums, so the same values bit for bit as on the whole plane, whatever the number of bands.
+        self._pool = pool if workers > 1 else None
+        self._workers = max(1, int(workers)) if pool is not None else 1
+        self._halo = int(np.ceil(4.0 * sigma)) + 2
+        size = [0] * self._workers  # each band's window with its halo, the largest over the levels
+        for hh, ww in self.shapes[:-1]:
+            for i, (a, b) in enumerate(self._bands(hh)):
+                size[i] = max(size[i], (min(hh, b + self._halo) - max(0, a - self._halo)) * ww)
+        self._window = [np.empty(n, np.float32) for n in size]
+
+    def _bands(self, hh: int) -> list[tuple[int, int]]:
+        """Row bands of a level ``hh`` rows high: one per worker, none under :data:`_BAND_MIN_ROWS` rows."""
+        n = max(1, min(self._workers, hh // _BAND_MIN_ROWS))
+        edges = [hh * i // n for i in range(n + 1)]
+        return list(pairwise(edges))
+
+    def _each_band(self, fn, bands: list[tuple[int, int]]) -> None:
+        """``fn(i, a, b)`` for every band ``i`` (rows ``a:b``): the first on this thread, the others on the pool;
+        returns when all are done."""
+        futures = [self._pool.submit(fn, i, a, b) for i, (a, b) in enumerate(bands) if i > 0]
+        try:
+            fn(0, *bands[0])
+        finally:
+            for f in futures:
+                f.result()
 
     def add(self, planes: list[np.ndarray], k: int, support: np.ndarray | None = None) -> None:
         """Take frame ``k``'s (in z order) coefficients where it is more salient than the frames before (never
@@ -138,35 +175,55 @@ class _Selection:
         n_ch = len(curs)
         for lev in range(self.levels):
             hh, ww = self.shapes[lev]
-            laps = []
-            for c in range(n_ch):
-                down = cv2.pyrDown(curs[c], dst=self.gauss[c][lev], borderType=_BORDER)
-                # the first frame's coefficients are written straight into the running selection
-                lap = cv2.pyrUp(down, dst=self.best[c][lev] if k == 0 else self.lap[c][lev], dstsize=(ww, hh),
-                                borderType=_BORDER)
-                laps.append(np.subtract(curs[c], lap, out=lap))
-                curs[c] = down
-            sal = self.best_sal[lev] if k == 0 else self._sal[:hh * ww].reshape(hh, ww)
-            if n_ch == 1:
-                np.multiply(laps[0], laps[0], out=sal)
-            else:  # the luminance's coefficients, squared
-                np.add(laps[0], laps[1], out=sal)
-                for lap in laps[2:]:
-                    sal += lap
-                sal *= np.float32(1.0 / n_ch)
-                np.multiply(sal, sal, out=sal)
-            sal = cv2.GaussianBlur(sal, (0, 0), self.sigma, dst=sal, borderType=_BORDER)
-            if support is not None:
-                if support.shape != (hh, ww):
-                    support = cv2.resize(support.view(np.uint8), (ww, hh), interpolation=cv2.INTER_NEAREST) > 0
-                sal[~support] = -1.0
-            if k != 0:
-                take = np.greater(sal, self.best_sal[lev], out=self._take[:hh * ww].reshape(hh, ww))
+            laps = [self.best[c][lev] if k == 0 else self.lap[c][lev] for c in range(n_ch)]
+
+            def pyramid(i: int, a: int, b: int, curs=curs, laps=laps, lev=lev, hh=hh, ww=ww) -> None:
+                for c in range(a, b):  # channels a:b, each on its own (OpenCV's pyramids run on one thread)
+                    down = cv2.pyrDown(curs[c], dst=self.gauss[c][lev], borderType=_BORDER)
+                    # the first frame's coefficients are written straight into the running selection
+                    cv2.pyrUp(down, dst=laps[c], dstsize=(ww, hh), borderType=_BORDER)
+
+            n_split = min(len(self._bands(hh)), n_ch)
+            self._each_band(pyramid, [(n_ch * j // n_split, n_ch * (j + 1) // n_split) for j in range(n_split)])
+            if support is not None and support.shape != (hh, ww):
+                support = cv2.resize(support.view(np.uint8), (ww, hh), interpolation=cv2.INTER_NEAREST) > 0
+            raw = self._sal[:hh * ww].reshape(hh, ww)
+            bands = self._bands(hh)
+
+            def salience(i: int, a: int, b: int, curs=curs, laps=laps, raw=raw) -> None:
+                for c in range(n_ch):  # the band-pass coefficients
+                    np.subtract(curs[c][a:b], laps[c][a:b], out=laps[c][a:b])
+                sal = raw[a:b]
+                if n_ch == 1:
+                    np.multiply(laps[0][a:b], laps[0][a:b], out=sal)
+                else:  # the luminance's coefficients, squared
+                    np.add(laps[0][a:b], laps[1][a:b], out=sal)
+                    for lap in laps[2:]:
+                        sal += lap[a:b]
+                    sal *= np.float32(1.0 / n_ch)
+                    np.multiply(sal, sal, out=sal)
+
+            def choose(i: int, a: int, b: int, lev=lev, laps=laps, raw=raw, support=support, hh=hh, ww=ww) -> None:
+                a0, b0 = max(0, a - self._halo), min(hh, b + self._halo)
+                window = self._window[i][:(b0 - a0) * ww].reshape(b0 - a0, ww)
+                cv2.GaussianBlur(raw[a0:b0], (0, 0), self.sigma, dst=window, borderType=_BORDER)
+                sal = window[a - a0:b - a0]
+                if support is not None:
+                    sal[~support[a:b]] = -1.0
+                best_sal = self.best_sal[lev][a:b]
+                if k == 0:
+                    np.copyto(best_sal, sal)
+                    return
+                take = np.greater(sal, best_sal, out=self._take[a * ww:b * ww].reshape(b - a, ww))
                 for c in range(n_ch):
-                    masked_copy(self.best[c][lev], laps[c], take)
-                np.maximum(self.best_sal[lev], sal, out=self.best_sal[lev])
+                    masked_copy(self.best[c][lev][a:b], laps[c][a:b], take)
+                np.maximum(best_sal, sal, out=best_sal)
                 if lev == self.index_level:
-                    masked_copy(self.best_idx, k, take)
+                    masked_copy(self.best_idx[a:b], k, take)
+
+            self._each_band(salience, bands)
+            self._each_band(choose, bands)  # after every band's salience: a band's window reads its neighbours'
+            curs = [self.gauss[c][lev] for c in range(n_ch)]
         for c in range(n_ch):
             self.base_sum[c] += curs[c]
 
@@ -187,7 +244,6 @@ def _select(selection: _Selection, read, n_frames: int, n_channels: int, shape: 
     with frame ``k`` on a thread of its own, the next frame read while one is added (two sets of planes, reused);
     OpenCV's own threads share the pyramids' and saliences' filtering. ``support(k)``, when given, is frame
     ``k``'s mask of recorded pixels (or ``None``: everywhere)."""
-    from concurrent.futures import ThreadPoolExecutor
 
     h, w = shape
     sets = [[np.empty((h, w), np.float32) for _ in range(n_channels)] for _ in range(2 if n_frames > 1 else 1)]
@@ -227,8 +283,9 @@ def fuse_pyramid(stack, geometry=None, frames=None, *, levels: int | None = None
 
     Notes
     -----
-    Float32 throughout, one thread per channel, each holding its running selection (the best coefficients and
-    saliences, ~2.7 planes) and one frame's scratch pyramid, reused.
+    Float32 throughout: the running selection (the best coefficients and saliences) and one frame's scratch
+    pyramid, reused; each level's selection split in row bands over the compositor's threads (the same values
+    as on the whole plane).
 
     Examples
     --------
@@ -255,7 +312,6 @@ def fuse_pyramid(stack, geometry=None, frames=None, *, levels: int | None = None
     sigma = max(float(window_px), 1.0) / 2.0
     # Level 1 (half resolution) is less noise-driven than level 0 and still follows edges within 2 px.
     index_level = 1 if n_levels > 1 else 0
-    sel = _Selection(h, w, len(channels), n_levels, sigma, index_level)
     bar = iter(progress(order, total=len(order), desc="fusing", quiet=quiet, unit="frame"))
 
     def read(k: int, planes: list[np.ndarray]) -> None:
@@ -263,13 +319,25 @@ def fuse_pyramid(stack, geometry=None, frames=None, *, levels: int | None = None
         frame_planes(stack, geometry, float(z_all[i]), int(i), channels, w, h, out=planes)
 
     cover = getattr(stack, "support", None)  # registered frames: where each holds recorded pixels
-    _select(sel, read, len(order), len(channels), (h, w),
-            (lambda k: cover(int(order[k]))) if cover is not None else None)
-    next(bar, None)  # closes the progress bar
-    depth = _depth_index(sel.best_idx, w, h)
+    workers = default_workers()
     fused = np.empty((h, w, len(channels)), dtype=np.float32)
-    for c in range(len(channels)):
-        fused[..., c] = sel.collapse(c, len(order))
+    # the selection's row bands run on this thread and the pool's (the compositor's threads, less this one): it
+    # was serial on this thread, one core idle, ~0.6 s of the board's 1 s of fusion (bench_composite_speed_s17_overlap)
+    with ThreadPoolExecutor(max_workers=max(1, workers - 1), thread_name_prefix="fieldcal-fuse-band") as pool:
+        sel = _Selection(h, w, len(channels), n_levels, sigma, index_level, pool=pool, workers=workers)
+        _select(sel, read, len(order), len(channels), (h, w),
+                (lambda k: cover(int(order[k]))) if cover is not None else None)
+        next(bar, None)  # closes the progress bar
+
+        def collapse(c: int) -> None:
+            fused[..., c] = sel.collapse(c, len(order))
+
+        later = [pool.submit(collapse, c) for c in range(1, len(channels))] if workers > 1 else []
+        for c in range(len(channels) if not later else 1):
+            collapse(c)
+        depth = _depth_index(sel.best_idx, w, h)
+        for f in later:
+            f.result()
     return FusionResult(fused, depth, z_all[order], n_levels, index_reach_px(2.0 * sigma, index_level))
 
 
@@ -418,11 +486,20 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
     if guide is None:
         guide = fuse_pyramid(stack, geometry, frames, quiet=quiet).image
     g = _grey(np.asarray(guide, dtype=np.float32))
-    lo, hi = np.percentile(g, [0.5, 99.5])
-    g -= np.float32(g.min())
-    g *= np.float32(1.0 / max(float(hi - lo), 1e-12))
     r = int(radius_px) if radius_px is not None else max(2, int(round(np.hypot(w, h) / 200)))
-    gf = _GuidedFilter(g, r, eps)
+
+    def normalised_guide() -> _GuidedFilter:
+        lo, hi = np.percentile(g, [0.5, 99.5])
+        g[...] -= np.float32(g.min())
+        g[...] *= np.float32(1.0 / max(float(hi - lo), 1e-12))
+        return _GuidedFilter(g, r, eps)
+
+    # The guide's normalisation and both guided filters' statistics on a thread of their own (they were serial
+    # on this one, ~0.1 s with a core idle): the frames' focus measures start meanwhile and wait for the first
+    # filter only where they need it; the smoothing's filter is ready by the end of the frames.
+    aux = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fieldcal-depth-aux")
+    gf_ready = aux.submit(normalised_guide)
+    smooth_ready = aux.submit(lambda: _GuidedFilter(g, max(1, r // 2), 1e-2))  # after the normalisation (one thread)
     cover = getattr(stack, "support", None)  # registered frames: where each holds recorded pixels
 
     def focus(i: int) -> np.ndarray:
@@ -436,7 +513,7 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
         del planes, lum
         np.multiply(e, e, out=e)
         e = cv2.GaussianBlur(e, (0, 0), window_px, dst=e, borderType=_BORDER)
-        q = gf(e)
+        q = gf_ready.result()(e)
         # an energy is >= 0: the guided filter's undershoot beside strong edges is not focus, and negative
         # values would make the mean below (the confidence's denominator) meaningless
         q = np.maximum(q, np.float32(0.0), out=q)
@@ -445,14 +522,20 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
             q[~mask] = 0.0
         return q
 
-    track = None
-    for f in progress(map_in_order(focus, order), total=len(order), desc="depth from focus", quiet=quiet,
-                      unit="frame"):
-        if track is None:
-            track = _PeakTracker(f)
-        else:
-            track.add(f)
-    del gf
+    try:
+        track = None
+        for f in progress(map_in_order(focus, order), total=len(order), desc="depth from focus", quiet=quiet,
+                          unit="frame"):
+            if track is None:
+                track = _PeakTracker(f)
+            else:
+                track.add(f)
+        gf_ready.result()  # (an error of the normalisation raised here even without frames to wait for it)
+        del gf_ready
+        smooth = smooth_ready.result()
+    except BaseException:
+        aux.shutdown(wait=True, cancel_futures=True)
+        raise
     zs = z_all[order].astype(np.float64)
     n = len(zs)
     k = track.index
@@ -484,9 +567,11 @@ def depth_map(stack, geometry=None, frames=None, *, guide: np.ndarray | None = N
     del track
     # Confidence-weighted, edge-aware smoothing: a pixel with little texture takes the depth of the confident
     # pixels of its own object (the guide's edges bound the averaging); confident pixels barely move.
-    smooth = _GuidedFilter(g, max(1, r // 2), 1e-2)
+    # the two filterings at once, one on each core (a guided filter's calls may run concurrently)
+    den_ready = aux.submit(smooth, conf)
+    aux.shutdown(wait=False)
     num = smooth(zb * conf)
-    den = smooth(conf)
+    den = den_ready.result()
     ok = den > 1e-6
     np.divide(num, den, out=zb, where=ok)
     # the guided filter is not a convex average: where the confidence nearly vanishes its ratio can leave the

@@ -99,18 +99,29 @@ def _pad(img: np.ndarray, pad: int) -> tuple[np.ndarray, tuple[int, int]]:
 
 
 def _signal_spectrum_model(power: np.ndarray, f: np.ndarray, hs2: np.ndarray, noise_power: float,
-                           fmin: float) -> tuple[float, float]:
-    """Fit ``P_x(f) = A f^-beta`` to the observed power where the sweep passes signal well above noise."""
-    ok = (f > fmin) & (hs2 > 0.05) & (power > 3.0 * noise_power)
-    if np.count_nonzero(ok) < 20:
-        ok = (f > fmin) & (hs2 > 0.01)
-    if np.count_nonzero(ok) < 2:
+                           fmin: float, map_rows=None) -> tuple[float, float]:
+    """Fit ``P_x(f) = A f^-beta`` to the observed power where the sweep passes signal well above noise.
+
+    ``map_rows(fn, n_rows)``, when given, returns ``[fn(a, b), ...]`` over row bands ``a:b`` covering the
+    arrays' ``n_rows`` rows in order (on threads): the samples' selection and logarithms are made per band and
+    joined in row order, the same arrays as made whole, so the same fit bit for bit."""
+    def samples(a: int, b: int, loose: bool) -> tuple[np.ndarray, np.ndarray]:
+        fr, hr, pr = f[a:b], hs2[a:b], power[a:b]
+        ok = (fr > fmin) & (hr > 0.01) if loose else (fr > fmin) & (hr > 0.05) & (pr > 3.0 * noise_power)
+        # the selected samples in float64 (float32 spectra: the least-squares sums below over ~10^6 points)
+        lp = np.log(np.maximum(np.asarray(pr[ok], np.float64) - noise_power, 1e-30) / np.asarray(hr[ok], np.float64))
+        return lp, np.log(np.asarray(fr[ok], np.float64))
+
+    rows = map_rows if map_rows is not None else (lambda fn, n: [fn(0, n)])
+    parts = rows(lambda a, b: samples(a, b, False), power.shape[0])
+    if sum(len(lp) for lp, _ in parts) < 20:
+        parts = rows(lambda a, b: samples(a, b, True), power.shape[0])
+    if sum(len(lp) for lp, _ in parts) < 2:
         raise ParameterError("the sweep's integrated PSF passes almost nothing (MTF below 0.1 at every frequency): "
                              "alpha is too large to deconvolve", field="sweep_alpha_um",
                              fix="use a smaller alpha (see the sweep trade table in docs/benchmarks.md)")
-    # the selected samples in float64 (float32 spectra: the least-squares sums below over ~10^6 points)
-    lp = np.log(np.maximum(np.asarray(power[ok], np.float64) - noise_power, 1e-30) / np.asarray(hs2[ok], np.float64))
-    lf = np.log(np.asarray(f[ok], np.float64))
+    lp = parts[0][0] if len(parts) == 1 else np.concatenate([p for p, _ in parts])
+    lf = parts[0][1] if len(parts) == 1 else np.concatenate([q for _, q in parts])
     # the least-squares line in closed form (np.polyfit's Vandermonde + SVD cost ~0.15 s per million points,
     # on the compositor's serial path)
     lf_c = lf - lf.mean()

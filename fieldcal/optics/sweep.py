@@ -112,11 +112,17 @@ def rfft_radial_grid(shape: tuple[int, int], pitch_um: float, dtype=np.float64) 
     return np.sqrt(fy * fy + fx * fx)
 
 
-def radial_on_grid(fn_1d, f_grid: np.ndarray, n: int = 4096) -> np.ndarray:
-    """Evaluate a radial function on a 2-D frequency grid through a fine 1-D table (Bessel calls stay 1-D)."""
+def radial_table(fn_1d, f_grid: np.ndarray, n: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    """The fine 1-D table ``(f, fn_1d(f))`` through which :func:`radial_on_grid` evaluates ``fn_1d`` on
+    ``f_grid`` (``np.interp(f_grid, *table)``: the grid may then be interpolated in parts)."""
     fmax = float(f_grid.max())
     ft = np.linspace(0.0, fmax * (1 + 1e-9), n)
-    return np.interp(f_grid, ft, fn_1d(ft))
+    return ft, fn_1d(ft)
+
+
+def radial_on_grid(fn_1d, f_grid: np.ndarray, n: int = 4096) -> np.ndarray:
+    """Evaluate a radial function on a 2-D frequency grid through a fine 1-D table (Bessel calls stay 1-D)."""
+    return np.interp(f_grid, *radial_table(fn_1d, f_grid, n))
 
 
 def sweep_psf_kernel(model: LensModel, alpha_um: float, channel: str, pitch_um: float,
