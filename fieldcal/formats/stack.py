@@ -343,7 +343,8 @@ class Stack:
         box = _norm_roi(roi, *self.shape, self.cfa)
         where = f"frames[{i}].file"
         try:
-            image = read_image(info.path, box, header, data=data)
+            image = read_image(info.path, box, header) if data is None else read_image(info.path, box, header,
+                                                                                        data=data)
         except FileNotFoundError:
             raise StackError(f"frame file {info.file!r} has disappeared since the stack was opened",
                              path=info.path, field=where, fix="restore the frame file or re-capture it") from None
