@@ -343,6 +343,7 @@ class _Prefetch:
         self.thread.start()
 
     def _run(self) -> None:
+        import hashlib
         from concurrent.futures import Future
 
         try:
@@ -372,8 +373,6 @@ class _Prefetch:
                 fut.set_result(None)
                 continue
             try:
-                import hashlib
-
                 # the bytes read once, hashed and decoded: the pixels handed over are provably of the content
                 # the hash names (a file rewritten in place keeping its size and mtime is not mistaken for it)
                 key = _file_key(st.frames[i].path)

@@ -150,56 +150,44 @@ def _native(dtype: np.dtype) -> np.dtype:
     return np.dtype(dtype).newbyteorder("=")
 
 
-_QUIET_LOCK = threading.Lock()
-_QUIET_DEPTH = 0
-_QUIET_LEVEL = logging.NOTSET
+class _Silencer:
+    """A library's log silenced while fieldcal reads, so that only fieldcal's own what/where/fix message is shown.
+    Frames are read on several threads: the first in saves the level and the last out restores it (a save/restore
+    per call let an overlapping call restore "silent" for good)."""
+
+    def __init__(self, get_level, set_level, silent):
+        self.get_level, self.set_level, self.silent = get_level, set_level, silent
+        self.lock, self.depth, self.saved = threading.Lock(), 0, None
+
+    @contextlib.contextmanager
+    def __call__(self):
+        with self.lock:
+            if self.depth == 0:
+                self.saved = self.get_level()
+                self.set_level(self.silent())
+            self.depth += 1
+        try:
+            yield
+        finally:
+            with self.lock:
+                self.depth -= 1
+                if self.depth == 0:
+                    self.set_level(self.saved)
 
 
-@contextlib.contextmanager
-def _tifffile_quiet():
-    """tifffile logs a damaged file's faults as warnings (Python's last-resort handler prints them on stderr, e.g.
-    "<tifffile.TiffPages @25070> invalid offset to first page") before fieldcal's own what/where/fix message;
-    while fieldcal reads, only that message is shown."""
-    global _QUIET_DEPTH, _QUIET_LEVEL
-    log = logging.getLogger("tifffile")
-    with _QUIET_LOCK:  # frames are read on several threads: the first in saves the level, the last out restores it
-        if _QUIET_DEPTH == 0:
-            _QUIET_LEVEL = log.level
-            log.setLevel(logging.ERROR + 1)
-        _QUIET_DEPTH += 1
-    try:
-        yield
-    finally:
-        with _QUIET_LOCK:
-            _QUIET_DEPTH -= 1
-            if _QUIET_DEPTH == 0:
-                log.setLevel(_QUIET_LEVEL)
-
-
-_CV2_QUIET_DEPTH = 0
-_CV2_QUIET_LEVEL = 0
-
-
-@contextlib.contextmanager
-def cv2_quiet():
-    """OpenCV's log silenced while fieldcal decodes (its own what/where/fix message replaces OpenCV's warnings).
-    Decoders run on several threads: as for tifffile, the first in saves the level and the last out restores
-    it (a save/restore per call let an overlapping call restore "silent" for good)."""
+def _cv2_logging():
     import cv2
 
-    global _CV2_QUIET_DEPTH, _CV2_QUIET_LEVEL
-    with _QUIET_LOCK:
-        if _CV2_QUIET_DEPTH == 0:
-            _CV2_QUIET_LEVEL = cv2.utils.logging.getLogLevel()
-            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-        _CV2_QUIET_DEPTH += 1
-    try:
-        yield
-    finally:
-        with _QUIET_LOCK:
-            _CV2_QUIET_DEPTH -= 1
-            if _CV2_QUIET_DEPTH == 0:
-                cv2.utils.logging.setLogLevel(_CV2_QUIET_LEVEL)
+    return cv2.utils.logging
+
+
+#: tifffile logs a damaged file's faults as warnings (Python's last-resort handler prints them on stderr, e.g.
+#: "<tifffile.TiffPages @25070> invalid offset to first page") before fieldcal's message
+_tifffile_quiet = _Silencer(lambda: logging.getLogger("tifffile").level,
+                            lambda level: logging.getLogger("tifffile").setLevel(level), lambda: logging.ERROR + 1)
+#: OpenCV's decoders warn on damaged files before fieldcal's message
+cv2_quiet = _Silencer(lambda: _cv2_logging().getLogLevel(), lambda level: _cv2_logging().setLogLevel(level),
+                      lambda: _cv2_logging().LOG_LEVEL_SILENT)
 
 
 def check_png_chunks(data) -> None:
@@ -209,7 +197,7 @@ def check_png_chunks(data) -> None:
     import zlib
 
     buf = memoryview(np.asarray(data, dtype=np.uint8)).cast("B")
-    if bytes(buf[:8]) != b"\x89PNG\r\n\x1a\n":
+    if bytes(buf[:8]) != _PNG_SIGNATURE:
         raise ImageFileError("is not a PNG file (no PNG signature)", "give a PNG, JPEG or TIFF image")
     pos = 8
     while True:

@@ -134,11 +134,11 @@ def _read_file(path: Path) -> np.ndarray:
         except Exception:  # not a TIFF tifffile understands: let OpenCV try
             img = None
     if img is None:
-        from fieldcal.formats.imageio import check_png_chunks, cv2_quiet
+        from fieldcal.formats.imageio import _PNG_SIGNATURE, check_png_chunks, cv2_quiet
 
         try:
             with open(path, "rb") as f:
-                is_png = f.read(8) == b"\x89PNG\r\n\x1a\n"
+                is_png = f.read(8) == _PNG_SIGNATURE
             if is_png:  # libpng's own error line would come before ours
                 check_png_chunks(np.fromfile(path, dtype=np.uint8))
         except ImageFileError as e:
