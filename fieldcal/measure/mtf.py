@@ -23,7 +23,6 @@ from ..formats import documents
 from .bayer import extract_plane, plane_layouts
 from .esfr import esfr_regions
 from .esfr_detect import find_edges
-from .esfr_focus import link_tracks
 
 FORMAT = documents.format_id("mtf")
 
@@ -327,19 +326,30 @@ def measure_mtf(source, *, channels=None, cfa: str | None = None, centre_px=None
             z = float(stack.frames[k].z_um) if hasattr(stack, "frames") else float(stack.z_um[k])
             return (k, z) + measure(k, z, stack.read_normalized(k))
 
-        # frames are independent: two workers (decoding, NumPy's array passes and OpenCV release the GIL), each
-        # holding one frame; results are added in z order, so tracks and records are as from one thread
         workers = max(1, min(len(order), os.cpu_count() or 1, 2))
-        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fieldcal-esfr") as pool:
-            futures = [pool.submit(read_and_measure, k) for k in order]
-            it = futures if quiet else progress(futures, total=len(order), desc="e-SFR", unit="frame")
-            try:
-                for fut in it:
-                    add(*fut.result())
-            except BaseException:  # a bad frame (or Ctrl-C): do not measure the rest before saying so
-                for fut in futures:
-                    fut.cancel()
-                raise
+        h, w = stack.shape
+        from . import esfr_pool
+        if (workers > 1 and type(stack) is Stack and len(order) >= PROCESS_MIN_FRAMES and
+                len(order) * h * w >= PROCESS_MIN_MPX * 1e6 and esfr_pool.processes_allowed()):
+            # two processes: the e-SFR core holds the GIL, so two threads give ~1.3x, two processes ~2x
+            # (fieldcal/measure/esfr_pool.py); each reads its frames from the folder
+            options = {"channels": channels, "cfa": cfa, "centre_px": centre_px, "grid": grid, "detect": detect,
+                       "esfr": esfr}
+            _measure_in_processes(stack, order, workers, options, add, quiet)
+        else:
+            # a small job (or an in-memory stack): two threads (decoding, NumPy's array passes and OpenCV
+            # release the GIL), each holding one frame; results are added in z order, so tracks and records
+            # are as from one thread
+            with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fieldcal-esfr") as pool:
+                futures = [pool.submit(read_and_measure, k) for k in order]
+                it = futures if quiet else progress(futures, total=len(order), desc="e-SFR", unit="frame")
+                try:
+                    for fut in it:
+                        add(*fut.result())
+                except BaseException:  # a bad frame (or Ctrl-C): do not measure the rest before saying so
+                    for fut in futures:
+                        fut.cancel()
+                    raise
         if centre_px is None:
             h, w = stack.shape
             prov["centre_px"] = [(w - 1) / 2.0, (h - 1) / 2.0]
@@ -350,12 +360,55 @@ def measure_mtf(source, *, channels=None, cfa: str | None = None, centre_px=None
             h, w = frames[0][2].shape[:2]
             prov["centre_px"] = [(w - 1) / 2.0, (h - 1) / 2.0]
     if dets:
+        from .esfr_focus import link_tracks  # here, not at the top: the e-SFR workers (esfr_pool) never need scipy
         tr = link_tracks(np.asarray(det_frame), np.array([d[0] for d in dets]), np.array([d[1] for d in dets]),
                          np.array([d[2] for d in dets]), np.asarray(det_z), max_shift_px=max_shift_px,
                          length_px=np.array([d[3] for d in dets]))
         for r in records:
             r["track"] = int(tr[r.pop("_det")])
     return MtfResult(grid, records, prov)
+
+
+#: a stack's frames are measured in worker processes (not threads) from this many frames and megapixels in all
+#: (:func:`_measure_in_processes`): below, the workers' start-up (~0.4 s of imports each) is not paid back
+PROCESS_MIN_FRAMES = 8
+PROCESS_MIN_MPX = 40.0
+
+
+def _measure_in_processes(stack, order: list[int], workers: int, options: dict, add, quiet: bool) -> None:
+    """Measure ``stack``'s frames (indices ``order``, by z) in ``workers`` processes, each reading its frames from
+    the stack folder; ``add`` takes each frame's result in ``order``, as the threads' path does.
+
+    A frame's FieldcalError reaches the caller as it would from the thread path (its traceback in the worker is
+    dropped); an error or Ctrl-C cancels the frames not started and waits for the running ones (each well under
+    a second), so no worker process is left behind."""
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    from ..errors import ResourceError
+    from ..progress import progress
+    from . import esfr_pool
+
+    expect = [(f.file, float(f.z_um)) for f in stack.frames]
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=esfr_pool.context(),
+                               initializer=esfr_pool.init_worker, initargs=(str(stack.path), expect, options))
+    futures = []
+    try:
+        futures = [pool.submit(esfr_pool.measure_index, k) for k in order]
+        it = futures if quiet else progress(futures, total=len(order), desc="e-SFR", unit="frame")
+        for fut in it:
+            try:
+                result = fut.result()
+            except FieldcalError as exc:
+                raise exc from None  # the worker's own traceback says nothing the message does not
+            except BrokenProcessPool:
+                raise ResourceError("an e-SFR worker process ended abruptly (killed, or out of memory)",
+                                    path=stack.path, fix="free memory and run the command again") from None
+            add(*result)
+    except BaseException:
+        pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
 
 
 def _software() -> str:
