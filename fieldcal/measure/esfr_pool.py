@@ -74,11 +74,11 @@ def init_worker(stack_path: str, expect: tuple, options: dict) -> None:
     for var in THREAD_VARS:
         os.environ[var] = "1"
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        import cv2
-        cv2.setNumThreads(1)
-    except ImportError:  # OpenCV is optional for reading; measure_frame says what is missing if it needs it
-        pass
+    # NumPy may have loaded before this (the options carry arrays): its BLAS pool is limited here too
+    from threadpoolctl import threadpool_limits
+    _state["limits"] = threadpool_limits(limits=1)
+    import cv2
+    cv2.setNumThreads(1)
     from ..formats.stack import Stack
     stack = Stack.open(stack_path, verify=False)
     _state.update(stack=stack, expect=expect, options=options)

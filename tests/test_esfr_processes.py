@@ -1,0 +1,190 @@
+"""The e-SFR of a stack in worker processes (fieldcal/measure/esfr_pool.py): the same records and tracks as the
+threads' path, the same FieldcalError for a bad frame, no worker left behind after an error or Ctrl-C, and the
+progress bar advancing per frame."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+
+import pytest
+import tifffile
+
+import fieldcal.measure.mtf as mtf
+import fieldcal.progress
+from fieldcal.cli import main
+from fieldcal.errors import FieldcalError, StackError
+from fieldcal.formats.stack import Stack
+from fieldcal.measure import esfr_pool
+
+N_FRAMES = 5
+
+
+@pytest.fixture(scope="module")
+def edge_stack(tmp_path_factory):
+    path = tmp_path_factory.mktemp("esfrproc") / "stk"
+    assert main(["simulate", "models/triplet-uncorrected.json", str(path), "--z", "-40", "40", "20",
+                 "--size", "320x240", "--scene", "slanted-edge", "--quiet"]) == 0
+    return path
+
+
+@pytest.fixture
+def paths(monkeypatch):
+    """Which path measure_mtf takes: ``paths["processes"]`` counts the calls of the process path; the
+    thresholds are lowered so that a 5-frame 320x240 stack goes to processes when they are allowed."""
+    calls = {"processes": 0}
+    real = mtf._measure_in_processes
+
+    def spy(*args, **kwargs):
+        calls["processes"] += 1
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(mtf, "_measure_in_processes", spy)
+    monkeypatch.setattr(mtf, "PROCESS_MIN_FRAMES", 1)
+    monkeypatch.setattr(mtf, "PROCESS_MIN_MPX", 0.0)
+    return calls
+
+
+def _workers_alive() -> list[int]:
+    """Live processes forked by this process's forkserver (the pool's workers)."""
+    server = getattr(__import__("multiprocessing.forkserver").forkserver._forkserver, "_forkserver_pid", None)
+    if server is None:
+        return []
+    alive = []
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            stat = open(f"/proc/{d}/stat").read()
+        except OSError:
+            continue
+        rest = stat[stat.rindex(")") + 2:].split()
+        if int(rest[1]) == server and rest[0] != "Z":
+            alive.append(int(d))
+    return alive
+
+
+def _no_workers_left(timeout_s: float = 5.0) -> bool:
+    end = time.monotonic() + timeout_s
+    while _workers_alive():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: measure_mtf uses one thread, never a pool")
+def test_processes_give_the_threads_records(edge_stack, paths):
+    stack = Stack.open(edge_stack)
+    with esfr_pool.allow_processes(False):
+        ref = mtf.measure_mtf(stack)
+    assert paths["processes"] == 0
+    with esfr_pool.allow_processes(True):
+        got = mtf.measure_mtf(stack)
+    assert paths["processes"] == 1
+    assert {e["frame"] for e in got.edges} == set(range(N_FRAMES))
+    assert len(ref.edges) > 100 * N_FRAMES  # ~130 edges x 3 channels per frame
+    # bit-identical: JSON keeps every float's repr; records in the same (z) order with the same tracks
+    a, b = ref.to_dict(), got.to_dict()
+    assert json.dumps(a["edges"]) == json.dumps(b["edges"])
+    assert [e["track"] for e in ref.edges] == [e["track"] for e in got.edges]
+    assert _no_workers_left()
+
+
+def test_in_memory_stacks_and_small_jobs_stay_on_threads(edge_stack, paths, monkeypatch):
+    """An ArrayStack has no folder for a worker to read; a job under the thresholds does not pay the start-up."""
+    from fieldcal.formats.frames import ArrayStack
+    stack = Stack.open(edge_stack)
+    arr = ArrayStack([stack.read_normalized(i) for i in range(len(stack))], stack.z_um, stack.channels,
+                     pixel_pitch_um=stack.pixel_pitch_um)
+    with esfr_pool.allow_processes(True):
+        mtf.measure_mtf(arr)
+        assert paths["processes"] == 0
+        monkeypatch.setattr(mtf, "PROCESS_MIN_FRAMES", N_FRAMES + 1)
+        mtf.measure_mtf(stack)
+        assert paths["processes"] == 0
+
+
+def test_main_module_decides_by_default():
+    """A script's __main__ would run again in each worker: processes only where that is known to be harmless."""
+    import sys
+    import types
+    saved = sys.modules["__main__"]
+    try:
+        script = types.ModuleType("__main__")
+        script.__file__ = "/somewhere/script.py"
+        sys.modules["__main__"] = script
+        assert not esfr_pool.processes_allowed()
+        with esfr_pool.allow_processes(True):
+            assert esfr_pool.processes_allowed()
+        package = types.ModuleType("__main__")
+        package.__file__ = "/somewhere/fieldcal/__main__.py"
+        package.__spec__ = types.SimpleNamespace(name="fieldcal.__main__")
+        sys.modules["__main__"] = package
+        assert esfr_pool.processes_allowed()
+        with esfr_pool.allow_processes(False):
+            assert not esfr_pool.processes_allowed()
+    finally:
+        sys.modules["__main__"] = saved
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: no pool")
+def test_a_corrupt_frame_gives_the_same_error_through_processes(edge_stack, tmp_path, paths):
+    bad = tmp_path / "stk"
+    shutil.copytree(edge_stack, bad)
+    stack = Stack.open(bad)
+    middle = int(stack.order_by_z[N_FRAMES // 2])
+    f = stack.frames[middle].path
+    # a zlib TIFF whose compressed data are damaged: its header passes Stack.open, its pixels do not decode
+    tifffile.imwrite(f, tifffile.imread(f), compression="zlib", photometric="rgb")
+    data = bytearray(f.read_bytes())
+    n = len(data)
+    data[n // 3: n // 3 + 200] = bytes(v ^ 0x5A for v in data[n // 3: n // 3 + 200])
+    f.write_bytes(bytes(data))
+    stack = Stack.open(bad, verify=False)  # past the hash check: the read itself must fail clearly
+    errors = []
+    for allowed in (False, True):
+        with esfr_pool.allow_processes(allowed), pytest.raises(FieldcalError) as info:
+            mtf.measure_mtf(stack)
+        errors.append(info.value)
+    assert paths["processes"] == 1
+    thread_err, proc_err = errors
+    assert isinstance(proc_err, StackError)
+    assert type(proc_err) is type(thread_err)
+    assert str(proc_err) == str(thread_err)
+    assert (proc_err.path, proc_err.field, proc_err.fix) == (thread_err.path, thread_err.field, thread_err.fix)
+    assert proc_err.field == f"frames[{middle}].file"
+    assert proc_err.__cause__ is None and proc_err.__suppress_context__  # no worker traceback chained to it
+    assert _no_workers_left()
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: no pool")
+def test_ctrl_c_leaves_no_worker_and_progress_advances_per_frame(edge_stack, paths, monkeypatch):
+    seen = []
+
+    def bar(futures, *, total=None, desc="", unit="it", quiet=False):
+        assert (total, desc, unit) == (N_FRAMES, "e-SFR", "frame")
+        for fut in futures:
+            yield fut
+            seen.append(fut.done())  # the loop has added this frame's result before asking for the next
+
+    monkeypatch.setattr(fieldcal.progress, "progress", bar)
+    stack = Stack.open(edge_stack)
+    with esfr_pool.allow_processes(True):
+        res = mtf.measure_mtf(stack, quiet=False)
+    assert len(seen) == N_FRAMES and all(seen)
+    assert {e["frame"] for e in res.edges} == set(range(N_FRAMES))
+
+    def interrupted(futures, **kwargs):
+        for k, fut in enumerate(futures):
+            if k == 2:
+                raise KeyboardInterrupt
+            yield fut
+
+    monkeypatch.setattr(fieldcal.progress, "progress", interrupted)
+    with esfr_pool.allow_processes(True), pytest.raises(KeyboardInterrupt):
+        mtf.measure_mtf(stack, quiet=False)
+    assert paths["processes"] == 2
+    assert _no_workers_left()
