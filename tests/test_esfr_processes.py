@@ -48,21 +48,27 @@ def paths(monkeypatch):
 
 
 def _workers_alive() -> list[int]:
-    """Live processes forked by this process's forkserver (the pool's workers)."""
-    server = getattr(__import__("multiprocessing.forkserver").forkserver._forkserver, "_forkserver_pid", None)
-    if server is None:
-        return []
-    alive = []
+    """Live descendants of this process started by multiprocessing's forkserver (the server and the pool's
+    workers, which share its command line); multiprocessing's resource tracker is not one of them."""
+    parent, cmd = {}, {}
     for d in os.listdir("/proc"):
         if not d.isdigit():
             continue
         try:
             stat = open(f"/proc/{d}/stat").read()
+            line = open(f"/proc/{d}/cmdline", "rb").read().replace(b"\0", b" ").decode(errors="replace")
         except OSError:
             continue
         rest = stat[stat.rindex(")") + 2:].split()
-        if int(rest[1]) == server and rest[0] != "Z":
-            alive.append(int(d))
+        if rest[0] != "Z":
+            parent[int(d)], cmd[int(d)] = int(rest[1]), line
+    me, alive = os.getpid(), []
+    for pid in parent:
+        p, seen = parent[pid], 0
+        while p not in (0, 1, me) and p in parent and seen < 64:
+            p, seen = parent[p], seen + 1
+        if p == me and "multiprocessing.forkserver" in cmd[pid]:
+            alive.append(pid)
     return alive
 
 
@@ -177,9 +183,12 @@ def test_ctrl_c_leaves_no_worker_and_progress_advances_per_frame(edge_stack, pat
     assert len(seen) == N_FRAMES and all(seen)
     assert {e["frame"] for e in res.edges} == set(range(N_FRAMES))
 
+    during = []
+
     def interrupted(futures, **kwargs):
         for k, fut in enumerate(futures):
             if k == 2:
+                during.extend(_workers_alive())
                 raise KeyboardInterrupt
             yield fut
 
@@ -187,4 +196,5 @@ def test_ctrl_c_leaves_no_worker_and_progress_advances_per_frame(edge_stack, pat
     with esfr_pool.allow_processes(True), pytest.raises(KeyboardInterrupt):
         mtf.measure_mtf(stack, quiet=False)
     assert paths["processes"] == 2
+    assert len(during) >= 2  # the forkserver and at least one worker were running when Ctrl-C came
     assert _no_workers_left()

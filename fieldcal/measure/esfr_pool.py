@@ -48,9 +48,13 @@ def allow_processes(flag: bool = True):
 
 
 def processes_allowed() -> bool:
-    """Whether worker processes may be started here: as set by :func:`allow_processes`, else only when the
+    """Whether worker processes may be started here: never in a daemonic process (a pool's worker: dask's, this
+    module's); else as set by :func:`allow_processes`, else only when the
     ``__main__`` module is a package's ``__main__`` (``python -m``: multiprocessing does not re-run it) or has no
     file (``python -c``, an interactive session)."""
+    import multiprocessing as mp
+    if mp.current_process().daemon:  # a daemonic process (a process pool's worker) may not have children
+        return False
     if _allowed:
         return _allowed[-1]
     main = sys.modules.get("__main__")
@@ -65,6 +69,32 @@ def context():
     import multiprocessing as mp
     methods = mp.get_all_start_methods()
     return mp.get_context("forkserver" if "forkserver" in methods else "spawn")
+
+
+def _forkserver():
+    """multiprocessing's forkserver object (None where there is none)."""
+    try:
+        from multiprocessing import forkserver
+    except ImportError:
+        return None
+    return getattr(forkserver, "_forkserver", None)
+
+
+def forkserver_running() -> bool:
+    server = _forkserver()
+    return getattr(server, "_forkserver_pid", None) is not None
+
+
+def stop_forkserver() -> None:
+    """Stop the forkserver and reap it (so the workers' CPU time, which it reaped, counts in this process's
+    children's times, as a benchmark's ``wait4`` reads them). Only for a server this module started; a no-op
+    where the interpreter has no such method (it then ends with this process)."""
+    stop = getattr(_forkserver(), "_stop", None)
+    if stop is not None:
+        try:
+            stop()
+        except OSError:
+            pass
 
 
 def init_worker(stack_path: str, expect: tuple, options: dict) -> None:

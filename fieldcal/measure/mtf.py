@@ -331,12 +331,14 @@ def measure_mtf(source, *, channels=None, cfa: str | None = None, centre_px=None
         from . import esfr_pool
         if (workers > 1 and type(stack) is Stack and len(order) >= PROCESS_MIN_FRAMES and
                 len(order) * h * w >= PROCESS_MIN_MPX * 1e6 and esfr_pool.processes_allowed()):
-            # two processes: the e-SFR core holds the GIL, so two threads give ~1.3x, two processes ~2x
+            # two processes: the e-SFR core holds the GIL, so two threads give ~1.2-1.4x, two processes ~1.9x
             # (fieldcal/measure/esfr_pool.py); each reads its frames from the folder
             options = {"channels": channels, "cfa": cfa, "centre_px": centre_px, "grid": grid, "detect": detect,
                        "esfr": esfr}
-            _measure_in_processes(stack, order, workers, options, add, quiet)
+            pooled = _measure_in_processes(stack, order, workers, options, add, quiet)
         else:
+            pooled = False
+        if not pooled:
             # a small job (or an in-memory stack): two threads (decoding, NumPy's array passes and OpenCV
             # release the GIL), each holding one frame; results are added in z order, so tracks and records
             # are as from one thread
@@ -370,14 +372,18 @@ def measure_mtf(source, *, channels=None, cfa: str | None = None, centre_px=None
 
 
 #: a stack's frames are measured in worker processes (not threads) from this many frames and megapixels in all
-#: (:func:`_measure_in_processes`): below, the workers' start-up (~0.4 s of imports each) is not paid back
+#: (:func:`_measure_in_processes`). The e-SFR costs ~0.27 s CPU per Mpx of a chart frame (0.55 s a 1080p frame);
+#: two threads run it ~1.2-1.4x faster than one, two processes ~1.9x, whose start-up costs ~0.25 s CPU of imports per
+#: worker and ~0.5-0.8 s wall to the first frame: processes pay from ~3 s of e-SFR CPU (~11 Mpx); 16 Mpx and 8
+#: frames (eight 1080p frames) keep a margin
 PROCESS_MIN_FRAMES = 8
-PROCESS_MIN_MPX = 40.0
+PROCESS_MIN_MPX = 16.0
 
 
-def _measure_in_processes(stack, order: list[int], workers: int, options: dict, add, quiet: bool) -> None:
+def _measure_in_processes(stack, order: list[int], workers: int, options: dict, add, quiet: bool) -> bool:
     """Measure ``stack``'s frames (indices ``order``, by z) in ``workers`` processes, each reading its frames from
-    the stack folder; ``add`` takes each frame's result in ``order``, as the threads' path does.
+    the stack folder; ``add`` takes each frame's result in ``order``, as the threads' path does. False (nothing
+    measured) when this system cannot make a process pool.
 
     A frame's FieldcalError reaches the caller as it would from the thread path (its traceback in the worker is
     dropped); an error or Ctrl-C cancels the frames not started and waits for the running ones (each well under
@@ -390,25 +396,37 @@ def _measure_in_processes(stack, order: list[int], workers: int, options: dict, 
     from . import esfr_pool
 
     expect = [(f.file, float(f.z_um)) for f in stack.frames]
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=esfr_pool.context(),
-                               initializer=esfr_pool.init_worker, initargs=(str(stack.path), expect, options))
-    futures = []
+    own_server = not esfr_pool.forkserver_running()
     try:
-        futures = [pool.submit(esfr_pool.measure_index, k) for k in order]
-        it = futures if quiet else progress(futures, total=len(order), desc="e-SFR", unit="frame")
-        for fut in it:
-            try:
-                result = fut.result()
-            except FieldcalError as exc:
-                raise exc from None  # the worker's own traceback says nothing the message does not
-            except BrokenProcessPool:
-                raise ResourceError("an e-SFR worker process ended abruptly (killed, or out of memory)",
-                                    path=stack.path, fix="free memory and run the command again") from None
-            add(*result)
-    except BaseException:
-        pool.shutdown(wait=True, cancel_futures=True)
-        raise
-    pool.shutdown(wait=True)
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=esfr_pool.context(),
+                                   initializer=esfr_pool.init_worker, initargs=(str(stack.path), expect, options))
+    except (OSError, ImportError, NotImplementedError):  # no semaphores here (no /dev/shm): the threads instead
+        return False
+    try:
+        try:
+            futures = [pool.submit(esfr_pool.measure_index, k) for k in order]  # starts the workers
+        except (OSError, ImportError, NotImplementedError):  # the forkserver cannot start here: the threads
+            pool.shutdown(wait=True, cancel_futures=True)
+            return False
+        try:
+            it = futures if quiet else progress(futures, total=len(order), desc="e-SFR", unit="frame")
+            for fut in it:
+                try:
+                    result = fut.result()
+                except FieldcalError as exc:
+                    raise exc from None  # the worker's own traceback says nothing the message does not
+                except BrokenProcessPool:
+                    raise ResourceError("an e-SFR worker process ended abruptly (killed, or out of memory)",
+                                        path=stack.path, fix="free memory and run the command again") from None
+                add(*result)
+        except BaseException:
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+        pool.shutdown(wait=True)
+        return True
+    finally:
+        if own_server and esfr_pool.forkserver_running():
+            esfr_pool.stop_forkserver()  # nothing of the pool outlives the call (the workers have exited)
 
 
 def _software() -> str:
