@@ -399,7 +399,9 @@ def _measure_in_processes(stack, order: list[int], workers: int, options: dict, 
     own_server = not esfr_pool.forkserver_running()
     try:
         pool = ProcessPoolExecutor(max_workers=workers, mp_context=esfr_pool.context(),
-                                   initializer=esfr_pool.init_worker, initargs=(str(stack.path), expect, options))
+                                   initializer=esfr_pool.init_worker,
+                                   initargs=(os.path.abspath(stack.path), expect, options))  # a server may
+        # have started in another working directory
     except (OSError, ImportError, NotImplementedError):  # no semaphores here (no /dev/shm): the threads instead
         return False
     try:
