@@ -30,6 +30,16 @@ def edge_stack(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def scan_stack(tmp_path_factory):
+    """A scan through the triplet's best foci (9 frames): most tracks give a peak, every channel a field-wide
+    term."""
+    path = tmp_path_factory.mktemp("esfrscan") / "stk"
+    assert main(["simulate", "models/triplet-uncorrected.json", str(path), "--z", "-330", "30", "45",
+                 "--size", "320x240", "--scene", "slanted-edge", "--quiet"]) == 0
+    return path
+
+
 @pytest.fixture
 def paths(monkeypatch):
     """Which path measure_mtf takes: ``paths["processes"]`` counts the calls of the process path; the
@@ -197,4 +207,37 @@ def test_ctrl_c_leaves_no_worker_and_progress_advances_per_frame(edge_stack, pat
         mtf.measure_mtf(stack, quiet=False)
     assert paths["processes"] == 2
     assert len(during) >= 2  # the forkserver and at least one worker were running when Ctrl-C came
+    assert _no_workers_left()
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: no pool")
+def test_track_fits_in_processes_give_the_same_table(scan_stack, monkeypatch):
+    """edge_table's channels fitted in worker processes (all but the first) give this thread's table, summary
+    and field-wide terms to the bit."""
+    from fieldcal.measure import edge_tiles
+    stack = Stack.open(scan_stack)
+    res = mtf.measure_mtf(stack)
+    h, w = stack.shape
+    kw = dict(fs_cyc_per_mm=0.25 / (stack.pixel_pitch_um / 1000.0), q=0.05, pixel_pitch_um=stack.pixel_pitch_um,
+              z_um=stack.z_um, image_size_px=(w, h), z_ref_um=-150.0, channels=tuple(stack.channels))
+    pools = []
+    real = esfr_pool.fit_pool
+
+    def spy(workers):
+        pools.append(workers)
+        return real(workers)
+
+    monkeypatch.setattr(esfr_pool, "fit_pool", spy)
+    with esfr_pool.allow_processes(False):
+        ref_table, ref_summary = edge_tiles.edge_table(res, **kw)
+    assert pools == []
+    monkeypatch.setattr(edge_tiles, "FIT_PROCESS_MIN_TRACKS", 1)
+    with esfr_pool.allow_processes(True):
+        table, summary = edge_tiles.edge_table(res, **kw)
+    assert pools == [2]  # three channels: the first here, two in workers
+    assert int(ref_table.ok.sum()) > 100
+    assert all(v["sd_um"] > 0 for v in ref_summary["common_mode"].values())
+    assert json.dumps(table.to_dict(), sort_keys=True, default=str) == \
+        json.dumps(ref_table.to_dict(), sort_keys=True, default=str)
+    assert json.dumps(summary, sort_keys=True, default=str) == json.dumps(ref_summary, sort_keys=True, default=str)
     assert _no_workers_left()

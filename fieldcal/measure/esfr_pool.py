@@ -97,9 +97,8 @@ def stop_forkserver() -> None:
             pass
 
 
-def init_worker(stack_path: str, expect: tuple, options: dict) -> None:
-    """Pool initializer: thread limits, Ctrl-C to the parent, then open the stack (without re-hashing it: the
-    parent verified it) and keep it with the measurement options for :func:`measure_index`."""
+def _limit_threads() -> None:
+    """A worker's native thread pools to one thread each, and Ctrl-C left to the parent."""
     import signal
     for var in THREAD_VARS:
         os.environ[var] = "1"
@@ -107,6 +106,40 @@ def init_worker(stack_path: str, expect: tuple, options: dict) -> None:
     # NumPy may have loaded before this (the options carry arrays): its BLAS pool is limited here too
     from threadpoolctl import threadpool_limits
     _state["limits"] = threadpool_limits(limits=1)
+
+
+def init_fit_worker() -> None:
+    """Initializer of the track fits' workers (:func:`fieldcal.measure.edge_tiles.track_foci`): thread limits,
+    then the fits' modules (scipy), imported while the parent still prepares the channels."""
+    _limit_threads()
+    from . import edge_tiles  # noqa: F401
+
+
+@contextlib.contextmanager
+def fit_pool(workers: int):
+    """A process pool of ``workers`` for the track fits (``None`` where none can be made here); on leaving, the
+    pool is shut down (the frames not started cancelled) and a forkserver it started is stopped."""
+    from concurrent.futures import ProcessPoolExecutor
+    own_server = not forkserver_running()
+    try:
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=context(), initializer=init_fit_worker)
+        for _ in range(workers):  # every worker starts now (a pool starts one per task waiting)
+            pool.submit(os.getpid)
+    except (OSError, ImportError, NotImplementedError):
+        yield None
+        return
+    try:
+        yield pool
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+        if own_server and forkserver_running():
+            stop_forkserver()
+
+
+def init_worker(stack_path: str, expect: tuple, options: dict) -> None:
+    """Pool initializer: thread limits, Ctrl-C to the parent, then open the stack (without re-hashing it: the
+    parent verified it) and keep it with the measurement options for :func:`measure_index`."""
+    _limit_threads()
     import cv2
     cv2.setNumThreads(1)
     from ..formats.stack import Stack

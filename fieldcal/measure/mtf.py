@@ -362,7 +362,8 @@ def measure_mtf(source, *, channels=None, cfa: str | None = None, centre_px=None
             h, w = frames[0][2].shape[:2]
             prov["centre_px"] = [(w - 1) / 2.0, (h - 1) / 2.0]
     if dets:
-        from .esfr_focus import link_tracks  # here, not at the top: the e-SFR workers (esfr_pool) never need scipy
+        # imported here, not at the top: the e-SFR workers (esfr_pool) never need scipy
+        from .esfr_focus import link_tracks
         tr = link_tracks(np.asarray(det_frame), np.array([d[0] for d in dets]), np.array([d[1] for d in dets]),
                          np.array([d[2] for d in dets]), np.asarray(det_z), max_shift_px=max_shift_px,
                          length_px=np.array([d[3] for d in dets]))
