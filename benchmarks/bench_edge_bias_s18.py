@@ -45,6 +45,13 @@ sys.path.append(str(REPO / "benchmarks"))
 NAME = "edge_bias_s18"
 TITLE = ("Slanted-edge best focus under spherical aberration: the e-SFR window read with the ray law "
          "(bench_edge_bias_s18; session 18, issue 13)")
+INTRO = ("**Question** (issue 13: 90 % bands covering 85–95 %). On the clean room the edge bands under-covered on "
+         "the spherical-aberration lenses: sa05-f2.8 per channel R 0.90–1.00, G 0.38, B 0.33, the whole surface of "
+         "G and B about +0.16 µm above the truth, R −0.06 µm; breath-sa03-f2 0.42–1.00 with +0.06 µm. Which piece "
+         "makes a per-channel piston: the e-SFR's measured MTF(fs) through focus, or the peak estimator? Each table "
+         "below reads curves with fieldcal's edge estimator (``esfr_focus.channel_shape`` + ``analyse_tracks``, as "
+         "``edge_tiles.track_foci`` calls them) against the renderer's own truth (the peak of the lens's exact "
+         "MTF(80 cy/mm) from the pupil quadrature, pixel aperture included); *tree* says whose fieldcal read them.")
 FS_CY_PER_MM, Q = 80.0, 0.05
 A0, A1 = 0.54, 0.23   # Hamming: a0 + 2 a1 cos(pi d / h)
 
@@ -248,13 +255,16 @@ def tables(rows) -> str:
         out.append(f"| {r['label']} | {r['lens']} | {r['channel']} | {t['measured']['n']} | "
                    + " | ".join(f"{t[k]['mean_um']:+.3f} ± {t[k]['sem_um']:.3f}" for k in t)
                    + f" | {t['measured']['law']}, {t['measured']['s']:+.2f} |")
-    out += ["", "Measured minus the renderer's windowed MTF(fs), and the renderer's minus the lens's (both windowed), "
-            "by defocus from the true peak (branch tree; pooled over the sampled tracks):", "",
+    out += ["", "Measured minus the renderer's windowed MTF(fs) / the renderer's minus the lens's (both windowed), "
+            "by defocus from the true peak (pooled over the sampled tracks; curves, not readings: the same in every "
+            "tree):", "",
             "| lens | ch | " + " | ".join(f"[{lo:+d}, {lo + 1:+d}) steps" for lo in range(-4, 4)) + " |",
             "| --- | --- | " + " | ".join("---" for _ in range(8)) + " |"]
+    seen = set()
     for r in rows:
-        if r["label"] != rows[-1]["label"]:
+        if (r["lens"], r["channel"]) in seen:
             continue
+        seen.add((r["lens"], r["channel"]))
         cells = {b[0]: f"{b[1]:+.4f} / {b[3]:+.4f}" for b in r["by_defocus"]}
         out.append(f"| {r['lens']} | {r['channel']} | " + " | ".join(cells.get(lo, "—") for lo in range(-4, 4)) + " |")
     out += ["", "One node (the track nearest the middle truth node): the window's own shift of the peak, and the "
@@ -299,7 +309,7 @@ def main(argv=None) -> int:
     print(text)
     if args.docs:
         from _common import write_docs_section
-        body = f"## {TITLE}\n\n" + text + "\n"
+        body = f"## {TITLE}\n\n" + INTRO + "\n\n" + text + "\n"
         if args.notes:
             body += "\n" + Path(args.notes).read_text()
         write_docs_section(NAME, body)
