@@ -122,6 +122,30 @@ def test_held_frames_round_trip_in_memory_and_from_file(budget):
         strict.read(1)
 
 
+@pytest.mark.parametrize("fit", [0, 1, 2, 3])
+def test_held_frames_beyond_the_budget_go_to_the_file_the_others_stay_in_memory(fit):
+    """As many whole frames as the budget holds stay in memory, the others (only they) go to the temporary file;
+    every frame reads back as put, whole or by region, in any order of puts."""
+    import os
+
+    from fieldcal.composite.source import HeldFrames
+
+    rng = np.random.default_rng(7)
+    frames = [rng.integers(0, 256, (30, 40, 3), dtype=np.uint8) for _ in range(3)]
+    src = ArrayStack(frames, [0.0, 5.0, 10.0], ["R", "G", "B"])
+    frame_bytes = 30 * 40 * 3 * 2
+    held = HeldFrames(src, [2, 0, 1], np.uint16, scale=256.0, budget_bytes=fit * frame_bytes + frame_bytes // 2)
+    assert held.n_in_memory == fit and held.in_memory == (fit == 3)
+    for i in (1, 2, 0):
+        held.put(i, frames[i])
+    assert (held._file is None) == (fit == 3)
+    if held._file is not None:
+        assert os.fstat(held._file.fileno()).st_size == (3 - fit) * frame_bytes  # only the frames beyond
+    for i in range(3):
+        np.testing.assert_array_equal(held.read(i), frames[i].astype(np.float32))
+        np.testing.assert_array_equal(held.read(i, roi=(3, 4, 20, 10)), frames[i][4:14, 3:23].astype(np.float32))
+
+
 def test_a_jpeg_stack_is_decoded_once_per_frame(tmp_path, monkeypatch):
     """JPEG frames decode whole for any region: compositing (registration, focus volume, blending) decodes each
     frame once, and the registered composite matches the same frames composited from memory."""

@@ -930,12 +930,13 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
     factor = _factor(w, h, max_side_px)
     keep = not all(roi_readable(stack, int(i)) for i in order)  # decoding again would cost a full decode
     storage, scale = storage_dtype(stack.dtype)
-    # both temporary files (decoded, registered) checked up front, not after minutes of reading
-    held = [len(order) * h * w * len(stack.channels) * np.dtype(d).itemsize
-            for d, used in ((stack.dtype, keep), (storage, True)) if used]
-    if sum(b for b in held if b > MEMORY_BUDGET_BYTES):
-        check_temp_space(sum(b for b in held if b > MEMORY_BUDGET_BYTES),
-                         f"{len(order)} frames of {w}x{h} px, decoded and registered,")
+    # both temporary files (decoded, registered: the frames beyond those held in memory) checked up front, not
+    # after minutes of reading
+    frame_bytes = [h * w * len(stack.channels) * np.dtype(d).itemsize for d, used in ((stack.dtype, keep),
+                                                                                       (storage, True)) if used]
+    to_file = sum((len(order) - min(len(order), MEMORY_BUDGET_BYTES // max(1, b))) * b for b in frame_bytes)
+    if to_file:
+        check_temp_space(to_file, f"{len(order)} frames of {w}x{h} px, decoded and registered,")
     decoded = HeldFrames(stack, order, stack.dtype) if keep else None
     planes = {}
 
