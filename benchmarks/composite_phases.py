@@ -45,7 +45,7 @@ def main(argv: list[str]) -> None:
     from fieldcal.composite import memory
 
     # the process as `fieldcal composite` sets it up (commands/composite.py), where this checkout has it
-    for setup in ("tune_allocator", "single_threaded_blas"):
+    for setup in ("tune_allocator", "single_threaded_blas", "single_threaded_opencv"):
         if hasattr(memory, setup):
             getattr(memory, setup)()
     rows: list = []

@@ -132,5 +132,23 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_INTERNAL
 
 
+def entry() -> None:
+    """The ``fieldcal`` program (its console script and ``python -m fieldcal``): :func:`main`, then the process
+    ends at once with its status, its output flushed.
+
+    By then the command's work is done and its files are written (atomically, :mod:`fieldcal.formats.atomic`);
+    fieldcal registers nothing to run at exit. The interpreter's own teardown (freeing the modules of NumPy,
+    SciPy and OpenCV one by one, joining finished worker threads) took ~0.1 s of wall and CPU after a composite
+    (docs/benchmarks.md ``bench_composite_speed_s18``) and is skipped. A program calling :func:`main` (the tests)
+    keeps its process."""
+    status = main()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a reader that went away, a closed stream: the status stands
+            pass
+    os._exit(status)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry()

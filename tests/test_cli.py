@@ -46,6 +46,20 @@ def test_no_command_prints_help():
     assert r.returncode == 2 and "COMMAND" in r.stdout
 
 
+def test_the_program_ends_with_the_commands_status_and_its_whole_output(tmp_path):
+    """``python -m fieldcal`` ends the process itself once the command returns (no interpreter teardown): the
+    status is the command's, and what it wrote to both streams arrives whole, also through pipes."""
+    r = subprocess.run([sys.executable, "-m", "fieldcal", "composite", "no-such-stack", "--out", "x.tiff"],
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 2 and "fix:" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert list(tmp_path.iterdir()) == []
+    code = ("import sys; from fieldcal import cli\n"
+            "cli.main = lambda: (sys.stdout.write('x' * 200000), sys.stderr.write('y' * 100000), 3)[-1]\n"
+            "cli.entry()\nraise SystemExit('entry returned')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 3 and r.stdout == "x" * 200000 and r.stderr == "y" * 100000, r.stderr[-300:]
+
+
 def test_docs_cli_reference_is_generated_from_the_parsers():
     env = {**os.environ, "COLUMNS": "110"}
     r = subprocess.run([sys.executable, "-m", "fieldcal.commands._clidoc"], capture_output=True, text=True,

@@ -122,6 +122,30 @@ def test_held_frames_round_trip_in_memory_and_from_file(budget):
         strict.read(1)
 
 
+@pytest.mark.parametrize("fit", [0, 1, 2, 3])
+def test_held_frames_beyond_the_budget_go_to_the_file_the_others_stay_in_memory(fit):
+    """As many whole frames as the budget holds stay in memory, the others (only they) go to the temporary file;
+    every frame reads back as put, whole or by region, in any order of puts."""
+    import os
+
+    from fieldcal.composite.source import HeldFrames
+
+    rng = np.random.default_rng(7)
+    frames = [rng.integers(0, 256, (30, 40, 3), dtype=np.uint8) for _ in range(3)]
+    src = ArrayStack(frames, [0.0, 5.0, 10.0], ["R", "G", "B"])
+    frame_bytes = 30 * 40 * 3 * 2
+    held = HeldFrames(src, [2, 0, 1], np.uint16, scale=256.0, budget_bytes=fit * frame_bytes + frame_bytes // 2)
+    assert held.n_in_memory == fit and held.in_memory == (fit == 3)
+    for i in (1, 2, 0):
+        held.put(i, frames[i])
+    assert (held._file is None) == (fit == 3)
+    if held._file is not None:
+        assert os.fstat(held._file.fileno()).st_size == (3 - fit) * frame_bytes  # only the frames beyond
+    for i in range(3):
+        np.testing.assert_array_equal(held.read(i), frames[i].astype(np.float32))
+        np.testing.assert_array_equal(held.read(i, roi=(3, 4, 20, 10)), frames[i][4:14, 3:23].astype(np.float32))
+
+
 def test_a_jpeg_stack_is_decoded_once_per_frame(tmp_path, monkeypatch):
     """JPEG frames decode whole for any region: compositing (registration, focus volume, blending) decodes each
     frame once, and the registered composite matches the same frames composited from memory."""
@@ -224,3 +248,36 @@ def test_registration_planes_keep_both_sides_resolved(w, h):
     assert short_px >= min(R.REGISTRATION_MIN_SHORT_SIDE_PX, min(w, h))
     g = f + 1  # the next coarser factor breaks one of the two bounds
     assert (max(w, h) // g < R.REGISTRATION_MIN_SIDE_PX or min(w, h) // g < R.REGISTRATION_MIN_SHORT_SIDE_PX)
+
+
+@pytest.mark.parametrize("n_ch", [1, 3, 4, 5])
+def test_warp_frame_and_photometric_correction_treat_every_channel_alike(n_ch):
+    """Frames of up to 4 channels warp and correct in one OpenCV call, more in several: each channel comes out as
+    that channel warped alone (a 1-channel frame), and corrected as g v + o + b (1 - g) about the black level in
+    fixed point, rounded."""
+    import cv2
+
+    from fieldcal.composite import photometric as P
+
+    rng = np.random.default_rng(n_ch)
+    img = (rng.random((H, W, n_ch)) * 65535).astype(np.uint16)
+    m = np.array([[1.01, 0.02, -3.2], [-0.015, 0.995, 2.7], [0.0, 0.0, 1.0]])
+    tilt = m.copy()
+    tilt[2, :2] = (2e-5, -1e-5)
+    for mat in (m, tilt):
+        out = R.warp_frame(img, mat)
+        assert out.shape == img.shape and out.dtype == img.dtype
+        for c in range(n_ch):
+            np.testing.assert_array_equal(out[..., c], R.warp_frame(img[..., c:c + 1], mat)[..., 0])
+        if n_ch == 1:  # the 1-channel frame against OpenCV's own warp of the plane
+            flags = cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP
+            ref = (cv2.warpAffine(img[..., 0], mat[:2], (W, H), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+                   if mat is m else cv2.warpPerspective(img[..., 0], mat, (W, H), flags=flags,
+                                                         borderMode=cv2.BORDER_REPLICATE))
+            np.testing.assert_array_equal(out[..., 0], ref)
+    gain, off = 1.0 + 0.03 * np.arange(n_ch), 5.0 - 2.0 * np.arange(n_ch)
+    scale, black = 256.0, 16.0
+    fixed = P.apply_correction(img, P.Correction(gain, off, 100), scale, black)
+    want = np.clip(np.rint(img * gain + (off + black * (1 - gain)) * scale), 0, 65535)
+    assert fixed.shape == img.shape and fixed.dtype == img.dtype
+    assert np.max(np.abs(fixed.astype(np.float64) - want)) <= 1.0  # OpenCV's float32 arithmetic

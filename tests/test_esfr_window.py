@@ -108,3 +108,53 @@ def test_window_ratio_is_one_without_a_window_or_a_width():
     assert ef.window_width_ratio(10.0, math.nan, 0.05, 0.26, 0.3) == 1.0
     assert ef.window_r_of(math.nan, 0.24) == 0.0
     assert ef.window_r_of(8.0, 0.25) == pytest.approx(0.25)
+
+
+def _cleanroom_windowed_tracks(w040_waves, nu, r, step_over_delta=0.5, n_tracks=8):
+    """Tracks of MTF(fs) through focus from the clean room's own pupil quadrature (benchmarks/cleanroom/otf.py, an
+    implementation independent of fieldcal's), read through the e-SFR's Hamming window (taps at fs, (1 +- r) fs
+    over the DC term at r fs: a cosine times the LSF is the OTF shifted in frequency), and each track's true
+    sharpest position (the unwindowed curve's maximum, on a 0.002-step grid). z in units of the tolerance."""
+    from benchmarks.cleanroom.otf import otf_quadrature
+
+    n_f = nu / (FS * LAM)  # the F-number of this nu
+
+    def otf(dz_um, f_rel):  # signed OTF at f_rel fs for defocus dz (W020 = dz / 8 N^2)
+        w020 = np.asarray(dz_um) / (8.0 * n_f ** 2 * LAM)
+        return otf_quadrature(w020, w020, w040_waves, (1.0, 0.0), 2.0 * nu * f_rel, (1.0, 0.0), n=48)
+
+    fine = np.linspace(-40.0, 40.0, 4001) * n_f  # µm: well past a few tolerances at any nu here
+    m = np.abs(otf(fine, 1.0))
+    j = int(np.argmax(m))
+    peak = float(fine[j])
+    above = fine[m >= 0.95 * m[j]]
+    delta = 0.5 * float(above[-1] - above[0])
+    a0, a1 = 0.54, 0.23
+    out, z0s = [], []
+    for k in range(n_tracks):
+        z0 = (0.29 * k - 1.0) * delta  # the lens's paraxial focus of this track
+        z = np.arange(-6.0, 6.0 + 1e-9, step_over_delta) * delta
+        dz = z - z0
+        v = np.abs((a0 * otf(dz, 1.0) + a1 * (otf(dz, 1.0 + r) + otf(dz, 1.0 - r))) / (a0 + 2.0 * a1 * otf(dz, r)))
+        out.append((z, 0.8 * v))
+        z0s.append(z0 + peak)
+    return out, np.array(z0s), delta
+
+
+@pytest.mark.parametrize("w040_waves, nu", [(0.5, 0.12), (0.5, 0.105), (0.3, 0.088)])
+def test_windowed_skewed_curves_below_the_wave_threshold_read_the_sharpest_position(w040_waves, nu):
+    # the clean room's sa05-f2.8 G / B and breath-sa03-f2 G at 80 cy/mm: nu below spherical.WAVE_MIN_NU, where the
+    # ray law alone reads the peak within 0.002 step, but through the window the ray law's s (which absorbs
+    # diffraction at fs only) gives the wrong taps at (1 +- r) fs and r fs: main read these +0.05 step high
+    # (docs/benchmarks.md bench_edge_bias_s18); the exact law reads them within 0.01 step
+    r, q, step_over_delta = 0.26, 0.05, 0.5
+    tracks, truth, delta = _cleanroom_windowed_tracks(w040_waves, nu, r, step_over_delta)
+    shape = ef.channel_shape(tracks, q, fs_cyc_per_um=FS, wavelength_um=LAM, window_r=r)
+    assert shape.selected
+    tk, _ = ef.analyse_tracks(tracks, q, shape=shape)
+    assert all(t.ok for t in tk)
+    err_steps = (np.array([t.z_best_um for t in tk]) - truth) / (step_over_delta * delta)
+    assert abs(float(np.mean(err_steps))) < 0.012
+    assert float(np.max(np.abs(err_steps))) < 0.025
+    assert np.isfinite(shape.nu)  # the exact law, at the lens's own s (not one that absorbed diffraction)
+    assert shape.s == pytest.approx(-16.0 * math.pi * nu * w040_waves, rel=0.06)

@@ -97,9 +97,10 @@ def run(args) -> int:
 
 def _run(args) -> int:
     from ..composite.api import composite_to_file
-    from ..composite.memory import single_threaded_blas
+    from ..composite.memory import single_threaded_blas, single_threaded_opencv
 
     single_threaded_blas()
+    single_threaded_opencv()
 
     res = composite_to_file(args.stack, args.out, profile=args.profile, method=args.method, plan=args.plan,
                             sweep_alpha_um=args.sweep_alpha_um, deconvolve=args.deconvolve,

@@ -213,3 +213,18 @@ def single_threaded_blas() -> None:
 
     os.environ["OPENBLAS_NUM_THREADS"] = "1"  # BLAS libraries loaded from now on (SciPy's, if ever)
     threadpool_limits(limits=1, user_api="blas")
+
+
+def single_threaded_opencv() -> None:
+    """OpenCV's own parallel loops on one thread for the rest of the process.
+
+    Compositing runs its planes, tiles and row bands on its own threads, a core each; OpenCV splitting each of
+    their filters, warps and resamplings over its thread pool again only adds hand-overs, and its pool's threads
+    spin waiting for the next loop. On the 7-frame 2048 x 1536 board that was ~0.3 s of the ~10 s of CPU, the
+    output the same to the bit (docs/benchmarks.md ``bench_composite_speed_s18``; the calibration's tile pass
+    found the same, :mod:`fieldcal.measure.tiles`). Like :func:`single_threaded_blas`, set by the
+    ``fieldcal composite`` command; a program calling the library decides for itself.
+    """
+    import cv2
+
+    cv2.setNumThreads(1)

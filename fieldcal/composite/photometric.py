@@ -154,14 +154,18 @@ def apply_correction(held: np.ndarray, corr: Correction, scale: float = 1.0, bla
     offset = (corr.offset + float(black) * (1.0 - corr.gain)) * scale  # v' = g v + (o + b (1 - g))
     if held.dtype.kind == "f":
         return (held * corr.gain.astype(held.dtype) + offset.astype(held.dtype)).astype(held.dtype, copy=False)
-    out = np.empty_like(held)
-    for k in range(0, held.shape[2], 4):  # cv2 takes at most 4 channels a call
-        part = np.ascontiguousarray(held[..., k:k + 4])
-        n = part.shape[2]
+    def transform(k: int, n: int) -> np.ndarray:
         m = np.zeros((n, n + 1))
         m[np.arange(n), np.arange(n)] = corr.gain[k:k + n]
         m[:, n] = offset[k:k + n]
-        out[..., k:k + 4] = cv2.transform(part, m).reshape(*held.shape[:2], n)
+        return cv2.transform(np.ascontiguousarray(held[..., k:k + n]), m).reshape(*held.shape[:2], n)
+
+    if held.shape[2] <= 4:  # one call: OpenCV's array is the result (not copied into another)
+        return transform(0, held.shape[2])
+    out = np.empty_like(held)
+    for k in range(0, held.shape[2], 4):  # cv2 takes at most 4 channels a call
+        n = min(4, held.shape[2] - k)
+        out[..., k:k + n] = transform(k, n)
     return out
 
 

@@ -724,15 +724,18 @@ def warp_frame(image: np.ndarray, output_to_source: np.ndarray, out: np.ndarray 
     h, w = src.shape[:2]
     m = np.asarray(output_to_source, dtype=np.float64) / output_to_source[2, 2]
     flags = cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP
-    out = np.empty(src.shape, dtype=src.dtype) if out is None else out
     affine = abs(m[2, 0]) < 1e-15 and abs(m[2, 1]) < 1e-15
-    for k in range(0, src.shape[2], 4):  # cv2 takes at most 4 channels a call and drops a single one's axis
-        part = np.ascontiguousarray(src[..., k:k + 4])
+
+    def warp(part: np.ndarray) -> np.ndarray:
         if affine:
-            res = cv2.warpAffine(part, m[:2], (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-        else:
-            res = cv2.warpPerspective(part, m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-        out[..., k:k + 4] = res.reshape(h, w, -1)
+            return cv2.warpAffine(part, m[:2], (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        return cv2.warpPerspective(part, m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+
+    if out is None and src.shape[2] <= 4:  # one call: OpenCV's array is the result (not copied into another)
+        return warp(np.ascontiguousarray(src)).reshape(src.shape)
+    out = np.empty(src.shape, dtype=src.dtype) if out is None else out
+    for k in range(0, src.shape[2], 4):  # cv2 takes at most 4 channels a call and drops a single one's axis
+        out[..., k:k + 4] = warp(np.ascontiguousarray(src[..., k:k + 4])).reshape(h, w, -1)
     return out
 
 
@@ -927,12 +930,13 @@ def register_stack(stack, frames=None, z_ref_um: float | None = None, *, max_sid
     factor = _factor(w, h, max_side_px)
     keep = not all(roi_readable(stack, int(i)) for i in order)  # decoding again would cost a full decode
     storage, scale = storage_dtype(stack.dtype)
-    # both temporary files (decoded, registered) checked up front, not after minutes of reading
-    held = [len(order) * h * w * len(stack.channels) * np.dtype(d).itemsize
-            for d, used in ((stack.dtype, keep), (storage, True)) if used]
-    if sum(b for b in held if b > MEMORY_BUDGET_BYTES):
-        check_temp_space(sum(b for b in held if b > MEMORY_BUDGET_BYTES),
-                         f"{len(order)} frames of {w}x{h} px, decoded and registered,")
+    # both temporary files (decoded, registered: the frames beyond those held in memory) checked up front, not
+    # after minutes of reading
+    frame_bytes = [h * w * len(stack.channels) * np.dtype(d).itemsize for d, used in ((stack.dtype, keep),
+                                                                                       (storage, True)) if used]
+    to_file = sum((len(order) - min(len(order), MEMORY_BUDGET_BYTES // max(1, b))) * b for b in frame_bytes)
+    if to_file:
+        check_temp_space(to_file, f"{len(order)} frames of {w}x{h} px, decoded and registered,")
     decoded = HeldFrames(stack, order, stack.dtype) if keep else None
     planes = {}
 

@@ -105,9 +105,11 @@ class RowReader:
 
 # ------------------------------------------------------------------------------------- frames held once
 #: Frames compositing keeps decoded (or registered) for its several passes are held in memory up to this many
-#: bytes; beyond it they are streamed from an unlinked temporary file (the page cache keeps what fits, outside the
-#: process's own memory: a 7-frame 2048x1536 stack's registered frames would otherwise add 130 MB to a peak
-#: that the depth-map pass sets).
+#: bytes; the frames beyond it are streamed from an unlinked temporary file (the page cache keeps what fits,
+#: outside the process's own memory: a 7-frame 2048x1536 stack's registered frames all in memory would add 130 MB
+#: to a peak that the depth-map pass sets). As many whole frames as fit are held in memory, the rest go to the
+#: file: writing the board's 7 registered frames to the file and reading them back (~33 frame reads) took ~0.3 s
+#: of CPU, the kernel's copies (docs/benchmarks.md ``bench_composite_speed_s18``).
 MEMORY_BUDGET_BYTES = 96 * 2 ** 20
 
 
@@ -125,9 +127,9 @@ def roi_readable(stack, i: int) -> bool:
 
 
 class HeldFrames:
-    """A :class:`FrameSource` standing for ``source`` whose frames ``indices`` are held once, in memory (or a
-    temporary file beyond ``budget_bytes``), in ``storage`` dtype: decoded frames, or frames already warped into
-    the output geometry (:func:`fieldcal.composite.register.register_stack`).
+    """A :class:`FrameSource` standing for ``source`` whose frames ``indices`` are held once, in memory (as many
+    as fit in ``budget_bytes``, the others in a temporary file), in ``storage`` dtype: decoded frames, or frames
+    already warped into the output geometry (:func:`fieldcal.composite.register.register_stack`).
 
     ``dtype``, levels, channels, ``z_um`` and ``path`` are the source's (the composite keeps the input's dtype);
     ``read`` returns the held samples (``storage`` dtype), or, with a fixed-point ``scale`` (samples held as
@@ -161,15 +163,18 @@ class HeldFrames:
         self.frame_shape = (h, w, len(self.channels))
         self.frame_bytes = h * w * len(self.channels) * self.storage.itemsize
         budget = MEMORY_BUDGET_BYTES if budget_bytes is None else budget_bytes
-        self.in_memory = len(self.slot) * self.frame_bytes <= budget
+        #: slots ``0 .. n_in_memory - 1`` are held in memory, the others in the temporary file
+        self.n_in_memory = min(len(self.slot), max(0, int(budget)) // max(1, self.frame_bytes))
+        self.in_memory = self.n_in_memory == len(self.slot)
         # in memory: one array a frame, the one handed to put where it is already in the storage's layout (a decoded
         # or warped frame, not copied again into fresh pages: 7 decoded 2048 x 1536 frames took 0.15 s of copying)
-        self.data = [None] * len(self.slot) if self.in_memory else None
-        if not self.in_memory:
+        self.data = [None] * self.n_in_memory
+        n_file = len(self.slot) - self.n_in_memory
+        if n_file:
             from .memory import check_temp_space
-            check_temp_space(len(self.slot) * self.frame_bytes, f"{len(self.slot)} frames held for compositing")
+            check_temp_space(n_file * self.frame_bytes, f"{n_file} frames held for compositing")
         # unlinked at once: nothing is left behind, whatever happens
-        self._file = None if self.in_memory else tempfile.TemporaryFile(prefix="fieldcal-frames-")
+        self._file = None if not n_file else tempfile.TemporaryFile(prefix="fieldcal-frames-")
 
     def __len__(self) -> int:
         return int(self.z_um.size)
@@ -192,12 +197,12 @@ class HeldFrames:
                 image = np.clip(np.rint(image), lim.min, lim.max)
         image = np.ascontiguousarray(image.reshape(self.frame_shape), dtype=self.storage)
         k = self.slot[int(i)]
-        if self.in_memory:
+        if k < self.n_in_memory:
             self.data[k] = image
         else:
             import errno
             try:
-                os.pwrite(self._file.fileno(), memoryview(image).cast("B"), k * self.frame_bytes)
+                os.pwrite(self._file.fileno(), memoryview(image).cast("B"), self._offset(k))
             except OSError as e:
                 if e.errno not in (errno.ENOSPC, errno.EDQUOT):
                     raise
@@ -205,14 +210,18 @@ class HeldFrames:
 
                 from ..errors import ResourceError
                 raise ResourceError(f"the temporary disk filled while holding frames for compositing "
-                                    f"({len(self.slot) * self.frame_bytes / 1e9:.1f} GB in all)",
+                                    f"({(len(self.slot) - self.n_in_memory) * self.frame_bytes / 1e9:.1f} GB in all)",
                                     path=tempfile.gettempdir(), field="TMPDIR",
                                     fix="free space there, or set the environment variable TMPDIR to a folder on "
                                         "a disk with that much free") from None
 
+    def _offset(self, k: int) -> int:
+        """Where slot ``k`` (one held in the file) starts in the temporary file."""
+        return (k - self.n_in_memory) * self.frame_bytes
+
     def _rows(self, k: int, y0: int, y1: int) -> np.ndarray:
         """Rows ``y0:y1`` of held frame ``k`` (a view in memory, a new array from the file)."""
-        if self.in_memory:
+        if k < self.n_in_memory:
             return self.data[k][y0:y1]
         import os
         row = self.frame_bytes // self.frame_shape[0]
@@ -220,7 +229,7 @@ class HeldFrames:
         buf = memoryview(out).cast("B")
         done = 0
         while done < len(buf):  # pread may return less than asked
-            n = os.preadv(self._file.fileno(), [buf[done:]], k * self.frame_bytes + y0 * row + done)
+            n = os.preadv(self._file.fileno(), [buf[done:]], self._offset(k) + y0 * row + done)
             if n <= 0:
                 raise OSError("the temporary file of held frames is shorter than written")
             done += n

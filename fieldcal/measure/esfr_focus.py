@@ -780,7 +780,9 @@ def channel_shape(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
     :mod:`fieldcal.optics.pupil` via :func:`fieldcal.measure.spherical.wave_otf`) from
     :data:`fieldcal.measure.spherical.WAVE_MIN_NU` up, where the ray law's peak is off (given ``fs`` in
     cycles/µm and the channel's wavelength). ``window_r``: the e-SFR window's frequency shift over fs
-    (:func:`window_r_of`), so the law fitted is the one the e-SFR reads (:func:`windowed_law`)."""
+    (:func:`window_r_of`), so the law fitted is the one the e-SFR reads (:func:`windowed_law`); with a window and a
+    skew the exact law is used at any nu (the window's taps at other frequencies need diffraction's frequency
+    dependence, which the ray law's fitted s holds at fs only)."""
     from dataclasses import replace
 
     from . import spherical
@@ -795,7 +797,13 @@ def channel_shape(tracks, q: float = 0.05, *, fs_cyc_per_um: float = math.nan,
             if window_r > 0:
                 nu_data = nu_of_width(_ray_x_q(q) * float(np.median(steps)) / float(np.median(kap)), q,
                                       fs_cyc_per_um, wavelength_um)
-            if cn / float(np.median(kap)) >= spherical.WAVE_MIN_NU:
+            # the exact law also wherever the window is read and the channel is skewed: the window mixes the
+            # OTF at fs, (1 +- r) fs and r fs (windowed_law), and only the exact law carries the frequency
+            # dependence of diffraction. The ray law's s absorbs diffraction at fs alone, so its taps at the
+            # other frequencies are wrong: on the clean room's exact sa05-f2.8 curves (nu 0.11-0.12, W040 0.5
+            # waves, r = 0.26) the windowed ray law read s = -1.6 for the true -3.0 and every peak +0.05 step
+            # high, the exact law -0.006 step (docs/benchmarks.md bench_edge_bias_s18)
+            if cn / float(np.median(kap)) >= spherical.WAVE_MIN_NU or (window_r > 0 and pool_shape(shapes).selected):
                 c_nu = cn
                 shapes = track_shapes(tracks, c_nu)
     shape = replace(pool_shape(shapes, c_nu), window_r=max(float(window_r), 0.0), nu_data=float(nu_data))

@@ -110,7 +110,9 @@ def peak_u(a, u0, kappa, s, u_lo, u_hi, n_grid: int = 81, n_newton: int = 8):
 #: waves for 1.6 true). Curves whose ray fit lands past these thresholds (with evidence for the skew,
 #: ``throughfocus.WAVE_MIN_CHI2``) are refitted with the exact model (:func:`wave_model`); elsewhere the ray
 #: model stays. Set where the 1080p quick calibration of the (geometric) triplet, whose band-pass curves carry a
-#: slight skew, does not cross them (0.1 / 0.15 waves: +1.1 s of profiled CPU there, for no gain).
+#: slight skew, does not cross them (0.1 / 0.15 waves: +1.1 s of profiled CPU there, for no gain). Skewed
+#: slanted-edge channels read through the e-SFR's window take the exact model at any nu
+#: (:func:`fieldcal.measure.esfr_focus.channel_shape`): the window's taps need the law at other frequencies.
 WAVE_MIN_NU = 0.15
 WAVE_MIN_W040_WAVES = 0.4
 
