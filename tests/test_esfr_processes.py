@@ -60,6 +60,8 @@ def paths(monkeypatch):
 def _workers_alive() -> list[int]:
     """Live descendants of this process started by multiprocessing's forkserver (the server and the pool's
     workers, which share its command line); multiprocessing's resource tracker is not one of them."""
+    if not os.path.isdir("/proc"):  # not Linux: nothing to look at (the tests' other assertions still run)
+        return []
     parent, cmd = {}, {}
     for d in os.listdir("/proc"):
         if not d.isdigit():
@@ -206,7 +208,8 @@ def test_ctrl_c_leaves_no_worker_and_progress_advances_per_frame(edge_stack, pat
     with esfr_pool.allow_processes(True), pytest.raises(KeyboardInterrupt):
         mtf.measure_mtf(stack, quiet=False)
     assert paths["processes"] == 2
-    assert len(during) >= 2  # the forkserver and at least one worker were running when Ctrl-C came
+    if os.path.isdir("/proc"):
+        assert len(during) >= 2  # the forkserver and at least one worker were running when Ctrl-C came
     assert _no_workers_left()
 
 
