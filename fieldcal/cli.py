@@ -70,6 +70,7 @@ def _name_flags(err: FieldcalError, parser: argparse.ArgumentParser, args) -> No
 def main(argv: list[str] | None = None) -> int:
     """Run one command; returns its exit status (see :mod:`fieldcal.errors` ``EXIT_*``)."""
     from .formats.atomic import command_scope
+    from .measure.esfr_pool import allow_processes
 
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or os.environ.get("FIELDCAL_DEBUG", "") not in ("", "0")
@@ -81,7 +82,8 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     name = _command_name(args)
     try:
-        with command_scope():
+        # the command owns the process: its e-SFR may run in worker processes (fieldcal/measure/esfr_pool.py)
+        with command_scope(), allow_processes(True):
             return int(args.func(args) or 0)
     except FieldcalError as e:
         if debug:

@@ -197,28 +197,15 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
         if len(use) >= min_frames:
             curves[(tr, ch)] = (np.array([float(e["z_um"]) for e in use]),
                                 np.array([vals[index[id(e)]] for e in use]))
-    from dataclasses import replace
-
-    from ..optics.defocus import default_wavelength_nm
+    from contextlib import ExitStack
 
     focus, shapes = {}, {}
     chans = sorted({k[1] for k in curves})
-    for ch in chans:
-        shapes[ch] = channel_shape([curves[k] for k in curves if k[1] == ch], q, fs_cyc_per_um=fs_cyc_per_um,
-                                   wavelength_um=default_wavelength_nm(ch) * 1e-3,
-                                   window_r=window_r_of(window_half_px(
-                                       [e for k, recs in groups.items() if k[1] == ch for e in recs]), fs_cy_per_px))
-    # W040 is the lens's, shared by its colours (s = 16 pi fs N W040 carries no wavelength): the asymmetry is
-    # taken only where every channel shows it. A skew seen in one channel alone is not spherical aberration (on
-    # fieldcal's geometric simulator one channel of the triplet showed s = -0.5 +- 0.13, the others 0 +- 0.1)
-    if not all(v.selected for v in shapes.values()):
-        shapes = {c: replace(v, selected=False) for c, v in shapes.items()}
-    for ch in chans:
-        keys = [k for k in curves if k[1] == ch]
-        res, _ = analyse_tracks([curves[k] for k in keys], q, shape=shapes[ch])
-        focus.update(zip(keys, res))
-        if common_out is not None:
-            common_out[ch] = law_common_mode([curves[k] for k in keys], res, shapes[ch])
+    with ExitStack() as scope:
+        # the channels' track fits are independent: with enough tracks, all channels but the first run in worker
+        # processes (started now: they import the fits' modules while this thread prepares the channels)
+        pool = scope.enter_context(_fit_pool(len(chans), len(curves)))
+        _channel_fits(curves, groups, chans, q, fs_cy_per_px, fs_cyc_per_um, shapes, focus, common_out, pool)
     for (tr, ch), recs in groups.items():
         xp, yp = peak_position_px(recs, [vals[index[id(e)]] if _usable(e) else math.nan for e in recs],
                                   geometry, z_ref_um)
@@ -261,6 +248,59 @@ def track_foci(mtf, fs_cy_per_px: float, q: float, z_ref_um: float, *, min_frame
     if shapes_out is not None:
         shapes_out.update(shapes)
     return cols
+
+
+#: tracks (all channels) from which the channels' fits run in worker processes: each worker's start-up (~0.5 s CPU
+#: of imports, scipy's included) against ~1.3 s of fits per channel of the 1080p triplet's ~1400 tracks
+FIT_PROCESS_MIN_TRACKS = 600
+
+
+def _fit_pool(n_channels: int, n_tracks: int):
+    """The track fits' process pool (:func:`fieldcal.measure.esfr_pool.fit_pool`) for all channels but the
+    first, or a null context (this thread fits every channel) for a small job or where processes are not
+    allowed."""
+    import contextlib
+    import os
+
+    from . import esfr_pool
+    workers = min(n_channels - 1, 2) if (os.cpu_count() or 1) >= 2 else 0
+    if workers < 1 or n_tracks < FIT_PROCESS_MIN_TRACKS or not esfr_pool.processes_allowed():
+        return contextlib.nullcontext(None)
+    return esfr_pool.fit_pool(workers)
+
+
+def _fit_channel(curves: list, q: float, shape, common: bool):
+    """One channel's track fits (:func:`.esfr_focus.analyse_tracks`) and, with ``common``, its field-wide peak
+    error (:func:`.esfr_focus.law_common_mode`); runs in this process or in a worker."""
+    res, _ = analyse_tracks(curves, q, shape=shape)
+    return res, (law_common_mode(curves, res, shape) if common else None)
+
+
+def _channel_fits(curves, groups, chans, q, fs_cy_per_px, fs_cyc_per_um, shapes, focus, common_out, pool) -> None:
+    """Each channel's pooled shape (into ``shapes``), then its tracks' foci (into ``focus``) and field-wide
+    error (into ``common_out``): the first channel in this thread, the others in ``pool`` when there is one
+    (the results are the same: each channel's fits depend only on its own tracks and shape)."""
+    from dataclasses import replace
+
+    from ..optics.defocus import default_wavelength_nm
+    for ch in chans:
+        shapes[ch] = channel_shape([curves[k] for k in curves if k[1] == ch], q, fs_cyc_per_um=fs_cyc_per_um,
+                                   wavelength_um=default_wavelength_nm(ch) * 1e-3,
+                                   window_r=window_r_of(window_half_px(
+                                       [e for k, recs in groups.items() if k[1] == ch for e in recs]), fs_cy_per_px))
+    # W040 is the lens's, shared by its colours (s = 16 pi fs N W040 carries no wavelength): the asymmetry is
+    # taken only where every channel shows it. A skew seen in one channel alone is not spherical aberration (on
+    # fieldcal's geometric simulator one channel of the triplet showed s = -0.5 +- 0.13, the others 0 +- 0.1)
+    if not all(v.selected for v in shapes.values()):
+        shapes.update({c: replace(v, selected=False) for c, v in shapes.items()})
+    keys = {ch: [k for k in curves if k[1] == ch] for ch in chans}
+    jobs = {ch: ([curves[k] for k in keys[ch]], q, shapes[ch], common_out is not None) for ch in chans}
+    futures = {ch: pool.submit(_fit_channel, *jobs[ch]) for ch in chans[1:]} if pool is not None else {}
+    for ch in chans:
+        res, common = futures[ch].result() if ch in futures else _fit_channel(*jobs[ch])
+        focus.update(zip(keys[ch], res))
+        if common_out is not None:
+            common_out[ch] = common
 
 
 def window_half_px(recs) -> float:

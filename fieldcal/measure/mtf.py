@@ -23,7 +23,6 @@ from ..formats import documents
 from .bayer import extract_plane, plane_layouts
 from .esfr import esfr_regions
 from .esfr_detect import find_edges
-from .esfr_focus import link_tracks
 
 FORMAT = documents.format_id("mtf")
 
@@ -327,19 +326,32 @@ def measure_mtf(source, *, channels=None, cfa: str | None = None, centre_px=None
             z = float(stack.frames[k].z_um) if hasattr(stack, "frames") else float(stack.z_um[k])
             return (k, z) + measure(k, z, stack.read_normalized(k))
 
-        # frames are independent: two workers (decoding, NumPy's array passes and OpenCV release the GIL), each
-        # holding one frame; results are added in z order, so tracks and records are as from one thread
         workers = max(1, min(len(order), os.cpu_count() or 1, 2))
-        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fieldcal-esfr") as pool:
-            futures = [pool.submit(read_and_measure, k) for k in order]
-            it = futures if quiet else progress(futures, total=len(order), desc="e-SFR", unit="frame")
-            try:
-                for fut in it:
-                    add(*fut.result())
-            except BaseException:  # a bad frame (or Ctrl-C): do not measure the rest before saying so
-                for fut in futures:
-                    fut.cancel()
-                raise
+        h, w = stack.shape
+        from . import esfr_pool
+        if (workers > 1 and type(stack) is Stack and len(order) >= PROCESS_MIN_FRAMES and
+                len(order) * h * w >= PROCESS_MIN_MPX * 1e6 and esfr_pool.processes_allowed()):
+            # two processes: the e-SFR core holds the GIL, so two threads give ~1.2-1.4x, two processes ~1.9x
+            # (fieldcal/measure/esfr_pool.py); each reads its frames from the folder
+            options = {"channels": channels, "cfa": cfa, "centre_px": centre_px, "grid": grid, "detect": detect,
+                       "esfr": esfr}
+            pooled = _measure_in_processes(stack, order, workers, options, add, quiet)
+        else:
+            pooled = False
+        if not pooled:
+            # a small job (or an in-memory stack): two threads (decoding, NumPy's array passes and OpenCV
+            # release the GIL), each holding one frame; results are added in z order, so tracks and records
+            # are as from one thread
+            with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fieldcal-esfr") as pool:
+                futures = [pool.submit(read_and_measure, k) for k in order]
+                it = futures if quiet else progress(futures, total=len(order), desc="e-SFR", unit="frame")
+                try:
+                    for fut in it:
+                        add(*fut.result())
+                except BaseException:  # a bad frame (or Ctrl-C): do not measure the rest before saying so
+                    for fut in futures:
+                        fut.cancel()
+                    raise
         if centre_px is None:
             h, w = stack.shape
             prov["centre_px"] = [(w - 1) / 2.0, (h - 1) / 2.0]
@@ -350,12 +362,74 @@ def measure_mtf(source, *, channels=None, cfa: str | None = None, centre_px=None
             h, w = frames[0][2].shape[:2]
             prov["centre_px"] = [(w - 1) / 2.0, (h - 1) / 2.0]
     if dets:
+        # imported here, not at the top: the e-SFR workers (esfr_pool) never need scipy
+        from .esfr_focus import link_tracks
         tr = link_tracks(np.asarray(det_frame), np.array([d[0] for d in dets]), np.array([d[1] for d in dets]),
                          np.array([d[2] for d in dets]), np.asarray(det_z), max_shift_px=max_shift_px,
                          length_px=np.array([d[3] for d in dets]))
         for r in records:
             r["track"] = int(tr[r.pop("_det")])
     return MtfResult(grid, records, prov)
+
+
+#: a stack's frames are measured in worker processes (not threads) from this many frames and megapixels in all
+#: (:func:`_measure_in_processes`). The e-SFR costs ~0.27 s CPU per Mpx of a chart frame (0.55 s a 1080p frame);
+#: two threads run it ~1.2-1.4x faster than one, two processes ~1.9x, whose start-up costs ~0.25 s CPU of imports per
+#: worker and ~0.5-0.8 s wall to the first frame: processes pay from ~3 s of e-SFR CPU (~11 Mpx); 16 Mpx and 8
+#: frames (eight 1080p frames) keep a margin
+PROCESS_MIN_FRAMES = 8
+PROCESS_MIN_MPX = 16.0
+
+
+def _measure_in_processes(stack, order: list[int], workers: int, options: dict, add, quiet: bool) -> bool:
+    """Measure ``stack``'s frames (indices ``order``, by z) in ``workers`` processes, each reading its frames from
+    the stack folder; ``add`` takes each frame's result in ``order``, as the threads' path does. False (nothing
+    measured) when this system cannot make a process pool.
+
+    A frame's FieldcalError reaches the caller as it would from the thread path (its traceback in the worker is
+    dropped); an error or Ctrl-C cancels the frames not started and waits for the running ones (each well under
+    a second), so no worker process is left behind."""
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    from ..errors import ResourceError
+    from ..progress import progress
+    from . import esfr_pool
+
+    expect = [(f.file, float(f.z_um)) for f in stack.frames]
+    own_server = not esfr_pool.forkserver_running()
+    try:
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=esfr_pool.context(),
+                                   initializer=esfr_pool.init_worker,
+                                   initargs=(os.path.abspath(stack.path), expect, options))  # a server may
+        # have started in another working directory
+    except (OSError, ImportError, NotImplementedError):  # no semaphores here (no /dev/shm): the threads instead
+        return False
+    try:
+        try:
+            futures = [pool.submit(esfr_pool.measure_index, k) for k in order]  # starts the workers
+        except (OSError, ImportError, NotImplementedError):  # the forkserver cannot start here: the threads
+            pool.shutdown(wait=True, cancel_futures=True)
+            return False
+        try:
+            it = futures if quiet else progress(futures, total=len(order), desc="e-SFR", unit="frame")
+            for fut in it:
+                try:
+                    result = fut.result()
+                except FieldcalError as exc:
+                    raise exc from None  # the worker's own traceback says nothing the message does not
+                except BrokenProcessPool:
+                    raise ResourceError("an e-SFR worker process ended abruptly (killed, or out of memory)",
+                                        path=stack.path, fix="free memory and run the command again") from None
+                add(*result)
+        except BaseException:
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+        pool.shutdown(wait=True)
+        return True
+    finally:
+        if own_server and esfr_pool.forkserver_running():
+            esfr_pool.stop_forkserver()  # nothing of the pool outlives the call (the workers have exited)
 
 
 def _software() -> str:
