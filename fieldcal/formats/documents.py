@@ -153,9 +153,34 @@ _STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"', re.S)
 _NOT_BRACKET = re.compile(r"[^\[\]{}]+")
 
 
-def _max_depth(text: str) -> int:
-    """Deepest nesting of [] and {} outside strings (vectorised: a deep document is long)."""
-    brackets = _NOT_BRACKET.sub("", _STRING.sub("", text))
+_EXPONENT_3 = re.compile(r"[eE][+-]?\d{3}")
+#: a literal of 300 digits or more (or with a 3-digit exponent) may overflow a float or int(): such text is parsed
+#: with the checking hooks. Digit runs are looked for in aligned blocks of this many characters (2 * 150 - 1 < 300).
+_ALIGNED = 150
+
+
+def _may_overflow(bare: str) -> bool:
+    """Whether JSON text with its strings removed may hold a number the parser hooks would refuse: NaN/Infinity
+    (no other N or I is left outside strings), a 3-digit exponent or a long run of digits. False means a plain
+    float()/int() parse gives exactly what the hooks would (~0.7 s less for 5 M numbers; this test ~0.2 s)."""
+    if "N" in bare or "I" in bare:
+        return True
+    # every e/E outside strings belongs to true/false unless some number has an exponent
+    if bare.count("e") + bare.count("E") != bare.count("true") + bare.count("false") and \
+            _EXPONENT_3.search(bare):
+        return True
+    b = np.frombuffer(bare.encode("ascii", "replace"), dtype=np.uint8)
+    n = b.size // _ALIGNED * _ALIGNED
+    # a run of 2 * _ALIGNED - 1 digits fills at least one aligned block of _ALIGNED: any all-digit block is "may"
+    # (the tail past n is shorter than a block: a long run ending there fills the block before it)
+    digit = (b[:n] >= 48) & (b[:n] <= 57)
+    return bool(digit.reshape(-1, _ALIGNED).all(axis=1).any())
+
+
+def _max_depth(text: str, bare: str | None = None) -> int:
+    """Deepest nesting of [] and {} outside strings (vectorised: a deep document is long); ``bare`` is ``text``
+    without its strings, when known."""
+    brackets = _NOT_BRACKET.sub("", _STRING.sub("", text) if bare is None else bare)
     if not brackets:
         return 0
     b = np.frombuffer(brackets.encode("ascii"), dtype=np.uint8)
@@ -231,14 +256,18 @@ def loads(text: str, path: str | Path | None = None, *, where: str = "", error: 
         raise error(f"is {len(text)} characters long; fieldcal reads JSON documents up to "
                     f"{MAX_DOCUMENT_BYTES // 2**20} MiB", path=path, field=where or None,
                     fix="check that this is the right file")
-    depth = _max_depth(text)
+    bare = _STRING.sub("", text)
+    depth = _max_depth(text, bare)
     if depth > MAX_DEPTH:
         raise error(f"nests arrays/objects {depth} levels deep; fieldcal documents nest at most {MAX_DEPTH}",
                     path=path, field=where or None, fix="check that this is the right file; " + fix)
     try:
         hooks = _Hooks()
-        doc = json.loads(text, parse_int=hooks.parse_int, parse_float=hooks.parse_float,
-                         parse_constant=hooks.parse_constant, object_pairs_hook=hooks.pairs)
+        if _may_overflow(bare):
+            doc = json.loads(text, parse_int=hooks.parse_int, parse_float=hooks.parse_float,
+                             parse_constant=hooks.parse_constant, object_pairs_hook=hooks.pairs)
+        else:  # no number can overflow: the C parser's own float()/int() (NaN/Infinity cannot occur)
+            doc = json.loads(text, object_pairs_hook=hooks.pairs)
     except json.JSONDecodeError as exc:
         raise error(f"is not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", path=path,
                     field=where or None, fix=fix) from None
