@@ -457,7 +457,7 @@ def _type_test(types: list[str]):
     return ok
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _compiled(kind: str, pointer: str = ""):
     """The fast test of a kind's schema, or None when it uses a keyword the test does not know."""
     s = schema(kind)

@@ -87,7 +87,7 @@ class MtfResult:
         return cls._from_valid(d, path)
 
     @classmethod
-    def _from_valid(cls, d: dict, path=None) -> "MtfResult":
+    def _from_valid(cls, d: dict, path=None) -> MtfResult:
         f = np.asarray(d["frequencies_cy_per_px"], dtype=np.float64)
         for i, e in enumerate(d["edges"]):
             if len(e.get("mtf", [])) != f.size:
