@@ -97,3 +97,54 @@ def test_writers_produce_valid_documents(tmp_path):
     for f, kind in (("stack.json", "stack"), ("truth.json", "truth")):
         doc = json.loads((tmp_path / "S" / f).read_text())
         assert not list(Draft202012Validator(documents.schema(kind), registry=documents._registry()).iter_errors(doc))
+
+
+def _mtf_doc():
+    edge = {"frame": 0, "z_um": 1.5, "channel": "G", "x_px": 10.0, "y_px": 20, "angle_deg": 5.0,
+            "orientation": "tangential", "mtf": [1.0, 0.5, None], "mtf50_cy_per_px": 0.2, "quality": {"ok": True}}
+    return {"format": documents.format_id("mtf"), "frequencies_cy_per_px": [0.0, 0.5, 1.0],
+            "edges": [dict(edge), dict(edge, frame=None, z_um=None, mtf50_cy_per_px=None)], "provenance": {}}
+
+
+@pytest.mark.parametrize("path, value", [
+    (("edges", 1, "mtf", 2), True), (("edges", 1, "mtf", 0), "0.5"), (("edges", 0, "frame"), -1),
+    (("edges", 0, "frame"), 1.5), (("edges", 0, "frame"), 2.0), (("edges", 0, "frame"), True),
+    (("edges", 1, "orientation"), "radial"), (("edges", 1, "channel"), ""), (("edges", 0, "angle_deg"), 400),
+    (("edges", 0, "x_px"), None), (("frequencies_cy_per_px", 1), 11), (("frequencies_cy_per_px",), [0.1]),
+    (("edges", 0, "quality"), []), (("edges", 0, "mtf"), {}), (("edges", 0, "mtf", 1), 2.0**40),
+])
+def test_fast_validity_test_agrees_with_jsonschema(path, value):
+    """The compiled fast test says "valid" exactly when jsonschema does on these documents (it may only ever say
+    "not sure" more often), and an invalid document's message is jsonschema's."""
+    fast = documents._compiled("mtf")
+    assert fast is not None and fast(_mtf_doc())
+    doc = _mtf_doc()
+    node = doc
+    for k in path[:-1]:
+        node = node[k]
+    node[path[-1]] = value
+    ok = not list(documents._validator("mtf").iter_errors(doc))
+    assert fast(doc) == ok
+    if not ok:
+        with pytest.raises(documents.SpecError) as err:
+            documents.validate(doc, "mtf", "m.json")
+        assert "m.json" in str(err.value) and documents.json_path(path[:2]) in str(err.value)
+    missing = _mtf_doc()
+    del missing["edges"][1]["mtf"]
+    assert not fast(missing)
+
+
+@pytest.mark.parametrize("pad", range(0, 160, 7))
+@pytest.mark.parametrize("digits", [299, 300, 309, 450])
+def test_plain_parse_never_passes_an_overflowing_literal(pad, digits):
+    """Text parsed without the checking hooks (no long literal in it) gives what the hooks give: a long integer
+    anywhere in the text (at every alignment) is still refused with its own message."""
+    text = '{"a": "' + "x" * pad + '", "v": [0.5, ' + "9" * digits + "]}"
+    if digits > 308:
+        with pytest.raises(documents.SpecError, match=f"integer of {digits} digits"):
+            documents.loads(text)
+    else:
+        assert documents.loads(text)["v"][1] == int("9" * digits)
+    for lit in ("1e999", "-1E+400", "NaN", "-Infinity"):
+        with pytest.raises(documents.SpecError, match="overflows|not a JSON number"):
+            documents.loads(text.replace("0.5", lit))

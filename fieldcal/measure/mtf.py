@@ -77,13 +77,17 @@ class MtfResult:
     def load(cls, path) -> "MtfResult":
         from ..formats import documents
         path = Path(path)
-        d = documents.read(path, "mtf")
-        return cls.from_dict(d, path)
+        d = documents.read(path, "mtf")  # validated here: not again in from_dict
+        return cls._from_valid(d, path)
 
     @classmethod
     def from_dict(cls, d: dict, path=None) -> "MtfResult":
         from ..formats import documents
         documents.validate(d, "mtf", path)  # the schema checks types; the grid length is checked here
+        return cls._from_valid(d, path)
+
+    @classmethod
+    def _from_valid(cls, d: dict, path=None) -> MtfResult:
         f = np.asarray(d["frequencies_cy_per_px"], dtype=np.float64)
         for i, e in enumerate(d["edges"]):
             if len(e.get("mtf", [])) != f.size:
