@@ -116,24 +116,35 @@ def init_fit_worker() -> None:
 
 
 @contextlib.contextmanager
-def fit_pool(workers: int):
-    """A process pool of ``workers`` for the track fits (``None`` where none can be made here); on leaving, the
-    pool is shut down (the frames not started cancelled) and a forkserver it started is stopped."""
+def process_pool(workers: int, initializer, initargs: tuple = ()):
+    """A process pool of ``workers``, every worker started at once (a pool starts one per task waiting), or
+    ``None`` where none can be made here (no semaphores without /dev/shm, no forkserver). On leaving -- also on
+    an error or Ctrl-C -- the tasks not started are cancelled, the running ones waited for, and a forkserver the
+    pool started is stopped: nothing of the pool outlives the block."""
     from concurrent.futures import ProcessPoolExecutor
     own_server = not forkserver_running()
+    pool = None
     try:
-        pool = ProcessPoolExecutor(max_workers=workers, mp_context=context(), initializer=init_fit_worker)
-        for _ in range(workers):  # every worker starts now (a pool starts one per task waiting)
-            pool.submit(os.getpid)
-    except (OSError, ImportError, NotImplementedError):
-        yield None
-        return
-    try:
+        try:
+            pool = ProcessPoolExecutor(max_workers=workers, mp_context=context(), initializer=initializer,
+                                       initargs=initargs)
+            for _ in range(workers):
+                pool.submit(os.getpid)
+        except (OSError, ImportError, NotImplementedError):
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
+            pool = None
         yield pool
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
         if own_server and forkserver_running():
             stop_forkserver()
+
+
+def fit_pool(workers: int):
+    """The track fits' pool (:func:`process_pool` with :func:`init_fit_worker`)."""
+    return process_pool(workers, init_fit_worker)
 
 
 def init_worker(stack_path: str, expect: tuple, options: dict) -> None:

@@ -393,7 +393,6 @@ def _measure_in_processes(stack, order: list[int], workers: int, options: dict, 
     A frame's FieldcalError reaches the caller as it would from the thread path (its traceback in the worker is
     dropped); an error or Ctrl-C cancels the frames not started and waits for the running ones (each well under
     a second), so no worker process is left behind."""
-    from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
 
     from ..errors import ResourceError
@@ -401,39 +400,23 @@ def _measure_in_processes(stack, order: list[int], workers: int, options: dict, 
     from . import esfr_pool
 
     expect = [(f.file, float(f.z_um)) for f in stack.frames]
-    own_server = not esfr_pool.forkserver_running()
-    try:
-        pool = ProcessPoolExecutor(max_workers=workers, mp_context=esfr_pool.context(),
-                                   initializer=esfr_pool.init_worker,
-                                   initargs=(os.path.abspath(stack.path), expect, options))  # a server may
-        # have started in another working directory
-    except (OSError, ImportError, NotImplementedError):  # no semaphores here (no /dev/shm): the threads instead
-        return False
-    try:
-        try:
-            futures = [pool.submit(esfr_pool.measure_index, k) for k in order]  # starts the workers
-        except (OSError, ImportError, NotImplementedError):  # the forkserver cannot start here: the threads
-            pool.shutdown(wait=True, cancel_futures=True)
+    # the absolute path: a forkserver may have started in another working directory
+    with esfr_pool.process_pool(workers, esfr_pool.init_worker,
+                                (os.path.abspath(stack.path), expect, options)) as pool:
+        if pool is None:  # no process pool on this system: the threads instead
             return False
-        try:
-            it = futures if quiet else progress(futures, total=len(order), desc="e-SFR", unit="frame")
-            for fut in it:
-                try:
-                    result = fut.result()
-                except FieldcalError as exc:
-                    raise exc from None  # the worker's own traceback says nothing the message does not
-                except BrokenProcessPool:
-                    raise ResourceError("an e-SFR worker process ended abruptly (killed, or out of memory)",
-                                        path=stack.path, fix="free memory and run the command again") from None
-                add(*result)
-        except BaseException:
-            pool.shutdown(wait=True, cancel_futures=True)
-            raise
-        pool.shutdown(wait=True)
-        return True
-    finally:
-        if own_server and esfr_pool.forkserver_running():
-            esfr_pool.stop_forkserver()  # nothing of the pool outlives the call (the workers have exited)
+        futures = [pool.submit(esfr_pool.measure_index, k) for k in order]
+        it = futures if quiet else progress(futures, total=len(order), desc="e-SFR", unit="frame")
+        for fut in it:
+            try:
+                result = fut.result()
+            except FieldcalError as exc:
+                raise exc from None  # the worker's own traceback says nothing the message does not
+            except BrokenProcessPool:
+                raise ResourceError("an e-SFR worker process ended abruptly (killed, or out of memory)",
+                                    path=stack.path, fix="free memory and run the command again") from None
+            add(*result)
+    return True
 
 
 def _software() -> str:
