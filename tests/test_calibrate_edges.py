@@ -112,6 +112,25 @@ def test_blank_chart_is_refused(tmp_path, triplet_path):
     assert str(out.name) in msg
 
 
+def test_short_edge_stack_is_refused_without_numpy_warnings(tmp_path):
+    """Five frames 20 µm apart cannot put a peak inside most tracks: the refusal names the chart and the fix, and
+    the track diagnostics of channels whose tracks all lack a width spread or floor are recorded as missing, not
+    computed through NumPy's all-NaN warning (seen on a 5-frame 320 x 240 edge stack)."""
+    import warnings
+
+    import fieldcal
+
+    out = tmp_path / "stack"
+    simulate_stack(LensSpec.load(TRIPLET), out, z_grid(-40.0, 40.0, STEP_UM), scene="slanted-edge", seed=0,
+                   size=(320, 240), progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(FieldcalError) as e:
+            fieldcal.calibrate(out, effort="quick", fs_cyc_per_mm=13.0, quiet=True)
+    msg = str(e.value)
+    assert "slanted-edge" in msg and "too few edges" in msg and out.name in msg
+
+
 class _Widths:
     """A profile with a measured width of 20 µm everywhere, from the given measurement."""
 

@@ -129,6 +129,14 @@ def _edge_length_px(qual: dict) -> float:
     return float(rows) / math.cos(math.radians(float(slant)))
 
 
+def _finite_median(values: np.ndarray) -> float:
+    """Median of the finite entries; NaN (recorded as null) where there are none, without NumPy's warning: a
+    short stack's tracks may all lack a spread or floor (too few frames), and a diagnostic must not warn."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size else math.nan
+
+
 def _median_length_px(recs) -> float:
     v = [x for x in (_edge_length_px(e["quality"]) for e in recs if _usable(e)) if math.isfinite(x)]
     return float(np.median(v)) if v else math.nan
@@ -684,9 +692,9 @@ def edge_table(mtf, *, fs_cyc_per_mm: float, q: float, pixel_pitch_um: float, z_
                     "pair_px": float(pair_px)})
     # what each orientation's widths were freed of: median spread / width, floor / width, width read / δ
     summary["track_widths"] = {
-        str(o): {"spread_over_width": float(np.nanmedian(spread[sel] / w_read[sel])),
-                 "floor_over_width": float(np.nanmedian(floor[sel] / w_read[sel])),
-                 "width_ratio": float(np.nanmedian(w_read[sel] / width[sel]))}
+        str(o): {"spread_over_width": _finite_median(spread[sel] / w_read[sel]),
+                 "floor_over_width": _finite_median(floor[sel] / w_read[sel]),
+                 "width_ratio": _finite_median(w_read[sel] / width[sel])}
         for o in ("tangential", "sagittal", "unclear")
         for sel in [good_w & (tf["orientation"] == o)] if sel.any()}
     summary["track_widths"]["model"] = {k: getattr(widths_model, k).tolist() for k in (
