@@ -129,21 +129,67 @@ def _median_1d(x: np.ndarray) -> float:
     return float((p[:h].max() + p[h]) / 2.0)
 
 
+def _window_bounds(cen: np.ndarray, half: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """First and last index ``w`` in 0 .. n-1 with ``|w + 0.5 - cen| <= half`` (the Hamming window of
+    :func:`_row_centroids` over the differences), exactly as that test decides (one step either way where the
+    rounding of ``cen -+ half`` disagrees with it); ``(n, -1)`` where ``cen`` is not finite."""
+    fin = np.isfinite(cen)
+    c = np.where(fin, cen, 0.0)
+
+    def inside(w):
+        return np.abs((w + 0.5) - c) <= half
+
+    lo = np.ceil(c - half - 0.5)
+    lo -= inside(lo - 1.0)
+    lo += ~inside(lo)
+    hi = np.floor(c + half - 0.5)
+    hi += inside(hi + 1.0)
+    hi -= ~inside(hi)
+    lo = np.where(fin, np.clip(lo, 0, n), n).astype(np.int64)
+    hi = np.where(fin, np.clip(hi, -1, n - 1), -1).astype(np.int64)
+    return lo, hi
+
+
 def _row_centroids(d: np.ndarray, centre: np.ndarray, half: np.ndarray) -> np.ndarray:
-    """Centroid (column) of the signed row derivative ``d`` (B x R x W-1 x C) about ``centre`` (B x R x C),
-    Hamming-weighted within ``half`` (B,) of it."""
-    x = np.arange(d.shape[2], dtype=np.float64) + 0.5  # a first difference sits between two pixels
-    # Hamming weights without a cosine per element: cos(a - b) = cos a cos b + sin a sin b
-    ax, ac = np.pi * x[None, :] / half[:, None], np.pi * centre / half[:, None, None]
-    w = np.cos(ax)[:, None, :, None] * np.cos(ac)[:, :, None, :]
-    w += np.sin(ax)[:, None, :, None] * np.sin(ac)[:, :, None, :]
-    w *= 0.46
-    w += 0.54
-    w *= d
-    w *= np.abs(x[None, None, :, None] - centre[:, :, None, :]) <= half[:, None, None, None]
-    sx = np.einsum("brwc,wk->brck", w, np.stack([np.ones_like(x), x], axis=1))  # sum and first moment at once
+    """Centroid (column) of the row derivative ``d`` (B x C x R x W-1, zero beyond each region's columns) about
+    ``centre`` (B x C x R), Hamming-weighted within ``half`` (B,) of it; NaN where ``centre`` is NaN or the
+    window holds no signal. The sign of ``d`` (one per region and channel) does not matter: it cancels.
+
+    The weights are separable, ``cos(a - b) = cos a cos b + sin a sin b``, so the windowed sum and first moment
+    are six sums per row against per-column functions of ``x`` (one batched matrix product) combined with
+    per-row cosines and sines: no weight per element. Columns inside every row's window enter the product
+    whole; only the bands at either end where some rows' windows stop are masked.
+    """
+    B, C, R, Wd = d.shape
+    x = np.arange(Wd, dtype=np.float64) + 0.5  # a first difference sits between two pixels
+    h = half[:, None, None]
+    lo, hi = _window_bounds(centre, h, Wd)
+    # rows without a finite centre are NaN whatever their window: leave them out of the bands' extent
+    fin = lo <= hi
+    k0 = int(lo.max(initial=0, where=fin))  # columns k0 .. k1-1 are inside every (finite) row's window
+    k1 = int(hi.min(initial=Wd - 1, where=fin)) + 1
+    if k1 <= k0:
+        k0 = k1 = Wd  # no common band: mask every column
+    ax = np.pi * x[None, :] / half[:, None]
+    ca, sa = np.cos(ax), np.sin(ax)
+    xb = np.broadcast_to(x, ca.shape)
+    basis = np.stack([np.ones_like(ca), xb, ca, xb * ca, sa, xb * sa], axis=2)  # B x W-1 x 6
+    dr = d.reshape(B, C * R, Wd)
+    s = np.matmul(dr[:, :, k0:k1], basis[:, k0:k1]) if k1 > k0 else np.zeros((B, C * R, 6))
+    wi = np.arange(Wd)
+    lo_r, hi_r = lo.reshape(B, C * R, 1), hi.reshape(B, C * R, 1)
+    for j0, j1 in ((0, k0), (k1, Wd)):
+        if j1 > j0:
+            w = wi[j0:j1]
+            m = (w >= lo_r) & (w <= hi_r)
+            s += np.matmul(np.where(m, dr[:, :, j0:j1], 0.0), basis[:, j0:j1])
+    s = s.reshape(B, C, R, 6)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return sx[..., 1] / sx[..., 0]
+        ac = np.pi * centre / h
+        cc, sc = np.cos(ac), np.sin(ac)
+        s0 = 0.54 * s[..., 0] + 0.46 * (cc * s[..., 2] + sc * s[..., 4])
+        s1 = 0.54 * s[..., 1] + 0.46 * (cc * s[..., 3] + sc * s[..., 5])
+        return s1 / s0
 
 
 def _solve(G: np.ndarray, rhs: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -307,33 +353,39 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     nrows = np.array([a.shape[0] for a in regions])
     ncols = np.array([a.shape[1] for a in regions])
     R, W = int(nrows.max()), int(ncols.max())
-    a = np.zeros((B, R, W, C))
+    # channels before rows: each (region, channel) plane contiguous, for the row sums and the binning
+    a = np.zeros((B, C, R, W))
     x0 = np.zeros((B, R))
     hw = np.empty(B)
     for b, (roi, xi, h) in enumerate(zip(regions, x_inits, half_widths)):
-        a[b, :roi.shape[0], :roi.shape[1]] = roi
+        a[b, :, :roi.shape[0], :roi.shape[1]] = np.moveaxis(roi, 2, 0)
         x0[b, :roi.shape[0]] = (roi.shape[1] - 1) / 2.0 if xi is None else np.asarray(xi, dtype=np.float64)
         hw[b] = float(h) if h else roi.shape[1] / 2.0
     rows = np.arange(R)
     row_ok = rows[None, :] < nrows[:, None]
     col_ok = np.arange(W)[None, :] < ncols[:, None]
-    centre0 = np.repeat(x0[:, :, None], C, axis=2)
+    # rows outside a region get no centroid (NaN, as 0/0 of their zero derivative would give)
+    centre0 = np.repeat(np.where(row_ok, x0, np.nan)[:, :, None], C, axis=2)
 
     # 1-2. Row centroids of the derivative (positive at the edge whichever way the step goes), line fit, again.
     k5 = np.maximum(1, ncols // 5)
-    cs = np.concatenate([np.zeros((B, 1, C)), np.cumsum(a.sum(axis=1), axis=1)], axis=1)  # column sums, cumulated
+    cs = np.concatenate([np.zeros((B, C, 1)), np.cumsum(a.sum(axis=2), axis=2)], axis=2)  # column sums, cumulated
     bi = np.arange(B)
-    first = cs[bi, k5] / (nrows * k5)[:, None]
-    last = (cs[bi, ncols] - cs[bi, ncols - k5]) / (nrows * k5)[:, None]
+    first = cs[bi, :, k5] / (nrows * k5)[:, None]
+    last = (cs[bi, :, ncols] - cs[bi, :, ncols - k5]) / (nrows * k5)[:, None]
     sign = np.sign(last - first)
     sign[sign == 0] = 1.0
-    d = np.diff(a, axis=2) * sign[:, None, None, :]
-    d *= (np.arange(W - 1)[None, :] < (ncols - 1)[:, None])[:, None, :, None]  # not across the padding
-    centre, _, _ = _fit_edge(_row_centroids(d, centre0, hw), row_ok, nrows, 1)
+    d = np.diff(a, axis=3)  # B x C x R x W-1; its sign per region and channel cancels in the centroids
+    for b in np.flatnonzero(ncols < W):
+        d[b, :, :, ncols[b] - 1:] = 0.0  # not across the padding
+    cen = _row_centroids(d, np.moveaxis(centre0, 2, 1), hw)
+    centre, _, _ = _fit_edge(np.moveaxis(cen, 1, 2), row_ok, nrows, 1)
     lost = ~np.where(row_ok[:, :, None], np.isfinite(centre), True).all(axis=(1, 2))
     centre[lost] = centre0[lost]
-    x_edge, slope_r, edge_rms = _fit_edge(_row_centroids(d, centre, hw), row_ok, nrows, poly_degree)
-    del d
+    centre[~row_ok] = np.nan
+    cen = _row_centroids(d, np.moveaxis(centre, 2, 1), hw)
+    x_edge, slope_r, edge_rms = _fit_edge(np.moveaxis(cen, 1, 2), row_ok, nrows, poly_degree)
+    del d, cen
 
     # 3. Whole phase cycles: rows * |slope| an integer (mean slope over channels), centred in the ROI.
     r0 = np.zeros(B, dtype=np.int64)
@@ -357,7 +409,7 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     NB = int(nb.max())
     delta = 1.0 / oversample  # bin width along the normal (px)
     cols = np.arange(W, dtype=np.float64)
-    vals = np.moveaxis(a, 3, 1)  # B x C x R x W
+    vals = a  # B x C x R x W
     fit_ok = np.where(row_use[:, :, None], np.isfinite(x_edge), True).all(axis=1)  # B x C
     xe = np.moveaxis(np.where(np.isfinite(x_edge), x_edge, 0.0), 2, 1)  # B x C x R
     ct = 1.0 / np.sqrt(1.0 + np.moveaxis(np.where(np.isfinite(slope_r), slope_r, 0.0), 2, 1) ** 2)
@@ -380,8 +432,8 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     # sub-0.01 px change of the fitted line (a breathing warp, noise): MTF(fs) jumped by 0.013 at 0.25 cy/px
     bin_pos = np.bincount(gid, weights=t_used, minlength=B * C * NB).reshape(B * C, NB)
     n_used = use.sum(axis=(2, 3)).ravel()
-    clip_rows = (((a >= 0.995 * white) | (a <= 0.0)) & col_ok[:, None, :, None]).sum(axis=2)  # B x R x C
-    clipped = ((clip_rows * row_use[:, :, None]).sum(axis=1) / (Ru * ncols)[:, None]).ravel()  # B*C
+    clip_rows = (((a >= 0.995 * white) | (a <= 0.0)) & col_ok[:, None, None, :]).sum(axis=3)  # B x C x R
+    clipped = ((clip_rows * row_use[:, None, :]).sum(axis=2) / (Ru * ncols)[:, None]).ravel()  # B*C
     del use
 
     # per (region, channel) rows from here on
