@@ -220,8 +220,10 @@ def _fit_edge(cen: np.ndarray, row_ok: np.ndarray, nrows: np.ndarray, degree: in
     A = t[:, :, None] ** powers
     cz = np.where(good[:, :, None], cen, 0.0)
     Ag = A * good[:, :, None]
-    coef = _solve(np.einsum("brp,brq->bpq", Ag, A), np.einsum("brp,brc->bpc", Ag, cz), n_good >= degree + 2)
-    res = cen - np.einsum("brp,bpc->brc", A, coef)
+    # matmul rather than einsum: these products are tiny (p = degree + 1), where einsum's per-call cost dominates
+    AgT = np.swapaxes(Ag, 1, 2)
+    coef = _solve(AgT @ A, AgT @ cz, n_good >= degree + 2)
+    res = cen - A @ coef
     g3 = np.broadcast_to(good[:, :, None], res.shape)
     med = _masked_median(res, g3)
     mad = 1.4826 * _masked_median(np.abs(res - med[:, None, :]), g3)
@@ -231,18 +233,19 @@ def _fit_edge(cen: np.ndarray, row_ok: np.ndarray, nrows: np.ndarray, degree: in
     refit = (n_keep >= degree + 2) & (n_keep < n_good[:, None])
     if refit.any():
         kz = keep.astype(np.float64)
-        Gk = np.einsum("brp,brc,brq->bcpq", A, kz, A)
-        rk = np.einsum("brp,brc->bcp", A, np.where(keep, cen, 0.0))
+        AkT = np.swapaxes(A, 1, 2)[:, None, :, :] * np.swapaxes(kz, 1, 2)[:, :, None, :]  # B x C x p x R
+        Gk = AkT @ A[:, None, :, :]
+        rk = np.swapaxes(np.swapaxes(A, 1, 2) @ np.where(keep, cen, 0.0), 1, 2)  # B x C x p
         ck = _solve(Gk, rk[..., None], refit)[..., 0]  # B x C x p
         coef = np.where(refit[:, None, :], np.swapaxes(ck, 1, 2), coef)
-        res = cen - np.einsum("brp,bpc->brc", A, coef)
+        res = cen - A @ coef
     with np.errstate(invalid="ignore", divide="ignore"):
         rms = np.where(n_keep > 0, np.sqrt(np.where(keep, res * res, 0.0).sum(axis=1) / n_keep), np.nan)
     dA = np.zeros_like(A)
     if degree:
         p = powers[:degree]  # derivative of sum c_j t^p_j
         dA[:, :, :degree] = p * t[:, :, None] ** (p - 1)
-    return (np.einsum("brp,bpc->brc", A, coef), np.einsum("brp,bpc->brc", dA, coef) / scale[:, None, None], rms)
+    return A @ coef, (dA @ coef) / scale[:, None, None], rms
 
 
 def _check_options(poly_degree: int, oversample: int) -> None:
@@ -388,18 +391,17 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     del d, cen
 
     # 3. Whole phase cycles: rows * |slope| an integer (mean slope over channels), centred in the ROI.
-    r0 = np.zeros(B, dtype=np.int64)
-    r1 = nrows.copy()
-    for b in range(B):
-        Rb = int(nrows[b])
-        sm = slope_r[b, Rb // 2]
-        slope0 = float(np.nanmean(sm)) if np.isfinite(sm).any() else math.nan
-        if np.isfinite(slope0) and abs(slope0) > 1e-6:
-            cycles = math.floor(Rb * abs(slope0))
-            if cycles >= 1:
-                n = min(Rb, int(math.ceil(cycles / abs(slope0) - 1e-9)))
-                r0[b] = (Rb - n) // 2
-                r1[b] = r0[b] + n
+    sm = slope_r[bi, nrows // 2]  # B x C
+    has = np.isfinite(sm).any(axis=1)
+    known = ~np.isnan(sm)
+    with np.errstate(invalid="ignore", divide="ignore"):  # np.nanmean over the channels, as its sum and count
+        slope0 = np.where(has, np.where(known, sm, 0.0).sum(axis=1) / known.sum(axis=1), np.nan)
+        s_abs = np.abs(slope0)
+        cycles = np.floor(nrows * s_abs)
+        trim = has & (s_abs > 1e-6) & (cycles >= 1)
+        n = np.minimum(nrows, np.ceil(np.where(trim, cycles / s_abs, 0.0) - 1e-9).astype(np.int64))
+    r0 = np.where(trim, (nrows - n) // 2, 0)
+    r1 = np.where(trim, r0 + n, nrows)
     Ru = r1 - r0
     row_use = (rows[None, :] >= r0[:, None]) & (rows[None, :] < r1[:, None])
 
