@@ -56,12 +56,18 @@ def dark_mask(img: np.ndarray) -> np.ndarray:
     return cv2.morphologyEx(cv2.morphologyEx(mask, cv2.MORPH_OPEN, k), cv2.MORPH_CLOSE, k)
 
 
-def _row_changes(mask_v: np.ndarray) -> np.ndarray:
-    """Where ``mask_v`` changes along its rows: the sorted flat indices ``r * W + c`` (c in 1 .. W-1) of every
-    pixel that differs from its left neighbour (a few per row on a chart: the boundaries, not the pixels)."""
-    H, W = mask_v.shape
-    r, c = np.nonzero(mask_v[:, 1:] != mask_v[:, :-1])
-    return r * W + (c + 1)
+def _row_changes(mask: np.ndarray, transposed: bool = False) -> np.ndarray:
+    """Where the scan lines of ``mask`` (its rows, or its columns when ``transposed``: the rows of ``mask.T``)
+    change: the sorted flat indices ``r * W + c`` in that row-major frame (c in 1 .. W-1) of every pixel that
+    differs from its predecessor on the line (a few per line on a chart: the boundaries, not the pixels).
+    Both from a contiguous difference of ``mask`` (a difference along the transposed view cost ~8x)."""
+    H, W = mask.shape
+    if not transposed:
+        f = np.flatnonzero(mask[:, 1:] != mask[:, :-1])  # flat index in the H x (W-1) difference
+        return f + f // (W - 1) + 1
+    f = np.flatnonzero(mask[1:] != mask[:-1])  # change between rows r and r+1 at column c: f = r * W + c
+    r, c = np.divmod(f, W)
+    return np.sort(c * H + (r + 1))
 
 
 def _free_distance(changes: np.ndarray, W: int, rows: np.ndarray, xs: np.ndarray, reach: int) -> float:
@@ -180,7 +186,7 @@ def find_edges(img: np.ndarray, *, min_length_px: float = 12.0, max_length_px: f
             p_hi = np.array([x0, y0]) + d * max(s_lo, s_hi)
             vertical = abs(d[1]) > abs(d[0])
             if vertical not in changes:
-                changes[vertical] = _row_changes(mask if vertical else mask.T)
+                changes[vertical] = _row_changes(mask, transposed=not vertical)
             for q0, q1 in _segments(p_lo, p_hi, max_length_px):
                 c = _candidate(q0, q1, vertical, changes[vertical], (H, W), max_half_width_px)
                 if c is not None and c.half_width_px >= min_half_width_px and c.length_px >= min_length_px:
