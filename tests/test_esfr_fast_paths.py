@@ -53,6 +53,8 @@ def test_row_centroids_equal_the_plain_weighted_centroid(seed):
     centre[0, 1, 3] = np.nan  # a row without a centre
     centre[2, :, 5] = 0.5 + 3.0  # window cut by the region's first column
     centre[3, 0, :4] = half[3] + 0.5  # |x - c| == half exactly at x = 0.5 (the window's inclusive end)
+    centre[4, 2, 7] = -40.0  # windows off the region on either side: no column, no centroid
+    centre[4, 1, 8] = W + 40.0
     got = E._row_centroids(d, centre, half)
     want = _centroids_plain(d, centre, half)
     assert np.array_equal(np.isnan(got), np.isnan(want))

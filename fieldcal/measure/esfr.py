@@ -164,7 +164,7 @@ def _row_centroids(d: np.ndarray, centre: np.ndarray, half: np.ndarray) -> np.nd
     x = np.arange(Wd, dtype=np.float64) + 0.5  # a first difference sits between two pixels
     h = half[:, None, None]
     lo, hi = _window_bounds(centre, h, Wd)
-    # rows without a finite centre are NaN whatever their window: leave them out of the bands' extent
+    # rows without a finite centre or without a column in their window are NaN: left out of the bands' extent
     fin = lo <= hi
     k0 = int(lo.max(initial=0, where=fin))  # columns k0 .. k1-1 are inside every (finite) row's window
     k1 = int(hi.min(initial=Wd - 1, where=fin)) + 1
@@ -177,19 +177,23 @@ def _row_centroids(d: np.ndarray, centre: np.ndarray, half: np.ndarray) -> np.nd
     dr = d.reshape(B, C * R, Wd)
     s = np.matmul(dr[:, :, k0:k1], basis[:, k0:k1]) if k1 > k0 else np.zeros((B, C * R, 6))
     wi = np.arange(Wd)
-    lo_r, hi_r = lo.reshape(B, C * R, 1), hi.reshape(B, C * R, 1)
-    for j0, j1 in ((0, k0), (k1, Wd)):
-        if j1 > j0:
-            w = wi[j0:j1]
-            m = (w >= lo_r) & (w <= hi_r)
-            s += np.matmul(np.where(m, dr[:, :, j0:j1], 0.0), basis[:, j0:j1])
+    if k0 == Wd:
+        m = (wi >= lo.reshape(B, C * R, 1)) & (wi <= hi.reshape(B, C * R, 1))
+        s += np.matmul(np.where(m, dr, 0.0), basis)
+    else:  # k0 <= hi and lo <= k1 - 1 on every finite row: one bound per band (a row without a centre has none)
+        if k0 > 0:
+            s += np.matmul(np.where(wi[:k0] >= lo.reshape(B, C * R, 1), dr[:, :, :k0], 0.0), basis[:, :k0])
+        if k1 < Wd:
+            s += np.matmul(np.where(wi[k1:] <= hi.reshape(B, C * R, 1), dr[:, :, k1:], 0.0), basis[:, k1:])
     s = s.reshape(B, C, R, 6)
     with np.errstate(invalid="ignore", divide="ignore"):
         ac = np.pi * centre / h
         cc, sc = np.cos(ac), np.sin(ac)
         s0 = 0.54 * s[..., 0] + 0.46 * (cc * s[..., 2] + sc * s[..., 4])
         s1 = 0.54 * s[..., 1] + 0.46 * (cc * s[..., 3] + sc * s[..., 5])
-        return s1 / s0
+        out = s1 / s0
+    out[~fin] = np.nan  # no column in the window (a centre off the region, or none): 0 / 0
+    return out
 
 
 def _solve(G: np.ndarray, rhs: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -217,7 +221,10 @@ def _fit_edge(cen: np.ndarray, row_ok: np.ndarray, nrows: np.ndarray, degree: in
     scale = np.maximum(np.sqrt((nrows.astype(np.float64) ** 2 - 1.0) / 12.0), 1.0)
     t = np.where(row_ok, (np.arange(R)[None, :] - shift[:, None]) / scale[:, None], 0.0)
     powers = np.arange(degree, -1, -1)  # columns t^deg .. t^0, as np.vander
-    A = t[:, :, None] ** powers
+    tp = [np.ones_like(t), t]  # t^k by products (a float power per element cost as much as the fit)
+    for _ in range(degree - 1):
+        tp.append(tp[-1] * t)
+    A = np.stack(tp[degree::-1], axis=2)
     cz = np.where(good[:, :, None], cen, 0.0)
     Ag = A * good[:, :, None]
     # matmul rather than einsum: these products are tiny (p = degree + 1), where einsum's per-call cost dominates
@@ -243,8 +250,8 @@ def _fit_edge(cen: np.ndarray, row_ok: np.ndarray, nrows: np.ndarray, degree: in
         rms = np.where(n_keep > 0, np.sqrt(np.where(keep, res * res, 0.0).sum(axis=1) / n_keep), np.nan)
     dA = np.zeros_like(A)
     if degree:
-        p = powers[:degree]  # derivative of sum c_j t^p_j
-        dA[:, :, :degree] = p * t[:, :, None] ** (p - 1)
+        for j, p in enumerate(powers[:degree]):  # derivative of sum c_j t^p_j
+            dA[:, :, j] = p * tp[p - 1]
     return A @ coef, (dA @ coef) / scale[:, None, None], rms
 
 
