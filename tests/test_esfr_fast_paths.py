@@ -111,3 +111,17 @@ def test_row_changes_are_the_boundaries():
     assert D._row_changes(mask).tolist() == [2, 4, 5 * 2 + 1, 5 * 2 + 2, 5 * 2 + 3, 5 * 2 + 4]
     # columns of mask as rows (length 3): column 0 = 0,1,0; 1 = 0,1,1; 2 = 1,1,0; 3 = 1,1,1; 4 = 0,1,0
     assert D._row_changes(mask, transposed=True).tolist() == [1, 2, 3 + 1, 6 + 2, 12 + 1, 12 + 2]
+
+
+def test_median_in_place_equals_np_median():
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 10, 11, 500, 501):
+        x = rng.standard_normal(n)
+        want = float(np.median(x))
+        y = x.copy()
+        assert E._median_1d(y, in_place=True) == want
+        assert sorted(y.tolist()) == sorted(x.tolist())  # reordered, not changed
+        # the noise estimate's MAD, in place, equals the plain one
+        r = x.copy()
+        r -= E._median_1d(r, in_place=True)
+        assert E._median_1d(np.abs(r, out=r), in_place=True) == float(np.median(np.abs(x - np.median(x))))

@@ -118,11 +118,16 @@ def _masked_median(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.where(n > 0, (lo + hi) / 2.0, np.nan)
 
 
-def _median_1d(x: np.ndarray) -> float:
-    """np.median of a 1-D array without its wrapper's overhead (it runs once per edge and channel)."""
+def _median_1d(x: np.ndarray, in_place: bool = False) -> float:
+    """np.median of a 1-D array without its wrapper's overhead (it runs once per edge and channel);
+    ``in_place``: reorder ``x`` itself (no copy)."""
     n = x.size
     h = n // 2
-    p = np.partition(x, h)
+    if in_place:
+        x.partition(h)
+        p = x
+    else:
+        p = np.partition(x, h)
     if n % 2:
         return float(p[h])
     # the lower middle value is the largest of the h below p[h] (one selection, not two: the same values)
@@ -541,8 +546,9 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     starts = np.concatenate([[0], np.cumsum(n_used)])
     noise = np.full(B * C, np.nan)
     for g in np.flatnonzero(ok & (n_used > 0)):
-        r_ = resid[starts[g]:starts[g + 1]]
-        noise[g] = 1.4826 * _median_1d(np.abs(r_ - _median_1d(r_)))
+        r_ = resid[starts[g]:starts[g + 1]]  # reordered and overwritten in place: the group's |r - median|
+        r_ -= _median_1d(r_, in_place=True)
+        noise[g] = 1.4826 * _median_1d(np.abs(r_, out=r_), in_place=True)
     kt = np.maximum(1, (0.15 * n).astype(np.int64))
     cl = np.concatenate([np.zeros((B * C, 1)), np.cumsum(lsf, axis=1)], axis=1)
     lsum = cl[rbc, n]
