@@ -21,7 +21,7 @@ The core works on a near-vertical edge (each row crosses the edge once); callers
 regions (:func:`esfr_roi` does this when ``vertical=False``). It runs on a batch of regions at once
 (:func:`esfr_regions`: every edge of a frame in one pass of array operations, regions zero-padded and masked);
 :func:`esfr_roi` and :func:`esfr_vertical` are a batch of one, so a region's result does not depend on its
-batch.
+batch (beyond float rounding: the row centroids' matrix products group a batch's columns alike).
 """
 
 from __future__ import annotations
