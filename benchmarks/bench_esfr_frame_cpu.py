@@ -6,7 +6,7 @@
 then ``--compare``: the largest |difference| of every per-edge output (raw MTF, MTF50, position, angle, each
 quality figure) and of the stored 5-decimal MTF records, with the edges and their quality reasons required equal.
 
-    cd /tmp && PYTHONPATH=/path/to/tree python /path/to/tree/benchmarks/bench_esfr_frame_cpu.py STACK --frames 0,20,40 --dump a.pkl
+    cd /tmp && PYTHONPATH=TREE python TREE/benchmarks/bench_esfr_frame_cpu.py STACK --frames 0,20,40 --dump a.pkl
     python benchmarks/bench_esfr_frame_cpu.py --compare a.pkl b.pkl
 """
 
