@@ -125,3 +125,25 @@ def test_median_in_place_equals_np_median():
         r = x.copy()
         r -= E._median_1d(r, in_place=True)
         assert E._median_1d(np.abs(r, out=r), in_place=True) == float(np.median(np.abs(x - np.median(x))))
+
+
+def test_kept_esf_is_the_blurred_step_on_the_regions_own_bins():
+    """keep_esf=True (the binned ESF is put back on the region's bins only then): a Gaussian-blurred edge's ESF,
+    bin j at (j - nb_half + 1/2) / oversample px along the normal, is 0.2 + 0.6 Phi(s / sigma), sigma^2 the blur's
+    plus the pixel box's 1/12 px^2."""
+    from math import erf, sqrt
+
+    from fieldcal.measure.esfr_synth import render_edge
+    sigma_px, hw, over = 0.8, 20, 4
+    r = E.esfr_roi(render_edge(96, 64, normal_deg=5.0, sigma_px=sigma_px), half_width_px=hw, keep_esf=True)
+    assert r.quality[0].ok
+    nb_half = int(np.ceil(hw * over)) + 2
+    assert r.esf.shape == (1, 2 * nb_half)
+    j = np.arange(2 * nb_half)
+    s = (j - nb_half + 0.5) / over
+    want = 0.2 + 0.6 * 0.5 * (1 + np.vectorize(erf)(s / sqrt(2 * (sigma_px ** 2 + 1 / 12))))
+    esf = r.esf[0]
+    ok = np.isfinite(esf)
+    assert ok[nb_half - 40:nb_half + 40].all()  # +-10 px about the edge binned
+    assert np.max(np.abs(esf[ok] - want[ok])) < 0.01
+    assert E.esfr_roi(render_edge(96, 64, normal_deg=5.0, sigma_px=sigma_px), half_width_px=hw).esf is None

@@ -373,7 +373,7 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     x0 = np.zeros((B, R))
     hw = np.empty(B)
     for b, (roi, xi, h) in enumerate(zip(regions, x_inits, half_widths)):
-        a[b, :, :roi.shape[0], :roi.shape[1]] = np.moveaxis(roi, 2, 0)
+        np.copyto(a[b, :, :roi.shape[0], :roi.shape[1]], roi.transpose(2, 0, 1))  # (cheaper than a[...] =)
         x0[b, :roi.shape[0]] = (roi.shape[1] - 1) / 2.0 if xi is None else np.asarray(xi, dtype=np.float64)
         hw[b] = float(h) if h else roi.shape[1] / 2.0
     rows = np.arange(R)
@@ -485,8 +485,9 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
         E[hr, hc] = (eq - ep) / (q - p) * (hc - p) + ep
     E = np.where(inner, E, 0.0)
     esf_out = np.full((B * C, NB), np.nan)
-    rr, jr = np.nonzero(inner)
-    esf_out[rr, src[rr, jr]] = E[rr, jr]
+    if keep_esf:  # the binned ESF back on each region's own bins (only kept on request)
+        rr, jr = np.nonzero(inner)
+        esf_out[rr, src[rr, jr]] = E[rr, jr]
 
     # 5. LSF, Hamming window centred on its centroid, |FFT| normalised at DC.
     sgn = sign.ravel()  # B*C, region-major like the rows
