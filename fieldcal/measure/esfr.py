@@ -21,7 +21,7 @@ The core works on a near-vertical edge (each row crosses the edge once); callers
 regions (:func:`esfr_roi` does this when ``vertical=False``). It runs on a batch of regions at once
 (:func:`esfr_regions`: every edge of a frame in one pass of array operations, regions zero-padded and masked);
 :func:`esfr_roi` and :func:`esfr_vertical` are a batch of one, so a region's result does not depend on its
-batch.
+batch (beyond float rounding: the row centroids' matrix products group a batch's columns alike).
 """
 
 from __future__ import annotations
@@ -118,32 +118,87 @@ def _masked_median(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.where(n > 0, (lo + hi) / 2.0, np.nan)
 
 
-def _median_1d(x: np.ndarray) -> float:
-    """np.median of a 1-D array without its wrapper's overhead (it runs once per edge and channel)."""
+def _median_1d(x: np.ndarray, in_place: bool = False) -> float:
+    """np.median of a 1-D array without its wrapper's overhead (it runs once per edge and channel);
+    ``in_place``: reorder ``x`` itself (no copy)."""
     n = x.size
     h = n // 2
-    p = np.partition(x, h)
+    if in_place:
+        x.partition(h)
+        p = x
+    else:
+        p = np.partition(x, h)
     if n % 2:
         return float(p[h])
     # the lower middle value is the largest of the h below p[h] (one selection, not two: the same values)
     return float((p[:h].max() + p[h]) / 2.0)
 
 
+def _window_bounds(cen: np.ndarray, half: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """First and last index ``w`` in 0 .. n-1 with ``|w + 0.5 - cen| <= half`` (the Hamming window of
+    :func:`_row_centroids` over the differences), exactly as that test decides (one step either way where the
+    rounding of ``cen -+ half`` disagrees with it); ``(n, -1)`` where ``cen`` is not finite."""
+    fin = np.isfinite(cen)
+    c = np.where(fin, cen, 0.0)
+
+    def inside(w):
+        return np.abs((w + 0.5) - c) <= half
+
+    lo = np.ceil(c - half - 0.5)
+    lo -= inside(lo - 1.0)
+    lo += ~inside(lo)
+    hi = np.floor(c + half - 0.5)
+    hi += inside(hi + 1.0)
+    hi -= ~inside(hi)
+    lo = np.where(fin, np.clip(lo, 0, n), n).astype(np.int64)
+    hi = np.where(fin, np.clip(hi, -1, n - 1), -1).astype(np.int64)
+    return lo, hi
+
+
 def _row_centroids(d: np.ndarray, centre: np.ndarray, half: np.ndarray) -> np.ndarray:
-    """Centroid (column) of the signed row derivative ``d`` (B x R x W-1 x C) about ``centre`` (B x R x C),
-    Hamming-weighted within ``half`` (B,) of it."""
-    x = np.arange(d.shape[2], dtype=np.float64) + 0.5  # a first difference sits between two pixels
-    # Hamming weights without a cosine per element: cos(a - b) = cos a cos b + sin a sin b
-    ax, ac = np.pi * x[None, :] / half[:, None], np.pi * centre / half[:, None, None]
-    w = np.cos(ax)[:, None, :, None] * np.cos(ac)[:, :, None, :]
-    w += np.sin(ax)[:, None, :, None] * np.sin(ac)[:, :, None, :]
-    w *= 0.46
-    w += 0.54
-    w *= d
-    w *= np.abs(x[None, None, :, None] - centre[:, :, None, :]) <= half[:, None, None, None]
-    sx = np.einsum("brwc,wk->brck", w, np.stack([np.ones_like(x), x], axis=1))  # sum and first moment at once
+    """Centroid (column) of the row derivative ``d`` (B x C x R x W-1, zero beyond each region's columns) about
+    ``centre`` (B x C x R), Hamming-weighted within ``half`` (B,) of it; NaN where ``centre`` is NaN or the
+    window holds no signal. The sign of ``d`` (one per region and channel) does not matter: it cancels.
+
+    The weights are separable, ``cos(a - b) = cos a cos b + sin a sin b``, so the windowed sum and first moment
+    are six sums per row against per-column functions of ``x`` (one batched matrix product) combined with
+    per-row cosines and sines: no weight per element. Columns inside every row's window enter the product
+    whole; only the bands at either end where some rows' windows stop are masked.
+    """
+    B, C, R, Wd = d.shape
+    x = np.arange(Wd, dtype=np.float64) + 0.5  # a first difference sits between two pixels
+    h = half[:, None, None]
+    lo, hi = _window_bounds(centre, h, Wd)
+    # rows without a finite centre or without a column in their window are NaN: left out of the bands' extent
+    fin = lo <= hi
+    k0 = int(lo.max(initial=0, where=fin))  # columns k0 .. k1-1 are inside every (finite) row's window
+    k1 = int(hi.min(initial=Wd - 1, where=fin)) + 1
+    if k1 <= k0:
+        k0 = k1 = Wd  # no common band: mask every column
+    ax = np.pi * x[None, :] / half[:, None]
+    ca, sa = np.cos(ax), np.sin(ax)
+    xb = np.broadcast_to(x, ca.shape)
+    basis = np.stack([np.ones_like(ca), xb, ca, xb * ca, sa, xb * sa], axis=2)  # B x W-1 x 6
+    dr = d.reshape(B, C * R, Wd)
+    s = np.matmul(dr[:, :, k0:k1], basis[:, k0:k1]) if k1 > k0 else np.zeros((B, C * R, 6))
+    wi = np.arange(Wd)
+    if k0 == Wd:
+        m = (wi >= lo.reshape(B, C * R, 1)) & (wi <= hi.reshape(B, C * R, 1))
+        s += np.matmul(np.where(m, dr, 0.0), basis)
+    else:  # k0 <= hi and lo <= k1 - 1 on every finite row: one bound per band (a row without a centre has none)
+        if k0 > 0:
+            s += np.matmul(np.where(wi[:k0] >= lo.reshape(B, C * R, 1), dr[:, :, :k0], 0.0), basis[:, :k0])
+        if k1 < Wd:
+            s += np.matmul(np.where(wi[k1:] <= hi.reshape(B, C * R, 1), dr[:, :, k1:], 0.0), basis[:, k1:])
+    s = s.reshape(B, C, R, 6)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return sx[..., 1] / sx[..., 0]
+        ac = np.pi * centre / h
+        cc, sc = np.cos(ac), np.sin(ac)
+        s0 = 0.54 * s[..., 0] + 0.46 * (cc * s[..., 2] + sc * s[..., 4])
+        s1 = 0.54 * s[..., 1] + 0.46 * (cc * s[..., 3] + sc * s[..., 5])
+        out = s1 / s0
+    out[~fin] = np.nan  # no column in the window (a centre off the region, or none): 0 / 0
+    return out
 
 
 def _solve(G: np.ndarray, rhs: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -171,11 +226,16 @@ def _fit_edge(cen: np.ndarray, row_ok: np.ndarray, nrows: np.ndarray, degree: in
     scale = np.maximum(np.sqrt((nrows.astype(np.float64) ** 2 - 1.0) / 12.0), 1.0)
     t = np.where(row_ok, (np.arange(R)[None, :] - shift[:, None]) / scale[:, None], 0.0)
     powers = np.arange(degree, -1, -1)  # columns t^deg .. t^0, as np.vander
-    A = t[:, :, None] ** powers
+    tp = [np.ones_like(t), t]  # t^k by products (a float power per element cost as much as the fit)
+    for _ in range(degree - 1):
+        tp.append(tp[-1] * t)
+    A = np.stack(tp[degree::-1], axis=2)
     cz = np.where(good[:, :, None], cen, 0.0)
     Ag = A * good[:, :, None]
-    coef = _solve(np.einsum("brp,brq->bpq", Ag, A), np.einsum("brp,brc->bpc", Ag, cz), n_good >= degree + 2)
-    res = cen - np.einsum("brp,bpc->brc", A, coef)
+    # matmul rather than einsum: these products are tiny (p = degree + 1), where einsum's per-call cost dominates
+    AgT = np.swapaxes(Ag, 1, 2)
+    coef = _solve(AgT @ A, AgT @ cz, n_good >= degree + 2)
+    res = cen - A @ coef
     g3 = np.broadcast_to(good[:, :, None], res.shape)
     med = _masked_median(res, g3)
     mad = 1.4826 * _masked_median(np.abs(res - med[:, None, :]), g3)
@@ -185,18 +245,19 @@ def _fit_edge(cen: np.ndarray, row_ok: np.ndarray, nrows: np.ndarray, degree: in
     refit = (n_keep >= degree + 2) & (n_keep < n_good[:, None])
     if refit.any():
         kz = keep.astype(np.float64)
-        Gk = np.einsum("brp,brc,brq->bcpq", A, kz, A)
-        rk = np.einsum("brp,brc->bcp", A, np.where(keep, cen, 0.0))
+        AkT = np.swapaxes(A, 1, 2)[:, None, :, :] * np.swapaxes(kz, 1, 2)[:, :, None, :]  # B x C x p x R
+        Gk = AkT @ A[:, None, :, :]
+        rk = np.swapaxes(np.swapaxes(A, 1, 2) @ np.where(keep, cen, 0.0), 1, 2)  # B x C x p
         ck = _solve(Gk, rk[..., None], refit)[..., 0]  # B x C x p
         coef = np.where(refit[:, None, :], np.swapaxes(ck, 1, 2), coef)
-        res = cen - np.einsum("brp,bpc->brc", A, coef)
+        res = cen - A @ coef
     with np.errstate(invalid="ignore", divide="ignore"):
         rms = np.where(n_keep > 0, np.sqrt(np.where(keep, res * res, 0.0).sum(axis=1) / n_keep), np.nan)
     dA = np.zeros_like(A)
     if degree:
-        p = powers[:degree]  # derivative of sum c_j t^p_j
-        dA[:, :, :degree] = p * t[:, :, None] ** (p - 1)
-    return (np.einsum("brp,bpc->brc", A, coef), np.einsum("brp,bpc->brc", dA, coef) / scale[:, None, None], rms)
+        for j, p in enumerate(powers[:degree]):  # derivative of sum c_j t^p_j
+            dA[:, :, j] = p * tp[p - 1]
+    return A @ coef, (dA @ coef) / scale[:, None, None], rms
 
 
 def _check_options(poly_degree: int, oversample: int) -> None:
@@ -307,47 +368,52 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     nrows = np.array([a.shape[0] for a in regions])
     ncols = np.array([a.shape[1] for a in regions])
     R, W = int(nrows.max()), int(ncols.max())
-    a = np.zeros((B, R, W, C))
+    # channels before rows: each (region, channel) plane contiguous, for the row sums and the binning
+    a = np.zeros((B, C, R, W))
     x0 = np.zeros((B, R))
     hw = np.empty(B)
     for b, (roi, xi, h) in enumerate(zip(regions, x_inits, half_widths)):
-        a[b, :roi.shape[0], :roi.shape[1]] = roi
+        np.copyto(a[b, :, :roi.shape[0], :roi.shape[1]], roi.transpose(2, 0, 1))  # (cheaper than a[...] =)
         x0[b, :roi.shape[0]] = (roi.shape[1] - 1) / 2.0 if xi is None else np.asarray(xi, dtype=np.float64)
         hw[b] = float(h) if h else roi.shape[1] / 2.0
     rows = np.arange(R)
     row_ok = rows[None, :] < nrows[:, None]
     col_ok = np.arange(W)[None, :] < ncols[:, None]
-    centre0 = np.repeat(x0[:, :, None], C, axis=2)
+    # rows outside a region get no centroid (NaN, as 0/0 of their zero derivative would give)
+    centre0 = np.repeat(np.where(row_ok, x0, np.nan)[:, :, None], C, axis=2)
 
     # 1-2. Row centroids of the derivative (positive at the edge whichever way the step goes), line fit, again.
     k5 = np.maximum(1, ncols // 5)
-    cs = np.concatenate([np.zeros((B, 1, C)), np.cumsum(a.sum(axis=1), axis=1)], axis=1)  # column sums, cumulated
+    cs = np.concatenate([np.zeros((B, C, 1)), np.cumsum(a.sum(axis=2), axis=2)], axis=2)  # column sums, cumulated
     bi = np.arange(B)
-    first = cs[bi, k5] / (nrows * k5)[:, None]
-    last = (cs[bi, ncols] - cs[bi, ncols - k5]) / (nrows * k5)[:, None]
+    first = cs[bi, :, k5] / (nrows * k5)[:, None]
+    last = (cs[bi, :, ncols] - cs[bi, :, ncols - k5]) / (nrows * k5)[:, None]
     sign = np.sign(last - first)
     sign[sign == 0] = 1.0
-    d = np.diff(a, axis=2) * sign[:, None, None, :]
-    d *= (np.arange(W - 1)[None, :] < (ncols - 1)[:, None])[:, None, :, None]  # not across the padding
-    centre, _, _ = _fit_edge(_row_centroids(d, centre0, hw), row_ok, nrows, 1)
+    d = np.diff(a, axis=3)  # B x C x R x W-1; its sign per region and channel cancels in the centroids
+    for b in np.flatnonzero(ncols < W):
+        d[b, :, :, ncols[b] - 1:] = 0.0  # not across the padding
+    cen = _row_centroids(d, np.moveaxis(centre0, 2, 1), hw)
+    centre, _, _ = _fit_edge(np.moveaxis(cen, 1, 2), row_ok, nrows, 1)
     lost = ~np.where(row_ok[:, :, None], np.isfinite(centre), True).all(axis=(1, 2))
     centre[lost] = centre0[lost]
-    x_edge, slope_r, edge_rms = _fit_edge(_row_centroids(d, centre, hw), row_ok, nrows, poly_degree)
-    del d
+    centre[~row_ok] = np.nan
+    cen = _row_centroids(d, np.moveaxis(centre, 2, 1), hw)
+    x_edge, slope_r, edge_rms = _fit_edge(np.moveaxis(cen, 1, 2), row_ok, nrows, poly_degree)
+    del d, cen
 
     # 3. Whole phase cycles: rows * |slope| an integer (mean slope over channels), centred in the ROI.
-    r0 = np.zeros(B, dtype=np.int64)
-    r1 = nrows.copy()
-    for b in range(B):
-        Rb = int(nrows[b])
-        sm = slope_r[b, Rb // 2]
-        slope0 = float(np.nanmean(sm)) if np.isfinite(sm).any() else math.nan
-        if np.isfinite(slope0) and abs(slope0) > 1e-6:
-            cycles = math.floor(Rb * abs(slope0))
-            if cycles >= 1:
-                n = min(Rb, int(math.ceil(cycles / abs(slope0) - 1e-9)))
-                r0[b] = (Rb - n) // 2
-                r1[b] = r0[b] + n
+    sm = slope_r[bi, nrows // 2]  # B x C
+    has = np.isfinite(sm).any(axis=1)
+    known = ~np.isnan(sm)
+    with np.errstate(invalid="ignore", divide="ignore"):  # np.nanmean over the channels, as its sum and count
+        slope0 = np.where(has, np.where(known, sm, 0.0).sum(axis=1) / known.sum(axis=1), np.nan)
+        s_abs = np.abs(slope0)
+        cycles = np.floor(nrows * s_abs)
+        trim = has & (s_abs > 1e-6) & (cycles >= 1)
+        n = np.minimum(nrows, np.ceil(np.where(trim, cycles / s_abs, 0.0) - 1e-9).astype(np.int64))
+    r0 = np.where(trim, (nrows - n) // 2, 0)
+    r1 = np.where(trim, r0 + n, nrows)
     Ru = r1 - r0
     row_use = (rows[None, :] >= r0[:, None]) & (rows[None, :] < r1[:, None])
 
@@ -357,32 +423,36 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     NB = int(nb.max())
     delta = 1.0 / oversample  # bin width along the normal (px)
     cols = np.arange(W, dtype=np.float64)
-    vals = np.moveaxis(a, 3, 1)  # B x C x R x W
+    vals = a  # B x C x R x W
     fit_ok = np.where(row_use[:, :, None], np.isfinite(x_edge), True).all(axis=1)  # B x C
     xe = np.moveaxis(np.where(np.isfinite(x_edge), x_edge, 0.0), 2, 1)  # B x C x R
     ct = 1.0 / np.sqrt(1.0 + np.moveaxis(np.where(np.isfinite(slope_r), slope_r, 0.0), 2, 1) ** 2)
     dx = cols[None, None, None, :] - xe[:, :, :, None]  # B x C x R x W
-    tb = dx * ct[:, :, :, None] * oversample  # distance along the normal in bins
-    ib = np.floor(tb).astype(np.int64)
+    tb = dx * (ct * oversample)[:, :, :, None]  # distance along the normal in bins
+    ib = np.floor(tb)
     tb -= ib  # where in its bin each sample sits (0 .. 1)
-    ib += nb_half[:, None, None, None]
+    # the bin's index in the one bincount: region and channel's block of NB bins, the edge at nb_half
+    ib += (nb_half[:, None] + (np.arange(B * C) * NB).reshape(B, C)).astype(np.float64)[:, :, None, None]
     # |dx| <= hw puts the bin inside 0 .. nb - 1 (|distance along the normal| <= |dx|): no bounds test needed
     use = np.abs(dx) <= hw[:, None, None, None]
     use &= (fit_ok[:, :, None, None] & row_use[:, None, :, None]) & col_ok[:, None, None, :]
     del dx
-    ib += (np.arange(B * C) * NB).reshape(B, C, 1, 1)
-    gid, v_used, t_used = ib[use], vals[use], tb[use]  # in (region, channel) order: each group contiguous
-    del ib, tb
+    # in (region, channel) order: each group contiguous
+    gid, v_used, t_used = ib[use].astype(np.int64), vals[use], tb[use]
+    del ib, tb, use
     sums = np.bincount(gid, weights=v_used, minlength=B * C * NB).reshape(B * C, NB)
     counts = np.bincount(gid, minlength=B * C * NB).reshape(B * C, NB)
     # mean position of each bin's samples in the bin: with one phase cycle of rows a bin holds 2-3 phases, whose
     # mean sits up to ~1/8 bin off the bin's centre, and which bin a phase on a boundary falls in flips with any
     # sub-0.01 px change of the fitted line (a breathing warp, noise): MTF(fs) jumped by 0.013 at 0.25 cy/px
     bin_pos = np.bincount(gid, weights=t_used, minlength=B * C * NB).reshape(B * C, NB)
-    n_used = use.sum(axis=(2, 3)).ravel()
-    clip_rows = (((a >= 0.995 * white) | (a <= 0.0)) & col_ok[:, None, :, None]).sum(axis=2)  # B x R x C
-    clipped = ((clip_rows * row_use[:, :, None]).sum(axis=1) / (Ru * ncols)[:, None]).ravel()  # B*C
-    del use
+    n_used = counts.sum(axis=1)  # every used sample is in one of its group's bins
+    # clipped pixels per row; the zero padding beyond a region's columns counts as clipped (<= 0): taken off
+    clip = a >= 0.995 * white
+    clip |= a <= 0.0
+    clip_rows = np.count_nonzero(clip, axis=3) - (W - ncols)[:, None, None]  # B x C x R
+    del clip
+    clipped = ((clip_rows * row_use[:, None, :]).sum(axis=2) / (Ru * ncols)[:, None]).ravel()  # B*C
 
     # per (region, channel) rows from here on
     nbr = np.repeat(nb, C)
@@ -415,8 +485,9 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
         E[hr, hc] = (eq - ep) / (q - p) * (hc - p) + ep
     E = np.where(inner, E, 0.0)
     esf_out = np.full((B * C, NB), np.nan)
-    rr, jr = np.nonzero(inner)
-    esf_out[rr, src[rr, jr]] = E[rr, jr]
+    if keep_esf:  # the binned ESF back on each region's own bins (only kept on request)
+        rr, jr = np.nonzero(inner)
+        esf_out[rr, src[rr, jr]] = E[rr, jr]
 
     # 5. LSF, Hamming window centred on its centroid, |FFT| normalised at DC.
     sgn = sign.ravel()  # B*C, region-major like the rows
@@ -476,8 +547,9 @@ def _esfr_batch(regions: list[np.ndarray], x_inits: list, half_widths: list, *, 
     starts = np.concatenate([[0], np.cumsum(n_used)])
     noise = np.full(B * C, np.nan)
     for g in np.flatnonzero(ok & (n_used > 0)):
-        r_ = resid[starts[g]:starts[g + 1]]
-        noise[g] = 1.4826 * _median_1d(np.abs(r_ - _median_1d(r_)))
+        r_ = resid[starts[g]:starts[g + 1]]  # reordered and overwritten in place: the group's |r - median|
+        r_ -= _median_1d(r_, in_place=True)
+        noise[g] = 1.4826 * _median_1d(np.abs(r_, out=r_), in_place=True)
     kt = np.maximum(1, (0.15 * n).astype(np.int64))
     cl = np.concatenate([np.zeros((B * C, 1)), np.cumsum(lsf, axis=1)], axis=1)
     lsum = cl[rbc, n]
