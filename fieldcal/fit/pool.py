@@ -1,0 +1,155 @@
+"""Independent pieces of the surface fit in one worker process beside this one (:func:`fit_pool`, :func:`run_tasks`).
+
+The fit is serial Python and small linear algebra that holds the GIL; its independent pieces -- the candidate
+models' MAP fits (:func:`fieldcal.fit.map.fit_map`), and the discrepancy fit beside the posterior sampling -- run
+in a worker *process* while this one works on the others. Each piece is a deterministic function of its
+arguments, and the worker's BLAS runs one thread as this process's does under
+:func:`fieldcal.calibration.pipeline.one_blas_thread`, so the result is the same to the last bit whichever
+process computed a piece (``tests/test_fit_pool.py``).
+
+A pool is made only where worker processes are allowed (:func:`fieldcal.measure.esfr_pool.processes_allowed`:
+the ``fieldcal`` command), this process's BLAS runs one thread, and the fit is large enough to pay the worker's
+start (:data:`POOL_MIN_ROWS`); elsewhere :func:`fit_pool` gives ``None`` and everything runs here, in the same
+order.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+
+#: rows (focus + astigmatism) from which the fit starts a worker. The worker's start (a forkserver and the fit's
+#: imports, ~0.5-0.7 s of CPU on the other core) runs beside the first surface fit and the centred candidates;
+#: what it takes over is the decentred candidates' MAP fits and the discrepancy fit, which grow with the rows:
+#: ~1.7 s of 2.8 s serial on the 1080p slanted-edge triplet (1296 rows), under ~0.3 s on a few hundred texture
+#: rows (docs/benchmarks.md "bench_fit_speed_s19").
+POOL_MIN_ROWS = 600
+
+
+def _blas_single_threaded() -> bool:
+    """Whether every BLAS library loaded here runs one thread (the worker's setting: results equal bit for bit)."""
+    try:
+        from threadpoolctl import threadpool_info
+    except ImportError:
+        return False
+    blas = [i for i in threadpool_info() if i.get("user_api") == "blas"]
+    return bool(blas) and all(int(i.get("num_threads", 0)) == 1 for i in blas)
+
+
+@contextlib.contextmanager
+def fit_pool(n_rows: int):
+    """A one-worker process pool for the fit of ``n_rows`` rows, or ``None`` (everything here) for a small fit,
+    one core, processes not allowed here, or a BLAS running more than one thread. Nothing of it outlives the
+    block (:func:`fieldcal.measure.esfr_pool.process_pool`)."""
+    import os
+
+    from ..measure import esfr_pool
+    if (n_rows < POOL_MIN_ROWS or (os.cpu_count() or 1) < 2 or not esfr_pool.processes_allowed()
+            or not _blas_single_threaded()):
+        yield None
+        return
+    with esfr_pool.process_pool(1, esfr_pool.init_surface_worker) as pool:
+        yield None if pool is None else _Pool(pool)
+
+
+class _Pool:
+    """The executor and a future that is done once its worker has started (imports done)."""
+
+    def __init__(self, executor):
+        import os
+        self.executor = executor
+        self.ready = executor.submit(os.getpid)
+
+
+def _broken(exc: BaseException) -> bool:
+    from concurrent.futures.process import BrokenProcessPool
+    return isinstance(exc, BrokenProcessPool)
+
+
+def run_tasks(pool: _Pool | None, fn, arglist: list[tuple]):
+    """Yield ``fn(*args)`` for each tuple of ``arglist``, in order.
+
+    This process takes the tasks from the front, the pool's worker (once started) from the back, so neither
+    waits for the other while work is left; without a pool, every task runs here, in order. An exception of a
+    task is raised when its result is reached; a task whose worker died is computed here.
+    """
+    n = len(arglist)
+    if pool is None or n < 2:
+        for args in arglist:
+            yield fn(*args)
+        return
+    lock = threading.Lock()
+    bounds = [0, n]  # [next front task, one past the last unclaimed task]
+    results: list = [None] * n
+    errors: list = [None] * n
+    done = [threading.Event() for _ in range(n)]
+
+    def claim(front: bool) -> int | None:
+        with lock:
+            if bounds[0] >= bounds[1]:
+                return None
+            if front:
+                bounds[0] += 1
+                return bounds[0] - 1
+            bounds[1] -= 1
+            return bounds[1]
+
+    def feed():
+        try:
+            pool.ready.result()
+        except BaseException:  # no worker: this process takes every task
+            return
+        while (i := claim(front=False)) is not None:
+            try:
+                results[i] = pool.executor.submit(fn, *arglist[i]).result()
+            except BaseException as e:  # noqa: BLE001 -- handed to the caller at this task's result
+                errors[i] = e
+            done[i].set()
+
+    first = claim(front=True)  # this process's first task is claimed before the worker's thread starts
+    threading.Thread(target=feed, daemon=True, name="fieldcal-fit-feed").start()
+    try:
+        yield from _collect(fn, arglist, results, errors, done, claim, first)
+    finally:  # the caller stopped early (or a task failed): the worker takes nothing more
+        with lock:
+            bounds[0] = bounds[1]
+
+
+def _collect(fn, arglist, results, errors, done, claim, i):
+    """:func:`run_tasks`' loop in this process: its own tasks from the front, the results in order."""
+    n = len(arglist)
+    nxt = 0
+    while nxt < n:
+        if i is not None:  # an error of this process's own task is raised at once
+            results[i] = fn(*arglist[i])
+            done[i].set()
+            i = claim(front=True)
+        while nxt < n and done[nxt].is_set():
+            if errors[nxt] is not None:
+                if _broken(errors[nxt]):
+                    errors[nxt], results[nxt] = None, fn(*arglist[nxt])
+                else:
+                    raise errors[nxt]
+            yield results[nxt]
+            results[nxt] = None
+            nxt += 1
+        if i is None and nxt < n:
+            done[nxt].wait()
+
+
+class Deferred:
+    """``fn(*args)`` computed in the pool's worker while this process does other work (here, at :meth:`result`,
+    without a pool or where the worker died)."""
+
+    def __init__(self, pool: _Pool | None, fn, *args):
+        self.fn, self.args = fn, args
+        self.future = None if pool is None else pool.executor.submit(fn, *args)
+
+    def result(self):
+        if self.future is not None:
+            try:
+                return self.future.result()
+            except BaseException as e:
+                if not _broken(e):
+                    raise
+        return self.fn(*self.args)
