@@ -27,13 +27,26 @@ POOL_MIN_ROWS = 600
 
 
 def _blas_single_threaded() -> bool:
-    """Whether every BLAS library loaded here runs one thread (the worker's setting: results equal bit for bit)."""
+    """Whether NumPy's and SciPy's BLAS run one thread here, the worker's setting (so results equal bit for bit).
+
+    The BLAS libraries of the NumPy and SciPy wheels (in ``numpy.libs``, ``scipy.libs``) decide; another package's
+    own BLAS (OpenCV's wheel carries one, loaded after :func:`fieldcal.calibration.pipeline.one_blas_thread`
+    limited the others) does not compute the fit. Where neither wheel's is found (a system or conda BLAS),
+    every BLAS loaded must run one thread.
+    """
+    import os
+
     try:
         from threadpoolctl import threadpool_info
     except ImportError:
         return False
+    import numpy
+    import scipy
+    dirs = tuple(os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(m.__file__))), m.__name__ + ".libs")
+                 for m in (numpy, scipy))
     blas = [i for i in threadpool_info() if i.get("user_api") == "blas"]
-    return bool(blas) and all(int(i.get("num_threads", 0)) == 1 for i in blas)
+    own = [i for i in blas if os.path.dirname(os.path.abspath(str(i.get("filepath", "")))) in dirs]
+    return bool(blas) and all(int(i.get("num_threads", 0)) == 1 for i in (own or blas))
 
 
 @contextlib.contextmanager
