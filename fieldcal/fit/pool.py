@@ -151,12 +151,13 @@ def _collect(fn, arglist, results, errors, done, claim, i):
 
 
 class Deferred:
-    """``fn(*args)`` computed in the pool's worker while this process does other work (here, at :meth:`result`,
-    without a pool or where the worker died)."""
+    """``fn(*args)`` computed in the pool's worker while this process does other work; here, at :meth:`result`,
+    without a pool, where its worker has not started yet (this process would wait for its start) or died."""
 
     def __init__(self, pool: _Pool | None, fn, *args):
         self.fn, self.args = fn, args
-        self.future = None if pool is None else pool.executor.submit(fn, *args)
+        started = pool is not None and pool.ready.done() and pool.ready.exception() is None
+        self.future = pool.executor.submit(fn, *args) if started else None
 
     def result(self):
         if self.future is not None:
