@@ -19,7 +19,7 @@ def worker():
     with esfr_pool.allow_processes(True), esfr_pool.process_pool(1, esfr_pool.init_surface_worker) as ex:
         if ex is None:
             pytest.skip("no process pool here")
-        pool = fit_pool_mod._Pool(ex)
+        pool = fit_pool_mod._Pool(ex, 1)
         pool.ready.result(timeout=120)
         yield pool
 
@@ -38,8 +38,7 @@ def test_run_tasks_raises_a_failed_task_at_its_place(worker):
     args = [(4.0,), (9.0,), (-1.0,), (16.0,)]
     got = []
     with pytest.raises(ValueError):
-        for r in fit_pool_mod.run_tasks(worker, math.sqrt, args):
-            got.append(r)
+        got.extend(fit_pool_mod.run_tasks(worker, math.sqrt, args))
     assert got == [2.0, 3.0]
     d = fit_pool_mod.Deferred(worker, math.sqrt, -1.0)
     with pytest.raises(ValueError):
@@ -48,12 +47,12 @@ def test_run_tasks_raises_a_failed_task_at_its_place(worker):
 
 
 def test_no_pool_for_a_small_fit_or_where_processes_are_not_allowed():
-    with esfr_pool.allow_processes(True), one_blas_thread():
-        with fit_pool_mod.fit_pool(fit_pool_mod.POOL_MIN_ROWS - 1) as pool:
-            assert pool is None
-    with esfr_pool.allow_processes(False), one_blas_thread():
-        with fit_pool_mod.fit_pool(10 * fit_pool_mod.POOL_MIN_ROWS) as pool:
-            assert pool is None
+    with esfr_pool.allow_processes(True), one_blas_thread(), \
+            fit_pool_mod.fit_pool(fit_pool_mod.POOL_MIN_ROWS - 1) as pool:
+        assert pool is None
+    with esfr_pool.allow_processes(False), one_blas_thread(), \
+            fit_pool_mod.fit_pool(10 * fit_pool_mod.POOL_MIN_ROWS) as pool:
+        assert pool is None
 
 
 def test_blas_check_follows_the_thread_limit():
@@ -89,13 +88,15 @@ def test_fit_with_a_worker_equals_the_serial_fit_bit_for_bit(worker, seed):
     tiles, geom, _ = synthetic_tiles(random_lens(rng), rng, nx=11, ny=8, underestimate=1.5, outlier_fraction=0.03)
     sent = []
 
-    class Counting:  # the worker's executor, counting what it was given
+    class Counting(fit_pool_mod._Pool):  # the worker, counting what it was given
+        def __init__(self):
+            self.executor, self.ready = worker.executor, worker.ready
+
         def submit(self, fn, *args):
             sent.append(getattr(fn, "__name__", ""))
-            return worker.executor.submit(fn, *args)
+            return super().submit(fn, *args)
 
-    counted = fit_pool_mod._Pool.__new__(fit_pool_mod._Pool)
-    counted.executor, counted.ready = Counting(), worker.ready
+    counted = Counting()
     with one_blas_thread():
         serial = fit_surfaces(tiles, geom, effort="quick", seed=seed, quiet=True)
         pooled = fit_surfaces(tiles, geom, effort="quick", seed=seed, quiet=True, pool=counted)
@@ -128,3 +129,27 @@ def test_decentred_candidates_start_from_their_centred_siblings(worker):
             assert e["log_likelihood"] == fit_map(m, rows, start_from=sibling).log_likelihood
             checked += 1
     assert checked >= 2
+
+
+def test_a_kept_pool_outlives_its_block_until_the_keeper_ends():
+    import os
+    with esfr_pool.allow_processes(True):
+        with esfr_pool.keep_pool():
+            with esfr_pool.fit_pool(1) as ex:
+                if ex is None:
+                    pytest.skip("no process pool here")
+                pid = ex.submit(os.getpid).result(timeout=120)
+            kept = esfr_pool.kept_pool()
+            assert kept is ex and kept.submit(os.getpid).result(timeout=60) == pid
+            with one_blas_thread(), fit_pool_mod.fit_pool(10 * fit_pool_mod.POOL_MIN_ROWS) as pool:
+                assert pool is not None and pool.executor is ex
+                assert list(fit_pool_mod.run_tasks(pool, math.sqrt, [(1.0,), (4.0,), (9.0,)])) == [1.0, 2.0, 3.0]
+            assert kept.submit(os.getpid).result(timeout=60) == pid  # the fit does not close it
+        assert esfr_pool.kept_pool() is None
+        with pytest.raises(RuntimeError):  # closed with the keeper
+            ex.submit(os.getpid)
+        with esfr_pool.fit_pool(1) as ex2:  # no keeper: closed with its own block
+            pass
+        if ex2 is not None:
+            with pytest.raises(RuntimeError):
+                ex2.submit(os.getpid)

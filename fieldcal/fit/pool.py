@@ -61,17 +61,32 @@ def fit_pool(n_rows: int):
             or not _blas_single_threaded()):
         yield None
         return
+    kept = esfr_pool.kept_pool()
+    if kept is not None:  # the track fits' workers (NumPy, SciPy loaded): closed by their keep_pool block
+        yield _Pool(kept, getattr(kept, "_max_workers", 1))
+        return
     with esfr_pool.process_pool(1, esfr_pool.init_surface_worker) as pool:
-        yield None if pool is None else _Pool(pool)
+        yield None if pool is None else _Pool(pool, 1)
+
+
+def _in_worker(fn, args: tuple):
+    """``fn(*args)`` in a pool's worker, made ready for the fit first (once per process)."""
+    from ..measure.esfr_pool import prepare_surface_worker
+    prepare_surface_worker()
+    return fn(*args)
 
 
 class _Pool:
-    """The executor and a future that is done once its worker has started (imports done)."""
+    """The executor and a future that is done once a worker is ready for the fit (its imports done)."""
 
-    def __init__(self, executor):
+    def __init__(self, executor, workers: int):
         import os
         self.executor = executor
-        self.ready = executor.submit(os.getpid)
+        ready = [executor.submit(_in_worker, os.getpid, ()) for _ in range(max(1, workers))]
+        self.ready = ready[0]
+
+    def submit(self, fn, *args):
+        return self.executor.submit(_in_worker, fn, args)
 
 
 def _broken(exc: BaseException) -> bool:
@@ -110,11 +125,11 @@ def run_tasks(pool: _Pool | None, fn, arglist: list[tuple]):
     def feed():
         try:
             pool.ready.result()
-        except BaseException:  # no worker: this process takes every task
+        except BaseException:  # noqa: BLE001 -- no worker: this process takes every task
             return
         while (i := claim(front=False)) is not None:
             try:
-                results[i] = pool.executor.submit(fn, *arglist[i]).result()
+                results[i] = pool.submit(fn, *arglist[i]).result()
             except BaseException as e:  # noqa: BLE001 -- handed to the caller at this task's result
                 errors[i] = e
             done[i].set()
@@ -157,7 +172,7 @@ class Deferred:
     def __init__(self, pool: _Pool | None, fn, *args):
         self.fn, self.args = fn, args
         started = pool is not None and pool.ready.done() and pool.ready.exception() is None
-        self.future = pool.executor.submit(fn, *args) if started else None
+        self.future = pool.submit(fn, *args) if started else None
 
     def result(self):
         if self.future is not None:
