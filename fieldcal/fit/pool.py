@@ -7,10 +7,11 @@ arguments, and the worker's BLAS runs one thread as this process's does under
 :func:`fieldcal.calibration.pipeline.one_blas_thread`, so the result is the same to the last bit whichever
 process computed a piece (``tests/test_fit_pool.py``).
 
-A pool is made only where worker processes are allowed (:func:`fieldcal.measure.esfr_pool.processes_allowed`:
-the ``fieldcal`` command), this process's BLAS runs one thread, and the fit is large enough to pay the worker's
-start (:data:`POOL_MIN_ROWS`); elsewhere :func:`fit_pool` gives ``None`` and everything runs here, in the same
-order.
+A worker is used only where worker processes are allowed (:func:`fieldcal.measure.esfr_pool.processes_allowed`:
+the ``fieldcal`` command), this process's NumPy/SciPy BLAS runs one thread, and the fit is large enough
+(:data:`POOL_MIN_ROWS`): one of the track fits' workers kept for the fit by ``fieldcal calibrate`` on slanted
+edges, else a new one for a large fit only (:data:`NEW_POOL_MIN_ROWS`: its start pays only where a core is free).
+Elsewhere :func:`fit_pool` gives ``None`` and everything runs here, with the same result.
 """
 
 from __future__ import annotations
@@ -18,12 +19,16 @@ from __future__ import annotations
 import contextlib
 import threading
 
-#: rows (focus + astigmatism) from which the fit starts a worker. The worker's start (a forkserver and the fit's
-#: imports, ~0.5-0.7 s of CPU on the other core) runs beside the first surface fit and the centred candidates;
-#: what it takes over is the decentred candidates' MAP fits and the discrepancy fit, which grow with the rows:
-#: ~1.7 s of 2.8 s serial on the 1080p slanted-edge triplet (1296 rows), under ~0.3 s on a few hundred texture
-#: rows (docs/benchmarks.md "bench_fit_speed_s19").
+#: rows (focus + astigmatism) from which the fit uses a worker: the track fits' workers kept for it
+#: (:func:`fieldcal.measure.esfr_pool.keep_pool`; started, NumPy and SciPy loaded), or a new one from
+#: :data:`NEW_POOL_MIN_ROWS`. What a worker takes over -- the decentred candidates' MAP fits, the discrepancy fit
+#: -- grows with the rows: ~1.7 s of the 2.8 s serial fit of the 1080p slanted-edge triplet (1296 rows).
 POOL_MIN_ROWS = 600
+#: rows from which a new worker is started when none is kept. Its start (a forkserver, then ~0.45 s of CPU of
+#: imports on the other core) pays only where that core is free: on the triplet's 1296 rows the fit took 2.15-2.25 s
+#: against 2.8-2.9 s serial at a 1-minute load of ~1.5 (2 cores), but 2.9-3.9 s against 2.8-2.9 s at a load of 3;
+#: on 648 rows 1.7-2.3 s against 1.6 s at loads of 2.4-3.5 (docs/benchmarks.md "bench_fit_speed_s19").
+NEW_POOL_MIN_ROWS = 1200
 
 
 def _blas_single_threaded() -> bool:
@@ -64,6 +69,9 @@ def fit_pool(n_rows: int):
     kept = esfr_pool.kept_pool()
     if kept is not None:  # the track fits' workers (NumPy, SciPy loaded): closed by their keep_pool block
         yield _Pool(kept, getattr(kept, "_max_workers", 1))
+        return
+    if n_rows < NEW_POOL_MIN_ROWS:
+        yield None
         return
     with esfr_pool.process_pool(1, esfr_pool.init_surface_worker) as pool:
         yield None if pool is None else _Pool(pool, 1)
