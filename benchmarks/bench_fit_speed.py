@@ -8,7 +8,10 @@ peak RSS; the profile gives the fit's own times (``diagnostics.timing_s``, ``sur
 and ``time_total_s``). Every profile must equal the first without its time keys
 (:func:`fieldcal.batch.calibrate.profile_without_times`).
 
-    python benchmarks/bench_fit_speed.py /tmp/s18edge1080 --fs 76.49 --base f9b888a --pairs 2 --section fit_speed_s19
+    python benchmarks/bench_fit_speed.py /tmp/s18edge1080 --fs 76.49 --base f9b888a --pairs 3
+
+(``--section NAME`` writes the table alone as docs/benchmarks.md section bench_NAME; session 19's section
+``bench_fit_speed_s19`` adds the text around three such tables.)
 """
 
 from __future__ import annotations
