@@ -151,6 +151,7 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
         stack = Stack.open(stack, verify=False)
         stack.start_verify()  # the frames hash beside the imports and the chart check below (Stack.start_verify)
     from fieldcal.measure import measure_geometry, measure_stack
+    from fieldcal.measure.esfr_pool import keep_pool
     from fieldcal.measure.tiles import TileRules
     from fieldcal.fit import ImageGeometry
     from fieldcal.fit.geometry import GeometryData, fit_geometry
@@ -178,29 +179,32 @@ def _calibrate(stack, *, fs_cyc_per_mm, q, effort, z_ref_um, tile_px, measure, s
     hasher = threading.Thread(target=_hash_inputs, args=(stack, digest), daemon=True)
     hasher.start()
 
-    edge_summary = None
-    if kind.kind == "esfr":  # the texture pass measures only the geometry (magnification, shift vs z): no focus maps
-        geo_meas = measure_geometry(stack, effort=effort, z_ref_um=z_ref_um, quiet=quiet)
-        table, edge_summary = measure_edges(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
-                                            z_ref_um=float(geo_meas.z_ref_um), geometry=geo_meas, quiet=quiet)
-    else:
-        # the stage's repeatability: its frame errors enter every tile's curve at once (the pooled skew and offset)
-        table, geo_meas = measure_stack(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), tile_px=tile_px,
-                                        effort=effort, measure=measure, z_ref_um=z_ref_um, quiet=quiet,
-                                        rules=TileRules(stage_repeatability_um=stage_rep))
-        _require_tiles(table, stack, kind)
-    measure = table.measure  # "auto" resolved (measure.tiles.resolve_measure); "esfr" on edges
-    t_measure = time.perf_counter() - t0
-    counts = table.counts()
-    n_ok = int(table.ok.sum())
-    if n_ok == 0:
-        raise StackError(f"every tile was rejected ({', '.join(f'{k}: {v}' for k, v in counts.items())})",
-                         path=stack.path, fix="check that the chart is textured, in the field of view, not "
-                         "saturated, and that the z range spans the best focus of the whole field with margin")
-    w, h = int(stack.shape[1]), int(stack.shape[0])
-    geometry = ImageGeometry(w, h, float(stack.pixel_pitch_um))
-    surf, tiles = fit_tile_surfaces(table, geometry, channels=tuple(stack.channels), effort=effort, seed=seed,
-                                    quiet=quiet, source=str(stack.path))
+    # the track fits' worker processes, where there are any, are kept for the surface fit's independent pieces
+    # (fieldcal/fit/pool.py: their NumPy and SciPy are loaded), then closed
+    with keep_pool():
+        edge_summary = None
+        if kind.kind == "esfr":  # the texture pass measures only the geometry (magnification, shift vs z): no focus maps
+            geo_meas = measure_geometry(stack, effort=effort, z_ref_um=z_ref_um, quiet=quiet)
+            table, edge_summary = measure_edges(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q),
+                                                z_ref_um=float(geo_meas.z_ref_um), geometry=geo_meas, quiet=quiet)
+        else:
+            # the stage's repeatability: its frame errors enter every tile's curve at once (the pooled skew and offset)
+            table, geo_meas = measure_stack(stack, fs_cyc_per_mm=float(fs_cyc_per_mm), q=float(q), tile_px=tile_px,
+                                            effort=effort, measure=measure, z_ref_um=z_ref_um, quiet=quiet,
+                                            rules=TileRules(stage_repeatability_um=stage_rep))
+            _require_tiles(table, stack, kind)
+        measure = table.measure  # "auto" resolved (measure.tiles.resolve_measure); "esfr" on edges
+        t_measure = time.perf_counter() - t0
+        counts = table.counts()
+        n_ok = int(table.ok.sum())
+        if n_ok == 0:
+            raise StackError(f"every tile was rejected ({', '.join(f'{k}: {v}' for k, v in counts.items())})",
+                             path=stack.path, fix="check that the chart is textured, in the field of view, not "
+                             "saturated, and that the z range spans the best focus of the whole field with margin")
+        w, h = int(stack.shape[1]), int(stack.shape[0])
+        geometry = ImageGeometry(w, h, float(stack.pixel_pitch_um))
+        surf, tiles = fit_tile_surfaces(table, geometry, channels=tuple(stack.channels), effort=effort, seed=seed,
+                                        quiet=quiet, source=str(stack.path))
     surf.stage_sd_um = stage_sd_um(table, stage_rep)
     # the frames' position errors fitted with the surface where the tiles' curves allow (replaces the field-wide
     # term above in the band; docs/fitting.md "Stage errors")

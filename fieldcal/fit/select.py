@@ -24,6 +24,7 @@ from .data import MIN_TILES_PER_CHANNEL, FitError, ImageGeometry, TileData
 from .discrepancy import fit_discrepancy
 from .selfcheck import predictive_check
 from .map import MAX_CONDITION, fit_map
+from .pool import Deferred, run_tasks
 from .posterior import EFFORTS, MAX_SAMPLES, laplace, run_emcee
 from .result import SurfaceFit
 from .surface import CENTRE_BOUND, COEF_PRIOR_SD, Rows, SurfaceModel
@@ -111,9 +112,14 @@ def _decentred_siblings(cands: list[SurfaceModel], scores: dict[str, float], top
     return out
 
 
+def _fit_candidate(model: SurfaceModel, rows: Rows, start_from):
+    """:func:`fit_map` of one candidate (a task of :func:`fieldcal.fit.pool.run_tasks`)."""
+    return fit_map(model, rows, start_from=start_from)
+
+
 def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standard", seed: int = 0,
                  channels: tuple[str, ...] | None = None, quiet: bool = False,
-                 source: str | None = None, leverage_corrected: bool = False) -> SurfaceFit:
+                 source: str | None = None, leverage_corrected: bool = False, pool=None) -> SurfaceFit:
     """Fit per-channel best-focus surfaces with model selection and a posterior.
 
     Parameters
@@ -134,6 +140,9 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     leverage_corrected : bool
         The band's block covariance without the jackknife's leverage bias (slanted-edge rows;
         :func:`fieldcal.fit.discrepancy.block_jackknife_cov`).
+    pool : optional
+        A worker process for the fit's independent pieces (:func:`fieldcal.fit.pool.fit_pool`); the result is the
+        same without one.
 
     Returns
     -------
@@ -161,17 +170,44 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     best = None
     fits = {}
 
-    def consider(m):
+    def fittable(m):
+        return rows.n >= m.n_params + 2
+
+    def accepted(res):
+        return math.isfinite(res.condition_number) and res.condition_number <= MAX_CONDITION
+
+    def map_fits(ms, bar):
+        """The MAP fits of the fittable models of ``ms`` by name, as :func:`consider` of each in turn would fit
+        them (a decentred model starts from its centred sibling's fit, made before it in candidate order), in
+        this process and the pool's worker: each fit depends only on its arguments."""
+        todo = [m for m in ms if fittable(m)]
+        ahead = {}  # the batch's own centred fits, for the decentred siblings after them
+        for stage in (False, True):
+            part = [m for m in todo if m.decentre == stage]
+            args = []
+            for m in part:
+                name = replace(m, decentre=False).name
+                sib = ahead.get(name) if name in ahead else fits.get(name) if m.decentre else None
+                args.append((m, rows, sib if sib is not None and accepted(sib) else None))
+            done = run_tasks(pool, _fit_candidate, args)
+            if bar:
+                done = progress(done, total=len(args), desc="fit: model search", quiet=quiet, unit="model")
+            ahead.update((m.name, res) for m, res in zip(part, done))
+        return ahead
+
+    def consider(m, res=None):
+        """Fit ``m`` (or take its fit ``res``), score it and add it to the table."""
         nonlocal best
         entry = {"name": m.name, "terms": m.terms, "n_params": m.n_params}
         table.append(entry)
-        if rows.n < m.n_params + 2:
+        if not fittable(m):
             entry.update(status="skipped: fewer rows than parameters + 2", bic=None)
             return
-        sibling = fits.get(replace(m, decentre=False).name) if m.decentre else None
-        res = fit_map(m, rows, start_from=sibling)
+        if res is None:
+            sibling = fits.get(replace(m, decentre=False).name) if m.decentre else None
+            res = fit_map(m, rows, start_from=sibling)
         entry["condition_number"] = res.condition_number
-        if not math.isfinite(res.condition_number) or res.condition_number > MAX_CONDITION:
+        if not accepted(res):
             entry.update(status=f"refused: degenerate design (condition number {res.condition_number:.3g} > "
                                 f"{MAX_CONDITION:.0e})", bic=None)
             return
@@ -182,18 +218,19 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         if best is None or bic < best[0]:
             best = (bic, res)
 
+    def consider_all(ms, bar=False):
+        done = map_fits(ms, bar)
+        for m in ms:
+            consider(m, done.get(m.name))
+
     if eff.decentre_top is None:
-        for m in progress(cands, total=len(cands), desc="fit: model search", quiet=quiet, unit="model"):
-            consider(m)
+        consider_all(cands, bar=True)
     else:
-        centred = [m for m in cands if not m.decentre]
-        for m in progress(centred, total=len(centred), desc="fit: model search", quiet=quiet, unit="model"):
-            consider(m)
+        consider_all([m for m in cands if not m.decentre], bar=True)
         # ranked by the held-out loss that chooses (below), so the pruned search keeps what the full one picks
         rank = {n: float(v.sum()) for n, v in _block_cv_losses(fits, rows).items()} or {
             e["name"]: e["bic"] for e in table if e.get("bic") is not None}
-        for m in _decentred_siblings(cands, rank, eff.decentre_top):
-            consider(m)
+        consider_all(_decentred_siblings(cands, rank, eff.decentre_top))
         tried = {e["name"] for e in table}
         for m in cands:
             if m.name not in tried:
@@ -208,8 +245,7 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         rows = Rows(*(getattr(rows, f)[keep] for f in ("x_hat", "y_hat", "ch_index", "kind", "target", "sigma")))
         astig_rows = False
         fits.clear()
-        for m in candidate_models(channels, eff.max_order, False):
-            consider(m)
+        consider_all(candidate_models(channels, eff.max_order, False))
     if best is not None and astig_rows:
         consider(replace(best[1].model, astig=False))
         if rows.n_astig >= MIN_ASTIG_POLY_ROWS:  # e.g. slanted-edge T/S pairs: can follow a T - S peaked in the field
@@ -291,6 +327,8 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
             for e in table:
                 e["chosen"] = e["name"] == res.model.name
             lap = laplace(res.model, rows, res.theta, seed=seed)
+    # the discrepancy depends only on the chosen MAP: fitted in the worker, when there is one, beside the posterior
+    disc_job = Deferred(pool, _discrepancy_and_check, res.model, rows, res.theta, leverage_corrected)
     if eff.method == "laplace":
         post = lap
     else:
@@ -319,9 +357,7 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
     samples = np.concatenate(parts)
     bma = {"members": [{"name": m.name, "weight": w / wsum} for m, _, w, _ in members],
            "sample_model": union.name, "dropped_unidentified": dropped}
-    disc = fit_discrepancy(res.model, rows, res.theta, student_t_weights(res.model, rows, res.theta),
-                           leverage_corrected=leverage_corrected)
-    check = predictive_check(disc)
+    disc, check = disc_job.result()
     if check.warning:
         warn(check.warning)
     t_total = time.perf_counter() - t0
@@ -348,6 +384,13 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         warn("the surface posterior did not converge; use --effort thorough")
     return SurfaceFit(m, geometry, zc, zs, res.theta, samples, table, diagnostics, effort, sample_model=union,
                       discrepancy=disc, band_scale=check.band_scale)
+
+
+def _discrepancy_and_check(model: SurfaceModel, rows: Rows, theta: np.ndarray, leverage_corrected: bool):
+    """The chosen model's discrepancy (:func:`fit_discrepancy`) and its self-check (:func:`predictive_check`)."""
+    disc = fit_discrepancy(model, rows, theta, student_t_weights(model, rows, theta),
+                           leverage_corrected=leverage_corrected)
+    return disc, predictive_check(disc)
 
 
 def student_t_weights(model: SurfaceModel, rows: Rows, theta: np.ndarray) -> np.ndarray:

@@ -43,9 +43,21 @@ def fit_tile_surfaces(table, geometry, *, channels: tuple[str, ...], effort: str
         The fit and the accepted tiles corrected to tile-centre values (and from the band-pass's band to fs,
         :func:`band_corrections_um`).
     """
-    from fieldcal.fit import TileData, fit_surfaces
+    from fieldcal.fit import TileData
+    from fieldcal.fit.pool import fit_pool
 
     tiles = TileData.from_table(table, source=source)
+    # a worker process for the fit's independent pieces, where the fit is large enough to pay its start (started
+    # now: it imports the fit's modules while this process fits the first surface and the centred candidates)
+    n_rows = len(tiles) + int(np.sum(np.isfinite(tiles.z_tan_um) & np.isfinite(tiles.z_sag_um)))
+    with fit_pool(n_rows) as pool:
+        return _fit_tiles(table, tiles, geometry, channels, effort, seed, quiet, source, pool)
+
+
+def _fit_tiles(table, tiles, geometry, channels, effort, seed, quiet, source, pool):
+    """:func:`fit_tile_surfaces` with its worker ``pool`` (or None)."""
+    from fieldcal.fit import fit_surfaces
+
     # The band-pass peaks at the mean sharpest position of its band, not at fs's: with spherical aberration near
     # diffraction that is 0.05-0.1 scan step, the same over a channel (measure.throughfocus.band_peak_correction_um)
     band = band_corrections_um(table)
@@ -64,7 +76,7 @@ def fit_tile_surfaces(table, geometry, *, channels: tuple[str, ...], effort: str
                     z_tan_um=tiles.z_tan_um - correction, z_sag_um=tiles.z_sag_um - correction)
     # slanted-edge rows: the band's block covariance without the jackknife's leverage bias (session 16)
     surf = fit_surfaces(tiles, geometry, effort=effort, seed=seed, channels=channels, quiet=quiet,
-                        source=source, leverage_corrected=getattr(table, "measure", "") == "esfr")
+                        source=source, leverage_corrected=getattr(table, "measure", "") == "esfr", pool=pool)
     surf.tile_px = float(table.tile_px)
     surf.tile_correction_sd = TILE_WINDOW_KAPPA_SD * TILE_WINDOW_KAPPA
     return surf, tiles
