@@ -419,14 +419,16 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     gain_cache: dict[tuple[int, int], list[np.ndarray]] = {}
 
     def gains(l: int, c: int, near: np.ndarray) -> list[np.ndarray]:
-        """Each frame's weight in label ``l``'s Wiener filter, ``H_0 H_k / (sum_j |H_j|^2 + NSR)``, as 1-D float32
-        tables over |f|: computed once per (label, channel) for all tiles (a few kB; tiles on threads may both
+        """Each frame's weight in label ``l``'s Wiener filter, ``H_0 H_k / (sum_j |H_j|^2 + NSR)``, as 1-D tables
+        over |f| (float32 values, held as complex64): computed once per (label, channel) for all tiles (a few kB; tiles on threads may both
         compute one, with the same result), gathered onto a tile's grid through ``f_index``."""
         hit = gain_cache.get((l, c))
         if hit is None:
             ms = [otf(float(zs[k] - labels[l]), fch[c]) for k in near]
             scale = h0s[c] / (nsrs[c] + sum(m2 for _, m2 in ms))
-            hit = [(m1 * scale).astype(np.float32) for m1, _ in ms]
+            # stored as complex64 (zero imaginary part): the gathered gain then multiplies the complex64 spectra
+            # as it is, where a float32 one was cast to complex64 in each product first (the same numbers)
+            hit = [(m1 * scale).astype(np.complex64) for m1, _ in ms]
             gain_cache[(l, c)] = hit
         return hit
 
@@ -489,8 +491,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             bounds = dict(zip(present.tolist(), zip(np.searchsorted(lab, present, side="left").tolist(),
                                                     np.searchsorted(lab, present, side="right").tolist())))
             fr = np.take(frac[c][y0:y1, x0:x1].ravel(), pix)
-            # per pixel in that order: its row, its column and its weights for the label below and above it
-            groups.append((pix, pix // (x1 - x0), pix % (x1 - x0), 1.0 - fr, fr, bounds))
+            # per pixel in that order: its row, its column in the block's inverse (past the margin) and its weights
+            # for the label below and above it
+            groups.append((pix, pix // (x1 - x0), pix % (x1 - x0) + margin, 1.0 - fr, fr, bounds))
             used |= {(c, int(l)) for l in present} | {(c, int(min(l + 1, n_lab - 1))) for l in present}
         labels_used = sorted({l for _, l in used})
         tw = x1 - x0
@@ -544,7 +547,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                 col = fft.ifft(x, axis=0, workers=fft_workers)[margin + rows]
                 img = fft.irfft(col, n=nb_x, axis=1, workers=fft_workers).ravel()
                 for sl, wgt in here:
-                    v = np.take(img, np.take(row_at, rr[sl]) * nb_x + (cc[sl] + margin))
+                    v = np.take(img, np.take(row_at, rr[sl]) * nb_x + cc[sl])
                     v += np.float32(mean[c])
                     v *= wgt[sl]
                     acc[c][sl] += v
