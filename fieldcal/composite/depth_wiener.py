@@ -544,8 +544,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                     row_mark[rr[sl]] = True
                 rows = np.flatnonzero(row_mark)
                 row_at = (np.cumsum(row_mark) - 1).astype(np.int32)
-                col = fft.ifft(x, axis=0, workers=fft_workers)[margin + rows]
-                img = fft.irfft(col, n=nb_x, axis=1, workers=fft_workers).ravel()
+                # (both in place: x and col are this filter's own, and pocketfft then skips an output array)
+                col = fft.ifft(x, axis=0, workers=fft_workers, overwrite_x=True)[margin + rows]
+                img = fft.irfft(col, n=nb_x, axis=1, workers=fft_workers, overwrite_x=True).ravel()
                 for sl, wgt in here:
                     v = np.take(img, np.take(row_at, rr[sl]) * nb_x + cc[sl])
                     v += np.float32(mean[c])
