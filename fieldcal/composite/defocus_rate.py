@@ -216,35 +216,48 @@ def _grey(a: np.ndarray) -> np.ndarray:
     return np.asarray(a, dtype=np.float32).mean(axis=2)
 
 
-def fit_disc_px(sharp: np.ndarray, blurred: np.ndarray, noise_sigma: float, *, window=None,
-                bins=None) -> float:
-    """Diameter (px) of the uniform disc that best takes ``sharp`` to ``blurred`` (two grey patches of the same
-    square size; least squares on radial frequency bins where ``sharp`` is well above its noise). NaN when no bin
-    qualifies or the best disc lies at the search's end."""
-    n = sharp.shape[0]
+def _disc_fit_tables(n: int, window=None, bins=None) -> tuple:
+    """What :func:`fit_disc_px` needs of a patch size, window and bins, whatever the patches: the window, the bins
+    (index of each coefficient, centres), the mask of binned coefficients with their bins, the half-plane's column
+    weights there, each bin's coefficient count, the window's power, the grid of discs searched and their OTFs at
+    every bin's centre (a bin set's OTFs are these columns: the same numbers)."""
     if window is None:
         hann = np.hanning(n)
         window = np.outer(hann, hann)
     idx, centres = bins if bins is not None else _radial_bins(n, n // 2)
-    ys = np.fft.rfft2((sharp - sharp.mean()) * window)
-    yb = np.fft.rfft2((blurred - blurred.mean()) * window)
     m = idx >= 0
     nb = len(centres)
     # rfft2 counts the half-plane once: weight interior columns twice so the sums are the full plane's
-    wcol = np.full(ys.shape, 2.0)
+    wcol = np.full(idx.shape, 2.0)
     wcol[:, 0] = 1.0
     if n % 2 == 0:
         wcol[:, -1] = 1.0
-    cross = np.bincount(idx[m], (wcol * (yb * np.conj(ys)).real)[m], minlength=nb)
-    power = np.bincount(idx[m], (wcol * np.abs(ys) ** 2)[m], minlength=nb)
-    count = np.bincount(idx[m], wcol[m], minlength=nb)
-    noise = noise_sigma ** 2 * float(np.sum(window ** 2)) * count
+    grid = np.arange(0.0, MAX_DISC_PX + 1e-9, 0.1)
+    return (window, centres, m, idx[m], wcol[m], np.bincount(idx[m], wcol[m], minlength=nb),
+            float(np.sum(window ** 2)), grid, disc_otf(centres[None, :], grid[:, None]))
+
+
+def fit_disc_px(sharp: np.ndarray, blurred: np.ndarray, noise_sigma: float, *, window=None,
+                bins=None, tables=None) -> float:
+    """Diameter (px) of the uniform disc that best takes ``sharp`` to ``blurred`` (two grey patches of the same
+    square size; least squares on radial frequency bins where ``sharp`` is well above its noise). NaN when no bin
+    qualifies or the best disc lies at the search's end. ``tables``: :func:`_disc_fit_tables` of the same size,
+    window and bins, made once for many patches."""
+    n = sharp.shape[0]
+    if tables is None:
+        tables = _disc_fit_tables(n, window, bins)
+    window, centres, m, idx_m, wcol_m, count, window_power, grid, hd_all = tables
+    ys = np.fft.rfft2((sharp - sharp.mean()) * window)
+    yb = np.fft.rfft2((blurred - blurred.mean()) * window)
+    nb = len(centres)
+    cross = np.bincount(idx_m, wcol_m * (yb * np.conj(ys)).real[m], minlength=nb)
+    power = np.bincount(idx_m, wcol_m * (np.abs(ys) ** 2)[m], minlength=nb)
+    noise = noise_sigma ** 2 * window_power * count
     use = power >= SIGNAL_TO_NOISE * noise
     use[0] = False  # the lowest bin holds the window's own leakage of the patch's gradients
     if use.sum() < 3:
         return float("nan")
-    grid = np.arange(0.0, MAX_DISC_PX + 1e-9, 0.1)
-    hd = disc_otf(centres[use][None, :], grid[:, None])
+    hd = np.compress(use, hd_all, axis=1)  # C order, as computed on the bins alone (the products' sums alike)
     sse = -2.0 * hd @ cross[use] + (hd * hd) @ (power[use] - noise[use])
     i = int(np.argmin(sse))
     if i == 0 or i == len(grid) - 1:
@@ -316,16 +329,14 @@ def estimate_defocus_rate(stack, frames, depth_index: np.ndarray, confidence: np
         from .sweep import estimate_noise_sigma
         sig = [estimate_noise_sigma(g) for g in grey.values()]
         noise_sigma = float(np.percentile(sig, 10)) if sig else 0.0
-    hann = np.hanning(patch_px)
-    window = np.outer(hann, hann)
-    bins = _radial_bins(patch_px, patch_px // 2)
+    tables = _disc_fit_tables(patch_px)
     def patch_discs(p: int) -> dict[int, float]:
         """Patch p's blur disc (px) from its frame k to each neighbour j, by ``j - k`` (finite ones only)."""
         _, _, k, _ = patches[p]
         side = {}
         for j in range(max(0, k - 2), min(len(order), k + 3)):
             if j != k:
-                disc = fit_disc_px(grey[(p, k)], grey[(p, j)], noise_sigma, window=window, bins=bins)
+                disc = fit_disc_px(grey[(p, k)], grey[(p, j)], noise_sigma, tables=tables)
                 if np.isfinite(disc):
                     side[j - k] = disc
         return side
