@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._numeric import channel_mean
 from ..errors import ParameterError, SpecError, StackError
 from .dff import dff_focus_map, dff_surfaces, focus_volume, hybrid_corrections, pixel_misfit_fraction, row_bands
 from .source import hold_decoded, image_size, z_positions
@@ -266,7 +267,7 @@ def _channel_mean(zb: np.ndarray) -> np.ndarray:
     out = np.empty(zb.shape[:2], zb[:1, :1].mean(axis=2).dtype)
 
     def rows(a: int, b: int) -> None:
-        out[a:b] = zb[a:b].mean(axis=2)
+        channel_mean(zb[a:b], out=out[a:b])  # the same numbers as zb[a:b].mean(axis=2), ~4x faster
 
     row_bands(rows, zb.shape[0])
     return out
@@ -445,7 +446,7 @@ def _per_pixel_focus(stack, geometry, frames, zb_smooth: np.ndarray, quiet: bool
 
     def rows(a: int, b: int) -> None:  # per pixel, in row bands on the compositor's threads (was serial, ~0.07 s)
         smooth = zb_smooth[a:b]
-        per_pixel[a:b] = dm.z_um[a:b, :, None] + (smooth - smooth.mean(axis=2, keepdims=True))
+        per_pixel[a:b] = dm.z_um[a:b, :, None] + (smooth - channel_mean(smooth)[:, :, None])
 
     row_bands(rows, per_pixel.shape[0])
     # Trust in the depth map: its confidence against that of the image's well-textured pixels, and no

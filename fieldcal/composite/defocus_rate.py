@@ -213,7 +213,9 @@ def _radial_bins(patch: int, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _grey(a: np.ndarray) -> np.ndarray:
-    return np.asarray(a, dtype=np.float32).mean(axis=2)
+    from .._numeric import channel_mean
+
+    return channel_mean(np.asarray(a, dtype=np.float32))
 
 
 def _disc_fit_tables(n: int, window=None, bins=None) -> tuple:
