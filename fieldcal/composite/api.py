@@ -316,27 +316,36 @@ def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, 
                                     label_um=lab, needed=needed, mix=rows, plane_sigma=ps, quiet=quiet)
                    for rows, lab, ps in ((YCBCR[:1], label_um, sig[:1]),
                                          (YCBCR[1:], CHROMA_LABEL_FRAMES * spacing, sig[1:]))]
-            combined = np.concatenate([p for p, _ in ycc], axis=2) @ np.linalg.inv(YCBCR).T.astype(np.float32)
+            to_rgb = np.linalg.inv(YCBCR).T.astype(np.float32)
+            rgb = np.empty(img.shape, img.dtype)  # the luma and chroma planes back to the three channels
+
+            def rows(a: int, b: int) -> None:  # per pixel, in row bands on the compositor's threads (was serial)
+                rgb[a:b] = to_input_dtype(np.concatenate([p[a:b] for p, _ in ycc], axis=2) @ to_rgb, rgb.dtype,
+                                          float(stack.white_level))
+
+            row_bands(rows, rgb.shape[0])
+            img = rgb
             info["wiener"] = {**ycc[0][1], "filters": ycc[0][1]["filters"] + ycc[1][1]["filters"],
                               "chroma": ycc[1][1]}
         else:
             combined, info["wiener"] = wiener_composite(stack, zb, defocus, frames, img, geometry=geometry,
                                                         lateral_colour=lateral_colour, label_um=label_um,
                                                         needed=needed, quiet=quiet)
-        img = to_input_dtype(combined, img.dtype, float(stack.white_level))
+            img = to_input_dtype(combined, img.dtype, float(stack.white_level))
     if has_depth and fallback is not None and (not wiener or defocus is not profile):
         # where the depth map is unsure (little texture), the multi-scale fusion's pixels: it needs no depth
         from .stack_profile import to_input_dtype
         fused, weight = fallback
-        mixed = np.empty(np.broadcast_shapes(img.shape, fused.shape),
-                         np.result_type(weight, np.float32, fused))
+        mixed = np.empty(np.broadcast_shapes(img.shape, fused.shape), img.dtype)
 
         def rows(a: int, b: int, img=img) -> None:  # per pixel, in row bands on the compositor's threads
             w = weight[a:b, :, None]
-            mixed[a:b] = w * img[a:b].astype(np.float32) + (1.0 - w) * fused[a:b]
+            # rounded to the input's dtype in the band as well (per pixel: the same numbers as after the bands)
+            mixed[a:b] = to_input_dtype(w * img[a:b].astype(np.float32) + (1.0 - w) * fused[a:b], mixed.dtype,
+                                        float(stack.white_level))
 
         row_bands(rows, mixed.shape[0])
-        img = to_input_dtype(mixed, img.dtype, float(stack.white_level))
+        img = mixed
         info["pixels_from_fusion"] = round(float(np.mean(1.0 - weight)), 4)
     return img
 
