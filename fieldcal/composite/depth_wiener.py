@@ -420,8 +420,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
 
     def gains(l: int, c: int, near: np.ndarray) -> list[np.ndarray]:
         """Each frame's weight in label ``l``'s Wiener filter, ``H_0 H_k / (sum_j |H_j|^2 + NSR)``, as 1-D tables
-        over |f| (float32 values, held as complex64): computed once per (label, channel) for all tiles (a few kB; tiles on threads may both
-        compute one, with the same result), gathered onto a tile's grid through ``f_index``."""
+        over |f| (float32 values held as complex64): computed once per (label, channel) for all tiles (32 kB each;
+        tiles on threads may both compute one, with the same result), gathered onto a tile's grid through
+        ``f_index``."""
         hit = gain_cache.get((l, c))
         if hit is None:
             ms = [otf(float(zs[k] - labels[l]), fch[c]) for k in near]
