@@ -15,7 +15,7 @@ from fieldcal.measure import esfr_pool
 
 @pytest.fixture(scope="module")
 def worker():
-    """A started one-worker pool as :func:`fieldcal.fit.pool.fit_pool` makes it (None where none can be made)."""
+    """A started one-worker pool as :func:`fieldcal.fit.pool.surface_pool` makes it (None where none can be made)."""
     with esfr_pool.allow_processes(True), esfr_pool.process_pool(1, esfr_pool.init_surface_worker) as ex:
         if ex is None:
             pytest.skip("no process pool here")
@@ -48,10 +48,10 @@ def test_run_tasks_raises_a_failed_task_at_its_place(worker):
 
 def test_no_pool_for_a_small_fit_or_where_processes_are_not_allowed():
     with esfr_pool.allow_processes(True), one_blas_thread(), \
-            fit_pool_mod.fit_pool(fit_pool_mod.POOL_MIN_ROWS - 1) as pool:
+            fit_pool_mod.surface_pool(fit_pool_mod.POOL_MIN_ROWS - 1) as pool:
         assert pool is None
     with esfr_pool.allow_processes(False), one_blas_thread(), \
-            fit_pool_mod.fit_pool(10 * fit_pool_mod.POOL_MIN_ROWS) as pool:
+            fit_pool_mod.surface_pool(10 * fit_pool_mod.POOL_MIN_ROWS) as pool:
         assert pool is None
 
 
@@ -141,7 +141,7 @@ def test_a_kept_pool_outlives_its_block_until_the_keeper_ends():
                 pid = ex.submit(os.getpid).result(timeout=120)
             kept = esfr_pool.kept_pool()
             assert kept is ex and kept.submit(os.getpid).result(timeout=60) == pid
-            with one_blas_thread(), fit_pool_mod.fit_pool(10 * fit_pool_mod.POOL_MIN_ROWS) as pool:
+            with one_blas_thread(), fit_pool_mod.surface_pool(10 * fit_pool_mod.POOL_MIN_ROWS) as pool:
                 assert pool is not None and pool.executor is ex
                 assert list(fit_pool_mod.run_tasks(pool, math.sqrt, [(1.0,), (4.0,), (9.0,)])) == [1.0, 2.0, 3.0]
             assert kept.submit(os.getpid).result(timeout=60) == pid  # the fit does not close it

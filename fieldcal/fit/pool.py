@@ -1,4 +1,4 @@
-"""Independent pieces of the surface fit in one worker process beside this one (:func:`fit_pool`, :func:`run_tasks`).
+"""Independent pieces of the surface fit in one worker process beside this one (:func:`surface_pool`, :func:`run_tasks`).
 
 The fit is serial Python and small linear algebra that holds the GIL; its independent pieces -- the candidate
 models' MAP fits (:func:`fieldcal.fit.map.fit_map`), and the discrepancy fit beside the posterior sampling -- run
@@ -11,7 +11,7 @@ A worker is used only where worker processes are allowed (:func:`fieldcal.measur
 the ``fieldcal`` command), this process's NumPy/SciPy BLAS runs one thread, and the fit is large enough
 (:data:`POOL_MIN_ROWS`): one of the track fits' workers kept for the fit by ``fieldcal calibrate`` on slanted
 edges, else a new one for a large fit only (:data:`NEW_POOL_MIN_ROWS`: its start pays only where a core is free).
-Elsewhere :func:`fit_pool` gives ``None`` and everything runs here, with the same result.
+Elsewhere :func:`surface_pool` gives ``None`` and everything runs here, with the same result.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def _blas_single_threaded() -> bool:
 
 
 @contextlib.contextmanager
-def fit_pool(n_rows: int):
+def surface_pool(n_rows: int):
     """A one-worker process pool for the fit of ``n_rows`` rows, or ``None`` (everything here) for a small fit,
     one core, processes not allowed here, or a BLAS running more than one thread. Nothing of it outlives the
     block (:func:`fieldcal.measure.esfr_pool.process_pool`)."""

@@ -141,7 +141,7 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         The band's block covariance without the jackknife's leverage bias (slanted-edge rows;
         :func:`fieldcal.fit.discrepancy.block_jackknife_cov`).
     pool : optional
-        A worker process for the fit's independent pieces (:func:`fieldcal.fit.pool.fit_pool`); the result is the
+        A worker process for the fit's independent pieces (:func:`fieldcal.fit.pool.surface_pool`); the result is the
         same without one.
 
     Returns
@@ -186,8 +186,10 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
             part = [m for m in todo if m.decentre == stage]
             args = []
             for m in part:
-                name = replace(m, decentre=False).name
-                sib = ahead.get(name) if name in ahead else fits.get(name) if m.decentre else None
+                sib = None
+                if m.decentre:
+                    name = replace(m, decentre=False).name
+                    sib = ahead[name] if name in ahead else fits.get(name)
                 args.append((m, rows, sib if sib is not None and accepted(sib) else None))
             done = run_tasks(pool, _fit_candidate, args)
             if bar:
@@ -195,17 +197,14 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
             ahead.update((m.name, res) for m, res in zip(part, done))
         return ahead
 
-    def consider(m, res=None):
-        """Fit ``m`` (or take its fit ``res``), score it and add it to the table."""
+    def consider(m, res):
+        """Score ``m``'s fit ``res`` (None where it is not fittable) and add it to the table."""
         nonlocal best
         entry = {"name": m.name, "terms": m.terms, "n_params": m.n_params}
         table.append(entry)
         if not fittable(m):
             entry.update(status="skipped: fewer rows than parameters + 2", bic=None)
             return
-        if res is None:
-            sibling = fits.get(replace(m, decentre=False).name) if m.decentre else None
-            res = fit_map(m, rows, start_from=sibling)
         entry["condition_number"] = res.condition_number
         if not accepted(res):
             entry.update(status=f"refused: degenerate design (condition number {res.condition_number:.3g} > "
@@ -247,9 +246,9 @@ def fit_surfaces(tiles: TileData, geometry: ImageGeometry, effort: str = "standa
         fits.clear()
         consider_all(candidate_models(channels, eff.max_order, False))
     if best is not None and astig_rows:
-        consider(replace(best[1].model, astig=False))
+        consider_all([replace(best[1].model, astig=False)])
         if rows.n_astig >= MIN_ASTIG_POLY_ROWS:  # e.g. slanted-edge T/S pairs: can follow a T - S peaked in the field
-            consider(replace(best[1].model, astig=True, astig_order=3))
+            consider_all([replace(best[1].model, astig=True, astig_order=3)])
     if best is None:
         raise FitError("no surface model could be fitted: every candidate's design is degenerate", path=source,
                        field="tiles", fix="measure tiles spread over the whole field in every channel")

@@ -44,13 +44,13 @@ def fit_tile_surfaces(table, geometry, *, channels: tuple[str, ...], effort: str
         :func:`band_corrections_um`).
     """
     from fieldcal.fit import TileData
-    from fieldcal.fit.pool import fit_pool
+    from fieldcal.fit.pool import surface_pool
 
     tiles = TileData.from_table(table, source=source)
     # a worker process for the fit's independent pieces, where the fit is large enough to pay its start (started
     # now: it imports the fit's modules while this process fits the first surface and the centred candidates)
     n_rows = len(tiles) + int(np.sum(np.isfinite(tiles.z_tan_um) & np.isfinite(tiles.z_sag_um)))
-    with fit_pool(n_rows) as pool:
+    with surface_pool(n_rows) as pool:
         return _fit_tiles(table, tiles, geometry, channels, effort, seed, quiet, source, pool)
 
 

@@ -71,12 +71,13 @@ def _count_ok_edges(frame: np.ndarray, channels: tuple[str, ...], cfa: str | Non
     The detection and the batched e-SFR of :func:`fieldcal.measure.mtf.measure_frame`, with its options, read
     for their quality flags only: the records it builds (MTF on the stored grid, orientation, positions) are
     not needed to count, and cost a third of a texture frame's check."""
+    from .._numeric import channel_mean
     from .esfr import esfr_regions
     from .esfr_detect import find_edges
-    from .mtf import _plane_mean, _plane_stack
+    from .mtf import _plane_stack
 
     planes, _ = _plane_stack(frame, channels, cfa)
-    cands = find_edges(_plane_mean(planes))
+    cands = find_edges(channel_mean(planes))
     if not cands:
         return 0, 0
     results = esfr_regions([planes[c.roi[0]:c.roi[1], c.roi[2]:c.roi[3], :] for c in cands],

@@ -116,7 +116,7 @@ def init_fit_worker() -> None:
 
 
 def init_surface_worker() -> None:
-    """Initializer of the surface fit's own worker (:func:`fieldcal.fit.pool.fit_pool`): thread limits, then
+    """Initializer of the surface fit's own worker (:func:`fieldcal.fit.pool.surface_pool`): thread limits, then
     :func:`prepare_surface_worker`, while the parent fits the first candidates."""
     _limit_threads()
     prepare_surface_worker()
