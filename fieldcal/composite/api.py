@@ -297,9 +297,18 @@ def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, 
     """The blend along the best-focus map ``zb``, combined by the Wiener filter where there is a defocus model and
     mixed with the multi-scale fusion where the depth map is unsure (scenes with depth): the image that fine
     detail is added to."""
-    kernel = blend_kernel(stack, profile, frames, fs_cyc_per_mm, q, min_band)
-    img = composite_with_map(stack, zb, kernel, geometry, frames, lateral_colour=lateral_colour, tile=tile,
-                             quiet=quiet)
+    dtype = np.dtype(stack.dtype)
+    if wiener and measured and fallback is not None:
+        # A measured defocus's Wiener step is used only where the depth map is trusted and the fusion is taken
+        # elsewhere (the weight below): the blend along the map would serve only as the Wiener step's reference
+        # (its signal spectrum, and its pixels where the weight is below 1/256, i.e. < 1/256 of the final value).
+        # The fusion's image is a composite of the same scene as well: it is the reference, and the blend is not
+        # made (bench_composite_speed_s20)
+        img = fallback[0]
+    else:
+        kernel = blend_kernel(stack, profile, frames, fs_cyc_per_mm, q, min_band)
+        img = composite_with_map(stack, zb, kernel, geometry, frames, lateral_colour=lateral_colour, tile=tile,
+                                 quiet=quiet)
     if wiener:
         # the frames around each pixel's depth combined by the lens's defocus OTF, not one frame chosen
         from .depth_wiener import wiener_composite
@@ -317,7 +326,7 @@ def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, 
                    for rows, lab, ps in ((YCBCR[:1], label_um, sig[:1]),
                                          (YCBCR[1:], CHROMA_LABEL_FRAMES * spacing, sig[1:]))]
             to_rgb = np.linalg.inv(YCBCR).T.astype(np.float32)
-            rgb = np.empty(img.shape, img.dtype)  # the luma and chroma planes back to the three channels
+            rgb = np.empty(img.shape, dtype)  # the luma and chroma planes back to the three channels
 
             def rows(a: int, b: int) -> None:  # per pixel, in row bands on the compositor's threads (was serial)
                 rgb[a:b] = to_input_dtype(np.concatenate([p[a:b] for p, _ in ycc], axis=2) @ to_rgb, rgb.dtype,
@@ -331,7 +340,7 @@ def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, 
             combined, info["wiener"] = wiener_composite(stack, zb, defocus, frames, img, geometry=geometry,
                                                         lateral_colour=lateral_colour, label_um=label_um,
                                                         needed=needed, quiet=quiet)
-            img = to_input_dtype(combined, img.dtype, float(stack.white_level))
+            img = to_input_dtype(combined, dtype, float(stack.white_level))
     if has_depth and fallback is not None and (not wiener or defocus is not profile):
         # where the depth map is unsure (little texture), the multi-scale fusion's pixels: it needs no depth
         from .stack_profile import to_input_dtype
