@@ -170,7 +170,7 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     def planes_of(i: int) -> list[np.ndarray]:
         return frame_planes(stack, geometry, float(z_all[i]), int(i), channels, w, h)
 
-    def salience(k_i, lum_levels=None):
+    def salience(k_i, lum_levels=None, dist=None):
         k, i = k_i
         if lum_levels is None:
             planes = planes_of(i)
@@ -186,13 +186,15 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
             typical = float(np.median(e[::step, ::step]))
             # a frame beyond the depth map's reach only where its detail stands out of its noise; outside its
             # recorded support, never
-            far = np.abs(kd[lev] - np.float32(k)) > reach
+            far = (np.abs(kd[lev] - np.float32(k)) if dist is None else dist[lev]) > reach
             if significance is not None:
                 far &= e < np.float32(significance * typical)
-            e[far] = -1.0
+            # OpenCV's masked copy: the same values as e[far] = -1.0, which took ~15 ms a full-size plane (most of
+            # a frame's pixels are beyond the reach)
+            masked_copy(e, -1.0, far)
             m = recorded(i, lev)
             if m is not None:
-                e[~m] = -1.0
+                masked_copy(e, -1.0, ~m)
             sal.append((e, typical))
         return sal
 
@@ -208,10 +210,10 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
     count = [np.zeros(s, np.float32) for s in shapes]
     lock = threading.Lock()
 
-    def near_of(k: int, i) -> list[np.ndarray]:
+    def near_of(k: int, i, dist=None) -> list[np.ndarray]:
         near = []
         for lev in range(levels):
-            m = np.abs(kd[lev] - np.float32(k)) <= reach
+            m = (np.abs(kd[lev] - np.float32(k)) if dist is None else dist[lev]) <= reach
             rec = recorded(i, lev)
             near.append(m if rec is None else m & rec)
         return near
@@ -235,14 +237,16 @@ def fine_detail(stack, base: np.ndarray, depth_index: np.ndarray, frames=None, *
             for cl in chan_levels[1:]:
                 lum += cl[lev]
             lum_levels.append(lum)
-        near = near_of(k, i)
+        # each level's distance from the depth map's choice, for both the average's reach and the salience's
+        dist = [np.abs(kd[lev] - np.float32(k)) for lev in range(levels)]
+        near = near_of(k, i, dist)
         laps = []
         for ci, cl in enumerate(chan_levels):
             for lev, lap in enumerate(cl):
                 lap *= near[lev]
                 laps.append((lev, ci, lap))
         accumulate(laps, near)
-        return salience(k_i, lum_levels)
+        return salience(k_i, lum_levels, dist)
 
     best = [np.full(s, -2.0, np.float32) for s in shapes]
     choice = [np.zeros(s, choice_dtype) for s in shapes]
