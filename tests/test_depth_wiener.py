@@ -141,9 +141,9 @@ def test_tiles_agree_with_one_whole_image_filter(flat_world, monkeypatch):
 
     spec, r, z, prof, zb = flat_world
     st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)
-    monkeypatch.setattr(dw, "TILE_PX", 4096)
+    monkeypatch.setattr(dw, "TILE_BLOCK_MAX_SAMPLES", 4096 * 4096)
     whole, info_w = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
-    monkeypatch.setattr(dw, "TILE_PX", 40)
+    monkeypatch.setattr(dw, "TILE_BLOCK_MAX_SAMPLES", 100 * 100)
     tiled, info_t = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
     assert info_w["tiles"] == 1 and info_t["tiles"] == 12
     sigma = float(np.mean(info_w["noise_sigma"]))
@@ -158,7 +158,7 @@ def test_needed_pixels_get_the_full_filter_and_the_rest_the_reference(flat_world
 
     spec, r, z, prof, zb = flat_world
     st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)
-    monkeypatch.setattr(dw, "TILE_PX", 40)
+    monkeypatch.setattr(dw, "TILE_BLOCK_MAX_SAMPLES", 100 * 100)
     full, _ = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
     h, w = zb.shape[:2]
     yy, xx = np.mgrid[:h, :w]

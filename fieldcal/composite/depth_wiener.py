@@ -38,10 +38,16 @@ REACH_DISC_PX = 3.0
 LABEL_DISC_PX = 0.5
 #: At most this many labels per image (labels widen beyond it).
 MAX_LABELS = 96
-#: Tiles (px) filtered one at a time, each with only the labels its pixels use (512: the margins cost 27 %
-#: more FFT area, not 64 % as at 256; on the real 2048 x 1536 circuit board the filter took 17 % less CPU, the
-#: image the same to 1 of 255) ...
-TILE_PX = 512
+#: Tiles are filtered one at a time, each with only the labels its pixels use, from a block of at most this many
+#: samples (FFT size, rows x columns): 2^20, a 4 MiB complex64 half spectrum. A label's filter costs ~0.33 ns x N
+#: log2 N of its block's N samples up to ~10^6 (measured on this compositor's products and inverses, 128 x 160 to
+#: 1024 x 1024), 10-25 % more per sample beyond (1620 x 1100, 1620 x 2200: the spectra leave the caches), and a
+#: larger block also gathers the labels of more depths where the scene's depth varies (768 / 1024-px tiles cost
+#: 3-20 % more CPU in session 13): :func:`tile_grid` chooses the tiles within this bound.
+TILE_BLOCK_MAX_SAMPLES = 1 << 20
+#: A filter's fixed cost (its calls, beyond its transforms) in the units of :func:`tile_grid`'s model
+#: (N log2 N of the block's samples, ~0.33 ns each): ~30 µs.
+TILE_OVERHEAD = 1e5
 #: ... from a block with this margin (px, beyond the mirror pad) of real neighbours: the filters' support
 TILE_MARGIN_PX = 16
 #: Noise responses each probe frame's noise is estimated from (a median: ~1.25 / sqrt(n) = 0.25 % standard error,
@@ -244,6 +250,47 @@ def quantization_sigma(dtype, rows: np.ndarray | None, n_channels: int) -> list[
     return [q * float(np.sqrt(np.sum(np.square(r)))) for r in np.atleast_2d(rows)]
 
 
+
+def tile_grid(w: int, h: int, margin: int, workers: int,
+              max_samples: int | None = None) -> tuple[list[int], list[int], int, int]:
+    """The Wiener step's tiles: column and row edges splitting a ``w x h`` image evenly (cores differing by at
+    most a pixel, each pixel in exactly one tile) and the FFT block (``nb_y x nb_x``, the largest core with
+    ``margin`` on each side, :func:`scipy.fft.next_fast_len`) they are all filtered on.
+
+    Every tile runs the same transforms once per label it uses, so the step's cost is ~ tiles x labels x the
+    block's FFT cost, ``N log2 N`` for N samples (+ :data:`TILE_OVERHEAD`). On a scene whose every tile uses
+    every label (the real board) the labels are a common factor, and the split chosen is the one of least
+    ``slots x (N log2 N + overhead)`` with blocks of at most ``max_samples`` (default
+    :data:`TILE_BLOCK_MAX_SAMPLES`), ``slots`` the tile count rounded up to a multiple of ``workers`` (the tiles
+    run one per compositor thread: a last round with threads idle costs as if they worked; one tile alone runs
+    its FFTs on all of them, so counts once). Ties go to fewer tiles; cores are at least 8 px. Small margins and
+    partial tiles are what this saves against fixed square tiles: 2048 x 1536 on two threads is 3 x 2 tiles on
+    768 x 864 blocks (512-px squares: 12 on 600 x 600, 4 % more of the model's cost), 1920 x 1080 3 x 2 on
+    720 x 625 (12 512-px squares: 58 % more)."""
+    from scipy import fft
+
+    max_samples = TILE_BLOCK_MAX_SAMPLES if max_samples is None else int(max_samples)
+    workers = max(1, int(workers))
+
+    def splits(n: int) -> tuple[np.ndarray, np.ndarray]:
+        # 1 .. n / 8 tiles along a side, each with its block's side
+        k = np.arange(1, max(1, n // 8) + 1)
+        return k, np.array([fft.next_fast_len(-(-n // int(j)) + 2 * margin, real=True) for j in k])
+
+    kx, bx = splits(w)
+    ky, by = splits(h)
+    n = ky[:, None] * kx[None, :]
+    samples = by[:, None].astype(np.float64) * bx[None, :]
+    slots = np.where(n == 1, 1, -(-n // workers) * workers)
+    cost = slots * (samples * np.log2(np.maximum(samples, 2.0)) + TILE_OVERHEAD)
+    over = samples > max_samples
+    # within the bound the least cost (ties: fewer tiles); only if no block is within it, the smallest block
+    order = np.lexsort((n.ravel(), cost.ravel(), np.where(over, samples, 0.0).ravel(), over.ravel()))
+    iy, ix = np.unravel_index(order[0], n.shape)
+    nx, ny = int(kx[ix]), int(ky[iy])
+    return [w * i // nx for i in range(nx + 1)], [h * i // ny for i in range(ny + 1)], int(by[iy]), int(bx[ix])
+
+
 def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray, *, geometry=None,
                      lateral_colour: bool = False, reach_disc_px: float = REACH_DISC_PX,
                      noise_sigma=None, label_um: float | None = None, needed: np.ndarray | None = None,
@@ -371,10 +418,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     # Tiles: each core is filtered from a block with a margin of real neighbours (mirrored only at the image's
     # border), and only with the labels and frames its own pixels need: a label's filter then costs a small FFT
     # where the field curvature puts its pixels, not one of the whole image.
-    core = min(TILE_PX, max(w, h))
     margin = pad + TILE_MARGIN_PX
-    nb_y = fft.next_fast_len(min(core, h) + 2 * margin, real=True)
-    nb_x = fft.next_fast_len(min(core, w) + 2 * margin, real=True)
+    edges_x, edges_y, nb_y, nb_x = tile_grid(w, h, margin, default_workers())
     f_grid = rfft_radial_grid((nb_y, nb_x), pitch)
     fmin = 4.0 / (max(shape) * pitch * 1e-3)  # the power law as fitted on the whole image
     # OTFs are radial: each one is a 1-D table gathered onto the grid through one index
@@ -434,7 +479,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         return hit
 
     maps = {}
-    tiles = [(x0, y0) for y0 in range(0, h, core) for x0 in range(0, w, core)]
+    tiles = [(x0, y0, x1, y1) for y0, y1 in zip(edges_y[:-1], edges_y[1:]) for x0, x1 in zip(edges_x[:-1], edges_x[1:])]
     # tiles run on the compositor's threads, a core each: FFTs split over threads as well would only add their
     # hand-overs (~15 % more CPU for the same transforms, measured on two cores)
     fft_workers = 1 if len(tiles) > 1 and default_workers() > 1 else -1
@@ -467,12 +512,11 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
 
     out = np.zeros((h, w, len(fch)), np.float32)
 
-    def tile(origin: tuple[int, int]) -> tuple[int, list[int]]:
-        """Filter one tile into ``out`` (tiles' cores never overlap, so threads may run them concurrently);
-        returns the number of filters and the frames each label used."""
-        x0, y0 = origin
+    def tile(core: tuple[int, int, int, int]) -> tuple[int, list[int]]:
+        """Filter one tile (its core ``x0, y0, x1, y1``) into ``out`` (tiles' cores never overlap, so threads may
+        run them concurrently); returns the number of filters and the frames each label used."""
+        x0, y0, x1, y1 = core
         n_filters, n_frames_used = 0, []
-        x1, y1 = min(w, x0 + core), min(h, y0 + core)
         bx0, by0, bx1, by1 = max(0, x0 - margin), max(0, y0 - margin), min(w, x1 + margin), min(h, y1 + margin)
         top, left = margin - (y0 - by0), margin - (x0 - bx0)  # mirrored rows/columns above/left of the block
         need = None if needed is None else needed[y0:y1, x0:x1]
