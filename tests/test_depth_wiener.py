@@ -141,7 +141,10 @@ def test_tiles_agree_with_one_whole_image_filter(flat_world, monkeypatch):
 
     spec, r, z, prof, zb = flat_world
     st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)
+    from fieldcal.composite import source
+
     monkeypatch.setattr(dw, "TILE_BLOCK_MAX_SAMPLES", 4096 * 4096)
+    monkeypatch.setattr(source, "default_workers", lambda: 1)  # one thread: the whole image is one tile
     whole, info_w = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
     monkeypatch.setattr(dw, "TILE_BLOCK_MAX_SAMPLES", 100 * 100)
     tiled, info_t = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
@@ -274,6 +277,8 @@ def test_row_bands_on_threads_give_the_single_threads_combination(flat_world, mo
     needed = (np.mgrid[:h, :w].sum(axis=0) % 5) < 3
     ycc = np.array([[0.299, 0.587, 0.114], [-0.169, -0.331, 0.5], [0.5, -0.419, -0.081]])
     monkeypatch.setattr(dff, "BAND_MIN_ROWS", 8)  # several bands on the small test image
+    # the same tiles for any thread count (the tile rule balances tiles over the threads)
+    monkeypatch.setattr(dw, "tile_grid", lambda w, h, margin, workers, real=dw.tile_grid: real(w, h, margin, 1))
     calls = [dict(), dict(mix=ycc[1:], needed=needed, noise_sigma=1.0)]
     results, real = {}, dw.row_bands
     for workers in (1, 3):
@@ -303,7 +308,7 @@ def _grid_cost(w, h, margin, workers, nx, ny):
     by = fft.next_fast_len(-(-h // ny) + 2 * margin, real=True)
     bx = fft.next_fast_len(-(-w // nx) + 2 * margin, real=True)
     n = nx * ny
-    slots = 1 if n == 1 else -(-n // workers) * workers
+    slots = -(-n // workers) * workers
     return by * bx, slots * (by * bx * np.log2(by * bx) + dw.TILE_OVERHEAD)
 
 
@@ -338,7 +343,7 @@ def test_tile_grid_covers_the_image_once_at_the_least_modelled_cost(w, h, worker
 def test_tile_grid_sizes_for_common_frames():
     """The rule on frame sizes it was not tuned on: a 2048 x 1536 frame on two threads is split 3 x 2 (768 x 864
     blocks, not twelve 600 x 600 ones), a 1920 x 1080 one 3 x 2 (no 56-row strip of partial tiles), and 24 MP
-    frames into tile counts the threads share evenly, all within the block bound; a small image is one tile."""
+    frames into tile counts the threads share evenly, all within the block bound."""
     from fieldcal.composite.depth_wiener import TILE_BLOCK_MAX_SAMPLES, tile_grid
 
     ex, ey, nb_y, nb_x = tile_grid(2048, 1536, 34, 2)
@@ -349,7 +354,10 @@ def test_tile_grid_sizes_for_common_frames():
         for workers in (2, 4):
             ex, ey, nb_y, nb_x = tile_grid(w, h, 34, workers)
             assert ((len(ex) - 1) * (len(ey) - 1)) % workers == 0 and nb_y * nb_x <= TILE_BLOCK_MAX_SAMPLES
-    assert tile_grid(320, 240, 34, 2)[:2] == ([0, 320], [0, 240])
+    # a small image: one tile for one thread, a tile per thread for two (one tile's FFTs on two threads left the
+    # rest serial)
+    assert tile_grid(320, 240, 34, 1)[:2] == ([0, 320], [0, 240])
+    assert len(tile_grid(320, 240, 34, 2)[0]) + len(tile_grid(320, 240, 34, 2)[1]) == 5
 
 
 def test_one_pass_over_luma_and_chroma_labels_equals_a_call_per_group(flat_world, monkeypatch):
