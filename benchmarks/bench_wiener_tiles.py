@@ -9,7 +9,7 @@ of blur disc per frame step, depth error 0.13 step), the composite's YCbCr split
 (luma on labels 1/8 frame apart, Cb and Cr on labels one frame apart, in one call). ``--depth cells``: the
 best focus drawn per 24-px cell over the whole stack (every tile uses every label, as on the board); ``slope``: a
 plane across the image (each tile uses the labels of its own depths only). The two grids run in turn in one
-process, ``--reps`` times each; CPU is the process's (``time.process_time``: all threads).
+process, ``--reps`` times each, in turn (the order reversed every other time; a 320 x 240 call first, untimed); CPU is the process's (``time.process_time``: all threads).
 """
 
 from __future__ import annotations
@@ -65,8 +65,11 @@ def main() -> None:
     print(f"workers {workers}, margin {margin} px, depth {args.depth}")
     print("| size | grid | tiles | block | model cost (rel.) | filters | CPU s | wall s |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
-    for size in args.sizes.split(","):
+    for k, size in enumerate(["320x240"] + args.sizes.split(",")):
         w, h = (int(v) for v in size.split("x"))
+        warmup = k == 0  # (imports and first-call costs, untimed)
+        if warmup and args.model_only:
+            continue
         costs = {name: _model_cost(g, w, h, margin, workers) for name, g in grids.items()}
         if args.model_only:
             for name, (n, by, bx, c) in costs.items():
@@ -87,8 +90,8 @@ def main() -> None:
         del zb1
         times = {name: [] for name in grids}
         filters = {}
-        for _ in range(args.reps):
-            for name, g in grids.items():
+        for r in range(1 if warmup else args.reps):
+            for name, g in (list(grids.items()) if r % 2 == 0 else list(grids.items())[::-1]):  # in turn
                 dw.tile_grid = g
                 w0, c0 = time.perf_counter(), time.process_time()
                 _, info = dw.wiener_composite(st, zb, model, np.arange(7), reference, mix=ycc,
@@ -97,7 +100,7 @@ def main() -> None:
                 times[name].append((time.process_time() - c0, time.perf_counter() - w0))
                 filters[name] = info["filters"]
         dw.tile_grid = grids["rule"]
-        for name in grids:
+        for name in ([] if warmup else grids):
             n, by, bx, c = costs[name]
             cpu = " / ".join(f"{t[0]:.2f}" for t in times[name])
             wall = " / ".join(f"{t[1]:.2f}" for t in times[name])

@@ -441,6 +441,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             frac[c][a:b] = np.clip(t, 0.0, 1.0, out=t)
 
     row_bands(label_rows, h)
+    del zb_planes, zb_g  # (the mixed depth maps: the labels are all the tiles need)
 
     from ..optics.sweep import rfft_radial_grid
     from .warp import frame_maps, warp_region
@@ -540,7 +541,15 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         return [fft.rfft2(cv2.copyMakeBorder(p, top, bottom, left, right, cv2.BORDER_REFLECT),
                           workers=fft_workers).astype(np.complex64, copy=False) for p in out]
 
-    out = np.zeros((h, w, n_p), np.float32)
+    if needed is None:
+        out = np.zeros((h, w, n_p), np.float32)
+    else:
+        # the reference where the combination is not needed, put in place now: the tiles write only the needed
+        # pixels, and the mixed reference planes need not be held through the tiles
+        out = np.empty((h, w, n_p), np.float32)
+        for c in range(n_p):
+            out[..., c] = ref_planes[c]
+    del ref_planes, ref_g
 
     def tile(core: tuple[int, int, int, int]) -> tuple[list[int], list[list[int]]]:
         """Filter one tile (its core ``x0, y0, x1, y1``) into ``out`` (tiles' cores never overlap, so threads may
@@ -630,9 +639,12 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                     v *= wgt[sl]
                     acc[c][sl] += v
         for c in range(n_p):
-            plane = np.zeros((y1 - y0) * tw, np.float32)
-            plane[groups[c][0]] = acc[c]
-            out[y0:y1, x0:x1, c] = plane.reshape(y1 - y0, tw)
+            if need is None:
+                plane = np.zeros((y1 - y0) * tw, np.float32)
+                plane[groups[c][0]] = acc[c]
+                out[y0:y1, x0:x1, c] = plane.reshape(y1 - y0, tw)
+            else:  # the needed pixels only (the others hold the reference)
+                out[y0:y1, x0:x1, c][groups[c][1], groups[c][2] - margin] = acc[c]
         return n_filters, n_frames_used
 
     n_frames_used, n_filters = [[] for _ in plane_groups], [0] * len(plane_groups)
@@ -641,15 +653,6 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         for g in range(len(plane_groups)):
             n_filters[g] += nf[g]
             n_frames_used[g] += used_frames[g]
-    if needed is not None:
-        from .fusion import masked_copy
-
-        keep = ~np.asarray(needed, bool)
-        if mix is None and len(plane_groups) == 1:
-            masked_copy(out, np.ascontiguousarray(reference, dtype=np.float32), keep)
-        else:
-            masked_copy(out, np.stack(ref_planes, axis=-1).astype(np.float32, copy=False), keep)
-
     def group_info(g: int) -> dict:
         planes = plane_groups[g]
         info = {"noise_sigma": [round(sigma[c], 3) for c in planes], "tiles": len(tiles), "filters": n_filters[g],
