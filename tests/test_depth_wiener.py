@@ -141,9 +141,12 @@ def test_tiles_agree_with_one_whole_image_filter(flat_world, monkeypatch):
 
     spec, r, z, prof, zb = flat_world
     st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)
-    monkeypatch.setattr(dw, "TILE_PX", 4096)
+    from fieldcal.composite import source
+
+    monkeypatch.setattr(dw, "TILE_BLOCK_MAX_SAMPLES", 4096 * 4096)
+    monkeypatch.setattr(source, "default_workers", lambda: 1)  # one thread: the whole image is one tile
     whole, info_w = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
-    monkeypatch.setattr(dw, "TILE_PX", 40)
+    monkeypatch.setattr(dw, "TILE_BLOCK_MAX_SAMPLES", 100 * 100)
     tiled, info_t = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
     assert info_w["tiles"] == 1 and info_t["tiles"] == 12
     sigma = float(np.mean(info_w["noise_sigma"]))
@@ -158,7 +161,7 @@ def test_needed_pixels_get_the_full_filter_and_the_rest_the_reference(flat_world
 
     spec, r, z, prof, zb = flat_world
     st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)
-    monkeypatch.setattr(dw, "TILE_PX", 40)
+    monkeypatch.setattr(dw, "TILE_BLOCK_MAX_SAMPLES", 100 * 100)
     full, _ = wiener_composite(st, zb, prof, frames, blend, geometry=prof, quiet=True)
     h, w = zb.shape[:2]
     yy, xx = np.mgrid[:h, :w]
@@ -274,6 +277,8 @@ def test_row_bands_on_threads_give_the_single_threads_combination(flat_world, mo
     needed = (np.mgrid[:h, :w].sum(axis=0) % 5) < 3
     ycc = np.array([[0.299, 0.587, 0.114], [-0.169, -0.331, 0.5], [0.5, -0.419, -0.081]])
     monkeypatch.setattr(dff, "BAND_MIN_ROWS", 8)  # several bands on the small test image
+    # the same tiles for any thread count (the tile rule balances tiles over the threads)
+    monkeypatch.setattr(dw, "tile_grid", lambda w, h, margin, workers, real=dw.tile_grid: real(w, h, margin, 1))
     calls = [dict(), dict(mix=ycc[1:], needed=needed, noise_sigma=1.0)]
     results, real = {}, dw.row_bands
     for workers in (1, 3):
@@ -291,3 +296,104 @@ def test_row_bands_on_threads_give_the_single_threads_combination(flat_world, mo
     ref = dw._power_law(np.asarray(blend, np.float32)[..., 1:2], 20, prof.pixel_pitch_um, fns, [1.0])
     monkeypatch.setattr(source, "default_workers", lambda: 3)
     assert dw._power_law(np.asarray(blend, np.float32)[..., 1:2], 20, prof.pixel_pitch_um, fns, [1.0]) == ref
+
+
+def _grid_cost(w, h, margin, workers, nx, ny):
+    """tile_grid's stated model, written out independently: an even split into nx x ny tiles, every tile on the
+    block of the largest core plus its margins (scipy's fast real length), slots rounded up to the workers."""
+    from scipy import fft
+
+    import fieldcal.composite.depth_wiener as dw
+
+    by = fft.next_fast_len(-(-h // ny) + 2 * margin, real=True)
+    bx = fft.next_fast_len(-(-w // nx) + 2 * margin, real=True)
+    n = nx * ny
+    slots = -(-n // workers) * workers
+    return by * bx, slots * (by * bx * np.log2(by * bx) + dw.TILE_OVERHEAD)
+
+
+@pytest.mark.parametrize("w,h", [(1, 1), (7, 5), (37, 23), (401, 299), (1919, 1081), (2048, 1536)])
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_tile_grid_covers_the_image_once_at_the_least_modelled_cost(w, h, workers):
+    """The tiles cover every pixel exactly once (odd sizes too), cores differ by at most a pixel, every core
+    with its margins fits the block, the block is within the sample bound, and no other even split within the
+    bound has a lower modelled cost (brute force over all splits)."""
+    from fieldcal.composite.depth_wiener import TILE_BLOCK_MAX_SAMPLES, tile_grid
+
+    margin = 34
+    ex, ey, nb_y, nb_x = tile_grid(w, h, margin, workers)
+    cover = np.zeros((h, w), int)
+    for y0, y1 in zip(ey[:-1], ey[1:]):
+        for x0, x1 in zip(ex[:-1], ex[1:]):
+            assert x1 > x0 and y1 > y0
+            assert x1 - x0 + 2 * margin <= nb_x and y1 - y0 + 2 * margin <= nb_y
+            cover[y0:y1, x0:x1] += 1
+    assert np.all(cover == 1)
+    assert np.ptp(np.diff(ex)) <= 1 and np.ptp(np.diff(ey)) <= 1
+    assert nb_y * nb_x <= TILE_BLOCK_MAX_SAMPLES
+    nx, ny = len(ex) - 1, len(ey) - 1
+    _, cost = _grid_cost(w, h, margin, workers, nx, ny)
+    for kx in range(1, max(1, w // 8) + 1):
+        for ky in range(1, max(1, h // 8) + 1):
+            samples, other = _grid_cost(w, h, margin, workers, kx, ky)
+            if samples <= TILE_BLOCK_MAX_SAMPLES:
+                assert cost <= other * (1 + 1e-12), ((nx, ny), (kx, ky))
+
+
+def test_tile_grid_sizes_for_common_frames():
+    """The rule on frame sizes it was not tuned on: a 2048 x 1536 frame on two threads is split 3 x 2 (768 x 864
+    blocks, not twelve 600 x 600 ones), a 1920 x 1080 one 3 x 2 (no 56-row strip of partial tiles), and 24 MP
+    frames into tile counts the threads share evenly, all within the block bound."""
+    from fieldcal.composite.depth_wiener import TILE_BLOCK_MAX_SAMPLES, tile_grid
+
+    ex, ey, nb_y, nb_x = tile_grid(2048, 1536, 34, 2)
+    assert (len(ex) - 1, len(ey) - 1, nb_y, nb_x) == (3, 2, 864, 768)
+    ex, ey, nb_y, nb_x = tile_grid(1920, 1080, 34, 2)
+    assert (len(ex) - 1, len(ey) - 1) == (3, 2)
+    for w, h in ((4000, 3000), (6000, 4000)):
+        for workers in (2, 4):
+            ex, ey, nb_y, nb_x = tile_grid(w, h, 34, workers)
+            assert ((len(ex) - 1) * (len(ey) - 1)) % workers == 0 and nb_y * nb_x <= TILE_BLOCK_MAX_SAMPLES
+    # a small image: one tile for one thread, a tile per thread for two (one tile's FFTs on two threads left the
+    # rest serial)
+    assert tile_grid(320, 240, 34, 1)[:2] == ([0, 320], [0, 240])
+    assert len(tile_grid(320, 240, 34, 2)[0]) + len(tile_grid(320, 240, 34, 2)[1]) == 5
+
+
+def test_one_pass_over_luma_and_chroma_labels_equals_a_call_per_group(flat_world, monkeypatch):
+    """Planes on two label spacings filtered in one pass over the tiles (each tile's frames read once) give each
+    group's call of its own bit for bit: the luma on fine labels and the chroma on coarse ones, several tiles,
+    only some pixels needed; the per-group info is the group call's; a spacing per plane of the wrong count is
+    refused."""
+    import fieldcal.composite.depth_wiener as dw
+
+    spec, r, z, prof, zb = flat_world
+    st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)
+    h, w = zb.shape[:2]
+    monkeypatch.setattr(dw, "TILE_BLOCK_MAX_SAMPLES", 100 * 100)  # several tiles on the small image
+    needed = ((np.mgrid[:h, :w].sum(axis=0) % 7) < 4) & (np.arange(h)[:, None] % 13 < 9)
+    ycc = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
+    fine, coarse = 3.0, 25.0
+    import fieldcal.composite.warp as warp
+
+    read, real_warp_region = [], warp.warp_region  # (imported by the Wiener step at its call)
+
+    def counting(*a, **k):
+        read.append(a[1])
+        return real_warp_region(*a, **k)
+
+    monkeypatch.setattr(warp, "warp_region", counting)
+    sep = [wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=rows, label_um=lab, needed=needed,
+                            quiet=True) for rows, lab in ((ycc[:1], fine), (ycc[1:], coarse))]
+    n_sep = len(read)
+    read.clear()
+    one, info = wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=ycc, label_um=[fine, coarse, coarse],
+                                 needed=needed, quiet=True)
+    assert 0 < len(read) < n_sep  # fewer frame reads than the two calls'
+    assert info["tiles"] > 1 and info["filters"] == sep[0][1]["filters"] + sep[1][1]["filters"]
+    np.testing.assert_array_equal(one, np.concatenate([sep[0][0], sep[1][0]], axis=2))
+    for g, (_, info_g) in zip(info["groups"], sep):
+        assert {k: v for k, v in g.items() if k != "plane_index"} == info_g
+    assert [g["plane_index"] for g in info["groups"]] == [[0], [1, 2]]
+    with pytest.raises(ParameterError, match="label spacings"):
+        wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=ycc, label_um=[fine, coarse], quiet=True)

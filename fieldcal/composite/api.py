@@ -318,24 +318,23 @@ def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, 
         # ... and filtered only where it will be used: the fusion takes the pixels the depth map is unsure of
         needed = fallback[1] >= np.float32(1.0 / 256.0) if measured and fallback is not None else None
         if ycc_split:
-            # luma and chroma apart, the chroma on coarser labels (CHROMA_LABEL_FRAMES); the noise of all three
-            # planes from one read of the probe frames, not one per call
-            sig = noise_probe.result()
-            ycc = [wiener_composite(stack, zb, defocus, frames, img, geometry=geometry, lateral_colour=lateral_colour,
-                                    label_um=lab, needed=needed, mix=rows, plane_sigma=ps, quiet=quiet)
-                   for rows, lab, ps in ((YCBCR[:1], label_um, sig[:1]),
-                                         (YCBCR[1:], CHROMA_LABEL_FRAMES * spacing, sig[1:]))]
+            # luma and chroma apart, the chroma on coarser labels (CHROMA_LABEL_FRAMES), in one pass over the
+            # tiles (each tile's frames read once for the three planes; the same numbers as a call per group); the
+            # noise of all three planes from one read of the probe frames
+            ycc, winfo = wiener_composite(stack, zb, defocus, frames, img, geometry=geometry,
+                                          lateral_colour=lateral_colour, needed=needed, mix=YCBCR,
+                                          label_um=[label_um] + [CHROMA_LABEL_FRAMES * spacing] * 2,
+                                          plane_sigma=noise_probe.result(), quiet=quiet)
             to_rgb = np.linalg.inv(YCBCR).T.astype(np.float32)
             rgb = np.empty(img.shape, dtype)  # the luma and chroma planes back to the three channels
 
             def rows(a: int, b: int) -> None:  # per pixel, in row bands on the compositor's threads (was serial)
-                rgb[a:b] = to_input_dtype(np.concatenate([p[a:b] for p, _ in ycc], axis=2) @ to_rgb, rgb.dtype,
-                                          float(stack.white_level))
+                rgb[a:b] = to_input_dtype(ycc[a:b] @ to_rgb, rgb.dtype, float(stack.white_level))
 
             row_bands(rows, rgb.shape[0])
             img = rgb
-            info["wiener"] = {**ycc[0][1], "filters": ycc[0][1]["filters"] + ycc[1][1]["filters"],
-                              "chroma": ycc[1][1]}
+            luma, chroma = ({k: v for k, v in g.items() if k != "plane_index"} for g in winfo["groups"])
+            info["wiener"] = {**luma, "filters": winfo["filters"], "chroma": chroma}
         else:
             combined, info["wiener"] = wiener_composite(stack, zb, defocus, frames, img, geometry=geometry,
                                                         lateral_colour=lateral_colour, label_um=label_um,

@@ -38,10 +38,16 @@ REACH_DISC_PX = 3.0
 LABEL_DISC_PX = 0.5
 #: At most this many labels per image (labels widen beyond it).
 MAX_LABELS = 96
-#: Tiles (px) filtered one at a time, each with only the labels its pixels use (512: the margins cost 27 %
-#: more FFT area, not 64 % as at 256; on the real 2048 x 1536 circuit board the filter took 17 % less CPU, the
-#: image the same to 1 of 255) ...
-TILE_PX = 512
+#: Tiles are filtered one at a time, each with only the labels its pixels use, from a block of at most this many
+#: samples (FFT size, rows x columns): 2^20, a 4 MiB complex64 half spectrum. A label's filter costs ~0.33 ns x N
+#: log2 N of its block's N samples up to ~10^6 (measured on this compositor's products and inverses, 128 x 160 to
+#: 1024 x 1024), 10-25 % more per sample beyond (1620 x 1100, 1620 x 2200: the spectra leave the caches), and a
+#: larger block also gathers the labels of more depths where the scene's depth varies (768 / 1024-px tiles cost
+#: 3-20 % more CPU in session 13): :func:`tile_grid` chooses the tiles within this bound.
+TILE_BLOCK_MAX_SAMPLES = 1 << 20
+#: A filter's fixed cost (its calls, beyond its transforms) in the units of :func:`tile_grid`'s model
+#: (N log2 N of the block's samples, ~0.33 ns each): ~30 µs.
+TILE_OVERHEAD = 1e5
 #: ... from a block with this margin (px, beyond the mirror pad) of real neighbours: the filters' support
 TILE_MARGIN_PX = 16
 #: Noise responses each probe frame's noise is estimated from (a median: ~1.25 / sqrt(n) = 0.25 % standard error,
@@ -244,6 +250,48 @@ def quantization_sigma(dtype, rows: np.ndarray | None, n_channels: int) -> list[
     return [q * float(np.sqrt(np.sum(np.square(r)))) for r in np.atleast_2d(rows)]
 
 
+
+def tile_grid(w: int, h: int, margin: int, workers: int,
+              max_samples: int | None = None) -> tuple[list[int], list[int], int, int]:
+    """The Wiener step's tiles: column and row edges splitting a ``w x h`` image evenly (cores differing by at
+    most a pixel, each pixel in exactly one tile) and the FFT block (``nb_y x nb_x``, the largest core with
+    ``margin`` on each side, :func:`scipy.fft.next_fast_len`) they are all filtered on.
+
+    Every tile runs the same transforms once per label it uses, so the step's cost is ~ tiles x labels x the
+    block's FFT cost, ``N log2 N`` for N samples (+ :data:`TILE_OVERHEAD`). On a scene whose every tile uses
+    every label (the real board) the labels are a common factor, and the split chosen is the one of least
+    ``slots x (N log2 N + overhead)`` with blocks of at most ``max_samples`` (default
+    :data:`TILE_BLOCK_MAX_SAMPLES`), ``slots`` the tile count rounded up to a multiple of ``workers`` (the tiles
+    run one per compositor thread: a last round with threads idle costs as if they worked, and so does one tile
+    alone, whose FFTs on all threads left the rest serial: a 1024 x 768 image as one tile took 16 % less CPU
+    than as four 512-px squares and 30 % more wall on two threads). Ties go to fewer tiles; cores are at least 8 px. Small margins and
+    partial tiles are what this saves against fixed square tiles: 2048 x 1536 on two threads is 3 x 2 tiles on
+    768 x 864 blocks (512-px squares: 12 on 600 x 600, 4 % more of the model's cost), 1920 x 1080 3 x 2 on
+    720 x 625 (12 512-px squares: 58 % more)."""
+    from scipy import fft
+
+    max_samples = TILE_BLOCK_MAX_SAMPLES if max_samples is None else int(max_samples)
+    workers = max(1, int(workers))
+
+    def splits(n: int) -> tuple[np.ndarray, np.ndarray]:
+        # 1 .. n / 8 tiles along a side, each with its block's side
+        k = np.arange(1, max(1, n // 8) + 1)
+        return k, np.array([fft.next_fast_len(-(-n // int(j)) + 2 * margin, real=True) for j in k])
+
+    kx, bx = splits(w)
+    ky, by = splits(h)
+    n = ky[:, None] * kx[None, :]
+    samples = by[:, None].astype(np.float64) * bx[None, :]
+    slots = -(-n // workers) * workers
+    cost = slots * (samples * np.log2(np.maximum(samples, 2.0)) + TILE_OVERHEAD)
+    over = samples > max_samples
+    # within the bound the least cost (ties: fewer tiles); only if no block is within it, the smallest block
+    order = np.lexsort((n.ravel(), cost.ravel(), np.where(over, samples, 0.0).ravel(), over.ravel()))
+    iy, ix = np.unravel_index(order[0], n.shape)
+    nx, ny = int(kx[ix]), int(ky[iy])
+    return [w * i // nx for i in range(nx + 1)], [h * i // ny for i in range(ny + 1)], int(by[iy]), int(bx[ix])
+
+
 def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray, *, geometry=None,
                      lateral_colour: bool = False, reach_disc_px: float = REACH_DISC_PX,
                      noise_sigma=None, label_um: float | None = None, needed: np.ndarray | None = None,
@@ -270,9 +318,12 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     noise_sigma : sequence of float, optional
         Pixel noise (frame units) per channel, e.g. from the camera's noise model
         (:func:`fieldcal.composite.sweep.sensor_noise_sigma`); default: estimated from the frames.
-    label_um : float, optional
+    label_um : float or sequence of float, optional
         Spacing of the depth labels (µm); default :data:`LABEL_DISC_PX` of blur-disc diameter. A coarser one
         where the depth map is known no better (a defocus measured from the stack: a fraction of a frame step).
+        One per filtered plane (channel, or row of ``mix``) filters each group of planes with one spacing on its
+        own labels (as if by a call of its own, the same numbers: its mix, depth, labels and power law its own),
+        all in one pass over the tiles: each tile's frames are read, warped and transformed once for all planes.
     needed : H x W bool array, optional
         Where the combination will be used (default everywhere); elsewhere the output is ``reference``'s and no
         label is filtered for those pixels alone.
@@ -290,7 +341,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     (image, info)
         Float32 ``H x W x C`` (``H x W x P`` with ``mix``) in the frames' units, and the noise level per channel
         (plane), the number of tiles and of label filters applied (tiles x labels x channels), the labels'
-        spacing (µm) and the mean number of frames per label.
+        spacing (µm) and the mean number of frames per label. With several label spacings, ``info["groups"]``
+        holds these per group of planes (as each group's own call would give them, and ``plane_index``: which
+        planes) and the top level the planes' noise, the tiles and all filters.
     """
     from scipy import fft
 
@@ -306,13 +359,20 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             raise ParameterError(f"plane weights {mix.tolist()} do not match the channels {channels}", field="mix",
                                  fix="give one row of weights per plane, one weight per channel, not all zero")
         m32 = mix.astype(np.float32)
-        reference = np.asarray(reference, dtype=np.float32) @ m32.T
         depth_w = np.abs(m32) / np.abs(m32).sum(axis=1, keepdims=True)
-        zb = np.asarray(zb, dtype=np.float32) @ depth_w.T
         # each plane's OTFs are looked up as its heaviest channel's (the same in every channel)
         fch = tuple(channels[int(np.argmax(np.abs(row)))] for row in mix)
     else:
         fch = channels
+    n_p = len(fch)
+    spacing = [label_um] * n_p if label_um is None or np.ndim(label_um) == 0 else list(label_um)
+    if len(spacing) != n_p:
+        raise ParameterError(f"{len(spacing)} label spacings for {n_p} planes", field="label_um",
+                             fix="give one label spacing (µm), or one per filtered plane")
+    spacing = [float(v or 0.0) for v in spacing]
+    # planes of one spacing are filtered together, on their own labels: each group exactly as a call of its own
+    plane_groups = [[c for c in range(n_p) if spacing[c] == v] for v in dict.fromkeys(spacing)]
+    group_of = [next(g for g, planes in enumerate(plane_groups) if c in planes) for c in range(n_p)]
 
     pitch = float(model.pixel_pitch_um)
     px_um = float(n_f) * pitch  # defocus that widens the blur disc's diameter by 1 px
@@ -322,8 +382,6 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     zs = z_all[order].astype(np.float64)
     reach = reach_disc_px * px_um
     pad = int(np.ceil(0.5 * reach_disc_px)) + 16
-    labels, step = _labels(zb, max(LABEL_DISC_PX * px_um, float(label_um or 0.0)))
-    n_lab = len(labels)
 
     from .dff import map_in_order
     from .source import default_workers
@@ -339,22 +397,41 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         sigma = [float(v) for v in np.broadcast_to(np.asarray(noise_sigma, dtype=np.float64), (len(channels),))]
         if mix is not None:  # independent noise per channel
             sigma = [float(np.sqrt(np.sum(row ** 2 * np.square(sigma)))) for row in mix]
-    # the signal's power law per plane, one plane at a time: each fit holds a whole image's spectrum (two at once
-    # on threads raised the composite's peak by ~200 MB for ~0.1 s)
-    a_sig, beta, shape = _power_law(reference, pad, pitch, [lambda t, ch=ch: model.defocus_otf(t, 0.0, ch)
-                                                            for ch in fch], [max(s, 1e-6) for s in sigma])
-    mean = [float(np.mean(reference[..., c])) for c in range(len(fch))]
 
-    # per channel: label index below each pixel and the fraction towards the next
+    # per group: its planes of the reference and of the depth map (a mix's rows multiplied as the group's own
+    # matrix, so the products round as they would in a call of its own), its labels and its power law
+    ref_planes, zb_planes, a_sig, beta = [None] * n_p, [None] * n_p, [0.0] * n_p, [0.0] * n_p
+    labels, steps, shape = [], [], None
+    for planes in plane_groups:
+        if mix is not None:
+            ref_g = np.asarray(reference, dtype=np.float32) @ m32[planes].T
+            zb_g = np.asarray(zb, dtype=np.float32) @ depth_w[planes].T
+        elif len(plane_groups) == 1:
+            ref_g, zb_g = reference, zb
+        else:
+            ref_g, zb_g = np.asarray(reference)[..., planes], np.asarray(zb)[..., planes]
+        lab_g, step_g = _labels(zb_g, max(LABEL_DISC_PX * px_um, spacing[planes[0]]))
+        labels.append(lab_g)
+        steps.append(step_g)
+        # the signal's power law per plane, one plane at a time: each fit holds a whole image's spectrum (two at
+        # once on threads raised the composite's peak by ~200 MB for ~0.1 s)
+        a_g, b_g, shape = _power_law(ref_g, pad, pitch, [lambda t, ch=fch[c]: model.defocus_otf(t, 0.0, ch)
+                                                          for c in planes], [max(sigma[c], 1e-6) for c in planes])
+        for j, c in enumerate(planes):
+            ref_planes[c], zb_planes[c], a_sig[c], beta[c] = ref_g[..., j], zb_g[..., j], a_g[j], b_g[j]
+    mean = [float(np.mean(ref_planes[c])) for c in range(n_p)]
+
+    # per plane: label index below each pixel (on its group's labels) and the fraction towards the next
     lower = [np.empty((h, w), np.int16) for _ in fch]
     frac = [np.empty((h, w), np.float32) for _ in fch]
 
     def label_rows(a: int, b: int) -> None:  # per pixel: in row bands on the compositor's threads
-        for c in range(len(fch)):
+        for c in range(n_p):
+            lab, step, n_lab = labels[group_of[c]], steps[group_of[c]], len(labels[group_of[c]])
             # in place on one float64 plane (the same numbers as the expression written out: the label below is
             # integral, so subtracting it as float64 or as its int16 is the same)
-            t = zb[a:b, :, c].astype(np.float64)
-            t -= labels[0]
+            t = zb_planes[c][a:b].astype(np.float64)
+            t -= lab[0]
             t /= step
             below = np.floor(t)
             np.clip(below, 0, n_lab - 2, out=below)
@@ -364,6 +441,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             frac[c][a:b] = np.clip(t, 0.0, 1.0, out=t)
 
     row_bands(label_rows, h)
+    del zb_planes, zb_g  # (the mixed depth maps: the labels are all the tiles need)
 
     from ..optics.sweep import rfft_radial_grid
     from .warp import frame_maps, warp_region
@@ -371,10 +449,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     # Tiles: each core is filtered from a block with a margin of real neighbours (mirrored only at the image's
     # border), and only with the labels and frames its own pixels need: a label's filter then costs a small FFT
     # where the field curvature puts its pixels, not one of the whole image.
-    core = min(TILE_PX, max(w, h))
     margin = pad + TILE_MARGIN_PX
-    nb_y = fft.next_fast_len(min(core, h) + 2 * margin, real=True)
-    nb_x = fft.next_fast_len(min(core, w) + 2 * margin, real=True)
+    edges_x, edges_y, nb_y, nb_x = tile_grid(w, h, margin, default_workers())
     f_grid = rfft_radial_grid((nb_y, nb_x), pitch)
     fmin = 4.0 / (max(shape) * pitch * 1e-3)  # the power law as fitted on the whole image
     # OTFs are radial: each one is a 1-D table gathered onto the grid through one index
@@ -423,9 +499,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         over |f| (float32 values held as complex64): computed once per (label, channel) for all tiles (32 kB each;
         tiles on threads may both compute one, with the same result), gathered onto a tile's grid through
         ``f_index``."""
-        hit = gain_cache.get((l, c))
+        hit = gain_cache.get((l, c))  # (a plane's labels are its group's: (l, c) names one label)
         if hit is None:
-            ms = [otf(float(zs[k] - labels[l]), fch[c]) for k in near]
+            ms = [otf(float(zs[k] - labels[group_of[c]][l]), fch[c]) for k in near]
             scale = h0s[c] / (nsrs[c] + sum(m2 for _, m2 in ms))
             # stored as complex64 (zero imaginary part): the gathered gain then multiplies the complex64 spectra
             # as it is, where a float32 one was cast to complex64 in each product first (the same numbers)
@@ -434,7 +510,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         return hit
 
     maps = {}
-    tiles = [(x0, y0) for y0 in range(0, h, core) for x0 in range(0, w, core)]
+    tiles = [(x0, y0, x1, y1) for y0, y1 in zip(edges_y[:-1], edges_y[1:]) for x0, x1 in zip(edges_x[:-1], edges_x[1:])]
     # tiles run on the compositor's threads, a core each: FFTs split over threads as well would only add their
     # hand-overs (~15 % more CPU for the same transforms, measured on two cores)
     fft_workers = 1 if len(tiles) > 1 and default_workers() > 1 else -1
@@ -451,7 +527,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             # rounding) instead of three over strided channel views
             fm = maps[k][0]
             part = np.ascontiguousarray(warp_region(stack, int(order[k]), fm, bx0, by0, bx1, by1))
-            for c in range(len(fch)):
+            for c in range(n_p):
                 row = np.append(mix[c, list(fm.channels)], -mean[c]).astype(np.float32)[None]
                 out.append(cv2.transform(part, row).reshape(part.shape[:2]))
         else:
@@ -465,23 +541,31 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         return [fft.rfft2(cv2.copyMakeBorder(p, top, bottom, left, right, cv2.BORDER_REFLECT),
                           workers=fft_workers).astype(np.complex64, copy=False) for p in out]
 
-    out = np.zeros((h, w, len(fch)), np.float32)
+    if needed is None:
+        out = np.zeros((h, w, n_p), np.float32)
+    else:
+        # the reference where the combination is not needed, put in place now: the tiles write only the needed
+        # pixels, and the mixed reference planes need not be held through the tiles
+        out = np.empty((h, w, n_p), np.float32)
+        for c in range(n_p):
+            out[..., c] = ref_planes[c]
+    del ref_planes, ref_g
 
-    def tile(origin: tuple[int, int]) -> tuple[int, list[int]]:
-        """Filter one tile into ``out`` (tiles' cores never overlap, so threads may run them concurrently);
-        returns the number of filters and the frames each label used."""
-        x0, y0 = origin
-        n_filters, n_frames_used = 0, []
-        x1, y1 = min(w, x0 + core), min(h, y0 + core)
+    def tile(core: tuple[int, int, int, int]) -> tuple[list[int], list[list[int]]]:
+        """Filter one tile (its core ``x0, y0, x1, y1``) into ``out`` (tiles' cores never overlap, so threads may
+        run them concurrently); returns per group the number of filters and the frames each label used."""
+        x0, y0, x1, y1 = core
+        n_filters, n_frames_used = [0] * len(plane_groups), [[] for _ in plane_groups]
         bx0, by0, bx1, by1 = max(0, x0 - margin), max(0, y0 - margin), min(w, x1 + margin), min(h, y1 + margin)
         top, left = margin - (y0 - by0), margin - (x0 - bx0)  # mirrored rows/columns above/left of the block
         need = None if needed is None else needed[y0:y1, x0:x1]
         if need is not None and not need.any():
-            return 0, []
+            return n_filters, n_frames_used
         # per channel, the tile's pixels (the needed ones) grouped by their lower label: each label's filter is
         # then written only where it is used, and inverted only on the rows that hold those pixels
         groups, used = [], set()
-        for c in range(len(fch)):
+        for c in range(n_p):
+            n_lab = len(labels[group_of[c]])
             l0 = lower[c][y0:y1, x0:x1].ravel()
             pix = np.arange(l0.size, dtype=np.int32) if need is None else np.flatnonzero(need.ravel()).astype(np.int32)
             # np.take, not fancy indexing: the same elements, ~30 % faster gathers
@@ -496,7 +580,9 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             # for the label below and above it
             groups.append((pix, pix // (x1 - x0), pix % (x1 - x0) + margin, 1.0 - fr, fr, bounds))
             used |= {(c, int(l)) for l in present} | {(c, int(min(l + 1, n_lab - 1))) for l in present}
-        labels_used = sorted({l for _, l in used})
+        # the labels of all groups in order of depth (a group's own in its order): the frames each needs then
+        # advance together, and a tile's frames are read once for every plane
+        labels_used = sorted({(float(labels[group_of[c]][l]), group_of[c], l) for c, l in used})
         tw = x1 - x0
         row_mark = np.zeros(y1 - y0, bool)
         # each plane's sums in its pixels' label order: a label's two groups are slices there (no scattered
@@ -504,8 +590,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         acc = [np.zeros(len(g[0]), np.float32) for g in groups]
         spectra: dict[int, list[np.ndarray]] = {}
         scratch = None  # the second and later frames' products, one buffer per tile
-        for l in labels_used:
-            zl = labels[l]
+        for zl, grp, l in labels_used:
             near = np.flatnonzero(np.abs(zs - zl) <= reach)
             below, above = np.searchsorted(zs, zl, side="right") - 1, np.searchsorted(zs, zl, side="left")
             near = np.union1d(near, [k for k in (below, above) if 0 <= k < len(zs)]).astype(int)
@@ -514,8 +599,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             for k in near:
                 if k not in spectra:
                     spectra[k] = block(int(k), bx0, by0, bx1, by1, top, left)
-            n_frames_used.append(len(near))
-            for c, ch in enumerate(fch):
+            n_frames_used[grp].append(len(near))
+            for c in plane_groups[grp]:
                 if (c, l) not in used:
                     continue
                 pix, rr, cc, w_lo, w_hi, bounds = groups[c]
@@ -523,7 +608,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                 here = [(slice(*bounds[m]), w_lo if m == l else w_hi) for m in (l, l - 1) if m in bounds]
                 if not here:
                     continue
-                n_filters += 1
+                n_filters[grp] += 1
                 x = None
                 for g, k in zip(gains(l, c, near), near):
                     # the gain on the rows 0 .. nb_y // 2, read backwards for the mirrored rows: the same
@@ -553,24 +638,32 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                     v += np.float32(mean[c])
                     v *= wgt[sl]
                     acc[c][sl] += v
-        for c in range(len(fch)):
-            plane = np.zeros((y1 - y0) * tw, np.float32)
-            plane[groups[c][0]] = acc[c]
-            out[y0:y1, x0:x1, c] = plane.reshape(y1 - y0, tw)
+        for c in range(n_p):
+            if need is None:
+                plane = np.zeros((y1 - y0) * tw, np.float32)
+                plane[groups[c][0]] = acc[c]
+                out[y0:y1, x0:x1, c] = plane.reshape(y1 - y0, tw)
+            else:  # the needed pixels only (the others hold the reference)
+                out[y0:y1, x0:x1, c][groups[c][1], groups[c][2] - margin] = acc[c]
         return n_filters, n_frames_used
 
-    n_frames_used, n_filters = [], 0
+    n_frames_used, n_filters = [[] for _ in plane_groups], [0] * len(plane_groups)
     for nf, used_frames in progress(map_in_order(tile, tiles), total=len(tiles), desc="Wiener by depth",
                                     quiet=quiet, unit="tile"):
-        n_filters += nf
-        n_frames_used += used_frames
-    if needed is not None:
-        from .fusion import masked_copy
+        for g in range(len(plane_groups)):
+            n_filters[g] += nf[g]
+            n_frames_used[g] += used_frames[g]
+    def group_info(g: int) -> dict:
+        planes = plane_groups[g]
+        info = {"noise_sigma": [round(sigma[c], 3) for c in planes], "tiles": len(tiles), "filters": n_filters[g],
+                "label_um": round(steps[g], 3), "frames_per_label": round(float(np.mean(n_frames_used[g])), 2)
+                if n_frames_used[g] else 0.0}
+        if mix is not None:
+            info["planes"] = [[round(float(m), 4) for m in mix[c]] for c in planes]
+        return info
 
-        masked_copy(out, np.ascontiguousarray(reference, dtype=np.float32), ~np.asarray(needed, bool))
-    info = {"noise_sigma": [round(s, 3) for s in sigma], "tiles": len(tiles), "filters": n_filters,
-            "label_um": round(step, 3), "frames_per_label": round(float(np.mean(n_frames_used)), 2)
-            if n_frames_used else 0.0}
-    if mix is not None:
-        info["planes"] = [[round(float(m), 4) for m in row] for row in mix]
+    if len(plane_groups) == 1:
+        return out, group_info(0)
+    info = {"noise_sigma": [round(s, 3) for s in sigma], "tiles": len(tiles), "filters": sum(n_filters),
+            "groups": [{**group_info(g), "plane_index": planes} for g, planes in enumerate(plane_groups)]}
     return out, info
