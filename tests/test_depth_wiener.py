@@ -397,3 +397,28 @@ def test_one_pass_over_luma_and_chroma_labels_equals_a_call_per_group(flat_world
     assert [g["plane_index"] for g in info["groups"]] == [[0], [1, 2]]
     with pytest.raises(ParameterError, match="label spacings"):
         wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=ycc, label_um=[fine, coarse], quiet=True)
+
+
+def test_reference_signal_made_beforehand_is_the_calls_own(flat_world):
+    """The reference's planes and power laws made apart (reference_signal, as the composite makes them on a thread
+    beside the cones) give the call's output bit for bit, and the reference is then not read; a signal made for
+    other planes or another noise is refused."""
+    from fieldcal.composite.depth_wiener import reference_signal
+
+    spec, r, z, prof, zb = flat_world
+    st, frames, blend = _stack_and_blend(spec, r, z, prof, zb, True)
+    ycc = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
+    labels, sigma = [3.0, 25.0, 25.0], [0.01, 0.004, 0.004]
+    own, _ = wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=ycc, label_um=labels,
+                              plane_sigma=sigma, quiet=True)
+    sig = reference_signal(blend, prof, st.channels, sigma, mix=ycc, label_um=labels)
+    assert len(sig.planes) == 3 and all(p.shape == zb.shape[:2] for p in sig.planes)
+    np.testing.assert_allclose(sig.planes[0], blend @ ycc[0].astype(np.float32), rtol=1e-6, atol=1e-6)
+    made, _ = wiener_composite(st, zb, prof, frames, None, geometry=prof, mix=ycc, label_um=labels,
+                               plane_sigma=sigma, signal=sig, quiet=True)
+    np.testing.assert_array_equal(made, own)
+    with pytest.raises(ParameterError, match="reference signal"):
+        wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=ycc, label_um=labels,
+                         plane_sigma=[0.02, 0.004, 0.004], signal=sig, quiet=True)
+    with pytest.raises(ParameterError, match="noise levels"):
+        reference_signal(blend, prof, st.channels, sigma[:2], mix=ycc, label_um=labels)

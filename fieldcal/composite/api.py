@@ -214,6 +214,14 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
     ycc_split = measured and CHROMA_LABEL_FRAMES and channels == ("R", "G", "B")
     if ycc_split and noise_probe is None:  # (with a geometry: the frames warped to it, as the Wiener step reads them)
         noise_probe = _background(_probe_ycc, stack, frames, geometry, lateral_colour)
+    signal = None
+    if ycc_split and fallback is not None:
+        # the Wiener step's reference (the fusion's image, _depth_composite) in its planes and their signal power
+        # laws, fitted on a thread while this one makes the occlusion cones (serial) below
+        from .depth_wiener import reference_signal
+        probe, fused = noise_probe, fallback[0]
+        signal = _background(lambda: reference_signal(fused, defocus, channels, probe.result(), mix=YCBCR,
+                                                      label_um=_ycc_label_um(spacing)))
     if wiener:
         # a nearer object's blur disc kept off the pixels beside it (composite/depth_wiener.py)
         from .depth_wiener import occlusion_focus_um
@@ -245,7 +253,7 @@ def composite_stack(stack, profile=None, method: str | None = None, *, frames=No
                                            np.arange(len(z_sorted), dtype=np.float64)).astype(np.float32))
     img = _depth_composite(stack, profile, frames, zb, defocus, fallback, info, geometry=geometry,
                            has_depth=has_depth, wiener=wiener, measured=measured, ycc_split=ycc_split,
-                           noise_probe=noise_probe, spacing=spacing, lateral_colour=lateral_colour,
+                           noise_probe=noise_probe, signal=signal, spacing=spacing, lateral_colour=lateral_colour,
                            fs_cyc_per_mm=fs_cyc_per_mm, q=q, min_band=min_band, tile=tile, quiet=quiet)
     if detail:
         # the finest octaves per coefficient from the sharpest frame near the depth map's choice
@@ -284,6 +292,12 @@ def _background(fn, *args, **kwargs):
         pool.shutdown(wait=False)  # the call runs on; its result is taken from the future
 
 
+def _ycc_label_um(spacing: float) -> list[float]:
+    """The YCbCr Wiener step's label spacing per plane (µm): luma LABEL_FRAMES of a frame step apart (the measured
+    depth map is known no better), chroma CHROMA_LABEL_FRAMES (its fine detail is weaker)."""
+    return [LABEL_FRAMES * spacing] + [CHROMA_LABEL_FRAMES * spacing] * 2
+
+
 def _probe_ycc(stack, frames, geometry, lateral_colour: bool) -> list[float]:
     """The frames' noise in the YCbCr planes the measured-defocus Wiener step filters (in ``geometry``)."""
     from .depth_wiener import probe_plane_sigma
@@ -292,7 +306,7 @@ def _probe_ycc(stack, frames, geometry, lateral_colour: bool) -> list[float]:
 
 
 def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, *, geometry, has_depth: bool,
-                     wiener: bool, measured: bool, ycc_split: bool, noise_probe, spacing: float,
+                     wiener: bool, measured: bool, ycc_split: bool, noise_probe, signal, spacing: float,
                      lateral_colour: bool, fs_cyc_per_mm, q, min_band, tile, quiet: bool) -> np.ndarray:
     """The blend along the best-focus map ``zb``, combined by the Wiener filter where there is a defocus model and
     mixed with the multi-scale fusion where the depth map is unsure (scenes with depth): the image that fine
@@ -323,8 +337,8 @@ def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, 
             # noise of all three planes from one read of the probe frames
             ycc, winfo = wiener_composite(stack, zb, defocus, frames, img, geometry=geometry,
                                           lateral_colour=lateral_colour, needed=needed, mix=YCBCR,
-                                          label_um=[label_um] + [CHROMA_LABEL_FRAMES * spacing] * 2,
-                                          plane_sigma=noise_probe.result(), quiet=quiet)
+                                          label_um=_ycc_label_um(spacing), plane_sigma=noise_probe.result(),
+                                          signal=signal.result() if signal is not None else None, quiet=quiet)
             to_rgb = np.linalg.inv(YCBCR).T.astype(np.float32)
             rgb = np.empty(img.shape, dtype)  # the luma and chroma planes back to the three channels
 

@@ -21,6 +21,8 @@ taken from a frame in which that object's blur disc does not reach it.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -292,10 +294,90 @@ def tile_grid(w: int, h: int, margin: int, workers: int,
     return [w * i // nx for i in range(nx + 1)], [h * i // ny for i in range(ny + 1)], int(by[iy]), int(bx[ix])
 
 
+def _pad_px(reach_disc_px: float) -> int:
+    """Mirror padding (px) of the power law's whole-image spectrum and of the tiles' blocks: the widest blur
+    disc's radius that takes part, and a margin for the filters' tails."""
+    return int(np.ceil(0.5 * reach_disc_px)) + 16
+
+
+@dataclass(frozen=True)
+class ReferenceSignal:
+    """A reference composite as the Wiener step filters it: its planes (``H x W`` float32 each: the channels, or
+    the rows of a mix), each plane's signal power law ``P(f) = a_sig f^-beta`` fitted to their spectra (the padded
+    FFT ``shape`` fitted on) with the noise ``sigma`` per plane taken out (:func:`reference_signal`)."""
+
+    planes: list
+    a_sig: list
+    beta: list
+    shape: tuple
+    sigma: list
+
+
+def _plane_setup(channels: tuple, mix, label_um) -> tuple:
+    """The filtered planes of a Wiener call: the mix (float64, validated) and its float32 rows, the depth
+    weights, each plane's OTF channel, its label spacing, and the planes grouped by spacing."""
+    m32 = depth_w = None
+    if mix is not None:
+        mix = np.atleast_2d(np.asarray(mix, dtype=np.float64))
+        if mix.shape[1] != len(channels) or not np.all(np.isfinite(mix)) or np.any(np.abs(mix).sum(axis=1) == 0):
+            raise ParameterError(f"plane weights {mix.tolist()} do not match the channels {channels}", field="mix",
+                                 fix="give one row of weights per plane, one weight per channel, not all zero")
+        m32 = mix.astype(np.float32)
+        depth_w = np.abs(m32) / np.abs(m32).sum(axis=1, keepdims=True)
+        # each plane's OTFs are looked up as its heaviest channel's (the same in every channel)
+        fch = tuple(channels[int(np.argmax(np.abs(row)))] for row in mix)
+    else:
+        fch = tuple(channels)
+    n_p = len(fch)
+    spacing = [label_um] * n_p if label_um is None or np.ndim(label_um) == 0 else list(label_um)
+    if len(spacing) != n_p:
+        raise ParameterError(f"{len(spacing)} label spacings for {n_p} planes", field="label_um",
+                             fix="give one label spacing (µm), or one per filtered plane")
+    spacing = [float(v or 0.0) for v in spacing]
+    # planes of one spacing are filtered together, on their own labels: each group exactly as a call of its own
+    plane_groups = [[c for c in range(n_p) if spacing[c] == v] for v in dict.fromkeys(spacing)]
+    return mix, m32, depth_w, fch, spacing, plane_groups
+
+
+def _group_planes(a: np.ndarray, planes: list, weights, n_groups: int) -> np.ndarray:
+    """``a``'s planes of one group: a mix's rows multiplied as the group's own matrix (so the products round as
+    they would in a call of its own), or the group's channels."""
+    if weights is not None:
+        return np.asarray(a, dtype=np.float32) @ weights[planes].T
+    return a if n_groups == 1 else np.asarray(a)[..., planes]
+
+
+def reference_signal(reference: np.ndarray, model, channels, sigma, *, mix=None, label_um=None,
+                     reach_disc_px: float = REACH_DISC_PX) -> ReferenceSignal:
+    """The reference's planes and signal power laws for :func:`wiener_composite` (its ``signal``), made apart so
+    that a caller can fit them on a thread while it does other work (the composite: beside the occlusion cones).
+
+    ``channels`` are the stack's, ``sigma`` the pixel noise per filtered plane (as ``plane_sigma``); ``model``,
+    ``mix``, ``label_um`` and ``reach_disc_px`` as the call of :func:`wiener_composite` this is for.
+    """
+    mix, m32, _, fch, _, plane_groups = _plane_setup(tuple(channels), mix, label_um)
+    sigma = [float(v) for v in sigma]
+    if len(sigma) != len(fch):
+        raise ParameterError(f"{len(sigma)} plane noise levels for {len(fch)} planes", field="plane_sigma",
+                             fix="give one noise level per filtered plane (probe_plane_sigma with the same mix)")
+    pitch = float(model.pixel_pitch_um)
+    pad = _pad_px(reach_disc_px)
+    planes_out, a_sig, beta, shape = [None] * len(fch), [0.0] * len(fch), [0.0] * len(fch), None
+    for planes in plane_groups:
+        ref_g = _group_planes(reference, planes, m32, len(plane_groups))
+        # the signal's power law per plane, one plane at a time: each fit holds a whole image's spectrum (two at
+        # once on threads raised the composite's peak by ~200 MB for ~0.1 s)
+        a_g, b_g, shape = _power_law(ref_g, pad, pitch, [lambda t, ch=fch[c]: model.defocus_otf(t, 0.0, ch)
+                                                          for c in planes], [max(sigma[c], 1e-6) for c in planes])
+        for j, c in enumerate(planes):
+            planes_out[c], a_sig[c], beta[c] = ref_g[..., j], a_g[j], b_g[j]
+    return ReferenceSignal(planes_out, a_sig, beta, shape, sigma)
+
+
 def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray, *, geometry=None,
                      lateral_colour: bool = False, reach_disc_px: float = REACH_DISC_PX,
                      noise_sigma=None, label_um: float | None = None, needed: np.ndarray | None = None,
-                     mix: np.ndarray | None = None, plane_sigma=None,
+                     mix: np.ndarray | None = None, plane_sigma=None, signal: ReferenceSignal | None = None,
                      quiet: bool = False) -> tuple[np.ndarray, dict]:
     """All-in-focus image of a scene with depth from a best-focus map and the lens's defocus OTF.
 
@@ -335,6 +417,10 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     plane_sigma : sequence of float, optional
         Pixel noise per filtered plane as :func:`probe_plane_sigma` measures it with the same ``mix`` (calls
         filtering planes of one mix apart then read the probe frames once); overrides ``noise_sigma``.
+    signal : ReferenceSignal, optional
+        ``reference``'s planes and power laws made beforehand by :func:`reference_signal` with this call's model,
+        mix, label spacings and ``plane_sigma`` (e.g. on a thread while the caller did other work); ``reference``
+        is then not read. The same numbers as made here.
 
     Returns
     -------
@@ -353,25 +439,8 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
                              fix="calibrate with the F-number recorded, or composite without the Wiener step")
     w, h = image_size(stack)
     channels = tuple(stack.channels)
-    if mix is not None:
-        mix = np.atleast_2d(np.asarray(mix, dtype=np.float64))
-        if mix.shape[1] != len(channels) or not np.all(np.isfinite(mix)) or np.any(np.abs(mix).sum(axis=1) == 0):
-            raise ParameterError(f"plane weights {mix.tolist()} do not match the channels {channels}", field="mix",
-                                 fix="give one row of weights per plane, one weight per channel, not all zero")
-        m32 = mix.astype(np.float32)
-        depth_w = np.abs(m32) / np.abs(m32).sum(axis=1, keepdims=True)
-        # each plane's OTFs are looked up as its heaviest channel's (the same in every channel)
-        fch = tuple(channels[int(np.argmax(np.abs(row)))] for row in mix)
-    else:
-        fch = channels
+    mix, _, depth_w, fch, spacing, plane_groups = _plane_setup(channels, mix, label_um)
     n_p = len(fch)
-    spacing = [label_um] * n_p if label_um is None or np.ndim(label_um) == 0 else list(label_um)
-    if len(spacing) != n_p:
-        raise ParameterError(f"{len(spacing)} label spacings for {n_p} planes", field="label_um",
-                             fix="give one label spacing (µm), or one per filtered plane")
-    spacing = [float(v or 0.0) for v in spacing]
-    # planes of one spacing are filtered together, on their own labels: each group exactly as a call of its own
-    plane_groups = [[c for c in range(n_p) if spacing[c] == v] for v in dict.fromkeys(spacing)]
     group_of = [next(g for g, planes in enumerate(plane_groups) if c in planes) for c in range(n_p)]
 
     pitch = float(model.pixel_pitch_um)
@@ -381,7 +450,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     order = idx[np.argsort(z_all[idx], kind="stable")]
     zs = z_all[order].astype(np.float64)
     reach = reach_disc_px * px_um
-    pad = int(np.ceil(0.5 * reach_disc_px)) + 16
+    pad = _pad_px(reach_disc_px)
 
     from .dff import map_in_order
     from .source import default_workers
@@ -398,27 +467,26 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         if mix is not None:  # independent noise per channel
             sigma = [float(np.sqrt(np.sum(row ** 2 * np.square(sigma)))) for row in mix]
 
-    # per group: its planes of the reference and of the depth map (a mix's rows multiplied as the group's own
-    # matrix, so the products round as they would in a call of its own), its labels and its power law
-    ref_planes, zb_planes, a_sig, beta = [None] * n_p, [None] * n_p, [0.0] * n_p, [0.0] * n_p
-    labels, steps, shape = [], [], None
+    # the reference's planes and power laws (made by the caller beforehand, or here), then per group its planes
+    # of the depth map (a mix's rows multiplied as the group's own matrix) and its labels
+    if signal is None:
+        signal = reference_signal(reference, model, channels, sigma, mix=mix, label_um=label_um,
+                                  reach_disc_px=reach_disc_px)
+    elif len(signal.planes) != n_p or [float(v) for v in signal.sigma] != sigma:
+        raise ParameterError(f"the reference signal was made for {len(signal.planes)} planes with noise "
+                             f"{signal.sigma}, this call filters {n_p} with noise {sigma}", field="signal",
+                             fix="make it with reference_signal for this call's mix, label spacings and noise")
+    ref_planes, a_sig, beta, shape = list(signal.planes), signal.a_sig, signal.beta, signal.shape
+    zb_planes = [None] * n_p
+    labels, steps = [], []
     for planes in plane_groups:
-        if mix is not None:
-            ref_g = np.asarray(reference, dtype=np.float32) @ m32[planes].T
-            zb_g = np.asarray(zb, dtype=np.float32) @ depth_w[planes].T
-        elif len(plane_groups) == 1:
-            ref_g, zb_g = reference, zb
-        else:
-            ref_g, zb_g = np.asarray(reference)[..., planes], np.asarray(zb)[..., planes]
+        zb_g = _group_planes(zb, planes, depth_w, len(plane_groups))
         lab_g, step_g = _labels(zb_g, max(LABEL_DISC_PX * px_um, spacing[planes[0]]))
         labels.append(lab_g)
         steps.append(step_g)
-        # the signal's power law per plane, one plane at a time: each fit holds a whole image's spectrum (two at
-        # once on threads raised the composite's peak by ~200 MB for ~0.1 s)
-        a_g, b_g, shape = _power_law(ref_g, pad, pitch, [lambda t, ch=fch[c]: model.defocus_otf(t, 0.0, ch)
-                                                          for c in planes], [max(sigma[c], 1e-6) for c in planes])
         for j, c in enumerate(planes):
-            ref_planes[c], zb_planes[c], a_sig[c], beta[c] = ref_g[..., j], zb_g[..., j], a_g[j], b_g[j]
+            zb_planes[c] = zb_g[..., j]
+    del signal
     mean = [float(np.mean(ref_planes[c])) for c in range(n_p)]
 
     # per plane: label index below each pixel (on its group's labels) and the fraction towards the next
@@ -549,7 +617,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         out = np.empty((h, w, n_p), np.float32)
         for c in range(n_p):
             out[..., c] = ref_planes[c]
-    del ref_planes, ref_g
+    del ref_planes
 
     def tile(core: tuple[int, int, int, int]) -> tuple[list[int], list[list[int]]]:
         """Filter one tile (its core ``x0, y0, x1, y1``) into ``out`` (tiles' cores never overlap, so threads may
