@@ -9,7 +9,8 @@ of blur disc per frame step, depth error 0.13 step), the composite's YCbCr split
 (luma on labels 1/8 frame apart, Cb and Cr on labels one frame apart, in one call). ``--depth cells``: the
 best focus drawn per 24-px cell over the whole stack (every tile uses every label, as on the board); ``slope``: a
 plane across the image (each tile uses the labels of its own depths only). The two grids run in turn in one
-process, ``--reps`` times each, in turn (the order reversed every other time; a 320 x 240 call first, untimed); CPU is the process's (``time.process_time``: all threads).
+process, ``--reps`` times each, in turn (the order reversed every other time; a 320 x 240 call first, untimed);
+CPU is the process's (``time.process_time``: all threads).
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ def _grid_512(w, h, margin, workers, max_samples=None):
 
     core = min(512, max(w, h))
     return (list(range(0, w, core)) + [w], list(range(0, h, core)) + [h],
-            fft.next_fast_len(min(core, h) + 2 * margin, real=True), fft.next_fast_len(min(core, w) + 2 * margin, real=True))
+            fft.next_fast_len(min(core, h) + 2 * margin, real=True),
+            fft.next_fast_len(min(core, w) + 2 * margin, real=True))
 
 
 def _model_cost(grid, w, h, margin, workers):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -323,8 +324,8 @@ def test_tile_grid_covers_the_image_once_at_the_least_modelled_cost(w, h, worker
     margin = 34
     ex, ey, nb_y, nb_x = tile_grid(w, h, margin, workers)
     cover = np.zeros((h, w), int)
-    for y0, y1 in zip(ey[:-1], ey[1:]):
-        for x0, x1 in zip(ex[:-1], ex[1:]):
+    for y0, y1 in pairwise(ey):
+        for x0, x1 in pairwise(ex):
             assert x1 > x0 and y1 > y0
             assert x1 - x0 + 2 * margin <= nb_x and y1 - y0 + 2 * margin <= nb_y
             cover[y0:y1, x0:x1] += 1
@@ -374,7 +375,7 @@ def test_one_pass_over_luma_and_chroma_labels_equals_a_call_per_group(flat_world
     needed = ((np.mgrid[:h, :w].sum(axis=0) % 7) < 4) & (np.arange(h)[:, None] % 13 < 9)
     ycc = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
     fine, coarse = 3.0, 25.0
-    import fieldcal.composite.warp as warp
+    from fieldcal.composite import warp
 
     read, real_warp_region = [], warp.warp_region  # (imported by the Wiener step at its call)
 

@@ -21,6 +21,8 @@ taken from a frame in which that object's blur disc does not reach it.
 
 from __future__ import annotations
 
+from itertools import pairwise
+
 import cv2
 import numpy as np
 
@@ -250,7 +252,6 @@ def quantization_sigma(dtype, rows: np.ndarray | None, n_channels: int) -> list[
     return [q * float(np.sqrt(np.sum(np.square(r)))) for r in np.atleast_2d(rows)]
 
 
-
 def tile_grid(w: int, h: int, margin: int, workers: int,
               max_samples: int | None = None) -> tuple[list[int], list[int], int, int]:
     """The Wiener step's tiles: column and row edges splitting a ``w x h`` image evenly (cores differing by at
@@ -264,10 +265,10 @@ def tile_grid(w: int, h: int, margin: int, workers: int,
     :data:`TILE_BLOCK_MAX_SAMPLES`), ``slots`` the tile count rounded up to a multiple of ``workers`` (the tiles
     run one per compositor thread: a last round with threads idle costs as if they worked, and so does one tile
     alone, whose FFTs on all threads left the rest serial: a 1024 x 768 image as one tile took 16 % less CPU
-    than as four 512-px squares and 30 % more wall on two threads). Ties go to fewer tiles; cores are at least 8 px. Small margins and
-    partial tiles are what this saves against fixed square tiles: 2048 x 1536 on two threads is 3 x 2 tiles on
-    768 x 864 blocks (512-px squares: 12 on 600 x 600, 4 % more of the model's cost), 1920 x 1080 3 x 2 on
-    720 x 625 (12 512-px squares: 58 % more)."""
+    than as four 512-px squares and 30 % more wall on two threads). Ties go to fewer tiles; cores are at least
+    8 px. Small margins and partial tiles are what this saves against fixed square tiles: 2048 x 1536 on two
+    threads is 3 x 2 tiles on 864 x 768 blocks (rows x columns; 512-px squares: 12 on 600 x 600, 4 % more of the
+    model's cost), 1920 x 1080 3 x 2 on 625 x 720 (12 512-px squares: 58 % more)."""
     from scipy import fft
 
     max_samples = TILE_BLOCK_MAX_SAMPLES if max_samples is None else int(max_samples)
@@ -441,7 +442,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             frac[c][a:b] = np.clip(t, 0.0, 1.0, out=t)
 
     row_bands(label_rows, h)
-    del zb_planes, zb_g  # (the mixed depth maps: the labels are all the tiles need)
+    zb_planes = zb_g = None  # (the mixed depth maps dropped: the labels are all the tiles need)
 
     from ..optics.sweep import rfft_radial_grid
     from .warp import frame_maps, warp_region
@@ -510,7 +511,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         return hit
 
     maps = {}
-    tiles = [(x0, y0, x1, y1) for y0, y1 in zip(edges_y[:-1], edges_y[1:]) for x0, x1 in zip(edges_x[:-1], edges_x[1:])]
+    tiles = [(x0, y0, x1, y1) for y0, y1 in pairwise(edges_y) for x0, x1 in pairwise(edges_x)]
     # tiles run on the compositor's threads, a core each: FFTs split over threads as well would only add their
     # hand-overs (~15 % more CPU for the same transforms, measured on two cores)
     fft_workers = 1 if len(tiles) > 1 and default_workers() > 1 else -1
