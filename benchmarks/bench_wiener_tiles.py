@@ -9,7 +9,8 @@ of blur disc per frame step, depth error 0.13 step), the composite's YCbCr split
 (luma on labels 1/8 frame apart, Cb and Cr on labels one frame apart, in one call). ``--depth cells``: the
 best focus drawn per 24-px cell over the whole stack (every tile uses every label, as on the board); ``slope``: a
 plane across the image (each tile uses the labels of its own depths only). The two grids run in turn in one
-process, ``--reps`` times each, in turn (the order reversed every other time; a 320 x 240 call first, untimed); CPU is the process's (``time.process_time``: all threads).
+process, ``--reps`` times each, in turn (the order reversed every other time; a 320 x 240 call first, untimed);
+CPU is the process's (``time.process_time``: all threads).
 """
 
 from __future__ import annotations
@@ -20,17 +21,19 @@ import time
 import numpy as np
 
 
-def _grid_512(w, h, margin, workers, max_samples=None):
+def _grid_512(w, h, margin, workers, max_samples=None, label_maps=None):
     """Session 19's tiles: 512-px squares from the top left (partial ones at the right and bottom)."""
     from scipy import fft
 
     core = min(512, max(w, h))
     return (list(range(0, w, core)) + [w], list(range(0, h, core)) + [h],
-            fft.next_fast_len(min(core, h) + 2 * margin, real=True), fft.next_fast_len(min(core, w) + 2 * margin, real=True))
+            fft.next_fast_len(min(core, h) + 2 * margin, real=True),
+            fft.next_fast_len(min(core, w) + 2 * margin, real=True))
 
 
 def _model_cost(grid, w, h, margin, workers):
-    ex, ey, by, bx = grid(w, h, margin, workers)
+    """Tiles, block and label-blind model cost of a grid (a function, or its ``(ex, ey, by, bx)``)."""
+    ex, ey, by, bx = grid(w, h, margin, workers) if callable(grid) else grid
     n = (len(ex) - 1) * (len(ey) - 1)
     slots = -(-n // workers) * workers
     return n, by, bx, slots * by * bx * np.log2(by * bx)
@@ -90,9 +93,14 @@ def main() -> None:
         del zb1
         times = {name: [] for name in grids}
         filters = {}
+        chosen = {}
         for r in range(1 if warmup else args.reps):
             for name, g in (list(grids.items()) if r % 2 == 0 else list(grids.items())[::-1]):  # in turn
-                dw.tile_grid = g
+                def recording(*a, g=g, name=name, **k):
+                    chosen[name] = g(*a, **k)
+                    return chosen[name]
+
+                dw.tile_grid = recording
                 w0, c0 = time.perf_counter(), time.process_time()
                 _, info = dw.wiener_composite(st, zb, model, np.arange(7), reference, mix=ycc,
                                               label_um=[0.125 * spacing, spacing, spacing],
@@ -101,7 +109,7 @@ def main() -> None:
                 filters[name] = info["filters"]
         dw.tile_grid = grids["rule"]
         for name in ([] if warmup else grids):
-            n, by, bx, c = costs[name]
+            n, by, bx, c = _model_cost(chosen[name], w, h, margin, workers)  # the grid the call chose
             cpu = " / ".join(f"{t[0]:.2f}" for t in times[name])
             wall = " / ".join(f"{t[1]:.2f}" for t in times[name])
             print(f"| {w} x {h} | {name} | {n} | {by} x {bx} | {c / costs['512 squares'][3]:.3f} | {filters[name]} "

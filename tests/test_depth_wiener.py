@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -278,7 +279,8 @@ def test_row_bands_on_threads_give_the_single_threads_combination(flat_world, mo
     ycc = np.array([[0.299, 0.587, 0.114], [-0.169, -0.331, 0.5], [0.5, -0.419, -0.081]])
     monkeypatch.setattr(dff, "BAND_MIN_ROWS", 8)  # several bands on the small test image
     # the same tiles for any thread count (the tile rule balances tiles over the threads)
-    monkeypatch.setattr(dw, "tile_grid", lambda w, h, margin, workers, real=dw.tile_grid: real(w, h, margin, 1))
+    monkeypatch.setattr(dw, "tile_grid", lambda w, h, margin, workers, real=dw.tile_grid, **kw: real(w, h, margin, 1,
+                                                                                                   **kw))
     calls = [dict(), dict(mix=ycc[1:], needed=needed, noise_sigma=1.0)]
     results, real = {}, dw.row_bands
     for workers in (1, 3):
@@ -323,8 +325,8 @@ def test_tile_grid_covers_the_image_once_at_the_least_modelled_cost(w, h, worker
     margin = 34
     ex, ey, nb_y, nb_x = tile_grid(w, h, margin, workers)
     cover = np.zeros((h, w), int)
-    for y0, y1 in zip(ey[:-1], ey[1:]):
-        for x0, x1 in zip(ex[:-1], ex[1:]):
+    for y0, y1 in pairwise(ey):
+        for x0, x1 in pairwise(ex):
             assert x1 > x0 and y1 > y0
             assert x1 - x0 + 2 * margin <= nb_x and y1 - y0 + 2 * margin <= nb_y
             cover[y0:y1, x0:x1] += 1
@@ -333,8 +335,8 @@ def test_tile_grid_covers_the_image_once_at_the_least_modelled_cost(w, h, worker
     assert nb_y * nb_x <= TILE_BLOCK_MAX_SAMPLES
     nx, ny = len(ex) - 1, len(ey) - 1
     _, cost = _grid_cost(w, h, margin, workers, nx, ny)
-    for kx in range(1, max(1, w // 8) + 1):
-        for ky in range(1, max(1, h // 8) + 1):
+    for kx in range(1, max(1, min(w // 8, 128)) + 1):
+        for ky in range(1, max(1, min(h // 8, 128)) + 1):
             samples, other = _grid_cost(w, h, margin, workers, kx, ky)
             if samples <= TILE_BLOCK_MAX_SAMPLES:
                 assert cost <= other * (1 + 1e-12), ((nx, ny), (kx, ky))
@@ -360,6 +362,41 @@ def test_tile_grid_sizes_for_common_frames():
     assert len(tile_grid(320, 240, 34, 2)[0]) + len(tile_grid(320, 240, 34, 2)[1]) == 5
 
 
+def test_tile_grid_with_labels_follows_where_the_depth_varies():
+    """With each cell's labels given: where every cell holds every label the split is the label-blind one; where
+    the labels change across the columns only (a slope), the split cuts columns (strips whose tiles each use few
+    labels), at a lower labelled cost than the label-blind split, and cells with no needed pixel cost nothing."""
+    from fieldcal.composite.depth_wiener import tile_grid
+
+    w, h, margin, cell = 2048, 1536, 34, 16
+    ys, xs = np.arange(0, h, cell), np.arange(0, w, cell)
+    shape = (len(ys), len(xs))
+    blind = tile_grid(w, h, margin, 2)
+    full = [np.zeros(shape, int), np.full(shape, 48)]
+    assert tile_grid(w, h, margin, 2, label_maps=(ys, xs, [full[0]], [full[1]], 21)) == blind
+    slope = np.broadcast_to((xs * 48) // w, shape)
+    ex, ey, by, bx = tile_grid(w, h, margin, 2, label_maps=(ys, xs, [slope], [slope], 21))
+    assert len(ex) - 1 > len(ey) - 1 and (ex, ey) != (blind[0], blind[1])
+
+    def labelled(grid):  # filters of each tile (labels lo .. hi + 1 of its cells) + 21 forward, x N log2 N
+        gx, gy, nb_y, nb_x = grid
+        total = 0
+        for y0, y1 in pairwise(gy):
+            for x0, x1 in pairwise(gx):
+                cols = (xs + cell - 1 >= x0) & (xs < x1)
+                labs = set()
+                for v in np.unique(slope[0][cols]):
+                    labs |= {int(v), int(v) + 1}
+                total += len(labs) + 21
+        n_t = (len(gx) - 1) * (len(gy) - 1)
+        total *= -(-n_t // 2) * 2 / n_t
+        return total * nb_y * nb_x * np.log2(nb_y * nb_x)
+
+    assert labelled((ex, ey, by, bx)) < labelled(blind)
+    none = [np.ones(shape, int)], [np.zeros(shape, int)]  # lo > hi everywhere: nothing needed
+    assert tile_grid(w, h, margin, 2, label_maps=(ys, xs, *none, 21)) == blind
+
+
 def test_one_pass_over_luma_and_chroma_labels_equals_a_call_per_group(flat_world, monkeypatch):
     """Planes on two label spacings filtered in one pass over the tiles (each tile's frames read once) give each
     group's call of its own bit for bit: the luma on fine labels and the chroma on coarse ones, several tiles,
@@ -374,7 +411,7 @@ def test_one_pass_over_luma_and_chroma_labels_equals_a_call_per_group(flat_world
     needed = ((np.mgrid[:h, :w].sum(axis=0) % 7) < 4) & (np.arange(h)[:, None] % 13 < 9)
     ycc = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
     fine, coarse = 3.0, 25.0
-    import fieldcal.composite.warp as warp
+    from fieldcal.composite import warp
 
     read, real_warp_region = [], warp.warp_region  # (imported by the Wiener step at its call)
 

@@ -22,6 +22,7 @@ taken from a frame in which that object's blur disc does not reach it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 
 import cv2
 import numpy as np
@@ -50,6 +51,13 @@ TILE_BLOCK_MAX_SAMPLES = 1 << 20
 #: A filter's fixed cost (its calls, beyond its transforms) in the units of :func:`tile_grid`'s model
 #: (N log2 N of the block's samples, ~0.33 ns each): ~30 µs.
 TILE_OVERHEAD = 1e5
+#: Splits whose label-blind cost is among this many least are costed with the labels their tiles would use
+#: (:func:`tile_grid`), from each cell's range of labels (cells of at least :data:`TILE_LABEL_CELL_PX` px, at most
+#: ~4096 cells: ~20 ms for the board's 3 planes; a range, not samples: labels sampled every 8 px miss the rare
+#: ones of small tiles, and on the real board that chose 18 tiles, 2.8x the filters, for the 6 that every tile's
+#: all labels call for)
+TILE_LABEL_CANDIDATES = 24
+TILE_LABEL_CELL_PX = 16
 #: ... from a block with this margin (px, beyond the mirror pad) of real neighbours: the filters' support
 TILE_MARGIN_PX = 16
 #: Noise responses each probe frame's noise is estimated from (a median: ~1.25 / sqrt(n) = 0.25 % standard error,
@@ -252,9 +260,8 @@ def quantization_sigma(dtype, rows: np.ndarray | None, n_channels: int) -> list[
     return [q * float(np.sqrt(np.sum(np.square(r)))) for r in np.atleast_2d(rows)]
 
 
-
-def tile_grid(w: int, h: int, margin: int, workers: int,
-              max_samples: int | None = None) -> tuple[list[int], list[int], int, int]:
+def tile_grid(w: int, h: int, margin: int, workers: int, max_samples: int | None = None,
+              label_maps=None) -> tuple[list[int], list[int], int, int]:
     """The Wiener step's tiles: column and row edges splitting a ``w x h`` image evenly (cores differing by at
     most a pixel, each pixel in exactly one tile) and the FFT block (``nb_y x nb_x``, the largest core with
     ``margin`` on each side, :func:`scipy.fft.next_fast_len`) they are all filtered on.
@@ -266,18 +273,31 @@ def tile_grid(w: int, h: int, margin: int, workers: int,
     :data:`TILE_BLOCK_MAX_SAMPLES`), ``slots`` the tile count rounded up to a multiple of ``workers`` (the tiles
     run one per compositor thread: a last round with threads idle costs as if they worked, and so does one tile
     alone, whose FFTs on all threads left the rest serial: a 1024 x 768 image as one tile took 16 % less CPU
-    than as four 512-px squares and 30 % more wall on two threads). Ties go to fewer tiles; cores are at least 8 px. Small margins and
-    partial tiles are what this saves against fixed square tiles: 2048 x 1536 on two threads is 3 x 2 tiles on
-    768 x 864 blocks (512-px squares: 12 on 600 x 600, 4 % more of the model's cost), 1920 x 1080 3 x 2 on
-    720 x 625 (12 512-px squares: 58 % more)."""
+    than as four 512-px squares and 30 % more wall on two threads). Ties go to fewer tiles; cores are at least
+    8 px (and at most 128 tiles a side). Small margins and partial tiles are what this saves against fixed square
+    tiles: 2048 x 1536 on two threads is 3 x 2 tiles on 864 x 768 blocks (rows x columns; 512-px squares: 12 on
+    600 x 600, 4 % more of the model's cost), 1920 x 1080 3 x 2 on 625 x 720 (12 512-px squares: 58 % more).
+
+    Where the depth varies slowly, a tile uses only the labels of its own depths, and larger tiles then use more
+    labels each (a slope across a 2048 x 1536 image: 3 x 2 tiles took 6 % more CPU than 512-px squares).
+    ``label_maps`` (``(ys, xs, lo, hi, forward)``: cells starting at rows ``ys`` and columns ``xs``, per plane each
+    cell's least and greatest label below its needed pixels, ``lo > hi`` where none is needed, and the forward
+    transforms a tile with work runs, frames x planes) makes the cost the labels' own: the
+    :data:`TILE_LABEL_CANDIDATES` splits of least label-blind cost are costed as ``(sum over tiles of the
+    transforms each would run + the idle slots at the tiles' mean) x (N log2 N + overhead)``, a tile's filters the
+    labels from ``lo`` to ``hi + 1`` of the cells it touches (a cell's range may hold labels its pixels do not
+    use: the count errs towards every label, the label-blind choice), its forward transforms every frame's (on
+    the board the 7 frames' 3 planes, a third as many as its 66 filters: without them 18 tiles, 1105 filters,
+    looked as cheap as 6 tiles' 396 and took 6-14 % more CPU). Where every tile uses every label
+    (the board) that is the label-blind cost times the labels, and the same split is chosen."""
     from scipy import fft
 
     max_samples = TILE_BLOCK_MAX_SAMPLES if max_samples is None else int(max_samples)
     workers = max(1, int(workers))
 
     def splits(n: int) -> tuple[np.ndarray, np.ndarray]:
-        # 1 .. n / 8 tiles along a side, each with its block's side
-        k = np.arange(1, max(1, n // 8) + 1)
+        # 1 .. n / 8 tiles along a side (at most 128: a 6000-px side's best is ~6), each with its block's side
+        k = np.arange(1, max(1, min(n // 8, 128)) + 1)
         return k, np.array([fft.next_fast_len(-(-n // int(j)) + 2 * margin, real=True) for j in k])
 
     kx, bx = splits(w)
@@ -289,6 +309,35 @@ def tile_grid(w: int, h: int, margin: int, workers: int,
     over = samples > max_samples
     # within the bound the least cost (ties: fewer tiles); only if no block is within it, the smallest block
     order = np.lexsort((n.ravel(), cost.ravel(), np.where(over, samples, 0.0).ravel(), over.ravel()))
+    if label_maps is not None and not over.ravel()[order[0]]:
+        ys, xs, lo, hi, forward = label_maps
+        ye = np.append(np.asarray(ys)[1:], h) - 1  # each cell's last row and column
+        xe = np.append(np.asarray(xs)[1:], w) - 1
+        best = None
+        for i in order[:TILE_LABEL_CANDIDATES]:
+            if over.ravel()[i]:
+                break
+            iy, ix = np.unravel_index(i, n.shape)
+            k_y, k_x, n_t = int(ky[iy]), int(kx[ix]), int(n.ravel()[i])
+            # the tiles a cell touches: those of its first and of its last row and column (the even split's edges)
+            tid = np.concatenate([(((np.asarray(r) * k_y) // h)[:, None] * k_x + ((np.asarray(c) * k_x) // w)[None, :])
+                                  .ravel() for r in (ys, ye) for c in (xs, xe)])
+            filters, busy = np.zeros(n_t), np.zeros(n_t, bool)
+            for lo_c, hi_c in zip(lo, hi):
+                sel = np.tile((lo_c <= hi_c).ravel(), 4)
+                lo_s, hi_s, t = np.tile(lo_c.ravel(), 4)[sel], np.tile(hi_c.ravel(), 4)[sel], tid[sel]
+                n_lab = int(hi_s.max()) + 3 if hi_s.size else 3
+                # each range [lo, hi + 1] as +1 at lo and -1 past hi + 1, summed over the cells; covered where > 0
+                marks = np.bincount(t * n_lab + lo_s, minlength=n_t * n_lab) - np.bincount(t * n_lab + hi_s + 2,
+                                                                                          minlength=n_t * n_lab)
+                filters += (np.cumsum(marks.reshape(n_t, n_lab), axis=1)[:, :-1] > 0).sum(axis=1)
+                busy |= np.bincount(t, minlength=n_t) > 0
+            filters += forward * busy  # each tile with work reads and transforms its frames' planes
+            total = (filters.sum() + (slots.ravel()[i] - n_t) * filters.mean()) * (
+                samples.ravel()[i] * np.log2(max(samples.ravel()[i], 2.0)) + TILE_OVERHEAD)
+            if best is None or total < best[0]:  # (ties: the label-blind order)
+                best = (total, i)
+        order = [best[1]]
     iy, ix = np.unravel_index(order[0], n.shape)
     nx, ny = int(kx[ix]), int(ky[iy])
     return [w * i // nx for i in range(nx + 1)], [h * i // ny for i in range(ny + 1)], int(by[iy]), int(bx[ix])
@@ -492,6 +541,12 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     # per plane: label index below each pixel (on its group's labels) and the fraction towards the next
     lower = [np.empty((h, w), np.int16) for _ in fch]
     frac = [np.empty((h, w), np.float32) for _ in fch]
+    # ... and per row, each column cell's least and greatest label below a needed pixel (the tiles' cost)
+    cell = max(TILE_LABEL_CELL_PX, int(np.ceil(np.sqrt(h * w / 4096.0))))
+    cx0 = np.arange(0, w, cell)
+    row_lo = [np.empty((h, len(cx0)), np.int16) for _ in fch]
+    row_hi = [np.empty((h, len(cx0)), np.int16) for _ in fch]
+    row_any = None if needed is None else np.empty((h, len(cx0)), bool)
 
     def label_rows(a: int, b: int) -> None:  # per pixel: in row bands on the compositor's threads
         for c in range(n_p):
@@ -507,9 +562,14 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
             lower[c][a:b] = below
             t -= below
             frac[c][a:b] = np.clip(t, 0.0, 1.0, out=t)
+            # (over all the cell's pixels, needed or not: a wider range errs towards the label-blind choice)
+            row_lo[c][a:b] = np.minimum.reduceat(lower[c][a:b], cx0, axis=1)
+            row_hi[c][a:b] = np.maximum.reduceat(lower[c][a:b], cx0, axis=1)
+        if needed is not None:
+            row_any[a:b] = np.logical_or.reduceat(np.asarray(needed[a:b], bool), cx0, axis=1)
 
     row_bands(label_rows, h)
-    del zb_planes, zb_g  # (the mixed depth maps: the labels are all the tiles need)
+    zb_planes = zb_g = None  # (the mixed depth maps dropped: the labels are all the tiles need)
 
     from ..optics.sweep import rfft_radial_grid
     from .warp import frame_maps, warp_region
@@ -518,7 +578,17 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     # border), and only with the labels and frames its own pixels need: a label's filter then costs a small FFT
     # where the field curvature puts its pixels, not one of the whole image.
     margin = pad + TILE_MARGIN_PX
-    edges_x, edges_y, nb_y, nb_x = tile_grid(w, h, margin, default_workers())
+    # the tiles, costed with the labels each would use (each cell's range of labels)
+    cy0 = np.arange(0, h, cell)
+    cell_lo = [np.minimum.reduceat(r, cy0, axis=0).astype(np.intp) for r in row_lo]
+    cell_hi = [np.maximum.reduceat(r, cy0, axis=0).astype(np.intp) for r in row_hi]
+    if row_any is not None:  # cells without a needed pixel: no labels (lo > hi)
+        empty = ~np.logical_or.reduceat(row_any, cy0, axis=0)
+        for lo_c, hi_c in zip(cell_lo, cell_hi):
+            lo_c[empty], hi_c[empty] = 1, 0
+    edges_x, edges_y, nb_y, nb_x = tile_grid(w, h, margin, default_workers(),
+                                             label_maps=(cy0, cx0, cell_lo, cell_hi, len(zs) * n_p))
+    row_lo = row_hi = row_any = None
     f_grid = rfft_radial_grid((nb_y, nb_x), pitch)
     fmin = 4.0 / (max(shape) * pitch * 1e-3)  # the power law as fitted on the whole image
     # OTFs are radial: each one is a 1-D table gathered onto the grid through one index
@@ -578,7 +648,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         return hit
 
     maps = {}
-    tiles = [(x0, y0, x1, y1) for y0, y1 in zip(edges_y[:-1], edges_y[1:]) for x0, x1 in zip(edges_x[:-1], edges_x[1:])]
+    tiles = [(x0, y0, x1, y1) for y0, y1 in pairwise(edges_y) for x0, x1 in pairwise(edges_x)]
     # tiles run on the compositor's threads, a core each: FFTs split over threads as well would only add their
     # hand-overs (~15 % more CPU for the same transforms, measured on two cores)
     fft_workers = 1 if len(tiles) > 1 and default_workers() > 1 else -1
