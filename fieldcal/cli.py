@@ -140,7 +140,14 @@ def entry() -> None:
     fieldcal registers nothing to run at exit. The interpreter's own teardown (freeing the modules of NumPy,
     SciPy and OpenCV one by one, joining finished worker threads) took ~0.1 s of wall and CPU after a composite
     (docs/benchmarks.md ``bench_composite_speed_s18``) and is skipped. A program calling :func:`main` (the tests)
-    keeps its process."""
+    keeps its process.
+
+    Before :func:`main`, NumPy's f2py and testing are made to load on first use
+    (:func:`fieldcal._startup.defer_unused_numpy_modules`): no command uses them, and SciPy's array-API layer
+    would load them with SciPy (~70 ms of every command's start-up)."""
+    from ._startup import defer_unused_numpy_modules
+
+    defer_unused_numpy_modules()
     status = main()
     for stream in (sys.stdout, sys.stderr):
         try:
