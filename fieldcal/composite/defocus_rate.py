@@ -172,7 +172,11 @@ def _select_patches(kd: np.ndarray, confidence: np.ndarray, n_frames: int, patch
     cells = kd[:ny * stride, :nx * stride].reshape(ny, stride, nx, stride)
     cconf = confidence[:ny * stride, :nx * stride].reshape(ny, stride, nx, stride)
     # per-pixel depths are noisy (a frame or more where texture is faint): each quarter's median
-    qmed, cmed = np.median(cells, axis=(1, 3)), np.median(cconf, axis=(1, 3))
+    # (the two medians at once on the compositor's threads: NumPy's partition releases the GIL, and each took
+    # ~45 ms on the 2048 x 1536 board with a core idle)
+    from .dff import map_in_order
+
+    qmed, cmed = map_in_order(lambda a: np.median(a, axis=(1, 3)), [cells, cconf])
 
     def pool(a, fn):
         return fn(fn(a[:-1, :-1], a[1:, :-1]), fn(a[:-1, 1:], a[1:, 1:]))
