@@ -11,7 +11,7 @@ Only a function that does not change its inputs can be compared this way.
 
 Example (session 20's fine detail)::
 
-    PYTHONPATH=. python benchmarks/composite_ab.py /work/main detail fine_detail /tmp/s13speed/stack 0
+    PYTHONPATH=. python benchmarks/composite_ab.py ../main-checkout detail fine_detail /tmp/s13speed/stack 0
 """
 from __future__ import annotations
 
