@@ -64,8 +64,10 @@ def main(argv: list[str]) -> None:
         return got["this"]
 
     setattr(new_mod, name, compared)
-    out = Path("/tmp") / "composite_ab.tiff"
-    api.composite_to_file(stack, out, z_ref_um=z_ref, quiet=True, overwrite=True)
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="composite_ab-") as tmp:  # the composite itself is not kept
+        api.composite_to_file(stack, Path(tmp) / "composite.tiff", z_ref_um=z_ref, quiet=True)
 
 
 if __name__ == "__main__":

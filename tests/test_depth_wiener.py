@@ -457,5 +457,8 @@ def test_reference_signal_made_beforehand_is_the_calls_own(flat_world):
     with pytest.raises(ParameterError, match="reference signal"):
         wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=ycc, label_um=labels,
                          plane_sigma=[0.02, 0.004, 0.004], signal=sig, quiet=True)
+    with pytest.raises(ParameterError, match="reference signal"):  # made for other label spacings
+        wiener_composite(st, zb, prof, frames, blend, geometry=prof, mix=ycc, label_um=[3.0, 3.0, 25.0],
+                         plane_sigma=sigma, signal=sig, quiet=True)
     with pytest.raises(ParameterError, match="noise levels"):
         reference_signal(blend, prof, st.channels, sigma[:2], mix=ycc, label_um=labels)

@@ -310,7 +310,8 @@ def _depth_composite(stack, profile, frames, zb, defocus, fallback, info: dict, 
                      lateral_colour: bool, fs_cyc_per_mm, q, min_band, tile, quiet: bool) -> np.ndarray:
     """The blend along the best-focus map ``zb``, combined by the Wiener filter where there is a defocus model and
     mixed with the multi-scale fusion where the depth map is unsure (scenes with depth): the image that fine
-    detail is added to."""
+    detail is added to. With a measured defocus the fusion's image is the Wiener step's reference and no blend is
+    made (``signal``, when given, is that reference's :class:`~.depth_wiener.ReferenceSignal`, made on a thread)."""
     dtype = np.dtype(stack.dtype)
     if wiener and measured and fallback is not None:
         # A measured defocus's Wiener step is used only where the depth map is trusted and the fusion is taken

@@ -360,6 +360,8 @@ class ReferenceSignal:
     beta: list
     shape: tuple
     sigma: list
+    #: the planes grouped by label spacing, each group's planes mixed as its own matrix (as the call filters them)
+    groups: list
 
 
 def _plane_setup(channels: tuple, mix, label_um) -> tuple:
@@ -388,6 +390,15 @@ def _plane_setup(channels: tuple, mix, label_um) -> tuple:
     return mix, m32, depth_w, fch, spacing, plane_groups
 
 
+def _plane_sigma(sigma, n_planes: int) -> list[float]:
+    """Pixel noise per filtered plane, checked to be one per plane."""
+    sigma = [float(v) for v in sigma]
+    if len(sigma) != n_planes:
+        raise ParameterError(f"{len(sigma)} plane noise levels for {n_planes} planes", field="plane_sigma",
+                             fix="give one noise level per filtered plane (probe_plane_sigma with the same mix)")
+    return sigma
+
+
 def _group_planes(a: np.ndarray, planes: list, weights, n_groups: int) -> np.ndarray:
     """``a``'s planes of one group: a mix's rows multiplied as the group's own matrix (so the products round as
     they would in a call of its own), or the group's channels."""
@@ -405,10 +416,7 @@ def reference_signal(reference: np.ndarray, model, channels, sigma, *, mix=None,
     ``mix``, ``label_um`` and ``reach_disc_px`` as the call of :func:`wiener_composite` this is for.
     """
     mix, m32, _, fch, _, plane_groups = _plane_setup(tuple(channels), mix, label_um)
-    sigma = [float(v) for v in sigma]
-    if len(sigma) != len(fch):
-        raise ParameterError(f"{len(sigma)} plane noise levels for {len(fch)} planes", field="plane_sigma",
-                             fix="give one noise level per filtered plane (probe_plane_sigma with the same mix)")
+    sigma = _plane_sigma(sigma, len(fch))
     pitch = float(model.pixel_pitch_um)
     pad = _pad_px(reach_disc_px)
     planes_out, a_sig, beta, shape = [None] * len(fch), [0.0] * len(fch), [0.0] * len(fch), None
@@ -420,7 +428,7 @@ def reference_signal(reference: np.ndarray, model, channels, sigma, *, mix=None,
                                                           for c in planes], [max(sigma[c], 1e-6) for c in planes])
         for j, c in enumerate(planes):
             planes_out[c], a_sig[c], beta[c] = ref_g[..., j], a_g[j], b_g[j]
-    return ReferenceSignal(planes_out, a_sig, beta, shape, sigma)
+    return ReferenceSignal(planes_out, a_sig, beta, shape, sigma, plane_groups)
 
 
 def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray, *, geometry=None,
@@ -505,10 +513,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     from .source import default_workers
 
     if plane_sigma is not None:
-        sigma = [float(v) for v in plane_sigma]
-        if len(sigma) != len(fch):
-            raise ParameterError(f"{len(sigma)} plane noise levels for {len(fch)} planes", field="plane_sigma",
-                                 fix="give one noise level per filtered plane (probe_plane_sigma with the same mix)")
+        sigma = _plane_sigma(plane_sigma, n_p)
     elif noise_sigma is None:
         sigma = probe_plane_sigma(stack, frames, geometry=geometry, lateral_colour=lateral_colour, mix=mix)
     else:
@@ -521,9 +526,10 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
     if signal is None:
         signal = reference_signal(reference, model, channels, sigma, mix=mix, label_um=label_um,
                                   reach_disc_px=reach_disc_px)
-    elif len(signal.planes) != n_p or [float(v) for v in signal.sigma] != sigma:
-        raise ParameterError(f"the reference signal was made for {len(signal.planes)} planes with noise "
-                             f"{signal.sigma}, this call filters {n_p} with noise {sigma}", field="signal",
+    elif len(signal.planes) != n_p or signal.sigma != sigma or signal.groups != plane_groups:
+        raise ParameterError(f"the reference signal was made for {len(signal.planes)} planes (grouped "
+                             f"{signal.groups}) with noise {signal.sigma}, this call filters {n_p} (grouped "
+                             f"{plane_groups}) with noise {sigma}", field="signal",
                              fix="make it with reference_signal for this call's mix, label spacings and noise")
     ref_planes, a_sig, beta, shape = list(signal.planes), signal.a_sig, signal.beta, signal.shape
     zb_planes = [None] * n_p
@@ -791,6 +797,7 @@ def wiener_composite(stack, zb: np.ndarray, model, frames, reference: np.ndarray
         for g in range(len(plane_groups)):
             n_filters[g] += nf[g]
             n_frames_used[g] += used_frames[g]
+
     def group_info(g: int) -> dict:
         planes = plane_groups[g]
         info = {"noise_sigma": [round(sigma[c], 3) for c in planes], "tiles": len(tiles), "filters": n_filters[g],
